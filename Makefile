@@ -1,0 +1,42 @@
+# weathergen: set-up, tests, demo and benchmarks in a local virtual environment.
+#
+#   make test                  create .venv, install the pinned CPU torch, the package, run the tests
+#   make demo                  render the default preset on the bundled demo scene
+#   make bench                 print speed and memory figures
+#   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
+
+PYTHON ?= python3
+VENV   ?= .venv
+TORCH  ?= torch==2.13.0
+PYTEST_ARGS ?=
+BIN    := $(VENV)/bin
+STAMP  := $(VENV)/.weathergen-deps
+
+.PHONY: venv install test demo bench clean
+
+venv: $(STAMP)
+
+# Torch comes first and on its own: an unpinned torch pulled in as a dependency would fetch
+# gigabytes of CUDA packages, while the pinned one is a CPU build.
+$(STAMP): setup.cfg pyproject.toml
+	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	$(BIN)/python -m pip install -q "$(TORCH)"
+	$(BIN)/python -m pip install -q ".[test]"
+	touch $(STAMP)
+
+# A regular (non-editable) install, so that a file missing from the distribution fails here.
+install: $(STAMP)
+	$(BIN)/python -m pip install -q --no-deps --force-reinstall .
+
+test: install
+	$(BIN)/pytest -q $(PYTEST_ARGS)
+
+demo: install
+	$(BIN)/weathergen demo-scene out/demo-scene
+	$(BIN)/weathergen check --root out/demo-scene
+
+bench: install
+	$(BIN)/python benchmarks/bench.py
+
+clean:
+	rm -rf $(VENV) build *.egg-info out

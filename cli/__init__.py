@@ -1,0 +1,1 @@
+"""The ``weathergen`` command line (installed as ``weathergen.cli``)."""
