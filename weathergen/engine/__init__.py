@@ -1,0 +1,1 @@
+"""The particle engine: presets, billboard templates, particle sampling and the differentiable renderer."""

@@ -1,0 +1,1 @@
+"""Optical-flow networks behind one contract, looked up by name."""
