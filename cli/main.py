@@ -28,7 +28,8 @@ def cli():
 
 
 def _register():
-    from . import check, demo_scene, presets_cmd, render  # noqa: F401  (each module adds its command)
+    from . import (attack, check, demo_scene, evaluate, presets_cmd,  # noqa: F401
+                   render)  # (each module adds its command)
 
 
 def main(argv=None):

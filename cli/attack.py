@@ -1,0 +1,201 @@
+"""``weathergen attack``: optimise weather against a flow network, pair by pair."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+from rich.console import Console
+from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+from rich.table import Table
+
+from .main import cli
+from .options import dataset_options
+
+
+def _fmt(value, digits: int = 3) -> str:
+    return "–" if value is None else f"{value:.{digits}f}"
+
+
+def summary_table(title: str, summary: dict, rows: list) -> Table:
+    """Per-pair figures and their mean (pixels)."""
+    table = Table(title=title)
+    columns = ("pair", "best step", "AEE(f, f̌) random", "AEE(f, f̌) adversarial",
+               "AEE(f̌, target) start", "AEE(f̌, target) best", "EPE clean", "EPE random",
+               "EPE adversarial")
+    for i, col in enumerate(columns):
+        table.add_column(col, justify="left" if i == 0 else "right")
+    for r in rows:
+        table.add_row(r.pair, f"{r.best_step}/{r.steps}", _fmt(r.aee_random),
+                      _fmt(r.aee_adversarial), _fmt(r.target_initial),
+                      _fmt(r.target_adversarial), _fmt(r.epe_benign), _fmt(r.epe_random),
+                      _fmt(r.epe_adversarial))
+    if len(rows) > 1:
+        table.add_section()
+        table.add_row(f"mean of {summary['pairs']}", "", _fmt(summary["aee_random"]),
+                      _fmt(summary["aee_adversarial"]), _fmt(summary["target_initial"]),
+                      _fmt(summary["target_adversarial"]), _fmt(summary["epe_benign"]),
+                      _fmt(summary["epe_random"]), _fmt(summary["epe_adversarial"]))
+    return table
+
+
+@cli.command()
+@dataset_options
+@click.option("--model", default="raft", show_default=True,
+              help="Flow network or checkpoint name (raft, raft-small, raft-things, ...).")
+@click.option("--checkpoint", default=None,
+              help="Checkpoint file or name. Default: the model's own, from the user cache.")
+@click.option("--iters", type=click.IntRange(min=1), default=None,
+              help="Refinement iterations of recurrent networks. Default: the network's (12).")
+@click.option("--config", "config_name", default=None, metavar="NAME",
+              help="An attack configuration of the paper's supplement (grey-offset1, "
+                   "grey-offset2, grey-color, grey-transparency, grey-offsets, grey-appearance, "
+                   "grey-all, snow, rain, sparks, fog): sets preset, --optimize, --lr and the "
+                   "occlusion gradient; explicit options win.")
+@click.option("--preset", default=None,
+              help="Weather preset the particles are sampled from. Default: the --config's "
+                   "preset, else snow.")
+@click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
+              help="Override one preset key (repeatable), e.g. --set count=500.")
+@click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
+              default=None, help="Start from the particles of an earlier render (or attack) "
+                                 "output instead of sampling.")
+@click.option("--steps", type=click.IntRange(min=0), default=750, show_default=True,
+              help="Adam steps per pair.")
+@click.option("--optimize", default=None, metavar="A,B,...",
+              help="Variables to optimise: offset1, offset2, color, transparency (or 'all'). "
+                   "Default: the --config's, else all (fog: all but offset2).")
+@click.option("--lr", type=float, default=None,
+              help="Adam learning rate. Default: 1e-5 when an offset is optimised, else 1e-3.")
+@click.option("--alpha1", type=float, default=1000.0, show_default=True,
+              help="Weight of the frame-1 offset penalty.")
+@click.option("--alpha2", type=float, default=1000.0, show_default=True,
+              help="Weight of the frame-2 offset penalty.")
+@click.option("--target", "target_text", default="zero", show_default=True,
+              help="Target flow: zero, negative (minus the benign flow), U,V (constant, pixels) "
+                   "or a .flo file.")
+@click.option("--occlusion-gradient/--no-occlusion-gradient", default=None,
+              help="Soften occlusion (beta 30 instead of 250) so gradients pass through it. "
+                   "Default: on for fog, off otherwise.")
+@click.option("--gradient-checkpointing", is_flag=True,
+              help="Recompute the network's refinement steps in the backward pass (less memory, "
+                   "more time).")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder. Default: out/attack-<config or preset>.")
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Run seed; each pair's particles are seeded as by `weathergen render`.")
+@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
+@click.option("--resume", is_flag=True, help="Finish an interrupted run: skip finished pairs.")
+@click.option("--overwrite", is_flag=True, help="Redo every pair, even in a folder that holds one.")
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
+def attack(dataset, model, checkpoint, iters, config_name, preset, set_items, particles_dir, steps,
+           optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, gradient_checkpointing,
+           out, seed, device, resume, overwrite, quiet):
+    """Optimise weather particles so that a flow network's output moves towards a target.
+
+    With no option it attacks RAFT with snow on the bundled demo scene into out/attack-snow.
+    Writes adversarial frames, best particles (re-render them with `weathergen render
+    --particles OUT`), flows, a per-step log, manifest.json and summary.json.
+    """
+    from weathergen.attack import (ATTACK_CONFIGS, OPTIMIZABLE, AttackSettings, attack_config,
+                                   parse_optimize, parse_target)
+    from weathergen.attack_job import AttackJob, run_attack
+    from weathergen.engine import BETA_ATTACK, BETA_RENDER, resolve_device
+
+    from .render import resolve_preset
+
+    resolve_device(device)
+    target = parse_target(target_text)
+    config = attack_config(config_name) if config_name else None
+    preset_name = preset or (config.preset if config else "snow")
+    if config is None and preset_name in ATTACK_CONFIGS:
+        config = ATTACK_CONFIGS[preset_name]    # e.g. --preset fog behaves like the fog attack
+    if optimize is not None:
+        variables = parse_optimize(optimize)
+    else:
+        variables = config.optimize if config else OPTIMIZABLE
+    if lr is None and config is not None and variables == config.optimize:
+        lr = config.lr
+    if occlusion_gradient is None:
+        occlusion_gradient = bool(config and config.occlusion_gradient)
+    settings = AttackSettings(optimize=variables, steps=steps, lr=lr, alpha1=alpha1,
+                              alpha2=alpha2, beta=BETA_ATTACK if occlusion_gradient else BETA_RENDER)
+    preset_obj, name, appearance = resolve_preset(preset_name, None, set_items, particles_dir)
+    if appearance:
+        from weathergen.errors import ConfigError
+
+        raise ConfigError("--set cannot change stored particles in an attack; re-render them "
+                          "with `weathergen render --particles` instead")
+    label = config_name or name
+    out = out or Path("out") / f"attack-{label}"
+    job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
+                    preset=preset_obj, preset_name=name, settings=settings, target=target,
+                    iters=iters, seed=seed, device=device, particles_from=particles_dir,
+                    config_name=config_name, pass_name=f"{name}_adv_{dataset.selection.pass_}",
+                    gradient_checkpointing=gradient_checkpointing, resume=resume,
+                    overwrite=overwrite, command=["weathergen", *sys.argv[1:]])
+
+    console = Console()
+    err = Console(stderr=True)
+    interactive = console.is_terminal and not quiet
+    state = {"n": 0, "i": 0, "pair": "", "best": None}
+    rows = []
+    failed = []
+    progress = task = None
+    total_steps = int(steps)
+
+    def on_start(n):
+        nonlocal task
+        state["n"] = n
+        if progress is not None:
+            task = progress.add_task("attack", total=n * (total_steps + 1), pair="", status="")
+
+    def on_pair_start(i, pair_name):
+        state.update(i=i, pair=pair_name, best=None)
+
+    def on_step(rec):
+        text = (f"pair {state['i'] + 1}/{state['n']} {state['pair']}  step {rec.step}/{total_steps}"
+                f"  loss {rec.loss:.4f}  best {rec.best_distance:.4f}")
+        if progress is not None:
+            progress.update(task, advance=1, status=text)
+        elif not quiet and (rec.step % 50 == 0 or rec.step == total_steps):
+            console.print(text, highlight=False)
+
+    def on_pair_done(report):
+        if report.summary is not None:
+            rows.append(report.summary)
+        if report.status == "failed":
+            failed.append(report)
+            (progress.console if progress else err).print(
+                f"[red]failed[/red] {report.pair}: {report.message}", highlight=False)
+        if progress is not None and report.status != "written":
+            progress.update(task, advance=total_steps + 1)
+        if not quiet and progress is None and report.status != "failed":
+            s = report.summary
+            console.print(f"[{state['i'] + 1}/{state['n']}] {report.pair} {report.status}: "
+                          f"AEE(f, f̌) random {s.aee_random:.3f} -> adversarial "
+                          f"{s.aee_adversarial:.3f}, distance to target {s.target_initial:.3f} "
+                          f"-> {s.target_adversarial:.3f}", highlight=False)
+
+    if interactive:
+        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+                            MofNCompleteColumn(), TimeElapsedColumn(),
+                            TextColumn("{task.fields[status]}"), console=console)
+    try:
+        if progress is not None:
+            with progress:
+                summary = run_attack(job, on_start, on_pair_start, on_step, on_pair_done)
+        else:
+            summary = run_attack(job, on_start, on_pair_start, on_step, on_pair_done)
+    except KeyboardInterrupt:
+        err.print(f"Interrupted after {len(rows)} pairs; rerun with --resume to continue at the "
+                  f"next unfinished pair.")
+        sys.exit(130)
+    if not quiet:
+        console.print(summary_table(f"weathergen attack: {model} / {label} -> {out} "
+                                    f"(pixels; target {target.describe()})", summary, rows))
+        console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False)
+    if failed:
+        err.print(f"[red]{len(failed)} pair(s) failed[/red]; see the messages above.")
+        sys.exit(1)

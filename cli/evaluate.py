@@ -1,0 +1,75 @@
+"""``weathergen evaluate``: how much rendered weather changes a flow network's output."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import click
+from rich.console import Console
+from rich.table import Table
+
+from .main import cli
+
+
+def _fmt(value) -> str:
+    return "–" if value is None else f"{value:.3f}"
+
+
+@cli.command()
+@click.option("--weather", "weather_dir", required=True,
+              type=click.Path(file_okay=False, path_type=Path),
+              help="Folder written by `weathergen render` (or `weathergen attack`).")
+@click.option("--model", default="raft", show_default=True,
+              help="Flow network or checkpoint name (raft, raft-small, raft-things, ...).")
+@click.option("--checkpoint", default=None,
+              help="Checkpoint file or name. Default: the model's own, from the user cache.")
+@click.option("--iters", type=click.IntRange(min=1), default=None,
+              help="Refinement iterations of recurrent networks. Default: the network's (12).")
+@click.option("--dataset", "dataset_name", default=None,
+              help="Dataset of the clean frames. Default: as recorded in the weather folder.")
+@click.option("--root", default=None, type=click.Path(path_type=str),
+              help="Where the clean dataset is stored. Default: as recorded.")
+@click.option("--pass", "pass_", default=None,
+              help="Clean pass (Sintel: clean or final). Default: as recorded.")
+@click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
+              default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json.")
+@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
+def evaluate(weather_dir, model, checkpoint, iters, dataset_name, root, pass_, json_path, device,
+             quiet):
+    """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
+
+    Also reports the end-point error against ground truth, for the clean and the weather frames,
+    where the dataset has it. All figures are in pixels.
+    """
+    from weathergen.engine import resolve_device
+    from weathergen.evaluate import WeatherFolder, run_evaluation, write_evaluation
+    from weathergen.models import get_model
+
+    resolve_device(device)
+    folder = WeatherFolder.open(weather_dir)
+    dataset = folder.clean_dataset(dataset_name, root, pass_)
+    network = get_model(model, checkpoint, device=device, iters=iters)
+    console = Console()
+
+    def on_pair(row):
+        if not quiet:
+            console.print(f"{row.pair}: AEE(f, f̌) {row.aee_weather:.3f}", highlight=False)
+
+    rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
+    info = {"model": model, "checkpoint": checkpoint, "iters": iters,
+            "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
+    json_path = json_path or weather_dir / f"evaluate-{model}.json"
+    write_evaluation(json_path, info, rows, summary)
+    if quiet:
+        return
+    table = Table(title=f"weathergen evaluate: {model} on {weather_dir} (pixels)")
+    for i, col in enumerate(("pair", "AEE(f, f̌)", "EPE clean", "EPE weather")):
+        table.add_column(col, justify="left" if i == 0 else "right")
+    for r in rows:
+        table.add_row(r.pair, _fmt(r.aee_weather), _fmt(r.epe_clean), _fmt(r.epe_weather))
+    table.add_section()
+    table.add_row(f"mean of {summary['pairs']}", _fmt(summary["aee_weather"]),
+                  _fmt(summary["epe_clean"]), _fmt(summary["epe_weather"]))
+    console.print(table)
+    console.print(f"Figures: {json_path}", highlight=False)

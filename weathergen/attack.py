@@ -1,0 +1,510 @@
+"""Adversarial weather: optimise particle offsets, colours and transparencies against a flow network.
+
+This module owns the optimisation loop of the paper's Section 3.2 and nothing else: tensors in,
+tensors out, no file I/O (the job runner in :mod:`weathergen.attack_job` reads and writes).
+
+The free variables (all start at zero, so step 0 is the random, unoptimised weather):
+
+- ``offset1`` Δ1 (N, 3) and ``offset2`` Δ2 (N, 3), added to the record's offsets δ1, δ2 (scene
+  units, the record's reference-frame axes; δ1 moves the particle before its motion, δ2 after it);
+- ``color`` (N, 3) and ``transparency`` (N,), offsets in the unbounded atanh domain
+  ``η = atanh(2ξ − 1)``: the particle gets ``ξ = from_atanh(η0 + Δ)``, which can never leave
+  (0, 1) (Carlini–Wagner box trick). Transparencies may exceed 1 (glowing sparks), so θ is
+  divided by ``θ_max = max(1, max θ)`` before the transform and multiplied back after it.
+
+Loss (pixels)::
+
+    L = AEE(f̌, f_target) + Σ_t α_t / |P| Σ_j ‖δ_t^j‖² / d_t^j
+
+with ``f̌`` the flow on the weather frames, ``δ_t`` the particle's total offset and ``d_t`` its
+camera depth in frame ``t`` before the attack (fixed, and clamped to at least
+:data:`MIN_REG_DEPTH` for particles behind one of the cameras, which would otherwise flip the
+sign of the penalty). Optimiser: Adam. Every step is measured; the step with the lowest
+``AEE(f̌, f_target)`` (the *distance to the target*) is kept.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Optional
+
+import torch
+
+from .errors import ConfigError
+from .flow import aee
+from .framepair import FramePair
+
+#: The particle variables an attack may optimise, in their canonical order.
+OPTIMIZABLE = ("offset1", "offset2", "color", "transparency")
+POSITION_VARIABLES = ("offset1", "offset2")
+#: Paper defaults (Section 4.2 and the supplement's attack-configuration table).
+DEFAULT_STEPS = 750
+DEFAULT_ALPHA = 1000.0
+LR_POSITIONS = 1e-5
+LR_APPEARANCE = 1e-3
+#: Smallest particle depth (scene units) used in the offset penalty.
+MIN_REG_DEPTH = 1e-3
+
+
+def parse_optimize(text: str) -> tuple[str, ...]:
+    """``"offset1,color"`` -> ``("offset1", "color")`` in canonical order; ``"all"`` -> all four.
+
+    Raises ConfigError naming the unknown entries and listing the valid ones.
+    """
+    names = [t.strip() for t in str(text).split(",") if t.strip()]
+    if names == ["all"]:
+        return OPTIMIZABLE
+    unknown = [n for n in names if n not in OPTIMIZABLE]
+    if unknown:
+        raise ConfigError(f"--optimize: unknown variable(s) {', '.join(map(repr, unknown))}; "
+                          f"choose from {', '.join(OPTIMIZABLE)} (comma-separated) or 'all'")
+    if not names:
+        raise ConfigError(f"--optimize: name at least one of {', '.join(OPTIMIZABLE)}")
+    return tuple(n for n in OPTIMIZABLE if n in names)
+
+
+def default_lr(optimize: tuple[str, ...]) -> float:
+    """1e-5 when positions move (their scale is scene units), 1e-3 for colour/transparency only."""
+    return LR_POSITIONS if any(v in POSITION_VARIABLES for v in optimize) else LR_APPEARANCE
+
+
+# -- attack configurations ----------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class AttackConfig:
+    """One row of the supplement's "Attack configurations" table (all: Adam, 750 steps,
+    α1 = α2 = 1000, Sintel-tr115 = ``--frames-per-scene 5``)."""
+
+    name: str
+    preset: str
+    optimize: tuple[str, ...]
+    lr: float
+    occlusion_gradient: bool = False
+    description: str = ""
+
+
+def _configs(*rows: AttackConfig) -> dict[str, AttackConfig]:
+    return {r.name: r for r in rows}
+
+
+ATTACK_CONFIGS: dict[str, AttackConfig] = _configs(
+    AttackConfig("grey-offset1", "grey", ("offset1",), LR_POSITIONS,
+                 description="grey particles, offset before the motion only"),
+    AttackConfig("grey-offset2", "grey", ("offset2",), LR_POSITIONS,
+                 description="grey particles, offset after the motion only"),
+    AttackConfig("grey-color", "grey", ("color",), LR_APPEARANCE,
+                 description="grey particles, colour only"),
+    AttackConfig("grey-transparency", "grey", ("transparency",), LR_APPEARANCE,
+                 description="grey particles, transparency only"),
+    AttackConfig("grey-offsets", "grey", ("offset1", "offset2"), LR_POSITIONS,
+                 description="grey particles, both offsets (the paper's δ_{1,2})"),
+    AttackConfig("grey-appearance", "grey", ("color", "transparency"), LR_APPEARANCE,
+                 description="grey particles, colour and transparency"),
+    AttackConfig("grey-all", "grey", OPTIMIZABLE, LR_POSITIONS,
+                 description="grey particles, every variable"),
+    AttackConfig("snow", "snow", OPTIMIZABLE, LR_POSITIONS, description="adversarial snow"),
+    AttackConfig("rain", "rain", OPTIMIZABLE, LR_POSITIONS, description="adversarial rain"),
+    AttackConfig("sparks", "sparks", OPTIMIZABLE, LR_POSITIONS, description="adversarial sparks"),
+    AttackConfig("fog", "fog", ("offset1", "color", "transparency"), LR_POSITIONS,
+                 occlusion_gradient=True,
+                 description="adversarial fog: second offset fixed, gradient through occlusion"),
+)
+
+
+def attack_config(name: str) -> AttackConfig:
+    """The configuration called ``name``; ConfigError lists the known ones."""
+    try:
+        return ATTACK_CONFIGS[name]
+    except KeyError:
+        raise ConfigError(f"unknown attack configuration {name!r}; known: "
+                          f"{', '.join(ATTACK_CONFIGS)}") from None
+
+
+# -- targets ------------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class TargetSpec:
+    """What flow the attack pushes the network towards.
+
+    kind: ``"zero"``, ``"negative"`` (minus the benign flow), ``"constant"`` (``value`` = (u, v)
+    pixels) or ``"file"`` (a ``.flo`` at ``path``, read by the job runner).
+    """
+
+    kind: str
+    value: tuple[float, float] = (0.0, 0.0)
+    path: Optional[Path] = None
+
+    def describe(self) -> str:
+        if self.kind == "constant":
+            return f"constant {self.value[0]:g},{self.value[1]:g}"
+        if self.kind == "file":
+            return f"file {self.path}"
+        return self.kind
+
+
+def parse_target(text: str) -> TargetSpec:
+    """``zero`` | ``negative`` | ``U,V`` (pixels) | a path to a ``.flo`` file."""
+    t = str(text).strip()
+    if t in ("zero", "negative"):
+        return TargetSpec(t)
+    if "," in t and not t.lower().endswith(".flo"):
+        parts = t.split(",")
+        try:
+            u, v = (float(p) for p in parts)
+        except ValueError:
+            raise ConfigError(f"--target {text!r}: a constant target is two numbers U,V in "
+                              "pixels, e.g. 0,-5") from None
+        if not (math.isfinite(u) and math.isfinite(v)):
+            raise ConfigError(f"--target {text!r}: U and V must be finite")
+        return TargetSpec("constant", (u, v))
+    if t.lower().endswith(".flo"):
+        return TargetSpec("file", path=Path(t))
+    raise ConfigError(f"--target {text!r}: expected zero, negative, U,V (pixels) or a .flo file")
+
+
+def target_flow(spec: TargetSpec, benign: torch.Tensor,
+                file_flow: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """The target flow for one pair.
+
+    Shape: benign (B, 2, H, W) pixels; file_flow (2, H, W) for ``kind == "file"``;
+    returns (B, 2, H, W) on the benign flow's device, without gradient.
+    """
+    benign = benign.detach()
+    if spec.kind == "zero":
+        return torch.zeros_like(benign)
+    if spec.kind == "negative":
+        return -benign
+    if spec.kind == "constant":
+        value = torch.tensor(spec.value, dtype=benign.dtype, device=benign.device)
+        return value.view(1, 2, 1, 1).expand_as(benign).clone()
+    if spec.kind == "file":
+        if file_flow is None:
+            raise ValueError("a file target needs the flow read from the file")
+        if tuple(file_flow.shape[-2:]) != tuple(benign.shape[-2:]):
+            raise ConfigError(f"{spec.path}: target flow is {file_flow.shape[-1]}x"
+                              f"{file_flow.shape[-2]} but the frames are {benign.shape[-1]}x"
+                              f"{benign.shape[-2]}")
+        return file_flow.to(benign).expand_as(benign).clone()
+    raise ValueError(f"unknown target kind {spec.kind!r}")
+
+
+# -- the parametrisation --------------------------------------------------------------------------
+
+class WeatherVariables:
+    """The attack's free variables and the map from them to a differentiable particle record.
+
+    Args:
+        particles: the starting record (N particles); any device, float fields float32.
+        optimize: which of :data:`OPTIMIZABLE` to free.
+    The record's other fields (positions, motions, templates, ...) stay fixed.
+    """
+
+    def __init__(self, particles, optimize: tuple[str, ...]):
+        self.base = particles
+        self.optimize = tuple(optimize)
+        dev, dtype = particles.position.device, particles.position.dtype
+        n = particles.count
+        self.theta_max = max(1.0, float(particles.transparency.max())) if n else 1.0
+        from .engine.particles import to_atanh
+
+        self.eta_color = to_atanh(particles.color.detach())
+        self.eta_theta = to_atanh(particles.transparency.detach() / self.theta_max)
+        shapes = {"offset1": (n, 3), "offset2": (n, 3), "color": (n, 3), "transparency": (n,)}
+        self.delta = {name: torch.zeros(shapes[name], dtype=dtype, device=dev, requires_grad=True)
+                      for name in self.optimize}
+
+    def parameters(self) -> list[torch.Tensor]:
+        return list(self.delta.values())
+
+    def particles(self):
+        """The current record; differentiable in the freed variables. Fixed fields are the
+        starting record's tensors (a variable not optimised keeps its exact starting value)."""
+        from .engine.particles import from_atanh
+
+        b, d = self.base, self.delta
+        changes = {}
+        if "offset1" in d:
+            changes["offset1"] = b.offset1 + d["offset1"]
+        if "offset2" in d:
+            changes["offset2"] = b.offset2 + d["offset2"]
+        if "color" in d:
+            changes["color"] = from_atanh(self.eta_color + d["color"])
+        if "transparency" in d:
+            changes["transparency"] = self.theta_max * from_atanh(self.eta_theta
+                                                                  + d["transparency"])
+        return b.replace(**changes)
+
+
+def particle_depths(particles, cam1_from_ref: torch.Tensor, cam2_from_ref: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera depth of every particle in frame 1 (at P + δ1) and frame 2 (at P + δ1 + M + δ2).
+
+    Shape: cam*_from_ref (4, 4); returns two (N,) tensors in scene units, clamped to at least
+    :data:`MIN_REG_DEPTH`, without gradient.
+    """
+    from .geometry import transform_points
+
+    with torch.no_grad():
+        p = particles.position.double() + particles.offset1.double()
+        q = p + particles.motion.double() + particles.offset2.double()
+        z1 = transform_points(cam1_from_ref.double().to(p.device), p)[:, 2]
+        z2 = transform_points(cam2_from_ref.double().to(p.device), q)[:, 2]
+    dtype = particles.position.dtype
+    return z1.clamp(min=MIN_REG_DEPTH).to(dtype), z2.clamp(min=MIN_REG_DEPTH).to(dtype)
+
+
+def offset_penalty(offset1: torch.Tensor, offset2: torch.Tensor, depth1: torch.Tensor,
+                   depth2: torch.Tensor, alpha1: float, alpha2: float) -> torch.Tensor:
+    """``Σ_t α_t / |P| Σ_j ‖δ_t^j‖² / d_t^j``. Shape: offsets (N, 3), depths (N,) -> 0-d."""
+    n = offset1.shape[0]
+    if n == 0:
+        return offset1.sum() * 0
+    term1 = (offset1.pow(2).sum(-1) / depth1).sum()
+    term2 = (offset2.pow(2).sum(-1) / depth2).sum()
+    return (alpha1 * term1 + alpha2 * term2) / n
+
+
+def attack_loss(flow: torch.Tensor, target: torch.Tensor, particles, depth1: torch.Tensor,
+                depth2: torch.Tensor, alpha1: float = DEFAULT_ALPHA,
+                alpha2: float = DEFAULT_ALPHA) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The paper's loss. Shape: flow, target (B, 2, H, W) pixels; depths (N,).
+
+    Returns ``(loss, distance, penalty)``: 0-d tensors, ``distance = mean_B AEE(flow, target)``.
+    """
+    distance = aee(flow, target).mean()
+    penalty = offset_penalty(particles.offset1, particles.offset2, depth1, depth2, alpha1, alpha2)
+    return distance + penalty, distance, penalty
+
+
+# -- the loop -----------------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class AttackSettings:
+    """How one pair is attacked.
+
+    optimize: the freed variables; steps: Adam updates (``steps + 1`` evaluations: step 0 is the
+    unoptimised weather); lr: ``None`` for :func:`default_lr`; alpha1/alpha2: penalty weights;
+    beta: occlusion sharpness of the renderer during the attack (``BETA_ATTACK`` = 30 to
+    differentiate through occlusion, ``BETA_RENDER`` = 250 otherwise).
+    """
+
+    optimize: tuple[str, ...] = OPTIMIZABLE
+    steps: int = DEFAULT_STEPS
+    lr: Optional[float] = None
+    alpha1: float = DEFAULT_ALPHA
+    alpha2: float = DEFAULT_ALPHA
+    beta: float = 250.0
+
+    def __post_init__(self):
+        parse_optimize(",".join(self.optimize))  # validates names and non-emptiness
+        if int(self.steps) < 0:
+            raise ConfigError(f"--steps must be >= 0, got {self.steps}")
+        if self.lr is not None and not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ConfigError(f"--lr must be a positive number, got {self.lr}")
+        for name in ("alpha1", "alpha2"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ConfigError(f"--{name} must be a finite number >= 0, got {v}")
+        if not (self.beta > 0 and math.isfinite(self.beta)):
+            raise ConfigError(f"occlusion beta must be positive, got {self.beta}")
+
+    @property
+    def learning_rate(self) -> float:
+        return self.lr if self.lr is not None else default_lr(self.optimize)
+
+    def to_dict(self) -> dict:
+        return {"optimize": list(self.optimize), "steps": int(self.steps),
+                "lr": self.learning_rate, "alpha1": self.alpha1, "alpha2": self.alpha2,
+                "beta": self.beta}
+
+
+@dataclass
+class StepRecord:
+    """One evaluated step. Distances in pixels; ``robustness`` is AEE(f, f̌) against the benign
+    flow; ``best_distance`` the lowest distance so far (never increases)."""
+
+    step: int
+    loss: float
+    distance: float
+    penalty: float
+    robustness: float
+    best_distance: float
+    seconds: float
+
+
+@dataclass
+class AttackResult:
+    """Outcome of :func:`attack_pair`.
+
+    Shape: benign_flow, initial_flow, best_flow, target (1, 2, H, W) pixels, on the CPU;
+    best_particles a detached CPU record (float32, not yet quantised to storage precision).
+    """
+
+    best_particles: object
+    best_step: int
+    history: list[StepRecord]
+    benign_flow: torch.Tensor
+    initial_flow: torch.Tensor
+    best_flow: torch.Tensor
+    target: torch.Tensor
+    frozen: bool = False    # True when no variable could influence the loss (nothing visible)
+
+
+def _snapshot(particles):
+    """A detached CPU copy of a record."""
+    from .engine.particles import _TENSOR_FIELDS
+
+    return particles.replace(**{n: getattr(particles, n).detach().cpu().clone()
+                                for n in _TENSOR_FIELDS})
+
+
+def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: AttackSettings,
+                target: TargetSpec = TargetSpec("zero"), *, device=None,
+                target_file_flow: Optional[torch.Tensor] = None,
+                on_step: Callable[[StepRecord], None] = lambda r: None,
+                should_stop: Callable[[], bool] = lambda: False) -> AttackResult:
+    """Optimise ``particles`` in ``pair`` against ``model``.
+
+    Args:
+        model: a flow network with the package contract, (1, 3, H, W) x2 -> (1, 2, H, W); its
+            parameters are not changed.
+        pair: the frame pair (clean frames, depth, cameras).
+        particles: the starting record for this pair (e.g. from ``sample_particles``).
+        settings: :class:`AttackSettings`.
+        target: :class:`TargetSpec`; for ``"file"`` pass the file's flow as ``target_file_flow``
+            (2, H, W).
+        device: where rendering and the network run (default: the model's device).
+        on_step: called with every :class:`StepRecord` (for progress reports).
+        should_stop: polled after every step; ``True`` ends the loop early (best so far kept).
+    Returns: :class:`AttackResult`.
+    """
+    from .engine.render import build_stamps, render
+    from .engine.sampling import check_pair_for_engine, reference_transforms
+    from .engine.templates import load_templates
+
+    check_pair_for_engine(pair)
+    if device is None:
+        params = list(model.parameters())
+        device = params[0].device if params else torch.device("cpu")
+    device = torch.device(device)
+    pair = pair.to(device)
+    frame, c1, c2 = reference_transforms(pair)
+    if particles.frame != frame:
+        raise ConfigError(f"particles live in {particles.frame} coordinates but the frame pair "
+                          f"offers {frame} coordinates (sample them for this pair)")
+    particles = particles.to(device=device, dtype=torch.float32)
+    image1, image2 = pair.image1[None], pair.image2[None]
+    depth1, depth2 = pair.depth1[None], pair.depth2[None]
+    intrinsics, c1, c2 = pair.intrinsics[None], c1[None], c2[None]
+
+    with torch.no_grad():
+        benign = model(image1, image2)
+    goal = target_flow(target, benign, target_file_flow)
+
+    templates = load_templates(particles.templates)
+    # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
+    stamps = build_stamps([particles], templates, device=device) if particles.count else None
+    variables = WeatherVariables(particles, settings.optimize)
+    reg_depth1, reg_depth2 = particle_depths(particles, c1[0], c2[0])
+    optimizer = torch.optim.Adam(variables.parameters(), lr=settings.learning_rate)
+
+    history: list[StepRecord] = []
+    best = math.inf
+    best_step, best_particles, best_flow, initial_flow = 0, None, None, None
+    frozen = False
+    steps = int(settings.steps)
+    for step in range(steps + 1):
+        t0 = time.perf_counter()
+        current = variables.particles()
+        out = render(image1, image2, depth1, depth2, intrinsics, c1, c2, current, templates,
+                     beta=settings.beta, stamps=stamps)
+        flow = model(out.image1, out.image2)
+        loss, distance, penalty = attack_loss(flow, goal, current, reg_depth1, reg_depth2,
+                                              settings.alpha1, settings.alpha2)
+        dist = float(distance.detach())
+        if step == 0:
+            initial_flow = flow.detach().cpu()
+        if dist < best or best_particles is None:
+            best, best_step = dist, step
+            best_particles, best_flow = _snapshot(current), flow.detach().cpu()
+        last = step == steps or should_stop()
+        if not last:
+            if not loss.requires_grad:
+                # No particle reaches the frames and no penalty depends on a freed variable:
+                # there is nothing to optimise.
+                frozen, last = True, True
+            else:
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                optimizer.step()
+        record = StepRecord(step=step, loss=float(loss.detach()), distance=dist,
+                            penalty=float(penalty.detach()),
+                            robustness=float(aee(flow.detach(), benign).mean()),
+                            best_distance=best, seconds=time.perf_counter() - t0)
+        history.append(record)
+        on_step(record)
+        del out, flow, loss, distance, penalty, current
+        if last:
+            break
+    return AttackResult(best_particles=best_particles, best_step=best_step, history=history,
+                        benign_flow=benign.cpu(), initial_flow=initial_flow,
+                        best_flow=best_flow, target=goal.cpu(), frozen=frozen)
+
+
+@dataclass
+class PairSummary:
+    """Per-pair figures of an attack (pixels). ``epe_*`` are None without ground truth.
+
+    aee_random: AEE(f, f̌) for the unoptimised weather; aee_adversarial: for the best step
+    (as written); target_initial / target_adversarial: AEE(f̌, target) before and after.
+    """
+
+    pair: str
+    best_step: int
+    steps: int
+    aee_random: float
+    aee_adversarial: float
+    target_initial: float
+    target_adversarial: float
+    epe_benign: Optional[float] = None
+    epe_random: Optional[float] = None
+    epe_adversarial: Optional[float] = None
+    seconds: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch.Tensor,
+                   gt_flow: Optional[torch.Tensor] = None,
+                   gt_valid: Optional[torch.Tensor] = None, seconds: float = 0.0) -> PairSummary:
+    """Figures of one attacked pair. ``adversarial_flow`` is the flow on the frames as written
+    (best particles at storage precision). Shape: flows (1, 2, H, W); gt (2, H, W), valid (1, H, W).
+    """
+    benign, initial, adv, goal = (t.detach().cpu().float() for t in
+                                  (result.benign_flow, result.initial_flow, adversarial_flow,
+                                   result.target))
+    summary = PairSummary(
+        pair=pair_name, best_step=result.best_step, steps=len(result.history) - 1,
+        aee_random=float(aee(initial, benign).mean()),
+        aee_adversarial=float(aee(adv, benign).mean()),
+        target_initial=float(aee(initial, goal).mean()),
+        target_adversarial=float(aee(adv, goal).mean()), seconds=seconds)
+    if gt_flow is not None:
+        gt = gt_flow.detach().cpu().float()[None]
+        valid = None if gt_valid is None else gt_valid.detach().cpu()[None]
+        summary.epe_benign = float(aee(benign, gt, valid).mean())
+        summary.epe_random = float(aee(initial, gt, valid).mean())
+        summary.epe_adversarial = float(aee(adv, gt, valid).mean())
+    return summary
+
+
+def mean_summary(rows: list[PairSummary]) -> dict:
+    """Means over pairs of every figure (EPE means over the pairs that have ground truth)."""
+    out: dict = {"pairs": len(rows)}
+    for key in ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
+                "epe_benign", "epe_random", "epe_adversarial"):
+        values = [getattr(r, key) for r in rows if getattr(r, key) is not None]
+        out[key] = sum(values) / len(values) if values else None
+    return out
