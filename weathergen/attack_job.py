@@ -129,13 +129,14 @@ def run_attack(job: AttackJob,
     from .models import get_model
 
     config = job.config()
-    previous = prepare_attack_folder(job.out, config, job.resume, job.overwrite)
+    # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
     if not refs:
         raise ConfigError("the selection holds no frame pairs")
     model = get_model(job.model, job.checkpoint, device=job.device, iters=job.iters,
                       gradient_checkpointing=job.gradient_checkpointing)
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
+    previous = prepare_attack_folder(job.out, config, job.resume, job.overwrite)
 
     pairs_entry: dict = dict(previous.get("pairs", {})) if previous else {}
     runs = list(previous.get("runs", [])) if previous else []
