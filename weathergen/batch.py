@@ -197,6 +197,11 @@ def prepare_output(job: RenderJob) -> None:
                 diff = sorted(k for k in previous if previous.get(k) != _jsonable(job.config()).get(k))
                 raise ConfigError(f"{out}: was rendered with different settings ({', '.join(diff)}); "
                                   f"use another --out, or --overwrite")
+    if job.resume and out.is_dir():
+        # temporary files of a killed run (atomic writes that never reached their rename)
+        for stale in out.rglob(".*.tmp*"):
+            if stale.is_file():
+                stale.unlink()
     try:
         out.mkdir(parents=True, exist_ok=True)
         (out / MARKER).write_text("weathergen render output\n")
