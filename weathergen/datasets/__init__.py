@@ -1,0 +1,62 @@
+"""Dataset readers, looked up by name. Each turns files on disk into :class:`FramePair` records.
+
+>>> ds = open_dataset("sintel", root="/data/MPI-Sintel", frames_per_scene=5)   # Sintel-tr115
+>>> pair = ds.load(ds.pairs()[0])
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+from ..errors import ConfigError
+from .base import Dataset, PairProblem, PairRef, Selection
+from .sintel import SintelDataset, load_scene_scales
+
+
+class DemoDataset(SintelDataset):
+    """The bundled demo scene (Sintel layout, generated on first use into the user cache)."""
+
+    name = "demo"
+
+    def __init__(self, root=None, selection: Selection = Selection(), **options):
+        from .demo import demo_root
+
+        super().__init__(root if root is not None else demo_root(), selection, **options)
+
+
+#: name -> reader class; every reader takes ``(root, selection, **options)``.
+DATASETS: dict[str, type[Dataset]] = {
+    "demo": DemoDataset,
+    "sintel": SintelDataset,
+}
+
+
+def open_dataset(name: str, root: Optional[str | Path] = None, *, split: str = "training",
+                 pass_: str = "clean", scenes=None, from_scene=None, frames_per_scene=None,
+                 first_frame=None, **options) -> Dataset:
+    """Open a dataset by name with a selection of pairs; reader-specific ``options`` pass through.
+
+    Unknown names raise :class:`ConfigError` listing the known ones. ``root`` may be omitted only
+    for ``demo``.
+    """
+    try:
+        cls = DATASETS[name]
+    except KeyError:
+        raise ConfigError(f"unknown dataset {name!r}; known: {', '.join(sorted(DATASETS))}") from None
+    if root is None and name != "demo":
+        raise ConfigError(f"dataset {name!r} needs --root, the folder it is stored in")
+    selection = Selection(split=split, pass_=pass_, scenes=tuple(scenes) if scenes else None,
+                          from_scene=from_scene, frames_per_scene=frames_per_scene,
+                          first_frame=first_frame)
+    return cls(root, selection, **options)
+
+
+def demo_pairs(**selection) -> list:
+    """Every selected pair of the demo scene, loaded (a convenience for examples and tests)."""
+    ds = open_dataset("demo", **selection)
+    return [ds.load(ref) for ref in ds.pairs()]
+
+
+__all__ = ["DATASETS", "Dataset", "DemoDataset", "PairProblem", "PairRef", "Selection",
+           "SintelDataset", "demo_pairs", "load_scene_scales", "open_dataset"]

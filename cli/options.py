@@ -1,0 +1,51 @@
+"""Options shared by several commands, declared once."""
+
+from __future__ import annotations
+
+import functools
+
+import click
+
+from weathergen.datasets import DATASETS, load_scene_scales, open_dataset
+
+
+def dataset_options(func):
+    """Add the dataset-selection options; the command receives ``dataset`` (an opened Dataset)."""
+
+    @click.option("--dataset", "dataset_name", type=click.Choice(sorted(DATASETS)), default=None,
+                  help="Dataset format. Default: 'demo' (the bundled scene) without --root, "
+                       "'sintel' with --root.")
+    @click.option("--root", type=click.Path(path_type=str), default=None,
+                  help="Folder the dataset is stored in. Default: the bundled demo scene.")
+    @click.option("--split", default="training", show_default=True, help="Dataset split.")
+    @click.option("--pass", "pass_", default="clean", show_default=True,
+                  help="Rendering pass (Sintel: clean or final).")
+    @click.option("--scenes", default=None, metavar="A,B,...",
+                  help="Only these scenes (comma-separated). Default: all.")
+    @click.option("--from-scene", default=None, metavar="NAME",
+                  help="Only scenes from this one on (in sorted order).")
+    @click.option("--frames-per-scene", type=click.IntRange(min=1), default=None,
+                  help="At most this many pairs per scene; 5 gives the paper's Sintel-tr115. "
+                       "Default: all.")
+    @click.option("--first-frame", type=click.IntRange(min=0), default=None,
+                  help="Start each scene at this frame number (as in the file names).")
+    @click.option("--depth-scale", type=float, default=1.0, show_default=True,
+                  help="Multiply all depth (and camera translation) by this factor.")
+    @click.option("--scene-scales", type=click.Path(dir_okay=False, path_type=str), default=None,
+                  help="TOML/JSON table of per-scene depth factors, applied on top of --depth-scale.")
+    @click.option("--camera-translation/--no-camera-translation", default=True, show_default=True,
+                  help="Keep the camera translation between the two frames (or zero it).")
+    @functools.wraps(func)
+    def wrapper(*args, dataset_name, root, split, pass_, scenes, from_scene, frames_per_scene,
+                first_frame, depth_scale, scene_scales, camera_translation, **kwargs):
+        name = dataset_name or ("sintel" if root else "demo")
+        options = dict(depth_scale=depth_scale, camera_translation=camera_translation,
+                       scene_scales=load_scene_scales(scene_scales) if scene_scales else None)
+        kwargs["dataset"] = open_dataset(
+            name, root, split=split, pass_=pass_,
+            scenes=[s.strip() for s in scenes.split(",") if s.strip()] if scenes else None,
+            from_scene=from_scene, frames_per_scene=frames_per_scene, first_frame=first_frame,
+            **options)
+        return func(*args, **kwargs)
+
+    return wrapper

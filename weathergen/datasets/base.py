@@ -1,0 +1,146 @@
+"""What every dataset reader shares: the selection of frame pairs, pair references, checking.
+
+A reader lists its frame pairs cheaply (:meth:`Dataset.pairs`, file names only) and reads one on
+demand (:meth:`Dataset.load`), returning the :class:`~weathergen.framepair.FramePair` record. Readers
+never write files.
+"""
+
+from __future__ import annotations
+
+from abc import ABC, abstractmethod
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+from ..errors import ConfigError, DatasetError, WeatherGenError
+from ..framepair import FramePair, PairId
+
+
+@dataclass(frozen=True)
+class Selection:
+    """Which frame pairs of a dataset to use (shared by every command that reads data).
+
+    ``frames_per_scene`` counts pairs; ``first_frame`` is a frame number as in the file names.
+    The paper's "Sintel-tr115" is ``Selection(split="training", frames_per_scene=5)``.
+    """
+
+    split: str = "training"
+    pass_: str = "clean"
+    scenes: Optional[tuple[str, ...]] = None
+    from_scene: Optional[str] = None
+    frames_per_scene: Optional[int] = None
+    first_frame: Optional[int] = None
+
+    def __post_init__(self):
+        if self.frames_per_scene is not None and self.frames_per_scene < 1:
+            raise ConfigError(f"frames per scene must be at least 1, got {self.frames_per_scene}")
+        if self.first_frame is not None and self.first_frame < 0:
+            raise ConfigError(f"first frame must not be negative, got {self.first_frame}")
+
+    def pick_scenes(self, available: list[str], where: Path) -> list[str]:
+        """Apply ``scenes`` and ``from_scene`` to the sorted list of scenes found at ``where``."""
+        chosen = list(available)
+        if self.scenes:
+            unknown = [s for s in self.scenes if s not in available]
+            if unknown:
+                raise ConfigError(f"{where}: no scene named {', '.join(unknown)}; "
+                                  f"available: {', '.join(available) or 'none'}")
+            chosen = [s for s in available if s in self.scenes]
+        if self.from_scene is not None:
+            if self.from_scene not in available:
+                raise ConfigError(f"{where}: --from-scene {self.from_scene!r} is not a scene; "
+                                  f"available: {', '.join(available) or 'none'}")
+            chosen = [s for s in chosen if s >= self.from_scene]
+        return chosen
+
+    def pick_frames(self, frames: list[int]) -> list[int]:
+        """First frames of the selected pairs, from the sorted frame numbers of one scene."""
+        present = set(frames)
+        starts = [f for f in frames if f + 1 in present]
+        if self.first_frame is not None:
+            starts = [f for f in starts if f >= self.first_frame]
+        if self.frames_per_scene is not None:
+            starts = starts[: self.frames_per_scene]
+        return starts
+
+
+@dataclass(frozen=True)
+class PairRef:
+    """A frame pair as listed: its identity and the files it is read from (None when missing)."""
+
+    id: PairId
+    files: dict = field(default_factory=dict, compare=False, hash=False)
+
+    def missing(self, required: tuple[str, ...]) -> list[str]:
+        """Which required files do not exist, as messages naming each path."""
+        out = []
+        for key in required:
+            path = self.files.get(key)
+            if path is None or not Path(path).exists():
+                out.append(f"{key}: {path if path is not None else '(no file)'} is missing")
+        return out
+
+
+@dataclass
+class PairProblem:
+    """A pair that cannot be read, and why (one line)."""
+
+    ref: PairRef
+    message: str
+
+
+class Dataset(ABC):
+    """A dataset on disk: lists its pairs and loads them as :class:`FramePair` records."""
+
+    #: Registry name, e.g. ``"sintel"``.
+    name: str = ""
+    #: Files every pair needs for weather (images, depth, cameras).
+    required_files: tuple[str, ...] = ()
+
+    def __init__(self, root: str | Path, selection: Selection = Selection()):
+        self.root = Path(root)
+        self.selection = selection
+        if not self.root.exists():
+            raise DatasetError(f"{self.root}: dataset root does not exist")
+        if not self.root.is_dir():
+            raise DatasetError(f"{self.root}: dataset root is not a folder")
+
+    @abstractmethod
+    def pairs(self) -> list[PairRef]:
+        """The selected pairs, sorted by scene then frame. Lists files only; reads nothing."""
+
+    @abstractmethod
+    def load(self, ref: PairRef) -> FramePair:
+        """Read and validate one pair; raise a :class:`WeatherGenError` naming the faulty file."""
+
+    def describe(self) -> dict:
+        """What was read, for manifests: name, root, selection and reader options."""
+        sel = self.selection
+        return {
+            "dataset": self.name,
+            "root": str(self.root),
+            "split": sel.split,
+            "pass": sel.pass_,
+            "scenes": list(sel.scenes) if sel.scenes else None,
+            "from_scene": sel.from_scene,
+            "frames_per_scene": sel.frames_per_scene,
+            "first_frame": sel.first_frame,
+        }
+
+    def check(self, ref: PairRef) -> Optional[str]:
+        """None if the pair reads cleanly, else a one-line description of the first problem."""
+        missing = ref.missing(self.required_files)
+        if missing:
+            return "; ".join(missing)
+        try:
+            self.load(ref)
+        except WeatherGenError as exc:
+            return str(exc)
+        return None
+
+    def __iter__(self):
+        for ref in self.pairs():
+            yield self.load(ref)
+
+    def __len__(self) -> int:
+        return len(self.pairs())

@@ -1,0 +1,209 @@
+"""MPI-Sintel reader.
+
+Layout below the root (``SPLIT`` is ``training`` or ``test``, ``PASS`` is ``clean`` or ``final``, or
+any other folder of frames, such as the weather passes ``weathergen render`` writes)::
+
+    SPLIT/PASS/SCENE/frame_0001.png         frames, numbered from 1
+    SPLIT/depth/SCENE/frame_0001.dpt        camera-z depth (training only)
+    SPLIT/camdata_left/SCENE/frame_0001.cam intrinsics + world-to-camera extrinsic (training only)
+    SPLIT/flow/SCENE/frame_0001.flo         flow from frame i to i+1 (training only)
+    SPLIT/invalid/SCENE/frame_0001.png      optional: non-zero where flow is not to be evaluated
+
+Scene scale: Sintel's scenes are modelled at very different world scales, while the weather model
+places particles in a fixed volume of scene units. The reader multiplies each scene's depth (and the
+camera translations, so that geometry stays consistent) by ``depth_scale * scene_scales[scene]``.
+Both default to 1. The authors' research code used a hand-made per-scene table (for example
+mountain_1 x0.05, market_2 x0.2, ambush_7 x7); pass such a table as a TOML or JSON file of
+``scene = factor`` entries if you want the same look. ``camera_translation=False`` zeroes the
+translation between the two cameras (also what that research code did), keeping the rotation.
+"""
+
+from __future__ import annotations
+
+import json
+import re
+import tomllib
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError, DatasetError
+from ..framepair import FramePair, PairId
+from ..geometry import invert_rigid, to_homogeneous
+from ..io.images import read_image, read_raw
+from ..io.sintel_formats import read_cam, read_dpt, read_flo
+from .base import Dataset, PairRef, Selection
+
+_FRAME_RE = re.compile(r"^frame_(\d{4,})\.png$")
+SPLITS = ("training", "test")
+#: Folders beside the passes that hold something else than frames.
+_NOT_PASSES = {"depth", "camdata_left", "flow", "flow_viz", "invalid", "occlusions", "particles"}
+
+
+def load_scene_scales(path: str | Path) -> dict[str, float]:
+    """Read a per-scene depth-scale table (TOML or JSON object of ``scene: factor``)."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read scene-scale table ({exc.strerror})") from None
+    try:
+        table = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
+    except (ValueError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"{path}: not a valid {path.suffix.lstrip('.') or 'TOML'} table ({exc})") from None
+    out = {}
+    for scene, value in table.items():
+        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+            raise ConfigError(f"{path}: scale of scene {scene!r} must be a positive number, got {value!r}")
+        out[str(scene)] = float(value)
+    return out
+
+
+class SintelDataset(Dataset):
+    """Frame pairs ``(i, i+1)`` of every selected Sintel scene, with depth and cameras."""
+
+    name = "sintel"
+    required_files = ("image1", "image2", "depth1", "depth2", "cam1", "cam2")
+
+    def __init__(self, root, selection: Selection = Selection(), *, depth_scale: float = 1.0,
+                 scene_scales: Optional[dict[str, float]] = None, camera_translation: bool = True):
+        super().__init__(root, selection)
+        if selection.split not in SPLITS:
+            raise ConfigError(f"unknown Sintel split {selection.split!r}; choose from {', '.join(SPLITS)}")
+        if not depth_scale > 0:
+            raise ConfigError(f"depth scale must be positive, got {depth_scale}")
+        self.depth_scale = float(depth_scale)
+        self.scene_scales = dict(scene_scales or {})
+        self.camera_translation = camera_translation
+
+    # -- listing ---------------------------------------------------------------------------------
+    @property
+    def split_dir(self) -> Path:
+        return self.root / self.selection.split
+
+    @property
+    def image_dir(self) -> Path:
+        return self.split_dir / self.selection.pass_
+
+    def scenes(self) -> list[str]:
+        """All scene folders of the selected split and pass, sorted."""
+        if not self.image_dir.is_dir() and self.split_dir.is_dir():
+            passes = sorted(p.name for p in self.split_dir.iterdir()
+                            if p.is_dir() and p.name not in _NOT_PASSES and not p.name.endswith("_exr"))
+            raise ConfigError(f"{self.split_dir}: no pass named {self.selection.pass_!r}; "
+                              f"available: {', '.join(passes) or 'none'}")
+        if not self.image_dir.is_dir():
+            raise DatasetError(
+                f"{self.image_dir}: no such folder (expected Sintel layout "
+                f"ROOT/{self.selection.split}/{self.selection.pass_}/SCENE/frame_0001.png)")
+        return sorted(p.name for p in self.image_dir.iterdir() if p.is_dir())
+
+    def scale_of(self, scene: str) -> float:
+        """The depth scale applied to ``scene``."""
+        return self.depth_scale * self.scene_scales.get(scene, 1.0)
+
+    def frames(self, scene: str) -> list[int]:
+        found = []
+        for p in (self.image_dir / scene).iterdir():
+            m = _FRAME_RE.match(p.name)
+            if m:
+                found.append(int(m.group(1)))
+        return sorted(found)
+
+    def pairs(self) -> list[PairRef]:
+        refs = []
+        for scene in self.selection.pick_scenes(self.scenes(), self.image_dir):
+            for f in self.selection.pick_frames(self.frames(scene)):
+                refs.append(PairRef(PairId(self.name, self.selection.split, scene, f),
+                                    self._files(scene, f)))
+        return refs
+
+    def _files(self, scene: str, f: int) -> dict:
+        s = self.split_dir
+        name = lambda i, ext: f"frame_{i:04d}.{ext}"  # noqa: E731
+        return {
+            "image1": self.image_dir / scene / name(f, "png"),
+            "image2": self.image_dir / scene / name(f + 1, "png"),
+            "depth1": s / "depth" / scene / name(f, "dpt"),
+            "depth2": s / "depth" / scene / name(f + 1, "dpt"),
+            "cam1": s / "camdata_left" / scene / name(f, "cam"),
+            "cam2": s / "camdata_left" / scene / name(f + 1, "cam"),
+            "flow": s / "flow" / scene / name(f, "flo"),
+            "invalid": s / "invalid" / scene / name(f, "png"),
+        }
+
+    # -- reading ---------------------------------------------------------------------------------
+    def load(self, ref: PairRef) -> FramePair:
+        files = ref.files
+        for key in ("depth1", "depth2", "cam1", "cam2"):
+            if not Path(files[key]).exists():
+                hint = (" (the Sintel test split ships no depth or camera files, which weather needs)"
+                        if self.selection.split == "test" else "")
+                raise DatasetError(f"{files[key]}: {'depth' if 'depth' in key else 'camera'} "
+                                   f"file is missing{hint}")
+        scale = self.scale_of(ref.id.scene)
+        img1, img2 = read_image(files["image1"]), read_image(files["image2"])
+        h, w = img1.shape[:2]
+        if img2.shape[:2] != (h, w):
+            raise DatasetError(f"{files['image2']}: frame is {img2.shape[1]}x{img2.shape[0]} "
+                               f"but the previous frame is {w}x{h}")
+        depths = []
+        for key in ("depth1", "depth2"):
+            d = read_dpt(files[key])
+            if d.shape != (h, w):
+                raise DatasetError(f"{files[key]}: depth is {d.shape[1]}x{d.shape[0]} "
+                                   f"but the image is {w}x{h}")
+            if not np.isfinite(d).all():
+                raise DatasetError(f"{files[key]}: depth has non-finite values")
+            if not (d > 0).all():
+                raise DatasetError(f"{files[key]}: depth has zero or negative values")
+            depths.append(d * np.float32(scale))
+        k1, e1 = read_cam(files["cam1"])
+        _, e2 = read_cam(files["cam2"])
+        cam1_from_world = to_homogeneous(torch.from_numpy(e1))
+        cam2_from_world = to_homogeneous(torch.from_numpy(e2))
+        cam1_from_world[:3, 3] *= scale
+        cam2_from_world[:3, 3] *= scale
+        cam2_from_cam1 = cam2_from_world @ invert_rigid(cam1_from_world)
+        if not self.camera_translation:
+            cam2_from_cam1[:3, 3] = 0
+            cam2_from_world = cam2_from_cam1 @ cam1_from_world
+
+        flow = valid = None
+        if Path(files["flow"]).exists():
+            fl = read_flo(files["flow"])
+            if fl.shape[:2] != (h, w):
+                raise DatasetError(f"{files['flow']}: flow is {fl.shape[1]}x{fl.shape[0]} "
+                                   f"but the image is {w}x{h}")
+            flow = torch.from_numpy(np.ascontiguousarray(fl.transpose(2, 0, 1)))
+            valid = torch.ones(1, h, w, dtype=torch.bool)
+            if Path(files["invalid"]).exists():
+                inv = read_raw(files["invalid"])
+                if inv.shape[:2] != (h, w):
+                    raise DatasetError(f"{files['invalid']}: mask is {inv.shape[1]}x{inv.shape[0]} "
+                                       f"but the image is {w}x{h}")
+                if inv.ndim == 3:
+                    inv = inv.max(axis=2)
+                valid = torch.from_numpy(inv == 0)[None]
+
+        to_chw = lambda a: torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))  # noqa: E731
+        pair = FramePair(
+            id=ref.id,
+            image1=to_chw(img1), image2=to_chw(img2),
+            depth1=torch.from_numpy(depths[0])[None], depth2=torch.from_numpy(depths[1])[None],
+            intrinsics=torch.from_numpy(k1),
+            cam2_from_cam1=cam2_from_cam1,
+            cam1_from_world=cam1_from_world, cam2_from_world=cam2_from_world,
+            flow=flow, flow_valid=valid,
+            sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
+            depth_scale=scale,
+        )
+        return pair.validate()
+
+    def describe(self) -> dict:
+        out = super().describe()
+        out.update(depth_scale=self.depth_scale, scene_scales=self.scene_scales,
+                   camera_translation=self.camera_translation)
+        return out
