@@ -9,7 +9,7 @@ import pytest
 import torch
 
 from engine_scenes import plane_pair, pose, rotation
-from weathergen.engine import load_preset, sample_particles, world_down
+from weathergen.engine import load_preset, reference_transforms, sample_particles, world_down
 from weathergen.engine.sampling import (defocus_radius, hls_to_rgb, resolve_device, rgb_to_hls,
                                         transparency_hat)
 from weathergen.errors import ConfigError, DatasetError, WeatherGenError
@@ -149,17 +149,35 @@ def test_bad_input():
         resolve_device("quantum")
 
 
+@pytest.fixture(scope="module")
+def demo_pair():
+    from weathergen.datasets import demo_pairs
+    return demo_pairs(scenes=["courtyard"], frames_per_scene=1)[0]
+
+
+def test_demo_scene_world_is_z_up_and_snow_falls_down_its_screen(demo_pair):
+    _, c1, c2 = reference_transforms(demo_pair)
+    torch.testing.assert_close(world_down(c1, c2), torch.tensor([0.0, 0.0, -1.0],
+                                                                dtype=torch.float64))
+    parts = sample_particles(demo_pair, load_preset("snow", {"count": 300}), seed=0)
+    p1, _ = project(transform_points(c1, parts.position.double()), demo_pair.intrinsics)
+    p2, _ = project(transform_points(c1, (parts.position + parts.motion).double()),
+                   demo_pair.intrinsics)
+    assert float(((p2 - p1)[:, 1] > 0).float().mean()) > 0.95  # down the screen (camera 1 view)
+
+
 @pytest.mark.parametrize("name", sorted(__import__("weathergen.engine.presets",
                                                    fromlist=["list_presets"]).list_presets()))
-def test_every_preset_samples_and_renders(name):
+def test_every_preset_samples_and_renders_on_the_demo_scene(name, demo_pair):
     from weathergen.engine import render_pair
-    pair = plane_pair(40, 56, near_block=True)
     full = load_preset(name)
-    # Keep the suite fast: fewer particles, and few of the 451-pixel fog clouds.
-    preset = load_preset(name, {"count": min(full.count, 8 if full.size > 200 else 60)})
-    parts = sample_particles(pair, preset, seed=0)
-    out = render_pair(pair, parts)
+    # Keep the suite fast: fewer particles, and few of the big dust clouds.
+    preset = load_preset(name, {"count": min(full.count, 6 if full.size > 100 else 300)})
+    parts = sample_particles(demo_pair, preset, seed=0)
+    out = render_pair(demo_pair, parts)
+    h, w = demo_pair.size
     assert parts.count == preset.count
-    assert out.image1.shape == (1, 3, 40, 56) and out.opacity2.shape == (1, 1, 40, 56)
+    assert out.image1.shape == (1, 3, h, w) and out.opacity2.shape == (1, 1, h, w)
     assert float(out.opacity1.sum() + out.opacity2.sum()) > 0
     assert bool(((out.image1 >= 0) & (out.image1 <= 1)).all())
+    assert not torch.equal(out.image1[0], demo_pair.image1)
