@@ -28,8 +28,9 @@ def cli():
 
 
 def _register():
-    from . import (attack, check, demo_scene, evaluate, presets_cmd,  # noqa: F401
-                   render)  # (each module adds its command)
+    # Each module adds its command to the group on import.
+    from . import (attack, check, demo_scene, evaluate, inspect_cmd,  # noqa: F401
+                   presets_cmd, render)
 
 
 def main(argv=None):

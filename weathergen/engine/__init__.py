@@ -7,7 +7,8 @@ Typical use::
     particles = sample_particles(pair, preset, seed=0)
     out = render_pair(pair, particles)          # out.image1, out.image2, out.opacity1, out.opacity2
 
-Names are imported lazily so that ``import weathergen.engine`` stays cheap.
+Names are imported lazily so that ``import weathergen.engine`` stays cheap. The renderer module
+is ``renderer`` (not ``render``) so that it never shadows the :func:`render` function.
 """
 
 from __future__ import annotations
@@ -23,9 +24,9 @@ _EXPORTS = {
     "from_atanh": "particles",
     "sample_particles": "sampling", "reference_transforms": "sampling", "world_down": "sampling",
     "resolve_device": "sampling",
-    "render": "render", "render_pair": "render", "build_stamps": "render",
-    "RenderOutput": "render", "StampSet": "render", "BETA_RENDER": "render",
-    "BETA_ATTACK": "render",
+    "render": "renderer", "render_pair": "renderer", "build_stamps": "renderer",
+    "RenderOutput": "renderer", "StampSet": "renderer", "BETA_RENDER": "renderer",
+    "BETA_ATTACK": "renderer",
 }
 
 __all__ = sorted(_EXPORTS)

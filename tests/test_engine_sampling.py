@@ -1,0 +1,183 @@
+"""Sampling: exact counts, reproducibility, visibility, motion direction, appearance formulas."""
+
+from __future__ import annotations
+
+import colorsys
+import math
+
+import pytest
+import torch
+
+from engine_scenes import plane_pair, pose, rotation
+from weathergen.engine import load_preset, reference_transforms, sample_particles, world_down
+from weathergen.engine.sampling import (defocus_radius, hls_to_rgb, resolve_device, rgb_to_hls,
+                                        transparency_hat)
+from weathergen.errors import ConfigError, DatasetError, WeatherGenError
+from weathergen.geometry import project, transform_points
+
+
+def test_exact_count_and_reproducible_bytes():
+    pair = plane_pair(40, 56, near_block=True)
+    preset = load_preset("rain", {"count": 700})
+    a = sample_particles(pair, preset, seed=5)
+    b = sample_particles(pair, preset, seed=5)
+    c = sample_particles(pair, preset, seed=6)
+    assert a.count == 700
+    for name in ("position", "motion", "color", "transparency", "template", "rotation", "scale",
+                 "defocus"):
+        assert torch.equal(getattr(a, name), getattr(b, name)), name
+    assert not torch.equal(a.position, c.position)
+
+
+def test_every_particle_is_visible_in_one_frame():
+    pair = plane_pair(40, 56, near_block=True, cam2_from_world=pose(torch.eye(4)[:3, :3].double(),
+                                                                   (0.3, 0.0, 0.2)))
+    parts = sample_particles(pair, load_preset("snow", {"count": 400}), seed=1)
+    k = pair.intrinsics
+    seen = torch.zeros(parts.count, dtype=torch.bool)
+    for cam, depth, pts in ((pair.cam1_from_world, pair.depth1, parts.position.double()),
+                            (pair.cam2_from_world, pair.depth2,
+                             (parts.position + parts.motion).double())):
+        pix, z = project(transform_points(cam, pts), k)
+        col = torch.floor(pix[:, 0] + 0.5).long().clamp(0, 55)
+        row = torch.floor(pix[:, 1] + 0.5).long().clamp(0, 39)
+        inside = (pix[:, 0] >= -0.5) & (pix[:, 0] < 55.5) & (pix[:, 1] >= -0.5) & (pix[:, 1] < 39.5)
+        seen |= inside & (z > 0) & (z < depth[0, row, col].double() + 1e-5)
+    assert bool(seen.all())
+
+
+def test_appearance_follows_the_model():
+    pair = plane_pair(40, 56)
+    preset = load_preset("snow", {"count": 300})
+    parts = sample_particles(pair, preset, seed=2)
+    d = transform_points(pair.cam1_from_world, parts.position.double())[:, 2]
+    footprint = (71 * torch.clamp(1 / (d * 9), max=1)).clamp(min=1)
+    torch.testing.assert_close(parts.scale.double() * 80, footprint, rtol=1e-6, atol=1e-5)
+    torch.testing.assert_close(parts.transparency.double(), 0.75 * transparency_hat(d),
+                               atol=1e-3, rtol=0)
+    assert torch.equal(parts.defocus, defocus_radius(d))
+    assert torch.equal(parts.color, torch.ones_like(parts.color))
+    fog = sample_particles(pair, load_preset("fog"), seed=2)
+    assert bool((fog.transparency == 0.25).all())
+
+
+def test_formulas_by_hand():
+    d = torch.tensor([0.3, 1.0, 1.5, 2.0, 0.6, 0.563])
+    t = [4 / 3 * 0.3 - 1.5, 4 / 3 - 1.5, -2 + 2.5, -8 / 3 + 2.5]
+    expected = torch.tensor([(math.tanh(x) + 1) / 2 for x in t])
+    torch.testing.assert_close(transparency_hat(d[:4]), expected.float())
+    a, b = 5 * (0.75 - 0.563), 0.563
+    assert defocus_radius(d).tolist() == [0, round(a / (1 - b)), round(a / (1.5 - b)),
+                                          round(a / (2 - b)), 20, 0]
+
+
+def test_hls_round_trip_matches_colorsys():
+    gen = torch.Generator().manual_seed(0)
+    rgb = torch.rand(200, 3, generator=gen, dtype=torch.float64)
+    rgb[:5] = torch.tensor([[1, 1, 1], [0, 0, 0], [0.5, 0.5, 0.5], [1, 0, 0], [0.2, 0.9, 0.2]])
+    hls = rgb_to_hls(rgb)
+    ref = torch.tensor([colorsys.rgb_to_hls(*map(float, c)) for c in rgb], dtype=torch.float64)
+    torch.testing.assert_close(hls, ref)
+    torch.testing.assert_close(hls_to_rgb(hls), rgb)
+
+
+def test_colour_jitter_stays_near_the_base_colour():
+    parts = sample_particles(plane_pair(40, 56), load_preset("sparks", {"count": 300}), seed=0)
+    hls = rgb_to_hls(parts.color.double())
+    base = rgb_to_hls(torch.tensor([191, 79, 64], dtype=torch.float64) / 255)
+    dh = torch.remainder(hls[:, 0] - base[0] + 0.5, 1.0) - 0.5
+    assert float(dh.abs().max()) <= 15 / 360 + 1e-3 and float(dh.std()) > 0.01
+    assert float((hls[:, 1] - base[1]).abs().max()) <= 0.1 + 1e-3
+
+
+@pytest.mark.parametrize("roll,pitch", [(0, 0), (25, 0), (-30, 10), (0, -35), (15, 30)])
+@pytest.mark.parametrize("z_up", [False, True])
+def test_snow_falls_down_the_world_and_the_screen(roll, pitch, z_up):
+    """Snow falls along the world's vertical, whatever the camera's tilt and roll."""
+    # A y-down world (OpenCV-like) or a z-up world (Blender-like), camera rolled and pitched.
+    to_cam = rotation(roll, pitch)
+    if z_up:  # world z up: the upright camera looks along world +y
+        to_cam = to_cam @ torch.tensor([[1, 0, 0], [0, 0, -1], [0, 1, 0]], dtype=torch.float64)
+    c1 = pose(to_cam)
+    pair = plane_pair(40, 56, cam1_from_world=c1, cam2_from_world=c1.clone())
+    down = torch.tensor([0.0, 0.0, -1.0] if z_up else [0.0, 1.0, 0.0], dtype=torch.float64)
+    torch.testing.assert_close(world_down(c1, c1), down)
+    parts = sample_particles(pair, load_preset("snow", {"count": 200}), seed=3)
+    torch.testing.assert_close(parts.motion.double(), 0.2 * down.expand(200, 3), atol=1e-6,
+                               rtol=0)
+    # On screen the motion points along the image-space image of "down"; for a camera that is
+    # not rolled that is straight down the screen (+v).
+    p1, _ = project(transform_points(c1, parts.position.double()), pair.intrinsics)
+    p2, _ = project(transform_points(c1, (parts.position + parts.motion).double()), pair.intrinsics)
+    step = p2 - p1
+    screen_down = torch.tensor([-math.sin(math.radians(roll)), math.cos(math.radians(roll))],
+                               dtype=torch.float64)
+    cos = (step @ screen_down) / step.norm(dim=1)
+    assert float(cos.min()) > 0.5 and float(cos.median()) > 0.9
+
+
+def test_explicit_world_up_and_rising_sparks():
+    pair = plane_pair(40, 56)
+    parts = sample_particles(pair, load_preset("sparks", {"count": 200}), seed=0, world_up="+x")
+    assert float(parts.motion[:, 0].mean()) > 0.03  # sparks rise: with +x up they move to +x
+    with pytest.raises(ConfigError, match="world_up"):
+        sample_particles(pair, load_preset("snow", {"count": 5}), seed=0, world_up="up")
+
+
+def test_camera_only_pairs_use_camera1_coordinates():
+    parts = sample_particles(plane_pair(40, 56, world=False), load_preset("snow", {"count": 50}), 0)
+    assert parts.frame == "camera1"
+    z = parts.position[:, 2]
+    assert bool(((z >= 0) & (z <= 3)).all())
+
+
+def test_bad_input():
+    pair = plane_pair(40, 56)
+    pair.depth1 = None
+    with pytest.raises(DatasetError, match="no depth1"):
+        sample_particles(pair, load_preset("snow", {"count": 5}), seed=0)
+    hidden = plane_pair(40, 56, depth=0.01)  # the whole box is behind the scene surface
+    with pytest.raises(ConfigError, match="could place only"):
+        sample_particles(hidden, load_preset("snow", {"count": 5}), seed=0,
+                         max_candidates_factor=2000)
+    if not torch.cuda.is_available():
+        with pytest.raises(WeatherGenError, match="CUDA is not available"):
+            resolve_device("cuda")
+        with pytest.raises(WeatherGenError, match="CUDA is not available"):
+            sample_particles(plane_pair(40, 56), load_preset("snow", {"count": 5}), 0, device="cuda")
+    with pytest.raises(WeatherGenError, match="unknown device"):
+        resolve_device("quantum")
+
+
+@pytest.fixture(scope="module")
+def demo_pair():
+    from weathergen.datasets import demo_pairs
+    return demo_pairs(scenes=["courtyard"], frames_per_scene=1)[0]
+
+
+def test_demo_scene_world_is_z_up_and_snow_falls_down_its_screen(demo_pair):
+    _, c1, c2 = reference_transforms(demo_pair)
+    torch.testing.assert_close(world_down(c1, c2), torch.tensor([0.0, 0.0, -1.0],
+                                                                dtype=torch.float64))
+    parts = sample_particles(demo_pair, load_preset("snow", {"count": 300}), seed=0)
+    p1, _ = project(transform_points(c1, parts.position.double()), demo_pair.intrinsics)
+    p2, _ = project(transform_points(c1, (parts.position + parts.motion).double()),
+                   demo_pair.intrinsics)
+    assert float(((p2 - p1)[:, 1] > 0).float().mean()) > 0.95  # down the screen (camera 1 view)
+
+
+@pytest.mark.parametrize("name", sorted(__import__("weathergen.engine.presets",
+                                                   fromlist=["list_presets"]).list_presets()))
+def test_every_preset_samples_and_renders_on_the_demo_scene(name, demo_pair):
+    from weathergen.engine import render_pair
+    full = load_preset(name)
+    # Keep the suite fast: fewer particles, and few of the big dust clouds.
+    preset = load_preset(name, {"count": min(full.count, 6 if full.size > 100 else 300)})
+    parts = sample_particles(demo_pair, preset, seed=0)
+    out = render_pair(demo_pair, parts)
+    h, w = demo_pair.size
+    assert parts.count == preset.count
+    assert out.image1.shape == (1, 3, h, w) and out.opacity2.shape == (1, 1, h, w)
+    assert float(out.opacity1.sum() + out.opacity2.sum()) > 0
+    assert bool(((out.image1 >= 0) & (out.image1 <= 1)).all())
+    assert not torch.equal(out.image1[0], demo_pair.image1)
