@@ -3,7 +3,7 @@
 Each measurement runs in a fresh process so that its peak resident memory is its own. Weights are
 random (speed and memory do not depend on them), so no checkpoint is needed.
 
-    python benchmarks/bench_models.py                       # RAFT and RAFT-small, 1024x436, 12 iters
+    python benchmarks/bench_models.py          # RAFT and RAFT-small, 1024x436, 12 iterations
     python benchmarks/bench_models.py --models raft-small --size 512x218 --iters 6
 
 Prints a Markdown table: seconds, peak resident memory of the process, and the part of that peak
