@@ -141,9 +141,12 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
 
     def on_result(r):
         results.append(r)
-        if r.status == "failed":
-            (progress.console if progress else err).print(f"[red]failed[/red] {r.pair}: {r.message}",
-                                                          highlight=False)
+        if r.status == "failed":   # one unwrapped line, so paths stay whole
+            if progress is not None:
+                progress.console.print(f"[red]failed[/red] {r.pair}: {r.message}", highlight=False,
+                                       soft_wrap=True)
+            else:
+                click.echo(f"failed {r.pair}: {r.message}", err=True)
         if progress is not None:
             progress.update(task, advance=1, pair=r.pair)
         elif not quiet:
@@ -177,7 +180,7 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
                       f"{elapsed:.1f} s")
         console.print(table)
         console.print(f"Output: {out} (pass '{job.pass_name}', {_human_bytes(folder_size(out))} in all; "
-                      f"manifest: {out / 'manifest.json'})", highlight=False)
+                      f"manifest: {out / 'manifest.json'})", highlight=False, soft_wrap=True)
     if failed:
         err.print(f"[red]{len(failed)} pair(s) failed[/red]; see the messages above and the manifest.")
         sys.exit(1)

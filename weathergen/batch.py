@@ -20,12 +20,14 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 
 from . import __version__
 from .datasets import Dataset, PairRef
 from .errors import ConfigError, FormatError, WeatherGenError
 from .framepair import PairId
+from .geometry import project, transform_points
 from .io.atomic import atomic_write_bytes
 from .outputs import (MANIFEST, MANIFEST_PARTS, MARKER, PairOutput, identity_arrays, pair_identity,
                       read_metadata, write_pair_outputs)
@@ -105,7 +107,7 @@ class PairResult:
     seconds: float = 0.0
     bytes: int = 0
     message: str = ""
-    visible: tuple = ()         # particles with any visible opacity in frame 1 and frame 2
+    visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
 
 
 # -- one pair ------------------------------------------------------------------------------------
@@ -141,16 +143,35 @@ def render_one(job: RenderJob, ref: PairRef) -> PairResult:
             result = render_pair(pair, particles, device=job.device)
         frames = tuple(img[0].permute(1, 2, 0).cpu().numpy() for img in (result.image1, result.image2))
         opacity = tuple(a[0, 0].cpu().numpy() for a in (result.opacity1, result.opacity2))
+        visible = visible_counts(pair, particles)
         meta = particles.to_numpy()
         meta.update(identity_arrays(ref.id, seed, job.preset.to_dict(), job.preset_name))
+        meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
         files = write_pair_outputs(out, pair, frames, opacity, meta)
-        visible = tuple(int((a > 1e-3).sum()) for a in opacity)
         return PairResult(ref.id.key, str(ref.id), "written", seed, time.perf_counter() - start,
                           sum(p.stat().st_size for p in files), visible=visible)
     except WeatherGenError as exc:
         return PairResult(ref.id.key, str(ref.id), "failed", seed, time.perf_counter() - start,
                           message=str(exc))
+
+
+def visible_counts(pair, particles) -> tuple[int, int]:
+    """How many particle centres land inside each frame in front of the scene surface."""
+    from .engine import reference_transforms
+
+    _, cam1_from_ref, cam2_from_ref = reference_transforms(pair)
+    start = (particles.position + particles.offset1).double()
+    end = start + (particles.motion + particles.offset2).double()
+    counts = []
+    for cam_from_ref, points, depth in ((cam1_from_ref, start, pair.depth1), (cam2_from_ref, end, pair.depth2)):
+        pix, z = project(transform_points(cam_from_ref.double(), points), pair.intrinsics)
+        h, w = depth.shape[-2:]
+        col, row = pix[:, 0].round().long(), pix[:, 1].round().long()
+        inside = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+        surface = depth[0, row[inside], col[inside]].double()
+        counts.append(int((z[inside] < surface).sum()))
+    return counts[0], counts[1]
 
 
 def _worker_init():
@@ -176,6 +197,11 @@ def prepare_output(job: RenderJob) -> None:
                 diff = sorted(k for k in previous if previous.get(k) != _jsonable(job.config()).get(k))
                 raise ConfigError(f"{out}: was rendered with different settings ({', '.join(diff)}); "
                                   f"use another --out, or --overwrite")
+    if job.resume and out.is_dir():
+        # temporary files of a killed run (atomic writes that never reached their rename)
+        for stale in out.rglob(".*.tmp*"):
+            if stale.is_file():
+                stale.unlink()
     try:
         out.mkdir(parents=True, exist_ok=True)
         (out / MARKER).write_text("weathergen render output\n")

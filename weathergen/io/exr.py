@@ -24,7 +24,7 @@ def write_exr(path: str | Path, rgb: np.ndarray, extra: dict[str, np.ndarray] | 
         channels[name] = np.ascontiguousarray(plane, np.float32)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".exr", dir=path.parent)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.exr", dir=path.parent)
     os.close(fd)
     try:
         with OpenEXR.File(header, channels) as f:
