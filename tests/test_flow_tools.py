@@ -99,7 +99,8 @@ def test_epe_and_aee_by_hand():
 def test_masks_select_pixels():
     flow, target = _pair()
     valid = torch.tensor([[[[True, False]]], [[[False, True]]]])  # (B, 1, H, W)
-    assert epe(flow, target, valid).flatten().tolist() == pytest.approx([5.0, 0.0, 0.0, math.sqrt(2)])
+    per_pixel = epe(flow, target, valid).flatten().tolist()
+    assert per_pixel == pytest.approx([5.0, 0.0, 0.0, math.sqrt(2)])
     assert aee(flow, target, valid).tolist() == pytest.approx([5.0, math.sqrt(2)])
     assert aee(flow, target, valid[:, 0]).tolist() == pytest.approx([5.0, math.sqrt(2)])
     nothing = torch.zeros(2, 1, 1, 2, dtype=torch.bool)
@@ -132,4 +133,5 @@ def test_epe_errors():
     with pytest.raises(ValueError, match="bool"):
         epe(torch.zeros(1, 2, 3, 4), torch.zeros(1, 2, 3, 4), torch.ones(1, 1, 3, 4))
     with pytest.raises(ValueError, match="valid mask of shape"):
-        epe(torch.zeros(1, 2, 3, 4), torch.zeros(1, 2, 3, 4), torch.ones(1, 1, 4, 3, dtype=torch.bool))
+        epe(torch.zeros(1, 2, 3, 4), torch.zeros(1, 2, 3, 4),
+            torch.ones(1, 1, 4, 3, dtype=torch.bool))

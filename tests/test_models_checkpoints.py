@@ -105,9 +105,10 @@ def test_one_wrong_shape(tmp_path):
     state["update_block.encoder.convc1.weight"] = torch.zeros(96, 324, 1, 1)
     path = tmp_path / "shape.pth"
     torch.save(state, path)
-    with pytest.raises(FormatError, match=r"shape mismatches \(1\): update_block\.encoder\.convc1"
-                                          r"\.weight \(file \(96, 324, 1, 1\), model \(96, 196, 1, 1\)\)"):
+    with pytest.raises(FormatError) as err:
         get_model("raft-small", checkpoint=path)
+    assert ("shape mismatches (1): update_block.encoder.convc1.weight "
+            "(file (96, 324, 1, 1), model (96, 196, 1, 1))") in str(err.value)
 
 
 def test_corrupt_file_names_the_file(tmp_path):

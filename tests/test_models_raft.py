@@ -71,9 +71,19 @@ def test_batch_elements_are_independent():
     assert torch.allclose(both[:1], first, atol=1e-4)
 
 
+def test_float64_images_get_float64_flow_with_a_gradient():
+    model = build_model("raft-small", iters=1)
+    x1 = torch.rand(1, 3, 64, 64, dtype=torch.float64, requires_grad=True)
+    flow = model(x1, torch.rand(1, 3, 64, 64, dtype=torch.float64))
+    assert flow.dtype == torch.float64
+    flow.sum().backward()
+    assert x1.grad.dtype == torch.float64 and x1.grad.abs().sum() > 0
+
+
 def test_bad_inputs_are_rejected_with_shapes():
     model = build_model("raft-small", iters=1)
-    with pytest.raises(ValueError, match=r"expected image1 of shape \(B, 3, H, W\), got \(3, 64, 64\)"):
+    expected = r"expected image1 of shape \(B, 3, H, W\), got \(3, 64, 64\)"
+    with pytest.raises(ValueError, match=expected):
         model(torch.rand(3, 64, 64), torch.rand(3, 64, 64))
     with pytest.raises(ValueError, match="same shape"):
         model(torch.rand(1, 3, 64, 64), torch.rand(1, 3, 64, 72))
@@ -134,7 +144,9 @@ def test_correlation_lookup_order_and_values():
             for b in range(k):
                 x2, y2 = x + a - r, y + b - r
                 inside = 0 <= x2 < w and 0 <= y2 < h
-                expected = float(f1[0, :, y, x] @ f2[0, :, y2, x2]) / math.sqrt(d) if inside else 0.0
+                expected = 0.0
+                if inside:
+                    expected = float(f1[0, :, y, x] @ f2[0, :, y2, x2]) / math.sqrt(d)
                 assert out[0, a * k + b, y, x].item() == pytest.approx(expected, abs=1e-5)
 
 

@@ -26,7 +26,7 @@ def test_known_names():
                                                   "raft-kitti"}
 
 
-@pytest.mark.parametrize("arch", ["raft", "raft-small"])
+@pytest.mark.parametrize("arch", available_models())
 def test_every_registered_model_builds_into_the_contract(arch):
     model = build_model(arch, iters=1)
     assert isinstance(model, FlowModel)

@@ -63,10 +63,14 @@ class FlowModel(nn.Module):
 
     def forward(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
         _check_images(image1, image2)
+        # Run in the weights' precision (float64 images into a float32 network, or the reverse
+        # for a float64 gradient check) and answer in the images' precision.
+        weights = next(self.parameters(), None)
+        dtype = image1.dtype if weights is None else weights.dtype
         padder = self.padder(image1.shape[-2], image1.shape[-1])
-        x1 = self.normalize(padder.pad(image1))
-        x2 = self.normalize(padder.pad(image2))
-        return padder.unpad(self.predict(x1, x2))
+        x1 = self.normalize(padder.pad(image1.to(dtype)))
+        x2 = self.normalize(padder.pad(image2.to(dtype)))
+        return padder.unpad(self.predict(x1, x2)).to(image1.dtype)
 
 
 def _check_images(image1: torch.Tensor, image2: torch.Tensor) -> None:

@@ -165,7 +165,8 @@ class Encoder(nn.Module):
         block = BottleneckBlock if small else ResidualBlock
         self.conv1 = nn.Conv2d(3, stem, 7, stride=2, padding=3)
         self.norm1 = _norm(norm, stem)
-        self.layer1 = nn.Sequential(block(stem, widths[0], norm, 1), block(widths[0], widths[0], norm))
+        self.layer1 = nn.Sequential(block(stem, widths[0], norm, 1),
+                                    block(widths[0], widths[0], norm))
         self.layer2 = nn.Sequential(block(widths[0], widths[1], norm, 2),
                                     block(widths[1], widths[1], norm))
         self.layer3 = nn.Sequential(block(widths[1], widths[2], norm, 2),
@@ -211,7 +212,8 @@ class CorrelationPyramid:
     ``(k, l)`` of frame 2; level ``n`` averages 2^n x 2^n blocks over the frame-2 dimensions.
 
     Shape:
-        fmap1, fmap2: ``(B, D, h, w)``; lookup: coords ``(B, 2, h, w)`` -> ``(B, L*(2r+1)^2, h, w)``.
+        fmap1, fmap2: ``(B, D, h, w)``.
+        lookup: coords ``(B, 2, h, w)`` -> ``(B, L*(2r+1)^2, h, w)``.
     """
 
     def __init__(self, fmap1: torch.Tensor, fmap2: torch.Tensor, levels: int, radius: int):
@@ -230,7 +232,8 @@ class CorrelationPyramid:
         self.offsets = torch.stack([dx, dy], dim=-1).view(1, -1, 1, 2)  # (1, (2r+1)^2, 1, 2)
 
     def lookup(self, coords: torch.Tensor) -> torch.Tensor:
-        """Correlation values in a window around ``coords`` (positions in frame 2, level-0 pixels)."""
+        """Correlation values in a window around ``coords``: positions in frame 2, in level-0
+        pixels."""
         b, _, h, w = coords.shape
         centres = coords.permute(0, 2, 3, 1).reshape(b * h * w, 1, 1, 2)
         out = []
