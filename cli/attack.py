@@ -153,7 +153,7 @@ def attack(dataset, model, checkpoint, iters, config_name, preset, set_items, pa
         if progress is not None:
             progress.update(task, advance=1, status=text)
         elif not quiet and (rec.step % 50 == 0 or rec.step == total_steps):
-            console.print(text, highlight=False)
+            console.print(text, highlight=False, soft_wrap=True)
 
     def on_pair_done(report):
         if report.summary is not None:
@@ -169,7 +169,7 @@ def attack(dataset, model, checkpoint, iters, config_name, preset, set_items, pa
             console.print(f"[{state['i'] + 1}/{state['n']}] {report.pair} {report.status}: "
                           f"AEE(f, f̌) random {s.aee_random:.3f} -> adversarial "
                           f"{s.aee_adversarial:.3f}, distance to target {s.target_initial:.3f} "
-                          f"-> {s.target_adversarial:.3f}", highlight=False)
+                          f"-> {s.target_adversarial:.3f}", highlight=False, soft_wrap=True)
 
     if interactive:
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
@@ -188,7 +188,8 @@ def attack(dataset, model, checkpoint, iters, config_name, preset, set_items, pa
     if not quiet:
         console.print(summary_table(f"weathergen attack: {model}, {label}, target "
                                     f"{target.describe()} (pixels)", summary))
-        console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False)
+        console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
+                      soft_wrap=True)
     if failed:
         err.print(f"[red]{len(failed)} pair(s) failed[/red]; see the messages above.")
         sys.exit(1)

@@ -54,7 +54,8 @@ def evaluate(weather_dir, model, checkpoint, iters, dataset_name, root, pass_, j
 
     def on_pair(row):
         if not quiet:
-            console.print(f"{row.pair}: AEE(f, f̌) {row.aee_weather:.3f}", highlight=False)
+            console.print(f"{row.pair}: AEE(f, f̌) {row.aee_weather:.3f}", highlight=False,
+                          soft_wrap=True)
 
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
     info = {"model": model, "checkpoint": checkpoint, "iters": iters,
@@ -72,4 +73,4 @@ def evaluate(weather_dir, model, checkpoint, iters, dataset_name, root, pass_, j
     table.add_row(f"mean of {summary['pairs']}", _fmt(summary["aee_weather"]),
                   _fmt(summary["epe_clean"]), _fmt(summary["epe_weather"]))
     console.print(table)
-    console.print(f"Figures: {json_path}", highlight=False)
+    console.print(f"Figures: {json_path}", highlight=False, soft_wrap=True)
