@@ -149,7 +149,7 @@ def attack(dataset, model, checkpoint, iters, config_name, preset, set_items, pa
 
     def on_step(rec):
         text = (f"pair {state['i'] + 1}/{state['n']} {state['pair']}  step {rec.step}/{total_steps}"
-                f"  loss {rec.loss:.4f}  best {rec.best_distance:.4f}")
+                f"  loss {rec.loss:.4f}  best distance {rec.best_distance:.4f}")
         if progress is not None:
             progress.update(task, advance=1, status=text)
         elif not quiet and (rec.step % 50 == 0 or rec.step == total_steps):
