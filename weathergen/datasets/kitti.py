@@ -44,6 +44,7 @@ from __future__ import annotations
 import re
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
@@ -59,6 +60,10 @@ from .posefit import fit_camera_motion
 _IMAGE_RE = re.compile(r"^(\d{6})_(\d{2})\.png$")
 #: KITTI 2015 gives ground truth for the pair (10, 11) only.
 FIRST_FRAME = 10
+#: A warped frame-2 disparity is taken as hidden when a sample within this many pixels has a
+#: disparity larger by more than 1 / ratio (that is, a surface at least 20 % nearer).
+OCCLUSION_RADIUS = 3
+OCCLUSION_RATIO = 0.8
 
 
 class KittiDataset(ScaledDataset):
@@ -211,6 +216,12 @@ def forward_warp_disparity(disparity: np.ndarray, valid: np.ndarray,
     Shape: disparity (H, W), valid (H, W) bool, flow (H, W, 2) -> ``(disparity (H, W) float32,
     valid (H, W) bool)`` at frame-2 pixels. Targets are rounded to the nearest pixel; where several
     land on one pixel the largest disparity (the nearest surface, the one frame 2 sees) wins.
+
+    KITTI's ``occ`` ground truth includes points that frame 2 does not see (hidden behind a nearer
+    surface). Such a point can land on a pixel no nearer measurement reached, so a z-buffer of
+    single pixels keeps it; we drop every sample whose disparity is below ``OCCLUSION_RATIO`` times
+    the largest one within ``OCCLUSION_RADIUS`` pixels, i.e. clearly behind a neighbour. Background
+    samples right next to a foreground edge go too; the fill restores them from the background.
     """
     h, w = disparity.shape
     ys, xs = np.nonzero(valid)
@@ -222,4 +233,8 @@ def forward_warp_disparity(disparity: np.ndarray, valid: np.ndarray,
     np.maximum.at(out, (ty, tx), vals)         # a z-buffer: the nearest surface wins
     hit = np.zeros((h, w), bool)
     hit[ty, tx] = True
+    size = 2 * OCCLUSION_RADIUS + 1
+    nearest = cv2.dilate(out, np.ones((size, size), np.uint8))
+    hit &= out >= OCCLUSION_RATIO * nearest
+    out[~hit] = 0
     return out, hit
