@@ -32,8 +32,8 @@ test: install
 	$(BIN)/pytest -q $(PYTEST_ARGS)
 
 demo: install
-	$(BIN)/weathergen demo-scene out/demo-scene
-	$(BIN)/weathergen check --root out/demo-scene
+	$(BIN)/weathergen render --preset snow --out out/snow --overwrite
+	$(BIN)/weathergen preview out/snow
 
 bench: install
 	$(BIN)/python benchmarks/bench.py

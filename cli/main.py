@@ -28,7 +28,7 @@ def cli():
 
 
 def _register():
-    from . import check, demo_scene  # noqa: F401  (each module adds its command to the group)
+    from . import check, demo_scene, inspect_cmd, presets_cmd, render  # noqa: F401  (each module adds its command)
 
 
 def main(argv=None):

@@ -58,7 +58,7 @@ def test_check_error_paths(tmp_path, fake_sintel):
     res = run("check", "--root", str(fake_sintel), "--scenes", "nope")
     assert res.exit_code == 2 and "available: alley, bamboo" in res.output
     res = run("check", "--root", str(fake_sintel), "--pass", "albedo")
-    assert res.exit_code == 2 and "unknown Sintel pass" in res.output
+    assert res.exit_code == 2 and "no pass named 'albedo'; available: clean, final" in res.output
     res = run("check", "--dataset", "kitti9")
     assert res.exit_code == 2 and "Invalid value" in res.output
 

@@ -1,6 +1,7 @@
 """MPI-Sintel reader.
 
-Layout below the root (``SPLIT`` is ``training`` or ``test``, ``PASS`` is ``clean`` or ``final``)::
+Layout below the root (``SPLIT`` is ``training`` or ``test``, ``PASS`` is ``clean`` or ``final``, or
+any other folder of frames, such as the weather passes ``weathergen render`` writes)::
 
     SPLIT/PASS/SCENE/frame_0001.png         frames, numbered from 1
     SPLIT/depth/SCENE/frame_0001.dpt        camera-z depth (training only)
@@ -37,7 +38,8 @@ from .base import Dataset, PairRef, Selection
 
 _FRAME_RE = re.compile(r"^frame_(\d{4,})\.png$")
 SPLITS = ("training", "test")
-PASSES = ("clean", "final")
+#: Folders beside the passes that hold something else than frames.
+_NOT_PASSES = {"depth", "camdata_left", "flow", "flow_viz", "invalid", "occlusions", "particles"}
 
 
 def load_scene_scales(path: str | Path) -> dict[str, float]:
@@ -70,8 +72,6 @@ class SintelDataset(Dataset):
         super().__init__(root, selection)
         if selection.split not in SPLITS:
             raise ConfigError(f"unknown Sintel split {selection.split!r}; choose from {', '.join(SPLITS)}")
-        if selection.pass_ not in PASSES:
-            raise ConfigError(f"unknown Sintel pass {selection.pass_!r}; choose from {', '.join(PASSES)}")
         if not depth_scale > 0:
             raise ConfigError(f"depth scale must be positive, got {depth_scale}")
         self.depth_scale = float(depth_scale)
@@ -89,6 +89,11 @@ class SintelDataset(Dataset):
 
     def scenes(self) -> list[str]:
         """All scene folders of the selected split and pass, sorted."""
+        if not self.image_dir.is_dir() and self.split_dir.is_dir():
+            passes = sorted(p.name for p in self.split_dir.iterdir()
+                            if p.is_dir() and p.name not in _NOT_PASSES and not p.name.endswith("_exr"))
+            raise ConfigError(f"{self.split_dir}: no pass named {self.selection.pass_!r}; "
+                              f"available: {', '.join(passes) or 'none'}")
         if not self.image_dir.is_dir():
             raise DatasetError(
                 f"{self.image_dir}: no such folder (expected Sintel layout "

@@ -1,1 +1,44 @@
-"""The particle engine: presets, billboard templates, particle sampling and the differentiable renderer."""
+"""The particle engine: presets, billboard templates, particle sampling and the differentiable renderer.
+
+Typical use::
+
+    from weathergen.engine import load_preset, sample_particles, render_pair
+    preset = load_preset("snow", overrides={"count": "500"})
+    particles = sample_particles(pair, preset, seed=0)
+    out = render_pair(pair, particles)          # out.image1, out.image2, out.opacity1, out.opacity2
+
+Names are imported lazily so that ``import weathergen.engine`` stays cheap.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+_EXPORTS = {
+    "Preset": "presets", "load_preset": "presets", "list_presets": "presets",
+    "parse_override": "presets", "parse_set_options": "presets", "preset_keys": "presets",
+    "TemplateLibrary": "templates", "load_templates": "templates",
+    "generate_templates": "templates", "write_builtin_templates": "templates",
+    "Particles": "particles", "empty_particles": "particles", "to_atanh": "particles",
+    "from_atanh": "particles",
+    "sample_particles": "sampling", "reference_transforms": "sampling", "world_down": "sampling",
+    "resolve_device": "sampling",
+    "render": "render", "render_pair": "render", "build_stamps": "render",
+    "RenderOutput": "render", "StampSet": "render", "BETA_RENDER": "render",
+    "BETA_ATTACK": "render",
+}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name):
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'weathergen.engine' has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return __all__

@@ -1,0 +1,77 @@
+"""``weathergen inspect FILE`` and ``weathergen preview DIR``: look at what a render wrote."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import click
+import numpy as np
+from rich.console import Console
+from rich.table import Table
+
+from weathergen.outputs import read_metadata
+
+from .main import cli
+
+
+@cli.command()
+@click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
+def inspect(file: Path):
+    """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges."""
+    arrays = read_metadata(file)
+    console = Console()
+    n = int(arrays["position"].shape[0]) if "position" in arrays else 0
+    preset = json.loads(str(arrays["preset"])) if "preset" in arrays else {}
+    head = Table(title=str(file), show_header=False)
+    head.add_column("key")
+    head.add_column("value")
+    rows = [
+        ("pair", f"{arrays['pair_dataset']}/{arrays['pair_split']}/{arrays['pair_scene']} frame {int(arrays['pair_frame'])}"),
+        ("seed", str(int(arrays["seed"]))),
+        ("preset", f"{arrays['preset_name']} ({preset.get('source', '?')})"),
+        ("particles", str(n)),
+        ("visible in frame 1 / 2", f"{int(arrays.get('visible1', -1))} / {int(arrays.get('visible2', -1))}"),
+        ("reference frame", str(arrays.get("frame", "?"))),
+        ("blend", str(arrays.get("blend", "?"))),
+        ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, {int(arrays.get('blur_samples', 1))} samples"),
+        ("templates", str(arrays.get("templates", "?"))),
+        ("format", f"metadata v{int(arrays['metadata_version'])}, particles v{int(arrays.get('format_version', 0))}, "
+                   f"written by weathergen {arrays.get('weathergen_version', '?')}"),
+        ("file size", f"{file.stat().st_size:,} bytes"),
+    ]
+    for k, v in rows:
+        head.add_row(k, v)
+    console.print(head)
+    ranges = Table(title="per-particle values")
+    for col in ("field", "dtype", "shape", "min", "max", "mean"):
+        ranges.add_column(col, justify="right" if col in ("min", "max", "mean") else "left")
+    for name in ("position", "motion", "offset1", "offset2", "color", "transparency", "template",
+                 "rotation", "scale", "defocus"):
+        if name not in arrays:
+            continue
+        a = arrays[name]
+        if a.size:
+            f = a.astype(np.float64)
+            stats = (f"{f.min():.4g}", f"{f.max():.4g}", f"{f.mean():.4g}")
+        else:
+            stats = ("-", "-", "-")
+        ranges.add_row(name, str(a.dtype), str(tuple(a.shape)), *stats)
+    console.print(ranges)
+
+
+@cli.command()
+@click.argument("render_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
+@click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              help="PNG to write. Default: RENDER_DIR/preview.png.")
+@click.option("--pairs", type=click.IntRange(min=1), default=4, show_default=True, help="Pairs to show.")
+@click.option("--width", type=click.IntRange(min=64), default=480, show_default=True, help="Width of each tile.")
+def preview(render_dir: Path, out, pairs, width):
+    """Write a contact sheet of a render output: original, weather frame and particle opacity."""
+    from weathergen.io.images import write_png
+    from weathergen.preview import contact_sheet
+
+    sheet = contact_sheet(render_dir, pairs=pairs, width=width)
+    out = out or render_dir / "preview.png"
+    write_png(out, sheet)
+    click.echo(f"Preview written to {out}")

@@ -1,0 +1,53 @@
+"""``weathergen presets``: list the bundled presets, or show one fully resolved."""
+
+from __future__ import annotations
+
+import click
+
+from .main import cli
+
+
+@cli.command("presets")
+@click.argument("name", required=False)
+@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
+              help="Override one preset key (repeatable), e.g. --set count=500.")
+def presets_command(name, overrides):
+    """List the weather presets, or show preset NAME (a name or a .toml file) fully resolved."""
+    from rich.console import Console
+    from rich.table import Table
+
+    from weathergen.engine.presets import (list_presets, load_preset, parse_set_options,
+                                           preset_keys)
+
+    console = Console(width=160)
+    sets = parse_set_options(overrides)
+    if name is None:
+        columns = [f.name for f in preset_keys() if f.metadata.get("main")]
+        table = Table(title="weathergen presets", header_style="bold")
+        table.add_column("name")
+        for col in columns:
+            table.add_column(col.replace("_", " "), justify="right")
+        for preset_name in list_presets():
+            p = load_preset(preset_name, overrides=sets)
+            table.add_row(preset_name, *(_fmt(getattr(p, c)) for c in columns))
+        console.print(table)
+        return
+    p = load_preset(name, overrides=sets)
+    table = Table(title=f"preset {p.name}", header_style="bold")
+    table.add_column("key")
+    table.add_column("value")
+    table.add_column("meaning")
+    for f in preset_keys():
+        table.add_row(f.name, _fmt(getattr(p, f.name)), f.metadata.get("doc", ""))
+    console.print(table)
+    console.print(f"source: {p.source}", markup=False, highlight=False)
+
+
+def _fmt(value) -> str:
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, tuple):
+        return "(" + ", ".join(_fmt(v) for v in value) + ")"
+    if isinstance(value, float):
+        return f"{value:g}"
+    return str(value)

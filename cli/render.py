@@ -1,0 +1,186 @@
+"""``weathergen render``: turn a dataset (by default the demo scene) into its weather twin."""
+
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+import click
+from rich.console import Console
+from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TaskProgressColumn,
+                           TextColumn, TimeElapsedColumn, TimeRemainingColumn)
+from rich.text import Text
+from rich.table import Table
+
+from weathergen.errors import ConfigError
+
+from .main import cli
+from .options import dataset_options
+
+#: Preset keys that only change how stored particles look, so they may change on re-rendering.
+APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defocus_brighten")
+
+
+class _RateColumn(ProgressColumn):
+    """Pairs per second (or seconds per pair when slower than one a second)."""
+
+    def render(self, task):
+        if not task.speed:
+            return Text("")
+        rate = task.speed
+        return Text(f"{rate:.2f} pairs/s" if rate >= 1 else f"{1 / rate:.1f} s/pair")
+
+
+def _human_bytes(n: float) -> str:
+    for unit in ("B", "kB", "MB", "GB"):
+        if n < 1000 or unit == "GB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
+        n /= 1000
+    return f"{n:.1f} TB"
+
+
+def resolve_preset(preset_name, preset_file, set_items, particles_dir):
+    """The preset of the run and, when re-rendering, the particle settings that change."""
+    from weathergen.engine import load_preset, parse_set_options
+
+    overrides = parse_set_options(set_items)
+    if particles_dir is None:
+        preset = load_preset(preset_file or preset_name, overrides)
+        return preset, (Path(preset_file).stem if preset_file else preset_name), {}
+    # Re-rendering: the sampled particles fix everything but their appearance settings.
+    from weathergen.engine import list_presets
+
+    stored = _stored_preset(particles_dir)
+    fixed = sorted(k for k in overrides if k not in APPEARANCE_KEYS)
+    if fixed:
+        raise ConfigError(f"--set {', '.join(fixed)}: fixed by the stored particles; only "
+                          f"{', '.join(APPEARANCE_KEYS)} can change when re-rendering")
+    values = {k: v for k, v in stored["preset"].items() if k not in ("name", "source")}
+    base = stored["name"] if stored["name"] in list_presets() else "snow"  # every key is set anyway
+    preset = load_preset(base, {**values, **overrides})
+    appearance = {}
+    if overrides:
+        appearance = {"blend": preset.blend, "blur_length": preset.effective_blur_length,
+                      "blur_samples": preset.blur_sample_count,
+                      "defocus_brighten": preset.defocus_brighten}
+    return preset, stored["name"], appearance
+
+
+def _stored_preset(particles_dir: Path) -> dict:
+    manifest = particles_dir / "manifest.json"
+    if not manifest.is_file():
+        raise ConfigError(f"{manifest}: not found; --particles takes the folder of an earlier render")
+    try:
+        data = json.loads(manifest.read_text())
+        return {"name": data["preset_name"], "preset": data["preset"]}
+    except (ValueError, KeyError):
+        raise ConfigError(f"{manifest}: not a weathergen render manifest") from None
+
+
+@cli.command()
+@dataset_options
+@click.option("--preset", default="snow", show_default=True,
+              help="Weather preset by name (see `weathergen presets`).")
+@click.option("--preset-file", type=click.Path(dir_okay=False, path_type=str), default=None,
+              help="Your own preset file (TOML); replaces --preset.")
+@click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
+              help="Override one preset key (repeatable), e.g. --set count=500.")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+              help="Output folder. Default: out/<preset>.")
+@click.option("--seed", type=int, default=0, show_default=True,
+              help="Run seed; each pair's seed derives from it and the pair's identity.")
+@click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
+              default=None, help="Re-render the particles of an earlier render output instead of sampling.")
+@click.option("--pass-name", default=None,
+              help="Name of the output pass folder. Default: <preset>_<input pass>.")
+@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
+@click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Worker processes (CPU).")
+@click.option("--format", "fmt", type=click.Choice(["png", "exr", "both"]), default="png",
+              show_default=True, help="8-bit PNG frames, float OpenEXR frames with an opacity channel, or both.")
+@click.option("--geometry/--no-geometry", default=True, show_default=True,
+              help="Also write depth, cameras and flow per pair, so the output reads as a Sintel tree.")
+@click.option("--shard", default="1/1", show_default=True, metavar="I/N",
+              help="Render only shard I of N (for job arrays); parts merge into one manifest.")
+@click.option("--resume", is_flag=True, help="Finish an interrupted run: skip pairs that are complete.")
+@click.option("--overwrite", is_flag=True, help="Redo every pair, even in a folder that holds a render.")
+@click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
+def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pass_name, device,
+           workers, fmt, geometry, shard, resume, overwrite, quiet):
+    """Render weather into every selected frame pair and write frames plus particle metadata.
+
+    With no option it renders the snow preset onto the bundled demo scene into out/snow.
+    """
+    from weathergen.batch import RenderJob, folder_size, parse_shard, run_render
+    from weathergen.engine import resolve_device
+
+    resolve_device(device)
+    preset_obj, name, appearance = resolve_preset(preset, preset_file, set_items, particles_dir)
+    out = out or Path("out") / name
+    job = RenderJob(
+        dataset=dataset, out=out, preset=preset_obj, preset_name=name, seed=seed,
+        pass_name=pass_name or f"{name}_{dataset.selection.pass_}", fmt=fmt, geometry=geometry,
+        device=device, particles_from=particles_dir, appearance=appearance,
+        shard=parse_shard(shard), workers=workers, resume=resume, overwrite=overwrite,
+        command=["weathergen", *sys.argv[1:]],
+    )
+    console = Console(stderr=False)
+    err = Console(stderr=True)
+    results = []
+    t0 = time.perf_counter()
+    interactive = console.is_terminal and not quiet
+    progress = None
+    task = None
+
+    def on_start(n):
+        nonlocal task
+        if progress is not None:
+            task = progress.add_task("render", total=n, pair="")
+
+    def on_result(r):
+        results.append(r)
+        if r.status == "failed":   # one unwrapped line, so paths stay whole
+            if progress is not None:
+                progress.console.print(f"[red]failed[/red] {r.pair}: {r.message}", highlight=False,
+                                       soft_wrap=True)
+            else:
+                click.echo(f"failed {r.pair}: {r.message}", err=True)
+        if progress is not None:
+            progress.update(task, advance=1, pair=r.pair)
+        elif not quiet:
+            console.print(f"[{len(results)}] {r.pair} {r.status} ({r.seconds:.2f} s)", highlight=False)
+
+    if interactive:
+        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                            TaskProgressColumn(), _RateColumn(),
+                            TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[pair]}"),
+                            console=console)
+    try:
+        if progress is not None:
+            with progress:
+                run_render(job, on_result, on_start)
+        else:
+            run_render(job, on_result, on_start)
+    except KeyboardInterrupt:
+        err.print(f"Interrupted after {sum(r.status == 'written' for r in results)} pairs; "
+                  f"rerun with --resume to finish (finished pairs are kept).")
+        sys.exit(130)
+    elapsed = time.perf_counter() - t0
+    written = [r for r in results if r.status == "written"]
+    failed = [r for r in results if r.status == "failed"]
+    if not quiet:
+        table = Table(title=f"weathergen render: {name} -> {out}")
+        for col in ("written", "skipped", "failed", "time per pair", "written size", "total time"):
+            table.add_column(col, justify="right")
+        per_pair = sum(r.seconds for r in written) / len(written) if written else 0.0
+        table.add_row(str(len(written)), str(sum(r.status == "skipped" for r in results)),
+                      str(len(failed)), f"{per_pair:.2f} s", _human_bytes(sum(r.bytes for r in written)),
+                      f"{elapsed:.1f} s")
+        console.print(table)
+        console.print(f"Output: {out} (pass '{job.pass_name}', {_human_bytes(folder_size(out))} in all; "
+                      f"manifest: {out / 'manifest.json'})", highlight=False, soft_wrap=True)
+    if failed:
+        err.print(f"[red]{len(failed)} pair(s) failed[/red]; see the messages above and the manifest.")
+        sys.exit(1)

@@ -1,0 +1,226 @@
+"""The particle record: everything that determines how one frame pair's weather is rendered.
+
+A :class:`Particles` record is data, not code: sampling makes it, the renderer reads it, the attack
+optimises its offsets, colours and transparencies, and :meth:`Particles.save` stores it as a small
+``.npz`` that numpy alone can read. No rasterised template is stored, only indices into a
+template library and the per-particle scale, rotation and defocus radius.
+
+Geometry of particle ``j`` (``P`` position, ``M`` motion, ``δ1``/``δ2`` the offsets, all in the
+record's reference ``frame``)::
+
+    camera-1 position  X1 = cam1_from_ref · (P + δ1)
+    camera-2 position  X2 = cam2_from_ref · (P + δ1 + M + δ2)
+
+With ``frame == "world"`` the reference is the dataset's world (``cam1_from_ref`` is the pair's
+``cam1_from_world``), so that particles can persist over a whole sequence. With
+``frame == "camera1"`` (datasets without absolute poses) the reference is camera 1:
+``cam1_from_ref`` is the identity and ``cam2_from_ref`` is ``cam2_from_cam1``. This equals the
+paper's ``T_rel (p1 + δ1) + m + δ2`` with ``m`` and ``δ2`` expressed in the reference frame.
+
+Storage precision: positions, motions and scales are float32; offsets, colours, transparencies
+and rotations are float16; template indices uint16; defocus radii uint8. Sampling returns a
+record already rounded to these precisions (:meth:`Particles.quantized`), so rendering the
+in-memory record and rendering the reloaded file give identical bytes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import FormatError
+
+FORMAT_VERSION = 1
+REFERENCE_FRAMES = ("world", "camera1")
+
+# Per-particle tensor fields: storage dtype and trailing shape.
+_TENSOR_FIELDS = {
+    "position": (np.float32, (3,)),
+    "motion": (np.float32, (3,)),
+    "offset1": (np.float16, (3,)),
+    "offset2": (np.float16, (3,)),
+    "color": (np.float16, (3,)),
+    "transparency": (np.float16, ()),
+    "template": (np.uint16, ()),
+    "rotation": (np.float16, ()),
+    "scale": (np.float32, ()),
+    "defocus": (np.uint8, ()),
+}
+_INTEGER_FIELDS = ("template", "defocus")
+
+
+@dataclass
+class Particles:
+    """Per-particle parameters of one frame pair (N particles) and the render settings they need.
+
+    Shape:
+        position: (N, 3) scene units, in ``frame`` coordinates (world or camera 1).
+        motion: (N, 3) frame-to-frame displacement, scene units, ``frame`` axes.
+        offset1, offset2: (N, 3) δ1 (before the motion) and δ2 (after it), scene units,
+            ``frame`` axes; zero after sampling, optimised by the attack.
+        color: (N, 3) RGB in [0, 1].
+        transparency: (N,) θ, the alpha scale of the template (>= 0; may exceed 1 for glows).
+        template: (N,) int64 index into the template library named by ``templates``.
+        rotation: (N,) radians, counter-clockwise on screen.
+        scale: (N,) image pixels per template pixel, fixed at sampling.
+        defocus: (N,) int64 disc-blur radius in pixels (0 or 1: no blur).
+    Float fields are float32 (or the dtype the caller chose, e.g. float64 for gradcheck).
+    """
+
+    position: torch.Tensor
+    motion: torch.Tensor
+    offset1: torch.Tensor
+    offset2: torch.Tensor
+    color: torch.Tensor
+    transparency: torch.Tensor
+    template: torch.Tensor
+    rotation: torch.Tensor
+    scale: torch.Tensor
+    defocus: torch.Tensor
+    frame: str = "world"
+    blend: str = "additive"
+    blur_length: float = 0.0
+    blur_samples: int = 1
+    defocus_brighten: bool = True
+    templates: str = "flakes"
+    templates_digest: str = ""
+
+    @property
+    def count(self) -> int:
+        return int(self.position.shape[0])
+
+    def __len__(self) -> int:
+        return self.count
+
+    @property
+    def device(self) -> torch.device:
+        return self.position.device
+
+    def replace(self, **changes) -> "Particles":
+        """A copy with some fields replaced (e.g. an offset tensor that requires grad)."""
+        return dataclasses.replace(self, **changes)
+
+    def to(self, device=None, dtype=None) -> "Particles":
+        """A copy with tensors on ``device``; float fields cast to ``dtype`` when given."""
+        moved = {}
+        for name in _TENSOR_FIELDS:
+            t = getattr(self, name)
+            if dtype is not None and t.is_floating_point():
+                t = t.to(dtype)
+            moved[name] = t.to(device) if device is not None else t
+        return self.replace(**moved)
+
+    def select(self, index: torch.Tensor) -> "Particles":
+        """The particles picked by a boolean mask or index tensor, shape (N,)."""
+        return self.replace(**{name: getattr(self, name)[index] for name in _TENSOR_FIELDS})
+
+    def quantized(self) -> "Particles":
+        """A detached copy with every field rounded to its storage precision (see module doc)."""
+        out = {}
+        for name, (np_dtype, _) in _TENSOR_FIELDS.items():
+            t = getattr(self, name).detach()
+            if name in _INTEGER_FIELDS:
+                out[name] = t.to(torch.int64)
+            else:
+                storage = torch.from_numpy(np.zeros(0, np_dtype)).dtype
+                out[name] = t.to(storage).to(torch.float32)
+        return self.replace(**out)
+
+    def metadata(self) -> dict:
+        """The non-tensor fields: reference frame and render settings."""
+        return {"frame": self.frame, "blend": self.blend, "blur_length": self.blur_length,
+                "blur_samples": self.blur_samples, "defocus_brighten": self.defocus_brighten,
+                "templates": self.templates, "templates_digest": self.templates_digest}
+
+    # -- storage -----------------------------------------------------------------------------
+
+    def to_numpy(self) -> dict[str, np.ndarray]:
+        """The ``.npz`` content: storage-precision arrays plus 0-d metadata arrays."""
+        q = self.quantized()
+        arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
+        for name, (np_dtype, _) in _TENSOR_FIELDS.items():
+            arrays[name] = getattr(q, name).cpu().numpy().astype(np_dtype)
+        for key, value in self.metadata().items():
+            arrays[key] = np.array(value)
+        return arrays
+
+    def save(self, path: str | Path) -> Path:
+        """Write a compressed ``.npz`` (readable with ``numpy.load``, no pickles)."""
+        path = Path(path)
+        with open(path, "wb") as fh:
+            np.savez_compressed(fh, **self.to_numpy())
+        return path
+
+    @classmethod
+    def load(cls, path: str | Path, device=None) -> "Particles":
+        """Read a record written by :meth:`save`; FormatError names the file on any problem."""
+        path = Path(path)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                arrays = {k: data[k] for k in data.files}
+        except FileNotFoundError:
+            raise FormatError(path, "particle file does not exist") from None
+        except Exception as exc:  # numpy raises several types for corrupt archives
+            raise FormatError(path, f"not a particle .npz file ({exc})") from None
+        version = arrays.get("format_version")
+        if version is None:
+            raise FormatError(path, "no format_version: not a weathergen particle file")
+        if int(version) != FORMAT_VERSION:
+            raise FormatError(path, f"particle format version {int(version)}; this weathergen "
+                                    f"reads version {FORMAT_VERSION}")
+        n = None
+        fields = {}
+        for name, (np_dtype, tail) in _TENSOR_FIELDS.items():
+            if name not in arrays:
+                raise FormatError(path, f"missing array '{name}'")
+            a = arrays[name]
+            if n is None:
+                n = a.shape[0] if a.ndim else -1
+            if a.dtype != np_dtype or a.shape != (n, *tail):
+                raise FormatError(path, f"array '{name}' is {a.dtype} {a.shape}, expected "
+                                        f"{np.dtype(np_dtype)} {(n, *tail)}")
+            t = torch.from_numpy(a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32))
+            fields[name] = t.to(device) if device is not None else t
+        meta = {}
+        for key, kind in (("frame", str), ("blend", str), ("blur_length", float),
+                          ("blur_samples", int), ("defocus_brighten", bool),
+                          ("templates", str), ("templates_digest", str)):
+            if key not in arrays:
+                raise FormatError(path, f"missing field '{key}'")
+            meta[key] = kind(arrays[key].item())
+        if meta["frame"] not in REFERENCE_FRAMES:
+            raise FormatError(path, f"unknown reference frame {meta['frame']!r}")
+        return cls(**fields, **meta)
+
+
+def empty_particles(frame: str = "world", **settings) -> Particles:
+    """A record with no particles (renders to the unchanged frames)."""
+    z3 = torch.zeros(0, 3)
+    z = torch.zeros(0)
+    zi = torch.zeros(0, dtype=torch.int64)
+    return Particles(position=z3, motion=z3.clone(), offset1=z3.clone(), offset2=z3.clone(),
+                     color=z3.clone(), transparency=z, template=zi, rotation=z.clone(),
+                     scale=z.clone(), defocus=zi.clone(), frame=frame, **settings)
+
+
+def to_atanh(xi: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """η = atanh(2ξ − 1): a value in [0, 1] to the unbounded domain the attack optimises in.
+
+    ξ is first clamped into [eps, 1 − eps] so that η is finite; :func:`from_atanh` inverts it
+    up to that clamp.
+    Shape: any -> same.
+    """
+    return torch.atanh(2 * xi.clamp(eps, 1 - eps) - 1)
+
+
+def from_atanh(eta: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:
+    """ξ = eps + (1 − 2 eps) (tanh(η) + 1) / 2: back to (0, 1), strictly inside it.
+
+    The affine squeeze (rather than a clamp) keeps the gradient non-zero everywhere.
+    Shape: any -> same.
+    """
+    return eps + (1 - 2 * eps) * (torch.tanh(eta) + 1) / 2

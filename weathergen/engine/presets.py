@@ -1,0 +1,318 @@
+"""Weather presets: validated TOML files describing one particle configuration each.
+
+A preset is a flat table of keys (see :class:`Preset` for every key, its type, range and unit).
+Values are resolved in this order, later ones winning:
+
+1. the schema defaults declared on :class:`Preset`;
+2. the preset file (a bundled one, by name, or a user's ``.toml`` file, by path);
+3. overrides, ``{"key": "value"}`` strings as typed on the command line (``--set count=500``),
+   parsed as TOML values and then validated like the file.
+
+Every problem (unknown key, wrong type, out-of-range value, unknown preset name) raises
+:class:`~weathergen.errors.ConfigError` naming the file, the key and the offending value.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any, Callable, Mapping, Optional
+
+from ..errors import ConfigError
+
+BUILTIN_TEMPLATE_KINDS = ("flakes", "dust")
+BLEND_MODES = ("additive", "alpha")
+TRANSPARENCY_MODES = ("depth", "constant")
+
+
+# ---------------------------------------------------------------------------------------------
+# Checks: each returns an error text (what the value must be) or None when the value is fine.
+
+def _number(lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False
+            ) -> Callable[[Any], Optional[str]]:
+    def check(v):
+        if not math.isfinite(v):
+            return "must be a finite number"
+        if v < lo or (lo_open and v == lo) or v > hi:
+            left = "(" if lo_open else "["
+            return f"must lie in {left}{lo:g}, {hi:g}]"
+        return None
+    return check
+
+
+def _odd_size(v: int) -> Optional[str]:
+    if v < 1 or v % 2 == 0:
+        return "must be an odd number of pixels >= 1 (templates are centred on a pixel)"
+    if v > 2047:
+        return "must be at most 2047 pixels"
+    return None
+
+
+def _count(v: int) -> Optional[str]:
+    return "must be a count >= 0" if v < 0 else ("must be at most 1000000" if v > 1_000_000 else None)
+
+
+def _rgb(v: tuple) -> Optional[str]:
+    if len(v) != 3:
+        return "must be three integers (R, G, B)"
+    if any(c < 0 or c > 255 for c in v):
+        return "must be three integers in [0, 255]"
+    return None
+
+
+def _interval(v: tuple) -> Optional[str]:
+    if len(v) != 2 or not all(math.isfinite(x) for x in v):
+        return "must be two finite numbers [min, max]"
+    if not v[0] < v[1]:
+        return "must satisfy min < max"
+    return None
+
+
+def _choice(options: tuple[str, ...]) -> Callable[[str], Optional[str]]:
+    return lambda v: None if v in options else f"must be one of {', '.join(options)}"
+
+
+def _templates(v: str) -> Optional[str]:
+    return None if v.strip() else f"must be {' or '.join(BUILTIN_TEMPLATE_KINDS)} or a folder of PNGs"
+
+
+def _key(default, check=None, doc: str = "", main: bool = False):
+    """Declare a preset key once: its default, its check, a one-line description."""
+    return field(default=default, metadata={"check": check, "doc": doc, "main": main})
+
+
+@dataclass(frozen=True)
+class Preset:
+    """One weather configuration, fully resolved and validated. Every field is a preset key.
+
+    Units: lengths and motions in scene units (those of the frame pair's depth), sizes in pixels,
+    angles in degrees, colours as 8-bit RGB.
+    """
+
+    description: str = _key("", doc="free text shown by `weathergen presets`")
+    # -- particle base properties
+    count: int = _key(3000, _count, "number of particles per frame pair", main=True)
+    size: int = _key(71, _odd_size, "template side in pixels at depth <= 1/depth_decay (odd)",
+                     main=True)
+    depth_decay: float = _key(9.0, _number(0, 1e6, lo_open=True),
+                              "size scales by min(1, 1/(depth * depth_decay))", main=True)
+    templates: str = _key("flakes", _templates,
+                          "template library: flakes, dust, or a folder of grey-scale PNGs",
+                          main=True)
+    # -- colour
+    color: tuple = _key((255, 255, 255), _rgb, "base colour, 8-bit RGB", main=True)
+    hue_jitter: float = _key(0.0, _number(0, 180), "random hue change, +- degrees")
+    lightness_jitter: float = _key(0.0, _number(0, 1), "random HLS lightness change, +-")
+    saturation_jitter: float = _key(0.0, _number(0, 1), "random HLS saturation change, +-")
+    blend: str = _key("additive", _choice(BLEND_MODES),
+                      "additive (glow) or alpha (order-independent alpha blending)", main=True)
+    transparency: float = _key(0.75, _number(0, 2),
+                               "transparency scale theta (peak of the depth hat)", main=True)
+    transparency_mode: str = _key("depth", _choice(TRANSPARENCY_MODES),
+                                  "depth: hat over depth; constant: theta for every particle")
+    # -- motion
+    motion_y: float = _key(0.2, _number(-1e3, 1e3),
+                           "frame-to-frame fall distance, > 0 falls down, < 0 rises", main=True)
+    motion_scale_jitter: float = _key(0.0, _number(0, 1),
+                                      "motion length scaled by 1 + U[-f, f]")
+    motion_angle_jitter: float = _key(0.0, _number(0, 180),
+                                      "motion direction turned by Euler angles U[-a, a] degrees")
+    # -- motion blur
+    motion_blur: bool = _key(False, None, "render K samples along the 3D motion", main=True)
+    blur_length: float = _key(0.0, _number(0, 10),
+                              "blur streak as a fraction of the frame-to-frame motion", main=True)
+    blur_samples: int = _key(1, _number(1, 1000), "samples K per blurred particle", main=True)
+    # -- out-of-focus blur
+    defocus: bool = _key(True, None, "disc blur for particles near the focal distance")
+    defocus_brighten: bool = _key(True, None, "cube-root brighten the disc-blurred alpha")
+    # -- where particles are sampled, camera-1 coordinates
+    volume_x: tuple = _key((-5.0, 5.0), _interval, "sampling box x range, camera 1")
+    volume_y: tuple = _key((-5.0, 5.0), _interval, "sampling box y range, camera 1")
+    volume_z: tuple = _key((0.0, 3.0), _interval, "sampling box z (depth) range, camera 1")
+
+    # Not keys: where the preset came from (for messages and manifests).
+    name: str = field(default="custom", compare=False, metadata={"key": False})
+    source: str = field(default="<defaults>", compare=False, metadata={"key": False})
+
+    def to_dict(self) -> dict:
+        """Every key with its resolved value, plus ``name`` and ``source`` (for manifests)."""
+        out = {"name": self.name, "source": self.source}
+        for f in preset_keys():
+            v = getattr(self, f.name)
+            out[f.name] = list(v) if isinstance(v, tuple) else v
+        return out
+
+    @property
+    def blur_sample_count(self) -> int:
+        """The number of samples actually rendered per particle (1 when motion blur is off)."""
+        return self.blur_samples if self.motion_blur else 1
+
+    @property
+    def effective_blur_length(self) -> float:
+        return self.blur_length if self.motion_blur else 0.0
+
+
+def preset_keys() -> list[dataclasses.Field]:
+    """The schema: every field of :class:`Preset` that a preset file may set."""
+    return [f for f in dataclasses.fields(Preset) if f.metadata.get("key", True)]
+
+
+_KEYS = {f.name: f for f in preset_keys()}
+
+
+def _coerce(where: str, key: str, value: Any) -> Any:
+    """Type-check one value against the schema; return it in its canonical Python type."""
+    f = _KEYS.get(key)
+    if f is None:
+        raise ConfigError(f"{where}: unknown key '{key}' (known keys: {', '.join(_KEYS)})")
+    default = f.default
+    bad = lambda what: ConfigError(f"{where}: key '{key}' = {value!r}: {what}")  # noqa: E731
+    if isinstance(default, bool):
+        if not isinstance(value, bool):
+            raise bad("must be true or false")
+        out = value
+    elif isinstance(default, int):
+        if isinstance(value, bool) or not isinstance(value, int):
+            if isinstance(value, float) and value.is_integer():
+                value = int(value)
+            else:
+                raise bad("must be an integer")
+        out = int(value)
+    elif isinstance(default, float):
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise bad("must be a number")
+        out = float(value)
+    elif isinstance(default, str):
+        if not isinstance(value, str):
+            raise bad("must be a string")
+        out = value
+    elif isinstance(default, tuple):
+        if not isinstance(value, (list, tuple)):
+            raise bad(f"must be a list of {len(default)} values")
+        elem = type(default[0])
+        items = []
+        for x in value:
+            if isinstance(x, bool) or not isinstance(x, (int, float)):
+                raise bad("must be a list of numbers")
+            if elem is int and not float(x).is_integer():
+                raise bad("must be a list of integers")
+            items.append(elem(x))
+        out = tuple(items)
+    else:  # pragma: no cover - the schema only holds the types above
+        raise TypeError(f"unsupported schema type for {key}")
+    check = f.metadata.get("check")
+    problem = check(out) if check else None
+    if problem:
+        raise bad(problem)
+    return out
+
+
+def parse_override(key: str, text: str, where: str = "--set") -> Any:
+    """Parse a command-line value for ``key`` using the key's type (TOML syntax, bare strings ok).
+
+    ``"500"`` -> 500, ``"true"`` -> True, ``"255,0,0"`` or ``"[255, 0, 0]"`` -> (255, 0, 0).
+    """
+    if key not in _KEYS:
+        raise ConfigError(f"{where}: unknown key '{key}' (known keys: {', '.join(_KEYS)})")
+    default = _KEYS[key].default
+    raw = text.strip()
+    if isinstance(default, tuple) and not raw.startswith("["):
+        raw = f"[{raw}]"
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        if isinstance(default, str) and not isinstance(default, bool):
+            value = text  # bare strings need no quotes on the command line
+        else:
+            raise ConfigError(f"{where}: key '{key}' = {text!r}: not a valid "
+                              f"{type(default).__name__} value") from None
+    if isinstance(default, str) and not isinstance(value, str):
+        value = text
+    return _coerce(where, key, value)
+
+
+def _preset_dir():
+    return resources.files("weathergen.presets")
+
+
+def list_presets() -> list[str]:
+    """Names of the bundled presets, sorted."""
+    return sorted(p.name[:-5] for p in _preset_dir().iterdir() if p.name.endswith(".toml"))
+
+
+def _read_toml(text: str, where: str) -> dict:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{where}: not valid TOML: {exc}") from None
+
+
+def load_preset(name_or_path: str | Path = "snow",
+                overrides: Optional[Mapping[str, Any]] = None) -> Preset:
+    """Load a bundled preset by name, or a user's preset file by path, and apply overrides.
+
+    ``overrides`` maps keys to values; strings are parsed per the key's type (as for ``--set``),
+    other values are type-checked as given. A relative ``templates`` folder in a user file is
+    resolved against the file's folder.
+    """
+    text_name = str(name_or_path)
+    path = Path(text_name)
+    if isinstance(name_or_path, Path) or text_name.endswith(".toml") or path.is_file():
+        if not path.is_file():
+            raise ConfigError(f"{path}: preset file does not exist")
+        where, name = str(path), path.stem
+        data = _read_toml(path.read_text(encoding="utf-8"), where)
+        base_dir: Optional[Path] = path.parent
+    else:
+        known = list_presets()
+        if text_name not in known:
+            raise ConfigError(f"unknown preset '{text_name}' (known presets: {', '.join(known)})")
+        res = _preset_dir() / f"{text_name}.toml"
+        where, name = f"preset {text_name} ({res.name})", text_name
+        data = _read_toml(res.read_text(encoding="utf-8"), where)
+        base_dir = None
+
+    values = {}
+    for key, value in data.items():
+        if isinstance(value, dict):
+            raise ConfigError(f"{where}: key '{key}' is a table; preset files are flat "
+                              f"(known keys: {', '.join(_KEYS)})")
+        values[key] = _coerce(where, key, value)
+    if base_dir is not None and "templates" in values:
+        values["templates"] = _resolve_templates(values["templates"], base_dir)
+    for key, value in (overrides or {}).items():
+        if isinstance(value, str):
+            values[key] = parse_override(key, value)
+        else:
+            values[key] = _coerce("override", key, value)
+    preset = Preset(name=name, source=where, **values)
+    _check_consistency(preset, where)
+    return preset
+
+
+def _resolve_templates(value: str, base_dir: Path) -> str:
+    if value in BUILTIN_TEMPLATE_KINDS:
+        return value
+    p = Path(value).expanduser()
+    return str(p if p.is_absolute() else (base_dir / p))
+
+
+def _check_consistency(p: Preset, where: str) -> None:
+    if p.motion_blur and p.blur_length <= 0:
+        raise ConfigError(f"{where}: key 'blur_length' = {p.blur_length!r}: must be > 0 "
+                          "when motion_blur is true")
+
+
+def parse_set_options(items: list[str] | tuple[str, ...]) -> dict[str, str]:
+    """Turn ``["count=500", "blend=alpha"]`` into ``{"count": "500", "blend": "alpha"}``."""
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+        out[key.strip()] = value
+    return out

@@ -1,0 +1,416 @@
+"""The differentiable particle renderer: frames and particle records in, weather frames out.
+
+Pure functions, tensors in and tensors out, no file I/O; device-agnostic (CPU or CUDA: every
+tensor follows the images' device). Four stages:
+
+1. **Stamps** (:func:`build_stamps`, no gradient): each particle's template is rotated and scaled
+   to its own footprint (``scale`` x template resolution pixels), sampled from a mip level no
+   finer than twice the footprint (no aliasing for far, tiny particles), and disc-blurred by its
+   defocus radius. A stamp is centred on a pixel. Particles are grouped into buckets of equal
+   stamp side so that each bucket is one batched tensor operation; a far particle costs a few
+   pixels, a near one its full size.
+2. **Instances**: each particle becomes ``K`` motion-blur samples per frame, spaced evenly from its
+   frame position along its 3D frame-to-frame displacement ``M + δ2`` up to ``blur_length`` times
+   it, each with transparency ``θ / K``; they are projected into their camera.
+3. **Splatting**: every instance's stamp is shifted by its sub-pixel position with bilinear
+   weights (an (s+1) x (s+1) patch: differentiable with respect to the position), multiplied by the
+   visibility ``V = 1 / (1 + exp(β (d − D)))`` against the scene depth ``D`` under each patch pixel
+   and by ``θ / K``, and scatter-added (``index_add_``) into per-pixel sums ``A = Σ θ B V`` and
+   ``C_c = Σ γ_c θ B V``. Instances are processed in chunks of bounded size: memory does not grow
+   with the blur sample count or the image area, only with the chunk size.
+4. **Blending**: additive ``I + C`` or order-independent alpha ``I (1 − A) + C`` (Meshkin), then
+   clamped to [0, 1]. The opacity mask is ``clamp(A, 0, 1)``.
+
+Gradients flow to ``offset1``, ``offset2`` (through the projected positions and the particle depth
+in ``V``), ``color`` and ``transparency``; use ``beta=BETA_ATTACK`` when differentiating
+through occlusion. On CUDA, ``index_add_`` uses atomics, so results may differ in the last bits
+between runs; on the CPU they are reproducible bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Sequence, Union
+
+import torch
+import torch.nn.functional as F
+
+from ..errors import ConfigError, DatasetError
+from ..framepair import FramePair, FramePairBatch
+from ..geometry import project, transform_points
+from .particles import Particles
+from .sampling import NEAR, check_pair_for_engine, reference_transforms, resolve_device
+from .templates import TemplateLibrary, load_templates
+
+BETA_RENDER = 250.0
+BETA_ATTACK = 30.0
+DEFAULT_CHUNK_ELEMENTS = 1 << 21
+
+
+@dataclass
+class RenderOutput:
+    """Shape: image1, image2 (B, 3, H, W) in [0, 1]; opacity1, opacity2 (B, 1, H, W) in [0, 1]."""
+
+    image1: torch.Tensor
+    image2: torch.Tensor
+    opacity1: torch.Tensor
+    opacity2: torch.Tensor
+
+
+@dataclass
+class StampBucket:
+    """Stamps of one side length. Shape: stamps (n, side, side); particles (n,) int64 indices
+    into the concatenation of the rendered records' particles."""
+
+    side: int
+    particles: torch.Tensor
+    stamps: torch.Tensor
+
+
+@dataclass
+class StampSet:
+    """All stamps of a render call, reusable while scale, rotation, template and defocus stay
+    fixed (e.g. across attack steps). Shape: bucket_of, slot_of (P,) int64: each particle's bucket
+    and its row in that bucket's ``stamps``."""
+
+    buckets: list
+    bucket_of: torch.Tensor
+    slot_of: torch.Tensor
+
+
+# -- stamps --------------------------------------------------------------------------------
+
+def _bucket_sides(limit: int = 8193) -> torch.Tensor:
+    """Allowed stamp sides: every odd size up to 15, then odd sizes ~15 % apart (at most ~30 %
+    more pixels than the footprint needs, and few buckets)."""
+    sides = list(range(3, 16, 2))
+    while sides[-1] < limit:
+        nxt = int(math.ceil(sides[-1] * 1.15))
+        sides.append(nxt + 1 - nxt % 2)
+    return torch.tensor(sides)
+
+
+_SIDES = _bucket_sides()
+_MIP_CACHE: dict = {}
+
+
+def mip_pyramid(lib: TemplateLibrary, dtype: torch.dtype, device: torch.device) -> list:
+    """The template library and its 2x2-averaged reductions while the side stays even and >= 4.
+    Shape: list of (T, 1, R_L, R_L)."""
+    key = (lib.digest, lib.name, dtype, str(device))
+    if key not in _MIP_CACHE:
+        level = lib.alphas.to(device=device, dtype=dtype)[:, None]
+        levels = [level]
+        while level.shape[-1] % 2 == 0 and level.shape[-1] >= 4:
+            level = F.avg_pool2d(level, 2)
+            levels.append(level)
+        if len(_MIP_CACHE) > 16:
+            _MIP_CACHE.clear()
+        _MIP_CACHE[key] = levels
+    return _MIP_CACHE[key]
+
+
+def _disc_kernel(radius: int, dtype, device) -> torch.Tensor:
+    """Normalised disc PSF. Shape: (1, 1, 2r+1, 2r+1)."""
+    off = torch.arange(-radius, radius + 1, dtype=dtype, device=device)
+    disc = ((off[:, None] ** 2 + off[None, :] ** 2) <= radius * radius).to(dtype)
+    return (disc / disc.sum())[None, None]
+
+
+def _disc_blur(stamp: torch.Tensor, radius: int) -> torch.Tensor:
+    """Full 2D convolution with a normalised disc: (n, s, s) -> (n, s + 2r, s + 2r).
+
+    Small cases convolve directly; large ones use an FFT in float64, whose round-off (~1e-16)
+    stays invisible even after the cube-root brightening, and zero what is below 1e-12.
+    """
+    n, side = stamp.shape[0], stamp.shape[-1]
+    if side * side * (2 * radius + 1) ** 2 <= 1 << 18:
+        kernel = _disc_kernel(radius, stamp.dtype, stamp.device)
+        return F.conv2d(stamp[:, None], kernel, padding=2 * radius)[:, 0]
+    full = side + 2 * radius
+    kernel = _disc_kernel(radius, torch.float64, stamp.device)[0, 0]
+    spec = torch.fft.rfft2(stamp.double(), s=(full, full)) * torch.fft.rfft2(kernel, s=(full, full))
+    out = torch.fft.irfft2(spec, s=(full, full))
+    return torch.where(out > 1e-12, out, torch.zeros_like(out)).to(stamp.dtype)
+
+
+def _stamp_chunk(levels: list, level: int, template: torch.Tensor, rotation: torch.Tensor,
+                 footprint: torch.Tensor, side: int) -> torch.Tensor:
+    """Rotate and scale templates onto an integer-centred grid. Shape: -> (n, side, side)."""
+    dtype, device = levels[0].dtype, levels[0].device
+    h = (side - 1) // 2
+    off = torch.arange(-h, h + 1, dtype=dtype, device=device)
+    gy, gx = torch.meshgrid(off, off, indexing="ij")
+    c = torch.cos(rotation)[:, None, None]
+    s = torch.sin(rotation)[:, None, None]
+    half = (footprint / 2)[:, None, None]
+    # Image offset = Rot(rotation) · template offset, so sample the template at Rot(−rotation).
+    xn = (c * gx + s * gy) / half
+    yn = (-s * gx + c * gy) / half
+    inside = (xn * xn + yn * yn) <= 1.0   # templates are round (see templates.py)
+    src = levels[level][template]
+    out = F.grid_sample(src, torch.stack((xn, yn), -1), mode="bilinear",
+                        padding_mode="zeros", align_corners=False)[:, 0]
+    return out * inside
+
+
+def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
+                 dtype: torch.dtype = torch.float32, device=None,
+                 chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> StampSet:
+    """Rasterise every particle's template at its footprint (no gradient; see module doc)."""
+    device = torch.device(device) if device is not None else records[0].device
+    with torch.no_grad():
+        template = torch.cat([r.template for r in records]).to(device)
+        rotation = torch.cat([r.rotation for r in records]).to(device=device, dtype=dtype)
+        footprint = torch.cat([r.scale for r in records]).to(device=device, dtype=torch.float64)
+        footprint = (footprint * lib.resolution).clamp(min=1.0)
+        radius = torch.cat([r.defocus for r in records]).to(device)
+        radius = torch.where(radius > 1, radius, torch.zeros_like(radius))
+        brighten = torch.cat([torch.full((r.count,), bool(r.defocus_brighten), device=device)
+                              for r in records])
+        if int(template.numel()) and (int(template.min()) < 0 or int(template.max()) >= lib.count):
+            raise ConfigError(f"particle template index out of range for the {lib.count} "
+                              f"templates of '{lib.name}'")
+        levels = mip_pyramid(lib, dtype, device)
+        raw_side = 2 * torch.floor(footprint / 2).clamp(min=1).long() + 1
+        sides = _SIDES.to(device)
+        side = sides[torch.searchsorted(sides, raw_side)]
+        level = torch.floor(torch.log2(lib.resolution / footprint)).clamp(0, len(levels) - 1).long()
+        key = ((side * 64 + level) * 64 + radius) * 2 + brighten.long()
+        keys, bucket_of = torch.unique(key, return_inverse=True)
+        slot_of = torch.zeros_like(bucket_of)
+        buckets = []
+        for b, k in enumerate(keys.tolist()):
+            members = torch.nonzero(bucket_of == b).squeeze(1)
+            slot_of[members] = torch.arange(members.numel(), device=device)
+            bright, k = k % 2, k // 2
+            r, k = k % 64, k // 64
+            lvl, s = k % 64, k // 64
+            per_chunk = max(1, chunk_elements // (s * s * 4))
+            parts = []
+            for start in range(0, members.numel(), per_chunk):
+                m = members[start:start + per_chunk]
+                stamp = _stamp_chunk(levels, lvl, template[m], rotation[m],
+                                     footprint[m].to(dtype), s)
+                if r > 1:
+                    stamp = _disc_blur(stamp, r)
+                    if bright:  # the blur spreads the alpha thin; a cube root brings it back up
+                        stamp = stamp.clamp(min=0).pow(1.0 / 3.0).clamp(0, 1)
+                parts.append(stamp)
+            buckets.append(StampBucket(side=s + 2 * r, particles=members, stamps=torch.cat(parts)))
+    return StampSet(buckets=buckets, bucket_of=bucket_of, slot_of=slot_of)
+
+
+# -- instances and splatting ----------------------------------------------------------------
+
+def _blur_steps(record: Particles, dtype, device) -> torch.Tensor:
+    """Fractions of the displacement at which blur samples sit. Shape: (K,)."""
+    k = int(record.blur_samples)
+    if k <= 1 or record.blur_length <= 0:
+        return torch.zeros(1, dtype=dtype, device=device)
+    return torch.linspace(0.0, float(record.blur_length), k, dtype=dtype, device=device)
+
+
+def _instances(records, intrinsics, cam1_from_ref, cam2_from_ref, dtype, device):
+    """Projected blur samples of all records in both frames.
+
+    Returns a dict of flat tensors (I instances): u, v (pixels), z (camera depth), theta (θ/K),
+    color (I, 3), target (frame t * B + batch index), particle (global particle index).
+    """
+    out = {k: [] for k in ("u", "v", "z", "theta", "color", "target", "particle")}
+    batch = len(records)
+    first = 0
+    for b, rec in enumerate(records):
+        n = rec.count
+        if n == 0:
+            continue
+        pos = rec.position.to(device=device, dtype=dtype)
+        motion = rec.motion.to(device=device, dtype=dtype)
+        d1 = rec.offset1.to(device=device, dtype=dtype)
+        d2 = rec.offset2.to(device=device, dtype=dtype)
+        steps = _blur_steps(rec, dtype, device)
+        k = steps.numel()
+        start1 = pos + d1                      # P + δ1
+        displacement = motion + d2             # M + δ2
+        start2 = start1 + displacement
+        streak = steps[None, :, None] * displacement[:, None, :]          # (N, K, 3)
+        theta = (rec.transparency.to(device=device, dtype=dtype) / k)[:, None].expand(n, k)
+        color = rec.color.to(device=device, dtype=dtype)[:, None, :].expand(n, k, 3)
+        index = (first + torch.arange(n, device=device))[:, None].expand(n, k)
+        for t, (start, cam_from_ref) in enumerate(((start1, cam1_from_ref[b]),
+                                                   (start2, cam2_from_ref[b]))):
+            pts = transform_points(cam_from_ref, (start[:, None, :] + streak).reshape(-1, 3))
+            pix, z = project(pts, intrinsics[b])
+            out["u"].append(pix[:, 0])
+            out["v"].append(pix[:, 1])
+            out["z"].append(z)
+            out["theta"].append(theta.reshape(-1))
+            out["color"].append(color.reshape(-1, 3))
+            out["target"].append(torch.full((n * k,), t * batch + b, device=device,
+                                            dtype=torch.long))
+            out["particle"].append(index.reshape(-1))
+        first += n
+    if not out["u"]:
+        return None
+    return {key: torch.cat(v) for key, v in out.items()}
+
+
+def _splat(acc, depth_flat, inst, stamps: StampSet, height, width, beta, chunk_elements):
+    """Scatter-add every instance's weighted stamp into ``acc``.
+
+    Shape: acc is a list of 4 separate (2 B H W,) tensors, A then C_r, C_g, C_b (separate tensors
+    rather than views of one, so that in-place scatters need no copy under autograd).
+    """
+    bucket = stamps.bucket_of[inst["particle"]]
+    for b, bk in enumerate(stamps.buckets):
+        side = bk.side
+        half = (side - 1) // 2
+        sel = torch.nonzero(bucket == b).squeeze(1)
+        if sel.numel() == 0:
+            continue
+        u, v, z = inst["u"][sel], inst["v"][sel], inst["z"][sel]
+        u0, v0 = torch.floor(u.detach()), torch.floor(v.detach())
+        # Drop instances behind the camera or whose patch misses the image entirely.
+        keep = (z.detach() > NEAR) & (u0 + half + 1 >= 0) & (u0 - half <= width - 1) \
+            & (v0 + half + 1 >= 0) & (v0 - half <= height - 1)
+        if not bool(keep.all()):
+            idx = torch.nonzero(keep).squeeze(1)
+            sel, u, v, z, u0, v0 = sel[idx], u[idx], v[idx], z[idx], u0[idx], v0[idx]
+        if sel.numel() == 0:
+            continue
+        slots = stamps.slot_of[inst["particle"][sel]]
+        theta, color, target = inst["theta"][sel], inst["color"][sel], inst["target"][sel]
+        ramp = torch.arange(side + 1, device=depth_flat.device)
+        per_chunk = max(1, chunk_elements // ((side + 1) ** 2))
+        for s0 in range(0, sel.numel(), per_chunk):
+            c = slice(s0, s0 + per_chunk)
+            stamp = F.pad(bk.stamps[slots[c]], (1, 1, 1, 1))            # (n, s+2, s+2)
+            fu = (u[c] - u0[c])[:, None, None]
+            fv = (v[c] - v0[c])[:, None, None]
+            # Bilinear splat: patch[i, j] mixes stamp[i - a, j - b] for a, b in {0, 1}.
+            patch = ((1 - fv) * ((1 - fu) * stamp[:, 1:, 1:] + fu * stamp[:, 1:, :-1])
+                     + fv * ((1 - fu) * stamp[:, :-1, 1:] + fu * stamp[:, :-1, :-1]))
+            xs = u0[c].long()[:, None] - half + ramp                    # (n, s+1)
+            ys = v0[c].long()[:, None] - half + ramp
+            valid = ((ys >= 0) & (ys < height))[:, :, None] & ((xs >= 0) & (xs < width))[:, None, :]
+            pix = (target[c][:, None, None] * height + ys.clamp(0, height - 1)[:, :, None]) * width \
+                + xs.clamp(0, width - 1)[:, None, :]
+            visibility = torch.sigmoid(beta * (depth_flat[pix] - z[c][:, None, None]))
+            weight = (patch * visibility * theta[c][:, None, None] * valid).reshape(-1)
+            flat = pix.reshape(-1)
+            # Four 1-D scatters: much faster than one scatter of (M, 4) rows on the CPU.
+            acc[0].index_add_(0, flat, weight)
+            col = color[c]
+            for ch in range(3):
+                per_pixel = col[:, ch, None].expand(-1, (side + 1) ** 2).reshape(-1)
+                acc[ch + 1].index_add_(0, flat, weight * per_pixel)
+
+
+def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
+           depth2: torch.Tensor, intrinsics: torch.Tensor, cam1_from_ref: torch.Tensor,
+           cam2_from_ref: torch.Tensor, particles: Union[Particles, Sequence[Particles]],
+           templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
+           stamps: Optional[StampSet] = None,
+           chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> RenderOutput:
+    """Render particle records into a batch of frame pairs.
+
+    Shape:
+        image1, image2: (B, 3, H, W) float in [0, 1]; depth1, depth2: (B, 1, H, W) camera-z.
+        intrinsics: (B, 3, 3); cam1_from_ref, cam2_from_ref: (B, 4, 4), the cameras' transforms
+            from each record's reference frame (see :func:`reference_transforms`).
+        particles: one record per pair (a single record for B = 1).
+    Computes in the images' dtype and device. Returns :class:`RenderOutput`.
+    """
+    records = [particles] if isinstance(particles, Particles) else list(particles)
+    if image1.dim() != 4 or image1.shape[1] != 3 or image2.shape != image1.shape:
+        raise DatasetError(f"images must be (B, 3, H, W) and equal; got {tuple(image1.shape)} "
+                           f"and {tuple(image2.shape)}")
+    bsz, _, height, width = image1.shape
+    for name, d in (("depth1", depth1), ("depth2", depth2)):
+        if d is None:
+            raise DatasetError(f"{name} is missing; weather rendering needs scene depth")
+        if tuple(d.shape) != (bsz, 1, height, width):
+            raise DatasetError(f"{name} has shape {tuple(d.shape)}, expected "
+                               f"{(bsz, 1, height, width)}")
+    if len(records) != bsz:
+        raise ConfigError(f"{len(records)} particle records for a batch of {bsz} frame pairs")
+    dtype, device = image1.dtype, image1.device
+    if templates is None:
+        names = {r.templates for r in records}
+        if len(names) != 1:
+            raise ConfigError(f"records of one render call must share templates; got {sorted(names)}")
+        templates = load_templates(names.pop())
+    for r in records:
+        if r.templates_digest and templates.digest != r.templates_digest:
+            raise ConfigError(f"particles were sampled with templates '{r.templates}' "
+                              f"(digest {r.templates_digest}) but are rendered with "
+                              f"'{templates.name}' (digest {templates.digest})")
+        if r.blend not in ("additive", "alpha"):
+            raise ConfigError(f"unknown blend mode {r.blend!r}")
+
+    acc = [torch.zeros(2 * bsz * height * width, dtype=dtype, device=device) for _ in range(4)]
+    intr = intrinsics.to(device)
+    inst = _instances(records, intr, cam1_from_ref.to(device), cam2_from_ref.to(device),
+                      dtype, device)
+    if inst is not None:
+        if stamps is None:
+            stamps = build_stamps(records, templates, dtype=dtype, device=device,
+                                  chunk_elements=chunk_elements)
+        depth_flat = torch.stack((depth1, depth2)).to(dtype).reshape(-1)
+        _splat(acc, depth_flat, inst, stamps, height, width, float(beta), chunk_elements)
+
+    alpha = acc[0].view(2, bsz, 1, height, width)
+    colour = torch.stack([a.view(2, bsz, height, width) for a in acc[1:]], 2)
+    images = torch.stack((image1, image2))
+    alpha_mode = torch.tensor([r.blend == "alpha" for r in records], device=device)
+    alpha_mode = alpha_mode.view(1, bsz, 1, 1, 1)
+    out = torch.where(alpha_mode, images * (1 - alpha) + colour, images + colour).clamp(0, 1)
+    opacity = alpha.clamp(0, 1)
+    return RenderOutput(image1=out[0], image2=out[1], opacity1=opacity[0], opacity2=opacity[1])
+
+
+def render_pair(pair: Union[FramePair, FramePairBatch],
+                particles: Union[Particles, Sequence[Particles]],
+                templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
+                device=None, stamps: Optional[StampSet] = None) -> RenderOutput:
+    """Render particles into a :class:`FramePair` (B = 1) or a :class:`FramePairBatch`.
+
+    Picks each record's reference transforms from the pair's poses; raises ConfigError when a
+    record sampled in world coordinates meets a pair without absolute poses.
+    Shape: returns images (B, 3, H, W) and opacities (B, 1, H, W).
+    """
+    dev = resolve_device(device) if device is not None else None
+    if isinstance(pair, FramePair):
+        check_pair_for_engine(pair)
+        if dev is not None:
+            pair = pair.to(dev)
+        frame, c1, c2 = reference_transforms(pair)
+        records = [particles] if isinstance(particles, Particles) else list(particles)
+        fields = dict(image1=pair.image1[None], image2=pair.image2[None],
+                      depth1=pair.depth1[None], depth2=pair.depth2[None],
+                      intrinsics=pair.intrinsics[None])
+        frames, c1, c2 = [frame], c1[None], c2[None]
+    else:
+        if pair.depth1 is None or pair.depth2 is None:
+            raise DatasetError("frame-pair batch has no depth; weather rendering needs depth")
+        world = pair.cam1_from_world is not None and pair.cam2_from_world is not None
+        bsz = pair.image1.shape[0]
+        if world:
+            c1, c2, frames = pair.cam1_from_world, pair.cam2_from_world, ["world"] * bsz
+        else:
+            c1 = torch.eye(4, dtype=torch.float64).expand(bsz, 4, 4)
+            c2, frames = pair.cam2_from_cam1, ["camera1"] * bsz
+        records = list(particles) if not isinstance(particles, Particles) else [particles]
+        fields = dict(image1=pair.image1, image2=pair.image2, depth1=pair.depth1,
+                      depth2=pair.depth2, intrinsics=pair.intrinsics)
+        if dev is not None:
+            fields = {k: v.to(dev) for k, v in fields.items()}
+    for rec, frame in zip(records, frames):
+        if rec.frame != frame:
+            raise ConfigError(f"particles live in {rec.frame} coordinates but the frame pair "
+                              f"offers {frame} coordinates (sample them for this pair)")
+    if dev is not None:
+        records = [r.to(dev) for r in records]
+    return render(**fields, cam1_from_ref=c1, cam2_from_ref=c2, particles=records,
+                  templates=templates, beta=beta, stamps=stamps)

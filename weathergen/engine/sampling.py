@@ -1,0 +1,305 @@
+"""Particle sampling: a preset and a frame pair in, a :class:`Particles` record out.
+
+Positions are drawn uniformly in the preset's sampling box (camera-1 coordinates) and kept when the
+particle is visible in frame 1 (in front of the camera, inside the image, in front of the scene
+depth) or, after the camera motion and its own motion, in frame 2. Candidates are drawn and tested
+in vectorised batches whose size depends only on the requested count, on the CPU in float64 from
+one explicitly seeded ``torch.Generator``: the same seed gives the same bytes on any machine and
+with any number of workers. The record is then moved to the requested device.
+
+Depth-dependent properties use the particle's camera depth ``d`` (camera 1 where the particle is in
+front of camera 1, else camera 2), fixed at sampling:
+
+- footprint (pixels) ``size * min(1, 1 / (d * depth_decay))``, at least 1;
+  ``scale = footprint / template resolution``;
+- transparency (``transparency_mode = "depth"``): a hat in the tanh domain,
+  ``t = 4/3 d - 1.5`` for ``d < 1.5`` else ``-4/3 d + 2.5``, ``θ = θ_scale (tanh t + 1) / 2``;
+  (``"constant"``): ``θ = θ_scale``;
+- defocus radius ``floor(clip(a / (d - b), 0, 20) + 0.5)`` with ``b = 0.563``,
+  ``a = 5 (0.75 - b)``; radii 0 and 1 mean no blur.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Optional, Union
+
+import torch
+
+from ..errors import ConfigError, DatasetError, WeatherGenError
+from ..framepair import FramePair
+from ..geometry import invert_rigid, project, transform_points
+from .particles import Particles, empty_particles
+from .presets import Preset
+from .templates import TemplateLibrary, load_templates
+
+WORLD_UP_CHOICES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
+DEFOCUS_B = 0.563
+DEFOCUS_A = 5 * (0.75 - DEFOCUS_B)
+DEFOCUS_MAX = 20
+NEAR = 1e-3  # nearest camera depth a particle may have, scene units
+
+
+def resolve_device(device: Optional[Union[str, torch.device]]) -> torch.device:
+    """``None`` -> CPU; raise a one-line WeatherGenError for a device this machine lacks."""
+    if device is None:
+        return torch.device("cpu")
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise WeatherGenError(f"unknown device {device!r} (use cpu, cuda or cuda:N)") from None
+    if dev.type == "cuda":
+        if not torch.cuda.is_available():
+            raise WeatherGenError(f"device {device!r} requested but CUDA is not available "
+                                  "on this machine (use --device cpu)")
+        if dev.index is not None and dev.index >= torch.cuda.device_count():
+            raise WeatherGenError(f"device {device!r} requested but only "
+                                  f"{torch.cuda.device_count()} CUDA device(s) exist")
+    elif dev.type == "mps" and not torch.backends.mps.is_available():
+        raise WeatherGenError(f"device {device!r} requested but MPS is not available")
+    return dev
+
+
+def reference_transforms(pair: FramePair) -> tuple[str, torch.Tensor, torch.Tensor]:
+    """The reference frame particles of ``pair`` live in, and both cameras' transforms from it.
+
+    Returns ``(frame, cam1_from_ref, cam2_from_ref)``, frame ``"world"`` where the pair has
+    absolute poses, else ``"camera1"``. Shape: (4, 4) float64 each.
+    """
+    if pair.cam1_from_world is not None and pair.cam2_from_world is not None:
+        return "world", pair.cam1_from_world.double(), pair.cam2_from_world.double()
+    eye = torch.eye(4, dtype=torch.float64, device=pair.cam2_from_cam1.device)
+    return "camera1", eye, pair.cam2_from_cam1.double()
+
+
+def world_down(cam1_from_ref: torch.Tensor, cam2_from_ref: torch.Tensor,
+               world_up: str = "auto") -> torch.Tensor:
+    """Unit "down" vector of the reference frame. Shape: (4, 4) each -> (3,) float64.
+
+    ``"auto"`` picks the reference axis nearest to the mean camera-up vector (camera −y) of both
+    cameras; ``"+z"`` etc. name the up axis explicitly.
+    """
+    if world_up not in WORLD_UP_CHOICES:
+        raise ConfigError(f"world_up {world_up!r}: must be one of {', '.join(WORLD_UP_CHOICES)}")
+    if world_up == "auto":
+        # Row 1 of a cam_from_ref rotation is the camera's +y (down) axis in reference coordinates.
+        up = -(cam1_from_ref[1, :3] + cam2_from_ref[1, :3]).double().cpu()
+        axis = int(up.abs().argmax())
+        sign = 1.0 if float(up[axis]) >= 0 else -1.0
+    else:
+        axis = "xyz".index(world_up[1])
+        sign = 1.0 if world_up[0] == "+" else -1.0
+    down = torch.zeros(3, dtype=torch.float64)
+    down[axis] = -sign
+    return down
+
+
+def _vertical_frame(down: torch.Tensor, cam1_from_ref: torch.Tensor) -> torch.Tensor:
+    """A rotation whose columns are (x', y', z') with y' = down and x' as close as possible to
+    camera 1's x axis, so that motion sampled in camera-like axes falls along the world's vertical.
+    Shape: -> (3, 3) float64, ref_from_vertical.
+    """
+    cam_x = cam1_from_ref[0, :3].double().cpu()
+    x = cam_x - (cam_x @ down) * down
+    if float(x.norm()) < 1e-6:  # camera looks straight along the vertical: any x' will do
+        helper = torch.tensor([1.0, 0.0, 0.0], dtype=torch.float64)
+        if abs(float(helper @ down)) > 0.9:
+            helper = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+        x = helper - (helper @ down) * down
+    x = x / x.norm()
+    z = torch.linalg.cross(x, down)
+    return torch.stack((x, down, z), dim=1)
+
+
+def _euler(angles: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices Rz Ry Rx from angles (radians). Shape: (N, 3) -> (N, 3, 3)."""
+    cx, cy, cz = torch.cos(angles).unbind(-1)
+    sx, sy, sz = torch.sin(angles).unbind(-1)
+    one, zero = torch.ones_like(cx), torch.zeros_like(cx)
+    rx = torch.stack((one, zero, zero, zero, cx, -sx, zero, sx, cx), -1).view(-1, 3, 3)
+    ry = torch.stack((cy, zero, sy, zero, one, zero, -sy, zero, cy), -1).view(-1, 3, 3)
+    rz = torch.stack((cz, -sz, zero, sz, cz, zero, zero, zero, one), -1).view(-1, 3, 3)
+    return rz @ ry @ rx
+
+
+def _visible(points_cam: torch.Tensor, intrinsics: torch.Tensor, depth: torch.Tensor
+             ) -> torch.Tensor:
+    """Which camera points are in front of the camera, inside the image and in front of the
+    scene surface at their (nearest) pixel. Shape: (N, 3), (3, 3), (1, H, W) -> (N,) bool."""
+    h, w = depth.shape[-2:]
+    pix, z = project(points_cam, intrinsics)
+    ok = (z > NEAR) & (pix[:, 0] >= -0.5) & (pix[:, 0] < w - 0.5) \
+        & (pix[:, 1] >= -0.5) & (pix[:, 1] < h - 0.5)
+    col = torch.floor(pix[:, 0] + 0.5).clamp(0, w - 1).long()
+    row = torch.floor(pix[:, 1] + 0.5).clamp(0, h - 1).long()
+    scene = depth[0, row, col].double()
+    return ok & (z < scene)
+
+
+def transparency_hat(d: torch.Tensor) -> torch.Tensor:
+    """The depth hat in [0, 1] (peak at d = 1.5). Shape: any -> same."""
+    t = torch.where(d < 1.5, 4.0 / 3.0 * d - 1.5, -4.0 / 3.0 * d + 2.5)
+    return (torch.tanh(t) + 1) / 2
+
+
+def defocus_radius(d: torch.Tensor) -> torch.Tensor:
+    """Disc-blur radius in pixels for camera depth ``d``. Shape: any -> same, int64."""
+    safe = torch.where(d > DEFOCUS_B, d - DEFOCUS_B, torch.ones_like(d))
+    r = torch.where(d > DEFOCUS_B, DEFOCUS_A / safe, torch.zeros_like(d))
+    return torch.floor(r.clamp(0, DEFOCUS_MAX) + 0.5).long()
+
+
+# -- colour --------------------------------------------------------------------------------
+
+def rgb_to_hls(rgb: torch.Tensor) -> torch.Tensor:
+    """RGB in [0, 1] to HLS (hue in [0, 1) turns, lightness, saturation). Shape: (..., 3)."""
+    r, g, b = rgb.unbind(-1)
+    maxc, minc = rgb.max(-1).values, rgb.min(-1).values
+    light = (maxc + minc) / 2
+    span = maxc - minc
+    grey = span <= 0
+    safe_span = torch.where(grey, torch.ones_like(span), span)
+    denom = torch.where(light <= 0.5, maxc + minc, 2.0 - maxc - minc)
+    sat = torch.where(grey, torch.zeros_like(span),
+                      span / torch.where(denom > 0, denom, torch.ones_like(denom)))
+    rc, gc, bc = (maxc - r) / safe_span, (maxc - g) / safe_span, (maxc - b) / safe_span
+    hue = torch.where(r == maxc, bc - gc, torch.where(g == maxc, 2.0 + rc - bc, 4.0 + gc - rc))
+    hue = torch.where(grey, torch.zeros_like(hue), torch.remainder(hue / 6.0, 1.0))
+    return torch.stack((hue, light, sat), -1)
+
+
+def hls_to_rgb(hls: torch.Tensor) -> torch.Tensor:
+    """Inverse of :func:`rgb_to_hls`. Shape: (..., 3) -> (..., 3)."""
+    hue, light, sat = hls.unbind(-1)
+    m2 = torch.where(light <= 0.5, light * (1.0 + sat), light + sat - light * sat)
+    m1 = 2.0 * light - m2
+
+    def channel(h):
+        h = torch.remainder(h, 1.0)
+        return torch.where(h < 1 / 6, m1 + (m2 - m1) * h * 6.0,
+                           torch.where(h < 0.5, m2,
+                                       torch.where(h < 2 / 3, m1 + (m2 - m1) * (2 / 3 - h) * 6.0,
+                                                   m1)))
+
+    rgb = torch.stack((channel(hue + 1 / 3), channel(hue), channel(hue - 1 / 3)), -1)
+    return torch.where((sat == 0)[..., None], light[..., None].expand_as(rgb), rgb)
+
+
+# -- sampling ------------------------------------------------------------------------------
+
+def _generator(seed: Union[int, torch.Generator]) -> torch.Generator:
+    if isinstance(seed, torch.Generator):
+        if seed.device.type != "cpu":
+            raise ConfigError("the sampling generator must be a CPU torch.Generator")
+        return seed
+    if isinstance(seed, bool) or not isinstance(seed, int):
+        raise ConfigError(f"seed {seed!r}: must be an integer")
+    g = torch.Generator(device="cpu")
+    g.manual_seed(int(seed))
+    return g
+
+
+def check_pair_for_engine(pair: FramePair) -> None:
+    """Raise DatasetError when ``pair`` lacks what the engine needs (depth, cameras)."""
+    where = pair.sources.get("image1", pair.id)
+    for name in ("depth1", "depth2"):
+        if getattr(pair, name, None) is None:
+            raise DatasetError(f"{where}: frame pair has no {name}; weather needs scene depth")
+    if pair.intrinsics is None or pair.cam2_from_cam1 is None:
+        raise DatasetError(f"{where}: frame pair has no camera intrinsics or relative pose")
+    pair.validate()
+
+
+def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Generator] = 0, *,
+                     world_up: str = "auto", templates: Optional[TemplateLibrary] = None,
+                     device=None, max_candidates_factor: int = 500) -> Particles:
+    """Sample ``preset.count`` particles for one frame pair.
+
+    Shape: uses pair.depth1/depth2 (1, H, W), intrinsics (3, 3), the pair's poses (4, 4).
+    Returns a quantized :class:`Particles` record on ``device`` (default CPU).
+    ``world_up`` says which reference axis points up (see :func:`world_down`). Raises ConfigError
+    when fewer than ``count`` visible positions turn up among ``max_candidates_factor * count``
+    candidates (the sampling box lies behind the scene or outside the view).
+    """
+    check_pair_for_engine(pair)
+    dev = resolve_device(device)
+    gen = _generator(seed)
+    lib = templates if templates is not None else load_templates(preset.templates)
+    frame, cam1_from_ref, cam2_from_ref = reference_transforms(pair)
+    cam1_from_ref, cam2_from_ref = cam1_from_ref.cpu(), cam2_from_ref.cpu()
+    ref_from_cam1 = invert_rigid(cam1_from_ref)
+    k = pair.intrinsics.double().cpu()
+    depth1, depth2 = pair.depth1.cpu(), pair.depth2.cpu()
+    settings = dict(blend=preset.blend, blur_length=preset.effective_blur_length,
+                    blur_samples=preset.blur_sample_count,
+                    defocus_brighten=preset.defocus_brighten, templates=lib.name,
+                    templates_digest=lib.digest)
+    n = preset.count
+    if n == 0:
+        return empty_particles(frame, **settings).to(dev)
+
+    ref_from_vertical = _vertical_frame(world_down(cam1_from_ref, cam2_from_ref, world_up),
+                                        cam1_from_ref)
+    lo = torch.tensor([preset.volume_x[0], preset.volume_y[0], preset.volume_z[0]],
+                      dtype=torch.float64)
+    hi = torch.tensor([preset.volume_x[1], preset.volume_y[1], preset.volume_z[1]],
+                      dtype=torch.float64)
+    angle = math.radians(preset.motion_angle_jitter)
+    base = torch.tensor([0.0, preset.motion_y, 0.0], dtype=torch.float64)
+
+    batch = min(max(4096, 4 * n), 1 << 18)  # depends on the count only: reproducible anywhere
+    kept_pos, kept_motion, kept = [], [], 0
+    tried = 0
+    while kept < n:
+        if tried >= max_candidates_factor * n:
+            raise ConfigError(
+                f"could place only {kept} of {n} particles: the sampling box "
+                f"x{list(preset.volume_x)} y{list(preset.volume_y)} z{list(preset.volume_z)} "
+                "is mostly hidden behind the scene or outside the view (check the depth scale "
+                "or the preset's volume_* keys)")
+        u = torch.rand(batch, 7, generator=gen, dtype=torch.float64)
+        tried += batch
+        pos_cam1 = lo + (hi - lo) * u[:, :3]
+        rot = _euler((2 * u[:, 3:6] - 1) * angle)
+        factor = 1 + (2 * u[:, 6] - 1) * preset.motion_scale_jitter
+        motion_vertical = (rot @ base) * factor[:, None]
+        motion = motion_vertical @ ref_from_vertical.T
+        pos_ref = transform_points(ref_from_cam1, pos_cam1)
+        vis = _visible(pos_cam1, k, depth1) | _visible(
+            transform_points(cam2_from_ref, pos_ref + motion), k, depth2)
+        kept_pos.append(pos_ref[vis])
+        kept_motion.append(motion[vis])
+        kept += int(vis.sum())
+    position = torch.cat(kept_pos)[:n]
+    motion = torch.cat(kept_motion)[:n]
+
+    # Per-particle appearance, drawn for exactly n particles after the positions.
+    u = torch.rand(n, 4, generator=gen, dtype=torch.float64)
+    template = torch.randint(0, lib.count, (n,), generator=gen)
+    rotation = u[:, 0] * 2 * math.pi
+
+    z1 = transform_points(cam1_from_ref, position)[:, 2]
+    z2 = transform_points(cam2_from_ref, position + motion)[:, 2]
+    d = torch.where(z1 > NEAR, z1, z2)
+    footprint = (preset.size * torch.clamp(1.0 / (d * preset.depth_decay), max=1.0)).clamp(min=1.0)
+    scale = footprint / lib.resolution
+    if preset.transparency_mode == "constant":
+        theta = torch.full_like(d, preset.transparency)
+    else:
+        theta = preset.transparency * transparency_hat(d)
+    defocus = defocus_radius(d) if preset.defocus else torch.zeros(n, dtype=torch.int64)
+
+    hls = rgb_to_hls(torch.tensor(preset.color, dtype=torch.float64) / 255.0).expand(n, 3)
+    jitter = (2 * u[:, 1:4] - 1) * torch.tensor(
+        [preset.hue_jitter / 360.0, preset.lightness_jitter, preset.saturation_jitter],
+        dtype=torch.float64)
+    hls = hls + jitter
+    hls = torch.stack((torch.remainder(hls[:, 0], 1.0), hls[:, 1].clamp(0, 1),
+                       hls[:, 2].clamp(0, 1)), -1)
+    color = hls_to_rgb(hls).clamp(0, 1)
+
+    zeros = torch.zeros(n, 3, dtype=torch.float64)
+    record = Particles(position=position, motion=motion, offset1=zeros, offset2=zeros.clone(),
+                       color=color, transparency=theta, template=template, rotation=rotation,
+                       scale=scale, defocus=defocus, frame=frame, **settings)
+    return record.quantized().to(dev)

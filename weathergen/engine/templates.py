@@ -1,0 +1,233 @@
+"""Billboard templates: grey-scale alpha maps that give each particle its shape.
+
+Two built-in libraries ship with the package, both made by :func:`generate_templates` (our own,
+seeded, deterministic generators) and stored as PNGs under ``weathergen/engine/templates/``:
+
+- ``flakes``: snowflake-like stars and dendrites, hexagonal plates and soft round grains
+  (snow, rain and sparks);
+- ``dust``: soft cloud blobs (fog and the dust rows of the size sweep).
+
+A preset may instead name a folder of grey-scale PNGs. Every template is treated as round: content
+outside its inscribed circle is dropped, so that a rotated template never needs a larger canvas.
+Templates of different sizes are centred on the largest one's square canvas.
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+from dataclasses import dataclass
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError, FormatError
+from .presets import BUILTIN_TEMPLATE_KINDS
+
+FLAKE_RESOLUTION = 80
+DUST_RESOLUTION = 128
+FLAKE_COUNT = 8
+DUST_COUNT = 6
+
+
+@dataclass(frozen=True)
+class TemplateLibrary:
+    """The templates a particle's ``template`` index refers to.
+
+    Shape:
+        alphas: (T, R, R) float32 in [0, 1], T templates of R x R pixels (R >= 1).
+    ``name`` is the built-in kind or the folder; ``digest`` fingerprints the pixel data, so a
+    stored particle record can tell whether it is re-rendered with the templates it was made with.
+    """
+
+    name: str
+    alphas: torch.Tensor
+    digest: str
+
+    @property
+    def count(self) -> int:
+        return int(self.alphas.shape[0])
+
+    @property
+    def resolution(self) -> int:
+        return int(self.alphas.shape[-1])
+
+
+def _disc_mask(res: int) -> np.ndarray:
+    c = (res - 1) / 2
+    yy, xx = np.mgrid[0:res, 0:res]
+    return ((xx - c) ** 2 + (yy - c) ** 2) <= (res / 2) ** 2
+
+
+def _finish(stack: list[np.ndarray], name: str) -> TemplateLibrary:
+    res = max(max(a.shape) for a in stack)
+    canvas = np.zeros((len(stack), res, res), np.float32)
+    for i, a in enumerate(stack):
+        h, w = a.shape
+        top, left = (res - h) // 2, (res - w) // 2
+        canvas[i, top:top + h, left:left + w] = a
+    canvas *= _disc_mask(res)
+    digest = hashlib.sha256(canvas.tobytes()).hexdigest()[:16]
+    return TemplateLibrary(name=name, alphas=torch.from_numpy(canvas), digest=digest)
+
+
+def _read_png(path: Path) -> np.ndarray:
+    import cv2  # local import: OpenCV is slow to import and only needed here
+
+    if path.suffix.lower() != ".png":
+        raise FormatError(path, "not a PNG image; a template folder may hold only grey-scale PNGs")
+    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if img is None:
+        raise FormatError(path, "cannot be read as an image")
+    scale = 65535.0 if img.dtype == np.uint16 else 255.0
+    img = img.astype(np.float32) / scale
+    if img.ndim == 3:
+        if img.shape[2] == 4:  # coloured template with alpha: its alpha channel is the shape
+            img = img[..., 3]
+        else:
+            img = img[..., :3].mean(axis=2)
+    if min(img.shape) < 1:
+        raise FormatError(path, "empty image")
+    return img
+
+
+@functools.lru_cache(maxsize=8)
+def _load_cached(spec: str) -> TemplateLibrary:
+    if spec in BUILTIN_TEMPLATE_KINDS:
+        folder = resources.files("weathergen.engine") / "templates" / spec
+        files = sorted((f for f in folder.iterdir() if f.name.endswith(".png")), key=lambda f: f.name)
+        if not files:  # a broken installation, not a user error
+            raise RuntimeError(f"built-in template library '{spec}' is missing from the package")
+        stack = []
+        for f in files:
+            with resources.as_file(f) as p:
+                stack.append(_read_png(Path(p)))
+        return _finish(stack, spec)
+    folder = Path(spec).expanduser()
+    if not folder.is_dir():
+        raise ConfigError(f"{folder}: template folder does not exist (or use one of "
+                          f"{', '.join(BUILTIN_TEMPLATE_KINDS)})")
+    files = sorted(f for f in folder.iterdir() if f.is_file() and not f.name.startswith("."))
+    if not files:
+        raise ConfigError(f"{folder}: template folder holds no PNG images")
+    if len(files) > 65535:
+        raise ConfigError(f"{folder}: too many templates ({len(files)}, at most 65535)")
+    return _finish([_read_png(f) for f in files], str(folder))
+
+
+def load_templates(spec: str) -> TemplateLibrary:
+    """A built-in library (``"flakes"``, ``"dust"``) or a folder of grey-scale PNGs.
+
+    Raises ConfigError for a missing or empty folder and FormatError naming the first file that
+    is not a readable PNG.
+    """
+    return _load_cached(str(spec))
+
+
+# ---------------------------------------------------------------------------------------------
+# Generators for the built-in libraries.
+
+def _segment_distance(xx, yy, x0, y0, x1, y1):
+    """Distance of every grid point to the segment (x0, y0)-(x1, y1)."""
+    dx, dy = x1 - x0, y1 - y0
+    t = np.clip(((xx - x0) * dx + (yy - y0) * dy) / max(dx * dx + dy * dy, 1e-12), 0, 1)
+    return np.hypot(xx - (x0 + t * dx), yy - (y0 + t * dy))
+
+
+def _radial_fade(r, radius):
+    """1 inside, smoothly 0 at the template's inscribed circle, so rotations never clip."""
+    return np.clip((radius - r) / (0.15 * radius), 0, 1) ** 2
+
+
+def _flake(rng: np.random.Generator, res: int, style: str) -> np.ndarray:
+    c = (res - 1) / 2
+    yy, xx = np.mgrid[0:res, 0:res].astype(np.float64)
+    xx, yy = (xx - c) / c, (yy - c) / c          # unit coordinates, the disc has radius 1
+    r = np.hypot(xx, yy)
+    if style == "grain":                          # a soft round grain with a brighter core
+        sigma = rng.uniform(0.25, 0.4)
+        alpha = np.exp(-(r / sigma) ** 2) + 0.3 * np.exp(-(r / (2 * sigma)) ** 2)
+    elif style == "plate":                        # a hexagonal plate with a soft rim
+        phase = rng.uniform(0, np.pi / 3)
+        ang = np.arctan2(yy, xx) - phase
+        hexr = np.cos(np.pi / 6) / np.cos((ang % (np.pi / 3)) - np.pi / 6)
+        size = rng.uniform(0.5, 0.7)
+        edge = r / (size * hexr)
+        alpha = np.clip(1.2 - edge, 0, 1) ** 0.7 * (0.6 + 0.4 * np.exp(-(edge - 0.9) ** 2 / 0.02))
+    else:                                         # a six-armed dendrite with side branches
+        arms = 6
+        phase = rng.uniform(0, 2 * np.pi / arms)
+        length = rng.uniform(0.7, 0.9)
+        width = rng.uniform(0.05, 0.08)
+        branch_at = rng.uniform(0.3, 0.7, size=2)
+        branch_len = rng.uniform(0.15, 0.3, size=2)
+        dist = np.full_like(r, np.inf)
+        for k in range(arms):
+            a = phase + 2 * np.pi * k / arms
+            ex, ey = length * np.cos(a), length * np.sin(a)
+            dist = np.minimum(dist, _segment_distance(xx, yy, 0, 0, ex, ey))
+            for pos, blen in zip(branch_at * length, branch_len):
+                bx, by = pos * np.cos(a), pos * np.sin(a)
+                for side in (-1, 1):
+                    b = a + side * np.pi / 3
+                    dist = np.minimum(dist, _segment_distance(
+                        xx, yy, bx, by, bx + blen * np.cos(b), by + blen * np.sin(b)))
+        alpha = np.exp(-(dist / width) ** 2) + 0.6 * np.exp(-(r / 0.18) ** 2)
+    alpha = alpha * _radial_fade(r, 1.0)
+    return (alpha / alpha.max()).astype(np.float32)
+
+
+def _smooth_noise(rng: np.random.Generator, res: int, cells: int) -> np.ndarray:
+    """Band-limited noise: a coarse random grid, upsampled bicubically-ish by separable cosines."""
+    coarse = rng.uniform(0, 1, size=(cells + 3, cells + 3))
+    pos = np.linspace(1, cells + 1, res)
+    i = np.floor(pos).astype(int)
+    f = pos - i
+    w = (1 - np.cos(np.pi * f)) / 2               # cosine interpolation weights
+    rows = coarse[i] * (1 - w)[:, None] + coarse[i + 1] * w[:, None]
+    return rows[:, i] * (1 - w)[None, :] + rows[:, i + 1] * w[None, :]
+
+
+def _dust(rng: np.random.Generator, res: int) -> np.ndarray:
+    c = (res - 1) / 2
+    yy, xx = np.mgrid[0:res, 0:res].astype(np.float64)
+    xx, yy = (xx - c) / c, (yy - c) / c
+    r = np.hypot(xx, yy)
+    alpha = np.zeros_like(r)
+    for _ in range(rng.integers(4, 8)):           # overlapping soft puffs make a cloud
+        cx, cy = rng.uniform(-0.3, 0.3, size=2)
+        s = rng.uniform(0.2, 0.4)
+        alpha += rng.uniform(0.5, 1.0) * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * s * s))
+    texture = 0.6 * _smooth_noise(rng, res, 4) + 0.4 * _smooth_noise(rng, res, 9)
+    alpha = alpha * (0.55 + 0.45 * texture) * _radial_fade(r, 1.0)
+    return (alpha / alpha.max()).astype(np.float32)
+
+
+def generate_templates(kind: str, seed: int = 0) -> list[np.ndarray]:
+    """The built-in templates of ``kind`` as (R, R) float32 arrays in [0, 1], deterministic."""
+    rng = np.random.default_rng(seed)
+    if kind == "flakes":
+        styles = ["dendrite", "dendrite", "dendrite", "plate", "plate", "grain", "grain", "dendrite"]
+        return [_flake(rng, FLAKE_RESOLUTION, s) for s in styles[:FLAKE_COUNT]]
+    if kind == "dust":
+        return [_dust(rng, DUST_RESOLUTION) for _ in range(DUST_COUNT)]
+    raise ConfigError(f"unknown template kind '{kind}' (known: {', '.join(BUILTIN_TEMPLATE_KINDS)})")
+
+
+def write_builtin_templates(root: str | Path, seed: int = 0) -> list[Path]:
+    """Regenerate the shipped PNGs under ``root/<kind>/NN.png`` (run from a source checkout:
+    ``python -c "from weathergen.engine.templates import write_builtin_templates as w;
+    w('weathergen/engine/templates')"``)."""
+    import cv2
+
+    written = []
+    for kind in BUILTIN_TEMPLATE_KINDS:
+        folder = Path(root) / kind
+        folder.mkdir(parents=True, exist_ok=True)
+        for i, a in enumerate(generate_templates(kind, seed)):
+            path = folder / f"{i:02d}.png"
+            cv2.imwrite(str(path), np.round(a * 255).astype(np.uint8))
+            written.append(path)
+    return written

@@ -1,0 +1,191 @@
+"""The on-disk layout of a render output, its writers, the particle-metadata files and the manifest.
+
+Layout below the output folder ``OUT`` (``SPLIT`` as in the input, ``PASS`` the output pass name,
+by default ``<preset>_<input pass>``, e.g. ``snow_clean``; ``PAIR`` is ``<scene>_<frame>`` of the
+pair's first frame, e.g. ``alley_1_0001``)::
+
+    OUT/manifest.json                         the run: resolved preset, seeds, inputs, timings
+    OUT/manifest.d/shard-I-of-N.json          one part per shard, merged into manifest.json
+    OUT/SPLIT/PASS/PAIR/frame_FFFF.png        augmented first frame (8-bit PNG)
+    OUT/SPLIT/PASS/PAIR/frame_GGGG.png        augmented second frame, G = F + 1
+    OUT/SPLIT/PASS_exr/PAIR/frame_FFFF.exr    float frames with an 'opacity' channel (--format exr/both)
+    OUT/SPLIT/particles/PAIR/frame_FFFF.npz   particle metadata of the pair (numpy-readable)
+    OUT/SPLIT/depth/PAIR/frame_FFFF.dpt       geometry the particles were placed in, in Sintel
+    OUT/SPLIT/camdata_left/PAIR/frame_FFFF.cam   formats (depth and cameras after the depth scale),
+    OUT/SPLIT/flow/PAIR/frame_FFFF.flo        and ground-truth flow where the input has it
+
+Each pair is its own two-frame "scene", because without persistent particles the second frame of
+pair ``i`` and the first frame of pair ``i + 1`` differ. The tree is therefore a Sintel tree: the
+Sintel reader (and any tool that reads Sintel) reads it with ``--pass PASS``.
+
+Every file is written atomically, and the metadata file last, so a pair whose metadata exists and
+loads is complete.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .errors import FormatError
+from .framepair import FramePair, PairId
+from .io.atomic import atomic_write_bytes
+from .io.exr import write_exr
+from .io.images import write_png
+from .io.sintel_formats import write_cam, write_dpt, write_flo
+
+MANIFEST = "manifest.json"
+MANIFEST_PARTS = "manifest.d"
+MARKER = ".weathergen-render"
+METADATA_VERSION = 1
+FORMATS = ("png", "exr", "both")
+
+
+@dataclass(frozen=True)
+class PairOutput:
+    """Where one pair's outputs go."""
+
+    root: Path
+    split: str
+    pass_name: str
+    scene: str
+    frame: int
+    fmt: str = "png"
+    geometry: bool = True
+
+    @classmethod
+    def of(cls, root, pair_id: PairId, pass_name: str, fmt: str = "png", geometry: bool = True):
+        return cls(Path(root), pair_id.split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry)
+
+    @property
+    def pair_dir(self) -> str:
+        return f"{self.scene}_{self.frame:04d}"
+
+    def _file(self, folder: str, index: int, ext: str) -> Path:
+        return self.root / self.split / folder / self.pair_dir / f"frame_{index:04d}.{ext}"
+
+    @property
+    def frames_png(self) -> tuple[Path, Path]:
+        return self._file(self.pass_name, self.frame, "png"), self._file(self.pass_name, self.frame + 1, "png")
+
+    @property
+    def frames_exr(self) -> tuple[Path, Path]:
+        folder = f"{self.pass_name}_exr"
+        return self._file(folder, self.frame, "exr"), self._file(folder, self.frame + 1, "exr")
+
+    @property
+    def metadata(self) -> Path:
+        return self._file("particles", self.frame, "npz")
+
+    def geometry_files(self, with_flow: bool) -> list[Path]:
+        files = [self._file("depth", self.frame, "dpt"), self._file("depth", self.frame + 1, "dpt"),
+                 self._file("camdata_left", self.frame, "cam"), self._file("camdata_left", self.frame + 1, "cam")]
+        if with_flow:
+            files.append(self._file("flow", self.frame, "flo"))
+        return files
+
+    def files(self, with_flow: bool = False) -> list[Path]:
+        """Every file of this pair, the metadata file last (it marks completion)."""
+        out = []
+        if self.fmt in ("png", "both"):
+            out += list(self.frames_png)
+        if self.fmt in ("exr", "both"):
+            out += list(self.frames_exr)
+        if self.geometry:
+            out += self.geometry_files(with_flow)
+        return out + [self.metadata]
+
+    def is_complete(self) -> bool:
+        """True when the pair's metadata loads and every other file it lists exists."""
+        if not self.metadata.exists():
+            return False
+        try:
+            meta = read_metadata(self.metadata)
+        except FormatError:
+            return False
+        listed = [self.root / f for f in json.loads(str(meta["files"]))]
+        return all(p.exists() for p in listed)
+
+
+def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarray, np.ndarray],
+                       opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray]) -> list[Path]:
+    """Write one pair: frames, optional EXR and geometry, then the metadata (last).
+
+    Shape: frames (H, W, 3) float in [0, 1]; opacity (H, W) float.
+    """
+    written = []
+    if out.fmt in ("png", "both"):
+        for path, img in zip(out.frames_png, frames):
+            written.append(write_png(path, img))
+    if out.fmt in ("exr", "both"):
+        for path, img, alpha in zip(out.frames_exr, frames, opacity):
+            written.append(write_exr(path, img, {"opacity": alpha}))
+    if out.geometry:
+        depth_files = out.geometry_files(with_flow=pair.flow is not None)
+        written.append(write_dpt(depth_files[0], pair.depth1[0].numpy()))
+        written.append(write_dpt(depth_files[1], pair.depth2[0].numpy()))
+        k = pair.intrinsics.numpy()
+        if pair.cam1_from_world is not None:
+            e1, e2 = pair.cam1_from_world.numpy(), pair.cam2_from_world.numpy()
+        else:   # no absolute poses: camera 1 is the world
+            e1, e2 = np.eye(4), pair.cam2_from_cam1.numpy()
+        written.append(write_cam(depth_files[2], k, e1))
+        written.append(write_cam(depth_files[3], k, e2))
+        if pair.flow is not None:
+            written.append(write_flo(depth_files[4], pair.flow.numpy().transpose(1, 2, 0)))
+    rel = [str(p.relative_to(out.root)) for p in written]
+    metadata = dict(metadata)
+    metadata["files"] = np.array(json.dumps(rel))
+    write_metadata(out.metadata, metadata)
+    return written + [out.metadata]
+
+
+def write_metadata(path: Path, arrays: dict[str, np.ndarray]) -> Path:
+    """Write a compressed ``.npz`` atomically."""
+    import io
+
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def read_metadata(path: str | Path) -> dict[str, np.ndarray]:
+    """Load a particle-metadata ``.npz`` (every array), checking its format version."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except FileNotFoundError:
+        raise FormatError(path, "file not found") from None
+    except Exception as exc:  # zipfile/numpy raise several types for corrupt files
+        raise FormatError(path, f"not a readable .npz metadata file ({exc})") from None
+    version = int(arrays.get("metadata_version", -1))
+    if version < 0:
+        raise FormatError(path, "not a weathergen particle-metadata file (no metadata_version)")
+    if version > METADATA_VERSION:
+        raise FormatError(path, f"metadata format version {version} is newer than this weathergen "
+                                f"understands ({METADATA_VERSION}); upgrade weathergen")
+    return arrays
+
+
+def pair_identity(arrays: dict[str, np.ndarray]) -> PairId:
+    """The pair a metadata file belongs to."""
+    return PairId(str(arrays["pair_dataset"]), str(arrays["pair_split"]), str(arrays["pair_scene"]),
+                  int(arrays["pair_frame"]))
+
+
+def identity_arrays(pair_id: PairId, seed: int, preset: dict, preset_name: str) -> dict[str, np.ndarray]:
+    """The metadata entries that say which pair, seed and preset a particle set belongs to."""
+    from . import __version__
+
+    return {
+        "metadata_version": np.array(METADATA_VERSION, np.int32),
+        "pair_dataset": np.array(pair_id.dataset), "pair_split": np.array(pair_id.split),
+        "pair_scene": np.array(pair_id.scene), "pair_frame": np.array(pair_id.frame, np.int64),
+        "seed": np.array(seed, np.uint64), "preset_name": np.array(preset_name),
+        "preset": np.array(json.dumps(preset, sort_keys=True)),
+        "weathergen_version": np.array(__version__),
+    }

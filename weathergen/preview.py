@@ -1,0 +1,71 @@
+"""Contact sheets of a render output: original and weather frames side by side with the opacity."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from .datasets import open_dataset
+from .errors import ConfigError, WeatherGenError
+from .io.images import read_image, to_uint8
+from .outputs import MANIFEST, PairOutput
+
+
+def _tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
+    """Resize a float [0, 1] image to ``size`` (w, h), as uint8 with a caption."""
+    out = to_uint8(cv2.resize(img, size, interpolation=cv2.INTER_AREA))
+    cv2.putText(out, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+    cv2.putText(out, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> np.ndarray:
+    """One row per pair: original frame 1 | weather frame 1 | particle opacity of frame 1.
+
+    The input frames are read through the dataset recorded in the manifest; the opacity is
+    re-rendered from the stored particle metadata (exact, whatever the output format).
+    Shape: returns (rows * h, 3 * width, 3) uint8 RGB.
+    """
+    from .engine import Particles, render_pair
+
+    render_dir = Path(render_dir)
+    manifest_path = render_dir / MANIFEST
+    if not manifest_path.is_file():
+        raise ConfigError(f"{manifest_path}: not found; preview takes the folder of a render output")
+    try:
+        manifest = json.loads(manifest_path.read_text())
+        inp, outputs = manifest["input"], manifest["outputs"]
+    except (ValueError, KeyError):
+        raise ConfigError(f"{manifest_path}: not a weathergen render manifest") from None
+    options = {k: inp[k] for k in ("depth_scale", "scene_scales", "camera_translation") if k in inp}
+    ds = open_dataset(inp["dataset"], None if inp["dataset"] == "demo" else inp["root"],
+                      split=inp["split"], pass_=inp["pass"], scenes=inp.get("scenes"),
+                      from_scene=inp.get("from_scene"), frames_per_scene=inp.get("frames_per_scene"),
+                      first_frame=inp.get("first_frame"), **options)
+    rows = []
+    for ref in ds.pairs():
+        out = PairOutput.of(render_dir, ref.id, outputs["pass"], outputs["format"], outputs["geometry"])
+        if not out.is_complete():
+            continue
+        pair = ds.load(ref)
+        particles = Particles.load(out.metadata)
+        with torch.no_grad():
+            opacity = render_pair(pair, particles).opacity1[0, 0].clamp(0, 1).numpy()
+        weather = (read_image(out.frames_png[0]) if outputs["format"] in ("png", "both")
+                   else pair.image1.permute(1, 2, 0).numpy())
+        original = pair.image1.permute(1, 2, 0).numpy()
+        h, w = original.shape[:2]
+        size = (width, max(1, round(h * width / w)))
+        tiles = [_tile(original, size, f"{ref.id.scene} {ref.id.frame}"),
+                 _tile(weather, size, manifest.get("preset_name", "")),
+                 _tile(np.repeat(opacity[..., None], 3, 2), size, "opacity")]
+        rows.append(np.hstack(tiles))
+        if len(rows) == pairs:
+            break
+    if not rows:
+        raise WeatherGenError(f"{render_dir}: no complete pair to preview")
+    return np.vstack(rows)
