@@ -264,7 +264,14 @@ def test_check_command_reads_kitti(tmp_path, street):
     (tmp_path / "training" / "calib_cam_to_cam" / "000001.txt").unlink()
     result = run_cli(["check", "--dataset", "kitti", "--root", str(tmp_path), "--far-depth", "300"])
     assert result.exit_code == 1
-    assert "000001 frame 10: calib: training/calib_cam_to_cam/000001.txt is missing" in result.output
+    assert "000001 frame 10: training/calib_cam_to_cam/000001.txt: calib file is missing" in result.output
+
+
+def test_check_command_explains_the_testing_split(tmp_path, street):
+    write_fake_kitti(tmp_path, street[0], split="testing")
+    result = run_cli(["check", "--dataset", "kitti", "--root", str(tmp_path), "--split", "testing"])
+    assert result.exit_code == 1
+    assert "testing split ships no disparity, flow or object maps" in result.output.replace("\n", " ")
 
 
 def test_far_depth_does_not_apply_to_sintel(fake_sintel):

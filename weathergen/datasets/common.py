@@ -8,7 +8,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError, WeatherGenError
 from .base import Dataset, Selection
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
@@ -54,6 +54,18 @@ class ScaledDataset(Dataset):
     def scale_of(self, scene: str) -> float:
         """The depth scale applied to ``scene``."""
         return self.depth_scale * self.scene_scales.get(scene, 1.0)
+
+    def check(self, ref) -> Optional[str]:
+        """None if the pair reads cleanly, else one line naming the first problem.
+
+        ``load`` itself names missing files, with a hint where a split lacks them by design
+        (KITTI testing, Spring test), so a missing file is not reported without that hint.
+        """
+        try:
+            self.load(ref)
+        except WeatherGenError as exc:
+            return str(exc)
+        return None
 
     def describe(self) -> dict:
         out = super().describe()
