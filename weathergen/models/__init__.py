@@ -1,1 +1,28 @@
-"""Optical-flow networks behind one contract, looked up by name."""
+"""Optical-flow networks behind one contract, looked up by name.
+
+    >>> from weathergen.models import get_model
+    >>> model = get_model("raft-small", iters=12)       # doctest: +SKIP
+    >>> flow = model(image1, image2)                    # doctest: +SKIP
+
+Shape: images ``(B, 3, H, W)`` RGB in ``[0, 1]`` of any size -> flow ``(B, 2, H, W)`` in pixels.
+Each network is one module of this package that registers itself on import (see
+:mod:`weathergen.models.registry`); importing this package imports them all.
+"""
+
+from .base import FlowModel
+from .checkpoints import CheckpointSpec, cache_dir, download_checkpoint, read_state_dict
+from .padding import InputPadder
+from .registry import (ModelSpec, available_checkpoints, available_models, build_model,
+                       checkpoint_spec, get_model, model_spec, register_checkpoint,
+                       register_model)
+
+# Network modules register themselves; import each one here.
+from . import raft  # noqa: E402,F401  (registration side effect)
+from .raft import RAFT, RAFTModel  # noqa: E402
+
+__all__ = [
+    "FlowModel", "InputPadder", "ModelSpec", "CheckpointSpec", "RAFT", "RAFTModel",
+    "get_model", "build_model", "available_models", "available_checkpoints", "model_spec",
+    "checkpoint_spec", "register_model", "register_checkpoint", "cache_dir",
+    "download_checkpoint", "read_state_dict",
+]

@@ -1,0 +1,86 @@
+"""The contract every flow network in weathergen keeps.
+
+A :class:`FlowModel` takes two frames in the package's image convention and returns the flow from
+the first to the second in the package's flow convention, at the input resolution::
+
+    flow = model(image1, image2)
+
+Everything network-specific (value range, channel order, padding to a multiple, upsampling of
+the prediction) happens inside the adapter, so the attack and the evaluation never need to know
+which network they talk to. The adapter is differentiable with respect to both images: the attack
+backpropagates a loss on the flow into the weather particles that were rendered into them.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .checkpoints import load_strict
+from .padding import InputPadder
+
+
+class FlowModel(nn.Module):
+    """Base class of the flow-network adapters.
+
+    Subclasses set :attr:`multiple` and :attr:`min_size` (padding requirements) and implement
+    :meth:`normalize` and :meth:`predict`; :meth:`forward` checks the inputs, pads, normalises,
+    predicts and crops.
+
+    Shape:
+        image1, image2: ``(B, 3, H, W)`` RGB float in ``[0, 1]``, any ``H``, ``W``.
+        returns: ``(B, 2, H, W)`` flow in pixels from frame 1 to frame 2 (``u`` right, ``v`` down).
+    """
+
+    #: Name under which the architecture is registered (set by subclasses).
+    architecture: str = ""
+    #: The network sees only sizes that are a multiple of this.
+    multiple: int = 1
+    #: The network needs at least this many rows and columns (after padding).
+    min_size: int = 0
+
+    def normalize(self, image: torch.Tensor) -> torch.Tensor:
+        """Turn ``(B, 3, H, W)`` RGB in ``[0, 1]`` into what the network was trained on."""
+        raise NotImplementedError
+
+    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
+        """Flow ``(B, 2, H, W)`` in pixels for normalised, padded frames ``(B, 3, H, W)``."""
+        raise NotImplementedError
+
+    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
+        """Load a published ``state_dict`` strictly (names and shapes must match).
+
+        Adapters override this to translate the key layout of their authors' files.
+
+        Raises:
+            FormatError: naming ``source`` and listing what did not match.
+        """
+        load_strict(self, state_dict, source, what)
+
+    def padder(self, height: int, width: int) -> InputPadder:
+        """The padder this network uses for frames of ``height`` x ``width`` pixels."""
+        return InputPadder(height, width, multiple=self.multiple, min_size=self.min_size)
+
+    def forward(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
+        _check_images(image1, image2)
+        # Run in the weights' precision (float64 images into a float32 network, or the reverse
+        # for a float64 gradient check) and answer in the images' precision.
+        weights = next(self.parameters(), None)
+        dtype = image1.dtype if weights is None else weights.dtype
+        padder = self.padder(image1.shape[-2], image1.shape[-1])
+        x1 = self.normalize(padder.pad(image1.to(dtype)))
+        x2 = self.normalize(padder.pad(image2.to(dtype)))
+        return padder.unpad(self.predict(x1, x2)).to(image1.dtype)
+
+
+def _check_images(image1: torch.Tensor, image2: torch.Tensor) -> None:
+    for name, image in (("image1", image1), ("image2", image2)):
+        if not isinstance(image, torch.Tensor):
+            raise TypeError(f"expected {name} to be a torch.Tensor, got {type(image).__name__}")
+        if image.dim() != 4 or image.shape[1] != 3:
+            raise ValueError(f"expected {name} of shape (B, 3, H, W), got {tuple(image.shape)}")
+        if not image.is_floating_point():
+            raise ValueError(f"expected {name} to be a float tensor in [0, 1], got {image.dtype}")
+    if image1.shape != image2.shape:
+        raise ValueError(f"expected image1 and image2 of the same shape, got "
+                         f"{tuple(image1.shape)} and {tuple(image2.shape)}")

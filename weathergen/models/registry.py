@@ -1,0 +1,187 @@
+"""Flow networks and their checkpoints, looked up by name.
+
+Each network lives in one module of this package that, on import, registers
+
+- its architecture with :func:`register_model` (a name, a builder that makes an untrained
+  :class:`~weathergen.models.base.FlowModel`, and the name of its default checkpoint), and
+- its published checkpoints with :func:`register_checkpoint` (:class:`CheckpointSpec` data).
+
+:func:`get_model` is the one entry point the rest of weathergen uses::
+
+    model = get_model("raft", checkpoint="raft-things", iters=12)
+    flow = model(image1, image2)
+
+``name`` may also be a checkpoint name (``get_model("raft-kitti")``), which selects that
+checkpoint's architecture.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional, Union
+
+import torch
+
+from ..errors import ConfigError
+from .base import FlowModel
+from .checkpoints import CheckpointSpec, read_state_dict, resolve_named
+
+#: Builds an untrained adapter: ``build(iters=..., gradient_checkpointing=...)``.
+Builder = Callable[..., FlowModel]
+
+
+@dataclass(frozen=True)
+class ModelSpec:
+    """A registered architecture.
+
+    Attributes:
+        name: what users type (``raft``).
+        build: makes an untrained, evaluation-mode adapter; keyword arguments ``iters`` (``None``
+            for the network's default) and ``gradient_checkpointing``.
+        default_checkpoint: the checkpoint name used when none is given.
+        description: one line for listings.
+    """
+
+    name: str
+    build: Builder
+    default_checkpoint: Optional[str]
+    description: str = ""
+
+
+_MODELS: dict[str, ModelSpec] = {}
+_CHECKPOINTS: dict[str, CheckpointSpec] = {}
+
+
+def register_model(spec: ModelSpec) -> ModelSpec:
+    """Add an architecture; a second registration under the same name is a bug."""
+    if spec.name in _MODELS:
+        raise ValueError(f"flow model {spec.name!r} is registered twice")
+    _MODELS[spec.name] = spec
+    return spec
+
+
+def register_checkpoint(spec: CheckpointSpec) -> CheckpointSpec:
+    """Add a named checkpoint; a second registration under the same name is a bug."""
+    if spec.name in _CHECKPOINTS:
+        raise ValueError(f"checkpoint {spec.name!r} is registered twice")
+    _CHECKPOINTS[spec.name] = spec
+    return spec
+
+
+def available_models() -> list[str]:
+    """Registered architecture names, sorted."""
+    return sorted(_MODELS)
+
+
+def available_checkpoints(architecture: Optional[str] = None) -> list[str]:
+    """Registered checkpoint names, sorted; only those fitting ``architecture`` if given."""
+    return sorted(n for n, s in _CHECKPOINTS.items()
+                  if architecture is None or s.architecture == architecture)
+
+
+def model_spec(name: str) -> ModelSpec:
+    """The registered architecture called ``name``.
+
+    Raises:
+        ConfigError: unknown name; the message lists the known ones.
+    """
+    try:
+        return _MODELS[name]
+    except KeyError:
+        raise ConfigError(_unknown_message(name)) from None
+
+
+def checkpoint_spec(name: str) -> CheckpointSpec:
+    """The registered checkpoint called ``name`` (``ConfigError`` listing the known ones)."""
+    try:
+        return _CHECKPOINTS[name]
+    except KeyError:
+        raise ConfigError(f"unknown checkpoint {name!r}; known checkpoints: "
+                          f"{', '.join(available_checkpoints())}") from None
+
+
+def build_model(name: str, iters: Optional[int] = None,
+                gradient_checkpointing: bool = False) -> FlowModel:
+    """An untrained (randomly initialised) adapter of architecture ``name``, in eval mode."""
+    if iters is not None and (isinstance(iters, bool) or not isinstance(iters, int) or iters < 1):
+        raise ConfigError(f"iters must be a positive integer, got {iters!r}")
+    model = model_spec(name).build(iters=iters, gradient_checkpointing=gradient_checkpointing)
+    return model.eval()
+
+
+def get_model(name: str, checkpoint: Union[str, Path, None] = None,
+              device: Union[str, torch.device] = "cpu", iters: Optional[int] = None, *,
+              download: bool = False, gradient_checkpointing: bool = False,
+              timeout: float = 60.0) -> FlowModel:
+    """A flow network with trained weights, ready to call as ``model(image1, image2)``.
+
+    Args:
+        name: an architecture (``raft``, ``raft-small``) or a checkpoint name (``raft-kitti``).
+        checkpoint: a checkpoint name, a file path, or ``None`` for the default of ``name``.
+        device: where the model runs (``"cpu"``, ``"cuda"``, ``"cuda:1"``...).
+        iters: refinement iterations for recurrent networks; ``None`` for the default.
+        download: fetch a named checkpoint missing from the cache (needs a network).
+        gradient_checkpointing: recompute activations in the backward pass instead of
+            keeping them (less memory for attacks, more time).
+        timeout: seconds a download may stall before it is given up.
+
+    The returned model is in evaluation mode and its parameters do not require gradients;
+    gradients still flow to the input images.
+
+    Raises:
+        ConfigError: unknown name or checkpoint, a checkpoint for another architecture, a
+            missing file (the message says which file to put where), an unusable device.
+        FormatError: the checkpoint file is unreadable or does not fit the architecture.
+    """
+    if name in _MODELS:
+        arch = name
+        if checkpoint is None:
+            checkpoint = _MODELS[name].default_checkpoint
+    elif name in _CHECKPOINTS:
+        arch = _CHECKPOINTS[name].architecture
+        if checkpoint is None:
+            checkpoint = name
+    else:
+        raise ConfigError(_unknown_message(name))
+    if checkpoint is None:
+        raise ConfigError(f"flow model {arch!r} has no default checkpoint; give one by path")
+
+    path, what = _resolve_checkpoint(arch, checkpoint, download, timeout)
+    device = _device(device)
+    model = build_model(arch, iters=iters, gradient_checkpointing=gradient_checkpointing)
+    model.load_checkpoint(read_state_dict(path), source=path, what=what)
+    model.requires_grad_(False)
+    return model.to(device).eval()
+
+
+def _resolve_checkpoint(arch: str, checkpoint: Union[str, Path], download: bool,
+                        timeout: float) -> tuple[Path, str]:
+    if isinstance(checkpoint, str) and checkpoint in _CHECKPOINTS:
+        spec = _CHECKPOINTS[checkpoint]
+        if spec.architecture != arch:
+            raise ConfigError(f"checkpoint {checkpoint!r} is for {spec.architecture!r}, not "
+                              f"{arch!r}; checkpoints for {arch!r}: "
+                              f"{', '.join(available_checkpoints(arch)) or 'none'}")
+        return resolve_named(spec, download=download, timeout=timeout), arch
+    path = Path(checkpoint).expanduser()
+    if not path.is_file():
+        raise ConfigError(f"checkpoint {str(checkpoint)!r} is neither a file nor a known "
+                          f"checkpoint name ({', '.join(available_checkpoints(arch))})")
+    return path, arch
+
+
+def _device(device: Union[str, torch.device]) -> torch.device:
+    try:
+        dev = torch.device(device)
+    except (RuntimeError, TypeError) as exc:
+        raise ConfigError(f"invalid device {device!r} ({exc})") from None
+    if dev.type == "cuda" and not torch.cuda.is_available():
+        raise ConfigError(f"device {device!r} requested but CUDA is not available here")
+    return dev
+
+
+def _unknown_message(name: str) -> str:
+    return (f"unknown flow model {name!r}; known models: {', '.join(available_models())}; "
+            f"known checkpoints: {', '.join(available_checkpoints())}")
+
