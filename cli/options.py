@@ -17,9 +17,11 @@ def dataset_options(func):
                        "'sintel' with --root.")
     @click.option("--root", type=click.Path(path_type=str), default=None,
                   help="Folder the dataset is stored in. Default: the bundled demo scene.")
-    @click.option("--split", default="training", show_default=True, help="Dataset split.")
+    @click.option("--split", default="training", show_default=True,
+                  help="Dataset split (Sintel: training/test; KITTI: training/testing; "
+                       "Spring: train/test, training/testing accepted).")
     @click.option("--pass", "pass_", default="clean", show_default=True,
-                  help="Rendering pass (Sintel: clean or final).")
+                  help="Rendering pass (Sintel: clean or final; the other datasets have one).")
     @click.option("--scenes", default=None, metavar="A,B,...",
                   help="Only these scenes (comma-separated). Default: all.")
     @click.option("--from-scene", default=None, metavar="NAME",
@@ -35,12 +37,19 @@ def dataset_options(func):
                   help="TOML/JSON table of per-scene depth factors, applied on top of --depth-scale.")
     @click.option("--camera-translation/--no-camera-translation", default=True, show_default=True,
                   help="Keep the camera translation between the two frames (or zero it).")
+    @click.option("--far-depth", type=click.FloatRange(min=0, min_open=True), default=None,
+                  help="kitti, spring, custom: depth (dataset units, before --depth-scale) given to "
+                       "pixels without depth, such as the sky. Default: 1000.")
     @functools.wraps(func)
     def wrapper(*args, dataset_name, root, split, pass_, scenes, from_scene, frames_per_scene,
-                first_frame, depth_scale, scene_scales, camera_translation, **kwargs):
+                first_frame, depth_scale, scene_scales, camera_translation, far_depth, **kwargs):
         name = dataset_name or ("sintel" if root else "demo")
         options = dict(depth_scale=depth_scale, camera_translation=camera_translation,
                        scene_scales=load_scene_scales(scene_scales) if scene_scales else None)
+        if far_depth is not None:
+            if name in ("sintel", "demo"):
+                raise click.UsageError(f"--far-depth does not apply to {name}: its depth is dense")
+            options["far_depth"] = far_depth
         kwargs["dataset"] = open_dataset(
             name, root, split=split, pass_=pass_,
             scenes=[s.strip() for s in scenes.split(",") if s.strip()] if scenes else None,

@@ -242,3 +242,22 @@ def test_preview_writes_a_contact_sheet(snow_run, tmp_path):
     assert res.exit_code == 0, res.output
     sheet = read_image(out)
     assert sheet.shape[1] == 3 * 128 and sheet.shape[0] > 50
+
+
+def test_kitti_render_keeps_sparse_flow_validity(tmp_path, demo_root):
+    from fake_datasets import demo_sequence, write_fake_kitti
+
+    street = demo_sequence("street")[1]
+    write_fake_kitti(tmp_path / "kitti", street[0], scene="000004")
+    out = tmp_path / "out"
+    res = run("render", "--dataset", "kitti", "--root", tmp_path / "kitti", "--out", out, "--set", "count=200")
+    assert res.exit_code == 0, res.output
+    source = open_dataset("kitti", tmp_path / "kitti")
+    original = source.load(source.pairs()[0])
+    assert not original.flow_valid.all()
+    ds = open_dataset("sintel", out, split="training", pass_="snow_clean")
+    back = ds.load(ds.pairs()[0])
+    assert back.id.scene == "000004_0010"
+    assert bool((back.flow_valid == original.flow_valid).all())
+    np.testing.assert_allclose(back.flow[original.flow_valid.expand(2, -1, -1)].numpy(),
+                               original.flow[original.flow_valid.expand(2, -1, -1)].numpy())

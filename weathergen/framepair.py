@@ -9,6 +9,9 @@ Conventions (stated once here; docstrings elsewhere repeat them as ``Shape:`` li
 - **Flow**: ``(2, H, W)`` / ``(B, 2, H, W)``; ``float32``; pixels; channel 0 is ``u`` (towards +x,
   right), channel 1 is ``v`` (towards +y, down); ``p2 = p1 + flow(p1)``.
 - **Valid masks**: ``(1, H, W)`` / ``(B, 1, H, W)``; ``bool``.
+- **Measured-depth masks** (``depth_measured1/2``): ``(1, H, W)`` ``bool``, True where the depth was
+  measured (read from the dataset) rather than interpolated or set to a far depth by the reader;
+  ``None`` means every pixel was measured (dense ground truth such as Sintel's).
 - **Pixel coordinates**: ``x`` to the right, ``y`` down, the centre of the top-left pixel at
   ``(0, 0)`` (so the image spans ``[-0.5, W - 0.5]``).
 - **Camera axes** (OpenCV): +x right, +y down, +z forward, along the optical axis.
@@ -63,6 +66,7 @@ class FramePair:
         cam1_from_world, cam2_from_world: (4, 4) float64 where the dataset has absolute poses.
         flow: (2, H, W) float32 pixels, frame 1 to frame 2, where the dataset has it.
         flow_valid: (1, H, W) bool, where ``flow`` is given.
+        depth_measured1, depth_measured2: (1, H, W) bool where the reader filled in depth, else None.
     """
 
     id: PairId
@@ -76,10 +80,15 @@ class FramePair:
     cam2_from_world: Optional[torch.Tensor] = None
     flow: Optional[torch.Tensor] = None
     flow_valid: Optional[torch.Tensor] = None
+    depth_measured1: Optional[torch.Tensor] = None
+    depth_measured2: Optional[torch.Tensor] = None
     # Which files this pair came from (for messages and manifests), e.g. {"image1": Path(...)}.
     sources: dict = field(default_factory=dict)
     # The depth scale that was applied to the stored depth (and camera translations).
     depth_scale: float = 1.0
+    # Plain-data facts the reader wants recorded in manifests, e.g. the residual of an estimated
+    # camera motion ({"camera_motion": {"method": "rigid-fit", "rms_px": 0.3, ...}}).
+    meta: dict = field(default_factory=dict)
 
     @property
     def size(self) -> tuple[int, int]:
@@ -117,16 +126,24 @@ class FramePair:
             src = self.sources.get("flow", where)
             raise DatasetError(f"{src}: flow is {self.flow.shape[-1]}x{self.flow.shape[-2]} "
                                f"but the image is {w}x{h}")
+        for name in ("flow_valid", "depth_measured1", "depth_measured2"):
+            t = getattr(self, name)
+            if t is not None and (tuple(t.shape) != (1, h, w) or t.dtype != torch.bool):
+                fail(f"{name} is {t.dtype} of shape {tuple(t.shape)}, expected bool (1, {h}, {w})")
         return self
 
     def to(self, device: torch.device | str) -> "FramePair":
         """A copy with every tensor on ``device`` (dtypes unchanged)."""
         moved = {}
-        for name in ("image1", "image2", "depth1", "depth2", "intrinsics", "cam2_from_cam1",
-                     "cam1_from_world", "cam2_from_world", "flow", "flow_valid"):
+        for name in _TENSOR_FIELDS:
             t = getattr(self, name)
             moved[name] = None if t is None else t.to(device)
         return replace(self, **moved)
+
+
+_TENSOR_FIELDS = ("image1", "image2", "depth1", "depth2", "intrinsics", "cam2_from_cam1",
+                  "cam1_from_world", "cam2_from_world", "flow", "flow_valid",
+                  "depth_measured1", "depth_measured2")
 
 
 @dataclass
@@ -134,7 +151,8 @@ class FramePairBatch:
     """``B`` frame pairs of the same size stacked along a leading batch dimension.
 
     Shape: as :class:`FramePair` with a leading ``B``; optional fields are ``None`` unless every
-    pair has them.
+    pair has them, except the measured-depth masks, which are stacked (all True for a pair
+    without one) as soon as one pair has them.
     """
 
     ids: list
@@ -148,6 +166,8 @@ class FramePairBatch:
     cam2_from_world: Optional[torch.Tensor] = None
     flow: Optional[torch.Tensor] = None
     flow_valid: Optional[torch.Tensor] = None
+    depth_measured1: Optional[torch.Tensor] = None
+    depth_measured2: Optional[torch.Tensor] = None
 
     @classmethod
     def stack(cls, pairs: list[FramePair]) -> "FramePairBatch":
@@ -161,6 +181,14 @@ class FramePairBatch:
             vals = [getattr(p, name) for p in pairs]
             return None if any(v is None for v in vals) else torch.stack(vals)
 
+        def measured(name):
+            # None means "all measured", so a pair without a mask stacks as all True.
+            vals = [getattr(p, name) for p in pairs]
+            if all(v is None for v in vals):
+                return None
+            return torch.stack([torch.ones_like(p.depth1, dtype=torch.bool) if v is None else v
+                                for p, v in zip(pairs, vals)])
+
         return cls(
             ids=[p.id for p in pairs],
             image1=torch.stack([p.image1 for p in pairs]),
@@ -173,6 +201,8 @@ class FramePairBatch:
             cam2_from_world=opt("cam2_from_world"),
             flow=opt("flow"),
             flow_valid=opt("flow_valid"),
+            depth_measured1=measured("depth_measured1"),
+            depth_measured2=measured("depth_measured2"),
         )
 
 

@@ -13,6 +13,7 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/depth/PAIR/frame_FFFF.dpt       geometry the particles were placed in, in Sintel
     OUT/SPLIT/camdata_left/PAIR/frame_FFFF.cam   formats (depth and cameras after the depth scale),
     OUT/SPLIT/flow/PAIR/frame_FFFF.flo        and ground-truth flow where the input has it
+    OUT/SPLIT/invalid/PAIR/frame_FFFF.png     non-zero where that flow is not valid (sparse flow)
 
 Each pair is its own two-frame "scene", because without persistent particles the second frame of
 pair ``i`` and the first frame of pair ``i + 1`` differ. The tree is therefore a Sintel tree: the
@@ -87,6 +88,11 @@ class PairOutput:
             files.append(self._file("flow", self.frame, "flo"))
         return files
 
+    @property
+    def invalid_mask(self) -> Path:
+        """Sintel-style mask of pixels without valid ground-truth flow (written only when some are)."""
+        return self._file("invalid", self.frame, "png")
+
     def files(self, with_flow: bool = False) -> list[Path]:
         """Every file of this pair, the metadata file last (it marks completion)."""
         out = []
@@ -136,6 +142,9 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
         written.append(write_cam(depth_files[3], k, e2))
         if pair.flow is not None:
             written.append(write_flo(depth_files[4], pair.flow.numpy().transpose(1, 2, 0)))
+            if pair.flow_valid is not None and not bool(pair.flow_valid.all()):
+                mask = np.where(pair.flow_valid[0].numpy(), 0, 255).astype(np.uint8)
+                written.append(write_png(out.invalid_mask, mask))
     rel = [str(p.relative_to(out.root)) for p in written]
     metadata = dict(metadata)
     metadata["files"] = np.array(json.dumps(rel))

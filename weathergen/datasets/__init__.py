@@ -11,7 +11,10 @@ from typing import Optional
 
 from ..errors import ConfigError
 from .base import Dataset, PairProblem, PairRef, Selection
+from .custom import CustomDataset
+from .kitti import KittiDataset
 from .sintel import SintelDataset, load_scene_scales
+from .spring import SpringDataset
 
 
 class DemoDataset(SintelDataset):
@@ -27,8 +30,11 @@ class DemoDataset(SintelDataset):
 
 #: name -> reader class; every reader takes ``(root, selection, **options)``.
 DATASETS: dict[str, type[Dataset]] = {
+    "custom": CustomDataset,
     "demo": DemoDataset,
+    "kitti": KittiDataset,
     "sintel": SintelDataset,
+    "spring": SpringDataset,
 }
 
 
@@ -58,5 +64,6 @@ def demo_pairs(**selection) -> list:
     return [ds.load(ref) for ref in ds.pairs()]
 
 
-__all__ = ["DATASETS", "Dataset", "DemoDataset", "PairProblem", "PairRef", "Selection",
-           "SintelDataset", "demo_pairs", "load_scene_scales", "open_dataset"]
+__all__ = ["DATASETS", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset", "PairProblem",
+           "PairRef", "Selection", "SintelDataset", "SpringDataset", "demo_pairs",
+           "load_scene_scales", "open_dataset"]

@@ -1,0 +1,125 @@
+"""Speed and memory of the particle engine at Sintel resolution (1024 x 436), on the CPU.
+
+Prints, per main preset: sampling time, render time (forward, no gradient), forward + backward
+time (gradients for both offsets, colour and transparency, beta = 30), peak resident memory
+during the forward + backward, and the metadata bytes of one pair; then how the render time grows
+with the particle count and with the number of motion-blur samples. Times are medians of a few
+runs. A benchmark, not a test: nothing here fails on slow machines.
+"""
+
+from __future__ import annotations
+
+import os
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from engine_scenes import plane_pair, pose, rotation  # noqa: E402
+
+from weathergen.engine import (BETA_ATTACK, load_preset, render_pair,  # noqa: E402
+                               sample_particles)
+
+HEIGHT, WIDTH = 436, 1024
+REPEATS = int(os.environ.get("BENCH_REPEATS", "5"))
+BEST: list = []  # best-of-run times, printed beside medians: shared machines are noisy
+
+
+def scene():
+    cam1 = pose(rotation(roll_deg=3, pitch_deg=-5))
+    cam2 = pose(rotation(roll_deg=3, pitch_deg=-4, yaw_deg=1), centre=(0.05, 0.0, 0.1))
+    pair = plane_pair(HEIGHT, WIDTH, depth=6.0, near_block=True, cam1_from_world=cam1,
+                      cam2_from_world=cam2)
+    pair.depth1[..., :, 600:] = 2.0   # a second plane so that occlusion matters
+    pair.depth2[..., :, 600:] = 2.0
+    return pair
+
+
+def median_time(fn, repeats=REPEATS):
+    fn()  # warm-up: first-call allocations and kernel selection
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    BEST.append(min(times))
+    return statistics.median(times)
+
+
+def reset_peak_rss():
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+    except OSError:
+        pass
+
+
+def peak_rss_mib():
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith("VmHWM:"):
+            return int(line.split()[1]) / 1024
+    return float("nan")
+
+
+def forward(pair, parts):
+    with torch.no_grad():
+        return render_pair(pair, parts)
+
+
+def forward_backward(pair, parts):
+    leaves = {name: getattr(parts, name).clone().requires_grad_(True)
+              for name in ("offset1", "offset2", "color", "transparency")}
+    out = render_pair(pair, parts.replace(**leaves), beta=BETA_ATTACK)
+    (out.image1.sum() + out.image2.sum()).backward()
+
+
+def main():
+    torch.set_num_threads(min(2, os.cpu_count() or 1))
+    pair = scene()
+    print(f"weathergen engine benchmark: {WIDTH}x{HEIGHT}, torch {torch.__version__}, "
+          f"{torch.get_num_threads()} threads, medians of {REPEATS}")
+    print(f"{'preset':8} {'count':>6} {'sample s':>9} {'render s':>9} {'fwd+bwd s':>10} "
+          f"{'bwd/fwd':>8} {'peak MiB':>9} {'meta kB':>8}")
+    for name in ("snow", "rain", "sparks", "fog"):
+        preset = load_preset(name)
+        sample_s = median_time(lambda: sample_particles(pair, preset, seed=0))
+        parts = sample_particles(pair, preset, seed=0)
+        render_s = median_time(lambda: forward(pair, parts))
+        fb_s = median_time(lambda: forward_backward(pair, parts))
+        reset_peak_rss()
+        forward_backward(pair, parts)
+        peak = peak_rss_mib()
+        with tempfile.TemporaryDirectory() as tmp:
+            size = parts.save(Path(tmp) / "p.npz").stat().st_size
+        print(f"{name:8} {parts.count:6d} {sample_s:9.3f} {render_s:9.3f} {fb_s:10.3f} "
+              f"{fb_s / render_s:8.2f} {peak:9.0f} {size / 1000:8.1f}   "
+              f"(best: {BEST[-3]:.3f} / {BEST[-2]:.3f} / {BEST[-1]:.3f})")
+
+    print("\nrender time vs particle count (snow, forward):")
+    for count in (1000, 2000, 3000, 4000, 5000):
+        parts = sample_particles(pair, load_preset("snow", {"count": count}), seed=0)
+        print(f"  {count:5d} particles: {median_time(lambda: forward(pair, parts)):.3f} s "
+              f"(best {BEST[-1]:.3f})")
+
+    print("\nrender time vs blur samples (rain, forward; fwd+bwd):")
+    for samples in (1, 5, 10, 20, 40):
+        preset = load_preset("rain", {"blur_samples": samples})
+        parts = sample_particles(pair, preset, seed=0)
+        fwd = median_time(lambda: forward(pair, parts))
+        best = BEST[-1]
+        print(f"  {samples:3d} samples: {fwd:.3f} s (best {best:.3f}); fwd+bwd "
+              f"{median_time(lambda: forward_backward(pair, parts), 3):.3f} s")
+
+    print("\nmemory bound: 5000 particles x 20 blur samples (rain, forward + backward):")
+    parts = sample_particles(pair, load_preset("rain", {"count": 5000}), seed=0)
+    reset_peak_rss()
+    start = time.perf_counter()
+    forward_backward(pair, parts)
+    print(f"  {time.perf_counter() - start:.3f} s, peak resident {peak_rss_mib():.0f} MiB")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,149 @@
+"""The custom layout: every depth format and camera convention, and every bad-input path."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+from click.testing import CliRunner
+
+from fake_datasets import demo_sequence, write_fake_custom
+from weathergen.datasets import open_dataset
+from weathergen.errors import DatasetError, FormatError
+from weathergen.geometry import reprojection_flow
+from weathergen.io.custom_formats import read_depth, write_depth
+from weathergen.io.sintel_formats import write_flo
+
+
+@pytest.fixture(scope="module")
+def street(demo_root):
+    return demo_sequence("street")
+
+
+def load(root, index=0, **options):
+    ds = open_dataset("custom", root, **options)
+    return ds.load(ds.pairs()[index])
+
+
+@pytest.mark.parametrize("layout", [
+    dict(depth_suffix=".npy"),
+    dict(depth_suffix=".png"),
+    dict(depth_suffix=".exr"),
+    dict(depth_suffix=".npy", text=True),
+    dict(depth_suffix=".exr", pose="world_from_cam", axes="opengl", depth_kind="range"),
+    dict(depth_suffix=".npy", text=True, pose="world_from_cam", axes="opengl"),
+], ids=["npy", "png", "exr", "txt", "exr-gl-c2w-range", "txt-gl-c2w"])
+def test_every_format_and_convention_gives_the_same_record(tmp_path, street, layout):
+    frames, pairs = street
+    root = write_fake_custom(tmp_path / "walk", frames, **layout)
+    ds = open_dataset("custom", root)
+    assert [(r.id.scene, r.id.frame) for r in ds.pairs()] == [("walk", 0), ("walk", 1), ("walk", 2)]
+    pair = ds.load(ds.pairs()[1])
+    truth = pairs[1]
+    tol = 6e-4 if layout["depth_suffix"] == ".png" else 1e-5     # PNG: millimetre steps
+    torch.testing.assert_close(pair.depth1, truth.depth1, atol=tol, rtol=1e-5)
+    torch.testing.assert_close(pair.depth2, truth.depth2, atol=tol, rtol=1e-5)
+    torch.testing.assert_close(pair.cam2_from_cam1, truth.cam2_from_cam1, atol=1e-9, rtol=0)
+    torch.testing.assert_close(pair.cam1_from_world, truth.cam1_from_world, atol=1e-9, rtol=0)
+    torch.testing.assert_close(pair.intrinsics, truth.intrinsics)
+    # the static scene's flow follows from depth and cameras: conventions are consistent
+    static = reprojection_flow(pair.depth1.double(), pair.intrinsics, pair.cam2_from_cam1)
+    assert (static - truth.flow).abs().max() < 0.05
+    assert pair.flow is None
+
+
+def test_scenes_below_the_root_flow_and_missing_depth(tmp_path, street):
+    frames, pairs = street
+    write_fake_custom(tmp_path / "b_scene", frames[:2])
+    write_fake_custom(tmp_path / "a_scene", frames, missing=(0, 10))
+    write_flo(tmp_path / "a_scene" / "flow" / "0000.flo", pairs[0].flow.permute(1, 2, 0).numpy())
+    ds = open_dataset("custom", tmp_path, frames_per_scene=2)
+    assert [(r.id.scene, r.id.frame) for r in ds.pairs()] == [("a_scene", 0), ("a_scene", 1), ("b_scene", 0)]
+    pair = load(tmp_path, far_depth=321.0)
+    assert (pair.depth1[0, :10] == 321.0).all()
+    assert not pair.depth_measured1[0, :10].any() and pair.depth_measured1[0, 10:].all()
+    torch.testing.assert_close(pair.flow, pairs[0].flow)
+    assert pair.flow_valid.all()
+
+
+def test_frame_numbers_need_not_be_contiguous(tmp_path, street):
+    frames, _ = street
+    root = write_fake_custom(tmp_path / "s", frames[:3])
+    for old, new in ((2, 10),):
+        (root / "frames" / f"{old:04d}.png").rename(root / "frames" / f"{new:04d}.png")
+        (root / "depth" / f"{old:04d}.npy").rename(root / "depth" / f"{new:04d}.npy")
+    cams = json.loads((root / "cameras.json").read_text())
+    cams["frames"]["10"] = cams["frames"].pop("2")
+    (root / "cameras.json").write_text(json.dumps(cams))
+    ds = open_dataset("custom", root, first_frame=1)
+    assert [r.id.frame for r in ds.pairs()] == [1]
+    assert ds.load(ds.pairs()[0]).depth2.shape == (1, *frames[0]["depth"].shape)
+
+
+def test_depth_file_round_trips(tmp_path):
+    depth = np.array([[1.25, 0.0], [np.nan, 40.0]], np.float32)
+    for suffix in (".npy", ".exr"):
+        write_depth(tmp_path / f"d{suffix}", depth)
+        np.testing.assert_array_equal(read_depth(tmp_path / f"d{suffix}"), depth)
+    write_depth(tmp_path / "d.png", depth, png_scale=0.25)
+    np.testing.assert_array_equal(read_depth(tmp_path / "d.png", 0.25), [[1.25, 0], [0, 40]])
+
+
+# -- bad input -----------------------------------------------------------------------------------
+def test_png_depth_needs_a_scale(tmp_path, street):
+    frames, _ = street
+    root = write_fake_custom(tmp_path / "s", frames[:2], depth_suffix=".png")
+    cams = json.loads((root / "cameras.json").read_text())
+    del cams["depth_png_scale"]
+    (root / "cameras.json").write_text(json.dumps(cams))
+    with pytest.raises(FormatError, match=r"depth/0000\.png: 16-bit PNG depth needs 'depth_png_scale'"):
+        load(root)
+
+
+def test_camera_file_problems_are_named(tmp_path, street):
+    frames, _ = street
+    root = write_fake_custom(tmp_path / "s", frames[:2])
+    cams = json.loads((root / "cameras.json").read_text())
+    del cams["frames"]["1"]
+    (root / "cameras.json").write_text(json.dumps(cams))
+    with pytest.raises(FormatError, match=r"cameras\.json: has no pose for frame 1"):
+        load(root)
+    cams["frames"]["1"] = cams["frames"]["0"]
+    cams["pose_convention"] = "c2w"
+    (root / "cameras.json").write_text(json.dumps(cams))
+    with pytest.raises(FormatError, match=r"cameras\.json: unknown key 'pose_convention'"):
+        load(root)
+    del cams["pose_convention"]
+    cams["frames"]["1"] = [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]
+    (root / "cameras.json").write_text(json.dumps(cams))
+    with pytest.raises(FormatError, match=r"cameras\.json: frame 1: pose is not a rigid transform"):
+        load(root)
+    (root / "cameras.json").unlink()
+    with pytest.raises(DatasetError, match=r"cameras\.json: cameras file is missing"):
+        load(root)
+
+
+def test_depth_of_the_wrong_size_names_the_file(tmp_path, street):
+    frames, _ = street
+    root = write_fake_custom(tmp_path / "s", frames[:2])
+    np.save(root / "depth" / "0001.npy", np.ones((5, 7), np.float32))
+    with pytest.raises(DatasetError, match=r"depth/0001\.npy: depth is 7x5 but the frame is"):
+        load(root)
+
+
+def test_no_scene_found(tmp_path):
+    with pytest.raises(DatasetError, match="expected custom layout"):
+        open_dataset("custom", tmp_path).pairs()
+
+
+def test_check_command_reads_custom(tmp_path, street):
+    from weathergen.cli.main import _register, cli
+
+    frames, _ = street
+    write_fake_custom(tmp_path / "walk", frames)
+    _register()
+    result = CliRunner().invoke(cli, ["check", "--dataset", "custom", "--root", str(tmp_path)])
+    assert result.exit_code == 0, result.output
+    assert "All 3 pairs in 1 scenes are readable" in result.output

@@ -1,0 +1,102 @@
+"""Pieces the KITTI, Spring and custom readers share: depth scaling, split names, far depth."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Optional
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError, DatasetError, WeatherGenError
+from .base import Dataset, Selection
+
+#: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
+#: and regions no measurement reaches. Far beyond where weather particles are placed.
+DEFAULT_FAR_DEPTH = 1000.0
+
+
+class ScaledDataset(Dataset):
+    """A reader with the shared depth options of every command.
+
+    ``depth_scale * scene_scales[scene]`` multiplies depth and camera translations (as for Sintel);
+    ``camera_translation=False`` zeroes the translation between the two cameras; ``far_depth`` (in
+    the dataset's units, before scaling) fills pixels whose depth is unknown.
+    """
+
+    #: Names the ``--split`` option accepts, mapped to the folder below the root.
+    split_folders: dict[str, str] = {}
+
+    def __init__(self, root, selection: Selection = Selection(), *, depth_scale: float = 1.0,
+                 scene_scales: Optional[dict[str, float]] = None, camera_translation: bool = True,
+                 far_depth: Optional[float] = None):
+        super().__init__(root, selection)
+        if selection.split not in self.split_folders:
+            raise ConfigError(f"unknown {self.name} split {selection.split!r}; choose from "
+                              f"{', '.join(sorted(self.split_folders))}")
+        if selection.pass_ != "clean":
+            raise ConfigError(f"{self.name} has a single rendering pass; --pass {selection.pass_!r} "
+                              f"does not apply (leave it at 'clean')")
+        if not depth_scale > 0:
+            raise ConfigError(f"depth scale must be positive, got {depth_scale}")
+        far = DEFAULT_FAR_DEPTH if far_depth is None else far_depth
+        if not (np.isfinite(far) and far > 0):
+            raise ConfigError(f"far depth must be a positive number, got {far_depth}")
+        self.depth_scale = float(depth_scale)
+        self.scene_scales = dict(scene_scales or {})
+        self.camera_translation = camera_translation
+        self.far_depth = float(far)
+
+    @property
+    def split_dir(self) -> Path:
+        return self.root / self.split_folders[self.selection.split]
+
+    def scale_of(self, scene: str) -> float:
+        """The depth scale applied to ``scene``."""
+        return self.depth_scale * self.scene_scales.get(scene, 1.0)
+
+    def check(self, ref) -> Optional[str]:
+        """None if the pair reads cleanly, else one line naming the first problem.
+
+        ``load`` itself names missing files, with a hint where a split lacks them by design
+        (KITTI testing, Spring test), so a missing file is not reported without that hint.
+        """
+        try:
+            self.load(ref)
+        except WeatherGenError as exc:
+            return str(exc)
+        return None
+
+    def describe(self) -> dict:
+        out = super().describe()
+        out.update(depth_scale=self.depth_scale, scene_scales=self.scene_scales,
+                   camera_translation=self.camera_translation, far_depth=self.far_depth)
+        return out
+
+
+def require_files(files: dict, keys: tuple[str, ...], hint: str = "") -> None:
+    """Raise :class:`DatasetError` naming the first of ``files[key]`` that does not exist."""
+    for key in keys:
+        path = files.get(key)
+        if path is None or not Path(path).exists():
+            raise DatasetError(f"{path}: {key} file is missing{hint}")
+
+
+def check_size(path, what: str, shape: tuple, expected: tuple) -> None:
+    """Raise a one-line :class:`DatasetError` when a ``(H, W)`` map does not match the frame."""
+    if tuple(shape[:2]) != tuple(expected):
+        raise DatasetError(f"{path}: {what} is {shape[1]}x{shape[0]} but the frame is "
+                           f"{expected[1]}x{expected[0]}")
+
+
+def chw(a: np.ndarray) -> torch.Tensor:
+    """(H, W, C) or (H, W) numpy -> (C, H, W) / (1, H, W) tensor."""
+    a = a[..., None] if a.ndim == 2 else a
+    return torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))
+
+
+def scaled_motion(cam2_from_cam1: np.ndarray, scale: float, keep_translation: bool) -> torch.Tensor:
+    """``cam2_from_cam1`` with its translation scaled (or zeroed). Shape: (4, 4) -> (4, 4) float64."""
+    out = torch.from_numpy(np.array(cam2_from_cam1, np.float64))
+    out[:3, 3] = out[:3, 3] * scale if keep_translation else 0
+    return out

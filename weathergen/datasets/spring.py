@@ -1,0 +1,197 @@
+"""Spring reader: left frames, depth from the HDF5 disparity, per-frame cameras, flow where present.
+
+Layout below the root (``SPLIT`` is ``train`` or ``test``; ``training``/``testing`` are accepted)::
+
+    SPLIT/SCENE/frame_left/frame_left_0001.png       frames, numbered from 1
+    SPLIT/SCENE/disp1_left/disp1_left_0001.dsp5      disparity of each frame (HDF5, 2x resolution)
+    SPLIT/SCENE/cam_data/intrinsics.txt              fx fy cx cy per frame
+    SPLIT/SCENE/cam_data/extrinsics.txt              a 4x4 matrix per frame
+    SPLIT/SCENE/flow_FW_left/flow_FW_left_0001.flo5  optional: flow i -> i+1 (HDF5, 2x resolution)
+
+Resolution. Spring stores disparity and flow at twice the frame resolution in each direction,
+values in frame pixels. Each 2x2 block is reduced to one of its valid samples (the medoid,
+:func:`~weathergen.io.spring_formats.reduce_2x2`), never an average that would put depth between
+a foreground edge and the background. Files already at frame resolution are taken as they are;
+any other size is an error naming the file.
+
+Depth. ``depth = fx * 0.065 / disparity`` (Spring's stereo baseline is 0.065 m), in metres, from
+each frame's own disparity file. Pixels whose 2x2 block has no valid disparity (NaN, zero: the sky)
+get ``far_depth``; ``depth_measured1/2`` mark the others.
+
+Cameras. ``intrinsics.txt`` line i belongs to frame i. The record holds one camera matrix, so a
+pair whose two frames have different intrinsics (a zoom) is refused. ``extrinsics.txt`` matrix i
+is taken as frame i's **world-to-camera** transform in **OpenCV camera axes** (x right, y down,
+z forward), i.e. ``cam_from_world`` as in Sintel's ``.cam`` files; public Spring tools invert these
+matrices to obtain camera poses, which agrees. Pass ``extrinsics="camera-to-world"`` if your copy
+stores the inverse. ``cam2_from_cam1 = E2 @ inverse(E1)``.
+
+The test split has frames only: loading a test pair fails with a message saying that depth is
+missing.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from ..errors import ConfigError, DatasetError
+from ..framepair import FramePair, PairId
+from ..geometry import invert_rigid
+from ..io.images import read_image
+from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
+from .base import PairRef, Selection
+from .common import ScaledDataset, check_size, chw, require_files
+
+_FRAME_RE = re.compile(r"^frame_left_(\d{4,})\.png$")
+#: Distance between Spring's left and right cameras, metres.
+SPRING_BASELINE = 0.065
+EXTRINSICS = ("world-to-camera", "camera-to-world")
+
+
+class SpringDataset(ScaledDataset):
+    """Frame pairs ``(i, i+1)`` of the left camera of every selected Spring scene."""
+
+    name = "spring"
+    required_files = ("image1", "image2", "disp1", "disp2", "intrinsics", "extrinsics")
+    split_folders = {"train": "train", "training": "train", "test": "test", "testing": "test"}
+
+    def __init__(self, root, selection: Selection = Selection(), *, extrinsics: str = "world-to-camera",
+                 baseline: float = SPRING_BASELINE, **options):
+        super().__init__(root, selection, **options)
+        if extrinsics not in EXTRINSICS:
+            raise ConfigError(f"unknown Spring extrinsics convention {extrinsics!r}; choose from "
+                              f"{', '.join(EXTRINSICS)}")
+        if not baseline > 0:
+            raise ConfigError(f"stereo baseline must be positive, got {baseline}")
+        self.extrinsics = extrinsics
+        self.baseline = float(baseline)
+
+    # -- listing ---------------------------------------------------------------------------------
+    def scenes(self) -> list[str]:
+        if not self.split_dir.is_dir():
+            raise DatasetError(f"{self.split_dir}: no such folder (expected Spring layout "
+                               f"ROOT/{self.split_dir.name}/SCENE/frame_left/frame_left_0001.png)")
+        return sorted(p.name for p in self.split_dir.iterdir() if (p / "frame_left").is_dir())
+
+    def frames(self, scene: str) -> list[int]:
+        found = []
+        for p in (self.split_dir / scene / "frame_left").iterdir():
+            m = _FRAME_RE.match(p.name)
+            if m:
+                found.append(int(m.group(1)))
+        return sorted(found)
+
+    def pairs(self) -> list[PairRef]:
+        refs = []
+        for scene in self.selection.pick_scenes(self.scenes(), self.split_dir):
+            for f in self.selection.pick_frames(self.frames(scene)):
+                refs.append(PairRef(PairId(self.name, self.split_dir.name, scene, f), self._files(scene, f)))
+        return refs
+
+    def _files(self, scene: str, f: int) -> dict:
+        s = self.split_dir / scene
+        return {
+            "image1": s / "frame_left" / f"frame_left_{f:04d}.png",
+            "image2": s / "frame_left" / f"frame_left_{f + 1:04d}.png",
+            "disp1": s / "disp1_left" / f"disp1_left_{f:04d}.dsp5",
+            "disp2": s / "disp1_left" / f"disp1_left_{f + 1:04d}.dsp5",
+            "intrinsics": s / "cam_data" / "intrinsics.txt",
+            "extrinsics": s / "cam_data" / "extrinsics.txt",
+            "flow": s / "flow_FW_left" / f"flow_FW_left_{f:04d}.flo5",
+        }
+
+    # -- reading ---------------------------------------------------------------------------------
+    def load(self, ref: PairRef) -> FramePair:
+        files = ref.files
+        require_files(files, ("image1", "image2"))
+        hint = (" (the Spring test split ships no disparity or cameras, which weather needs)"
+                if self.split_dir.name == "test" else "")
+        require_files(files, ("disp1", "disp2", "intrinsics", "extrinsics"), hint)
+        f = ref.id.frame
+
+        img1, img2 = read_image(files["image1"]), read_image(files["image2"])
+        size = img1.shape[:2]
+        check_size(files["image2"], "frame", img2.shape, size)
+
+        intr = read_intrinsics_txt(files["intrinsics"])
+        ext = read_extrinsics_txt(files["extrinsics"])
+        for key, table in (("intrinsics", intr), ("extrinsics", ext)):
+            if len(table) < f + 1:
+                raise DatasetError(f"{files[key]}: has {len(table)} frames, but frame {f + 1} is needed")
+        k1, k2 = (_matrix(intr[i]) for i in (f - 1, f))
+        if not np.allclose(k1, k2, rtol=1e-4, atol=1e-3):
+            raise DatasetError(f"{files['intrinsics']}: frames {f} and {f + 1} have different "
+                               f"intrinsics (a zoom); a frame pair holds one camera matrix")
+        e1, e2 = ext[f - 1], ext[f]
+        if self.extrinsics == "camera-to-world":
+            e1, e2 = np.linalg.inv(e1), np.linalg.inv(e2)
+
+        depths, measured = [], []
+        for key in ("disp1", "disp2"):
+            disp, ok = _at_frame_size(read_dsp5(files[key]), files[key], "disparity", size)
+            ok &= np.isfinite(disp) & (disp > 0)
+            depth = np.full(size, self.far_depth, np.float32)
+            depth[ok] = (k1[0, 0] * self.baseline / disp[ok]).astype(np.float32)
+            depths.append(depth)
+            measured.append(ok)
+
+        flow = flow_valid = None
+        if Path(files["flow"]).exists():
+            fl, ok = _at_frame_size(read_flo5(files["flow"]), files["flow"], "flow", size)
+            flow_valid = ok & np.isfinite(fl).all(axis=2)
+            fl[~flow_valid] = 0
+            flow, flow_valid = chw(fl), chw(flow_valid)
+
+        scale = self.scale_of(ref.id.scene)
+        cam1_from_world = torch.from_numpy(e1.copy())
+        cam2_from_world = torch.from_numpy(e2.copy())
+        cam1_from_world[:3, 3] *= scale
+        cam2_from_world[:3, 3] *= scale
+        cam2_from_cam1 = cam2_from_world @ invert_rigid(cam1_from_world)
+        if not self.camera_translation:
+            cam2_from_cam1[:3, 3] = 0
+            cam2_from_world = cam2_from_cam1 @ cam1_from_world
+
+        return FramePair(
+            id=ref.id,
+            image1=chw(img1), image2=chw(img2),
+            depth1=chw(depths[0] * np.float32(scale)), depth2=chw(depths[1] * np.float32(scale)),
+            intrinsics=torch.from_numpy(k1),
+            cam2_from_cam1=cam2_from_cam1,
+            cam1_from_world=cam1_from_world, cam2_from_world=cam2_from_world,
+            flow=flow, flow_valid=flow_valid,
+            depth_measured1=chw(measured[0]), depth_measured2=chw(measured[1]),
+            sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
+            depth_scale=scale,
+            meta={"baseline_m": self.baseline, "far_depth": self.far_depth,
+                  "extrinsics": self.extrinsics},
+        ).validate()
+
+    def describe(self) -> dict:
+        out = super().describe()
+        out.update(extrinsics=self.extrinsics, baseline=self.baseline)
+        return out
+
+
+def _matrix(row: np.ndarray) -> np.ndarray:
+    fx, fy, cx, cy = row
+    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+
+def _at_frame_size(data: np.ndarray, path, what: str, size: tuple[int, int]):
+    """Ground truth at frame resolution: 2x grids reduced, 1x grids kept; anything else refused.
+
+    Shape: data (h, w[, C]) -> ``(values (H, W[, C]) float32, valid (H, W) bool)``.
+    """
+    h, w = size
+    finite = np.isfinite(data) if data.ndim == 2 else np.isfinite(data).all(axis=2)
+    if data.shape[:2] == (2 * h, 2 * w):
+        valid = finite & (data > 0) if data.ndim == 2 else finite
+        return reduce_2x2(data, valid)
+    if data.shape[:2] == (h, w):
+        return data.astype(np.float32), finite
+    raise DatasetError(f"{path}: {what} is {data.shape[1]}x{data.shape[0]} but the frame is {w}x{h}; "
+                       f"expected {2 * w}x{2 * h} (Spring's ground truth) or {w}x{h}")
