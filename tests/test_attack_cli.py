@@ -120,7 +120,7 @@ def test_fog_configuration_freezes_the_second_offset(tmp_path):
         pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
     out = tmp_path / "fog"
     result = invoke(["attack", "--config", "fog", "--model", "raft-small", "--checkpoint",
-                     WEIGHTS, "--iters", "2", *ONE_PAIR, "--steps", "0", "--set", "count=4",
+                     WEIGHTS, "--iters", "2", *ONE_PAIR, "--steps", "0", "--set", "count=2",
                      "--out", out, "--target", "1.5,-2"])
     assert result.exit_code == 0, result.output
     config = json.loads((out / "manifest.json").read_text())["config"]
