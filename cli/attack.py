@@ -41,6 +41,8 @@ def summary_table(title: str, summary: dict) -> Table:
               help="Checkpoint file or name. Default: the model's own, from the user cache.")
 @click.option("--iters", type=click.IntRange(min=1), default=None,
               help="Refinement iterations of recurrent networks. Default: the network's (12).")
+@click.option("--download", is_flag=True,
+              help="Fetch a named checkpoint that is missing from the cache (needs a network).")
 @click.option("--config", "config_name", default=None, metavar="NAME",
               help="An attack configuration of the paper's supplement (grey-offset1, "
                    "grey-offset2, grey-color, grey-transparency, grey-offsets, grey-appearance, "
@@ -82,7 +84,8 @@ def summary_table(title: str, summary: dict) -> Table:
 @click.option("--resume", is_flag=True, help="Finish an interrupted run: skip finished pairs.")
 @click.option("--overwrite", is_flag=True, help="Redo every pair, even in a folder that holds one.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
-def attack(dataset, model, checkpoint, iters, config_name, preset, set_items, particles_dir, steps,
+def attack(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
+           particles_dir, steps,
            optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, gradient_checkpointing,
            out, seed, device, resume, overwrite, quiet):
     """Optimise weather particles so that a flow network's output moves towards a target.
@@ -126,7 +129,8 @@ def attack(dataset, model, checkpoint, iters, config_name, preset, set_items, pa
                     preset=preset_obj, preset_name=name, settings=settings, target=target,
                     iters=iters, seed=seed, device=device, particles_from=particles_dir,
                     config_name=config_name, pass_name=f"{name}_adv_{dataset.selection.pass_}",
-                    gradient_checkpointing=gradient_checkpointing, resume=resume,
+                    gradient_checkpointing=gradient_checkpointing, download=download,
+                    resume=resume,
                     overwrite=overwrite, command=["weathergen", *sys.argv[1:]])
 
     console = Console()
@@ -145,11 +149,12 @@ def attack(dataset, model, checkpoint, iters, config_name, preset, set_items, pa
             task = progress.add_task("attack", total=n * (total_steps + 1), pair="", status="")
 
     def on_pair_start(i, pair_name):
-        state.update(i=i, pair=pair_name, best=None)
+        # scene/frame is enough to tell pairs apart in one run, and keeps the line short
+        state.update(i=i, pair="/".join(pair_name.split("/")[-2:]), best=None)
 
     def on_step(rec):
         text = (f"pair {state['i'] + 1}/{state['n']} {state['pair']}  step {rec.step}/{total_steps}"
-                f"  loss {rec.loss:.4f}  best distance {rec.best_distance:.4f}")
+                f"  loss {rec.loss:.4f}  best {rec.best_distance:.4f}")
         if progress is not None:
             progress.update(task, advance=1, status=text)
         elif not quiet and (rec.step % 50 == 0 or rec.step == total_steps):
@@ -172,7 +177,7 @@ def attack(dataset, model, checkpoint, iters, config_name, preset, set_items, pa
                           f"-> {s.target_adversarial:.3f}", highlight=False, soft_wrap=True)
 
     if interactive:
-        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(),
+        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
                             MofNCompleteColumn(), TimeElapsedColumn(),
                             TextColumn("{task.fields[status]}"), console=console)
     try:

@@ -25,6 +25,8 @@ def _fmt(value) -> str:
               help="Checkpoint file or name. Default: the model's own, from the user cache.")
 @click.option("--iters", type=click.IntRange(min=1), default=None,
               help="Refinement iterations of recurrent networks. Default: the network's (12).")
+@click.option("--download", is_flag=True,
+              help="Fetch a named checkpoint that is missing from the cache (needs a network).")
 @click.option("--dataset", "dataset_name", default=None,
               help="Dataset of the clean frames. Default: as recorded in the weather folder.")
 @click.option("--root", default=None, type=click.Path(path_type=str),
@@ -35,7 +37,8 @@ def _fmt(value) -> str:
               default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json.")
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
-def evaluate(weather_dir, model, checkpoint, iters, dataset_name, root, pass_, json_path, device,
+def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root, pass_,
+             json_path, device,
              quiet):
     """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
 
@@ -49,7 +52,7 @@ def evaluate(weather_dir, model, checkpoint, iters, dataset_name, root, pass_, j
     resolve_device(device)
     folder = WeatherFolder.open(weather_dir)
     dataset = folder.clean_dataset(dataset_name, root, pass_)
-    network = get_model(model, checkpoint, device=device, iters=iters)
+    network = get_model(model, checkpoint, device=device, iters=iters, download=download)
     console = Console()
 
     def on_pair(row):

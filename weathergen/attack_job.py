@@ -49,6 +49,7 @@ class AttackJob:
     config_name: Optional[str] = None
     pass_name: str = ""
     gradient_checkpointing: bool = False
+    download: bool = False
     resume: bool = False
     overwrite: bool = False
     command: list = field(default_factory=list)
@@ -134,7 +135,7 @@ def run_attack(job: AttackJob,
     if not refs:
         raise ConfigError("the selection holds no frame pairs")
     model = get_model(job.model, job.checkpoint, device=job.device, iters=job.iters,
-                      gradient_checkpointing=job.gradient_checkpointing)
+                      download=job.download, gradient_checkpointing=job.gradient_checkpointing)
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
     previous = prepare_attack_folder(job.out, config, job.resume, job.overwrite)
 
