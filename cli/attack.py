@@ -11,7 +11,7 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from .main import cli
-from .options import dataset_options
+from .options import dataset_options, model_options
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -35,14 +35,7 @@ def summary_table(title: str, summary: dict) -> Table:
 
 @cli.command()
 @dataset_options
-@click.option("--model", default="raft", show_default=True,
-              help="Flow network or checkpoint name (raft, raft-small, raft-things, ...).")
-@click.option("--checkpoint", default=None,
-              help="Checkpoint file or name. Default: the model's own, from the user cache.")
-@click.option("--iters", type=click.IntRange(min=1), default=None,
-              help="Refinement iterations of recurrent networks. Default: the network's (12).")
-@click.option("--download", is_flag=True,
-              help="Fetch a named checkpoint that is missing from the cache (needs a network).")
+@model_options
 @click.option("--config", "config_name", default=None, metavar="NAME",
               help="An attack configuration of the paper's supplement (grey-offset1, "
                    "grey-offset2, grey-color, grey-transparency, grey-offsets, grey-appearance, "

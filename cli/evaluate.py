@@ -9,6 +9,7 @@ from rich.console import Console
 from rich.table import Table
 
 from .main import cli
+from .options import model_options
 
 
 def _fmt(value) -> str:
@@ -19,14 +20,7 @@ def _fmt(value) -> str:
 @click.option("--weather", "weather_dir", required=True,
               type=click.Path(file_okay=False, path_type=Path),
               help="Folder written by `weathergen render` (or `weathergen attack`).")
-@click.option("--model", default="raft", show_default=True,
-              help="Flow network or checkpoint name (raft, raft-small, raft-things, ...).")
-@click.option("--checkpoint", default=None,
-              help="Checkpoint file or name. Default: the model's own, from the user cache.")
-@click.option("--iters", type=click.IntRange(min=1), default=None,
-              help="Refinement iterations of recurrent networks. Default: the network's (12).")
-@click.option("--download", is_flag=True,
-              help="Fetch a named checkpoint that is missing from the cache (needs a network).")
+@model_options
 @click.option("--dataset", "dataset_name", default=None,
               help="Dataset of the clean frames. Default: as recorded in the weather folder.")
 @click.option("--root", default=None, type=click.Path(path_type=str),

@@ -58,3 +58,19 @@ def dataset_options(func):
         return func(*args, **kwargs)
 
     return wrapper
+
+
+def model_options(func):
+    """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``."""
+    for option in reversed((
+        click.option("--model", default="raft", show_default=True,
+                     help="Flow network or checkpoint name (raft, raft-small, raft-things, ...)."),
+        click.option("--checkpoint", default=None,
+                     help="Checkpoint file or name. Default: the model's own, from the user cache."),
+        click.option("--iters", type=click.IntRange(min=1), default=None,
+                     help="Refinement iterations of recurrent networks. Default: the network's (12)."),
+        click.option("--download", is_flag=True,
+                     help="Fetch a named checkpoint that is missing from the cache (needs a network)."),
+    )):
+        func = option(func)
+    return func

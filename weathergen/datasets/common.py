@@ -100,3 +100,29 @@ def scaled_motion(cam2_from_cam1: np.ndarray, scale: float, keep_translation: bo
     out = torch.from_numpy(np.array(cam2_from_cam1, np.float64))
     out[:3, 3] = out[:3, 3] * scale if keep_translation else 0
     return out
+
+
+def scaled_poses(cam1_from_world: np.ndarray, cam2_from_world: np.ndarray, scale: float,
+                 keep_translation: bool) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Absolute poses after a depth scale, and the relative motion between them.
+
+    Translations are multiplied by ``scale`` so the cameras stay consistent with the scaled depth.
+    Without ``keep_translation`` the motion between the two cameras is a pure rotation and frame 2's
+    pose is recomputed from it.
+    Shape: (4, 4) or (3, 4) each -> ``(cam1_from_world, cam2_from_world, cam2_from_cam1)``, (4, 4)
+    float64.
+    """
+    from ..geometry import invert_rigid, to_homogeneous
+
+    poses = []
+    for e in (cam1_from_world, cam2_from_world):
+        t = torch.from_numpy(np.array(e, np.float64))
+        t = to_homogeneous(t) if t.shape == (3, 4) else t
+        t[:3, 3] *= scale
+        poses.append(t)
+    cam1, cam2 = poses
+    cam2_from_cam1 = cam2 @ invert_rigid(cam1)
+    if not keep_translation:
+        cam2_from_cam1[:3, 3] = 0
+        cam2 = cam2_from_cam1 @ cam1
+    return cam1, cam2, cam2_from_cam1

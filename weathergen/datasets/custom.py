@@ -33,7 +33,7 @@ from ..io.custom_formats import DEPTH_SUFFIXES, CameraFile, read_camera_file, re
 from ..io.images import read_image
 from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
-from .common import ScaledDataset, check_size, chw, require_files
+from .common import ScaledDataset, check_size, chw, require_files, scaled_poses
 
 _FRAME_RE = re.compile(r"^(.*?)(\d+)\.png$", re.IGNORECASE)
 #: OpenGL camera axes (y up, z backward) -> OpenCV camera axes (y down, z forward)
@@ -140,14 +140,8 @@ class CustomDataset(ScaledDataset):
             flow, flow_valid = chw(fl), chw(ok)
 
         scale = self.scale_of(ref.id.scene)
-        cam1_from_world = torch.from_numpy(e1.copy())
-        cam2_from_world = torch.from_numpy(e2.copy())
-        cam1_from_world[:3, 3] *= scale
-        cam2_from_world[:3, 3] *= scale
-        cam2_from_cam1 = cam2_from_world @ invert_rigid(cam1_from_world)
-        if not self.camera_translation:
-            cam2_from_cam1[:3, 3] = 0
-            cam2_from_world = cam2_from_cam1 @ cam1_from_world
+        cam1_from_world, cam2_from_world, cam2_from_cam1 = scaled_poses(e1, e2, scale,
+                                                                        self.camera_translation)
         return FramePair(
             id=ref.id,
             image1=chw(img1), image2=chw(img2),

@@ -31,10 +31,10 @@ import torch
 
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
-from ..geometry import invert_rigid, to_homogeneous
 from ..io.images import read_image, read_raw
 from ..io.sintel_formats import read_cam, read_dpt, read_flo
 from .base import Dataset, PairRef, Selection
+from .common import scaled_poses
 
 _FRAME_RE = re.compile(r"^frame_(\d{4,})\.png$")
 SPLITS = ("training", "test")
@@ -162,14 +162,8 @@ class SintelDataset(Dataset):
             depths.append(d * np.float32(scale))
         k1, e1 = read_cam(files["cam1"])
         _, e2 = read_cam(files["cam2"])
-        cam1_from_world = to_homogeneous(torch.from_numpy(e1))
-        cam2_from_world = to_homogeneous(torch.from_numpy(e2))
-        cam1_from_world[:3, 3] *= scale
-        cam2_from_world[:3, 3] *= scale
-        cam2_from_cam1 = cam2_from_world @ invert_rigid(cam1_from_world)
-        if not self.camera_translation:
-            cam2_from_cam1[:3, 3] = 0
-            cam2_from_world = cam2_from_cam1 @ cam1_from_world
+        cam1_from_world, cam2_from_world, cam2_from_cam1 = scaled_poses(e1, e2, scale,
+                                                                        self.camera_translation)
 
         flow = valid = None
         if Path(files["flow"]).exists():

@@ -39,11 +39,10 @@ import torch
 
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
-from ..geometry import invert_rigid
 from ..io.images import read_image
 from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
 from .base import PairRef, Selection
-from .common import ScaledDataset, check_size, chw, require_files
+from .common import ScaledDataset, check_size, chw, require_files, scaled_poses
 
 _FRAME_RE = re.compile(r"^frame_left_(\d{4,})\.png$")
 #: Distance between Spring's left and right cameras, metres.
@@ -146,14 +145,8 @@ class SpringDataset(ScaledDataset):
             flow, flow_valid = chw(fl), chw(flow_valid)
 
         scale = self.scale_of(ref.id.scene)
-        cam1_from_world = torch.from_numpy(e1.copy())
-        cam2_from_world = torch.from_numpy(e2.copy())
-        cam1_from_world[:3, 3] *= scale
-        cam2_from_world[:3, 3] *= scale
-        cam2_from_cam1 = cam2_from_world @ invert_rigid(cam1_from_world)
-        if not self.camera_translation:
-            cam2_from_cam1[:3, 3] = 0
-            cam2_from_world = cam2_from_cam1 @ cam1_from_world
+        cam1_from_world, cam2_from_world, cam2_from_cam1 = scaled_poses(e1, e2, scale,
+                                                                        self.camera_translation)
 
         return FramePair(
             id=ref.id,

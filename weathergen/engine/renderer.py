@@ -124,7 +124,7 @@ def _disc_blur(stamp: torch.Tensor, radius: int) -> torch.Tensor:
     Small cases convolve directly; large ones use an FFT in float64, whose round-off (~1e-16)
     stays invisible even after the cube-root brightening, and zero what is below 1e-12.
     """
-    n, side = stamp.shape[0], stamp.shape[-1]
+    side = stamp.shape[-1]
     if side * side * (2 * radius + 1) ** 2 <= 1 << 18:
         kernel = _disc_kernel(radius, stamp.dtype, stamp.device)
         return F.conv2d(stamp[:, None], kernel, padding=2 * radius)[:, 0]
