@@ -381,7 +381,7 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
         should_stop: polled after every step; ``True`` ends the loop early (best so far kept).
     Returns: :class:`AttackResult`.
     """
-    from .engine.render import build_stamps, render
+    from .engine import build_stamps, render
     from .engine.sampling import check_pair_for_engine, reference_transforms
     from .engine.templates import load_templates
 
