@@ -261,3 +261,20 @@ def test_kitti_render_keeps_sparse_flow_validity(tmp_path, demo_root):
     assert bool((back.flow_valid == original.flow_valid).all())
     np.testing.assert_allclose(back.flow[original.flow_valid.expand(2, -1, -1)].numpy(),
                                original.flow[original.flow_valid.expand(2, -1, -1)].numpy())
+
+
+def test_full_disk_stops_the_run_with_one_line(tmp_path, monkeypatch):
+    import errno
+
+    import weathergen.outputs as outputs
+
+    def no_space(path, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(outputs, "write_png", no_space)
+    out = tmp_path / "full"
+    res = run("render", "--out", out, *FAST)
+    assert res.exit_code == 2, res.output
+    assert "cannot write (No space left on device)" in res.output and "--resume" in res.output
+    assert "Traceback" not in res.output
+    assert not list(out.rglob("*.png")) and not list(out.rglob("*.npz"))

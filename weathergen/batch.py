@@ -37,6 +37,10 @@ from .outputs import (MANIFEST, MANIFEST_PARTS, MARKER, PairOutput, identity_arr
 RENDER_THREADS = 1
 
 
+class OutputError(WeatherGenError):
+    """Writing the outputs failed (disk full, permissions): the run stops."""
+
+
 def pair_seed(run_seed: int, pair_id: PairId) -> int:
     """A 63-bit seed for one pair, from the run seed and the pair's identity alone."""
     digest = hashlib.sha256(f"weathergen:{run_seed}:{pair_id.key}".encode()).digest()
@@ -148,9 +152,15 @@ def render_one(job: RenderJob, ref: PairRef) -> PairResult:
         meta.update(identity_arrays(ref.id, seed, job.preset.to_dict(), job.preset_name))
         meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
-        files = write_pair_outputs(out, pair, frames, opacity, meta)
+        try:
+            files = write_pair_outputs(out, pair, frames, opacity, meta)
+        except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
+            raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
+                              f"rerun with --resume once there is room") from None
         return PairResult(ref.id.key, str(ref.id), "written", seed, time.perf_counter() - start,
                           sum(p.stat().st_size for p in files), visible=visible)
+    except OutputError:
+        raise
     except WeatherGenError as exc:
         return PairResult(ref.id.key, str(ref.id), "failed", seed, time.perf_counter() - start,
                           message=str(exc))
