@@ -95,9 +95,10 @@ def test_same_seed_same_bytes_other_seed_differs(snow_run, tmp_path):
     assert digests(other) != digests(snow_run)
 
 
-def test_workers_do_not_change_bytes(snow_run, tmp_path):
-    out = tmp_path / "w2"
-    res = run("render", "--out", out, "--workers", "2", *FAST)
+@pytest.mark.parametrize("option", [("--workers", "2"), ("--batch-size", "2")])
+def test_workers_and_batches_do_not_change_bytes(snow_run, tmp_path, option):
+    out = tmp_path / "other"
+    res = run("render", "--out", out, *option, *FAST)
     assert res.exit_code == 0, res.output
     assert digests(out) == digests(snow_run)
 
@@ -175,10 +176,11 @@ def test_resume_after_kill_gives_identical_bytes(snow_run, tmp_path):
     assert manifest["runs"][-1]["skipped"] == 2
 
 
-def test_fake_sintel_with_a_corrupt_pair(fake_sintel, tmp_path):
+@pytest.mark.parametrize("batch", ["1", "4"])
+def test_fake_sintel_with_a_corrupt_pair(fake_sintel, tmp_path, batch):
     (fake_sintel / "training/depth/bamboo/frame_0002.dpt").write_bytes(b"junk")
     out = tmp_path / "out"
-    res = run("render", "--root", fake_sintel, "--out", out, "--set", "count=50")
+    res = run("render", "--root", fake_sintel, "--out", out, "--set", "count=50", "--batch-size", batch)
     assert res.exit_code == 1
     assert "frame_0002.dpt" in res.output and "failed" in res.output
     manifest = json.loads((out / "manifest.json").read_text())

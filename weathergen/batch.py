@@ -83,6 +83,7 @@ class RenderJob:
     appearance: dict = field(default_factory=dict)   # re-render overrides of Particles settings
     shard: tuple[int, int] = (1, 1)
     workers: int = 1
+    batch_size: int = 1                 # pairs rendered together (per worker)
     resume: bool = False
     overwrite: bool = False
     command: list = field(default_factory=list)
@@ -133,37 +134,68 @@ def _particles_for(job: RenderJob, pair, seed: int):
     return particles.replace(**job.appearance) if job.appearance else particles
 
 
-def render_one(job: RenderJob, ref: PairRef) -> PairResult:
-    """Load, sample (or reload), render and write one pair. Never raises for bad input."""
-    from .engine import render_pair
+def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
+    """Load, sample (or reload), render and write some pairs. Never raises for bad input.
 
-    seed = pair_seed(job.seed, ref.id)
-    start = time.perf_counter()
+    Pairs of the same size are rendered together, as one batch (worth it on a GPU); each pair's
+    particles come from its own seed, and no pixel of one pair depends on another pair, so the
+    bytes written are those of rendering each pair alone.
+    """
+    from .engine import render_pair
+    from .framepair import FramePairBatch
+
     torch.set_num_threads(RENDER_THREADS)
-    try:
-        pair = job.dataset.load(ref)
-        particles = _particles_for(job, pair, seed)
-        with torch.no_grad():
-            result = render_pair(pair, particles, device=job.device)
-        frames = tuple(img[0].permute(1, 2, 0).cpu().numpy() for img in (result.image1, result.image2))
-        opacity = tuple(a[0, 0].cpu().numpy() for a in (result.opacity1, result.opacity2))
-        visible = visible_counts(pair, particles)
-        meta = particles.to_numpy()
-        meta.update(identity_arrays(ref.id, seed, job.preset.to_dict(), job.preset_name))
-        meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
-        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+    results: dict[PairId, PairResult] = {}
+    ready = []                                   # (ref, seed, pair, particles, seconds so far)
+    for ref in refs:
+        seed = pair_seed(job.seed, ref.id)
+        start = time.perf_counter()
         try:
-            files = write_pair_outputs(out, pair, frames, opacity, meta)
-        except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
-            raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
-                              f"rerun with --resume once there is room") from None
-        return PairResult(ref.id.key, str(ref.id), "written", seed, time.perf_counter() - start,
-                          sum(p.stat().st_size for p in files), visible=visible)
-    except OutputError:
-        raise
-    except WeatherGenError as exc:
-        return PairResult(ref.id.key, str(ref.id), "failed", seed, time.perf_counter() - start,
-                          message=str(exc))
+            pair = job.dataset.load(ref)
+            ready.append((ref, seed, pair, _particles_for(job, pair, seed), time.perf_counter() - start))
+        except WeatherGenError as exc:
+            results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed,
+                                         time.perf_counter() - start, message=str(exc))
+    groups: dict[tuple, list] = {}
+    for item in ready:
+        groups.setdefault(item[2].size, []).append(item)
+    for group in groups.values():
+        start = time.perf_counter()
+        try:
+            with torch.no_grad():
+                if len(group) == 1:
+                    rendered = render_pair(group[0][2], group[0][3], device=job.device)
+                else:
+                    rendered = render_pair(FramePairBatch.stack([g[2] for g in group]),
+                                           [g[3] for g in group], device=job.device)
+        except WeatherGenError as exc:
+            for ref, seed, _, _, spent in group:
+                results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed, spent,
+                                             message=str(exc))
+            continue
+        share = (time.perf_counter() - start) / len(group)
+        for i, (ref, seed, pair, particles, spent) in enumerate(group):
+            start = time.perf_counter()
+            results[ref.id] = _write_one(job, ref, seed, pair, particles, rendered, i)
+            results[ref.id].seconds = spent + share + time.perf_counter() - start
+    return [results[ref.id] for ref in refs]
+
+
+def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendered, index: int) -> PairResult:
+    frames = tuple(img[index].permute(1, 2, 0).cpu().numpy() for img in (rendered.image1, rendered.image2))
+    opacity = tuple(a[index, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
+    visible = visible_counts(pair, particles)
+    meta = particles.to_numpy()
+    meta.update(identity_arrays(ref.id, seed, job.preset.to_dict(), job.preset_name))
+    meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
+    out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+    try:
+        files = write_pair_outputs(out, pair, frames, opacity, meta)
+    except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
+        raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
+                          f"rerun with --resume once there is room") from None
+    return PairResult(ref.id.key, str(ref.id), "written", seed,
+                      bytes=sum(p.stat().st_size for p in files), visible=visible)
 
 
 def visible_counts(pair, particles) -> tuple[int, int]:
@@ -319,13 +351,13 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     for r in results:
         on_result(r)
     try:
-        if job.workers <= 1 or len(todo) <= 1:
+        if job.workers <= 1 or len(todo) <= job.batch_size:
             threads = torch.get_num_threads()
             try:
-                for ref in todo:
-                    r = render_one(job, ref)
-                    results.append(r)
-                    on_result(r)
+                for chunk in _chunks(todo, job.batch_size):
+                    for r in render_batch(job, chunk):
+                        results.append(r)
+                        on_result(r)
             finally:
                 torch.set_num_threads(threads)
         else:
@@ -336,6 +368,10 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     return results
 
 
+def _chunks(items: list, size: int) -> list[list]:
+    return [items[i:i + size] for i in range(0, len(items), max(1, size))]
+
+
 def _run_pool(job, todo, results, on_result):
     ctx = multiprocessing.get_context("spawn")
     pending = set()
@@ -344,12 +380,13 @@ def _run_pool(job, todo, results, on_result):
         try:
             while queue or pending:
                 while queue and len(pending) < 2 * job.workers:
-                    pending.add(pool.submit(render_one, job, queue.pop(0)))
+                    chunk, queue = queue[:job.batch_size], queue[job.batch_size:]
+                    pending.add(pool.submit(render_batch, job, chunk))
                 done, pending = wait(pending, return_when=FIRST_COMPLETED)
                 for fut in done:
-                    r = fut.result()
-                    results.append(r)
-                    on_result(r)
+                    for r in fut.result():
+                        results.append(r)
+                        on_result(r)
         except BaseException:
             for fut in pending:
                 fut.cancel()
