@@ -95,3 +95,21 @@ def test_cam_rejects_non_finite_and_bad_focal(tmp_path):
     k[0, 0] = -1
     with pytest.raises(FormatError, match="focal"):
         read_cam(write_cam(tmp_path / "f.cam", k, np.zeros((3, 4))))
+
+
+def test_atomic_writes_leave_no_partial_file_and_ordinary_permissions(tmp_path):
+    import os
+
+    from weathergen.io.atomic import _UMASK, atomic_open
+    from weathergen.io.exr import write_exr
+
+    path = write_dpt(tmp_path / "d.dpt", np.ones((2, 3), np.float32))
+    exr = write_exr(tmp_path / "f.exr", np.zeros((2, 3, 3)), {"opacity": np.zeros((2, 3))})
+    for p in (path, exr):
+        # a temporary file is owner-only; the written file must not inherit that
+        assert os.stat(p).st_mode & 0o777 == 0o666 & ~_UMASK
+    with pytest.raises(KeyboardInterrupt):
+        with atomic_open(tmp_path / "half.bin") as f:
+            f.write(b"x" * 100)
+            raise KeyboardInterrupt
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["d.dpt", "f.exr"]

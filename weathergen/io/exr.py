@@ -2,14 +2,13 @@
 
 from __future__ import annotations
 
-import os
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import OpenEXR
 
 from ..errors import FormatError
+from .atomic import atomic_path
 
 
 def write_exr(path: str | Path, rgb: np.ndarray, extra: dict[str, np.ndarray] | None = None) -> Path:
@@ -23,17 +22,9 @@ def write_exr(path: str | Path, rgb: np.ndarray, extra: dict[str, np.ndarray] | 
     for name, plane in (extra or {}).items():
         channels[name] = np.ascontiguousarray(plane, np.float32)
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.exr", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".tmp.exr") as tmp:
         with OpenEXR.File(header, channels) as f:
-            f.write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+            f.write(str(tmp))
     return path
 
 
