@@ -10,8 +10,16 @@ from weathergen import __version__
 from weathergen.errors import WeatherGenError
 
 
+#: Where the group keeps the command line it was given (``ctx.meta``), for manifests.
+ARGV_KEY = "weathergen.argv"
+
+
 class _Group(click.Group):
     """A click group that turns user errors into one line on stderr and exit code 2."""
+
+    def parse_args(self, ctx, args):
+        ctx.meta[ARGV_KEY] = ["weathergen", *args]
+        return super().parse_args(ctx, args)
 
     def invoke(self, ctx):
         try:

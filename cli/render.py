@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import contextlib
 import json
+import signal
 import sys
 import time
 from pathlib import Path
@@ -16,7 +18,7 @@ from rich.table import Table
 
 from weathergen.errors import ConfigError
 
-from .main import cli
+from .main import ARGV_KEY, cli
 from .options import dataset_options
 
 #: Preset keys that only change how stored particles look, so they may change on re-rendering.
@@ -79,6 +81,31 @@ def _stored_preset(particles_dir: Path) -> dict:
         raise ConfigError(f"{manifest}: not a weathergen render manifest") from None
 
 
+@contextlib.contextmanager
+def _terminate_as_interrupt():
+    """Treat SIGTERM (``kill``, a cluster's time limit) like Ctrl-C while rendering.
+
+    Either way the run stops cleanly: the pairs in progress finish or leave no file, the manifest
+    records what was written, and ``--resume`` finishes the job. Yields a list that receives the
+    number of the signal that stopped the run.
+    """
+    stopped_by = []
+
+    def handler(signum, frame):
+        stopped_by.append(signum)
+        raise KeyboardInterrupt
+
+    try:
+        previous = signal.signal(signal.SIGTERM, handler)
+    except ValueError:          # not the main thread: leave signals alone
+        yield stopped_by
+        return
+    try:
+        yield stopped_by
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 @cli.command()
 @dataset_options
 @click.option("--preset", default="snow", show_default=True,
@@ -128,7 +155,7 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
         pass_name=pass_name or f"{name}_{dataset.selection.pass_}", fmt=fmt, geometry=geometry,
         device=device, particles_from=particles_dir, appearance=appearance,
         shard=parse_shard(shard), workers=workers, batch_size=batch_size, resume=resume, overwrite=overwrite,
-        command=["weathergen", *sys.argv[1:]],
+        command=click.get_current_context().meta.get(ARGV_KEY, ["weathergen", *sys.argv[1:]]),
     )
     console = Console(stderr=False)
     err = Console(stderr=True)
@@ -161,16 +188,18 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
                             TaskProgressColumn(), _RateColumn(),
                             TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[pair]}"),
                             console=console)
+    stopped_by = None
     try:
-        if progress is not None:
-            with progress:
+        with _terminate_as_interrupt() as stopped_by:
+            if progress is not None:
+                with progress:
+                    run_render(job, on_result, on_start)
+            else:
                 run_render(job, on_result, on_start)
-        else:
-            run_render(job, on_result, on_start)
     except KeyboardInterrupt:
-        err.print(f"Interrupted after {sum(r.status == 'written' for r in results)} pairs; "
-                  f"rerun with --resume to finish (finished pairs are kept).")
-        sys.exit(130)
+        click.echo(f"Interrupted after {sum(r.status == 'written' for r in results)} pairs; rerun with "
+                   f"--resume to finish (finished pairs are kept).", err=True)
+        sys.exit(128 + (stopped_by[0] if stopped_by else signal.SIGINT))
     elapsed = time.perf_counter() - t0
     written = [r for r in results if r.status == "written"]
     failed = [r for r in results if r.status == "failed"]

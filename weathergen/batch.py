@@ -13,6 +13,9 @@ from __future__ import annotations
 import hashlib
 import json
 import multiprocessing
+import os
+import signal
+import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
@@ -218,6 +221,18 @@ def visible_counts(pair, particles) -> tuple[int, int]:
 
 def _worker_init():
     torch.set_num_threads(RENDER_THREADS)
+    # Ctrl-C reaches the whole process group; the main process alone decides what stops, and lets
+    # the pairs in progress finish, so that no worker is cut off in the middle of a pair.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # A worker whose main process was killed outright would wait for work forever: leave instead.
+    parent = os.getppid()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
 
 
 # -- the output folder ---------------------------------------------------------------------------
@@ -388,8 +403,14 @@ def _run_pool(job, todo, results, on_result):
                         results.append(r)
                         on_result(r)
         except BaseException:
+            # Interrupted: start nothing new, but let the running chunks finish and record them.
             for fut in pending:
                 fut.cancel()
+            for fut in pending:
+                if not fut.cancelled() and fut.exception() is None:
+                    for r in fut.result():
+                        results.append(r)
+                        on_result(r)
             raise
 
 
