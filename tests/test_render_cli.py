@@ -308,3 +308,21 @@ def test_full_disk_stops_the_run_with_one_line(tmp_path, monkeypatch):
     assert "cannot write (No space left on device)" in res.output and "--resume" in res.output
     assert "Traceback" not in res.output
     assert not list(out.rglob("*.png")) and not list(out.rglob("*.npz"))
+
+
+@pytest.mark.parametrize("content,message", [
+    ("text", "not a .npz archive"),
+    ({"a": np.zeros(3)}, "no metadata_version"),
+    ({"metadata_version": np.array(1, np.int32), "position": np.zeros((2, 3))},
+     "incomplete particle-metadata file: no pair_dataset"),
+], ids=["not-npz", "foreign-npz", "incomplete"])
+def test_inspect_rejects_foreign_files_in_one_line(tmp_path, content, message):
+    path = tmp_path / "meta.npz"
+    if isinstance(content, str):
+        path.write_text(content)
+    else:
+        np.savez(path, **content)
+    res = run("inspect", path)
+    assert res.exit_code == 2
+    assert res.output.strip() == f"Error: {path}: {message}" or message in res.output.splitlines()[0]
+    assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1

@@ -161,22 +161,37 @@ def write_metadata(path: Path, arrays: dict[str, np.ndarray]) -> Path:
     return atomic_write_bytes(path, buf.getvalue())
 
 
+#: Entries every particle-metadata file holds besides the particle record itself.
+METADATA_KEYS = ("metadata_version", "pair_dataset", "pair_split", "pair_scene", "pair_frame", "seed",
+                 "preset_name", "preset", "weathergen_version", "files")
+
+
 def read_metadata(path: str | Path) -> dict[str, np.ndarray]:
-    """Load a particle-metadata ``.npz`` (every array), checking its format version."""
+    """Load a particle-metadata ``.npz`` (every array), checking its format version and entries."""
     path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(4)
+    except FileNotFoundError:
+        raise FormatError(path, "file not found") from None
+    except OSError as exc:
+        raise FormatError(path, f"cannot be read ({exc.strerror})") from None
+    if magic != b"PK\x03\x04":   # an .npz is a zip archive; anything else is not one of ours
+        raise FormatError(path, "not a .npz archive, so not a weathergen particle-metadata file")
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
-    except FileNotFoundError:
-        raise FormatError(path, "file not found") from None
     except Exception as exc:  # zipfile/numpy raise several types for corrupt files
         raise FormatError(path, f"not a readable .npz metadata file ({exc})") from None
-    version = int(arrays.get("metadata_version", -1))
-    if version < 0:
+    if "metadata_version" not in arrays:
         raise FormatError(path, "not a weathergen particle-metadata file (no metadata_version)")
+    version = int(arrays["metadata_version"])
     if version > METADATA_VERSION:
         raise FormatError(path, f"metadata format version {version} is newer than this weathergen "
                                 f"understands ({METADATA_VERSION}); upgrade weathergen")
+    missing = [k for k in METADATA_KEYS if k not in arrays]
+    if missing:
+        raise FormatError(path, f"incomplete particle-metadata file: no {', '.join(missing)}")
     return arrays
 
 
