@@ -326,3 +326,25 @@ def test_inspect_rejects_foreign_files_in_one_line(tmp_path, content, message):
     assert res.exit_code == 2
     assert res.output.strip() == f"Error: {path}: {message}" or message in res.output.splitlines()[0]
     assert "Traceback" not in res.output and len(res.output.strip().splitlines()) == 1
+
+
+def test_preview_of_an_exr_only_render_shows_the_weather(tmp_path):
+    out = tmp_path / "exr"
+    res = run("render", "--out", out, "--format", "exr", *FAST[:2], "--frames-per-scene", "1",
+              "--set", "count=300")
+    assert res.exit_code == 0, res.output
+    res = run("preview", out, "--width", "128")
+    assert res.exit_code == 0, res.output
+    sheet = read_image(out / "preview.png")
+    original, weather = sheet[30:, :128], sheet[30:, 128:256]     # below the captions
+    assert (weather - original).mean() > 0.01, "the middle tile must show the snowy frame"
+
+
+def test_preview_refuses_a_folder_that_is_not_a_render(tmp_path):
+    (tmp_path / "photos").mkdir()
+    res = run("preview", tmp_path / "photos")
+    assert res.exit_code == 2 and "preview takes the folder of a render output" in res.output
+    (tmp_path / "photos" / "manifest.json").write_text("[1, 2]")
+    res = run("preview", tmp_path / "photos")
+    assert res.exit_code == 2 and "not a weathergen render manifest" in res.output
+    assert "Traceback" not in res.output

@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 import torch
 
-from .datasets import open_dataset
+from .datasets import reopen_dataset
 from .errors import ConfigError, WeatherGenError
+from .io.exr import read_exr
 from .io.images import read_image, to_uint8
 from .outputs import MANIFEST, PairOutput
 
@@ -39,13 +40,9 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> n
     try:
         manifest = json.loads(manifest_path.read_text())
         inp, outputs = manifest["input"], manifest["outputs"]
-    except (ValueError, KeyError):
+    except (ValueError, KeyError, TypeError):
         raise ConfigError(f"{manifest_path}: not a weathergen render manifest") from None
-    options = {k: inp[k] for k in ("depth_scale", "scene_scales", "camera_translation") if k in inp}
-    ds = open_dataset(inp["dataset"], None if inp["dataset"] == "demo" else inp["root"],
-                      split=inp["split"], pass_=inp["pass"], scenes=inp.get("scenes"),
-                      from_scene=inp.get("from_scene"), frames_per_scene=inp.get("frames_per_scene"),
-                      first_frame=inp.get("first_frame"), **options)
+    ds = reopen_dataset(inp)
     rows = []
     for ref in ds.pairs():
         out = PairOutput.of(render_dir, ref.id, outputs["pass"], outputs["format"], outputs["geometry"])
@@ -56,7 +53,7 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> n
         with torch.no_grad():
             opacity = render_pair(pair, particles).opacity1[0, 0].clamp(0, 1).numpy()
         weather = (read_image(out.frames_png[0]) if outputs["format"] in ("png", "both")
-                   else pair.image1.permute(1, 2, 0).numpy())
+                   else np.clip(read_exr(out.frames_exr[0])["RGB"], 0, 1))
         original = pair.image1.permute(1, 2, 0).numpy()
         h, w = original.shape[:2]
         size = (width, max(1, round(h * width / w)))

@@ -58,6 +58,30 @@ def open_dataset(name: str, root: Optional[str | Path] = None, *, split: str = "
     return cls(root, selection, **options)
 
 
+#: Entries of :meth:`Dataset.describe` that are the name, root and selection; the others are the
+#: reader's own options.
+_SELECTION_KEYS = ("dataset", "root", "split", "pass", "scenes", "from_scene", "frames_per_scene",
+                   "first_frame")
+
+
+def reopen_dataset(description: dict) -> Dataset:
+    """Open the dataset a :meth:`Dataset.describe` dictionary (as kept in manifests) names.
+
+    Every reader option recorded there (depth scales, far depth, ...) is applied again, so the
+    pairs load exactly as they did for the run that recorded it.
+    """
+    try:
+        name = description["dataset"]
+    except (KeyError, TypeError):
+        raise ConfigError("the recorded input does not name its dataset") from None
+    options = {k: v for k, v in description.items() if k not in _SELECTION_KEYS}
+    return open_dataset(name, None if name == "demo" else description.get("root"),
+                        split=description.get("split", "training"), pass_=description.get("pass", "clean"),
+                        scenes=description.get("scenes"), from_scene=description.get("from_scene"),
+                        frames_per_scene=description.get("frames_per_scene"),
+                        first_frame=description.get("first_frame"), **options)
+
+
 def demo_pairs(**selection) -> list:
     """Every selected pair of the demo scene, loaded (a convenience for examples and tests)."""
     ds = open_dataset("demo", **selection)
@@ -66,4 +90,4 @@ def demo_pairs(**selection) -> list:
 
 __all__ = ["DATASETS", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset", "PairProblem",
            "PairRef", "Selection", "SintelDataset", "SpringDataset", "demo_pairs",
-           "load_scene_scales", "open_dataset"]
+           "load_scene_scales", "open_dataset", "reopen_dataset"]
