@@ -47,7 +47,8 @@ def test_check_fake_sintel_with_a_corrupt_file(fake_sintel):
 def test_check_test_split_reports_missing_depth(fake_sintel):
     res = run("check", "--root", str(fake_sintel), "--split", "test", "--frames-per-scene", "1")
     assert res.exit_code == 1
-    assert "missing" in res.output
+    assert "alley frame 1: test/depth/alley/frame_0001.dpt: depth file is missing (the Sintel test " \
+           "split ships no depth or camera files" in res.output
 
 
 def test_check_error_paths(tmp_path, fake_sintel):

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -142,3 +144,47 @@ def test_demo_dataset_reads_without_root(demo_root):
     assert len(ds.pairs()) >= 4
     k, _ = read_cam(ds.pairs()[0].files["cam1"])
     assert k[0, 0] > 0
+
+
+def test_records_follow_the_documented_conventions(fake_sintel, demo_root):
+    """framepair.py's dtypes, ranges and matrix forms hold for what the readers return."""
+    for ds in (open_dataset("sintel", fake_sintel), open_dataset("demo")):
+        pair = ds.load(ds.pairs()[0])
+        for name in ("image1", "image2", "depth1", "depth2", "flow"):
+            assert getattr(pair, name).dtype == torch.float32, name
+        for name in ("intrinsics", "cam2_from_cam1", "cam1_from_world", "cam2_from_world"):
+            assert getattr(pair, name).dtype == torch.float64, name
+        assert pair.flow_valid.dtype == torch.bool
+        assert 0 <= float(pair.image1.min()) and float(pair.image1.max()) <= 1
+        assert pair.intrinsics[2].tolist() == [0, 0, 1]
+        assert pair.cam2_from_cam1[3].tolist() == [0, 0, 0, 1]
+        torch.testing.assert_close(pair.cam2_from_cam1,
+                                   pair.cam2_from_world @ torch.linalg.inv(pair.cam1_from_world))
+
+
+@pytest.mark.parametrize("field,value,message", [
+    ("image1", lambda p: (p.image1 * 255).to(torch.uint8), "image1 is torch.uint8"),
+    ("image2", lambda p: p.image2 + 1.5, "image2 has values outside"),
+    ("intrinsics", lambda p: p.intrinsics[:2], "intrinsics is torch.float64 of shape (2, 3)"),
+    ("flow_valid", lambda p: p.flow_valid.float(), "flow_valid is torch.float32"),
+])
+def test_validate_rejects_records_that_break_the_conventions(fake_sintel, field, value, message):
+    from dataclasses import replace
+
+    ds = open_dataset("sintel", fake_sintel)
+    pair = ds.load(ds.pairs()[0])
+    with pytest.raises(DatasetError, match=re.escape(message)):
+        replace(pair, **{field: value(pair)}).validate()
+
+
+def test_size_mismatch_names_the_odd_frame(fake_sintel):
+    from weathergen.io.images import write_png
+
+    write_png(fake_sintel / "training/clean/alley/frame_0002.png", np.zeros((10, 10, 3)))
+    ds = open_dataset("sintel", fake_sintel, scenes=["alley"])
+    refs = ds.pairs()
+    # frame 2 is the second frame of pair 1 and the first frame of pair 2: both name it
+    for ref in refs[:2]:
+        with pytest.raises(DatasetError, match=r"clean/alley/frame_0002.png: frame is 10x10 but the "
+                                               r"other frame and the depth maps are 16x12"):
+            ds.load(ref)

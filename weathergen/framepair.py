@@ -28,7 +28,6 @@ frame of the pair as it appears in the dataset's file names (Sintel counts from 
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from pathlib import Path
 from typing import Optional
 
 import torch
@@ -66,7 +65,8 @@ class FramePair:
         cam1_from_world, cam2_from_world: (4, 4) float64 where the dataset has absolute poses.
         flow: (2, H, W) float32 pixels, frame 1 to frame 2, where the dataset has it.
         flow_valid: (1, H, W) bool, where ``flow`` is given.
-        depth_measured1, depth_measured2: (1, H, W) bool where the reader filled in depth, else None.
+        depth_measured1, depth_measured2: (1, H, W) bool, True where the depth was measured; None
+            when every pixel was (the reader filled in none).
     """
 
     id: PairId
@@ -103,10 +103,19 @@ class FramePair:
         def fail(msg: str):
             raise DatasetError(f"{where}: {msg}")
 
-        for name in ("image1", "image2"):
+        def expect(name: str, shape: tuple, dtype: torch.dtype):
+            # Readers return exactly the documented dtypes; pairs built in code may use another
+            # floating-point precision (float64 for gradient checks), never integers.
             t = getattr(self, name)
-            if tuple(t.shape) != (3, h, w):
-                fail(f"{name} has shape {tuple(t.shape)}, expected (3, {h}, {w})")
+            kind_ok = t.dtype == dtype or (dtype.is_floating_point and t.dtype.is_floating_point)
+            if tuple(t.shape) != shape or not kind_ok:
+                fail(f"{name} is {t.dtype} of shape {tuple(t.shape)}, expected {dtype} {shape}")
+
+        for name in ("image1", "image2"):
+            expect(name, (3, h, w), torch.float32)
+            t = getattr(self, name)
+            if not bool(((t >= 0) & (t <= 1)).all()):
+                fail(f"{name} has values outside [0, 1]")
         for name in ("depth1", "depth2"):
             t = getattr(self, name)
             src = self.sources.get(name, where)
@@ -114,22 +123,24 @@ class FramePair:
                 raise DatasetError(
                     f"{src}: depth is {t.shape[-1]}x{t.shape[-2]} but the image is {w}x{h}"
                 )
+            expect(name, (1, h, w), torch.float32)
             if not bool(torch.isfinite(t).all()):
                 raise DatasetError(f"{src}: depth has non-finite values")
             if not bool((t > 0).all()):
                 raise DatasetError(f"{src}: depth has zero or negative values")
-        if tuple(self.intrinsics.shape) != (3, 3):
-            fail(f"intrinsics have shape {tuple(self.intrinsics.shape)}, expected (3, 3)")
-        if tuple(self.cam2_from_cam1.shape) != (4, 4):
-            fail(f"cam2_from_cam1 has shape {tuple(self.cam2_from_cam1.shape)}, expected (4, 4)")
-        if self.flow is not None and tuple(self.flow.shape) != (2, h, w):
-            src = self.sources.get("flow", where)
-            raise DatasetError(f"{src}: flow is {self.flow.shape[-1]}x{self.flow.shape[-2]} "
-                               f"but the image is {w}x{h}")
+        expect("intrinsics", (3, 3), torch.float64)
+        for name in ("cam2_from_cam1", "cam1_from_world", "cam2_from_world"):
+            if getattr(self, name) is not None:
+                expect(name, (4, 4), torch.float64)
+        if self.flow is not None:
+            if tuple(self.flow.shape) != (2, h, w):
+                src = self.sources.get("flow", where)
+                raise DatasetError(f"{src}: flow is {self.flow.shape[-1]}x{self.flow.shape[-2]} "
+                                   f"but the image is {w}x{h}")
+            expect("flow", (2, h, w), torch.float32)
         for name in ("flow_valid", "depth_measured1", "depth_measured2"):
-            t = getattr(self, name)
-            if t is not None and (tuple(t.shape) != (1, h, w) or t.dtype != torch.bool):
-                fail(f"{name} is {t.dtype} of shape {tuple(t.shape)}, expected bool (1, {h}, {w})")
+            if getattr(self, name) is not None:
+                expect(name, (1, h, w), torch.bool)
         return self
 
     def to(self, device: torch.device | str) -> "FramePair":
@@ -204,9 +215,3 @@ class FramePairBatch:
             depth_measured1=measured("depth_measured1"),
             depth_measured2=measured("depth_measured2"),
         )
-
-
-def source_path(pair: FramePair, key: str) -> Optional[Path]:
-    """The file a field of ``pair`` was read from, if the reader recorded it."""
-    p = pair.sources.get(key)
-    return None if p is None else Path(p)

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Optional
 
 from ..errors import ConfigError
-from .base import Dataset, PairProblem, PairRef, Selection
+from .base import Dataset, PairRef, Selection
 from .custom import CustomDataset
 from .kitti import KittiDataset
 from .sintel import SintelDataset, load_scene_scales
@@ -88,6 +88,6 @@ def demo_pairs(**selection) -> list:
     return [ds.load(ref) for ref in ds.pairs()]
 
 
-__all__ = ["DATASETS", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset", "PairProblem",
+__all__ = ["DATASETS", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset",
            "PairRef", "Selection", "SintelDataset", "SpringDataset", "demo_pairs",
            "load_scene_scales", "open_dataset", "reopen_dataset"]

@@ -71,30 +71,13 @@ class PairRef:
     id: PairId
     files: dict = field(default_factory=dict, compare=False, hash=False)
 
-    def missing(self, required: tuple[str, ...]) -> list[str]:
-        """Which required files do not exist, as messages naming each path."""
-        out = []
-        for key in required:
-            path = self.files.get(key)
-            if path is None or not Path(path).exists():
-                out.append(f"{key}: {path if path is not None else '(no file)'} is missing")
-        return out
-
-
-@dataclass
-class PairProblem:
-    """A pair that cannot be read, and why (one line)."""
-
-    ref: PairRef
-    message: str
-
 
 class Dataset(ABC):
     """A dataset on disk: lists its pairs and loads them as :class:`FramePair` records."""
 
     #: Registry name, e.g. ``"sintel"``.
     name: str = ""
-    #: Files every pair needs for weather (images, depth, cameras).
+    #: Keys of :attr:`PairRef.files` that every pair needs for weather (images, depth, cameras).
     required_files: tuple[str, ...] = ()
 
     def __init__(self, root: str | Path, selection: Selection = Selection()):
@@ -128,10 +111,11 @@ class Dataset(ABC):
         }
 
     def check(self, ref: PairRef) -> Optional[str]:
-        """None if the pair reads cleanly, else a one-line description of the first problem."""
-        missing = ref.missing(self.required_files)
-        if missing:
-            return "; ".join(missing)
+        """None if the pair reads cleanly, else a one-line description of the first problem.
+
+        ``load`` names a missing file itself, with a hint where a split lacks it by design (the
+        Sintel test split has no depth or cameras).
+        """
         try:
             self.load(ref)
         except WeatherGenError as exc:

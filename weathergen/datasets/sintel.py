@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import re
+from collections import Counter
 import tomllib
 from pathlib import Path
 from typing import Optional
@@ -145,16 +146,11 @@ class SintelDataset(Dataset):
                                    f"file is missing{hint}")
         scale = self.scale_of(ref.id.scene)
         img1, img2 = read_image(files["image1"]), read_image(files["image2"])
-        h, w = img1.shape[:2]
-        if img2.shape[:2] != (h, w):
-            raise DatasetError(f"{files['image2']}: frame is {img2.shape[1]}x{img2.shape[0]} "
-                               f"but the previous frame is {w}x{h}")
+        raw_depths = [read_dpt(files["depth1"]), read_dpt(files["depth2"])]
+        h, w = _common_size(files, {"image1": img1.shape[:2], "image2": img2.shape[:2],
+                                    "depth1": raw_depths[0].shape, "depth2": raw_depths[1].shape})
         depths = []
-        for key in ("depth1", "depth2"):
-            d = read_dpt(files[key])
-            if d.shape != (h, w):
-                raise DatasetError(f"{files[key]}: depth is {d.shape[1]}x{d.shape[0]} "
-                                   f"but the image is {w}x{h}")
+        for key, d in zip(("depth1", "depth2"), raw_depths):
             if not np.isfinite(d).all():
                 raise DatasetError(f"{files[key]}: depth has non-finite values")
             if not (d > 0).all():
@@ -201,3 +197,19 @@ class SintelDataset(Dataset):
         out.update(depth_scale=self.depth_scale, scene_scales=self.scene_scales,
                    camera_translation=self.camera_translation)
         return out
+
+
+def _common_size(files: dict, sizes: dict) -> tuple[int, int]:
+    """The ``(H, W)`` the frames and depth maps of a pair share; raise naming the odd file out.
+
+    The size most of the four files have is taken as right (the first frame's on a tie), so the
+    message names the file that differs, whichever of the four it is.
+    """
+    reference = Counter(sizes.values()).most_common(1)[0][0]
+    for key, size in sizes.items():
+        if size != reference:
+            kind = "depth" if key.startswith("depth") else "frame"
+            others = "the other frame and the depth maps are" if kind == "frame" else "the image is"
+            raise DatasetError(f"{files[key]}: {kind} is {size[1]}x{size[0]} but {others} "
+                               f"{reference[1]}x{reference[0]}")
+    return reference
