@@ -11,6 +11,7 @@ import click
 
 from weathergen.datasets.demo import write_demo_scene
 from weathergen.errors import ConfigError
+from weathergen.io.atomic import UMASK
 
 from .main import cli
 
@@ -22,12 +23,13 @@ def demo_scene(out: Path, overwrite: bool):
     """Write the bundled demo scene (Sintel layout, with depth, cameras and exact flow) to OUT."""
     if out.exists() and any(out.iterdir()) and not overwrite:
         raise ConfigError(f"{out}: folder is not empty (use --overwrite to replace it)")
-    out.parent.mkdir(parents=True, exist_ok=True)
     try:
+        out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     except OSError as exc:
         raise ConfigError(f"{out.parent}: cannot write here ({exc.strerror})") from None
     try:
+        tmp.chmod(0o777 & ~UMASK)     # a plain folder, not the owner-only temporary one
         write_demo_scene(tmp)
         if out.exists():
             shutil.rmtree(out)

@@ -25,16 +25,17 @@ def dataset_options(func):
     @click.option("--scenes", default=None, metavar="A,B,...",
                   help="Only these scenes (comma-separated). Default: all.")
     @click.option("--from-scene", default=None, metavar="NAME",
-                  help="Only scenes from this one on (in sorted order).")
+                  help="Only scenes from this one on (in sorted order). Default: from the first.")
     @click.option("--frames-per-scene", type=click.IntRange(min=1), default=None,
                   help="At most this many pairs per scene; 5 gives the paper's Sintel-tr115. "
                        "Default: all.")
     @click.option("--first-frame", type=click.IntRange(min=0), default=None,
-                  help="Start each scene at this frame number (as in the file names).")
+                  help="Start each scene at this frame number (as in the file names). Default: its first frame.")
     @click.option("--depth-scale", type=float, default=1.0, show_default=True,
                   help="Multiply all depth (and camera translation) by this factor.")
     @click.option("--scene-scales", type=click.Path(dir_okay=False, path_type=str), default=None,
-                  help="TOML/JSON table of per-scene depth factors, applied on top of --depth-scale.")
+                  help="TOML/JSON table of per-scene depth factors, applied on top of --depth-scale. "
+                       "Default: none (every scene 1.0).")
     @click.option("--camera-translation/--no-camera-translation", default=True, show_default=True,
                   help="Keep the camera translation between the two frames (or zero it).")
     @click.option("--far-depth", type=click.FloatRange(min=0, min_open=True), default=None,

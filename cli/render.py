@@ -111,15 +111,16 @@ def _terminate_as_interrupt():
 @click.option("--preset", default="snow", show_default=True,
               help="Weather preset by name (see `weathergen presets`).")
 @click.option("--preset-file", type=click.Path(dir_okay=False, path_type=str), default=None,
-              help="Your own preset file (TOML); replaces --preset.")
+              help="Your own preset file (TOML); replaces --preset. Default: none.")
 @click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
-              help="Override one preset key (repeatable), e.g. --set count=500.")
+              help="Override one preset key (repeatable), e.g. --set count=500. Default: none.")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
               help="Output folder. Default: out/<preset>.")
 @click.option("--seed", type=int, default=0, show_default=True,
               help="Run seed; each pair's seed derives from it and the pair's identity.")
 @click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
-              default=None, help="Re-render the particles of an earlier render output instead of sampling.")
+              default=None, help="Re-render the particles of an earlier render output instead of sampling. "
+                                  "Default: sample new particles.")
 @click.option("--pass-name", default=None,
               help="Name of the output pass folder. Default: <preset>_<input pass>.")
 @click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
@@ -134,8 +135,9 @@ def _terminate_as_interrupt():
               help="Also write depth, cameras and flow per pair, so the output reads as a Sintel tree.")
 @click.option("--shard", default="1/1", show_default=True, metavar="I/N",
               help="Render only shard I of N (for job arrays); parts merge into one manifest.")
-@click.option("--resume", is_flag=True, help="Finish an interrupted run: skip pairs that are complete.")
-@click.option("--overwrite", is_flag=True, help="Redo every pair, even in a folder that holds a render.")
+@click.option("--resume", is_flag=True, help="Finish an interrupted run (same options): skip the pairs that are complete.")
+@click.option("--overwrite", is_flag=True, help="Redo every pair, even in a folder that holds a render, and write into a non-empty "
+                   "folder that render did not create.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pass_name, device,
            workers, batch_size, fmt, geometry, shard, resume, overwrite, quiet):

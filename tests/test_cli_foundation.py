@@ -69,6 +69,9 @@ def test_demo_scene_command(tmp_path):
     res = run("demo-scene", str(out))
     assert res.exit_code == 0, res.output
     assert (out / "training/clean/street/frame_0001.png").exists()
+    from weathergen.io.atomic import UMASK
+
+    assert out.stat().st_mode & 0o777 == 0o777 & ~UMASK, "a plain folder, not a private temporary one"
     assert run("check", "--root", str(out)).exit_code == 0
     res = run("demo-scene", str(out))
     assert res.exit_code == 2 and "not empty" in res.output

@@ -100,14 +100,14 @@ def test_cam_rejects_non_finite_and_bad_focal(tmp_path):
 def test_atomic_writes_leave_no_partial_file_and_ordinary_permissions(tmp_path):
     import os
 
-    from weathergen.io.atomic import _UMASK, atomic_open
+    from weathergen.io.atomic import UMASK, atomic_open
     from weathergen.io.exr import write_exr
 
     path = write_dpt(tmp_path / "d.dpt", np.ones((2, 3), np.float32))
     exr = write_exr(tmp_path / "f.exr", np.zeros((2, 3, 3)), {"opacity": np.zeros((2, 3))})
     for p in (path, exr):
         # a temporary file is owner-only; the written file must not inherit that
-        assert os.stat(p).st_mode & 0o777 == 0o666 & ~_UMASK
+        assert os.stat(p).st_mode & 0o777 == 0o666 & ~UMASK
     with pytest.raises(KeyboardInterrupt):
         with atomic_open(tmp_path / "half.bin") as f:
             f.write(b"x" * 100)

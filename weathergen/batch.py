@@ -322,7 +322,11 @@ def merge_manifest(out: Path) -> Path:
     config = _read_config(out) or {}
     runs, pairs, shards = [], {}, []
     for part_path in sorted((out / MANIFEST_PARTS).glob("shard-*.json")):
-        part = json.loads(part_path.read_text())
+        try:
+            part = json.loads(part_path.read_text())
+        except ValueError:
+            raise FormatError(part_path, "manifest part is not valid JSON; rerun that shard with "
+                                         "--resume to rewrite it") from None
         shards.append(part_path.stem)
         runs += part.get("runs", [])
         pairs.update(part.get("pairs", {}))

@@ -22,7 +22,8 @@ def _read_umask() -> int:
     return mask
 
 
-_UMASK = _read_umask()
+#: The process umask, read at import: files and folders get 0o666 / 0o777 less this.
+UMASK = _read_umask()
 
 
 def atomic_write_bytes(path: str | Path, data: bytes) -> Path:
@@ -55,7 +56,7 @@ def atomic_path(path: str | Path, suffix: str = ".tmp"):
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
     try:
-        os.fchmod(fd, 0o666 & ~_UMASK)
+        os.fchmod(fd, 0o666 & ~UMASK)
         os.close(fd)
         yield Path(tmp)
         os.replace(tmp, path)
