@@ -342,3 +342,28 @@ def test_golden_images(name):
     assert diff.max() <= 2 and diff.mean() < 0.05, f"{name}: max diff {diff.max()}"
     assert (got != (torch.cat((pair.image1, pair.image2), 2).permute(1, 2, 0).numpy() * 255
                     + 0.5).astype(np.uint8)).any()
+
+
+# -- cost ----------------------------------------------------------------------------------
+
+def test_memory_kept_for_backward_does_not_grow_with_the_footprints():
+    """Autograd may keep a few numbers per blur sample, not the patches of every stamp pixel."""
+    pair, lib = tiny_pair(torch.float32, depth=5.0, h=48, w=64), blob_library()
+    base = tiny_particles(torch.float32, blur=20)
+    base = base.replace(scale=torch.full((3,), 61.0 / 8))            # 61-pixel stamps
+    leaves = {name: getattr(base, name).clone().requires_grad_(True)
+              for name in ("offset1", "offset2", "color", "transparency")}
+    seen: dict = {}
+
+    def pack(t):
+        seen[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes()
+        return t
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        out = fast(pair, base.replace(**leaves), lib, BETA_ATTACK)
+    # Keeping the patches costs tens of bytes per patch pixel; the frames and the per-sample
+    # numbers the backward pass needs fit in well under one byte per patch pixel here.
+    patch_pixels = 2 * 3 * 20 * 62 * 62                               # frames x particles x K
+    assert sum(seen.values()) < patch_pixels, sum(seen.values())
+    (out.image1.sum() + out.image2.sum()).backward()
+    assert all(float(leaf.grad.abs().sum()) > 0 for leaf in leaves.values())
