@@ -184,8 +184,9 @@ def cli():
 def test_cli_lists_presets(cli):
     result = CliRunner().invoke(cli, ["presets"])
     assert result.exit_code == 0, result.output
-    for name in ("snow", "rain", "sparks", "fog", "alpha-color", "size-medium"):
-        assert name in result.output
+    for name in TABLE_ROWS:  # every name in full, none cut short by the table layout
+        assert f" {name} " in result.output, name
+    assert "0.3 const" in result.output  # fog's transparency is not scaled by depth
 
 
 def test_cli_shows_one_preset_resolved(cli):

@@ -111,7 +111,8 @@ class Preset:
     blend: str = _key("additive", _choice(BLEND_MODES),
                       "additive (glow) or alpha (order-independent alpha blending)", main=True)
     transparency: float = _key(0.75, _number(0, 2),
-                               "transparency scale theta (peak of the depth hat)", main=True)
+                               "theta = this x depth hat (the hat peaks at 0.73), or this value "
+                               "itself when transparency_mode is constant", main=True)
     transparency_mode: str = _key("depth", _choice(TRANSPARENCY_MODES),
                                   "depth: hat over depth; constant: theta for every particle")
     # -- motion
