@@ -258,33 +258,6 @@ def _instances(records, intrinsics, cam1_from_ref, cam2_from_ref, dtype, device)
     return {key: torch.cat(v) for key, v in out.items()}
 
 
-def _chunk_weight(bk: StampBucket, slots, u, v, z, theta, target, depth_flat, height, width,
-                  beta):
-    """One chunk's splat: flat pixel indices and weights ``B V θ/K`` of its patches.
-
-    Shape: slots, u, v, z, theta, target (n,) -> flat, weight (n (s+1)²,). Differentiable in u, v,
-    z and theta; the stamps and the scene depth are constants.
-    """
-    side = bk.side
-    half = (side - 1) // 2
-    u0, v0 = torch.floor(u.detach()), torch.floor(v.detach())
-    ramp = torch.arange(side + 1, device=depth_flat.device)
-    stamp = F.pad(bk.stamps[slots], (1, 1, 1, 1))                       # (n, s+2, s+2)
-    fu = (u - u0)[:, None, None]
-    fv = (v - v0)[:, None, None]
-    # Bilinear splat: patch[i, j] mixes stamp[i - a, j - b] for a, b in {0, 1}.
-    patch = ((1 - fv) * ((1 - fu) * stamp[:, 1:, 1:] + fu * stamp[:, 1:, :-1])
-             + fv * ((1 - fu) * stamp[:, :-1, 1:] + fu * stamp[:, :-1, :-1]))
-    xs = u0.long()[:, None] - half + ramp                               # (n, s+1)
-    ys = v0.long()[:, None] - half + ramp
-    valid = ((ys >= 0) & (ys < height))[:, :, None] & ((xs >= 0) & (xs < width))[:, None, :]
-    pix = (target[:, None, None] * height + ys.clamp(0, height - 1)[:, :, None]) * width \
-        + xs.clamp(0, width - 1)[:, None, :]
-    visibility = torch.sigmoid(beta * (depth_flat[pix] - z[:, None, None]))
-    weight = (patch * visibility * theta[:, None, None] * valid).reshape(-1)
-    return pix.reshape(-1), weight
-
-
 def _splat_plan(inst, stamps: StampSet, height, width, chunk_elements):
     """Which instances each chunk splats: a list of (bucket, instance indices (n,) int64), every
     chunk at most ``chunk_elements`` patch pixels. Instances behind the camera or whose patch
@@ -305,12 +278,49 @@ def _splat_plan(inst, stamps: StampSet, height, width, chunk_elements):
     return plan
 
 
+class _Chunk:
+    """One chunk of instances that share a stamp side: their patches on the pixel grid.
+
+    Shape: slots, u, v, target (n,); ``pix`` (n, s+1, s+1) flat indices into the (2 B H W,)
+    accumulators (clamped to the image), ``valid`` the same shape, true inside the image;
+    ``fu``, ``fv`` (n, 1, 1) sub-pixel fractions; ``s11 s10 s01 s00`` (n, s+1, s+1) the stamp
+    shifted by (0, 0), (0, 1), (1, 0), (1, 1) pixels (rows, columns).
+    """
+
+    def __init__(self, bk: StampBucket, slots, u, v, target, height, width):
+        side = bk.side
+        half = (side - 1) // 2
+        u0, v0 = torch.floor(u), torch.floor(v)
+        ramp = torch.arange(side + 1, device=u.device)
+        stamp = F.pad(bk.stamps[slots], (1, 1, 1, 1))                   # (n, s+2, s+2)
+        self.fu = (u - u0)[:, None, None]
+        self.fv = (v - v0)[:, None, None]
+        self.s11, self.s10 = stamp[:, 1:, 1:], stamp[:, 1:, :-1]
+        self.s01, self.s00 = stamp[:, :-1, 1:], stamp[:, :-1, :-1]
+        xs = u0.long()[:, None] - half + ramp                           # (n, s+1)
+        ys = v0.long()[:, None] - half + ramp
+        self.valid = ((ys >= 0) & (ys < height))[:, :, None] & ((xs >= 0) & (xs < width))[:, None, :]
+        self.pix = (target[:, None, None] * height + ys.clamp(0, height - 1)[:, :, None]) * width \
+            + xs.clamp(0, width - 1)[:, None, :]
+
+    def patch(self):
+        """Bilinear splat: patch[i, j] mixes stamp[i - a, j - b] for a, b in {0, 1}."""
+        fu, fv = self.fu, self.fv
+        return ((1 - fv) * ((1 - fu) * self.s11 + fu * self.s10)
+                + fv * ((1 - fu) * self.s01 + fu * self.s00))
+
+    def visibility(self, depth_flat, z, beta):
+        """V = 1 / (1 + exp(β (d − D))) under every patch pixel. Shape: (n, s+1, s+1)."""
+        return torch.sigmoid(beta * (depth_flat[self.pix] - z[:, None, None]))
+
+
 class _Splat(torch.autograd.Function):
     """Scatter-add every instance's weighted stamp into ``A = Σ θ B V`` and ``C_c = Σ γ_c θ B V``.
 
-    Forward keeps nothing per patch pixel; backward recomputes one chunk at a time. So memory
-    with gradients is bounded by the chunk size too, not by the total footprint of all particles
-    (which autograd would otherwise keep: patches, visibilities and pixel indices of every chunk).
+    The forward pass keeps nothing per patch pixel and the backward pass recomputes each chunk and
+    applies the chain rule by hand, so memory with gradients is bounded by the chunk size too, not
+    by the total footprint of all particles (which autograd would otherwise keep: patches,
+    visibilities and pixel indices of every chunk).
     Shape: u, v, z, theta (I,), color (I, 3) -> A, C_r, C_g, C_b, each (2 B H W,).
     """
 
@@ -320,8 +330,10 @@ class _Splat(torch.autograd.Function):
         size = depth_flat.numel()
         acc = [torch.zeros(size, dtype=u.dtype, device=u.device) for _ in range(4)]
         for bk, idx in plan:
-            flat, weight = _chunk_weight(bk, slots[idx], u[idx], v[idx], z[idx], theta[idx],
-                                         target[idx], depth_flat, height, width, beta)
+            ch_ = _Chunk(bk, slots[idx], u[idx], v[idx], target[idx], height, width)
+            weight = (ch_.patch() * ch_.visibility(depth_flat, z[idx], beta)
+                      * theta[idx][:, None, None] * ch_.valid).reshape(-1)
+            flat = ch_.pix.reshape(-1)
             # Four 1-D scatters: much faster than one scatter of (M, 4) rows on the CPU.
             acc[0].index_add_(0, flat, weight)
             col = color[idx]
@@ -338,30 +350,36 @@ class _Splat(torch.autograd.Function):
         u, v, z, theta, color, target, slots, depth_flat = ctx.saved_tensors
         need = ctx.needs_input_grad[:5]
         grads = [torch.zeros_like(t) if n else None for t, n in zip((u, v, z, theta, color), need)]
-        if not any(need):
-            return (*grads, None, None, None, None, None, None, None)
-        g_colour = torch.stack((g_r, g_g, g_b), 1)                      # (2 B H W, 3)
-        for bk, idx in ctx.plan:
-            with torch.enable_grad():
-                leaves = [t[idx].detach().requires_grad_(n)
-                          for t, n in zip((u, v, z, theta, color), need)]
-                flat, weight = _chunk_weight(bk, slots[idx], *leaves[:4], target[idx],
-                                             depth_flat, ctx.height, ctx.width, ctx.beta)
-                per = (bk.side + 1) ** 2
-                # dL/dweight per patch pixel, and the colour's own term
-                upstream = g_alpha[flat] + (g_colour[flat] * color[idx].detach()
-                                            .repeat_interleave(per, 0)).sum(1)
-                surrogate = (weight * upstream).sum()
-                wanted = [(i, leaf) for i, leaf in enumerate(leaves[:4]) if need[i]]
-                if wanted:
-                    got = torch.autograd.grad(surrogate, [leaf for _, leaf in wanted])
-                    for (i, _), g in zip(wanted, got):
-                        grads[i].index_add_(0, idx, g)
+        g_colour = (g_r, g_g, g_b)
+        beta = ctx.beta
+        for bk, idx in ctx.plan if any(need) else ():
+            c = _Chunk(bk, slots[idx], u[idx], v[idx], target[idx], ctx.height, ctx.width)
+            th = theta[idx][:, None, None]
+            col = color[idx]
+            vis = c.visibility(depth_flat, z[idx], beta) * c.valid
+            patch = c.patch()
+            g_colour_here = [g[c.pix] for g in g_colour]                # (n, s+1, s+1) each
+            # dL/dweight of every patch pixel: the opacity sum and the colour sums
+            g_weight = g_alpha[c.pix] + sum(col[:, ch, None, None] * g_colour_here[ch]
+                                            for ch in range(3))
+            g_bv = g_weight * vis                                        # dL/d(θ B) per pixel
+            if need[0] or need[1]:
+                fu, fv = c.fu, c.fv
+                if need[0]:
+                    d_fu = (1 - fv) * (c.s10 - c.s11) + fv * (c.s00 - c.s01)
+                    grads[0].index_add_(0, idx, th[:, 0, 0] * (g_bv * d_fu).sum((1, 2)))
+                if need[1]:
+                    d_fv = ((1 - fu) * c.s01 + fu * c.s00) - ((1 - fu) * c.s11 + fu * c.s10)
+                    grads[1].index_add_(0, idx, th[:, 0, 0] * (g_bv * d_fv).sum((1, 2)))
+            if need[2]:  # dV/dd = −β V (1 − V)
+                d_vis = -beta * vis * (1 - vis)
+                grads[2].index_add_(0, idx, th[:, 0, 0] * (g_weight * patch * d_vis).sum((1, 2)))
+            if need[3]:
+                grads[3].index_add_(0, idx, (g_bv * patch).sum((1, 2)))
             if need[4]:
-                w = weight.detach().view(idx.numel(), per)
+                weight = patch * vis * th
                 grads[4].index_add_(0, idx, torch.stack(
-                    [(w * g_colour[flat, ch].view(idx.numel(), per)).sum(1) for ch in range(3)],
-                    1))
+                    [(weight * g_colour_here[ch]).sum((1, 2)) for ch in range(3)], 1))
         return (*grads, None, None, None, None, None, None, None)
 
 
