@@ -367,3 +367,17 @@ def test_memory_kept_for_backward_does_not_grow_with_the_footprints():
     assert sum(seen.values()) < patch_pixels, sum(seen.values())
     (out.image1.sum() + out.image2.sum()).backward()
     assert all(float(leaf.grad.abs().sum()) > 0 for leaf in leaves.values())
+
+
+def test_each_stamp_is_as_large_as_its_footprint_not_the_template():
+    """Far particles get a few pixels, near ones their full size: cost follows the footprint."""
+    from weathergen.engine import build_stamps, load_templates
+    lib = load_templates("flakes")                                  # 80-pixel templates
+    footprints = torch.tensor([1.0, 2.5, 7.0, 20.0, 71.0])
+    parts = tiny_particles(torch.float32).select(torch.tensor([0, 0, 0, 0, 0])).replace(
+        scale=footprints / lib.resolution, defocus=torch.zeros(5, dtype=torch.int64),
+        template=torch.zeros(5, dtype=torch.int64), templates="flakes")
+    stamps = build_stamps([parts], lib)
+    sides = torch.tensor([stamps.buckets[b].side for b in stamps.bucket_of.tolist()])
+    assert bool((sides >= footprints).all())                         # the whole footprint fits
+    assert bool((sides <= 1.2 * footprints + 3).all()), sides.tolist()  # and little more
