@@ -121,7 +121,16 @@ def test_overrides_are_parsed_per_type_and_win_over_the_file():
     assert parse_override("volume_z", "[0.5, 2]") == (0.5, 2.0)
 
 
+def _png_folder(folder):
+    import cv2
+    import numpy as np
+    folder.mkdir()
+    (folder / "blob.png").write_bytes(cv2.imencode(".png", np.full((9, 9), 255, np.uint8))[1])
+    return folder
+
+
 def test_user_preset_file_and_defaults(tmp_path):
+    _png_folder(tmp_path / "shapes")
     f = tmp_path / "mine.toml"
     f.write_text('count = 12\ntemplates = "shapes"\n')
     p = load_preset(f)
@@ -158,6 +167,24 @@ def test_invalid_override_and_unknown_preset():
     with pytest.raises(ConfigError) as err:
         load_preset("hail")
     assert "unknown preset 'hail'" in str(err.value) and "snow" in str(err.value)
+
+
+def test_template_folder_problems_name_the_key_at_load_time(tmp_path):
+    (tmp_path / "empty").mkdir()
+    f = tmp_path / "mine.toml"
+    f.write_text('templates = "empty"\n')
+    with pytest.raises(ConfigError) as err:
+        load_preset(f)
+    assert str(f) in str(err.value) and "'templates'" in str(err.value)
+    assert "no PNG" in str(err.value)
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "readme.txt").write_text("not an image")
+    with pytest.raises(ConfigError, match=r"--set: key 'templates' = .*readme.txt.*not a PNG"):
+        load_preset("snow", overrides={"templates": str(notes)})
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_preset("snow", overrides={"templates": str(tmp_path / "nowhere")})
+    assert load_preset("snow", overrides={"templates": str(_png_folder(tmp_path / "ok"))})
 
 
 def test_blur_needs_a_length(tmp_path):
@@ -201,3 +228,6 @@ def test_cli_errors_are_one_line(cli):
     assert "unknown preset 'hail'" in result.output and "Traceback" not in result.output
     result = CliRunner().invoke(cli, ["presets", "snow", "--set", "size=4"])
     assert result.exit_code == 2 and "'size'" in result.output
+    result = CliRunner().invoke(cli, ["presets", "snow", "--set", "templates=/nonexistent/x"])
+    assert result.exit_code == 2 and "'templates'" in result.output
+    assert len(result.output.strip().splitlines()) == 1
