@@ -330,10 +330,10 @@ class _Splat(torch.autograd.Function):
         size = depth_flat.numel()
         acc = [torch.zeros(size, dtype=u.dtype, device=u.device) for _ in range(4)]
         for bk, idx in plan:
-            ch_ = _Chunk(bk, slots[idx], u[idx], v[idx], target[idx], height, width)
-            weight = (ch_.patch() * ch_.visibility(depth_flat, z[idx], beta)
-                      * theta[idx][:, None, None] * ch_.valid).reshape(-1)
-            flat = ch_.pix.reshape(-1)
+            c = _Chunk(bk, slots[idx], u[idx], v[idx], target[idx], height, width)
+            weight = (c.patch() * c.visibility(depth_flat, z[idx], beta)
+                      * theta[idx][:, None, None] * c.valid).reshape(-1)
+            flat = c.pix.reshape(-1)
             # Four 1-D scatters: much faster than one scatter of (M, 4) rows on the CPU.
             acc[0].index_add_(0, flat, weight)
             col = color[idx]
