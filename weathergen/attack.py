@@ -21,13 +21,20 @@ camera depth in frame ``t`` before the attack (fixed, and clamped to at least
 :data:`MIN_REG_DEPTH` for particles behind one of the cameras, which would otherwise flip the
 sign of the penalty). Optimiser: Adam. Every step is measured; the step with the lowest
 ``AEE(f̌, f_target)`` (the *distance to the target*) is kept.
+
+The gradient is the network's own: for RAFT that is the graph of the original implementation,
+which detaches the flow estimate between refinement steps (``RAFTModel.detach_flow``, on by
+default). The paper attacked those implementations, so its figures come from this truncated
+gradient; it still reaches every image pixel through the correlation lookups and the context
+features, and points close to the full one (cosine about 0.9 on the demo scene, with a similar
+distance reached after a few steps). Set ``model.detach_flow = False`` for the full gradient.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -364,8 +371,7 @@ def _snapshot(particles):
 def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: AttackSettings,
                 target: TargetSpec = TargetSpec("zero"), *, device=None,
                 target_file_flow: Optional[torch.Tensor] = None,
-                on_step: Callable[[StepRecord], None] = lambda r: None,
-                should_stop: Callable[[], bool] = lambda: False) -> AttackResult:
+                on_step: Callable[[StepRecord], None] = lambda r: None) -> AttackResult:
     """Optimise ``particles`` in ``pair`` against ``model``.
 
     Args:
@@ -378,7 +384,6 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
             (2, H, W).
         device: where rendering and the network run (default: the model's device).
         on_step: called with every :class:`StepRecord` (for progress reports).
-        should_stop: polled after every step; ``True`` ends the loop early (best so far kept).
     Returns: :class:`AttackResult`.
     """
     from .engine import build_stamps, render
@@ -430,7 +435,7 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
         if dist < best or best_particles is None:
             best, best_step = dist, step
             best_particles, best_flow = _snapshot(current), flow.detach().cpu()
-        last = step == steps or should_stop()
+        last = step == steps
         if not last:
             if not loss.requires_grad:
                 # No particle reaches the frames and no penalty depends on a freed variable:
@@ -458,8 +463,9 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
 class PairSummary:
     """Per-pair figures of an attack (pixels). ``epe_*`` are None without ground truth.
 
-    aee_random: AEE(f, f̌) for the unoptimised weather; aee_adversarial: for the best step
-    (as written); target_initial / target_adversarial: AEE(f̌, target) before and after.
+    aee_random: AEE(f, f̌) for the unoptimised weather (step 0, float frames); aee_adversarial:
+    for the best step as written (particles at storage precision, 8-bit frames);
+    target_initial / target_adversarial: AEE(f̌, target) for the same two flows.
     """
 
     pair: str
@@ -473,14 +479,20 @@ class PairSummary:
     epe_random: Optional[float] = None
     epe_adversarial: Optional[float] = None
     seconds: float = 0.0
-    extra: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "PairSummary":
+        """A summary stored by :func:`dataclasses.asdict`; unknown keys are ignored."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in names})
 
 
 def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch.Tensor,
                    gt_flow: Optional[torch.Tensor] = None,
                    gt_valid: Optional[torch.Tensor] = None, seconds: float = 0.0) -> PairSummary:
     """Figures of one attacked pair. ``adversarial_flow`` is the flow on the frames as written
-    (best particles at storage precision). Shape: flows (1, 2, H, W); gt (2, H, W), valid (1, H, W).
+    (best particles at storage precision, 8-bit frames).
+    Shape: flows (1, 2, H, W); gt (2, H, W), valid (1, H, W).
     """
     benign, initial, adv, goal = (t.detach().cpu().float() for t in
                                   (result.benign_flow, result.initial_flow, adversarial_flow,
