@@ -241,6 +241,28 @@ def test_testing_split_says_what_is_missing(tmp_path, street):
         ds.load(ds.pairs()[0])
 
 
+def test_a_missing_second_frame_is_reported_not_hidden(tmp_path, street):
+    s = write_fake_kitti(tmp_path, street[0])
+    (s / "image_2" / "000000_11.png").unlink()
+    ds = open_dataset("kitti", tmp_path)
+    assert [r.id.scene for r in ds.pairs()] == ["000000"]
+    assert ds.check(ds.pairs()[0]).endswith("image_2/000000_11.png: image2 file is missing")
+    assert open_dataset("kitti", tmp_path, first_frame=11).pairs() == []
+
+
+@pytest.mark.parametrize("option, message", [
+    (dict(min_static_points=2), "min_static_points must be at least 3, got 2"),
+    (dict(min_inlier_fraction=1.5), r"min_inlier_fraction must be in \(0, 1\], got 1.5"),
+    (dict(min_inlier_fraction=0), r"min_inlier_fraction must be in \(0, 1\], got 0"),
+    (dict(fit_threshold_px=-1.0), "fit_threshold_px must be positive, got -1.0"),
+    (dict(max_gap_px=-3), "max_gap_px must be zero or positive, got -3"),
+])
+def test_fit_and_fill_options_are_validated(tmp_path, option, message):
+    (tmp_path / "training" / "image_2").mkdir(parents=True)
+    with pytest.raises(ConfigError, match=message):
+        open_dataset("kitti", tmp_path, **option)
+
+
 def test_missing_layout(tmp_path):
     with pytest.raises(DatasetError, match="expected KITTI 2015 layout"):
         open_dataset("kitti", tmp_path).pairs()

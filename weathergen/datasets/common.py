@@ -59,7 +59,7 @@ class ScaledDataset(Dataset):
         """None if the pair reads cleanly, else one line naming the first problem.
 
         ``load`` itself names missing files, with a hint where a split lacks them by design
-        (KITTI testing, Spring test), so a missing file is not reported without that hint.
+        (KITTI testing, Spring test), so there is no list of required files to test first.
         """
         try:
             self.load(ref)

@@ -44,7 +44,6 @@ class CustomDataset(ScaledDataset):
     """Consecutive frame pairs of every scene in the ``custom`` layout."""
 
     name = "custom"
-    required_files = ("image1", "image2", "depth1", "depth2", "cameras")
     split_folders = {"training": "."}
 
     def __init__(self, root, selection: Selection = Selection(), **options):
