@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from fake_datasets import KITTI_BASELINE, demo_sequence, write_fake_kitti
 from weathergen.datasets import open_dataset
-from weathergen.datasets.densify import fill_nearest, fill_sparse
+from weathergen.datasets.densify import fill_sparse
 from weathergen.datasets.kitti import forward_warp_disparity
 from weathergen.errors import ConfigError, DatasetError, FormatError
 from weathergen.geometry import rotation_angle_deg
@@ -89,6 +89,17 @@ def test_wrong_png_kinds_are_named(tmp_path):
 
 
 # -- densification -------------------------------------------------------------------------------
+def fill_nearest(values, measured):
+    """Plain nearest-measurement fill, the baseline the edge-aware fill must beat. (H, W) -> (H, W)."""
+    _, labels = cv2.distanceTransformWithLabels((~measured).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    ys, xs = np.nonzero(measured)
+    index_of_label = np.zeros(labels.max() + 1, np.int64)
+    index_of_label[labels[ys, xs]] = np.arange(len(ys))      # each measured pixel has its own label
+    nearest = index_of_label[labels]
+    return values[ys[nearest], xs[nearest]].astype(np.float32)
+
+
 def test_edge_aware_fill_keeps_surfaces_apart_better_than_nearest_neighbour():
     # two surfaces meet at a colour edge: a near one (disparity 40) left, a far one (5) right
     h, w = 60, 80

@@ -53,7 +53,7 @@ from ..framepair import FramePair, PairId
 from ..io.images import read_image
 from ..io.kitti_formats import read_disparity_png, read_flow_png, read_object_map, stereo_camera
 from .base import PairRef, Selection
-from .common import ScaledDataset, check_size, chw, require_files, scaled_motion
+from .common import FarDepthDataset, check_size, chw, require_files, scaled_motion
 from .densify import fill_sparse
 from .posefit import fit_camera_motion
 
@@ -66,7 +66,7 @@ OCCLUSION_RADIUS = 3
 OCCLUSION_RATIO = 0.8
 
 
-class KittiDataset(ScaledDataset):
+class KittiDataset(FarDepthDataset):
     """Pairs (10, 11) of every KITTI 2015 scene-flow sequence, with densified depth and fitted motion."""
 
     name = "kitti"

@@ -42,7 +42,7 @@ from ..framepair import FramePair, PairId
 from ..io.images import read_image
 from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
 from .base import PairRef, Selection
-from .common import ScaledDataset, check_size, chw, require_files, scaled_poses
+from .common import FarDepthDataset, check_size, chw, require_files, scaled_poses
 
 _FRAME_RE = re.compile(r"^frame_left_(\d{4,})\.png$")
 #: Distance between Spring's left and right cameras, metres.
@@ -50,7 +50,7 @@ SPRING_BASELINE = 0.065
 EXTRINSICS = ("world-to-camera", "camera-to-world")
 
 
-class SpringDataset(ScaledDataset):
+class SpringDataset(FarDepthDataset):
     """Frame pairs ``(i, i+1)`` of the left camera of every selected Spring scene."""
 
     name = "spring"
