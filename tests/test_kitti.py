@@ -229,6 +229,15 @@ def test_disparity_of_the_wrong_size_names_the_file(tmp_path, street):
         load_one(tmp_path)
 
 
+def test_unreadable_disparity_is_one_line_naming_the_file(tmp_path, street):
+    s = write_fake_kitti(tmp_path, street[0])
+    path = s / "disp_occ_0" / "000000_10.png"
+    path.write_bytes(path.read_bytes()[:100])          # truncated download
+    ds = open_dataset("kitti", tmp_path)
+    message = ds.check(ds.pairs()[0])
+    assert message == f"{path}: cannot be decoded as an image (corrupt or not an image)"
+
+
 def test_too_few_static_points_is_refused(tmp_path, street):
     s = write_fake_kitti(tmp_path, street[0])
     objects = np.ones(street[0].size, np.uint8)
