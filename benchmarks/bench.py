@@ -81,6 +81,9 @@ def main():
     pair = scene()
     print(f"weathergen engine benchmark: {WIDTH}x{HEIGHT}, torch {torch.__version__}, "
           f"{torch.get_num_threads()} threads, medians of {REPEATS}")
+    print(f"peak MiB is the process's peak resident memory during one forward + backward; "
+          f"before any rendering it is {peak_rss_mib():.0f} MiB (torch itself)")
+    figures = {}
     print(f"{'preset':8} {'count':>6} {'sample s':>9} {'render s':>9} {'fwd+bwd s':>10} "
           f"{'bwd/fwd':>8} {'peak MiB':>9} {'meta kB':>8}")
     for name in ("snow", "rain", "sparks", "fog"):
@@ -94,6 +97,7 @@ def main():
         peak = peak_rss_mib()
         with tempfile.TemporaryDirectory() as tmp:
             size = parts.save(Path(tmp) / "p.npz").stat().st_size
+        figures[name] = (sample_s, render_s, fb_s, size)
         print(f"{name:8} {parts.count:6d} {sample_s:9.3f} {render_s:9.3f} {fb_s:10.3f} "
               f"{fb_s / render_s:8.2f} {peak:9.0f} {size / 1000:8.1f}   "
               f"(best: {BEST[-3]:.3f} / {BEST[-2]:.3f} / {BEST[-1]:.3f})")
@@ -119,6 +123,18 @@ def main():
     start = time.perf_counter()
     forward_backward(pair, parts)
     print(f"  {time.perf_counter() - start:.3f} s, peak resident {peak_rss_mib():.0f} MiB")
+
+    print("\ntargets (2-core CPU, medians):")
+    snow, rain = figures["snow"], figures["rain"]
+    ratio = max(f[2] / f[1] for f in figures.values())
+    meta = max(f[3] for f in figures.values()) / 1000
+    for label, value, target, unit in (
+            ("snow sample + render", snow[0] + snow[1], 1.0, "s"),
+            ("rain sample + render", rain[0] + rain[1], 3.0, "s"),
+            ("forward + backward / forward, worst preset", ratio, 3.0, "x"),
+            ("metadata per pair, largest", meta, 200.0, "kB")):
+        verdict = "ok" if value < target else "MISSED"
+        print(f"  {label:44} {value:8.2f} {unit:2} (target < {target:g} {unit})  {verdict}")
 
 
 if __name__ == "__main__":

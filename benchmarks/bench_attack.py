@@ -1,8 +1,9 @@
 """Time and peak memory of one attack step at Sintel resolution: render + network forward + backward.
 
-A step is what :func:`weathergen.attack.attack_pair` repeats: render the particles with the freed
-variables, run the flow network on the weather frames, the loss, the backward pass into the particle
-variables and one Adam update. The renderer's own share is measured separately (its forward and
+A step is what :func:`weathergen.attack.attack_pair` repeats, timed through the same
+:class:`~weathergen.attack.PairOptimisation`: render the particles with the freed variables, run the
+flow network on the weather frames, the loss, the backward pass into the particle variables and one
+Adam update. The renderer's own share is measured separately (its forward and
 backward with the same particles and a loss on the rendered frames). Each configuration runs in a
 fresh process, so its peak resident memory is its own. Network weights are random (speed and memory
 do not depend on them); the scene is a synthetic 1024x436 frame pair with a slanted ground plane.
@@ -46,10 +47,8 @@ def measure(model_name: str, preset: str, width: int, height: int, iters: int, s
     """Measure in this process (call in a fresh one)."""
     import torch
 
-    from weathergen.attack import (OPTIMIZABLE, WeatherVariables, attack_loss, particle_depths)
-    from weathergen.engine import build_stamps, load_preset, render, sample_particles
-    from weathergen.engine.sampling import reference_transforms
-    from weathergen.engine.templates import load_templates
+    from weathergen.attack import AttackSettings, PairOptimisation
+    from weathergen.engine import load_preset, sample_particles
     from weathergen.models import build_model
 
     if threads:
@@ -59,30 +58,16 @@ def measure(model_name: str, preset: str, width: int, height: int, iters: int, s
     particles = sample_particles(pair, load_preset(preset), seed=0)
     model = build_model(model_name, iters=iters, gradient_checkpointing=checkpointing)
     model.requires_grad_(False)
-    _, c1, c2 = reference_transforms(pair)
-    frames = dict(image1=pair.image1[None], image2=pair.image2[None], depth1=pair.depth1[None],
-                  depth2=pair.depth2[None], intrinsics=pair.intrinsics[None],
-                  cam1_from_ref=c1[None], cam2_from_ref=c2[None])
-    templates = load_templates(particles.templates)
-    stamps = build_stamps([particles], templates)
-    depths = particle_depths(particles, c1, c2)
-    variables = WeatherVariables(particles, OPTIMIZABLE)
-    optimizer = torch.optim.Adam(variables.parameters(), lr=1e-5)
-    goal = torch.zeros(1, 2, height, width)
+    # The attack's own per-pair state and step (all four variables, the paper's settings).
+    run = PairOptimisation(model, pair, particles, AttackSettings(), device="cpu")
 
     def render_only():
-        out = render(**frames, particles=variables.particles(), templates=templates,
-                     stamps=stamps)
+        out = run.render(run.variables.particles())
         (out.image1.mean() + out.image2.mean()).backward()
 
     def step():
-        current = variables.particles()
-        out = render(**frames, particles=current, templates=templates, stamps=stamps)
-        flow = model(out.image1, out.image2)
-        loss, _, _ = attack_loss(flow, goal, current, *depths)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
+        loss = run.evaluate()[2]
+        run.update(loss)
 
     render_only()                                   # warm-up (allocator, first-call costs)
     times = []
@@ -98,7 +83,7 @@ def measure(model_name: str, preset: str, width: int, height: int, iters: int, s
         step()
         step_times.append(time.perf_counter() - t0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
-    grads_ok = all(bool(torch.isfinite(p.grad).all()) for p in variables.parameters())
+    grads_ok = all(bool(torch.isfinite(p.grad).all()) for p in run.variables.parameters())
     return {"step_seconds": min(step_times), "render_seconds": render_seconds,
             "peak_gib": peak / 2**20, "step_added_gib": (peak - before) / 2**20,
             "particles": particles.count, "finite": grads_ok, "threads": torch.get_num_threads()}

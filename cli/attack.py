@@ -91,6 +91,7 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
                                    parse_optimize, parse_target)
     from weathergen.attack_job import AttackJob, run_attack
     from weathergen.engine import BETA_ATTACK, BETA_RENDER, resolve_device
+    from weathergen.errors import ConfigError
 
     from .render import resolve_preset
 
@@ -98,8 +99,17 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
     target = parse_target(target_text)
     config = attack_config(config_name) if config_name else None
     preset_name = preset or (config.preset if config else "snow")
-    if config is None and preset_name in ATTACK_CONFIGS:
-        config = ATTACK_CONFIGS[preset_name]    # e.g. --preset fog behaves like the fog attack
+    preset_obj, name, appearance = resolve_preset(preset_name, None, set_items, particles_dir)
+    if appearance:
+        raise ConfigError("--set cannot change stored particles in an attack; re-render them "
+                          "with `weathergen render --particles` instead")
+    if particles_dir is not None and preset is not None and preset != name:
+        raise ConfigError(f"--preset {preset}: the particles in {particles_dir} were sampled "
+                          f"from {name!r}; leave --preset out to attack them")
+    # The preset actually attacked (the stored one with --particles) picks the configuration:
+    # fog particles keep their second offset fixed however they were obtained.
+    if config is None and name in ATTACK_CONFIGS:
+        config = ATTACK_CONFIGS[name]
     if optimize is not None:
         variables = parse_optimize(optimize)
     else:
@@ -110,12 +120,6 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
         occlusion_gradient = bool(config and config.occlusion_gradient)
     settings = AttackSettings(optimize=variables, steps=steps, lr=lr, alpha1=alpha1,
                               alpha2=alpha2, beta=BETA_ATTACK if occlusion_gradient else BETA_RENDER)
-    preset_obj, name, appearance = resolve_preset(preset_name, None, set_items, particles_dir)
-    if appearance:
-        from weathergen.errors import ConfigError
-
-        raise ConfigError("--set cannot change stored particles in an attack; re-render them "
-                          "with `weathergen render --particles` instead")
     label = config_name or name
     out = out or Path("out") / f"attack-{label}"
     job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
@@ -147,7 +151,7 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
 
     def on_step(rec):
         text = (f"pair {state['i'] + 1}/{state['n']} {state['pair']}  step {rec.step}/{total_steps}"
-                f"  loss {rec.loss:.4f}  best {rec.best_distance:.4f}")
+                f"  loss {rec.loss:.4f}  best distance {rec.best_distance:.4f}")
         if progress is not None:
             progress.update(task, advance=1, status=text)
         elif not quiet and (rec.step % 50 == 0 or rec.step == total_steps):
@@ -180,8 +184,8 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
         else:
             summary = run_attack(job, on_start, on_pair_start, on_step, on_pair_done)
     except KeyboardInterrupt:
-        err.print(f"Interrupted after {len(rows)} pairs; rerun with --resume to continue at the "
-                  f"next unfinished pair.")
+        err.print(f"Interrupted with {len(rows)} of {state['n']} pair(s) finished; rerun with "
+                  f"--resume to continue at the next unfinished pair.")
         sys.exit(130)
     if not quiet:
         console.print(summary_table(f"weathergen attack: {model}, {label}, target "

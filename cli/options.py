@@ -30,7 +30,8 @@ def dataset_options(func):
                   help="At most this many pairs per scene; 5 gives the paper's Sintel-tr115. "
                        "Default: all.")
     @click.option("--first-frame", type=click.IntRange(min=0), default=None,
-                  help="Start each scene at this frame number (as in the file names). Default: its first frame.")
+                  help="Start each scene at this frame number (as in the file names). "
+                       "Default: its first frame.")
     @click.option("--depth-scale", type=float, default=1.0, show_default=True,
                   help="Multiply all depth (and camera translation) by this factor.")
     @click.option("--scene-scales", type=click.Path(dir_okay=False, path_type=str), default=None,

@@ -24,12 +24,13 @@ def presets_command(name, overrides):
     if name is None:
         columns = [f.name for f in preset_keys() if f.metadata.get("main")]
         table = Table(title="weathergen presets", header_style="bold")
-        table.add_column("name")
+        table.add_column("name", no_wrap=True)  # names are what users type: never cut them
         for col in columns:
-            table.add_column(col.replace("_", " "), justify="right")
+            table.add_column(_HEADERS.get(col, col.replace("_", " ")), justify="right",
+                             no_wrap=True)
         for preset_name in list_presets():
             p = load_preset(preset_name, overrides=sets)
-            table.add_row(preset_name, *(_fmt(getattr(p, c)) for c in columns))
+            table.add_row(preset_name, *(_main_value(p, c) for c in columns))
         console.print(table)
         return
     p = load_preset(name, overrides=sets)
@@ -41,6 +42,17 @@ def presets_command(name, overrides):
         table.add_row(f.name, _fmt(getattr(p, f.name)), f.metadata.get("doc", ""))
     console.print(table)
     console.print(f"source: {p.source}", markup=False, highlight=False)
+
+
+# Short headers for the listing, so that a row fits on one line of 160 columns.
+_HEADERS = {"depth_decay": "d-decay", "transparency": "θ", "motion_y": "m_y",
+            "motion_blur": "blur", "blur_length": "blur length", "blur_samples": "blur K"}
+
+
+def _main_value(p, key: str) -> str:
+    if key == "transparency" and p.transparency_mode == "constant":
+        return f"{_fmt(p.transparency)} const"  # not scaled by the depth hat
+    return _fmt(getattr(p, key))
 
 
 def _fmt(value) -> str:

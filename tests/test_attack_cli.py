@@ -58,6 +58,27 @@ def test_attack_writes_every_output(attack_out):
     assert np.all(target == 0)                                              # default: zero flow
 
 
+def test_flow_pictures_share_one_scale(attack_out):
+    import torch
+
+    from weathergen.flow import flow_to_color
+    from weathergen.io.images import read_raw
+    from weathergen.io.sintel_formats import read_flo
+
+    out, _ = attack_out
+    folder = out / "training" / "attack_flow" / PAIR
+    kinds = ("benign", "initial", "adversarial", "target")
+    flows = [torch.from_numpy(read_flo(folder / f"{k}.flo").transpose(2, 0, 1).copy())
+             for k in kinds]
+    shared = flow_to_color(flows)
+    alone = flow_to_color(flows[0])
+    for kind, expected in zip(kinds, shared):
+        written = read_raw(folder / f"{kind}.png")[..., ::-1]     # stored as BGR
+        assert np.array_equal(written, expected.permute(1, 2, 0).numpy()), kind
+    # The benign flow is not the longest of the comparison, so its own scale would differ.
+    assert not torch.equal(alone, shared[0])
+
+
 def test_attack_log_and_summary(attack_out):
     out, _ = attack_out
     from weathergen.attack_outputs import read_log
@@ -66,6 +87,8 @@ def test_attack_log_and_summary(attack_out):
     assert [r["step"] for r in rows] == [0, 1, 2]
     best = [r["best_distance"] for r in rows]
     assert all(b <= a for a, b in zip(best, best[1:]))
+    for r in rows:   # the loss is the distance to the target plus the offset penalty
+        assert r["loss"] == pytest.approx(r["distance"] + r["penalty"], rel=1e-5)
     assert best[-1] == pytest.approx(min(r["distance"] for r in rows), rel=1e-5)
 
     summary = json.loads((out / "summary.json").read_text())
@@ -101,6 +124,19 @@ def test_attack_output_rerenders_through_render_particles(attack_out, tmp_path):
         assert np.abs(attacked - rendered).max() <= 1.5 / 255
 
 
+def test_evaluate_on_the_attack_output_reproduces_its_figures(attack_out, tmp_path):
+    out, _ = attack_out
+    result = invoke(["evaluate", "--weather", out, "--model", "raft-small", "--checkpoint",
+                     WEIGHTS, "--iters", "2", "--json", tmp_path / "eval.json"])
+    assert result.exit_code == 0, result.output
+    (row,) = json.loads((tmp_path / "eval.json").read_text())["pairs"]
+    summary = json.loads((out / "summary.json").read_text())
+    # Both measure the written 8-bit frames with the same network.
+    assert row["aee_weather"] == pytest.approx(summary["aee_adversarial"], rel=1e-4, abs=1e-5)
+    assert row["epe_weather"] == pytest.approx(summary["epe_adversarial"], rel=1e-4, abs=1e-5)
+    assert row["epe_clean"] == pytest.approx(summary["epe_benign"], rel=1e-4, abs=1e-5)
+
+
 def test_resume_skips_finished_pairs_and_plain_rerun_refuses(attack_out):
     out, _ = attack_out
     log = out / "training" / "attack_log" / f"{PAIR}.csv"
@@ -128,6 +164,62 @@ def test_fog_configuration_freezes_the_second_offset(tmp_path):
     assert config["attack"]["optimize"] == ["offset1", "color", "transparency"]
     assert config["attack"]["beta"] == 30.0
     assert config["attack"]["target"] == "constant 1.5,-2"
+
+
+def test_stored_fog_particles_keep_the_second_offset_fixed(tmp_path):
+    if not WEIGHTS.is_file():
+        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
+    fog = tmp_path / "fog"
+    rendered = invoke(["render", "--preset", "fog", "--set", "count=2", *ONE_PAIR, "--out", fog])
+    assert rendered.exit_code == 0, rendered.output
+    out = tmp_path / "attack"
+    result = invoke(["attack", "--particles", fog, "--model", "raft-small", "--checkpoint",
+                     WEIGHTS, "--iters", "1", *ONE_PAIR, "--steps", "0", "--out", out])
+    assert result.exit_code == 0, result.output
+    config = json.loads((out / "manifest.json").read_text())["config"]
+    assert config["preset_name"] == "fog"
+    assert config["attack"]["optimize"] == ["offset1", "color", "transparency"]
+    assert config["attack"]["beta"] == 30.0
+    refused = invoke(["attack", "--particles", fog, "--preset", "snow", "--model", "raft-small",
+                      "--checkpoint", WEIGHTS, *ONE_PAIR, "--out", tmp_path / "x"])
+    assert refused.exit_code == 2 and "'fog'" in refused.output
+    assert not (tmp_path / "x").exists()
+
+
+def test_interrupted_run_resumes_at_the_unfinished_pair(tmp_path, monkeypatch):
+    if not WEIGHTS.is_file():
+        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
+    import weathergen.attack_job as attack_job
+
+    real = attack_job.attack_pair
+
+    def interrupted(model, pair, *args, **kwargs):
+        if pair.id.scene == "street":        # the second pair: Ctrl-C in its first step
+            raise KeyboardInterrupt
+        return real(model, pair, *args, **kwargs)
+
+    out = tmp_path / "two"
+    args = ["attack", "--model", "raft-small", "--checkpoint", WEIGHTS, "--iters", "1",
+            "--scenes", "courtyard,street", "--frames-per-scene", "1", "--steps", "1",
+            "--set", "count=40", "--out", out]
+    monkeypatch.setattr(attack_job, "attack_pair", interrupted)
+    stopped = invoke(args)
+    assert stopped.exit_code == 130 and "--resume" in stopped.output
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert [e["pair"] for e in manifest["pairs"].values()] == ["demo/training/courtyard/0001"]
+    assert not (out / "training" / "particles" / "street_0001").exists()
+    first_log = out / "training" / "attack_log" / "courtyard_0001.csv"
+    before = first_log.stat().st_mtime_ns
+
+    monkeypatch.setattr(attack_job, "attack_pair", real)
+    resumed = invoke([*args, "--resume"])
+    assert resumed.exit_code == 0, resumed.output
+    assert first_log.stat().st_mtime_ns == before          # the finished pair was not redone
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert sorted(e["pair"] for e in manifest["pairs"].values()) == [
+        "demo/training/courtyard/0001", "demo/training/street/0001"]
+    assert [(r["written"], r["skipped"]) for r in manifest["runs"]] == [(1, 0), (1, 1)]
+    assert manifest["summary"]["pairs"] == 2
 
 
 # -- error paths ----------------------------------------------------------------------------------

@@ -342,3 +342,42 @@ def test_golden_images(name):
     assert diff.max() <= 2 and diff.mean() < 0.05, f"{name}: max diff {diff.max()}"
     assert (got != (torch.cat((pair.image1, pair.image2), 2).permute(1, 2, 0).numpy() * 255
                     + 0.5).astype(np.uint8)).any()
+
+
+# -- cost ----------------------------------------------------------------------------------
+
+def test_memory_kept_for_backward_does_not_grow_with_the_footprints():
+    """Autograd may keep a few numbers per blur sample, not the patches of every stamp pixel."""
+    pair, lib = tiny_pair(torch.float32, depth=5.0, h=48, w=64), blob_library()
+    base = tiny_particles(torch.float32, blur=20)
+    base = base.replace(scale=torch.full((3,), 61.0 / 8))            # 61-pixel stamps
+    leaves = {name: getattr(base, name).clone().requires_grad_(True)
+              for name in ("offset1", "offset2", "color", "transparency")}
+    seen: dict = {}
+
+    def pack(t):
+        seen[t.untyped_storage().data_ptr()] = t.untyped_storage().nbytes()
+        return t
+
+    with torch.autograd.graph.saved_tensors_hooks(pack, lambda t: t):
+        out = fast(pair, base.replace(**leaves), lib, BETA_ATTACK)
+    # Keeping the patches costs tens of bytes per patch pixel; the frames and the per-sample
+    # numbers the backward pass needs fit in well under one byte per patch pixel here.
+    patch_pixels = 2 * 3 * 20 * 62 * 62                               # frames x particles x K
+    assert sum(seen.values()) < patch_pixels, sum(seen.values())
+    (out.image1.sum() + out.image2.sum()).backward()
+    assert all(float(leaf.grad.abs().sum()) > 0 for leaf in leaves.values())
+
+
+def test_each_stamp_is_as_large_as_its_footprint_not_the_template():
+    """Far particles get a few pixels, near ones their full size: cost follows the footprint."""
+    from weathergen.engine import build_stamps, load_templates
+    lib = load_templates("flakes")                                  # 80-pixel templates
+    footprints = torch.tensor([1.0, 2.5, 7.0, 20.0, 71.0])
+    parts = tiny_particles(torch.float32).select(torch.tensor([0, 0, 0, 0, 0])).replace(
+        scale=footprints / lib.resolution, defocus=torch.zeros(5, dtype=torch.int64),
+        template=torch.zeros(5, dtype=torch.int64), templates="flakes")
+    stamps = build_stamps([parts], lib)
+    sides = torch.tensor([stamps.buckets[b].side for b in stamps.bucket_of.tolist()])
+    assert bool((sides >= footprints).all())                         # the whole footprint fits
+    assert bool((sides <= 1.2 * footprints + 3).all()), sides.tolist()  # and little more

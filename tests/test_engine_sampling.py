@@ -58,7 +58,9 @@ def test_appearance_follows_the_model():
     assert torch.equal(parts.defocus, defocus_radius(d))
     assert torch.equal(parts.color, torch.ones_like(parts.color))
     fog = sample_particles(pair, load_preset("fog"), seed=2)
-    assert bool((fog.transparency == 0.25).all())
+    # depth-constant 0.3 (float16 storage)
+    torch.testing.assert_close(fog.transparency, torch.full_like(fog.transparency, 0.3),
+                               atol=2e-4, rtol=0)
 
 
 def test_formulas_by_hand():
@@ -181,3 +183,35 @@ def test_every_preset_samples_and_renders_on_the_demo_scene(name, demo_pair):
     assert float(out.opacity1.sum() + out.opacity2.sum()) > 0
     assert bool(((out.image1 >= 0) & (out.image1 <= 1)).all())
     assert not torch.equal(out.image1[0], demo_pair.image1)
+
+
+def test_positions_are_uniform_in_the_visible_volume():
+    """A far plane, a still camera, no motion: the visible part of the box is the view frustum
+    up to z = 3 (it lies inside x, y in [-5, 5]), so depth has the CDF (z / 3)^3 and the image
+    position is uniform over the frame."""
+    pair = plane_pair(40, 56, depth=100.0)
+    parts = sample_particles(pair, load_preset("snow", {"count": 4000, "motion_y": 0.0}), seed=4)
+    assert parts.count == 4000
+    z = parts.position[:, 2].double()
+    for edge in (1.0, 1.5, 2.0, 2.5):
+        assert abs(float((z < edge).double().mean()) - (edge / 3) ** 3) < 0.03, edge
+    pix, _ = project(parts.position.double(), pair.intrinsics)
+    assert abs(float((pix[:, 0] < 27.5).double().mean()) - 0.5) < 0.03
+    assert abs(float((pix[:, 1] < 19.5).double().mean()) - 0.5) < 0.03
+    assert float(pix[:, 0].min()) < 1 and float(pix[:, 0].max()) > 54
+
+
+@pytest.mark.parametrize("name,scale,angle", [("rain", 0.1, 4.0), ("sparks", 0.2, 60.0)])
+def test_motion_jitter_scales_and_turns_the_fall(name, scale, angle):
+    """|m| = |m_y| (1 + U[-f, f]); the direction is (0, sign m_y, 0) turned by three Euler angles
+    in [-a, a] (so it deviates by at most 3a); a y-down world with an upright camera."""
+    preset = load_preset(name, {"count": 2000})
+    parts = sample_particles(plane_pair(40, 56, depth=50.0), preset, seed=1)
+    m = parts.motion.double()
+    ratio = m.norm(dim=1) / abs(preset.motion_y)
+    assert float(ratio.min()) >= 1 - scale - 1e-3 and float(ratio.max()) <= 1 + scale + 1e-3
+    assert float(ratio.min()) < 1 - 0.8 * scale and float(ratio.max()) > 1 + 0.8 * scale
+    base = torch.tensor([0.0, math.copysign(1.0, preset.motion_y), 0.0], dtype=torch.float64)
+    deviation = torch.rad2deg(torch.acos(((m @ base) / m.norm(dim=1)).clamp(-1, 1)))
+    assert float(deviation.max()) <= 3 * angle
+    assert float(deviation.quantile(0.9)) > 0.5 * angle

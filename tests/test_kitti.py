@@ -10,7 +10,7 @@ from click.testing import CliRunner
 
 from fake_datasets import KITTI_BASELINE, demo_sequence, write_fake_kitti
 from weathergen.datasets import open_dataset
-from weathergen.datasets.densify import fill_nearest, fill_sparse
+from weathergen.datasets.densify import fill_sparse
 from weathergen.datasets.kitti import forward_warp_disparity
 from weathergen.errors import ConfigError, DatasetError, FormatError
 from weathergen.geometry import rotation_angle_deg
@@ -89,6 +89,17 @@ def test_wrong_png_kinds_are_named(tmp_path):
 
 
 # -- densification -------------------------------------------------------------------------------
+def fill_nearest(values, measured):
+    """Plain nearest-measurement fill, the baseline the edge-aware fill must beat. (H, W) -> (H, W)."""
+    _, labels = cv2.distanceTransformWithLabels((~measured).astype(np.uint8), cv2.DIST_L2, 5,
+                                                labelType=cv2.DIST_LABEL_PIXEL)
+    ys, xs = np.nonzero(measured)
+    index_of_label = np.zeros(labels.max() + 1, np.int64)
+    index_of_label[labels[ys, xs]] = np.arange(len(ys))      # each measured pixel has its own label
+    nearest = index_of_label[labels]
+    return values[ys[nearest], xs[nearest]].astype(np.float32)
+
+
 def test_edge_aware_fill_keeps_surfaces_apart_better_than_nearest_neighbour():
     # two surfaces meet at a colour edge: a near one (disparity 40) left, a far one (5) right
     h, w = 60, 80
@@ -218,6 +229,15 @@ def test_disparity_of_the_wrong_size_names_the_file(tmp_path, street):
         load_one(tmp_path)
 
 
+def test_unreadable_disparity_is_one_line_naming_the_file(tmp_path, street):
+    s = write_fake_kitti(tmp_path, street[0])
+    path = s / "disp_occ_0" / "000000_10.png"
+    path.write_bytes(path.read_bytes()[:100])          # truncated download
+    ds = open_dataset("kitti", tmp_path)
+    message = ds.check(ds.pairs()[0])
+    assert message == f"{path}: cannot be decoded as an image (corrupt or not an image)"
+
+
 def test_too_few_static_points_is_refused(tmp_path, street):
     s = write_fake_kitti(tmp_path, street[0])
     objects = np.ones(street[0].size, np.uint8)
@@ -239,6 +259,28 @@ def test_testing_split_says_what_is_missing(tmp_path, street):
     assert len(ds.pairs()) == 1
     with pytest.raises(DatasetError, match="testing split ships no disparity, flow or object maps"):
         ds.load(ds.pairs()[0])
+
+
+def test_a_missing_second_frame_is_reported_not_hidden(tmp_path, street):
+    s = write_fake_kitti(tmp_path, street[0])
+    (s / "image_2" / "000000_11.png").unlink()
+    ds = open_dataset("kitti", tmp_path)
+    assert [r.id.scene for r in ds.pairs()] == ["000000"]
+    assert ds.check(ds.pairs()[0]).endswith("image_2/000000_11.png: image2 file is missing")
+    assert open_dataset("kitti", tmp_path, first_frame=11).pairs() == []
+
+
+@pytest.mark.parametrize("option, message", [
+    (dict(min_static_points=2), "min_static_points must be at least 3, got 2"),
+    (dict(min_inlier_fraction=1.5), r"min_inlier_fraction must be in \(0, 1\], got 1.5"),
+    (dict(min_inlier_fraction=0), r"min_inlier_fraction must be in \(0, 1\], got 0"),
+    (dict(fit_threshold_px=-1.0), "fit_threshold_px must be positive, got -1.0"),
+    (dict(max_gap_px=-3), "max_gap_px must be zero or positive, got -3"),
+])
+def test_fit_and_fill_options_are_validated(tmp_path, option, message):
+    (tmp_path / "training" / "image_2").mkdir(parents=True)
+    with pytest.raises(ConfigError, match=message):
+        open_dataset("kitti", tmp_path, **option)
 
 
 def test_missing_layout(tmp_path):

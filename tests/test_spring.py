@@ -193,7 +193,7 @@ def test_test_split_without_ground_truth(tmp_path, street):
     for p in (tmp_path / "test" / "0001" / "disp1_left").iterdir():
         p.unlink()
     ds = open_dataset("spring", tmp_path, split="test")
-    with pytest.raises(DatasetError, match="Spring test split ships no disparity"):
+    with pytest.raises(DatasetError, match="Spring test split ships no disparity, so it has no depth"):
         ds.load(ds.pairs()[0])
 
 

@@ -21,13 +21,20 @@ camera depth in frame ``t`` before the attack (fixed, and clamped to at least
 :data:`MIN_REG_DEPTH` for particles behind one of the cameras, which would otherwise flip the
 sign of the penalty). Optimiser: Adam. Every step is measured; the step with the lowest
 ``AEE(f̌, f_target)`` (the *distance to the target*) is kept.
+
+The gradient is the network's own: for RAFT that is the graph of the original implementation,
+which detaches the flow estimate between refinement steps (``RAFTModel.detach_flow``, on by
+default). The paper attacked those implementations, so its figures come from this truncated
+gradient; it still reaches every image pixel through the correlation lookups and the context
+features, and points close to the full one (cosine about 0.9 on the demo scene, with a similar
+distance reached after a few steps). Set ``model.detach_flow = False`` for the full gradient.
 """
 
 from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -361,11 +368,81 @@ def _snapshot(particles):
                                 for n in _TENSOR_FIELDS})
 
 
+class PairOptimisation:
+    """One pair's attack state: frames on the device, the target, the rasterised stamps, the
+    free variables and the Adam optimiser. :func:`attack_pair` runs its steps; the benchmark
+    times exactly the same step.
+
+    Args: as :func:`attack_pair`.
+    Attributes: benign (1, 2, H, W) flow on the clean frames and goal (1, 2, H, W) target flow,
+    both on the device without gradient; variables (:class:`WeatherVariables`).
+    """
+
+    def __init__(self, model: torch.nn.Module, pair: FramePair, particles,
+                 settings: AttackSettings, target: TargetSpec = TargetSpec("zero"), *,
+                 device=None, target_file_flow: Optional[torch.Tensor] = None):
+        from .engine import build_stamps
+        from .engine.sampling import check_pair_for_engine, reference_transforms
+        from .engine.templates import load_templates
+
+        check_pair_for_engine(pair)
+        if device is None:
+            params = list(model.parameters())
+            device = params[0].device if params else torch.device("cpu")
+        device = torch.device(device)
+        pair = pair.to(device)
+        frame, c1, c2 = reference_transforms(pair)
+        if particles.frame != frame:
+            raise ConfigError(f"particles live in {particles.frame} coordinates but the frame "
+                              f"pair offers {frame} coordinates (sample them for this pair)")
+        particles = particles.to(device=device, dtype=torch.float32)
+        self.model, self.settings = model, settings
+        self.frames = dict(image1=pair.image1[None], image2=pair.image2[None],
+                           depth1=pair.depth1[None], depth2=pair.depth2[None],
+                           intrinsics=pair.intrinsics[None], cam1_from_ref=c1[None],
+                           cam2_from_ref=c2[None])
+        with torch.no_grad():
+            self.benign = model(self.frames["image1"], self.frames["image2"])
+        self.goal = target_flow(target, self.benign, target_file_flow)
+        self.templates = load_templates(particles.templates)
+        # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
+        self.stamps = (build_stamps([particles], self.templates, device=device)
+                       if particles.count else None)
+        self.variables = WeatherVariables(particles, settings.optimize)
+        self.reg_depths = particle_depths(particles, c1, c2)
+        self.optimizer = torch.optim.Adam(self.variables.parameters(), lr=settings.learning_rate)
+
+    def render(self, particles):
+        """The weather frames of ``particles`` (a :class:`~weathergen.engine.RenderOutput`)."""
+        from .engine import render
+
+        return render(**self.frames, particles=particles, templates=self.templates,
+                      beta=self.settings.beta, stamps=self.stamps)
+
+    def evaluate(self):
+        """Render the current variables and run the network.
+
+        Returns ``(particles, flow, loss, distance, penalty)``: the current record, the flow
+        (1, 2, H, W) and the 0-d terms of :func:`attack_loss`, all with gradient.
+        """
+        current = self.variables.particles()
+        out = self.render(current)
+        flow = self.model(out.image1, out.image2)
+        loss, distance, penalty = attack_loss(flow, self.goal, current, *self.reg_depths,
+                                              self.settings.alpha1, self.settings.alpha2)
+        return current, flow, loss, distance, penalty
+
+    def update(self, loss: torch.Tensor) -> None:
+        """One Adam step on the free variables."""
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+
+
 def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: AttackSettings,
                 target: TargetSpec = TargetSpec("zero"), *, device=None,
                 target_file_flow: Optional[torch.Tensor] = None,
-                on_step: Callable[[StepRecord], None] = lambda r: None,
-                should_stop: Callable[[], bool] = lambda: False) -> AttackResult:
+                on_step: Callable[[StepRecord], None] = lambda r: None) -> AttackResult:
     """Optimise ``particles`` in ``pair`` against ``model``.
 
     Args:
@@ -378,39 +455,10 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
             (2, H, W).
         device: where rendering and the network run (default: the model's device).
         on_step: called with every :class:`StepRecord` (for progress reports).
-        should_stop: polled after every step; ``True`` ends the loop early (best so far kept).
     Returns: :class:`AttackResult`.
     """
-    from .engine import build_stamps, render
-    from .engine.sampling import check_pair_for_engine, reference_transforms
-    from .engine.templates import load_templates
-
-    check_pair_for_engine(pair)
-    if device is None:
-        params = list(model.parameters())
-        device = params[0].device if params else torch.device("cpu")
-    device = torch.device(device)
-    pair = pair.to(device)
-    frame, c1, c2 = reference_transforms(pair)
-    if particles.frame != frame:
-        raise ConfigError(f"particles live in {particles.frame} coordinates but the frame pair "
-                          f"offers {frame} coordinates (sample them for this pair)")
-    particles = particles.to(device=device, dtype=torch.float32)
-    image1, image2 = pair.image1[None], pair.image2[None]
-    depth1, depth2 = pair.depth1[None], pair.depth2[None]
-    intrinsics, c1, c2 = pair.intrinsics[None], c1[None], c2[None]
-
-    with torch.no_grad():
-        benign = model(image1, image2)
-    goal = target_flow(target, benign, target_file_flow)
-
-    templates = load_templates(particles.templates)
-    # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
-    stamps = build_stamps([particles], templates, device=device) if particles.count else None
-    variables = WeatherVariables(particles, settings.optimize)
-    reg_depth1, reg_depth2 = particle_depths(particles, c1[0], c2[0])
-    optimizer = torch.optim.Adam(variables.parameters(), lr=settings.learning_rate)
-
+    run = PairOptimisation(model, pair, particles, settings, target, device=device,
+                           target_file_flow=target_file_flow)
     history: list[StepRecord] = []
     best = math.inf
     best_step, best_particles, best_flow, initial_flow = 0, None, None, None
@@ -418,48 +466,42 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
     steps = int(settings.steps)
     for step in range(steps + 1):
         t0 = time.perf_counter()
-        current = variables.particles()
-        out = render(image1, image2, depth1, depth2, intrinsics, c1, c2, current, templates,
-                     beta=settings.beta, stamps=stamps)
-        flow = model(out.image1, out.image2)
-        loss, distance, penalty = attack_loss(flow, goal, current, reg_depth1, reg_depth2,
-                                              settings.alpha1, settings.alpha2)
+        current, flow, loss, distance, penalty = run.evaluate()
         dist = float(distance.detach())
         if step == 0:
             initial_flow = flow.detach().cpu()
         if dist < best or best_particles is None:
             best, best_step = dist, step
             best_particles, best_flow = _snapshot(current), flow.detach().cpu()
-        last = step == steps or should_stop()
+        last = step == steps
         if not last:
             if not loss.requires_grad:
                 # No particle reaches the frames and no penalty depends on a freed variable:
                 # there is nothing to optimise.
                 frozen, last = True, True
             else:
-                optimizer.zero_grad(set_to_none=True)
-                loss.backward()
-                optimizer.step()
+                run.update(loss)
         record = StepRecord(step=step, loss=float(loss.detach()), distance=dist,
                             penalty=float(penalty.detach()),
-                            robustness=float(aee(flow.detach(), benign).mean()),
+                            robustness=float(aee(flow.detach(), run.benign).mean()),
                             best_distance=best, seconds=time.perf_counter() - t0)
         history.append(record)
         on_step(record)
-        del out, flow, loss, distance, penalty, current
+        del flow, loss, distance, penalty, current
         if last:
             break
     return AttackResult(best_particles=best_particles, best_step=best_step, history=history,
-                        benign_flow=benign.cpu(), initial_flow=initial_flow,
-                        best_flow=best_flow, target=goal.cpu(), frozen=frozen)
+                        benign_flow=run.benign.cpu(), initial_flow=initial_flow,
+                        best_flow=best_flow, target=run.goal.cpu(), frozen=frozen)
 
 
 @dataclass
 class PairSummary:
     """Per-pair figures of an attack (pixels). ``epe_*`` are None without ground truth.
 
-    aee_random: AEE(f, f̌) for the unoptimised weather; aee_adversarial: for the best step
-    (as written); target_initial / target_adversarial: AEE(f̌, target) before and after.
+    aee_random: AEE(f, f̌) for the unoptimised weather (step 0, float frames); aee_adversarial:
+    for the best step as written (particles at storage precision, 8-bit frames);
+    target_initial / target_adversarial: AEE(f̌, target) for the same two flows.
     """
 
     pair: str
@@ -473,14 +515,20 @@ class PairSummary:
     epe_random: Optional[float] = None
     epe_adversarial: Optional[float] = None
     seconds: float = 0.0
-    extra: dict = field(default_factory=dict)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "PairSummary":
+        """A summary stored by :func:`dataclasses.asdict`; unknown keys are ignored."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in names})
 
 
 def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch.Tensor,
                    gt_flow: Optional[torch.Tensor] = None,
                    gt_valid: Optional[torch.Tensor] = None, seconds: float = 0.0) -> PairSummary:
     """Figures of one attacked pair. ``adversarial_flow`` is the flow on the frames as written
-    (best particles at storage precision). Shape: flows (1, 2, H, W); gt (2, H, W), valid (1, H, W).
+    (best particles at storage precision, 8-bit frames).
+    Shape: flows (1, 2, H, W); gt (2, H, W), valid (1, H, W).
     """
     benign, initial, adv, goal = (t.detach().cpu().float() for t in
                                   (result.benign_flow, result.initial_flow, adversarial_flow,

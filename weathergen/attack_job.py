@@ -27,6 +27,7 @@ from .attack_outputs import (AttackPairOutput, load_render_particles, prepare_at
 from .batch import pair_seed
 from .datasets import Dataset
 from .errors import ConfigError, WeatherGenError
+from .io.images import to_uint8
 from .outputs import identity_arrays
 
 
@@ -95,16 +96,20 @@ def attack_one(job: AttackJob, model, pair, target_file_flow=None,
     particles = _particles(job, pair)
     result = attack_pair(model, pair, particles, job.settings, job.target, device=job.device,
                          target_file_flow=target_file_flow, on_step=on_step)
-    # What is written is the best record at storage precision; its frames and flow are
-    # recomputed from it, so the figures describe exactly the files on disk.
+    # What is written is the best record at storage precision, rendered and rounded to the
+    # 8-bit PNG frames; the adversarial flow is the network's flow on exactly those frames, so
+    # the figures describe the files on disk (`evaluate --weather OUT` measures the same).
     best = result.best_particles.quantized()
     with torch.no_grad():
         rendered = render_pair(pair, best, beta=job.settings.beta, device=job.device)
-        adversarial = model(rendered.image1, rendered.image2).cpu()
+    frames = tuple(to_uint8(img[0].permute(1, 2, 0).cpu().numpy())
+                   for img in (rendered.image1, rendered.image2))
+    stored = [torch.from_numpy(f).permute(2, 0, 1)[None].float().div(255).to(job.device)
+              for f in frames]
+    with torch.no_grad():
+        adversarial = model(*stored).cpu()
     summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
                              seconds=time.perf_counter() - start)
-    frames = tuple(img[0].permute(1, 2, 0).cpu().numpy() for img in (rendered.image1,
-                                                                     rendered.image2))
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
     meta = best.to_numpy()
     meta.update(identity_arrays(pair.id, pair_seed(job.seed, pair.id), job.preset.to_dict(),
@@ -159,7 +164,7 @@ def run_attack(job: AttackJob,
             if not job.overwrite and out.is_complete():
                 stored = read_pair_summary(out)
                 if stored is not None:
-                    summary = PairSummary(**stored)
+                    summary = PairSummary.from_dict(stored)
                     summaries.append(summary)
                     pairs_entry[ref.id.key] = {"status": "written", **stored}
                     run["skipped"] += 1

@@ -1,4 +1,5 @@
-"""Pieces the KITTI, Spring and custom readers share: depth scaling, split names, far depth."""
+"""Pieces the readers share: depth scaling (every reader with depth), split names and far depth
+(KITTI, Spring, custom), file and size checks."""
 
 from __future__ import annotations
 
@@ -17,49 +18,65 @@ DEFAULT_FAR_DEPTH = 1000.0
 
 
 class ScaledDataset(Dataset):
-    """A reader with the shared depth options of every command.
+    """A reader with the depth options of every command (Sintel and every reader below).
 
-    ``depth_scale * scene_scales[scene]`` multiplies depth and camera translations (as for Sintel);
-    ``camera_translation=False`` zeroes the translation between the two cameras; ``far_depth`` (in
-    the dataset's units, before scaling) fills pixels whose depth is unknown.
+    ``depth_scale * scene_scales[scene]`` multiplies depth and camera translations, so that geometry
+    stays consistent; ``camera_translation=False`` zeroes the translation between the two cameras.
+    """
+
+    def __init__(self, root, selection: Selection = Selection(), *, depth_scale: float = 1.0,
+                 scene_scales: Optional[dict[str, float]] = None, camera_translation: bool = True):
+        super().__init__(root, selection)
+        if not depth_scale > 0:
+            raise ConfigError(f"depth scale must be positive, got {depth_scale}")
+        self.depth_scale = float(depth_scale)
+        self.scene_scales = dict(scene_scales or {})
+        self.camera_translation = camera_translation
+
+    def scale_of(self, scene: str) -> float:
+        """The depth scale applied to ``scene``."""
+        return self.depth_scale * self.scene_scales.get(scene, 1.0)
+
+    def describe(self) -> dict:
+        out = super().describe()
+        out.update(depth_scale=self.depth_scale, scene_scales=self.scene_scales,
+                   camera_translation=self.camera_translation)
+        return out
+
+
+class FarDepthDataset(ScaledDataset):
+    """A reader whose depth may have pixels without a value (KITTI, Spring, custom).
+
+    ``far_depth`` (in the dataset's units, before scaling) fills those pixels; the record's
+    ``depth_measured1/2`` mark the others. One rendering pass; splits by ``split_folders``.
     """
 
     #: Names the ``--split`` option accepts, mapped to the folder below the root.
     split_folders: dict[str, str] = {}
 
-    def __init__(self, root, selection: Selection = Selection(), *, depth_scale: float = 1.0,
-                 scene_scales: Optional[dict[str, float]] = None, camera_translation: bool = True,
-                 far_depth: Optional[float] = None):
-        super().__init__(root, selection)
+    def __init__(self, root, selection: Selection = Selection(), *, far_depth: Optional[float] = None,
+                 **scaling):
+        super().__init__(root, selection, **scaling)
         if selection.split not in self.split_folders:
             raise ConfigError(f"unknown {self.name} split {selection.split!r}; choose from "
                               f"{', '.join(sorted(self.split_folders))}")
         if selection.pass_ != "clean":
             raise ConfigError(f"{self.name} has a single rendering pass; --pass {selection.pass_!r} "
                               f"does not apply (leave it at 'clean')")
-        if not depth_scale > 0:
-            raise ConfigError(f"depth scale must be positive, got {depth_scale}")
         far = DEFAULT_FAR_DEPTH if far_depth is None else far_depth
         if not (np.isfinite(far) and far > 0):
             raise ConfigError(f"far depth must be a positive number, got {far_depth}")
-        self.depth_scale = float(depth_scale)
-        self.scene_scales = dict(scene_scales or {})
-        self.camera_translation = camera_translation
         self.far_depth = float(far)
 
     @property
     def split_dir(self) -> Path:
         return self.root / self.split_folders[self.selection.split]
 
-    def scale_of(self, scene: str) -> float:
-        """The depth scale applied to ``scene``."""
-        return self.depth_scale * self.scene_scales.get(scene, 1.0)
-
     def check(self, ref) -> Optional[str]:
         """None if the pair reads cleanly, else one line naming the first problem.
 
         ``load`` itself names missing files, with a hint where a split lacks them by design
-        (KITTI testing, Spring test), so a missing file is not reported without that hint.
+        (KITTI testing, Spring test), so there is no list of required files to test first.
         """
         try:
             self.load(ref)
@@ -69,8 +86,7 @@ class ScaledDataset(Dataset):
 
     def describe(self) -> dict:
         out = super().describe()
-        out.update(depth_scale=self.depth_scale, scene_scales=self.scene_scales,
-                   camera_translation=self.camera_translation, far_depth=self.far_depth)
+        out.update(far_depth=self.far_depth)
         return out
 
 

@@ -33,18 +33,17 @@ from ..io.custom_formats import DEPTH_SUFFIXES, CameraFile, read_camera_file, re
 from ..io.images import read_image
 from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
-from .common import ScaledDataset, check_size, chw, require_files, scaled_poses
+from .common import FarDepthDataset, check_size, chw, require_files, scaled_poses
 
 _FRAME_RE = re.compile(r"^(.*?)(\d+)\.png$", re.IGNORECASE)
 #: OpenGL camera axes (y up, z backward) -> OpenCV camera axes (y down, z forward)
 _CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
-class CustomDataset(ScaledDataset):
+class CustomDataset(FarDepthDataset):
     """Consecutive frame pairs of every scene in the ``custom`` layout."""
 
     name = "custom"
-    required_files = ("image1", "image2", "depth1", "depth2", "cameras")
     split_folders = {"training": "."}
 
     def __init__(self, root, selection: Selection = Selection(), **options):

@@ -94,15 +94,3 @@ def _fill_pyramid(values, known, guide, wanted, color_sigma):
     values[take] = up_vals[take]
     return values, known | take
 
-
-def fill_nearest(values: np.ndarray, measured: np.ndarray) -> np.ndarray:
-    """Nearest-measurement fill (the baseline :func:`fill_sparse` improves on). Shape: (H, W) -> (H, W)."""
-    _, labels = cv2.distanceTransformWithLabels((~measured).astype(np.uint8), cv2.DIST_L2, 5,
-                                                labelType=cv2.DIST_LABEL_PIXEL)
-    ys, xs = np.nonzero(measured)
-    # labels number the measured pixels in raster order, starting at 1
-    order = np.zeros(labels.max() + 1, dtype=np.int64)
-    seeds = labels[ys, xs]
-    order[seeds] = np.arange(len(ys))
-    idx = order[labels]
-    return values[ys[idx], xs[idx]].astype(np.float32)

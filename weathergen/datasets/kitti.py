@@ -48,12 +48,12 @@ import cv2
 import numpy as np
 import torch
 
-from ..errors import DatasetError
+from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.images import read_image
 from ..io.kitti_formats import read_disparity_png, read_flow_png, read_object_map, stereo_camera
 from .base import PairRef, Selection
-from .common import ScaledDataset, check_size, chw, require_files, scaled_motion
+from .common import FarDepthDataset, check_size, chw, require_files, scaled_motion
 from .densify import fill_sparse
 from .posefit import fit_camera_motion
 
@@ -66,17 +66,25 @@ OCCLUSION_RADIUS = 3
 OCCLUSION_RATIO = 0.8
 
 
-class KittiDataset(ScaledDataset):
+class KittiDataset(FarDepthDataset):
     """Pairs (10, 11) of every KITTI 2015 scene-flow sequence, with densified depth and fitted motion."""
 
     name = "kitti"
-    required_files = ("image1", "image2", "calib", "disp1", "disp2", "flow", "objects")
     split_folders = {"training": "training", "train": "training", "testing": "testing", "test": "testing"}
 
     def __init__(self, root, selection: Selection = Selection(), *, max_gap_px: float = 24.0,
                  fit_threshold_px: float = 2.0, min_static_points: int = 200,
                  min_inlier_fraction: float = 0.6, **options):
         super().__init__(root, selection, **options)
+        if not max_gap_px >= 0:
+            raise ConfigError(f"max_gap_px must be zero or positive, got {max_gap_px}")
+        if not fit_threshold_px > 0:
+            raise ConfigError(f"fit_threshold_px must be positive, got {fit_threshold_px}")
+        if int(min_static_points) < 3:
+            # a rigid motion needs three points; fewer would reach the fit and fail there
+            raise ConfigError(f"min_static_points must be at least 3, got {min_static_points}")
+        if not 0 < min_inlier_fraction <= 1:
+            raise ConfigError(f"min_inlier_fraction must be in (0, 1], got {min_inlier_fraction}")
         self.max_gap_px = float(max_gap_px)
         self.fit_threshold_px = float(fit_threshold_px)
         self.min_static_points = int(min_static_points)
@@ -103,10 +111,13 @@ class KittiDataset(ScaledDataset):
         frames = self._frames_by_scene()
         refs = []
         for scene in self.selection.pick_scenes(list(frames), self.split_dir / "image_2"):
-            for f in self.selection.pick_frames(frames[scene]):
-                if f == FIRST_FRAME:
-                    refs.append(PairRef(PairId(self.name, self.split_dir.name, scene, f),
-                                        self._files(scene)))
+            if FIRST_FRAME not in frames[scene]:
+                continue
+            # Listed even when frame 11 is missing, so that `check` names the missing file
+            # instead of the sequence silently vanishing.
+            if FIRST_FRAME in self.selection.pick_frames([FIRST_FRAME, FIRST_FRAME + 1]):
+                refs.append(PairRef(PairId(self.name, self.split_dir.name, scene, FIRST_FRAME),
+                                    self._files(scene)))
         return refs
 
     def _files(self, scene: str) -> dict:

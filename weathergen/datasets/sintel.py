@@ -22,10 +22,9 @@ from __future__ import annotations
 
 import json
 import re
-from collections import Counter
 import tomllib
+from collections import Counter
 from pathlib import Path
-from typing import Optional
 
 import numpy as np
 import torch
@@ -34,8 +33,8 @@ from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.images import read_image, read_raw
 from ..io.sintel_formats import read_cam, read_dpt, read_flo
-from .base import Dataset, PairRef, Selection
-from .common import scaled_poses
+from .base import PairRef, Selection
+from .common import ScaledDataset, scaled_poses
 
 _FRAME_RE = re.compile(r"^frame_(\d{4,})\.png$")
 SPLITS = ("training", "test")
@@ -62,22 +61,16 @@ def load_scene_scales(path: str | Path) -> dict[str, float]:
     return out
 
 
-class SintelDataset(Dataset):
+class SintelDataset(ScaledDataset):
     """Frame pairs ``(i, i+1)`` of every selected Sintel scene, with depth and cameras."""
 
     name = "sintel"
     required_files = ("image1", "image2", "depth1", "depth2", "cam1", "cam2")
 
-    def __init__(self, root, selection: Selection = Selection(), *, depth_scale: float = 1.0,
-                 scene_scales: Optional[dict[str, float]] = None, camera_translation: bool = True):
-        super().__init__(root, selection)
+    def __init__(self, root, selection: Selection = Selection(), **scaling):
+        super().__init__(root, selection, **scaling)
         if selection.split not in SPLITS:
             raise ConfigError(f"unknown Sintel split {selection.split!r}; choose from {', '.join(SPLITS)}")
-        if not depth_scale > 0:
-            raise ConfigError(f"depth scale must be positive, got {depth_scale}")
-        self.depth_scale = float(depth_scale)
-        self.scene_scales = dict(scene_scales or {})
-        self.camera_translation = camera_translation
 
     # -- listing ---------------------------------------------------------------------------------
     @property
@@ -100,10 +93,6 @@ class SintelDataset(Dataset):
                 f"{self.image_dir}: no such folder (expected Sintel layout "
                 f"ROOT/{self.selection.split}/{self.selection.pass_}/SCENE/frame_0001.png)")
         return sorted(p.name for p in self.image_dir.iterdir() if p.is_dir())
-
-    def scale_of(self, scene: str) -> float:
-        """The depth scale applied to ``scene``."""
-        return self.depth_scale * self.scene_scales.get(scene, 1.0)
 
     def frames(self, scene: str) -> list[int]:
         found = []
@@ -191,12 +180,6 @@ class SintelDataset(Dataset):
             depth_scale=scale,
         )
         return pair.validate()
-
-    def describe(self) -> dict:
-        out = super().describe()
-        out.update(depth_scale=self.depth_scale, scene_scales=self.scene_scales,
-                   camera_translation=self.camera_translation)
-        return out
 
 
 def _common_size(files: dict, sizes: dict) -> tuple[int, int]:

@@ -25,8 +25,8 @@ z forward), i.e. ``cam_from_world`` as in Sintel's ``.cam`` files; public Spring
 matrices to obtain camera poses, which agrees. Pass ``extrinsics="camera-to-world"`` if your copy
 stores the inverse. ``cam2_from_cam1 = E2 @ inverse(E1)``.
 
-The test split has frames only: loading a test pair fails with a message saying that depth is
-missing.
+The test split has no disparity ground truth: its pairs are listed (and ``check`` runs), but
+loading one fails with a message saying that the split has no depth; weather needs the train split.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from ..framepair import FramePair, PairId
 from ..io.images import read_image
 from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
 from .base import PairRef, Selection
-from .common import ScaledDataset, check_size, chw, require_files, scaled_poses
+from .common import FarDepthDataset, check_size, chw, require_files, scaled_poses
 
 _FRAME_RE = re.compile(r"^frame_left_(\d{4,})\.png$")
 #: Distance between Spring's left and right cameras, metres.
@@ -50,11 +50,10 @@ SPRING_BASELINE = 0.065
 EXTRINSICS = ("world-to-camera", "camera-to-world")
 
 
-class SpringDataset(ScaledDataset):
+class SpringDataset(FarDepthDataset):
     """Frame pairs ``(i, i+1)`` of the left camera of every selected Spring scene."""
 
     name = "spring"
-    required_files = ("image1", "image2", "disp1", "disp2", "intrinsics", "extrinsics")
     split_folders = {"train": "train", "training": "train", "test": "test", "testing": "test"}
 
     def __init__(self, root, selection: Selection = Selection(), *, extrinsics: str = "world-to-camera",
@@ -106,9 +105,10 @@ class SpringDataset(ScaledDataset):
     def load(self, ref: PairRef) -> FramePair:
         files = ref.files
         require_files(files, ("image1", "image2"))
-        hint = (" (the Spring test split ships no disparity or cameras, which weather needs)"
-                if self.split_dir.name == "test" else "")
-        require_files(files, ("disp1", "disp2", "intrinsics", "extrinsics"), hint)
+        hint = (" (the Spring test split ships no disparity, so it has no depth and weather cannot "
+                "be placed; use the train split)" if self.split_dir.name == "test" else "")
+        require_files(files, ("disp1", "disp2"), hint)
+        require_files(files, ("intrinsics", "extrinsics"))
         f = ref.id.frame
 
         img1, img2 = read_image(files["image1"]), read_image(files["image2"])

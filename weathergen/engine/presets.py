@@ -111,7 +111,8 @@ class Preset:
     blend: str = _key("additive", _choice(BLEND_MODES),
                       "additive (glow) or alpha (order-independent alpha blending)", main=True)
     transparency: float = _key(0.75, _number(0, 2),
-                               "transparency scale theta (peak of the depth hat)", main=True)
+                               "theta = this x depth hat (the hat peaks at 0.73), or this value "
+                               "itself when transparency_mode is constant", main=True)
     transparency_mode: str = _key("depth", _choice(TRANSPARENCY_MODES),
                                   "depth: hat over depth; constant: theta for every particle")
     # -- motion
@@ -277,6 +278,7 @@ def load_preset(name_or_path: str | Path = "snow",
         base_dir = None
 
     values = {}
+    templates_from = where
     for key, value in data.items():
         if isinstance(value, dict):
             raise ConfigError(f"{where}: key '{key}' is a table; preset files are flat "
@@ -289,9 +291,26 @@ def load_preset(name_or_path: str | Path = "snow",
             values[key] = parse_override(key, value)
         else:
             values[key] = _coerce("override", key, value)
+        if key == "templates":
+            templates_from = "--set" if isinstance(value, str) else "override"
     preset = Preset(name=name, source=where, **values)
     _check_consistency(preset, where)
+    _check_template_folder(preset.templates, templates_from)
     return preset
+
+
+def _check_template_folder(value: str, where: str) -> None:
+    """A template folder must exist and hold readable PNGs: say so now, naming the key, rather
+    than in the middle of a run."""
+    if value in BUILTIN_TEMPLATE_KINDS:
+        return
+    from ..errors import WeatherGenError
+    from .templates import load_templates
+
+    try:
+        load_templates(value)
+    except WeatherGenError as exc:
+        raise ConfigError(f"{where}: key 'templates' = {value!r}: {exc}") from None
 
 
 def _resolve_templates(value: str, base_dir: Path) -> str:

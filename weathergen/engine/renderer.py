@@ -16,8 +16,10 @@ tensor follows the images' device). Four stages:
    weights (an (s+1) x (s+1) patch: differentiable with respect to the position), multiplied by the
    visibility ``V = 1 / (1 + exp(β (d − D)))`` against the scene depth ``D`` under each patch pixel
    and by ``θ / K``, and scatter-added (``index_add_``) into per-pixel sums ``A = Σ θ B V`` and
-   ``C_c = Σ γ_c θ B V``. Instances are processed in chunks of bounded size: memory does not grow
-   with the blur sample count or the image area, only with the chunk size.
+   ``C_c = Σ γ_c θ B V``. Instances are processed in chunks of bounded size, and the backward
+   pass recomputes each chunk instead of keeping it: with or without gradients, memory is bounded
+   by the chunk size (plus a few numbers per blur sample and the four accumulators), whatever the
+   particles' footprints.
 4. **Blending**: additive ``I + C`` or order-independent alpha ``I (1 − A) + C`` (Meshkin), then
    clamped to [0, 1]. The opacity mask is ``clamp(A, 0, 1)``.
 
@@ -256,55 +258,141 @@ def _instances(records, intrinsics, cam1_from_ref, cam2_from_ref, dtype, device)
     return {key: torch.cat(v) for key, v in out.items()}
 
 
-def _splat(acc, depth_flat, inst, stamps: StampSet, height, width, beta, chunk_elements):
-    """Scatter-add every instance's weighted stamp into ``acc``.
-
-    Shape: acc is a list of 4 separate (2 B H W,) tensors, A then C_r, C_g, C_b (separate tensors
-    rather than views of one, so that in-place scatters need no copy under autograd).
-    """
+def _splat_plan(inst, stamps: StampSet, height, width, chunk_elements):
+    """Which instances each chunk splats: a list of (bucket, instance indices (n,) int64), every
+    chunk at most ``chunk_elements`` patch pixels. Instances behind the camera or whose patch
+    misses the image are left out."""
     bucket = stamps.bucket_of[inst["particle"]]
+    plan = []
     for b, bk in enumerate(stamps.buckets):
-        side = bk.side
-        half = (side - 1) // 2
+        half = (bk.side - 1) // 2
         sel = torch.nonzero(bucket == b).squeeze(1)
         if sel.numel() == 0:
             continue
-        u, v, z = inst["u"][sel], inst["v"][sel], inst["z"][sel]
-        u0, v0 = torch.floor(u.detach()), torch.floor(v.detach())
-        # Drop instances behind the camera or whose patch misses the image entirely.
-        keep = (z.detach() > NEAR) & (u0 + half + 1 >= 0) & (u0 - half <= width - 1) \
-            & (v0 + half + 1 >= 0) & (v0 - half <= height - 1)
-        if not bool(keep.all()):
-            idx = torch.nonzero(keep).squeeze(1)
-            sel, u, v, z, u0, v0 = sel[idx], u[idx], v[idx], z[idx], u0[idx], v0[idx]
-        if sel.numel() == 0:
-            continue
-        slots = stamps.slot_of[inst["particle"][sel]]
-        theta, color, target = inst["theta"][sel], inst["color"][sel], inst["target"][sel]
-        ramp = torch.arange(side + 1, device=depth_flat.device)
-        per_chunk = max(1, chunk_elements // ((side + 1) ** 2))
-        for s0 in range(0, sel.numel(), per_chunk):
-            c = slice(s0, s0 + per_chunk)
-            stamp = F.pad(bk.stamps[slots[c]], (1, 1, 1, 1))            # (n, s+2, s+2)
-            fu = (u[c] - u0[c])[:, None, None]
-            fv = (v[c] - v0[c])[:, None, None]
-            # Bilinear splat: patch[i, j] mixes stamp[i - a, j - b] for a, b in {0, 1}.
-            patch = ((1 - fv) * ((1 - fu) * stamp[:, 1:, 1:] + fu * stamp[:, 1:, :-1])
-                     + fv * ((1 - fu) * stamp[:, :-1, 1:] + fu * stamp[:, :-1, :-1]))
-            xs = u0[c].long()[:, None] - half + ramp                    # (n, s+1)
-            ys = v0[c].long()[:, None] - half + ramp
-            valid = ((ys >= 0) & (ys < height))[:, :, None] & ((xs >= 0) & (xs < width))[:, None, :]
-            pix = (target[c][:, None, None] * height + ys.clamp(0, height - 1)[:, :, None]) * width \
-                + xs.clamp(0, width - 1)[:, None, :]
-            visibility = torch.sigmoid(beta * (depth_flat[pix] - z[c][:, None, None]))
-            weight = (patch * visibility * theta[c][:, None, None] * valid).reshape(-1)
-            flat = pix.reshape(-1)
+        u0, v0 = torch.floor(inst["u"][sel].detach()), torch.floor(inst["v"][sel].detach())
+        keep = (inst["z"][sel].detach() > NEAR) & (u0 + half + 1 >= 0) \
+            & (u0 - half <= width - 1) & (v0 + half + 1 >= 0) & (v0 - half <= height - 1)
+        sel = sel[keep]
+        per_chunk = max(1, chunk_elements // ((bk.side + 1) ** 2))
+        plan.extend((bk, sel[s0:s0 + per_chunk]) for s0 in range(0, sel.numel(), per_chunk))
+    return plan
+
+
+class _Chunk:
+    """One chunk of instances that share a stamp side: their patches on the pixel grid.
+
+    Shape: slots, u, v, target (n,); ``pix`` (n, s+1, s+1) flat indices into the (2 B H W,)
+    accumulators (clamped to the image), ``valid`` the same shape, true inside the image;
+    ``fu``, ``fv`` (n, 1, 1) sub-pixel fractions; ``s11 s10 s01 s00`` (n, s+1, s+1) the stamp
+    shifted by (0, 0), (0, 1), (1, 0), (1, 1) pixels (rows, columns).
+    """
+
+    def __init__(self, bk: StampBucket, slots, u, v, target, height, width):
+        side = bk.side
+        half = (side - 1) // 2
+        u0, v0 = torch.floor(u), torch.floor(v)
+        ramp = torch.arange(side + 1, device=u.device)
+        stamp = F.pad(bk.stamps[slots], (1, 1, 1, 1))                   # (n, s+2, s+2)
+        self.fu = (u - u0)[:, None, None]
+        self.fv = (v - v0)[:, None, None]
+        self.s11, self.s10 = stamp[:, 1:, 1:], stamp[:, 1:, :-1]
+        self.s01, self.s00 = stamp[:, :-1, 1:], stamp[:, :-1, :-1]
+        xs = u0.long()[:, None] - half + ramp                           # (n, s+1)
+        ys = v0.long()[:, None] - half + ramp
+        self.valid = ((ys >= 0) & (ys < height))[:, :, None] & ((xs >= 0) & (xs < width))[:, None, :]
+        self.pix = (target[:, None, None] * height + ys.clamp(0, height - 1)[:, :, None]) * width \
+            + xs.clamp(0, width - 1)[:, None, :]
+
+    def patch(self):
+        """Bilinear splat: patch[i, j] mixes stamp[i - a, j - b] for a, b in {0, 1}."""
+        fu, fv = self.fu, self.fv
+        return ((1 - fv) * ((1 - fu) * self.s11 + fu * self.s10)
+                + fv * ((1 - fu) * self.s01 + fu * self.s00))
+
+    def visibility(self, depth_flat, z, beta):
+        """V = 1 / (1 + exp(β (d − D))) under every patch pixel. Shape: (n, s+1, s+1)."""
+        return torch.sigmoid(beta * (depth_flat[self.pix] - z[:, None, None]))
+
+
+class _Splat(torch.autograd.Function):
+    """Scatter-add every instance's weighted stamp into ``A = Σ θ B V`` and ``C_c = Σ γ_c θ B V``.
+
+    The forward pass keeps nothing per patch pixel and the backward pass recomputes each chunk and
+    applies the chain rule by hand, so memory with gradients is bounded by the chunk size too, not
+    by the total footprint of all particles (which autograd would otherwise keep: patches,
+    visibilities and pixel indices of every chunk).
+    Shape: u, v, z, theta (I,), color (I, 3) -> A, C_r, C_g, C_b, each (2 B H W,).
+    """
+
+    @staticmethod
+    def forward(ctx, u, v, z, theta, color, target, slots, depth_flat, plan, height, width,
+                beta):
+        size = depth_flat.numel()
+        acc = [torch.zeros(size, dtype=u.dtype, device=u.device) for _ in range(4)]
+        for bk, idx in plan:
+            c = _Chunk(bk, slots[idx], u[idx], v[idx], target[idx], height, width)
+            weight = (c.patch() * c.visibility(depth_flat, z[idx], beta)
+                      * theta[idx][:, None, None] * c.valid).reshape(-1)
+            flat = c.pix.reshape(-1)
             # Four 1-D scatters: much faster than one scatter of (M, 4) rows on the CPU.
             acc[0].index_add_(0, flat, weight)
-            col = color[c]
+            col = color[idx]
             for ch in range(3):
-                per_pixel = col[:, ch, None].expand(-1, (side + 1) ** 2).reshape(-1)
+                per_pixel = col[:, ch, None].expand(-1, (bk.side + 1) ** 2).reshape(-1)
                 acc[ch + 1].index_add_(0, flat, weight * per_pixel)
+        ctx.save_for_backward(u, v, z, theta, color, target, slots, depth_flat)
+        ctx.plan, ctx.height, ctx.width, ctx.beta = plan, height, width, beta
+        return tuple(acc)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_alpha, g_r, g_g, g_b):
+        u, v, z, theta, color, target, slots, depth_flat = ctx.saved_tensors
+        need = ctx.needs_input_grad[:5]
+        grads = [torch.zeros_like(t) if n else None for t, n in zip((u, v, z, theta, color), need)]
+        g_colour = (g_r, g_g, g_b)
+        beta = ctx.beta
+        for bk, idx in ctx.plan if any(need) else ():
+            c = _Chunk(bk, slots[idx], u[idx], v[idx], target[idx], ctx.height, ctx.width)
+            th = theta[idx][:, None, None]
+            col = color[idx]
+            vis = c.visibility(depth_flat, z[idx], beta) * c.valid
+            patch = c.patch()
+            g_colour_here = [g[c.pix] for g in g_colour]                # (n, s+1, s+1) each
+            # dL/dweight of every patch pixel: the opacity sum and the colour sums
+            g_weight = g_alpha[c.pix] + sum(col[:, ch, None, None] * g_colour_here[ch]
+                                            for ch in range(3))
+            g_bv = g_weight * vis                                        # dL/d(θ B) per pixel
+            if need[0] or need[1]:
+                fu, fv = c.fu, c.fv
+                if need[0]:
+                    d_fu = (1 - fv) * (c.s10 - c.s11) + fv * (c.s00 - c.s01)
+                    grads[0].index_add_(0, idx, th[:, 0, 0] * (g_bv * d_fu).sum((1, 2)))
+                if need[1]:
+                    d_fv = ((1 - fu) * c.s01 + fu * c.s00) - ((1 - fu) * c.s11 + fu * c.s10)
+                    grads[1].index_add_(0, idx, th[:, 0, 0] * (g_bv * d_fv).sum((1, 2)))
+            if need[2]:  # dV/dd = −β V (1 − V)
+                d_vis = -beta * vis * (1 - vis)
+                grads[2].index_add_(0, idx, th[:, 0, 0] * (g_weight * patch * d_vis).sum((1, 2)))
+            if need[3]:
+                grads[3].index_add_(0, idx, (g_bv * patch).sum((1, 2)))
+            if need[4]:
+                weight = patch * vis * th
+                grads[4].index_add_(0, idx, torch.stack(
+                    [(weight * g_colour_here[ch]).sum((1, 2)) for ch in range(3)], 1))
+        return (*grads, None, None, None, None, None, None, None)
+
+
+def _splat(depth_flat, inst, stamps: StampSet, height, width, beta, chunk_elements):
+    """The per-pixel sums A, C_r, C_g, C_b (each (2 B H W,)) of every instance's weighted stamp,
+    or None when no instance reaches the image; see :class:`_Splat`."""
+    plan = _splat_plan(inst, stamps, height, width, chunk_elements)
+    if not plan:
+        return None
+    slots = stamps.slot_of[inst["particle"]]
+    return list(_Splat.apply(inst["u"], inst["v"], inst["z"], inst["theta"], inst["color"],
+                             inst["target"], slots, depth_flat.detach(), plan, height, width,
+                             beta))
 
 
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
@@ -349,7 +437,7 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         if r.blend not in ("additive", "alpha"):
             raise ConfigError(f"unknown blend mode {r.blend!r}")
 
-    acc = [torch.zeros(2 * bsz * height * width, dtype=dtype, device=device) for _ in range(4)]
+    acc = None
     intr = intrinsics.to(device)
     inst = _instances(records, intr, cam1_from_ref.to(device), cam2_from_ref.to(device),
                       dtype, device)
@@ -358,7 +446,10 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
             stamps = build_stamps(records, templates, dtype=dtype, device=device,
                                   chunk_elements=chunk_elements)
         depth_flat = torch.stack((depth1, depth2)).to(dtype).reshape(-1)
-        _splat(acc, depth_flat, inst, stamps, height, width, float(beta), chunk_elements)
+        acc = _splat(depth_flat, inst, stamps, height, width, float(beta), chunk_elements)
+    if acc is None:
+        acc = [torch.zeros(2 * bsz * height * width, dtype=dtype, device=device)
+               for _ in range(4)]
 
     alpha = acc[0].view(2, bsz, 1, height, width)
     colour = torch.stack([a.view(2, bsz, height, width) for a in acc[1:]], 2)
