@@ -160,6 +160,10 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
     def on_pair_done(report):
         if report.summary is not None:
             rows.append(report.summary)
+            if report.summary.nothing_visible and report.status == "written":
+                (progress.console if progress else err).print(
+                    f"[yellow]warning[/yellow] {report.pair}: no particle is visible, so nothing "
+                    f"could be optimised; the random weather was kept", highlight=False, soft_wrap=True)
         if report.status == "failed":
             failed.append(report)
             (progress.console if progress else err).print(

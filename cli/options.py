@@ -7,6 +7,7 @@ import functools
 import click
 
 from weathergen.datasets import DATASETS, load_scene_scales, open_dataset
+from weathergen.datasets.common import WORLD_UP_CHOICES
 
 
 def dataset_options(func):
@@ -42,12 +43,18 @@ def dataset_options(func):
     @click.option("--far-depth", type=click.FloatRange(min=0, min_open=True), default=None,
                   help="kitti, spring, custom: depth (dataset units, before --depth-scale) given to "
                        "pixels without depth, such as the sky. Default: 1000.")
+    @click.option("--world-up", type=click.Choice(WORLD_UP_CHOICES), default=None,
+                  help="Axis of the dataset's world that points up (weather falls the other way). "
+                       "Default: the dataset's (demo +z, kitti -y, others auto: the world axis "
+                       "nearest to the cameras' up direction).")
     @functools.wraps(func)
     def wrapper(*args, dataset_name, root, split, pass_, scenes, from_scene, frames_per_scene,
-                first_frame, depth_scale, scene_scales, camera_translation, far_depth, **kwargs):
+                first_frame, depth_scale, scene_scales, camera_translation, far_depth, world_up,
+                **kwargs):
         name = dataset_name or ("sintel" if root else "demo")
         options = dict(depth_scale=depth_scale, camera_translation=camera_translation,
-                       scene_scales=load_scene_scales(scene_scales) if scene_scales else None)
+                       scene_scales=load_scene_scales(scene_scales) if scene_scales else None,
+                       world_up=world_up)
         if far_depth is not None:
             if name in ("sintel", "demo"):
                 raise click.UsageError(f"--far-depth does not apply to {name}: its depth is dense")

@@ -320,3 +320,16 @@ def test_far_depth_does_not_apply_to_sintel(fake_sintel):
     result = run_cli(["check", "--root", str(fake_sintel), "--far-depth", "300"])
     assert result.exit_code == 2
     assert "--far-depth does not apply to sintel" in result.output
+
+
+def test_render_manifest_reports_the_pose_fit(tmp_path, street):
+    import json
+
+    write_fake_kitti(tmp_path / "kitti", street[0], scene="000002")
+    out = tmp_path / "out"
+    res = run_cli(["render", "--dataset", "kitti", "--root", str(tmp_path / "kitti"), "--out", str(out),
+                   "--set", "count=100"])
+    assert res.exit_code == 0, res.output
+    entry = json.loads((out / "manifest.json").read_text())["pairs"]["kitti:training:000002:10"]
+    fit = entry["input"]["camera_motion"]
+    assert fit["inliers"] > 0 and 0 <= fit["rms_px"] < fit["threshold_px"]

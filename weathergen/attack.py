@@ -515,6 +515,7 @@ class PairSummary:
     epe_random: Optional[float] = None
     epe_adversarial: Optional[float] = None
     seconds: float = 0.0
+    nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
 
     @classmethod
     def from_dict(cls, data: dict) -> "PairSummary":
@@ -538,7 +539,8 @@ def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch
         aee_random=float(aee(initial, benign).mean()),
         aee_adversarial=float(aee(adv, benign).mean()),
         target_initial=float(aee(initial, goal).mean()),
-        target_adversarial=float(aee(adv, goal).mean()), seconds=seconds)
+        target_adversarial=float(aee(adv, goal).mean()), seconds=seconds,
+        nothing_visible=bool(result.frozen))
     if gt_flow is not None:
         gt = gt_flow.detach().cpu().float()[None]
         valid = None if gt_valid is None else gt_valid.detach().cpu()[None]

@@ -84,7 +84,8 @@ def _particles(job: AttackJob, pair):
 
     if job.particles_from is not None:
         return load_render_particles(job.particles_from, pair.id)
-    return sample_particles(pair, job.preset, pair_seed(job.seed, pair.id))
+    return sample_particles(pair, job.preset, pair_seed(job.seed, pair.id),
+                            world_up=getattr(job.dataset, "world_up", "auto"))
 
 
 def attack_one(job: AttackJob, model, pair, target_file_flow=None,

@@ -116,6 +116,7 @@ class PairResult:
     bytes: int = 0
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
+    input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
 
 
 # -- one pair ------------------------------------------------------------------------------------
@@ -123,7 +124,7 @@ def _particles_for(job: RenderJob, pair, seed: int):
     from .engine import Particles, sample_particles
 
     if job.particles_from is None:
-        return sample_particles(pair, job.preset, seed)
+        return sample_particles(pair, job.preset, seed, world_up=getattr(job.dataset, "world_up", "auto"))
     out = PairOutput.of(job.particles_from, pair.id, job.pass_name)
     path = out.metadata
     if not path.exists():
@@ -198,7 +199,8 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
         raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
                           f"rerun with --resume once there is room") from None
     return PairResult(ref.id.key, str(ref.id), "written", seed,
-                      bytes=sum(p.stat().st_size for p in files), visible=visible)
+                      bytes=sum(p.stat().st_size for p in files), visible=visible,
+                      input=_jsonable(getattr(pair, "meta", None) or {}))
 
 
 def visible_counts(pair, particles) -> tuple[int, int]:

@@ -19,7 +19,7 @@ from typing import Callable, Optional
 
 import torch
 
-from .datasets import Dataset, open_dataset
+from .datasets import Dataset, reopen_dataset
 from .errors import ConfigError, DatasetError, FormatError
 from .flow import aee
 from .framepair import PairId
@@ -77,10 +77,15 @@ class WeatherFolder:
     def clean_dataset(self, dataset: Optional[str] = None, root: Optional[str] = None,
                       pass_: Optional[str] = None) -> Dataset:
         """The dataset the weather was rendered into (as recorded), or the one given."""
-        name = dataset or self.input.get("dataset", "sintel")
-        where = root if root is not None else (None if name == "demo" else self.input.get("root"))
-        return open_dataset(name, where, split=self.input.get("split", "training"),
-                            pass_=pass_ or self.input.get("pass", "clean"))
+        if dataset is None or dataset == self.input.get("dataset"):
+            description = dict(self.input)        # with every recorded reader option
+        else:                                     # another reader: its own defaults
+            description = {"dataset": dataset, "split": self.input.get("split", "training")}
+        if root is not None:
+            description["root"] = root
+        if pass_ is not None:
+            description["pass"] = pass_
+        return reopen_dataset(description)
 
 
 @dataclass

@@ -21,6 +21,7 @@ class DemoDataset(SintelDataset):
     """The bundled demo scene (Sintel layout, generated on first use into the user cache)."""
 
     name = "demo"
+    default_world_up = "+z"          # the demo world is z-up, like the Blender scenes behind Sintel
 
     def __init__(self, root=None, selection: Selection = Selection(), **options):
         from .demo import demo_root

@@ -17,21 +17,37 @@ from .base import Dataset, Selection
 DEFAULT_FAR_DEPTH = 1000.0
 
 
+#: Which axis of a dataset's world points up: "auto" (the world axis nearest to the cameras' mean
+#: up direction) or an explicit signed axis.
+WORLD_UP_CHOICES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
+
+
 class ScaledDataset(Dataset):
     """A reader with the depth options of every command (Sintel and every reader below).
 
     ``depth_scale * scene_scales[scene]`` multiplies depth and camera translations, so that geometry
     stays consistent; ``camera_translation=False`` zeroes the translation between the two cameras.
+    ``world_up`` says which axis of the world (camera 1's axes where the dataset has no poses)
+    points up, so that weather falls along the world's vertical; ``None`` takes the reader's
+    :attr:`default_world_up`.
     """
 
+    #: The world-up setting of this dataset when the user gives none.
+    default_world_up = "auto"
+
     def __init__(self, root, selection: Selection = Selection(), *, depth_scale: float = 1.0,
-                 scene_scales: Optional[dict[str, float]] = None, camera_translation: bool = True):
+                 scene_scales: Optional[dict[str, float]] = None, camera_translation: bool = True,
+                 world_up: Optional[str] = None):
         super().__init__(root, selection)
         if not depth_scale > 0:
             raise ConfigError(f"depth scale must be positive, got {depth_scale}")
+        world_up = self.default_world_up if world_up is None else world_up
+        if world_up not in WORLD_UP_CHOICES:
+            raise ConfigError(f"world up {world_up!r}: choose from {', '.join(WORLD_UP_CHOICES)}")
         self.depth_scale = float(depth_scale)
         self.scene_scales = dict(scene_scales or {})
         self.camera_translation = camera_translation
+        self.world_up = world_up
 
     def scale_of(self, scene: str) -> float:
         """The depth scale applied to ``scene``."""
@@ -40,7 +56,7 @@ class ScaledDataset(Dataset):
     def describe(self) -> dict:
         out = super().describe()
         out.update(depth_scale=self.depth_scale, scene_scales=self.scene_scales,
-                   camera_translation=self.camera_translation)
+                   camera_translation=self.camera_translation, world_up=self.world_up)
         return out
 
 

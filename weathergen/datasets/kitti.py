@@ -70,6 +70,7 @@ class KittiDataset(FarDepthDataset):
     """Pairs (10, 11) of every KITTI 2015 scene-flow sequence, with densified depth and fitted motion."""
 
     name = "kitti"
+    default_world_up = "-y"          # no world frame: camera 1 is the world, and KITTI's rig is level
     split_folders = {"training": "training", "train": "training", "testing": "testing", "test": "testing"}
 
     def __init__(self, root, selection: Selection = Selection(), *, max_gap_px: float = 24.0,

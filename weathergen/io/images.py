@@ -7,6 +7,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+# Our own errors name the file and the problem; OpenCV's warnings about the same corrupt file
+# ("buffer is incomplete") would only add a second, vaguer line.
+cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+
 from ..errors import FormatError
 from .atomic import atomic_write_bytes
 
