@@ -291,6 +291,13 @@ def test_kitti_render_keeps_sparse_flow_validity(tmp_path, demo_root):
     assert bool((back.flow_valid == original.flow_valid).all())
     np.testing.assert_allclose(back.flow[original.flow_valid.expand(2, -1, -1)].numpy(),
                                original.flow[original.flow_valid.expand(2, -1, -1)].numpy())
+    # and in KITTI's own format, as KITTI tools read it
+    from weathergen.io.kitti_formats import read_flow_png
+
+    native, native_valid = read_flow_png(out / "training/flow_occ/000004_0010/frame_0010.png")
+    np.testing.assert_array_equal(native_valid, original.flow_valid[0].numpy())
+    np.testing.assert_allclose(native[native_valid], original.flow.permute(1, 2, 0).numpy()[native_valid],
+                               atol=1 / 64)
 
 
 def test_full_disk_stops_the_run_with_one_line(tmp_path, monkeypatch):

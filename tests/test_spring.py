@@ -207,3 +207,22 @@ def test_check_command_reads_spring(tmp_path, street):
                                       "--split", "train"])
     assert result.exit_code == 0, result.output
     assert "All 3 pairs in 1 scenes are readable" in result.output
+
+
+def test_render_writes_spring_flow_in_springs_own_format(tmp_path, street):
+    from click.testing import CliRunner
+
+    from weathergen.cli.main import _register, cli
+    from weathergen.io.spring_formats import read_flo5
+
+    frames, pairs = street
+    write_fake_spring(tmp_path / "spring", frames, pairs=pairs)
+    out = tmp_path / "out"
+    _register()
+    res = CliRunner().invoke(cli, ["render", "--dataset", "spring", "--root", str(tmp_path / "spring"),
+                                   "--split", "train", "--frames-per-scene", "1", "--set", "count=100",
+                                   "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    native = read_flo5(out / "train/flow_FW_left/0001_0001/frame_0001.flo5")
+    truth = pairs[0].flow.permute(1, 2, 0).numpy()
+    np.testing.assert_allclose(native, truth, atol=1e-5)

@@ -14,6 +14,8 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/camdata_left/PAIR/frame_FFFF.cam   formats (depth and cameras after the depth scale),
     OUT/SPLIT/flow/PAIR/frame_FFFF.flo        and ground-truth flow where the input has it
     OUT/SPLIT/invalid/PAIR/frame_FFFF.png     non-zero where that flow is not valid (sparse flow)
+    OUT/SPLIT/flow_occ/PAIR/frame_FFFF.png    the same flow in KITTI's 16-bit PNG format (KITTI input)
+    OUT/SPLIT/flow_FW_left/PAIR/frame_FFFF.flo5   ... in Spring's HDF5 format (Spring input)
 
 Each pair is its own two-frame "scene", because without persistent particles the second frame of
 pair ``i`` and the first frame of pair ``i + 1`` differ. The tree is therefore a Sintel tree: the
@@ -43,6 +45,8 @@ MANIFEST_PARTS = "manifest.d"
 MARKER = ".weathergen-render"
 METADATA_VERSION = 1
 FORMATS = ("png", "exr", "both")
+#: Datasets whose ground-truth flow is also written in their own format: folder and extension.
+NATIVE_FLOW = {"kitti": ("flow_occ", "png"), "spring": ("flow_FW_left", "flo5")}
 
 
 @dataclass(frozen=True)
@@ -87,6 +91,13 @@ class PairOutput:
         if with_flow:
             files.append(self._file("flow", self.frame, "flo"))
         return files
+
+    def native_flow(self, dataset: str) -> Path | None:
+        """Where the flow goes in the input dataset's own format (KITTI, Spring), else None."""
+        if dataset not in NATIVE_FLOW:
+            return None
+        folder, ext = NATIVE_FLOW[dataset]
+        return self._file(folder, self.frame, ext)
 
     @property
     def invalid_mask(self) -> Path:
@@ -145,11 +156,28 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
             if pair.flow_valid is not None and not bool(pair.flow_valid.all()):
                 mask = np.where(pair.flow_valid[0].numpy(), 0, 255).astype(np.uint8)
                 written.append(write_png(out.invalid_mask, mask))
+            native = out.native_flow(pair.id.dataset)
+            if native is not None:
+                written.append(_write_native_flow(pair.id.dataset, native, pair))
     rel = [str(p.relative_to(out.root)) for p in written]
     metadata = dict(metadata)
     metadata["files"] = np.array(json.dumps(rel))
     write_metadata(out.metadata, metadata)
     return written + [out.metadata]
+
+
+def _write_native_flow(dataset: str, path: Path, pair: FramePair) -> Path:
+    """KITTI's 16-bit flow PNG (u, v, valid) or Spring's HDF5 ``.flo5`` (NaN where invalid)."""
+    flow = pair.flow.numpy().transpose(1, 2, 0)
+    valid = (np.ones(flow.shape[:2], bool) if pair.flow_valid is None
+             else pair.flow_valid[0].numpy())
+    if dataset == "kitti":
+        from .io.kitti_formats import write_flow_png
+
+        return write_flow_png(path, flow, valid)
+    from .io.spring_formats import write_flo5
+
+    return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))
 
 
 def write_metadata(path: Path, arrays: dict[str, np.ndarray]) -> Path:
