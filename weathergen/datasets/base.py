@@ -64,6 +64,19 @@ class Selection:
         return starts
 
 
+def frame_numbers(folder: Path, pattern) -> list[int]:
+    """Sorted frame numbers of the files in ``folder`` whose names match ``pattern``.
+
+    ``pattern`` is a compiled regular expression whose first group is the number.
+    """
+    found = []
+    for p in Path(folder).iterdir():
+        m = pattern.match(p.name)
+        if m:
+            found.append(int(m.group(1)))
+    return sorted(found)
+
+
 @dataclass(frozen=True)
 class PairRef:
     """A frame pair as listed: its identity and the files it is read from (None when missing)."""

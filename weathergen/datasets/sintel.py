@@ -33,7 +33,7 @@ from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.images import read_image, read_raw
 from ..io.sintel_formats import read_cam, read_dpt, read_flo
-from .base import PairRef, Selection
+from .base import PairRef, Selection, frame_numbers
 from .common import ScaledDataset, scaled_poses
 
 _FRAME_RE = re.compile(r"^frame_(\d{4,})\.png$")
@@ -95,12 +95,7 @@ class SintelDataset(ScaledDataset):
         return sorted(p.name for p in self.image_dir.iterdir() if p.is_dir())
 
     def frames(self, scene: str) -> list[int]:
-        found = []
-        for p in (self.image_dir / scene).iterdir():
-            m = _FRAME_RE.match(p.name)
-            if m:
-                found.append(int(m.group(1)))
-        return sorted(found)
+        return frame_numbers(self.image_dir / scene, _FRAME_RE)
 
     def pairs(self) -> list[PairRef]:
         refs = []

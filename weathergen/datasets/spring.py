@@ -41,7 +41,7 @@ from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.images import read_image
 from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
-from .base import PairRef, Selection
+from .base import PairRef, Selection, frame_numbers
 from .common import FarDepthDataset, check_size, chw, require_files, scaled_poses
 
 _FRAME_RE = re.compile(r"^frame_left_(\d{4,})\.png$")
@@ -75,12 +75,7 @@ class SpringDataset(FarDepthDataset):
         return sorted(p.name for p in self.split_dir.iterdir() if (p / "frame_left").is_dir())
 
     def frames(self, scene: str) -> list[int]:
-        found = []
-        for p in (self.split_dir / scene / "frame_left").iterdir():
-            m = _FRAME_RE.match(p.name)
-            if m:
-                found.append(int(m.group(1)))
-        return sorted(found)
+        return frame_numbers(self.split_dir / scene / "frame_left", _FRAME_RE)
 
     def pairs(self) -> list[PairRef]:
         refs = []
