@@ -370,3 +370,17 @@ def test_world_up_is_a_dataset_setting_recorded_in_the_manifest(snow_run, tmp_pa
     assert (up[:, 2] > 0).all()
     res = run("render", "--out", tmp_path / "bad", "--world-up", "up", *FAST)
     assert res.exit_code == 2 and "--world-up" in res.output
+
+
+def test_preview_caption_outline_stays_around_the_text():
+    # The dark outline must follow the white caption; a thicker stroke advances wider per
+    # character and leaves a dark copy of the last letters beside the caption.
+    from weathergen.preview import _tile
+
+    tile = _tile(np.full((100, 200, 3), 0.5, np.float32), (200, 100), "courtyard 10")
+    band = tile[:30].astype(int).sum(axis=2)
+    white_cols = np.nonzero((band > 3 * 200).any(axis=0))[0]
+    dark_cols = np.nonzero((band < 3 * 60).any(axis=0))[0]
+    assert white_cols.size and dark_cols.size
+    assert dark_cols.max() <= white_cols.max() + 2
+    assert dark_cols.min() >= white_cols.min() - 2

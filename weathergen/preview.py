@@ -19,7 +19,13 @@ from .outputs import MANIFEST, PairOutput
 def _tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
     """Resize a float [0, 1] image to ``size`` (w, h), as uint8 with a caption."""
     out = to_uint8(cv2.resize(img, size, interpolation=cv2.INTER_AREA))
-    cv2.putText(out, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
+    # A dark outline: the caption itself shifted by one pixel each way (a thicker stroke would
+    # advance wider per character and drift away from the white text).
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            if dx or dy:
+                cv2.putText(out, text, (6 + dx, 18 + dy), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                            (0, 0, 0), 1, cv2.LINE_AA)
     cv2.putText(out, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
     return out
 
