@@ -223,6 +223,10 @@ def test_render_writes_spring_flow_in_springs_own_format(tmp_path, street):
                                    "--split", "train", "--frames-per-scene", "1", "--set", "count=100",
                                    "--out", str(out)])
     assert res.exit_code == 0, res.output
-    native = read_flo5(out / "train/flow_FW_left/0001_0001/frame_0001.flo5")
+    # The output is a Sintel tree: Spring's "train" split becomes Sintel's "training" folder.
+    native = read_flo5(out / "training/flow_FW_left/0001_0001/frame_0001.flo5")
     truth = pairs[0].flow.permute(1, 2, 0).numpy()
     np.testing.assert_allclose(native, truth, atol=1e-5)
+    res = CliRunner().invoke(cli, ["check", "--dataset", "sintel", "--root", str(out), "--pass", "snow_clean"])
+    assert res.exit_code == 0, res.output
+    assert "All 1 pairs in 1 scenes are readable" in res.output

@@ -47,6 +47,9 @@ METADATA_VERSION = 1
 FORMATS = ("png", "exr", "both")
 #: Datasets whose ground-truth flow is also written in their own format: folder and extension.
 NATIVE_FLOW = {"kitti": ("flow_occ", "png"), "spring": ("flow_FW_left", "flo5")}
+#: Outputs are Sintel trees, so input splits named otherwise (Spring's ``train``, KITTI's
+#: ``testing``) get Sintel's folder name; the metadata keeps the input's own split.
+SINTEL_SPLIT_FOLDER = {"train": "training", "testing": "test"}
 
 
 @dataclass(frozen=True)
@@ -63,7 +66,8 @@ class PairOutput:
 
     @classmethod
     def of(cls, root, pair_id: PairId, pass_name: str, fmt: str = "png", geometry: bool = True):
-        return cls(Path(root), pair_id.split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry)
+        split = SINTEL_SPLIT_FOLDER.get(pair_id.split, pair_id.split)
+        return cls(Path(root), split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry)
 
     @property
     def pair_dir(self) -> str:
