@@ -384,3 +384,19 @@ def test_preview_caption_outline_stays_around_the_text():
     assert white_cols.size and dark_cols.size
     assert dark_cols.max() <= white_cols.max() + 2
     assert dark_cols.min() >= white_cols.min() - 2
+
+
+@pytest.mark.parametrize("args,message", [
+    (("--dataset", "kitti"), "KITTI 2015 layout"),
+    (("--scenes", "nowhere"), "nowhere"),
+])
+def test_a_root_or_selection_that_does_not_fit_writes_nothing(tmp_path, demo_root, args, message):
+    # The pairs are listed before the output folder is created, so a corrected command can use
+    # the same --out (a left-over folder would be refused as "already holds a render").
+    out = tmp_path / "o"
+    res = run("render", "--root", demo_root, "--out", out, *args)
+    assert res.exit_code == 2, res.output
+    assert message in res.output
+    assert not out.exists()
+    res = run("render", "--root", demo_root, "--out", out, *FAST)
+    assert res.exit_code == 0, res.output

@@ -354,10 +354,11 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives.
     Interruptions (Ctrl-C) record what was finished in the manifest and re-raise.
     """
-    prepare_output(job)
+    # A root that is not of the chosen layout fails here, before the output folder is touched.
     refs = shard_refs(job.dataset.pairs(), job.shard)
     if not refs:
         raise ConfigError("the selection holds no frame pairs")
+    prepare_output(job)
     started = time.time()
     t0 = time.perf_counter()
     results: list[PairResult] = []
