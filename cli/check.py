@@ -31,7 +31,9 @@ def check(dataset, verbose):
     for ref in refs:
         per_scene[ref.id.scene].append((ref, dataset.check(ref)))
 
-    table = Table(title=f"{dataset.name} {dataset.selection.split}/{dataset.selection.pass_} at {dataset.root}")
+    single_pass = dataset.name in ("kitti", "spring", "custom")   # one rendering, no pass to name
+    where = dataset.selection.split if single_pass else f"{dataset.selection.split}/{dataset.selection.pass_}"
+    table = Table(title=f"{dataset.name} {where} at {dataset.root}")
     for col, kw in (("scene", {}), ("pairs", {"justify": "right"}), ("readable", {"justify": "right"}),
                     ("depth scale", {"justify": "right"}), ("status", {})):
         table.add_column(col, **kw)
@@ -54,4 +56,7 @@ def check(dataset, verbose):
     if bad_total:
         console.print(f"[red]{bad_total} of {len(refs)} pairs cannot be read.[/red]")
         sys.exit(1)
-    console.print(f"[green]All {len(refs)} pairs in {len(per_scene)} scenes are readable.[/green]")
+    pairs = f"{len(refs)} pair{'s' if len(refs) != 1 else ''}"
+    scenes = f"{len(per_scene)} scene{'s' if len(per_scene) != 1 else ''}"
+    console.print(f"[green]{'All ' if len(refs) > 1 else ''}{pairs} in {scenes} "
+                  f"{'are' if len(refs) != 1 else 'is'} readable.[/green]")

@@ -15,6 +15,11 @@ from weathergen.outputs import read_metadata
 from .main import cli
 
 
+def _preset_origin(name: str, source: str) -> str:
+    """A bundled preset by its name; a user's preset file by name and path."""
+    return name if not source or source.startswith("preset ") else f"{name} (from {source})"
+
+
 @cli.command()
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 def inspect(file: Path):
@@ -29,7 +34,7 @@ def inspect(file: Path):
     rows = [
         ("pair", f"{arrays['pair_dataset']}/{arrays['pair_split']}/{arrays['pair_scene']} frame {int(arrays['pair_frame'])}"),
         ("seed", str(int(arrays["seed"]))),
-        ("preset", f"{arrays['preset_name']} ({preset.get('source', '?')})"),
+        ("preset", _preset_origin(str(arrays["preset_name"]), preset.get("source", ""))),
         ("particles", str(n)),
         ("visible in frame 1 / 2", f"{int(arrays.get('visible1', -1))} / {int(arrays.get('visible2', -1))}"),
         ("reference frame", str(arrays.get("frame", "?"))),

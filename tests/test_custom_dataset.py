@@ -121,7 +121,7 @@ def test_camera_file_problems_are_named(tmp_path, street):
     with pytest.raises(FormatError, match=r"cameras\.json: frame 1: pose is not a rigid transform"):
         load(root)
     (root / "cameras.json").unlink()
-    with pytest.raises(DatasetError, match=r"cameras\.json: cameras file is missing"):
+    with pytest.raises(DatasetError, match=r"cameras\.json: camera file is missing"):
         load(root)
 
 
@@ -146,4 +146,4 @@ def test_check_command_reads_custom(tmp_path, street):
     _register()
     result = CliRunner().invoke(cli, ["check", "--dataset", "custom", "--root", str(tmp_path)])
     assert result.exit_code == 0, result.output
-    assert "All 3 pairs in 1 scenes are readable" in result.output
+    assert "All 3 pairs in 1 scene are readable" in result.output

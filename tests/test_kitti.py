@@ -217,7 +217,7 @@ def test_depth_scale_and_zeroed_translation(tmp_path, street):
 def test_missing_calibration_names_the_file(tmp_path, street):
     s = write_fake_kitti(tmp_path, street[0])
     (s / "calib_cam_to_cam" / "000000.txt").unlink()
-    with pytest.raises(DatasetError, match=r"calib_cam_to_cam/000000\.txt: calib file is missing"):
+    with pytest.raises(DatasetError, match=r"calib_cam_to_cam/000000\.txt: calibration file is missing"):
         load_one(tmp_path)
 
 
@@ -266,7 +266,7 @@ def test_a_missing_second_frame_is_reported_not_hidden(tmp_path, street):
     (s / "image_2" / "000000_11.png").unlink()
     ds = open_dataset("kitti", tmp_path)
     assert [r.id.scene for r in ds.pairs()] == ["000000"]
-    assert ds.check(ds.pairs()[0]).endswith("image_2/000000_11.png: image2 file is missing")
+    assert ds.check(ds.pairs()[0]).endswith("image_2/000000_11.png: second frame file is missing")
     assert open_dataset("kitti", tmp_path, first_frame=11).pairs() == []
 
 
@@ -306,7 +306,7 @@ def test_check_command_reads_kitti(tmp_path, street):
     (tmp_path / "training" / "calib_cam_to_cam" / "000001.txt").unlink()
     result = run_cli(["check", "--dataset", "kitti", "--root", str(tmp_path), "--far-depth", "300"])
     assert result.exit_code == 1
-    assert "000001 frame 10: training/calib_cam_to_cam/000001.txt: calib file is missing" in result.output
+    assert "000001 frame 10: training/calib_cam_to_cam/000001.txt: calibration file is missing" in result.output
 
 
 def test_check_command_explains_the_testing_split(tmp_path, street):

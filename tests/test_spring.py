@@ -206,7 +206,7 @@ def test_check_command_reads_spring(tmp_path, street):
     result = CliRunner().invoke(cli, ["check", "--dataset", "spring", "--root", str(tmp_path),
                                       "--split", "train"])
     assert result.exit_code == 0, result.output
-    assert "All 3 pairs in 1 scenes are readable" in result.output
+    assert "All 3 pairs in 1 scene are readable" in result.output
 
 
 def test_render_writes_spring_flow_in_springs_own_format(tmp_path, street):
@@ -229,4 +229,4 @@ def test_render_writes_spring_flow_in_springs_own_format(tmp_path, street):
     np.testing.assert_allclose(native, truth, atol=1e-5)
     res = CliRunner().invoke(cli, ["check", "--dataset", "sintel", "--root", str(out), "--pass", "snow_clean"])
     assert res.exit_code == 0, res.output
-    assert "All 1 pairs in 1 scenes are readable" in res.output
+    assert "1 pair in 1 scene is readable" in res.output

@@ -106,12 +106,21 @@ class FarDepthDataset(ScaledDataset):
         return out
 
 
+#: What each file key of the readers holds, for messages.
+FILE_ROLES = {
+    "image1": "first frame", "image2": "second frame", "depth1": "frame-1 depth",
+    "depth2": "frame-2 depth", "disp1": "frame-1 disparity", "disp2": "frame-2 disparity",
+    "flow": "ground-truth flow", "objects": "object map", "calib": "calibration",
+    "cameras": "camera", "intrinsics": "intrinsics", "extrinsics": "extrinsics",
+}
+
+
 def require_files(files: dict, keys: tuple[str, ...], hint: str = "") -> None:
     """Raise :class:`DatasetError` naming the first of ``files[key]`` that does not exist."""
     for key in keys:
         path = files.get(key)
         if path is None or not Path(path).exists():
-            raise DatasetError(f"{path}: {key} file is missing{hint}")
+            raise DatasetError(f"{path}: {FILE_ROLES.get(key, key)} file is missing{hint}")
 
 
 def check_size(path, what: str, shape: tuple, expected: tuple) -> None:

@@ -84,7 +84,7 @@ def resolve_named(spec: CheckpointSpec, download: bool = False, timeout: float =
     if download and spec.url:
         return download_checkpoint(spec, timeout=timeout)
     source = f" (it is {spec.member} in {spec.url})" if spec.url else ""
-    hint = " or pass download=True (--download)" if spec.url and not download else ""
+    hint = " or let weathergen fetch it (--download; download=True in Python)" if spec.url and not download else ""
     raise ConfigError(f"checkpoint {spec.name!r} is not in the cache: put {spec.filename}"
                       f"{source} at {path}{hint}, or give the checkpoint as a file path")
 
