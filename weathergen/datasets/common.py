@@ -10,6 +10,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, DatasetError, WeatherGenError
+from ..framepair import FramePair
 from .base import Dataset, Selection
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
@@ -52,6 +53,32 @@ class ScaledDataset(Dataset):
     def scale_of(self, scene: str) -> float:
         """The depth scale applied to ``scene``."""
         return self.depth_scale * self.scene_scales.get(scene, 1.0)
+
+    def posed_pair(self, ref, files: dict, images, depths, intrinsics, cam1_from_world,
+                   cam2_from_world, *, flow=None, flow_valid=None, measured=None,
+                   meta: Optional[dict] = None) -> FramePair:
+        """The validated record of a pair with absolute poses, the scene's depth scale applied.
+
+        Shape: images two (H, W, 3) float in [0, 1]; depths two (H, W) in dataset units (unscaled);
+        intrinsics (3, 3); poses (3, 4) or (4, 4) world-to-camera; flow (H, W, 2), flow_valid and
+        each of ``measured`` (H, W) bool, or None.
+        """
+        scale = self.scale_of(ref.id.scene)
+        cam1, cam2, cam2_from_cam1 = scaled_poses(cam1_from_world, cam2_from_world, scale,
+                                                  self.camera_translation)
+        return FramePair(
+            id=ref.id,
+            image1=chw(images[0]), image2=chw(images[1]),
+            depth1=chw(depths[0] * np.float32(scale)), depth2=chw(depths[1] * np.float32(scale)),
+            intrinsics=torch.from_numpy(np.array(intrinsics, np.float64)),
+            cam2_from_cam1=cam2_from_cam1, cam1_from_world=cam1, cam2_from_world=cam2,
+            flow=None if flow is None else chw(flow),
+            flow_valid=None if flow_valid is None else chw(flow_valid),
+            depth_measured1=None if measured is None else chw(measured[0]),
+            depth_measured2=None if measured is None else chw(measured[1]),
+            sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
+            depth_scale=scale, meta=dict(meta or {}),
+        ).validate()
 
     def describe(self) -> dict:
         out = super().describe()

@@ -33,7 +33,7 @@ from ..io.custom_formats import DEPTH_SUFFIXES, CameraFile, read_camera_file, re
 from ..io.images import read_image
 from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
-from .common import FarDepthDataset, check_size, chw, require_files, scaled_poses
+from .common import FarDepthDataset, check_size, require_files
 
 _FRAME_RE = re.compile(r"^(.*?)(\d+)\.png$", re.IGNORECASE)
 #: OpenGL camera axes (y up, z backward) -> OpenCV camera axes (y down, z forward)
@@ -136,25 +136,12 @@ class CustomDataset(FarDepthDataset):
             # Middlebury convention: components beyond 1e9 mark unknown flow
             ok = np.isfinite(fl).all(axis=2) & (np.abs(fl) < 1e9).all(axis=2)
             fl = np.where(ok[..., None], fl, 0).astype(np.float32)
-            flow, flow_valid = chw(fl), chw(ok)
+            flow, flow_valid = fl, ok
 
-        scale = self.scale_of(ref.id.scene)
-        cam1_from_world, cam2_from_world, cam2_from_cam1 = scaled_poses(e1, e2, scale,
-                                                                        self.camera_translation)
-        return FramePair(
-            id=ref.id,
-            image1=chw(img1), image2=chw(img2),
-            depth1=chw(depths[0] * np.float32(scale)), depth2=chw(depths[1] * np.float32(scale)),
-            intrinsics=torch.from_numpy(k1.copy()),
-            cam2_from_cam1=cam2_from_cam1,
-            cam1_from_world=cam1_from_world, cam2_from_world=cam2_from_world,
-            flow=flow, flow_valid=flow_valid,
-            depth_measured1=chw(measured[0]), depth_measured2=chw(measured[1]),
-            sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
-            depth_scale=scale,
-            meta={"far_depth": self.far_depth, "pose": cams.pose, "axes": cams.axes,
-                  "depth": cams.depth},
-        ).validate()
+        return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
+                               flow_valid=flow_valid, measured=measured,
+                               meta={"far_depth": self.far_depth, "pose": cams.pose,
+                                     "axes": cams.axes, "depth": cams.depth})
 
     @staticmethod
     def _camera(cams: CameraFile, path, number: int) -> tuple[np.ndarray, np.ndarray]:

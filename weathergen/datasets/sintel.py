@@ -27,14 +27,13 @@ from collections import Counter
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.images import read_image, read_raw
 from ..io.sintel_formats import read_cam, read_dpt, read_flo
 from .base import PairRef, Selection, frame_numbers
-from .common import ScaledDataset, scaled_poses
+from .common import ScaledDataset
 
 _FRAME_RE = re.compile(r"^frame_(\d{4,})\.png$")
 SPLITS = ("training", "test")
@@ -128,7 +127,6 @@ class SintelDataset(ScaledDataset):
                         if self.selection.split == "test" else "")
                 raise DatasetError(f"{files[key]}: {'depth' if 'depth' in key else 'camera'} "
                                    f"file is missing{hint}")
-        scale = self.scale_of(ref.id.scene)
         img1, img2 = read_image(files["image1"]), read_image(files["image2"])
         raw_depths = [read_dpt(files["depth1"]), read_dpt(files["depth2"])]
         h, w = _common_size(files, {"image1": img1.shape[:2], "image2": img2.shape[:2],
@@ -139,11 +137,9 @@ class SintelDataset(ScaledDataset):
                 raise DatasetError(f"{files[key]}: depth has non-finite values")
             if not (d > 0).all():
                 raise DatasetError(f"{files[key]}: depth has zero or negative values")
-            depths.append(d * np.float32(scale))
+            depths.append(d)
         k1, e1 = read_cam(files["cam1"])
         _, e2 = read_cam(files["cam2"])
-        cam1_from_world, cam2_from_world, cam2_from_cam1 = scaled_poses(e1, e2, scale,
-                                                                        self.camera_translation)
 
         flow = valid = None
         if Path(files["flow"]).exists():
@@ -151,8 +147,7 @@ class SintelDataset(ScaledDataset):
             if fl.shape[:2] != (h, w):
                 raise DatasetError(f"{files['flow']}: flow is {fl.shape[1]}x{fl.shape[0]} "
                                    f"but the image is {w}x{h}")
-            flow = torch.from_numpy(np.ascontiguousarray(fl.transpose(2, 0, 1)))
-            valid = torch.ones(1, h, w, dtype=torch.bool)
+            flow, valid = fl, np.ones((h, w), bool)
             if Path(files["invalid"]).exists():
                 inv = read_raw(files["invalid"])
                 if inv.shape[:2] != (h, w):
@@ -160,21 +155,10 @@ class SintelDataset(ScaledDataset):
                                        f"but the image is {w}x{h}")
                 if inv.ndim == 3:
                     inv = inv.max(axis=2)
-                valid = torch.from_numpy(inv == 0)[None]
+                valid = inv == 0
 
-        to_chw = lambda a: torch.from_numpy(np.ascontiguousarray(a.transpose(2, 0, 1)))  # noqa: E731
-        pair = FramePair(
-            id=ref.id,
-            image1=to_chw(img1), image2=to_chw(img2),
-            depth1=torch.from_numpy(depths[0])[None], depth2=torch.from_numpy(depths[1])[None],
-            intrinsics=torch.from_numpy(k1),
-            cam2_from_cam1=cam2_from_cam1,
-            cam1_from_world=cam1_from_world, cam2_from_world=cam2_from_world,
-            flow=flow, flow_valid=valid,
-            sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
-            depth_scale=scale,
-        )
-        return pair.validate()
+        return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
+                               flow_valid=valid)
 
 
 def _common_size(files: dict, sizes: dict) -> tuple[int, int]:

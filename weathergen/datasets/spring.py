@@ -35,14 +35,13 @@ import re
 from pathlib import Path
 
 import numpy as np
-import torch
 
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.images import read_image
 from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
 from .base import PairRef, Selection, frame_numbers
-from .common import FarDepthDataset, check_size, chw, require_files, scaled_poses
+from .common import FarDepthDataset, check_size, require_files
 
 _FRAME_RE = re.compile(r"^frame_left_(\d{4,})\.png$")
 #: Distance between Spring's left and right cameras, metres.
@@ -137,26 +136,12 @@ class SpringDataset(FarDepthDataset):
             fl, ok = _at_frame_size(read_flo5(files["flow"]), files["flow"], "flow", size)
             flow_valid = ok & np.isfinite(fl).all(axis=2)
             fl[~flow_valid] = 0
-            flow, flow_valid = chw(fl), chw(flow_valid)
+            flow = fl
 
-        scale = self.scale_of(ref.id.scene)
-        cam1_from_world, cam2_from_world, cam2_from_cam1 = scaled_poses(e1, e2, scale,
-                                                                        self.camera_translation)
-
-        return FramePair(
-            id=ref.id,
-            image1=chw(img1), image2=chw(img2),
-            depth1=chw(depths[0] * np.float32(scale)), depth2=chw(depths[1] * np.float32(scale)),
-            intrinsics=torch.from_numpy(k1),
-            cam2_from_cam1=cam2_from_cam1,
-            cam1_from_world=cam1_from_world, cam2_from_world=cam2_from_world,
-            flow=flow, flow_valid=flow_valid,
-            depth_measured1=chw(measured[0]), depth_measured2=chw(measured[1]),
-            sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
-            depth_scale=scale,
-            meta={"baseline_m": self.baseline, "far_depth": self.far_depth,
-                  "extrinsics": self.extrinsics},
-        ).validate()
+        return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
+                               flow_valid=flow_valid, measured=measured,
+                               meta={"baseline_m": self.baseline, "far_depth": self.far_depth,
+                                     "extrinsics": self.extrinsics})
 
     def describe(self) -> dict:
         out = super().describe()
