@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from ..errors import FormatError
+from .text import read_text_file
 from .atomic import atomic_write_bytes
 from .images import read_raw
 
@@ -184,12 +185,7 @@ def _setting(path: Path, key: str, value, allowed: tuple[str, ...]) -> str:
 def read_camera_file(path: str | Path) -> CameraFile:
     """Read ``cameras.json`` or ``cameras.txt`` (format by suffix)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise FormatError(path, "camera file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FormatError(path, f"cannot be read as text ({exc})") from None
+    text = read_text_file(path, "camera")
     return _parse_json(path, text) if path.suffix.lower() == ".json" else _parse_txt(path, text)
 
 

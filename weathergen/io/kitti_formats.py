@@ -25,6 +25,7 @@ import cv2
 import numpy as np
 
 from ..errors import FormatError
+from .text import read_text_file
 from .atomic import atomic_write_bytes
 from .images import read_raw
 
@@ -128,12 +129,7 @@ def write_object_map(path: str | Path, objects: np.ndarray) -> Path:
 def read_calibration(path: str | Path) -> dict[str, np.ndarray]:
     """Read a KITTI calibration text file into ``{key: float64 values}`` (non-numeric keys skipped)."""
     path = Path(path)
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise FormatError(path, "calibration file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FormatError(path, f"cannot be read as text ({exc})") from None
+    text = read_text_file(path, "calibration")
     out = {}
     for line in text.splitlines():
         key, sep, rest = line.partition(":")

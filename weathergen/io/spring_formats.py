@@ -25,6 +25,7 @@ import h5py
 import numpy as np
 
 from ..errors import FormatError
+from .text import read_text_file
 from .atomic import atomic_write_bytes
 
 
@@ -121,12 +122,7 @@ def reduce_2x2(samples: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.n
 
 # -- cameras -------------------------------------------------------------------------------------
 def _read_numbers(path: Path, kind: str) -> np.ndarray:
-    try:
-        text = path.read_text()
-    except FileNotFoundError:
-        raise FormatError(path, f"{kind} file not found") from None
-    except (OSError, UnicodeDecodeError) as exc:
-        raise FormatError(path, f"cannot be read as text ({exc})") from None
+    text = read_text_file(path, kind)
     rows = []
     for i, line in enumerate(text.splitlines(), start=1):
         line = line.split("#", 1)[0].strip()
