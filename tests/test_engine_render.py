@@ -111,7 +111,7 @@ def _naive_stamp(lib, tid, rotation, scale, radius, brighten):
         for dy in range(-half - radius, half + radius + 1):
             for dx in range(-half - radius, half + radius + 1):
                 v = sum(stamp.get((dy - a, dx - b), 0.0) for a, b in disc) / len(disc)
-                blurred[(dy, dx)] = min(max(v, 0.0) ** (1 / 3), 1.0) if brighten else v
+                blurred[(dy, dx)] = min(max(2 * v, 0.0) ** (1 / 3), 1.0) if brighten else v
         stamp = blurred
     return stamp
 
@@ -125,7 +125,6 @@ def naive_render(pair, parts: Particles, lib, beta):
     for t in range(2):
         alpha = [[0.0] * w for _ in range(h)]
         colour = [[[0.0] * w for _ in range(h)] for _ in range(3)]
-        cam = torch.eye(4, dtype=torch.float64) if t == 0 else pair.cam2_from_cam1
         for j in range(parts.count):
             stamp = _naive_stamp(lib, int(parts.template[j]), float(parts.rotation[j]),
                                  float(parts.scale[j]), int(parts.defocus[j]),
@@ -133,9 +132,12 @@ def naive_render(pair, parts: Particles, lib, beta):
             kk = parts.blur_samples if parts.blur_length > 0 else 1
             for s in range(kk):
                 frac = parts.blur_length * s / (kk - 1) if kk > 1 else 0.0
-                disp = parts.motion[j] + parts.offset2[j]
-                p = parts.position[j] + parts.offset1[j] + (disp if t == 1 else 0) + frac * disp
-                x = cam[:3, :3].to(p.dtype) @ p + cam[:3, 3].to(p.dtype)
+                # the streak runs along the camera-space motion X2 - X1 (own + camera motion)
+                p1 = parts.position[j] + parts.offset1[j]
+                p2 = p1 + parts.motion[j] + parts.offset2[j]
+                c2 = pair.cam2_from_cam1.to(p1.dtype)
+                x1, x2 = p1, c2[:3, :3] @ p2 + c2[:3, 3]
+                x = (x1 if t == 0 else x2) + frac * (x2 - x1)
                 u = k[0, 0] * x[0] / x[2] + k[0, 2]
                 v = k[1, 1] * x[1] / x[2] + k[1, 2]
                 theta = parts.transparency[j] / kk

@@ -6,12 +6,13 @@ tensor follows the images' device). Four stages:
 1. **Stamps** (:func:`build_stamps`, no gradient): each particle's template is rotated and scaled
    to its own footprint (``scale`` x template resolution pixels), sampled from a mip level no
    finer than twice the footprint (no aliasing for far, tiny particles), and disc-blurred by its
-   defocus radius. A stamp is centred on a pixel. Particles are grouped into buckets of equal
+   defocus radius (then brightened, :func:`defocus_brighten`). A stamp is centred on a pixel. Particles are grouped into buckets of equal
    stamp side so that each bucket is one batched tensor operation; a far particle costs a few
    pixels, a near one its full size.
 2. **Instances**: each particle becomes ``K`` motion-blur samples per frame, spaced evenly from its
-   frame position along its 3D frame-to-frame displacement ``M + δ2`` up to ``blur_length`` times
-   it, each with transparency ``θ / K``; they are projected into their camera.
+   camera position ``X_t`` along its apparent 3D motion ``X2 − X1`` (camera-2 minus camera-1
+   coordinates: its own motion and the camera's) up to ``blur_length`` times it, each with
+   transparency ``θ / K``; they are projected into their camera.
 3. **Splatting**: every instance's stamp is shifted by its sub-pixel position with bilinear
    weights (an (s+1) x (s+1) patch: differentiable with respect to the position), multiplied by the
    visibility ``V = 1 / (1 + exp(β (d − D)))`` against the scene depth ``D`` under each patch pixel
@@ -137,6 +138,16 @@ def _disc_blur(stamp: torch.Tensor, radius: int) -> torch.Tensor:
     return torch.where(out > 1e-12, out, torch.zeros_like(out)).to(stamp.dtype)
 
 
+def defocus_brighten(blurred: torch.Tensor) -> torch.Tensor:
+    """The depth-of-field alpha of a disc-blurred template: ``min(1, (2 b)^(1/3))``.
+
+    The blur spreads a particle's alpha thin; doubling it and taking the cube root brings it
+    back up (near, out-of-focus particles look like large soft discs rather than vanishing),
+    as the paper's research code does. Shape: any -> same.
+    """
+    return (2 * blurred).clamp(min=0).pow(1.0 / 3.0).clamp(max=1)
+
+
 def _stamp_chunk(levels: list, level: int, template: torch.Tensor, rotation: torch.Tensor,
                  footprint: torch.Tensor, side: int) -> torch.Tensor:
     """Rotate and scale templates onto an integer-centred grid. Shape: -> (n, side, side)."""
@@ -197,8 +208,8 @@ def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
                                      footprint[m].to(dtype), s)
                 if r > 1:
                     stamp = _disc_blur(stamp, r)
-                    if bright:  # the blur spreads the alpha thin; a cube root brings it back up
-                        stamp = stamp.clamp(min=0).pow(1.0 / 3.0).clamp(0, 1)
+                    if bright:
+                        stamp = defocus_brighten(stamp)
                 parts.append(stamp)
             buckets.append(StampBucket(side=s + 2 * r, particles=members, stamps=torch.cat(parts)))
     return StampSet(buckets=buckets, bucket_of=bucket_of, slot_of=slot_of)
@@ -233,17 +244,18 @@ def _instances(records, intrinsics, cam1_from_ref, cam2_from_ref, dtype, device)
         d2 = rec.offset2.to(device=device, dtype=dtype)
         steps = _blur_steps(rec, dtype, device)
         k = steps.numel()
-        start1 = pos + d1                      # P + δ1
-        displacement = motion + d2             # M + δ2
-        start2 = start1 + displacement
-        streak = steps[None, :, None] * displacement[:, None, :]          # (N, K, 3)
+        # Camera positions X1 = cam1 (P + δ1), X2 = cam2 (P + δ1 + M + δ2). The streak runs
+        # along X2 − X1, the particle's apparent 3D motion in camera coordinates, which holds
+        # its own motion and the camera's ("true motion blur respects 3D motion and camera
+        # motion"); frame t's samples sit at X_t + s (X2 − X1).
+        x1 = transform_points(cam1_from_ref[b], pos + d1)
+        x2 = transform_points(cam2_from_ref[b], pos + d1 + motion + d2)
+        streak = steps[None, :, None] * (x2 - x1)[:, None, :]            # (N, K, 3)
         theta = (rec.transparency.to(device=device, dtype=dtype) / k)[:, None].expand(n, k)
         color = rec.color.to(device=device, dtype=dtype)[:, None, :].expand(n, k, 3)
         index = (first + torch.arange(n, device=device))[:, None].expand(n, k)
-        for t, (start, cam_from_ref) in enumerate(((start1, cam1_from_ref[b]),
-                                                   (start2, cam2_from_ref[b]))):
-            pts = transform_points(cam_from_ref, (start[:, None, :] + streak).reshape(-1, 3))
-            pix, z = project(pts, intrinsics[b])
+        for t, x in enumerate((x1, x2)):
+            pix, z = project((x[:, None, :] + streak).reshape(-1, 3), intrinsics[b])
             out["u"].append(pix[:, 0])
             out["v"].append(pix[:, 1])
             out["z"].append(z)
