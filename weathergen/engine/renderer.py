@@ -49,6 +49,11 @@ from .templates import TemplateLibrary, load_templates
 BETA_RENDER = 250.0
 BETA_ATTACK = 30.0
 DEFAULT_CHUNK_ELEMENTS = 1 << 21
+# Stamps at least this many pixels wide (fog, large dust) are splatted on a coarser grid (a
+# power-of-two factor that keeps them >= COARSE_MIN_SIDE coarse pixels wide) and upsampled; see
+# docs/engine.md for the accuracy. None (the ``coarse_side`` argument) renders everything exactly.
+COARSE_SIDE = 128
+COARSE_MIN_SIDE = 32
 
 
 @dataclass
@@ -64,11 +69,13 @@ class RenderOutput:
 @dataclass
 class StampBucket:
     """Stamps of one side length. Shape: stamps (n, side, side); particles (n,) int64 indices
-    into the concatenation of the rendered records' particles."""
+    into the concatenation of the rendered records' particles. ``coarse`` > 0: the stamps are
+    drawn on a grid ``2**coarse`` times coarser than the image (large billboards)."""
 
     side: int
     particles: torch.Tensor
     stamps: torch.Tensor
+    coarse: int = 0
 
 
 @dataclass
@@ -148,12 +155,23 @@ def defocus_brighten(blurred: torch.Tensor) -> torch.Tensor:
     return (2 * blurred).clamp(min=0).pow(1.0 / 3.0).clamp(max=1)
 
 
+def _supersampling(side: int) -> int:
+    """Samples per pixel and axis for a stamp of ``side`` pixels: tiny stamps are box-filtered
+    (each pixel averages 4 x 4 or 2 x 2 samples of the template and of its disc), so a far
+    particle keeps the opacity its continuous footprint covers."""
+    return 4 if side <= 5 else (2 if side <= 9 else 1)
+
+
 def _stamp_chunk(levels: list, level: int, template: torch.Tensor, rotation: torch.Tensor,
                  footprint: torch.Tensor, side: int) -> torch.Tensor:
     """Rotate and scale templates onto an integer-centred grid. Shape: -> (n, side, side)."""
     dtype, device = levels[0].dtype, levels[0].device
     h = (side - 1) // 2
+    sub = _supersampling(side)
     off = torch.arange(-h, h + 1, dtype=dtype, device=device)
+    if sub > 1:  # sample positions inside each pixel, pixel-major: (side * sub,)
+        frac = (torch.arange(sub, dtype=dtype, device=device) + 0.5) / sub - 0.5
+        off = (off[:, None] + frac[None, :]).reshape(-1)
     gy, gx = torch.meshgrid(off, off, indexing="ij")
     c = torch.cos(rotation)[:, None, None]
     s = torch.sin(rotation)[:, None, None]
@@ -164,14 +182,22 @@ def _stamp_chunk(levels: list, level: int, template: torch.Tensor, rotation: tor
     inside = (xn * xn + yn * yn) <= 1.0   # templates are round (see templates.py)
     src = levels[level][template]
     out = F.grid_sample(src, torch.stack((xn, yn), -1), mode="bilinear",
-                        padding_mode="zeros", align_corners=False)[:, 0]
-    return out * inside
+                        padding_mode="zeros", align_corners=False)[:, 0] * inside
+    if sub > 1:
+        out = out.view(-1, side, sub, side, sub).mean((2, 4))
+    return out
 
 
 def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
                  dtype: torch.dtype = torch.float32, device=None,
-                 chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> StampSet:
-    """Rasterise every particle's template at its footprint (no gradient; see module doc)."""
+                 chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
+                 coarse_side: Optional[int] = COARSE_SIDE) -> StampSet:
+    """Rasterise every particle's template at its footprint (no gradient; see module doc).
+
+    Stamps at least ``coarse_side`` pixels wide (template plus defocus) are drawn on a grid
+    ``f = 2**L`` times coarser (f the largest power of two keeping them >= COARSE_MIN_SIDE
+    coarse pixels wide): footprint and defocus radius divided by f; ``None`` disables this.
+    """
     device = torch.device(device) if device is not None else records[0].device
     with torch.no_grad():
         template = torch.cat([r.template for r in records]).to(device)
@@ -179,39 +205,54 @@ def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
         footprint = torch.cat([r.scale for r in records]).to(device=device, dtype=torch.float64)
         footprint = (footprint * lib.resolution).clamp(min=1.0)
         radius = torch.cat([r.defocus for r in records]).to(device)
-        radius = torch.where(radius > 1, radius, torch.zeros_like(radius))
+        blurred = radius > 1
+        radius = torch.where(blurred, radius, torch.zeros_like(radius))
         brighten = torch.cat([torch.full((r.count,), bool(r.defocus_brighten), device=device)
-                              for r in records])
+                              for r in records]) & blurred
         if int(template.numel()) and (int(template.min()) < 0 or int(template.max()) >= lib.count):
             raise ConfigError(f"particle template index out of range for the {lib.count} "
                               f"templates of '{lib.name}'")
         levels = mip_pyramid(lib, dtype, device)
-        raw_side = 2 * torch.floor(footprint / 2).clamp(min=1).long() + 1
+        coarse = torch.zeros_like(radius)
+        if coarse_side is not None:
+            full = footprint + 2 * radius
+            coarse = torch.where(full >= coarse_side,
+                                 torch.floor(torch.log2(full / COARSE_MIN_SIDE)).clamp(min=1),
+                                 torch.zeros_like(full)).long()
+            factor = (2.0 ** coarse).to(torch.float64)
+            footprint = (footprint / factor).clamp(min=1.0)
+            radius = torch.where(coarse > 0, torch.floor(radius / factor + 0.5).long(), radius)
+        # every pixel the footprint's disc reaches (partly covered ones are box-filtered)
+        raw_side = 2 * torch.floor(footprint / 2 + 0.5).clamp(min=1).long() + 1
         sides = _SIDES.to(device)
         side = sides[torch.searchsorted(sides, raw_side)]
-        level = torch.floor(torch.log2(lib.resolution / footprint)).clamp(0, len(levels) - 1).long()
-        key = ((side * 64 + level) * 64 + radius) * 2 + brighten.long()
+        sub = torch.where(side <= 5, 4, torch.where(side <= 9, 2, 1))
+        level = torch.floor(torch.log2(lib.resolution / (footprint * sub))) \
+            .clamp(0, len(levels) - 1).long()
+        key = (((side * 64 + level) * 64 + radius) * 2 + brighten.long()) * 16 + coarse
         keys, bucket_of = torch.unique(key, return_inverse=True)
         slot_of = torch.zeros_like(bucket_of)
         buckets = []
         for b, k in enumerate(keys.tolist()):
             members = torch.nonzero(bucket_of == b).squeeze(1)
             slot_of[members] = torch.arange(members.numel(), device=device)
+            lev, k = k % 16, k // 16
             bright, k = k % 2, k // 2
             r, k = k % 64, k // 64
             lvl, s = k % 64, k // 64
-            per_chunk = max(1, chunk_elements // (s * s * 4))
+            per_chunk = max(1, chunk_elements // (s * s * 4 * _supersampling(s) ** 2))
             parts = []
             for start in range(0, members.numel(), per_chunk):
                 m = members[start:start + per_chunk]
                 stamp = _stamp_chunk(levels, lvl, template[m], rotation[m],
                                      footprint[m].to(dtype), s)
-                if r > 1:
+                if r > 1 or (lev and r > 0):
                     stamp = _disc_blur(stamp, r)
-                    if bright:
-                        stamp = defocus_brighten(stamp)
+                if bright:
+                    stamp = defocus_brighten(stamp)
                 parts.append(stamp)
-            buckets.append(StampBucket(side=s + 2 * r, particles=members, stamps=torch.cat(parts)))
+            buckets.append(StampBucket(side=s + 2 * r, particles=members,
+                                       stamps=torch.cat(parts), coarse=lev))
     return StampSet(buckets=buckets, bucket_of=bucket_of, slot_of=slot_of)
 
 
@@ -270,18 +311,24 @@ def _instances(records, intrinsics, cam1_from_ref, cam2_from_ref, dtype, device)
     return {key: torch.cat(v) for key, v in out.items()}
 
 
-def _splat_plan(inst, stamps: StampSet, height, width, chunk_elements):
+def _splat_plan(inst, stamps: StampSet, height, width, chunk_elements, coarse=0, u=None,
+                v=None):
     """Which instances each chunk splats: a list of (bucket, instance indices (n,) int64), every
-    chunk at most ``chunk_elements`` patch pixels. Instances behind the camera or whose patch
-    misses the image are left out."""
+    chunk at most ``chunk_elements`` patch pixels. Only buckets of the given ``coarse`` level;
+    ``u``, ``v`` the instances' positions on that level's grid. Instances behind the camera or
+    whose patch misses the image are left out."""
     bucket = stamps.bucket_of[inst["particle"]]
+    u = inst["u"] if u is None else u
+    v = inst["v"] if v is None else v
     plan = []
     for b, bk in enumerate(stamps.buckets):
+        if bk.coarse != coarse:
+            continue
         half = (bk.side - 1) // 2
         sel = torch.nonzero(bucket == b).squeeze(1)
         if sel.numel() == 0:
             continue
-        u0, v0 = torch.floor(inst["u"][sel].detach()), torch.floor(inst["v"][sel].detach())
+        u0, v0 = torch.floor(u[sel].detach()), torch.floor(v[sel].detach())
         keep = (inst["z"][sel].detach() > NEAR) & (u0 + half + 1 >= 0) \
             & (u0 - half <= width - 1) & (v0 + half + 1 >= 0) & (v0 - half <= height - 1)
         sel = sel[keep]
@@ -333,14 +380,14 @@ class _Splat(torch.autograd.Function):
     applies the chain rule by hand, so memory with gradients is bounded by the chunk size too, not
     by the total footprint of all particles (which autograd would otherwise keep: patches,
     visibilities and pixel indices of every chunk).
-    Shape: u, v, z, theta (I,), color (I, 3) -> A, C_r, C_g, C_b, each (2 B H W,).
+    Shape: u, v, z, theta (I,), color (I, 3) -> (4, 2 B H W): A, C_r, C_g, C_b.
     """
 
     @staticmethod
     def forward(ctx, u, v, z, theta, color, target, slots, depth_flat, plan, height, width,
                 beta):
         size = depth_flat.numel()
-        acc = [torch.zeros(size, dtype=u.dtype, device=u.device) for _ in range(4)]
+        acc = torch.zeros(4, size, dtype=u.dtype, device=u.device)
         for bk, idx in plan:
             c = _Chunk(bk, slots[idx], u[idx], v[idx], target[idx], height, width)
             weight = (c.patch() * c.visibility(depth_flat, z[idx], beta)
@@ -354,11 +401,12 @@ class _Splat(torch.autograd.Function):
                 acc[ch + 1].index_add_(0, flat, weight * per_pixel)
         ctx.save_for_backward(u, v, z, theta, color, target, slots, depth_flat)
         ctx.plan, ctx.height, ctx.width, ctx.beta = plan, height, width, beta
-        return tuple(acc)
+        return acc
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_alpha, g_r, g_g, g_b):
+    def backward(ctx, g_acc):
+        g_alpha, g_r, g_g, g_b = g_acc.unbind(0)
         u, v, z, theta, color, target, slots, depth_flat = ctx.saved_tensors
         need = ctx.needs_input_grad[:5]
         grads = [torch.zeros_like(t) if n else None for t, n in zip((u, v, z, theta, color), need)]
@@ -395,16 +443,47 @@ class _Splat(torch.autograd.Function):
         return (*grads, None, None, None, None, None, None, None)
 
 
-def _splat(depth_flat, inst, stamps: StampSet, height, width, beta, chunk_elements):
-    """The per-pixel sums A, C_r, C_g, C_b (each (2 B H W,)) of every instance's weighted stamp,
-    or None when no instance reaches the image; see :class:`_Splat`."""
-    plan = _splat_plan(inst, stamps, height, width, chunk_elements)
-    if not plan:
-        return None
+def _upsample(grid: torch.Tensor, factor: int) -> torch.Tensor:
+    """Bilinear upsampling by an integer factor, pixel centres aligned as in
+    ``(x + 0.5) / f − 0.5``. Shape: (C, 1, h, w) -> (C, 1, f h, f w)."""
+    return F.interpolate(grid, scale_factor=factor, mode="bilinear", align_corners=False)
+
+
+def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
+    """The per-pixel sums A, C_r, C_g, C_b, shape (4, 2 B H W), of every instance's weighted
+    stamp, or None when no instance reaches the image; see :class:`_Splat`.
+
+    ``depths`` (2, B, 1, H, W). Coarse buckets (large billboards) are splatted on their own
+    grid, ``f`` times coarser: positions ``(u + 0.5) / f − 0.5``, scene depth averaged over
+    f x f blocks; coarser grids are upsampled bilinearly into finer ones, coarsest first, and
+    the result into the image grid.
+    """
     slots = stamps.slot_of[inst["particle"]]
-    return list(_Splat.apply(inst["u"], inst["v"], inst["z"], inst["theta"], inst["color"],
-                             inst["target"], slots, depth_flat.detach(), plan, height, width,
-                             beta))
+    acc, carry = None, None        # carry: the coarser levels' sums, (4 * 2B, 1, h, w)
+    levels = sorted({bk.coarse for bk in stamps.buckets}, reverse=True)
+    for i, coarse in enumerate(levels):
+        f = 2 ** coarse
+        if coarse == 0:
+            h, w, u, v, depth = height, width, inst["u"], inst["v"], depths
+        else:
+            h, w = -(-height // f), -(-width // f)
+            u, v = (inst["u"] + 0.5) / f - 0.5, (inst["v"] + 0.5) / f - 0.5
+            flat = depths.reshape(-1, 1, height, width)
+            flat = F.pad(flat, (0, w * f - width, 0, h * f - height), mode="replicate")
+            depth = F.avg_pool2d(flat, f)
+        plan = _splat_plan(inst, stamps, h, w, chunk_elements, coarse, u, v)
+        sums = None
+        if plan:
+            sums = _Splat.apply(u, v, inst["z"], inst["theta"], inst["color"], inst["target"],
+                                slots, depth.detach().reshape(-1), plan, h, w,
+                                beta).view(-1, 1, h, w)
+        if carry is not None:  # bring the coarser levels to this grid, one upsampling each
+            up = _upsample(carry, 2 ** (levels[i - 1] - coarse))[..., :h, :w]
+            sums = up if sums is None else sums + up
+        carry = sums
+    if carry is not None and levels[-1] > 0:
+        carry = _upsample(carry, 2 ** levels[-1])[..., :height, :width]
+    return None if carry is None else carry.view(4, -1)
 
 
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
@@ -412,7 +491,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
            cam2_from_ref: torch.Tensor, particles: Union[Particles, Sequence[Particles]],
            templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
            stamps: Optional[StampSet] = None,
-           chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> RenderOutput:
+           chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
+           coarse_side: Optional[int] = COARSE_SIDE) -> RenderOutput:
     """Render particle records into a batch of frame pairs.
 
     Shape:
@@ -421,6 +501,9 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
             from each record's reference frame (see :func:`reference_transforms`).
         particles: one record per pair (a single record for B = 1).
     Computes in the images' dtype and device. Returns :class:`RenderOutput`.
+    ``coarse_side``: stamps at least this wide are splatted on a coarser grid and upsampled
+    (see :func:`build_stamps`); ``None`` renders every stamp at full resolution. Ignored when
+    ``stamps`` are given (they carry their own grids).
     """
     records = [particles] if isinstance(particles, Particles) else list(particles)
     if image1.dim() != 4 or image1.shape[1] != 3 or image2.shape != image1.shape:
@@ -456,19 +539,25 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     if inst is not None:
         if stamps is None:
             stamps = build_stamps(records, templates, dtype=dtype, device=device,
-                                  chunk_elements=chunk_elements)
-        depth_flat = torch.stack((depth1, depth2)).to(dtype).reshape(-1)
-        acc = _splat(depth_flat, inst, stamps, height, width, float(beta), chunk_elements)
+                                  chunk_elements=chunk_elements, coarse_side=coarse_side)
+        depths = torch.stack((depth1, depth2)).to(dtype)
+        acc = _splat(depths, inst, stamps, height, width, float(beta), chunk_elements)
     if acc is None:
-        acc = [torch.zeros(2 * bsz * height * width, dtype=dtype, device=device)
-               for _ in range(4)]
-
-    alpha = acc[0].view(2, bsz, 1, height, width)
-    colour = torch.stack([a.view(2, bsz, height, width) for a in acc[1:]], 2)
-    images = torch.stack((image1, image2))
-    alpha_mode = torch.tensor([r.blend == "alpha" for r in records], device=device)
-    alpha_mode = alpha_mode.view(1, bsz, 1, 1, 1)
-    out = torch.where(alpha_mode, images * (1 - alpha) + colour, images + colour).clamp(0, 1)
+        acc = torch.zeros(4, 2 * bsz * height * width, dtype=dtype, device=device)
+    acc = acc.view(4, 2, bsz, 1, height, width)
+    alpha = acc[0]                                                  # (2, B, 1, H, W)
+    colour = acc[1:].squeeze(3).permute(1, 2, 0, 3, 4)               # (2, B, 3, H, W), a view
+    modes = [r.blend == "alpha" for r in records]
+    out = []
+    for t, image in enumerate((image1, image2)):  # no stacked copies of the frames
+        if all(modes):
+            blended = torch.addcmul(colour[t], image, 1 - alpha[t])
+        elif not any(modes):
+            blended = image + colour[t]
+        else:
+            mode = torch.tensor(modes, device=device).view(bsz, 1, 1, 1)
+            blended = torch.where(mode, image * (1 - alpha[t]) + colour[t], image + colour[t])
+        out.append(blended.clamp_(0, 1))
     opacity = alpha.clamp(0, 1)
     return RenderOutput(image1=out[0], image2=out[1], opacity1=opacity[0], opacity2=opacity[1])
 
@@ -476,7 +565,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
 def render_pair(pair: Union[FramePair, FramePairBatch],
                 particles: Union[Particles, Sequence[Particles]],
                 templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
-                device=None, stamps: Optional[StampSet] = None) -> RenderOutput:
+                device=None, stamps: Optional[StampSet] = None,
+                coarse_side: Optional[int] = COARSE_SIDE) -> RenderOutput:
     """Render particles into a :class:`FramePair` (B = 1) or a :class:`FramePairBatch`.
 
     Picks each record's reference transforms from the pair's poses; raises ConfigError when a
@@ -516,4 +606,4 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
     if dev is not None:
         records = [r.to(dev) for r in records]
     return render(**fields, cam1_from_ref=c1, cam2_from_ref=c2, particles=records,
-                  templates=templates, beta=beta, stamps=stamps)
+                  templates=templates, beta=beta, stamps=stamps, coarse_side=coarse_side)
