@@ -17,10 +17,14 @@ With ``frame == "world"`` the reference is the dataset's world (``cam1_from_ref`
 ``cam1_from_ref`` is the identity and ``cam2_from_ref`` is ``cam2_from_cam1``. This equals the
 paper's ``T_rel (p1 + δ1) + m + δ2`` with ``m`` and ``δ2`` expressed in the reference frame.
 
-Storage precision: positions, motions and scales are float32; offsets, colours, transparencies
-and rotations are float16; template indices uint16; defocus radii uint8. Sampling returns a
-record already rounded to these precisions (:meth:`Particles.quantized`), so rendering the
-in-memory record and rendering the reloaded file give identical bytes.
+Storage precision (format version 2): positions and motions as codes on a per-record linear
+grid (``lo + code * step`` per axis, the grid spanning the record's values; 15 bits for
+positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for motions);
+colours as 8-bit codes; rotations in 256 steps of a turn;
+scales, offsets and transparencies float16; template indices uint16; defocus radii uint8.
+Sampling returns a record already rounded to these precisions (:meth:`Particles.quantized`,
+idempotent), so rendering the in-memory record and rendering the reloaded file give identical
+bytes. Version 1 files (float32 positions, motions and scales) are still read.
 """
 
 from __future__ import annotations
@@ -34,7 +38,8 @@ import torch
 
 from ..errors import FormatError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2)
 REFERENCE_FRAMES = ("world", "camera1")
 
 # Per-particle tensor fields: storage dtype and trailing shape.
@@ -51,6 +56,51 @@ _TENSOR_FIELDS = {
     "defocus": (np.uint8, ()),
 }
 _INTEGER_FIELDS = ("template", "defocus")
+# Format version 2 stores some fields as codes (see the module doc); the rest as in version 1.
+_GRID_FIELDS = ("position", "motion")                     # uint16 codes + "<name>_grid" (2, 3)
+_V2_DTYPES = {"color": np.uint8, "rotation": np.uint8, "scale": np.float16,
+              **{name: np.uint16 for name in _GRID_FIELDS}}
+# Grid levels: 15 bits for positions; 10 bits for motions (frame-to-frame displacements
+# spread over a much smaller range: rain's ±10 % of 0.2 units gives steps of 4e-5 units).
+_GRID_LEVELS = {"position": 32767, "motion": 1023}
+_ROTATION_STEPS = 256
+
+
+def _grid(values: torch.Tensor, levels: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Codes 0..levels of (N, 3) values on a per-axis grid spanning them: (codes (N, 3) int64,
+    lo (3,) float64, step (3,) float64). lo and lo + levels step are the (float32) extremes, so
+    decoding and encoding again gives the same codes."""
+    v = values.detach().cpu().to(torch.float32).to(torch.float64)
+    if v.shape[0] == 0:
+        zero = torch.zeros(v.shape[1:], dtype=torch.float64)
+        return torch.zeros(v.shape, dtype=torch.int64), zero, zero.clone()
+    lo, hi = v.min(0).values, v.max(0).values
+    step = (hi - lo) / levels
+    safe = torch.where(step > 0, step, torch.ones_like(step))
+    codes = torch.round((v - lo) / safe).clamp(0, levels).to(torch.int64)
+    return codes, lo, step
+
+
+def _ungrid(codes: torch.Tensor, lo: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """float32 values of grid codes. Shape: (N, 3), (3,), (3,) -> (N, 3)."""
+    return (lo + codes.to(torch.float64) * step).to(torch.float32)
+
+
+def _quantize_field(name: str, t: torch.Tensor) -> torch.Tensor:
+    """One field rounded to its storage precision, float32 (int64 for integer fields), on the
+    CPU."""
+    t = t.detach().cpu()
+    if name in _INTEGER_FIELDS:
+        return t.to(torch.int64)
+    if name in _GRID_FIELDS:
+        return _ungrid(*_grid(t, _GRID_LEVELS[name]))
+    if name == "color":
+        return (torch.round(t.double().clamp(0, 1) * 255) / 255).to(torch.float32)
+    if name == "rotation":
+        turn = torch.remainder(torch.round(t.double() / (2 * np.pi) * _ROTATION_STEPS),
+                               _ROTATION_STEPS)
+        return (turn * (2 * np.pi / _ROTATION_STEPS)).to(torch.float32)
+    return t.to(torch.float16).to(torch.float32)
 
 
 @dataclass
@@ -119,16 +169,10 @@ class Particles:
         return self.replace(**{name: getattr(self, name)[index] for name in _TENSOR_FIELDS})
 
     def quantized(self) -> "Particles":
-        """A detached copy with every field rounded to its storage precision (see module doc)."""
-        out = {}
-        for name, (np_dtype, _) in _TENSOR_FIELDS.items():
-            t = getattr(self, name).detach()
-            if name in _INTEGER_FIELDS:
-                out[name] = t.to(torch.int64)
-            else:
-                storage = torch.from_numpy(np.zeros(0, np_dtype)).dtype
-                out[name] = t.to(storage).to(torch.float32)
-        return self.replace(**out)
+        """A detached copy with every field rounded to its storage precision (see module doc).
+        Idempotent: quantizing a quantized record changes nothing."""
+        return self.replace(**{name: _quantize_field(name, getattr(self, name)).to(
+            getattr(self, name).device) for name in _TENSOR_FIELDS})
 
     def metadata(self) -> dict:
         """The non-tensor fields: reference frame and render settings."""
@@ -139,11 +183,22 @@ class Particles:
     # -- storage -----------------------------------------------------------------------------
 
     def to_numpy(self) -> dict[str, np.ndarray]:
-        """The ``.npz`` content: storage-precision arrays plus 0-d metadata arrays."""
-        q = self.quantized()
+        """The ``.npz`` content (format version 2): storage arrays plus 0-d metadata arrays."""
         arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
-            arrays[name] = getattr(q, name).cpu().numpy().astype(np_dtype)
+            t = getattr(self, name).detach().cpu()
+            if name in _GRID_FIELDS:
+                codes, lo, step = _grid(t, _GRID_LEVELS[name])
+                arrays[name] = codes.numpy().astype(np.uint16)
+                arrays[f"{name}_grid"] = torch.stack((lo, step)).numpy()
+            elif name == "color":
+                arrays[name] = np.round(t.double().clamp(0, 1).numpy() * 255).astype(np.uint8)
+            elif name == "rotation":
+                turn = np.round(t.double().numpy() / (2 * np.pi) * _ROTATION_STEPS)
+                arrays[name] = np.remainder(turn, _ROTATION_STEPS).astype(np.uint8)
+            else:
+                arrays[name] = _quantize_field(name, t).numpy().astype(
+                    _V2_DTYPES.get(name, np_dtype))
         for key, value in self.metadata().items():
             arrays[key] = np.array(value)
         return arrays
@@ -169,9 +224,10 @@ class Particles:
         version = arrays.get("format_version")
         if version is None:
             raise FormatError(path, "no format_version: not a weathergen particle file")
-        if int(version) != FORMAT_VERSION:
+        if int(version) not in READABLE_VERSIONS:
             raise FormatError(path, f"particle format version {int(version)}; this weathergen "
-                                    f"reads version {FORMAT_VERSION}")
+                                    f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
+        v2 = int(version) == 2
         n = None
         fields = {}
         for name, (np_dtype, tail) in _TENSOR_FIELDS.items():
@@ -180,10 +236,23 @@ class Particles:
             a = arrays[name]
             if n is None:
                 n = a.shape[0] if a.ndim else -1
-            if a.dtype != np_dtype or a.shape != (n, *tail):
+            want = _V2_DTYPES.get(name, np_dtype) if v2 else np_dtype
+            if a.dtype != want or a.shape != (n, *tail):
                 raise FormatError(path, f"array '{name}' is {a.dtype} {a.shape}, expected "
-                                        f"{np.dtype(np_dtype)} {(n, *tail)}")
-            t = torch.from_numpy(a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32))
+                                        f"{np.dtype(want)} {(n, *tail)}")
+            if v2 and name in _GRID_FIELDS:
+                grid = arrays.get(f"{name}_grid")
+                if grid is None or grid.dtype != np.float64 or grid.shape != (2, 3):
+                    raise FormatError(path, f"array '{name}_grid' must be float64 (2, 3)")
+                g = torch.from_numpy(grid)
+                t = _ungrid(torch.from_numpy(a.astype(np.int64)), g[0], g[1])
+            elif v2 and name == "color":
+                t = torch.from_numpy((a.astype(np.float64) / 255).astype(np.float32))
+            elif v2 and name == "rotation":
+                t = torch.from_numpy((a.astype(np.float64) * (2 * np.pi / _ROTATION_STEPS))
+                                     .astype(np.float32))
+            else:
+                t = torch.from_numpy(a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32))
             fields[name] = t.to(device) if device is not None else t
         meta = {}
         for key, kind in (("frame", str), ("blend", str), ("blur_length", float),
