@@ -483,7 +483,7 @@ def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
         carry = sums
     if carry is not None and levels[-1] > 0:
         carry = _upsample(carry, 2 ** levels[-1])[..., :height, :width]
-    return None if carry is None else carry.view(4, -1)
+    return None if carry is None else carry.reshape(4, -1)
 
 
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
