@@ -266,6 +266,21 @@ class Particles:
         return cls(**fields, **meta)
 
 
+def stored_values(arrays: dict, name: str) -> np.ndarray:
+    """The values a particle file's array ``name`` stands for (codes decoded), for display.
+    Shape: as stored."""
+    a = arrays[name]
+    if int(arrays.get("format_version", FORMAT_VERSION)) >= 2:
+        if name in _GRID_FIELDS and f"{name}_grid" in arrays:
+            grid = np.asarray(arrays[f"{name}_grid"], np.float64)
+            return grid[0] + a.astype(np.float64) * grid[1]
+        if name == "color":
+            return a.astype(np.float64) / 255
+        if name == "rotation":
+            return a.astype(np.float64) * (2 * np.pi / _ROTATION_STEPS)
+    return a.astype(np.float64)
+
+
 def empty_particles(frame: str = "world", **settings) -> Particles:
     """A record with no particles (renders to the unchanged frames)."""
     z3 = torch.zeros(0, 3)
