@@ -89,7 +89,7 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
     """
     from weathergen.attack import (ATTACK_CONFIGS, OPTIMIZABLE, AttackSettings, attack_config,
                                    parse_optimize, parse_target)
-    from weathergen.attack_job import AttackJob, run_attack
+    from weathergen.attack import AttackJob, run_attack
     from weathergen.engine import BETA_ATTACK, BETA_RENDER, resolve_device
     from weathergen.errors import ConfigError
 

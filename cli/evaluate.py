@@ -40,7 +40,8 @@ def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root
     where the dataset has it. All figures are in pixels.
     """
     from weathergen.engine import resolve_device
-    from weathergen.evaluate import WeatherFolder, run_evaluation, write_evaluation
+    from weathergen.attack import run_evaluation, write_evaluation
+    from weathergen.outputs import WeatherFolder
     from weathergen.models import get_model
 
     resolve_device(device)

@@ -74,7 +74,7 @@ def inspect(file: Path):
 def preview(render_dir: Path, out, pairs, width):
     """Write a contact sheet of a render output: original, weather frame and particle opacity."""
     from weathergen.io.images import write_png
-    from weathergen.preview import contact_sheet
+    from weathergen.render import contact_sheet
 
     sheet = contact_sheet(render_dir, pairs=pairs, width=width)
     out = out or render_dir / "preview.png"

@@ -14,6 +14,16 @@ from weathergen.errors import WeatherGenError
 ARGV_KEY = "weathergen.argv"
 
 
+#: Library parameters whose command-line option has another name; the others are ``--name``.
+OPTIONS = {"particles_from": "--particles", "config_name": "--config", "fmt": "--format",
+           "overrides": "--set"}
+
+
+def option_of(parameter: str) -> str:
+    """The command-line option of a library parameter (``pass_name`` -> ``--pass-name``)."""
+    return OPTIONS.get(parameter, "--" + parameter.replace("_", "-"))
+
+
 class _Group(click.Group):
     """A click group that turns user errors into one line on stderr and exit code 2."""
 
@@ -25,7 +35,7 @@ class _Group(click.Group):
         try:
             return super().invoke(ctx)
         except WeatherGenError as exc:
-            click.echo(f"Error: {exc}", err=True)
+            click.echo(f"Error: {exc.render(option_of)}", err=True)
             sys.exit(2)
 
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import signal
 import sys
 import time
@@ -71,14 +70,10 @@ def resolve_preset(preset_name, preset_file, set_items, particles_dir):
 
 
 def _stored_preset(particles_dir: Path) -> dict:
-    manifest = particles_dir / "manifest.json"
-    if not manifest.is_file():
-        raise ConfigError(f"{manifest}: not found; --particles takes the folder of an earlier render")
-    try:
-        data = json.loads(manifest.read_text())
-        return {"name": data["preset_name"], "preset": data["preset"]}
-    except (ValueError, KeyError):
-        raise ConfigError(f"{manifest}: not a weathergen render manifest") from None
+    from weathergen.outputs import read_manifest
+
+    manifest = read_manifest(particles_dir, "particles_from")
+    return {"name": manifest.preset_name, "preset": manifest.preset}
 
 
 @contextlib.contextmanager
@@ -145,7 +140,8 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
 
     With no option it renders the snow preset onto the bundled demo scene into out/snow.
     """
-    from weathergen.batch import RenderJob, folder_size, parse_shard, run_render
+    from weathergen.outputs import folder_size
+    from weathergen.render import RenderJob, parse_shard, run_render
     from weathergen.engine import resolve_device
 
     dev = resolve_device(device)

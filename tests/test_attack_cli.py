@@ -81,7 +81,7 @@ def test_flow_pictures_share_one_scale(attack_out):
 
 def test_attack_log_and_summary(attack_out):
     out, _ = attack_out
-    from weathergen.attack_outputs import read_log
+    from weathergen.outputs import read_log
 
     rows = read_log(out / "training" / "attack_log" / f"{PAIR}.csv")
     assert [r["step"] for r in rows] == [0, 1, 2]
@@ -189,7 +189,7 @@ def test_stored_fog_particles_keep_the_second_offset_fixed(tmp_path):
 def test_interrupted_run_resumes_at_the_unfinished_pair(tmp_path, monkeypatch):
     if not WEIGHTS.is_file():
         pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
-    import weathergen.attack_job as attack_job
+    import weathergen.attack.job as attack_job
 
     real = attack_job.attack_pair
 

@@ -31,7 +31,7 @@ def model():
 
 def test_identical_frames_have_zero_robustness_error(model):
     from weathergen.datasets import demo_pairs
-    from weathergen.evaluate import evaluate_frames
+    from weathergen.attack import evaluate_frames
     from weathergen.flow import aee
 
     pair = demo_pairs(scenes=["street"], frames_per_scene=1)[0]

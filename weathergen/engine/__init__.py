@@ -23,7 +23,7 @@ _EXPORTS = {
     "Particles": "particles", "empty_particles": "particles", "to_atanh": "particles",
     "from_atanh": "particles",
     "sample_particles": "sampling", "reference_transforms": "sampling", "world_down": "sampling",
-    "resolve_device": "sampling",
+    "resolve_device": "sampling", "visible_counts": "sampling",
     "render": "renderer", "render_pair": "renderer", "build_stamps": "renderer",
     "RenderOutput": "renderer", "StampSet": "renderer", "BETA_RENDER": "renderer",
     "BETA_ATTACK": "renderer",

@@ -51,6 +51,8 @@ _TENSOR_FIELDS = {
     "defocus": (np.uint8, ()),
 }
 _INTEGER_FIELDS = ("template", "defocus")
+#: The names of the per-particle tensors of a record.
+TENSOR_FIELDS = tuple(_TENSOR_FIELDS)
 
 
 @dataclass

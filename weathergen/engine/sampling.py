@@ -303,3 +303,20 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
                        color=color, transparency=theta, template=template, rotation=rotation,
                        scale=scale, defocus=defocus, frame=frame, **settings)
     return record.quantized().to(dev)
+
+
+def visible_counts(pair: FramePair, particles: Particles) -> tuple[int, int]:
+    """How many particle centres each frame shows in front of the scene surface.
+
+    The test of sampling (:func:`_visible`): frame 1 sees ``P + δ1``, frame 2 ``P + δ1 + M + δ2``.
+    """
+    _, cam1_from_ref, cam2_from_ref = reference_transforms(pair)
+    start = (particles.position + particles.offset1).double().cpu()
+    end = start + (particles.motion + particles.offset2).double().cpu()
+    k = pair.intrinsics.double().cpu()
+    counts = []
+    for cam_from_ref, points, depth in ((cam1_from_ref, start, pair.depth1),
+                                        (cam2_from_ref, end, pair.depth2)):
+        camera = transform_points(cam_from_ref.double().cpu(), points)
+        counts.append(int(_visible(camera, k, depth.cpu()).sum()))
+    return counts[0], counts[1]
