@@ -9,19 +9,14 @@ import click
 from weathergen import __version__
 from weathergen.errors import WeatherGenError
 
-
-#: Where the group keeps the command line it was given (``ctx.meta``), for manifests.
-ARGV_KEY = "weathergen.argv"
-
-
-#: Library parameters whose command-line option has another name; the others are ``--name``.
-OPTIONS = {"particles_from": "--particles", "config_name": "--config", "fmt": "--format",
-           "overrides": "--set"}
-
-
-def option_of(parameter: str) -> str:
-    """The command-line option of a library parameter (``pass_name`` -> ``--pass-name``)."""
-    return OPTIONS.get(parameter, "--" + parameter.replace("_", "-"))
+from .attack import attack
+from .check import check
+from .demo_scene import demo_scene
+from .evaluate import evaluate
+from .inspect_cmd import inspect, preview
+from .options import ARGV_KEY, option_of
+from .presets_cmd import presets_command
+from .render import render
 
 
 class _Group(click.Group):
@@ -45,12 +40,14 @@ def cli():
     """Physically placed weather for optical-flow datasets, and weather attacks on flow networks."""
 
 
+for _command in (attack, check, demo_scene, evaluate, inspect, preview, presets_command, render):
+    cli.add_command(_command)
+
+
 def _register():
-    # Each module adds its command to the group on import.
-    from . import (attack, check, demo_scene, evaluate, inspect_cmd,  # noqa: F401
-                   presets_cmd, render)
+    """Nothing to do: every command is added when this module is imported. Kept for callers
+    written when commands were added on first use."""
 
 
 def main(argv=None):
-    _register()
     return cli.main(args=argv, prog_name="weathergen")

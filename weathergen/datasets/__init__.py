@@ -12,6 +12,7 @@ from typing import Optional
 from ..errors import ConfigError
 from .base import Dataset, PairRef, Selection
 from .custom import CustomDataset
+from .demo import demo_root
 from .kitti import KittiDataset
 from .sintel import SintelDataset, load_scene_scales
 from .spring import SpringDataset
@@ -24,8 +25,6 @@ class DemoDataset(SintelDataset):
     default_world_up = "+z"          # the demo world is z-up, like the Blender scenes behind Sintel
 
     def __init__(self, root=None, selection: Selection = Selection(), **options):
-        from .demo import demo_root
-
         super().__init__(root if root is not None else demo_root(), selection, **options)
 
 

@@ -11,6 +11,7 @@ import torch
 
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
+from ..geometry import invert_rigid, to_homogeneous
 from .base import Dataset, Selection
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
@@ -180,8 +181,6 @@ def scaled_poses(cam1_from_world: np.ndarray, cam2_from_world: np.ndarray, scale
     Shape: (4, 4) or (3, 4) each -> ``(cam1_from_world, cam2_from_world, cam2_from_cam1)``, (4, 4)
     float64.
     """
-    from ..geometry import invert_rigid, to_homogeneous
-
     poses = []
     for e in (cam1_from_world, cam2_from_world):
         t = torch.from_numpy(np.array(e, np.float64))

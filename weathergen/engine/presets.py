@@ -22,9 +22,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional
 
-from ..errors import ConfigError
+from ..errors import ConfigError, WeatherGenError
+from .templates import BUILTIN_TEMPLATE_KINDS, load_templates
 
-BUILTIN_TEMPLATE_KINDS = ("flakes", "dust")
 BLEND_MODES = ("additive", "alpha")
 TRANSPARENCY_MODES = ("depth", "constant")
 
@@ -304,9 +304,6 @@ def _check_template_folder(value: str, where: str) -> None:
     than in the middle of a run."""
     if value in BUILTIN_TEMPLATE_KINDS:
         return
-    from ..errors import WeatherGenError
-    from .templates import load_templates
-
     try:
         load_templates(value)
     except WeatherGenError as exc:

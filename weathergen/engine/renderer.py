@@ -38,7 +38,7 @@ from typing import Optional, Sequence, Union
 import torch
 import torch.nn.functional as F
 
-from ..errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from ..geometry import project, transform_points
 from .particles import Particles
@@ -412,15 +412,15 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     """
     records = [particles] if isinstance(particles, Particles) else list(particles)
     if image1.dim() != 4 or image1.shape[1] != 3 or image2.shape != image1.shape:
-        raise DatasetError(f"images must be (B, 3, H, W) and equal; got {tuple(image1.shape)} "
-                           f"and {tuple(image2.shape)}")
+        raise ShapeError(f"images must be (B, 3, H, W) and equal; got {tuple(image1.shape)} "
+                         f"and {tuple(image2.shape)}")
     bsz, _, height, width = image1.shape
     for name, d in (("depth1", depth1), ("depth2", depth2)):
         if d is None:
             raise DatasetError(f"{name} is missing; weather rendering needs scene depth")
         if tuple(d.shape) != (bsz, 1, height, width):
-            raise DatasetError(f"{name} has shape {tuple(d.shape)}, expected "
-                               f"{(bsz, 1, height, width)}")
+            raise ShapeError(f"{name} has shape {tuple(d.shape)}, expected "
+                             f"{(bsz, 1, height, width)}")
     if len(records) != bsz:
         raise ConfigError(f"{len(records)} particle records for a batch of {bsz} frame pairs")
     dtype, device = image1.dtype, image1.device
