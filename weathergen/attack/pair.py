@@ -206,7 +206,7 @@ class PairOptimisation:
         with torch.no_grad():
             self.benign = model(self.frames["image1"], self.frames["image2"])
         self.goal = target_flow(target, self.benign, target_file_flow)
-        self.templates = load_templates(particles.templates)
+        self.templates = load_templates(particles.settings.templates)
         # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
         self.stamps = (build_stamps([particles], self.templates, device=device)
                        if particles.count else None)

@@ -19,10 +19,12 @@ from .renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_s
                        render_pair)
 from .sampling import (reference_transforms, resolve_device, sample_particles, visible_counts,
                        world_down)
+from .settings import APPEARANCE_KEYS, RenderSettings
 from .templates import (TemplateLibrary, generate_templates, load_templates,
                         write_builtin_templates)
 
-__all__ = ["BETA_ATTACK", "BETA_RENDER", "Particles", "Preset", "RenderOutput", "StampSet",
+__all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "Particles", "Preset", "RenderOutput",
+           "RenderSettings", "StampSet",
            "TemplateLibrary", "build_stamps", "empty_particles", "from_atanh", "generate_templates",
            "list_presets", "load_preset", "load_templates", "parse_override", "parse_set_options",
            "preset_keys", "reference_transforms", "render", "render_pair", "resolve_device",

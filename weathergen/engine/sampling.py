@@ -31,6 +31,7 @@ from ..framepair import FramePair
 from ..geometry import invert_rigid, project, transform_points
 from .particles import Particles, empty_particles
 from .presets import Preset
+from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
 
 WORLD_UP_CHOICES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
@@ -230,13 +231,10 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     ref_from_cam1 = invert_rigid(cam1_from_ref)
     k = pair.intrinsics.double().cpu()
     depth1, depth2 = pair.depth1.cpu(), pair.depth2.cpu()
-    settings = dict(blend=preset.blend, blur_length=preset.effective_blur_length,
-                    blur_samples=preset.blur_sample_count,
-                    defocus_brighten=preset.defocus_brighten, templates=lib.name,
-                    templates_digest=lib.digest)
+    settings = RenderSettings.from_preset(preset, lib)
     n = preset.count
     if n == 0:
-        return empty_particles(frame, **settings).to(dev)
+        return empty_particles(frame, settings).to(dev)
 
     ref_from_vertical = _vertical_frame(world_down(cam1_from_ref, cam2_from_ref, world_up),
                                         cam1_from_ref)
@@ -301,7 +299,7 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     zeros = torch.zeros(n, 3, dtype=torch.float64)
     record = Particles(position=position, motion=motion, offset1=zeros, offset2=zeros.clone(),
                        color=color, transparency=theta, template=template, rotation=rotation,
-                       scale=scale, defocus=defocus, frame=frame, **settings)
+                       scale=scale, defocus=defocus, frame=frame, settings=settings)
     return record.quantized().to(dev)
 
 

@@ -30,4 +30,6 @@ def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: 
     if particles_from is None:
         return sample_particles(pair, preset, pair_seed(run_seed, pair.id), world_up=world_up)
     particles = load_pair_particles(particles_from, pair.id)
-    return particles.replace(**appearance) if appearance else particles
+    if not appearance:
+        return particles
+    return particles.replace(settings=particles.settings.replace(**appearance))

@@ -4,8 +4,9 @@ Every rule the command line applies lives here, so a library user gets the same 
 
 - a preset file replaces the preset name; overrides apply on top of either;
 - re-rendering stored particles (``particles_from``) takes the preset they were sampled from,
-  and only the :data:`APPEARANCE_KEYS` may change (they change how the particles look, not where
-  they are);
+  and only the :data:`~weathergen.engine.APPEARANCE_KEYS` may change (they change how the
+  particles look, not where they are: the fields of their
+  :class:`~weathergen.engine.RenderSettings` other than the templates);
 - the output folder defaults to ``out/<preset>``, the pass to ``<preset>_<input pass>``, the batch
   to 8 pairs on CUDA and 1 elsewhere.
 """
@@ -17,13 +18,9 @@ from typing import Mapping, NamedTuple, Optional
 
 import torch
 
-from ..engine import Preset, list_presets, load_preset
+from ..engine import APPEARANCE_KEYS, Preset, RenderSettings, list_presets, load_preset
 from ..errors import ConfigError
 from ..outputs import read_manifest
-
-#: Preset keys that only change how stored particles look, so they may change on re-rendering.
-APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defocus_brighten")
-
 
 class ResolvedPreset(NamedTuple):
     """The preset of a run, its name, and (re-rendering) the particle settings that change."""
@@ -58,11 +55,7 @@ def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = Non
     name = stored.preset_name
     base = name if name in list_presets() else "snow"  # every key is set anyway
     resolved = load_preset(base, {**values, **overrides})
-    appearance = {}
-    if overrides:
-        appearance = {"blend": resolved.blend, "blur_length": resolved.effective_blur_length,
-                      "blur_samples": resolved.blur_sample_count,
-                      "defocus_brighten": resolved.defocus_brighten}
+    appearance = RenderSettings.from_preset(resolved).appearance() if overrides else {}
     return ResolvedPreset(resolved, name, appearance)
 
 
