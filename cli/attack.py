@@ -10,7 +10,7 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from weathergen.attack import AttackJob, parse_target, run_attack
+from weathergen.attack import ATTACK_CONFIGS, AttackJob, parse_target, run_attack
 from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
 from weathergen.engine import parse_set_options, resolve_device
 
@@ -41,10 +41,8 @@ def summary_table(title: str, summary: dict) -> Table:
 @dataset_options
 @model_options
 @click.option("--config", "config_name", default=None, metavar="NAME",
-              help="An attack configuration of the paper's supplement (grey-offset1, "
-                   "grey-offset2, grey-color, grey-transparency, grey-offsets, grey-appearance, "
-                   "grey-all, snow, rain, sparks, fog): sets preset, --optimize, --lr and the "
-                   "occlusion gradient; explicit options win.")
+              help=f"An attack configuration of the paper's supplement ({', '.join(ATTACK_CONFIGS)}): "
+                   "sets preset, --optimize, --lr and the occlusion gradient; explicit options win.")
 @click.option("--preset", default=None,
               help="Weather preset the particles are sampled from. Default: the --config's "
                    "preset, else snow.")
