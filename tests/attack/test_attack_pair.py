@@ -15,7 +15,6 @@ from weathergen.attack import (ATTACK_CONFIGS, LR_APPEARANCE, LR_POSITIONS, OPTI
                                parse_optimize, parse_target, particle_depths, target_flow)
 from weathergen.errors import ConfigError
 
-WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "weights" / "raft-small.pth"
 
 
 def crop_pair(pair, top: int, left: int, height: int, width: int):
@@ -40,12 +39,10 @@ def small_pair():
 
 
 @pytest.fixture(scope="module")
-def raft_small():
-    if not WEIGHTS.is_file():
-        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
+def raft_small(raft_small_weights):
     from weathergen.models import get_model
 
-    return get_model("raft-small", checkpoint=WEIGHTS, iters=2)
+    return get_model("raft-small", checkpoint=raft_small_weights, iters=2)
 
 
 def grey_particles(pair, count=80, seed=3):

@@ -23,6 +23,9 @@ from weathergen.outputs import read_metadata
 # Small and quick: a few hundred particles on the street scene's first two pairs.
 FAST = ("--scenes", "street", "--frames-per-scene", "2", "--set", "count=300")
 
+#: Every test here runs whole commands on the demo scene.
+pytestmark = pytest.mark.slow
+
 
 def run(*args):
     _register()
