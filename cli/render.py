@@ -16,7 +16,7 @@ from rich.text import Text
 from rich.table import Table
 
 from weathergen.engine import parse_set_options, resolve_device
-from weathergen.outputs import folder_size
+from weathergen.outputs import FORMATS, folder_size
 from weathergen.render import RenderJob, parse_shard, run_render
 from weathergen.render.plan import default_batch_size, default_out, default_pass_name, resolve_preset
 
@@ -87,7 +87,7 @@ def _terminate_as_interrupt():
 @click.option("--batch-size", type=click.IntRange(min=1), default=None,
               help="Pairs of the same size rendered together. Default: 8 on CUDA, 1 on CPU. "
                    "Does not change the output bytes.")
-@click.option("--format", "fmt", type=click.Choice(["png", "exr", "both"]), default="png",
+@click.option("--format", "fmt", type=click.Choice(FORMATS), default="png",
               show_default=True, help="8-bit PNG frames, float OpenEXR frames with an opacity channel, or both.")
 @click.option("--geometry/--no-geometry", default=True, show_default=True,
               help="Also write depth, cameras and flow per pair, so the output reads as a Sintel tree.")

@@ -112,3 +112,22 @@ def test_packages_resolve_their_names_at_import(module):
     assert not hasattr(mod, "__getattr__"), f"{module} resolves names lazily"
     for name in mod.__all__:
         assert name in vars(mod), f"{module}.{name} is not imported at the top"
+
+
+#: The layers of docs/architecture.md, lowest first; a package imports only lower layers.
+LAYERS = [("weathergen", "weathergen.errors"),
+          ("weathergen.framepair", "weathergen.geometry", "weathergen.flow", "weathergen.io"),
+          ("weathergen.datasets", "weathergen.models", "weathergen.engine"),
+          ("weathergen.outputs",), ("weathergen.render",), ("weathergen.attack",),
+          ("weathergen.cli",)]
+
+
+def test_each_layer_imports_only_the_layers_below_it():
+    rank = {package: i for i, layer in enumerate(LAYERS) for package in layer}
+
+    def package(module):
+        return module if module in rank else ".".join(module.split(".")[:2])
+
+    upward = [f"{a} imports {b}" for a, targets in _graph().items() for b in targets
+              if package(a) != package(b) and rank[package(a)] <= rank[package(b)]]
+    assert not upward, "imports that do not go down a layer:\n" + "\n".join(upward)
