@@ -8,7 +8,7 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from weathergen.attack import run_evaluation, write_evaluation
+from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
 from weathergen.engine import resolve_device
 from weathergen.models import get_model
 from weathergen.outputs import WeatherFolder
@@ -57,7 +57,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
     info = {"model": model, "checkpoint": checkpoint, "iters": iters,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
-    json_path = json_path or weather_dir / f"evaluate-{model}.json"
+    json_path = json_path or default_evaluation_path(weather_dir, model)
     write_evaluation(json_path, info, rows, summary)
     if quiet:
         return

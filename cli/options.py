@@ -7,7 +7,7 @@ from pathlib import Path
 
 import click
 
-from weathergen.datasets import DATASETS, load_scene_scales, open_dataset
+from weathergen.datasets import DATASETS, default_dataset, load_scene_scales, open_dataset
 from weathergen.datasets.common import WORLD_UP_CHOICES
 
 
@@ -16,7 +16,7 @@ ARGV_KEY = "weathergen.argv"
 
 #: Library parameters whose command-line option has another name; the others are ``--name``.
 OPTIONS = {"particles_from": "--particles", "config_name": "--config", "fmt": "--format",
-           "overrides": "--set"}
+           "overrides": "--set", "pass_": "--pass"}
 
 
 def option_of(parameter: str) -> str:
@@ -101,7 +101,7 @@ def dataset_options(func):
     def wrapper(*args, dataset_name, root, split, pass_, scenes, from_scene, frames_per_scene,
                 first_frame, depth_scale, scene_scales, camera_translation, far_depth, world_up,
                 **kwargs):
-        name = dataset_name or ("sintel" if root else "demo")
+        name = dataset_name or default_dataset(root)
         options = dict(depth_scale=depth_scale, camera_translation=camera_translation,
                        scene_scales=load_scene_scales(scene_scales) if scene_scales else None,
                        world_up=world_up)

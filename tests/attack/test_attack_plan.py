@@ -6,7 +6,8 @@ import json
 
 import pytest
 
-from weathergen.attack import ATTACK_CONFIGS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE
+from weathergen.attack import (ATTACK_CONFIGS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE,
+                               default_evaluation_path)
 from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
 from weathergen.engine import BETA_ATTACK, BETA_RENDER, load_preset
 from weathergen.errors import ConfigError
@@ -73,3 +74,4 @@ def test_unknown_names_are_refused():
 def test_defaults():
     assert default_attack_out("fog").as_posix() == "out/attack-fog"
     assert attack_pass_name("fog", "clean") == "fog_adv_clean"
+    assert default_evaluation_path("out/snow", "raft-small").as_posix() == "out/snow/evaluate-raft-small.json"

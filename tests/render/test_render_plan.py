@@ -6,10 +6,9 @@ import json
 
 import pytest
 
-from weathergen.engine import load_preset
+from weathergen.engine import APPEARANCE_KEYS, load_preset
 from weathergen.errors import ConfigError, FormatError
-from weathergen.render.plan import (APPEARANCE_KEYS, default_batch_size, default_out,
-                                    default_pass_name, resolve_preset)
+from weathergen.render.plan import default_batch_size, default_out, default_pass_name, resolve_preset
 
 
 def stored_output(folder, name, **overrides):

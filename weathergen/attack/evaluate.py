@@ -90,6 +90,11 @@ def mean_rows(rows: list[EvalRow]) -> dict:
     return out
 
 
+def default_evaluation_path(weather: str | Path, model: str) -> Path:
+    """Where the figures go when no file is given: ``WEATHER/evaluate-<model>.json``."""
+    return Path(weather) / f"evaluate-{model}.json"
+
+
 def write_evaluation(path: str | Path, info: dict, rows: list[EvalRow], summary: dict) -> Path:
     """Write the evaluation as JSON (``info``: model, weather folder, ...), atomically."""
     data = {**info, "summary": summary, "pairs": [asdict(r) for r in rows]}

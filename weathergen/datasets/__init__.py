@@ -38,6 +38,11 @@ DATASETS: dict[str, type[Dataset]] = {
 }
 
 
+def default_dataset(root: Optional[str | Path]) -> str:
+    """The reader used when none is named: the bundled ``demo`` without a root, ``sintel`` with one."""
+    return "sintel" if root else "demo"
+
+
 def open_dataset(name: str, root: Optional[str | Path] = None, *, split: str = "training",
                  pass_: str = "clean", scenes=None, from_scene=None, frames_per_scene=None,
                  first_frame=None, **options) -> Dataset:
@@ -51,7 +56,7 @@ def open_dataset(name: str, root: Optional[str | Path] = None, *, split: str = "
     except KeyError:
         raise ConfigError(f"unknown dataset {name!r}; known: {', '.join(sorted(DATASETS))}") from None
     if root is None and name != "demo":
-        raise ConfigError(f"dataset {name!r} needs --root, the folder it is stored in")
+        raise ConfigError(f"dataset {name!r} needs ${{root}}, the folder it is stored in")
     selection = Selection(split=split, pass_=pass_, scenes=tuple(scenes) if scenes else None,
                           from_scene=from_scene, frames_per_scene=frames_per_scene,
                           first_frame=first_frame)
@@ -89,5 +94,5 @@ def demo_pairs(**selection) -> list:
 
 
 __all__ = ["DATASETS", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset",
-           "PairRef", "Selection", "SintelDataset", "SpringDataset", "demo_pairs",
+           "PairRef", "Selection", "SintelDataset", "SpringDataset", "default_dataset", "demo_pairs",
            "load_scene_scales", "open_dataset", "reopen_dataset"]

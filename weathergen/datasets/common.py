@@ -105,7 +105,7 @@ class FarDepthDataset(ScaledDataset):
             raise ConfigError(f"unknown {self.name} split {selection.split!r}; choose from "
                               f"{', '.join(sorted(self.split_folders))}")
         if selection.pass_ != "clean":
-            raise ConfigError(f"{self.name} has a single rendering pass; --pass {selection.pass_!r} "
+            raise ConfigError(f"{self.name} has a single rendering pass; ${{pass_}} {selection.pass_!r} "
                               f"does not apply (leave it at 'clean')")
         far = DEFAULT_FAR_DEPTH if far_depth is None else far_depth
         if not (np.isfinite(far) and far > 0):

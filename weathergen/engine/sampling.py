@@ -52,7 +52,7 @@ def resolve_device(device: Optional[Union[str, torch.device]]) -> torch.device:
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise WeatherGenError(f"device {device!r} requested but CUDA is not available "
-                                  "on this machine (use --device cpu)")
+                                  "on this machine (use ${device} cpu)")
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise WeatherGenError(f"device {device!r} requested but only "
                                   f"{torch.cuda.device_count()} CUDA device(s) exist")
