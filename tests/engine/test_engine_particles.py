@@ -71,7 +71,8 @@ def test_version_1_files_are_still_read(tmp_path, snow_pair_and_particles):
                         ("transparency", np.float16), ("template", np.uint16),
                         ("rotation", np.float16), ("scale", np.float32), ("defocus", np.uint8)):
         v1[name] = getattr(parts, name).numpy().astype(dtype)
-    v1.update({k: np.array(v) for k, v in parts.metadata().items()})
+    v1["frame"] = np.array(parts.frame)
+    v1.update(parts.settings.to_arrays())
     np.savez(tmp_path / "v1.npz", **v1)
     again = Particles.load(tmp_path / "v1.npz")
     assert torch.equal(again.position, parts.position) and torch.equal(again.motion, parts.motion)

@@ -21,7 +21,8 @@ import torch
 import torch.nn.functional as F
 
 from engine_scenes import plane_pair
-from weathergen.engine import Particles, load_preset, load_templates, render_pair, sample_particles
+from weathergen.engine import (Particles, RenderSettings, load_preset, load_templates,
+                               render_pair, sample_particles)
 from weathergen.engine.sampling import defocus_radius, transparency_hat
 from weathergen.engine.templates import TEMPLATE_ALPHA_RANGE, _disc_mask
 
@@ -67,12 +68,12 @@ def ref_stamp(tmpl: torch.Tensor, rotation: float, footprint: float, radius: int
 
 def ref_render(pair, parts: Particles, frame: int = 0) -> np.ndarray:
     """Additive render of frame 1 or 2 (all particles in front of the far plane). (H, W, 3)."""
-    lib = load_templates(parts.templates)
+    lib = load_templates(parts.settings.templates)
     k = pair.intrinsics
     out = np.zeros((H + 200, W + 200, 3))            # a margin for stamps crossing the border
     cam2 = pair.cam2_from_cam1
-    kk = parts.blur_samples if parts.blur_length > 0 else 1
-    steps = np.linspace(0, parts.blur_length, kk) if kk > 1 else np.zeros(1)
+    kk = parts.settings.blur_samples if parts.settings.blur_length > 0 else 1
+    steps = np.linspace(0, parts.settings.blur_length, kk) if kk > 1 else np.zeros(1)
     for j in range(parts.count):
         p1 = parts.position[j].double() + parts.offset1[j].double()
         p2 = p1 + parts.motion[j].double() + parts.offset2[j].double()
@@ -143,9 +144,7 @@ def grid_particles(pair, preset_name: str, depths, seed: int, cell: int = 72) ->
         template=torch.randint(0, lib.count, (n,), generator=g),
         rotation=torch.rand(n, generator=g, dtype=torch.float64) * 2 * math.pi,
         scale=footprint / lib.resolution, defocus=defocus_radius(d), frame="camera1",
-        blend="additive", blur_length=preset.effective_blur_length,
-        blur_samples=preset.blur_sample_count, defocus_brighten=True,
-        templates=preset.templates, templates_digest=lib.digest)
+        settings=RenderSettings.from_preset(preset, lib))
 
 
 def per_cell(change8: np.ndarray, n: int, cell: int = 72):
@@ -224,7 +223,7 @@ def test_rain_streaks_lean_with_the_camera_motion():
         x1 = parts.position[i].numpy()
         x2 = x1 + parts.motion[i].numpy() + move[:3, 3].numpy()
         a = k @ x1
-        b = k @ (x1 + parts.blur_length * (x2 - x1))
+        b = k @ (x1 + parts.settings.blur_length * (x2 - x1))
         seg = b[:2] / b[2] - a[:2] / a[2]
         want_angle = math.degrees(math.atan2(seg[0], seg[1]))   # from the image's vertical
         want_length = float(np.hypot(*seg))
@@ -239,7 +238,7 @@ def test_rain_streaks_lean_with_the_camera_motion():
         ax = evecs[:, 1] * np.sign(evecs[1, 1])
         got_angle = math.degrees(math.atan2(ax[0], ax[1]))
         # K evenly spaced samples over a length l have variance l² (K + 1) / (12 (K − 1))
-        kk = parts.blur_samples
+        kk = parts.settings.blur_samples
         got_length = math.sqrt(max(12 * (kk - 1) / (kk + 1) * (evals[1] - evals[0]), 0))
         assert abs(got_angle - want_angle) <= TOL * abs(want_angle), (d, got_angle, want_angle)
         close(got_length, want_length, f"streak length at depth {d}")

@@ -18,7 +18,7 @@ def test_fog_on_the_coarse_grid_stays_close_to_the_exact_render():
     f pixels differs more (the coarse grid averages the scene depth over f x f blocks)."""
     pair = plane_pair(218, 512, depth=6.0, near_block=True)
     parts = sample_particles(pair, load_preset("fog", {"count": 8}), seed=3)
-    stamps = build_stamps([parts], load_templates(parts.templates))
+    stamps = build_stamps([parts], load_templates(parts.settings.templates))
     assert all(bk.coarse >= 2 for bk in stamps.buckets)          # every fog billboard is coarse
     exact = render_pair(pair, parts, coarse_side=None)
     fast = render_pair(pair, parts)
