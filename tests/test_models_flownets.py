@@ -353,7 +353,8 @@ def naive_correlation(f1, f2, max_displacement, stride):
             for y in range(h):
                 for x in range(w):
                     if 0 <= y + dy < h and 0 <= x + dx < w:
-                        out[:, i * n + j, y, x] = (f1[:, :, y, x] * f2[:, :, y + dy, x + dx]).sum(1) / c
+                        products = f1[:, :, y, x] * f2[:, :, y + dy, x + dx]
+                        out[:, i * n + j, y, x] = products.sum(1) / c
     return out
 
 
