@@ -97,7 +97,7 @@ class RefinementDecoder(nn.Module):
     doubles the current flow estimate, and both are concatenated with the encoder's features of
     that resolution; the next flow estimate is predicted from that concatenation. The layers are
     registered on the network itself (``deconv5``, ``predict_flow6``, ...), as in the released
-    files. ``conv2_channels`` is the width of the encoder's 1/4-resolution features (128).
+    files.
 
     Subclasses call :meth:`_add_decoder` and then :meth:`decode`.
     """
@@ -154,8 +154,9 @@ def correlation(features1: torch.Tensor, features2: torch.Tensor, max_displaceme
     ``block`` columns, the products of every feature vector of frame 1 in the block with every
     one of frame 2 within reach (``block + 2 * max_displacement`` columns) form one small
     matrix, from which the ``n`` wanted diagonals are read. Only these small matrices and the
-    output are held at a time, so memory stays bounded at any image size (about 60 MiB for a
-    Sintel frame at FlowNetC's 1/8 resolution), and the backward pass keeps only the inputs.
+    output are held at a time, so memory stays bounded at any image size (the output itself,
+    12 MiB for a Sintel frame at FlowNetC's 1/8 resolution, is the largest part), and the
+    backward pass keeps only the inputs.
 
     Shape: ``features1``, ``features2`` ``(B, C, H, W)`` -> ``(B, n*n, H, W)`` with
     ``n = 2 * (max_displacement // stride) + 1``.
