@@ -358,14 +358,15 @@ def naive_correlation(f1, f2, max_displacement, stride):
     return out
 
 
-@pytest.mark.parametrize("block", [1, 3, 32])
-def test_correlation_matches_a_naive_loop(block):
+@pytest.mark.parametrize("block, chunk", [(1, 1), (3, 1000), (32, 1 << 24)])
+def test_correlation_matches_a_naive_loop(block, chunk):
+    """Any split into column blocks and chunks of displacement rows gives the same values."""
     torch.manual_seed(2)
     f1, f2 = torch.randn(2, 2, 5, 7, 9, dtype=torch.float64).unbind(0)
-    got = correlation(f1, f2, max_displacement=4, stride=2, block=block)
+    got = correlation(f1, f2, max_displacement=4, stride=2, block=block, chunk_elements=chunk)
     assert got.shape == (2, 25, 7, 9)
     assert torch.allclose(got, naive_correlation(f1, f2, 4, 2), atol=1e-12)
-    got1 = correlation(f1, f2, max_displacement=3, stride=1, block=block)
+    got1 = correlation(f1, f2, max_displacement=3, stride=1, block=block, chunk_elements=chunk)
     assert torch.allclose(got1, naive_correlation(f1, f2, 3, 1), atol=1e-12)
 
 
@@ -375,7 +376,8 @@ def test_correlation_gradient():
     f1.requires_grad_(True)
     f2.requires_grad_(True)
     assert torch.autograd.gradcheck(
-        lambda a, b: correlation(a, b, max_displacement=2, stride=2, block=3), (f1, f2))
+        lambda a, b: correlation(a, b, max_displacement=2, stride=2, block=3,
+                                 chunk_elements=30), (f1, f2))
 
 
 def naive_resample(image, flow):

@@ -13,8 +13,8 @@ module provides with the same parameter layout:
 and the three operations the networks need besides convolutions, written with tensor operations
 (the original code used compiled CUDA extensions for them):
 
-- :func:`correlation`: FlowNetC's correlation layer, in chunks (one row of displacements and a
-  block of columns at a time) so that its memory stays bounded;
+- :func:`correlation`: FlowNetC's correlation layer, as matrix products in chunks (a block of
+  columns and a few rows of displacements at a time) so that its memory stays bounded;
 - :func:`warp`: backward warping with bilinear interpolation, clamped at the border
   (FlowNet2's ``Resample2d``);
 - :func:`channel_norm`: the Euclidean norm over channels (FlowNet2's ``ChannelNorm``).
@@ -30,6 +30,10 @@ from torch import nn
 
 #: Slope of the leaky ReLUs of every FlowNet.
 LEAKY_SLOPE = 0.1
+
+#: Bound on the elements of the frame-2 windows the correlation copies at a time
+#: (2^24 floats: 64 MiB in float32).
+CORRELATION_CHUNK_ELEMENTS = 1 << 24
 
 
 class LeakyReLU(nn.Module):
@@ -141,7 +145,8 @@ class RefinementDecoder(nn.Module):
 # ---------------------------------------------------------------------------------------------
 
 def correlation(features1: torch.Tensor, features2: torch.Tensor, max_displacement: int = 20,
-                stride: int = 2, block: int = 32) -> torch.Tensor:
+                stride: int = 2, block: int = 32,
+                chunk_elements: int = CORRELATION_CHUNK_ELEMENTS) -> torch.Tensor:
     """FlowNetC's correlation: mean over channels of ``f1(x) * f2(x + d)`` for a grid of ``d``.
 
     The displacements ``d = (dx, dy)`` run over ``-max_displacement ... max_displacement`` in
@@ -150,13 +155,15 @@ def correlation(features1: torch.Tensor, features2: torch.Tensor, max_displaceme
     ``dx = j * stride - max_displacement`` (``dy`` varies slowest), as in the released models.
     Features of frame 2 outside the map count as zero.
 
-    Computed with matrix products: for each displacement row ``dy`` and each block of
-    ``block`` columns, the products of every feature vector of frame 1 in the block with every
-    one of frame 2 within reach (``block + 2 * max_displacement`` columns) form one small
-    matrix, from which the ``n`` wanted diagonals are read. Only these small matrices and the
-    output are held at a time, so memory stays bounded at any image size (the output itself,
-    12 MiB for a Sintel frame at FlowNetC's 1/8 resolution, is the largest part), and the
-    backward pass keeps only the inputs.
+    Computed with matrix products, in chunks: for each block of ``block`` columns and a few
+    displacement rows ``dy`` at a time, the products of every feature vector of frame 1 in the
+    block with every one of frame 2 within reach (``block + 2 * max_displacement`` columns,
+    row ``y + dy``) form small matrices, from which the ``n`` wanted diagonals are read. A
+    chunk copies at most about ``chunk_elements`` elements of frame 2's features, so the
+    working memory of the forward pass is bounded at any image size; the backward pass keeps
+    these copies (in all about ``n * (block + 2 * max_displacement) / block`` times the
+    features of frame 2, plus copies of frame 1's: about half a GiB for a Sintel frame at
+    FlowNetC's 1/8 resolution).
 
     Shape: ``features1``, ``features2`` ``(B, C, H, W)`` -> ``(B, n*n, H, W)`` with
     ``n = 2 * (max_displacement // stride) + 1``.
@@ -170,26 +177,30 @@ def correlation(features1: torch.Tensor, features2: torch.Tensor, max_displaceme
     b, c, h, w = features1.shape
     d = max_displacement
     n = 2 * (d // stride) + 1
-    f1 = features1.permute(0, 2, 3, 1).contiguous()  # (B, H, W, C)
-    # (B, H + 2d, C, W + 2d): frame 2 with zeros around, rows first for cheap row slices
-    padded = F.pad(features2, (d, d, d, d)).permute(0, 2, 1, 3).contiguous()
-    rows = []
-    for i in range(n):
-        f2_rows = padded[:, i * stride:i * stride + h]  # (B, H, C, W + 2d)
-        blocks = []
-        for x0 in range(0, w, block):
-            bw = min(block, w - x0)
-            reach = bw + 2 * d
-            # products (B, H, bw, reach): frame-1 column x0 + x with padded column x0 + x'
-            products = torch.matmul(f1[:, :, x0:x0 + bw], f2_rows[..., x0:x0 + reach])
+    f1 = features1.permute(0, 2, 3, 1).unsqueeze(1)  # (B, 1, H, W, C)
+    # (B, H + 2d, C, W + 2d): frame 2 with zeros around, rows first
+    padded = F.pad(features2, (d, d, d, d)).permute(0, 2, 1, 3)
+    blocks = []
+    for x0 in range(0, w, block):
+        bw = min(block, w - x0)
+        reach = bw + 2 * d
+        # (B, n_dy, H, C, reach): for displacement row i, the padded rows y + i * stride and the
+        # columns a block's displacements reach (a strided view, copied chunk by chunk below).
+        windows = padded[..., x0:x0 + reach].unfold(1, h, stride).permute(0, 1, 4, 2, 3)
+        per_row = b * h * c * reach
+        rows = max(1, min(n, chunk_elements // per_row))
+        chunks = []
+        for i in range(0, n, rows):
+            # products (B, k, H, bw, reach): frame-1 column x0 + x with padded column x0 + x'
+            products = torch.matmul(f1[:, :, :, x0:x0 + bw], windows[:, i:i + rows])
+            k = products.shape[1]
             # Displacement j of column x sits at x' = x + j * stride, i.e. at flat index
             # x * (reach + 1) + j * stride: pad the flattened rows by bw, fold them into rows
             # of reach + 1, and every wanted value is in the first n * stride columns.
-            flat = F.pad(products.reshape(b, h, bw * reach), (0, bw))
-            band = flat.reshape(b, h, bw, reach + 1)[..., 0:(n - 1) * stride + 1:stride]
-            blocks.append(band)  # (B, H, bw, n)
-        rows.append(torch.cat(blocks, dim=2))  # (B, H, W, n)
-    out = torch.stack(rows, dim=1)  # (B, n_dy, H, W, n_dx)
+            flat = F.pad(products.reshape(b, k, h, bw * reach), (0, bw))
+            chunks.append(flat.reshape(b, k, h, bw, reach + 1)[..., 0:(n - 1) * stride + 1:stride])
+        blocks.append(torch.cat(chunks, dim=1))  # (B, n_dy, H, bw, n_dx)
+    out = torch.cat(blocks, dim=3)  # (B, n_dy, H, W, n_dx)
     return out.permute(0, 1, 4, 2, 3).reshape(b, n * n, h, w) / c
 
 
