@@ -340,6 +340,20 @@ def test_spynet_pyramid_doubles_and_accumulates_the_flow():
     assert torch.allclose(flow[0, 1], torch.full((64, 96), -3.5))
 
 
+@pytest.mark.parametrize("arch, scale", [("flownetc", 20.0), ("flownetcrobust", 1.0)])
+def test_flownetc_output_units(arch, scale):
+    """FlowNetC predicts 1/20 pixels at 1/4 resolution (the adapter multiplies by 20),
+    FlowNetCRobust pixels: with every weight zero, the flow is the last layer's bias, scaled."""
+    net = build_model(arch)
+    with torch.no_grad():
+        for p in net.network.parameters():
+            p.zero_()
+        net.network.predict_flow2.bias.copy_(torch.tensor([0.5, -0.25]))
+        flow = net(torch.rand(1, 3, 50, 70), torch.rand(1, 3, 50, 70))
+    assert torch.allclose(flow[0, 0], torch.full((50, 70), 0.5 * scale))
+    assert torch.allclose(flow[0, 1], torch.full((50, 70), -0.25 * scale))
+
+
 # -- parts against direct implementations ------------------------------------------------------
 
 def naive_correlation(f1, f2, max_displacement, stride):
