@@ -17,12 +17,11 @@ from rich.text import Text
 from rich.table import Table
 
 from weathergen.errors import ConfigError
+from weathergen.outputs import APPEARANCE_KEYS
 
 from .main import ARGV_KEY, cli
 from .options import dataset_options
 
-#: Preset keys that only change how stored particles look, so they may change on re-rendering.
-APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defocus_brighten")
 
 
 class _RateColumn(ProgressColumn):

@@ -32,8 +32,8 @@ from .errors import ConfigError, FormatError, WeatherGenError
 from .framepair import PairId
 from .geometry import project, transform_points
 from .io.atomic import atomic_write_bytes
-from .outputs import (MANIFEST, MANIFEST_PARTS, MARKER, PairOutput, identity_arrays, pair_identity,
-                      read_metadata, write_pair_outputs)
+from .outputs import (MANIFEST, MANIFEST_PARTS, MARKER, PairOutput, check_stored_particles,
+                      identity_arrays, read_metadata, write_pair_outputs)
 
 #: Every pair renders with this many intra-op threads, whatever the worker count: thread count can
 #: change the order of floating-point reductions, and with it the output bytes.
@@ -129,11 +129,7 @@ def _particles_for(job: RenderJob, pair, seed: int):
     path = out.metadata
     if not path.exists():
         raise FormatError(path, f"no particle metadata for pair {pair.id}")
-    arrays = read_metadata(path)
-    found = pair_identity(arrays)
-    if (found.split, found.scene, found.frame) != (pair.id.split, pair.id.scene, pair.id.frame):
-        raise FormatError(path, f"metadata belongs to {found.scene} frame {found.frame}, "
-                                f"not to {pair.id.scene} frame {pair.id.frame}")
+    check_stored_particles(path, read_metadata(path), pair.id, job.preset_name, job.preset.to_dict())
     particles = Particles.load(path)
     return particles.replace(**job.appearance) if job.appearance else particles
 

@@ -32,3 +32,10 @@ class DatasetError(WeatherGenError):
 
 class ConfigError(WeatherGenError):
     """An invalid option, preset, or selection."""
+
+
+class WriteError(WeatherGenError):
+    """An output cannot be written (disk full, no permission, read-only file system).
+
+    The message names the file that was to be written (never a temporary name) and the reason.
+    """

@@ -233,6 +233,43 @@ def pair_identity(arrays: dict[str, np.ndarray]) -> PairId:
                   int(arrays["pair_frame"]))
 
 
+#: Preset keys that only change how stored particles look, so they may differ when re-rendering
+#: stored particles (``render --particles``); every other key is fixed by the particles.
+APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defocus_brighten")
+
+
+def check_stored_particles(path: str | Path, arrays: dict[str, np.ndarray], pair_id: PairId,
+                           preset_name: str, preset: dict) -> None:
+    """Refuse a metadata file that does not belong to this pair, dataset and preset.
+
+    ``preset_name`` and ``preset`` (a ``Preset.to_dict()``) are those the re-rendered output will be
+    labelled with; the stored preset must agree with them on every key but the appearance keys.
+    Raises :class:`FormatError` naming the file and what differs.
+    """
+    found = pair_identity(arrays)
+    if (found.scene, found.frame) != (pair_id.scene, pair_id.frame):
+        raise FormatError(path, f"metadata belongs to {found.scene} frame {found.frame}, "
+                                f"not to {pair_id.scene} frame {pair_id.frame}")
+    if (found.dataset, found.split) != (pair_id.dataset, pair_id.split):
+        raise FormatError(path, f"metadata belongs to the {found.split} split of dataset "
+                                f"{found.dataset!r}, not to the {pair_id.split} split of "
+                                f"{pair_id.dataset!r}")
+    stored_name = str(arrays["preset_name"])
+    if stored_name != preset_name:
+        raise FormatError(path, f"particles of preset {stored_name!r}, but the folder's manifest "
+                                f"says {preset_name!r}")
+    try:
+        stored = json.loads(str(arrays["preset"]))
+    except ValueError:
+        raise FormatError(path, "its preset entry is not valid JSON") from None
+    ignored = {"name", "source", *APPEARANCE_KEYS}
+    differ = sorted(k for k in set(stored) | set(preset)
+                    if k not in ignored and stored.get(k) != preset.get(k))
+    if differ:
+        raise FormatError(path, f"particles sampled with other preset settings than the folder's "
+                                f"manifest records ({', '.join(differ)})")
+
+
 def identity_arrays(pair_id: PairId, seed: int, preset: dict, preset_name: str) -> dict[str, np.ndarray]:
     """The metadata entries that say which pair, seed and preset a particle set belongs to."""
     from . import __version__

@@ -105,6 +105,10 @@ class Dataset(ABC):
     def pairs(self) -> list[PairRef]:
         """The selected pairs, sorted by scene then frame. Lists files only; reads nothing."""
 
+    def all_scenes(self) -> Optional[list[str]]:
+        """Every scene of the split, before the selection; None for a reader without scenes."""
+        return None
+
     @abstractmethod
     def load(self, ref: PairRef) -> FramePair:
         """Read and validate one pair; raise a :class:`WeatherGenError` naming the faulty file."""
