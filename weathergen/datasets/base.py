@@ -118,7 +118,9 @@ class Dataset(ABC):
         sel = self.selection
         return {
             "dataset": self.name,
-            "root": str(self.root),
+            # absolute, so that a manifest read from another folder (preview, evaluate, a
+            # resume given the absolute path) names the same place
+            "root": str(self.root.absolute()),
             "split": sel.split,
             "pass": sel.pass_,
             "scenes": list(sel.scenes) if sel.scenes else None,
