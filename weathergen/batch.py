@@ -10,12 +10,12 @@ bytes written do not depend on worker count, order, sharding or resumption.
 
 from __future__ import annotations
 
+import dataclasses
+import glob
 import hashlib
 import json
 import multiprocessing
 import os
-import signal
-import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
@@ -28,10 +28,12 @@ import torch
 
 from . import __version__
 from .datasets import Dataset, PairRef
-from .errors import ConfigError, FormatError, WeatherGenError
+from .errors import ConfigError, DatasetError, FormatError, WeatherGenError, WriteError
 from .framepair import PairId
 from .geometry import project, transform_points
-from .io.atomic import atomic_write_bytes
+from .io.atomic import atomic_write_bytes, write_error
+from .io.lock import FolderLock
+from .workers import init_worker
 from .outputs import (MANIFEST, MANIFEST_PARTS, MARKER, PairOutput, check_stored_particles,
                       identity_arrays, read_metadata, write_pair_outputs)
 
@@ -40,8 +42,12 @@ from .outputs import (MANIFEST, MANIFEST_PARTS, MARKER, PairOutput, check_stored
 RENDER_THREADS = 1
 
 
-class OutputError(WeatherGenError):
+class OutputError(WriteError):
     """Writing the outputs failed (disk full, permissions): the run stops."""
+
+
+class NothingRendered(DatasetError):
+    """Every selected pair failed to load or render: nothing usable was written."""
 
 
 def pair_seed(run_seed: int, pair_id: PairId) -> int:
@@ -85,7 +91,7 @@ class RenderJob:
     particles_from: Optional[Path] = None
     appearance: dict = field(default_factory=dict)   # re-render overrides of Particles settings
     shard: tuple[int, int] = (1, 1)
-    workers: int = 1
+    workers: int = 1                    # worker processes; 0: auto_workers() decides
     batch_size: int = 1                 # pairs rendered together (per worker)
     resume: bool = False
     overwrite: bool = False
@@ -99,7 +105,7 @@ class RenderJob:
             "seed": self.seed,
             "input": self.dataset.describe(),
             "outputs": {"pass": self.pass_name, "format": self.fmt, "geometry": self.geometry},
-            "particles_from": str(self.particles_from) if self.particles_from else None,
+            "particles_from": str(self.particles_from.absolute()) if self.particles_from else None,
             "appearance": self.appearance,
         }
 
@@ -192,8 +198,7 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     try:
         files = write_pair_outputs(out, pair, frames, opacity, meta)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
-        raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
-                          f"rerun with --resume once there is room") from None
+        raise OutputError(str(write_error(exc, job.out, "then rerun with --resume"))) from None
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
                       input=_jsonable(getattr(pair, "meta", None) or {}))
@@ -217,46 +222,52 @@ def visible_counts(pair, particles) -> tuple[int, int]:
     return counts[0], counts[1]
 
 
-def _worker_init():
-    torch.set_num_threads(RENDER_THREADS)
-    # Ctrl-C reaches the whole process group; the main process alone decides what stops, and lets
-    # the pairs in progress finish, so that no worker is cut off in the middle of a pair.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # A worker whose main process was killed outright would wait for work forever: leave instead.
-    parent = os.getppid()
-
-    def watch():
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True).start()
-
-
 # -- the output folder ---------------------------------------------------------------------------
-def prepare_output(job: RenderJob) -> None:
-    """Create or reuse the output folder, refusing folders that are not ours or hold another run."""
+def lock_path(job: RenderJob) -> Path:
+    """The lock file of the job's shard (shards of one run write one folder at the same time)."""
+    i, n = job.shard
+    return job.out / (".weathergen-lock" if n == 1 else f".weathergen-lock-shard-{i}-of-{n}")
+
+
+def prepare_output(job: RenderJob, refs: list[PairRef] = ()) -> FolderLock:
+    """Create or reuse the output folder, refusing folders that are not ours or hold another run.
+
+    Returns the folder's lock, held: the caller releases it when the run ends. A second run in the
+    same folder (and shard) is refused while this one holds it. ``refs`` are the pairs of the
+    job's shard, whose leftover temporary files a resumed run deletes.
+    """
     out = job.out
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: exists and is not a folder")
-    if out.exists() and any(out.iterdir()):
-        if not (out / MARKER).exists() and not job.overwrite:
-            raise ConfigError(f"{out}: folder is not empty and was not created by weathergen render "
-                              f"(use --overwrite to write into it anyway)")
-        previous = _read_config(out)
-        if previous is not None and not job.overwrite:
-            if not job.resume and not _is_other_shard(out, job):
-                raise ConfigError(f"{out}: already holds a render (use --resume to finish it, "
-                                  f"or --overwrite to redo it)")
-            if previous != _jsonable(job.config()):
-                diff = sorted(k for k in previous if previous.get(k) != _jsonable(job.config()).get(k))
-                raise ConfigError(f"{out}: was rendered with different settings ({', '.join(diff)}); "
-                                  f"use another --out, or --overwrite")
-    if job.resume and out.is_dir():
-        # temporary files of a killed run (atomic writes that never reached their rename)
-        for stale in out.rglob(".*.tmp*"):
-            if stale.is_file():
-                stale.unlink()
+    if out.exists() and any(out.iterdir()) and not (out / MARKER).exists() and not job.overwrite:
+        raise ConfigError(f"{out}: folder is not empty and was not created by weathergen render "
+                          f"(use --overwrite to write into it anyway)")
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        lock = FolderLock(lock_path(job), str(out)).acquire()
+    except OSError as exc:
+        raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
+    try:
+        _check_and_claim(job, refs)
+    except BaseException:
+        lock.release()
+        raise
+    return lock
+
+
+def _check_and_claim(job: RenderJob, refs) -> None:
+    out = job.out
+    previous = _read_config(out)
+    if previous is not None and not job.overwrite:
+        if not job.resume and not _is_other_shard(out, job):
+            raise ConfigError(f"{out}: already holds a render (use --resume to finish it, "
+                              f"or --overwrite to redo it)")
+        if previous != _jsonable(job.config()):
+            diff = sorted(k for k in previous if previous.get(k) != _jsonable(job.config()).get(k))
+            raise ConfigError(f"{out}: was rendered with different settings ({', '.join(diff)}); "
+                              f"use another --out, or --overwrite")
+    if job.resume:
+        _delete_temporary_files(job, refs)
     try:
         out.mkdir(parents=True, exist_ok=True)
         (out / MARKER).write_text("weathergen render output\n")
@@ -265,6 +276,27 @@ def prepare_output(job: RenderJob) -> None:
                            json.dumps(_jsonable(job.config()), indent=2, sort_keys=True).encode())
     except OSError as exc:
         raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
+
+
+def _delete_temporary_files(job: RenderJob, refs) -> None:
+    """Delete what a killed run of this shard left under temporary names (atomic writes that never
+    reached their rename): in the folders of this shard's pairs, and this shard's manifest part.
+    Other shards may be running; their pairs' folders and files are left alone."""
+    i, n = job.shard
+    places = [(job.out / MANIFEST_PARTS, f".shard-{i}-of-{n}.json.")]
+    if n == 1:
+        places += [(job.out / MANIFEST_PARTS, ".config.json."), (job.out, f".{MANIFEST}.")]
+    folders = set()
+    for ref in refs:
+        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+        native = out.native_flow(ref.id.dataset)
+        for path in out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else []):
+            folders.add(path.parent)
+    places += [(folder, ".") for folder in sorted(folders)]
+    for folder, prefix in places:
+        for stale in folder.glob(f"{glob.escape(prefix)}*.tmp"):
+            if stale.is_file():
+                stale.unlink()
 
 
 def _is_other_shard(out: Path, job: RenderJob) -> bool:
@@ -343,18 +375,45 @@ def merge_manifest(out: Path) -> Path:
 
 # -- the run -------------------------------------------------------------------------------------
 def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda r: None,
-               on_start: Callable[[int], None] = lambda n: None) -> list[PairResult]:
+               on_start: Callable[[int], None] = lambda n: None,
+               on_note: Callable[[str], None] = lambda text: None) -> list[PairResult]:
     """Render every selected pair of the job's shard; return one result per pair.
 
     Pairs already complete on disk are skipped when resuming (or when another shard's folder is
-    reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives.
-    Interruptions (Ctrl-C) record what was finished in the manifest and re-raise.
+    reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives,
+    ``on_note`` warnings worth a line (a stale lock taken over). Interruptions (Ctrl-C, SIGTERM)
+    record what was finished in the manifest and re-raise. The output folder is locked for the
+    run: a second run in it (same shard) raises :class:`ConfigError` naming this one.
+
+    Raises :class:`OutputError` when the outputs cannot be written (the pairs finished before are
+    recorded), and :class:`NothingRendered` when every selected pair fails (an output folder
+    that this run created is removed again: nothing is written).
     """
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     refs = shard_refs(job.dataset.pairs(), job.shard)
     if not refs:
         raise ConfigError("the selection holds no frame pairs")
-    prepare_output(job)
+    created = not job.out.exists()
+    lock = prepare_output(job, refs)
+    try:
+        if lock.stale is not None:
+            on_note(f"{job.out}: took over the stale lock of {lock.stale} (that run ended without "
+                    f"releasing it, e.g. killed)")
+        results = _render_locked(job, refs, on_result, on_start)
+        if results and all(r.status == "failed" for r in results):
+            first = results[0]
+            if created:
+                _remove_created_folder(job)
+            raise NothingRendered(f"every selected pair failed ({len(results)}; the first: "
+                                  f"{first.pair}: {first.message}); "
+                                  + ("nothing was written" if created else
+                                     f"the failures are recorded in {job.out / MANIFEST}"))
+        return results
+    finally:
+        lock.release()
+
+
+def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> list[PairResult]:
     started = time.time()
     t0 = time.perf_counter()
     results: list[PairResult] = []
@@ -368,6 +427,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     on_start(len(refs))
     for r in results:
         on_result(r)
+    if job.workers < 1:
+        job = dataclasses.replace(job, workers=auto_workers(len(todo), job.device))
+    stopped_by: Optional[BaseException] = None
     try:
         if job.workers <= 1 or len(todo) <= job.batch_size:
             threads = torch.get_num_threads()
@@ -380,10 +442,78 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
                 torch.set_num_threads(threads)
         else:
             _run_pool(job, todo, results, on_result)
+    except BaseException as exc:
+        stopped_by = exc
+        raise
     finally:
-        write_manifest_part(job, results, started, time.perf_counter() - t0)
-        merge_manifest(job.out)
+        _record(job, results, started, time.perf_counter() - t0, stopped_by)
     return results
+
+
+def _record(job: RenderJob, results, started: float, seconds: float, stopped_by) -> None:
+    """Write the manifest; when the disk refuses, say so without hiding why the run stopped."""
+    try:
+        write_manifest_part(job, results, started, seconds)
+        merge_manifest(job.out)
+    except OSError as exc:
+        done = sum(r.status == "written" for r in results)
+        note = (f"the manifest could not be updated either ({exc.strerror or exc}); --resume "
+                f"finds the {done} pair(s) finished in this run on disk")
+        if isinstance(stopped_by, OutputError):
+            raise OutputError(f"{stopped_by}; {note}") from None
+        if stopped_by is not None:
+            return                  # an interruption or a bug: let it through as it is
+        raise OutputError(str(write_error(exc, job.out / MANIFEST, "then rerun with --resume"))) from None
+
+
+def _remove_created_folder(job: RenderJob) -> None:
+    """Undo the folder this run created and wrote nothing into but its bookkeeping.
+
+    Only known files and empty folders are removed, never a tree: whatever else is there stays.
+    """
+    i, n = job.shard
+    for path in (job.out / MANIFEST, job.out / MARKER, job.out / MANIFEST_PARTS / ".config.json",
+                 job.out / MANIFEST_PARTS / f"shard-{i}-of-{n}.json", lock_path(job)):
+        try:
+            path.unlink()
+        except OSError:
+            pass
+    for folder in sorted((p for p in job.out.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts)):
+        try:
+            folder.rmdir()
+        except OSError:
+            pass
+    try:
+        job.out.rmdir()
+    except OSError:
+        pass
+
+
+#: The fewest pairs worth starting a worker process for: a worker imports torch (seconds) and holds
+#: about 300 MB; a pair takes a fraction of a second to a few seconds on one CPU thread.
+PAIRS_PER_WORKER = 8
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the system has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+def auto_workers(pairs: int, device: str = "cpu", cores: Optional[int] = None) -> int:
+    """The worker count for ``--workers auto``.
+
+    Every pair renders on one CPU thread (so that the bytes do not depend on the machine), so on
+    a CPU the cores are used by rendering pairs side by side: one worker per core, but no more
+    than one per :data:`PAIRS_PER_WORKER` pairs, since starting a worker costs more than a few
+    pairs take. On a GPU one process feeds the device (it batches pairs instead).
+    """
+    if not str(device).startswith("cpu"):
+        return 1
+    cores = usable_cores() if cores is None else cores
+    return max(1, min(cores, pairs // PAIRS_PER_WORKER))
 
 
 def _chunks(items: list, size: int) -> list[list]:
@@ -394,7 +524,8 @@ def _run_pool(job, todo, results, on_result):
     ctx = multiprocessing.get_context("spawn")
     pending = set()
     queue = list(todo)
-    with ProcessPoolExecutor(max_workers=job.workers, mp_context=ctx, initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(max_workers=job.workers, mp_context=ctx, initializer=init_worker,
+                             initargs=(os.getpid(),)) as pool:
         try:
             while queue or pending:
                 while queue and len(pending) < 2 * job.workers:
