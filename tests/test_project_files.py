@@ -50,3 +50,13 @@ def test_the_readme_first_command_works_after_make_demo():
     # the README says how to reach the installed command before its first use
     setup = README.split("### Rendering datasets", 1)[0]
     assert ". .venv/bin/activate" in setup and ".venv/bin/weathergen" in setup
+
+
+def test_every_test_the_guarantees_name_exists():
+    section = README.split("## Guarantees", 1)[1].split("\n## ", 1)[0]
+    named = set(re.findall(r"`(test_\w+)`", section))
+    assert len(named) >= 15
+    defined = set()
+    for path in (PROJECT_ROOT / "tests").rglob("test_*.py"):
+        defined |= set(re.findall(r"^def (test_\w+)\(", path.read_text(), re.M))
+    assert named <= defined, f"README names tests that do not exist: {sorted(named - defined)}"
