@@ -293,3 +293,18 @@ def test_every_pair_unreadable_exits_2_and_writes_nothing(tmp_path, fake_sintel)
     assert "Traceback" not in res.output
     assert "every selected pair failed" in res.output
     assert not out.exists()
+
+
+# -- workers -------------------------------------------------------------------------------------
+
+def test_auto_workers_use_the_cores_only_when_there_is_enough_to_do():
+    from weathergen.batch import auto_workers
+
+    assert auto_workers(6, "cpu", cores=2) == 1            # the demo scene: one process
+    assert auto_workers(1041, "cpu", cores=2) == 2         # Sintel training: every core
+    assert auto_workers(20, "cpu", cores=16) == 2          # a worker per 8 pairs at most
+    assert auto_workers(1041, "cuda", cores=16) == 1       # one process feeds the GPU
+    res = run("render", "--help")
+    assert "auto" in res.output and "one per core" in " ".join(res.output.split())
+    res = run("render", "--workers", "0", "--out", "x")
+    assert res.exit_code == 2 and "at least 1" in res.output
