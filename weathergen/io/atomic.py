@@ -14,7 +14,7 @@ import os
 import tempfile
 from pathlib import Path
 
-from ..errors import WriteError
+from ..errors import OutputError
 
 
 def _read_umask() -> int:
@@ -96,8 +96,8 @@ NO_SPACE = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
 NOT_ALLOWED = {errno.EACCES, errno.EPERM, errno.EROFS}
 
 
-def write_error(exc: OSError, fallback: str | Path, hint: str = "") -> WriteError:
-    """A one-line :class:`~weathergen.errors.WriteError` for a failed write.
+def write_error(exc: OSError, fallback: str | Path, hint: str = "") -> OutputError:
+    """A one-line :class:`~weathergen.errors.OutputError` for a failed write.
 
     It names the file (``exc.filename``, else ``fallback``) and the reason in words; ``hint`` (for
     example "rerun with --resume") is appended after what to fix.
@@ -111,4 +111,4 @@ def write_error(exc: OSError, fallback: str | Path, hint: str = "") -> WriteErro
     else:
         fix = ""
     then = "; ".join(x for x in (fix, hint) if x)
-    return WriteError(f"{where}: cannot write ({reason})" + (f"; {then}" if then else ""))
+    return OutputError(f"{where}: cannot write ({reason})" + (f"; {then}" if then else ""))

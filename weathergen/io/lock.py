@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
-from ..errors import ConfigError
+from ..errors import FolderBusy
 
 try:
     import fcntl
@@ -38,10 +38,6 @@ class Holder:
 
     def __str__(self) -> str:
         return f"pid {self.pid} on {self.host}" + (f", since {self.since}" if self.since else "")
-
-
-class FolderBusy(ConfigError):
-    """Another process holds the lock."""
 
 
 class FolderLock:
@@ -68,7 +64,7 @@ class FolderLock:
                     who = str(holder) if holder else "a process that has not recorded itself yet"
                     raise FolderBusy(f"{self.what} is being written by another weathergen run "
                                      f"({who}); wait for it to finish, or choose another "
-                                     f"--out") from None
+                                     f"${{out}}") from None
             self.stale = _parse(_read(fd))
             record = json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
                                  "since": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
