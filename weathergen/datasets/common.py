@@ -139,6 +139,7 @@ FILE_ROLES = {
     "depth2": "frame-2 depth", "disp1": "frame-1 disparity", "disp2": "frame-2 disparity",
     "flow": "ground-truth flow", "objects": "object map", "calib": "calibration",
     "cameras": "camera", "intrinsics": "intrinsics", "extrinsics": "extrinsics",
+    "cam1": "frame-1 camera", "cam2": "frame-2 camera", "disp2_own": "frame-2 disparity",
 }
 
 
