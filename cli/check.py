@@ -64,6 +64,14 @@ def check(dataset, geometry, geometry_pairs, verbose):
                     [f"{g.median_px:.3f}", f"{g.p90_px:.3f}", f"{100 * g.within_1px:.1f}%"])
         table.add_row(*row)
         lines += [f"{sc.scene} frame {pc.ref.id.frame}: {note}" for pc in sc.pairs for note in pc.notes]
+        if geometry and sc.pairs:
+            g = sc.geometry
+            lines.append(f"{sc.scene}: geometry: " + (
+                "no ground-truth flow to compare with" if g is None else
+                "no pixel to compare (none static, measured and seen in both frames)" if not g.pixels
+                else f"flow error median {g.median_px:.3f} px, p90 {g.p90_px:.3f} px, "
+                     f"{100 * g.within_1px:.1f}% within 1 px ({g.pairs} pair{'s' * (g.pairs != 1)}, "
+                     f"{g.pixels} pixels)"))
         for sev, kind, places in groups:
             places = [relative(p, dataset.root) for p in places]
             listed = places if shown_max is None else places[:shown_max]

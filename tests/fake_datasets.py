@@ -143,10 +143,16 @@ def _upsample(a: np.ndarray, factor: int, holes: float, outliers: float, rng) ->
 
 def write_fake_custom(root: Path, frames, *, depth_suffix: str = ".npy", pose: str = "cam_from_world",
                       axes: str = "opencv", depth_kind: str = "z", text: bool = False,
-                      png_scale: float = 0.001, missing: tuple = ()) -> Path:
+                      png_scale: float = 0.001, missing: tuple = (), stem=None,
+                      stem_keys: bool = False, flows=None) -> Path:
     """A custom-layout scene at ``root`` from demo frames (cameras converted to the asked conventions).
 
-    ``missing``: (row0, row1) band of frame 0 written as missing depth (0)."""
+    ``missing``: (row0, row1) band of frame 0 written as missing depth (0). ``stem(i)`` names frame
+    ``i`` (default ``0000``...); ``stem_keys`` keys the camera file by stems instead of numbers;
+    ``flows``: the demo pairs, whose flow is written as ``flow/STEM.flo``."""
+    from weathergen.io.sintel_formats import write_flo
+
+    stem = stem or (lambda i: f"{i:04d}")
     from weathergen.datasets.demo import intrinsics
     from weathergen.geometry import invert_rigid
     from weathergen.io.custom_formats import write_camera_json, write_camera_txt, write_depth
@@ -157,20 +163,22 @@ def write_fake_custom(root: Path, frames, *, depth_suffix: str = ".npy", pose: s
     gl_from_cv = np.diag([1.0, -1.0, -1.0, 1.0])
     poses = {}
     for i, fr in enumerate(frames):
-        write_png(root / "frames" / f"{i:04d}.png", fr["image"])
+        write_png(root / "frames" / f"{stem(i)}.png", fr["image"])
+        if flows is not None and i < len(flows):
+            write_flo(root / "flow" / f"{stem(i)}.flo", flows[i].flow.permute(1, 2, 0).numpy())
         depth = fr["depth"].copy()
         if depth_kind == "range":
             rays = backproject(torch.ones(1, *depth.shape, dtype=torch.float64), torch.from_numpy(k)).numpy()
             depth = depth * np.linalg.norm(rays, axis=0)
         if i == 0 and missing:
             depth[missing[0]:missing[1]] = 0
-        write_depth(root / "depth" / f"{i:04d}{depth_suffix}", depth, png_scale if depth_suffix == ".png" else None)
+        write_depth(root / "depth" / f"{stem(i)}{depth_suffix}", depth, png_scale if depth_suffix == ".png" else None)
         cam = fr["cam"]
         if axes == "opengl":
             cam = gl_from_cv @ cam
         if pose == "world_from_cam":
             cam = invert_rigid(torch.from_numpy(cam)).numpy()
-        poses[i] = cam
+        poses[stem(i) if stem_keys else i] = cam
     settings = dict(pose=pose, axes=axes, depth=depth_kind)
     if depth_suffix == ".png":
         settings["depth_png_scale"] = png_scale

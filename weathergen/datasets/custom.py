@@ -100,7 +100,9 @@ class CustomDataset(FarDepthDataset):
                 frames = self.frames(dirs[scene])
             except DatasetError as exc:
                 # one scene that cannot be paired does not hide the others; check reports it
-                self._scene_problems[scene] = [Problem(str(exc))]
+                folder = str(dirs[scene] / "frames")
+                self._scene_problems[scene] = [
+                    Problem("frames cannot be paired: " + str(exc)[len(folder) + 2:], folder)]
                 continue
             numbers = list(frames)
             starts = list(zip(numbers[:-1], numbers[1:]))
@@ -114,7 +116,7 @@ class CustomDataset(FarDepthDataset):
                                     self._files(dirs[scene], frames[a], frames[b])))
         if not refs and self._scene_problems:
             first = next(iter(self._scene_problems.values()))[0]
-            raise DatasetError(first.kind)
+            raise DatasetError(f"{first.where}: {first.kind}")
         return refs
 
     def scene_problems(self) -> dict[str, list[Problem]]:

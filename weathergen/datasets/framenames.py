@@ -89,6 +89,10 @@ def order_frames(names: list[str], pattern: Optional[str] = None) -> FrameOrder:
     runs = [[int(d) for d in _DIGITS.findall(n)] for n in frames]
     varying = [i for i in range(len(runs[0])) if len({r[i] for r in runs}) > 1] if kinds and \
         len(kinds) == 1 else []
+    if len(kinds) == 1 and runs[0] and not varying:
+        # the names differ, but not in any number: only in zero padding (f01, f1)
+        return FrameOrder(problem=f"frames {frames[0]} and {frames[1]} have the same number "
+                                  f"{runs[0][-1] if len(runs[0]) == 1 else runs[0]}")
     if len(varying) == 1:
         i = varying[0]
         numbered = sorted(((r[i], n) for r, n in zip(runs, frames)), key=lambda x: x[0])
