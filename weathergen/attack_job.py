@@ -142,6 +142,7 @@ def run_attack(job: AttackJob,
         raise ConfigError("the selection holds no frame pairs")
     model = get_model(job.model, job.checkpoint, device=job.device, iters=job.iters,
                       download=job.download, gradient_checkpointing=job.gradient_checkpointing)
+    model.padding = getattr(job.dataset, "padding", "even")      # the benchmark's padding protocol
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
     previous = prepare_attack_folder(job.out, config, job.resume, job.overwrite)
 
