@@ -4,6 +4,8 @@
 #   make demo                  render the default preset on the bundled demo scene
 #   make bench                 print speed and memory figures (renderer, attack step)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
+#   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
+#                              in a separate environment (.venv-oldest)
 
 PYTHON ?= python3
 VENV   ?= .venv
@@ -12,7 +14,9 @@ PYTEST_ARGS ?=
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.weathergen-deps
 
-.PHONY: venv install test demo bench clean
+OLDEST ?= .venv-oldest
+
+.PHONY: venv install test test-oldest demo bench clean
 
 venv: $(STAMP)
 
@@ -31,6 +35,15 @@ install: $(STAMP)
 test: install
 	$(BIN)/pytest -q $(PYTEST_ARGS)
 
+# The dependency floors of setup.cfg, installed exactly; torch as for `make test`.
+test-oldest:
+	test -x $(OLDEST)/bin/python || $(PYTHON) -m venv $(OLDEST)
+	$(OLDEST)/bin/python -m pip install -q "$(TORCH)"
+	$(OLDEST)/bin/python -m pip install -q -c constraints/oldest.txt ".[test]"
+	$(OLDEST)/bin/python -m pip install -q --no-deps --force-reinstall .
+	$(OLDEST)/bin/python -m pip check
+	$(OLDEST)/bin/pytest -q $(PYTEST_ARGS)
+
 demo: install
 	$(BIN)/weathergen render --preset snow --out out/snow --overwrite
 	$(BIN)/weathergen preview out/snow
@@ -41,4 +54,4 @@ bench: install
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
 
 clean:
-	rm -rf $(VENV) build *.egg-info out
+	rm -rf $(VENV) $(OLDEST) build *.egg-info out
