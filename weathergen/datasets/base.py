@@ -140,7 +140,8 @@ class Dataset(ABC):
         }
 
     def check(self, ref: PairRef) -> Optional[str]:
-        """None if the pair reads cleanly, else a one-line description of the first problem.
+        """None if the pair reads cleanly, else a one-line description of the first problem
+        (:func:`weathergen.datasets.checking.check_pair` lists them all).
 
         ``load`` names a missing file itself, with a hint where a split lacks it by design (the
         Sintel test split has no depth or cameras).
