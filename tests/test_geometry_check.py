@@ -93,3 +93,14 @@ def test_without_ground_truth_flow_there_are_no_figures(tmp_path, demo_root):
     assert check_dataset(open_dataset("custom", root), geometry=True)[0].geometry is None
     res = run_cli("check", "--dataset", "custom", "--root", str(root), "--geometry")
     assert res.exit_code == 0 and "walk: geometry: no ground-truth flow to compare with" in res.output
+
+
+def test_spring_extrinsics_read_the_wrong_way_round_show(tmp_path, demo_root):
+    from fake_datasets import write_fake_spring
+
+    frames, pairs = demo_sequence("street")
+    root = write_fake_spring(tmp_path / "spring", frames[:2], pairs=pairs[:1])
+    right = check_dataset(open_dataset("spring", root), geometry=True)[0].geometry
+    wrong = check_dataset(open_dataset("spring", root, extrinsics="camera-to-world"), geometry=True)[0].geometry
+    assert right.median_px < 1e-3 and right.within_1px == 1.0
+    assert wrong.median_px > 5 and wrong.within_1px < 0.05
