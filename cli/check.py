@@ -11,11 +11,10 @@ from rich.table import Table
 from weathergen.datasets.checking import check_dataset, relative
 from weathergen.errors import DatasetError
 
-from .main import cli
 from .options import dataset_options
 
 
-@cli.command()
+@click.command()
 @dataset_options
 @click.option("--geometry", is_flag=True,
               help="Also measure how well depth and cameras reproduce the dataset's ground-truth "

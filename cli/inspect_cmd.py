@@ -10,9 +10,10 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from weathergen.io.atomic import write_error
+from weathergen.io.images import write_png
 from weathergen.outputs import read_metadata
-
-from .main import cli
+from weathergen.render import contact_sheet
 
 
 def _preset_origin(name: str, source: str) -> str:
@@ -20,7 +21,7 @@ def _preset_origin(name: str, source: str) -> str:
     return name if not source or source.startswith("preset ") else f"{name} (from {source})"
 
 
-@cli.command()
+@click.command()
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 def inspect(file: Path):
     """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges."""
@@ -65,18 +66,22 @@ def inspect(file: Path):
     console.print(ranges)
 
 
-@cli.command()
+@click.command()
 @click.argument("render_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG to write. Default: RENDER_DIR/preview.png.")
-@click.option("--pairs", type=click.IntRange(min=1), default=4, show_default=True, help="Pairs to show.")
+@click.option("--pairs", type=click.IntRange(min=1), default=4, show_default=True, help="Pairs to show (the first ones); the sheet says when there are more.")
 @click.option("--width", type=click.IntRange(min=64), default=480, show_default=True, help="Width of each tile.")
 def preview(render_dir: Path, out, pairs, width):
     """Write a contact sheet of a render output: original, weather frame and particle opacity."""
-    from weathergen.io.images import write_png
-    from weathergen.preview import contact_sheet
-
     sheet = contact_sheet(render_dir, pairs=pairs, width=width)
     out = out or render_dir / "preview.png"
-    write_png(out, sheet)
-    click.echo(f"Preview written to {out}")
+    try:
+        write_png(out, sheet.image)
+    except OSError as exc:
+        raise write_error(exc, out, "pass --out PATH.png to write it elsewhere") from None
+    if sheet.partial:
+        click.echo(f"Preview of {sheet.shown} of {sheet.total} pairs written to {out} "
+                   f"(--pairs {sheet.total} shows all)")
+    else:
+        click.echo(f"Preview of {sheet.total} pair{'s' if sheet.total != 1 else ''} written to {out}")

@@ -11,6 +11,7 @@ import torch
 
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
+from ..geometry import invert_rigid, to_homogeneous
 from .base import Dataset, Selection
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
@@ -46,9 +47,25 @@ class ScaledDataset(Dataset):
         if world_up not in WORLD_UP_CHOICES:
             raise ConfigError(f"world up {world_up!r}: choose from {', '.join(WORLD_UP_CHOICES)}")
         self.depth_scale = float(depth_scale)
+        #: where the table came from (a file, see :func:`load_scene_scales`), for messages
+        self.scene_scales_source = getattr(scene_scales, "source", None) or "scene scales"
         self.scene_scales = dict(scene_scales or {})
         self.camera_translation = camera_translation
         self.world_up = world_up
+
+    def check_scene_scales(self) -> None:
+        """Refuse a scene-scale entry that names no scene of the split (a typo would otherwise
+        leave that scene unscaled without a word)."""
+        if not self.scene_scales:
+            return
+        scenes = self.all_scenes()
+        if scenes is None:
+            return
+        unknown = sorted(s for s in self.scene_scales if s not in scenes)
+        if unknown:
+            shown = ", ".join(scenes[:12]) + (f", ... ({len(scenes)} in all)" if len(scenes) > 12 else "")
+            raise ConfigError(f"{self.scene_scales_source}: no scene named {', '.join(unknown)} in "
+                              f"{self.root} ({self.selection.split}); scenes there: {shown or 'none'}")
 
     def scale_of(self, scene: str) -> float:
         """The depth scale applied to ``scene``."""
@@ -104,7 +121,7 @@ class FarDepthDataset(ScaledDataset):
             raise ConfigError(f"unknown {self.name} split {selection.split!r}; choose from "
                               f"{', '.join(sorted(self.split_folders))}")
         if selection.pass_ != "clean":
-            raise ConfigError(f"{self.name} has a single rendering pass; --pass {selection.pass_!r} "
+            raise ConfigError(f"{self.name} has a single rendering pass; ${{pass_}} {selection.pass_!r} "
                               f"does not apply (leave it at 'clean')")
         far = DEFAULT_FAR_DEPTH if far_depth is None else far_depth
         if not (np.isfinite(far) and far > 0):
@@ -181,8 +198,6 @@ def scaled_poses(cam1_from_world: np.ndarray, cam2_from_world: np.ndarray, scale
     Shape: (4, 4) or (3, 4) each -> ``(cam1_from_world, cam2_from_world, cam2_from_cam1)``, (4, 4)
     float64.
     """
-    from ..geometry import invert_rigid, to_homogeneous
-
     poses = []
     for e in (cam1_from_world, cam2_from_world):
         t = torch.from_numpy(np.array(e, np.float64))

@@ -81,6 +81,9 @@ class CustomDataset(FarDepthDataset):
                                f"ROOT/SCENE/frames/0000.png or ROOT/frames/0000.png)")
         return found
 
+    def all_scenes(self) -> list[str]:
+        return sorted(self.scene_dirs())
+
     def frames(self, scene_dir: Path) -> dict[int, Path]:
         """Frame number -> frame file, in order. Raises :class:`DatasetError` saying why the
         folder's images cannot be paired."""

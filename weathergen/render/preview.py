@@ -2,18 +2,19 @@
 
 from __future__ import annotations
 
-import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from .datasets import reopen_dataset
-from .errors import ConfigError, WeatherGenError
-from .io.exr import read_exr
-from .io.images import read_image, to_uint8
-from .outputs import MANIFEST, PairOutput
+from ..datasets import reopen_dataset
+from ..engine import Particles, render_pair
+from ..errors import WeatherGenError
+from ..io.exr import read_exr
+from ..io.images import read_image, to_uint8
+from ..outputs import PairOutput, read_manifest
 
 
 def _tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
@@ -30,45 +31,57 @@ def _tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
     return out
 
 
-def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> np.ndarray:
+@dataclass
+class ContactSheet:
+    """A contact sheet and what it shows: ``shown`` of the ``total`` complete pairs."""
+
+    image: np.ndarray           # (rows * h [+ footer], 3 * width, 3) uint8 RGB
+    shown: int
+    total: int
+
+    @property
+    def partial(self) -> bool:
+        return self.shown < self.total
+
+
+def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> ContactSheet:
     """One row per pair: original frame 1 | weather frame 1 | particle opacity of frame 1.
 
-    The input frames are read through the dataset recorded in the manifest; the opacity is
-    re-rendered from the stored particle metadata (exact, whatever the output format).
-    Shape: returns (rows * h, 3 * width, 3) uint8 RGB.
+    The first ``pairs`` complete pairs are shown; when the output holds more, a footer below the
+    rows says how many of how many the sheet shows. The input frames are read through the dataset
+    recorded in the manifest; the opacity is re-rendered from the stored particle metadata (exact,
+    whatever the output format).
     """
-    from .engine import Particles, render_pair
-
     render_dir = Path(render_dir)
-    manifest_path = render_dir / MANIFEST
-    if not manifest_path.is_file():
-        raise ConfigError(f"{manifest_path}: not found; preview takes the folder of a render output")
-    try:
-        manifest = json.loads(manifest_path.read_text())
-        inp, outputs = manifest["input"], manifest["outputs"]
-    except (ValueError, KeyError, TypeError):
-        raise ConfigError(f"{manifest_path}: not a weathergen render manifest") from None
-    ds = reopen_dataset(inp)
+    manifest = read_manifest(render_dir, "preview")
+    ds = reopen_dataset(manifest.input)
     rows = []
+    total = 0
     for ref in ds.pairs():
-        out = PairOutput.of(render_dir, ref.id, outputs["pass"], outputs["format"], outputs["geometry"])
+        out = PairOutput.of(render_dir, ref.id, manifest.pass_name, manifest.fmt, manifest.geometry)
         if not out.is_complete():
             continue
+        total += 1
+        if len(rows) == pairs:
+            continue            # only counted
         pair = ds.load(ref)
         particles = Particles.load(out.metadata)
         with torch.no_grad():
             opacity = render_pair(pair, particles).opacity1[0, 0].clamp(0, 1).numpy()
-        weather = (read_image(out.frames_png[0]) if outputs["format"] in ("png", "both")
+        weather = (read_image(out.frames_png[0]) if manifest.fmt in ("png", "both")
                    else np.clip(read_exr(out.frames_exr[0])["RGB"], 0, 1))
         original = pair.image1.permute(1, 2, 0).numpy()
         h, w = original.shape[:2]
         size = (width, max(1, round(h * width / w)))
         tiles = [_tile(original, size, f"{ref.id.scene} {ref.id.frame}"),
-                 _tile(weather, size, manifest.get("preset_name", "")),
+                 _tile(weather, size, manifest.data.get("preset_name", "")),
                  _tile(np.repeat(opacity[..., None], 3, 2), size, "opacity")]
         rows.append(np.hstack(tiles))
-        if len(rows) == pairs:
-            break
     if not rows:
         raise WeatherGenError(f"{render_dir}: no complete pair to preview")
-    return np.vstack(rows)
+    if len(rows) < total:
+        footer = np.full((28, rows[0].shape[1], 3), 32, np.uint8)
+        cv2.putText(footer, f"{len(rows)} of {total} pairs shown (--pairs {total} shows all)", (6, 19),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        rows.append(footer)
+    return ContactSheet(np.vstack(rows), min(pairs, total), total)
