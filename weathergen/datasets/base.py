@@ -77,6 +77,15 @@ def frame_numbers(folder: Path, pattern) -> list[int]:
     return sorted(found)
 
 
+#: What each file key of the readers holds, for messages.
+FILE_ROLES = {
+    "image1": "first frame", "image2": "second frame", "depth1": "frame-1 depth",
+    "depth2": "frame-2 depth", "disp1": "frame-1 disparity", "disp2": "frame-2 disparity",
+    "flow": "ground-truth flow", "objects": "object map", "calib": "calibration",
+    "cameras": "camera", "intrinsics": "intrinsics", "extrinsics": "extrinsics",
+    "cam1": "frame-1 camera", "cam2": "frame-2 camera", "disp2_own": "frame-2 disparity",
+}
+
 ERROR, WARNING = "error", "warning"
 
 
@@ -169,8 +178,6 @@ class Dataset(ABC):
 
     def missing_files(self, ref: PairRef) -> list[Problem]:
         """One problem per needed file that does not exist (all of them, not only the first)."""
-        from .common import FILE_ROLES
-
         out = []
         for key in self.needed_files(ref):
             path = ref.files.get(key)

@@ -25,6 +25,7 @@ import torch
 
 from ..framepair import FramePair
 from ..geometry import backproject, project, transform_points
+from ..io.kitti_formats import read_object_map
 
 #: Relative camera-z difference up to which a moved point counts as the surface frame 2 sees.
 VISIBILITY_TOLERANCE = 0.05
@@ -54,8 +55,6 @@ def static_mask(pair: FramePair) -> Optional[np.ndarray]:
     path = pair.sources.get("objects")
     if path is None:
         return None
-    from ..io.kitti_formats import read_object_map
-
     return read_object_map(path) == 0
 
 

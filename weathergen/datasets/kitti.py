@@ -52,6 +52,7 @@ Put disparities of your own (a stereo network's) as ``disp_occ_0/NNNNNN_10.png``
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
 from typing import Optional
 
@@ -105,8 +106,6 @@ class KittiDataset(FarDepthDataset):
                                         ("min_inlier_fraction", fit_min_inlier_fraction),
                                         ("max_rms_px", fit_max_rms_px)) if v is not None}
         if overrides:
-            from dataclasses import replace
-
             fit = replace(fit, **overrides)
         self.max_gap_px = float(max_gap_px)
         self.fit = fit
