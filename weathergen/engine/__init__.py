@@ -27,6 +27,12 @@ _EXPORTS = {
     "render": "renderer", "render_pair": "renderer", "build_stamps": "renderer",
     "RenderOutput": "renderer", "StampSet": "renderer", "BETA_RENDER": "renderer",
     "BETA_ATTACK": "renderer",
+    "FieldPreset": "field_presets", "DATASET_FRAME_RATES": "field_presets",
+    "Field": "field", "make_field": "field", "sample_field_particles": "field",
+    "scene_seed": "field", "sample_weather": "field", "frame_particles": "field",
+    "pair_particles": "field", "FieldOptics": "particles", "View": "perframe",
+    "render_view": "perframe", "particle_truth": "groundtruth", "seen_flow": "groundtruth",
+    "ParticleTruth": "groundtruth",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -17,6 +17,13 @@ With ``frame == "world"`` the reference is the dataset's world (``cam1_from_ref`
 ``cam1_from_ref`` is the identity and ``cam2_from_ref`` is ``cam2_from_cam1``. This equals the
 paper's ``T_rel (p1 + δ1) + m + δ2`` with ``m`` and ``δ2`` expressed in the reference frame.
 
+Appearance: a record sampled by the paper's model (``optics is None``) carries its footprint
+(``scale``), defocus radius and transparency fixed at sampling. A record sampled from a weather
+field (:mod:`weathergen.engine.field`) carries :class:`FieldOptics`: its ``scale`` is then the
+particle's diameter in scene units and ``transparency`` its base θ, and footprint, defocus and
+depth fade are computed for every frame from that frame's own depth of the particle
+(:mod:`weathergen.engine.perframe`).
+
 Storage precision: positions, motions and scales are float32; offsets, colours, transparencies
 and rotations are float16; template indices uint16; defocus radii uint8. Sampling returns a
 record already rounded to these precisions (:meth:`Particles.quantized`), so rendering the
@@ -26,8 +33,10 @@ in-memory record and rendering the reloaded file give identical bytes.
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -35,6 +44,9 @@ import torch
 from ..errors import FormatError
 
 FORMAT_VERSION = 1
+#: Records with field optics are written as version 2 (they would render wrongly in a reader that
+#: ignored the optics); records of the paper's model stay version 1, byte for byte.
+FIELD_FORMAT_VERSION = 2
 REFERENCE_FRAMES = ("world", "camera1")
 
 # Per-particle tensor fields: storage dtype and trailing shape.
@@ -53,6 +65,37 @@ _TENSOR_FIELDS = {
 _INTEGER_FIELDS = ("template", "defocus")
 
 
+@dataclass(frozen=True)
+class FieldOptics:
+    """How a field-sampled record looks in each frame (see :mod:`weathergen.engine.perframe`).
+
+    Lengths in scene units: ``near``/``far`` bound the camera depths at which particles are drawn;
+    ``fade`` is the fraction of ``far`` over which they fade out before it (and they fade in over
+    ``[near, 2 near]``); ``aperture`` is the lens's aperture diameter (0: pinhole, no defocus),
+    focused at ``focus``; ``depth_softness`` is the width of the occlusion test's transition
+    (visibility ``sigmoid((D - d) / depth_softness)``), large for fog so that a slanted wall fades
+    it instead of cutting it.
+    """
+
+    near: float
+    far: float
+    fade: float = 0.2
+    aperture: float = 0.0
+    focus: float = 1.0
+    depth_softness: float = 0.004
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "FieldOptics":
+        names = {f.name for f in dataclasses.fields(cls)}
+        unknown = sorted(set(data) - names)
+        if unknown:
+            raise ValueError(f"unknown optics keys {unknown}")
+        return cls(**{k: float(v) for k, v in data.items()})
+
+
 @dataclass
 class Particles:
     """Per-particle parameters of one frame pair (N particles) and the render settings they need.
@@ -66,8 +109,9 @@ class Particles:
         transparency: (N,) θ, the alpha scale of the template (>= 0; may exceed 1 for glows).
         template: (N,) int64 index into the template library named by ``templates``.
         rotation: (N,) radians, counter-clockwise on screen.
-        scale: (N,) image pixels per template pixel, fixed at sampling.
-        defocus: (N,) int64 disc-blur radius in pixels (0 or 1: no blur).
+        scale: (N,) image pixels per template pixel, fixed at sampling; with ``optics``: the
+            particle's diameter in scene units.
+        defocus: (N,) int64 disc-blur radius in pixels (0 or 1: no blur); 0 with ``optics``.
     Float fields are float32 (or the dtype the caller chose, e.g. float64 for gradcheck).
     """
 
@@ -88,6 +132,12 @@ class Particles:
     defocus_brighten: bool = True
     templates: str = "flakes"
     templates_digest: str = ""
+    optics: Optional[FieldOptics] = None
+
+    @property
+    def per_frame(self) -> bool:
+        """True when footprint, defocus and fade follow each frame's depth (field records)."""
+        return self.optics is not None
 
     @property
     def count(self) -> int:
@@ -141,11 +191,14 @@ class Particles:
     def to_numpy(self) -> dict[str, np.ndarray]:
         """The ``.npz`` content: storage-precision arrays plus 0-d metadata arrays."""
         q = self.quantized()
-        arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
+        version = FORMAT_VERSION if self.optics is None else FIELD_FORMAT_VERSION
+        arrays: dict[str, np.ndarray] = {"format_version": np.array(version, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
             arrays[name] = getattr(q, name).cpu().numpy().astype(np_dtype)
         for key, value in self.metadata().items():
             arrays[key] = np.array(value)
+        if self.optics is not None:
+            arrays["optics"] = np.array(json.dumps(self.optics.to_dict(), sort_keys=True))
         return arrays
 
     def save(self, path: str | Path) -> Path:
@@ -169,9 +222,9 @@ class Particles:
         version = arrays.get("format_version")
         if version is None:
             raise FormatError(path, "no format_version: not a weathergen particle file")
-        if int(version) != FORMAT_VERSION:
+        if int(version) not in (FORMAT_VERSION, FIELD_FORMAT_VERSION):
             raise FormatError(path, f"particle format version {int(version)}; this weathergen "
-                                    f"reads version {FORMAT_VERSION}")
+                                    f"reads versions {FORMAT_VERSION} and {FIELD_FORMAT_VERSION}")
         n = None
         fields = {}
         for name, (np_dtype, tail) in _TENSOR_FIELDS.items():
@@ -194,6 +247,13 @@ class Particles:
             meta[key] = kind(arrays[key].item())
         if meta["frame"] not in REFERENCE_FRAMES:
             raise FormatError(path, f"unknown reference frame {meta['frame']!r}")
+        if int(version) == FIELD_FORMAT_VERSION:
+            if "optics" not in arrays:
+                raise FormatError(path, "version 2 particle file without 'optics'")
+            try:
+                meta["optics"] = FieldOptics.from_dict(json.loads(str(arrays["optics"])))
+            except (ValueError, TypeError) as exc:
+                raise FormatError(path, f"unreadable 'optics' entry ({exc})") from None
         return cls(**fields, **meta)
 
 

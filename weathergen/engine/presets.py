@@ -165,11 +165,13 @@ def preset_keys() -> list[dataclasses.Field]:
 _KEYS = {f.name: f for f in preset_keys()}
 
 
-def _coerce(where: str, key: str, value: Any) -> Any:
-    """Type-check one value against the schema; return it in its canonical Python type."""
-    f = _KEYS.get(key)
+def _coerce(where: str, key: str, value: Any, keys: Optional[Mapping] = None) -> Any:
+    """Type-check one value against the schema (``keys``, default :class:`Preset`'s); return it in
+    its canonical Python type."""
+    keys = _KEYS if keys is None else keys
+    f = keys.get(key)
     if f is None:
-        raise ConfigError(f"{where}: unknown key '{key}' (known keys: {', '.join(_KEYS)})")
+        raise ConfigError(f"{where}: unknown key '{key}' (known keys: {', '.join(keys)})")
     default = f.default
     bad = lambda what: ConfigError(f"{where}: key '{key}' = {value!r}: {what}")  # noqa: E731
     if isinstance(default, bool):
@@ -212,14 +214,16 @@ def _coerce(where: str, key: str, value: Any) -> Any:
     return out
 
 
-def parse_override(key: str, text: str, where: str = "--set") -> Any:
+def parse_override(key: str, text: str, where: str = "--set",
+                   keys: Optional[Mapping] = None) -> Any:
     """Parse a command-line value for ``key`` using the key's type (TOML syntax, bare strings ok).
 
     ``"500"`` -> 500, ``"true"`` -> True, ``"255,0,0"`` or ``"[255, 0, 0]"`` -> (255, 0, 0).
     """
-    if key not in _KEYS:
-        raise ConfigError(f"{where}: unknown key '{key}' (known keys: {', '.join(_KEYS)})")
-    default = _KEYS[key].default
+    keys = _KEYS if keys is None else keys
+    if key not in keys:
+        raise ConfigError(f"{where}: unknown key '{key}' (known keys: {', '.join(keys)})")
+    default = keys[key].default
     raw = text.strip()
     if isinstance(default, tuple) and not raw.startswith("["):
         raw = f"[{raw}]"
@@ -233,7 +237,7 @@ def parse_override(key: str, text: str, where: str = "--set") -> Any:
                               f"{type(default).__name__} value") from None
     if isinstance(default, str) and not isinstance(value, str):
         value = text
-    return _coerce(where, key, value)
+    return _coerce(where, key, value, keys)
 
 
 def _preset_dir():
@@ -253,12 +257,14 @@ def _read_toml(text: str, where: str) -> dict:
 
 
 def load_preset(name_or_path: str | Path = "snow",
-                overrides: Optional[Mapping[str, Any]] = None) -> Preset:
+                overrides: Optional[Mapping[str, Any]] = None):
     """Load a bundled preset by name, or a user's preset file by path, and apply overrides.
 
     ``overrides`` maps keys to values; strings are parsed per the key's type (as for ``--set``),
     other values are type-checked as given. A relative ``templates`` folder in a user file is
-    resolved against the file's folder.
+    resolved against the file's folder. A file with ``model = "field"`` is a weather-field preset
+    and loads as :class:`~weathergen.engine.field_presets.FieldPreset`; others are the paper's
+    model, :class:`Preset`.
     """
     text_name = str(name_or_path)
     path = Path(text_name)
@@ -277,6 +283,18 @@ def load_preset(name_or_path: str | Path = "snow",
         data = _read_toml(res.read_text(encoding="utf-8"), where)
         base_dir = None
 
+    model = data.pop("model", "paper")
+    overrides = dict(overrides or {})
+    if "model" in overrides:          # a re-render of a stored field preset names its model
+        wanted = str(overrides.pop("model")).strip().strip('"')
+        if wanted != model:
+            data, model = {}, wanted   # every key of the other model comes from the overrides
+    if model == "field":
+        from .field_presets import build_field_preset
+
+        return build_field_preset(name, where, data, overrides, base_dir)
+    if model != "paper":
+        raise ConfigError(f"{where}: key 'model' = {model!r}: must be paper or field")
     values = {}
     templates_from = where
     for key, value in data.items():

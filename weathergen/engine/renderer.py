@@ -437,6 +437,13 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         if r.blend not in ("additive", "alpha"):
             raise ConfigError(f"unknown blend mode {r.blend!r}")
 
+    if any(r.optics is not None for r in records):
+        # Weather-field records look different in each frame: one view at a time (perframe.py).
+        from .perframe import render_per_frame
+        return render_per_frame(image1, image2, depth1, depth2, intrinsics.to(device),
+                                cam1_from_ref.to(device), cam2_from_ref.to(device), records,
+                                templates, beta=beta, chunk_elements=chunk_elements)
+
     acc = None
     intr = intrinsics.to(device)
     inst = _instances(records, intr, cam1_from_ref.to(device), cam2_from_ref.to(device),
