@@ -17,7 +17,8 @@ camera depth ``z`` of the particle, so that a flake the camera approaches grows:
 
 The particles of a view are those :func:`view_mask` keeps: camera depth in ``[near, far]``, centre
 or streak end inside the image widened by the stamp, and not behind the scene at its pixel (by
-more than three ``depth_softness``). The mask depends on the view alone and the record keeps a
+more than three ``depth_softness``; a particle just outside the image is tested against the
+nearest border pixel, where its stamp reaches in). The mask depends on the view alone and the record keeps a
 canonical order, so a frame is the same image in every pair (or sequence) that holds it.
 
 Rendering reuses the renderer's stamp builder (:func:`~weathergen.engine.renderer.build_stamps`)
@@ -112,19 +113,15 @@ def view_mask(view: View, points: torch.Tensor, streak: torch.Tensor, diameter: 
     def look(pts):
         pix, zz = project(pts, k)
         ahead = zz > 1e-6
-        near_image = ahead & (pix[:, 0] >= -0.5 - reach) & (pix[:, 0] <= w - 0.5 + reach) \
+        reaches = ahead & (pix[:, 0] >= -0.5 - reach) & (pix[:, 0] <= w - 0.5 + reach) \
             & (pix[:, 1] >= -0.5 - reach) & (pix[:, 1] <= h - 0.5 + reach)
-        in_image = ahead & (pix[:, 0] >= -0.5) & (pix[:, 0] < w - 0.5) \
-            & (pix[:, 1] >= -0.5) & (pix[:, 1] < h - 0.5)
+        # the scene depth at the nearest pixel of the image (its border for a rim particle,
+        # whose stamp reaches into the image there)
         col = torch.floor(pix[:, 0] + 0.5).clamp(0, w - 1).long()
         row = torch.floor(pix[:, 1] + 0.5).clamp(0, h - 1).long()
-        front = zz <= depth[0, row, col].double() + tolerance
-        return near_image, in_image, in_image & front
+        return reaches & (zz <= depth[0, row, col].double() + tolerance)
 
-    near0, in0, seen0 = look(start)
-    near1, in1, seen1 = look(end)
-    unknown = ~in0 & ~in1           # only the stamp's rim reaches the image: cannot test depth
-    return in_range & (near0 | near1) & (seen0 | seen1 | unknown)
+    return in_range & (look(start) | look(end))
 
 
 def view_appearance(record: Particles, z: torch.Tensor, f: float, resolution: int) -> Particles:
