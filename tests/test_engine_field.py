@@ -338,3 +338,34 @@ def test_view_mask_keeps_rim_particles_whose_stamp_reaches_the_image():
     keep = view_mask(view, pts, torch.zeros(2, 3, dtype=torch.float64),
                      torch.tensor([0.2, 0.2], dtype=torch.float64), optics)
     assert keep.tolist() == [True, False]
+
+
+# -- the bundled ladder ---------------------------------------------------------------------
+
+LADDER = [f"{kind}-{level}" for kind in ("snow", "rain", "sparks", "fog")
+          for level in ("light", "moderate", "heavy")]
+
+
+def test_severity_ladder_is_bundled_and_ordered():
+    from weathergen.engine import list_presets
+
+    assert sorted(LADDER) == list_presets("field")
+    for kind in ("snow", "rain", "sparks", "fog"):
+        d = [load_preset(f"{kind}-{lvl}").density for lvl in ("light", "moderate", "heavy")]
+        assert d[0] < d[1] < d[2]
+        assert load_preset(f"{kind}-light").to_dict()["model"] == "field"
+
+
+def test_presets_command_names_the_model():
+    from click.testing import CliRunner
+
+    from weathergen.cli import presets_cmd  # noqa: F401  (registers the command)
+    from weathergen.cli.main import cli
+
+    result = CliRunner().invoke(cli, ["presets"])
+    assert result.exit_code == 0, result.output
+    for name in LADDER:
+        assert f" {name} " in result.output and "field model" in result.output
+    assert "paper model" in result.output
+    result = CliRunner().invoke(cli, ["presets", "snow-heavy"])
+    assert result.exit_code == 0 and "(field model)" in result.output and "density" in result.output

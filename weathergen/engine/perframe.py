@@ -180,6 +180,13 @@ def splat_view(view: View, record: Particles, start: torch.Tensor, displacement:
         z = transform_points(view.cam_from_ref.double().cpu(), s.detach().double().cpu())[:, 2]
     looks = sub if optics is None else view_appearance(sub, z, focal(view.intrinsics),
                                                        lib.resolution)
+    if optics is not None:     # faded out entirely (at near or far): nothing to draw
+        drawn = torch.nonzero(looks.transparency.detach() != 0).squeeze(1)
+        if drawn.numel() < looks.count:
+            looks, sub, s, d = looks.select(drawn), sub.select(drawn), s[drawn], d[drawn]
+            sel = sel[drawn.cpu()]
+        if looks.count == 0:
+            return ViewSplat(zero_alpha, torch.zeros(3, h, w, dtype=dtype, device=device), sel)
     stamps = build_stamps([looks], lib, dtype=dtype, device=device, chunk_elements=chunk_elements)
     steps = _blur_steps(sub, dtype, device)
     n, kk = sub.count, steps.numel()

@@ -244,9 +244,19 @@ def _preset_dir():
     return resources.files("weathergen.presets")
 
 
-def list_presets() -> list[str]:
-    """Names of the bundled presets, sorted."""
-    return sorted(p.name[:-5] for p in _preset_dir().iterdir() if p.name.endswith(".toml"))
+def list_presets(model: Optional[str] = None) -> list[str]:
+    """Names of the bundled presets, sorted; only those of one model (``"paper"`` or
+    ``"field"``) when ``model`` is given."""
+    names = sorted(p.name[:-5] for p in _preset_dir().iterdir() if p.name.endswith(".toml"))
+    if model is None:
+        return names
+    return [n for n in names if preset_file_model(n) == model]
+
+
+def preset_file_model(name: str) -> str:
+    """The model a bundled preset uses, from its ``model`` key (default ``"paper"``)."""
+    res = _preset_dir() / f"{name}.toml"
+    return str(_read_toml(res.read_text(encoding="utf-8"), res.name).get("model", "paper"))
 
 
 def _read_toml(text: str, where: str) -> dict:
