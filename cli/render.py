@@ -63,7 +63,9 @@ def resolve_preset(preset_name, preset_file, set_items, particles_dir):
     base = stored["name"] if stored["name"] in list_presets() else "snow"  # every key is set anyway
     preset = load_preset(base, {**values, **overrides})
     appearance = {}
-    if overrides:
+    if overrides and getattr(preset, "model", "paper") == "field":
+        appearance = {"blend": preset.blend, "blur_samples": preset.blur_samples}
+    elif overrides:
         appearance = {"blend": preset.blend, "blur_length": preset.effective_blur_length,
                       "blur_samples": preset.blur_sample_count,
                       "defocus_brighten": preset.defocus_brighten}
@@ -133,6 +135,9 @@ def _terminate_as_interrupt():
               show_default=True, help="8-bit PNG frames, float OpenEXR frames with an opacity channel, or both.")
 @click.option("--geometry/--no-geometry", default=True, show_default=True,
               help="Also write depth, cameras and flow per pair, so the output reads as a Sintel tree.")
+@click.option("--particle-truth", "truth", is_flag=True,
+              help="Also write the particle layer's flow and opacity and the seen flow per pair "
+                   "(see docs/render.md). Default: off.")
 @click.option("--shard", default="1/1", show_default=True, metavar="I/N",
               help="Render only shard I of N (for job arrays); parts merge into one manifest.")
 @click.option("--resume", is_flag=True, help="Finish an interrupted run (same options): skip the pairs that are complete.")
@@ -140,7 +145,7 @@ def _terminate_as_interrupt():
                    "folder that render did not create.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pass_name, device,
-           workers, batch_size, fmt, geometry, shard, resume, overwrite, quiet):
+           workers, batch_size, fmt, geometry, truth, shard, resume, overwrite, quiet):
     """Render weather into every selected frame pair and write frames plus particle metadata.
 
     With no option it renders the snow preset onto the bundled demo scene into out/snow.
@@ -155,7 +160,7 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
     job = RenderJob(
         dataset=dataset, out=out, preset=preset_obj, preset_name=name, seed=seed,
         pass_name=pass_name or f"{name}_{dataset.selection.pass_}", fmt=fmt, geometry=geometry,
-        device=device, particles_from=particles_dir, appearance=appearance,
+        truth=truth, device=device, particles_from=particles_dir, appearance=appearance,
         shard=parse_shard(shard), workers=workers, batch_size=batch_size, resume=resume, overwrite=overwrite,
         command=click.get_current_context().meta.get(ARGV_KEY, ["weathergen", *sys.argv[1:]]),
     )

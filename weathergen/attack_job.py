@@ -24,7 +24,7 @@ from .attack import (AttackSettings, PairSummary, StepRecord, TargetSpec, attack
 from .attack_outputs import (AttackPairOutput, load_render_particles, prepare_attack_folder,
                              read_pair_summary, read_target_flow, write_attack_manifest,
                              write_attack_pair)
-from .batch import pair_seed
+from .batch import pair_seed, weather_seed
 from .datasets import Dataset
 from .errors import ConfigError, WeatherGenError
 from .io.images import to_uint8
@@ -80,12 +80,12 @@ class PairReport:
 
 
 def _particles(job: AttackJob, pair):
-    from .engine import sample_particles
+    from .engine import sample_weather
 
     if job.particles_from is not None:
         return load_render_particles(job.particles_from, pair.id)
-    return sample_particles(pair, job.preset, pair_seed(job.seed, pair.id),
-                            world_up=getattr(job.dataset, "world_up", "auto"))
+    return sample_weather(pair, job.preset, weather_seed(job, pair.id),
+                          world_up=getattr(job.dataset, "world_up", "auto"))
 
 
 def attack_one(job: AttackJob, model, pair, target_file_flow=None,
@@ -113,7 +113,7 @@ def attack_one(job: AttackJob, model, pair, target_file_flow=None,
                              seconds=time.perf_counter() - start)
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
     meta = best.to_numpy()
-    meta.update(identity_arrays(pair.id, pair_seed(job.seed, pair.id), job.preset.to_dict(),
+    meta.update(identity_arrays(pair.id, weather_seed(job, pair.id), job.preset.to_dict(),
                                 job.preset_name))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}

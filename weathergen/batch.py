@@ -50,6 +50,17 @@ def pair_seed(run_seed: int, pair_id: PairId) -> int:
     return int.from_bytes(digest[:8], "little") & ((1 << 63) - 1)
 
 
+def weather_seed(job: "RenderJob", pair_id: PairId) -> int:
+    """The seed a pair's weather is drawn from: the pair's own for the paper's model, the scene's
+    for a weather field (so that the pairs of a scene share one field and their common frames)."""
+    from .engine.field import scene_seed
+    from .engine.field_presets import FieldPreset
+
+    if isinstance(job.preset, FieldPreset):
+        return scene_seed(job.seed, pair_id.dataset, pair_id.split, pair_id.scene)
+    return pair_seed(job.seed, pair_id)
+
+
 def parse_shard(text: str) -> tuple[int, int]:
     """``"i/N"`` with ``1 <= i <= N`` -> ``(i, N)``."""
     try:
@@ -81,6 +92,7 @@ class RenderJob:
     pass_name: str = ""
     fmt: str = "png"
     geometry: bool = True
+    truth: bool = False                 # write the particle ground truth (flows, opacity)
     device: str = "cpu"
     particles_from: Optional[Path] = None
     appearance: dict = field(default_factory=dict)   # re-render overrides of Particles settings
@@ -98,7 +110,8 @@ class RenderJob:
             "preset": self.preset.to_dict(),
             "seed": self.seed,
             "input": self.dataset.describe(),
-            "outputs": {"pass": self.pass_name, "format": self.fmt, "geometry": self.geometry},
+            "outputs": {"pass": self.pass_name, "format": self.fmt, "geometry": self.geometry,
+                        **({"particle_truth": True} if self.truth else {})},
             "particles_from": str(self.particles_from) if self.particles_from else None,
             "appearance": self.appearance,
         }
@@ -121,10 +134,10 @@ class PairResult:
 
 # -- one pair ------------------------------------------------------------------------------------
 def _particles_for(job: RenderJob, pair, seed: int):
-    from .engine import Particles, sample_particles
+    from .engine import Particles, sample_weather
 
     if job.particles_from is None:
-        return sample_particles(pair, job.preset, seed, world_up=getattr(job.dataset, "world_up", "auto"))
+        return sample_weather(pair, job.preset, seed, world_up=getattr(job.dataset, "world_up", "auto"))
     out = PairOutput.of(job.particles_from, pair.id, job.pass_name)
     path = out.metadata
     if not path.exists():
@@ -152,7 +165,7 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
     results: dict[PairId, PairResult] = {}
     ready = []                                   # (ref, seed, pair, particles, seconds so far)
     for ref in refs:
-        seed = pair_seed(job.seed, ref.id)
+        seed = weather_seed(job, ref.id)
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
@@ -192,9 +205,14 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     meta = particles.to_numpy()
     meta.update(identity_arrays(ref.id, seed, job.preset.to_dict(), job.preset_name))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
-    out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+    out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth)
+    truth = None
+    if job.truth:
+        from .engine.groundtruth import particle_truth
+
+        truth = particle_truth(pair, particles)
     try:
-        files = write_pair_outputs(out, pair, frames, opacity, meta)
+        files = write_pair_outputs(out, pair, frames, opacity, meta, truth)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
         raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
                           f"rerun with --resume once there is room") from None
@@ -364,9 +382,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     results: list[PairResult] = []
     todo: list[PairRef] = []
     for ref in refs:
-        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth)
         if not job.overwrite and out.is_complete():
-            results.append(PairResult(ref.id.key, str(ref.id), "skipped", pair_seed(job.seed, ref.id)))
+            results.append(PairResult(ref.id.key, str(ref.id), "skipped", weather_seed(job, ref.id)))
         else:
             todo.append(ref)
     on_start(len(refs))

@@ -17,6 +17,15 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/flow_occ/PAIR/frame_FFFF.png    the same flow in KITTI's 16-bit PNG format (KITTI input)
     OUT/SPLIT/flow_FW_left/PAIR/frame_FFFF.flo5   ... in Spring's HDF5 format (Spring input)
 
+With particle ground truth (``--particle-truth``; see :mod:`weathergen.engine.groundtruth`)::
+
+    OUT/SPLIT/particle_flow/PAIR/frame_FFFF.flo      flow of the particle layer (opacity-weighted)
+    OUT/SPLIT/particle_opacity/PAIR/frame_FFFF.png   its opacity in frame 1, 16-bit (x 65535)
+    OUT/SPLIT/seen_flow/PAIR/frame_FFFF.flo          particles' flow where they dominate, scene's elsewhere
+    OUT/SPLIT/seen_invalid/PAIR/frame_FFFF.png       non-zero where the seen flow is not valid
+    (KITTI and Spring inputs also get particle_flow_occ / seen_flow_occ PNGs, or
+    particle_flow_FW_left / seen_flow_FW_left .flo5, in their own formats)
+
 Each pair is its own two-frame "scene", because without persistent particles the second frame of
 pair ``i`` and the first frame of pair ``i + 1`` differ. The tree is therefore a Sintel tree: the
 Sintel reader (and any tool that reads Sintel) reads it with ``--pass PASS``.
@@ -37,7 +46,7 @@ from .errors import FormatError
 from .framepair import FramePair, PairId
 from .io.atomic import atomic_write_bytes
 from .io.exr import write_exr
-from .io.images import write_png
+from .io.images import write_png, write_png16
 from .io.sintel_formats import write_cam, write_dpt, write_flo
 
 MANIFEST = "manifest.json"
@@ -63,11 +72,14 @@ class PairOutput:
     frame: int
     fmt: str = "png"
     geometry: bool = True
+    truth: bool = False
 
     @classmethod
-    def of(cls, root, pair_id: PairId, pass_name: str, fmt: str = "png", geometry: bool = True):
+    def of(cls, root, pair_id: PairId, pass_name: str, fmt: str = "png", geometry: bool = True,
+           truth: bool = False):
         split = SINTEL_SPLIT_FOLDER.get(pair_id.split, pair_id.split)
-        return cls(Path(root), split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry)
+        return cls(Path(root), split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry,
+                   truth)
 
     @property
     def pair_dir(self) -> str:
@@ -108,6 +120,20 @@ class PairOutput:
         """Sintel-style mask of pixels without valid ground-truth flow (written only when some are)."""
         return self._file("invalid", self.frame, "png")
 
+    def truth_files(self) -> dict[str, Path]:
+        """Where the particle ground truth goes (see the module doc)."""
+        return {"particle_flow": self._file("particle_flow", self.frame, "flo"),
+                "particle_opacity": self._file("particle_opacity", self.frame, "png"),
+                "seen_flow": self._file("seen_flow", self.frame, "flo"),
+                "seen_invalid": self._file("seen_invalid", self.frame, "png")}
+
+    def native_truth(self, dataset: str, kind: str) -> Path | None:
+        """``kind`` (particle or seen) flow in the input dataset's own format, else None."""
+        if dataset not in NATIVE_FLOW:
+            return None
+        folder, ext = NATIVE_FLOW[dataset]
+        return self._file(f"{kind}_{folder}", self.frame, ext)
+
     def files(self, with_flow: bool = False) -> list[Path]:
         """Every file of this pair, the metadata file last (it marks completion)."""
         out = []
@@ -132,8 +158,10 @@ class PairOutput:
 
 
 def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarray, np.ndarray],
-                       opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray]) -> list[Path]:
-    """Write one pair: frames, optional EXR and geometry, then the metadata (last).
+                       opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray],
+                       truth=None) -> list[Path]:
+    """Write one pair: frames, optional EXR, geometry and particle ground truth (``truth``, a
+    :class:`~weathergen.engine.groundtruth.ParticleTruth`), then the metadata (last).
 
     Shape: frames (H, W, 3) float in [0, 1]; opacity (H, W) float.
     """
@@ -163,6 +191,8 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
             native = out.native_flow(pair.id.dataset)
             if native is not None:
                 written.append(_write_native_flow(pair.id.dataset, native, pair))
+    if out.truth and truth is not None:
+        written += _write_truth(out, pair, truth)
     rel = [str(p.relative_to(out.root)) for p in written]
     metadata = dict(metadata)
     metadata["files"] = np.array(json.dumps(rel))
@@ -175,6 +205,38 @@ def _write_native_flow(dataset: str, path: Path, pair: FramePair) -> Path:
     flow = pair.flow.numpy().transpose(1, 2, 0)
     valid = (np.ones(flow.shape[:2], bool) if pair.flow_valid is None
              else pair.flow_valid[0].numpy())
+    if dataset == "kitti":
+        from .io.kitti_formats import write_flow_png
+
+        return write_flow_png(path, flow, valid)
+    from .io.spring_formats import write_flo5
+
+    return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))
+
+
+def _write_truth(out: PairOutput, pair: FramePair, truth) -> list[Path]:
+    """Particle flow, opacity and seen flow (Sintel formats, plus KITTI's or Spring's own)."""
+    from .engine.groundtruth import seen_flow
+
+    files = out.truth_files()
+    written = [write_flo(files["particle_flow"], truth.flow.numpy().transpose(1, 2, 0)),
+               write_png16(files["particle_opacity"], truth.opacity[0].numpy())]
+    seen, valid = seen_flow(truth, pair.flow, pair.flow_valid)
+    written.append(write_flo(files["seen_flow"], seen.numpy().transpose(1, 2, 0)))
+    if not bool(valid.all()):
+        written.append(write_png(files["seen_invalid"],
+                                 np.where(valid[0].numpy(), 0, 255).astype(np.uint8)))
+    covered = truth.weight[0].numpy() > 0
+    for kind, flow, ok in (("particle", truth.flow, covered), ("seen", seen, valid[0].numpy())):
+        native = out.native_truth(pair.id.dataset, kind)
+        if native is not None:
+            written.append(_write_native(pair.id.dataset, native,
+                                         flow.numpy().transpose(1, 2, 0), ok))
+    return written
+
+
+def _write_native(dataset: str, path: Path, flow: np.ndarray, valid: np.ndarray) -> Path:
+    """A flow (H, W, 2) with its valid mask (H, W) in KITTI's PNG or Spring's ``.flo5``."""
     if dataset == "kitti":
         from .io.kitti_formats import write_flow_png
 
