@@ -135,6 +135,10 @@ def _terminate_as_interrupt():
               show_default=True, help="8-bit PNG frames, float OpenEXR frames with an opacity channel, or both.")
 @click.option("--geometry/--no-geometry", default=True, show_default=True,
               help="Also write depth, cameras and flow per pair, so the output reads as a Sintel tree.")
+@click.option("--sequence", is_flag=True,
+              help="Render whole scenes with one weather field (field presets): each frame once, "
+                   "written into its scene as in the input, so consecutive frames make pairs. "
+                   "Default: each pair its own two-frame scene.")
 @click.option("--particle-truth", "truth", is_flag=True,
               help="Also write the particle layer's flow and opacity and the seen flow per pair "
                    "(see docs/render.md). Default: off.")
@@ -145,7 +149,7 @@ def _terminate_as_interrupt():
                    "folder that render did not create.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pass_name, device,
-           workers, batch_size, fmt, geometry, truth, shard, resume, overwrite, quiet):
+           workers, batch_size, fmt, geometry, sequence, truth, shard, resume, overwrite, quiet):
     """Render weather into every selected frame pair and write frames plus particle metadata.
 
     With no option it renders the snow preset onto the bundled demo scene into out/snow.
@@ -160,7 +164,7 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
     job = RenderJob(
         dataset=dataset, out=out, preset=preset_obj, preset_name=name, seed=seed,
         pass_name=pass_name or f"{name}_{dataset.selection.pass_}", fmt=fmt, geometry=geometry,
-        truth=truth, device=device, particles_from=particles_dir, appearance=appearance,
+        truth=truth, sequence=sequence, device=device, particles_from=particles_dir, appearance=appearance,
         shard=parse_shard(shard), workers=workers, batch_size=batch_size, resume=resume, overwrite=overwrite,
         command=click.get_current_context().meta.get(ARGV_KEY, ["weathergen", *sys.argv[1:]]),
     )

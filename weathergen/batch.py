@@ -93,6 +93,8 @@ class RenderJob:
     fmt: str = "png"
     geometry: bool = True
     truth: bool = False                 # write the particle ground truth (flows, opacity)
+    sequence: bool = False              # whole scenes, each frame once (field presets)
+    scene_ends: frozenset = frozenset() # sequence: pairs whose second frame no other pair writes
     device: str = "cpu"
     particles_from: Optional[Path] = None
     appearance: dict = field(default_factory=dict)   # re-render overrides of Particles settings
@@ -111,7 +113,8 @@ class RenderJob:
             "seed": self.seed,
             "input": self.dataset.describe(),
             "outputs": {"pass": self.pass_name, "format": self.fmt, "geometry": self.geometry,
-                        **({"particle_truth": True} if self.truth else {})},
+                        **({"particle_truth": True} if self.truth else {}),
+                        **({"sequence": True} if self.sequence else {})},
             "particles_from": str(self.particles_from) if self.particles_from else None,
             "appearance": self.appearance,
         }
@@ -138,7 +141,7 @@ def _particles_for(job: RenderJob, pair, seed: int):
 
     if job.particles_from is None:
         return sample_weather(pair, job.preset, seed, world_up=getattr(job.dataset, "world_up", "auto"))
-    out = PairOutput.of(job.particles_from, pair.id, job.pass_name)
+    out = PairOutput.of(job.particles_from, pair.id, job.pass_name, sequence=job.sequence)
     path = out.metadata
     if not path.exists():
         raise FormatError(path, f"no particle metadata for pair {pair.id}")
@@ -173,6 +176,10 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
         except WeatherGenError as exc:
             results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed,
                                          time.perf_counter() - start, message=str(exc))
+    if job.sequence:
+        for ref, seed, pair, particles, spent in ready:
+            results[ref.id] = _sequence_pair(job, ref, seed, pair, particles, spent)
+        return [results[ref.id] for ref in refs]
     groups: dict[tuple, list] = {}
     for item in ready:
         groups.setdefault(item[2].size, []).append(item)
@@ -198,21 +205,57 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
     return [results[ref.id] for ref in refs]
 
 
-def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendered, index: int) -> PairResult:
-    frames = tuple(img[index].permute(1, 2, 0).cpu().numpy() for img in (rendered.image1, rendered.image2))
-    opacity = tuple(a[index, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
+def _sequence_pair(job: RenderJob, ref: PairRef, seed: int, pair, particles, spent: float) -> PairResult:
+    """One pair of a sequence render: its first frame (and its second where no later pair of the
+    selection starts there), geometry, ground truth and particle record."""
+    from .engine import render_pair
+    from .engine.perframe import render_first_frame
+
+    start = time.perf_counter()
+    second = ref.id in job.scene_ends
+    try:
+        with torch.no_grad():
+            if second:
+                rendered = render_pair(pair, particles, device=job.device)
+            else:
+                image, alpha = render_first_frame(pair, particles, device=job.device)
+                rendered = _FirstFrame(image1=image, opacity1=alpha)
+    except WeatherGenError as exc:
+        return PairResult(ref.id.key, str(ref.id), "failed", seed, spent, message=str(exc))
+    result = _write_one(job, ref, seed, pair, particles, rendered, 0, second=second)
+    result.seconds = spent + time.perf_counter() - start
+    return result
+
+
+@dataclass
+class _FirstFrame:
+    """The first frame of a pair, rendered alone (see :func:`_sequence_pair`)."""
+
+    image1: torch.Tensor
+    opacity1: torch.Tensor
+    image2: Optional[torch.Tensor] = None
+    opacity2: Optional[torch.Tensor] = None
+
+
+def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendered, index: int,
+               second: bool = True) -> PairResult:
+    frames = tuple(img[index].permute(1, 2, 0).cpu().numpy()
+                   for img in (rendered.image1, rendered.image2) if img is not None)
+    opacity = tuple(a[index, 0].cpu().numpy()
+                    for a in (rendered.opacity1, rendered.opacity2) if a is not None)
     visible = visible_counts(pair, particles)
     meta = particles.to_numpy()
     meta.update(identity_arrays(ref.id, seed, job.preset.to_dict(), job.preset_name))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
-    out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth)
+    out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
+                        job.sequence)
     truth = None
     if job.truth:
         from .engine.groundtruth import particle_truth
 
         truth = particle_truth(pair, particles)
     try:
-        files = write_pair_outputs(out, pair, frames, opacity, meta, truth)
+        files = write_pair_outputs(out, pair, frames, opacity, meta, truth, second=second)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
         raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
                           f"rerun with --resume once there is room") from None
@@ -373,16 +416,26 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     Interruptions (Ctrl-C) record what was finished in the manifest and re-raise.
     """
     # A root that is not of the chosen layout fails here, before the output folder is touched.
-    refs = shard_refs(job.dataset.pairs(), job.shard)
+    every = job.dataset.pairs()
+    refs = shard_refs(every, job.shard)
     if not refs:
         raise ConfigError("the selection holds no frame pairs")
+    if job.sequence:
+        from .engine.field_presets import FieldPreset
+
+        if not isinstance(job.preset, FieldPreset):
+            raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "
+                              f"e.g. snow-moderate); '{job.preset_name}' is a paper preset, "
+                              "whose particles belong to one pair")
+        job.scene_ends = sequence_ends([r.id for r in every])
     prepare_output(job)
     started = time.time()
     t0 = time.perf_counter()
     results: list[PairResult] = []
     todo: list[PairRef] = []
     for ref in refs:
-        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth)
+        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
+                            job.sequence)
         if not job.overwrite and out.is_complete():
             results.append(PairResult(ref.id.key, str(ref.id), "skipped", weather_seed(job, ref.id)))
         else:
@@ -406,6 +459,12 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
         write_manifest_part(job, results, started, time.perf_counter() - t0)
         merge_manifest(job.out)
     return results
+
+
+def sequence_ends(ids: list[PairId]) -> frozenset:
+    """The pairs whose second frame starts no selected pair: they write both their frames."""
+    starts = {(i.dataset, i.split, i.scene, i.frame) for i in ids}
+    return frozenset(i for i in ids if (i.dataset, i.split, i.scene, i.frame + 1) not in starts)
 
 
 def _chunks(items: list, size: int) -> list[list]:

@@ -73,17 +73,20 @@ class PairOutput:
     fmt: str = "png"
     geometry: bool = True
     truth: bool = False
+    sequence: bool = False
 
     @classmethod
     def of(cls, root, pair_id: PairId, pass_name: str, fmt: str = "png", geometry: bool = True,
-           truth: bool = False):
+           truth: bool = False, sequence: bool = False):
         split = SINTEL_SPLIT_FOLDER.get(pair_id.split, pair_id.split)
         return cls(Path(root), split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry,
-                   truth)
+                   truth, sequence)
 
     @property
     def pair_dir(self) -> str:
-        return f"{self.scene}_{self.frame:04d}"
+        """``SCENE_FFFF`` (a two-frame scene per pair), or ``SCENE`` for a sequence render,
+        whose scenes hold every frame as the input's do."""
+        return self.scene if self.sequence else f"{self.scene}_{self.frame:04d}"
 
     def _file(self, folder: str, index: int, ext: str) -> Path:
         return self.root / self.split / folder / self.pair_dir / f"frame_{index:04d}.{ext}"
@@ -159,30 +162,35 @@ class PairOutput:
 
 def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarray, np.ndarray],
                        opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray],
-                       truth=None) -> list[Path]:
+                       truth=None, second: bool = True) -> list[Path]:
     """Write one pair: frames, optional EXR, geometry and particle ground truth (``truth``, a
     :class:`~weathergen.engine.groundtruth.ParticleTruth`), then the metadata (last).
+    ``second=False`` (a sequence's pair whose second frame the next pair writes) leaves out the
+    second frame's image, EXR, depth and camera.
 
     Shape: frames (H, W, 3) float in [0, 1]; opacity (H, W) float.
     """
     written = []
+    n = 2 if second else 1
     if out.fmt in ("png", "both"):
-        for path, img in zip(out.frames_png, frames):
+        for path, img in list(zip(out.frames_png, frames))[:n]:
             written.append(write_png(path, img))
     if out.fmt in ("exr", "both"):
-        for path, img, alpha in zip(out.frames_exr, frames, opacity):
+        for path, img, alpha in list(zip(out.frames_exr, frames, opacity))[:n]:
             written.append(write_exr(path, img, {"opacity": alpha}))
     if out.geometry:
         depth_files = out.geometry_files(with_flow=pair.flow is not None)
         written.append(write_dpt(depth_files[0], pair.depth1[0].numpy()))
-        written.append(write_dpt(depth_files[1], pair.depth2[0].numpy()))
+        if second:
+            written.append(write_dpt(depth_files[1], pair.depth2[0].numpy()))
         k = pair.intrinsics.numpy()
         if pair.cam1_from_world is not None:
             e1, e2 = pair.cam1_from_world.numpy(), pair.cam2_from_world.numpy()
         else:   # no absolute poses: camera 1 is the world
             e1, e2 = np.eye(4), pair.cam2_from_cam1.numpy()
         written.append(write_cam(depth_files[2], k, e1))
-        written.append(write_cam(depth_files[3], k, e2))
+        if second:
+            written.append(write_cam(depth_files[3], k, e2))
         if pair.flow is not None:
             written.append(write_flo(depth_files[4], pair.flow.numpy().transpose(1, 2, 0)))
             if pair.flow_valid is not None and not bool(pair.flow_valid.all()):

@@ -261,3 +261,30 @@ def render_per_frame(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, 
             outs[f"image{t + 1}"].append(out)
             outs[f"opacity{t + 1}"].append(alpha)
     return RenderOutput(**{k: torch.stack(v) for k, v in outs.items()})
+
+
+def render_first_frame(pair, particles: Particles, templates=None, *, beta: float = 250.0,
+                       device=None, chunk_elements: int = 1 << 21):
+    """Frame 1 of a pair alone (a sequence writes each frame once), the same bytes as
+    ``render_pair(pair, particles).image1`` for a field record.
+
+    Shape: returns (image (1, 3, H, W), opacity (1, 1, H, W)).
+    """
+    from .sampling import check_pair_for_engine, reference_transforms, resolve_device
+    from .templates import load_templates
+
+    check_pair_for_engine(pair)
+    if particles.optics is None:
+        raise ValueError("render_first_frame renders field records (particles.optics is set)")
+    if device is not None:
+        dev = resolve_device(device)
+        pair, particles = pair.to(dev), particles.to(dev)
+    lib = templates if templates is not None else load_templates(particles.templates)
+    _, c1, _ = reference_transforms(pair)
+    image = pair.image1[None]
+    start1, _, disp = pair_starts(particles, image.dtype, image.device)
+    view = View(pair.intrinsics[None].to(image.device)[0], c1[None].to(image.device)[0],
+                pair.depth1[None][0])
+    out, alpha = render_view(image[0], view, particles, start1, disp, lib, beta=beta,
+                             chunk_elements=chunk_elements)
+    return out[None], alpha[None]
