@@ -1,0 +1,126 @@
+"""`weathergen render` with weather-field presets: frames shared by pairs, --sequence, shards,
+workers, resume, re-rendering and the particle ground truth, end to end on the demo scene."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from weathergen.cli.main import _register, cli
+from weathergen.io.images import read_image
+from weathergen.io.sintel_formats import read_flo
+
+FIELD = ("--scenes", "street", "--frames-per-scene", "2", "--preset", "snow-light",
+         "--set", "far=5")
+PASS = "snow-light_clean"
+
+
+def run(*args):
+    _register()
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+def digests(root: Path) -> dict:
+    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(root.rglob("*")) if p.is_file() and "manifest" not in str(p)
+            and not p.name.startswith(".")}
+
+
+@pytest.fixture(scope="module")
+def pairs_run(tmp_path_factory, demo_root):
+    out = tmp_path_factory.mktemp("field") / "pairs"
+    res = run("render", "--out", out, "--particle-truth", *FIELD)
+    assert res.exit_code == 0, res.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def sequence_run(tmp_path_factory, demo_root):
+    out = tmp_path_factory.mktemp("field") / "sequence"
+    res = run("render", "--out", out, "--sequence", "--particle-truth", *FIELD)
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def test_pairs_of_a_scene_share_their_common_frames(pairs_run):
+    frames = pairs_run / "training" / PASS
+    for n in (2,):
+        a = (frames / f"street_{n - 1:04d}" / f"frame_{n:04d}.png").read_bytes()
+        b = (frames / f"street_{n:04d}" / f"frame_{n:04d}.png").read_bytes()
+        assert a == b
+    manifest = json.loads((pairs_run / "manifest.json").read_text())
+    seeds = {p["seed"] for p in manifest["pairs"].values()}
+    assert len(seeds) == 1            # one field (the scene's seed) for every pair of the scene
+    assert manifest["preset"]["model"] == "field"
+    assert manifest["outputs"]["particle_truth"] is True
+
+
+def test_sequence_holds_every_frame_once_and_equals_the_pair_frames(pairs_run, sequence_run):
+    frames = sequence_run / "training" / PASS / "street"
+    assert sorted(p.name for p in frames.iterdir()) == [f"frame_{n:04d}.png" for n in (1, 2, 3)]
+    for n in (1, 2, 3):
+        pair_dir = f"street_{min(n, 2):04d}"
+        same = (pairs_run / "training" / PASS / pair_dir / f"frame_{n:04d}.png").read_bytes()
+        assert (frames / f"frame_{n:04d}.png").read_bytes() == same
+    # the sequence reads back as a Sintel tree: consecutive frames form the pairs
+    res = run("check", "--root", sequence_run, "--pass", PASS)
+    assert res.exit_code == 0 and "All 2 pairs" in res.output, res.output
+    for n in (1, 2):
+        assert (sequence_run / "training" / "particles" / "street" / f"frame_{n:04d}.npz").is_file()
+        assert (sequence_run / "training" / "depth" / "street" / f"frame_{n:04d}.dpt").is_file()
+    assert (sequence_run / "training" / "depth" / "street" / "frame_0003.dpt").is_file()
+    assert not (sequence_run / "training" / "particles" / "street" / "frame_0003.npz").exists()
+
+
+def test_sequence_bytes_do_not_depend_on_shards_workers_or_resume(sequence_run, tmp_path):
+    out = tmp_path / "sharded"
+    assert run("render", "--out", out, "--sequence", "--particle-truth", "--shard", "2/2",
+               *FIELD).exit_code == 0
+    res = run("render", "--out", out, "--sequence", "--particle-truth", "--shard", "1/2",
+              "--workers", "2", *FIELD)
+    assert res.exit_code == 0, res.output
+    assert digests(out) == digests(sequence_run)
+    # an interrupted run: a pair lost its metadata (and the frame it writes); resume redoes it
+    (out / "training" / "particles" / "street" / "frame_0002.npz").unlink()
+    (out / "training" / PASS / "street" / "frame_0002.png").unlink()
+    res = run("render", "--out", out, "--sequence", "--particle-truth", "--resume", "--shard",
+              "2/2", *FIELD)
+    assert res.exit_code == 0, res.output
+    assert digests(out) == digests(sequence_run)
+
+
+def test_sequence_rerenders_from_its_particles_bit_identically(sequence_run, tmp_path):
+    out = tmp_path / "again"
+    res = run("render", "--particles", sequence_run, "--sequence", "--scenes", "street",
+              "--frames-per-scene", "2",
+              "--out", out)
+    assert res.exit_code == 0, res.output
+    a, b = out / "training" / PASS, sequence_run / "training" / PASS
+    assert digests(a) == digests(b)
+
+
+def test_particle_truth_files(pairs_run):
+    root = pairs_run / "training"
+    flow = read_flo(root / "particle_flow" / "street_0001" / "frame_0001.flo")
+    seen = read_flo(root / "seen_flow" / "street_0001" / "frame_0001.flo")
+    scene = read_flo(root / "flow" / "street_0001" / "frame_0001.flo")
+    opacity = read_image(root / "particle_opacity" / "street_0001" / "frame_0001.png")[..., 0]
+    assert flow.shape == scene.shape == seen.shape and opacity.shape == scene.shape[:2]
+    dominant = opacity >= 0.5
+    assert 0 < dominant.sum() < dominant.size and (opacity > 0).sum() > dominant.sum()
+    assert np.allclose(seen[dominant], flow[dominant])
+    assert np.array_equal(seen[~dominant], scene[~dominant])
+    assert np.abs(flow[opacity == 0]).max() == 0 and np.abs(flow[opacity > 0]).max() > 0
+
+
+def test_sequence_refuses_a_paper_preset(tmp_path, demo_root):
+    out = tmp_path / "paper"
+    res = run("render", "--out", out, "--sequence", "--scenes", "street", "--preset", "snow")
+    assert res.exit_code == 2
+    assert "weather-field preset" in res.output and "Traceback" not in res.output
+    assert not out.exists()
