@@ -58,6 +58,8 @@ from .templates import TemplateLibrary, load_templates
 
 #: Bits of the grid below the tile side: quantum = 2^floor(log2(L) - GRID_BITS).
 GRID_BITS = 16
+#: Sub-cells per tile axis for culling a copy of the tile against a view volume.
+SUBDIV = 4
 
 
 def scene_seed(run_seed: int, dataset: str, split: str, scene: str) -> int:
@@ -135,21 +137,41 @@ class Field:
         cell_hi = torch.floor(hi / (q * lu)).long()
         ranges = [torch.arange(int(cell_lo[a]), int(cell_hi[a]) + 1) for a in range(3)]
         cells = torch.cartesian_prod(*ranges).reshape(-1, 3)
-        cells = cells[self._cells_in_view(view, cells)]
+        cells = cells[self._boxes_in_view(view, cells.double(), 1.0)]
+        # Within the tile, particles are binned into SUBDIV^3 sub-cells; only the sub-cells of
+        # each copy that meet the view volume are tested particle by particle.
+        sd = SUBDIV
+        sub = torch.div(base * sd, lu, rounding_mode="floor").clamp(0, sd - 1)
+        sub_id = (sub[:, 0] * sd + sub[:, 1]) * sd + sub[:, 2]
+        order = torch.argsort(sub_id, stable=True)
+        counts = torch.bincount(sub_id, minlength=sd ** 3)
+        offsets = torch.cumsum(counts, 0) - counts
+        sub_xyz = torch.stack(torch.meshgrid(*(torch.arange(sd),) * 3, indexing="ij"), -1)
+        sub_xyz = sub_xyz.reshape(-1, 3).double()
         n = self.count
-        per = max(1, chunk // n)
-        found_j, found_k = [], []
         streak = self.step.double() * q * self.streak
+        found_j, found_k = [], []
+        per = max(1, chunk // (sd ** 3))
         for c0 in range(0, cells.shape[0], per):
-            cell = cells[c0:c0 + per]                                      # (C, 3)
-            pts = (base[None] + cell[:, None] * lu).double() * q           # (C, N, 3)
-            pts = pts.reshape(-1, 3)
-            j = torch.arange(n).repeat(cell.shape[0])
-            keep = view_mask(view, pts, streak[j], self.diameter[j], self.preset.optics())
-            j = j[keep]
-            k = cell[:, None, :].expand(-1, n, 3).reshape(-1, 3)[keep] - shift[j]
-            found_j.append(j)
-            found_k.append(k)
+            cell = cells[c0:c0 + per]
+            corner = cell[:, None, :].double() + sub_xyz[None] / sd          # (C, S, 3) tiles
+            keep = self._boxes_in_view(view, corner.reshape(-1, 3), 1.0 / sd)
+            keep = keep.reshape(cell.shape[0], -1) & (counts > 0)[None]
+            ci, si = torch.nonzero(keep, as_tuple=True)
+            if ci.numel() == 0:
+                continue
+            size = counts[si]
+            rep = torch.repeat_interleave(torch.arange(si.numel()), size)
+            within = torch.arange(int(size.sum())) - torch.repeat_interleave(
+                torch.cumsum(size, 0) - size, size)
+            j = order[offsets[si][rep] + within]
+            copy = cell[ci][rep]
+            pts = (base[j] + copy * lu).double() * q
+            ok = view_mask(view, pts, streak[j], self.diameter[j], self.preset.optics())
+            found_j.append(j[ok])
+            found_k.append(copy[ok] - shift[j[ok]])
+        if not found_j:
+            return torch.zeros(0, dtype=torch.long), torch.zeros(0, 3, dtype=torch.long)
         return _canonical(torch.cat(found_j), torch.cat(found_k))
 
     def _view_planes(self, view: View) -> torch.Tensor:
@@ -177,11 +199,12 @@ class Field:
         planes.append(torch.tensor([0, 0, -1.0, optics.far], dtype=torch.float64))
         return torch.stack(planes)
 
-    def _cells_in_view(self, view: View, cells: torch.Tensor) -> torch.Tensor:
-        """Which tile copies (cells) may hold a particle of the view: the cell's bounding sphere,
-        widened by the longest streak, meets every plane's inner side. Shape: (C, 3) -> (C,)."""
-        side = self.tile
-        centres = (cells.double() + 0.5) * side
+    def _boxes_in_view(self, view: View, corners: torch.Tensor, fraction: float) -> torch.Tensor:
+        """Which axis-aligned boxes (lowest corner ``corners`` in tile units, side ``fraction``
+        tiles) may hold a particle of the view: the box's bounding sphere, widened by the
+        longest streak, meets the inner side of every plane. Shape: (C, 3) -> (C,)."""
+        side = self.tile * fraction
+        centres = (corners + 0.5 * fraction) * self.tile
         cam = transform_points(view.cam_from_ref.double().cpu(), centres)
         planes = self._view_planes(view)
         dist = cam @ planes[:, :3].T + planes[:, 3]
