@@ -369,3 +369,41 @@ def test_presets_command_names_the_model():
     assert "paper model" in result.output
     result = CliRunner().invoke(cli, ["presets", "snow-heavy"])
     assert result.exit_code == 0 and "(field model)" in result.output and "density" in result.output
+
+
+# -- stereo ------------------------------------------------------------------------------------
+
+def test_warped_right_depth_of_a_plane_and_an_occluder():
+    from weathergen.engine.stereo import warp_depth
+
+    baseline = 0.2
+    right_from_left = torch.eye(4, dtype=torch.float64)
+    right_from_left[0, 3] = -baseline          # the right camera sits at +x of the left one
+    depth = torch.full((1, H, W), 4.0)
+    depth[..., 20:30, 20:30] = 2.0             # a near block
+    right = warp_depth(depth, K, right_from_left, fill=99.0)
+    shift_far, shift_near = F * baseline / 4.0, F * baseline / 2.0      # 2.5 and 5 px
+    assert float(right[0, 5, 30]) == 4.0                                 # plain plane
+    assert float(right[0, 25, 20 - round(shift_near) + 2]) == 2.0       # the block moved left
+    assert float(right[0, 5, W - 1]) == 99.0                             # nothing seen there
+    assert int((right[0, 5] == 99.0).sum()) == math.floor(shift_far)      # the strip at the edge
+    assert bool((right[0, 5, : W - 3] == 4.0).all())                     # no cracks
+
+
+def test_right_camera_renders_the_same_field_particles_at_their_disparity():
+    from weathergen.engine.stereo import render_right, stereo_view, warp_depth
+
+    baseline = 0.25
+    cams, depths = sequence(2)
+    pair = seq_pair(cams, depths, 0)
+    record = one_particle_record((0.1, 0.0, 2.5), diameter=0.1)
+    right_from_left = torch.eye(4, dtype=torch.float64)
+    right_from_left[0, 3] = -baseline
+    left = View(K, cams[0], pair.depth1)
+    right = stereo_view(left, right_from_left, warp_depth(pair.depth1, K, right_from_left))
+    assert torch.allclose(right.cam_from_ref, right_from_left @ cams[0])
+    _, a_left = render_view(torch.zeros(3, H, W), left, record, record.position, record.motion,
+                            disc_library(), beta=250.0, chunk_elements=1 << 20)
+    _, a_right = render_right(torch.zeros(3, H, W), right, record, record.position,
+                              record.motion, disc_library())
+    assert centroid(a_left)[0] - centroid(a_right)[0] == pytest.approx(F * baseline / 2.5, abs=0.05)
