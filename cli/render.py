@@ -139,6 +139,9 @@ def _terminate_as_interrupt():
               help="Render whole scenes with one weather field (field presets): each frame once, "
                    "written into its scene as in the input, so consecutive frames make pairs. "
                    "Default: each pair its own two-frame scene.")
+@click.option("--stereo", is_flag=True,
+              help="Also render the same particles into the dataset's second camera (KITTI image_3, "
+                   "Spring's right view), written to <pass>_right. Default: off.")
 @click.option("--particle-truth", "truth", is_flag=True,
               help="Also write the particle layer's flow and opacity and the seen flow per pair "
                    "(see docs/render.md). Default: off.")
@@ -149,7 +152,8 @@ def _terminate_as_interrupt():
                    "folder that render did not create.")
 @click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
 def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pass_name, device,
-           workers, batch_size, fmt, geometry, sequence, truth, shard, resume, overwrite, quiet):
+           workers, batch_size, fmt, geometry, sequence, stereo, truth, shard, resume, overwrite,
+           quiet):
     """Render weather into every selected frame pair and write frames plus particle metadata.
 
     With no option it renders the snow preset onto the bundled demo scene into out/snow.
@@ -164,7 +168,7 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
     job = RenderJob(
         dataset=dataset, out=out, preset=preset_obj, preset_name=name, seed=seed,
         pass_name=pass_name or f"{name}_{dataset.selection.pass_}", fmt=fmt, geometry=geometry,
-        truth=truth, sequence=sequence, device=device, particles_from=particles_dir, appearance=appearance,
+        truth=truth, sequence=sequence, stereo=stereo, device=device, particles_from=particles_dir, appearance=appearance,
         shard=parse_shard(shard), workers=workers, batch_size=batch_size, resume=resume, overwrite=overwrite,
         command=click.get_current_context().meta.get(ARGV_KEY, ["weathergen", *sys.argv[1:]]),
     )

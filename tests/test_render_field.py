@@ -124,3 +124,35 @@ def test_sequence_refuses_a_paper_preset(tmp_path, demo_root):
     assert res.exit_code == 2
     assert "weather-field preset" in res.output and "Traceback" not in res.output
     assert not out.exists()
+
+
+def test_stereo_renders_kitti_image_3_with_the_same_particles(tmp_path, demo_root):
+    import shutil
+
+    from fake_datasets import demo_sequence, write_fake_kitti
+
+    _, pairs = demo_sequence("street")
+    split = write_fake_kitti(tmp_path / "kitti", pairs[0], scene="000004")
+    (split / "image_3").mkdir()
+    for n in (10, 11):      # the right camera's frames (their content does not matter here)
+        shutil.copy(split / "image_2" / f"000004_{n}.png", split / "image_3" / f"000004_{n}.png")
+    out = tmp_path / "stereo"
+    res = run("render", "--dataset", "kitti", "--root", tmp_path / "kitti", "--preset",
+              "snow-moderate", "--set", "far=5", "--stereo", "--out", out)
+    assert res.exit_code == 0, res.output
+    left = out / "training" / "snow-moderate_clean" / "000004_0010"
+    right = out / "training" / "snow-moderate_clean_right" / "000004_0010"
+    images = {}
+    for side, folder in (("left", left), ("right", right)):
+        for n in (10, 11):
+            images[side, n] = read_image(folder / f"frame_{n:04d}.png")
+    original = read_image(split / "image_3" / "000004_10.png")
+    # the right frame carries weather, and not the left frame's (the particles moved by disparity)
+    assert np.abs(images["right", 10] - original).max() > 0.1
+    assert np.abs(images["right", 10] - images["left", 10]).max() > 0.1
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["outputs"]["stereo"] is True
+    # a dataset without a second camera: each pair fails with one line naming the reason
+    res = run("render", "--scenes", "street", "--frames-per-scene", "1", "--preset", "snow-light",
+              "--stereo", "--out", tmp_path / "mono")
+    assert res.exit_code == 1 and "no second camera" in res.output

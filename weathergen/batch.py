@@ -94,6 +94,7 @@ class RenderJob:
     geometry: bool = True
     truth: bool = False                 # write the particle ground truth (flows, opacity)
     sequence: bool = False              # whole scenes, each frame once (field presets)
+    stereo: bool = False                # also render the dataset's second (right) camera
     scene_ends: frozenset = frozenset() # sequence: pairs whose second frame no other pair writes
     device: str = "cpu"
     particles_from: Optional[Path] = None
@@ -114,7 +115,8 @@ class RenderJob:
             "input": self.dataset.describe(),
             "outputs": {"pass": self.pass_name, "format": self.fmt, "geometry": self.geometry,
                         **({"particle_truth": True} if self.truth else {}),
-                        **({"sequence": True} if self.sequence else {})},
+                        **({"sequence": True} if self.sequence else {}),
+                        **({"stereo": True} if self.stereo else {})},
             "particles_from": str(self.particles_from) if self.particles_from else None,
             "appearance": self.appearance,
         }
@@ -249,19 +251,51 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                         job.sequence)
+    right = None
+    if job.stereo:
+        try:
+            right = _render_right(job, pair, particles, second)
+        except WeatherGenError as exc:
+            return PairResult(ref.id.key, str(ref.id), "failed", seed, message=str(exc))
     truth = None
     if job.truth:
         from .engine.groundtruth import particle_truth
 
         truth = particle_truth(pair, particles)
     try:
-        files = write_pair_outputs(out, pair, frames, opacity, meta, truth, second=second)
+        files = write_pair_outputs(out, pair, frames, opacity, meta, truth, second=second,
+                                   right=right)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
         raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
                           f"rerun with --resume once there is room") from None
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
                       input=_jsonable(getattr(pair, "meta", None) or {}))
+
+
+def _render_right(job: RenderJob, pair, particles, second: bool) -> tuple:
+    """The right camera's weather frames (the first, and the second when ``second``): the same
+    particles seen from the dataset's second camera, occluded by its forward-warped depth.
+    Shape: returns (H, W, 3) float arrays."""
+    from .datasets.stereo import right_camera
+    from .engine import load_templates, reference_transforms
+    from .engine.perframe import View, pair_starts
+    from .engine.stereo import render_right, stereo_view, warp_depth
+
+    rc = right_camera(job.dataset, pair)
+    _, c1, c2 = reference_transforms(pair)
+    lib = load_templates(particles.templates)
+    start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
+    frames = []
+    for image, depth, cam, start in ((rc.image1, pair.depth1, c1, start1),
+                                     (rc.image2, pair.depth2, c2, start2))[:2 if second else 1]:
+        left = View(pair.intrinsics, cam, depth)
+        view = stereo_view(left, rc.right_from_left, warp_depth(depth, pair.intrinsics,
+                                                                rc.right_from_left))
+        with torch.no_grad():
+            out, _ = render_right(image, view, particles, start, disp, lib)
+        frames.append(out.permute(1, 2, 0).numpy())
+    return tuple(frames)
 
 
 def visible_counts(pair, particles) -> tuple[int, int]:

@@ -9,6 +9,7 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/PASS/PAIR/frame_FFFF.png        augmented first frame (8-bit PNG)
     OUT/SPLIT/PASS/PAIR/frame_GGGG.png        augmented second frame, G = F + 1
     OUT/SPLIT/PASS_exr/PAIR/frame_FFFF.exr    float frames with an 'opacity' channel (--format exr/both)
+    OUT/SPLIT/PASS_right/PAIR/frame_FFFF.png  the right camera's frames (--stereo: KITTI, Spring)
     OUT/SPLIT/particles/PAIR/frame_FFFF.npz   particle metadata of the pair (numpy-readable)
     OUT/SPLIT/depth/PAIR/frame_FFFF.dpt       geometry the particles were placed in, in Sintel
     OUT/SPLIT/camdata_left/PAIR/frame_FFFF.cam   formats (depth and cameras after the depth scale),
@@ -96,6 +97,12 @@ class PairOutput:
         return self._file(self.pass_name, self.frame, "png"), self._file(self.pass_name, self.frame + 1, "png")
 
     @property
+    def frames_right_png(self) -> tuple[Path, Path]:
+        """The right camera's frames (``--stereo``), in the pass folder suffixed ``_right``."""
+        folder = f"{self.pass_name}_right"
+        return self._file(folder, self.frame, "png"), self._file(folder, self.frame + 1, "png")
+
+    @property
     def frames_exr(self) -> tuple[Path, Path]:
         folder = f"{self.pass_name}_exr"
         return self._file(folder, self.frame, "exr"), self._file(folder, self.frame + 1, "exr")
@@ -162,7 +169,7 @@ class PairOutput:
 
 def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarray, np.ndarray],
                        opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray],
-                       truth=None, second: bool = True) -> list[Path]:
+                       truth=None, second: bool = True, right=None) -> list[Path]:
     """Write one pair: frames, optional EXR, geometry and particle ground truth (``truth``, a
     :class:`~weathergen.engine.groundtruth.ParticleTruth`), then the metadata (last).
     ``second=False`` (a sequence's pair whose second frame the next pair writes) leaves out the
@@ -178,6 +185,9 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
     if out.fmt in ("exr", "both"):
         for path, img, alpha in list(zip(out.frames_exr, frames, opacity))[:n]:
             written.append(write_exr(path, img, {"opacity": alpha}))
+    if right is not None:       # the second camera's frames, beside the first's
+        for path, img in list(zip(out.frames_right_png, right))[:n]:
+            written.append(write_png(path, img))
     if out.geometry:
         depth_files = out.geometry_files(with_flow=pair.flow is not None)
         written.append(write_dpt(depth_files[0], pair.depth1[0].numpy()))
