@@ -156,3 +156,27 @@ def test_stereo_renders_kitti_image_3_with_the_same_particles(tmp_path, demo_roo
     res = run("render", "--scenes", "street", "--frames-per-scene", "1", "--preset", "snow-light",
               "--stereo", "--out", tmp_path / "mono")
     assert res.exit_code == 1 and "no second camera" in res.output
+
+
+def test_stereo_reads_a_right_camera_in_the_custom_layout(tmp_path, demo_root):
+    import shutil
+
+    from fake_datasets import demo_sequence, write_fake_custom
+
+    frames, _ = demo_sequence("street")
+    root = tmp_path / "custom"
+    write_fake_custom(root / "walk", frames[:2])
+    right = root / "walk" / "right"
+    shutil.copytree(root / "walk" / "frames", right / "frames")
+    (right / "camera.json").write_text(json.dumps(
+        {"right_from_left": [[1, 0, 0, -0.3], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}))
+    out = tmp_path / "stereo"
+    res = run("render", "--dataset", "custom", "--root", root, "--preset", "snow-moderate",
+              "--set", "far=5", "--stereo", "--out", out)
+    assert res.exit_code == 0, res.output
+    rendered = sorted((out / "training").glob("snow-moderate_*_right/walk_*/frame_*.png"))
+    assert len(rendered) == 2
+    (right / "camera.json").write_text("{}")
+    res = run("render", "--dataset", "custom", "--root", root, "--preset", "snow-moderate",
+              "--stereo", "--out", tmp_path / "bad")
+    assert res.exit_code == 1 and "camera.json: not a right camera file" in res.output

@@ -290,8 +290,8 @@ def _render_right(job: RenderJob, pair, particles, second: bool) -> tuple:
     for image, depth, cam, start in ((rc.image1, pair.depth1, c1, start1),
                                      (rc.image2, pair.depth2, c2, start2))[:2 if second else 1]:
         left = View(pair.intrinsics, cam, depth)
-        view = stereo_view(left, rc.right_from_left, warp_depth(depth, pair.intrinsics,
-                                                                rc.right_from_left))
+        right_depth = warp_depth(depth, pair.intrinsics, rc.right_from_left, rc.intrinsics)
+        view = stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics)
         with torch.no_grad():
             out, _ = render_right(image, view, particles, start, disp, lib)
         frames.append(out.permute(1, 2, 0).numpy())
