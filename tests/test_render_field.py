@@ -8,6 +8,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import torch
 import pytest
 from click.testing import CliRunner
 
@@ -180,3 +181,16 @@ def test_stereo_reads_a_right_camera_in_the_custom_layout(tmp_path, demo_root):
     res = run("render", "--dataset", "custom", "--root", root, "--preset", "snow-moderate",
               "--stereo", "--out", tmp_path / "bad")
     assert res.exit_code == 1 and "camera.json: not a right camera file" in res.output
+
+
+def test_preview_and_evaluate_read_a_sequence_output(sequence_run):
+    from weathergen.evaluate import WeatherFolder
+    from weathergen.preview import contact_sheet
+
+    sheet = contact_sheet(sequence_run, pairs=2, width=96)
+    assert sheet.shape[0] > 0 and sheet.shape[1] == 3 * 96
+    folder = WeatherFolder.open(sequence_run)
+    assert folder.sequence and [p.frame for p in folder.pairs] == [1, 2]
+    first, second = folder.frames(folder.pairs[0])
+    again, _ = folder.frames(folder.pairs[1])
+    assert torch.equal(second, again)      # frame 2 is one file, shared by both pairs

@@ -42,6 +42,7 @@ class WeatherFolder:
     fmt: str
     input: dict
     pairs: list
+    sequence: bool = False        # a `render --sequence` tree: scenes hold every frame
 
     @classmethod
     def open(cls, root: str | Path) -> "WeatherFolder":
@@ -54,20 +55,21 @@ class WeatherFolder:
             manifest = json.loads(manifest_path.read_text())
             outputs, source = manifest["outputs"], manifest["input"]
             pass_name, fmt = outputs["pass"], outputs.get("format", "png")
+            sequence = bool(outputs.get("sequence", False))
         except (ValueError, KeyError, TypeError):
             raise FormatError(manifest_path, "not a weathergen render or attack manifest") from None
         pairs = []
         for meta in sorted(root.glob("*/particles/*/frame_*.npz")):
             pid = pair_identity(read_metadata(meta))
-            if PairOutput.of(root, pid, pass_name, fmt).is_complete():
+            if PairOutput.of(root, pid, pass_name, fmt, sequence=sequence).is_complete():
                 pairs.append(pid)
         if not pairs:
             raise DatasetError(f"{root}: holds no complete weather pairs")
-        return cls(root, pass_name, fmt, source, sorted(pairs))
+        return cls(root, pass_name, fmt, source, sorted(pairs), sequence)
 
     def frames(self, pair_id: PairId) -> tuple[torch.Tensor, torch.Tensor]:
         """The weather frames of a pair. Shape: two (3, H, W) float32 in [0, 1]."""
-        out = PairOutput.of(self.root, pair_id, self.pass_name, self.fmt)
+        out = PairOutput.of(self.root, pair_id, self.pass_name, self.fmt, sequence=self.sequence)
         if self.fmt == "exr":
             images = [read_exr(p)["RGB"].clip(0, 1) for p in out.frames_exr]
         else:

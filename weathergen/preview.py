@@ -51,7 +51,8 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> n
     ds = reopen_dataset(inp)
     rows = []
     for ref in ds.pairs():
-        out = PairOutput.of(render_dir, ref.id, outputs["pass"], outputs["format"], outputs["geometry"])
+        out = PairOutput.of(render_dir, ref.id, outputs["pass"], outputs["format"], outputs["geometry"],
+                            sequence=bool(outputs.get("sequence", False)))
         if not out.is_complete():
             continue
         pair = ds.load(ref)
