@@ -14,6 +14,7 @@ it (``--set frame_rate=30``).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -129,8 +130,7 @@ class FieldPreset:
 
 
 def field_preset_keys() -> list:
-    import dataclasses
-
+    """The schema: every field of :class:`FieldPreset` that a preset file may set."""
     return [f for f in dataclasses.fields(FieldPreset) if f.metadata.get("key", True)]
 
 
@@ -171,8 +171,3 @@ def build_field_preset(name: str, where: str, data: Mapping[str, Any],
                           "particle; use a larger tile")
     _check_template_folder(preset.templates, templates_from)
     return preset
-
-
-def preset_model(preset) -> str:
-    """``"field"`` or ``"paper"``: which particle model a loaded preset uses."""
-    return getattr(preset, "model", "paper")

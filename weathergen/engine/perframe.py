@@ -283,8 +283,7 @@ def render_first_frame(pair, particles: Particles, templates=None, *, beta: floa
     _, c1, _ = reference_transforms(pair)
     image = pair.image1[None]
     start1, _, disp = pair_starts(particles, image.dtype, image.device)
-    view = View(pair.intrinsics[None].to(image.device)[0], c1[None].to(image.device)[0],
-                pair.depth1[None][0])
+    view = View(pair.intrinsics.to(image.device), c1.to(image.device), pair.depth1)
     out, alpha = render_view(image[0], view, particles, start1, disp, lib, beta=beta,
                              chunk_elements=chunk_elements)
     return out[None], alpha[None]

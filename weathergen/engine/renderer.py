@@ -23,6 +23,10 @@ tensor follows the images' device). Four stages:
 4. **Blending**: additive ``I + C`` or order-independent alpha ``I (1 − A) + C`` (Meshkin), then
    clamped to [0, 1]. The opacity mask is ``clamp(A, 0, 1)``.
 
+Records sampled from a weather field (``optics`` set) look different in each frame; :func:`render`
+hands them to :mod:`weathergen.engine.perframe`, which renders one view at a time with the stamps
+and splat core of this module.
+
 Gradients flow to ``offset1``, ``offset2`` (through the projected positions and the particle depth
 in ``V``), ``color`` and ``transparency``; use ``beta=BETA_ATTACK`` when differentiating
 through occlusion. On CUDA, ``index_add_`` uses atomics, so results may differ in the last bits
