@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from engine_scenes import pose, rotation
-from weathergen.engine import (Particles, TemplateLibrary, load_preset, render_pair,
-                               sample_particles, sample_weather)
+from weathergen.engine import (Particles, TemplateLibrary, load_preset, load_templates,
+                               render_pair, sample_particles, sample_weather)
 from weathergen.engine.field import (field_for_pair, frame_particles, make_field, pair_views,
                                      sample_field_particles, scene_seed)
 from weathergen.engine.field_presets import DATASET_FRAME_RATES, FieldPreset
@@ -189,8 +189,7 @@ def test_frame_is_bit_identical_in_the_two_pairs_that_share_it():
     view = pair_views(b)[0]
     alone = frame_particles(fld, view, 2)
     image, _ = render_view(b.image1, view, alone, alone.position, alone.motion,
-                           __import__("weathergen.engine", fromlist=["load_templates"])
-                           .load_templates("flakes"), beta=250.0, chunk_elements=1 << 21)
+                           load_templates("flakes"), beta=250.0, chunk_elements=1 << 21)
     assert torch.equal(image, out_b.image1[0])
 
 

@@ -194,3 +194,25 @@ def test_preview_and_evaluate_read_a_sequence_output(sequence_run):
     first, second = folder.frames(folder.pairs[0])
     again, _ = folder.frames(folder.pairs[1])
     assert torch.equal(second, again)      # frame 2 is one file, shared by both pairs
+
+
+def test_stereo_sequence_on_spring_writes_every_right_frame_once(tmp_path, demo_root):
+    import shutil
+
+    from fake_datasets import demo_sequence, write_fake_spring
+
+    frames, _ = demo_sequence("street")
+    root = write_fake_spring(tmp_path / "spring", frames[:3])
+    scene = root / "train" / "0001"
+    (scene / "frame_right").mkdir()
+    for n in (1, 2, 3):
+        shutil.copy(scene / "frame_left" / f"frame_left_{n:04d}.png",
+                    scene / "frame_right" / f"frame_right_{n:04d}.png")
+    out = tmp_path / "out"
+    res = run("render", "--dataset", "spring", "--root", root, "--split", "train", "--preset",
+              "snow-moderate", "--set", "far=5", "--stereo", "--sequence", "--out", out)
+    assert res.exit_code == 0, res.output
+    right = out / "training" / "snow-moderate_clean_right" / "0001"
+    assert sorted(p.name for p in right.iterdir()) == [f"frame_{n:04d}.png" for n in (1, 2, 3)]
+    left = read_image(out / "training" / "snow-moderate_clean" / "0001" / "frame_0002.png")
+    assert np.abs(read_image(right / "frame_0002.png") - left).max() > 0.1
