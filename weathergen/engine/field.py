@@ -54,6 +54,7 @@ from .particles import Particles, empty_particles
 from .perframe import MAX_DEFOCUS, View, focal, view_mask
 from .sampling import (_euler, _generator, check_pair_for_engine, hls_to_rgb, reference_transforms,
                        resolve_device, rgb_to_hls, sample_particles, world_down)
+from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
 
 #: Bits of the grid below the tile side: quantum = 2^floor(log2(L) - GRID_BITS).
@@ -304,20 +305,21 @@ def field_record(fld: Field, j: torch.Tensor, k: torch.Tensor, frame: int, frame
     """The particle record of trajectories ``(j, k)``: positions in frame ``frame``, motion over
     ``frames`` frames, the field's looks and optics. Quantized (storage precision)."""
     preset = fld.preset
-    settings = dict(blend=preset.blend, blur_length=fld.streak / max(1, frames),
-                    blur_samples=preset.blur_samples if fld.streak > 0 else 1,
-                    defocus_brighten=False, templates=fld.templates,
-                    templates_digest=fld.templates_digest, optics=preset.optics())
+    settings = RenderSettings(blend=preset.blend, blur_length=fld.streak / max(1, frames),
+                              blur_samples=preset.blur_samples if fld.streak > 0 else 1,
+                              defocus_brighten=False, templates=fld.templates,
+                              templates_digest=fld.templates_digest)
     m = int(j.numel())
     if m == 0:
-        return empty_particles(fld.frame, **settings)
+        return empty_particles(fld.frame, settings, preset.optics())
     zeros = torch.zeros(m, 3, dtype=torch.float64)
     record = Particles(position=fld.positions(j, k, frame),
                        motion=(fld.step[j] * frames).double() * fld.quantum,
                        offset1=zeros, offset2=zeros.clone(), color=fld.color[j],
                        transparency=fld.transparency[j], template=fld.template[j],
                        rotation=fld.rotation[j], scale=fld.diameter[j],
-                       defocus=torch.zeros(m, dtype=torch.long), frame=fld.frame, **settings)
+                       defocus=torch.zeros(m, dtype=torch.long), frame=fld.frame,
+                       settings=settings, optics=preset.optics())
     return record.quantized()
 
 

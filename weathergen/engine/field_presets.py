@@ -157,7 +157,7 @@ def build_field_preset(name: str, where: str, data: Mapping[str, Any],
         else:
             values[key] = _coerce("override", key, value, _FIELD_KEYS)
         if key == "templates":
-            templates_from = "--set" if isinstance(value, str) else "override"
+            templates_from = "${overrides}" if isinstance(value, str) else "override"
     preset = FieldPreset(name=name, source=where, **values)
     if not preset.far > preset.near:
         raise ConfigError(f"{where}: key 'far' = {preset.far!r}: must be greater than near "

@@ -49,7 +49,7 @@ def particle_truth(pair: FramePair, particles: Particles,
                    chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> ParticleTruth:
     """Particle flow and opacity of frame 1 of ``pair`` (float64 accumulation on the CPU)."""
     check_pair_for_engine(pair)
-    lib = templates if templates is not None else load_templates(particles.templates)
+    lib = templates if templates is not None else load_templates(particles.settings.templates)
     _, c1, c2 = reference_transforms(pair)
     dtype, device = torch.float64, torch.device("cpu")
     rec = particles.to(device)

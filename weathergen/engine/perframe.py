@@ -165,7 +165,7 @@ def splat_view(view: View, record: Particles, start: torch.Tensor, displacement:
                                      start.detach().double().cpu())[:, 2]
             keep = z_all > NEAR
         else:
-            streak = float(record.blur_length) * displacement.detach().double()
+            streak = float(record.settings.blur_length) * displacement.detach().double()
             keep = view_mask(view, start.detach(), streak, record.scale.detach(), optics)
         sel = torch.nonzero(keep).squeeze(1)
     zero_alpha = torch.zeros(1, h, w, dtype=dtype, device=device)
@@ -222,7 +222,7 @@ def render_view(image: torch.Tensor, view: View, record: Particles, start: torch
     """One weather frame. Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W))."""
     sp = splat_view(view, record, start, displacement, lib, beta=beta,
                     chunk_elements=chunk_elements, dtype=image.dtype, device=image.device)
-    return blend(image, sp, record.blend), sp.alpha.clamp(0, 1)
+    return blend(image, sp, record.settings.blend), sp.alpha.clamp(0, 1)
 
 
 def pair_starts(record: Particles, dtype, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -279,7 +279,7 @@ def render_first_frame(pair, particles: Particles, templates=None, *, beta: floa
     if device is not None:
         dev = resolve_device(device)
         pair, particles = pair.to(dev), particles.to(dev)
-    lib = templates if templates is not None else load_templates(particles.templates)
+    lib = templates if templates is not None else load_templates(particles.settings.templates)
     _, c1, _ = reference_transforms(pair)
     image = pair.image1[None]
     start1, _, disp = pair_starts(particles, image.dtype, image.device)

@@ -18,6 +18,7 @@ from weathergen.engine.field import (field_for_pair, frame_particles, make_field
 from weathergen.engine.field_presets import DATASET_FRAME_RATES, FieldPreset
 from weathergen.engine.groundtruth import particle_truth, seen_flow
 from weathergen.engine.particles import FieldOptics
+from weathergen.engine.settings import RenderSettings
 from weathergen.engine.perframe import (View, defocus_radius, depth_fade, footprint,
                                         render_view, view_mask)
 from weathergen.errors import ConfigError
@@ -74,8 +75,10 @@ def one_particle_record(position, motion=(0.0, 0.0, 0.0), diameter=0.1, blur=0.0
                      offset2=z3.clone(), color=torch.ones(1, 3), transparency=torch.ones(1),
                      template=torch.zeros(1, dtype=torch.long), rotation=torch.zeros(1),
                      scale=torch.tensor([diameter]), defocus=torch.zeros(1, dtype=torch.long),
-                     frame="world", blend="additive", blur_length=blur, blur_samples=samples,
-                     defocus_brighten=False, templates="test-disc",
+                     frame="world",
+                     settings=RenderSettings(blend="additive", blur_length=blur,
+                                             blur_samples=samples, defocus_brighten=False,
+                                             templates="test-disc"),
                      optics=optics or FieldOptics(near=0.1, far=50.0, fade=0.0))
 
 

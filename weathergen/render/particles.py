@@ -1,0 +1,45 @@
+"""Which particles a pair gets: sampled from the pair's own seed, or loaded from an earlier output.
+
+Render and attack share this rule, so ``attack --seed S`` starts from the weather that
+``render --seed S`` writes for the same preset, and both take stored particles the same way.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Optional
+
+from ..engine import FieldPreset, Particles, Preset, sample_weather, scene_seed
+from ..framepair import FramePair, PairId
+from ..outputs.reading import load_pair_particles
+
+
+def pair_seed(run_seed: int, pair_id: PairId) -> int:
+    """A 63-bit seed for one pair, from the run seed and the pair's identity alone."""
+    digest = hashlib.sha256(f"weathergen:{run_seed}:{pair_id.key}".encode()).digest()
+    return int.from_bytes(digest[:8], "little") & ((1 << 63) - 1)
+
+
+def weather_seed(preset, run_seed: int, pair_id: PairId) -> int:
+    """The seed a pair's weather is drawn from: the pair's own for the paper's model, the scene's
+    for a weather field (so that the pairs of a scene share one field and their common frames)."""
+    if isinstance(preset, FieldPreset):
+        return scene_seed(run_seed, pair_id.dataset, pair_id.split, pair_id.scene)
+    return pair_seed(run_seed, pair_id)
+
+
+def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: str = "auto",
+                   particles_from: Optional[Path] = None,
+                   appearance: Optional[dict] = None, sequence: bool = False) -> Particles:
+    """The particles of ``pair``: sampled from ``preset`` with the pair's seed (the scene's for a
+    weather field, see :func:`weather_seed`), or, with ``particles_from``, the ones stored there for
+    the pair (``sequence``: a ``render --sequence`` folder), with the ``appearance`` settings
+    replaced (see :func:`weathergen.render.resolve_preset`)."""
+    if particles_from is None:
+        return sample_weather(pair, preset, weather_seed(preset, run_seed, pair.id),
+                              world_up=world_up)
+    particles = load_pair_particles(particles_from, pair.id, sequence=sequence)
+    if not appearance:
+        return particles
+    return particles.replace(settings=particles.settings.replace(**appearance))
