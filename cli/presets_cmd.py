@@ -6,8 +6,8 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from weathergen.engine.field_presets import FieldPreset, field_preset_keys
-from weathergen.engine.presets import list_presets, load_preset, parse_set_options, preset_keys
+from weathergen.engine.presets import (FieldPreset, field_preset_keys, list_presets, load_preset,
+                                       parse_set_options, preset_keys)
 
 
 @click.command("presets")

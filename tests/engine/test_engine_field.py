@@ -15,9 +15,9 @@ from weathergen.engine import (Particles, TemplateLibrary, load_preset, load_tem
                                render_pair, sample_particles, sample_weather)
 from weathergen.engine.field import (field_for_pair, frame_particles, make_field, pair_views,
                                      sample_field_particles, scene_seed)
-from weathergen.engine.field_presets import DATASET_FRAME_RATES, FieldPreset
+from weathergen.engine.presets import DATASET_FRAME_RATES, FieldPreset
 from weathergen.engine.groundtruth import particle_truth, seen_flow
-from weathergen.engine.particles import FieldOptics
+from weathergen.engine.optics import FieldOptics
 from weathergen.engine.settings import RenderSettings
 from weathergen.engine.perframe import (View, defocus_radius, depth_fade, footprint,
                                         render_view, view_mask)

@@ -15,11 +15,12 @@ from __future__ import annotations
 
 from .field import (Field, frame_particles, make_field, pair_particles, sample_field_particles,
                     sample_weather, scene_seed)
-from .field_presets import DATASET_FRAME_RATES, FieldPreset
 from .groundtruth import ParticleTruth, particle_truth, seen_flow
-from .particles import FieldOptics, Particles, empty_particles, from_atanh, to_atanh
+from .particles import Particles, empty_particles, from_atanh, to_atanh
 from .perframe import View, render_view
-from .presets import Preset, list_presets, load_preset, parse_override, parse_set_options, preset_keys
+from .optics import FieldOptics
+from .presets import (DATASET_FRAME_RATES, FieldPreset, Preset, list_presets, load_preset,
+                      parse_override, parse_set_options, preset_keys)
 from .renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps, render,
                        render_pair)
 from .sampling import (reference_transforms, resolve_device, sample_particles, visible_counts,

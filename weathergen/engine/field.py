@@ -49,7 +49,7 @@ import torch
 from ..errors import ConfigError
 from ..framepair import FramePair
 from ..geometry import invert_rigid, transform_points
-from .field_presets import FieldPreset
+from .presets import FieldPreset
 from .particles import Particles, empty_particles
 from .perframe import MAX_DEFOCUS, View, focal, view_mask
 from .sampling import (_euler, _generator, check_pair_for_engine, hls_to_rgb, reference_transforms,

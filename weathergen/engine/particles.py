@@ -42,6 +42,7 @@ import numpy as np
 import torch
 
 from ..errors import FormatError
+from .optics import FieldOptics
 from .settings import RenderSettings
 
 FORMAT_VERSION = 1
@@ -66,37 +67,6 @@ _TENSOR_FIELDS = {
 _INTEGER_FIELDS = ("template", "defocus")
 #: The names of the per-particle tensors of a record.
 TENSOR_FIELDS = tuple(_TENSOR_FIELDS)
-
-
-@dataclass(frozen=True)
-class FieldOptics:
-    """How a field-sampled record looks in each frame (see :mod:`weathergen.engine.perframe`).
-
-    Lengths in scene units: ``near``/``far`` bound the camera depths at which particles are drawn;
-    ``fade`` is the fraction of ``far`` over which they fade out before it (and they fade in over
-    ``[near, 2 near]``); ``aperture`` is the lens's aperture diameter (0: pinhole, no defocus),
-    focused at ``focus``; ``depth_softness`` is the width of the occlusion test's transition
-    (visibility ``sigmoid((D - d) / depth_softness)``), large for fog so that a slanted wall fades
-    it instead of cutting it.
-    """
-
-    near: float
-    far: float
-    fade: float = 0.2
-    aperture: float = 0.0
-    focus: float = 1.0
-    depth_softness: float = 0.004
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "FieldOptics":
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = sorted(set(data) - names)
-        if unknown:
-            raise ValueError(f"unknown optics keys {unknown}")
-        return cls(**{k: float(v) for k, v in data.items()})
 
 
 @dataclass

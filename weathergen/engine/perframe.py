@@ -34,8 +34,12 @@ from typing import Optional, Sequence
 import torch
 
 from ..geometry import project, transform_points
-from .particles import FieldOptics, Particles
-from .sampling import NEAR
+from . import renderer
+from .optics import FieldOptics
+from .particles import Particles
+from .renderer import RenderOutput, _blur_steps, _splat, build_stamps
+from .sampling import NEAR, check_pair_for_engine, reference_transforms, resolve_device
+from .templates import load_templates
 
 MAX_DEFOCUS = 20
 
@@ -155,8 +159,6 @@ def splat_view(view: View, record: Particles, start: torch.Tensor, displacement:
     Shape: start (N, 3) the particles' reference positions in this view's frame, displacement
     (N, 3) the motion their streaks follow; ``values`` (N, 3) replaces the colour (e.g. flow).
     """
-    from .renderer import _blur_steps, _splat, build_stamps
-
     h, w = view.size
     optics = record.optics
     with torch.no_grad():
@@ -240,12 +242,10 @@ def render_per_frame(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, 
                      chunk_elements: int):
     """The per-frame-appearance path of :func:`weathergen.engine.renderer.render`: every pair and
     frame is rendered as its own view. Shapes as there; returns a ``RenderOutput``."""
-    from .renderer import RenderOutput, render
-
     outs = {k: [] for k in ("image1", "image2", "opacity1", "opacity2")}
     for b, rec in enumerate(records):
         if rec.optics is None:   # a record of the paper's model in the same batch
-            o = render(image1[b:b + 1], image2[b:b + 1], depth1[b:b + 1], depth2[b:b + 1],
+            o = renderer.render(image1[b:b + 1], image2[b:b + 1], depth1[b:b + 1], depth2[b:b + 1],
                        intrinsics[b:b + 1], cam1_from_ref[b:b + 1], cam2_from_ref[b:b + 1],
                        [rec], templates, beta=beta, chunk_elements=chunk_elements)
             for key in outs:
@@ -270,9 +270,6 @@ def render_first_frame(pair, particles: Particles, templates=None, *, beta: floa
 
     Shape: returns (image (1, 3, H, W), opacity (1, 1, H, W)).
     """
-    from .sampling import check_pair_for_engine, reference_transforms, resolve_device
-    from .templates import load_templates
-
     check_pair_for_engine(pair)
     if particles.optics is None:
         raise ValueError("render_first_frame renders field records (particles.optics is set)")
@@ -287,3 +284,6 @@ def render_first_frame(pair, particles: Particles, templates=None, *, beta: floa
     out, alpha = render_view(image[0], view, particles, start1, disp, lib, beta=beta,
                              chunk_elements=chunk_elements)
     return out[None], alpha[None]
+
+
+renderer.PER_FRAME_RENDERER = render_per_frame

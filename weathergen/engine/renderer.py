@@ -53,6 +53,10 @@ from .templates import TemplateLibrary, load_templates
 BETA_RENDER = 250.0
 BETA_ATTACK = 30.0
 DEFAULT_CHUNK_ELEMENTS = 1 << 21
+#: Renders records whose looks follow each frame's depth (``optics`` set: weather fields).
+#: :mod:`weathergen.engine.perframe` installs its ``render_per_frame`` here when it is imported (the
+#: engine package always imports it), so that this module does not import the one built on it.
+PER_FRAME_RENDERER = None
 
 
 @dataclass
@@ -444,8 +448,7 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
 
     if any(r.optics is not None for r in records):
         # Weather-field records look different in each frame: one view at a time (perframe.py).
-        from .perframe import render_per_frame
-        return render_per_frame(image1, image2, depth1, depth2, intrinsics.to(device),
+        return PER_FRAME_RENDERER(image1, image2, depth1, depth2, intrinsics.to(device),
                                 cam1_from_ref.to(device), cam2_from_ref.to(device), records,
                                 templates, beta=beta, chunk_elements=chunk_elements)
 
