@@ -139,8 +139,21 @@ def test_stereo_renders_kitti_image_3_with_the_same_particles(tmp_path, demo_roo
         shutil.copy(split / "image_2" / f"000004_{n}.png", split / "image_3" / f"000004_{n}.png")
     out = tmp_path / "stereo"
     res = run("render", "--dataset", "kitti", "--root", tmp_path / "kitti", "--preset",
-              "snow-moderate", "--set", "far=5", "--stereo", "--out", out)
+              "snow-moderate", "--set", "far=5", "--stereo", "--particle-truth", "--out", out)
     assert res.exit_code == 0, res.output
+    # the particle ground truth also in KITTI's own flow format, valid where particles are
+    from weathergen.io.kitti_formats import read_flow_png
+
+    flow, valid = read_flow_png(out / "training" / "particle_flow_occ" / "000004_0010"
+                                / "frame_0010.png")
+    sintel = read_flo(out / "training" / "particle_flow" / "000004_0010" / "frame_0010.flo")
+    assert 0 < valid.sum() < valid.size
+    assert np.allclose(flow[valid], sintel[valid], atol=1 / 64)
+    # flows beyond KITTI's +-512 px (near flakes) are marked not valid there, kept in the .flo
+    assert not valid[(np.abs(sintel) >= 512).any(-1)].any()
+    _, seen_valid = read_flow_png(out / "training" / "seen_flow_occ" / "000004_0010"
+                                  / "frame_0010.png")
+    assert seen_valid.sum() > 0
     left = out / "training" / "snow-moderate_clean" / "000004_0010"
     right = out / "training" / "snow-moderate_clean_right" / "000004_0010"
     images = {}

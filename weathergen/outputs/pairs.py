@@ -54,6 +54,8 @@ from ..io.spring_formats import write_flo5
 from .metadata import read_metadata, write_metadata
 
 FORMATS = ("png", "exr", "both")
+#: The largest flow magnitude (per component, pixels) a KITTI flow PNG can hold, exclusive.
+KITTI_FLOW_LIMIT = 511.98
 #: Datasets whose ground-truth flow is also written in their own format: folder and extension.
 NATIVE_FLOW = {"kitti": ("flow_occ", "png"), "spring": ("flow_FW_left", "flo5")}
 #: Outputs are Sintel trees, so input splits named otherwise (Spring's ``train``, KITTI's
@@ -247,7 +249,12 @@ def _write_truth(out: PairOutput, pair: FramePair, truth) -> list[Path]:
 
 
 def _write_native(dataset: str, path: Path, flow: np.ndarray, valid: np.ndarray) -> Path:
-    """A flow (H, W, 2) with its valid mask (H, W) in KITTI's PNG or Spring's ``.flo5``."""
+    """A flow (H, W, 2) with its valid mask (H, W) in KITTI's PNG or Spring's ``.flo5``.
+
+    KITTI's PNG holds flows within +-512 px; a nearer particle's larger flow is written as not
+    valid there (the ``.flo`` beside it keeps the value).
+    """
     if dataset == "kitti":
-        return write_flow_png(path, flow, valid)
+        fits = (np.abs(flow) < KITTI_FLOW_LIMIT).all(-1)
+        return write_flow_png(path, np.where(fits[..., None], flow, 0.0), valid & fits)
     return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))
