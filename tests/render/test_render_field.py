@@ -166,10 +166,12 @@ def test_stereo_renders_kitti_image_3_with_the_same_particles(tmp_path, demo_roo
     assert np.abs(images["right", 10] - images["left", 10]).max() > 0.1
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["outputs"]["stereo"] is True
-    # a dataset without a second camera: each pair fails with one line naming the reason
+    # a dataset without a second camera: each pair fails with one line naming the reason (every
+    # pair failing: exit 2, nothing written)
     res = run("render", "--scenes", "street", "--frames-per-scene", "1", "--preset", "snow-light",
               "--stereo", "--out", tmp_path / "mono")
-    assert res.exit_code == 1 and "no second camera" in res.output
+    assert res.exit_code == 2 and "no second camera" in res.output
+    assert not (tmp_path / "mono").exists()
 
 
 def test_stereo_reads_a_right_camera_in_the_custom_layout(tmp_path, demo_root):
@@ -193,7 +195,7 @@ def test_stereo_reads_a_right_camera_in_the_custom_layout(tmp_path, demo_root):
     (right / "camera.json").write_text("{}")
     res = run("render", "--dataset", "custom", "--root", root, "--preset", "snow-moderate",
               "--stereo", "--out", tmp_path / "bad")
-    assert res.exit_code == 1 and "camera.json: not a right camera file" in res.output
+    assert res.exit_code == 2 and "camera.json: not a right camera file" in res.output
 
 
 def test_preview_and_evaluate_read_a_sequence_output(sequence_run):
