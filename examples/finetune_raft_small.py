@@ -18,7 +18,7 @@ The weather is drawn per (seed, epoch, index): rerunning gives the same batches,
 ``--workers``. ``--weather-on workers`` renders it per pair in the DataLoader's worker processes,
 ``--weather-on device`` draws the particles in the workers and renders each batch in one call on
 ``--device``. Each step prints the training loss; before the first step and after the last, the
-loss and EPE on a fixed set of clean pairs are printed too. ``--out`` writes the fine-tuned
+loss and EPE on a fixed set of pairs (``--eval-pairs``, clean and with weather) are printed too. ``--out`` writes the fine-tuned
 weights (``raft-small-finetuned.pth``, loadable with ``--checkpoint``) and ``log.csv``.
 """
 
@@ -74,7 +74,8 @@ def parse_args(argv=None) -> argparse.Namespace:
                    help="render the weather per pair in the loader, or per batch on --device")
     p.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N")
     p.add_argument("--eval-pairs", type=int, default=4,
-                   help="clean pairs (centre crops) on which the loss is printed before and after")
+                   help="pairs (centre crops, clean and with weather) on which the loss is "
+                        "printed before and after training")
     p.add_argument("--out", type=Path, default=None, help="folder for the weights and log.csv")
     return p.parse_args(argv)
 
@@ -94,26 +95,37 @@ def load_network(checkpoint, iters: int, device) -> torch.nn.Module:
     return model.to(device)
 
 
-def evaluation_batch(reader, count: int, crop, device):
-    """The first ``count`` pairs, clean, centre-cropped: a fixed yardstick for the loss."""
+def evaluation_batches(reader, count: int, crop, weather: WeatherAugment, device) -> dict:
+    """The first ``count`` pairs, centre-cropped, clean and with weather drawn for epoch -1 (an
+    epoch training never uses): a fixed yardstick for the loss."""
     data = PairDataset(reader)
-    samples = []
+    clean, snowy = [], []
     for i in range(min(count, len(data))):
-        s = data[i]
+        s = replace(data[i], epoch=-1)
         h, w = s.pair.size
         top, left = (h - crop[0]) // 2, (w - crop[1]) // 2
-        samples.append(replace(s, pair=crop_pair(s.pair, top, left, crop[0], crop[1])))
-    return collate_pairs(samples).to(device)
+        clean.append(replace(s, pair=crop_pair(s.pair, top, left, crop[0], crop[1])))
+        rendered = weather(s)
+        snowy.append(replace(rendered, pair=crop_pair(rendered.pair, top, left, crop[0], crop[1])))
+    return {"clean": collate_pairs(clean).to(device), "weather": collate_pairs(snowy).to(device)}
 
 
-def evaluate(model, batch, gamma: float) -> dict:
+def evaluate(model, batches: dict, gamma: float) -> dict:
+    """Sequence loss and EPE of ``model`` on each yardstick batch."""
     model.eval()
+    out = {}
     with torch.no_grad():
-        flows = model.flow_sequence(batch.pairs.image1, batch.pairs.image2)
-        p = batch.pairs
-        loss = sequence_loss(flows, p.flow, p.flow_valid, gamma=gamma)
-        epe = end_point_error(flows[-1], p.flow, p.flow_valid)
-    return {"loss": float(loss), "epe": float(epe)}
+        for name, batch in batches.items():
+            p = batch.pairs
+            flows = model.flow_sequence(p.image1, p.image2)
+            out[name] = {"loss": float(sequence_loss(flows, p.flow, p.flow_valid, gamma=gamma)),
+                         "epe": float(end_point_error(flows[-1], p.flow, p.flow_valid))}
+    return out
+
+
+def report(when: str, scores: dict) -> None:
+    parts = [f"{name} loss {v['loss']:.4f} EPE {v['epe']:.3f} px" for name, v in scores.items()]
+    print(f"{when}: " + ";  ".join(parts))
 
 
 def main(argv=None) -> dict:
@@ -143,10 +155,12 @@ def main(argv=None) -> dict:
 
     model = load_network(args.checkpoint, args.iters, device)
     optimizer, scheduler = raft_optimizer(model, args.steps, lr=args.lr, weight_decay=args.wdecay)
-    yardstick = evaluation_batch(reader, args.eval_pairs, crop, device)
+    all_weather = WeatherAugment(args.preset or ["snow"], p=1.0, seed=args.seed,
+                                 overrides=overrides)
+    yardstick = evaluation_batches(reader, args.eval_pairs, crop, all_weather, device)
     before = evaluate(model, yardstick, args.gamma)
-    print(f"before: loss {before['loss']:.4f}  EPE {before['epe']:.3f} px "
-          f"on {len(yardstick)} clean pairs")
+    print(f"fixed pairs: {len(yardstick['clean'])} clean, the same with weather")
+    report("before", before)
 
     log, step, epoch = [], 0, 0
     start = time.perf_counter()
@@ -173,8 +187,8 @@ def main(argv=None) -> dict:
         epoch += 1
 
     after = evaluate(model, yardstick, args.gamma)
-    print(f"after:  loss {after['loss']:.4f}  EPE {after['epe']:.3f} px "
-          f"({args.steps} steps, {time.perf_counter() - start:.0f} s)")
+    report("after ", after)
+    print(f"{args.steps} steps in {time.perf_counter() - start:.0f} s")
     if args.out is not None:
         args.out.mkdir(parents=True, exist_ok=True)
         torch.save(model.network.state_dict(), args.out / "raft-small-finetuned.pth")
