@@ -2,7 +2,7 @@
 #
 #   make test                  create .venv, install the pinned CPU torch, the package, run the tests
 #   make demo                  render the default preset on the bundled demo scene
-#   make bench                 print speed and memory figures (renderer, attack step)
+#   make bench                 print speed and memory figures (renderer, attack step, training)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 
 PYTHON ?= python3
@@ -39,6 +39,7 @@ bench: install
 	$(BIN)/python benchmarks/bench.py
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
+	$(BIN)/python benchmarks/bench_training.py
 
 clean:
 	rm -rf $(VENV) build *.egg-info out

@@ -65,7 +65,7 @@ def test_draws_follow_the_probability_and_the_key():
     assert aug.draw(3, 2) == WeatherAugment("snow", p=0.5, seed=7).draw(3, 2)
     seeds = {d.seed for d in draws if d.applied}
     assert len(seeds) == sum(d.applied for d in draws)          # a new seed for every index
-    assert aug.draw(5, 0) != aug.draw(5, 1) or aug.draw(6, 0) != aug.draw(6, 1)
+    assert sum(aug.draw(i, 0) != aug.draw(i, 1) for i in range(50)) > 20    # epochs differ
 
 
 def loader_images(demo, workers, epoch, transform):
@@ -100,10 +100,7 @@ def test_batched_path_equals_per_sample_path(samples, prepared):
     assert batched.weather == per_sample.weather
     assert 0 < sum(w.applied for w in batched.weather) < len(samples)
     for name in ("image1", "image2"):
-        a, b = getattr(batched.pairs, name), getattr(per_sample.pairs, name)
-        # Equal up to float rounding: the stamps' defocus blur is one batched convolution, whose
-        # last bits may depend on how many stamps it convolves at once.
-        torch.testing.assert_close(a, b, rtol=0, atol=1e-6)
+        assert torch.equal(getattr(batched.pairs, name), getattr(per_sample.pairs, name)), name
     for k, w in enumerate(batched.weather):
         if not w.applied:
             assert torch.equal(batched.pairs.image1[k], samples[k].pair.image1)
@@ -169,7 +166,7 @@ def test_weather_then_crop_and_flip_on_samples_and_on_batches(samples):
     per_sample = collate_pairs([pipeline(s) for s in samples])
     batched = pipeline.apply_batch(collate_pairs(samples))
     assert per_sample.pairs.image1.shape == (len(samples), 3, 96, 200)
-    torch.testing.assert_close(batched.pairs.image1, per_sample.pairs.image1, rtol=0, atol=1e-6)
+    assert torch.equal(batched.pairs.image1, per_sample.pairs.image1)
     assert torch.equal(batched.pairs.flow, per_sample.pairs.flow)
     # the crop and flip of a weather frame is the weather frame cropped and flipped
     rendered = weather(samples[0])

@@ -14,8 +14,9 @@ It runs in one of two places:
   moved to the device and :meth:`WeatherAugment.apply_batch` renders every pair that gets weather
   in one batched call (one per template library when presets with different templates are
   mixed). Without ``prepare`` the batch path samples the particles itself (on the CPU, from the
-  pairs' depth and cameras). Both paths give the same frames (bit for bit on the CPU; on CUDA up
-  to the last bits, since the renderer adds with atomics there).
+  pairs' depth and cameras). Both paths give the same frames: bit for bit on the CPU (each pair's
+  stamps are rasterised on their own, see :func:`stamps_per_record`), up to the last bits on CUDA,
+  where the renderer adds with atomics.
 
 **Order: weather first, geometric augmentation after.** The presets place a number of *visible*
 particles in the whole frame, with pixel sizes meant for the full frame; rendering into the full
@@ -40,7 +41,9 @@ from typing import Mapping, Optional, Protocol, Sequence, Union, runtime_checkab
 
 import torch
 
-from ..engine import Preset, load_preset, load_templates, render_pair, sample_particles
+from ..engine import (Preset, StampSet, build_stamps, load_preset, load_templates, render_pair,
+                      sample_particles)
+from ..engine.renderer import StampBucket
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, FramePairBatch
 from .datasets import (PairSample, PairSampleBatch, batch_to, collate_pairs, pair_of,
@@ -279,7 +282,9 @@ class WeatherAugment:
         for k in todo:
             groups[records[k].templates].append(k)
         for members in groups.values():
-            out = render_pair(select_pairs(pairs, members), [records[k] for k in members])
+            group = [records[k] for k in members]
+            out = render_pair(select_pairs(pairs, members), group,
+                              stamps=stamps_per_record(group, device=image1.device))
             index = torch.tensor(members, device=image1.device)
             image1[index] = out.image1
             image2[index] = out.image2
@@ -288,6 +293,27 @@ class WeatherAugment:
         kept = [r if self.keep_particles else None for r in records]
         return replace(batch, pairs=replace(pairs, image1=image1, image2=image2), weather=draws,
                        particles=kept)
+
+
+def stamps_per_record(records: Sequence, device=None) -> StampSet:
+    """The stamps of several particle records, rasterised record by record and put together.
+
+    Rasterising every record on its own makes each pair's pixels independent of the other pairs
+    in the batch (the defocus blur is a batched convolution whose last bits depend on how many
+    stamps it convolves at once), so the batched render equals the per-pair render bit for bit on
+    the CPU.
+    """
+    library = load_templates(records[0].templates)
+    buckets, bucket_of, slot_of, first = [], [], [], 0
+    for record in records:
+        stamps = build_stamps([record], library, device=device)
+        offset = len(buckets)
+        buckets.extend(StampBucket(side=b.side, particles=b.particles + first, stamps=b.stamps)
+                       for b in stamps.buckets)
+        bucket_of.append(stamps.bucket_of + offset)
+        slot_of.append(stamps.slot_of)
+        first += record.count
+    return StampSet(buckets=buckets, bucket_of=torch.cat(bucket_of), slot_of=torch.cat(slot_of))
 
 
 def _geometry_on_cpu(pairs: FramePairBatch) -> FramePairBatch:
@@ -425,4 +451,5 @@ class Compose:
 
 
 __all__ = ["Compose", "PresetSource", "RandomCrop", "RandomFlip", "WeatherAugment",
-           "WeatherDraw", "WeatherSource", "crop_pair", "flip_pair", "keyed_digest"]
+           "WeatherDraw", "WeatherSource", "crop_pair", "flip_pair", "keyed_digest",
+           "stamps_per_record"]
