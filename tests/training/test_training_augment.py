@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import pytest
 import torch
 from torch.utils.data import DataLoader
@@ -77,7 +79,8 @@ def loader_images(demo, workers, epoch, transform):
 
 
 def test_same_key_same_bytes_with_0_and_2_workers_new_epoch_new_weather(demo):
-    aug = WeatherAugment(["snow", "rain"], p=1.0, seed=11, overrides=LIGHT)
+    aug = Compose([WeatherAugment(["snow", "rain"], p=1.0, seed=11, overrides=LIGHT),
+                   RandomCrop((160, 360), seed=11), RandomFlip(0.5, 0.5, seed=11)])
     serial = loader_images(demo, 0, 1, aug)
     parallel = loader_images(demo, 2, 1, aug)
     for (i0, a1, a2, w0), (i1, b1, b2, w1) in zip(serial, parallel):
@@ -105,6 +108,19 @@ def test_batched_path_equals_per_sample_path(samples, prepared):
         if not w.applied:
             assert torch.equal(batched.pairs.image1[k], samples[k].pair.image1)
     assert batched.particles == [None] * len(samples)
+
+
+def test_particles_prepared_in_two_workers_render_as_per_sample(demo, samples):
+    aug = WeatherAugment("snow", p=0.5, seed=9, overrides=LIGHT)
+    data = PairDataset(demo, aug.prepare)
+    data.set_epoch(4)
+    loader = DataLoader(data, batch_size=3, num_workers=2, collate_fn=collate_pairs)
+    for batch in loader:
+        rendered = aug.apply_batch(batch)
+        expected = collate_pairs([aug(replace(samples[i], epoch=4)) for i in batch.indices.tolist()])
+        assert rendered.weather == expected.weather
+        assert torch.equal(rendered.pairs.image1, expected.pairs.image1)
+        assert torch.equal(rendered.pairs.image2, expected.pairs.image2)
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
