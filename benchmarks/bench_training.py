@@ -77,15 +77,16 @@ def main(argv=None):
     parser.add_argument("--repeats", type=int, default=None,
                         help="timed repeats (default 1 on the CPU, 5 on a GPU)")
     parser.add_argument("--iters", type=int, default=12, help="RAFT iterations in the step")
+    parser.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1),
+                        help="CPU threads")
     args = parser.parse_args(argv)
     device = torch.device(args.device)
     gpu = device.type == "cuda"
-    if not gpu:
-        torch.set_num_threads(min(2, os.cpu_count() or 1))
+    torch.set_num_threads(args.threads)
     repeats = args.repeats or (5 if gpu else 1)
     models = args.model or (["raft-small", "raft"] if gpu else ["raft-small"])
     sync = torch.cuda.synchronize if gpu else (lambda: None)
-    name = torch.cuda.get_device_name(device) if gpu else f"CPU, {torch.get_num_threads()} threads"
+    name = torch.cuda.get_device_name(device) if gpu else f"CPU, {torch.get_num_threads()} thread(s)"
     print(f"training cost: batch of {BATCH} pairs {WIDTH}x{HEIGHT}, cropped to "
           f"{CROP[0]}x{CROP[1]} after the weather; {name}; median of {repeats}")
 

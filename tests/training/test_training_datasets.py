@@ -104,3 +104,15 @@ def test_epoch_reaches_items_by_set_epoch_and_by_epoch_keys(readers):
     sampler = EpochSampler(range(3))
     sampler.set_epoch(5)
     assert list(sampler) == [(5, 0), (5, 1), (5, 2)] and len(sampler) == 3
+
+
+def test_epoch_sampler_carries_the_epoch_to_persistent_workers(readers):
+    data = PairDataset(readers["demo"])
+    sampler = EpochSampler(range(len(data)))
+    loader = DataLoader(data, sampler=sampler, batch_size=3, num_workers=2,
+                        persistent_workers=True, collate_fn=collate_pairs)
+    seen = []
+    for epoch in (0, 1):
+        sampler.set_epoch(epoch)
+        seen.append(sorted({e for b in loader for e in b.epochs.tolist()}))
+    assert seen == [[0], [1]]
