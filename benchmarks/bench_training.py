@@ -55,10 +55,11 @@ def sintel_size_samples() -> list:
     return out
 
 
-def timed(fn, repeats: int, sync) -> float:
-    """Median seconds of ``repeats`` calls after one warm-up call."""
-    fn()
-    sync()
+def timed(fn, repeats: int, sync, warm_up: bool = True) -> float:
+    """Median seconds of ``repeats`` calls, after one warm-up call if asked."""
+    if warm_up:
+        fn()
+        sync()
     times = []
     for _ in range(repeats):
         start = time.perf_counter()
@@ -113,7 +114,7 @@ def main(argv=None):
         optimizer, scheduler = raft_optimizer(model, steps=1000)
         step_times[model_name] = timed(
             lambda: train_step(model, optimizer, scheduler, p.image1, p.image2, p.flow,
-                               p.flow_valid), repeats, sync)
+                               p.flow_valid), repeats, sync, warm_up=gpu)  # CPU: keep it short
         del model, optimizer, scheduler
         if gpu:
             torch.cuda.empty_cache()
