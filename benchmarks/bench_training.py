@@ -119,17 +119,17 @@ def main(argv=None):
         if gpu:
             torch.cuda.empty_cache()
 
-    print(f"{'RAFT training step':<34}" + "".join(f"{m:>14}" for m in step_times))
-    print(f"{'':<34}" + "".join(f"{t:>13.2f}s" for t in step_times.values()))
-    print(f"{'weather, p = 1':<24}{'seconds':>10}" + "".join(f"{'% of ' + m:>14}" for m in step_times))
+    print(f"{'RAFT training step':<30}" + "".join(f"{m:>16}" for m in step_times))
+    print(f"{'':<30}" + "".join(f"{t:>15.2f}s" for t in step_times.values()))
+    print(f"{'weather, p = 1':<30}{'seconds':>10}" + "".join(f"{'% of ' + m:>16}"
+                                                           for m in step_times))
     for preset, (per_sample, batched, render_only) in weather_times.items():
         rows = [(f"{preset}: per sample (CPU)", per_sample),
                 (f"{preset}: per batch ({device.type})", batched),
-                (f"{preset}: batch, prepared", render_only)]
+                (f"{preset}: prepared batch ({device.type})", render_only)]
         for label, t in rows:
-            print(f"{label:<24}{t:>9.3f}s" + "".join(f"{100 * t / s:>13.1f}%"
+            print(f"{label:<30}{t:>9.3f}s" + "".join(f"{100 * t / s:>15.1f}%"
                                                   for s in step_times.values()))
-
 
 if __name__ == "__main__":
     main()
