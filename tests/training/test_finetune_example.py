@@ -4,11 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 
-import pytest
-
-from conftest import PROJECT_ROOT, SHARED_WEIGHTS
-
-WEIGHTS = SHARED_WEIGHTS / "raft-small.pth"
+from conftest import PROJECT_ROOT
 
 
 def load_example():
@@ -19,11 +15,10 @@ def load_example():
     return module
 
 
-@pytest.mark.skipif(not WEIGHTS.is_file(),
-                    reason=f"the released RAFT-small weights are not at {WEIGHTS}")
-def test_finetuning_on_the_demo_scene_lowers_the_loss(tmp_path, demo_root, capsys):
+def test_finetuning_on_the_demo_scene_lowers_the_loss(tmp_path, demo_root, raft_small_weights,
+                                                    capsys):
     example = load_example()
-    result = example.main(["--checkpoint", str(WEIGHTS), "--steps", "8", "--batch-size", "2",
+    result = example.main(["--checkpoint", str(raft_small_weights), "--steps", "8", "--batch-size", "2",
                            "--crop", "64", "128", "--iters", "4", "--lr", "4e-4",
                            "--set", "count=200", "--eval-pairs", "2", "--workers", "0",
                            "--out", str(tmp_path / "run")])

@@ -9,7 +9,7 @@ import torch
 from torch.utils.data import DataLoader
 
 from weathergen.datasets import open_dataset
-from weathergen.errors import ConfigError, DatasetError
+from weathergen.errors import ConfigError, ShapeError
 from weathergen.framepair import _TENSOR_FIELDS
 from weathergen.geometry import reprojection_flow
 from weathergen.training import (Compose, PairDataset, RandomCrop, RandomFlip, WeatherAugment,
@@ -194,5 +194,5 @@ def test_weather_then_crop_and_flip_on_samples_and_on_batches(samples):
 
 
 def test_crop_larger_than_the_frames_is_refused(samples):
-    with pytest.raises(DatasetError, match="smaller than"):
+    with pytest.raises(ShapeError, match="smaller than"):
         RandomCrop((400, 400))(samples[0])

@@ -9,7 +9,7 @@ from torch.utils.data import DataLoader
 from conftest import write_fake_sintel
 from fake_datasets import demo_sequence, write_fake_custom, write_fake_kitti, write_fake_spring
 from weathergen.datasets import open_dataset
-from weathergen.errors import DatasetError
+from weathergen.errors import ShapeError
 from weathergen.framepair import _TENSOR_FIELDS
 from weathergen.training import EpochSampler, PairDataset, collate_pairs, pair_of
 
@@ -80,7 +80,7 @@ def test_collate_stacks_pairs_and_keys(readers):
 def test_collate_refuses_pairs_of_different_sizes(readers):
     demo = PairDataset(readers["demo"])[0]
     sintel = PairDataset(readers["sintel"])[0]
-    with pytest.raises(DatasetError, match="different sizes"):
+    with pytest.raises(ShapeError, match="different sizes"):
         collate_pairs([demo, sintel])
 
 

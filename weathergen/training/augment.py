@@ -44,7 +44,7 @@ import torch
 from ..engine import (Preset, StampSet, build_stamps, load_preset, load_templates, render_pair,
                       sample_particles)
 from ..engine.renderer import StampBucket
-from ..errors import ConfigError, DatasetError
+from ..errors import ConfigError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from .datasets import (PairSample, PairSampleBatch, batch_to, collate_pairs, pair_of,
                        select_pairs)
@@ -280,7 +280,7 @@ class WeatherAugment:
         image1, image2 = pairs.image1.clone(), pairs.image2.clone()
         groups = defaultdict(list)
         for k in todo:
-            groups[records[k].templates].append(k)
+            groups[records[k].settings.templates].append(k)
         for members in groups.values():
             group = [records[k] for k in members]
             out = render_pair(select_pairs(pairs, members), group,
@@ -303,7 +303,7 @@ def stamps_per_record(records: Sequence, device=None) -> StampSet:
     stamps it convolves at once), so the batched render equals the per-pair render bit for bit on
     the CPU.
     """
-    library = load_templates(records[0].templates)
+    library = load_templates(records[0].settings.templates)
     buckets, bucket_of, slot_of, first = [], [], [], 0
     for record in records:
         stamps = build_stamps([record], library, device=device)
@@ -340,7 +340,7 @@ def crop_pair(pair: FramePair, top: int, left: int, height: int, width: int) -> 
     principal point moves with it, so depth and cameras still describe the cropped frames."""
     h, w = pair.size
     if not (0 <= top and top + height <= h and 0 <= left and left + width <= w):
-        raise DatasetError(f"{pair.id}: crop {height}x{width} at ({top}, {left}) does not fit "
+        raise ShapeError(f"{pair.id}: crop {height}x{width} at ({top}, {left}) does not fit "
                            f"the {h}x{w} frames")
     moved = {n: None if getattr(pair, n) is None
              else getattr(pair, n)[..., top:top + height, left:left + width]
@@ -406,7 +406,7 @@ class RandomCrop(_PerSample):
     def __call__(self, sample: PairSample) -> PairSample:
         (h, w), (ch, cw) = sample.pair.size, self.size
         if ch > h or cw > w:
-            raise DatasetError(f"{sample.pair.id}: frames of {h}x{w} are smaller than the "
+            raise ShapeError(f"{sample.pair.id}: frames of {h}x{w} are smaller than the "
                                f"{ch}x{cw} crop")
         digest = keyed_digest("crop", self.seed, sample.epoch, sample.index)
         top = int(_uniform(digest, 0) * (h - ch + 1))

@@ -124,7 +124,7 @@ def pair_of(batch: FramePairBatch, k: int) -> FramePair:
 def collate_pairs(samples: Sequence[PairSample]) -> PairSampleBatch:
     """Stack samples of equal frame size (the ``collate_fn`` of a ``DataLoader``).
 
-    Raises :class:`~weathergen.errors.DatasetError` naming the sizes when they differ (crop them to
+    Raises :class:`~weathergen.errors.ShapeError` naming the sizes when they differ (crop them to
     one size first, e.g. with :class:`~weathergen.training.augment.RandomCrop`).
     """
     samples = list(samples)

@@ -11,8 +11,8 @@ import pytest
 import torch
 
 from engine_scenes import plane_pair
-from weathergen.engine import (BETA_ATTACK, Particles, TemplateLibrary, from_atanh, load_preset,
-                               render, render_pair, sample_particles, to_atanh)
+from weathergen.engine import (BETA_ATTACK, Particles, RenderSettings, TemplateLibrary, from_atanh,
+                               load_preset, render, render_pair, sample_particles, to_atanh)
 from weathergen.engine.particles import empty_particles
 from weathergen.errors import ConfigError, DatasetError, WeatherGenError
 
@@ -52,9 +52,9 @@ def tiny_particles(dtype=torch.float64, blur=3, blend="additive", defocus=(0, 2,
         transparency=torch.tensor([0.7, 0.5, 0.9], dtype=dtype),
         template=torch.tensor([0, 1, 1]), rotation=torch.tensor([0.3, 2.0, -1.1], dtype=dtype),
         scale=torch.tensor([5.4, 2.6, 3.3], dtype=dtype) / 8,
-        defocus=torch.tensor(defocus), frame="camera1", blend=blend,
-        blur_length=0.5 if blur > 1 else 0.0, blur_samples=blur, defocus_brighten=True,
-        templates="test-blobs")
+        defocus=torch.tensor(defocus), frame="camera1",
+        settings=RenderSettings(blend=blend, blur_length=0.5 if blur > 1 else 0.0,
+                                blur_samples=blur, defocus_brighten=True, templates="test-blobs"))
 
 
 def fast(pair, parts, lib, beta):
@@ -129,10 +129,10 @@ def naive_render(pair, parts: Particles, lib, beta):
         for j in range(parts.count):
             stamp = _naive_stamp(lib, int(parts.template[j]), float(parts.rotation[j]),
                                  float(parts.scale[j]), int(parts.defocus[j]),
-                                 parts.defocus_brighten)
-            kk = parts.blur_samples if parts.blur_length > 0 else 1
+                                 parts.settings.defocus_brighten)
+            kk = parts.settings.blur_samples if parts.settings.blur_length > 0 else 1
             for s in range(kk):
-                frac = parts.blur_length * s / (kk - 1) if kk > 1 else 0.0
+                frac = parts.settings.blur_length * s / (kk - 1) if kk > 1 else 0.0
                 disp = parts.motion[j] + parts.offset2[j]
                 p = parts.position[j] + parts.offset1[j] + (disp if t == 1 else 0) + frac * disp
                 x = cam[:3, :3].to(p.dtype) @ p + cam[:3, 3].to(p.dtype)
@@ -161,7 +161,7 @@ def naive_render(pair, parts: Particles, lib, beta):
                                                        for v in row]) for row in colour[c]])
                              for c in range(3)])
         img = images[t].double()
-        blended = img * (1 - a_img) + c_img if parts.blend == "alpha" else img + c_img
+        blended = img * (1 - a_img) + c_img if parts.settings.blend == "alpha" else img + c_img
         out.append(blended.clamp(0, 1))
         opac.append(a_img.clamp(0, 1))
     return out, opac
@@ -239,7 +239,7 @@ def test_atanh_helpers_stay_strictly_inside():
 def test_no_particles_or_zero_transparency_leaves_frames_unchanged():
     pair = plane_pair(24, 32, world=False)
     for blend in ("additive", "alpha"):
-        out = render_pair(pair, empty_particles("camera1", blend=blend))
+        out = render_pair(pair, empty_particles("camera1", RenderSettings(blend=blend)))
         assert torch.equal(out.image1[0], pair.image1) and torch.equal(out.image2[0], pair.image2)
         assert not bool(out.opacity1.any())
         parts = sample_particles(pair, load_preset("snow", {"count": 50, "blend": blend}), 0)
@@ -311,7 +311,7 @@ def test_render_errors():
     with pytest.raises(ConfigError, match="world coordinates"):
         render_pair(plane_pair(24, 32, world=False), parts)
     with pytest.raises(ConfigError, match="digest"):
-        render_pair(pair, parts.replace(templates_digest="0" * 16))
+        render_pair(pair, parts.replace(settings=parts.settings.replace(templates_digest="0" * 16)))
     with pytest.raises(DatasetError, match="depth"):
         render(pair.image1[None], pair.image2[None], None, pair.depth2[None],
                pair.intrinsics[None], torch.eye(4)[None], torch.eye(4)[None], [parts])
@@ -376,7 +376,7 @@ def test_each_stamp_is_as_large_as_its_footprint_not_the_template():
     footprints = torch.tensor([1.0, 2.5, 7.0, 20.0, 71.0])
     parts = tiny_particles(torch.float32).select(torch.tensor([0, 0, 0, 0, 0])).replace(
         scale=footprints / lib.resolution, defocus=torch.zeros(5, dtype=torch.int64),
-        template=torch.zeros(5, dtype=torch.int64), templates="flakes")
+        template=torch.zeros(5, dtype=torch.int64), settings=RenderSettings(templates="flakes"))
     stamps = build_stamps([parts], lib)
     sides = torch.tensor([stamps.buckets[b].side for b in stamps.bucket_of.tolist()])
     assert bool((sides >= footprints).all())                         # the whole footprint fits

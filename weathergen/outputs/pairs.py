@@ -1,4 +1,4 @@
-"""The on-disk layout of a render output, its writers, the particle-metadata files and the manifest.
+"""Where one pair's files go in an output folder, and the writer of a pair's files.
 
 Layout below the output folder ``OUT`` (``SPLIT`` as in the input, ``PASS`` the output pass name,
 by default ``<preset>_<input pass>``, e.g. ``snow_clean``; ``PAIR`` is ``<scene>_<frame>`` of the
@@ -33,17 +33,15 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import FormatError
-from .framepair import FramePair, PairId
-from .io.atomic import atomic_write_bytes
-from .io.exr import write_exr
-from .io.images import write_png
-from .io.sintel_formats import write_cam, write_dpt, write_flo
+from ..errors import FormatError
+from ..framepair import FramePair, PairId
+from ..io.exr import write_exr
+from ..io.images import write_png
+from ..io.kitti_formats import write_flow_png
+from ..io.sintel_formats import write_cam, write_dpt, write_flo
+from ..io.spring_formats import write_flo5
+from .metadata import read_metadata, write_metadata
 
-MANIFEST = "manifest.json"
-MANIFEST_PARTS = "manifest.d"
-MARKER = ".weathergen-render"
-METADATA_VERSION = 1
 FORMATS = ("png", "exr", "both")
 #: Datasets whose ground-truth flow is also written in their own format: folder and extension.
 NATIVE_FLOW = {"kitti": ("flow_occ", "png"), "spring": ("flow_FW_left", "flo5")}
@@ -176,72 +174,5 @@ def _write_native_flow(dataset: str, path: Path, pair: FramePair) -> Path:
     valid = (np.ones(flow.shape[:2], bool) if pair.flow_valid is None
              else pair.flow_valid[0].numpy())
     if dataset == "kitti":
-        from .io.kitti_formats import write_flow_png
-
         return write_flow_png(path, flow, valid)
-    from .io.spring_formats import write_flo5
-
     return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))
-
-
-def write_metadata(path: Path, arrays: dict[str, np.ndarray]) -> Path:
-    """Write a compressed ``.npz`` atomically."""
-    import io
-
-    buf = io.BytesIO()
-    np.savez_compressed(buf, **arrays)
-    return atomic_write_bytes(path, buf.getvalue())
-
-
-#: Entries every particle-metadata file holds besides the particle record itself.
-METADATA_KEYS = ("metadata_version", "pair_dataset", "pair_split", "pair_scene", "pair_frame", "seed",
-                 "preset_name", "preset", "weathergen_version", "files")
-
-
-def read_metadata(path: str | Path) -> dict[str, np.ndarray]:
-    """Load a particle-metadata ``.npz`` (every array), checking its format version and entries."""
-    path = Path(path)
-    try:
-        with open(path, "rb") as f:
-            magic = f.read(4)
-    except FileNotFoundError:
-        raise FormatError(path, "file not found") from None
-    except OSError as exc:
-        raise FormatError(path, f"cannot be read ({exc.strerror})") from None
-    if magic != b"PK\x03\x04":   # an .npz is a zip archive; anything else is not one of ours
-        raise FormatError(path, "not a .npz archive, so not a weathergen particle-metadata file")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except Exception as exc:  # zipfile/numpy raise several types for corrupt files
-        raise FormatError(path, f"not a readable .npz metadata file ({exc})") from None
-    if "metadata_version" not in arrays:
-        raise FormatError(path, "not a weathergen particle-metadata file (no metadata_version)")
-    version = int(arrays["metadata_version"])
-    if version > METADATA_VERSION:
-        raise FormatError(path, f"metadata format version {version} is newer than this weathergen "
-                                f"understands ({METADATA_VERSION}); upgrade weathergen")
-    missing = [k for k in METADATA_KEYS if k not in arrays]
-    if missing:
-        raise FormatError(path, f"incomplete particle-metadata file: no {', '.join(missing)}")
-    return arrays
-
-
-def pair_identity(arrays: dict[str, np.ndarray]) -> PairId:
-    """The pair a metadata file belongs to."""
-    return PairId(str(arrays["pair_dataset"]), str(arrays["pair_split"]), str(arrays["pair_scene"]),
-                  int(arrays["pair_frame"]))
-
-
-def identity_arrays(pair_id: PairId, seed: int, preset: dict, preset_name: str) -> dict[str, np.ndarray]:
-    """The metadata entries that say which pair, seed and preset a particle set belongs to."""
-    from . import __version__
-
-    return {
-        "metadata_version": np.array(METADATA_VERSION, np.int32),
-        "pair_dataset": np.array(pair_id.dataset), "pair_split": np.array(pair_id.split),
-        "pair_scene": np.array(pair_id.scene), "pair_frame": np.array(pair_id.frame, np.int64),
-        "seed": np.array(seed, np.uint64), "preset_name": np.array(preset_name),
-        "preset": np.array(json.dumps(preset, sort_keys=True)),
-        "weathergen_version": np.array(__version__),
-    }

@@ -3,13 +3,11 @@
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import pytest
 import torch
 from click.testing import CliRunner
 
-WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "weights" / "raft-small.pth"
 ONE_PAIR = ["--scenes", "street", "--frames-per-scene", "1"]
 
 
@@ -21,17 +19,15 @@ def invoke(args):
 
 
 @pytest.fixture(scope="module")
-def model():
-    if not WEIGHTS.is_file():
-        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
+def model(raft_small_weights):
     from weathergen.models import get_model
 
-    return get_model("raft-small", checkpoint=WEIGHTS, iters=2)
+    return get_model("raft-small", checkpoint=raft_small_weights, iters=2)
 
 
 def test_identical_frames_have_zero_robustness_error(model):
     from weathergen.datasets import demo_pairs
-    from weathergen.evaluate import evaluate_frames
+    from weathergen.attack import evaluate_frames
     from weathergen.flow import aee
 
     pair = demo_pairs(scenes=["street"], frames_per_scene=1)[0]
@@ -57,9 +53,10 @@ def weather(tmp_path_factory):
     return out
 
 
-def test_evaluate_a_render_output_from_the_cli(model, weather, tmp_path):
+@pytest.mark.slow
+def test_evaluate_a_render_output_from_the_cli(model, weather, tmp_path, raft_small_weights):
     result = invoke(["evaluate", "--weather", weather, "--model", "raft-small", "--checkpoint",
-                     WEIGHTS, "--iters", "2", "--json", tmp_path / "eval.json"])
+                     raft_small_weights, "--iters", "2", "--json", tmp_path / "eval.json"])
     assert result.exit_code == 0, result.output
     assert "AEE(f, f̌)" in result.output and "EPE weather" in result.output
     data = json.loads((tmp_path / "eval.json").read_text())

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from pathlib import Path
 
 import pytest
 import torch
@@ -10,8 +9,6 @@ import torch
 from weathergen.errors import FormatError
 from weathergen.models import build_model, get_model, read_state_dict
 
-WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "weights"
-RELEASED_SMALL = WEIGHTS / "raft-small.pth"
 
 
 def _original_layout(arch: str, prefix: str) -> tuple[dict, torch.nn.Module]:
@@ -61,15 +58,13 @@ def test_full_raft_has_the_published_layout_and_size():
     assert params == 5_257_536  # the published size of RAFT
 
 
-def test_released_small_checkpoint_matches_the_architecture_exactly():
-    if not RELEASED_SMALL.is_file():
-        pytest.skip(f"released weights missing: put raft-small.pth at {RELEASED_SMALL}")
-    released = read_state_dict(RELEASED_SMALL)
+def test_released_small_checkpoint_matches_the_architecture_exactly(raft_small_weights):
+    released = read_state_dict(raft_small_weights)
     ours = build_model("raft-small").network.state_dict()
     assert len(released) == 106
     assert {k[len("module."):]: tuple(v.shape) for k, v in released.items()} == {
         k: tuple(v.shape) for k, v in ours.items()}
-    model = get_model("raft-small", checkpoint=RELEASED_SMALL)
+    model = get_model("raft-small", checkpoint=raft_small_weights)
     assert sum(p.numel() for p in model.parameters()) == 990_162
 
 

@@ -7,7 +7,8 @@ truth; where the input dataset has ground-truth flow, the end-point errors of ``
 against it are reported alongside. All figures are in pixels.
 
 The clean frames come from the dataset recorded in the folder's manifest (``input``); the user may
-point elsewhere (the same dataset stored at another path).
+point elsewhere (the same dataset stored at another path). The folder is read through
+:class:`~weathergen.outputs.WeatherFolder`.
 """
 
 from __future__ import annotations
@@ -19,73 +20,11 @@ from typing import Callable, Optional
 
 import torch
 
-from .datasets import Dataset, reopen_dataset
-from .errors import ConfigError, DatasetError, FormatError
-from .flow import aee
-from .framepair import PairId
-from .io.atomic import atomic_write_bytes
-from .io.exr import read_exr
-from .io.images import read_image
-from .outputs import MANIFEST, PairOutput, pair_identity, read_metadata
-
-
-@dataclass
-class WeatherFolder:
-    """A render (or attack) output opened for reading.
-
-    Attributes: root; pass_name (the folder of the weather frames); fmt (png, exr or both);
-    input (the manifest's description of the clean dataset); pairs (complete pairs, sorted).
-    """
-
-    root: Path
-    pass_name: str
-    fmt: str
-    input: dict
-    pairs: list
-
-    @classmethod
-    def open(cls, root: str | Path) -> "WeatherFolder":
-        root = Path(root)
-        manifest_path = root / MANIFEST
-        if not manifest_path.is_file():
-            raise ConfigError(f"{manifest_path}: not found; --weather takes the folder of a "
-                              "`weathergen render` or `weathergen attack` run")
-        try:
-            manifest = json.loads(manifest_path.read_text())
-            outputs, source = manifest["outputs"], manifest["input"]
-            pass_name, fmt = outputs["pass"], outputs.get("format", "png")
-        except (ValueError, KeyError, TypeError):
-            raise FormatError(manifest_path, "not a weathergen render or attack manifest") from None
-        pairs = []
-        for meta in sorted(root.glob("*/particles/*/frame_*.npz")):
-            pid = pair_identity(read_metadata(meta))
-            if PairOutput.of(root, pid, pass_name, fmt).is_complete():
-                pairs.append(pid)
-        if not pairs:
-            raise DatasetError(f"{root}: holds no complete weather pairs")
-        return cls(root, pass_name, fmt, source, sorted(pairs))
-
-    def frames(self, pair_id: PairId) -> tuple[torch.Tensor, torch.Tensor]:
-        """The weather frames of a pair. Shape: two (3, H, W) float32 in [0, 1]."""
-        out = PairOutput.of(self.root, pair_id, self.pass_name, self.fmt)
-        if self.fmt == "exr":
-            images = [read_exr(p)["RGB"].clip(0, 1) for p in out.frames_exr]
-        else:
-            images = [read_image(p) for p in out.frames_png]
-        return tuple(torch.from_numpy(img.copy()).permute(2, 0, 1).contiguous() for img in images)
-
-    def clean_dataset(self, dataset: Optional[str] = None, root: Optional[str] = None,
-                      pass_: Optional[str] = None) -> Dataset:
-        """The dataset the weather was rendered into (as recorded), or the one given."""
-        if dataset is None or dataset == self.input.get("dataset"):
-            description = dict(self.input)        # with every recorded reader option
-        else:                                     # another reader: its own defaults
-            description = {"dataset": dataset, "split": self.input.get("split", "training")}
-        if root is not None:
-            description["root"] = root
-        if pass_ is not None:
-            description["pass"] = pass_
-        return reopen_dataset(description)
+from ..datasets import Dataset
+from ..errors import DatasetError
+from ..flow import aee
+from ..io.atomic import atomic_write_bytes
+from ..outputs.reading import WeatherFolder
 
 
 @dataclass
@@ -149,6 +88,11 @@ def mean_rows(rows: list[EvalRow]) -> dict:
         values = [getattr(r, key) for r in rows if getattr(r, key) is not None]
         out[key] = sum(values) / len(values) if values else None
     return out
+
+
+def default_evaluation_path(weather: str | Path, model: str) -> Path:
+    """Where the figures go when no file is given: ``WEATHER/evaluate-<model>.json``."""
+    return Path(weather) / f"evaluate-{model}.json"
 
 
 def write_evaluation(path: str | Path, info: dict, rows: list[EvalRow], summary: dict) -> Path:

@@ -4,14 +4,15 @@ them through `weathergen render --particles`, resuming, and its error paths."""
 from __future__ import annotations
 
 import json
-from pathlib import Path
 
 import numpy as np
 import pytest
 from click.testing import CliRunner
 
-WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "weights" / "raft-small.pth"
 ONE_PAIR = ["--scenes", "courtyard", "--frames-per-scene", "1"]
+
+#: Every test here runs whole commands on the demo scene.
+pytestmark = pytest.mark.slow
 
 
 def invoke(args):
@@ -21,17 +22,15 @@ def invoke(args):
     return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
 
 
-def tiny_attack(out, *extra):
-    return ["attack", "--model", "raft-small", "--checkpoint", WEIGHTS, "--iters", "2",
+def tiny_attack(weights, out, *extra):
+    return ["attack", "--model", "raft-small", "--checkpoint", weights, "--iters", "2",
             *ONE_PAIR, "--steps", "2", "--set", "count=150", "--seed", "1", "--out", out, *extra]
 
 
 @pytest.fixture(scope="module")
-def attack_out(tmp_path_factory):
-    if not WEIGHTS.is_file():
-        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
+def attack_out(tmp_path_factory, raft_small_weights):
     out = tmp_path_factory.mktemp("attack") / "snow"
-    result = invoke(tiny_attack(out))
+    result = invoke(tiny_attack(raft_small_weights, out))
     assert result.exit_code == 0, result.output
     return out, result.output
 
@@ -81,7 +80,7 @@ def test_flow_pictures_share_one_scale(attack_out):
 
 def test_attack_log_and_summary(attack_out):
     out, _ = attack_out
-    from weathergen.attack_outputs import read_log
+    from weathergen.outputs import read_log
 
     rows = read_log(out / "training" / "attack_log" / f"{PAIR}.csv")
     assert [r["step"] for r in rows] == [0, 1, 2]
@@ -124,10 +123,10 @@ def test_attack_output_rerenders_through_render_particles(attack_out, tmp_path):
         assert np.abs(attacked - rendered).max() <= 1.5 / 255
 
 
-def test_evaluate_on_the_attack_output_reproduces_its_figures(attack_out, tmp_path):
+def test_evaluate_on_the_attack_output_reproduces_its_figures(attack_out, tmp_path, raft_small_weights):
     out, _ = attack_out
     result = invoke(["evaluate", "--weather", out, "--model", "raft-small", "--checkpoint",
-                     WEIGHTS, "--iters", "2", "--json", tmp_path / "eval.json"])
+                     raft_small_weights, "--iters", "2", "--json", tmp_path / "eval.json"])
     assert result.exit_code == 0, result.output
     (row,) = json.loads((tmp_path / "eval.json").read_text())["pairs"]
     summary = json.loads((out / "summary.json").read_text())
@@ -137,26 +136,24 @@ def test_evaluate_on_the_attack_output_reproduces_its_figures(attack_out, tmp_pa
     assert row["epe_clean"] == pytest.approx(summary["epe_benign"], rel=1e-4, abs=1e-5)
 
 
-def test_resume_skips_finished_pairs_and_plain_rerun_refuses(attack_out):
+def test_resume_skips_finished_pairs_and_plain_rerun_refuses(attack_out, raft_small_weights):
     out, _ = attack_out
     log = out / "training" / "attack_log" / f"{PAIR}.csv"
     before = log.stat().st_mtime_ns
-    refused = invoke(tiny_attack(out))
+    refused = invoke(tiny_attack(raft_small_weights, out))
     assert refused.exit_code == 2 and "--resume" in refused.output
-    resumed = invoke(tiny_attack(out, "--resume"))
+    resumed = invoke(tiny_attack(raft_small_weights, out, "--resume"))
     assert resumed.exit_code == 0, resumed.output
     assert "skipped" in resumed.output
     assert log.stat().st_mtime_ns == before
-    other = invoke(tiny_attack(out, "--resume", "--steps", "5"))
+    other = invoke(tiny_attack(raft_small_weights, out, "--resume", "--steps", "5"))
     assert other.exit_code == 2 and "different settings" in other.output
 
 
-def test_fog_configuration_freezes_the_second_offset(tmp_path):
-    if not WEIGHTS.is_file():
-        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
+def test_fog_configuration_freezes_the_second_offset(tmp_path, raft_small_weights):
     out = tmp_path / "fog"
     result = invoke(["attack", "--config", "fog", "--model", "raft-small", "--checkpoint",
-                     WEIGHTS, "--iters", "2", *ONE_PAIR, "--steps", "0", "--set", "count=2",
+                     raft_small_weights, "--iters", "2", *ONE_PAIR, "--steps", "0", "--set", "count=2",
                      "--out", out, "--target", "1.5,-2"])
     assert result.exit_code == 0, result.output
     config = json.loads((out / "manifest.json").read_text())["config"]
@@ -166,30 +163,26 @@ def test_fog_configuration_freezes_the_second_offset(tmp_path):
     assert config["attack"]["target"] == "constant 1.5,-2"
 
 
-def test_stored_fog_particles_keep_the_second_offset_fixed(tmp_path):
-    if not WEIGHTS.is_file():
-        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
+def test_stored_fog_particles_keep_the_second_offset_fixed(tmp_path, raft_small_weights):
     fog = tmp_path / "fog"
     rendered = invoke(["render", "--preset", "fog", "--set", "count=2", *ONE_PAIR, "--out", fog])
     assert rendered.exit_code == 0, rendered.output
     out = tmp_path / "attack"
     result = invoke(["attack", "--particles", fog, "--model", "raft-small", "--checkpoint",
-                     WEIGHTS, "--iters", "1", *ONE_PAIR, "--steps", "0", "--out", out])
+                     raft_small_weights, "--iters", "1", *ONE_PAIR, "--steps", "0", "--out", out])
     assert result.exit_code == 0, result.output
     config = json.loads((out / "manifest.json").read_text())["config"]
     assert config["preset_name"] == "fog"
     assert config["attack"]["optimize"] == ["offset1", "color", "transparency"]
     assert config["attack"]["beta"] == 30.0
     refused = invoke(["attack", "--particles", fog, "--preset", "snow", "--model", "raft-small",
-                      "--checkpoint", WEIGHTS, *ONE_PAIR, "--out", tmp_path / "x"])
+                      "--checkpoint", raft_small_weights, *ONE_PAIR, "--out", tmp_path / "x"])
     assert refused.exit_code == 2 and "'fog'" in refused.output
     assert not (tmp_path / "x").exists()
 
 
-def test_interrupted_run_resumes_at_the_unfinished_pair(tmp_path, monkeypatch):
-    if not WEIGHTS.is_file():
-        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
-    import weathergen.attack_job as attack_job
+def test_interrupted_run_resumes_at_the_unfinished_pair(tmp_path, monkeypatch, raft_small_weights):
+    import weathergen.attack.job as attack_job
 
     real = attack_job.attack_pair
 
@@ -199,7 +192,7 @@ def test_interrupted_run_resumes_at_the_unfinished_pair(tmp_path, monkeypatch):
         return real(model, pair, *args, **kwargs)
 
     out = tmp_path / "two"
-    args = ["attack", "--model", "raft-small", "--checkpoint", WEIGHTS, "--iters", "1",
+    args = ["attack", "--model", "raft-small", "--checkpoint", raft_small_weights, "--iters", "1",
             "--scenes", "courtyard,street", "--frames-per-scene", "1", "--steps", "1",
             "--set", "count=40", "--out", out]
     monkeypatch.setattr(attack_job, "attack_pair", interrupted)
@@ -258,9 +251,7 @@ def test_unknown_configuration_and_target(tmp_path):
     assert result.exit_code == 2 and "--target" in result.output
 
 
-def test_missing_target_file(tmp_path):
-    if not WEIGHTS.is_file():
-        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth at {WEIGHTS}")
-    result = invoke(["attack", "--model", "raft-small", "--checkpoint", WEIGHTS, *ONE_PAIR,
+def test_missing_target_file(tmp_path, raft_small_weights):
+    result = invoke(["attack", "--model", "raft-small", "--checkpoint", raft_small_weights, *ONE_PAIR,
                      "--target", tmp_path / "goal.flo", "--out", tmp_path / "x"])
     assert result.exit_code == 2 and "goal.flo" in result.output

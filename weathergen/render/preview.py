@@ -2,18 +2,18 @@
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import cv2
 import numpy as np
 import torch
 
-from .datasets import reopen_dataset
-from .errors import ConfigError, WeatherGenError
-from .io.exr import read_exr
-from .io.images import read_image, to_uint8
-from .outputs import MANIFEST, PairOutput
+from ..datasets import reopen_dataset
+from ..engine import Particles, render_pair
+from ..errors import WeatherGenError
+from ..io.exr import read_exr
+from ..io.images import read_image, to_uint8
+from ..outputs import PairOutput, read_manifest
 
 
 def _tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
@@ -37,34 +37,25 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> n
     re-rendered from the stored particle metadata (exact, whatever the output format).
     Shape: returns (rows * h, 3 * width, 3) uint8 RGB.
     """
-    from .engine import Particles, render_pair
-
     render_dir = Path(render_dir)
-    manifest_path = render_dir / MANIFEST
-    if not manifest_path.is_file():
-        raise ConfigError(f"{manifest_path}: not found; preview takes the folder of a render output")
-    try:
-        manifest = json.loads(manifest_path.read_text())
-        inp, outputs = manifest["input"], manifest["outputs"]
-    except (ValueError, KeyError, TypeError):
-        raise ConfigError(f"{manifest_path}: not a weathergen render manifest") from None
-    ds = reopen_dataset(inp)
+    manifest = read_manifest(render_dir, "preview")
+    ds = reopen_dataset(manifest.input)
     rows = []
     for ref in ds.pairs():
-        out = PairOutput.of(render_dir, ref.id, outputs["pass"], outputs["format"], outputs["geometry"])
+        out = PairOutput.of(render_dir, ref.id, manifest.pass_name, manifest.fmt, manifest.geometry)
         if not out.is_complete():
             continue
         pair = ds.load(ref)
         particles = Particles.load(out.metadata)
         with torch.no_grad():
             opacity = render_pair(pair, particles).opacity1[0, 0].clamp(0, 1).numpy()
-        weather = (read_image(out.frames_png[0]) if outputs["format"] in ("png", "both")
+        weather = (read_image(out.frames_png[0]) if manifest.fmt in ("png", "both")
                    else np.clip(read_exr(out.frames_exr[0])["RGB"], 0, 1))
         original = pair.image1.permute(1, 2, 0).numpy()
         h, w = original.shape[:2]
         size = (width, max(1, round(h * width / w)))
         tiles = [_tile(original, size, f"{ref.id.scene} {ref.id.frame}"),
-                 _tile(weather, size, manifest.get("preset_name", "")),
+                 _tile(weather, size, manifest.data.get("preset_name", "")),
                  _tile(np.repeat(opacity[..., None], 3, 2), size, "opacity")]
         rows.append(np.hstack(tiles))
         if len(rows) == pairs:

@@ -160,8 +160,9 @@ def test_invalid_preset_names_file_key_and_value(tmp_path, text, key, value):
 
 
 def test_invalid_override_and_unknown_preset():
-    with pytest.raises(ConfigError, match=r"--set: key 'size' = 8"):
+    with pytest.raises(ConfigError, match=r"^overrides: key 'size' = 8") as bad:
         load_preset("snow", overrides={"size": "8"})
+    assert bad.value.render(lambda name: "--set").startswith("--set: key 'size' = 8")
     with pytest.raises(ConfigError, match="unknown key 'sizee'"):
         load_preset("snow", overrides={"sizee": "8"})
     with pytest.raises(ConfigError) as err:
@@ -180,7 +181,7 @@ def test_template_folder_problems_name_the_key_at_load_time(tmp_path):
     notes = tmp_path / "notes"
     notes.mkdir()
     (notes / "readme.txt").write_text("not an image")
-    with pytest.raises(ConfigError, match=r"--set: key 'templates' = .*readme.txt.*not a PNG"):
+    with pytest.raises(ConfigError, match=r"^overrides: key 'templates' = .*readme.txt.*not a PNG"):
         load_preset("snow", overrides={"templates": str(notes)})
     with pytest.raises(ConfigError, match="does not exist"):
         load_preset("snow", overrides={"templates": str(tmp_path / "nowhere")})

@@ -1,7 +1,7 @@
 """Adversarial weather: optimise particle offsets, colours and transparencies against a flow network.
 
 This module owns the optimisation loop of the paper's Section 3.2 and nothing else: tensors in,
-tensors out, no file I/O (the job runner in :mod:`weathergen.attack_job` reads and writes).
+tensors out, no file I/O (the job runner in :mod:`weathergen.attack.job` reads and writes).
 
 The free variables (all start at zero, so step 0 is the random, unoptimised weather):
 
@@ -35,168 +35,22 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, fields
-from pathlib import Path
 from typing import Callable, Optional
 
 import torch
 
-from .errors import ConfigError
-from .flow import aee
-from .framepair import FramePair
+from ..engine import build_stamps, from_atanh, load_templates, reference_transforms, render, to_atanh
+from ..engine.particles import TENSOR_FIELDS
+from ..engine.sampling import check_pair_for_engine
+from ..errors import ConfigError
+from ..flow import aee
+from ..framepair import FramePair
+from ..geometry import transform_points
+from .settings import DEFAULT_ALPHA, AttackSettings
+from .targets import TargetSpec, target_flow
 
-#: The particle variables an attack may optimise, in their canonical order.
-OPTIMIZABLE = ("offset1", "offset2", "color", "transparency")
-POSITION_VARIABLES = ("offset1", "offset2")
-#: Paper defaults (Section 4.2 and the supplement's attack-configuration table).
-DEFAULT_STEPS = 750
-DEFAULT_ALPHA = 1000.0
-LR_POSITIONS = 1e-5
-LR_APPEARANCE = 1e-3
 #: Smallest particle depth (scene units) used in the offset penalty.
 MIN_REG_DEPTH = 1e-3
-
-
-def parse_optimize(text: str) -> tuple[str, ...]:
-    """``"offset1,color"`` -> ``("offset1", "color")`` in canonical order; ``"all"`` -> all four.
-
-    Raises ConfigError naming the unknown entries and listing the valid ones.
-    """
-    names = [t.strip() for t in str(text).split(",") if t.strip()]
-    if names == ["all"]:
-        return OPTIMIZABLE
-    unknown = [n for n in names if n not in OPTIMIZABLE]
-    if unknown:
-        raise ConfigError(f"--optimize: unknown variable(s) {', '.join(map(repr, unknown))}; "
-                          f"choose from {', '.join(OPTIMIZABLE)} (comma-separated) or 'all'")
-    if not names:
-        raise ConfigError(f"--optimize: name at least one of {', '.join(OPTIMIZABLE)}")
-    return tuple(n for n in OPTIMIZABLE if n in names)
-
-
-def default_lr(optimize: tuple[str, ...]) -> float:
-    """1e-5 when positions move (their scale is scene units), 1e-3 for colour/transparency only."""
-    return LR_POSITIONS if any(v in POSITION_VARIABLES for v in optimize) else LR_APPEARANCE
-
-
-# -- attack configurations ----------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class AttackConfig:
-    """One row of the supplement's "Attack configurations" table (all: Adam, 750 steps,
-    α1 = α2 = 1000, Sintel-tr115 = ``--frames-per-scene 5``)."""
-
-    name: str
-    preset: str
-    optimize: tuple[str, ...]
-    lr: float
-    occlusion_gradient: bool = False
-    description: str = ""
-
-
-def _configs(*rows: AttackConfig) -> dict[str, AttackConfig]:
-    return {r.name: r for r in rows}
-
-
-ATTACK_CONFIGS: dict[str, AttackConfig] = _configs(
-    AttackConfig("grey-offset1", "grey", ("offset1",), LR_POSITIONS,
-                 description="grey particles, offset before the motion only"),
-    AttackConfig("grey-offset2", "grey", ("offset2",), LR_POSITIONS,
-                 description="grey particles, offset after the motion only"),
-    AttackConfig("grey-color", "grey", ("color",), LR_APPEARANCE,
-                 description="grey particles, colour only"),
-    AttackConfig("grey-transparency", "grey", ("transparency",), LR_APPEARANCE,
-                 description="grey particles, transparency only"),
-    AttackConfig("grey-offsets", "grey", ("offset1", "offset2"), LR_POSITIONS,
-                 description="grey particles, both offsets (the paper's δ_{1,2})"),
-    AttackConfig("grey-appearance", "grey", ("color", "transparency"), LR_APPEARANCE,
-                 description="grey particles, colour and transparency"),
-    AttackConfig("grey-all", "grey", OPTIMIZABLE, LR_POSITIONS,
-                 description="grey particles, every variable"),
-    AttackConfig("snow", "snow", OPTIMIZABLE, LR_POSITIONS, description="adversarial snow"),
-    AttackConfig("rain", "rain", OPTIMIZABLE, LR_POSITIONS, description="adversarial rain"),
-    AttackConfig("sparks", "sparks", OPTIMIZABLE, LR_POSITIONS, description="adversarial sparks"),
-    AttackConfig("fog", "fog", ("offset1", "color", "transparency"), LR_POSITIONS,
-                 occlusion_gradient=True,
-                 description="adversarial fog: second offset fixed, gradient through occlusion"),
-)
-
-
-def attack_config(name: str) -> AttackConfig:
-    """The configuration called ``name``; ConfigError lists the known ones."""
-    try:
-        return ATTACK_CONFIGS[name]
-    except KeyError:
-        raise ConfigError(f"unknown attack configuration {name!r}; known: "
-                          f"{', '.join(ATTACK_CONFIGS)}") from None
-
-
-# -- targets ------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class TargetSpec:
-    """What flow the attack pushes the network towards.
-
-    kind: ``"zero"``, ``"negative"`` (minus the benign flow), ``"constant"`` (``value`` = (u, v)
-    pixels) or ``"file"`` (a ``.flo`` at ``path``, read by the job runner).
-    """
-
-    kind: str
-    value: tuple[float, float] = (0.0, 0.0)
-    path: Optional[Path] = None
-
-    def describe(self) -> str:
-        if self.kind == "constant":
-            return f"constant {self.value[0]:g},{self.value[1]:g}"
-        if self.kind == "file":
-            return f"file {self.path}"
-        return self.kind
-
-
-def parse_target(text: str) -> TargetSpec:
-    """``zero`` | ``negative`` | ``U,V`` (pixels) | a path to a ``.flo`` file."""
-    t = str(text).strip()
-    if t in ("zero", "negative"):
-        return TargetSpec(t)
-    if "," in t and not t.lower().endswith(".flo"):
-        parts = t.split(",")
-        try:
-            u, v = (float(p) for p in parts)
-        except ValueError:
-            raise ConfigError(f"--target {text!r}: a constant target is two numbers U,V in "
-                              "pixels, e.g. 0,-5") from None
-        if not (math.isfinite(u) and math.isfinite(v)):
-            raise ConfigError(f"--target {text!r}: U and V must be finite")
-        return TargetSpec("constant", (u, v))
-    if t.lower().endswith(".flo"):
-        return TargetSpec("file", path=Path(t))
-    raise ConfigError(f"--target {text!r}: expected zero, negative, U,V (pixels) or a .flo file")
-
-
-def target_flow(spec: TargetSpec, benign: torch.Tensor,
-                file_flow: Optional[torch.Tensor] = None) -> torch.Tensor:
-    """The target flow for one pair.
-
-    Shape: benign (B, 2, H, W) pixels; file_flow (2, H, W) for ``kind == "file"``;
-    returns (B, 2, H, W) on the benign flow's device, without gradient.
-    """
-    benign = benign.detach()
-    if spec.kind == "zero":
-        return torch.zeros_like(benign)
-    if spec.kind == "negative":
-        return -benign
-    if spec.kind == "constant":
-        value = torch.tensor(spec.value, dtype=benign.dtype, device=benign.device)
-        return value.view(1, 2, 1, 1).expand_as(benign).clone()
-    if spec.kind == "file":
-        if file_flow is None:
-            raise ValueError("a file target needs the flow read from the file")
-        if tuple(file_flow.shape[-2:]) != tuple(benign.shape[-2:]):
-            raise ConfigError(f"{spec.path}: target flow is {file_flow.shape[-1]}x"
-                              f"{file_flow.shape[-2]} but the frames are {benign.shape[-1]}x"
-                              f"{benign.shape[-2]}")
-        return file_flow.to(benign).expand_as(benign).clone()
-    raise ValueError(f"unknown target kind {spec.kind!r}")
-
 
 # -- the parametrisation --------------------------------------------------------------------------
 
@@ -215,8 +69,6 @@ class WeatherVariables:
         dev, dtype = particles.position.device, particles.position.dtype
         n = particles.count
         self.theta_max = max(1.0, float(particles.transparency.max())) if n else 1.0
-        from .engine.particles import to_atanh
-
         self.eta_color = to_atanh(particles.color.detach())
         self.eta_theta = to_atanh(particles.transparency.detach() / self.theta_max)
         shapes = {"offset1": (n, 3), "offset2": (n, 3), "color": (n, 3), "transparency": (n,)}
@@ -229,8 +81,6 @@ class WeatherVariables:
     def particles(self):
         """The current record; differentiable in the freed variables. Fixed fields are the
         starting record's tensors (a variable not optimised keeps its exact starting value)."""
-        from .engine.particles import from_atanh
-
         b, d = self.base, self.delta
         changes = {}
         if "offset1" in d:
@@ -252,8 +102,6 @@ def particle_depths(particles, cam1_from_ref: torch.Tensor, cam2_from_ref: torch
     Shape: cam*_from_ref (4, 4); returns two (N,) tensors in scene units, clamped to at least
     :data:`MIN_REG_DEPTH`, without gradient.
     """
-    from .geometry import transform_points
-
     with torch.no_grad():
         p = particles.position.double() + particles.offset1.double()
         q = p + particles.motion.double() + particles.offset2.double()
@@ -287,46 +135,6 @@ def attack_loss(flow: torch.Tensor, target: torch.Tensor, particles, depth1: tor
 
 
 # -- the loop -----------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class AttackSettings:
-    """How one pair is attacked.
-
-    optimize: the freed variables; steps: Adam updates (``steps + 1`` evaluations: step 0 is the
-    unoptimised weather); lr: ``None`` for :func:`default_lr`; alpha1/alpha2: penalty weights;
-    beta: occlusion sharpness of the renderer during the attack (``BETA_ATTACK`` = 30 to
-    differentiate through occlusion, ``BETA_RENDER`` = 250 otherwise).
-    """
-
-    optimize: tuple[str, ...] = OPTIMIZABLE
-    steps: int = DEFAULT_STEPS
-    lr: Optional[float] = None
-    alpha1: float = DEFAULT_ALPHA
-    alpha2: float = DEFAULT_ALPHA
-    beta: float = 250.0
-
-    def __post_init__(self):
-        parse_optimize(",".join(self.optimize))  # validates names and non-emptiness
-        if int(self.steps) < 0:
-            raise ConfigError(f"--steps must be >= 0, got {self.steps}")
-        if self.lr is not None and not (self.lr > 0 and math.isfinite(self.lr)):
-            raise ConfigError(f"--lr must be a positive number, got {self.lr}")
-        for name in ("alpha1", "alpha2"):
-            v = getattr(self, name)
-            if not (v >= 0 and math.isfinite(v)):
-                raise ConfigError(f"--{name} must be a finite number >= 0, got {v}")
-        if not (self.beta > 0 and math.isfinite(self.beta)):
-            raise ConfigError(f"occlusion beta must be positive, got {self.beta}")
-
-    @property
-    def learning_rate(self) -> float:
-        return self.lr if self.lr is not None else default_lr(self.optimize)
-
-    def to_dict(self) -> dict:
-        return {"optimize": list(self.optimize), "steps": int(self.steps),
-                "lr": self.learning_rate, "alpha1": self.alpha1, "alpha2": self.alpha2,
-                "beta": self.beta}
-
 
 @dataclass
 class StepRecord:
@@ -362,10 +170,8 @@ class AttackResult:
 
 def _snapshot(particles):
     """A detached CPU copy of a record."""
-    from .engine.particles import _TENSOR_FIELDS
-
     return particles.replace(**{n: getattr(particles, n).detach().cpu().clone()
-                                for n in _TENSOR_FIELDS})
+                                for n in TENSOR_FIELDS})
 
 
 class PairOptimisation:
@@ -381,10 +187,6 @@ class PairOptimisation:
     def __init__(self, model: torch.nn.Module, pair: FramePair, particles,
                  settings: AttackSettings, target: TargetSpec = TargetSpec("zero"), *,
                  device=None, target_file_flow: Optional[torch.Tensor] = None):
-        from .engine import build_stamps
-        from .engine.sampling import check_pair_for_engine, reference_transforms
-        from .engine.templates import load_templates
-
         check_pair_for_engine(pair)
         if device is None:
             params = list(model.parameters())
@@ -404,7 +206,7 @@ class PairOptimisation:
         with torch.no_grad():
             self.benign = model(self.frames["image1"], self.frames["image2"])
         self.goal = target_flow(target, self.benign, target_file_flow)
-        self.templates = load_templates(particles.templates)
+        self.templates = load_templates(particles.settings.templates)
         # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
         self.stamps = (build_stamps([particles], self.templates, device=device)
                        if particles.count else None)
@@ -414,8 +216,6 @@ class PairOptimisation:
 
     def render(self, particles):
         """The weather frames of ``particles`` (a :class:`~weathergen.engine.RenderOutput`)."""
-        from .engine import render
-
         return render(**self.frames, particles=particles, templates=self.templates,
                       beta=self.settings.beta, stamps=self.stamps)
 

@@ -1,12 +1,13 @@
 """An attack run over a dataset: particles per pair, the optimisation, outputs, resumption.
 
-Like :mod:`weathergen.batch` for ``render``: :func:`run_attack` takes an :class:`AttackJob` and
-reports through callbacks, so the command line only wires options and shows progress. The loop
-itself is :func:`weathergen.attack.attack_pair`; the files are written by
-:mod:`weathergen.attack_outputs`.
+Like :mod:`weathergen.render.job` for ``render``: :func:`run_attack` takes an :class:`AttackJob`
+and reports through callbacks, so the command line only wires options and shows progress. The loop
+itself is :func:`weathergen.attack.attack_pair`; the folder and its files belong to
+:mod:`weathergen.outputs`.
 
-Particles are seeded per pair exactly as ``render`` seeds them (:func:`~weathergen.batch.pair_seed`),
-so ``attack --seed S`` starts from the weather that ``render --seed S`` writes for the same preset.
+Particles come from :func:`weathergen.render.pair_particles`, seeded per pair exactly as ``render``
+seeds them, so ``attack --seed S`` starts from the weather that ``render --seed S`` writes for the
+same preset.
 """
 
 from __future__ import annotations
@@ -19,16 +20,18 @@ from typing import Callable, Optional
 
 import torch
 
-from .attack import (AttackSettings, PairSummary, StepRecord, TargetSpec, attack_pair,
-                     mean_summary, summarize_pair)
-from .attack_outputs import (AttackPairOutput, load_render_particles, prepare_attack_folder,
-                             read_pair_summary, read_target_flow, write_attack_manifest,
-                             write_attack_pair)
-from .batch import pair_seed
-from .datasets import Dataset
-from .errors import ConfigError, WeatherGenError
-from .io.images import to_uint8
-from .outputs import identity_arrays
+from ..datasets import Dataset
+from ..engine import render_pair
+from ..errors import ConfigError, WeatherGenError
+from ..io.images import to_uint8
+from ..models import get_model
+from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, pair_metadata, prepare_folder,
+                       read_attack_manifest, read_pair_summary, write_attack_manifest,
+                       write_attack_pair)
+from ..render.particles import pair_particles, pair_seed
+from .pair import PairSummary, StepRecord, attack_pair, mean_summary, summarize_pair
+from .settings import AttackSettings
+from .targets import TargetSpec, read_target_flow
 
 
 @dataclass
@@ -79,22 +82,13 @@ class PairReport:
     message: str = ""
 
 
-def _particles(job: AttackJob, pair):
-    from .engine import sample_particles
-
-    if job.particles_from is not None:
-        return load_render_particles(job.particles_from, pair.id)
-    return sample_particles(pair, job.preset, pair_seed(job.seed, pair.id),
-                            world_up=getattr(job.dataset, "world_up", "auto"))
-
-
 def attack_one(job: AttackJob, model, pair, target_file_flow=None,
                on_step: Callable[[StepRecord], None] = lambda r: None) -> PairSummary:
     """Attack one loaded pair and write its outputs; return its figures."""
-    from .engine import render_pair
-
     start = time.perf_counter()
-    particles = _particles(job, pair)
+    particles = pair_particles(pair, job.preset, job.seed,
+                               world_up=getattr(job.dataset, "world_up", "auto"),
+                               particles_from=job.particles_from)
     result = attack_pair(model, pair, particles, job.settings, job.target, device=job.device,
                          target_file_flow=target_file_flow, on_step=on_step)
     # What is written is the best record at storage precision, rendered and rounded to the
@@ -112,15 +106,27 @@ def attack_one(job: AttackJob, model, pair, target_file_flow=None,
     summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
                              seconds=time.perf_counter() - start)
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
-    meta = best.to_numpy()
-    meta.update(identity_arrays(pair.id, pair_seed(job.seed, pair.id), job.preset.to_dict(),
-                                job.preset_name))
+    meta = pair_metadata(best, pair.id, pair_seed(job.seed, pair.id), job.preset.to_dict(),
+                         job.preset_name)
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
     out = AttackPairOutput.of(job.out, pair.id, job.pass_name)
     write_attack_pair(out, pair.to("cpu"), frames, opacity, meta, flows, result.history,
                       asdict(summary))
     return summary
+
+
+def prepare_attack_folder(job: AttackJob) -> Optional[dict]:
+    """Create or reuse the job's folder (see :func:`~weathergen.outputs.prepare_folder`); return
+    the manifest of the run it resumes, if any."""
+    out = Path(job.out)
+    previous = None
+    if not job.overwrite and (out / MANIFEST).exists() and any(out.iterdir()):
+        previous = read_attack_manifest(out) if (out / ATTACK_FOLDER.marker).exists() else None
+    prepare_folder(out, ATTACK_FOLDER, job.config(),
+                   None if previous is None else previous.get("config", {}),
+                   resume=job.resume, overwrite=job.overwrite)
+    return previous
 
 
 def run_attack(job: AttackJob,
@@ -133,8 +139,6 @@ def run_attack(job: AttackJob,
     Pairs complete on disk are skipped when resuming. The manifest is rewritten after every pair,
     so an interrupted run (Ctrl-C) keeps what it finished.
     """
-    from .models import get_model
-
     config = job.config()
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
@@ -143,7 +147,7 @@ def run_attack(job: AttackJob,
     model = get_model(job.model, job.checkpoint, device=job.device, iters=job.iters,
                       download=job.download, gradient_checkpointing=job.gradient_checkpointing)
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
-    previous = prepare_attack_folder(job.out, config, job.resume, job.overwrite)
+    previous = prepare_attack_folder(job)
 
     pairs_entry: dict = dict(previous.get("pairs", {})) if previous else {}
     runs = list(previous.get("runs", [])) if previous else []

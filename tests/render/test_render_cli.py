@@ -23,6 +23,9 @@ from weathergen.outputs import read_metadata
 # Small and quick: a few hundred particles on the street scene's first two pairs.
 FAST = ("--scenes", "street", "--frames-per-scene", "2", "--set", "count=300")
 
+#: Every test here runs whole commands on the demo scene.
+pytestmark = pytest.mark.slow
+
 
 def run(*args):
     _register()
@@ -303,7 +306,7 @@ def test_kitti_render_keeps_sparse_flow_validity(tmp_path, demo_root):
 def test_full_disk_stops_the_run_with_one_line(tmp_path, monkeypatch):
     import errno
 
-    import weathergen.outputs as outputs
+    import weathergen.outputs.pairs as outputs
 
     def no_space(path, *args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
@@ -375,7 +378,7 @@ def test_world_up_is_a_dataset_setting_recorded_in_the_manifest(snow_run, tmp_pa
 def test_preview_caption_outline_stays_around_the_text():
     # The dark outline must follow the white caption; a thicker stroke advances wider per
     # character and leaves a dark copy of the last letters beside the caption.
-    from weathergen.preview import _tile
+    from weathergen.render.preview import _tile
 
     tile = _tile(np.full((100, 200, 3), 0.5, np.float32), (200, 100), "courtyard 10")
     band = tile[:30].astype(int).sum(axis=2)

@@ -1,4 +1,4 @@
-"""Batch rendering of a dataset: per-pair seeds, sharding, workers, resumption and the manifest.
+"""The render job over a dataset: selection, per-pair particles, workers, resumption, the manifest.
 
 The job is independent of the command line: :func:`run_render` takes a :class:`RenderJob` and calls
 back with :class:`PairResult` objects, so the CLI only wires options and reports progress.
@@ -10,8 +10,6 @@ bytes written do not depend on worker count, order, sharding or resumption.
 
 from __future__ import annotations
 
-import hashlib
-import json
 import multiprocessing
 import os
 import signal
@@ -26,47 +24,19 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from . import __version__
-from .datasets import Dataset, PairRef
-from .errors import ConfigError, FormatError, WeatherGenError
-from .framepair import PairId
-from .geometry import project, transform_points
-from .io.atomic import atomic_write_bytes
-from .outputs import (MANIFEST, MANIFEST_PARTS, MARKER, PairOutput, identity_arrays, pair_identity,
-                      read_metadata, write_pair_outputs)
+from ..datasets import Dataset, PairRef
+from ..engine import render_pair, visible_counts
+from ..errors import ConfigError, OutputError, WeatherGenError
+from ..framepair import FramePairBatch, PairId
+from ..outputs import (RENDER_FOLDER, PairOutput, merge_manifest, pair_metadata, prepare_folder,
+                       read_run_config, write_manifest_part, write_pair_outputs, write_run_config)
+from ..outputs.manifest import jsonable, shard_part
+from .particles import pair_particles, pair_seed
+from .shards import shard_refs
 
 #: Every pair renders with this many intra-op threads, whatever the worker count: thread count can
 #: change the order of floating-point reductions, and with it the output bytes.
 RENDER_THREADS = 1
-
-
-class OutputError(WeatherGenError):
-    """Writing the outputs failed (disk full, permissions): the run stops."""
-
-
-def pair_seed(run_seed: int, pair_id: PairId) -> int:
-    """A 63-bit seed for one pair, from the run seed and the pair's identity alone."""
-    digest = hashlib.sha256(f"weathergen:{run_seed}:{pair_id.key}".encode()).digest()
-    return int.from_bytes(digest[:8], "little") & ((1 << 63) - 1)
-
-
-def parse_shard(text: str) -> tuple[int, int]:
-    """``"i/N"`` with ``1 <= i <= N`` -> ``(i, N)``."""
-    try:
-        i_text, n_text = text.split("/")
-        i, n = int(i_text), int(n_text)
-    except ValueError:
-        raise ConfigError(f"--shard {text!r}: expected I/N, e.g. 2/8") from None
-    if n < 1 or not 1 <= i <= n:
-        raise ConfigError(f"--shard {text!r}: I must be between 1 and N (got I={i}, N={n})")
-    return i, n
-
-
-def shard_refs(refs: list[PairRef], shard: tuple[int, int]) -> list[PairRef]:
-    """The pairs of shard ``i`` of ``N``: every N-th pair of the sorted list, starting at ``i - 1``."""
-    i, n = shard
-    ordered = sorted(refs, key=lambda r: r.id)
-    return ordered[i - 1::n]
 
 
 @dataclass
@@ -120,24 +90,6 @@ class PairResult:
 
 
 # -- one pair ------------------------------------------------------------------------------------
-def _particles_for(job: RenderJob, pair, seed: int):
-    from .engine import Particles, sample_particles
-
-    if job.particles_from is None:
-        return sample_particles(pair, job.preset, seed, world_up=getattr(job.dataset, "world_up", "auto"))
-    out = PairOutput.of(job.particles_from, pair.id, job.pass_name)
-    path = out.metadata
-    if not path.exists():
-        raise FormatError(path, f"no particle metadata for pair {pair.id}")
-    arrays = read_metadata(path)
-    found = pair_identity(arrays)
-    if (found.split, found.scene, found.frame) != (pair.id.split, pair.id.scene, pair.id.frame):
-        raise FormatError(path, f"metadata belongs to {found.scene} frame {found.frame}, "
-                                f"not to {pair.id.scene} frame {pair.id.frame}")
-    particles = Particles.load(path)
-    return particles.replace(**job.appearance) if job.appearance else particles
-
-
 def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
     """Load, sample (or reload), render and write some pairs. Never raises for bad input.
 
@@ -145,9 +97,6 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
     particles come from its own seed, and no pixel of one pair depends on another pair, so the
     bytes written are those of rendering each pair alone.
     """
-    from .engine import render_pair
-    from .framepair import FramePairBatch
-
     torch.set_num_threads(RENDER_THREADS)
     results: dict[PairId, PairResult] = {}
     ready = []                                   # (ref, seed, pair, particles, seconds so far)
@@ -156,7 +105,10 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
-            ready.append((ref, seed, pair, _particles_for(job, pair, seed), time.perf_counter() - start))
+            particles = pair_particles(pair, job.preset, job.seed,
+                                       world_up=getattr(job.dataset, "world_up", "auto"),
+                                       particles_from=job.particles_from, appearance=job.appearance)
+            ready.append((ref, seed, pair, particles, time.perf_counter() - start))
         except WeatherGenError as exc:
             results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed,
                                          time.perf_counter() - start, message=str(exc))
@@ -189,36 +141,17 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     frames = tuple(img[index].permute(1, 2, 0).cpu().numpy() for img in (rendered.image1, rendered.image2))
     opacity = tuple(a[index, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
     visible = visible_counts(pair, particles)
-    meta = particles.to_numpy()
-    meta.update(identity_arrays(ref.id, seed, job.preset.to_dict(), job.preset_name))
+    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name)
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
     try:
         files = write_pair_outputs(out, pair, frames, opacity, meta)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
         raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
-                          f"rerun with --resume once there is room") from None
+                          f"rerun with ${{resume}} once there is room") from None
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
-                      input=_jsonable(getattr(pair, "meta", None) or {}))
-
-
-def visible_counts(pair, particles) -> tuple[int, int]:
-    """How many particle centres land inside each frame in front of the scene surface."""
-    from .engine import reference_transforms
-
-    _, cam1_from_ref, cam2_from_ref = reference_transforms(pair)
-    start = (particles.position + particles.offset1).double()
-    end = start + (particles.motion + particles.offset2).double()
-    counts = []
-    for cam_from_ref, points, depth in ((cam1_from_ref, start, pair.depth1), (cam2_from_ref, end, pair.depth2)):
-        pix, z = project(transform_points(cam_from_ref.double(), points), pair.intrinsics)
-        h, w = depth.shape[-2:]
-        col, row = pix[:, 0].round().long(), pix[:, 1].round().long()
-        inside = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-        surface = depth[0, row[inside], col[inside]].double()
-        counts.append(int((z[inside] < surface).sum()))
-    return counts[0], counts[1]
+                      input=jsonable(getattr(pair, "meta", None) or {}))
 
 
 def _worker_init():
@@ -240,109 +173,31 @@ def _worker_init():
 # -- the output folder ---------------------------------------------------------------------------
 def prepare_output(job: RenderJob) -> None:
     """Create or reuse the output folder, refusing folders that are not ours or hold another run."""
-    out = job.out
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{out}: exists and is not a folder")
-    if out.exists() and any(out.iterdir()):
-        if not (out / MARKER).exists() and not job.overwrite:
-            raise ConfigError(f"{out}: folder is not empty and was not created by weathergen render "
-                              f"(use --overwrite to write into it anyway)")
-        previous = _read_config(out)
-        if previous is not None and not job.overwrite:
-            if not job.resume and not _is_other_shard(out, job):
-                raise ConfigError(f"{out}: already holds a render (use --resume to finish it, "
-                                  f"or --overwrite to redo it)")
-            if previous != _jsonable(job.config()):
-                diff = sorted(k for k in previous if previous.get(k) != _jsonable(job.config()).get(k))
-                raise ConfigError(f"{out}: was rendered with different settings ({', '.join(diff)}); "
-                                  f"use another --out, or --overwrite")
-    if job.resume and out.is_dir():
-        # temporary files of a killed run (atomic writes that never reached their rename)
-        for stale in out.rglob(".*.tmp*"):
-            if stale.is_file():
-                stale.unlink()
+    # A new shard of a sharded run may start in a folder that other shards have written.
+    other_shard = job.shard[1] > 1 and not shard_part(job.out, job.shard).exists()
+    previous = read_run_config(job.out) if job.out.is_dir() else None
+    prepare_folder(job.out, RENDER_FOLDER, job.config(), previous, resume=job.resume,
+                   overwrite=job.overwrite, shared=other_shard)
     try:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / MARKER).write_text("weathergen render output\n")
-        (out / MANIFEST_PARTS).mkdir(exist_ok=True)
-        atomic_write_bytes(out / MANIFEST_PARTS / ".config.json",
-                           json.dumps(_jsonable(job.config()), indent=2, sort_keys=True).encode())
+        write_run_config(job.out, job.config())
     except OSError as exc:
-        raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
+        raise ConfigError(f"{job.out}: cannot write here ({exc.strerror})") from None
 
 
-def _is_other_shard(out: Path, job: RenderJob) -> bool:
-    """A new shard of a sharded run may start in a folder that other shards have written."""
+def record_run(job: RenderJob, results: list[PairResult], started: float, seconds: float) -> Path:
+    """Record this run's pairs in the shard's manifest part (merging with its earlier runs)."""
     i, n = job.shard
-    part = out / MANIFEST_PARTS / f"shard-{i}-of-{n}.json"
-    return n > 1 and not part.exists()
-
-
-def _read_config(out: Path) -> Optional[dict]:
-    path = out / MANIFEST_PARTS / ".config.json"
-    if not path.exists():
-        return None
-    try:
-        return json.loads(path.read_text())
-    except ValueError:
-        return None
-
-
-def _jsonable(obj):
-    return json.loads(json.dumps(obj, sort_keys=True, default=str))
-
-
-# -- manifest ------------------------------------------------------------------------------------
-def write_manifest_part(job: RenderJob, results: list[PairResult], started: float, seconds: float) -> Path:
-    """Record this run's pairs in the shard's part (merging with the part's earlier runs)."""
-    i, n = job.shard
-    path = job.out / MANIFEST_PARTS / f"shard-{i}-of-{n}.json"
-    part = {"runs": [], "pairs": {}}
-    if path.exists():
-        try:
-            part = json.loads(path.read_text())
-        except ValueError:
-            pass
     counts = {s: sum(r.status == s for r in results) for s in ("written", "skipped", "failed")}
-    part["runs"].append({
+    run = {
         "shard": f"{i}/{n}", "command": job.command, "workers": job.workers, "device": job.device,
         "started": datetime.fromtimestamp(started, timezone.utc).isoformat(timespec="seconds"),
         "seconds": round(seconds, 3), **counts,
-    })
+    }
+    pairs = {}
     for r in results:
         entry = asdict(r)
-        entry.pop("key")
-        if r.status == "skipped" and r.key in part["pairs"]:
-            continue        # keep the timings of the run that wrote it
-        part["pairs"][r.key] = entry
-    atomic_write_bytes(path, json.dumps(part, indent=2, sort_keys=True).encode())
-    return path
-
-
-def merge_manifest(out: Path) -> Path:
-    """Merge every shard part into ``manifest.json`` (idempotent; run after every run)."""
-    config = _read_config(out) or {}
-    runs, pairs, shards = [], {}, []
-    for part_path in sorted((out / MANIFEST_PARTS).glob("shard-*.json")):
-        try:
-            part = json.loads(part_path.read_text())
-        except ValueError:
-            raise FormatError(part_path, "manifest part is not valid JSON; rerun that shard with "
-                                         "--resume to rewrite it") from None
-        shards.append(part_path.stem)
-        runs += part.get("runs", [])
-        pairs.update(part.get("pairs", {}))
-    manifest = {
-        "format": "weathergen-render",
-        "format_version": 1,
-        "weathergen_version": __version__,
-        **config,
-        "shards": shards,
-        "runs": runs,
-        "pairs": dict(sorted(pairs.items())),
-        "summary": {s: sum(p["status"] == s for p in pairs.values()) for s in ("written", "skipped", "failed")},
-    }
-    return atomic_write_bytes(out / MANIFEST, json.dumps(manifest, indent=2).encode())
+        pairs[entry.pop("key")] = entry
+    return write_manifest_part(job.out, job.shard, run, pairs)
 
 
 # -- the run -------------------------------------------------------------------------------------
@@ -385,7 +240,7 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
         else:
             _run_pool(job, todo, results, on_result)
     finally:
-        write_manifest_part(job, results, started, time.perf_counter() - t0)
+        record_run(job, results, started, time.perf_counter() - t0)
         merge_manifest(job.out)
     return results
 
@@ -421,9 +276,4 @@ def _run_pool(job, todo, results, on_result):
             raise
 
 
-def folder_size(root: Path) -> int:
-    return sum(p.stat().st_size for p in root.rglob("*") if p.is_file())
-
-
-__all__ = ["RenderJob", "PairResult", "pair_seed", "parse_shard", "shard_refs", "run_render",
-           "merge_manifest", "prepare_output", "folder_size"]
+__all__ = ["RenderJob", "PairResult", "render_batch", "run_render", "prepare_output", "record_run"]

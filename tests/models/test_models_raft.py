@@ -13,16 +13,11 @@ from weathergen.flow import aee
 from weathergen.models import InputPadder, build_model, get_model
 from weathergen.models.raft import CorrelationPyramid, bilinear_upsample, convex_upsample
 
-WEIGHTS = Path(__file__).resolve().parents[1].parent / "shared" / "weights"
-RELEASED_SMALL = WEIGHTS / "raft-small.pth"
 
 
 @pytest.fixture(scope="module")
-def released_small():
-    if not RELEASED_SMALL.is_file():
-        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth (sha256 c7d41b9c...)"
-                    f" at {RELEASED_SMALL}")
-    return get_model("raft-small", checkpoint=RELEASED_SMALL, iters=12)
+def released_small(raft_small_weights):
+    return get_model("raft-small", checkpoint=raft_small_weights, iters=12)
 
 
 # -- padding ----------------------------------------------------------------------------------

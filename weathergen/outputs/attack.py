@@ -1,4 +1,4 @@
-"""The on-disk layout of an attack output and its writers (extends :mod:`weathergen.outputs`).
+"""The on-disk layout of an attack output and its writers (extends :mod:`~weathergen.outputs.pairs`).
 
 An attack folder is a render folder with more files, so that everything that reads a render
 output reads it too (``weathergen render --particles OUT`` re-renders the adversarial particles,
@@ -34,17 +34,15 @@ from typing import Optional
 import numpy as np
 import torch
 
-from .errors import ConfigError, FormatError
-from .flow import flow_to_color
-from .framepair import FramePair, PairId
-from .io.atomic import atomic_write_bytes
-from .io.images import write_png
-from .io.sintel_formats import read_flo, write_flo
-from .outputs import MANIFEST, PairOutput, pair_identity, read_metadata, write_pair_outputs
+from ..errors import FormatError
+from ..flow import flow_to_color
+from ..framepair import FramePair, PairId
+from ..io.atomic import atomic_write_bytes
+from ..io.images import write_png
+from ..io.sintel_formats import write_flo
+from .metadata import read_metadata
+from .pairs import PairOutput, write_pair_outputs
 
-ATTACK_MARKER = ".weathergen-attack"
-ATTACK_FORMAT = "weathergen-attack"
-SUMMARY = "summary.json"
 FLOW_KINDS = ("benign", "initial", "adversarial", "target")
 LOG_COLUMNS = ("step", "loss", "distance", "penalty", "robustness", "best_distance", "seconds")
 
@@ -126,92 +124,3 @@ def read_pair_summary(out: AttackPairOutput) -> Optional[dict]:
     if "attack_summary" not in arrays:
         return None
     return json.loads(str(arrays["attack_summary"]))
-
-
-def read_target_flow(path: str | Path) -> torch.Tensor:
-    """A target flow file. Shape: returns (2, H, W) float32 pixels."""
-    path = Path(path)
-    if not path.is_file():
-        raise ConfigError(f"--target {path}: file not found")
-    return torch.from_numpy(read_flo(path).transpose(2, 0, 1).copy())
-
-
-def load_render_particles(folder: str | Path, pair_id: PairId):
-    """The particles an earlier ``render`` (or ``attack``) stored for ``pair_id``.
-
-    Raises FormatError naming the file when it is missing or belongs to another pair.
-    """
-    from .engine.particles import Particles
-
-    path = PairOutput.of(folder, pair_id, "").metadata
-    if not path.exists():
-        raise FormatError(path, f"no particle metadata for pair {pair_id}")
-    found = pair_identity(read_metadata(path))
-    if (found.split, found.scene, found.frame) != (pair_id.split, pair_id.scene, pair_id.frame):
-        raise FormatError(path, f"metadata belongs to {found.scene} frame {found.frame}, "
-                                f"not to {pair_id.scene} frame {pair_id.frame}")
-    return Particles.load(path)
-
-
-# -- the folder and its manifest ------------------------------------------------------------------
-
-def prepare_attack_folder(out: Path, config: dict, resume: bool, overwrite: bool) -> Optional[dict]:
-    """Create or reuse ``out``; return the previous manifest when resuming.
-
-    Refuses a non-empty folder that is not an attack output, an attack output without
-    ``--resume``/``--overwrite``, and resuming with different settings.
-    """
-    out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise ConfigError(f"{out}: exists and is not a folder")
-    previous = None
-    if out.exists() and any(out.iterdir()):
-        if not (out / ATTACK_MARKER).exists() and not overwrite:
-            raise ConfigError(f"{out}: folder is not empty and was not written by weathergen "
-                              f"attack (use another --out, or --overwrite)")
-        previous = read_attack_manifest(out) if (out / MANIFEST).exists() else None
-        if previous is not None and not overwrite:
-            if not resume:
-                raise ConfigError(f"{out}: already holds an attack (use --resume to finish it, "
-                                  f"or --overwrite to redo it)")
-            old = previous.get("config", {})
-            new = json.loads(json.dumps(config, default=str))
-            if old != new:
-                diff = sorted(k for k in set(old) | set(new) if old.get(k) != new.get(k))
-                raise ConfigError(f"{out}: was attacked with different settings "
-                                  f"({', '.join(diff)}); use another --out, or --overwrite")
-        if overwrite:
-            previous = None
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        (out / ATTACK_MARKER).write_text("weathergen attack output\n")
-    except OSError as exc:
-        raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
-    return previous
-
-
-def read_attack_manifest(out: Path) -> dict:
-    path = Path(out) / MANIFEST
-    try:
-        return json.loads(path.read_text())
-    except (OSError, ValueError):
-        raise FormatError(path, "not a readable attack manifest") from None
-
-
-def write_attack_manifest(out: Path, config: dict, pairs: dict, summary: dict, runs: list) -> Path:
-    """Write ``manifest.json`` (and ``summary.json``) atomically.
-
-    Top-level ``preset_name``, ``preset``, ``input`` and ``outputs`` mirror a render manifest, so
-    ``render --particles`` and ``evaluate --weather`` accept the folder.
-    """
-    from . import __version__
-
-    manifest = {
-        "format": ATTACK_FORMAT, "format_version": 1, "weathergen_version": __version__,
-        "preset_name": config["preset_name"], "preset": config["preset"],
-        "seed": config["seed"], "input": config["input"], "outputs": config["outputs"],
-        "config": config, "runs": runs, "pairs": dict(sorted(pairs.items())), "summary": summary,
-    }
-    text = json.dumps(manifest, indent=2, default=str)
-    atomic_write_bytes(Path(out) / SUMMARY, json.dumps(summary, indent=2).encode())
-    return atomic_write_bytes(Path(out) / MANIFEST, text.encode())
