@@ -2,7 +2,8 @@
 #
 #   make test                  create .venv, install the pinned CPU torch, the package, run the tests
 #   make demo                  render the default preset on the bundled demo scene
-#   make bench                 print speed and memory figures (renderer, weather field, attack step)
+#   make bench                 print speed and memory figures (renderer, weather field, networks,
+#                              attack step, training)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 #   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
 #                              in a separate environment (.venv-oldest)
@@ -68,6 +69,7 @@ bench: install
 	$(BIN)/python benchmarks/bench_field.py
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
+	$(BIN)/python benchmarks/bench_training.py
 
 clean:
 	rm -rf $(VENV) $(OLDEST) build *.egg-info out

@@ -118,6 +118,7 @@ def test_packages_resolve_their_names_at_import(module):
 LAYERS = [("weathergen", "weathergen.errors", "weathergen.workers"),
           ("weathergen.framepair", "weathergen.geometry", "weathergen.flow", "weathergen.io"),
           ("weathergen.datasets", "weathergen.models", "weathergen.engine"),
+          ("weathergen.training",),
           ("weathergen.outputs",), ("weathergen.render",), ("weathergen.attack",),
           ("weathergen.cli",)]
 
