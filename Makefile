@@ -2,7 +2,7 @@
 #
 #   make test                  create .venv, install the pinned CPU torch, the package, run the tests
 #   make demo                  render the default preset on the bundled demo scene
-#   make bench                 print speed and memory figures (renderer, attack step)
+#   make bench                 print speed and memory figures (renderer, attack step, batches)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 
 PYTHON ?= python3
@@ -39,6 +39,9 @@ bench: install
 	$(BIN)/python benchmarks/bench.py
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
+	$(BIN)/python benchmarks/bench_batch.py
+	if $(BIN)/python -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then \
+	  $(BIN)/python benchmarks/bench_batch.py --device cuda --models raft --batch-sizes 1 4 8 --steps 5; fi
 
 clean:
 	rm -rf $(VENV) build *.egg-info out

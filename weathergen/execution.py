@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import os
 import socket
+import sys
 import time
 from datetime import datetime, timedelta, timezone
 from typing import Callable, Iterator, Optional, Sequence
@@ -132,7 +133,6 @@ def where_ran(device) -> dict:
 
 
 def _ray_if_loaded():
-    import sys
     return sys.modules.get("ray")
 
 

@@ -16,7 +16,7 @@ import signal
 import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Optional
@@ -27,6 +27,7 @@ import torch
 from ..datasets import Dataset, PairRef
 from ..engine import render_pair, visible_counts
 from ..errors import ConfigError, OutputError, WeatherGenError
+from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
 from ..outputs import (RENDER_FOLDER, PairOutput, merge_manifest, pair_metadata, prepare_folder,
                        read_run_config, write_manifest_part, write_pair_outputs, write_run_config)
@@ -60,6 +61,8 @@ class RenderJob:
     resume: bool = False
     overwrite: bool = False
     command: list = field(default_factory=list)
+    executor: str = "local"             # "local" or "ray" (weathergen.execution)
+    ray_address: Optional[str] = "auto"
 
     def config(self) -> dict:
         """What must agree between the runs and shards that write one output folder."""
@@ -87,6 +90,7 @@ class PairResult:
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
+    ran: Optional[dict] = None  # where it was computed (weathergen.execution.where_ran) and batch
 
 
 # -- one pair ------------------------------------------------------------------------------------
@@ -130,10 +134,12 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
                                              message=str(exc))
             continue
         share = (time.perf_counter() - start) / len(group)
+        ran = {**where_ran(job.device), "batch": len(group)}
         for i, (ref, seed, pair, particles, spent) in enumerate(group):
             start = time.perf_counter()
             results[ref.id] = _write_one(job, ref, seed, pair, particles, rendered, i)
             results[ref.id].seconds = spent + share + time.perf_counter() - start
+            results[ref.id].ran = ran
     return [results[ref.id] for ref in refs]
 
 
@@ -209,6 +215,7 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives.
     Interruptions (Ctrl-C) record what was finished in the manifest and re-raise.
     """
+    check_executor(job.executor)
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     refs = shard_refs(job.dataset.pairs(), job.shard)
     if not refs:
@@ -228,7 +235,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     for r in results:
         on_result(r)
     try:
-        if job.workers <= 1 or len(todo) <= job.batch_size:
+        if job.executor == "ray":
+            _run_ray(job, todo, results, on_result)
+        elif job.workers <= 1 or len(todo) <= job.batch_size:
             threads = torch.get_num_threads()
             try:
                 for chunk in _chunks(todo, job.batch_size):
@@ -247,6 +256,17 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
 
 def _chunks(items: list, size: int) -> list[list]:
     return [items[i:i + size] for i in range(0, len(items), max(1, size))]
+
+
+def _run_ray(job, todo, results, on_result):
+    # Each task renders one batch on the device it was given; the driver records the results.
+    remote_job = replace(job, device=worker_device(job.device, "ray"))
+    units = [(remote_job, chunk) for chunk in _chunks(todo, job.batch_size)]
+    for batch in ray_map(render_batch, units, address=job.ray_address,
+                         num_gpus=ray_gpus_for(job.device)):
+        for r in batch:
+            results.append(r)
+            on_result(r)
 
 
 def _run_pool(job, todo, results, on_result):
