@@ -3,7 +3,7 @@
 #   make test                  create .venv, install the pinned CPU torch, the package, run the tests
 #   make demo                  render the default preset on the bundled demo scene
 #   make bench                 print speed and memory figures (renderer, weather field, networks,
-#                              attack step, training)
+#                              attack step, batched attacks, training)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 #   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
 #                              in a separate environment (.venv-oldest)
@@ -70,6 +70,9 @@ bench: install
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
 	$(BIN)/python benchmarks/bench_training.py
+	$(BIN)/python benchmarks/bench_batch.py
+	if $(BIN)/python -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then \
+	  $(BIN)/python benchmarks/bench_batch.py --device cuda --models raft --batch-sizes 1 4 8 --steps 5; fi
 
 clean:
 	rm -rf $(VENV) $(OLDEST) build *.egg-info out

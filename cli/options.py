@@ -181,3 +181,18 @@ def model_options(func):
     )):
         func = option(func)
     return func
+
+
+def executor_options(func):
+    """``--executor`` and ``--ray-address``: where the pairs are computed."""
+    for option in reversed((
+        click.option("--executor", type=click.Choice(["local", "ray"]), default="local",
+                     show_default=True,
+                     help="Compute pairs in this process (local) or as tasks on a Ray cluster "
+                          "(ray; needs pip install 'weathergen[ray]')."),
+        click.option("--ray-address", default="auto", show_default=True, metavar="auto|local|HOST:PORT",
+                     help="With --executor ray: the cluster to join (auto: the one started on "
+                          "this machine by `ray start`; local: a private one for this run)."),
+    )):
+        func = option(func)
+    return func
