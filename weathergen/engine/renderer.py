@@ -400,7 +400,7 @@ def _splat(depth_flat, inst, stamps: StampSet, height, width, beta, chunk_elemen
     or None when no instance reaches the image; see :class:`_Splat`. Also returns which pairs of
     the batch (B,) bool an instance reaches."""
     plan = _splat_plan(inst, stamps, height, width, chunk_elements)
-    bsz = depth_flat.numel() // (2 * height * width)
+    bsz = max(1, depth_flat.numel() // (2 * height * width))    # one view counts as one pair
     reached = torch.zeros(bsz, dtype=torch.bool, device=depth_flat.device)
     for _, sel in plan:
         reached[inst["target"][sel] % bsz] = True
