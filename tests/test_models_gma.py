@@ -10,80 +10,16 @@ from pathlib import Path
 import pytest
 import torch
 from click.testing import CliRunner
+from conftest import write_fake_sintel
 
 from weathergen.errors import ConfigError, FormatError
 from weathergen.models import build_model, get_model
 from weathergen.models.gma import ContextAttention, MotionAggregator
-
-ONE_PAIR = ["--scenes", "courtyard", "--frames-per-scene", "1"]
-
-
-# -- the released key layout, written from the published architecture --------------------------
-
-def raft_encoder_layout(prefix: str, out_dim: int, norm: str) -> dict:
-    """Keys and shapes of RAFT's BasicEncoder as the released RAFT/GMA files hold them: a 7x7
-    stem of 64 channels, three stages of two residual blocks (64, 96, 128 channels; the first
-    block of stages 2 and 3 has stride 2 and a 1x1 shortcut whose normalisation is saved twice,
-    as norm3 and as downsample.1), and a 1x1 head."""
-    out = {}
-
-    def conv(name, o, i, k):
-        out[f"{prefix}{name}.weight"] = (o, i, k, k)
-        out[f"{prefix}{name}.bias"] = (o,)
-
-    def normalisation(name, c):
-        if norm == "batch":
-            for p in ("weight", "bias", "running_mean", "running_var"):
-                out[f"{prefix}{name}.{p}"] = (c,)
-            out[f"{prefix}{name}.num_batches_tracked"] = ()
-
-    conv("conv1", 64, 3, 7)
-    normalisation("norm1", 64)
-    chans = 64
-    for layer, width in ((1, 64), (2, 96), (3, 128)):
-        for block in (0, 1):
-            name = f"layer{layer}.{block}"
-            conv(f"{name}.conv1", width, chans, 3)
-            conv(f"{name}.conv2", width, width, 3)
-            normalisation(f"{name}.norm1", width)
-            normalisation(f"{name}.norm2", width)
-            if block == 0 and layer > 1:
-                normalisation(f"{name}.norm3", width)
-                conv(f"{name}.downsample.0", width, chans, 1)
-                normalisation(f"{name}.downsample.1", width)
-            chans = width
-    conv("conv2", out_dim, 128, 1)
-    return out
+from model_layouts import gma_attention_layout, gma_update_layout, raft_encoder_layout
 
 
-def gma_update_layout(prefix: str, corr_channels: int) -> dict:
-    """GMA's update block: RAFT's motion encoder, a separable GRU reading 128 context + 128 motion
-    + 128 aggregated channels, flow head, upsampling mask, aggregator (to_v, gamma)."""
-    shapes = {
-        "encoder.convc1": (256, corr_channels, 1, 1), "encoder.convc2": (192, 256, 3, 3),
-        "encoder.convf1": (128, 2, 7, 7), "encoder.convf2": (64, 128, 3, 3),
-        "encoder.conv": (126, 256, 3, 3),
-        "flow_head.conv1": (256, 128, 3, 3), "flow_head.conv2": (2, 256, 3, 3),
-        "mask.0": (256, 128, 3, 3), "mask.2": (576, 256, 1, 1),
-    }
-    for gate in "zrq":
-        shapes[f"gru.conv{gate}1"] = (128, 512, 1, 5)
-        shapes[f"gru.conv{gate}2"] = (128, 512, 5, 1)
-    out = {}
-    for name, shape in shapes.items():
-        out[f"{prefix}{name}.weight"] = shape
-        out[f"{prefix}{name}.bias"] = (shape[0],)
-    out[f"{prefix}aggregator.to_v.weight"] = (128, 128, 1, 1)
-    out[f"{prefix}aggregator.gamma"] = (1,)
-    return out
 
-
-def gma_attention_layout(prefix: str) -> dict:
-    return {f"{prefix}to_qk.weight": (256, 128, 1, 1),
-            f"{prefix}pos_emb.rel_height.weight": (319, 128),
-            f"{prefix}pos_emb.rel_width.weight": (319, 128),
-            f"{prefix}pos_emb.rel_ind": (160, 160)}
-
+# -- the released key layout ------------------------------------------------------------------
 
 GMA_LAYOUT = {**raft_encoder_layout("fnet.", 256, "instance"),
               **raft_encoder_layout("cnet.", 256, "batch"),
@@ -293,16 +229,16 @@ def random_gma_file(tmp_path_factory):
 
 
 def test_attack_and_evaluate_run_with_gma(random_gma_file, tmp_path):
+    # A tiny Sintel-format dataset: one 40x56 frame pair.
+    root = write_fake_sintel(tmp_path / "sintel", scenes=("alley",), frames=2, size=(40, 56))
+    data = ["--dataset", "sintel", "--root", root, "--scenes", "alley", "--frames-per-scene", "1"]
+    checkpoint = random_gma_file
     out = tmp_path / "snow"
-    attacked = invoke(["attack", "--model", "gma", "--checkpoint", random_gma_file, "--iters",
-                       "1", *ONE_PAIR, "--steps", "1", "--set", "count=40", "--seed", "1",
-                       "--out", out])
+    attacked = invoke(["attack", "--model", "gma", "--checkpoint", checkpoint, "--iters", "1",
+                       *data, "--steps", "1", "--set", "count=40", "--seed", "1", "--out", out])
     assert attacked.exit_code == 0, attacked.output
-    manifest = json.loads(next(out.rglob("manifest.json")).read_text())
-    assert "gma" in json.dumps(manifest)
     evaluated = invoke(["evaluate", "--weather", out, "--model", "gma", "--checkpoint",
-                        random_gma_file, "--iters", "1", "--json", tmp_path / "eval.json"])
+                        checkpoint, "--iters", "1", "--json", tmp_path / "eval.json"])
     assert evaluated.exit_code == 0, evaluated.output
-    data = json.loads((tmp_path / "eval.json").read_text())
-    assert data["model"] == "gma"
-    assert len(data["pairs"]) == 1
+    result = json.loads((tmp_path / "eval.json").read_text())
+    assert result["model"] == "gma" and len(result["pairs"]) == 1
