@@ -67,3 +67,42 @@ def gma_attention_layout(prefix: str) -> dict:
             f"{prefix}pos_emb.rel_height.weight": (319, 128),
             f"{prefix}pos_emb.rel_width.weight": (319, 128),
             f"{prefix}pos_emb.rel_ind": (160, 160)}
+
+
+def seeded_weights(state: dict, seed: int) -> dict:
+    """Reproducible random weights for a state dict, the same for every implementation that has
+    the same key names and shapes (used to compare with the authors' code, see
+    scripts/make_reference_flows.py): keys in sorted order, float64 draws from one generator;
+    normalisation scales near 1, running variances in [0.5, 1.5], everything else N(0, 0.05^2),
+    GMA's aggregation weight gamma 0.5."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    out = {}
+    for key in sorted(state):
+        value = state[key]
+        if not value.is_floating_point():
+            out[key] = value.clone()
+            continue
+        noise = torch.randn(value.shape, generator=g, dtype=torch.float64)
+        if key.endswith("running_var"):
+            new = 1.0 + 0.5 * torch.tanh(noise)
+        elif key.endswith("running_mean"):
+            new = 0.05 * noise
+        elif key.endswith("aggregator.gamma"):
+            new = torch.full(value.shape, 0.5, dtype=torch.float64)
+        elif key.endswith(".weight") and value.dim() == 1:
+            new = 1.0 + 0.05 * noise
+        else:
+            new = 0.05 * noise
+        out[key] = new.to(value.dtype)
+    return out
+
+
+def seeded_images(seed: int, height: int, width: int):
+    """Two reproducible ``(1, 3, H, W)`` float64 frames in [0, 1]."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    return (torch.rand(1, 3, height, width, generator=g, dtype=torch.float64),
+            torch.rand(1, 3, height, width, generator=g, dtype=torch.float64))
