@@ -246,16 +246,21 @@ def test_input_gradients_are_finite_and_non_zero(small_model):
         assert torch.isfinite(grad).all() and grad.abs().sum() > 0
 
 
-def test_gradient_checkpointing_gives_the_same_gradient(small_model):
-    grads = []
+def test_gradient_checkpointing_gives_the_same_gradient(monkeypatch):
+    import weathergen.models.flowformer as flowformer
+
+    monkeypatch.setattr(flowformer, "SUMMARY_CHUNK", 7)  # recompute the cost maps in chunks
+    torch.manual_seed(0)
+    model = build_model("flowformer", iters=1)
     x1, x2 = torch.rand(2, 1, 3, *SIZE).unbind(0)
+    grads = []
     for checkpointing in (False, True):
-        small_model.gradient_checkpointing = checkpointing
+        model.gradient_checkpointing = checkpointing
         a, b = x1.clone().requires_grad_(), x2.clone().requires_grad_()
-        small_model(a, b).sum().backward()
+        model(a, b).sum().backward()
         grads.append(torch.cat([a.grad.flatten(), b.grad.flatten()]))
-    small_model.gradient_checkpointing = False
-    assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-6)
+    # The same up to float32 rounding (the chunked convolutions sum in another order).
+    assert (grads[0] - grads[1]).norm() <= 1e-5 * grads[0].norm()
 
 
 def test_batch_elements_are_independent(small_model):

@@ -60,6 +60,8 @@ QUERY_DIM = 64          # channels of the decoder's cost query
 CONTEXT_QK_DIM = 64     # context channels added to the queries and keys of the pixel attention
 LOOKUP_RADIUS = 4       # 9x9 cost window around the current match
 HEADS = 8
+#: Cost maps per recomputed chunk of the cost encoder's first stage (gradient checkpointing).
+SUMMARY_CHUNK = 512
 
 
 def position_encoding(coords: torch.Tensor, dim: int) -> torch.Tensor:
@@ -313,7 +315,13 @@ class CostPerceiverEncoder(nn.Module):
         b, _, h, w = context.shape
         k = LATENT_TOKENS
         run = _runner(gradient_checkpointing)
-        x = run(self._summarise, cost_maps)
+        if gradient_checkpointing and torch.is_grad_enabled():
+            # The patch embedding's activations are the largest of the network (about 5 GiB
+            # for a Sintel frame): recompute them in chunks of cost maps, one at a time.
+            x = torch.cat([run(self._summarise, chunk)
+                           for chunk in cost_maps.split(SUMMARY_CHUNK)], dim=0)
+        else:
+            x = self._summarise(cost_maps)
         shortcut = x
         for attend_tokens, attend_pixels in zip(self.encoder_layers,
                                                 self.vertical_encoder_layers):
