@@ -10,8 +10,12 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from .main import cli
-from .options import dataset_options, model_options
+from weathergen.attack import ATTACK_CONFIGS, AttackJob, parse_target, run_attack
+from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
+from weathergen.engine import parse_set_options, resolve_device
+
+from .options import (dataset_options, device_option, model_options, out_option, overwrite_option,
+                      quiet_option, resume_option, seed_option)
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -33,14 +37,12 @@ def summary_table(title: str, summary: dict) -> Table:
     return table
 
 
-@cli.command()
+@click.command()
 @dataset_options
 @model_options
 @click.option("--config", "config_name", default=None, metavar="NAME",
-              help="An attack configuration of the paper's supplement (grey-offset1, "
-                   "grey-offset2, grey-color, grey-transparency, grey-offsets, grey-appearance, "
-                   "grey-all, snow, rain, sparks, fog): sets preset, --optimize, --lr and the "
-                   "occlusion gradient; explicit options win.")
+              help=f"An attack configuration of the paper's supplement ({', '.join(ATTACK_CONFIGS)}): "
+                   "sets preset, --optimize, --lr and the occlusion gradient; explicit options win.")
 @click.option("--preset", default=None,
               help="Weather preset the particles are sampled from. Default: the --config's "
                    "preset, else snow.")
@@ -69,14 +71,12 @@ def summary_table(title: str, summary: dict) -> Table:
 @click.option("--gradient-checkpointing", is_flag=True,
               help="Recompute the network's refinement steps in the backward pass (less memory, "
                    "more time).")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Output folder. Default: out/attack-<config or preset>.")
-@click.option("--seed", type=int, default=0, show_default=True,
-              help="Run seed; each pair's particles are seeded as by `weathergen render`.")
-@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
-@click.option("--resume", is_flag=True, help="Finish an interrupted run: skip finished pairs.")
-@click.option("--overwrite", is_flag=True, help="Redo every pair, even in a folder that holds one.")
-@click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
+@out_option("out/attack-<config or preset>")
+@seed_option("Run seed; each pair's particles are seeded as by `weathergen render`.")
+@device_option
+@resume_option("Finish an interrupted run: skip finished pairs.")
+@overwrite_option("Redo every pair, even in a folder that holds one.")
+@quiet_option
 def attack(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
            particles_dir, steps,
            optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, gradient_checkpointing,
@@ -87,48 +87,20 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
     Writes adversarial frames, best particles (re-render them with `weathergen render
     --particles OUT`), flows, a per-step log, manifest.json and summary.json.
     """
-    from weathergen.attack import (ATTACK_CONFIGS, OPTIMIZABLE, AttackSettings, attack_config,
-                                   parse_optimize, parse_target)
-    from weathergen.attack_job import AttackJob, run_attack
-    from weathergen.engine import BETA_ATTACK, BETA_RENDER, resolve_device
-    from weathergen.errors import ConfigError
-
-    from .render import resolve_preset
-
     resolve_device(device)
     target = parse_target(target_text)
-    config = attack_config(config_name) if config_name else None
-    preset_name = preset or (config.preset if config else "snow")
-    preset_obj, name, appearance = resolve_preset(preset_name, None, set_items, particles_dir)
-    if appearance:
-        raise ConfigError("--set cannot change stored particles in an attack; re-render them "
-                          "with `weathergen render --particles` instead")
-    if particles_dir is not None and preset is not None and preset != name:
-        raise ConfigError(f"--preset {preset}: the particles in {particles_dir} were sampled "
-                          f"from {name!r}; leave --preset out to attack them")
-    # The preset actually attacked (the stored one with --particles) picks the configuration:
-    # fog particles keep their second offset fixed however they were obtained.
-    if config is None and name in ATTACK_CONFIGS:
-        config = ATTACK_CONFIGS[name]
-    if optimize is not None:
-        variables = parse_optimize(optimize)
-    else:
-        variables = config.optimize if config else OPTIMIZABLE
-    if lr is None and config is not None and variables == config.optimize:
-        lr = config.lr
-    if occlusion_gradient is None:
-        occlusion_gradient = bool(config and config.occlusion_gradient)
-    settings = AttackSettings(optimize=variables, steps=steps, lr=lr, alpha1=alpha1,
-                              alpha2=alpha2, beta=BETA_ATTACK if occlusion_gradient else BETA_RENDER)
-    label = config_name or name
-    out = out or Path("out") / f"attack-{label}"
+    plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
+                       optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
+                       steps=steps, alpha1=alpha1, alpha2=alpha2)
+    label = plan.label
+    out = out or default_attack_out(label)
     job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
-                    preset=preset_obj, preset_name=name, settings=settings, target=target,
-                    iters=iters, seed=seed, device=device, particles_from=particles_dir,
-                    config_name=config_name, pass_name=f"{name}_adv_{dataset.selection.pass_}",
+                    preset=plan.preset, preset_name=plan.preset_name, settings=plan.settings,
+                    target=target, iters=iters, seed=seed, device=device,
+                    particles_from=particles_dir, config_name=config_name,
+                    pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
                     gradient_checkpointing=gradient_checkpointing, download=download,
-                    resume=resume,
-                    overwrite=overwrite, command=["weathergen", *sys.argv[1:]])
+                    resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]])
 
     console = Console()
     err = Console(stderr=True)

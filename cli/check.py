@@ -11,11 +11,10 @@ from rich.table import Table
 
 from weathergen.errors import DatasetError
 
-from .main import cli
 from .options import dataset_options
 
 
-@cli.command()
+@click.command()
 @dataset_options
 @click.option("--verbose", "-v", is_flag=True, help="List every faulty pair, not only the first per scene.")
 def check(dataset, verbose):

@@ -13,12 +13,12 @@ from weathergen.datasets.demo import write_demo_scene
 from weathergen.errors import ConfigError
 from weathergen.io.atomic import UMASK
 
-from .main import cli
+from .options import overwrite_option
 
 
-@cli.command("demo-scene")
+@click.command("demo-scene")
 @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
-@click.option("--overwrite", is_flag=True, help="Replace OUT if it exists and is not empty.")
+@overwrite_option("Replace OUT if it exists and is not empty.")
 def demo_scene(out: Path, overwrite: bool):
     """Write the bundled demo scene (Sintel layout, with depth, cameras and exact flow) to OUT."""
     if out.exists() and any(out.iterdir()) and not overwrite:

@@ -8,15 +8,19 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from .main import cli
-from .options import model_options
+from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
+from weathergen.engine import resolve_device
+from weathergen.models import get_model
+from weathergen.outputs import WeatherFolder
+
+from .options import device_option, model_options, quiet_option
 
 
 def _fmt(value) -> str:
     return "–" if value is None else f"{value:.3f}"
 
 
-@cli.command()
+@click.command()
 @click.option("--weather", "weather_dir", required=True,
               type=click.Path(file_okay=False, path_type=Path),
               help="Folder written by `weathergen render` (or `weathergen attack`).")
@@ -29,8 +33,8 @@ def _fmt(value) -> str:
               help="Clean pass (Sintel: clean or final). Default: as recorded.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
               default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json.")
-@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
-@click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
+@device_option
+@quiet_option
 def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root, pass_,
              json_path, device,
              quiet):
@@ -39,10 +43,6 @@ def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root
     Also reports the end-point error against ground truth, for the clean and the weather frames,
     where the dataset has it. All figures are in pixels.
     """
-    from weathergen.engine import resolve_device
-    from weathergen.evaluate import WeatherFolder, run_evaluation, write_evaluation
-    from weathergen.models import get_model
-
     resolve_device(device)
     folder = WeatherFolder.open(weather_dir)
     dataset = folder.clean_dataset(dataset_name, root, pass_)
@@ -57,7 +57,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
     info = {"model": model, "checkpoint": checkpoint, "iters": iters,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
-    json_path = json_path or weather_dir / f"evaluate-{model}.json"
+    json_path = json_path or default_evaluation_path(weather_dir, model)
     write_evaluation(json_path, info, rows, summary)
     if quiet:
         return

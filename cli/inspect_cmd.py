@@ -10,9 +10,9 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from weathergen.io.images import write_png
 from weathergen.outputs import read_metadata
-
-from .main import cli
+from weathergen.render import contact_sheet
 
 
 def _preset_origin(name: str, source: str) -> str:
@@ -20,7 +20,7 @@ def _preset_origin(name: str, source: str) -> str:
     return name if not source or source.startswith("preset ") else f"{name} (from {source})"
 
 
-@cli.command()
+@click.command()
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 def inspect(file: Path):
     """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges."""
@@ -65,7 +65,7 @@ def inspect(file: Path):
     console.print(ranges)
 
 
-@cli.command()
+@click.command()
 @click.argument("render_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG to write. Default: RENDER_DIR/preview.png.")
@@ -73,9 +73,6 @@ def inspect(file: Path):
 @click.option("--width", type=click.IntRange(min=64), default=480, show_default=True, help="Width of each tile.")
 def preview(render_dir: Path, out, pairs, width):
     """Write a contact sheet of a render output: original, weather frame and particle opacity."""
-    from weathergen.io.images import write_png
-    from weathergen.preview import contact_sheet
-
     sheet = contact_sheet(render_dir, pairs=pairs, width=width)
     out = out or render_dir / "preview.png"
     write_png(out, sheet)

@@ -9,9 +9,14 @@ import click
 from weathergen import __version__
 from weathergen.errors import WeatherGenError
 
-
-#: Where the group keeps the command line it was given (``ctx.meta``), for manifests.
-ARGV_KEY = "weathergen.argv"
+from .attack import attack
+from .check import check
+from .demo_scene import demo_scene
+from .evaluate import evaluate
+from .inspect_cmd import inspect, preview
+from .options import ARGV_KEY, option_of
+from .presets_cmd import presets_command
+from .render import render
 
 
 class _Group(click.Group):
@@ -25,7 +30,7 @@ class _Group(click.Group):
         try:
             return super().invoke(ctx)
         except WeatherGenError as exc:
-            click.echo(f"Error: {exc}", err=True)
+            click.echo(f"Error: {exc.render(option_of)}", err=True)
             sys.exit(2)
 
 
@@ -35,12 +40,14 @@ def cli():
     """Physically placed weather for optical-flow datasets, and weather attacks on flow networks."""
 
 
+for _command in (attack, check, demo_scene, evaluate, inspect, preview, presets_command, render):
+    cli.add_command(_command)
+
+
 def _register():
-    # Each module adds its command to the group on import.
-    from . import (attack, check, demo_scene, evaluate, inspect_cmd,  # noqa: F401
-                   presets_cmd, render)
+    """Nothing to do: every command is added when this module is imported. Kept for callers
+    written when commands were added on first use."""
 
 
 def main(argv=None):
-    _register()
     return cli.main(args=argv, prog_name="weathergen")

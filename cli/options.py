@@ -1,14 +1,64 @@
-"""Options shared by several commands, declared once."""
+"""Options shared by several commands, declared once, and how library parameters are spelled."""
 
 from __future__ import annotations
 
 import functools
+from pathlib import Path
 
 import click
 
-from weathergen.datasets import DATASETS, load_scene_scales, open_dataset
+from weathergen.datasets import DATASETS, default_dataset, load_scene_scales, open_dataset
 from weathergen.datasets.common import WORLD_UP_CHOICES
 
+
+#: Where the group keeps the command line it was given (``ctx.meta``), for manifests.
+ARGV_KEY = "weathergen.argv"
+
+#: Library parameters whose command-line option has another name; the others are ``--name``.
+OPTIONS = {"particles_from": "--particles", "config_name": "--config", "fmt": "--format",
+           "overrides": "--set", "pass_": "--pass"}
+
+
+def option_of(parameter: str) -> str:
+    """The command-line option of a library parameter (``pass_name`` -> ``--pass-name``)."""
+    return OPTIONS.get(parameter, "--" + parameter.replace("_", "-"))
+
+
+# -- options of every command that runs a job -------------------------------------------------
+
+def device_option(func):
+    """``--device``: where the job runs."""
+    return click.option("--device", default="cpu", show_default=True,
+                        help="cpu, cuda or cuda:N.")(func)
+
+
+def quiet_option(func):
+    """``--quiet``/``-q``: print nothing but errors."""
+    return click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")(func)
+
+
+def seed_option(help: str):
+    """``--seed``: the run seed (default 0); ``help`` says what it seeds."""
+    return click.option("--seed", type=int, default=0, show_default=True, help=help)
+
+
+def out_option(default: str):
+    """``--out``: the output folder; ``default`` says where it goes without one."""
+    return click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
+                        help=f"Output folder. Default: {default}.")
+
+
+def resume_option(help: str):
+    """``--resume``: finish an interrupted run; ``help`` says what is skipped."""
+    return click.option("--resume", is_flag=True, help=help)
+
+
+def overwrite_option(help: str):
+    """``--overwrite``: redo or replace what a folder holds; ``help`` says what."""
+    return click.option("--overwrite", is_flag=True, help=help)
+
+
+# -- option groups --------------------------------------------------------------------------
 
 def dataset_options(func):
     """Add the dataset-selection options; the command receives ``dataset`` (an opened Dataset)."""
@@ -51,7 +101,7 @@ def dataset_options(func):
     def wrapper(*args, dataset_name, root, split, pass_, scenes, from_scene, frames_per_scene,
                 first_frame, depth_scale, scene_scales, camera_translation, far_depth, world_up,
                 **kwargs):
-        name = dataset_name or ("sintel" if root else "demo")
+        name = dataset_name or default_dataset(root)
         options = dict(depth_scale=depth_scale, camera_translation=camera_translation,
                        scene_scales=load_scene_scales(scene_scales) if scene_scales else None,
                        world_up=world_up)

@@ -3,22 +3,18 @@
 from __future__ import annotations
 
 import click
+from rich.console import Console
+from rich.table import Table
 
-from .main import cli
+from weathergen.engine.presets import list_presets, load_preset, parse_set_options, preset_keys
 
 
-@cli.command("presets")
+@click.command("presets")
 @click.argument("name", required=False)
 @click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
               help="Override one preset key (repeatable), e.g. --set count=500.")
 def presets_command(name, overrides):
     """List the weather presets, or show preset NAME (a name or a .toml file) fully resolved."""
-    from rich.console import Console
-    from rich.table import Table
-
-    from weathergen.engine.presets import (list_presets, load_preset, parse_set_options,
-                                           preset_keys)
-
     console = Console(width=160)
     sets = parse_set_options(overrides)
     if name is None:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import contextlib
-import json
 import signal
 import sys
 import time
@@ -16,14 +15,13 @@ from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColu
 from rich.text import Text
 from rich.table import Table
 
-from weathergen.errors import ConfigError
+from weathergen.engine import parse_set_options, resolve_device
+from weathergen.outputs import FORMATS, folder_size
+from weathergen.render import RenderJob, parse_shard, run_render
+from weathergen.render.plan import default_batch_size, default_out, default_pass_name, resolve_preset
 
-from .main import ARGV_KEY, cli
-from .options import dataset_options
-
-#: Preset keys that only change how stored particles look, so they may change on re-rendering.
-APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defocus_brighten")
-
+from .options import (ARGV_KEY, dataset_options, device_option, out_option, overwrite_option,
+                      quiet_option, resume_option, seed_option)
 
 class _RateColumn(ProgressColumn):
     """Pairs per second (or seconds per pair when slower than one a second)."""
@@ -41,44 +39,6 @@ def _human_bytes(n: float) -> str:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1000
     return f"{n:.1f} TB"
-
-
-def resolve_preset(preset_name, preset_file, set_items, particles_dir):
-    """The preset of the run and, when re-rendering, the particle settings that change."""
-    from weathergen.engine import load_preset, parse_set_options
-
-    overrides = parse_set_options(set_items)
-    if particles_dir is None:
-        preset = load_preset(preset_file or preset_name, overrides)
-        return preset, (Path(preset_file).stem if preset_file else preset_name), {}
-    # Re-rendering: the sampled particles fix everything but their appearance settings.
-    from weathergen.engine import list_presets
-
-    stored = _stored_preset(particles_dir)
-    fixed = sorted(k for k in overrides if k not in APPEARANCE_KEYS)
-    if fixed:
-        raise ConfigError(f"--set {', '.join(fixed)}: fixed by the stored particles; only "
-                          f"{', '.join(APPEARANCE_KEYS)} can change when re-rendering")
-    values = {k: v for k, v in stored["preset"].items() if k not in ("name", "source")}
-    base = stored["name"] if stored["name"] in list_presets() else "snow"  # every key is set anyway
-    preset = load_preset(base, {**values, **overrides})
-    appearance = {}
-    if overrides:
-        appearance = {"blend": preset.blend, "blur_length": preset.effective_blur_length,
-                      "blur_samples": preset.blur_sample_count,
-                      "defocus_brighten": preset.defocus_brighten}
-    return preset, stored["name"], appearance
-
-
-def _stored_preset(particles_dir: Path) -> dict:
-    manifest = particles_dir / "manifest.json"
-    if not manifest.is_file():
-        raise ConfigError(f"{manifest}: not found; --particles takes the folder of an earlier render")
-    try:
-        data = json.loads(manifest.read_text())
-        return {"name": data["preset_name"], "preset": data["preset"]}
-    except (ValueError, KeyError):
-        raise ConfigError(f"{manifest}: not a weathergen render manifest") from None
 
 
 @contextlib.contextmanager
@@ -106,7 +66,7 @@ def _terminate_as_interrupt():
         signal.signal(signal.SIGTERM, previous)
 
 
-@cli.command()
+@click.command()
 @dataset_options
 @click.option("--preset", default="snow", show_default=True,
               help="Weather preset by name (see `weathergen presets`).")
@@ -114,47 +74,44 @@ def _terminate_as_interrupt():
               help="Your own preset file (TOML); replaces --preset. Default: none.")
 @click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
               help="Override one preset key (repeatable), e.g. --set count=500. Default: none.")
-@click.option("--out", type=click.Path(file_okay=False, path_type=Path), default=None,
-              help="Output folder. Default: out/<preset>.")
-@click.option("--seed", type=int, default=0, show_default=True,
-              help="Run seed; each pair's seed derives from it and the pair's identity.")
+@out_option("out/<preset>")
+@seed_option("Run seed; each pair's seed derives from it and the pair's identity.")
 @click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
               default=None, help="Re-render the particles of an earlier render output instead of sampling. "
                                   "Default: sample new particles.")
 @click.option("--pass-name", default=None,
               help="Name of the output pass folder. Default: <preset>_<input pass>.")
-@click.option("--device", default="cpu", show_default=True, help="cpu, cuda or cuda:N.")
+@device_option
 @click.option("--workers", type=click.IntRange(min=1), default=1, show_default=True,
               help="Worker processes (CPU).")
 @click.option("--batch-size", type=click.IntRange(min=1), default=None,
               help="Pairs of the same size rendered together. Default: 8 on CUDA, 1 on CPU. "
                    "Does not change the output bytes.")
-@click.option("--format", "fmt", type=click.Choice(["png", "exr", "both"]), default="png",
+@click.option("--format", "fmt", type=click.Choice(FORMATS), default="png",
               show_default=True, help="8-bit PNG frames, float OpenEXR frames with an opacity channel, or both.")
 @click.option("--geometry/--no-geometry", default=True, show_default=True,
               help="Also write depth, cameras and flow per pair, so the output reads as a Sintel tree.")
 @click.option("--shard", default="1/1", show_default=True, metavar="I/N",
               help="Render only shard I of N (for job arrays); parts merge into one manifest.")
-@click.option("--resume", is_flag=True, help="Finish an interrupted run (same options): skip the pairs that are complete.")
-@click.option("--overwrite", is_flag=True, help="Redo every pair, even in a folder that holds a render, and write into a non-empty "
-                   "folder that render did not create.")
-@click.option("--quiet", "-q", is_flag=True, help="Print nothing but errors.")
+@resume_option("Finish an interrupted run (same options): skip the pairs that are complete.")
+@overwrite_option("Redo every pair, even in a folder that holds a render, and write into a non-empty "
+                  "folder that render did not create.")
+@quiet_option
 def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pass_name, device,
            workers, batch_size, fmt, geometry, shard, resume, overwrite, quiet):
     """Render weather into every selected frame pair and write frames plus particle metadata.
 
     With no option it renders the snow preset onto the bundled demo scene into out/snow.
     """
-    from weathergen.batch import RenderJob, folder_size, parse_shard, run_render
-    from weathergen.engine import resolve_device
-
     dev = resolve_device(device)
-    batch_size = batch_size or (8 if dev.type == "cuda" else 1)
-    preset_obj, name, appearance = resolve_preset(preset, preset_file, set_items, particles_dir)
-    out = out or Path("out") / name
+    batch_size = batch_size or default_batch_size(dev)
+    preset_obj, name, appearance = resolve_preset(preset, preset_file, parse_set_options(set_items),
+                                                  particles_dir)
+    out = out or default_out(name)
     job = RenderJob(
         dataset=dataset, out=out, preset=preset_obj, preset_name=name, seed=seed,
-        pass_name=pass_name or f"{name}_{dataset.selection.pass_}", fmt=fmt, geometry=geometry,
+        pass_name=pass_name or default_pass_name(name, dataset.selection.pass_), fmt=fmt,
+        geometry=geometry,
         device=device, particles_from=particles_dir, appearance=appearance,
         shard=parse_shard(shard), workers=workers, batch_size=batch_size, resume=resume, overwrite=overwrite,
         command=click.get_current_context().meta.get(ARGV_KEY, ["weathergen", *sys.argv[1:]]),

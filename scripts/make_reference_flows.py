@@ -1,8 +1,8 @@
-"""Make tests/golden/reference_flows.npz: flows of the authors' GMA and FlowFormer code.
+"""Make tests/models/reference_flows.npz: flows of the authors' GMA and FlowFormer code.
 
 The authors' implementations are run with reproducible random weights (the same values our
-networks get in tests/test_models_reference.py, from ``seeded_weights`` in
-tests/model_layouts.py) on reproducible random frames; their flows are stored so that the tests
+networks get in tests/models/test_models_reference.py, from ``seeded_weights`` in
+tests/models/model_layouts.py) on reproducible random frames; their flows are stored so that the tests
 can check that our networks compute the same function, without the authors' code or weights.
 
 Needs checkouts of https://github.com/zacjiang/GMA and
@@ -25,10 +25,10 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
+sys.path.insert(0, str(ROOT / "tests" / "models"))
 from model_layouts import seeded_images, seeded_weights  # noqa: E402
 
-#: Settings shared with tests/test_models_reference.py.
+#: Settings shared with tests/models/test_models_reference.py.
 GMA_SEED, GMA_SIZE, GMA_ITERS = 1, (128, 144), 3
 FF_SEED, FF_SIZE, FF_ITERS = 2, (64, 80), 3
 
@@ -88,8 +88,8 @@ def main() -> int:
     parser.add_argument("--gma", type=Path, required=True, help="checkout of zacjiang/GMA")
     parser.add_argument("--flowformer", type=Path, required=True,
                         help="checkout of drinkingcoder/FlowFormer-Official")
-    parser.add_argument("--out", type=Path, default=ROOT / "tests" / "golden" /
-                        "reference_flows.npz")
+    parser.add_argument("--out", type=Path,
+                        default=ROOT / "tests" / "models" / "reference_flows.npz")
     args = parser.parse_args()
     gma = gma_flow(args.gma)
     flowformer = flowformer_flow(args.flowformer)

@@ -25,7 +25,17 @@ def pytest_unconfigure(config):
 
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
-SHARED_WEIGHTS = PROJECT_ROOT.parent / "shared" / "weights"
+#: The released RAFT-small checkpoint (sha256 c7d41b9c...), kept outside the repository.
+RAFT_SMALL_WEIGHTS = PROJECT_ROOT.parent / "shared" / "weights" / "raft-small.pth"
+
+
+@pytest.fixture(scope="session")
+def raft_small_weights() -> Path:
+    """The released RAFT-small weights; a test that needs them is skipped where they are missing."""
+    if not RAFT_SMALL_WEIGHTS.is_file():
+        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth (sha256 c7d41b9c...) "
+                    f"at {RAFT_SMALL_WEIGHTS}")
+    return RAFT_SMALL_WEIGHTS
 
 
 @pytest.fixture(scope="session")

@@ -18,6 +18,8 @@ from typing import Optional, Sequence, Union
 
 import torch
 
+from .errors import ShapeError
+
 FlowOrFlows = Union[torch.Tensor, Sequence[torch.Tensor]]
 
 # Hue segments of the wheel: number of colours and the colour each segment runs towards.
@@ -79,7 +81,7 @@ def _check_flow(flow: torch.Tensor, name: str) -> None:
     if not isinstance(flow, torch.Tensor):
         raise TypeError(f"expected {name} to be a torch.Tensor, got {type(flow).__name__}")
     if flow.dim() not in (3, 4) or flow.shape[-3] != 2:
-        raise ValueError(f"expected {name} of shape (2, H, W) or (B, 2, H, W), "
+        raise ShapeError(f"expected {name} of shape (2, H, W) or (B, 2, H, W), "
                          f"got {tuple(flow.shape)}")
 
 
@@ -157,7 +159,7 @@ def aee(flow: torch.Tensor, target: torch.Tensor,
 def _check_pair(flow: torch.Tensor, target: torch.Tensor) -> None:
     _check_flow(flow, "flow")
     if target.shape != flow.shape:
-        raise ValueError(f"expected target of the flow's shape {tuple(flow.shape)}, "
+        raise ShapeError(f"expected target of the flow's shape {tuple(flow.shape)}, "
                          f"got {tuple(target.shape)}")
 
 
@@ -166,12 +168,12 @@ def _mask(valid: Optional[torch.Tensor], flow: torch.Tensor) -> Optional[torch.T
     if valid is None:
         return None
     if valid.dtype != torch.bool:
-        raise ValueError(f"expected a bool valid mask, got {valid.dtype}")
+        raise ShapeError(f"expected a bool valid mask, got {valid.dtype}")
     spatial = flow.shape[:-3] + flow.shape[-2:]
     if valid.dim() == flow.dim() and valid.shape[-3] == 1:
         valid = valid.squeeze(-3)
     if valid.shape != spatial:
         with_channel = tuple(flow.shape[:-3]) + (1,) + tuple(flow.shape[-2:])
-        raise ValueError(f"expected a valid mask of shape {with_channel} or {tuple(spatial)}, "
+        raise ShapeError(f"expected a valid mask of shape {with_channel} or {tuple(spatial)}, "
                          f"got {tuple(valid.shape)}")
     return valid

@@ -32,7 +32,7 @@ from typing import Optional
 
 import torch
 
-from .errors import DatasetError
+from .errors import DatasetError, ShapeError
 
 
 @dataclass(frozen=True, order=True)
@@ -186,7 +186,7 @@ class FramePairBatch:
             raise ValueError("cannot stack an empty list of frame pairs")
         sizes = {p.size for p in pairs}
         if len(sizes) != 1:
-            raise DatasetError(f"frame pairs of different sizes cannot form one batch: {sorted(sizes)}")
+            raise ShapeError(f"frame pairs of different sizes cannot form one batch: {sorted(sizes)}")
 
         def opt(name):
             vals = [getattr(p, name) for p in pairs]

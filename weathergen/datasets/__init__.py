@@ -12,6 +12,7 @@ from typing import Optional
 from ..errors import ConfigError
 from .base import Dataset, PairRef, Selection
 from .custom import CustomDataset
+from .demo import demo_root
 from .kitti import KittiDataset
 from .sintel import SintelDataset, load_scene_scales
 from .spring import SpringDataset
@@ -24,8 +25,6 @@ class DemoDataset(SintelDataset):
     default_world_up = "+z"          # the demo world is z-up, like the Blender scenes behind Sintel
 
     def __init__(self, root=None, selection: Selection = Selection(), **options):
-        from .demo import demo_root
-
         super().__init__(root if root is not None else demo_root(), selection, **options)
 
 
@@ -37,6 +36,11 @@ DATASETS: dict[str, type[Dataset]] = {
     "sintel": SintelDataset,
     "spring": SpringDataset,
 }
+
+
+def default_dataset(root: Optional[str | Path]) -> str:
+    """The reader used when none is named: the bundled ``demo`` without a root, ``sintel`` with one."""
+    return "sintel" if root else "demo"
 
 
 def open_dataset(name: str, root: Optional[str | Path] = None, *, split: str = "training",
@@ -52,7 +56,7 @@ def open_dataset(name: str, root: Optional[str | Path] = None, *, split: str = "
     except KeyError:
         raise ConfigError(f"unknown dataset {name!r}; known: {', '.join(sorted(DATASETS))}") from None
     if root is None and name != "demo":
-        raise ConfigError(f"dataset {name!r} needs --root, the folder it is stored in")
+        raise ConfigError(f"dataset {name!r} needs ${{root}}, the folder it is stored in")
     selection = Selection(split=split, pass_=pass_, scenes=tuple(scenes) if scenes else None,
                           from_scene=from_scene, frames_per_scene=frames_per_scene,
                           first_frame=first_frame)
@@ -90,5 +94,5 @@ def demo_pairs(**selection) -> list:
 
 
 __all__ = ["DATASETS", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset",
-           "PairRef", "Selection", "SintelDataset", "SpringDataset", "demo_pairs",
+           "PairRef", "Selection", "SintelDataset", "SpringDataset", "default_dataset", "demo_pairs",
            "load_scene_scales", "open_dataset", "reopen_dataset"]

@@ -48,7 +48,7 @@ class Selection:
             chosen = [s for s in available if s in self.scenes]
         if self.from_scene is not None:
             if self.from_scene not in available:
-                raise ConfigError(f"{where}: --from-scene {self.from_scene!r} is not a scene; "
+                raise ConfigError(f"{where}: ${{from_scene}} {self.from_scene!r} is not a scene; "
                                   f"available: {', '.join(available) or 'none'}")
             chosen = [s for s in chosen if s >= self.from_scene]
         return chosen

@@ -11,6 +11,7 @@ import torch
 
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
+from ..geometry import invert_rigid, to_homogeneous
 from .base import Dataset, Selection
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
@@ -104,7 +105,7 @@ class FarDepthDataset(ScaledDataset):
             raise ConfigError(f"unknown {self.name} split {selection.split!r}; choose from "
                               f"{', '.join(sorted(self.split_folders))}")
         if selection.pass_ != "clean":
-            raise ConfigError(f"{self.name} has a single rendering pass; --pass {selection.pass_!r} "
+            raise ConfigError(f"{self.name} has a single rendering pass; ${{pass_}} {selection.pass_!r} "
                               f"does not apply (leave it at 'clean')")
         far = DEFAULT_FAR_DEPTH if far_depth is None else far_depth
         if not (np.isfinite(far) and far > 0):
@@ -180,8 +181,6 @@ def scaled_poses(cam1_from_world: np.ndarray, cam2_from_world: np.ndarray, scale
     Shape: (4, 4) or (3, 4) each -> ``(cam1_from_world, cam2_from_world, cam2_from_cam1)``, (4, 4)
     float64.
     """
-    from ..geometry import invert_rigid, to_homogeneous
-
     poses = []
     for e in (cam1_from_world, cam2_from_world):
         t = torch.from_numpy(np.array(e, np.float64))

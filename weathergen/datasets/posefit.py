@@ -18,6 +18,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..errors import ShapeError
+
 
 @dataclass(frozen=True)
 class RigidFit:
@@ -62,7 +64,7 @@ def kabsch(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None) 
     src = np.asarray(src, np.float64)
     dst = np.asarray(dst, np.float64)
     if src.shape != dst.shape or src.ndim != 2 or src.shape[1] != 3 or len(src) < 3:
-        raise ValueError(f"kabsch needs two (N, 3) arrays with N >= 3, got {src.shape} and {dst.shape}")
+        raise ShapeError(f"kabsch needs two (N, 3) arrays with N >= 3, got {src.shape} and {dst.shape}")
     w = np.ones(len(src)) if weights is None else np.asarray(weights, np.float64)
     w = w / w.sum()
     c_src, c_dst = w @ src, w @ dst
@@ -134,7 +136,7 @@ def fit_camera_motion(points1: np.ndarray, points2: np.ndarray, intrinsics: np.n
     p1 = np.asarray(points1, np.float64)
     p2 = np.asarray(points2, np.float64)
     if p1.shape != p2.shape or p1.ndim != 2 or p1.shape[1] != 3:
-        raise ValueError(f"expected two (N, 3) point arrays, got {p1.shape} and {p2.shape}")
+        raise ShapeError(f"expected two (N, 3) point arrays, got {p1.shape} and {p2.shape}")
     n = len(p1)
     if n < 3:
         raise ValueError(f"a rigid fit needs at least 3 correspondences, got {n}")

@@ -7,39 +7,26 @@ Typical use::
     particles = sample_particles(pair, preset, seed=0)
     out = render_pair(pair, particles)          # out.image1, out.image2, out.opacity1, out.opacity2
 
-Names are imported lazily so that ``import weathergen.engine`` stays cheap. The renderer module
-is ``renderer`` (not ``render``) so that it never shadows the :func:`render` function.
+The renderer module is ``renderer`` (not ``render``) so that it never shadows the :func:`render`
+function.
 """
 
 from __future__ import annotations
 
-import importlib
+from .particles import Particles, empty_particles, from_atanh, to_atanh
+from .presets import Preset, list_presets, load_preset, parse_override, parse_set_options, preset_keys
+from .renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps, render,
+                       render_pair)
+from .sampling import (reference_transforms, resolve_device, sample_particles, visible_counts,
+                       world_down)
+from .settings import APPEARANCE_KEYS, RenderSettings
+from .templates import (TemplateLibrary, generate_templates, load_templates,
+                        write_builtin_templates)
 
-_EXPORTS = {
-    "Preset": "presets", "load_preset": "presets", "list_presets": "presets",
-    "parse_override": "presets", "parse_set_options": "presets", "preset_keys": "presets",
-    "TemplateLibrary": "templates", "load_templates": "templates",
-    "generate_templates": "templates", "write_builtin_templates": "templates",
-    "Particles": "particles", "empty_particles": "particles", "to_atanh": "particles",
-    "from_atanh": "particles",
-    "sample_particles": "sampling", "reference_transforms": "sampling", "world_down": "sampling",
-    "resolve_device": "sampling",
-    "render": "renderer", "render_pair": "renderer", "build_stamps": "renderer",
-    "RenderOutput": "renderer", "StampSet": "renderer", "BETA_RENDER": "renderer",
-    "BETA_ATTACK": "renderer",
-}
-
-__all__ = sorted(_EXPORTS)
-
-
-def __getattr__(name):
-    module = _EXPORTS.get(name)
-    if module is None:
-        raise AttributeError(f"module 'weathergen.engine' has no attribute {name!r}")
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value
-    return value
-
-
-def __dir__():
-    return __all__
+__all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "Particles", "Preset", "RenderOutput",
+           "RenderSettings", "StampSet",
+           "TemplateLibrary", "build_stamps", "empty_particles", "from_atanh", "generate_templates",
+           "list_presets", "load_preset", "load_templates", "parse_override", "parse_set_options",
+           "preset_keys", "reference_transforms", "render", "render_pair", "resolve_device",
+           "sample_particles", "to_atanh", "visible_counts", "world_down",
+           "write_builtin_templates"]

@@ -33,6 +33,7 @@ import numpy as np
 import torch
 
 from ..errors import FormatError
+from .settings import RenderSettings
 
 FORMAT_VERSION = 1
 REFERENCE_FRAMES = ("world", "camera1")
@@ -51,11 +52,14 @@ _TENSOR_FIELDS = {
     "defocus": (np.uint8, ()),
 }
 _INTEGER_FIELDS = ("template", "defocus")
+#: The names of the per-particle tensors of a record.
+TENSOR_FIELDS = tuple(_TENSOR_FIELDS)
 
 
 @dataclass
 class Particles:
-    """Per-particle parameters of one frame pair (N particles) and the render settings they need.
+    """Per-particle parameters of one frame pair (N particles) and the render settings they need
+    (``settings``, a :class:`~weathergen.engine.RenderSettings`).
 
     Shape:
         position: (N, 3) scene units, in ``frame`` coordinates (world or camera 1).
@@ -64,7 +68,7 @@ class Particles:
             ``frame`` axes; zero after sampling, optimised by the attack.
         color: (N, 3) RGB in [0, 1].
         transparency: (N,) θ, the alpha scale of the template (>= 0; may exceed 1 for glows).
-        template: (N,) int64 index into the template library named by ``templates``.
+        template: (N,) int64 index into the template library named by ``settings.templates``.
         rotation: (N,) radians, counter-clockwise on screen.
         scale: (N,) image pixels per template pixel, fixed at sampling.
         defocus: (N,) int64 disc-blur radius in pixels (0 or 1: no blur).
@@ -82,12 +86,7 @@ class Particles:
     scale: torch.Tensor
     defocus: torch.Tensor
     frame: str = "world"
-    blend: str = "additive"
-    blur_length: float = 0.0
-    blur_samples: int = 1
-    defocus_brighten: bool = True
-    templates: str = "flakes"
-    templates_digest: str = ""
+    settings: RenderSettings = RenderSettings()
 
     @property
     def count(self) -> int:
@@ -132,9 +131,7 @@ class Particles:
 
     def metadata(self) -> dict:
         """The non-tensor fields: reference frame and render settings."""
-        return {"frame": self.frame, "blend": self.blend, "blur_length": self.blur_length,
-                "blur_samples": self.blur_samples, "defocus_brighten": self.defocus_brighten,
-                "templates": self.templates, "templates_digest": self.templates_digest}
+        return {"frame": self.frame, **self.settings.to_dict()}
 
     # -- storage -----------------------------------------------------------------------------
 
@@ -144,8 +141,8 @@ class Particles:
         arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
             arrays[name] = getattr(q, name).cpu().numpy().astype(np_dtype)
-        for key, value in self.metadata().items():
-            arrays[key] = np.array(value)
+        arrays["frame"] = np.array(self.frame)
+        arrays.update(self.settings.to_arrays())
         return arrays
 
     def save(self, path: str | Path) -> Path:
@@ -185,26 +182,22 @@ class Particles:
                                         f"{np.dtype(np_dtype)} {(n, *tail)}")
             t = torch.from_numpy(a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32))
             fields[name] = t.to(device) if device is not None else t
-        meta = {}
-        for key, kind in (("frame", str), ("blend", str), ("blur_length", float),
-                          ("blur_samples", int), ("defocus_brighten", bool),
-                          ("templates", str), ("templates_digest", str)):
-            if key not in arrays:
-                raise FormatError(path, f"missing field '{key}'")
-            meta[key] = kind(arrays[key].item())
-        if meta["frame"] not in REFERENCE_FRAMES:
-            raise FormatError(path, f"unknown reference frame {meta['frame']!r}")
-        return cls(**fields, **meta)
+        if "frame" not in arrays:
+            raise FormatError(path, "missing field 'frame'")
+        frame = str(arrays["frame"].item())
+        if frame not in REFERENCE_FRAMES:
+            raise FormatError(path, f"unknown reference frame {frame!r}")
+        return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path))
 
 
-def empty_particles(frame: str = "world", **settings) -> Particles:
+def empty_particles(frame: str = "world", settings: RenderSettings = RenderSettings()) -> Particles:
     """A record with no particles (renders to the unchanged frames)."""
     z3 = torch.zeros(0, 3)
     z = torch.zeros(0)
     zi = torch.zeros(0, dtype=torch.int64)
     return Particles(position=z3, motion=z3.clone(), offset1=z3.clone(), offset2=z3.clone(),
                      color=z3.clone(), transparency=z, template=zi, rotation=z.clone(),
-                     scale=z.clone(), defocus=zi.clone(), frame=frame, **settings)
+                     scale=z.clone(), defocus=zi.clone(), frame=frame, settings=settings)
 
 
 def to_atanh(xi: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:

@@ -5,7 +5,8 @@ Values are resolved in this order, later ones winning:
 
 1. the schema defaults declared on :class:`Preset`;
 2. the preset file (a bundled one, by name, or a user's ``.toml`` file, by path);
-3. overrides, ``{"key": "value"}`` strings as typed on the command line (``--set count=500``),
+3. overrides (the parameter ``overrides``), ``{"key": "value"}`` strings as typed on the
+   command line (``--set count=500``),
    parsed as TOML values and then validated like the file.
 
 Every problem (unknown key, wrong type, out-of-range value, unknown preset name) raises
@@ -22,9 +23,9 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional
 
-from ..errors import ConfigError
+from ..errors import ConfigError, WeatherGenError
+from .templates import BUILTIN_TEMPLATE_KINDS, load_templates
 
-BUILTIN_TEMPLATE_KINDS = ("flakes", "dust")
 BLEND_MODES = ("additive", "alpha")
 TRANSPARENCY_MODES = ("depth", "constant")
 
@@ -212,7 +213,7 @@ def _coerce(where: str, key: str, value: Any) -> Any:
     return out
 
 
-def parse_override(key: str, text: str, where: str = "--set") -> Any:
+def parse_override(key: str, text: str, where: str = "${overrides}") -> Any:
     """Parse a command-line value for ``key`` using the key's type (TOML syntax, bare strings ok).
 
     ``"500"`` -> 500, ``"true"`` -> True, ``"255,0,0"`` or ``"[255, 0, 0]"`` -> (255, 0, 0).
@@ -292,7 +293,7 @@ def load_preset(name_or_path: str | Path = "snow",
         else:
             values[key] = _coerce("override", key, value)
         if key == "templates":
-            templates_from = "--set" if isinstance(value, str) else "override"
+            templates_from = "${overrides}" if isinstance(value, str) else "override"
     preset = Preset(name=name, source=where, **values)
     _check_consistency(preset, where)
     _check_template_folder(preset.templates, templates_from)
@@ -304,9 +305,6 @@ def _check_template_folder(value: str, where: str) -> None:
     than in the middle of a run."""
     if value in BUILTIN_TEMPLATE_KINDS:
         return
-    from ..errors import WeatherGenError
-    from .templates import load_templates
-
     try:
         load_templates(value)
     except WeatherGenError as exc:
@@ -332,6 +330,6 @@ def parse_set_options(items: list[str] | tuple[str, ...]) -> dict[str, str]:
     for item in items:
         key, sep, value = item.partition("=")
         if not sep or not key.strip():
-            raise ConfigError(f"--set {item!r}: expected KEY=VALUE")
+            raise ConfigError(f"${{overrides}} {item!r}: expected KEY=VALUE")
         out[key.strip()] = value
     return out

@@ -38,10 +38,11 @@ from typing import Optional, Sequence, Union
 import torch
 import torch.nn.functional as F
 
-from ..errors import ConfigError, DatasetError
+from ..errors import ConfigError, DatasetError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from ..geometry import project, transform_points
 from .particles import Particles
+from .presets import BLEND_MODES
 from .sampling import NEAR, check_pair_for_engine, reference_transforms, resolve_device
 from .templates import TemplateLibrary, load_templates
 
@@ -169,7 +170,7 @@ def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
         footprint = (footprint * lib.resolution).clamp(min=1.0)
         radius = torch.cat([r.defocus for r in records]).to(device)
         radius = torch.where(radius > 1, radius, torch.zeros_like(radius))
-        brighten = torch.cat([torch.full((r.count,), bool(r.defocus_brighten), device=device)
+        brighten = torch.cat([torch.full((r.count,), bool(r.settings.defocus_brighten), device=device)
                               for r in records])
         if int(template.numel()) and (int(template.min()) < 0 or int(template.max()) >= lib.count):
             raise ConfigError(f"particle template index out of range for the {lib.count} "
@@ -208,10 +209,10 @@ def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
 
 def _blur_steps(record: Particles, dtype, device) -> torch.Tensor:
     """Fractions of the displacement at which blur samples sit. Shape: (K,)."""
-    k = int(record.blur_samples)
-    if k <= 1 or record.blur_length <= 0:
+    k = int(record.settings.blur_samples)
+    if k <= 1 or record.settings.blur_length <= 0:
         return torch.zeros(1, dtype=dtype, device=device)
-    return torch.linspace(0.0, float(record.blur_length), k, dtype=dtype, device=device)
+    return torch.linspace(0.0, float(record.settings.blur_length), k, dtype=dtype, device=device)
 
 
 def _instances(records, intrinsics, cam1_from_ref, cam2_from_ref, dtype, device):
@@ -412,30 +413,30 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     """
     records = [particles] if isinstance(particles, Particles) else list(particles)
     if image1.dim() != 4 or image1.shape[1] != 3 or image2.shape != image1.shape:
-        raise DatasetError(f"images must be (B, 3, H, W) and equal; got {tuple(image1.shape)} "
-                           f"and {tuple(image2.shape)}")
+        raise ShapeError(f"images must be (B, 3, H, W) and equal; got {tuple(image1.shape)} "
+                         f"and {tuple(image2.shape)}")
     bsz, _, height, width = image1.shape
     for name, d in (("depth1", depth1), ("depth2", depth2)):
         if d is None:
             raise DatasetError(f"{name} is missing; weather rendering needs scene depth")
         if tuple(d.shape) != (bsz, 1, height, width):
-            raise DatasetError(f"{name} has shape {tuple(d.shape)}, expected "
-                               f"{(bsz, 1, height, width)}")
+            raise ShapeError(f"{name} has shape {tuple(d.shape)}, expected "
+                             f"{(bsz, 1, height, width)}")
     if len(records) != bsz:
         raise ConfigError(f"{len(records)} particle records for a batch of {bsz} frame pairs")
     dtype, device = image1.dtype, image1.device
     if templates is None:
-        names = {r.templates for r in records}
+        names = {r.settings.templates for r in records}
         if len(names) != 1:
             raise ConfigError(f"records of one render call must share templates; got {sorted(names)}")
         templates = load_templates(names.pop())
     for r in records:
-        if r.templates_digest and templates.digest != r.templates_digest:
-            raise ConfigError(f"particles were sampled with templates '{r.templates}' "
-                              f"(digest {r.templates_digest}) but are rendered with "
+        if r.settings.templates_digest and templates.digest != r.settings.templates_digest:
+            raise ConfigError(f"particles were sampled with templates '{r.settings.templates}' "
+                              f"(digest {r.settings.templates_digest}) but are rendered with "
                               f"'{templates.name}' (digest {templates.digest})")
-        if r.blend not in ("additive", "alpha"):
-            raise ConfigError(f"unknown blend mode {r.blend!r}")
+        if r.settings.blend not in BLEND_MODES:
+            raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
 
     acc = None
     intr = intrinsics.to(device)
@@ -454,7 +455,7 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     alpha = acc[0].view(2, bsz, 1, height, width)
     colour = torch.stack([a.view(2, bsz, height, width) for a in acc[1:]], 2)
     images = torch.stack((image1, image2))
-    alpha_mode = torch.tensor([r.blend == "alpha" for r in records], device=device)
+    alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
     alpha_mode = alpha_mode.view(1, bsz, 1, 1, 1)
     out = torch.where(alpha_mode, images * (1 - alpha) + colour, images + colour).clamp(0, 1)
     opacity = alpha.clamp(0, 1)

@@ -31,6 +31,7 @@ from ..framepair import FramePair
 from ..geometry import invert_rigid, project, transform_points
 from .particles import Particles, empty_particles
 from .presets import Preset
+from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
 
 WORLD_UP_CHOICES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
@@ -51,7 +52,7 @@ def resolve_device(device: Optional[Union[str, torch.device]]) -> torch.device:
     if dev.type == "cuda":
         if not torch.cuda.is_available():
             raise WeatherGenError(f"device {device!r} requested but CUDA is not available "
-                                  "on this machine (use --device cpu)")
+                                  "on this machine (use ${device} cpu)")
         if dev.index is not None and dev.index >= torch.cuda.device_count():
             raise WeatherGenError(f"device {device!r} requested but only "
                                   f"{torch.cuda.device_count()} CUDA device(s) exist")
@@ -230,13 +231,10 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     ref_from_cam1 = invert_rigid(cam1_from_ref)
     k = pair.intrinsics.double().cpu()
     depth1, depth2 = pair.depth1.cpu(), pair.depth2.cpu()
-    settings = dict(blend=preset.blend, blur_length=preset.effective_blur_length,
-                    blur_samples=preset.blur_sample_count,
-                    defocus_brighten=preset.defocus_brighten, templates=lib.name,
-                    templates_digest=lib.digest)
+    settings = RenderSettings.from_preset(preset, lib)
     n = preset.count
     if n == 0:
-        return empty_particles(frame, **settings).to(dev)
+        return empty_particles(frame, settings).to(dev)
 
     ref_from_vertical = _vertical_frame(world_down(cam1_from_ref, cam2_from_ref, world_up),
                                         cam1_from_ref)
@@ -301,5 +299,22 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     zeros = torch.zeros(n, 3, dtype=torch.float64)
     record = Particles(position=position, motion=motion, offset1=zeros, offset2=zeros.clone(),
                        color=color, transparency=theta, template=template, rotation=rotation,
-                       scale=scale, defocus=defocus, frame=frame, **settings)
+                       scale=scale, defocus=defocus, frame=frame, settings=settings)
     return record.quantized().to(dev)
+
+
+def visible_counts(pair: FramePair, particles: Particles) -> tuple[int, int]:
+    """How many particle centres each frame shows in front of the scene surface.
+
+    The test of sampling (:func:`_visible`): frame 1 sees ``P + δ1``, frame 2 ``P + δ1 + M + δ2``.
+    """
+    _, cam1_from_ref, cam2_from_ref = reference_transforms(pair)
+    start = (particles.position + particles.offset1).double().cpu()
+    end = start + (particles.motion + particles.offset2).double().cpu()
+    k = pair.intrinsics.double().cpu()
+    counts = []
+    for cam_from_ref, points, depth in ((cam1_from_ref, start, pair.depth1),
+                                        (cam2_from_ref, end, pair.depth2)):
+        camera = transform_points(cam_from_ref.double().cpu(), points)
+        counts.append(int(_visible(camera, k, depth.cpu()).sum()))
+    return counts[0], counts[1]

@@ -20,11 +20,14 @@ from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
 
+import cv2
 import numpy as np
 import torch
 
 from ..errors import ConfigError, FormatError
-from .presets import BUILTIN_TEMPLATE_KINDS
+
+#: The template libraries that ship with weathergen (a preset may also name a folder of PNGs).
+BUILTIN_TEMPLATE_KINDS = ("flakes", "dust")
 
 FLAKE_RESOLUTION = 80
 DUST_RESOLUTION = 128
@@ -74,8 +77,6 @@ def _finish(stack: list[np.ndarray], name: str) -> TemplateLibrary:
 
 
 def _read_png(path: Path) -> np.ndarray:
-    import cv2  # local import: OpenCV is slow to import and only needed here
-
     if path.suffix.lower() != ".png":
         raise FormatError(path, "not a PNG image; a template folder may hold only grey-scale PNGs")
     img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
@@ -220,8 +221,6 @@ def write_builtin_templates(root: str | Path, seed: int = 0) -> list[Path]:
     """Regenerate the shipped PNGs under ``root/<kind>/NN.png`` (run from a source checkout:
     ``python -c "from weathergen.engine.templates import write_builtin_templates as w;
     w('weathergen/engine/templates')"``)."""
-    import cv2
-
     written = []
     for kind in BUILTIN_TEMPLATE_KINDS:
         folder = Path(root) / kind

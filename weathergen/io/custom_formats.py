@@ -17,6 +17,7 @@ from typing import Optional
 
 import cv2
 import numpy as np
+import OpenEXR
 
 from ..errors import FormatError
 from .text import read_text_file
@@ -67,8 +68,6 @@ def read_depth(path: str | Path, png_scale: Optional[float] = None) -> np.ndarra
 
 
 def _read_exr_depth(path: Path) -> np.ndarray:
-    import OpenEXR   # imported here: only EXR users pay for it
-
     try:
         with OpenEXR.File(str(path)) as f:
             channels = {name: np.asarray(ch.pixels) for name, ch in f.channels().items()}
@@ -108,8 +107,6 @@ def write_depth(path: str | Path, depth: np.ndarray, png_scale: Optional[float] 
             raise RuntimeError("PNG encoding failed")
         return atomic_write_bytes(path, buf.tobytes())
     if suffix == ".exr":
-        import OpenEXR
-
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".exr", dir=path.parent)
         os.close(fd)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 from torch import nn
 
+from ..errors import ShapeError
 from .checkpoints import load_strict
 from .padding import InputPadder
 
@@ -78,9 +79,9 @@ def _check_images(image1: torch.Tensor, image2: torch.Tensor) -> None:
         if not isinstance(image, torch.Tensor):
             raise TypeError(f"expected {name} to be a torch.Tensor, got {type(image).__name__}")
         if image.dim() != 4 or image.shape[1] != 3:
-            raise ValueError(f"expected {name} of shape (B, 3, H, W), got {tuple(image.shape)}")
+            raise ShapeError(f"expected {name} of shape (B, 3, H, W), got {tuple(image.shape)}")
         if not image.is_floating_point():
-            raise ValueError(f"expected {name} to be a float tensor in [0, 1], got {image.dtype}")
+            raise ShapeError(f"expected {name} to be a float tensor in [0, 1], got {image.dtype}")
     if image1.shape != image2.shape:
-        raise ValueError(f"expected image1 and image2 of the same shape, got "
+        raise ShapeError(f"expected image1 and image2 of the same shape, got "
                          f"{tuple(image1.shape)} and {tuple(image2.shape)}")

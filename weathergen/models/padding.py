@@ -12,6 +12,8 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
+from ..errors import ShapeError
+
 
 class InputPadder:
     """Pads ``(..., H, W)`` tensors to a multiple of ``multiple`` and crops them back.
@@ -52,7 +54,7 @@ class InputPadder:
     def pad(self, x: torch.Tensor) -> torch.Tensor:
         """Pad a ``(B, C, H, W)`` tensor of the size this padder was made for."""
         if tuple(x.shape[-2:]) != (self.height, self.width):
-            raise ValueError(f"expected a tensor of size {self.height}x{self.width}, "
+            raise ShapeError(f"expected a tensor of size {self.height}x{self.width}, "
                              f"got {x.shape[-2]}x{x.shape[-1]}")
         if not (self.top or self.bottom or self.left or self.right):
             return x
@@ -62,7 +64,7 @@ class InputPadder:
     def unpad(self, x: torch.Tensor) -> torch.Tensor:
         """Crop a padded ``(..., H_padded, W_padded)`` tensor back to ``(..., H, W)``."""
         if tuple(x.shape[-2:]) != self.padded_size:
-            raise ValueError(f"expected a tensor of padded size {self.padded_size[0]}x"
+            raise ShapeError(f"expected a tensor of padded size {self.padded_size[0]}x"
                              f"{self.padded_size[1]}, got {x.shape[-2]}x{x.shape[-1]}")
         return x[..., self.top:self.top + self.height, self.left:self.left + self.width]
 

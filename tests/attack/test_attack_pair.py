@@ -1,0 +1,233 @@
+"""The attack's pieces and its loop: option parsing, targets, penalty, parametrisation, gradients
+through RAFT-small, and the best-step bookkeeping on a small crop of the demo scene."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import torch
+
+from weathergen.attack import (ATTACK_CONFIGS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE,
+                               AttackSettings, TargetSpec, WeatherVariables, attack_config,
+                               attack_loss, attack_pair, default_lr, offset_penalty,
+                               parse_optimize, parse_target, particle_depths, target_flow)
+from weathergen.errors import ConfigError
+
+
+
+def crop_pair(pair, top: int, left: int, height: int, width: int):
+    """A window of a frame pair, with the principal point moved so the geometry stays exact."""
+    rows, cols = slice(top, top + height), slice(left, left + width)
+    k = pair.intrinsics.clone()
+    k[0, 2] -= left
+    k[1, 2] -= top
+    crop = lambda t: None if t is None else t[:, rows, cols].contiguous()  # noqa: E731
+    return dataclasses.replace(pair, image1=crop(pair.image1), image2=crop(pair.image2),
+                               depth1=crop(pair.depth1), depth2=crop(pair.depth2),
+                               flow=crop(pair.flow), flow_valid=crop(pair.flow_valid),
+                               intrinsics=k)
+
+
+@pytest.fixture(scope="module")
+def small_pair():
+    from weathergen.datasets import demo_pairs
+
+    pair = demo_pairs(scenes=["courtyard"], frames_per_scene=1)[0]
+    return crop_pair(pair, 40, 120, 96, 128).validate()
+
+
+@pytest.fixture(scope="module")
+def raft_small(raft_small_weights):
+    from weathergen.models import get_model
+
+    return get_model("raft-small", checkpoint=raft_small_weights, iters=2)
+
+
+def grey_particles(pair, count=80, seed=3):
+    """Mid-grey alpha-blended particles: colour and transparency sit where tanh is not flat."""
+    from weathergen.engine import load_preset, sample_particles
+
+    return sample_particles(pair, load_preset("grey", {"count": str(count)}), seed)
+
+
+# -- options ------------------------------------------------------------------------------------
+
+def test_parse_optimize_orders_and_validates():
+    assert parse_optimize("color,offset1") == ("offset1", "color")
+    assert parse_optimize("all") == OPTIMIZABLE
+    with pytest.raises(ConfigError, match="offset1, offset2, color, transparency"):
+        parse_optimize("offset1,colour")
+    with pytest.raises(ConfigError):
+        parse_optimize(" , ")
+
+
+def test_default_learning_rates_follow_the_paper():
+    assert default_lr(("offset1",)) == LR_POSITIONS == 1e-5
+    assert default_lr(("color", "transparency")) == LR_APPEARANCE == 1e-3
+    assert default_lr(OPTIMIZABLE) == 1e-5
+    assert AttackSettings(optimize=("color",), lr=0.5).learning_rate == 0.5
+
+
+def test_settings_reject_bad_values():
+    # Library messages name the parameter; the command line spells it as its option.
+    with pytest.raises(ConfigError, match="^lr must be a positive number") as bad_lr:
+        AttackSettings(lr=-1.0)
+    assert bad_lr.value.render(lambda name: f"--{name}").startswith("--lr must")
+    with pytest.raises(ConfigError, match="^steps must be >= 0"):
+        AttackSettings(steps=-2)
+    with pytest.raises(ConfigError, match="^alpha1 must be a finite number"):
+        AttackSettings(alpha1=float("nan"))
+
+
+def test_attack_configurations_match_the_supplement_table():
+    # Eleven distinct rows (the Sintel-train snow row differs from snow only in its data).
+    assert len(ATTACK_CONFIGS) == 11
+    fog = attack_config("fog")
+    assert "offset2" not in fog.optimize and fog.occlusion_gradient
+    for name in ("snow", "rain", "sparks", "grey-all"):
+        assert ATTACK_CONFIGS[name].optimize == OPTIMIZABLE
+    for cfg in ATTACK_CONFIGS.values():
+        assert cfg.lr == default_lr(cfg.optimize)
+    with pytest.raises(ConfigError, match="grey-offset1"):
+        attack_config("hail")
+
+
+def test_parse_target_forms():
+    assert parse_target("zero") == TargetSpec("zero")
+    assert parse_target("negative").kind == "negative"
+    assert parse_target("2.5,-1") == TargetSpec("constant", (2.5, -1.0))
+    assert parse_target("goal.flo").path == Path("goal.flo")
+    for bad in ("up", "1,2,3", "a,b"):
+        with pytest.raises(ConfigError, match="^target "):
+            parse_target(bad)
+
+
+def test_target_flows():
+    benign = torch.randn(1, 2, 5, 7)
+    assert torch.equal(target_flow(TargetSpec("zero"), benign), torch.zeros(1, 2, 5, 7))
+    assert torch.equal(target_flow(TargetSpec("negative"), benign), -benign)
+    const = target_flow(TargetSpec("constant", (3.0, -2.0)), benign)
+    assert torch.all(const[:, 0] == 3.0) and torch.all(const[:, 1] == -2.0)
+    file_flow = torch.randn(2, 5, 7)
+    assert torch.equal(target_flow(TargetSpec("file", path=Path("t.flo")), benign, file_flow)[0],
+                       file_flow)
+    with pytest.raises(ConfigError, match="7x5"):
+        target_flow(TargetSpec("file", path=Path("t.flo")), benign, torch.zeros(2, 4, 4))
+
+
+# -- loss and parametrisation --------------------------------------------------------------------
+
+def test_offset_penalty_by_hand():
+    d1 = torch.tensor([[1.0, 0.0, 0.0], [0.0, 2.0, 0.0]])
+    d2 = torch.tensor([[0.0, 0.0, 3.0], [0.0, 0.0, 0.0]])
+    depth1, depth2 = torch.tensor([1.0, 2.0]), torch.tensor([3.0, 1.0])
+    # frame 1: (1/1 + 4/2) = 3, frame 2: 9/3 = 3; weights 10 and 100; |P| = 2
+    assert offset_penalty(d1, d2, depth1, depth2, 10.0, 100.0).item() == pytest.approx(165.0)
+    assert offset_penalty(torch.zeros(0, 3), torch.zeros(0, 3), torch.zeros(0), torch.zeros(0),
+                          1.0, 1.0).item() == 0.0
+
+
+def test_variables_start_at_the_record_and_keep_frozen_fields(small_pair):
+    particles = grey_particles(small_pair)
+    v = WeatherVariables(particles, OPTIMIZABLE)
+    start = v.particles()
+    for name in ("offset1", "offset2", "color", "transparency"):
+        assert torch.allclose(getattr(start, name), getattr(particles, name), atol=1e-5)
+    frozen = WeatherVariables(particles, ("color",))
+    with torch.no_grad():
+        frozen.delta["color"].add_(50.0)          # far into the flat part of tanh
+    moved = frozen.particles()
+    assert torch.equal(moved.transparency, particles.transparency)
+    assert torch.equal(moved.offset1, particles.offset1)
+    assert bool(((moved.color > 0) & (moved.color < 1)).all())  # the box trick keeps (0, 1)
+
+
+def test_transparency_above_one_survives_the_box_transform():
+    from weathergen.engine import empty_particles
+
+    base = empty_particles("camera1")
+    theta = torch.tensor([0.2, 1.4])
+    record = base.replace(position=torch.zeros(2, 3), motion=torch.zeros(2, 3),
+                          offset1=torch.zeros(2, 3), offset2=torch.zeros(2, 3),
+                          color=torch.full((2, 3), 0.5), transparency=theta,
+                          template=torch.zeros(2, dtype=torch.long), rotation=torch.zeros(2),
+                          scale=torch.ones(2), defocus=torch.zeros(2, dtype=torch.long))
+    v = WeatherVariables(record, ("transparency",))
+    assert torch.allclose(v.particles().transparency, theta, atol=1e-5)
+
+
+def test_particle_depths_are_camera_z(small_pair):
+    from weathergen.engine.sampling import reference_transforms
+    from weathergen.geometry import transform_points
+
+    particles = grey_particles(small_pair, count=20)
+    _, c1, c2 = reference_transforms(small_pair)
+    d1, d2 = particle_depths(particles, c1, c2)
+    z1 = transform_points(c1, particles.position.double())[:, 2].clamp(min=1e-3)
+    assert torch.allclose(d1.double(), z1, rtol=1e-5)
+    assert d2.shape == (20,) and bool((d2 > 0).all())
+
+
+# -- through the network ------------------------------------------------------------------------
+
+def test_gradient_reaches_every_variable_through_raft(small_pair, raft_small):
+    from weathergen.engine import render
+    from weathergen.engine.sampling import reference_transforms
+
+    particles = grey_particles(small_pair)
+    _, c1, c2 = reference_transforms(small_pair)
+    v = WeatherVariables(particles, OPTIMIZABLE)
+    current = v.particles()
+    out = render(small_pair.image1[None], small_pair.image2[None], small_pair.depth1[None],
+                 small_pair.depth2[None], small_pair.intrinsics[None], c1[None], c2[None],
+                 current)
+    flow = raft_small(out.image1, out.image2)
+    d1, d2 = particle_depths(particles, c1, c2)
+    loss, distance, penalty = attack_loss(flow, torch.zeros_like(flow), current, d1, d2)
+    assert penalty.item() == 0.0                 # offsets start at zero: the flow term alone
+    loss.backward()
+    for name, delta in v.delta.items():
+        assert delta.grad is not None, name
+        assert bool(torch.isfinite(delta.grad).all()), name
+        assert delta.grad.abs().sum().item() > 0, f"no gradient reaches {name}"
+
+
+def test_loop_keeps_the_best_step_and_improves(small_pair, raft_small):
+    particles = grey_particles(small_pair)
+    settings = AttackSettings(optimize=OPTIMIZABLE, steps=3, lr=2e-3)
+    seen = []
+    result = attack_pair(raft_small, small_pair, particles, settings, TargetSpec("zero"),
+                         on_step=seen.append)
+    steps = [r.step for r in result.history]
+    assert steps == [0, 1, 2, 3] and seen == result.history
+    best = [r.best_distance for r in result.history]
+    assert all(b <= a for a, b in zip(best, best[1:])), best
+    assert best[-1] < result.history[0].distance
+    assert best[-1] == min(r.distance for r in result.history)
+    assert result.history[result.best_step].distance == best[-1]
+    # Step 0 is the unoptimised weather: its flow is the initial flow.
+    assert result.history[0].penalty == 0.0
+    assert result.best_flow.shape == result.initial_flow.shape == (1, 2, 96, 128)
+    # The best record reproduces the best step's flow.
+    from weathergen.engine import render_pair
+
+    with torch.no_grad():
+        out = render_pair(small_pair, result.best_particles)
+        again = raft_small(out.image1, out.image2)
+    assert torch.allclose(again, result.best_flow, atol=1e-3)
+
+
+def test_zero_steps_measure_only_the_random_weather(small_pair, raft_small):
+    particles = grey_particles(small_pair, count=30)
+    result = attack_pair(raft_small, small_pair, particles, AttackSettings(steps=0))
+    assert len(result.history) == 1 and result.best_step == 0
+    assert torch.equal(result.best_flow, result.initial_flow)
+    assert torch.equal(result.best_particles.offset1, particles.offset1)
+
+
+def test_particles_from_another_frame_are_refused(small_pair, raft_small):
+    particles = grey_particles(small_pair, count=5).replace(frame="camera1")
+    with pytest.raises(ConfigError, match="coordinates"):
+        attack_pair(raft_small, small_pair, particles, AttackSettings(steps=1))

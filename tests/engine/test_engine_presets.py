@@ -1,0 +1,234 @@
+"""Presets: every table row loads; validation errors name file, key and value; the CLI."""
+
+from __future__ import annotations
+
+import pytest
+from click.testing import CliRunner
+
+from weathergen.engine.presets import Preset, list_presets, load_preset, parse_override
+from weathergen.errors import ConfigError
+
+TABLE_ROWS = (
+    ["snow", "rain", "sparks", "fog", "grey"]
+    + [f"particles-{n}" for n in (1000, 2000, 3000, 4000, 5000)]
+    + [f"motion-blur-{x}" for x in ("0.0", "0.0375", "0.075", "0.1125", "0.15")]
+    + [f"{mode}-{c}" for mode in ("additive", "alpha")
+       for c in ("white", "red", "green", "blue", "color")]
+    + [f"size-{s}" for s in ("small", "medium", "large", "fog")]
+)
+
+
+def test_every_table_row_is_a_preset():
+    assert sorted(TABLE_ROWS) == list_presets()
+
+
+@pytest.mark.parametrize("name", TABLE_ROWS)
+def test_preset_loads_and_validates(name):
+    p = load_preset(name)
+    assert isinstance(p, Preset) and p.name == name
+    assert p.size % 2 == 1 and p.count > 0
+    d = p.to_dict()
+    assert d["name"] == name and d["count"] == p.count
+
+
+@pytest.mark.parametrize("alias,original", [("particles-3000", "snow"), ("motion-blur-0.15", "rain"),
+                                            ("additive-red", "sparks"), ("size-fog", "fog")])
+def test_aliases_match_their_main_preset(alias, original):
+    a, b = load_preset(alias).to_dict(), load_preset(original).to_dict()
+    for key in ("name", "source", "description"):
+        a.pop(key), b.pop(key)
+    assert a == b
+
+
+def test_mislabelled_motion_columns_are_read_by_meaning():
+    rain, sparks = load_preset("rain"), load_preset("sparks")
+    assert (rain.motion_scale_jitter, rain.motion_angle_jitter) == (0.1, 4.0)
+    assert (sparks.motion_scale_jitter, sparks.motion_angle_jitter) == (0.2, 60.0)
+
+
+# The supplement's table "Particle configurations", transcribed by hand from the paper, one row
+# per preset: count, size, d-decay, templates, RGB, (dH, dL, dS), mode, theta, m_y, then the two
+# motion columns as printed (labelled "angle" and "norm", but holding the scale fraction and the
+# angle in degrees), blur, length, blur particles.
+_WHITE, _NO_JITTER, _JITTER = (255, 255, 255), (0, 0.0, 0.0), (15, 0.1, 0.1)
+_SNOW = (3000, 71, 9, "particles", _WHITE, _NO_JITTER, "additive", 0.75, 0.2, 0.0, 0, False, 0.0, 0)
+_SPARKS = (3000, 41, 9, "particles", (191, 79, 64), _JITTER, "additive", 1.5, -0.05, 0.2, 60, True,
+           0.3, 10)
+_FOG = (60, 451, 0.8, "dust", _WHITE, _NO_JITTER, "Meshkin", 0.25, 0.0, 0.0, 0, False, 0.0, 0)
+_COLOURS = {"white": (_WHITE, _NO_JITTER), "red": ((191, 79, 64), _JITTER),
+            "green": ((79, 191, 64), _JITTER), "blue": ((64, 79, 191), _JITTER),
+            "color": ((205, 80, 80), (180, 0.1, 0.1))}
+PAPER_TABLE = {
+    **{f"particles-{n}": (n,) + _SNOW[1:] for n in (1000, 2000, 3000, 4000, 5000)},
+    "snow": _SNOW,
+    "grey": (3000, 71, 9, "particles", (127, 127, 127), _NO_JITTER, "Meshkin", 0.75, 0.2, 0.0, 0,
+             False, 0.0, 0),
+    "motion-blur-0.0": _SNOW,
+    **{f"motion-blur-{length}": (3000, size, 9, "particles", _WHITE, _NO_JITTER, "additive", 0.75,
+                                 0.2, 0.1, 4, True, float(length), 20)
+       for length, size in (("0.0375", 67), ("0.075", 61), ("0.1125", 57), ("0.15", 51))},
+    "rain": (3000, 51, 9, "particles", _WHITE, _NO_JITTER, "additive", 0.75, 0.2, 0.1, 4, True,
+             0.15, 20),
+    **{f"{mode}-{name}": (3000, 41, 9, "particles", rgb, hls, table_mode, 1.5, -0.05, 0.2, 60, True,
+                          0.3, 10)
+       for mode, table_mode in (("additive", "additive"), ("alpha", "Meshkin"))
+       for name, (rgb, hls) in _COLOURS.items()},
+    "sparks": _SPARKS,
+    "size-small": (3000, 71, 9, "dust", _WHITE, _NO_JITTER, "Meshkin", 1.0, 0.0, 0.0, 0, False,
+                   0.0, 0),
+    "size-medium": (141, 161, 1.75, "dust", _WHITE, _NO_JITTER, "Meshkin", 0.78, 0.0, 0.0, 0, False,
+                    0.0, 0),
+    "size-large": (60, 451, 0.8, "dust", _WHITE, _NO_JITTER, "Meshkin", 0.1, 0.0, 0.0, 0, False,
+                   0.0, 0),
+    "size-fog": _FOG,
+    "fog": _FOG,
+}
+
+
+def test_the_transcribed_table_covers_every_preset():
+    assert sorted(PAPER_TABLE) == list_presets()
+
+
+@pytest.mark.parametrize("name", sorted(PAPER_TABLE))
+def test_preset_matches_its_row_of_the_paper_table(name):
+    (count, size, decay, templates, rgb, hls, mode, theta, m_y, col_angle, col_norm, blur, length,
+     samples) = PAPER_TABLE[name]
+    p = load_preset(name)
+    assert (p.count, p.size, p.depth_decay) == (count, size, decay)
+    assert p.templates == {"particles": "flakes", "dust": "dust"}[templates]
+    assert p.color == rgb and (p.hue_jitter, p.lightness_jitter, p.saturation_jitter) == hls
+    assert p.blend == {"additive": "additive", "Meshkin": "alpha"}[mode]
+    assert p.motion_y == m_y
+    # the mislabelled columns: "angle" holds the scale fraction, "norm" the angle in degrees
+    assert (p.motion_scale_jitter, p.motion_angle_jitter) == (col_angle, col_norm)
+    assert p.motion_blur is blur
+    if blur:
+        assert (p.blur_length, p.blur_samples, p.blur_sample_count) == (length, samples, samples)
+    else:
+        assert (p.effective_blur_length, p.blur_sample_count) == (0.0, 1)
+    if name in ("fog", "size-fog"):
+        # the caption: "fog has a depth-constant transparency of 0.3"
+        assert (p.transparency_mode, p.transparency) == ("constant", 0.3)
+    else:
+        assert (p.transparency_mode, p.transparency) == ("depth", theta)
+
+
+def test_overrides_are_parsed_per_type_and_win_over_the_file():
+    p = load_preset("snow", overrides={"count": "500", "color": "10,20,30", "blend": "alpha",
+                                       "motion_blur": "true", "blur_length": "0.1"})
+    assert (p.count, p.color, p.blend, p.motion_blur, p.blur_length) == \
+        (500, (10, 20, 30), "alpha", True, 0.1)
+    assert parse_override("volume_z", "[0.5, 2]") == (0.5, 2.0)
+
+
+def _png_folder(folder):
+    import cv2
+    import numpy as np
+    folder.mkdir()
+    (folder / "blob.png").write_bytes(cv2.imencode(".png", np.full((9, 9), 255, np.uint8))[1])
+    return folder
+
+
+def test_user_preset_file_and_defaults(tmp_path):
+    _png_folder(tmp_path / "shapes")
+    f = tmp_path / "mine.toml"
+    f.write_text('count = 12\ntemplates = "shapes"\n')
+    p = load_preset(f)
+    assert p.count == 12 and p.size == Preset().size  # missing keys take schema defaults
+    assert p.templates == str(tmp_path / "shapes")     # relative folders resolve to the file
+    assert load_preset(str(f), overrides={"count": 3}).count == 3
+
+
+@pytest.mark.parametrize("text,key,value", [
+    ("size = 70", "size", "70"),
+    ("count = -1", "count", "-1"),
+    ("color = [255, 300, 0]", "color", "300"),
+    ("blur_samples = 0", "blur_samples", "0"),
+    ("blend = 'screen'", "blend", "screen"),
+    ("count = 'many'", "count", "many"),
+    ("snowiness = 3", "snowiness", "snowiness"),
+    ("volume_z = [3, 0]", "volume_z", "[3, 0]"),
+    ("transparency = -0.5", "transparency", "-0.5"),
+])
+def test_invalid_preset_names_file_key_and_value(tmp_path, text, key, value):
+    f = tmp_path / "bad.toml"
+    f.write_text(text + "\n")
+    with pytest.raises(ConfigError) as err:
+        load_preset(f)
+    msg = str(err.value)
+    assert str(f) in msg and f"'{key}'" in msg and value in msg
+
+
+def test_invalid_override_and_unknown_preset():
+    with pytest.raises(ConfigError, match=r"^overrides: key 'size' = 8") as bad:
+        load_preset("snow", overrides={"size": "8"})
+    assert bad.value.render(lambda name: "--set").startswith("--set: key 'size' = 8")
+    with pytest.raises(ConfigError, match="unknown key 'sizee'"):
+        load_preset("snow", overrides={"sizee": "8"})
+    with pytest.raises(ConfigError) as err:
+        load_preset("hail")
+    assert "unknown preset 'hail'" in str(err.value) and "snow" in str(err.value)
+
+
+def test_template_folder_problems_name_the_key_at_load_time(tmp_path):
+    (tmp_path / "empty").mkdir()
+    f = tmp_path / "mine.toml"
+    f.write_text('templates = "empty"\n')
+    with pytest.raises(ConfigError) as err:
+        load_preset(f)
+    assert str(f) in str(err.value) and "'templates'" in str(err.value)
+    assert "no PNG" in str(err.value)
+    notes = tmp_path / "notes"
+    notes.mkdir()
+    (notes / "readme.txt").write_text("not an image")
+    with pytest.raises(ConfigError, match=r"^overrides: key 'templates' = .*readme.txt.*not a PNG"):
+        load_preset("snow", overrides={"templates": str(notes)})
+    with pytest.raises(ConfigError, match="does not exist"):
+        load_preset("snow", overrides={"templates": str(tmp_path / "nowhere")})
+    assert load_preset("snow", overrides={"templates": str(_png_folder(tmp_path / "ok"))})
+
+
+def test_blur_needs_a_length(tmp_path):
+    f = tmp_path / "streaks.toml"
+    f.write_text("motion_blur = true\nblur_length = 0.0\n")
+    with pytest.raises(ConfigError, match="blur_length"):
+        load_preset(f)
+
+
+def test_broken_toml(tmp_path):
+    f = tmp_path / "broken.toml"
+    f.write_text("count = = 3\n")
+    with pytest.raises(ConfigError, match="not valid TOML"):
+        load_preset(f)
+
+
+@pytest.fixture
+def cli():
+    from weathergen.cli import presets_cmd  # noqa: F401  (registers the command)
+    from weathergen.cli.main import cli
+    return cli
+
+
+def test_cli_lists_presets(cli):
+    result = CliRunner().invoke(cli, ["presets"])
+    assert result.exit_code == 0, result.output
+    for name in TABLE_ROWS:  # every name in full, none cut short by the table layout
+        assert f" {name} " in result.output, name
+    assert "0.3 const" in result.output  # fog's transparency is not scaled by depth
+
+
+def test_cli_shows_one_preset_resolved(cli):
+    result = CliRunner().invoke(cli, ["presets", "rain", "--set", "count=123"])
+    assert result.exit_code == 0, result.output
+    assert "123" in result.output and "blur_samples" in result.output
+
+
+def test_cli_errors_are_one_line(cli):
+    result = CliRunner().invoke(cli, ["presets", "hail"])
+    assert result.exit_code == 2
+    assert "unknown preset 'hail'" in result.output and "Traceback" not in result.output
+    result = CliRunner().invoke(cli, ["presets", "snow", "--set", "size=4"])
+    assert result.exit_code == 2 and "'size'" in result.output
+    result = CliRunner().invoke(cli, ["presets", "snow", "--set", "templates=/nonexistent/x"])
+    assert result.exit_code == 2 and "'templates'" in result.output
+    assert len(result.output.strip().splitlines()) == 1

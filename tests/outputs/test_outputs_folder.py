@@ -1,0 +1,116 @@
+"""Output folders: reading a manifest back, claiming a folder, merging manifest parts, stored particles."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from weathergen.cli.options import option_of
+from weathergen.engine import empty_particles
+from weathergen.errors import ConfigError, FormatError
+from weathergen.framepair import PairId
+from weathergen.outputs import (ATTACK_FOLDER, RENDER_FOLDER, PairOutput, load_pair_particles,
+                                merge_manifest, pair_metadata, prepare_folder, read_manifest,
+                                write_manifest_part, write_metadata, write_run_config)
+
+RENDER = {"preset_name": "snow", "preset": {"count": 3}, "input": {"dataset": "demo"},
+          "outputs": {"pass": "snow_clean", "format": "exr", "geometry": False}}
+
+
+def test_read_manifest_gives_what_each_reader_needs(tmp_path):
+    (tmp_path / "manifest.json").write_text(json.dumps(RENDER))
+    m = read_manifest(tmp_path, "preview")
+    assert (m.preset_name, m.pass_name, m.fmt, m.geometry) == ("snow", "snow_clean", "exr", False)
+    assert m.input == {"dataset": "demo"} and m.folder == tmp_path
+    # An evaluate reader needs the pass only; the format defaults to PNG.
+    (tmp_path / "manifest.json").write_text(json.dumps({"input": {}, "outputs": {"pass": "p"}}))
+    assert read_manifest(tmp_path, "weather").fmt == "png"
+    with pytest.raises(FormatError, match="manifest.json: not a weathergen render manifest"):
+        read_manifest(tmp_path, "particles_from")
+
+
+def test_a_folder_without_manifest_names_the_parameter(tmp_path):
+    with pytest.raises(ConfigError) as missing:
+        read_manifest(tmp_path, "particles_from")
+    assert str(missing.value).endswith("not found; particles_from takes the folder of an earlier render")
+    assert missing.value.render(option_of).endswith("--particles takes the folder of an earlier render")
+    (tmp_path / "manifest.json").write_text("{not json")
+    with pytest.raises(FormatError, match="not a weathergen render or attack manifest"):
+        read_manifest(tmp_path, "weather")
+
+
+def test_prepare_folder_claims_new_folders_and_refuses_others(tmp_path):
+    config = {"seed": 1}
+    out = tmp_path / "run"
+    prepare_folder(out, RENDER_FOLDER, config, None, resume=False, overwrite=False)
+    assert (out / ".weathergen-render").read_text() == "weathergen render output\n"
+    # Not ours: refused, unless overwrite.
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("x")
+    with pytest.raises(ConfigError) as foreign:
+        prepare_folder(mine, RENDER_FOLDER, config, None, resume=False, overwrite=False)
+    assert foreign.value.render(option_of).endswith(
+        "was not created by weathergen render (use --overwrite to write into it anyway)")
+    with pytest.raises(ConfigError, match="not written by weathergen attack"):
+        prepare_folder(mine, ATTACK_FOLDER, config, None, resume=False, overwrite=False)
+    prepare_folder(mine, ATTACK_FOLDER, config, None, resume=False, overwrite=True)
+    assert (mine / ".weathergen-attack").is_file()
+    with pytest.raises(ConfigError, match="exists and is not a folder"):
+        prepare_folder(mine / "notes.txt", RENDER_FOLDER, config, None, resume=False,
+                       overwrite=True)
+
+
+def test_a_folder_that_holds_a_run_needs_resume_with_the_same_settings(tmp_path):
+    out = tmp_path / "run"
+    prepare_folder(out, RENDER_FOLDER, {"seed": 1}, None, resume=False, overwrite=False)
+    (out / "x.png").write_bytes(b"")
+    previous = {"seed": 1, "preset": "snow"}
+    with pytest.raises(ConfigError, match=r"already holds a render \(use resume to finish it"):
+        prepare_folder(out, RENDER_FOLDER, previous, previous, resume=False, overwrite=False)
+    stale = out / "training" / ".frame.png.tmp123"
+    stale.parent.mkdir()
+    stale.write_bytes(b"half")
+    prepare_folder(out, RENDER_FOLDER, previous, previous, resume=True, overwrite=False)
+    assert not stale.exists()                       # a killed run's temporary file is gone
+    prepare_folder(out, RENDER_FOLDER, previous, previous, resume=False, overwrite=False,
+                   shared=True)                     # another shard of the same run
+    with pytest.raises(ConfigError, match=r"was rendered with different settings \(preset, seed\)"):
+        prepare_folder(out, RENDER_FOLDER, {"seed": 2, "preset": "rain"}, previous, resume=True,
+                       overwrite=False)
+    prepare_folder(out, RENDER_FOLDER, {"seed": 2}, previous, resume=False, overwrite=True)
+
+
+def test_manifest_parts_merge_and_skipped_pairs_keep_their_entry(tmp_path):
+    out = tmp_path / "run"
+    out.mkdir()
+    write_run_config(out, {"seed": 4, "preset_name": "snow"})
+    written = {"status": "written", "seconds": 2.0}
+    write_manifest_part(out, (1, 2), {"shard": "1/2"}, {"a": written, "b": {"status": "failed"}})
+    write_manifest_part(out, (1, 2), {"shard": "1/2"}, {"a": {"status": "skipped", "seconds": 0}})
+    write_manifest_part(out, (2, 2), {"shard": "2/2"}, {"c": written})
+    manifest = json.loads(merge_manifest(out).read_text())
+    assert manifest["seed"] == 4 and manifest["format"] == "weathergen-render"
+    assert list(manifest["pairs"]) == ["a", "b", "c"] and manifest["pairs"]["a"] == written
+    assert manifest["summary"] == {"written": 2, "skipped": 0, "failed": 1}
+    assert len(manifest["runs"]) == 3 and manifest["shards"] == ["shard-1-of-2", "shard-2-of-2"]
+    (out / "manifest.d" / "shard-2-of-2.json").write_text("{")
+    with pytest.raises(FormatError, match=r"shard-2-of-2\.json: manifest part is not valid JSON"):
+        merge_manifest(out)
+
+
+def test_stored_particles_load_for_their_own_pair_only(tmp_path):
+    pid = PairId("demo", "training", "street", 1)
+    meta = pair_metadata(empty_particles(), pid, 7, {"count": 0}, "snow")
+    meta["files"] = np.array("[]")
+    write_metadata(PairOutput.of(tmp_path, pid, "").metadata, meta)
+    assert load_pair_particles(tmp_path, pid).count == 0
+    other = PairId("demo", "training", "street", 2)
+    with pytest.raises(FormatError, match="no particle metadata for pair"):
+        load_pair_particles(tmp_path, other)
+    path = PairOutput.of(tmp_path, other, "").metadata
+    write_metadata(path, meta)                      # the first pair's metadata, in the wrong place
+    with pytest.raises(FormatError, match="metadata belongs to street frame 1, not to street frame 2"):
+        load_pair_particles(tmp_path, other)

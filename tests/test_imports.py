@@ -1,0 +1,133 @@
+"""The import structure: every import at the top of its module, and no import cycles.
+
+Tools that follow imports (and readers) then see every dependency of a module in its first lines.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+SOURCES = {"weathergen": ROOT / "weathergen", "weathergen.cli": ROOT / "cli"}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for package, folder in SOURCES.items():
+        for path in sorted(folder.rglob("*.py")):
+            parts = list(path.relative_to(folder).with_suffix("").parts)
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            name = ".".join([package, *parts])
+            if package == "weathergen" and name.startswith("weathergen.cli"):
+                continue
+            out[name] = path
+    return out
+
+
+MODULES = _modules()
+
+
+def _is_package(name: str) -> bool:
+    return MODULES[name].name == "__init__.py"
+
+
+def _imports(name: str) -> list[tuple[str, int, bool]]:
+    """(imported module, line, at module level) for every import of weathergen in ``name``."""
+    tree = ast.parse(MODULES[name].read_text())
+    top = {id(node) for node in tree.body}
+    base = name if _is_package(name) else name.rpartition(".")[0]
+    found = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Import):
+            targets = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom):
+            if node.level:
+                anchor = base.split(".")
+                anchor = anchor[:len(anchor) - (node.level - 1)]
+                stem = ".".join(anchor + ([node.module] if node.module else []))
+            else:
+                stem = node.module or ""
+            targets = [stem]
+            # "from .pkg import module" imports a module, not only a name
+            targets += [f"{stem}.{a.name}" for a in node.names if f"{stem}.{a.name}" in MODULES]
+        else:
+            continue
+        for target in targets:
+            if target.startswith("weathergen"):
+                found.append((target, node.lineno, id(node) in top))
+    return found
+
+
+def test_every_import_is_at_the_top_of_its_module():
+    inside = [f"{MODULES[name].relative_to(ROOT)}:{line} imports {target}"
+              for name in MODULES for target, line, at_top in _imports(name) if not at_top]
+    assert not inside, "imports inside functions:\n" + "\n".join(inside)
+
+
+def _graph() -> dict[str, set[str]]:
+    graph = {}
+    for name in MODULES:
+        edges = set()
+        for target, _, _ in _imports(name):
+            # importing a.b.c runs a/__init__ and a/b/__init__ first, unless the importer is
+            # inside them already
+            parts = target.split(".")
+            for i in range(1, len(parts) + 1):
+                module = ".".join(parts[:i])
+                if module in MODULES and module != name and not name.startswith(module + "."):
+                    edges.add(module)
+        graph[name] = edges
+    return graph
+
+
+def test_there_is_no_import_cycle():
+    graph = _graph()
+    state: dict[str, int] = {}
+    cycles = []
+
+    def visit(node, path):
+        state[node] = 1
+        for nxt in sorted(graph[node]):
+            if state.get(nxt) == 1:
+                cycles.append(" -> ".join(path[path.index(nxt):] + [nxt]))
+            elif nxt not in state:
+                visit(nxt, path + [nxt])
+        state[node] = 2
+
+    for node in sorted(graph):
+        if node not in state:
+            visit(node, [node])
+    assert not cycles, "import cycles:\n" + "\n".join(cycles)
+
+
+@pytest.mark.parametrize("module", ["weathergen.engine"])
+def test_packages_resolve_their_names_at_import(module):
+    import importlib
+
+    mod = importlib.import_module(module)
+    assert not hasattr(mod, "__getattr__"), f"{module} resolves names lazily"
+    for name in mod.__all__:
+        assert name in vars(mod), f"{module}.{name} is not imported at the top"
+
+
+#: The layers of docs/architecture.md, lowest first; a package imports only lower layers.
+LAYERS = [("weathergen", "weathergen.errors"),
+          ("weathergen.framepair", "weathergen.geometry", "weathergen.flow", "weathergen.io"),
+          ("weathergen.datasets", "weathergen.models", "weathergen.engine"),
+          ("weathergen.outputs",), ("weathergen.render",), ("weathergen.attack",),
+          ("weathergen.cli",)]
+
+
+def test_each_layer_imports_only_the_layers_below_it():
+    rank = {package: i for i, layer in enumerate(LAYERS) for package in layer}
+
+    def package(module):
+        return module if module in rank else ".".join(module.split(".")[:2])
+
+    upward = [f"{a} imports {b}" for a, targets in _graph().items() for b in targets
+              if package(a) != package(b) and rank[package(a)] <= rank[package(b)]]
+    assert not upward, "imports that do not go down a layer:\n" + "\n".join(upward)

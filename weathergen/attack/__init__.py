@@ -1,0 +1,39 @@
+"""Flow networks under weather: adversarial attacks and robustness figures.
+
+- :mod:`.settings`: how one pair is attacked (:class:`AttackSettings`, the freed variables);
+- :mod:`.configs`: the named attack configurations of the paper's supplement;
+- :mod:`.targets`: the flow an attack pushes the network towards;
+- :mod:`.plan`: the precedence rules that turn a request into settings;
+- :mod:`.pair`: the optimisation of one pair (tensors in, tensors out, no file I/O);
+- :mod:`.job`: the attack over a dataset, writing through :mod:`weathergen.outputs`;
+- :mod:`.evaluate`: robustness of a network to the weather of a render or attack output.
+
+Typical use::
+
+    from weathergen.attack import AttackSettings, TargetSpec, attack_pair
+    result = attack_pair(model, pair, particles, AttackSettings(steps=20), TargetSpec("zero"))
+"""
+
+from __future__ import annotations
+
+from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
+from .evaluate import (EvalRow, default_evaluation_path, evaluate_frames, mean_rows,
+                       run_evaluation, write_evaluation)
+from .job import AttackJob, PairReport, attack_one, prepare_attack_folder, run_attack
+from .pair import (MIN_REG_DEPTH, AttackResult, PairOptimisation, PairSummary, StepRecord,
+                   WeatherVariables, attack_loss, attack_pair, mean_summary, offset_penalty,
+                   particle_depths, summarize_pair)
+from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack
+from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE,
+                       POSITION_VARIABLES, AttackSettings, default_lr, parse_optimize)
+from .targets import TargetSpec, parse_target, read_target_flow, target_flow
+
+__all__ = ["AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
+           "ATTACK_CONFIGS", "AttackConfig", "AttackJob", "AttackResult", "AttackSettings",
+           "DEFAULT_ALPHA", "DEFAULT_STEPS", "EvalRow", "LR_APPEARANCE", "LR_POSITIONS",
+           "MIN_REG_DEPTH", "OPTIMIZABLE", "POSITION_VARIABLES", "PairOptimisation", "PairReport",
+           "PairSummary", "StepRecord", "TargetSpec", "WeatherVariables", "attack_config",
+           "attack_loss", "attack_one", "attack_pair", "default_evaluation_path", "default_lr", "evaluate_frames",
+           "mean_rows", "mean_summary", "offset_penalty", "parse_optimize", "parse_target",
+           "particle_depths", "prepare_attack_folder", "read_target_flow", "run_attack",
+           "run_evaluation", "summarize_pair", "target_flow", "write_evaluation"]

@@ -1,0 +1,101 @@
+"""Robustness of a flow network to rendered weather: AEE(f, f̌) and EPE against ground truth.
+
+For every pair of a folder written by ``weathergen render`` (or ``weathergen attack``), the network
+runs on the clean frames (flow ``f``) and on the weather frames (flow ``f̌``). The paper's
+robustness figure is ``AEE(f, f̌)``, the mean over pixels of ``‖f − f̌‖``, which needs no ground
+truth; where the input dataset has ground-truth flow, the end-point errors of ``f`` and ``f̌``
+against it are reported alongside. All figures are in pixels.
+
+The clean frames come from the dataset recorded in the folder's manifest (``input``); the user may
+point elsewhere (the same dataset stored at another path). The folder is read through
+:class:`~weathergen.outputs.WeatherFolder`.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Callable, Optional
+
+import torch
+
+from ..datasets import Dataset
+from ..errors import DatasetError
+from ..flow import aee
+from ..io.atomic import atomic_write_bytes
+from ..outputs.reading import WeatherFolder
+
+
+@dataclass
+class EvalRow:
+    """One pair (pixels): AEE(f, f̌); EPE of f and f̌ against ground truth (None without it)."""
+
+    pair: str
+    aee_weather: float
+    epe_clean: Optional[float] = None
+    epe_weather: Optional[float] = None
+
+
+def evaluate_frames(model, clean1: torch.Tensor, clean2: torch.Tensor, weather1: torch.Tensor,
+                    weather2: torch.Tensor, gt: Optional[torch.Tensor] = None,
+                    valid: Optional[torch.Tensor] = None, device="cpu"
+                    ) -> tuple[float, Optional[float], Optional[float]]:
+    """``(AEE(f, f̌), EPE(f, gt), EPE(f̌, gt))`` for one pair.
+
+    Shape: frames (3, H, W) in [0, 1]; gt (2, H, W) pixels; valid (1, H, W) bool.
+    """
+    with torch.no_grad():
+        batch1 = torch.stack((clean1, weather1)).to(device)
+        batch2 = torch.stack((clean2, weather2)).to(device)
+        flows = model(batch1, batch2).cpu()     # both pairs in one batch
+    clean, weather = flows[:1], flows[1:]
+    robustness = float(aee(weather, clean)[0])
+    if gt is None:
+        return robustness, None, None
+    gt = gt[None].float()
+    mask = None if valid is None else valid[None]
+    return robustness, float(aee(clean, gt, mask)[0]), float(aee(weather, gt, mask)[0])
+
+
+def run_evaluation(model, folder: WeatherFolder, dataset: Dataset, device="cpu",
+                   on_pair: Callable[[EvalRow], None] = lambda r: None) -> tuple[list, dict]:
+    """Evaluate every complete pair of ``folder``; return the rows and their means."""
+    refs = {(r.id.split, r.id.scene, r.id.frame): r for r in dataset.pairs()}
+    rows = []
+    for pid in folder.pairs:
+        ref = refs.get((pid.split, pid.scene, pid.frame))
+        if ref is None:
+            raise DatasetError(f"{dataset.root}: has no clean pair {pid.scene} frame {pid.frame} "
+                               f"(split {pid.split}) for the weather pair in {folder.root}")
+        pair = dataset.load(ref)
+        weather1, weather2 = folder.frames(pid)
+        if tuple(weather1.shape) != tuple(pair.image1.shape):
+            raise DatasetError(f"{folder.root}: weather frames of {pid} are "
+                               f"{tuple(weather1.shape)}, the clean ones {tuple(pair.image1.shape)}")
+        a, e_clean, e_weather = evaluate_frames(model, pair.image1, pair.image2, weather1,
+                                                weather2, pair.flow, pair.flow_valid, device)
+        row = EvalRow(str(pid), a, e_clean, e_weather)
+        rows.append(row)
+        on_pair(row)
+    return rows, mean_rows(rows)
+
+
+def mean_rows(rows: list[EvalRow]) -> dict:
+    """Means over pairs (EPE over the pairs that have ground truth)."""
+    out: dict = {"pairs": len(rows)}
+    for key in ("aee_weather", "epe_clean", "epe_weather"):
+        values = [getattr(r, key) for r in rows if getattr(r, key) is not None]
+        out[key] = sum(values) / len(values) if values else None
+    return out
+
+
+def default_evaluation_path(weather: str | Path, model: str) -> Path:
+    """Where the figures go when no file is given: ``WEATHER/evaluate-<model>.json``."""
+    return Path(weather) / f"evaluate-{model}.json"
+
+
+def write_evaluation(path: str | Path, info: dict, rows: list[EvalRow], summary: dict) -> Path:
+    """Write the evaluation as JSON (``info``: model, weather folder, ...), atomically."""
+    data = {**info, "summary": summary, "pairs": [asdict(r) for r in rows]}
+    return atomic_write_bytes(path, json.dumps(data, indent=2, default=str).encode())

@@ -1,0 +1,360 @@
+"""Adversarial weather: optimise particle offsets, colours and transparencies against a flow network.
+
+This module owns the optimisation loop of the paper's Section 3.2 and nothing else: tensors in,
+tensors out, no file I/O (the job runner in :mod:`weathergen.attack.job` reads and writes).
+
+The free variables (all start at zero, so step 0 is the random, unoptimised weather):
+
+- ``offset1`` Δ1 (N, 3) and ``offset2`` Δ2 (N, 3), added to the record's offsets δ1, δ2 (scene
+  units, the record's reference-frame axes; δ1 moves the particle before its motion, δ2 after it);
+- ``color`` (N, 3) and ``transparency`` (N,), offsets in the unbounded atanh domain
+  ``η = atanh(2ξ − 1)``: the particle gets ``ξ = from_atanh(η0 + Δ)``, which can never leave
+  (0, 1) (Carlini–Wagner box trick). Transparencies may exceed 1 (glowing sparks), so θ is
+  divided by ``θ_max = max(1, max θ)`` before the transform and multiplied back after it.
+
+Loss (pixels)::
+
+    L = AEE(f̌, f_target) + Σ_t α_t / |P| Σ_j ‖δ_t^j‖² / d_t^j
+
+with ``f̌`` the flow on the weather frames, ``δ_t`` the particle's total offset and ``d_t`` its
+camera depth in frame ``t`` before the attack (fixed, and clamped to at least
+:data:`MIN_REG_DEPTH` for particles behind one of the cameras, which would otherwise flip the
+sign of the penalty). Optimiser: Adam. Every step is measured; the step with the lowest
+``AEE(f̌, f_target)`` (the *distance to the target*) is kept.
+
+The gradient is the network's own: for RAFT that is the graph of the original implementation,
+which detaches the flow estimate between refinement steps (``RAFTModel.detach_flow``, on by
+default). The paper attacked those implementations, so its figures come from this truncated
+gradient; it still reaches every image pixel through the correlation lookups and the context
+features, and points close to the full one (cosine about 0.9 on the demo scene, with a similar
+distance reached after a few steps). Set ``model.detach_flow = False`` for the full gradient.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, fields
+from typing import Callable, Optional
+
+import torch
+
+from ..engine import build_stamps, from_atanh, load_templates, reference_transforms, render, to_atanh
+from ..engine.particles import TENSOR_FIELDS
+from ..engine.sampling import check_pair_for_engine
+from ..errors import ConfigError
+from ..flow import aee
+from ..framepair import FramePair
+from ..geometry import transform_points
+from .settings import DEFAULT_ALPHA, AttackSettings
+from .targets import TargetSpec, target_flow
+
+#: Smallest particle depth (scene units) used in the offset penalty.
+MIN_REG_DEPTH = 1e-3
+
+# -- the parametrisation --------------------------------------------------------------------------
+
+class WeatherVariables:
+    """The attack's free variables and the map from them to a differentiable particle record.
+
+    Args:
+        particles: the starting record (N particles); any device, float fields float32.
+        optimize: which of :data:`OPTIMIZABLE` to free.
+    The record's other fields (positions, motions, templates, ...) stay fixed.
+    """
+
+    def __init__(self, particles, optimize: tuple[str, ...]):
+        self.base = particles
+        self.optimize = tuple(optimize)
+        dev, dtype = particles.position.device, particles.position.dtype
+        n = particles.count
+        self.theta_max = max(1.0, float(particles.transparency.max())) if n else 1.0
+        self.eta_color = to_atanh(particles.color.detach())
+        self.eta_theta = to_atanh(particles.transparency.detach() / self.theta_max)
+        shapes = {"offset1": (n, 3), "offset2": (n, 3), "color": (n, 3), "transparency": (n,)}
+        self.delta = {name: torch.zeros(shapes[name], dtype=dtype, device=dev, requires_grad=True)
+                      for name in self.optimize}
+
+    def parameters(self) -> list[torch.Tensor]:
+        return list(self.delta.values())
+
+    def particles(self):
+        """The current record; differentiable in the freed variables. Fixed fields are the
+        starting record's tensors (a variable not optimised keeps its exact starting value)."""
+        b, d = self.base, self.delta
+        changes = {}
+        if "offset1" in d:
+            changes["offset1"] = b.offset1 + d["offset1"]
+        if "offset2" in d:
+            changes["offset2"] = b.offset2 + d["offset2"]
+        if "color" in d:
+            changes["color"] = from_atanh(self.eta_color + d["color"])
+        if "transparency" in d:
+            changes["transparency"] = self.theta_max * from_atanh(self.eta_theta
+                                                                  + d["transparency"])
+        return b.replace(**changes)
+
+
+def particle_depths(particles, cam1_from_ref: torch.Tensor, cam2_from_ref: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Camera depth of every particle in frame 1 (at P + δ1) and frame 2 (at P + δ1 + M + δ2).
+
+    Shape: cam*_from_ref (4, 4); returns two (N,) tensors in scene units, clamped to at least
+    :data:`MIN_REG_DEPTH`, without gradient.
+    """
+    with torch.no_grad():
+        p = particles.position.double() + particles.offset1.double()
+        q = p + particles.motion.double() + particles.offset2.double()
+        z1 = transform_points(cam1_from_ref.double().to(p.device), p)[:, 2]
+        z2 = transform_points(cam2_from_ref.double().to(p.device), q)[:, 2]
+    dtype = particles.position.dtype
+    return z1.clamp(min=MIN_REG_DEPTH).to(dtype), z2.clamp(min=MIN_REG_DEPTH).to(dtype)
+
+
+def offset_penalty(offset1: torch.Tensor, offset2: torch.Tensor, depth1: torch.Tensor,
+                   depth2: torch.Tensor, alpha1: float, alpha2: float) -> torch.Tensor:
+    """``Σ_t α_t / |P| Σ_j ‖δ_t^j‖² / d_t^j``. Shape: offsets (N, 3), depths (N,) -> 0-d."""
+    n = offset1.shape[0]
+    if n == 0:
+        return offset1.sum() * 0
+    term1 = (offset1.pow(2).sum(-1) / depth1).sum()
+    term2 = (offset2.pow(2).sum(-1) / depth2).sum()
+    return (alpha1 * term1 + alpha2 * term2) / n
+
+
+def attack_loss(flow: torch.Tensor, target: torch.Tensor, particles, depth1: torch.Tensor,
+                depth2: torch.Tensor, alpha1: float = DEFAULT_ALPHA,
+                alpha2: float = DEFAULT_ALPHA) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The paper's loss. Shape: flow, target (B, 2, H, W) pixels; depths (N,).
+
+    Returns ``(loss, distance, penalty)``: 0-d tensors, ``distance = mean_B AEE(flow, target)``.
+    """
+    distance = aee(flow, target).mean()
+    penalty = offset_penalty(particles.offset1, particles.offset2, depth1, depth2, alpha1, alpha2)
+    return distance + penalty, distance, penalty
+
+
+# -- the loop -----------------------------------------------------------------------------------
+
+@dataclass
+class StepRecord:
+    """One evaluated step. Distances in pixels; ``robustness`` is AEE(f, f̌) against the benign
+    flow; ``best_distance`` the lowest distance so far (never increases)."""
+
+    step: int
+    loss: float
+    distance: float
+    penalty: float
+    robustness: float
+    best_distance: float
+    seconds: float
+
+
+@dataclass
+class AttackResult:
+    """Outcome of :func:`attack_pair`.
+
+    Shape: benign_flow, initial_flow, best_flow, target (1, 2, H, W) pixels, on the CPU;
+    best_particles a detached CPU record (float32, not yet quantised to storage precision).
+    """
+
+    best_particles: object
+    best_step: int
+    history: list[StepRecord]
+    benign_flow: torch.Tensor
+    initial_flow: torch.Tensor
+    best_flow: torch.Tensor
+    target: torch.Tensor
+    frozen: bool = False    # True when no variable could influence the loss (nothing visible)
+
+
+def _snapshot(particles):
+    """A detached CPU copy of a record."""
+    return particles.replace(**{n: getattr(particles, n).detach().cpu().clone()
+                                for n in TENSOR_FIELDS})
+
+
+class PairOptimisation:
+    """One pair's attack state: frames on the device, the target, the rasterised stamps, the
+    free variables and the Adam optimiser. :func:`attack_pair` runs its steps; the benchmark
+    times exactly the same step.
+
+    Args: as :func:`attack_pair`.
+    Attributes: benign (1, 2, H, W) flow on the clean frames and goal (1, 2, H, W) target flow,
+    both on the device without gradient; variables (:class:`WeatherVariables`).
+    """
+
+    def __init__(self, model: torch.nn.Module, pair: FramePair, particles,
+                 settings: AttackSettings, target: TargetSpec = TargetSpec("zero"), *,
+                 device=None, target_file_flow: Optional[torch.Tensor] = None):
+        check_pair_for_engine(pair)
+        if device is None:
+            params = list(model.parameters())
+            device = params[0].device if params else torch.device("cpu")
+        device = torch.device(device)
+        pair = pair.to(device)
+        frame, c1, c2 = reference_transforms(pair)
+        if particles.frame != frame:
+            raise ConfigError(f"particles live in {particles.frame} coordinates but the frame "
+                              f"pair offers {frame} coordinates (sample them for this pair)")
+        particles = particles.to(device=device, dtype=torch.float32)
+        self.model, self.settings = model, settings
+        self.frames = dict(image1=pair.image1[None], image2=pair.image2[None],
+                           depth1=pair.depth1[None], depth2=pair.depth2[None],
+                           intrinsics=pair.intrinsics[None], cam1_from_ref=c1[None],
+                           cam2_from_ref=c2[None])
+        with torch.no_grad():
+            self.benign = model(self.frames["image1"], self.frames["image2"])
+        self.goal = target_flow(target, self.benign, target_file_flow)
+        self.templates = load_templates(particles.settings.templates)
+        # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
+        self.stamps = (build_stamps([particles], self.templates, device=device)
+                       if particles.count else None)
+        self.variables = WeatherVariables(particles, settings.optimize)
+        self.reg_depths = particle_depths(particles, c1, c2)
+        self.optimizer = torch.optim.Adam(self.variables.parameters(), lr=settings.learning_rate)
+
+    def render(self, particles):
+        """The weather frames of ``particles`` (a :class:`~weathergen.engine.RenderOutput`)."""
+        return render(**self.frames, particles=particles, templates=self.templates,
+                      beta=self.settings.beta, stamps=self.stamps)
+
+    def evaluate(self):
+        """Render the current variables and run the network.
+
+        Returns ``(particles, flow, loss, distance, penalty)``: the current record, the flow
+        (1, 2, H, W) and the 0-d terms of :func:`attack_loss`, all with gradient.
+        """
+        current = self.variables.particles()
+        out = self.render(current)
+        flow = self.model(out.image1, out.image2)
+        loss, distance, penalty = attack_loss(flow, self.goal, current, *self.reg_depths,
+                                              self.settings.alpha1, self.settings.alpha2)
+        return current, flow, loss, distance, penalty
+
+    def update(self, loss: torch.Tensor) -> None:
+        """One Adam step on the free variables."""
+        self.optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        self.optimizer.step()
+
+
+def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: AttackSettings,
+                target: TargetSpec = TargetSpec("zero"), *, device=None,
+                target_file_flow: Optional[torch.Tensor] = None,
+                on_step: Callable[[StepRecord], None] = lambda r: None) -> AttackResult:
+    """Optimise ``particles`` in ``pair`` against ``model``.
+
+    Args:
+        model: a flow network with the package contract, (1, 3, H, W) x2 -> (1, 2, H, W); its
+            parameters are not changed.
+        pair: the frame pair (clean frames, depth, cameras).
+        particles: the starting record for this pair (e.g. from ``sample_particles``).
+        settings: :class:`AttackSettings`.
+        target: :class:`TargetSpec`; for ``"file"`` pass the file's flow as ``target_file_flow``
+            (2, H, W).
+        device: where rendering and the network run (default: the model's device).
+        on_step: called with every :class:`StepRecord` (for progress reports).
+    Returns: :class:`AttackResult`.
+    """
+    run = PairOptimisation(model, pair, particles, settings, target, device=device,
+                           target_file_flow=target_file_flow)
+    history: list[StepRecord] = []
+    best = math.inf
+    best_step, best_particles, best_flow, initial_flow = 0, None, None, None
+    frozen = False
+    steps = int(settings.steps)
+    for step in range(steps + 1):
+        t0 = time.perf_counter()
+        current, flow, loss, distance, penalty = run.evaluate()
+        dist = float(distance.detach())
+        if step == 0:
+            initial_flow = flow.detach().cpu()
+        if dist < best or best_particles is None:
+            best, best_step = dist, step
+            best_particles, best_flow = _snapshot(current), flow.detach().cpu()
+        last = step == steps
+        if not last:
+            if not loss.requires_grad:
+                # No particle reaches the frames and no penalty depends on a freed variable:
+                # there is nothing to optimise.
+                frozen, last = True, True
+            else:
+                run.update(loss)
+        record = StepRecord(step=step, loss=float(loss.detach()), distance=dist,
+                            penalty=float(penalty.detach()),
+                            robustness=float(aee(flow.detach(), run.benign).mean()),
+                            best_distance=best, seconds=time.perf_counter() - t0)
+        history.append(record)
+        on_step(record)
+        del flow, loss, distance, penalty, current
+        if last:
+            break
+    return AttackResult(best_particles=best_particles, best_step=best_step, history=history,
+                        benign_flow=run.benign.cpu(), initial_flow=initial_flow,
+                        best_flow=best_flow, target=run.goal.cpu(), frozen=frozen)
+
+
+@dataclass
+class PairSummary:
+    """Per-pair figures of an attack (pixels). ``epe_*`` are None without ground truth.
+
+    aee_random: AEE(f, f̌) for the unoptimised weather (step 0, float frames); aee_adversarial:
+    for the best step as written (particles at storage precision, 8-bit frames);
+    target_initial / target_adversarial: AEE(f̌, target) for the same two flows.
+    """
+
+    pair: str
+    best_step: int
+    steps: int
+    aee_random: float
+    aee_adversarial: float
+    target_initial: float
+    target_adversarial: float
+    epe_benign: Optional[float] = None
+    epe_random: Optional[float] = None
+    epe_adversarial: Optional[float] = None
+    seconds: float = 0.0
+    nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "PairSummary":
+        """A summary stored by :func:`dataclasses.asdict`; unknown keys are ignored."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in names})
+
+
+def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch.Tensor,
+                   gt_flow: Optional[torch.Tensor] = None,
+                   gt_valid: Optional[torch.Tensor] = None, seconds: float = 0.0) -> PairSummary:
+    """Figures of one attacked pair. ``adversarial_flow`` is the flow on the frames as written
+    (best particles at storage precision, 8-bit frames).
+    Shape: flows (1, 2, H, W); gt (2, H, W), valid (1, H, W).
+    """
+    benign, initial, adv, goal = (t.detach().cpu().float() for t in
+                                  (result.benign_flow, result.initial_flow, adversarial_flow,
+                                   result.target))
+    summary = PairSummary(
+        pair=pair_name, best_step=result.best_step, steps=len(result.history) - 1,
+        aee_random=float(aee(initial, benign).mean()),
+        aee_adversarial=float(aee(adv, benign).mean()),
+        target_initial=float(aee(initial, goal).mean()),
+        target_adversarial=float(aee(adv, goal).mean()), seconds=seconds,
+        nothing_visible=bool(result.frozen))
+    if gt_flow is not None:
+        gt = gt_flow.detach().cpu().float()[None]
+        valid = None if gt_valid is None else gt_valid.detach().cpu()[None]
+        summary.epe_benign = float(aee(benign, gt, valid).mean())
+        summary.epe_random = float(aee(initial, gt, valid).mean())
+        summary.epe_adversarial = float(aee(adv, gt, valid).mean())
+    return summary
+
+
+def mean_summary(rows: list[PairSummary]) -> dict:
+    """Means over pairs of every figure (EPE means over the pairs that have ground truth)."""
+    out: dict = {"pairs": len(rows)}
+    for key in ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
+                "epe_benign", "epe_random", "epe_adversarial"):
+        values = [getattr(r, key) for r in rows if getattr(r, key) is not None]
+        out[key] = sum(values) / len(values) if values else None
+    return out

@@ -1,0 +1,82 @@
+"""How one pair is attacked: the free variables, the number of steps, the learning rate, the
+penalty weights and the occlusion sharpness (:class:`AttackSettings`), with the paper's defaults."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+from ..errors import ConfigError
+
+#: The particle variables an attack may optimise, in their canonical order.
+OPTIMIZABLE = ("offset1", "offset2", "color", "transparency")
+POSITION_VARIABLES = ("offset1", "offset2")
+#: Paper defaults (Section 4.2 and the supplement's attack-configuration table).
+DEFAULT_STEPS = 750
+DEFAULT_ALPHA = 1000.0
+LR_POSITIONS = 1e-5
+LR_APPEARANCE = 1e-3
+
+
+def parse_optimize(text: str) -> tuple[str, ...]:
+    """``"offset1,color"`` -> ``("offset1", "color")`` in canonical order; ``"all"`` -> all four.
+
+    Raises ConfigError naming the unknown entries and listing the valid ones.
+    """
+    names = [t.strip() for t in str(text).split(",") if t.strip()]
+    if names == ["all"]:
+        return OPTIMIZABLE
+    unknown = [n for n in names if n not in OPTIMIZABLE]
+    if unknown:
+        raise ConfigError(f"${{optimize}}: unknown variable(s) {', '.join(map(repr, unknown))}; "
+                          f"choose from {', '.join(OPTIMIZABLE)} (comma-separated) or 'all'")
+    if not names:
+        raise ConfigError(f"${{optimize}}: name at least one of {', '.join(OPTIMIZABLE)}")
+    return tuple(n for n in OPTIMIZABLE if n in names)
+
+
+def default_lr(optimize: tuple[str, ...]) -> float:
+    """1e-5 when positions move (their scale is scene units), 1e-3 for colour/transparency only."""
+    return LR_POSITIONS if any(v in POSITION_VARIABLES for v in optimize) else LR_APPEARANCE
+
+
+
+@dataclass(frozen=True)
+class AttackSettings:
+    """How one pair is attacked.
+
+    optimize: the freed variables; steps: Adam updates (``steps + 1`` evaluations: step 0 is the
+    unoptimised weather); lr: ``None`` for :func:`default_lr`; alpha1/alpha2: penalty weights;
+    beta: occlusion sharpness of the renderer during the attack (``BETA_ATTACK`` = 30 to
+    differentiate through occlusion, ``BETA_RENDER`` = 250 otherwise).
+    """
+
+    optimize: tuple[str, ...] = OPTIMIZABLE
+    steps: int = DEFAULT_STEPS
+    lr: Optional[float] = None
+    alpha1: float = DEFAULT_ALPHA
+    alpha2: float = DEFAULT_ALPHA
+    beta: float = 250.0
+
+    def __post_init__(self):
+        parse_optimize(",".join(self.optimize))  # validates names and non-emptiness
+        if int(self.steps) < 0:
+            raise ConfigError(f"${{steps}} must be >= 0, got {self.steps}")
+        if self.lr is not None and not (self.lr > 0 and math.isfinite(self.lr)):
+            raise ConfigError(f"${{lr}} must be a positive number, got {self.lr}")
+        for name in ("alpha1", "alpha2"):
+            v = getattr(self, name)
+            if not (v >= 0 and math.isfinite(v)):
+                raise ConfigError(f"${{{name}}} must be a finite number >= 0, got {v}")
+        if not (self.beta > 0 and math.isfinite(self.beta)):
+            raise ConfigError(f"occlusion beta must be positive, got {self.beta}")
+
+    @property
+    def learning_rate(self) -> float:
+        return self.lr if self.lr is not None else default_lr(self.optimize)
+
+    def to_dict(self) -> dict:
+        return {"optimize": list(self.optimize), "steps": int(self.steps),
+                "lr": self.learning_rate, "alpha1": self.alpha1, "alpha2": self.alpha2,
+                "beta": self.beta}

@@ -1,0 +1,83 @@
+"""The render settings of a particle record: how its particles are drawn, declared once.
+
+A :class:`RenderSettings` record travels with the particles (``Particles.settings``): sampling
+makes it from the preset (:meth:`RenderSettings.from_preset`), the renderer reads it, the particle
+file stores it once (:meth:`RenderSettings.to_arrays`, one 0-d array per field) and reading the
+file gives it back (:meth:`RenderSettings.from_arrays`).
+
+The preset keys it comes from are ``blend``, ``motion_blur``, ``blur_length``, ``blur_samples``,
+``defocus_brighten`` and ``templates``; all but ``templates`` change only how stored particles
+look, so they may change when stored particles are rendered again (:data:`APPEARANCE_KEYS`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Mapping, Optional
+
+import numpy as np
+
+from ..errors import FormatError
+from .presets import BLEND_MODES, Preset
+from .templates import TemplateLibrary
+
+#: Preset keys that only change how stored particles look, so they may change on re-rendering.
+APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defocus_brighten")
+#: The fields of :class:`RenderSettings` that :data:`APPEARANCE_KEYS` set.
+APPEARANCE_FIELDS = ("blend", "blur_length", "blur_samples", "defocus_brighten")
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How a record's particles are drawn.
+
+    blend: ``additive`` (glow) or ``alpha``; blur_length: the motion-blur streak as a fraction of
+    the frame-to-frame motion (0: none); blur_samples: samples K per blurred particle (1: none);
+    defocus_brighten: cube-root brighten the disc-blurred alpha; templates: the template
+    library's name (``flakes``, ``dust`` or a folder); templates_digest: its digest ("" for
+    any), so that particles are never drawn with other templates than they were sampled with.
+    """
+
+    blend: str = "additive"
+    blur_length: float = 0.0
+    blur_samples: int = 1
+    defocus_brighten: bool = True
+    templates: str = "flakes"
+    templates_digest: str = ""
+
+    @classmethod
+    def from_preset(cls, preset: Preset, library: Optional[TemplateLibrary] = None) -> "RenderSettings":
+        """The settings a preset asks for (motion blur off: one sample, no streak); the library,
+        when given, names the templates and their digest."""
+        return cls(blend=preset.blend, blur_length=preset.effective_blur_length,
+                   blur_samples=preset.blur_sample_count, defocus_brighten=preset.defocus_brighten,
+                   templates=library.name if library is not None else preset.templates,
+                   templates_digest=library.digest if library is not None else "")
+
+    def appearance(self) -> dict:
+        """The fields that may change when stored particles are rendered again."""
+        return {name: getattr(self, name) for name in APPEARANCE_FIELDS}
+
+    def replace(self, **changes) -> "RenderSettings":
+        return dataclasses.replace(self, **changes)
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def to_arrays(self) -> dict[str, np.ndarray]:
+        """One 0-d array per field, in declaration order (the particle file's entries)."""
+        return {name: np.array(value) for name, value in self.to_dict().items()}
+
+    @classmethod
+    def from_arrays(cls, arrays: Mapping[str, np.ndarray], path: str | Path) -> "RenderSettings":
+        """The settings stored by :meth:`to_arrays`; FormatError names ``path`` and the entry."""
+        values = {}
+        for f in dataclasses.fields(cls):
+            if f.name not in arrays:
+                raise FormatError(path, f"missing field '{f.name}'")
+            values[f.name] = type(f.default)(arrays[f.name].item())
+        if values["blend"] not in BLEND_MODES:
+            raise FormatError(path, f"unknown blend mode {values['blend']!r}")
+        return cls(**values)

@@ -1,0 +1,77 @@
+"""Claiming an output folder: refuse folders that are not ours or hold another run, then mark it.
+
+Render and attack folders follow the same rules (:func:`prepare_folder`), each with its own
+marker file, so that neither writes into the other's folder, nor into a folder of the user's.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+from ..errors import ConfigError
+from .manifest import jsonable
+
+
+@dataclass(frozen=True)
+class FolderKind:
+    """What kind of run owns a folder, and how messages speak of it."""
+
+    marker: str             # file that says the folder is ours
+    marker_text: str
+    foreign: str            # the end of the message for a non-empty folder without the marker
+    holds: str              # "a render"
+    done: str               # "rendered"
+
+
+RENDER_FOLDER = FolderKind(
+    ".weathergen-render", "weathergen render output\n",
+    "was not created by weathergen render (use ${overwrite} to write into it anyway)",
+    "a render", "rendered")
+ATTACK_FOLDER = FolderKind(
+    ".weathergen-attack", "weathergen attack output\n",
+    "was not written by weathergen attack (use another ${out}, or ${overwrite})",
+    "an attack", "attacked")
+
+
+def prepare_folder(out: Path, kind: FolderKind, config: dict, previous: Optional[dict], *,
+                   resume: bool, overwrite: bool, shared: bool = False) -> None:
+    """Create or reuse ``out`` for a run with settings ``config``.
+
+    ``previous`` is the configuration an earlier run recorded in the folder (None if none). A
+    non-empty folder without ``kind``'s marker is refused unless ``overwrite``; a folder that
+    holds a run is refused unless ``resume`` (or ``shared``: another shard of the same run may
+    start in it) with the same configuration, or ``overwrite``. Resuming removes the temporary
+    files that a killed run left.
+    """
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"{out}: exists and is not a folder")
+    if out.exists() and any(out.iterdir()):
+        if not (out / kind.marker).exists() and not overwrite:
+            raise ConfigError(f"{out}: folder is not empty and {kind.foreign}")
+        if previous is not None and not overwrite:
+            if not resume and not shared:
+                raise ConfigError(f"{out}: already holds {kind.holds} (use ${{resume}} to finish it, "
+                                  f"or ${{overwrite}} to redo it)")
+            new = jsonable(config)
+            if previous != new:
+                diff = sorted(k for k in set(previous) | set(new) if previous.get(k) != new.get(k))
+                raise ConfigError(f"{out}: was {kind.done} with different settings "
+                                  f"({', '.join(diff)}); use another ${{out}}, or ${{overwrite}}")
+    if resume and out.is_dir():
+        # temporary files of a killed run (atomic writes that never reached their rename)
+        for stale in out.rglob(".*.tmp*"):
+            if stale.is_file():
+                stale.unlink()
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        (out / kind.marker).write_text(kind.marker_text)
+    except OSError as exc:
+        raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
+
+
+def folder_size(root: Path) -> int:
+    """Bytes of every file below ``root``."""
+    return sum(p.stat().st_size for p in Path(root).rglob("*") if p.is_file())

@@ -1,0 +1,86 @@
+"""Particle-metadata files: one ``.npz`` per pair holding the particle record and its identity.
+
+The file is the particle record of :meth:`weathergen.engine.Particles.to_numpy` plus the entries of
+:data:`METADATA_KEYS` (which pair, seed and preset the particles belong to, which files the pair
+wrote). It is written last, so a pair whose metadata loads is complete.
+"""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .. import __version__
+from ..errors import FormatError
+from ..framepair import PairId
+from ..io.atomic import atomic_write_bytes
+
+METADATA_VERSION = 1
+#: Entries every particle-metadata file holds besides the particle record itself.
+METADATA_KEYS = ("metadata_version", "pair_dataset", "pair_split", "pair_scene", "pair_frame", "seed",
+                 "preset_name", "preset", "weathergen_version", "files")
+
+
+def write_metadata(path: Path, arrays: dict[str, np.ndarray]) -> Path:
+    """Write a compressed ``.npz`` atomically."""
+    buf = io.BytesIO()
+    np.savez_compressed(buf, **arrays)
+    return atomic_write_bytes(path, buf.getvalue())
+
+
+def read_metadata(path: str | Path) -> dict[str, np.ndarray]:
+    """Load a particle-metadata ``.npz`` (every array), checking its format version and entries."""
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(4)
+    except FileNotFoundError:
+        raise FormatError(path, "file not found") from None
+    except OSError as exc:
+        raise FormatError(path, f"cannot be read ({exc.strerror})") from None
+    if magic != b"PK\x03\x04":   # an .npz is a zip archive; anything else is not one of ours
+        raise FormatError(path, "not a .npz archive, so not a weathergen particle-metadata file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except Exception as exc:  # zipfile/numpy raise several types for corrupt files
+        raise FormatError(path, f"not a readable .npz metadata file ({exc})") from None
+    if "metadata_version" not in arrays:
+        raise FormatError(path, "not a weathergen particle-metadata file (no metadata_version)")
+    version = int(arrays["metadata_version"])
+    if version > METADATA_VERSION:
+        raise FormatError(path, f"metadata format version {version} is newer than this weathergen "
+                                f"understands ({METADATA_VERSION}); upgrade weathergen")
+    missing = [k for k in METADATA_KEYS if k not in arrays]
+    if missing:
+        raise FormatError(path, f"incomplete particle-metadata file: no {', '.join(missing)}")
+    return arrays
+
+
+def pair_identity(arrays: dict[str, np.ndarray]) -> PairId:
+    """The pair a metadata file belongs to."""
+    return PairId(str(arrays["pair_dataset"]), str(arrays["pair_split"]), str(arrays["pair_scene"]),
+                  int(arrays["pair_frame"]))
+
+
+def identity_arrays(pair_id: PairId, seed: int, preset: dict, preset_name: str) -> dict[str, np.ndarray]:
+    """The metadata entries that say which pair, seed and preset a particle set belongs to."""
+    return {
+        "metadata_version": np.array(METADATA_VERSION, np.int32),
+        "pair_dataset": np.array(pair_id.dataset), "pair_split": np.array(pair_id.split),
+        "pair_scene": np.array(pair_id.scene), "pair_frame": np.array(pair_id.frame, np.int64),
+        "seed": np.array(seed, np.uint64), "preset_name": np.array(preset_name),
+        "preset": np.array(json.dumps(preset, sort_keys=True)),
+        "weathergen_version": np.array(__version__),
+    }
+
+
+def pair_metadata(particles, pair_id: PairId, seed: int, preset: dict,
+                  preset_name: str) -> dict[str, np.ndarray]:
+    """The metadata of one pair: the particle record at storage precision and its identity."""
+    arrays = particles.to_numpy()
+    arrays.update(identity_arrays(pair_id, seed, preset, preset_name))
+    return arrays

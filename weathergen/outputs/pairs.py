@@ -1,0 +1,178 @@
+"""Where one pair's files go in an output folder, and the writer of a pair's files.
+
+Layout below the output folder ``OUT`` (``SPLIT`` as in the input, ``PASS`` the output pass name,
+by default ``<preset>_<input pass>``, e.g. ``snow_clean``; ``PAIR`` is ``<scene>_<frame>`` of the
+pair's first frame, e.g. ``alley_1_0001``)::
+
+    OUT/manifest.json                         the run: resolved preset, seeds, inputs, timings
+    OUT/manifest.d/shard-I-of-N.json          one part per shard, merged into manifest.json
+    OUT/SPLIT/PASS/PAIR/frame_FFFF.png        augmented first frame (8-bit PNG)
+    OUT/SPLIT/PASS/PAIR/frame_GGGG.png        augmented second frame, G = F + 1
+    OUT/SPLIT/PASS_exr/PAIR/frame_FFFF.exr    float frames with an 'opacity' channel (--format exr/both)
+    OUT/SPLIT/particles/PAIR/frame_FFFF.npz   particle metadata of the pair (numpy-readable)
+    OUT/SPLIT/depth/PAIR/frame_FFFF.dpt       geometry the particles were placed in, in Sintel
+    OUT/SPLIT/camdata_left/PAIR/frame_FFFF.cam   formats (depth and cameras after the depth scale),
+    OUT/SPLIT/flow/PAIR/frame_FFFF.flo        and ground-truth flow where the input has it
+    OUT/SPLIT/invalid/PAIR/frame_FFFF.png     non-zero where that flow is not valid (sparse flow)
+    OUT/SPLIT/flow_occ/PAIR/frame_FFFF.png    the same flow in KITTI's 16-bit PNG format (KITTI input)
+    OUT/SPLIT/flow_FW_left/PAIR/frame_FFFF.flo5   ... in Spring's HDF5 format (Spring input)
+
+Each pair is its own two-frame "scene", because without persistent particles the second frame of
+pair ``i`` and the first frame of pair ``i + 1`` differ. The tree is therefore a Sintel tree: the
+Sintel reader (and any tool that reads Sintel) reads it with ``--pass PASS``.
+
+Every file is written atomically, and the metadata file last, so a pair whose metadata exists and
+loads is complete.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import FormatError
+from ..framepair import FramePair, PairId
+from ..io.exr import write_exr
+from ..io.images import write_png
+from ..io.kitti_formats import write_flow_png
+from ..io.sintel_formats import write_cam, write_dpt, write_flo
+from ..io.spring_formats import write_flo5
+from .metadata import read_metadata, write_metadata
+
+FORMATS = ("png", "exr", "both")
+#: Datasets whose ground-truth flow is also written in their own format: folder and extension.
+NATIVE_FLOW = {"kitti": ("flow_occ", "png"), "spring": ("flow_FW_left", "flo5")}
+#: Outputs are Sintel trees, so input splits named otherwise (Spring's ``train``, KITTI's
+#: ``testing``) get Sintel's folder name; the metadata keeps the input's own split.
+SINTEL_SPLIT_FOLDER = {"train": "training", "testing": "test"}
+
+
+@dataclass(frozen=True)
+class PairOutput:
+    """Where one pair's outputs go."""
+
+    root: Path
+    split: str
+    pass_name: str
+    scene: str
+    frame: int
+    fmt: str = "png"
+    geometry: bool = True
+
+    @classmethod
+    def of(cls, root, pair_id: PairId, pass_name: str, fmt: str = "png", geometry: bool = True):
+        split = SINTEL_SPLIT_FOLDER.get(pair_id.split, pair_id.split)
+        return cls(Path(root), split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry)
+
+    @property
+    def pair_dir(self) -> str:
+        return f"{self.scene}_{self.frame:04d}"
+
+    def _file(self, folder: str, index: int, ext: str) -> Path:
+        return self.root / self.split / folder / self.pair_dir / f"frame_{index:04d}.{ext}"
+
+    @property
+    def frames_png(self) -> tuple[Path, Path]:
+        return self._file(self.pass_name, self.frame, "png"), self._file(self.pass_name, self.frame + 1, "png")
+
+    @property
+    def frames_exr(self) -> tuple[Path, Path]:
+        folder = f"{self.pass_name}_exr"
+        return self._file(folder, self.frame, "exr"), self._file(folder, self.frame + 1, "exr")
+
+    @property
+    def metadata(self) -> Path:
+        return self._file("particles", self.frame, "npz")
+
+    def geometry_files(self, with_flow: bool) -> list[Path]:
+        files = [self._file("depth", self.frame, "dpt"), self._file("depth", self.frame + 1, "dpt"),
+                 self._file("camdata_left", self.frame, "cam"), self._file("camdata_left", self.frame + 1, "cam")]
+        if with_flow:
+            files.append(self._file("flow", self.frame, "flo"))
+        return files
+
+    def native_flow(self, dataset: str) -> Path | None:
+        """Where the flow goes in the input dataset's own format (KITTI, Spring), else None."""
+        if dataset not in NATIVE_FLOW:
+            return None
+        folder, ext = NATIVE_FLOW[dataset]
+        return self._file(folder, self.frame, ext)
+
+    @property
+    def invalid_mask(self) -> Path:
+        """Sintel-style mask of pixels without valid ground-truth flow (written only when some are)."""
+        return self._file("invalid", self.frame, "png")
+
+    def files(self, with_flow: bool = False) -> list[Path]:
+        """Every file of this pair, the metadata file last (it marks completion)."""
+        out = []
+        if self.fmt in ("png", "both"):
+            out += list(self.frames_png)
+        if self.fmt in ("exr", "both"):
+            out += list(self.frames_exr)
+        if self.geometry:
+            out += self.geometry_files(with_flow)
+        return out + [self.metadata]
+
+    def is_complete(self) -> bool:
+        """True when the pair's metadata loads and every other file it lists exists."""
+        if not self.metadata.exists():
+            return False
+        try:
+            meta = read_metadata(self.metadata)
+        except FormatError:
+            return False
+        listed = [self.root / f for f in json.loads(str(meta["files"]))]
+        return all(p.exists() for p in listed)
+
+
+def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarray, np.ndarray],
+                       opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray]) -> list[Path]:
+    """Write one pair: frames, optional EXR and geometry, then the metadata (last).
+
+    Shape: frames (H, W, 3) float in [0, 1]; opacity (H, W) float.
+    """
+    written = []
+    if out.fmt in ("png", "both"):
+        for path, img in zip(out.frames_png, frames):
+            written.append(write_png(path, img))
+    if out.fmt in ("exr", "both"):
+        for path, img, alpha in zip(out.frames_exr, frames, opacity):
+            written.append(write_exr(path, img, {"opacity": alpha}))
+    if out.geometry:
+        depth_files = out.geometry_files(with_flow=pair.flow is not None)
+        written.append(write_dpt(depth_files[0], pair.depth1[0].numpy()))
+        written.append(write_dpt(depth_files[1], pair.depth2[0].numpy()))
+        k = pair.intrinsics.numpy()
+        if pair.cam1_from_world is not None:
+            e1, e2 = pair.cam1_from_world.numpy(), pair.cam2_from_world.numpy()
+        else:   # no absolute poses: camera 1 is the world
+            e1, e2 = np.eye(4), pair.cam2_from_cam1.numpy()
+        written.append(write_cam(depth_files[2], k, e1))
+        written.append(write_cam(depth_files[3], k, e2))
+        if pair.flow is not None:
+            written.append(write_flo(depth_files[4], pair.flow.numpy().transpose(1, 2, 0)))
+            if pair.flow_valid is not None and not bool(pair.flow_valid.all()):
+                mask = np.where(pair.flow_valid[0].numpy(), 0, 255).astype(np.uint8)
+                written.append(write_png(out.invalid_mask, mask))
+            native = out.native_flow(pair.id.dataset)
+            if native is not None:
+                written.append(_write_native_flow(pair.id.dataset, native, pair))
+    rel = [str(p.relative_to(out.root)) for p in written]
+    metadata = dict(metadata)
+    metadata["files"] = np.array(json.dumps(rel))
+    write_metadata(out.metadata, metadata)
+    return written + [out.metadata]
+
+
+def _write_native_flow(dataset: str, path: Path, pair: FramePair) -> Path:
+    """KITTI's 16-bit flow PNG (u, v, valid) or Spring's HDF5 ``.flo5`` (NaN where invalid)."""
+    flow = pair.flow.numpy().transpose(1, 2, 0)
+    valid = (np.ones(flow.shape[:2], bool) if pair.flow_valid is None
+             else pair.flow_valid[0].numpy())
+    if dataset == "kitti":
+        return write_flow_png(path, flow, valid)
+    return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))

@@ -1,0 +1,89 @@
+"""Reading a render or attack output back: its weather frames, its pairs and stored particles.
+
+What ``evaluate`` (the weather frames of every complete pair), ``preview`` and re-rendering or
+attacking stored particles (``particles_from``) need from an output folder.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+from ..datasets import Dataset, reopen_dataset
+from ..engine import Particles
+from ..errors import DatasetError, FormatError
+from ..framepair import PairId
+from ..io.exr import read_exr
+from ..io.images import read_image
+from .manifest import read_manifest
+from .metadata import pair_identity, read_metadata
+from .pairs import PairOutput
+
+
+def load_pair_particles(folder: str | Path, pair_id: PairId) -> Particles:
+    """The particles an earlier render (or attack) stored in ``folder`` for ``pair_id``.
+
+    Raises FormatError naming the file when it is missing or belongs to another pair.
+    """
+    path = PairOutput.of(folder, pair_id, "").metadata
+    if not path.exists():
+        raise FormatError(path, f"no particle metadata for pair {pair_id}")
+    found = pair_identity(read_metadata(path))
+    if (found.split, found.scene, found.frame) != (pair_id.split, pair_id.scene, pair_id.frame):
+        raise FormatError(path, f"metadata belongs to {found.scene} frame {found.frame}, "
+                                f"not to {pair_id.scene} frame {pair_id.frame}")
+    return Particles.load(path)
+
+
+@dataclass
+class WeatherFolder:
+    """A render (or attack) output opened for reading.
+
+    Attributes: root; pass_name (the folder of the weather frames); fmt (png, exr or both);
+    input (the manifest's description of the clean dataset); pairs (complete pairs, sorted).
+    """
+
+    root: Path
+    pass_name: str
+    fmt: str
+    input: dict
+    pairs: list
+
+    @classmethod
+    def open(cls, root: str | Path) -> "WeatherFolder":
+        root = Path(root)
+        manifest = read_manifest(root, "weather")
+        pass_name, fmt = manifest.pass_name, manifest.fmt
+        pairs = []
+        for meta in sorted(root.glob("*/particles/*/frame_*.npz")):
+            pid = pair_identity(read_metadata(meta))
+            if PairOutput.of(root, pid, pass_name, fmt).is_complete():
+                pairs.append(pid)
+        if not pairs:
+            raise DatasetError(f"{root}: holds no complete weather pairs")
+        return cls(root, pass_name, fmt, manifest.input, sorted(pairs))
+
+    def frames(self, pair_id: PairId) -> tuple[torch.Tensor, torch.Tensor]:
+        """The weather frames of a pair. Shape: two (3, H, W) float32 in [0, 1]."""
+        out = PairOutput.of(self.root, pair_id, self.pass_name, self.fmt)
+        if self.fmt == "exr":
+            images = [read_exr(p)["RGB"].clip(0, 1) for p in out.frames_exr]
+        else:
+            images = [read_image(p) for p in out.frames_png]
+        return tuple(torch.from_numpy(img.copy()).permute(2, 0, 1).contiguous() for img in images)
+
+    def clean_dataset(self, dataset: Optional[str] = None, root: Optional[str] = None,
+                      pass_: Optional[str] = None) -> Dataset:
+        """The dataset the weather was rendered into (as recorded), or the one given."""
+        if dataset is None or dataset == self.input.get("dataset"):
+            description = dict(self.input)        # with every recorded reader option
+        else:                                     # another reader: its own defaults
+            description = {"dataset": dataset, "split": self.input.get("split", "training")}
+        if root is not None:
+            description["root"] = root
+        if pass_ is not None:
+            description["pass"] = pass_
+        return reopen_dataset(description)

@@ -1,0 +1,279 @@
+"""The render job over a dataset: selection, per-pair particles, workers, resumption, the manifest.
+
+The job is independent of the command line: :func:`run_render` takes a :class:`RenderJob` and calls
+back with :class:`PairResult` objects, so the CLI only wires options and reports progress.
+
+Determinism: each pair's seed is derived from the run seed and the pair's identity (never from its
+position in the run), and each pair is rendered by itself with a fixed number of threads, so the
+bytes written do not depend on worker count, order, sharding or resumption.
+"""
+
+from __future__ import annotations
+
+import multiprocessing
+import os
+import signal
+import threading
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import asdict, dataclass, field
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+import torch
+
+from ..datasets import Dataset, PairRef
+from ..engine import render_pair, visible_counts
+from ..errors import ConfigError, OutputError, WeatherGenError
+from ..framepair import FramePairBatch, PairId
+from ..outputs import (RENDER_FOLDER, PairOutput, merge_manifest, pair_metadata, prepare_folder,
+                       read_run_config, write_manifest_part, write_pair_outputs, write_run_config)
+from ..outputs.manifest import jsonable, shard_part
+from .particles import pair_particles, pair_seed
+from .shards import shard_refs
+
+#: Every pair renders with this many intra-op threads, whatever the worker count: thread count can
+#: change the order of floating-point reductions, and with it the output bytes.
+RENDER_THREADS = 1
+
+
+@dataclass
+class RenderJob:
+    """Everything a render run needs; picklable, so workers receive it whole."""
+
+    dataset: Dataset
+    out: Path
+    preset: object                      # weathergen.engine.Preset
+    preset_name: str
+    seed: int = 0
+    pass_name: str = ""
+    fmt: str = "png"
+    geometry: bool = True
+    device: str = "cpu"
+    particles_from: Optional[Path] = None
+    appearance: dict = field(default_factory=dict)   # re-render overrides of Particles settings
+    shard: tuple[int, int] = (1, 1)
+    workers: int = 1
+    batch_size: int = 1                 # pairs rendered together (per worker)
+    resume: bool = False
+    overwrite: bool = False
+    command: list = field(default_factory=list)
+
+    def config(self) -> dict:
+        """What must agree between the runs and shards that write one output folder."""
+        return {
+            "preset_name": self.preset_name,
+            "preset": self.preset.to_dict(),
+            "seed": self.seed,
+            "input": self.dataset.describe(),
+            "outputs": {"pass": self.pass_name, "format": self.fmt, "geometry": self.geometry},
+            "particles_from": str(self.particles_from) if self.particles_from else None,
+            "appearance": self.appearance,
+        }
+
+
+@dataclass
+class PairResult:
+    """What happened to one pair."""
+
+    key: str
+    pair: str
+    status: str                 # "written", "skipped" or "failed"
+    seed: int
+    seconds: float = 0.0
+    bytes: int = 0
+    message: str = ""
+    visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
+    input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
+
+
+# -- one pair ------------------------------------------------------------------------------------
+def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
+    """Load, sample (or reload), render and write some pairs. Never raises for bad input.
+
+    Pairs of the same size are rendered together, as one batch (worth it on a GPU); each pair's
+    particles come from its own seed, and no pixel of one pair depends on another pair, so the
+    bytes written are those of rendering each pair alone.
+    """
+    torch.set_num_threads(RENDER_THREADS)
+    results: dict[PairId, PairResult] = {}
+    ready = []                                   # (ref, seed, pair, particles, seconds so far)
+    for ref in refs:
+        seed = pair_seed(job.seed, ref.id)
+        start = time.perf_counter()
+        try:
+            pair = job.dataset.load(ref)
+            particles = pair_particles(pair, job.preset, job.seed,
+                                       world_up=getattr(job.dataset, "world_up", "auto"),
+                                       particles_from=job.particles_from, appearance=job.appearance)
+            ready.append((ref, seed, pair, particles, time.perf_counter() - start))
+        except WeatherGenError as exc:
+            results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed,
+                                         time.perf_counter() - start, message=str(exc))
+    groups: dict[tuple, list] = {}
+    for item in ready:
+        groups.setdefault(item[2].size, []).append(item)
+    for group in groups.values():
+        start = time.perf_counter()
+        try:
+            with torch.no_grad():
+                if len(group) == 1:
+                    rendered = render_pair(group[0][2], group[0][3], device=job.device)
+                else:
+                    rendered = render_pair(FramePairBatch.stack([g[2] for g in group]),
+                                           [g[3] for g in group], device=job.device)
+        except WeatherGenError as exc:
+            for ref, seed, _, _, spent in group:
+                results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed, spent,
+                                             message=str(exc))
+            continue
+        share = (time.perf_counter() - start) / len(group)
+        for i, (ref, seed, pair, particles, spent) in enumerate(group):
+            start = time.perf_counter()
+            results[ref.id] = _write_one(job, ref, seed, pair, particles, rendered, i)
+            results[ref.id].seconds = spent + share + time.perf_counter() - start
+    return [results[ref.id] for ref in refs]
+
+
+def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendered, index: int) -> PairResult:
+    frames = tuple(img[index].permute(1, 2, 0).cpu().numpy() for img in (rendered.image1, rendered.image2))
+    opacity = tuple(a[index, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
+    visible = visible_counts(pair, particles)
+    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name)
+    meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
+    out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+    try:
+        files = write_pair_outputs(out, pair, frames, opacity, meta)
+    except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
+        raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
+                          f"rerun with ${{resume}} once there is room") from None
+    return PairResult(ref.id.key, str(ref.id), "written", seed,
+                      bytes=sum(p.stat().st_size for p in files), visible=visible,
+                      input=jsonable(getattr(pair, "meta", None) or {}))
+
+
+def _worker_init():
+    torch.set_num_threads(RENDER_THREADS)
+    # Ctrl-C reaches the whole process group; the main process alone decides what stops, and lets
+    # the pairs in progress finish, so that no worker is cut off in the middle of a pair.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # A worker whose main process was killed outright would wait for work forever: leave instead.
+    parent = os.getppid()
+
+    def watch():
+        while os.getppid() == parent:
+            time.sleep(0.5)
+        os._exit(1)
+
+    threading.Thread(target=watch, daemon=True).start()
+
+
+# -- the output folder ---------------------------------------------------------------------------
+def prepare_output(job: RenderJob) -> None:
+    """Create or reuse the output folder, refusing folders that are not ours or hold another run."""
+    # A new shard of a sharded run may start in a folder that other shards have written.
+    other_shard = job.shard[1] > 1 and not shard_part(job.out, job.shard).exists()
+    previous = read_run_config(job.out) if job.out.is_dir() else None
+    prepare_folder(job.out, RENDER_FOLDER, job.config(), previous, resume=job.resume,
+                   overwrite=job.overwrite, shared=other_shard)
+    try:
+        write_run_config(job.out, job.config())
+    except OSError as exc:
+        raise ConfigError(f"{job.out}: cannot write here ({exc.strerror})") from None
+
+
+def record_run(job: RenderJob, results: list[PairResult], started: float, seconds: float) -> Path:
+    """Record this run's pairs in the shard's manifest part (merging with its earlier runs)."""
+    i, n = job.shard
+    counts = {s: sum(r.status == s for r in results) for s in ("written", "skipped", "failed")}
+    run = {
+        "shard": f"{i}/{n}", "command": job.command, "workers": job.workers, "device": job.device,
+        "started": datetime.fromtimestamp(started, timezone.utc).isoformat(timespec="seconds"),
+        "seconds": round(seconds, 3), **counts,
+    }
+    pairs = {}
+    for r in results:
+        entry = asdict(r)
+        pairs[entry.pop("key")] = entry
+    return write_manifest_part(job.out, job.shard, run, pairs)
+
+
+# -- the run -------------------------------------------------------------------------------------
+def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda r: None,
+               on_start: Callable[[int], None] = lambda n: None) -> list[PairResult]:
+    """Render every selected pair of the job's shard; return one result per pair.
+
+    Pairs already complete on disk are skipped when resuming (or when another shard's folder is
+    reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives.
+    Interruptions (Ctrl-C) record what was finished in the manifest and re-raise.
+    """
+    # A root that is not of the chosen layout fails here, before the output folder is touched.
+    refs = shard_refs(job.dataset.pairs(), job.shard)
+    if not refs:
+        raise ConfigError("the selection holds no frame pairs")
+    prepare_output(job)
+    started = time.time()
+    t0 = time.perf_counter()
+    results: list[PairResult] = []
+    todo: list[PairRef] = []
+    for ref in refs:
+        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+        if not job.overwrite and out.is_complete():
+            results.append(PairResult(ref.id.key, str(ref.id), "skipped", pair_seed(job.seed, ref.id)))
+        else:
+            todo.append(ref)
+    on_start(len(refs))
+    for r in results:
+        on_result(r)
+    try:
+        if job.workers <= 1 or len(todo) <= job.batch_size:
+            threads = torch.get_num_threads()
+            try:
+                for chunk in _chunks(todo, job.batch_size):
+                    for r in render_batch(job, chunk):
+                        results.append(r)
+                        on_result(r)
+            finally:
+                torch.set_num_threads(threads)
+        else:
+            _run_pool(job, todo, results, on_result)
+    finally:
+        record_run(job, results, started, time.perf_counter() - t0)
+        merge_manifest(job.out)
+    return results
+
+
+def _chunks(items: list, size: int) -> list[list]:
+    return [items[i:i + size] for i in range(0, len(items), max(1, size))]
+
+
+def _run_pool(job, todo, results, on_result):
+    ctx = multiprocessing.get_context("spawn")
+    pending = set()
+    queue = list(todo)
+    with ProcessPoolExecutor(max_workers=job.workers, mp_context=ctx, initializer=_worker_init) as pool:
+        try:
+            while queue or pending:
+                while queue and len(pending) < 2 * job.workers:
+                    chunk, queue = queue[:job.batch_size], queue[job.batch_size:]
+                    pending.add(pool.submit(render_batch, job, chunk))
+                done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                for fut in done:
+                    for r in fut.result():
+                        results.append(r)
+                        on_result(r)
+        except BaseException:
+            # Interrupted: start nothing new, but let the running chunks finish and record them.
+            for fut in pending:
+                fut.cancel()
+            for fut in pending:
+                if not fut.cancelled() and fut.exception() is None:
+                    for r in fut.result():
+                        results.append(r)
+                        on_result(r)
+            raise
+
+
+__all__ = ["RenderJob", "PairResult", "render_batch", "run_render", "prepare_output", "record_run"]

@@ -1,0 +1,74 @@
+"""The rules that turn a render request into a job: which preset, which settings win, the defaults.
+
+Every rule the command line applies lives here, so a library user gets the same behaviour:
+
+- a preset file replaces the preset name; overrides apply on top of either;
+- re-rendering stored particles (``particles_from``) takes the preset they were sampled from,
+  and only the :data:`~weathergen.engine.APPEARANCE_KEYS` may change (they change how the
+  particles look, not where they are: the fields of their
+  :class:`~weathergen.engine.RenderSettings` other than the templates);
+- the output folder defaults to ``out/<preset>``, the pass to ``<preset>_<input pass>``, the batch
+  to 8 pairs on CUDA and 1 elsewhere.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Mapping, NamedTuple, Optional
+
+import torch
+
+from ..engine import APPEARANCE_KEYS, Preset, RenderSettings, list_presets, load_preset
+from ..errors import ConfigError
+from ..outputs import read_manifest
+
+class ResolvedPreset(NamedTuple):
+    """The preset of a run, its name, and (re-rendering) the particle settings that change."""
+
+    preset: Preset
+    name: str
+    appearance: dict
+
+
+def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = None,
+                   overrides: Optional[Mapping[str, str]] = None,
+                   particles_from: Optional[str | Path] = None) -> ResolvedPreset:
+    """The preset of a run and, when re-rendering, the particle settings that change.
+
+    ``preset`` names a bundled preset; ``preset_file`` (a TOML file) replaces it; ``overrides``
+    map preset keys to values (as :func:`~weathergen.engine.load_preset` takes them). With
+    ``particles_from`` (the folder of an earlier render or attack) the stored preset is used and
+    ``preset``/``preset_file`` are ignored; overrides of keys other than :data:`APPEARANCE_KEYS`
+    raise ConfigError.
+    """
+    overrides = dict(overrides or {})
+    if particles_from is None:
+        resolved = load_preset(preset_file or preset, overrides)
+        return ResolvedPreset(resolved, Path(preset_file).stem if preset_file else preset, {})
+    # Re-rendering: the sampled particles fix everything but their appearance settings.
+    stored = read_manifest(particles_from, "particles_from")
+    fixed = sorted(k for k in overrides if k not in APPEARANCE_KEYS)
+    if fixed:
+        raise ConfigError(f"${{overrides}} {', '.join(fixed)}: fixed by the stored particles; only "
+                          f"{', '.join(APPEARANCE_KEYS)} can change when re-rendering")
+    values = {k: v for k, v in stored.preset.items() if k not in ("name", "source")}
+    name = stored.preset_name
+    base = name if name in list_presets() else "snow"  # every key is set anyway
+    resolved = load_preset(base, {**values, **overrides})
+    appearance = RenderSettings.from_preset(resolved).appearance() if overrides else {}
+    return ResolvedPreset(resolved, name, appearance)
+
+
+def default_out(label: str) -> Path:
+    """Where a run writes when no folder is given: ``out/<label>``."""
+    return Path("out") / label
+
+
+def default_pass_name(preset_name: str, input_pass: str) -> str:
+    """The output pass of a render: ``<preset>_<input pass>``, e.g. ``snow_clean``."""
+    return f"{preset_name}_{input_pass}"
+
+
+def default_batch_size(device: str | torch.device) -> int:
+    """Pairs rendered together when none is given: 8 on CUDA (worth it there), 1 elsewhere."""
+    return 8 if torch.device(device).type == "cuda" else 1

@@ -1,0 +1,65 @@
+"""Contact sheets of a render output: original and weather frames side by side with the opacity."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from ..datasets import reopen_dataset
+from ..engine import Particles, render_pair
+from ..errors import WeatherGenError
+from ..io.exr import read_exr
+from ..io.images import read_image, to_uint8
+from ..outputs import PairOutput, read_manifest
+
+
+def _tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
+    """Resize a float [0, 1] image to ``size`` (w, h), as uint8 with a caption."""
+    out = to_uint8(cv2.resize(img, size, interpolation=cv2.INTER_AREA))
+    # A dark outline: the caption itself shifted by one pixel each way (a thicker stroke would
+    # advance wider per character and drift away from the white text).
+    for dx in (-1, 0, 1):
+        for dy in (-1, 0, 1):
+            if dx or dy:
+                cv2.putText(out, text, (6 + dx, 18 + dy), cv2.FONT_HERSHEY_SIMPLEX, 0.5,
+                            (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(out, text, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+    return out
+
+
+def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> np.ndarray:
+    """One row per pair: original frame 1 | weather frame 1 | particle opacity of frame 1.
+
+    The input frames are read through the dataset recorded in the manifest; the opacity is
+    re-rendered from the stored particle metadata (exact, whatever the output format).
+    Shape: returns (rows * h, 3 * width, 3) uint8 RGB.
+    """
+    render_dir = Path(render_dir)
+    manifest = read_manifest(render_dir, "preview")
+    ds = reopen_dataset(manifest.input)
+    rows = []
+    for ref in ds.pairs():
+        out = PairOutput.of(render_dir, ref.id, manifest.pass_name, manifest.fmt, manifest.geometry)
+        if not out.is_complete():
+            continue
+        pair = ds.load(ref)
+        particles = Particles.load(out.metadata)
+        with torch.no_grad():
+            opacity = render_pair(pair, particles).opacity1[0, 0].clamp(0, 1).numpy()
+        weather = (read_image(out.frames_png[0]) if manifest.fmt in ("png", "both")
+                   else np.clip(read_exr(out.frames_exr[0])["RGB"], 0, 1))
+        original = pair.image1.permute(1, 2, 0).numpy()
+        h, w = original.shape[:2]
+        size = (width, max(1, round(h * width / w)))
+        tiles = [_tile(original, size, f"{ref.id.scene} {ref.id.frame}"),
+                 _tile(weather, size, manifest.data.get("preset_name", "")),
+                 _tile(np.repeat(opacity[..., None], 3, 2), size, "opacity")]
+        rows.append(np.hstack(tiles))
+        if len(rows) == pairs:
+            break
+    if not rows:
+        raise WeatherGenError(f"{render_dir}: no complete pair to preview")
+    return np.vstack(rows)
