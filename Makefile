@@ -11,16 +11,29 @@ TORCH  ?= torch==2.13.0
 PYTEST_ARGS ?=
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.weathergen-deps
+# The torch requirement the venv was last set up with; a different TORCH reinstalls torch.
+TORCH_STAMP := $(VENV)/.weathergen-torch
 
-.PHONY: venv install test demo bench clean
+.PHONY: venv install test demo bench clean FORCE
 
 venv: $(STAMP)
 
 # Torch comes first and on its own: an unpinned torch pulled in as a dependency would fetch
-# gigabytes of CUDA packages, while the pinned one is a CPU build.
-$(STAMP): setup.cfg pyproject.toml
-	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
-	$(BIN)/python -m pip install -q "$(TORCH)"
+# gigabytes of CUDA packages, while the pinned one is a CPU build. The recipe runs every time but
+# touches $(TORCH_STAMP) only when TORCH differs from the recorded requirement; a torch already
+# installed is then replaced (pip would otherwise call any installed torch "already satisfied").
+$(TORCH_STAMP): FORCE
+	@test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
+	@if [ "$$(cat $@ 2>/dev/null)" != '$(TORCH)' ]; then \
+	    if [ -f $@ ]; then \
+	        echo "installing $(TORCH) in place of $$(cat $@)"; \
+	        $(BIN)/python -m pip install -q --force-reinstall --no-deps "$(TORCH)" || exit 1; \
+	    fi; \
+	    $(BIN)/python -m pip install -q "$(TORCH)" || exit 1; \
+	    echo '$(TORCH)' > $@; \
+	fi
+
+$(STAMP): setup.cfg pyproject.toml $(TORCH_STAMP)
 	$(BIN)/python -m pip install -q ".[test]"
 	touch $(STAMP)
 
@@ -31,9 +44,11 @@ install: $(STAMP)
 test: install
 	$(BIN)/pytest -q $(PYTEST_ARGS)
 
+# Into out/demo, so that the README's first command (`weathergen render`, into out/snow) is free.
 demo: install
-	$(BIN)/weathergen render --preset snow --out out/snow --overwrite
-	$(BIN)/weathergen preview out/snow
+	$(BIN)/weathergen render --preset snow --out out/demo --overwrite
+	$(BIN)/weathergen preview out/demo
+	@echo "Next: activate the environment with '. $(VENV)/bin/activate' (or run $(BIN)/weathergen ...)"
 
 bench: install
 	$(BIN)/python benchmarks/bench.py

@@ -10,6 +10,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from weathergen.io.atomic import write_error
 from weathergen.io.images import write_png
 from weathergen.outputs import read_metadata
 from weathergen.render import contact_sheet
@@ -69,11 +70,18 @@ def inspect(file: Path):
 @click.argument("render_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG to write. Default: RENDER_DIR/preview.png.")
-@click.option("--pairs", type=click.IntRange(min=1), default=4, show_default=True, help="Pairs to show.")
+@click.option("--pairs", type=click.IntRange(min=1), default=4, show_default=True, help="Pairs to show (the first ones); the sheet says when there are more.")
 @click.option("--width", type=click.IntRange(min=64), default=480, show_default=True, help="Width of each tile.")
 def preview(render_dir: Path, out, pairs, width):
     """Write a contact sheet of a render output: original, weather frame and particle opacity."""
     sheet = contact_sheet(render_dir, pairs=pairs, width=width)
     out = out or render_dir / "preview.png"
-    write_png(out, sheet)
-    click.echo(f"Preview written to {out}")
+    try:
+        write_png(out, sheet.image)
+    except OSError as exc:
+        raise write_error(exc, out, "pass --out PATH.png to write it elsewhere") from None
+    if sheet.partial:
+        click.echo(f"Preview of {sheet.shown} of {sheet.total} pairs written to {out} "
+                   f"(--pairs {sheet.total} shows all)")
+    else:
+        click.echo(f"Preview of {sheet.total} pair{'s' if sheet.total != 1 else ''} written to {out}")

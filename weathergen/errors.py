@@ -60,4 +60,15 @@ class ShapeError(WeatherGenError, ValueError):
 
 
 class OutputError(WeatherGenError):
-    """Writing the outputs failed (disk full, permissions): the run stops."""
+    """An output cannot be written (disk full, no permission, read-only file system).
+
+    The message names the file that was to be written (never a temporary name) and the reason.
+    """
+
+
+class FolderBusy(ConfigError):
+    """Another run holds the lock of an output folder (the message names it: pid and host)."""
+
+
+class NothingRendered(DatasetError):
+    """Every selected pair of a run failed to load or render: nothing usable was written."""

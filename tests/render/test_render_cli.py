@@ -266,7 +266,9 @@ def test_metadata_from_another_scene_or_future_version(snow_run, tmp_path):
     arrays["metadata_version"] = np.array(99, np.int32)
     np.savez(b, **arrays)
     res = run("render", "--out", tmp_path / "o2", "--particles", src, *FAST[:4])
-    assert res.exit_code == 1 and "newer than this weathergen" in res.output
+    # now both pairs fail (pair 1 as before): nothing to show, exit 2 and no output folder
+    assert res.exit_code == 2 and "newer than this weathergen" in res.output
+    assert "every selected pair failed" in res.output and not (tmp_path / "o2").exists()
 
 
 def test_preview_writes_a_contact_sheet(snow_run, tmp_path):

@@ -60,7 +60,10 @@ def open_dataset(name: str, root: Optional[str | Path] = None, *, split: str = "
     selection = Selection(split=split, pass_=pass_, scenes=tuple(scenes) if scenes else None,
                           from_scene=from_scene, frames_per_scene=frames_per_scene,
                           first_frame=first_frame)
-    return cls(root, selection, **options)
+    dataset = cls(root, selection, **options)
+    if hasattr(dataset, "check_scene_scales"):
+        dataset.check_scene_scales()
+    return dataset
 
 
 #: Entries of :meth:`Dataset.describe` that are the name, root and selection; the others are the

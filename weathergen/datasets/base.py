@@ -105,6 +105,10 @@ class Dataset(ABC):
     def pairs(self) -> list[PairRef]:
         """The selected pairs, sorted by scene then frame. Lists files only; reads nothing."""
 
+    def all_scenes(self) -> Optional[list[str]]:
+        """Every scene of the split, before the selection; None for a reader without scenes."""
+        return None
+
     @abstractmethod
     def load(self, ref: PairRef) -> FramePair:
         """Read and validate one pair; raise a :class:`WeatherGenError` naming the faulty file."""
@@ -114,7 +118,9 @@ class Dataset(ABC):
         sel = self.selection
         return {
             "dataset": self.name,
-            "root": str(self.root),
+            # absolute, so that a manifest read from another folder (preview, evaluate, a
+            # resume given the absolute path) names the same place
+            "root": str(self.root.absolute()),
             "split": sel.split,
             "pass": sel.pass_,
             "scenes": list(sel.scenes) if sel.scenes else None,

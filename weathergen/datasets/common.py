@@ -47,9 +47,25 @@ class ScaledDataset(Dataset):
         if world_up not in WORLD_UP_CHOICES:
             raise ConfigError(f"world up {world_up!r}: choose from {', '.join(WORLD_UP_CHOICES)}")
         self.depth_scale = float(depth_scale)
+        #: where the table came from (a file, see :func:`load_scene_scales`), for messages
+        self.scene_scales_source = getattr(scene_scales, "source", None) or "scene scales"
         self.scene_scales = dict(scene_scales or {})
         self.camera_translation = camera_translation
         self.world_up = world_up
+
+    def check_scene_scales(self) -> None:
+        """Refuse a scene-scale entry that names no scene of the split (a typo would otherwise
+        leave that scene unscaled without a word)."""
+        if not self.scene_scales:
+            return
+        scenes = self.all_scenes()
+        if scenes is None:
+            return
+        unknown = sorted(s for s in self.scene_scales if s not in scenes)
+        if unknown:
+            shown = ", ".join(scenes[:12]) + (f", ... ({len(scenes)} in all)" if len(scenes) > 12 else "")
+            raise ConfigError(f"{self.scene_scales_source}: no scene named {', '.join(unknown)} in "
+                              f"{self.root} ({self.selection.split}); scenes there: {shown or 'none'}")
 
     def scale_of(self, scene: str) -> float:
         """The depth scale applied to ``scene``."""

@@ -61,6 +61,9 @@ class CustomDataset(FarDepthDataset):
                                f"ROOT/SCENE/frames/0000.png or ROOT/frames/0000.png)")
         return found
 
+    def all_scenes(self) -> list[str]:
+        return sorted(self.scene_dirs())
+
     def frames(self, scene_dir: Path) -> dict[int, Path]:
         """Frame number -> frame file. Two files with one number are an error."""
         out: dict[int, Path] = {}

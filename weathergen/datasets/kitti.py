@@ -108,6 +108,9 @@ class KittiDataset(FarDepthDataset):
                 found.setdefault(m.group(1), []).append(int(m.group(2)))
         return {s: sorted(f) for s, f in sorted(found.items())}
 
+    def all_scenes(self) -> list[str]:
+        return sorted(self._frames_by_scene())
+
     def pairs(self) -> list[PairRef]:
         frames = self._frames_by_scene()
         refs = []

@@ -32,6 +32,7 @@ from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.images import read_image, read_raw
 from ..io.sintel_formats import read_cam, read_dpt, read_flo
+from ..io.text import read_text_file
 from .base import PairRef, Selection, frame_numbers
 from .common import ScaledDataset
 
@@ -41,18 +42,29 @@ SPLITS = ("training", "test")
 _NOT_PASSES = {"depth", "camdata_left", "flow", "flow_viz", "invalid", "occlusions", "particles"}
 
 
+class SceneScales(dict):
+    """A per-scene depth-scale table (scene -> factor) that remembers the file it came from."""
+
+    source: str = "scene scales"
+
+
 def load_scene_scales(path: str | Path) -> dict[str, float]:
-    """Read a per-scene depth-scale table (TOML or JSON object of ``scene: factor``)."""
+    """Read a per-scene depth-scale table (TOML or JSON object of ``scene: factor``).
+
+    Returns a :class:`SceneScales` dictionary whose ``source`` is the file, so that readers name it
+    when an entry names no scene of the dataset.
+    """
     path = Path(path)
-    try:
-        text = path.read_text()
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read scene-scale table ({exc.strerror})") from None
+    text = read_text_file(path, "scene-scale table")
     try:
         table = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
     except (ValueError, tomllib.TOMLDecodeError) as exc:
         raise ConfigError(f"{path}: not a valid {path.suffix.lstrip('.') or 'TOML'} table ({exc})") from None
-    out = {}
+    if not isinstance(table, dict):
+        raise ConfigError(f"{path}: expected a table of scene = factor entries, "
+                          f"got a JSON {type(table).__name__}")
+    out = SceneScales()
+    out.source = str(path)
     for scene, value in table.items():
         if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
             raise ConfigError(f"{path}: scale of scene {scene!r} must be a positive number, got {value!r}")
@@ -91,7 +103,10 @@ class SintelDataset(ScaledDataset):
             raise DatasetError(
                 f"{self.image_dir}: no such folder (expected Sintel layout "
                 f"ROOT/{self.selection.split}/{self.selection.pass_}/SCENE/frame_0001.png)")
-        return sorted(p.name for p in self.image_dir.iterdir() if p.is_dir())
+        return sorted(p.name for p in self.image_dir.iterdir() if p.is_dir() and not p.name.startswith("."))
+
+    def all_scenes(self) -> list[str]:
+        return self.scenes()
 
     def frames(self, scene: str) -> list[int]:
         return frame_numbers(self.image_dir / scene, _FRAME_RE)
@@ -99,7 +114,15 @@ class SintelDataset(ScaledDataset):
     def pairs(self) -> list[PairRef]:
         refs = []
         for scene in self.selection.pick_scenes(self.scenes(), self.image_dir):
-            for f in self.selection.pick_frames(self.frames(scene)):
+            frames = self.frames(scene)
+            present = set(frames)
+            if not any(f + 1 in present for f in frames):
+                # a scene folder the selection names but that holds no pair would otherwise vanish
+                found = ("no frame_NNNN.png files" if not frames else f"only frame {frames[0]}"
+                         if len(frames) == 1 else "no two consecutive frames")
+                raise DatasetError(f"{self.image_dir / scene}: scene folder holds no frame pair "
+                                   f"({found}); remove it or leave it out with --scenes")
+            for f in self.selection.pick_frames(frames):
                 refs.append(PairRef(PairId(self.name, self.selection.split, scene, f),
                                     self._files(scene, f)))
         return refs

@@ -73,6 +73,9 @@ class SpringDataset(FarDepthDataset):
                                f"ROOT/{self.split_dir.name}/SCENE/frame_left/frame_left_0001.png)")
         return sorted(p.name for p in self.split_dir.iterdir() if (p / "frame_left").is_dir())
 
+    def all_scenes(self) -> list[str]:
+        return self.scenes()
+
     def frames(self, scene: str) -> list[int]:
         return frame_numbers(self.split_dir / scene / "frame_left", _FRAME_RE)
 

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any, Callable, Mapping, Optional
 
 from ..errors import ConfigError, WeatherGenError
+from ..io.text import read_text_file
 from .templates import BUILTIN_TEMPLATE_KINDS, load_templates
 
 BLEND_MODES = ("additive", "alpha")
@@ -267,7 +268,7 @@ def load_preset(name_or_path: str | Path = "snow",
         if not path.is_file():
             raise ConfigError(f"{path}: preset file does not exist")
         where, name = str(path), path.stem
-        data = _read_toml(path.read_text(encoding="utf-8"), where)
+        data = _read_toml(read_text_file(path, "preset"), where)
         base_dir: Optional[Path] = path.parent
     else:
         known = list_presets()

@@ -9,9 +9,12 @@ final name, and ``weathergen render --resume`` deletes it.
 from __future__ import annotations
 
 import contextlib
+import errno
 import os
 import tempfile
 from pathlib import Path
+
+from ..errors import OutputError
 
 
 def _read_umask() -> int:
@@ -53,14 +56,59 @@ def atomic_path(path: str | Path, suffix: str = ".tmp"):
     temporary file, so outputs on a shared disk stay readable to the group.
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+    except OSError as exc:
+        raise _naming(exc, path, None) from None
     try:
         os.fchmod(fd, 0o666 & ~UMASK)
         os.close(fd)
         yield Path(tmp)
         os.replace(tmp, path)
-    except BaseException:
-        with contextlib.suppress(FileNotFoundError):
+    except BaseException as exc:
+        with contextlib.suppress(OSError):
             os.unlink(tmp)
+        if isinstance(exc, OSError):
+            raise _naming(exc, path, tmp) from None
         raise
+
+
+def _naming(exc: OSError, path: Path, tmp) -> OSError:
+    """The same error, naming the destination instead of a temporary file (or of no file).
+
+    An error that names another file (a parent folder that cannot be created) keeps that name: it
+    is the place to fix.
+    """
+    ours = exc.filename is None or str(exc.filename) == str(tmp) or (
+        Path(str(exc.filename)).name.startswith(f".{path.name}."))      # a temporary name
+    if not ours:
+        return exc
+    if exc.errno is None:
+        exc.filename, exc.filename2 = str(path), None
+        return exc
+    return type(exc)(exc.errno, exc.strerror, str(path))
+
+
+#: errno values that mean "no room": the disk or the user's quota is full.
+NO_SPACE = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+#: errno values that mean "not allowed here": permissions, a read-only file system.
+NOT_ALLOWED = {errno.EACCES, errno.EPERM, errno.EROFS}
+
+
+def write_error(exc: OSError, fallback: str | Path, hint: str = "") -> OutputError:
+    """A one-line :class:`~weathergen.errors.OutputError` for a failed write.
+
+    It names the file (``exc.filename``, else ``fallback``) and the reason in words; ``hint`` (for
+    example "rerun with --resume") is appended after what to fix.
+    """
+    where = exc.filename or fallback
+    reason = exc.strerror or str(exc) or type(exc).__name__
+    if exc.errno in NO_SPACE:
+        fix = "free some space"
+    elif exc.errno in NOT_ALLOWED:
+        fix = "choose a writable place or fix the permissions"
+    else:
+        fix = ""
+    then = "; ".join(x for x in (fix, hint) if x)
+    return OutputError(f"{where}: cannot write ({reason})" + (f"; {then}" if then else ""))

@@ -158,6 +158,9 @@ def sha256_of(path: Path) -> str:
 def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     """Read a checkpoint file that holds a ``state_dict`` (name -> tensor) onto the CPU.
 
+    A file that holds a dictionary with a ``state_dict`` entry (a training checkpoint with
+    the epoch and other records beside the weights) gives that entry.
+
     Only tensors and plain containers are unpickled (``weights_only=True``).
 
     Raises:
@@ -167,11 +170,21 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     path = Path(path)
     if not path.is_file():
         raise ConfigError(f"checkpoint file {path} does not exist")
+    _check_checkpoint_header(path)
     try:
         obj = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for corrupt files; all mean the same here
-        reason = str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+        text = str(exc).strip()
+        if "Weights only load failed" in text:
+            reason = "it holds objects other than tensors, or is damaged"
+        elif isinstance(exc, KeyError) or not text:
+            reason = f"damaged or not a checkpoint: {type(exc).__name__}"
+        else:
+            reason = text.splitlines()[0]
         raise FormatError(path, f"cannot be read as a PyTorch checkpoint ({reason})") from exc
+    if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
+        # A training checkpoint ({"epoch": ..., "state_dict": ..., ...}), as FlowNet2's files.
+        obj = obj["state_dict"]
     if not isinstance(obj, Mapping) or not obj:
         raise FormatError(path, f"expected a state dict (parameter name -> tensor), "
                                 f"got {type(obj).__name__}")
@@ -180,6 +193,29 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         raise FormatError(path, f"expected a state dict (parameter name -> tensor); entries "
                                 f"that are not tensors: {_short_list(map(str, bad))}")
     return dict(obj)
+
+
+def _check_checkpoint_header(path: Path) -> None:
+    """Refuse files that are neither of torch's formats (a zip archive, or a pickle stream).
+
+    Without this, ``torch.load`` of a text file fails with a bare ``KeyError`` of a byte value.
+    """
+    try:
+        with open(path, "rb") as f:
+            head = f.read(64)
+    except OSError as exc:
+        raise FormatError(path, f"cannot read checkpoint file ({exc.strerror or exc})") from None
+    if not head:
+        raise FormatError(path, "is empty, not a PyTorch checkpoint")
+    if head.startswith(b"PK\x03\x04") or (len(head) > 1 and head[0] == 0x80 and 2 <= head[1] <= 5):
+        return
+    try:
+        first_line = head.decode("ascii").strip().splitlines()[0][:24]
+        kind = f"a text file (it starts with {first_line!r})"
+    except (UnicodeDecodeError, IndexError):
+        kind = "neither a zip archive nor a pickle stream"
+    raise FormatError(path, f"not a PyTorch checkpoint: {kind}; expected a .pth/.pt file saved "
+                            f"with torch.save")
 
 
 def strip_prefix(state_dict: Mapping[str, torch.Tensor], prefix: str) -> dict[str, torch.Tensor]:

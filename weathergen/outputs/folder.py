@@ -6,9 +6,10 @@ marker file, so that neither writes into the other's folder, nor into a folder o
 
 from __future__ import annotations
 
+import glob
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Optional
+from typing import Iterable, Optional
 
 from ..errors import ConfigError
 from .manifest import jsonable
@@ -35,20 +36,36 @@ ATTACK_FOLDER = FolderKind(
     "an attack", "attacked")
 
 
+def is_foreign(out: Path, kind: FolderKind, overwrite: bool, ignore: Iterable[str] = ()) -> bool:
+    """True when ``out`` is not a folder, or a non-empty folder without ``kind``'s marker that
+    ``overwrite`` does not allow to write into (entries named in ``ignore`` do not count)."""
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        return True
+    skip = set(ignore)
+    return (out.is_dir() and any(p.name not in skip for p in out.iterdir())
+            and not (out / kind.marker).exists() and not overwrite)
+
+
 def prepare_folder(out: Path, kind: FolderKind, config: dict, previous: Optional[dict], *,
-                   resume: bool, overwrite: bool, shared: bool = False) -> None:
+                   resume: bool, overwrite: bool, shared: bool = False,
+                   ignore: Iterable[str] = (),
+                   temporary: Optional[Iterable[tuple[Path, str]]] = None) -> None:
     """Create or reuse ``out`` for a run with settings ``config``.
 
     ``previous`` is the configuration an earlier run recorded in the folder (None if none). A
-    non-empty folder without ``kind``'s marker is refused unless ``overwrite``; a folder that
-    holds a run is refused unless ``resume`` (or ``shared``: another shard of the same run may
-    start in it) with the same configuration, or ``overwrite``. Resuming removes the temporary
-    files that a killed run left.
+    non-empty folder without ``kind``'s marker is refused unless ``overwrite`` (entries named in
+    ``ignore``, such as the caller's lock file, do not count); a folder that holds a run is
+    refused unless ``resume`` (or ``shared``: another shard of the same run may start in it) with
+    the same configuration, or ``overwrite``. Resuming removes the temporary files that a killed
+    run left: with ``temporary``, only those in the given places (``(folder, name prefix)``
+    pairs: other shards may be writing elsewhere), else every one below ``out``.
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"{out}: exists and is not a folder")
-    if out.exists() and any(out.iterdir()):
+    skip = set(ignore)
+    if out.exists() and any(p.name not in skip for p in out.iterdir()):
         if not (out / kind.marker).exists() and not overwrite:
             raise ConfigError(f"{out}: folder is not empty and {kind.foreign}")
         if previous is not None and not overwrite:
@@ -62,7 +79,12 @@ def prepare_folder(out: Path, kind: FolderKind, config: dict, previous: Optional
                                   f"({', '.join(diff)}); use another ${{out}}, or ${{overwrite}}")
     if resume and out.is_dir():
         # temporary files of a killed run (atomic writes that never reached their rename)
-        for stale in out.rglob(".*.tmp*"):
+        if temporary is None:
+            stale_files = out.rglob(".*.tmp*")
+        else:
+            stale_files = (p for folder, prefix in temporary
+                           for p in Path(folder).glob(f"{glob.escape(prefix)}*.tmp"))
+        for stale in stale_files:
             if stale.is_file():
                 stale.unlink()
     try:

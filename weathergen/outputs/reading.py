@@ -6,6 +6,7 @@ attacking stored particles (``particles_from``) need from an output folder.
 
 from __future__ import annotations
 
+import json
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -13,7 +14,7 @@ from typing import Optional
 import torch
 
 from ..datasets import Dataset, reopen_dataset
-from ..engine import Particles
+from ..engine import APPEARANCE_KEYS, Particles
 from ..errors import DatasetError, FormatError
 from ..framepair import PairId
 from ..io.exr import read_exr
@@ -23,19 +24,52 @@ from .metadata import pair_identity, read_metadata
 from .pairs import PairOutput
 
 
-def load_pair_particles(folder: str | Path, pair_id: PairId) -> Particles:
+def load_pair_particles(folder: str | Path, pair_id: PairId, preset_name: Optional[str] = None,
+                        preset: Optional[dict] = None) -> Particles:
     """The particles an earlier render (or attack) stored in ``folder`` for ``pair_id``.
 
-    Raises FormatError naming the file when it is missing or belongs to another pair.
+    With ``preset_name`` and ``preset`` (a ``Preset.to_dict()``: what the new output will be
+    labelled with), the stored particles must have been sampled from that preset (up to the
+    appearance keys, which may change).
+
+    Raises FormatError naming the file when it is missing or belongs to another pair, dataset or
+    preset.
     """
     path = PairOutput.of(folder, pair_id, "").metadata
     if not path.exists():
         raise FormatError(path, f"no particle metadata for pair {pair_id}")
-    found = pair_identity(read_metadata(path))
-    if (found.split, found.scene, found.frame) != (pair_id.split, pair_id.scene, pair_id.frame):
+    check_stored_particles(path, read_metadata(path), pair_id, preset_name, preset)
+    return Particles.load(path)
+
+
+def check_stored_particles(path: str | Path, arrays: dict, pair_id: PairId,
+                           preset_name: Optional[str] = None, preset: Optional[dict] = None) -> None:
+    """Refuse a metadata file that does not belong to this pair and dataset (and, when given, to
+    this preset); :class:`FormatError` names the file and what differs."""
+    found = pair_identity(arrays)
+    if (found.scene, found.frame) != (pair_id.scene, pair_id.frame):
         raise FormatError(path, f"metadata belongs to {found.scene} frame {found.frame}, "
                                 f"not to {pair_id.scene} frame {pair_id.frame}")
-    return Particles.load(path)
+    if (found.dataset, found.split) != (pair_id.dataset, pair_id.split):
+        raise FormatError(path, f"metadata belongs to the {found.split} split of dataset "
+                                f"{found.dataset!r}, not to the {pair_id.split} split of "
+                                f"{pair_id.dataset!r}")
+    if preset_name is not None:
+        stored_name = str(arrays["preset_name"])
+        if stored_name != preset_name:
+            raise FormatError(path, f"particles of preset {stored_name!r}, but the folder's "
+                                    f"manifest says {preset_name!r}")
+    if preset is not None:
+        try:
+            stored = json.loads(str(arrays["preset"]))
+        except ValueError:
+            raise FormatError(path, "its preset entry is not valid JSON") from None
+        ignored = {"name", "source", *APPEARANCE_KEYS}
+        differ = sorted(k for k in set(stored) | set(preset)
+                        if k not in ignored and stored.get(k) != preset.get(k))
+        if differ:
+            raise FormatError(path, f"particles sampled with other preset settings than the "
+                                    f"folder's manifest records ({', '.join(differ)})")
 
 
 @dataclass

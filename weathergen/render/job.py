@@ -10,10 +10,9 @@ bytes written do not depend on worker count, order, sharding or resumption.
 
 from __future__ import annotations
 
+import dataclasses
 import multiprocessing
 import os
-import signal
-import threading
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field
@@ -26,12 +25,17 @@ import torch
 
 from ..datasets import Dataset, PairRef
 from ..engine import render_pair, visible_counts
-from ..errors import ConfigError, OutputError, WeatherGenError
+from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..framepair import FramePairBatch, PairId
 from ..outputs import (RENDER_FOLDER, PairOutput, merge_manifest, pair_metadata, prepare_folder,
                        read_run_config, write_manifest_part, write_pair_outputs, write_run_config)
-from ..outputs.manifest import jsonable, shard_part
+from ..io.atomic import write_error
+from ..io.lock import FolderLock
+from ..outputs.folder import is_foreign
+from ..outputs.manifest import MANIFEST, MANIFEST_PARTS, RUN_CONFIG, jsonable, shard_part
+from ..workers import init_worker
 from .particles import pair_particles, pair_seed
+from .plan import auto_workers
 from .shards import shard_refs
 
 #: Every pair renders with this many intra-op threads, whatever the worker count: thread count can
@@ -55,7 +59,7 @@ class RenderJob:
     particles_from: Optional[Path] = None
     appearance: dict = field(default_factory=dict)   # re-render overrides of Particles settings
     shard: tuple[int, int] = (1, 1)
-    workers: int = 1
+    workers: int = 1                    # worker processes; 0: auto_workers() decides
     batch_size: int = 1                 # pairs rendered together (per worker)
     resume: bool = False
     overwrite: bool = False
@@ -69,7 +73,7 @@ class RenderJob:
             "seed": self.seed,
             "input": self.dataset.describe(),
             "outputs": {"pass": self.pass_name, "format": self.fmt, "geometry": self.geometry},
-            "particles_from": str(self.particles_from) if self.particles_from else None,
+            "particles_from": str(self.particles_from.absolute()) if self.particles_from else None,
             "appearance": self.appearance,
         }
 
@@ -107,7 +111,8 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
             pair = job.dataset.load(ref)
             particles = pair_particles(pair, job.preset, job.seed,
                                        world_up=getattr(job.dataset, "world_up", "auto"),
-                                       particles_from=job.particles_from, appearance=job.appearance)
+                                       particles_from=job.particles_from, appearance=job.appearance,
+                                       preset_name=job.preset_name)
             ready.append((ref, seed, pair, particles, time.perf_counter() - start))
         except WeatherGenError as exc:
             results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed,
@@ -147,41 +152,68 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     try:
         files = write_pair_outputs(out, pair, frames, opacity, meta)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
-        raise OutputError(f"{exc.filename or job.out}: cannot write ({exc.strerror or exc}); "
-                          f"rerun with ${{resume}} once there is room") from None
+        raise write_error(exc, job.out, "then rerun with ${resume}") from None
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
                       input=jsonable(getattr(pair, "meta", None) or {}))
 
 
-def _worker_init():
-    torch.set_num_threads(RENDER_THREADS)
-    # Ctrl-C reaches the whole process group; the main process alone decides what stops, and lets
-    # the pairs in progress finish, so that no worker is cut off in the middle of a pair.
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # A worker whose main process was killed outright would wait for work forever: leave instead.
-    parent = os.getppid()
-
-    def watch():
-        while os.getppid() == parent:
-            time.sleep(0.5)
-        os._exit(1)
-
-    threading.Thread(target=watch, daemon=True).start()
-
-
 # -- the output folder ---------------------------------------------------------------------------
-def prepare_output(job: RenderJob) -> None:
-    """Create or reuse the output folder, refusing folders that are not ours or hold another run."""
-    # A new shard of a sharded run may start in a folder that other shards have written.
-    other_shard = job.shard[1] > 1 and not shard_part(job.out, job.shard).exists()
-    previous = read_run_config(job.out) if job.out.is_dir() else None
-    prepare_folder(job.out, RENDER_FOLDER, job.config(), previous, resume=job.resume,
-                   overwrite=job.overwrite, shared=other_shard)
+def lock_name(shard: tuple[int, int]) -> str:
+    """The lock file of a shard (the shards of one run write one folder at the same time)."""
+    i, n = shard
+    return ".weathergen-lock" if n == 1 else f".weathergen-lock-shard-{i}-of-{n}"
+
+
+def prepare_output(job: RenderJob, refs: list[PairRef] = ()) -> FolderLock:
+    """Create or reuse the output folder, refusing folders that are not ours or hold another run.
+
+    Returns the folder's lock, held: the caller releases it when the run ends. A second run in the
+    same folder (and shard) is refused while this one holds it (:class:`FolderBusy`). ``refs``
+    are the pairs of the job's shard, whose leftover temporary files a resumed run deletes.
+    """
+    name = lock_name(job.shard)
+    if is_foreign(job.out, RENDER_FOLDER, job.overwrite, ignore=(name,)):
+        # not ours: refused (with the reason) before anything is created in it
+        prepare_folder(job.out, RENDER_FOLDER, job.config(), None, resume=job.resume,
+                       overwrite=job.overwrite, ignore=(name,))
     try:
-        write_run_config(job.out, job.config())
+        job.out.mkdir(parents=True, exist_ok=True)
+        lock = FolderLock(job.out / name, str(job.out)).acquire()
     except OSError as exc:
         raise ConfigError(f"{job.out}: cannot write here ({exc.strerror})") from None
+    try:
+        # Read under the lock: what the run before us recorded is final.
+        # A new shard of a sharded run may start in a folder that other shards have written.
+        other_shard = job.shard[1] > 1 and not shard_part(job.out, job.shard).exists()
+        prepare_folder(job.out, RENDER_FOLDER, job.config(), read_run_config(job.out),
+                       resume=job.resume, overwrite=job.overwrite, shared=other_shard,
+                       ignore=(name,), temporary=_temporary_places(job, refs))
+        write_run_config(job.out, job.config())
+    except OSError as exc:
+        lock.release()
+        raise ConfigError(f"{job.out}: cannot write here ({exc.strerror})") from None
+    except BaseException:
+        lock.release()
+        raise
+    return lock
+
+
+def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
+    """Where a killed run of this shard may have left temporary files (atomic writes that never
+    reached their rename), as ``(folder, name prefix)``: the folders of this shard's pairs, and
+    this shard's manifest part. Other shards may be running; their files are left alone."""
+    i, n = job.shard
+    places = [(job.out / MANIFEST_PARTS, f".{shard_part(job.out, job.shard).name}.")]
+    if n == 1:
+        places += [(job.out / MANIFEST_PARTS, f".{RUN_CONFIG}."), (job.out, f".{MANIFEST}.")]
+    folders = set()
+    for ref in refs:
+        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+        native = out.native_flow(ref.id.dataset)
+        for path in out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else []):
+            folders.add(path.parent)
+    return places + [(folder, ".") for folder in sorted(folders)]
 
 
 def record_run(job: RenderJob, results: list[PairResult], started: float, seconds: float) -> Path:
@@ -202,18 +234,45 @@ def record_run(job: RenderJob, results: list[PairResult], started: float, second
 
 # -- the run -------------------------------------------------------------------------------------
 def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda r: None,
-               on_start: Callable[[int], None] = lambda n: None) -> list[PairResult]:
+               on_start: Callable[[int], None] = lambda n: None,
+               on_note: Callable[[str], None] = lambda text: None) -> list[PairResult]:
     """Render every selected pair of the job's shard; return one result per pair.
 
     Pairs already complete on disk are skipped when resuming (or when another shard's folder is
-    reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives.
-    Interruptions (Ctrl-C) record what was finished in the manifest and re-raise.
+    reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives,
+    ``on_note`` warnings worth a line (a stale lock taken over). Interruptions (Ctrl-C, SIGTERM)
+    record what was finished in the manifest and re-raise. The output folder is locked for the
+    run: a second run in it (same shard) raises :class:`~weathergen.errors.FolderBusy`.
+
+    Raises :class:`~weathergen.errors.OutputError` when the outputs cannot be written (the pairs
+    finished before are recorded), and :class:`~weathergen.errors.NothingRendered` when every
+    selected pair fails (an output folder that this run created is removed again).
     """
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     refs = shard_refs(job.dataset.pairs(), job.shard)
     if not refs:
         raise ConfigError("the selection holds no frame pairs")
-    prepare_output(job)
+    created = not job.out.exists()
+    lock = prepare_output(job, refs)
+    try:
+        if lock.stale is not None:
+            on_note(f"{job.out}: took over the stale lock of {lock.stale} (that run ended without "
+                    f"releasing it, e.g. killed)")
+        results = _render_locked(job, refs, on_result, on_start)
+        if results and all(r.status == "failed" for r in results):
+            first = results[0]
+            if created:
+                _remove_created_folder(job)
+            raise NothingRendered(f"every selected pair failed ({len(results)}; the first: "
+                                  f"{first.pair}: {first.message}); "
+                                  + ("nothing was written" if created else
+                                     f"the failures are recorded in {job.out / MANIFEST}"))
+        return results
+    finally:
+        lock.release()
+
+
+def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> list[PairResult]:
     started = time.time()
     t0 = time.perf_counter()
     results: list[PairResult] = []
@@ -227,6 +286,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     on_start(len(refs))
     for r in results:
         on_result(r)
+    if job.workers < 1:
+        job = dataclasses.replace(job, workers=auto_workers(len(todo), job.device))
+    stopped_by: Optional[BaseException] = None
     try:
         if job.workers <= 1 or len(todo) <= job.batch_size:
             threads = torch.get_num_threads()
@@ -239,10 +301,51 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
                 torch.set_num_threads(threads)
         else:
             _run_pool(job, todo, results, on_result)
+    except BaseException as exc:
+        stopped_by = exc
+        raise
     finally:
-        record_run(job, results, started, time.perf_counter() - t0)
-        merge_manifest(job.out)
+        _record(job, results, started, time.perf_counter() - t0, stopped_by)
     return results
+
+
+def _record(job: RenderJob, results, started: float, seconds: float, stopped_by) -> None:
+    """Write the manifest; when the disk refuses, say so without hiding why the run stopped."""
+    try:
+        record_run(job, results, started, seconds)
+        merge_manifest(job.out)
+    except OSError as exc:
+        done = sum(r.status == "written" for r in results)
+        note = (f"the manifest could not be updated either ({exc.strerror or exc}); ${{resume}} "
+                f"finds the {done} pair(s) finished in this run on disk")
+        if isinstance(stopped_by, OutputError):
+            raise OutputError(f"{stopped_by.args[0]}; {note}") from None
+        if stopped_by is not None:
+            return                  # an interruption or a bug: let it through as it is
+        raise write_error(exc, job.out / MANIFEST, "then rerun with ${resume}") from None
+
+
+def _remove_created_folder(job: RenderJob) -> None:
+    """Undo the folder this run created and wrote nothing into but its bookkeeping.
+
+    Only known files and empty folders are removed, never a tree: whatever else is there stays.
+    """
+    for path in (job.out / MANIFEST, job.out / RENDER_FOLDER.marker,
+                 job.out / MANIFEST_PARTS / RUN_CONFIG, shard_part(job.out, job.shard),
+                 job.out / lock_name(job.shard)):
+        try:
+            path.unlink()
+        except OSError:
+            pass
+    for folder in sorted((p for p in job.out.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts)):
+        try:
+            folder.rmdir()
+        except OSError:
+            pass
+    try:
+        job.out.rmdir()
+    except OSError:
+        pass
 
 
 def _chunks(items: list, size: int) -> list[list]:
@@ -253,7 +356,8 @@ def _run_pool(job, todo, results, on_result):
     ctx = multiprocessing.get_context("spawn")
     pending = set()
     queue = list(todo)
-    with ProcessPoolExecutor(max_workers=job.workers, mp_context=ctx, initializer=_worker_init) as pool:
+    with ProcessPoolExecutor(max_workers=job.workers, mp_context=ctx, initializer=init_worker,
+                             initargs=(os.getpid(),)) as pool:
         try:
             while queue or pending:
                 while queue and len(pending) < 2 * job.workers:

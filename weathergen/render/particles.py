@@ -23,13 +23,15 @@ def pair_seed(run_seed: int, pair_id: PairId) -> int:
 
 def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: str = "auto",
                    particles_from: Optional[Path] = None,
-                   appearance: Optional[dict] = None) -> Particles:
+                   appearance: Optional[dict] = None, preset_name: Optional[str] = None) -> Particles:
     """The particles of ``pair``: sampled from ``preset`` with the pair's seed, or, with
     ``particles_from``, the ones stored there for the pair, with the ``appearance`` settings
-    replaced (see :func:`weathergen.render.resolve_preset`)."""
+    replaced (see :func:`weathergen.render.resolve_preset`); they must have been sampled from
+    ``preset`` (up to its appearance keys) and, when given, be labelled ``preset_name``."""
     if particles_from is None:
         return sample_particles(pair, preset, pair_seed(run_seed, pair.id), world_up=world_up)
-    particles = load_pair_particles(particles_from, pair.id)
+    # stored particles must be of the preset the output is labelled with (the stored manifest's)
+    particles = load_pair_particles(particles_from, pair.id, preset_name, preset.to_dict())
     if not appearance:
         return particles
     return particles.replace(settings=particles.settings.replace(**appearance))

@@ -13,6 +13,8 @@ Every rule the command line applies lives here, so a library user gets the same 
 
 from __future__ import annotations
 
+import os
+
 from pathlib import Path
 from typing import Mapping, NamedTuple, Optional
 
@@ -72,3 +74,30 @@ def default_pass_name(preset_name: str, input_pass: str) -> str:
 def default_batch_size(device: str | torch.device) -> int:
     """Pairs rendered together when none is given: 8 on CUDA (worth it there), 1 elsewhere."""
     return 8 if torch.device(device).type == "cuda" else 1
+
+
+#: The fewest pairs worth starting a worker process for: a worker imports torch (seconds) and holds
+#: about 300 MB; a pair takes a fraction of a second to a few seconds on one CPU thread.
+PAIRS_PER_WORKER = 8
+
+
+def usable_cores() -> int:
+    """CPU cores this process may run on (its affinity mask where the system has one)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:
+        return os.cpu_count() or 1
+
+
+def auto_workers(pairs: int, device: str = "cpu", cores: Optional[int] = None) -> int:
+    """The worker count of ``workers=auto`` (``RenderJob.workers = 0``).
+
+    Every pair renders on one CPU thread (so that the bytes do not depend on the machine), so on
+    a CPU the cores are used by rendering pairs side by side: one worker per core, but no more
+    than one per :data:`PAIRS_PER_WORKER` pairs, since starting a worker costs more than a few
+    pairs take. On a GPU one process feeds the device (it batches pairs instead).
+    """
+    if not str(device).startswith("cpu"):
+        return 1
+    cores = usable_cores() if cores is None else cores
+    return max(1, min(cores, pairs // PAIRS_PER_WORKER))

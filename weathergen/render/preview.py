@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -30,21 +31,39 @@ def _tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
     return out
 
 
-def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> np.ndarray:
+@dataclass
+class ContactSheet:
+    """A contact sheet and what it shows: ``shown`` of the ``total`` complete pairs."""
+
+    image: np.ndarray           # (rows * h [+ footer], 3 * width, 3) uint8 RGB
+    shown: int
+    total: int
+
+    @property
+    def partial(self) -> bool:
+        return self.shown < self.total
+
+
+def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> ContactSheet:
     """One row per pair: original frame 1 | weather frame 1 | particle opacity of frame 1.
 
-    The input frames are read through the dataset recorded in the manifest; the opacity is
-    re-rendered from the stored particle metadata (exact, whatever the output format).
-    Shape: returns (rows * h, 3 * width, 3) uint8 RGB.
+    The first ``pairs`` complete pairs are shown; when the output holds more, a footer below the
+    rows says how many of how many the sheet shows. The input frames are read through the dataset
+    recorded in the manifest; the opacity is re-rendered from the stored particle metadata (exact,
+    whatever the output format).
     """
     render_dir = Path(render_dir)
     manifest = read_manifest(render_dir, "preview")
     ds = reopen_dataset(manifest.input)
     rows = []
+    total = 0
     for ref in ds.pairs():
         out = PairOutput.of(render_dir, ref.id, manifest.pass_name, manifest.fmt, manifest.geometry)
         if not out.is_complete():
             continue
+        total += 1
+        if len(rows) == pairs:
+            continue            # only counted
         pair = ds.load(ref)
         particles = Particles.load(out.metadata)
         with torch.no_grad():
@@ -58,8 +77,11 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> n
                  _tile(weather, size, manifest.data.get("preset_name", "")),
                  _tile(np.repeat(opacity[..., None], 3, 2), size, "opacity")]
         rows.append(np.hstack(tiles))
-        if len(rows) == pairs:
-            break
     if not rows:
         raise WeatherGenError(f"{render_dir}: no complete pair to preview")
-    return np.vstack(rows)
+    if len(rows) < total:
+        footer = np.full((28, rows[0].shape[1], 3), 32, np.uint8)
+        cv2.putText(footer, f"{len(rows)} of {total} pairs shown (--pairs {total} shows all)", (6, 19),
+                    cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        rows.append(footer)
+    return ContactSheet(np.vstack(rows), min(pairs, total), total)

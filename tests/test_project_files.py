@@ -1,0 +1,62 @@
+"""Promises of the Makefile and README that are about the project, not the library."""
+
+from __future__ import annotations
+
+import re
+import shutil
+import subprocess
+
+import pytest
+
+from conftest import PROJECT_ROOT
+
+README = (PROJECT_ROOT / "README.md").read_text()
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
+def test_make_with_another_torch_takes_effect_once_the_venv_exists(tmp_path):
+    """`make test TORCH=...` reinstalls torch in an existing venv; an unchanged TORCH installs nothing."""
+    venv = tmp_path / "venv"
+    (venv / "bin").mkdir(parents=True)
+    log = tmp_path / "pip.log"
+    stub = venv / "bin" / "python"          # records what make asks pip to do
+    stub.write_text(f'#!/bin/sh\necho "$@" >> "{log}"\n')
+    stub.chmod(0o755)
+
+    def make(torch):
+        log.write_text("")
+        subprocess.run(["make", "-s", "-C", str(PROJECT_ROOT), "venv", f"VENV={venv}", f"TORCH={torch}"],
+                       check=True, capture_output=True)
+        return log.read_text().splitlines()
+
+    assert make("torch==2.13.0") == ["-m pip install -q torch==2.13.0", "-m pip install -q .[test]"]
+    assert make("torch==2.13.0") == []
+    assert make("torch==2.5.1") == ["-m pip install -q --force-reinstall --no-deps torch==2.5.1",
+                                    "-m pip install -q torch==2.5.1", "-m pip install -q .[test]"]
+    assert make("torch==2.5.1") == []
+
+
+def _demo_out() -> str:
+    makefile = (PROJECT_ROOT / "Makefile").read_text()
+    recipe = makefile.split("\ndemo:", 1)[1].split("\n\n", 1)[0]
+    return re.search(r"render .*--out (\S+)", recipe).group(1)
+
+
+def test_the_readme_first_command_works_after_make_demo():
+    """After `make demo` the README's first `weathergen render` finds the command and a free folder."""
+    first = re.search(r"^weathergen render\b.*$", README, re.M).group(0)
+    assert "--out" not in first.split("#")[0]          # writes into the default out/snow
+    assert _demo_out() != "out/snow"
+    # the README says how to reach the installed command before its first use
+    setup = README.split("### Rendering datasets", 1)[0]
+    assert ". .venv/bin/activate" in setup and ".venv/bin/weathergen" in setup
+
+
+def test_every_test_the_guarantees_name_exists():
+    section = README.split("## Guarantees", 1)[1].split("\n## ", 1)[0]
+    named = set(re.findall(r"`(test_\w+)`", section))
+    assert len(named) >= 15
+    defined = set()
+    for path in (PROJECT_ROOT / "tests").rglob("test_*.py"):
+        defined |= set(re.findall(r"^def (test_\w+)\(", path.read_text(), re.M))
+    assert named <= defined, f"README names tests that do not exist: {sorted(named - defined)}"
