@@ -23,6 +23,10 @@ tensor follows the images' device). Four stages:
 4. **Blending**: additive ``I + C`` or order-independent alpha ``I (1 − A) + C`` (Meshkin), then
    clamped to [0, 1]. The opacity mask is ``clamp(A, 0, 1)``.
 
+Records sampled from a weather field (``optics`` set) look different in each frame; :func:`render`
+hands them to :mod:`weathergen.engine.perframe`, which renders one view at a time with the stamps
+and splat core of this module.
+
 Gradients flow to ``offset1``, ``offset2`` (through the projected positions and the particle depth
 in ``V``), ``color`` and ``transparency``; use ``beta=BETA_ATTACK`` when differentiating
 through occlusion. On CUDA, ``index_add_`` uses atomics, so results may differ in the last bits
@@ -49,16 +53,23 @@ from .templates import TemplateLibrary, load_templates
 BETA_RENDER = 250.0
 BETA_ATTACK = 30.0
 DEFAULT_CHUNK_ELEMENTS = 1 << 21
+#: Renders records whose looks follow each frame's depth (``optics`` set: weather fields).
+#: :mod:`weathergen.engine.perframe` installs its ``render_per_frame`` here when it is imported (the
+#: engine package always imports it), so that this module does not import the one built on it.
+PER_FRAME_RENDERER = None
 
 
 @dataclass
 class RenderOutput:
-    """Shape: image1, image2 (B, 3, H, W) in [0, 1]; opacity1, opacity2 (B, 1, H, W) in [0, 1]."""
+    """Shape: image1, image2 (B, 3, H, W) in [0, 1]; opacity1, opacity2 (B, 1, H, W) in [0, 1];
+    reached (B,) bool: which pairs' frames any instance of their record was splatted into (a
+    pair that none reached has frames that do not depend on its particles)."""
 
     image1: torch.Tensor
     image2: torch.Tensor
     opacity1: torch.Tensor
     opacity2: torch.Tensor
+    reached: Optional[torch.Tensor] = None
 
 
 @dataclass
@@ -386,14 +397,19 @@ class _Splat(torch.autograd.Function):
 
 def _splat(depth_flat, inst, stamps: StampSet, height, width, beta, chunk_elements):
     """The per-pixel sums A, C_r, C_g, C_b (each (2 B H W,)) of every instance's weighted stamp,
-    or None when no instance reaches the image; see :class:`_Splat`."""
+    or None when no instance reaches the image; see :class:`_Splat`. Also returns which pairs of
+    the batch (B,) bool an instance reaches."""
     plan = _splat_plan(inst, stamps, height, width, chunk_elements)
+    bsz = depth_flat.numel() // (2 * height * width)
+    reached = torch.zeros(bsz, dtype=torch.bool, device=depth_flat.device)
+    for _, sel in plan:
+        reached[inst["target"][sel] % bsz] = True
     if not plan:
-        return None
+        return None, reached
     slots = stamps.slot_of[inst["particle"]]
     return list(_Splat.apply(inst["u"], inst["v"], inst["z"], inst["theta"], inst["color"],
                              inst["target"], slots, depth_flat.detach(), plan, height, width,
-                             beta))
+                             beta)), reached
 
 
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
@@ -438,7 +454,14 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         if r.settings.blend not in BLEND_MODES:
             raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
 
+    if any(r.optics is not None for r in records):
+        # Weather-field records look different in each frame: one view at a time (perframe.py).
+        return PER_FRAME_RENDERER(image1, image2, depth1, depth2, intrinsics.to(device),
+                                cam1_from_ref.to(device), cam2_from_ref.to(device), records,
+                                templates, beta=beta, chunk_elements=chunk_elements)
+
     acc = None
+    reached = torch.zeros(bsz, dtype=torch.bool, device=device)
     intr = intrinsics.to(device)
     inst = _instances(records, intr, cam1_from_ref.to(device), cam2_from_ref.to(device),
                       dtype, device)
@@ -447,7 +470,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
             stamps = build_stamps(records, templates, dtype=dtype, device=device,
                                   chunk_elements=chunk_elements)
         depth_flat = torch.stack((depth1, depth2)).to(dtype).reshape(-1)
-        acc = _splat(depth_flat, inst, stamps, height, width, float(beta), chunk_elements)
+        acc, reached = _splat(depth_flat, inst, stamps, height, width, float(beta),
+                              chunk_elements)
     if acc is None:
         acc = [torch.zeros(2 * bsz * height * width, dtype=dtype, device=device)
                for _ in range(4)]
@@ -459,7 +483,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     alpha_mode = alpha_mode.view(1, bsz, 1, 1, 1)
     out = torch.where(alpha_mode, images * (1 - alpha) + colour, images + colour).clamp(0, 1)
     opacity = alpha.clamp(0, 1)
-    return RenderOutput(image1=out[0], image2=out[1], opacity1=opacity[0], opacity2=opacity[1])
+    return RenderOutput(image1=out[0], image2=out[1], opacity1=opacity[0], opacity2=opacity[1],
+                        reached=reached)
 
 
 def render_pair(pair: Union[FramePair, FramePairBatch],
