@@ -171,11 +171,13 @@ def model_options(func):
     """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``."""
     for option in reversed((
         click.option("--model", default="raft", show_default=True,
-                     help="Flow network or checkpoint name (raft, raft-small, raft-things, ...)."),
+                     help="Flow network or checkpoint name (raft, raft-small, gma, flowformer, "
+                          "raft-things, ...)."),
         click.option("--checkpoint", default=None,
                      help="Checkpoint file or name. Default: the model's own, from the user cache."),
         click.option("--iters", type=click.IntRange(min=1), default=None,
-                     help="Refinement iterations of recurrent networks. Default: the network's (12)."),
+                     help="Refinement iterations of recurrent networks. Default: the network's "
+                          "own (RAFT 12, GMA 6, FlowFormer 32)."),
         click.option("--download", is_flag=True,
                      help="Fetch a named checkpoint that is missing from the cache (needs a network)."),
     )):
