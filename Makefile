@@ -44,6 +44,7 @@ $(STAMP): setup.cfg pyproject.toml $(TORCH_STAMP)
 
 # A regular (non-editable) install, so that a file missing from the distribution fails here.
 install: $(STAMP)
+	rm -rf build    # a stale build/ would put removed modules into the wheel
 	$(BIN)/python -m pip install -q --no-deps --force-reinstall .
 
 test: install
