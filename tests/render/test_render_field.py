@@ -203,7 +203,7 @@ def test_preview_and_evaluate_read_a_sequence_output(sequence_run):
     from weathergen.render import contact_sheet
 
     sheet = contact_sheet(sequence_run, pairs=2, width=96)
-    assert sheet.shape[0] > 0 and sheet.shape[1] == 3 * 96
+    assert sheet.image.shape[0] > 0 and sheet.image.shape[1] == 3 * 96
     folder = WeatherFolder.open(sequence_run)
     assert folder.sequence and [p.frame for p in folder.pairs] == [1, 2]
     first, second = folder.frames(folder.pairs[0])

@@ -473,28 +473,38 @@ def _run_ray(job, todo, results, on_result):
 def _run_pool(job, todo, results, on_result):
     ctx = multiprocessing.get_context("spawn")
     pending = set()
+    ready: list = []        # finished chunks whose results are not all recorded yet
+    recorded: dict = {}     # chunk -> how many of its results are recorded
+
+    def record(fut):
+        rows = fut.result()
+        for r in rows[recorded.get(fut, 0):]:
+            results.append(r)
+            on_result(r)
+            recorded[fut] = recorded.get(fut, 0) + 1
+
     queue = list(todo)
     with ProcessPoolExecutor(max_workers=job.workers, mp_context=ctx, initializer=init_worker,
                              initargs=(os.getpid(),)) as pool:
         try:
-            while queue or pending:
+            while queue or pending or ready:
                 while queue and len(pending) < 2 * job.workers:
                     chunk, queue = queue[:job.batch_size], queue[job.batch_size:]
                     pending.add(pool.submit(render_batch, job, chunk))
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for fut in done:
-                    for r in fut.result():
-                        results.append(r)
-                        on_result(r)
+                if not ready:
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    ready = list(done)
+                while ready:
+                    record(ready[0])
+                    ready.pop(0)
         except BaseException:
-            # Interrupted: start nothing new, but let the running chunks finish and record them.
+            # Interrupted (also while recording a finished chunk): start nothing new, but let the
+            # running chunks finish and record every result not recorded yet.
             for fut in pending:
                 fut.cancel()
-            for fut in pending:
+            for fut in [*ready, *pending]:
                 if not fut.cancelled() and fut.exception() is None:
-                    for r in fut.result():
-                        results.append(r)
-                        on_result(r)
+                    record(fut)
             raise
 
 
