@@ -41,7 +41,7 @@ def test_storage_is_small_and_plain_numpy(tmp_path, snow_pair_and_particles):
         path = rec.save(tmp_path / name)
         assert path.stat().st_size < 200_000, path.stat().st_size
     with np.load(tmp_path / "sampled.npz", allow_pickle=False) as data:
-        assert int(data["format_version"]) == 2
+        assert int(data["format_version"]) == 3
         assert data["position"].dtype == np.uint16 and data["position"].shape == (3000, 3)
         assert data["position_grid"].dtype == np.float64 and data["position_grid"].shape == (2, 3)
         assert str(data["frame"]) == "world" and int(data["blur_samples"]) == 20

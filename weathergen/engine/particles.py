@@ -17,30 +17,46 @@ With ``frame == "world"`` the reference is the dataset's world (``cam1_from_ref`
 ``cam1_from_ref`` is the identity and ``cam2_from_ref`` is ``cam2_from_cam1``. This equals the
 paper's ``T_rel (p1 + δ1) + m + δ2`` with ``m`` and ``δ2`` expressed in the reference frame.
 
-Storage precision (format version 2): positions and motions as codes on a per-record linear
-grid (``lo + code * step`` per axis, the grid spanning the record's values; 15 bits for
-positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for motions);
-colours as 8-bit codes; rotations in 256 steps of a turn;
-scales, offsets and transparencies float16; template indices uint16; defocus radii uint8.
+Appearance: a record sampled by the paper's model (``optics is None``) carries its footprint
+(``scale``), defocus radius and transparency fixed at sampling. A record sampled from a weather
+field (:mod:`weathergen.engine.field`) carries :class:`FieldOptics`: its ``scale`` is then the
+particle's diameter in scene units and ``transparency`` its base θ, and footprint, defocus and
+depth fade are computed for every frame from that frame's own depth of the particle
+(:mod:`weathergen.engine.perframe`).
+
+Storage precision of the paper's records (format version 3): positions and motions as codes on a
+per-record linear grid (``lo + code * step`` per axis, the grid spanning the record's values; 15
+bits for positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for motions);
+colours as 8-bit codes; rotations in 256 steps of a turn; scales, offsets and transparencies
+float16; template indices uint16; defocus radii uint8.
+Field records (format version 2) keep float32 positions, motions and scales (a field's positions
+are exact multiples of its grid quantum, so that a frame is the same image in every pair that
+holds it) and float16 offsets, colours, transparencies and rotations, plus the ``optics`` entry.
 Sampling returns a record already rounded to these precisions (:meth:`Particles.quantized`,
 idempotent), so rendering the in-memory record and rendering the reloaded file give identical
-bytes. Version 1 files (float32 positions, motions and scales) are still read.
+bytes. Version 1 files (the float32 layout of version 2 without optics) are still read.
 """
 
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
 
 from ..errors import FormatError
+from .optics import FieldOptics
 from .settings import RenderSettings
 
-FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+#: Records of the paper's model are written as version 3 (compact codes, see the module doc).
+FORMAT_VERSION = 3
+#: Records with field optics are written as version 2 (float layout plus the optics).
+FIELD_FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2, 3)
 REFERENCE_FRAMES = ("world", "camera1")
 
 # Per-particle tensor fields: storage dtype and trailing shape.
@@ -57,9 +73,9 @@ _TENSOR_FIELDS = {
     "defocus": (np.uint8, ()),
 }
 _INTEGER_FIELDS = ("template", "defocus")
-# Format version 2 stores some fields as codes (see the module doc); the rest as in version 1.
+# Format version 3 stores some fields as codes (see the module doc); the rest as in version 1.
 _GRID_FIELDS = ("position", "motion")                     # uint16 codes + "<name>_grid" (2, 3)
-_V2_DTYPES = {"color": np.uint8, "rotation": np.uint8, "scale": np.float16,
+_V3_DTYPES = {"color": np.uint8, "rotation": np.uint8, "scale": np.float16,
               **{name: np.uint16 for name in _GRID_FIELDS}}
 # Grid levels: 15 bits for positions; 10 bits for motions (frame-to-frame displacements
 # spread over a much smaller range: rain's ±10 % of 0.2 units gives steps of 4e-5 units).
@@ -121,8 +137,9 @@ class Particles:
         transparency: (N,) θ, the alpha scale of the template (>= 0; may exceed 1 for glows).
         template: (N,) int64 index into the template library named by ``settings.templates``.
         rotation: (N,) radians, counter-clockwise on screen.
-        scale: (N,) image pixels per template pixel, fixed at sampling.
-        defocus: (N,) int64 disc-blur radius in pixels (0 or 1: no blur).
+        scale: (N,) image pixels per template pixel, fixed at sampling; with ``optics``: the
+            particle's diameter in scene units.
+        defocus: (N,) int64 disc-blur radius in pixels (0 or 1: no blur); 0 with ``optics``.
     Float fields are float32 (or the dtype the caller chose, e.g. float64 for gradcheck).
     """
 
@@ -138,6 +155,12 @@ class Particles:
     defocus: torch.Tensor
     frame: str = "world"
     settings: RenderSettings = RenderSettings()
+    optics: Optional[FieldOptics] = None
+
+    @property
+    def per_frame(self) -> bool:
+        """True when footprint, defocus and fade follow each frame's depth (field records)."""
+        return self.optics is not None
 
     @property
     def count(self) -> int:
@@ -171,6 +194,16 @@ class Particles:
     def quantized(self) -> "Particles":
         """A detached copy with every field rounded to its storage precision (see module doc).
         Idempotent: quantizing a quantized record changes nothing."""
+        if self.optics is not None:     # field records: the float layout of version 2
+            out = {}
+            for name, (np_dtype, _) in _TENSOR_FIELDS.items():
+                t = getattr(self, name).detach()
+                if name in _INTEGER_FIELDS:
+                    out[name] = t.to(torch.int64)
+                else:
+                    storage = torch.from_numpy(np.zeros(0, np_dtype)).dtype
+                    out[name] = t.to(storage).to(torch.float32)
+            return self.replace(**out)
         return self.replace(**{name: _quantize_field(name, getattr(self, name)).to(
             getattr(self, name).device) for name in _TENSOR_FIELDS})
 
@@ -181,7 +214,10 @@ class Particles:
     # -- storage -----------------------------------------------------------------------------
 
     def to_numpy(self) -> dict[str, np.ndarray]:
-        """The ``.npz`` content (format version 2): storage arrays plus 0-d metadata arrays."""
+        """The ``.npz`` content (format version 3, or 2 for field records): storage arrays plus
+        0-d metadata arrays."""
+        if self.optics is not None:
+            return self._to_numpy_field()
         arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
             t = getattr(self, name).detach().cpu()
@@ -196,9 +232,21 @@ class Particles:
                 arrays[name] = np.remainder(turn, _ROTATION_STEPS).astype(np.uint8)
             else:
                 arrays[name] = _quantize_field(name, t).numpy().astype(
-                    _V2_DTYPES.get(name, np_dtype))
+                    _V3_DTYPES.get(name, np_dtype))
         arrays["frame"] = np.array(self.frame)
         arrays.update(self.settings.to_arrays())
+        return arrays
+
+    def _to_numpy_field(self) -> dict[str, np.ndarray]:
+        """Format version 2: float storage arrays plus the metadata and the ``optics`` entry."""
+        q = self.quantized()
+        arrays: dict[str, np.ndarray] = {
+            "format_version": np.array(FIELD_FORMAT_VERSION, np.int32)}
+        for name, (np_dtype, _) in _TENSOR_FIELDS.items():
+            arrays[name] = getattr(q, name).cpu().numpy().astype(np_dtype)
+        arrays["frame"] = np.array(self.frame)
+        arrays.update(self.settings.to_arrays())
+        arrays["optics"] = np.array(json.dumps(self.optics.to_dict(), sort_keys=True))
         return arrays
 
     def save(self, path: str | Path) -> Path:
@@ -225,7 +273,7 @@ class Particles:
         if int(version) not in READABLE_VERSIONS:
             raise FormatError(path, f"particle format version {int(version)}; this weathergen "
                                     f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
-        v2 = int(version) == 2
+        v3 = int(version) == FORMAT_VERSION
         n = None
         fields = {}
         for name, (np_dtype, tail) in _TENSOR_FIELDS.items():
@@ -234,19 +282,19 @@ class Particles:
             a = arrays[name]
             if n is None:
                 n = a.shape[0] if a.ndim else -1
-            want = _V2_DTYPES.get(name, np_dtype) if v2 else np_dtype
+            want = _V3_DTYPES.get(name, np_dtype) if v3 else np_dtype
             if a.dtype != want or a.shape != (n, *tail):
                 raise FormatError(path, f"array '{name}' is {a.dtype} {a.shape}, expected "
                                         f"{np.dtype(want)} {(n, *tail)}")
-            if v2 and name in _GRID_FIELDS:
+            if v3 and name in _GRID_FIELDS:
                 grid = arrays.get(f"{name}_grid")
                 if grid is None or grid.dtype != np.float64 or grid.shape != (2, 3):
                     raise FormatError(path, f"array '{name}_grid' must be float64 (2, 3)")
                 g = torch.from_numpy(grid)
                 t = _ungrid(torch.from_numpy(a.astype(np.int64)), g[0], g[1])
-            elif v2 and name == "color":
+            elif v3 and name == "color":
                 t = torch.from_numpy((a.astype(np.float64) / 255).astype(np.float32))
-            elif v2 and name == "rotation":
+            elif v3 and name == "rotation":
                 t = torch.from_numpy((a.astype(np.float64) * (2 * np.pi / _ROTATION_STEPS))
                                      .astype(np.float32))
             else:
@@ -257,14 +305,23 @@ class Particles:
         frame = str(arrays["frame"].item())
         if frame not in REFERENCE_FRAMES:
             raise FormatError(path, f"unknown reference frame {frame!r}")
-        return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path))
+        optics = None
+        if int(version) == FIELD_FORMAT_VERSION:
+            if "optics" not in arrays:
+                raise FormatError(path, "version 2 particle file without 'optics'")
+            try:
+                optics = FieldOptics.from_dict(json.loads(str(arrays["optics"])))
+            except (ValueError, TypeError) as exc:
+                raise FormatError(path, f"unreadable 'optics' entry ({exc})") from None
+        return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path),
+                   optics=optics)
 
 
 def stored_values(arrays: dict, name: str) -> np.ndarray:
     """The values a particle file's array ``name`` stands for (codes decoded), for display.
     Shape: as stored."""
     a = arrays[name]
-    if int(arrays.get("format_version", FORMAT_VERSION)) >= 2:
+    if int(arrays.get("format_version", FORMAT_VERSION)) == FORMAT_VERSION:
         if name in _GRID_FIELDS and f"{name}_grid" in arrays:
             grid = np.asarray(arrays[f"{name}_grid"], np.float64)
             return grid[0] + a.astype(np.float64) * grid[1]
@@ -275,14 +332,16 @@ def stored_values(arrays: dict, name: str) -> np.ndarray:
     return a.astype(np.float64)
 
 
-def empty_particles(frame: str = "world", settings: RenderSettings = RenderSettings()) -> Particles:
+def empty_particles(frame: str = "world", settings: RenderSettings = RenderSettings(),
+                    optics: Optional[FieldOptics] = None) -> Particles:
     """A record with no particles (renders to the unchanged frames)."""
     z3 = torch.zeros(0, 3)
     z = torch.zeros(0)
     zi = torch.zeros(0, dtype=torch.int64)
     return Particles(position=z3, motion=z3.clone(), offset1=z3.clone(), offset2=z3.clone(),
                      color=z3.clone(), transparency=z, template=zi, rotation=z.clone(),
-                     scale=z.clone(), defocus=zi.clone(), frame=frame, settings=settings)
+                     scale=z.clone(), defocus=zi.clone(), frame=frame, settings=settings,
+                     optics=optics)
 
 
 def to_atanh(xi: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:

@@ -24,6 +24,10 @@ tensor follows the images' device). Four stages:
 4. **Blending**: additive ``I + C`` or order-independent alpha ``I (1 − A) + C`` (Meshkin), then
    clamped to [0, 1]. The opacity mask is ``clamp(A, 0, 1)``.
 
+Records sampled from a weather field (``optics`` set) look different in each frame; :func:`render`
+hands them to :mod:`weathergen.engine.perframe`, which renders one view at a time with the stamps
+and splat core of this module.
+
 Gradients flow to ``offset1``, ``offset2`` (through the projected positions and the particle depth
 in ``V``), ``color`` and ``transparency``; use ``beta=BETA_ATTACK`` when differentiating
 through occlusion. On CUDA, ``index_add_`` uses atomics, so results may differ in the last bits
@@ -55,16 +59,23 @@ DEFAULT_CHUNK_ELEMENTS = 1 << 21
 # docs/engine.md for the accuracy. None (the ``coarse_side`` argument) renders everything exactly.
 COARSE_SIDE = 128
 COARSE_MIN_SIDE = 32
+#: Renders records whose looks follow each frame's depth (``optics`` set: weather fields).
+#: :mod:`weathergen.engine.perframe` installs its ``render_per_frame`` here when it is imported (the
+#: engine package always imports it), so that this module does not import the one built on it.
+PER_FRAME_RENDERER = None
 
 
 @dataclass
 class RenderOutput:
-    """Shape: image1, image2 (B, 3, H, W) in [0, 1]; opacity1, opacity2 (B, 1, H, W) in [0, 1]."""
+    """Shape: image1, image2 (B, 3, H, W) in [0, 1]; opacity1, opacity2 (B, 1, H, W) in [0, 1];
+    reached (B,) bool: which pairs' frames any instance of their record was splatted into (a
+    pair that none reached has frames that do not depend on its particles)."""
 
     image1: torch.Tensor
     image2: torch.Tensor
     opacity1: torch.Tensor
     opacity2: torch.Tensor
+    reached: Optional[torch.Tensor] = None
 
 
 @dataclass
@@ -481,14 +492,20 @@ def _upsample(grid: torch.Tensor, factor: int) -> torch.Tensor:
 
 
 def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
-    """The per-pixel sums A, C_r, C_g, C_b, shape (4, 2 B H W), of every instance's weighted
-    stamp, or None when no instance reaches the image; see :class:`_Splat`.
+    """The per-pixel sums A, C_r, C_g, C_b, shape (4, V H W), of every instance's weighted
+    stamp, or None when no instance reaches the image; see :class:`_Splat`. Also returns which
+    pairs of the batch, (B,) bool, an instance reaches (B = V / 2; a single view counts as one
+    pair).
 
-    ``depths`` (2, B, 1, H, W). Coarse buckets (large billboards) are splatted on their own
-    grid, ``f`` times coarser: positions ``(u + 0.5) / f − 0.5``, scene depth averaged over
+    ``depths``: the scene depth of the V views, (2, B, 1, H, W) for a batch of pairs or any
+    shape of V H W elements (one view: (1, H, W)). Coarse buckets (large billboards) are
+    splatted on their own grid, ``f`` times coarser: positions ``(u + 0.5) / f − 0.5``, scene depth averaged over
     f x f blocks; coarser grids are upsampled bilinearly into finer ones, coarsest first, and
     the result into the image grid.
     """
+    depths = depths.reshape(-1, 1, height, width)
+    bsz = max(1, depths.shape[0] // 2)
+    reached = torch.zeros(bsz, dtype=torch.bool, device=depths.device)
     slots = stamps.slot_of[inst["particle"]]
     carry = None        # the coarser levels' sums, (4 * 2B, 1, h, w)
     levels = sorted({bk.coarse for bk in stamps.buckets}, reverse=True)
@@ -499,10 +516,11 @@ def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
         else:
             h, w = -(-height // f), -(-width // f)
             u, v = (inst["u"] + 0.5) / f - 0.5, (inst["v"] + 0.5) / f - 0.5
-            flat = depths.reshape(-1, 1, height, width)
-            flat = F.pad(flat, (0, w * f - width, 0, h * f - height), mode="replicate")
+            flat = F.pad(depths, (0, w * f - width, 0, h * f - height), mode="replicate")
             depth = F.avg_pool2d(flat, f)
         plan = _splat_plan(inst, stamps, h, w, chunk_elements, coarse, u, v)
+        for _, sel in plan:
+            reached[inst["target"][sel] % bsz] = True
         sums = None
         if plan:
             sums = _Splat.apply(u, v, inst["z"], inst["theta"], inst["color"], inst["target"],
@@ -514,7 +532,7 @@ def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
         carry = sums
     if carry is not None and levels[-1] > 0:
         carry = _upsample(carry, 2 ** levels[-1])[..., :height, :width]
-    return None if carry is None else carry.reshape(4, -1)
+    return (None if carry is None else carry.reshape(4, -1)), reached
 
 
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
@@ -534,7 +552,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     Computes in the images' dtype and device. Returns :class:`RenderOutput`.
     ``coarse_side``: stamps at least this wide are splatted on a coarser grid and upsampled
     (see :func:`build_stamps`); ``None`` renders every stamp at full resolution. Ignored when
-    ``stamps`` are given (they carry their own grids).
+    ``stamps`` are given (they carry their own grids) and for weather-field records (their
+    per-frame path uses the default).
     """
     records = [particles] if isinstance(particles, Particles) else list(particles)
     if image1.dim() != 4 or image1.shape[1] != 3 or image2.shape != image1.shape:
@@ -563,7 +582,14 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         if r.settings.blend not in BLEND_MODES:
             raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
 
+    if any(r.optics is not None for r in records):
+        # Weather-field records look different in each frame: one view at a time (perframe.py).
+        return PER_FRAME_RENDERER(image1, image2, depth1, depth2, intrinsics.to(device),
+                                cam1_from_ref.to(device), cam2_from_ref.to(device), records,
+                                templates, beta=beta, chunk_elements=chunk_elements)
+
     acc = None
+    reached = torch.zeros(bsz, dtype=torch.bool, device=device)
     intr = intrinsics.to(device)
     inst = _instances(records, intr, cam1_from_ref.to(device), cam2_from_ref.to(device),
                       dtype, device)
@@ -572,7 +598,7 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
             stamps = build_stamps(records, templates, dtype=dtype, device=device,
                                   chunk_elements=chunk_elements, coarse_side=coarse_side)
         depths = torch.stack((depth1, depth2)).to(dtype)
-        acc = _splat(depths, inst, stamps, height, width, float(beta), chunk_elements)
+        acc, reached = _splat(depths, inst, stamps, height, width, float(beta), chunk_elements)
     if acc is None:
         acc = torch.zeros(4, 2 * bsz * height * width, dtype=dtype, device=device)
     # per sum and frame (B, 1, H, W) views; unbind (not indexing) keeps the backward pass from
@@ -592,7 +618,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
             blended = torch.where(mode, image * (1 - alpha) + colour, image + colour)
         out.append(blended.clamp_(0, 1))
         opacity.append(alpha.clamp(0, 1))
-    return RenderOutput(image1=out[0], image2=out[1], opacity1=opacity[0], opacity2=opacity[1])
+    return RenderOutput(image1=out[0], image2=out[1], opacity1=opacity[0], opacity2=opacity[1],
+                        reached=reached)
 
 
 def render_pair(pair: Union[FramePair, FramePairBatch],
