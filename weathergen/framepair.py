@@ -27,12 +27,24 @@ frame of the pair as it appears in the dataset's file names (Sintel counts from 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Optional
 
 import torch
 
 from .errors import DatasetError, ShapeError
+
+
+def _extremes(t: torch.Tensor) -> tuple[float, float]:
+    """``(min, max)`` of a tensor in one pass (NaN if it holds any NaN); ``(1, 1)`` when empty
+    (every check on its values then passes, as for ``all()`` of nothing)."""
+    if t.numel() == 0:
+        return 1.0, 1.0
+    lo, hi = torch.aminmax(t.detach())
+    if torch.isnan(lo) or torch.isnan(hi):
+        return math.nan, math.nan
+    return float(lo), float(hi)
 
 
 @dataclass(frozen=True, order=True)
@@ -114,7 +126,8 @@ class FramePair:
         for name in ("image1", "image2"):
             expect(name, (3, h, w), torch.float32)
             t = getattr(self, name)
-            if not bool(((t >= 0) & (t <= 1)).all()):
+            lo, hi = _extremes(t)         # one pass; NaN propagates and fails both tests
+            if not (lo >= 0 and hi <= 1):
                 fail(f"{name} has values outside [0, 1]")
         for name in ("depth1", "depth2"):
             t = getattr(self, name)
@@ -124,9 +137,10 @@ class FramePair:
                     f"{src}: depth is {t.shape[-1]}x{t.shape[-2]} but the image is {w}x{h}"
                 )
             expect(name, (1, h, w), torch.float32)
-            if not bool(torch.isfinite(t).all()):
+            lo, hi = _extremes(t)
+            if not (math.isfinite(lo) and math.isfinite(hi)):
                 raise DatasetError(f"{src}: depth has non-finite values")
-            if not bool((t > 0).all()):
+            if not lo > 0:
                 raise DatasetError(f"{src}: depth has zero or negative values")
         expect("intrinsics", (3, 3), torch.float64)
         for name in ("cam2_from_cam1", "cam1_from_world", "cam2_from_world"):

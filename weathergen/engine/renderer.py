@@ -46,6 +46,7 @@ import torch.nn.functional as F
 from ..errors import ConfigError, DatasetError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from ..geometry import project, transform_points
+from .compositing import blend, upsample
 from .particles import Particles
 from .presets import BLEND_MODES
 from .sampling import NEAR, check_pair_for_engine, reference_transforms, resolve_device
@@ -58,7 +59,8 @@ DEFAULT_CHUNK_ELEMENTS = 1 << 21
 # power-of-two factor that keeps them >= COARSE_MIN_SIDE coarse pixels wide) and upsampled; see
 # docs/engine.md for the accuracy. None (the ``coarse_side`` argument) renders everything exactly.
 COARSE_SIDE = 128
-COARSE_MIN_SIDE = 32
+COARSE_MIN_SIDE = 16
+COARSE_MAX_LEVEL = 3
 #: Renders records whose looks follow each frame's depth (``optics`` set: weather fields).
 #: :mod:`weathergen.engine.perframe` installs its ``render_per_frame`` here when it is imported (the
 #: engine package always imports it), so that this module does not import the one built on it.
@@ -148,8 +150,16 @@ def _disc_blur(stamp: torch.Tensor, radius: int) -> torch.Tensor:
     """
     side = stamp.shape[-1]
     if side * side * (2 * radius + 1) ** 2 <= 1 << 18:
-        kernel = _disc_kernel(radius, stamp.dtype, stamp.device)
-        return F.conv2d(stamp[:, None], kernel, padding=2 * radius)[:, 0]
+        # a weighted sum of shifted copies: for these small stamps far cheaper than a
+        # convolution call (whose per-call set-up dominates on the CPU)
+        kernel = _disc_kernel(radius, stamp.dtype, stamp.device)[0, 0]
+        full = side + 2 * radius
+        padded = F.pad(stamp, (2 * radius,) * 4)
+        out = torch.zeros(stamp.shape[0], full, full, dtype=stamp.dtype, device=stamp.device)
+        weight = float(kernel[radius, radius])      # every tap of the disc has the same weight
+        for dy, dx in torch.nonzero(kernel > 0).tolist():
+            out += padded[:, dy:dy + full, dx:dx + full]
+        return out * weight
     full = side + 2 * radius
     kernel = _disc_kernel(radius, torch.float64, stamp.device)[0, 0]
     spec = torch.fft.rfft2(stamp.double(), s=(full, full)) * torch.fft.rfft2(kernel, s=(full, full))
@@ -229,7 +239,8 @@ def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
         if coarse_side is not None:
             full = footprint + 2 * radius
             coarse = torch.where(full >= coarse_side,
-                                 torch.floor(torch.log2(full / COARSE_MIN_SIDE)).clamp(min=1),
+                                 torch.floor(torch.log2(full / COARSE_MIN_SIDE))
+                                 .clamp(1, COARSE_MAX_LEVEL),
                                  torch.zeros_like(full)).long()
             factor = (2.0 ** coarse).to(torch.float64)
             footprint = (footprint / factor).clamp(min=1.0)
@@ -329,23 +340,34 @@ def _splat_plan(inst, stamps: StampSet, height, width, chunk_elements, coarse=0,
     chunk at most ``chunk_elements`` patch pixels. Only buckets of the given ``coarse`` level;
     ``u``, ``v`` the instances' positions on that level's grid. Instances behind the camera or
     whose patch misses the image are left out."""
-    bucket = stamps.bucket_of[inst["particle"]]
     u = inst["u"] if u is None else u
     v = inst["v"] if v is None else v
-    plan = []
-    for b, bk in enumerate(stamps.buckets):
-        if bk.coarse != coarse:
+    members = [b for b, bk in enumerate(stamps.buckets) if bk.coarse == coarse]
+    if not members:
+        return []
+    device = u.device
+    sides = torch.tensor([bk.side for bk in stamps.buckets], device=device)
+    on_level = torch.zeros(len(stamps.buckets), dtype=torch.bool, device=device)
+    on_level[members] = True
+    bucket = stamps.bucket_of[inst["particle"]]
+    half = ((sides - 1) // 2)[bucket]
+    u0, v0 = torch.floor(u.detach()), torch.floor(v.detach())
+    keep = on_level[bucket] & (inst["z"].detach() > NEAR) & (u0 + half + 1 >= 0) \
+        & (u0 - half <= width - 1) & (v0 + half + 1 >= 0) & (v0 - half <= height - 1)
+    sel = torch.nonzero(keep).squeeze(1)
+    order = torch.sort(bucket[sel], stable=True)
+    sel = sel[order.indices]
+    counts = torch.bincount(order.values, minlength=len(stamps.buckets)).tolist()
+    plan, start = [], 0
+    for b, count in enumerate(counts):
+        if count == 0:
             continue
-        half = (bk.side - 1) // 2
-        sel = torch.nonzero(bucket == b).squeeze(1)
-        if sel.numel() == 0:
-            continue
-        u0, v0 = torch.floor(u[sel].detach()), torch.floor(v[sel].detach())
-        keep = (inst["z"][sel].detach() > NEAR) & (u0 + half + 1 >= 0) \
-            & (u0 - half <= width - 1) & (v0 + half + 1 >= 0) & (v0 - half <= height - 1)
-        sel = sel[keep]
+        bk = stamps.buckets[b]
         per_chunk = max(1, chunk_elements // ((bk.side + 1) ** 2))
-        plan.extend((bk, sel[s0:s0 + per_chunk]) for s0 in range(0, sel.numel(), per_chunk))
+        end = start + count
+        plan.extend((bk, sel[s0:min(s0 + per_chunk, end)])
+                    for s0 in range(start, end, per_chunk))
+        start = end
     return plan
 
 
@@ -374,15 +396,20 @@ class _Chunk:
         self.pix = (target[:, None, None] * height + ys.clamp(0, height - 1)[:, :, None]) * width \
             + xs.clamp(0, width - 1)[:, None, :]
 
+    def rows(self):
+        """The stamp shifted by the sub-pixel column fraction, at the patch's two row shifts:
+        ``(top, bottom)``, each (n, s+1, s+1); the patch is ``lerp(top, bottom, fv)``."""
+        return torch.lerp(self.s11, self.s10, self.fu), torch.lerp(self.s01, self.s00, self.fu)
+
     def patch(self):
         """Bilinear splat: patch[i, j] mixes stamp[i - a, j - b] for a, b in {0, 1}."""
-        fu, fv = self.fu, self.fv
-        return ((1 - fv) * ((1 - fu) * self.s11 + fu * self.s10)
-                + fv * ((1 - fu) * self.s01 + fu * self.s00))
+        top, bottom = self.rows()
+        return torch.lerp(top, bottom, self.fv)
 
-    def visibility(self, depth_flat, z, beta):
-        """V = 1 / (1 + exp(β (d − D))) under every patch pixel. Shape: (n, s+1, s+1)."""
-        return torch.sigmoid(beta * (depth_flat[self.pix] - z[:, None, None]))
+    def visibility(self, scaled_depth, z, beta):
+        """V = 1 / (1 + exp(β (d − D))) under every patch pixel, from ``scaled_depth`` = β D.
+        Shape: (n, s+1, s+1)."""
+        return torch.sigmoid(scaled_depth[self.pix] - (beta * z)[:, None, None])
 
 
 class _Splat(torch.autograd.Function):
@@ -400,10 +427,11 @@ class _Splat(torch.autograd.Function):
                 beta):
         size = depth_flat.numel()
         acc = torch.zeros(4, size, dtype=u.dtype, device=u.device)
+        scaled = beta * depth_flat
         for bk, idx in plan:
             c = _Chunk(bk, slots[idx], u[idx], v[idx], target[idx], height, width)
-            weight = (c.patch() * c.visibility(depth_flat, z[idx], beta)
-                      * theta[idx][:, None, None] * c.valid).reshape(-1)
+            weight = c.patch().mul_(c.visibility(scaled, z[idx], beta))
+            weight = weight.mul_(theta[idx][:, None, None]).mul_(c.valid).reshape(-1)
             flat = c.pix.reshape(-1)
             # Four 1-D scatters: much faster than one scatter of (M, 4) rows on the CPU.
             acc[0].index_add_(0, flat, weight)
@@ -418,77 +446,39 @@ class _Splat(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_acc):
-        g_alpha, g_r, g_g, g_b = g_acc.unbind(0)
         u, v, z, theta, color, target, slots, depth_flat = ctx.saved_tensors
         need = ctx.needs_input_grad[:5]
         grads = [torch.zeros_like(t) if n else None for t, n in zip((u, v, z, theta, color), need)]
-        g_colour = (g_r, g_g, g_b)
         beta = ctx.beta
+        scaled = beta * depth_flat
+        g_rows = g_acc.t().contiguous() if any(need) else None          # (size, 4): one gather
         for bk, idx in ctx.plan if any(need) else ():
             c = _Chunk(bk, slots[idx], u[idx], v[idx], target[idx], ctx.height, ctx.width)
+            n, p = idx.numel(), (bk.side + 1) ** 2
             th = theta[idx][:, None, None]
-            col = color[idx]
-            vis = c.visibility(depth_flat, z[idx], beta) * c.valid
-            patch = c.patch()
-            g_colour_here = [g[c.pix] for g in g_colour]                # (n, s+1, s+1) each
+            vis = c.visibility(scaled, z[idx], beta).mul_(c.valid)
+            top, bottom = c.rows()
+            patch = torch.lerp(top, bottom, c.fv)
+            g_here = g_rows[c.pix.reshape(-1)].view(n, p, 4)             # dL/d(A, C_r, C_g, C_b)
             # dL/dweight of every patch pixel: the opacity sum and the colour sums
-            g_weight = g_alpha[c.pix] + sum(col[:, ch, None, None] * g_colour_here[ch]
-                                            for ch in range(3))
+            ones_col = torch.cat((torch.ones_like(theta[idx])[:, None], color[idx]), 1)
+            g_weight = torch.bmm(g_here, ones_col[:, :, None]).view_as(patch)
             g_bv = g_weight * vis                                        # dL/d(θ B) per pixel
-            if need[0] or need[1]:
-                fu, fv = c.fu, c.fv
-                if need[0]:
-                    d_fu = (1 - fv) * (c.s10 - c.s11) + fv * (c.s00 - c.s01)
-                    grads[0].index_add_(0, idx, th[:, 0, 0] * (g_bv * d_fu).sum((1, 2)))
-                if need[1]:
-                    d_fv = ((1 - fu) * c.s01 + fu * c.s00) - ((1 - fu) * c.s11 + fu * c.s10)
-                    grads[1].index_add_(0, idx, th[:, 0, 0] * (g_bv * d_fv).sum((1, 2)))
-            if need[2]:  # dV/dd = −β V (1 − V)
-                d_vis = -beta * vis * (1 - vis)
-                grads[2].index_add_(0, idx, th[:, 0, 0] * (g_weight * patch * d_vis).sum((1, 2)))
+            if need[0]:
+                d_fu = torch.lerp(c.s10 - c.s11, c.s00 - c.s01, c.fv)
+                grads[0].index_add_(0, idx, th[:, 0, 0] * (g_bv * d_fu).sum((1, 2)))
+            if need[1]:
+                grads[1].index_add_(0, idx, th[:, 0, 0] * (g_bv * (bottom - top)).sum((1, 2)))
+            g_bvp = g_bv * patch if need[2] or need[3] else None         # dL/dθ per pixel
+            if need[2]:  # dV/dd = −β V (1 − V): dL/dd = −β θ Σ g B V (1 − V)
+                grads[2].index_add_(0, idx, (-beta) * th[:, 0, 0]
+                                    * (g_bvp - g_bvp * vis).sum((1, 2)))
             if need[3]:
-                grads[3].index_add_(0, idx, (g_bv * patch).sum((1, 2)))
+                grads[3].index_add_(0, idx, g_bvp.sum((1, 2)))
             if need[4]:
-                weight = patch * vis * th
-                grads[4].index_add_(0, idx, torch.stack(
-                    [(weight * g_colour_here[ch]).sum((1, 2)) for ch in range(3)], 1))
+                weight = (patch * vis * th).view(n, 1, p)
+                grads[4].index_add_(0, idx, torch.bmm(weight, g_here)[:, 0, 1:])
         return (*grads, None, None, None, None, None, None, None)
-
-
-class _Upsample(torch.autograd.Function):
-    """Bilinear upsampling by an integer factor f (pixel centres aligned as in
-    ``(x + 0.5) / f − 0.5``, edges replicated), with a cheap backward pass: the adjoint is a
-    strided convolution with the 2f x 2f tent kernel (the CPU backward of ``F.interpolate`` is
-    several times slower than its forward). Shape: (C, 1, h, w) -> (C, 1, f h, f w)."""
-
-    @staticmethod
-    def forward(ctx, grid, factor):
-        ctx.factor, ctx.size = factor, grid.shape[-2:]
-        return F.interpolate(grid, scale_factor=factor, mode="bilinear", align_corners=False)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, grad):
-        f, (h, w) = ctx.factor, ctx.size
-        j = torch.arange(2 * f, dtype=grad.dtype, device=grad.device)
-        tent = (1 - ((j - f + 0.5) / f).abs()).clamp(min=0)
-        kernel = (tent[:, None] * tent[None, :])[None, None]
-        o = (3 * f) // 2    # where the image sits in the grid of the 1-pixel padded input
-        full = grad.new_zeros(grad.shape[0], 1, (h + 3) * f, (w + 3) * f)
-        full[..., o:o + h * f, o:o + w * f] = grad
-        padded = F.conv2d(full, kernel, stride=f)                  # (C, 1, h + 2, w + 2)
-        out = padded[..., 1:-1, :].clone()                         # fold the replicated rows
-        out[..., 0, :] += padded[..., 0, :]
-        out[..., -1, :] += padded[..., -1, :]
-        inner = out[..., 1:-1].clone()                             # and the columns
-        inner[..., 0] += out[..., 0]
-        inner[..., -1] += out[..., -1]
-        return inner, None
-
-
-def _upsample(grid: torch.Tensor, factor: int) -> torch.Tensor:
-    """Bilinear upsampling by an integer factor. Shape: (C, 1, h, w) -> (C, 1, f h, f w)."""
-    return _Upsample.apply(grid, factor)
 
 
 def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
@@ -509,6 +499,7 @@ def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
     slots = stamps.slot_of[inst["particle"]]
     carry = None        # the coarser levels' sums, (4 * 2B, 1, h, w)
     levels = sorted({bk.coarse for bk in stamps.buckets}, reverse=True)
+    pooled = _depth_levels(depths.detach(), [c for c in levels if c > 0])
     for i, coarse in enumerate(levels):
         f = 2 ** coarse
         if coarse == 0:
@@ -516,8 +507,7 @@ def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
         else:
             h, w = -(-height // f), -(-width // f)
             u, v = (inst["u"] + 0.5) / f - 0.5, (inst["v"] + 0.5) / f - 0.5
-            flat = F.pad(depths, (0, w * f - width, 0, h * f - height), mode="replicate")
-            depth = F.avg_pool2d(flat, f)
+            depth = pooled[coarse]
         plan = _splat_plan(inst, stamps, h, w, chunk_elements, coarse, u, v)
         for _, sel in plan:
             reached[inst["target"][sel] % bsz] = True
@@ -527,12 +517,24 @@ def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
                                 slots, depth.detach().reshape(-1), plan, h, w,
                                 beta).view(-1, 1, h, w)
         if carry is not None:  # bring the coarser levels to this grid, one upsampling each
-            up = _upsample(carry, 2 ** (levels[i - 1] - coarse))[..., :h, :w]
+            up = upsample(carry, 2 ** (levels[i - 1] - coarse), (h, w))
             sums = up if sums is None else sums + up
         carry = sums
     if carry is not None and levels[-1] > 0:
-        carry = _upsample(carry, 2 ** levels[-1])[..., :height, :width]
+        carry = upsample(carry, 2 ** levels[-1], (height, width))
     return (None if carry is None else carry.reshape(4, -1)), reached
+
+
+def _depth_levels(depths: torch.Tensor, levels: Sequence[int]) -> dict:
+    """The scene depth averaged over f x f blocks (f = 2**level; the image edge replicated up to
+    a whole block) for each coarse level. Shape: (V, 1, H, W) -> {level: (V, 1, h, w)}."""
+    height, width = depths.shape[-2:]
+    out = {}
+    for level in levels:
+        f = 2 ** level
+        pad = (0, -width % f, 0, -height % f)
+        out[level] = F.avg_pool2d(F.pad(depths, pad, mode="replicate") if any(pad) else depths, f)
+    return out
 
 
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
@@ -601,24 +603,11 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         acc, reached = _splat(depths, inst, stamps, height, width, float(beta), chunk_elements)
     if acc is None:
         acc = torch.zeros(4, 2 * bsz * height * width, dtype=dtype, device=device)
-    # per sum and frame (B, 1, H, W) views; unbind (not indexing) keeps the backward pass from
-    # filling full-size zero tensors for every slice
-    sums = [x.unbind(0) for x in acc.view(4, 2, bsz, 1, height, width).unbind(0)]
-    modes = [r.settings.blend == "alpha" for r in records]
-    out, opacity = [], []
-    for t, image in enumerate((image1, image2)):  # no stacked copies of the frames
-        alpha = sums[0][t]
-        colour = torch.cat([sums[c][t] for c in (1, 2, 3)], 1)          # (B, 3, H, W)
-        if all(modes):
-            blended = torch.addcmul(colour, image, 1 - alpha)
-        elif not any(modes):
-            blended = image + colour
-        else:
-            mode = torch.tensor(modes, device=device).view(bsz, 1, 1, 1)
-            blended = torch.where(mode, image * (1 - alpha) + colour, image + colour)
-        out.append(blended.clamp_(0, 1))
-        opacity.append(alpha.clamp(0, 1))
-    return RenderOutput(image1=out[0], image2=out[1], opacity1=opacity[0], opacity2=opacity[1],
+    # blending both frames is one autograd node with a hand-written backward (compositing.py)
+    alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
+    out1, out2, opacity1, opacity2 = blend(acc.view(4, 2, bsz, 1, height, width), image1,
+                                           image2, alpha_mode)
+    return RenderOutput(image1=out1, image2=out2, opacity1=opacity1, opacity2=opacity2,
                         reached=reached)
 
 

@@ -1,0 +1,164 @@
+"""Full-resolution steps of the renderer with hand-written backward passes: bilinear upsampling of
+the coarse-grid sums (large billboards) and blending the sums into the frames.
+
+Both touch every pixel of both frames, for every channel, so on the CPU their cost is the memory
+traffic: autograd's generic backward of the same expressions would allocate and fill several
+full-size tensors more (zero gradients of slices, the stack that undoes an ``unbind``, masks of
+each ``clamp``). Each function here computes its gradient in one allocation.
+"""
+
+from __future__ import annotations
+
+from typing import Optional, Sequence
+
+import torch
+import torch.nn.functional as F
+
+
+def _phase_weights(factor: int, dtype, device) -> torch.Tensor:
+    """The adjoint of linear upsampling by ``factor`` along one axis, per output phase r
+    (source offset ``d_r = (2 r + 1 − f) / (2 f)``): row 0 sums a block, row 1 holds ``d_r`` of
+    the phases that lean on the previous sample, row 2 those that lean on the next. Shape: (3, f).
+    """
+    half = factor // 2
+    d = (2 * torch.arange(factor, dtype=torch.float64) + 1 - factor) / (2 * factor)
+    w = torch.zeros(3, factor, dtype=torch.float64)
+    w[0] = 1
+    w[1, :half] = d[:half]
+    w[2, half:] = d[half:]
+    return w.to(dtype=dtype, device=device)
+
+
+def _fold(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor, dim: int) -> torch.Tensor:
+    """Gather the three per-block sums of :func:`_phase_weights` onto the samples: output phases
+    before a sample's centre blend it with the previous sample (weights ``1 + d``, ``−d``), those
+    after it with the next one (``1 − d``, ``d``); the edges are replicated."""
+    out = s + a - b
+    n = out.shape[dim]
+    head, tail = out.narrow(dim, 0, n - 1), out.narrow(dim, 1, n - 1)
+    head -= a.narrow(dim, 1, n - 1)                  # −d of the next block's early phases
+    tail += b.narrow(dim, 0, n - 1)                  # +d of the previous block's late phases
+    out.narrow(dim, 0, 1).sub_(a.narrow(dim, 0, 1))  # the replicated sample before the first
+    out.narrow(dim, n - 1, 1).add_(b.narrow(dim, n - 1, 1))
+    return out
+
+
+def upsample_adjoint(grad: torch.Tensor, factor: int) -> torch.Tensor:
+    """The adjoint of :func:`upsample` (without cropping). Shape: (C, 1, f h, f w) -> (C, 1, h, w).
+    """
+    w3 = _phase_weights(factor, grad.dtype, grad.device)
+    rows = w3 @ grad.unflatten(-2, (-1, factor))                  # (C, 1, h, 3, f w)
+    g = _fold(*rows.unbind(-2), dim=-2)                           # (C, 1, h, f w)
+    cols = g.unflatten(-1, (-1, factor)) @ w3.T                   # (C, 1, h, w, 3)
+    return _fold(*cols.unbind(-1), dim=-1)
+
+
+class _Upsample(torch.autograd.Function):
+    """Bilinear upsampling by an integer factor (``F.interpolate``, pixel centres aligned as in
+    ``(x + 0.5) / f − 0.5``, edges replicated), cropped to ``size``; the backward pass applies
+    the separable adjoint (the CPU backward of ``F.interpolate`` is several times slower than its
+    forward)."""
+
+    @staticmethod
+    def forward(ctx, grid, factor, size):
+        ctx.factor, ctx.full = factor, (grid.shape[-2] * factor, grid.shape[-1] * factor)
+        ctx.size = size
+        if tuple(size) == ctx.full:
+            return F.interpolate(grid, scale_factor=factor, mode="bilinear", align_corners=False)
+        try:    # the cropped result directly (ATen's kernel takes the size and the scale apart)
+            return torch._C._nn.upsample_bilinear2d(grid, list(size), False, float(factor),
+                                                    float(factor))
+        except (AttributeError, TypeError, RuntimeError):
+            out = F.interpolate(grid, scale_factor=factor, mode="bilinear", align_corners=False)
+            return out[..., :size[0], :size[1]].contiguous()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        if tuple(ctx.size) != ctx.full:
+            full = grad.new_zeros(*grad.shape[:-2], *ctx.full)
+            full[..., :ctx.size[0], :ctx.size[1]] = grad
+            grad = full
+        return upsample_adjoint(grad.contiguous(), ctx.factor), None, None
+
+
+def upsample(grid: torch.Tensor, factor: int, size: Sequence[int]) -> torch.Tensor:
+    """Bilinear upsampling by an integer factor, cropped to ``size`` (at most ``f h, f w``).
+    Shape: (C, 1, h, w) -> (C, 1, size[0], size[1])."""
+    return _Upsample.apply(grid, factor, tuple(size))
+
+
+class _Blend(torch.autograd.Function):
+    """Both frames of a batch blended with their sums: ``I (1 − A) + C`` (alpha) or ``I + C``
+    (additive), clamped to [0, 1], and the opacity ``clamp(A, 0, 1)``.
+
+    Shape: sums (4, 2, B, 1, H, W) (A, C_r, C_g, C_b per frame), image1, image2 (B, 3, H, W),
+    alpha_mode (B,) bool -> image1, image2 (B, 3, H, W), opacity1, opacity2 (B, 1, H, W).
+    Gradients flow to the sums and the images; a clamped value passes none (as ``clamp``).
+    """
+
+    @staticmethod
+    def forward(ctx, sums, image1, image2, alpha_mode):
+        mode = alpha_mode.view(-1, 1, 1, 1)
+        all_alpha, no_alpha = bool(alpha_mode.all()), not bool(alpha_mode.any())
+        grad = any(ctx.needs_input_grad[:3])
+        outs, opacities, masks = [], [], []
+        for t, image in enumerate((image1, image2)):
+            alpha = sums[0, t]                                           # (B, 1, H, W)
+            colour = sums[1:, t, :, 0].transpose(0, 1)                   # (B, 3, H, W)
+            if all_alpha:
+                pre = torch.addcmul(colour, image, 1 - alpha)
+            elif no_alpha:
+                pre = image + colour
+            else:
+                pre = torch.where(mode, image * (1 - alpha) + colour, image + colour)
+            if grad:    # where clamp passes the gradient: the value lies in [0, 1]
+                out, opacity = pre.clamp(0, 1), alpha.clamp(0, 1)
+                masks += [out == pre, opacity == alpha]
+            else:
+                out, opacity = pre.clamp_(0, 1), alpha.clamp(0, 1)
+            outs.append(out)
+            opacities.append(opacity)
+        if grad:
+            ctx.save_for_backward(sums, image1, image2, alpha_mode, *masks)
+        return (*outs, *opacities)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_out1, g_out2, g_op1, g_op2):
+        sums, image1, image2, alpha_mode, *masks = ctx.saved_tensors
+        mode = alpha_mode.view(-1, 1, 1, 1).to(sums.dtype)
+        g_sums = sums.new_empty(sums.shape) if ctx.needs_input_grad[0] else None
+        g_images = [None, None]
+        for t, (image, g_out, g_op) in enumerate(((image1, g_out1, g_op1),
+                                                  (image2, g_out2, g_op2))):
+            mask_out, mask_op = masks[2 * t], masks[2 * t + 1]
+            if g_sums is not None:      # dL/dC: the output gradient where it passes the clamp
+                g = g_sums[1:, t, :, 0].transpose(0, 1)                      # (B, 3, H, W)
+                if g_out is None:
+                    g.zero_()
+                else:
+                    torch.mul(g_out, mask_out, out=g)
+            else:
+                g = torch.zeros_like(image) if g_out is None else g_out * mask_out
+            if ctx.needs_input_grad[1 + t]:
+                g_images[t] = g * (1 - sums[0, t] * mode)
+            if g_sums is None:
+                continue
+            g_alpha = g_sums[0, t]                                           # (B, 1, H, W)
+            if bool(alpha_mode.any()):     # dL/dA = −Σ_c g_c I_c (alpha blending) + opacity's
+                torch.mul(g[:, :1], image[:, :1], out=g_alpha)
+                for c in (1, 2):
+                    g_alpha.addcmul_(g[:, c:c + 1], image[:, c:c + 1])
+                g_alpha.mul_(-mode)
+            else:
+                g_alpha.zero_()
+            if g_op is not None:
+                g_alpha.addcmul_(g_op, mask_op.to(g_op.dtype))
+        return g_sums, g_images[0], g_images[1], None
+
+
+def blend(sums: torch.Tensor, image1: torch.Tensor, image2: torch.Tensor,
+          alpha_mode: Optional[torch.Tensor]):
+    """See :class:`_Blend`. Returns (image1, image2, opacity1, opacity2)."""
+    return _Blend.apply(sums, image1, image2, alpha_mode)
