@@ -55,12 +55,15 @@ from .templates import TemplateLibrary, load_templates
 BETA_RENDER = 250.0
 BETA_ATTACK = 30.0
 DEFAULT_CHUNK_ELEMENTS = 1 << 21
-# Stamps at least this many pixels wide (fog, large dust) are splatted on a coarser grid (a
-# power-of-two factor that keeps them >= COARSE_MIN_SIDE coarse pixels wide) and upsampled; see
-# docs/engine.md for the accuracy. None (the ``coarse_side`` argument) renders everything exactly.
+# Stamps at least this many pixels wide (fog, large dust) are splatted on a coarser grid (the
+# largest power-of-two factor up to 2**COARSE_MAX_LEVEL = 8 that keeps them >= COARSE_MIN_SIDE
+# coarse pixels wide: 8 for every stamp of 128 px or more) and upsampled; see docs/engine.md for
+# the accuracy. None (the ``coarse_side`` argument) renders everything exactly.
 COARSE_SIDE = 128
 COARSE_MIN_SIDE = 16
 COARSE_MAX_LEVEL = 3
+# Coarse buckets are joined while zero padding adds at most this many patch pixels per join.
+MERGE_PADDING_PIXELS = 8000
 #: Renders records whose looks follow each frame's depth (``optics`` set: weather fields).
 #: :mod:`weathergen.engine.perframe` installs its ``render_per_frame`` here when it is imported (the
 #: engine package always imports it), so that this module does not import the one built on it.
@@ -217,8 +220,10 @@ def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
     """Rasterise every particle's template at its footprint (no gradient; see module doc).
 
     Stamps at least ``coarse_side`` pixels wide (template plus defocus) are drawn on a grid
-    ``f = 2**L`` times coarser (f the largest power of two keeping them >= COARSE_MIN_SIDE
-    coarse pixels wide): footprint and defocus radius divided by f; ``None`` disables this.
+    ``f = 2**L`` times coarser (f the largest power of two up to ``2**COARSE_MAX_LEVEL``
+    keeping them >= COARSE_MIN_SIDE coarse pixels wide): footprint and defocus radius divided by
+    f; ``None`` disables this. Coarse stamps of similar sides share a bucket (zero-padded, see
+    :func:`_merge_coarse_buckets`).
     """
     device = torch.device(device) if device is not None else records[0].device
     with torch.no_grad():
@@ -276,7 +281,39 @@ def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
                 parts.append(stamp)
             buckets.append(StampBucket(side=s + 2 * r, particles=members,
                                        stamps=torch.cat(parts), coarse=lev))
+        if any(bk.coarse for bk in buckets):
+            buckets = _merge_coarse_buckets(buckets, bucket_of, slot_of)
     return StampSet(buckets=buckets, bucket_of=bucket_of, slot_of=slot_of)
+
+
+def _merge_coarse_buckets(buckets: list, bucket_of: torch.Tensor,
+                          slot_of: torch.Tensor) -> list:
+    """Join coarse buckets of one level into fewer, wider ones (stamps zero-padded to the widest
+    side of each group), so that the few large billboards are splatted in a few chunks: a chunk
+    costs a fixed set-up, a padded pixel a little. Smallest sides first, a bucket joins the group
+    before it while the padding adds at most MERGE_PADDING_PIXELS patch pixels. Updates
+    ``bucket_of`` and ``slot_of`` in place; fine buckets keep their order and come first."""
+    fine = [bk for bk in buckets if not bk.coarse]
+    groups: list = []
+    for bk in sorted((bk for bk in buckets if bk.coarse), key=lambda b: (b.coarse, b.side)):
+        if groups and groups[-1][0].coarse == bk.coarse:
+            n = sum(b.particles.numel() for b in groups[-1])
+            side = max(b.side for b in groups[-1])
+            if n * ((bk.side + 1) ** 2 - (side + 1) ** 2) <= MERGE_PADDING_PIXELS:
+                groups[-1].append(bk)
+                continue
+        groups.append([bk])
+    merged = []
+    for group in groups:
+        side = max(b.side for b in group)
+        stamps = torch.cat([F.pad(b.stamps, ((side - b.side) // 2,) * 4) for b in group])
+        merged.append(StampBucket(side=side, particles=torch.cat([b.particles for b in group]),
+                                  stamps=stamps, coarse=group[0].coarse))
+    out = fine + merged
+    for b, bk in enumerate(out):
+        bucket_of[bk.particles] = b
+        slot_of[bk.particles] = torch.arange(bk.particles.numel(), device=slot_of.device)
+    return out
 
 
 # -- instances and splatting ----------------------------------------------------------------
@@ -436,9 +473,9 @@ class _Splat(torch.autograd.Function):
             # Four 1-D scatters: much faster than one scatter of (M, 4) rows on the CPU.
             acc[0].index_add_(0, flat, weight)
             col = color[idx]
+            per_instance = weight.view(idx.numel(), -1)
             for ch in range(3):
-                per_pixel = col[:, ch, None].expand(-1, (bk.side + 1) ** 2).reshape(-1)
-                acc[ch + 1].index_add_(0, flat, weight * per_pixel)
+                acc[ch + 1].index_add_(0, flat, (per_instance * col[:, ch, None]).reshape(-1))
         ctx.save_for_backward(u, v, z, theta, color, target, slots, depth_flat)
         ctx.plan, ctx.height, ctx.width, ctx.beta = plan, height, width, beta
         return acc
