@@ -446,7 +446,9 @@ class _Chunk:
     def visibility(self, scaled_depth, z, beta):
         """V = 1 / (1 + exp(β (d − D))) under every patch pixel, from ``scaled_depth`` = β D.
         Shape: (n, s+1, s+1)."""
-        return torch.sigmoid(scaled_depth[self.pix] - (beta * z)[:, None, None])
+        # index_select: several times faster than advanced indexing for a 1-D gather on the CPU
+        under = scaled_depth.index_select(0, self.pix.reshape(-1)).view(self.pix.shape)
+        return torch.sigmoid(under - (beta * z)[:, None, None])
 
 
 class _Splat(torch.autograd.Function):
@@ -496,7 +498,7 @@ class _Splat(torch.autograd.Function):
             vis = c.visibility(scaled, z[idx], beta).mul_(c.valid)
             top, bottom = c.rows()
             patch = torch.lerp(top, bottom, c.fv)
-            g_here = g_rows[c.pix.reshape(-1)].view(n, p, 4)             # dL/d(A, C_r, C_g, C_b)
+            g_here = g_rows.index_select(0, c.pix.reshape(-1)).view(n, p, 4)  # dL/d(A, C_rgb)
             # dL/dweight of every patch pixel: the opacity sum and the colour sums
             ones_col = torch.cat((torch.ones_like(theta[idx])[:, None], color[idx]), 1)
             g_weight = torch.bmm(g_here, ones_col[:, :, None]).view_as(patch)
