@@ -3,7 +3,8 @@
 #   make test                  create .venv, install the pinned CPU torch, the package, run the tests
 #   make demo                  render the default preset on the bundled demo scene
 #   make bench                 print speed and memory figures (renderer, weather field, networks,
-#                              attack step, batched attacks, training)
+#                              attack step, batched attacks, training); FOG_BEFORE=DIR also times
+#                              fog with the weathergen source tree DIR (e.g. an older commit's)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 #   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
 #                              in a separate environment (.venv-oldest)
@@ -12,6 +13,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 TORCH  ?= torch==2.13.0
 PYTEST_ARGS ?=
+FOG_BEFORE ?=
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.weathergen-deps
 # The torch requirement the venv was last set up with; a different TORCH reinstalls torch.
@@ -67,6 +69,7 @@ demo: install
 
 bench: install
 	$(BIN)/python benchmarks/bench.py
+	$(BIN)/python benchmarks/bench_fog.py $(if $(FOG_BEFORE),--before $(FOG_BEFORE))
 	$(BIN)/python benchmarks/bench_field.py
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
