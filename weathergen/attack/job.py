@@ -12,12 +12,14 @@ same preset.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 
 from ..datasets import Dataset
@@ -25,10 +27,12 @@ from ..engine import render_pair
 from ..errors import ConfigError, WeatherGenError
 from ..io.images import to_uint8
 from ..models import get_model
-from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, pair_metadata, prepare_folder,
-                       read_attack_manifest, read_pair_summary, write_attack_manifest,
-                       write_attack_pair)
+from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pair_metadata,
+                       prepare_folder, read_attack_manifest, read_pair_summary,
+                       write_attack_manifest, write_attack_pair)
+from ..outputs.metadata import identity_arrays
 from ..render.particles import pair_particles, pair_seed
+from .lp import LpSettings, lp_attack_pair
 from .pair import PairSummary, StepRecord, attack_pair, mean_summary, summarize_pair
 from .settings import AttackSettings
 from .targets import TargetSpec, read_target_flow
@@ -42,9 +46,9 @@ class AttackJob:
     out: Path
     model: str
     checkpoint: Optional[str]
-    preset: object                       # weathergen.engine.Preset
+    preset: object                       # weathergen.engine.Preset (None for an Lp attack)
     preset_name: str
-    settings: AttackSettings
+    settings: Optional[AttackSettings]   # None for an Lp attack
     target: TargetSpec = TargetSpec("zero")
     iters: Optional[int] = None
     seed: int = 0
@@ -57,9 +61,22 @@ class AttackJob:
     resume: bool = False
     overwrite: bool = False
     command: list = field(default_factory=list)
+    #: set for an Lp baseline (``pcfa``, ``ifgsm``) instead of weather: frames are perturbed
+    lp: Optional[LpSettings] = None
 
     def config(self) -> dict:
         """What must agree between an interrupted run and its resumption."""
+        if self.lp is not None:
+            return {
+                "preset_name": self.preset_name, "preset": None, "seed": self.seed,
+                "input": self.dataset.describe(),
+                "outputs": {"pass": self.pass_name, "format": "both", "geometry": True},
+                "particles_from": None,
+                "attack": {"method": self.lp.method, **self.lp.to_dict(),
+                           "target": self.target.describe(), "configuration": None},
+                "model": {"name": self.model, "checkpoint": str(self.checkpoint)
+                          if self.checkpoint is not None else None, "iters": self.iters},
+            }
         return {
             "preset_name": self.preset_name, "preset": self.preset.to_dict(), "seed": self.seed,
             "input": self.dataset.describe(),
@@ -85,6 +102,8 @@ class PairReport:
 def attack_one(job: AttackJob, model, pair, target_file_flow=None,
                on_step: Callable[[StepRecord], None] = lambda r: None) -> PairSummary:
     """Attack one loaded pair and write its outputs; return its figures."""
+    if job.lp is not None:
+        return lp_attack_one(job, model, pair, target_file_flow, on_step)
     start = time.perf_counter()
     particles = pair_particles(pair, job.preset, job.seed,
                                world_up=getattr(job.dataset, "world_up", "auto"),
@@ -113,6 +132,38 @@ def attack_one(job: AttackJob, model, pair, target_file_flow=None,
     out = AttackPairOutput.of(job.out, pair.id, job.pass_name)
     write_attack_pair(out, pair.to("cpu"), frames, opacity, meta, flows, result.history,
                       asdict(summary))
+    return summary
+
+
+def lp_pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
+    """Where an Lp-attacked pair goes: the attack layout, with float EXR frames besides the PNGs
+    (an Lp perturbation is finer than the 8-bit steps of a PNG)."""
+    return AttackPairOutput(PairOutput.of(job.out, pair_id, job.pass_name, "both", geometry=True))
+
+
+def lp_attack_one(job: AttackJob, model, pair, target_file_flow=None,
+                  on_step: Callable[[StepRecord], None] = lambda r: None) -> PairSummary:
+    """Attack one loaded pair with an Lp baseline and write the same files as a weather attack.
+
+    The figures describe the float frames of the best step (written as EXR; the PNG frames are
+    those frames rounded to 8 bits). The metadata holds the pair's identity and the Lp settings,
+    no particles.
+    """
+    start = time.perf_counter()
+    seed = pair_seed(job.seed, pair.id)
+    p = pair.to(job.device)
+    result = lp_attack_pair(model, p.image1[None], p.image2[None], job.lp, job.target,
+                            seed=seed, target_file_flow=target_file_flow, on_step=on_step)
+    summary = summarize_pair(str(pair.id), result, result.best_flow, pair.flow, pair.flow_valid,
+                             seconds=time.perf_counter() - start)
+    frames = tuple(f[0].permute(1, 2, 0).numpy() for f in result.best_frames)
+    opacity = tuple(torch.zeros(f.shape[:2]).numpy() for f in frames)
+    meta = identity_arrays(pair.id, seed, {}, job.preset_name)
+    meta["lp_attack"] = np.array(json.dumps(job.lp.to_dict()))
+    flows = {"benign": result.benign_flow, "initial": result.initial_flow,
+             "adversarial": result.best_flow, "target": result.target}
+    write_attack_pair(lp_pair_output(job, pair.id), pair.to("cpu"), frames, opacity, meta, flows,
+                      result.history, asdict(summary))
     return summary
 
 
@@ -164,7 +215,8 @@ def run_attack(job: AttackJob,
     t0 = time.perf_counter()
     try:
         for i, ref in enumerate(refs):
-            out = AttackPairOutput.of(job.out, ref.id, job.pass_name)
+            out = (lp_pair_output(job, ref.id) if job.lp is not None
+                   else AttackPairOutput.of(job.out, ref.id, job.pass_name))
             on_pair_start(i, str(ref.id))
             if not job.overwrite and out.is_complete():
                 stored = read_pair_summary(out)
