@@ -119,6 +119,7 @@ LAYERS = [("weathergen", "weathergen.errors", "weathergen.workers"),
           ("weathergen.framepair", "weathergen.geometry", "weathergen.flow", "weathergen.io"),
           ("weathergen.datasets", "weathergen.models", "weathergen.engine"),
           ("weathergen.outputs",), ("weathergen.render",), ("weathergen.attack",),
+          ("weathergen.benchmark",),
           ("weathergen.cli",)]
 
 
