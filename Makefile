@@ -2,7 +2,7 @@
 #
 #   make test                  create .venv, install the pinned CPU torch, the package, run the tests
 #   make demo                  render the default preset on the bundled demo scene
-#   make bench                 print speed and memory figures (renderer, attack step)
+#   make bench                 print speed and memory figures (renderer, weather field, attack step)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 
 PYTHON ?= python3
@@ -52,6 +52,7 @@ demo: install
 
 bench: install
 	$(BIN)/python benchmarks/bench.py
+	$(BIN)/python benchmarks/bench_field.py
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
 

@@ -6,7 +6,8 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from weathergen.engine.presets import list_presets, load_preset, parse_set_options, preset_keys
+from weathergen.engine.presets import (FieldPreset, field_preset_keys, list_presets, load_preset,
+                                       parse_set_options, preset_keys)
 
 
 @click.command("presets")
@@ -18,23 +19,33 @@ def presets_command(name, overrides):
     console = Console(width=160)
     sets = parse_set_options(overrides)
     if name is None:
-        columns = [f.name for f in preset_keys() if f.metadata.get("main")]
-        table = Table(title="weathergen presets", header_style="bold")
-        table.add_column("name", no_wrap=True)  # names are what users type: never cut them
-        for col in columns:
-            table.add_column(_HEADERS.get(col, col.replace("_", " ")), justify="right",
-                             no_wrap=True)
-        for preset_name in list_presets():
-            p = load_preset(preset_name, overrides=sets)
-            table.add_row(preset_name, *(_main_value(p, c) for c in columns))
-        console.print(table)
+        for model, keys, title in (
+                ("paper", preset_keys(), "paper model: a fixed count of visible particles per "
+                                         "pair, sizes in pixels"),
+                ("field", field_preset_keys(), "field model: a weather field in scene units "
+                                               "(metres on metric data), density per m³")):
+            columns = [f.name for f in keys if f.metadata.get("main")]
+            table = Table(title=f"weathergen presets, {title}", header_style="bold")
+            table.add_column("name", no_wrap=True)  # names are what users type: never cut them
+            table.add_column("model", no_wrap=True)
+            for col in columns:
+                table.add_column(_HEADERS.get(col, col.replace("_", " ")), justify="right",
+                                 no_wrap=True)
+            for preset_name in list_presets(model):
+                p = load_preset(preset_name, overrides=sets if model == "paper" else {})
+                table.add_row(preset_name, model, *(_main_value(p, c) for c in columns))
+            console.print(table)
         return
     p = load_preset(name, overrides=sets)
-    table = Table(title=f"preset {p.name}", header_style="bold")
+    field_model = isinstance(p, FieldPreset)
+    table = Table(title=f"preset {p.name} ({'field' if field_model else 'paper'} model)",
+                  header_style="bold")
     table.add_column("key")
     table.add_column("value")
     table.add_column("meaning")
-    for f in preset_keys():
+    table.add_row("model", "field" if field_model else "paper",
+                  "field: weather field in scene units; paper: the paper's per-pair model")
+    for f in (field_preset_keys() if field_model else preset_keys()):
         table.add_row(f.name, _fmt(getattr(p, f.name)), f.metadata.get("doc", ""))
     console.print(table)
     console.print(f"source: {p.source}", markup=False, highlight=False)
@@ -42,11 +53,12 @@ def presets_command(name, overrides):
 
 # Short headers for the listing, so that a row fits on one line of 160 columns.
 _HEADERS = {"depth_decay": "d-decay", "transparency": "θ", "motion_y": "m_y",
+            "fall_speed": "fall m/s", "exposure": "exposure s", "diameter": "diameter",
             "motion_blur": "blur", "blur_length": "blur length", "blur_samples": "blur K"}
 
 
 def _main_value(p, key: str) -> str:
-    if key == "transparency" and p.transparency_mode == "constant":
+    if key == "transparency" and getattr(p, "transparency_mode", "") == "constant":
         return f"{_fmt(p.transparency)} const"  # not scaled by the depth hat
     return _fmt(getattr(p, key))
 

@@ -107,6 +107,16 @@ def _parse_workers(ctx, param, value):
               show_default=True, help="8-bit PNG frames, float OpenEXR frames with an opacity channel, or both.")
 @click.option("--geometry/--no-geometry", default=True, show_default=True,
               help="Also write depth, cameras and flow per pair, so the output reads as a Sintel tree.")
+@click.option("--sequence", is_flag=True,
+              help="Render whole scenes with one weather field (field presets): each frame once, "
+                   "written into its scene as in the input, so consecutive frames make pairs. "
+                   "Default: each pair its own two-frame scene.")
+@click.option("--stereo", is_flag=True,
+              help="Also render the same particles into the dataset's second camera (KITTI image_3, "
+                   "Spring's right view), written to <pass>_right. Default: off.")
+@click.option("--particle-truth", "truth", is_flag=True,
+              help="Also write the particle layer's flow and opacity and the seen flow per pair "
+                   "(see docs/render.md). Default: off.")
 @click.option("--shard", default="1/1", show_default=True, metavar="I/N",
               help="Render only shard I of N (for job arrays); parts merge into one manifest.")
 @resume_option("Finish an interrupted run (same options): skip the pairs that are complete.")
@@ -114,7 +124,8 @@ def _parse_workers(ctx, param, value):
                   "folder that render did not create.")
 @quiet_option
 def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pass_name, device,
-           workers, batch_size, fmt, geometry, shard, resume, overwrite, quiet):
+           workers, batch_size, fmt, geometry, sequence, stereo, truth, shard, resume, overwrite,
+           quiet):
     """Render weather into every selected frame pair and write frames plus particle metadata.
 
     With no option it renders the snow preset onto the bundled demo scene into out/snow.
@@ -127,7 +138,7 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
     job = RenderJob(
         dataset=dataset, out=out, preset=preset_obj, preset_name=name, seed=seed,
         pass_name=pass_name or default_pass_name(name, dataset.selection.pass_), fmt=fmt,
-        geometry=geometry,
+        geometry=geometry, truth=truth, sequence=sequence, stereo=stereo,
         device=device, particles_from=particles_dir, appearance=appearance,
         shard=parse_shard(shard), workers=workers, batch_size=batch_size, resume=resume, overwrite=overwrite,
         command=click.get_current_context().meta.get(ARGV_KEY, ["weathergen", *sys.argv[1:]]),

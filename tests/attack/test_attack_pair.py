@@ -231,3 +231,21 @@ def test_particles_from_another_frame_are_refused(small_pair, raft_small):
     particles = grey_particles(small_pair, count=5).replace(frame="camera1")
     with pytest.raises(ConfigError, match="coordinates"):
         attack_pair(raft_small, small_pair, particles, AttackSettings(steps=1))
+
+
+def test_attack_runs_on_pairs_sampled_from_a_weather_field(small_pair, raft_small):
+    """Field records (per-frame looks) go through the same loop: offsets and loss unchanged."""
+    from weathergen.engine import load_preset, render_pair, sample_weather
+
+    particles = sample_weather(small_pair, load_preset("snow-moderate", {"far": "6"}), 4)
+    assert particles.optics is not None and particles.count > 100
+    settings = AttackSettings(optimize=OPTIMIZABLE, steps=2, lr=2e-3)
+    result = attack_pair(raft_small, small_pair, particles, settings, TargetSpec("zero"))
+    assert [r.step for r in result.history] == [0, 1, 2]
+    assert result.best_particles.optics == particles.optics
+    moved = (result.best_particles.offset1 - particles.offset1).abs().sum()
+    assert result.best_step == 0 or float(moved) > 0
+    with torch.no_grad():
+        out = render_pair(small_pair, result.best_particles)
+        again = raft_small(out.image1, out.image2)
+    assert torch.allclose(again, result.best_flow, atol=1e-3)

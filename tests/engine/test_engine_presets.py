@@ -19,7 +19,7 @@ TABLE_ROWS = (
 
 
 def test_every_table_row_is_a_preset():
-    assert sorted(TABLE_ROWS) == list_presets()
+    assert sorted(TABLE_ROWS) == list_presets("paper")
 
 
 @pytest.mark.parametrize("name", TABLE_ROWS)
@@ -86,7 +86,7 @@ PAPER_TABLE = {
 
 
 def test_the_transcribed_table_covers_every_preset():
-    assert sorted(PAPER_TABLE) == list_presets()
+    assert sorted(PAPER_TABLE) == list_presets("paper")
 
 
 @pytest.mark.parametrize("name", sorted(PAPER_TABLE))

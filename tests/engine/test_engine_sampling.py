@@ -169,7 +169,7 @@ def test_demo_scene_world_is_z_up_and_snow_falls_down_its_screen(demo_pair):
 
 
 @pytest.mark.parametrize("name", sorted(__import__("weathergen.engine.presets",
-                                                   fromlist=["list_presets"]).list_presets()))
+                                                   fromlist=["list_presets"]).list_presets("paper")))
 def test_every_preset_samples_and_renders_on_the_demo_scene(name, demo_pair):
     from weathergen.engine import render_pair
     full = load_preset(name)

@@ -31,7 +31,7 @@ from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pa
                        prepare_folder, read_attack_manifest, read_pair_summary,
                        write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
-from ..render.particles import pair_particles, pair_seed
+from ..render.particles import pair_particles, pair_seed, weather_seed
 from .lp import LpSettings, lp_attack_pair
 from .pair import PairSummary, StepRecord, attack_pair, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -125,7 +125,7 @@ def attack_one(job: AttackJob, model, pair, target_file_flow=None,
     summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
                              seconds=time.perf_counter() - start)
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
-    meta = pair_metadata(best, pair.id, pair_seed(job.seed, pair.id), job.preset.to_dict(),
+    meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
                          job.preset_name)
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}

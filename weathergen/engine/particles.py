@@ -17,6 +17,13 @@ With ``frame == "world"`` the reference is the dataset's world (``cam1_from_ref`
 ``cam1_from_ref`` is the identity and ``cam2_from_ref`` is ``cam2_from_cam1``. This equals the
 paper's ``T_rel (p1 + δ1) + m + δ2`` with ``m`` and ``δ2`` expressed in the reference frame.
 
+Appearance: a record sampled by the paper's model (``optics is None``) carries its footprint
+(``scale``), defocus radius and transparency fixed at sampling. A record sampled from a weather
+field (:mod:`weathergen.engine.field`) carries :class:`FieldOptics`: its ``scale`` is then the
+particle's diameter in scene units and ``transparency`` its base θ, and footprint, defocus and
+depth fade are computed for every frame from that frame's own depth of the particle
+(:mod:`weathergen.engine.perframe`).
+
 Storage precision: positions, motions and scales are float32; offsets, colours, transparencies
 and rotations are float16; template indices uint16; defocus radii uint8. Sampling returns a
 record already rounded to these precisions (:meth:`Particles.quantized`), so rendering the
@@ -26,16 +33,22 @@ in-memory record and rendering the reloaded file give identical bytes.
 from __future__ import annotations
 
 import dataclasses
+import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
 
 from ..errors import FormatError
+from .optics import FieldOptics
 from .settings import RenderSettings
 
 FORMAT_VERSION = 1
+#: Records with field optics are written as version 2 (they would render wrongly in a reader that
+#: ignored the optics); records of the paper's model stay version 1, byte for byte.
+FIELD_FORMAT_VERSION = 2
 REFERENCE_FRAMES = ("world", "camera1")
 
 # Per-particle tensor fields: storage dtype and trailing shape.
@@ -70,8 +83,9 @@ class Particles:
         transparency: (N,) θ, the alpha scale of the template (>= 0; may exceed 1 for glows).
         template: (N,) int64 index into the template library named by ``settings.templates``.
         rotation: (N,) radians, counter-clockwise on screen.
-        scale: (N,) image pixels per template pixel, fixed at sampling.
-        defocus: (N,) int64 disc-blur radius in pixels (0 or 1: no blur).
+        scale: (N,) image pixels per template pixel, fixed at sampling; with ``optics``: the
+            particle's diameter in scene units.
+        defocus: (N,) int64 disc-blur radius in pixels (0 or 1: no blur); 0 with ``optics``.
     Float fields are float32 (or the dtype the caller chose, e.g. float64 for gradcheck).
     """
 
@@ -87,6 +101,12 @@ class Particles:
     defocus: torch.Tensor
     frame: str = "world"
     settings: RenderSettings = RenderSettings()
+    optics: Optional[FieldOptics] = None
+
+    @property
+    def per_frame(self) -> bool:
+        """True when footprint, defocus and fade follow each frame's depth (field records)."""
+        return self.optics is not None
 
     @property
     def count(self) -> int:
@@ -138,11 +158,14 @@ class Particles:
     def to_numpy(self) -> dict[str, np.ndarray]:
         """The ``.npz`` content: storage-precision arrays plus 0-d metadata arrays."""
         q = self.quantized()
-        arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
+        version = FORMAT_VERSION if self.optics is None else FIELD_FORMAT_VERSION
+        arrays: dict[str, np.ndarray] = {"format_version": np.array(version, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
             arrays[name] = getattr(q, name).cpu().numpy().astype(np_dtype)
         arrays["frame"] = np.array(self.frame)
         arrays.update(self.settings.to_arrays())
+        if self.optics is not None:
+            arrays["optics"] = np.array(json.dumps(self.optics.to_dict(), sort_keys=True))
         return arrays
 
     def save(self, path: str | Path) -> Path:
@@ -166,9 +189,9 @@ class Particles:
         version = arrays.get("format_version")
         if version is None:
             raise FormatError(path, "no format_version: not a weathergen particle file")
-        if int(version) != FORMAT_VERSION:
+        if int(version) not in (FORMAT_VERSION, FIELD_FORMAT_VERSION):
             raise FormatError(path, f"particle format version {int(version)}; this weathergen "
-                                    f"reads version {FORMAT_VERSION}")
+                                    f"reads versions {FORMAT_VERSION} and {FIELD_FORMAT_VERSION}")
         n = None
         fields = {}
         for name, (np_dtype, tail) in _TENSOR_FIELDS.items():
@@ -187,17 +210,28 @@ class Particles:
         frame = str(arrays["frame"].item())
         if frame not in REFERENCE_FRAMES:
             raise FormatError(path, f"unknown reference frame {frame!r}")
-        return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path))
+        optics = None
+        if int(version) == FIELD_FORMAT_VERSION:
+            if "optics" not in arrays:
+                raise FormatError(path, "version 2 particle file without 'optics'")
+            try:
+                optics = FieldOptics.from_dict(json.loads(str(arrays["optics"])))
+            except (ValueError, TypeError) as exc:
+                raise FormatError(path, f"unreadable 'optics' entry ({exc})") from None
+        return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path),
+                   optics=optics)
 
 
-def empty_particles(frame: str = "world", settings: RenderSettings = RenderSettings()) -> Particles:
+def empty_particles(frame: str = "world", settings: RenderSettings = RenderSettings(),
+                    optics: Optional[FieldOptics] = None) -> Particles:
     """A record with no particles (renders to the unchanged frames)."""
     z3 = torch.zeros(0, 3)
     z = torch.zeros(0)
     zi = torch.zeros(0, dtype=torch.int64)
     return Particles(position=z3, motion=z3.clone(), offset1=z3.clone(), offset2=z3.clone(),
                      color=z3.clone(), transparency=z, template=zi, rotation=z.clone(),
-                     scale=z.clone(), defocus=zi.clone(), frame=frame, settings=settings)
+                     scale=z.clone(), defocus=zi.clone(), frame=frame, settings=settings,
+                     optics=optics)
 
 
 def to_atanh(xi: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:

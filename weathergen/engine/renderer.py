@@ -23,6 +23,10 @@ tensor follows the images' device). Four stages:
 4. **Blending**: additive ``I + C`` or order-independent alpha ``I (1 − A) + C`` (Meshkin), then
    clamped to [0, 1]. The opacity mask is ``clamp(A, 0, 1)``.
 
+Records sampled from a weather field (``optics`` set) look different in each frame; :func:`render`
+hands them to :mod:`weathergen.engine.perframe`, which renders one view at a time with the stamps
+and splat core of this module.
+
 Gradients flow to ``offset1``, ``offset2`` (through the projected positions and the particle depth
 in ``V``), ``color`` and ``transparency``; use ``beta=BETA_ATTACK`` when differentiating
 through occlusion. On CUDA, ``index_add_`` uses atomics, so results may differ in the last bits
@@ -49,6 +53,10 @@ from .templates import TemplateLibrary, load_templates
 BETA_RENDER = 250.0
 BETA_ATTACK = 30.0
 DEFAULT_CHUNK_ELEMENTS = 1 << 21
+#: Renders records whose looks follow each frame's depth (``optics`` set: weather fields).
+#: :mod:`weathergen.engine.perframe` installs its ``render_per_frame`` here when it is imported (the
+#: engine package always imports it), so that this module does not import the one built on it.
+PER_FRAME_RENDERER = None
 
 
 @dataclass
@@ -437,6 +445,12 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
                               f"'{templates.name}' (digest {templates.digest})")
         if r.settings.blend not in BLEND_MODES:
             raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
+
+    if any(r.optics is not None for r in records):
+        # Weather-field records look different in each frame: one view at a time (perframe.py).
+        return PER_FRAME_RENDERER(image1, image2, depth1, depth2, intrinsics.to(device),
+                                cam1_from_ref.to(device), cam2_from_ref.to(device), records,
+                                templates, beta=beta, chunk_elements=chunk_elements)
 
     acc = None
     intr = intrinsics.to(device)

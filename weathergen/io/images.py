@@ -69,6 +69,18 @@ def write_png(path: str | Path, rgb: np.ndarray) -> Path:
     return atomic_write_bytes(path, encode_png(rgb))
 
 
+def write_png16(path: str | Path, grey: np.ndarray) -> Path:
+    """Write a grey image in [0, 1] as a 16-bit PNG (value x 65535, rounded), atomically.
+
+    Shape: grey (H, W) float.
+    """
+    arr = (np.clip(np.asarray(grey, dtype=np.float64), 0.0, 1.0) * 65535.0 + 0.5).astype(np.uint16)
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(arr))
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return atomic_write_bytes(path, buf.tobytes())
+
+
 def to_uint8(img: np.ndarray) -> np.ndarray:
     """Float [0, 1] -> uint8 with rounding and clipping; uint8 passes through."""
     img = np.asarray(img)

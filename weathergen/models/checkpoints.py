@@ -39,9 +39,12 @@ class CheckpointSpec:
         name: the name users type (``raft-sintel``); also the cached file's stem.
         architecture: the registered model it fits (``raft``).
         description: one line on what it was trained on.
-        url: an archive (zip) that contains the file, or ``None`` when it cannot be downloaded.
-        member: the file's path inside that archive.
+        url: an archive (zip) that contains the file, the file itself when ``member`` is
+            ``None``, or ``None`` when it cannot be downloaded automatically.
+        member: the file's path inside that archive (or its name on ``page``).
         sha256: the file's checksum where known; a downloaded file that differs is rejected.
+        page: where the authors publish the file for manual download when there is no ``url``
+            (a shared folder, for instance).
     """
 
     name: str
@@ -50,6 +53,7 @@ class CheckpointSpec:
     url: Optional[str] = None
     member: Optional[str] = None
     sha256: Optional[str] = None
+    page: Optional[str] = None
 
     @property
     def filename(self) -> str:
@@ -83,10 +87,21 @@ def resolve_named(spec: CheckpointSpec, download: bool = False, timeout: float =
         return path
     if download and spec.url:
         return download_checkpoint(spec, timeout=timeout)
-    source = f" (it is {spec.member} in {spec.url})" if spec.url else ""
+    source = _origin(spec)
     hint = " or let weathergen fetch it (--download; download=True in Python)" if spec.url and not download else ""
     raise ConfigError(f"checkpoint {spec.name!r} is not in the cache: put {spec.filename}"
                       f"{source} at {path}{hint}, or give the checkpoint as a file path")
+
+
+def _origin(spec: CheckpointSpec) -> str:
+    """`` (it is X in URL)``: where the file comes from, for messages; empty if unknown."""
+    if spec.url and spec.member:
+        return f" (it is {spec.member} in {spec.url})"
+    if spec.url:
+        return f" (from {spec.url})"
+    if spec.page:
+        return f" (it is {spec.member} at {spec.page})" if spec.member else f" (from {spec.page})"
+    return ""
 
 
 def download_checkpoint(spec: CheckpointSpec, timeout: float = 60.0) -> Path:
@@ -99,28 +114,29 @@ def download_checkpoint(spec: CheckpointSpec, timeout: float = 60.0) -> Path:
     Raises:
         ConfigError: no URL, no network, a timeout, or an archive without the expected file.
     """
-    if not spec.url or not spec.member:
+    if not spec.url:
         raise ConfigError(f"checkpoint {spec.name!r} has no download address; put "
-                          f"{spec.filename} at {cached_path(spec)}")
+                          f"{spec.filename}{_origin(spec)} at {cached_path(spec)}")
     target = cached_path(spec)
     target.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=target.parent, prefix=".download-") as tmp:
-        archive = Path(tmp) / "archive.zip"
+        archive = Path(tmp) / ("archive.zip" if spec.member else spec.filename)
         try:
             with urllib.request.urlopen(spec.url, timeout=timeout) as response, \
                     open(archive, "wb") as out:
                 shutil.copyfileobj(response, out, length=1 << 20)
         except (urllib.error.URLError, OSError) as exc:  # includes timeouts
-            raise ConfigError(f"could not download {spec.url} ({exc}); put {spec.filename} "
-                              f"({spec.member} in that archive) at {target}") from exc
+            raise ConfigError(f"could not download {spec.url} ({exc}); put {spec.filename}"
+                              f"{_origin(spec)} at {target}") from exc
         extracted = Path(tmp) / spec.filename
-        try:
-            with zipfile.ZipFile(archive) as zf, zf.open(spec.member) as src, \
-                    open(extracted, "wb") as dst:
-                shutil.copyfileobj(src, dst, length=1 << 20)
-        except (zipfile.BadZipFile, KeyError) as exc:
-            raise ConfigError(f"the archive at {spec.url} does not hold {spec.member} ({exc}); "
-                              f"put {spec.filename} at {target} by hand") from exc
+        if spec.member:  # an archive: take the one file out
+            try:
+                with zipfile.ZipFile(archive) as zf, zf.open(spec.member) as src, \
+                        open(extracted, "wb") as dst:
+                    shutil.copyfileobj(src, dst, length=1 << 20)
+            except (zipfile.BadZipFile, KeyError) as exc:
+                raise ConfigError(f"the archive at {spec.url} does not hold {spec.member} "
+                                  f"({exc}); put {spec.filename} at {target} by hand") from exc
         if spec.sha256 is not None:
             digest = sha256_of(extracted)
             if digest != spec.sha256:
@@ -141,6 +157,9 @@ def sha256_of(path: Path) -> str:
 
 def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
     """Read a checkpoint file that holds a ``state_dict`` (name -> tensor) onto the CPU.
+
+    A file that holds a dictionary with a ``state_dict`` entry (a training checkpoint with
+    the epoch and other records beside the weights) gives that entry.
 
     Only tensors and plain containers are unpickled (``weights_only=True``).
 
@@ -163,6 +182,9 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         else:
             reason = text.splitlines()[0]
         raise FormatError(path, f"cannot be read as a PyTorch checkpoint ({reason})") from exc
+    if isinstance(obj, Mapping) and isinstance(obj.get("state_dict"), Mapping):
+        # A training checkpoint ({"epoch": ..., "state_dict": ..., ...}), as FlowNet2's files.
+        obj = obj["state_dict"]
     if not isinstance(obj, Mapping) or not obj:
         raise FormatError(path, f"expected a state dict (parameter name -> tensor), "
                                 f"got {type(obj).__name__}")

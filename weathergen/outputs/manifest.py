@@ -89,6 +89,11 @@ class OutputManifest:
     def geometry(self) -> bool:
         return self.data["outputs"].get("geometry", True)
 
+    @property
+    def sequence(self) -> bool:
+        """True for a ``render --sequence`` output: scenes hold every frame, not one pair each."""
+        return bool(self.data.get("outputs", {}).get("sequence", False))
+
 
 def read_manifest(folder: str | Path, reader: str) -> OutputManifest:
     """The manifest of an output folder, checked for what ``reader`` needs.

@@ -9,6 +9,7 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/PASS/PAIR/frame_FFFF.png        augmented first frame (8-bit PNG)
     OUT/SPLIT/PASS/PAIR/frame_GGGG.png        augmented second frame, G = F + 1
     OUT/SPLIT/PASS_exr/PAIR/frame_FFFF.exr    float frames with an 'opacity' channel (--format exr/both)
+    OUT/SPLIT/PASS_right/PAIR/frame_FFFF.png  the right camera's frames (--stereo: KITTI, Spring)
     OUT/SPLIT/particles/PAIR/frame_FFFF.npz   particle metadata of the pair (numpy-readable)
     OUT/SPLIT/depth/PAIR/frame_FFFF.dpt       geometry the particles were placed in, in Sintel
     OUT/SPLIT/camdata_left/PAIR/frame_FFFF.cam   formats (depth and cameras after the depth scale),
@@ -16,6 +17,15 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/invalid/PAIR/frame_FFFF.png     non-zero where that flow is not valid (sparse flow)
     OUT/SPLIT/flow_occ/PAIR/frame_FFFF.png    the same flow in KITTI's 16-bit PNG format (KITTI input)
     OUT/SPLIT/flow_FW_left/PAIR/frame_FFFF.flo5   ... in Spring's HDF5 format (Spring input)
+
+With particle ground truth (``--particle-truth``; see :mod:`weathergen.engine.groundtruth`)::
+
+    OUT/SPLIT/particle_flow/PAIR/frame_FFFF.flo      flow of the particle layer (opacity-weighted)
+    OUT/SPLIT/particle_opacity/PAIR/frame_FFFF.png   its opacity in frame 1, 16-bit (x 65535)
+    OUT/SPLIT/seen_flow/PAIR/frame_FFFF.flo          particles' flow where they dominate, scene's elsewhere
+    OUT/SPLIT/seen_invalid/PAIR/frame_FFFF.png       non-zero where the seen flow is not valid
+    (KITTI and Spring inputs also get particle_flow_occ / seen_flow_occ PNGs, or
+    particle_flow_FW_left / seen_flow_FW_left .flo5, in their own formats)
 
 Each pair is its own two-frame "scene", because without persistent particles the second frame of
 pair ``i`` and the first frame of pair ``i + 1`` differ. The tree is therefore a Sintel tree: the
@@ -33,16 +43,19 @@ from pathlib import Path
 
 import numpy as np
 
+from ..engine.groundtruth import seen_flow
 from ..errors import FormatError
 from ..framepair import FramePair, PairId
 from ..io.exr import write_exr
-from ..io.images import write_png
+from ..io.images import write_png, write_png16
 from ..io.kitti_formats import write_flow_png
 from ..io.sintel_formats import write_cam, write_dpt, write_flo
 from ..io.spring_formats import write_flo5
 from .metadata import read_metadata, write_metadata
 
 FORMATS = ("png", "exr", "both")
+#: The largest flow magnitude (per component, pixels) a KITTI flow PNG can hold, exclusive.
+KITTI_FLOW_LIMIT = 511.98
 #: Datasets whose ground-truth flow is also written in their own format: folder and extension.
 NATIVE_FLOW = {"kitti": ("flow_occ", "png"), "spring": ("flow_FW_left", "flo5")}
 #: Outputs are Sintel trees, so input splits named otherwise (Spring's ``train``, KITTI's
@@ -61,15 +74,21 @@ class PairOutput:
     frame: int
     fmt: str = "png"
     geometry: bool = True
+    truth: bool = False
+    sequence: bool = False
 
     @classmethod
-    def of(cls, root, pair_id: PairId, pass_name: str, fmt: str = "png", geometry: bool = True):
+    def of(cls, root, pair_id: PairId, pass_name: str, fmt: str = "png", geometry: bool = True,
+           truth: bool = False, sequence: bool = False):
         split = SINTEL_SPLIT_FOLDER.get(pair_id.split, pair_id.split)
-        return cls(Path(root), split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry)
+        return cls(Path(root), split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry,
+                   truth, sequence)
 
     @property
     def pair_dir(self) -> str:
-        return f"{self.scene}_{self.frame:04d}"
+        """``SCENE_FFFF`` (a two-frame scene per pair), or ``SCENE`` for a sequence render,
+        whose scenes hold every frame as the input's do."""
+        return self.scene if self.sequence else f"{self.scene}_{self.frame:04d}"
 
     def _file(self, folder: str, index: int, ext: str) -> Path:
         return self.root / self.split / folder / self.pair_dir / f"frame_{index:04d}.{ext}"
@@ -77,6 +96,12 @@ class PairOutput:
     @property
     def frames_png(self) -> tuple[Path, Path]:
         return self._file(self.pass_name, self.frame, "png"), self._file(self.pass_name, self.frame + 1, "png")
+
+    @property
+    def frames_right_png(self) -> tuple[Path, Path]:
+        """The right camera's frames (``--stereo``), in the pass folder suffixed ``_right``."""
+        folder = f"{self.pass_name}_right"
+        return self._file(folder, self.frame, "png"), self._file(folder, self.frame + 1, "png")
 
     @property
     def frames_exr(self) -> tuple[Path, Path]:
@@ -106,6 +131,20 @@ class PairOutput:
         """Sintel-style mask of pixels without valid ground-truth flow (written only when some are)."""
         return self._file("invalid", self.frame, "png")
 
+    def truth_files(self) -> dict[str, Path]:
+        """Where the particle ground truth goes (see the module doc)."""
+        return {"particle_flow": self._file("particle_flow", self.frame, "flo"),
+                "particle_opacity": self._file("particle_opacity", self.frame, "png"),
+                "seen_flow": self._file("seen_flow", self.frame, "flo"),
+                "seen_invalid": self._file("seen_invalid", self.frame, "png")}
+
+    def native_truth(self, dataset: str, kind: str) -> Path | None:
+        """``kind`` (particle or seen) flow in the input dataset's own format, else None."""
+        if dataset not in NATIVE_FLOW:
+            return None
+        folder, ext = NATIVE_FLOW[dataset]
+        return self._file(f"{kind}_{folder}", self.frame, ext)
+
     def files(self, with_flow: bool = False) -> list[Path]:
         """Every file of this pair, the metadata file last (it marks completion)."""
         out = []
@@ -130,29 +169,39 @@ class PairOutput:
 
 
 def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarray, np.ndarray],
-                       opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray]) -> list[Path]:
-    """Write one pair: frames, optional EXR and geometry, then the metadata (last).
+                       opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray],
+                       truth=None, second: bool = True, right=None) -> list[Path]:
+    """Write one pair: frames, optional EXR, geometry and particle ground truth (``truth``, a
+    :class:`~weathergen.engine.groundtruth.ParticleTruth`), then the metadata (last).
+    ``second=False`` (a sequence's pair whose second frame the next pair writes) leaves out the
+    second frame's image, EXR, depth and camera.
 
     Shape: frames (H, W, 3) float in [0, 1]; opacity (H, W) float.
     """
     written = []
+    n = 2 if second else 1
     if out.fmt in ("png", "both"):
-        for path, img in zip(out.frames_png, frames):
+        for path, img in list(zip(out.frames_png, frames))[:n]:
             written.append(write_png(path, img))
     if out.fmt in ("exr", "both"):
-        for path, img, alpha in zip(out.frames_exr, frames, opacity):
+        for path, img, alpha in list(zip(out.frames_exr, frames, opacity))[:n]:
             written.append(write_exr(path, img, {"opacity": alpha}))
+    if right is not None:       # the second camera's frames, beside the first's
+        for path, img in list(zip(out.frames_right_png, right))[:n]:
+            written.append(write_png(path, img))
     if out.geometry:
         depth_files = out.geometry_files(with_flow=pair.flow is not None)
         written.append(write_dpt(depth_files[0], pair.depth1[0].numpy()))
-        written.append(write_dpt(depth_files[1], pair.depth2[0].numpy()))
+        if second:
+            written.append(write_dpt(depth_files[1], pair.depth2[0].numpy()))
         k = pair.intrinsics.numpy()
         if pair.cam1_from_world is not None:
             e1, e2 = pair.cam1_from_world.numpy(), pair.cam2_from_world.numpy()
         else:   # no absolute poses: camera 1 is the world
             e1, e2 = np.eye(4), pair.cam2_from_cam1.numpy()
         written.append(write_cam(depth_files[2], k, e1))
-        written.append(write_cam(depth_files[3], k, e2))
+        if second:
+            written.append(write_cam(depth_files[3], k, e2))
         if pair.flow is not None:
             written.append(write_flo(depth_files[4], pair.flow.numpy().transpose(1, 2, 0)))
             if pair.flow_valid is not None and not bool(pair.flow_valid.all()):
@@ -161,6 +210,8 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
             native = out.native_flow(pair.id.dataset)
             if native is not None:
                 written.append(_write_native_flow(pair.id.dataset, native, pair))
+    if out.truth and truth is not None:
+        written += _write_truth(out, pair, truth)
     rel = [str(p.relative_to(out.root)) for p in written]
     metadata = dict(metadata)
     metadata["files"] = np.array(json.dumps(rel))
@@ -175,4 +226,35 @@ def _write_native_flow(dataset: str, path: Path, pair: FramePair) -> Path:
              else pair.flow_valid[0].numpy())
     if dataset == "kitti":
         return write_flow_png(path, flow, valid)
+    return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))
+
+
+def _write_truth(out: PairOutput, pair: FramePair, truth) -> list[Path]:
+    """Particle flow, opacity and seen flow (Sintel formats, plus KITTI's or Spring's own)."""
+    files = out.truth_files()
+    written = [write_flo(files["particle_flow"], truth.flow.numpy().transpose(1, 2, 0)),
+               write_png16(files["particle_opacity"], truth.opacity[0].numpy())]
+    seen, valid = seen_flow(truth, pair.flow, pair.flow_valid)
+    written.append(write_flo(files["seen_flow"], seen.numpy().transpose(1, 2, 0)))
+    if not bool(valid.all()):
+        written.append(write_png(files["seen_invalid"],
+                                 np.where(valid[0].numpy(), 0, 255).astype(np.uint8)))
+    covered = truth.weight[0].numpy() > 0
+    for kind, flow, ok in (("particle", truth.flow, covered), ("seen", seen, valid[0].numpy())):
+        native = out.native_truth(pair.id.dataset, kind)
+        if native is not None:
+            written.append(_write_native(pair.id.dataset, native,
+                                         flow.numpy().transpose(1, 2, 0), ok))
+    return written
+
+
+def _write_native(dataset: str, path: Path, flow: np.ndarray, valid: np.ndarray) -> Path:
+    """A flow (H, W, 2) with its valid mask (H, W) in KITTI's PNG or Spring's ``.flo5``.
+
+    KITTI's PNG holds flows within +-512 px; a nearer particle's larger flow is written as not
+    valid there (the ``.flo`` beside it keeps the value).
+    """
+    if dataset == "kitti":
+        fits = (np.abs(flow) < KITTI_FLOW_LIMIT).all(-1)
+        return write_flow_png(path, np.where(fits[..., None], flow, 0.0), valid & fits)
     return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))

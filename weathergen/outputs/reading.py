@@ -25,8 +25,9 @@ from .pairs import PairOutput
 
 
 def load_pair_particles(folder: str | Path, pair_id: PairId, preset_name: Optional[str] = None,
-                        preset: Optional[dict] = None) -> Particles:
-    """The particles an earlier render (or attack) stored in ``folder`` for ``pair_id``.
+                        preset: Optional[dict] = None, sequence: bool = False) -> Particles:
+    """The particles an earlier render (or attack) stored in ``folder`` for ``pair_id``
+    (``sequence``: a ``render --sequence`` folder, whose scenes hold every frame).
 
     With ``preset_name`` and ``preset`` (a ``Preset.to_dict()``: what the new output will be
     labelled with), the stored particles must have been sampled from that preset (up to the
@@ -35,7 +36,7 @@ def load_pair_particles(folder: str | Path, pair_id: PairId, preset_name: Option
     Raises FormatError naming the file when it is missing or belongs to another pair, dataset or
     preset.
     """
-    path = PairOutput.of(folder, pair_id, "").metadata
+    path = PairOutput.of(folder, pair_id, "", sequence=sequence).metadata
     if not path.exists():
         raise FormatError(path, f"no particle metadata for pair {pair_id}")
     check_stored_particles(path, read_metadata(path), pair_id, preset_name, preset)
@@ -85,6 +86,7 @@ class WeatherFolder:
     fmt: str
     input: dict
     pairs: list
+    sequence: bool = False        # a `render --sequence` tree: scenes hold every frame
 
     @classmethod
     def open(cls, root: str | Path) -> "WeatherFolder":
@@ -94,15 +96,15 @@ class WeatherFolder:
         pairs = []
         for meta in sorted(root.glob("*/particles/*/frame_*.npz")):
             pid = pair_identity(read_metadata(meta))
-            if PairOutput.of(root, pid, pass_name, fmt).is_complete():
+            if PairOutput.of(root, pid, pass_name, fmt, sequence=manifest.sequence).is_complete():
                 pairs.append(pid)
         if not pairs:
             raise DatasetError(f"{root}: holds no complete weather pairs")
-        return cls(root, pass_name, fmt, manifest.input, sorted(pairs))
+        return cls(root, pass_name, fmt, manifest.input, sorted(pairs), manifest.sequence)
 
     def frames(self, pair_id: PairId) -> tuple[torch.Tensor, torch.Tensor]:
         """The weather frames of a pair. Shape: two (3, H, W) float32 in [0, 1]."""
-        out = PairOutput.of(self.root, pair_id, self.pass_name, self.fmt)
+        out = PairOutput.of(self.root, pair_id, self.pass_name, self.fmt, sequence=self.sequence)
         if self.fmt == "exr":
             images = [read_exr(p)["RGB"].clip(0, 1) for p in out.frames_exr]
         else:

@@ -24,7 +24,11 @@ import numpy as np
 import torch
 
 from ..datasets import Dataset, PairRef
-from ..engine import render_pair, visible_counts
+from ..datasets.stereo import right_camera
+from ..engine import (FieldPreset, View, load_templates, particle_truth, reference_transforms,
+                      render_pair, visible_counts)
+from ..engine.perframe import pair_starts, render_first_frame
+from ..engine.stereo import render_right, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..framepair import FramePairBatch, PairId
 from ..outputs import (RENDER_FOLDER, PairOutput, merge_manifest, pair_metadata, prepare_folder,
@@ -34,7 +38,7 @@ from ..io.lock import FolderLock
 from ..outputs.folder import is_foreign
 from ..outputs.manifest import MANIFEST, MANIFEST_PARTS, RUN_CONFIG, jsonable, shard_part
 from ..workers import init_worker
-from .particles import pair_particles, pair_seed
+from .particles import pair_particles, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
 
@@ -55,6 +59,10 @@ class RenderJob:
     pass_name: str = ""
     fmt: str = "png"
     geometry: bool = True
+    truth: bool = False                 # write the particle ground truth (flows, opacity)
+    sequence: bool = False              # whole scenes, each frame once (field presets)
+    stereo: bool = False                # also render the dataset's second (right) camera
+    scene_ends: frozenset = frozenset() # sequence: pairs whose second frame no other pair writes
     device: str = "cpu"
     particles_from: Optional[Path] = None
     appearance: dict = field(default_factory=dict)   # re-render overrides of Particles settings
@@ -72,7 +80,10 @@ class RenderJob:
             "preset": self.preset.to_dict(),
             "seed": self.seed,
             "input": self.dataset.describe(),
-            "outputs": {"pass": self.pass_name, "format": self.fmt, "geometry": self.geometry},
+            "outputs": {"pass": self.pass_name, "format": self.fmt, "geometry": self.geometry,
+                        **({"particle_truth": True} if self.truth else {}),
+                        **({"sequence": True} if self.sequence else {}),
+                        **({"stereo": True} if self.stereo else {})},
             "particles_from": str(self.particles_from.absolute()) if self.particles_from else None,
             "appearance": self.appearance,
         }
@@ -105,18 +116,22 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
     results: dict[PairId, PairResult] = {}
     ready = []                                   # (ref, seed, pair, particles, seconds so far)
     for ref in refs:
-        seed = pair_seed(job.seed, ref.id)
+        seed = weather_seed(job.preset, job.seed, ref.id)
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
             particles = pair_particles(pair, job.preset, job.seed,
                                        world_up=getattr(job.dataset, "world_up", "auto"),
                                        particles_from=job.particles_from, appearance=job.appearance,
-                                       preset_name=job.preset_name)
+                                       preset_name=job.preset_name, sequence=job.sequence)
             ready.append((ref, seed, pair, particles, time.perf_counter() - start))
         except WeatherGenError as exc:
             results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed,
                                          time.perf_counter() - start, message=str(exc))
+    if job.sequence:
+        for ref, seed, pair, particles, spent in ready:
+            results[ref.id] = _sequence_pair(job, ref, seed, pair, particles, spent)
+        return [results[ref.id] for ref in refs]
     groups: dict[tuple, list] = {}
     for item in ready:
         groups.setdefault(item[2].size, []).append(item)
@@ -142,20 +157,87 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
     return [results[ref.id] for ref in refs]
 
 
-def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendered, index: int) -> PairResult:
-    frames = tuple(img[index].permute(1, 2, 0).cpu().numpy() for img in (rendered.image1, rendered.image2))
-    opacity = tuple(a[index, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
+def _sequence_pair(job: RenderJob, ref: PairRef, seed: int, pair, particles, spent: float) -> PairResult:
+    """One pair of a sequence render: its first frame (and its second where no later pair of the
+    selection starts there), geometry, ground truth and particle record."""
+    start = time.perf_counter()
+    second = ref.id in job.scene_ends
+    try:
+        with torch.no_grad():
+            if second:
+                rendered = render_pair(pair, particles, device=job.device)
+            else:
+                image, alpha = render_first_frame(pair, particles, device=job.device)
+                rendered = _FirstFrame(image1=image, opacity1=alpha)
+    except WeatherGenError as exc:
+        return PairResult(ref.id.key, str(ref.id), "failed", seed, spent, message=str(exc))
+    result = _write_one(job, ref, seed, pair, particles, rendered, 0, second=second)
+    result.seconds = spent + time.perf_counter() - start
+    return result
+
+
+@dataclass
+class _FirstFrame:
+    """The first frame of a pair, rendered alone (see :func:`_sequence_pair`)."""
+
+    image1: torch.Tensor
+    opacity1: torch.Tensor
+    image2: Optional[torch.Tensor] = None
+    opacity2: Optional[torch.Tensor] = None
+
+
+def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendered, index: int,
+               second: bool = True) -> PairResult:
+    frames = tuple(img[index].permute(1, 2, 0).cpu().numpy()
+                   for img in (rendered.image1, rendered.image2) if img is not None)
+    opacity = tuple(a[index, 0].cpu().numpy()
+                    for a in (rendered.opacity1, rendered.opacity2) if a is not None)
     visible = visible_counts(pair, particles)
     meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name)
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
-    out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+    out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
+                        job.sequence)
+    right = None
+    if job.stereo:
+        try:
+            right = _render_right(job, pair, particles, second)
+        except WeatherGenError as exc:
+            return PairResult(ref.id.key, str(ref.id), "failed", seed, message=str(exc))
+    truth = particle_truth(pair, particles) if job.truth else None
     try:
-        files = write_pair_outputs(out, pair, frames, opacity, meta)
+        files = write_pair_outputs(out, pair, frames, opacity, meta, truth, second=second,
+                                   right=right)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
         raise write_error(exc, job.out, "then rerun with ${resume}") from None
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
                       input=jsonable(getattr(pair, "meta", None) or {}))
+
+
+def _render_right(job: RenderJob, pair, particles, second: bool) -> tuple:
+    """The right camera's weather frames (the first, and the second when ``second``): the same
+    particles seen from the dataset's second camera, occluded by its forward-warped depth.
+    Shape: returns (H, W, 3) float arrays."""
+    rc = right_camera(job.dataset, pair)
+    _, c1, c2 = reference_transforms(pair)
+    lib = load_templates(particles.settings.templates)
+    start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
+    frames = []
+    for image, depth, cam, start in ((rc.image1, pair.depth1, c1, start1),
+                                     (rc.image2, pair.depth2, c2, start2))[:2 if second else 1]:
+        left = View(pair.intrinsics, cam, depth)
+        right_depth = warp_depth(depth, pair.intrinsics, rc.right_from_left, rc.intrinsics)
+        view = stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics)
+        with torch.no_grad():
+            out, _ = render_right(image, view, particles, start, disp, lib)
+        frames.append(out.permute(1, 2, 0).numpy())
+    return tuple(frames)
+
+
+def sequence_ends(ids: list[PairId]) -> frozenset:
+    """The pairs whose second frame starts no selected pair: they write both their frames."""
+    starts = {(i.dataset, i.split, i.scene, i.frame) for i in ids}
+    return frozenset(i for i in ids if (i.dataset, i.split, i.scene, i.frame + 1) not in starts)
 
 
 # -- the output folder ---------------------------------------------------------------------------
@@ -209,9 +291,16 @@ def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
         places += [(job.out / MANIFEST_PARTS, f".{RUN_CONFIG}."), (job.out, f".{MANIFEST}.")]
     folders = set()
     for ref in refs:
-        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
+                            job.sequence)
         native = out.native_flow(ref.id.dataset)
-        for path in out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else []):
+        extra = list(out.frames_right_png) if job.stereo else []
+        if job.truth:
+            extra += list(out.truth_files().values())
+            extra += [p for p in (out.native_truth(ref.id.dataset, kind)
+                                  for kind in ("particle", "seen")) if p is not None]
+        for path in (out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else [])
+                     + extra):
             folders.add(path.parent)
     return places + [(folder, ".") for folder in sorted(folders)]
 
@@ -249,9 +338,16 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     selected pair fails (an output folder that this run created is removed again).
     """
     # A root that is not of the chosen layout fails here, before the output folder is touched.
-    refs = shard_refs(job.dataset.pairs(), job.shard)
+    every = job.dataset.pairs()
+    refs = shard_refs(every, job.shard)
     if not refs:
         raise ConfigError("the selection holds no frame pairs")
+    if job.sequence:
+        if not isinstance(job.preset, FieldPreset):
+            raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "
+                              f"e.g. snow-moderate); '{job.preset_name}' is a paper preset, "
+                              "whose particles belong to one pair")
+        job.scene_ends = sequence_ends([r.id for r in every])
     created = not job.out.exists()
     lock = prepare_output(job, refs)
     try:
@@ -278,9 +374,11 @@ def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> 
     results: list[PairResult] = []
     todo: list[PairRef] = []
     for ref in refs:
-        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry)
+        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
+                            job.sequence)
         if not job.overwrite and out.is_complete():
-            results.append(PairResult(ref.id.key, str(ref.id), "skipped", pair_seed(job.seed, ref.id)))
+            results.append(PairResult(ref.id.key, str(ref.id), "skipped",
+                                      weather_seed(job.preset, job.seed, ref.id)))
         else:
             todo.append(ref)
     on_start(len(refs))

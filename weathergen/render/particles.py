@@ -10,7 +10,7 @@ import hashlib
 from pathlib import Path
 from typing import Optional
 
-from ..engine import Particles, Preset, sample_particles
+from ..engine import FieldPreset, Particles, Preset, sample_weather, scene_seed
 from ..framepair import FramePair, PairId
 from ..outputs.reading import load_pair_particles
 
@@ -21,17 +21,29 @@ def pair_seed(run_seed: int, pair_id: PairId) -> int:
     return int.from_bytes(digest[:8], "little") & ((1 << 63) - 1)
 
 
+def weather_seed(preset, run_seed: int, pair_id: PairId) -> int:
+    """The seed a pair's weather is drawn from: the pair's own for the paper's model, the scene's
+    for a weather field (so that the pairs of a scene share one field and their common frames)."""
+    if isinstance(preset, FieldPreset):
+        return scene_seed(run_seed, pair_id.dataset, pair_id.split, pair_id.scene)
+    return pair_seed(run_seed, pair_id)
+
+
 def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: str = "auto",
                    particles_from: Optional[Path] = None,
-                   appearance: Optional[dict] = None, preset_name: Optional[str] = None) -> Particles:
-    """The particles of ``pair``: sampled from ``preset`` with the pair's seed, or, with
-    ``particles_from``, the ones stored there for the pair, with the ``appearance`` settings
+                   appearance: Optional[dict] = None, preset_name: Optional[str] = None,
+                   sequence: bool = False) -> Particles:
+    """The particles of ``pair``: sampled from ``preset`` with the pair's seed (the scene's for a
+    weather field, see :func:`weather_seed`), or, with ``particles_from``, the ones stored there for
+    the pair (``sequence``: a ``render --sequence`` folder), with the ``appearance`` settings
     replaced (see :func:`weathergen.render.resolve_preset`); they must have been sampled from
     ``preset`` (up to its appearance keys) and, when given, be labelled ``preset_name``."""
     if particles_from is None:
-        return sample_particles(pair, preset, pair_seed(run_seed, pair.id), world_up=world_up)
+        return sample_weather(pair, preset, weather_seed(preset, run_seed, pair.id),
+                              world_up=world_up)
     # stored particles must be of the preset the output is labelled with (the stored manifest's)
-    particles = load_pair_particles(particles_from, pair.id, preset_name, preset.to_dict())
+    particles = load_pair_particles(particles_from, pair.id, preset_name, preset.to_dict(),
+                                    sequence=sequence)
     if not appearance:
         return particles
     return particles.replace(settings=particles.settings.replace(**appearance))

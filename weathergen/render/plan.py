@@ -20,7 +20,8 @@ from typing import Mapping, NamedTuple, Optional
 
 import torch
 
-from ..engine import APPEARANCE_KEYS, Preset, RenderSettings, list_presets, load_preset
+from ..engine import (APPEARANCE_KEYS, FieldPreset, Preset, RenderSettings, list_presets,
+                      load_preset)
 from ..errors import ConfigError
 from ..outputs import read_manifest
 
@@ -57,7 +58,12 @@ def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = Non
     name = stored.preset_name
     base = name if name in list_presets() else "snow"  # every key is set anyway
     resolved = load_preset(base, {**values, **overrides})
-    appearance = RenderSettings.from_preset(resolved).appearance() if overrides else {}
+    if not overrides:
+        appearance = {}
+    elif isinstance(resolved, FieldPreset):   # its streak follows the dataset's frame rate
+        appearance = {"blend": resolved.blend, "blur_samples": resolved.blur_samples}
+    else:
+        appearance = RenderSettings.from_preset(resolved).appearance()
     return ResolvedPreset(resolved, name, appearance)
 
 

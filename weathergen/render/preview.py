@@ -58,7 +58,8 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
     rows = []
     total = 0
     for ref in ds.pairs():
-        out = PairOutput.of(render_dir, ref.id, manifest.pass_name, manifest.fmt, manifest.geometry)
+        out = PairOutput.of(render_dir, ref.id, manifest.pass_name, manifest.fmt, manifest.geometry,
+                            sequence=manifest.sequence)
         if not out.is_complete():
             continue
         total += 1

@@ -1,0 +1,411 @@
+"""Weather fields: geometry of the per-frame path, frame identity between pairs, density, stereo,
+particle ground truth, presets and storage."""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from engine_scenes import pose, rotation
+from weathergen.engine import (Particles, TemplateLibrary, load_preset, load_templates,
+                               render_pair, sample_particles, sample_weather)
+from weathergen.engine.field import (field_for_pair, frame_particles, make_field, pair_views,
+                                     sample_field_particles, scene_seed)
+from weathergen.engine.presets import DATASET_FRAME_RATES, FieldPreset
+from weathergen.engine.groundtruth import particle_truth, seen_flow
+from weathergen.engine.optics import FieldOptics
+from weathergen.engine.settings import RenderSettings
+from weathergen.engine.perframe import (View, defocus_radius, depth_fade, footprint,
+                                        render_view, view_mask)
+from weathergen.errors import ConfigError
+from weathergen.framepair import FramePair, PairId
+from weathergen.geometry import project, transform_points
+
+H, W = 40, 56
+F = 50.0
+K = torch.tensor([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+
+
+def disc_library(res: int = 16) -> TemplateLibrary:
+    """One solid disc: its rendered support measures the footprint."""
+    c = (res - 1) / 2
+    yy, xx = torch.meshgrid(torch.arange(res, dtype=torch.float64),
+                            torch.arange(res, dtype=torch.float64), indexing="ij")
+    disc = (((xx - c) ** 2 + (yy - c) ** 2) <= (res / 2) ** 2).float()
+    return TemplateLibrary(name="test-disc", alphas=disc[None], digest="")
+
+
+def field_preset(**over) -> FieldPreset:
+    values = {"model": "field", "density": 20.0, "diameter": 0.05, "diameter_jitter": 0.0,
+              "near": 0.3, "far": 6.0, "fade": 0.0, "aperture": 0.0, "tile": 2.0,
+              "fall_speed": 0.0, "transparency": 1.0}
+    values.update(over)
+    return load_preset("snow", {k: v for k, v in values.items()})
+
+
+def forward_cameras(n: int, step: float = 0.4):
+    """cam_from_world of a camera moving along world +z (OpenCV axes, world = camera 0)."""
+    return [pose(rotation(), (0.0, 0.0, step * i)) for i in range(n)]
+
+
+def wall_depth(cam: torch.Tensor, wall_z: float) -> torch.Tensor:
+    """Depth of a fronto-parallel wall at world z = wall_z seen by a camera looking along +z."""
+    centre_z = float(torch.linalg.inv(cam)[2, 3])
+    return torch.full((1, H, W), wall_z - centre_z, dtype=torch.float32)
+
+
+def seq_pair(cams, depths, n: int, scene="seq") -> FramePair:
+    g = torch.Generator().manual_seed(n)
+    img = lambda: (0.2 + 0.3 * torch.rand(3, H, W, generator=g)).float()  # noqa: E731
+    return FramePair(id=PairId("demo", "training", scene, n), image1=img(), image2=img(),
+                     depth1=depths[n], depth2=depths[n + 1], intrinsics=K.clone(),
+                     cam2_from_cam1=cams[n + 1] @ torch.linalg.inv(cams[n]),
+                     cam1_from_world=cams[n], cam2_from_world=cams[n + 1])
+
+
+def one_particle_record(position, motion=(0.0, 0.0, 0.0), diameter=0.1, blur=0.0, samples=1,
+                        optics=None) -> Particles:
+    z3 = torch.zeros(1, 3)
+    return Particles(position=torch.tensor([position], dtype=torch.float32),
+                     motion=torch.tensor([motion], dtype=torch.float32), offset1=z3,
+                     offset2=z3.clone(), color=torch.ones(1, 3), transparency=torch.ones(1),
+                     template=torch.zeros(1, dtype=torch.long), rotation=torch.zeros(1),
+                     scale=torch.tensor([diameter]), defocus=torch.zeros(1, dtype=torch.long),
+                     frame="world",
+                     settings=RenderSettings(blend="additive", blur_length=blur,
+                                             blur_samples=samples, defocus_brighten=False,
+                                             templates="test-disc"),
+                     optics=optics or FieldOptics(near=0.1, far=50.0, fade=0.0))
+
+
+def centroid(alpha: torch.Tensor) -> tuple[float, float]:
+    a = alpha[0].double()
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64),
+                            torch.arange(W, dtype=torch.float64), indexing="ij")
+    return float((a * xs).sum() / a.sum()), float((a * ys).sum() / a.sum())
+
+
+def render_one(record, cam, depth=None, start=None):
+    view = View(K, cam, depth if depth is not None else torch.full((1, H, W), 100.0))
+    image = torch.zeros(3, H, W)
+    s = start if start is not None else record.position
+    return render_view(image, view, record, s, record.motion, disc_library(), beta=250.0,
+                       chunk_elements=1 << 20)
+
+
+# -- geometry of one particle -------------------------------------------------------------------
+
+def test_static_particle_lands_on_its_reprojected_pixel_in_every_frame():
+    point = (0.13, -0.07, 3.0)
+    record = one_particle_record(point, diameter=0.12)
+    cams = [pose(rotation(roll_deg=4 * i, yaw_deg=-3 * i), (0.05 * i, 0.02 * i, 0.3 * i))
+            for i in range(5)]
+    for cam in cams:
+        _, alpha = render_one(record, cam)
+        pix, _ = project(transform_points(cam, torch.tensor([point], dtype=torch.float64)), K)
+        cx, cy = centroid(alpha)
+        assert abs(cx - float(pix[0, 0])) < 0.05 and abs(cy - float(pix[0, 1])) < 0.05
+
+
+def test_footprint_ratio_is_the_inverse_depth_ratio():
+    record = one_particle_record((0.0, 0.0, 4.0), diameter=0.6)
+    sizes = []
+    for cam in (pose(rotation()), pose(rotation(), (0, 0, 2.0))):      # 4 units away, then 2
+        _, alpha = render_one(record, cam)
+        sizes.append(math.sqrt(float((alpha > 0.5).sum()) * 4 / math.pi))  # disc diameter, px
+    assert sizes[0] == pytest.approx(F * 0.6 / 4.0, abs=0.8)
+    assert sizes[1] / sizes[0] == pytest.approx(4.0 / 2.0, rel=0.08)
+    assert footprint(F, torch.tensor([0.6]), torch.tensor([2.0])).item() == pytest.approx(15.0)
+
+
+def test_appearance_functions():
+    optics = FieldOptics(near=0.5, far=10.0, fade=0.2, aperture=0.02, focus=2.0)
+    z = torch.tensor([0.5, 0.75, 1.0, 5.0, 8.0, 9.0, 10.0], dtype=torch.float64)
+    fade = depth_fade(optics, z)
+    assert fade[0] == 0 and fade[-1] == 0 and fade[2] == 1 and fade[3] == 1 and fade[4] == 1
+    assert 0 < fade[1] < 1 and 0 < fade[5] < 1
+    # thin-lens circle of confusion: 0.5 f A |1/z - 1/focus|, in whole pixels
+    r = defocus_radius(100.0, optics, torch.tensor([2.0, 0.5, 0.25], dtype=torch.float64))
+    assert r.tolist() == [0, round(0.5 * 100 * 0.02 * 1.5), round(0.5 * 100 * 0.02 * 3.5)]
+
+
+def test_stereo_disparity_is_f_baseline_over_depth():
+    baseline = 0.3
+    for z in (1.5, 3.0):
+        record = one_particle_record((0.1, 0.05, z), diameter=0.08)
+        left = pose(rotation())
+        right = pose(rotation(), (baseline, 0.0, 0.0))     # the right camera sits at +x
+        _, a_left = render_one(record, left)
+        _, a_right = render_one(record, right)
+        disparity = centroid(a_left)[0] - centroid(a_right)[0]
+        assert disparity == pytest.approx(F * baseline / z, abs=0.05)
+        assert centroid(a_left)[1] == pytest.approx(centroid(a_right)[1], abs=0.02)
+
+
+def test_particle_behind_a_surface_is_not_drawn():
+    record = one_particle_record((0.0, 0.0, 3.0), diameter=0.3)
+    near_wall = torch.full((1, H, W), 2.0)
+    image, alpha = render_one(record, pose(rotation()), depth=near_wall)
+    assert float(alpha.sum()) == 0 and float(image.abs().sum()) == 0
+    _, alpha = render_one(record, pose(rotation()), depth=torch.full((1, H, W), 4.0))
+    assert float(alpha.sum()) > 0
+
+
+def test_streak_follows_the_exposure():
+    record = one_particle_record((0.0, 0.0, 2.0), motion=(0.4, 0.0, 0.0), diameter=0.02,
+                                 blur=0.5, samples=21)
+    _, alpha = render_one(record, pose(rotation()))
+    cols = torch.nonzero(alpha[0].sum(0) > 1e-3).squeeze(1)
+    # the streak spans 0.5 x 0.4 units at depth 2: 5 px, plus a footprint of 0.5 px
+    assert float(cols.max() - cols.min()) == pytest.approx(F * 0.2 / 2.0, abs=1.5)
+
+
+# -- the field: frames shared by pairs, density -------------------------------------------------
+
+def sequence(n=5, wall=8.0, step=0.4):
+    cams = forward_cameras(n, step)
+    depths = [wall_depth(c, wall) for c in cams]
+    return cams, depths
+
+
+def test_frame_is_bit_identical_in_the_two_pairs_that_share_it():
+    cams, depths = sequence(4)
+    preset = field_preset(density=40.0, fall_speed=0.7, wind=[0.3, -0.2], angle_jitter=20.0,
+                          speed_jitter=0.3, exposure=0.02, blur_samples=4, templates="flakes",
+                          aperture=0.01, fade=0.2)
+    seed = scene_seed(0, "demo", "training", "seq")
+    a, b = seq_pair(cams, depths, 1), seq_pair(cams, depths, 2)
+    b = dataclasses.replace(b, image1=a.image2.clone())       # the same frame 2 image on disk
+    rec_a = sample_field_particles(a, preset, seed, world_up="-y")
+    rec_b = sample_field_particles(b, preset, seed, world_up="-y")
+    assert rec_a.count > 50 and rec_b.count > 50
+    out_a, out_b = render_pair(a, rec_a), render_pair(b, rec_b)
+    assert torch.equal(out_a.image2, out_b.image1)
+    assert torch.equal(out_a.opacity2, out_b.opacity1)
+    assert float(out_a.opacity2.sum()) > 0
+    # and a sequence frame rendered alone (one view) is the same image
+    fld = field_for_pair(b, preset, seed, world_up="-y")
+    view = pair_views(b)[0]
+    alone = frame_particles(fld, view, 2)
+    image, _ = render_view(b.image1, view, alone, alone.position, alone.motion,
+                           load_templates("flakes"), beta=250.0, chunk_elements=1 << 21)
+    assert torch.equal(image, out_b.image1[0])
+
+
+def test_visible_density_stays_constant_over_a_forward_moving_sequence():
+    density, near, far = 30.0, 0.3, 5.0
+    preset = field_preset(density=density, near=near, far=far, fall_speed=0.5, tile=1.5)
+    cams, depths = sequence(8, wall=7.5, step=0.5)     # the wall comes within `far` at frame 6
+    fld = make_field(preset, 3, down=torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
+                     frame_rate=10.0, frame="world")
+    counts = []
+    for n, (cam, depth) in enumerate(zip(cams, depths)):
+        view = View(K, cam, depth)
+        rec = frame_particles(fld, view, n)
+        pts = transform_points(cam, rec.position.double())
+        pix, z = project(pts, K)
+        inside = (pix[:, 0] >= -0.5) & (pix[:, 0] < W - 0.5) & (pix[:, 1] >= -0.5) \
+            & (pix[:, 1] < H - 0.5)
+        z_end = min(far, float(depth[0, 0, 0]))
+        counted = int((inside & (z >= near) & (z <= z_end)).sum())
+        volume = (z_end ** 3 - near ** 3) / 3 * (W / F) * (H / F)   # empty frustum
+        expected = density * volume
+        counts.append((counted, expected))
+        assert abs(counted - expected) < 4 * math.sqrt(expected) + 2, (n, counted, expected)
+    # the wall cuts the last frames' volume, and the counts follow it
+    assert counts[-1][1] < counts[0][1] * 0.9
+    ratio = [c / e for c, e in counts]
+    assert max(ratio) - min(ratio) < 0.25
+
+
+def test_near_wall_hides_the_weather_instead_of_concentrating_it():
+    cams = forward_cameras(2, step=0.2)
+    wall = [wall_depth(c, 0.8) for c in cams]          # a wall 0.8 ahead of camera 1
+    pair = seq_pair(cams, wall, 0)
+    preset = field_preset(density=200.0, near=0.2, far=5.0)
+    rec = sample_field_particles(pair, preset, 1, world_up="-y")
+    z = transform_points(cams[0], rec.position.double())[:, 2]
+    # only the strip of space in front of the wall holds particles, at the field's density
+    assert float(z.max()) <= 0.8 + 3 * preset.depth_softness + 0.05
+    expected = 200.0 * (0.8 ** 3 - 0.2 ** 3) / 3 * (W / F) * (H / F)
+    seen = ((z >= 0.2) & (z <= 0.8)).sum()
+    assert int(seen) < 2.5 * expected + 10
+
+
+# -- ground truth ----------------------------------------------------------------------------
+
+def test_splatted_particle_flow_is_its_projected_displacement():
+    cams = forward_cameras(2, step=0.2)
+    depths = [torch.full((1, H, W), 50.0) for _ in cams]
+    pair = seq_pair(cams, depths, 0)
+    record = one_particle_record((0.2, -0.1, 2.5), motion=(0.15, 0.1, 0.0), diameter=0.2)
+    truth = particle_truth(pair, record, disc_library())
+    p1, _ = project(transform_points(cams[0], torch.tensor([[0.2, -0.1, 2.5]], dtype=torch.float64)), K)
+    p2, _ = project(transform_points(cams[1], torch.tensor([[0.35, 0.0, 2.5]], dtype=torch.float64)), K)
+    expect = (p2 - p1)[0]
+    covered = truth.weight[0] > 0
+    assert int(covered.sum()) > 10
+    assert torch.allclose(truth.flow[0][covered], torch.full_like(truth.flow[0][covered], float(expect[0])), atol=1e-4)
+    assert torch.allclose(truth.flow[1][covered], torch.full_like(truth.flow[1][covered], float(expect[1])), atol=1e-4)
+    assert float(truth.flow[:, ~covered].abs().max()) == 0
+    # seen flow: the particle's where it dominates, the scene's elsewhere
+    scene = torch.full((2, H, W), 7.0)
+    seen, valid = seen_flow(truth, scene)
+    dominant = truth.opacity[0] >= 0.5
+    assert int(dominant.sum()) > 0
+    assert torch.equal(seen[:, dominant], truth.flow[:, dominant])
+    assert bool((seen[:, ~dominant] == 7.0).all()) and bool(valid.all())
+
+
+def test_particle_flow_of_two_overlapping_particles_is_their_weighted_mean():
+    cams = forward_cameras(2, step=0.0)
+    depths = [torch.full((1, H, W), 50.0) for _ in cams]
+    pair = seq_pair(cams, depths, 0)
+    a = one_particle_record((0.0, 0.0, 2.0), motion=(0.2, 0.0, 0.0), diameter=0.3)
+    b = one_particle_record((0.0, 0.0, 2.0), motion=(0.0, 0.1, 0.0), diameter=0.3)
+    both = a.replace(**{f: torch.cat((getattr(a, f), getattr(b, f))) for f in
+                        ("position", "motion", "offset1", "offset2", "color", "transparency",
+                         "template", "rotation", "scale", "defocus")})
+    both = both.replace(transparency=torch.tensor([0.75, 0.25]))
+    truth = particle_truth(pair, both, disc_library())
+    centre = truth.flow[:, H // 2, W // 2]
+    assert float(centre[0]) == pytest.approx(0.75 * F * 0.2 / 2.0, abs=1e-3)
+    assert float(centre[1]) == pytest.approx(0.25 * F * 0.1 / 2.0, abs=1e-3)
+
+
+# -- storage, gradients, presets ------------------------------------------------------------
+
+def test_field_record_round_trips_and_rerenders_bit_identically(tmp_path):
+    cams, depths = sequence(2)
+    pair = seq_pair(cams, depths, 0)
+    preset = field_preset(density=30.0, exposure=0.05, blur_samples=3, fall_speed=1.0)
+    rec = sample_weather(pair, preset, 5, world_up="-y")
+    path = rec.save(tmp_path / "p.npz")
+    with np.load(path) as data:
+        assert int(data["format_version"]) == 2 and "optics" in data.files
+    again = Particles.load(path)
+    assert again.optics == rec.optics
+    a, b = render_pair(pair, rec), render_pair(pair, again)
+    assert torch.equal(a.image1, b.image1) and torch.equal(a.image2, b.image2)
+
+
+def test_paper_records_keep_format_version_1(tmp_path):
+    cams, depths = sequence(2)
+    pair = seq_pair(cams, depths, 0)
+    rec = sample_particles(pair, load_preset("snow", {"count": "20"}), 0)
+    with np.load(rec.save(tmp_path / "p.npz")) as data:
+        assert int(data["format_version"]) == 1 and "optics" not in data.files
+
+
+def test_gradients_reach_the_offsets_of_field_records():
+    cams, depths = sequence(2)
+    pair = seq_pair(cams, depths, 0)
+    rec = sample_weather(pair, field_preset(density=30.0), 2, world_up="-y")
+    d1 = rec.offset1.clone().requires_grad_()
+    d2 = rec.offset2.clone().requires_grad_()
+    colour = rec.color.clone().requires_grad_()
+    out = render_pair(pair, rec.replace(offset1=d1, offset2=d2, color=colour), beta=30.0)
+    (out.image1.sum() + 2 * out.image2.sum()).backward()
+    for g in (d1.grad, d2.grad, colour.grad):
+        assert g is not None and float(g.abs().sum()) > 0
+
+
+def test_field_preset_validation_and_frame_rates():
+    p = field_preset()
+    assert isinstance(p, FieldPreset) and p.model == "field"
+    assert p.frame_rate_for("kitti") == 10.0 and p.frame_rate_for("sintel") == 24.0
+    assert field_preset(frame_rate=60.0).frame_rate_for("kitti") == 60.0
+    assert set(DATASET_FRAME_RATES) >= {"sintel", "kitti", "spring", "demo", "custom"}
+    assert field_preset(exposure=1.0).streak_fraction(24.0) == 1.0
+    with pytest.raises(ConfigError, match="far"):
+        field_preset(near=2.0, far=1.0)
+    with pytest.raises(ConfigError, match="unknown key 'count'"):
+        load_preset("snow", {"model": "field", "count": "5"})
+    with pytest.raises(ConfigError, match="density"):
+        field_preset(density=-1.0)
+    with pytest.raises(ConfigError, match="particles per tile"):
+        field_preset(density=1e6, tile=100.0)
+
+
+def test_view_mask_keeps_rim_particles_whose_stamp_reaches_the_image():
+    optics = FieldOptics(near=0.1, far=10.0, fade=0.0)
+    view = View(K, pose(rotation()), torch.full((1, H, W), 20.0))
+    # centre 3 px left of the image, at depth 1: footprint 0.2 * 50 = 10 px, radius 5
+    x = (-3.5 - K[0, 2].item()) / F
+    pts = torch.tensor([[x, 0.0, 1.0], [x * 4, 0.0, 1.0]], dtype=torch.float64)
+    keep = view_mask(view, pts, torch.zeros(2, 3, dtype=torch.float64),
+                     torch.tensor([0.2, 0.2], dtype=torch.float64), optics)
+    assert keep.tolist() == [True, False]
+
+
+# -- the bundled ladder ---------------------------------------------------------------------
+
+LADDER = [f"{kind}-{level}" for kind in ("snow", "rain", "sparks", "fog")
+          for level in ("light", "moderate", "heavy")]
+
+
+def test_severity_ladder_is_bundled_and_ordered():
+    from weathergen.engine import list_presets
+
+    assert sorted(LADDER) == list_presets("field")
+    for kind in ("snow", "rain", "sparks", "fog"):
+        d = [load_preset(f"{kind}-{lvl}").density for lvl in ("light", "moderate", "heavy")]
+        assert d[0] < d[1] < d[2]
+        assert load_preset(f"{kind}-light").to_dict()["model"] == "field"
+
+
+def test_presets_command_names_the_model():
+    from click.testing import CliRunner
+
+    from weathergen.cli import presets_cmd  # noqa: F401  (registers the command)
+    from weathergen.cli.main import cli
+
+    result = CliRunner().invoke(cli, ["presets"])
+    assert result.exit_code == 0, result.output
+    for name in LADDER:
+        assert f" {name} " in result.output and "field model" in result.output
+    assert "paper model" in result.output
+    result = CliRunner().invoke(cli, ["presets", "snow-heavy"])
+    assert result.exit_code == 0 and "(field model)" in result.output and "density" in result.output
+
+
+# -- stereo ------------------------------------------------------------------------------------
+
+def test_warped_right_depth_of_a_plane_and_an_occluder():
+    from weathergen.engine.stereo import warp_depth
+
+    baseline = 0.2
+    right_from_left = torch.eye(4, dtype=torch.float64)
+    right_from_left[0, 3] = -baseline          # the right camera sits at +x of the left one
+    depth = torch.full((1, H, W), 4.0)
+    depth[..., 20:30, 20:30] = 2.0             # a near block
+    right = warp_depth(depth, K, right_from_left, fill=99.0)
+    shift_far, shift_near = F * baseline / 4.0, F * baseline / 2.0      # 2.5 and 5 px
+    assert float(right[0, 5, 30]) == 4.0                                 # plain plane
+    assert float(right[0, 25, 20 - round(shift_near) + 2]) == 2.0       # the block moved left
+    assert float(right[0, 5, W - 1]) == 99.0                             # nothing seen there
+    assert int((right[0, 5] == 99.0).sum()) == math.floor(shift_far)      # the strip at the edge
+    assert bool((right[0, 5, : W - 3] == 4.0).all())                     # no cracks
+
+
+def test_right_camera_renders_the_same_field_particles_at_their_disparity():
+    from weathergen.engine.stereo import render_right, stereo_view, warp_depth
+
+    baseline = 0.25
+    cams, depths = sequence(2)
+    pair = seq_pair(cams, depths, 0)
+    record = one_particle_record((0.1, 0.0, 2.5), diameter=0.1)
+    right_from_left = torch.eye(4, dtype=torch.float64)
+    right_from_left[0, 3] = -baseline
+    left = View(K, cams[0], pair.depth1)
+    right = stereo_view(left, right_from_left, warp_depth(pair.depth1, K, right_from_left))
+    assert torch.allclose(right.cam_from_ref, right_from_left @ cams[0])
+    _, a_left = render_view(torch.zeros(3, H, W), left, record, record.position, record.motion,
+                            disc_library(), beta=250.0, chunk_elements=1 << 20)
+    _, a_right = render_right(torch.zeros(3, H, W), right, record, record.position,
+                              record.motion, disc_library())
+    assert centroid(a_left)[0] - centroid(a_right)[0] == pytest.approx(F * baseline / 2.5, abs=0.05)

@@ -1,0 +1,85 @@
+"""Ground truth of the particle layer of a pair: its flow, its opacity and the flow a viewer sees.
+
+- **Particle flow** ``(2, H, W)``: at every pixel, the opacity-weighted mean of the projected
+  displacements (frame 1 to frame 2) of the particles covering it in frame 1,
+  ``Σ_i w_i f_i / Σ_i w_i`` with ``w_i = θ_i B_i V_i`` the particle's splatted weight and ``f_i`` the
+  displacement of its centre's projection; zero where no particle is. Computed by the renderer's
+  splat core with the displacements in place of the colour.
+- **Opacity** ``(1, H, W)``: ``clamp(Σ_i w_i, 0, 1)``, the renderer's opacity of frame 1.
+- **Seen flow** ``(2, H, W)``: the particle flow where the particles dominate a pixel
+  (opacity >= ``threshold``, 0.5 by default) and the scene's flow elsewhere; valid where the
+  particles dominate or the scene's flow is valid.
+
+Which to train on: the scene flow (the dataset's ground truth) teaches a network to see through the
+weather, the usual goal of augmentation and of robustness; the seen flow teaches it to report the
+motion of whatever is in front, snowflakes included (for tracking what the camera actually
+sees, or for evaluating how a network treats the particles); the particle flow with its opacity
+trains or evaluates layered models that estimate both motions.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from ..framepair import FramePair
+from ..geometry import project, transform_points
+from .particles import Particles
+from .perframe import View, pair_starts, splat_view
+from .renderer import BETA_RENDER, DEFAULT_CHUNK_ELEMENTS
+from .sampling import check_pair_for_engine, reference_transforms
+from .templates import TemplateLibrary, load_templates
+
+SEEN_THRESHOLD = 0.5
+
+
+@dataclass
+class ParticleTruth:
+    """Shape: flow (2, H, W) pixels; opacity (1, H, W) in [0, 1]; weight (1, H, W) = Σ w_i."""
+
+    flow: torch.Tensor
+    opacity: torch.Tensor
+    weight: torch.Tensor
+
+
+def particle_truth(pair: FramePair, particles: Particles,
+                   templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
+                   chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> ParticleTruth:
+    """Particle flow and opacity of frame 1 of ``pair`` (float64 accumulation on the CPU)."""
+    check_pair_for_engine(pair)
+    lib = templates if templates is not None else load_templates(particles.settings.templates)
+    _, c1, c2 = reference_transforms(pair)
+    dtype, device = torch.float64, torch.device("cpu")
+    rec = particles.to(device)
+    start1, start2, disp = pair_starts(rec, dtype, device)
+    k = pair.intrinsics.double().cpu()
+    p1, _ = project(transform_points(c1.double().cpu(), start1), k)
+    p2, _ = project(transform_points(c2.double().cpu(), start2), k)
+    values = torch.cat((p2 - p1, torch.zeros(rec.count, 1, dtype=dtype)), 1)
+    view = View(k, c1.double().cpu(), pair.depth1.cpu())
+    sp = splat_view(view, rec, start1, disp, lib, beta=beta, chunk_elements=chunk_elements,
+                    dtype=dtype, device=device, values=values)
+    weight = sp.alpha
+    covered = weight > 0
+    safe = torch.where(covered, weight, torch.ones_like(weight))
+    flow = torch.where(covered, sp.colour[:2] / safe, torch.zeros_like(sp.colour[:2]))
+    return ParticleTruth(flow=flow.float(), opacity=weight.clamp(0, 1).float(),
+                         weight=weight.float())
+
+
+def seen_flow(truth: ParticleTruth, scene_flow: Optional[torch.Tensor],
+              scene_valid: Optional[torch.Tensor] = None, threshold: float = SEEN_THRESHOLD
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The flow a viewer sees: the particles' where they dominate, the scene's elsewhere.
+
+    Shape: scene_flow (2, H, W) or None (no scene ground truth: valid only under the particles),
+    scene_valid (1, H, W) bool or None (all valid) -> (flow (2, H, W), valid (1, H, W) bool).
+    """
+    dominant = truth.opacity >= threshold
+    if scene_flow is None:
+        return torch.where(dominant, truth.flow, torch.zeros_like(truth.flow)), dominant
+    valid = torch.ones_like(dominant) if scene_valid is None else scene_valid.bool()
+    flow = torch.where(dominant, truth.flow, scene_flow.to(truth.flow.dtype))
+    return flow, dominant | valid

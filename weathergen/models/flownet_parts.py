@@ -1,0 +1,243 @@
+"""Parts shared by the FlowNet family (FlowNetC, FlowNetCRobust, FlowNet2 and its sub-networks).
+
+The FlowNet networks (Dosovitskiy et al., ICCV 2015; Ilg et al., CVPR 2017) are encoder-decoder
+CNNs. Their released PyTorch checkpoints name layers after small building blocks, which this
+module provides with the same parameter layout:
+
+- :func:`conv_block`: a convolution with bias and a leaky ReLU (slope 0.1), stored as
+  ``<name>.0.weight`` / ``<name>.0.bias`` (a two-element ``nn.Sequential``);
+- :func:`deconv_block`: a 4x4 stride-2 transposed convolution and a leaky ReLU;
+- :func:`predict_flow`: a 3x3 convolution to two channels (``<name>.weight``, ``<name>.bias``);
+- :func:`flow_upsampler`: a learned 4x4 stride-2 transposed convolution of a flow field.
+
+and the three operations the networks need besides convolutions, written with tensor operations
+(the original code used compiled CUDA extensions for them):
+
+- :func:`correlation`: FlowNetC's correlation layer, as matrix products in chunks (a block of
+  columns and a few rows of displacements at a time) so that its memory stays bounded;
+- :func:`warp`: backward warping with bilinear interpolation, clamped at the border
+  (FlowNet2's ``Resample2d``);
+- :func:`channel_norm`: the Euclidean norm over channels (FlowNet2's ``ChannelNorm``).
+
+None of them works in place, so gradients reach the input images.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+#: Slope of the leaky ReLUs of every FlowNet.
+LEAKY_SLOPE = 0.1
+
+#: Bound on the elements of the frame-2 windows the correlation copies at a time
+#: (2^24 floats: 64 MiB in float32).
+CORRELATION_CHUNK_ELEMENTS = 1 << 24
+
+
+class LeakyReLU(nn.Module):
+    """Leaky ReLU with slope 0.1, never in place (the released code used ``inplace=True``)."""
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return F.leaky_relu(x, LEAKY_SLOPE)
+
+
+def conv_block(in_channels: int, out_channels: int, kernel_size: int = 3,
+               stride: int = 1) -> nn.Sequential:
+    """Convolution ("same" padding for odd kernels) with bias, then a leaky ReLU.
+
+    Shape: ``(B, in_channels, H, W)`` -> ``(B, out_channels, H/stride, W/stride)``.
+    """
+    return nn.Sequential(nn.Conv2d(in_channels, out_channels, kernel_size, stride=stride,
+                                   padding=(kernel_size - 1) // 2, bias=True), LeakyReLU())
+
+
+def inner_conv(in_channels: int, out_channels: int) -> nn.Sequential:
+    """3x3 convolution with bias and no activation (FlowNetSD's and the fusion network's
+    ``inter_conv`` layers, stored as ``<name>.0.*``)."""
+    return nn.Sequential(nn.Conv2d(in_channels, out_channels, 3, padding=1, bias=True))
+
+
+def deconv_block(in_channels: int, out_channels: int, bias: bool = True) -> nn.Sequential:
+    """4x4 transposed convolution with stride 2 (doubles the size), then a leaky ReLU.
+
+    Shape: ``(B, in_channels, H, W)`` -> ``(B, out_channels, 2H, 2W)``.
+    """
+    return nn.Sequential(nn.ConvTranspose2d(in_channels, out_channels, 4, stride=2, padding=1,
+                                            bias=bias), LeakyReLU())
+
+
+def predict_flow(in_channels: int) -> nn.Conv2d:
+    """3x3 convolution to a two-channel flow estimate."""
+    return nn.Conv2d(in_channels, 2, 3, padding=1, bias=True)
+
+
+def flow_upsampler(bias: bool) -> nn.ConvTranspose2d:
+    """Learned 2x upsampling of a flow estimate: ``(B, 2, H, W)`` -> ``(B, 2, 2H, 2W)``."""
+    return nn.ConvTranspose2d(2, 2, 4, stride=2, padding=1, bias=bias)
+
+
+def init_flownet_weights(module: nn.Module) -> None:
+    """Initialise untrained weights (Xavier-uniform kernels, small biases).
+
+    Only matters for untrained models (tests, benchmarks); released checkpoints overwrite it.
+    """
+    for m in module.modules():
+        if isinstance(m, (nn.Conv2d, nn.ConvTranspose2d)):
+            nn.init.xavier_uniform_(m.weight)
+            if m.bias is not None:
+                nn.init.uniform_(m.bias, -0.01, 0.01)
+
+
+# ---------------------------------------------------------------------------------------------
+# The refinement decoder shared by FlowNetS, FlowNetC and FlowNetCRobust
+# ---------------------------------------------------------------------------------------------
+
+class RefinementDecoder(nn.Module):
+    """Base of the FlowNets whose decoder goes from 1/64 to 1/4 resolution in four steps.
+
+    At each step a transposed convolution doubles the decoder's features, a learned upsampler
+    doubles the current flow estimate, and both are concatenated with the encoder's features of
+    that resolution; the next flow estimate is predicted from that concatenation. The layers are
+    registered on the network itself (``deconv5``, ``predict_flow6``, ...), as in the released
+    files.
+
+    Subclasses call :meth:`_add_decoder` and then :meth:`decode`.
+    """
+
+    def _add_decoder(self, deconv_bias: bool, upsampler_bias: bool) -> None:
+        self.deconv5 = deconv_block(1024, 512, bias=deconv_bias)
+        self.deconv4 = deconv_block(1024 + 2, 256, bias=deconv_bias)
+        self.deconv3 = deconv_block(512 + 256 + 2, 128, bias=deconv_bias)
+        self.deconv2 = deconv_block(256 + 128 + 2, 64, bias=deconv_bias)
+        self.predict_flow6 = predict_flow(1024)
+        self.predict_flow5 = predict_flow(1024 + 2)
+        self.predict_flow4 = predict_flow(512 + 256 + 2)
+        self.predict_flow3 = predict_flow(256 + 128 + 2)
+        self.predict_flow2 = predict_flow(128 + 64 + 2)
+        self.upsampled_flow6_to_5 = flow_upsampler(upsampler_bias)
+        self.upsampled_flow5_to_4 = flow_upsampler(upsampler_bias)
+        self.upsampled_flow4_to_3 = flow_upsampler(upsampler_bias)
+        self.upsampled_flow3_to_2 = flow_upsampler(upsampler_bias)
+
+    def decode(self, conv6: torch.Tensor, conv5: torch.Tensor, conv4: torch.Tensor,
+               conv3: torch.Tensor, conv2: torch.Tensor) -> torch.Tensor:
+        """Flow at 1/4 resolution from the encoder's features at 1/64 ... 1/4.
+
+        Shape: ``conv6`` ``(B, 1024, H/64, W/64)``, ``conv5`` ``(B, 512, H/32, W/32)``,
+        ``conv4`` ``(B, 512, H/16, W/16)``, ``conv3`` ``(B, 256, H/8, W/8)``, ``conv2``
+        ``(B, 128, H/4, W/4)`` -> ``(B, 2, H/4, W/4)`` in the network's flow units.
+        """
+        flow6 = self.predict_flow6(conv6)
+        concat5 = torch.cat([conv5, self.deconv5(conv6), self.upsampled_flow6_to_5(flow6)], 1)
+        flow5 = self.predict_flow5(concat5)
+        concat4 = torch.cat([conv4, self.deconv4(concat5), self.upsampled_flow5_to_4(flow5)], 1)
+        flow4 = self.predict_flow4(concat4)
+        concat3 = torch.cat([conv3, self.deconv3(concat4), self.upsampled_flow4_to_3(flow4)], 1)
+        flow3 = self.predict_flow3(concat3)
+        concat2 = torch.cat([conv2, self.deconv2(concat3), self.upsampled_flow3_to_2(flow3)], 1)
+        return self.predict_flow2(concat2)
+
+
+# ---------------------------------------------------------------------------------------------
+# Correlation, warping, channel norm
+# ---------------------------------------------------------------------------------------------
+
+def correlation(features1: torch.Tensor, features2: torch.Tensor, max_displacement: int = 20,
+                stride: int = 2, block: int = 32,
+                chunk_elements: int = CORRELATION_CHUNK_ELEMENTS) -> torch.Tensor:
+    """FlowNetC's correlation: mean over channels of ``f1(x) * f2(x + d)`` for a grid of ``d``.
+
+    The displacements ``d = (dx, dy)`` run over ``-max_displacement ... max_displacement`` in
+    steps of ``stride`` in each direction (21 x 21 = 441 for FlowNetC); output channel
+    ``i * n + j`` holds ``dy = i * stride - max_displacement`` and
+    ``dx = j * stride - max_displacement`` (``dy`` varies slowest), as in the released models.
+    Features of frame 2 outside the map count as zero.
+
+    Computed with matrix products, in chunks: for each block of ``block`` columns and a few
+    displacement rows ``dy`` at a time, the products of every feature vector of frame 1 in the
+    block with every one of frame 2 within reach (``block + 2 * max_displacement`` columns,
+    row ``y + dy``) form small matrices, from which the ``n`` wanted diagonals are read. A
+    chunk copies at most about ``chunk_elements`` elements of frame 2's features, so the
+    working memory of the forward pass is bounded at any image size; the backward pass keeps
+    these copies (in all about ``n * (block + 2 * max_displacement) / block`` times the
+    features of frame 2, plus copies of frame 1's: about half a GiB for a Sintel frame at
+    FlowNetC's 1/8 resolution).
+
+    Shape: ``features1``, ``features2`` ``(B, C, H, W)`` -> ``(B, n*n, H, W)`` with
+    ``n = 2 * (max_displacement // stride) + 1``.
+    """
+    if features1.shape != features2.shape:
+        raise ValueError(f"expected feature maps of one shape, got {tuple(features1.shape)} "
+                         f"and {tuple(features2.shape)}")
+    if max_displacement % stride:
+        raise ValueError(f"max_displacement {max_displacement} is not a multiple of the "
+                         f"stride {stride}")
+    b, c, h, w = features1.shape
+    d = max_displacement
+    n = 2 * (d // stride) + 1
+    f1 = features1.permute(0, 2, 3, 1).unsqueeze(1)  # (B, 1, H, W, C)
+    # (B, H + 2d, C, W + 2d): frame 2 with zeros around, rows first
+    padded = F.pad(features2, (d, d, d, d)).permute(0, 2, 1, 3)
+    blocks = []
+    for x0 in range(0, w, block):
+        bw = min(block, w - x0)
+        reach = bw + 2 * d
+        # (B, n_dy, H, C, reach): for displacement row i, the padded rows y + i * stride and the
+        # columns a block's displacements reach (a strided view, copied chunk by chunk below).
+        windows = padded[..., x0:x0 + reach].unfold(1, h, stride).permute(0, 1, 4, 2, 3)
+        per_row = b * h * c * reach
+        rows = max(1, min(n, chunk_elements // per_row))
+        chunks = []
+        for i in range(0, n, rows):
+            # products (B, k, H, bw, reach): frame-1 column x0 + x with padded column x0 + x'
+            products = torch.matmul(f1[:, :, :, x0:x0 + bw], windows[:, i:i + rows])
+            k = products.shape[1]
+            # Displacement j of column x sits at x' = x + j * stride, i.e. at flat index
+            # x * (reach + 1) + j * stride: pad the flattened rows by bw, fold them into rows
+            # of reach + 1, and every wanted value is in the first n * stride columns.
+            flat = F.pad(products.reshape(b, k, h, bw * reach), (0, bw))
+            chunks.append(flat.reshape(b, k, h, bw, reach + 1)[..., 0:(n - 1) * stride + 1:stride])
+        blocks.append(torch.cat(chunks, dim=1))  # (B, n_dy, H, bw, n_dx)
+    out = torch.cat(blocks, dim=3)  # (B, n_dy, H, W, n_dx)
+    return out.permute(0, 1, 4, 2, 3).reshape(b, n * n, h, w) / c
+
+
+def warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
+    """Sample ``image`` at ``x + flow(x)`` with bilinear interpolation, clamped at the border.
+
+    Positions outside the image take the nearest border value, as FlowNet2's ``Resample2d``
+    (which clamps each of the four interpolation corners into the image).
+
+    Shape: ``image`` ``(B, C, H, W)``, ``flow`` ``(B, 2, H, W)`` in pixels -> ``(B, C, H, W)``.
+    """
+    b, _, h, w = flow.shape
+    ys, xs = torch.meshgrid(torch.arange(h, dtype=flow.dtype, device=flow.device),
+                            torch.arange(w, dtype=flow.dtype, device=flow.device),
+                            indexing="ij")
+    x = xs + flow[:, 0]
+    y = ys + flow[:, 1]
+    # align_corners=True: -1 and 1 are the centres of the border pixels.
+    grid = torch.stack([2.0 * x / max(w - 1, 1) - 1.0, 2.0 * y / max(h - 1, 1) - 1.0], dim=-1)
+    return F.grid_sample(image, grid, mode="bilinear", padding_mode="border",
+                         align_corners=True)
+
+
+def channel_norm(x: torch.Tensor) -> torch.Tensor:
+    """Euclidean norm over the channels; its gradient is zero (not NaN) where the norm is zero.
+
+    Shape: ``(B, C, H, W)`` -> ``(B, 1, H, W)``.
+    """
+    return torch.linalg.vector_norm(x, ord=2, dim=1, keepdim=True)
+
+
+def upsample_bilinear(flow: torch.Tensor, factor: int = 4) -> torch.Tensor:
+    """Bilinear upsampling by ``factor`` (half-pixel centres, PyTorch's default for the
+    ``nn.Upsample(scale_factor=4, mode='bilinear')`` of the released code). Values unchanged."""
+    return F.interpolate(flow, scale_factor=factor, mode="bilinear", align_corners=False)
+
+
+def upsample_nearest(flow: torch.Tensor, factor: int = 4) -> torch.Tensor:
+    """Nearest-neighbour upsampling by ``factor``. Values unchanged."""
+    return F.interpolate(flow, scale_factor=factor, mode="nearest")

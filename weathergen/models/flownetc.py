@@ -1,0 +1,147 @@
+"""FlowNetC (Dosovitskiy et al., ICCV 2015), as released with FlowNet2 (Ilg et al., CVPR 2017).
+
+The network:
+
+1. **Siamese encoder**: the same three strided convolutions (7x7, 5x5, 5x5; 64, 128, 256
+   channels) turn each frame into features at 1/8 resolution.
+2. **Correlation**: the features of frame 1 are compared with those of frame 2 at 21 x 21
+   displacements (up to 20 feature pixels in steps of 2), giving 441 channels; a 1x1
+   convolution of frame 1's features (``conv_redir``, 32 channels) is concatenated.
+3. **Encoder, second part**: strided convolutions down to 1/64 resolution.
+4. **Refinement decoder** (:class:`~weathergen.models.flownet_parts.RefinementDecoder`): back
+   up to 1/4 resolution, predicting a flow at every scale from the previous one.
+
+The flow is predicted at 1/4 resolution in units of 1/20 pixel (the training targets were
+divided by 20); the adapter multiplies by 20 and upsamples bilinearly by 4.
+
+Module and parameter names follow the checkpoint ``FlowNet2-C_checkpoint.pth.tar`` of NVIDIA's
+flownet2-pytorch release (the Caffe model of the FlowNet2 authors, converted), so it loads as
+it is. FlowNet2 (:mod:`weathergen.models.flownet2`) uses this network as its first stage.
+"""
+
+from __future__ import annotations
+
+from typing import Optional
+
+import torch
+import torch.nn.functional as F
+from torch.utils.checkpoint import checkpoint as recompute
+
+from .base import FlowModel
+from .checkpoints import CheckpointSpec, load_strict, strip_prefix
+from .flownet_parts import (LEAKY_SLOPE, RefinementDecoder, conv_block, correlation,
+                            init_flownet_weights, upsample_bilinear)
+from .registry import ModelSpec, register_checkpoint, register_model
+
+#: The FlowNet2 family predicts flow divided by this factor at its internal resolutions.
+FLOW_DIVISOR = 20.0
+
+
+class FlowNetC(RefinementDecoder):
+    """FlowNetC on normalised frames whose size is a multiple of 64.
+
+    Shape: ``image1``, ``image2`` ``(B, 3, H, W)`` -> ``(B, 2, H/4, W/4)`` flow in 1/20 pixels
+    of the input resolution.
+    """
+
+    def __init__(self):
+        super().__init__()
+        self.conv1 = conv_block(3, 64, kernel_size=7, stride=2)
+        self.conv2 = conv_block(64, 128, kernel_size=5, stride=2)
+        self.conv3 = conv_block(128, 256, kernel_size=5, stride=2)
+        self.conv_redir = conv_block(256, 32, kernel_size=1)
+        self.conv3_1 = conv_block(32 + 441, 256)
+        self.conv4 = conv_block(256, 512, stride=2)
+        self.conv4_1 = conv_block(512, 512)
+        self.conv5 = conv_block(512, 512, stride=2)
+        self.conv5_1 = conv_block(512, 512)
+        self.conv6 = conv_block(512, 1024, stride=2)
+        self.conv6_1 = conv_block(1024, 1024)
+        self._add_decoder(deconv_bias=True, upsampler_bias=True)
+        init_flownet_weights(self)
+
+    def forward(self, image1: torch.Tensor, image2: torch.Tensor,
+                gradient_checkpointing: bool = False) -> torch.Tensor:
+        """``gradient_checkpointing``: recompute the encoder and the rest separately in the
+        backward pass (less memory, about one more forward pass of time)."""
+        b = image1.shape[0]
+        both = torch.cat([image1, image2], dim=0)
+        if gradient_checkpointing and torch.is_grad_enabled():
+            conv2, conv3 = recompute(self._encode, both, use_reentrant=False)
+            return recompute(self._match_and_decode, conv2[:b], conv3, use_reentrant=False)
+        conv2, conv3 = self._encode(both)
+        return self._match_and_decode(conv2[:b], conv3)
+
+    def _encode(self, both: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Both frames (stacked on the batch) through the shared encoder: 1/4 and 1/8."""
+        conv2 = self.conv2(self.conv1(both))
+        conv3 = self.conv3(conv2)
+        return conv2, conv3
+
+    def _match_and_decode(self, conv2a: torch.Tensor, conv3: torch.Tensor) -> torch.Tensor:
+        b = conv2a.shape[0]
+        conv3a, conv3b = conv3[:b], conv3[b:]
+        corr = F.leaky_relu(correlation(conv3a, conv3b, max_displacement=20, stride=2),
+                            LEAKY_SLOPE)
+        conv3_1 = self.conv3_1(torch.cat([self.conv_redir(conv3a), corr], dim=1))
+        conv4 = self.conv4_1(self.conv4(conv3_1))
+        conv5 = self.conv5_1(self.conv5(conv4))
+        conv6 = self.conv6_1(self.conv6(conv5))
+        return self.decode(conv6, conv5, conv4, conv3_1, conv2a)
+
+
+def subtract_joint_mean(image1: torch.Tensor,
+                        image2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Subtract from both frames the per-channel mean over both frames (FlowNet2's input
+    normalisation: ``(x - mean) / 255`` on 0..255 images is ``x - mean`` on 0..1 images)."""
+    mean = torch.stack([image1, image2], dim=2).mean(dim=(2, 3, 4), keepdim=True).squeeze(2)
+    return image1 - mean, image2 - mean
+
+
+class FlowNetCModel(FlowModel):
+    """FlowNetC behind the package contract: RGB in ``[0, 1]`` of any size in, flow in pixels out.
+
+    Normalisation: RGB (the released PyTorch weights take RGB), minus the per-channel mean of
+    the two (padded) frames. Padding: to a multiple of 64. Output: 20 x the 1/4-resolution
+    prediction, upsampled bilinearly.
+
+    ``iters`` is accepted for a uniform interface and ignored (FlowNetC is not recurrent);
+    ``gradient_checkpointing`` recomputes the encoder and the rest separately in the
+    backward pass.
+    """
+
+    architecture = "flownetc"
+    multiple = 64
+
+    def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False):
+        super().__init__()
+        self.network = FlowNetC()
+        self.gradient_checkpointing = gradient_checkpointing
+
+    def normalize(self, image: torch.Tensor) -> torch.Tensor:
+        return image  # the mean of both frames is subtracted in predict
+
+    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
+        x1, x2 = subtract_joint_mean(image1, image2)
+        flow = self.network(x1, x2, gradient_checkpointing=self.gradient_checkpointing)
+        return upsample_bilinear(FLOW_DIVISOR * flow, 4)
+
+    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
+        """Load the released file (its ``state_dict``), with or without ``module.``."""
+        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
+
+
+#: Where NVIDIA's flownet2-pytorch publishes the converted FlowNet2 checkpoints (Google Drive
+#: pages, no direct download address); the README of github.com/NVIDIA/flownet2-pytorch links
+#: them.
+FLOWNET2_C_PAGE = "https://drive.google.com/file/d/1elgK52N4EQVi5ywN2Ky4qWvweLh8RE2U/view"
+
+register_model(ModelSpec(
+    name="flownetc", build=FlowNetCModel, default_checkpoint="flownetc",
+    description="FlowNetC (Dosovitskiy et al., ICCV 2015) as in FlowNet2, 39.2M parameters"))
+register_checkpoint(CheckpointSpec(
+    "flownetc", "flownetc",
+    "FlowNet2-C: FlowNetC trained on FlyingChairs, then FlyingThings3D (Ilg et al.)",
+    member="FlowNet2-C_checkpoint.pth.tar", page=FLOWNET2_C_PAGE))
+
+__all__ = ["FlowNetC", "FlowNetCModel", "subtract_joint_mean", "FLOW_DIVISOR"]
