@@ -95,3 +95,13 @@ def test_bad_options_fail_before_writing(tmp_path):
     result = invoke(["benchmark", "--checkpoint", "raft", "--out", out])
     assert result.exit_code == 2 and "NETWORK=FILE_OR_NAME" in result.output
     assert not out.exists()
+
+
+def test_default_selection_is_five_pairs_per_scene(demo_root):
+    from weathergen.benchmark import tr115_default
+    from weathergen.datasets import open_dataset
+
+    everything = open_dataset("demo")
+    assert tr115_default(everything).selection.frames_per_scene == 5
+    chosen = open_dataset("demo", frames_per_scene=1)
+    assert tr115_default(chosen) is chosen
