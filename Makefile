@@ -2,8 +2,11 @@
 #
 #   make test                  create .venv, install the pinned CPU torch, the package, run the tests
 #   make demo                  render the default preset on the bundled demo scene
-#   make bench                 print speed and memory figures (renderer, weather field, attack step)
+#   make bench                 print speed and memory figures (renderer, weather field, networks,
+#                              attack step, batched attacks, training)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
+#   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
+#                              in a separate environment (.venv-oldest)
 
 PYTHON ?= python3
 VENV   ?= .venv
@@ -14,7 +17,9 @@ STAMP  := $(VENV)/.weathergen-deps
 # The torch requirement the venv was last set up with; a different TORCH reinstalls torch.
 TORCH_STAMP := $(VENV)/.weathergen-torch
 
-.PHONY: venv install test demo bench clean FORCE
+OLDEST ?= .venv-oldest
+
+.PHONY: venv install test test-oldest demo bench clean FORCE
 
 venv: $(STAMP)
 
@@ -39,10 +44,20 @@ $(STAMP): setup.cfg pyproject.toml $(TORCH_STAMP)
 
 # A regular (non-editable) install, so that a file missing from the distribution fails here.
 install: $(STAMP)
+	rm -rf build    # a stale build/ would put removed modules into the wheel
 	$(BIN)/python -m pip install -q --no-deps --force-reinstall .
 
 test: install
 	$(BIN)/pytest -q $(PYTEST_ARGS)
+
+# The dependency floors of setup.cfg, installed exactly; torch as for `make test`.
+test-oldest:
+	test -x $(OLDEST)/bin/python || $(PYTHON) -m venv $(OLDEST)
+	$(OLDEST)/bin/python -m pip install -q "$(TORCH)"
+	$(OLDEST)/bin/python -m pip install -q -c constraints/oldest.txt ".[test]"
+	$(OLDEST)/bin/python -m pip install -q --no-deps --force-reinstall .
+	$(OLDEST)/bin/python -m pip check
+	$(OLDEST)/bin/pytest -q $(PYTEST_ARGS)
 
 # Into out/demo, so that the README's first command (`weathergen render`, into out/snow) is free.
 demo: install
@@ -55,6 +70,10 @@ bench: install
 	$(BIN)/python benchmarks/bench_field.py
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
+	$(BIN)/python benchmarks/bench_training.py
+	$(BIN)/python benchmarks/bench_batch.py
+	if $(BIN)/python -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then \
+	  $(BIN)/python benchmarks/bench_batch.py --device cuda --models raft --batch-sizes 1 4 8 --steps 5; fi
 
 clean:
-	rm -rf $(VENV) build *.egg-info out
+	rm -rf $(VENV) $(OLDEST) build *.egg-info out

@@ -3,7 +3,7 @@
 Each measurement runs in a fresh process so that its peak resident memory is its own. Weights are
 random (speed and memory do not depend on them), so no checkpoint is needed.
 
-    python benchmarks/bench_models.py          # every network, 1024x436, 12 iterations
+    python benchmarks/bench_models.py          # every network, 1024x436, default iterations
     python benchmarks/bench_models.py --models raft-small spynet --size 512x218 --iters 6
     python benchmarks/bench_models.py --device cuda --repeat 5   # (default: CUDA if any, and CPU)
 
@@ -11,7 +11,8 @@ Prints a Markdown table: seconds, peak resident memory of the process, and the p
 added by the measured call (above the memory of the loaded model and inputs). On CUDA the memory
 columns are the peak of allocated GPU memory and the part added by the call, and the time is the
 median of ``--repeat`` calls after one warm-up call. ``--iters`` only affects recurrent networks
-(RAFT, RAFT-small); the others have no iterations.
+(RAFT, RAFT-small, GMA, FlowFormer; by default each runs its own default: 12, 12, 6, 32); the
+others have no iterations.
 """
 
 from __future__ import annotations
@@ -25,7 +26,8 @@ import time
 
 
 #: Every registered network, in the order of the tables.
-ALL_MODELS = ["raft-small", "raft", "spynet", "flownetc", "flownetcrobust", "flownet2"]
+ALL_MODELS = ["raft-small", "raft", "spynet", "flownetc", "flownetcrobust", "flownet2", "gma",
+              "flowformer"]
 
 
 def measure(model_name: str, width: int, height: int, iters: int, backward: bool,
@@ -74,14 +76,16 @@ def measure(model_name: str, width: int, height: int, iters: int, backward: bool
             else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
     return {"seconds": statistics.median(times), "peak_gib": peak / 2**30,
             "added_gib": (peak - before) / 2**30, "finite": ok,
-            "threads": torch.get_num_threads()}
+            "threads": torch.get_num_threads(), "iters": getattr(model, "iters", None)}
 
 
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--models", nargs="+", default=ALL_MODELS)
+    parser.add_argument("--models", nargs="+", default=None,
+                        help="networks to measure (default: every registered one)")
     parser.add_argument("--size", default="1024x436", help="WIDTHxHEIGHT")
-    parser.add_argument("--iters", type=int, default=12)
+    parser.add_argument("--iters", type=int, default=None,
+                        help="refinement iterations (default: each network's own)")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
     parser.add_argument("--checkpointing", action="store_true",
                         help="also measure forward + backward with gradient checkpointing")
@@ -95,10 +99,15 @@ def main(argv=None) -> int:
 
     if args.one:
         name, backward, checkpointing = json.loads(args.one)
-        print(json.dumps(measure(name, width, height, args.iters, backward, checkpointing,
+        iters = None if args.iters in (None, 0) else args.iters
+        print(json.dumps(measure(name, width, height, iters, backward, checkpointing,
                                  args.threads, args.device, args.repeat)))
         return 0
 
+    if args.models is None:
+        from weathergen.models import available_models
+
+        args.models = [m for m in ALL_MODELS if m in available_models()]
     devices = [args.device]
     if args.device == "auto":
         import torch
@@ -117,12 +126,13 @@ def table(args, device: str, width: int, height: int) -> None:
         if args.checkpointing:
             runs.append((name, True, True))
     memory = "peak GPU memory (GiB)" if device != "cpu" else "peak RSS (GiB)"
-    print(f"{width}x{height}, {args.iters} iterations (recurrent networks), batch 1, "
+    iterations = "default" if args.iters is None else args.iters
+    print(f"{width}x{height}, {iterations} iterations (recurrent networks), batch 1, "
           f"{device}\n")
-    print(f"| model | pass | seconds | {memory} | added by the pass (GiB) |")
-    print("|---|---|---:|---:|---:|")
+    print(f"| model | iterations | pass | seconds | {memory} | added by the pass (GiB) |")
+    print("|---|---:|---|---:|---:|---:|")
     for name, backward, checkpointing in runs:
-        cmd = [sys.executable, __file__, "--size", args.size, "--iters", str(args.iters),
+        cmd = [sys.executable, __file__, "--size", args.size, "--iters", str(args.iters or 0),
                "--threads", str(args.threads), "--device", device, "--repeat", str(args.repeat),
                "--one", json.dumps([name, backward, checkpointing])]
         out = subprocess.run(cmd, check=True, capture_output=True, text=True).stdout
@@ -131,7 +141,8 @@ def table(args, device: str, width: int, height: int) -> None:
         if checkpointing:
             what += " (gradient checkpointing)"
         flag = "" if r["finite"] else " (non-finite!)"
-        print(f"| {name} | {what} | {r['seconds']:.2f} | {r['peak_gib']:.2f} | "
+        print(f"| {name} | {r['iters'] or '-'} | {what} | {r['seconds']:.2f} | "
+              f"{r['peak_gib']:.2f} | "
               f"{r['added_gib']:.2f}{flag} |", flush=True)
     print()
 

@@ -6,6 +6,7 @@ import sys
 from pathlib import Path
 
 import click
+import torch
 from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
@@ -15,9 +16,10 @@ from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, LP_METHODS, Attack
 from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
+from weathergen.execution import RunClock, check_executor
 
-from .options import (dataset_options, device_option, model_options, out_option, overwrite_option,
-                      quiet_option, resume_option, seed_option)
+from .options import (dataset_options, device_option, executor_options, model_options, out_option,
+                      overwrite_option, quiet_option, resume_option, seed_option)
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -85,21 +87,29 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
 @out_option("out/attack-<config or preset>")
 @seed_option("Run seed; each pair's particles are seeded as by `weathergen render`.")
 @device_option
+@click.option("--batch-size", type=click.IntRange(min=1), default=1, show_default=True,
+              help="Pairs of one size optimised together, in one forward and backward pass per "
+                   "step (results as pair by pair, up to floating-point rounding).")
+@executor_options
 @resume_option("Finish an interrupted run: skip finished pairs.")
 @overwrite_option("Redo every pair, even in a folder that holds one.")
 @quiet_option
 def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_name, preset, set_items,
            particles_dir, steps,
            optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, gradient_checkpointing,
-           out, seed, device, resume, overwrite, quiet):
+           out, seed, device, batch_size, executor, ray_address, resume, overwrite, quiet):
     """Optimise weather particles so that a flow network's output moves towards a target.
 
     With no option it attacks RAFT with snow on the bundled demo scene into out/attack-snow.
     Writes adversarial frames, best particles (re-render them with `weathergen render
     --particles OUT`), flows, a per-step log, manifest.json and summary.json.
     """
-    resolve_device(device)
+    check_executor(executor)
+    if executor == "local":       # a Ray driver need not have the workers' devices
+        resolve_device(device)
     target = parse_target(target_text)
+    execution = dict(batch_size=batch_size, executor=executor, ray_address=ray_address,
+                     threads=torch.get_num_threads())
     if method != "weather":
         lp = plan_lp(method, epsilon, steps, lr, config_name=config_name, preset=preset,
                      overrides=tuple(set_items), particles_from=particles_dir, optimize=optimize,
@@ -111,7 +121,7 @@ def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_
                         pass_name=lp_pass_name(method, dataset.selection.pass_),
                         gradient_checkpointing=gradient_checkpointing, download=download,
                         resume=resume, overwrite=overwrite,
-                        command=["weathergen", *sys.argv[1:]], lp=lp)
+                        command=["weathergen", *sys.argv[1:]], lp=lp, **execution)
         label, steps = method, lp.steps
     else:
         if epsilon is not None:
@@ -120,14 +130,14 @@ def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_
         job, label = _weather_job(dataset, model, checkpoint, iters, download, config_name,
                                   preset, set_items, particles_dir, steps, optimize, lr, alpha1,
                                   alpha2, target, occlusion_gradient, gradient_checkpointing, out,
-                                  seed, device, resume, overwrite)
+                                  seed, device, resume, overwrite, execution)
         out = job.out
     _run(job, model, label, target, steps, out, quiet)
 
 
 def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
                  particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
-                 gradient_checkpointing, out, seed, device, resume, overwrite):
+                 gradient_checkpointing, out, seed, device, resume, overwrite, execution):
     plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
                        optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
                        steps=steps, alpha1=alpha1, alpha2=alpha2)
@@ -139,7 +149,8 @@ def _weather_job(dataset, model, checkpoint, iters, download, config_name, prese
                     particles_from=particles_dir, config_name=config_name,
                     pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
                     gradient_checkpointing=gradient_checkpointing, download=download,
-                    resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]])
+                    resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]],
+                    **execution)
     return job, label
 
 
@@ -147,24 +158,24 @@ def _run(job, model, label, target, steps, out, quiet):
     console = Console()
     err = Console(stderr=True)
     interactive = console.is_terminal and not quiet
-    state = {"n": 0, "i": 0, "pair": "", "best": None}
+    state = {"n": 0}
+    clock = None
     rows = []
     failed = []
     progress = task = None
     total_steps = int(steps)
 
     def on_start(n):
-        nonlocal task
+        nonlocal task, clock
         state["n"] = n
+        clock = RunClock(n)
         if progress is not None:
-            task = progress.add_task("attack", total=n * (total_steps + 1), pair="", status="")
+            task = progress.add_task("attack", total=n * (total_steps + 1), status="")
 
-    def on_pair_start(i, pair_name):
+    def on_step(pair_name, rec):
         # scene/frame is enough to tell pairs apart in one run, and keeps the line short
-        state.update(i=i, pair="/".join(pair_name.split("/")[-2:]), best=None)
-
-    def on_step(rec):
-        text = (f"pair {state['i'] + 1}/{state['n']} {state['pair']}  step {rec.step}/{total_steps}"
+        short = "/".join(pair_name.split("/")[-2:])
+        text = (f"{clock.describe()}; {short} step {rec.step}/{total_steps}"
                 f"  loss {rec.loss:.4f}  best distance {rec.best_distance:.4f}")
         if progress is not None:
             progress.update(task, advance=1, status=text)
@@ -172,6 +183,7 @@ def _run(job, model, label, target, steps, out, quiet):
             console.print(text, highlight=False, soft_wrap=True)
 
     def on_pair_done(report):
+        clock.add(computed=report.status != "skipped")
         if report.summary is not None:
             rows.append(report.summary)
             if report.summary.nothing_visible and report.status == "written":
@@ -182,11 +194,13 @@ def _run(job, model, label, target, steps, out, quiet):
             failed.append(report)
             (progress.console if progress else err).print(
                 f"[red]failed[/red] {report.pair}: {report.message}", highlight=False)
-        if progress is not None and report.status != "written":
-            progress.update(task, advance=total_steps + 1)
+        if progress is not None:
+            # counts the steps a pair did not report (skipped, failed, frozen, run by Ray)
+            progress.update(task, completed=clock.done * (total_steps + 1),
+                            status=clock.describe())
         if not quiet and progress is None and report.status != "failed":
             s = report.summary
-            console.print(f"[{state['i'] + 1}/{state['n']}] {report.pair} {report.status}: "
+            console.print(f"[{clock.describe()}] {report.pair} {report.status}: "
                           f"AEE(f, f̌) random {s.aee_random:.3f} -> adversarial "
                           f"{s.aee_adversarial:.3f}, distance to target {s.target_initial:.3f} "
                           f"-> {s.target_adversarial:.3f}", highlight=False, soft_wrap=True)
@@ -198,9 +212,9 @@ def _run(job, model, label, target, steps, out, quiet):
     try:
         if progress is not None:
             with progress:
-                summary = run_attack(job, on_start, on_pair_start, on_step, on_pair_done)
+                summary = run_attack(job, on_start, on_step, on_pair_done)
         else:
-            summary = run_attack(job, on_start, on_pair_start, on_step, on_pair_done)
+            summary = run_attack(job, on_start, on_step, on_pair_done)
     except KeyboardInterrupt:
         err.print(f"Interrupted with {len(rows)} of {state['n']} pair(s) finished; rerun with "
                   f"--resume to continue at the next unfinished pair.")

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 import sys
-from collections import defaultdict
 
 import click
 from rich.console import Console
 from rich.table import Table
 
+from weathergen.datasets.checking import check_dataset, relative
 from weathergen.errors import DatasetError
 
 from .options import dataset_options
@@ -16,46 +16,80 @@ from .options import dataset_options
 
 @click.command()
 @dataset_options
-@click.option("--verbose", "-v", is_flag=True, help="List every faulty pair, not only the first per scene.")
-def check(dataset, verbose):
+@click.option("--geometry", is_flag=True,
+              help="Also measure how well depth and cameras reproduce the dataset's ground-truth "
+                   "flow on static pixels seen in both frames (median, 90th percentile, share "
+                   "within 1 px).")
+@click.option("--geometry-pairs", type=click.IntRange(min=1), default=3, show_default=True,
+              help="With --geometry: pairs per scene compared (spread over the scene).")
+@click.option("--verbose", "-v", is_flag=True, help="List every file of a problem, not only the first few.")
+def check(dataset, geometry, geometry_pairs, verbose):
     """Check that every selected frame pair can be read (frames, depth, cameras, flow).
 
-    Prints one row per scene and exits with 0 only when every selected pair is readable.
+    Prints one row per scene, then every problem of each scene grouped by kind, and exits with 0
+    only when every selected pair is readable (warnings do not fail).
     """
     console = Console()
-    refs = dataset.pairs()
-    if not refs:
+    scenes = check_dataset(dataset, geometry=geometry, geometry_pairs=geometry_pairs)
+    if not scenes:
         raise DatasetError(f"{dataset.root}: the selection holds no frame pairs")
-    per_scene = defaultdict(list)
-    for ref in refs:
-        per_scene[ref.id.scene].append((ref, dataset.check(ref)))
 
     single_pass = dataset.name in ("kitti", "spring", "custom")   # one rendering, no pass to name
     where = dataset.selection.split if single_pass else f"{dataset.selection.split}/{dataset.selection.pass_}"
     table = Table(title=f"{dataset.name} {where} at {dataset.root}")
-    for col, kw in (("scene", {}), ("pairs", {"justify": "right"}), ("readable", {"justify": "right"}),
-                    ("depth scale", {"justify": "right"}), ("status", {})):
+    columns = [("scene", {}), ("pairs", {"justify": "right"}), ("readable", {"justify": "right"}),
+               ("depth scale", {"justify": "right"}), ("status", {})]
+    if geometry:
+        columns += [("flow err median", {"justify": "right"}), ("p90", {"justify": "right"}),
+                    ("≤1 px", {"justify": "right"})]
+    for col, kw in columns:
         table.add_column(col, **kw)
-    bad_total = 0
     lines = []
-    prefix = f"{dataset.root}/"   # paths relative to the root, which the title names
-    for scene, results in per_scene.items():
-        bad = [(r, msg) for r, msg in results if msg]
-        bad_total += len(bad)
-        shown = bad if verbose else bad[:1]
-        lines += [f"{scene} frame {r.id.frame}: {msg.replace(prefix, '')}" for r, msg in shown]
-        if len(bad) > len(shown):
-            lines.append(f"{scene}: {len(bad) - len(shown)} more faulty pairs (--verbose lists all)")
-        scale = getattr(dataset, "scale_of", lambda s: 1.0)(scene)
-        status = f"[red]{len(bad)} faulty[/red]" if bad else "[green]ok[/green]"
-        table.add_row(scene, str(len(results)), str(len(results) - len(bad)), f"{scale:g}", status)
+    shown_max = None if verbose else 3
+    for sc in scenes:
+        readable = len(sc.pairs) - sc.faulty
+        groups = sc.grouped()
+        errors = sum(1 for sev, _, _ in groups if sev == "error")
+        warnings = len(groups) - errors
+        if sc.ok:
+            status = "[green]ok[/green]" + (f" [yellow]({warnings} warning{'s' * (warnings != 1)})[/yellow]"
+                                            if warnings else "")
+        else:
+            status = f"[red]{sc.faulty} faulty[/red]" if sc.pairs else "[red]no pairs[/red]"
+        row = [sc.scene, str(len(sc.pairs)), str(readable), f"{sc.depth_scale:g}", status]
+        if geometry:
+            g = sc.geometry
+            row += (["-", "-", "-"] if g is None or not g.pixels else
+                    [f"{g.median_px:.3f}", f"{g.p90_px:.3f}", f"{100 * g.within_1px:.1f}%"])
+        table.add_row(*row)
+        lines += [f"{sc.scene} frame {pc.ref.id.frame}: {note}" for pc in sc.pairs for note in pc.notes]
+        if geometry and sc.pairs:
+            g = sc.geometry
+            lines.append(f"{sc.scene}: geometry: " + (
+                "no ground-truth flow to compare with" if g is None else
+                "no pixel to compare (none static, measured and seen in both frames)" if not g.pixels
+                else f"flow error median {g.median_px:.3f} px, p90 {g.p90_px:.3f} px, "
+                     f"{100 * g.within_1px:.1f}% within 1 px ({g.pairs} pair{'s' * (g.pairs != 1)}, "
+                     f"{g.pixels} pixels)"))
+        for sev, kind, places in groups:
+            places = [relative(p, dataset.root) for p in places]
+            listed = places if shown_max is None else places[:shown_max]
+            more = f" and {len(places) - len(listed)} more (--verbose lists all)" if len(places) > len(listed) else ""
+            at = f": {', '.join(listed)}{more}" if places else ""
+            lines.append(f"{sc.scene}: {'warning: ' if sev == 'warning' else ''}{kind}{at}")
     console.print(table)
     for line in lines:            # plain lines: long paths must not be folded mid-name
         click.echo(line)
-    if bad_total:
-        console.print(f"[red]{bad_total} of {len(refs)} pairs cannot be read.[/red]")
+    total = sum(len(sc.pairs) for sc in scenes)
+    bad_total = sum(sc.faulty for sc in scenes)
+    if bad_total or not all(sc.ok for sc in scenes):
+        unpaired = [sc.scene for sc in scenes if not sc.pairs]
+        msg = f"{bad_total} of {total} pairs cannot be read."
+        if unpaired:
+            msg += f" {len(unpaired)} scene{'s' * (len(unpaired) != 1)} without pairs: {', '.join(unpaired)}."
+        console.print(f"[red]{msg}[/red]")
         sys.exit(1)
-    pairs = f"{len(refs)} pair{'s' if len(refs) != 1 else ''}"
-    scenes = f"{len(per_scene)} scene{'s' if len(per_scene) != 1 else ''}"
-    console.print(f"[green]{'All ' if len(refs) > 1 else ''}{pairs} in {scenes} "
-                  f"{'are' if len(refs) != 1 else 'is'} readable.[/green]")
+    pairs = f"{total} pair{'s' if total != 1 else ''}"
+    n = len(scenes)
+    console.print(f"[green]{'All ' if total > 1 else ''}{pairs} in {n} scene{'s' if n != 1 else ''} "
+                  f"{'are' if total != 1 else 'is'} readable.[/green]")

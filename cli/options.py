@@ -97,6 +97,7 @@ def dataset_options(func):
                   help="Axis of the dataset's world that points up (weather falls the other way). "
                        "Default: the dataset's (demo +z, kitti -y, others auto: the world axis "
                        "nearest to the cameras' up direction).")
+    @reader_options
     @functools.wraps(func)
     def wrapper(*args, dataset_name, root, split, pass_, scenes, from_scene, frames_per_scene,
                 first_frame, depth_scale, scene_scales, camera_translation, far_depth, world_up,
@@ -105,6 +106,13 @@ def dataset_options(func):
         options = dict(depth_scale=depth_scale, camera_translation=camera_translation,
                        scene_scales=load_scene_scales(scene_scales) if scene_scales else None,
                        world_up=world_up)
+        for flag, (keyword, names) in READER_OPTIONS.items():
+            value = kwargs.pop(flag)
+            if value is not None:
+                if name not in names:
+                    raise click.UsageError(f"--{flag.replace('_', '-')} applies to "
+                                           f"{', '.join(names)} only, not to {name}")
+                options[keyword] = value
         if far_depth is not None:
             if name in ("sintel", "demo"):
                 raise click.UsageError(f"--far-depth does not apply to {name}: its depth is dense")
@@ -119,17 +127,74 @@ def dataset_options(func):
     return wrapper
 
 
+#: Options of one reader or two: option name -> (the reader's keyword, the datasets it applies to).
+READER_OPTIONS = {
+    "fit_threshold": ("fit_threshold_px", ("kitti",)),
+    "fit_min_inliers": ("fit_min_inlier_fraction", ("kitti",)),
+    "fit_min_points": ("fit_min_points", ("kitti",)),
+    "fit_max_rms": ("fit_max_rms_px", ("kitti",)),
+    "object_map": ("use_object_map", ("kitti",)),
+    "frame_pattern": ("frame_pattern", ("custom",)),
+    "min_valid_depth": ("min_valid_depth", ("custom",)),
+}
+
+
+def reader_options(func):
+    """The options of :data:`READER_OPTIONS` (None when not given)."""
+    for option in reversed((
+        click.option("--fit-threshold", type=float, default=None, metavar="PX",
+                     help="kitti: a correspondence agrees with the camera motion within this "
+                          "reprojection error. Default: 2."),
+        click.option("--fit-min-inliers", type=float, default=None, metavar="FRACTION",
+                     help="kitti: refuse a pair whose camera motion fewer than this fraction of "
+                          "the correspondences agree with. Default: 0.5."),
+        click.option("--fit-min-points", type=int, default=None, metavar="N",
+                     help="kitti: refuse a pair with fewer correspondences. Default: 200."),
+        click.option("--fit-max-rms", type=float, default=None, metavar="PX",
+                     help="kitti: refuse a pair whose inliers' RMS reprojection error is larger. "
+                          "Default: 1.5."),
+        click.option("--object-map/--no-object-map", default=None,
+                     help="kitti: leave out the moving objects of obj_map from the camera-motion "
+                          "fit. Default: yes where the file exists."),
+        click.option("--frame-pattern", default=None, metavar="GLOB",
+                     help="custom: the frames are the files of frames/ matching this pattern "
+                          "(e.g. '*_left.png'). Default: every image file there."),
+        click.option("--min-valid-depth", type=float, default=None, metavar="FRACTION",
+                     help="custom: warn about frames with a smaller fraction of valid depth. "
+                          "Default: 0.5."),
+    )):
+        func = option(func)
+    return func
+
+
 def model_options(func):
     """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``."""
     for option in reversed((
         click.option("--model", default="raft", show_default=True,
-                     help="Flow network or checkpoint name (raft, raft-small, raft-things, ...)."),
+                     help="Flow network or checkpoint name (raft, raft-small, gma, flowformer, "
+                          "raft-things, ...)."),
         click.option("--checkpoint", default=None,
                      help="Checkpoint file or name. Default: the model's own, from the user cache."),
         click.option("--iters", type=click.IntRange(min=1), default=None,
-                     help="Refinement iterations of recurrent networks. Default: the network's (12)."),
+                     help="Refinement iterations of recurrent networks. Default: the network's "
+                          "own (RAFT 12, GMA 6, FlowFormer 32)."),
         click.option("--download", is_flag=True,
                      help="Fetch a named checkpoint that is missing from the cache (needs a network)."),
+    )):
+        func = option(func)
+    return func
+
+
+def executor_options(func):
+    """``--executor`` and ``--ray-address``: where the pairs are computed."""
+    for option in reversed((
+        click.option("--executor", type=click.Choice(["local", "ray"]), default="local",
+                     show_default=True,
+                     help="Compute pairs in this process (local) or as tasks on a Ray cluster "
+                          "(ray; needs pip install 'weathergen[ray]')."),
+        click.option("--ray-address", default="auto", show_default=True, metavar="auto|local|HOST:PORT",
+                     help="With --executor ray: the cluster to join (auto: the one started on "
+                          "this machine by `ray start`; local: a private one for this run)."),
     )):
         func = option(func)
     return func

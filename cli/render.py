@@ -9,6 +9,7 @@ import time
 from pathlib import Path
 
 import click
+import torch
 from rich.console import Console
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TaskProgressColumn,
                            TextColumn, TimeElapsedColumn, TimeRemainingColumn)
@@ -16,11 +17,13 @@ from rich.text import Text
 from rich.table import Table
 
 from weathergen.engine import parse_set_options, resolve_device
+from weathergen.execution import RunClock, check_executor
 from weathergen.outputs import FORMATS, folder_size
 from weathergen.render import RenderJob, parse_shard, run_render
 from weathergen.render.plan import default_batch_size, default_out, default_pass_name, resolve_preset
 
-from .options import (ARGV_KEY, dataset_options, device_option, out_option, overwrite_option,
+from .options import (ARGV_KEY, dataset_options, device_option, executor_options, out_option,
+                      overwrite_option,
                       quiet_option, resume_option, seed_option)
 
 class _RateColumn(ProgressColumn):
@@ -119,18 +122,23 @@ def _parse_workers(ctx, param, value):
                    "(see docs/render.md). Default: off.")
 @click.option("--shard", default="1/1", show_default=True, metavar="I/N",
               help="Render only shard I of N (for job arrays); parts merge into one manifest.")
+@executor_options
 @resume_option("Finish an interrupted run (same options): skip the pairs that are complete.")
 @overwrite_option("Redo every pair, even in a folder that holds a render, and write into a non-empty "
                   "folder that render did not create.")
 @quiet_option
 def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pass_name, device,
-           workers, batch_size, fmt, geometry, sequence, stereo, truth, shard, resume, overwrite,
+           workers, batch_size, fmt, geometry, sequence, stereo, truth, shard, executor, ray_address,
+           resume, overwrite,
            quiet):
     """Render weather into every selected frame pair and write frames plus particle metadata.
 
     With no option it renders the snow preset onto the bundled demo scene into out/snow.
     """
-    dev = resolve_device(device)
+    check_executor(executor)
+    # A Ray driver need not have the workers' devices.
+    dev = (resolve_device(device) if executor == "local"
+           else torch.device("cuda" if device.startswith("cuda") else "cpu"))
     batch_size = batch_size or default_batch_size(dev)
     preset_obj, name, appearance = resolve_preset(preset, preset_file, parse_set_options(set_items),
                                                   particles_dir)
@@ -141,6 +149,7 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
         geometry=geometry, truth=truth, sequence=sequence, stereo=stereo,
         device=device, particles_from=particles_dir, appearance=appearance,
         shard=parse_shard(shard), workers=workers, batch_size=batch_size, resume=resume, overwrite=overwrite,
+        executor=executor, ray_address=ray_address,
         command=click.get_current_context().meta.get(ARGV_KEY, ["weathergen", *sys.argv[1:]]),
     )
     console = Console(stderr=False)
@@ -151,8 +160,11 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
     progress = None
     task = None
 
+    clock = None
+
     def on_start(n):
-        nonlocal task
+        nonlocal task, clock
+        clock = RunClock(n)
         if progress is not None:
             task = progress.add_task("render", total=n, pair="")
 
@@ -161,6 +173,7 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
 
     def on_result(r):
         results.append(r)
+        clock.add(computed=r.status != "skipped")
         if r.status == "failed":   # one unwrapped line, so paths stay whole
             if progress is not None:
                 progress.console.print(f"[red]failed[/red] {r.pair}: {r.message}", highlight=False,
@@ -170,7 +183,8 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
         if progress is not None:
             progress.update(task, advance=1, pair=r.pair)
         elif not quiet:
-            console.print(f"[{len(results)}] {r.pair} {r.status} ({r.seconds:.2f} s)", highlight=False)
+            console.print(f"[{clock.describe()}] {r.pair} {r.status} ({r.seconds:.2f} s)",
+                          highlight=False, soft_wrap=True)
 
     if interactive:
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),

@@ -143,10 +143,16 @@ def _upsample(a: np.ndarray, factor: int, holes: float, outliers: float, rng) ->
 
 def write_fake_custom(root: Path, frames, *, depth_suffix: str = ".npy", pose: str = "cam_from_world",
                       axes: str = "opencv", depth_kind: str = "z", text: bool = False,
-                      png_scale: float = 0.001, missing: tuple = ()) -> Path:
+                      png_scale: float = 0.001, missing: tuple = (), stem=None,
+                      stem_keys: bool = False, flows=None) -> Path:
     """A custom-layout scene at ``root`` from demo frames (cameras converted to the asked conventions).
 
-    ``missing``: (row0, row1) band of frame 0 written as missing depth (0)."""
+    ``missing``: (row0, row1) band of frame 0 written as missing depth (0). ``stem(i)`` names frame
+    ``i`` (default ``0000``...); ``stem_keys`` keys the camera file by stems instead of numbers;
+    ``flows``: the demo pairs, whose flow is written as ``flow/STEM.flo``."""
+    from weathergen.io.sintel_formats import write_flo
+
+    stem = stem or (lambda i: f"{i:04d}")
     from weathergen.datasets.demo import intrinsics
     from weathergen.geometry import invert_rigid
     from weathergen.io.custom_formats import write_camera_json, write_camera_txt, write_depth
@@ -157,20 +163,22 @@ def write_fake_custom(root: Path, frames, *, depth_suffix: str = ".npy", pose: s
     gl_from_cv = np.diag([1.0, -1.0, -1.0, 1.0])
     poses = {}
     for i, fr in enumerate(frames):
-        write_png(root / "frames" / f"{i:04d}.png", fr["image"])
+        write_png(root / "frames" / f"{stem(i)}.png", fr["image"])
+        if flows is not None and i < len(flows):
+            write_flo(root / "flow" / f"{stem(i)}.flo", flows[i].flow.permute(1, 2, 0).numpy())
         depth = fr["depth"].copy()
         if depth_kind == "range":
             rays = backproject(torch.ones(1, *depth.shape, dtype=torch.float64), torch.from_numpy(k)).numpy()
             depth = depth * np.linalg.norm(rays, axis=0)
         if i == 0 and missing:
             depth[missing[0]:missing[1]] = 0
-        write_depth(root / "depth" / f"{i:04d}{depth_suffix}", depth, png_scale if depth_suffix == ".png" else None)
+        write_depth(root / "depth" / f"{stem(i)}{depth_suffix}", depth, png_scale if depth_suffix == ".png" else None)
         cam = fr["cam"]
         if axes == "opengl":
             cam = gl_from_cv @ cam
         if pose == "world_from_cam":
             cam = invert_rigid(torch.from_numpy(cam)).numpy()
-        poses[i] = cam
+        poses[stem(i) if stem_keys else i] = cam
     settings = dict(pose=pose, axes=axes, depth=depth_kind)
     if depth_suffix == ".png":
         settings["depth_png_scale"] = png_scale
@@ -179,3 +187,72 @@ def write_fake_custom(root: Path, frames, *, depth_suffix: str = ".npy", pose: s
     else:
         write_camera_json(root / "cameras.json", poses, k, **settings)
     return root
+
+
+def rigid(yaw_deg: float = 0.0, pitch_deg: float = 0.0, t=(0.0, 0.0, 0.0)) -> np.ndarray:
+    """A (4, 4) camera motion: yaw about camera y, then pitch about camera x, then translation ``t``."""
+    a, b = np.deg2rad(yaw_deg), np.deg2rad(pitch_deg)
+    yaw = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    pitch = np.array([[1, 0, 0], [0, np.cos(b), -np.sin(b)], [0, np.sin(b), np.cos(b)]])
+    out = np.eye(4)
+    out[:3, :3] = pitch @ yaw
+    out[:3, 3] = t
+    return out
+
+
+def write_moving_kitti(root: Path, pair, cam2_from_cam1: np.ndarray, *, moving_fraction: float = 0.3,
+                       object_motion: np.ndarray = None, scene: str = "000000", density: float = 0.6,
+                       sky_rows: int = 30, seed: int = 0, noise_px: float = 0.0) -> tuple[Path, np.ndarray]:
+    """A KITTI pair with a known ego-motion and a rigid object covering ``moving_fraction`` of the
+    measured pixels, which moves on its own by ``object_motion`` (in camera-1 coordinates).
+
+    The demo pair gives frame 1 (image, depth) and intrinsics; flow and frame-2 disparity follow
+    exactly from the chosen motions (the images of frame 2 are the demo's: the flow-based fit never
+    looks at them). ``noise_px`` adds Gaussian noise of that standard deviation to the disparities
+    and flow components, as measured data has. Returns ``(split folder, moving (H, W) bool)``.
+    """
+    from weathergen.io.images import write_png
+    from weathergen.io.kitti_formats import (write_calibration, write_disparity_png, write_flow_png,
+                                             write_object_map)
+
+    rng = np.random.default_rng(seed)
+    s = Path(root) / "training"
+    k = pair.intrinsics.numpy()
+    h, w = pair.size
+    fb = k[0, 0] * KITTI_BASELINE
+    measured = rng.random((h, w)) < density
+    measured[:sky_rows] = False
+    # the object: the columns from the left edge on that hold moving_fraction of the measurements
+    per_column = np.cumsum(measured.sum(0)) / measured.sum()
+    x1 = int(np.searchsorted(per_column, moving_fraction)) + 1
+    moving = np.zeros((h, w), bool)
+    moving[sky_rows:, :x1] = True
+    obj = rigid(0.0, 0.0, (0.6, 0.0, 0.5)) if object_motion is None else object_motion
+
+    pts = backproject(pair.depth1.double(), pair.intrinsics).flatten(1).T.numpy()      # (HW, 3)
+    own = np.where(moving.reshape(-1, 1), pts @ obj[:3, :3].T + obj[:3, 3], pts)
+    moved = own @ cam2_from_cam1[:3, :3].T + cam2_from_cam1[:3, 3]
+    z2 = moved[:, 2]
+    safe = np.where(z2 > 1e-6, z2, 1.0)
+    u = k[0, 0] * moved[:, 0] / safe + k[0, 2]
+    v = k[1, 1] * moved[:, 1] / safe + k[1, 2]
+    grid = np.stack(np.meshgrid(np.arange(w), np.arange(h)), -1).reshape(-1, 2)
+    flow = np.stack([u, v], 1) - grid
+    ok = (z2 > 0.1) & (u > -0.5) & (u < w - 0.5) & (v > -0.5) & (v < h - 0.5) & (np.abs(flow) < 500).all(1)
+    flow = np.where(ok[:, None], flow, 0).reshape(h, w, 2)
+    ok = ok.reshape(h, w)
+
+    disp1 = fb / pair.depth1[0].numpy().astype(np.float64)
+    disp2 = (fb / safe).reshape(h, w)
+    if noise_px:
+        disp1 = np.maximum(disp1 + rng.normal(0, noise_px, disp1.shape), 0.5)
+        disp2 = np.maximum(disp2 + rng.normal(0, noise_px, disp2.shape), 0.5)
+        flow = flow + rng.normal(0, noise_px, flow.shape)
+    write_png(s / "image_2" / f"{scene}_10.png", pair.image1.permute(1, 2, 0).numpy())
+    write_png(s / "image_2" / f"{scene}_11.png", pair.image2.permute(1, 2, 0).numpy())
+    write_calibration(s / "calib_cam_to_cam" / f"{scene}.txt", k, KITTI_BASELINE)
+    write_disparity_png(s / "disp_occ_0" / f"{scene}_10.png", disp1, measured)
+    write_disparity_png(s / "disp_occ_1" / f"{scene}_10.png", disp2, measured & ok)
+    write_flow_png(s / "flow_occ" / f"{scene}_10.png", flow, ok)
+    write_object_map(s / "obj_map" / f"{scene}_10.png", moving.astype(np.uint8))
+    return s, moving & measured & ok

@@ -116,8 +116,10 @@ def test_packages_resolve_their_names_at_import(module):
 
 #: The layers of docs/architecture.md, lowest first; a package imports only lower layers.
 LAYERS = [("weathergen", "weathergen.errors", "weathergen.workers"),
-          ("weathergen.framepair", "weathergen.geometry", "weathergen.flow", "weathergen.io"),
+          ("weathergen.framepair", "weathergen.geometry", "weathergen.flow", "weathergen.io",
+           "weathergen.execution"),
           ("weathergen.datasets", "weathergen.models", "weathergen.engine"),
+          ("weathergen.training",),
           ("weathergen.outputs",), ("weathergen.render",), ("weathergen.attack",),
           ("weathergen.benchmark",),
           ("weathergen.cli",)]

@@ -87,7 +87,7 @@ class FramePair:
     # The depth scale that was applied to the stored depth (and camera translations).
     depth_scale: float = 1.0
     # Plain-data facts the reader wants recorded in manifests, e.g. the residual of an estimated
-    # camera motion ({"camera_motion": {"method": "rigid-fit", "rms_px": 0.3, ...}}).
+    # camera motion ({"camera_motion": {"method": "opencv-pnp-ransac+lm", "rms_px": 0.3, ...}}).
     meta: dict = field(default_factory=dict)
 
     @property

@@ -184,18 +184,18 @@ def test_stored_fog_particles_keep_the_second_offset_fixed(tmp_path, raft_small_
 def test_interrupted_run_resumes_at_the_unfinished_pair(tmp_path, monkeypatch, raft_small_weights):
     import weathergen.attack.job as attack_job
 
-    real = attack_job.attack_pair
+    real = attack_job.attack_batch
 
-    def interrupted(model, pair, *args, **kwargs):
-        if pair.id.scene == "street":        # the second pair: Ctrl-C in its first step
+    def interrupted(model, pairs, *args, **kwargs):
+        if pairs[0].id.scene == "street":    # the second pair: Ctrl-C in its first step
             raise KeyboardInterrupt
-        return real(model, pair, *args, **kwargs)
+        return real(model, pairs, *args, **kwargs)
 
     out = tmp_path / "two"
     args = ["attack", "--model", "raft-small", "--checkpoint", raft_small_weights, "--iters", "1",
             "--scenes", "courtyard,street", "--frames-per-scene", "1", "--steps", "1",
             "--set", "count=40", "--out", out]
-    monkeypatch.setattr(attack_job, "attack_pair", interrupted)
+    monkeypatch.setattr(attack_job, "attack_batch", interrupted)
     stopped = invoke(args)
     assert stopped.exit_code == 130 and "--resume" in stopped.output
     manifest = json.loads((out / "manifest.json").read_text())
@@ -204,7 +204,7 @@ def test_interrupted_run_resumes_at_the_unfinished_pair(tmp_path, monkeypatch, r
     first_log = out / "training" / "attack_log" / "courtyard_0001.csv"
     before = first_log.stat().st_mtime_ns
 
-    monkeypatch.setattr(attack_job, "attack_pair", real)
+    monkeypatch.setattr(attack_job, "attack_batch", real)
     resumed = invoke([*args, "--resume"])
     assert resumed.exit_code == 0, resumed.output
     assert first_log.stat().st_mtime_ns == before          # the finished pair was not redone

@@ -10,7 +10,8 @@ import pytest
 import torch
 from click.testing import CliRunner
 
-from weathergen.attack import (LpOptimisation, TargetSpec, l2_normalised, lp_attack_pair,
+from weathergen.attack import (LpOptimisation, TargetSpec, l2_normalised,
+                               l2_normalised_per_pair, lp_attack_batch, lp_attack_pair,
                                lp_settings, random_perturbation)
 from weathergen.errors import ConfigError
 
@@ -87,6 +88,51 @@ def test_random_perturbation_has_the_budget():
     assert torch.allclose((r1 - x1).abs(), torch.full_like(x1, 5e-3), atol=1e-7)
     again = random_perturbation("ifgsm", x1, x2, 5e-3, seed=3)
     assert torch.equal(again[0], r1)     # seeded
+
+
+@pytest.mark.parametrize("method", ["pcfa", "ifgsm"])
+def test_a_batch_equals_pairs_attacked_one_by_one(method):
+    """Two pairs in one batch: each pair's steps, best step and frames as when attacked alone.
+    PCFA's projection acts per pair: the second pair's pixels sit near the box faces, where
+    tanh barely moves, so it stays inside the ball while the first is projected onto it."""
+    saturated = tuple(torch.where(x > 0.5, 0.998, 0.002) for x in frames(3))
+    pairs = [frames(2), saturated]
+    eps = 2e-3
+    # I-FGSM steps short of the bound: its distances keep falling, so the best step is no
+    # rounding tie between equal steps on the bound
+    lr = 0.02 if method == "pcfa" else eps / 6
+    s = lp_settings(method, epsilon=eps, steps=5, lr=lr)
+    model = ToyFlow()
+    seen = []
+    batch = lp_attack_batch(model, torch.cat([p[0] for p in pairs]),
+                            torch.cat([p[1] for p in pairs]), s, TargetSpec("negative"),
+                            seeds=[7, 8], on_step=lambda i, r: seen.append((i, r.step)))
+    assert seen == [(i, k) for k in range(6) for i in range(2)]
+    norms = []
+    for (x1, x2), seed, got in zip(pairs, (7, 8), batch):
+        alone = lp_attack_pair(model, x1, x2, s, TargetSpec("negative"), seed=seed)
+        assert got.best_step == alone.best_step
+        assert [r.distance for r in got.history] == pytest.approx(
+            [r.distance for r in alone.history], rel=1e-5)
+        for a, b in zip(got.best_frames + got.random_frames, alone.best_frames + alone.random_frames):
+            assert torch.allclose(a, b, atol=1e-6)
+        assert torch.allclose(got.best_flow, alone.best_flow, atol=1e-4)
+        d = [f - x for f, x in zip(got.best_frames, (x1, x2))]
+        if method == "pcfa":
+            norms.append(float(l2_normalised(*d)))
+            assert norms[-1] <= eps * (1 + 1e-6)
+        else:
+            assert max(float(t.abs().max()) for t in d) <= eps + 1e-7
+    if method == "pcfa":
+        assert norms[0] > 0.99 * eps and 0 < norms[1] < 0.5 * eps
+
+
+def test_l2_normalised_per_pair_is_each_pairs_norm():
+    d1, d2 = torch.randn(3, 3, 4, 5), torch.randn(3, 3, 4, 5)
+    per_pair = l2_normalised_per_pair(d1, d2)
+    assert per_pair.shape == (3,)
+    for i in range(3):
+        assert float(per_pair[i]) == pytest.approx(float(l2_normalised(d1[i:i + 1], d2[i:i + 1])))
 
 
 def test_settings_defaults_and_bad_values():

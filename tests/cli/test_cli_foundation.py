@@ -47,8 +47,8 @@ def test_check_fake_sintel_with_a_corrupt_file(fake_sintel):
 def test_check_test_split_reports_missing_depth(fake_sintel):
     res = run("check", "--root", str(fake_sintel), "--split", "test", "--frames-per-scene", "1")
     assert res.exit_code == 1
-    assert "alley frame 1: test/depth/alley/frame_0001.dpt: depth file is missing (the Sintel test " \
-           "split ships no depth or camera files" in res.output
+    assert "alley: depth file is missing (the Sintel test split ships no depth or camera files, which " \
+           "weather needs): test/depth/alley/frame_0001.dpt, test/depth/alley/frame_0002.dpt\n" in res.output
 
 
 def test_check_error_paths(tmp_path, fake_sintel):

@@ -243,13 +243,17 @@ def test_too_few_static_points_is_refused(tmp_path, street):
     objects = np.ones(street[0].size, np.uint8)
     objects[:2, :50] = 0
     write_object_map(s / "obj_map" / "000000_10.png", objects)
-    with pytest.raises(DatasetError, match=r"obj_map/000000_10\.png: only \d+ static background pixels .* at least 200"):
+    with pytest.raises(DatasetError, match=r"obj_map/000000_10\.png: camera motion of pair 000000 \(frames 10-11\): "
+                                            r"only \d+ static pixels \(obj_map 0\) with flow and frame-10 disparity; "
+                                            r"the fit needs at least 200"):
         load_one(tmp_path)
 
 
 def test_a_bad_fit_is_refused_with_its_residual(tmp_path, street):
     write_fake_kitti(tmp_path, street[0], corrupt=0.7)
-    with pytest.raises(DatasetError, match=r"flow_occ/000000_10\.png: camera-motion fit is bad: only \d+% "):
+    with pytest.raises(DatasetError, match=r"flow_occ/000000_10\.png: camera motion of pair 000000 "
+                                            r"\(frames 10-11\) is not trusted: only \d+\.\d% of \d+ "
+                                            r"correspondences agree with one camera motion within 2 px"):
         load_one(tmp_path)
 
 
@@ -257,7 +261,7 @@ def test_testing_split_says_what_is_missing(tmp_path, street):
     write_fake_kitti(tmp_path, street[0], split="testing")
     ds = open_dataset("kitti", tmp_path, split="testing")
     assert len(ds.pairs()) == 1
-    with pytest.raises(DatasetError, match="testing split ships no disparity, flow or object maps"):
+    with pytest.raises(DatasetError, match="testing split ships no disparity or flow"):
         ds.load(ds.pairs()[0])
 
 
@@ -271,10 +275,11 @@ def test_a_missing_second_frame_is_reported_not_hidden(tmp_path, street):
 
 
 @pytest.mark.parametrize("option, message", [
-    (dict(min_static_points=2), "min_static_points must be at least 3, got 2"),
-    (dict(min_inlier_fraction=1.5), r"min_inlier_fraction must be in \(0, 1\], got 1.5"),
-    (dict(min_inlier_fraction=0), r"min_inlier_fraction must be in \(0, 1\], got 0"),
-    (dict(fit_threshold_px=-1.0), "fit_threshold_px must be positive, got -1.0"),
+    (dict(fit_min_points=2), "minimum fit points must be at least 6, got 2"),
+    (dict(fit_min_inlier_fraction=1.5), r"minimum inlier fraction must be in \(0, 1\], got 1.5"),
+    (dict(fit_min_inlier_fraction=0), r"minimum inlier fraction must be in \(0, 1\], got 0"),
+    (dict(fit_threshold_px=-1.0), "fit threshold must be a positive number of pixels, got -1.0"),
+    (dict(fit_max_rms_px=0.0), "maximum fit RMS must be a positive number of pixels, got 0.0"),
     (dict(max_gap_px=-3), "max_gap_px must be zero or positive, got -3"),
 ])
 def test_fit_and_fill_options_are_validated(tmp_path, option, message):
@@ -306,14 +311,14 @@ def test_check_command_reads_kitti(tmp_path, street):
     (tmp_path / "training" / "calib_cam_to_cam" / "000001.txt").unlink()
     result = run_cli(["check", "--dataset", "kitti", "--root", str(tmp_path), "--far-depth", "300"])
     assert result.exit_code == 1
-    assert "000001 frame 10: training/calib_cam_to_cam/000001.txt: calibration file is missing" in result.output
+    assert "000001: calibration file is missing: training/calib_cam_to_cam/000001.txt" in result.output
 
 
 def test_check_command_explains_the_testing_split(tmp_path, street):
     write_fake_kitti(tmp_path, street[0], split="testing")
     result = run_cli(["check", "--dataset", "kitti", "--root", str(tmp_path), "--split", "testing"])
     assert result.exit_code == 1
-    assert "testing split ships no disparity, flow or object maps" in result.output.replace("\n", " ")
+    assert "testing split ships no disparity or flow" in result.output.replace("\n", " ")
 
 
 def test_far_depth_does_not_apply_to_sintel(fake_sintel):

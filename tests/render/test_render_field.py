@@ -199,11 +199,11 @@ def test_stereo_reads_a_right_camera_in_the_custom_layout(tmp_path, demo_root):
 
 
 def test_preview_and_evaluate_read_a_sequence_output(sequence_run):
-    from weathergen.evaluate import WeatherFolder
-    from weathergen.preview import contact_sheet
+    from weathergen.outputs import WeatherFolder
+    from weathergen.render import contact_sheet
 
     sheet = contact_sheet(sequence_run, pairs=2, width=96)
-    assert sheet.shape[0] > 0 and sheet.shape[1] == 3 * 96
+    assert sheet.image.shape[0] > 0 and sheet.image.shape[1] == 3 * 96
     folder = WeatherFolder.open(sequence_run)
     assert folder.sequence and [p.frame for p in folder.pairs] == [1, 2]
     first, second = folder.frames(folder.pairs[0])

@@ -20,25 +20,26 @@ from __future__ import annotations
 from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
 from .evaluate import (EvalRow, default_evaluation_path, evaluate_frames, mean_rows,
                        run_evaluation, write_evaluation)
-from .job import AttackJob, PairReport, attack_one, prepare_attack_folder, run_attack
+from .job import AttackJob, PairReport, attack_refs, prepare_attack_folder, run_attack
 from .lp import (LP_DEFAULTS, LP_METHODS, LpOptimisation, LpResult, LpSettings, l2_normalised,
-                 lp_attack_pair, lp_pass_name, lp_settings, plan_lp, random_perturbation)
-from .pair import (MIN_REG_DEPTH, AttackResult, PairOptimisation, PairSummary, StepRecord,
-                   WeatherVariables, attack_loss, attack_pair, mean_summary, offset_penalty,
-                   particle_depths, summarize_pair)
+                 l2_normalised_per_pair, lp_attack_batch, lp_attack_pair, lp_pass_name,
+                 lp_settings, plan_lp, random_perturbation)
+from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisation, PairSummary,
+                   StepRecord, WeatherVariables, attack_batch, attack_loss, attack_pair,
+                   mean_summary, offset_penalty, particle_depths, summarize_pair)
 from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack
 from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE,
                        POSITION_VARIABLES, AttackSettings, default_lr, parse_optimize)
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
 __all__ = ["LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpResult", "LpSettings",
-           "l2_normalised", "lp_attack_pair", "lp_pass_name", "lp_settings", "plan_lp",
+           "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_attack_pair", "lp_pass_name", "lp_settings", "plan_lp",
            "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
            "ATTACK_CONFIGS", "AttackConfig", "AttackJob", "AttackResult", "AttackSettings",
            "DEFAULT_ALPHA", "DEFAULT_STEPS", "EvalRow", "LR_APPEARANCE", "LR_POSITIONS",
            "MIN_REG_DEPTH", "OPTIMIZABLE", "POSITION_VARIABLES", "PairOptimisation", "PairReport",
            "PairSummary", "StepRecord", "TargetSpec", "WeatherVariables", "attack_config",
-           "attack_loss", "attack_one", "attack_pair", "default_evaluation_path", "default_lr", "evaluate_frames",
+           "attack_loss", "attack_batch", "attack_pair", "attack_refs", "BatchOptimisation", "default_evaluation_path", "default_lr", "evaluate_frames",
            "mean_rows", "mean_summary", "offset_penalty", "parse_optimize", "parse_target",
            "particle_depths", "prepare_attack_folder", "read_target_flow", "run_attack",
            "run_evaluation", "summarize_pair", "target_flow", "write_evaluation"]

@@ -60,7 +60,11 @@ def evaluate_frames(model, clean1: torch.Tensor, clean2: torch.Tensor, weather1:
 
 def run_evaluation(model, folder: WeatherFolder, dataset: Dataset, device="cpu",
                    on_pair: Callable[[EvalRow], None] = lambda r: None) -> tuple[list, dict]:
-    """Evaluate every complete pair of ``folder``; return the rows and their means."""
+    """Evaluate every complete pair of ``folder``; return the rows and their means.
+
+    The network pads frames as the clean dataset's benchmark protocol does (``dataset.padding``).
+    """
+    model.padding = getattr(dataset, "padding", "even")
     refs = {(r.id.split, r.id.scene, r.id.frame): r for r in dataset.pairs()}
     rows = []
     for pid in folder.pairs:

@@ -25,6 +25,7 @@ import torch
 from ..datasets import Dataset
 from ..engine import render_pair
 from ..errors import ConfigError, WeatherGenError
+from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
 from ..models import get_model
 from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pair_metadata,
@@ -32,8 +33,8 @@ from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pa
                        write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
 from ..render.particles import pair_particles, pair_seed, weather_seed
-from .lp import LpSettings, lp_attack_pair
-from .pair import PairSummary, StepRecord, attack_pair, mean_summary, summarize_pair
+from .lp import LpSettings, lp_attack_batch
+from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
 from .targets import TargetSpec, read_target_flow
 
@@ -63,6 +64,10 @@ class AttackJob:
     command: list = field(default_factory=list)
     #: set for an Lp baseline (``pcfa``, ``ifgsm``) instead of weather: frames are perturbed
     lp: Optional[LpSettings] = None
+    batch_size: int = 1                 # pairs of one size optimised together
+    executor: str = "local"             # "local" or "ray" (weathergen.execution)
+    ray_address: Optional[str] = "auto"
+    threads: Optional[int] = None       # torch threads of each unit (None: leave as is)
 
     def config(self) -> dict:
         """What must agree between an interrupted run and its resumption."""
@@ -91,39 +96,114 @@ class AttackJob:
 
 @dataclass
 class PairReport:
-    """What happened to one pair: ``status`` is written, skipped (done earlier) or failed."""
+    """What happened to one pair: ``status`` is written, skipped (done earlier) or failed.
+    ``ran``: where and on what it was computed (:func:`~weathergen.execution.where_ran`, plus
+    the size of its batch)."""
 
     pair: str
     status: str
     summary: Optional[PairSummary] = None
     message: str = ""
+    key: str = ""
+    ran: Optional[dict] = None
 
 
-def attack_one(job: AttackJob, model, pair, target_file_flow=None,
-               on_step: Callable[[StepRecord], None] = lambda r: None) -> PairSummary:
-    """Attack one loaded pair and write its outputs; return its figures."""
-    if job.lp is not None:
-        return lp_attack_one(job, model, pair, target_file_flow, on_step)
-    start = time.perf_counter()
-    particles = pair_particles(pair, job.preset, job.seed,
-                               world_up=getattr(job.dataset, "world_up", "auto"),
-                               particles_from=job.particles_from)
-    result = attack_pair(model, pair, particles, job.settings, job.target, device=job.device,
-                         target_file_flow=target_file_flow, on_step=on_step)
+_MODELS: dict = {}
+
+
+def job_model(job: AttackJob, device: Optional[str] = None):
+    """The job's network on ``device`` (default the job's), loaded once per process."""
+    device = device or job.device
+    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing)
+    if key not in _MODELS:
+        _MODELS.clear()                     # one network per process at a time
+        _MODELS[key] = get_model(job.model, job.checkpoint, device=device, iters=job.iters,
+                                 download=job.download,
+                                 gradient_checkpointing=job.gradient_checkpointing)
+        _MODELS[key].padding = getattr(job.dataset, "padding", "even")  # the benchmark's protocol
+    return _MODELS[key]
+
+
+def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
+                on_step: Callable[[str, StepRecord], None] = lambda name, r: None,
+                device: Optional[str] = None) -> list[PairReport]:
+    """Load, attack and write some pairs; one report per pair, in the order of ``refs``.
+
+    Pairs of one size are optimised together (:func:`~weathergen.attack.attack_batch`, or
+    :func:`~weathergen.attack.lp_attack_batch` for an Lp baseline), pairs of other sizes in
+    batches of their own. A pair whose input is bad fails alone; an error in the optimisation
+    fails the pairs of its batch. This is the work unit of every executor.
+    """
+    device = device or job.device
+    if model is None:
+        model = job_model(job, device)
+    if target_file_flow is None and job.target.kind == "file":
+        target_file_flow = read_target_flow(job.target.path)
+    if job.threads:
+        torch.set_num_threads(job.threads)
+    reports: dict[str, PairReport] = {}
+    groups: dict[tuple, list] = {}
+    for ref in refs:
+        start = time.perf_counter()
+        try:
+            pair = job.dataset.load(ref)
+            particles = None if job.lp is not None else pair_particles(
+                pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
+                particles_from=job.particles_from)
+        except WeatherGenError as exc:
+            reports[ref.id.key] = PairReport(str(ref.id), "failed", message=str(exc),
+                                             key=ref.id.key)
+            continue
+        groups.setdefault(pair.size, []).append((ref, pair, particles,
+                                                 time.perf_counter() - start))
+    for group in groups.values():
+        start = time.perf_counter()
+        names = [str(ref.id) for ref, _, _, _ in group]
+        pairs = [g[1] for g in group]
+        step = lambda i, record: on_step(names[i], record)     # noqa: E731
+        try:
+            if job.lp is not None:
+                results = lp_attack_batch(
+                    model, torch.stack([p.image1 for p in pairs]).to(device),
+                    torch.stack([p.image2 for p in pairs]).to(device), job.lp, job.target,
+                    seeds=[pair_seed(job.seed, p.id) for p in pairs],
+                    target_file_flow=target_file_flow, on_step=step)
+            else:
+                results = attack_batch(model, pairs, [g[2] for g in group], job.settings,
+                                       job.target, device=device,
+                                       target_file_flow=target_file_flow, on_step=step)
+        except WeatherGenError as exc:
+            for ref, _, _, _ in group:
+                reports[ref.id.key] = PairReport(str(ref.id), "failed", message=str(exc),
+                                                 key=ref.id.key)
+            continue
+        share = (time.perf_counter() - start) / len(group)
+        ran = {**where_ran(device), "batch": len(group)}
+        write = write_lp_pair if job.lp is not None else write_attacked_pair
+        for (ref, pair, _, spent), result in zip(group, results):
+            begin = time.perf_counter()
+            summary = write(job, model, pair, result, device)
+            summary.seconds = spent + share + time.perf_counter() - begin
+            reports[ref.id.key] = PairReport(str(ref.id), "written", summary, key=ref.id.key,
+                                             ran=ran)
+    return [reports[ref.id.key] for ref in refs]
+
+
+def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
+    """Write one optimised pair's outputs; return its figures."""
     # What is written is the best record at storage precision, rendered and rounded to the
     # 8-bit PNG frames; the adversarial flow is the network's flow on exactly those frames, so
     # the figures describe the files on disk (`evaluate --weather OUT` measures the same).
     best = result.best_particles.quantized()
     with torch.no_grad():
-        rendered = render_pair(pair, best, beta=job.settings.beta, device=job.device)
+        rendered = render_pair(pair, best, beta=job.settings.beta, device=device)
     frames = tuple(to_uint8(img[0].permute(1, 2, 0).cpu().numpy())
                    for img in (rendered.image1, rendered.image2))
-    stored = [torch.from_numpy(f).permute(2, 0, 1)[None].float().div(255).to(job.device)
+    stored = [torch.from_numpy(f).permute(2, 0, 1)[None].float().div(255).to(device)
               for f in frames]
     with torch.no_grad():
         adversarial = model(*stored).cpu()
-    summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
-                             seconds=time.perf_counter() - start)
+    summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid)
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
     meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
                          job.preset_name)
@@ -141,30 +221,34 @@ def lp_pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
     return AttackPairOutput(PairOutput.of(job.out, pair_id, job.pass_name, "both", geometry=True))
 
 
-def lp_attack_one(job: AttackJob, model, pair, target_file_flow=None,
-                  on_step: Callable[[StepRecord], None] = lambda r: None) -> PairSummary:
-    """Attack one loaded pair with an Lp baseline and write the same files as a weather attack.
+def pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
+    """Where the job writes a pair."""
+    return (lp_pair_output(job, pair_id) if job.lp is not None
+            else AttackPairOutput.of(job.out, pair_id, job.pass_name))
+
+
+def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
+    """Write one Lp-attacked pair with the same files as a weather attack; return its figures.
 
     The figures describe the float frames of the best step (written as EXR; the PNG frames are
     those frames rounded to 8 bits). The metadata holds the pair's identity and the Lp settings,
     no particles.
     """
-    start = time.perf_counter()
-    seed = pair_seed(job.seed, pair.id)
-    p = pair.to(job.device)
-    result = lp_attack_pair(model, p.image1[None], p.image2[None], job.lp, job.target,
-                            seed=seed, target_file_flow=target_file_flow, on_step=on_step)
-    summary = summarize_pair(str(pair.id), result, result.best_flow, pair.flow, pair.flow_valid,
-                             seconds=time.perf_counter() - start)
+    summary = summarize_pair(str(pair.id), result, result.best_flow, pair.flow, pair.flow_valid)
     frames = tuple(f[0].permute(1, 2, 0).numpy() for f in result.best_frames)
-    opacity = tuple(torch.zeros(f.shape[:2]).numpy() for f in frames)
-    meta = identity_arrays(pair.id, seed, {}, job.preset_name)
+    opacity = tuple(np.zeros(f.shape[:2], dtype=np.float32) for f in frames)
+    meta = identity_arrays(pair.id, pair_seed(job.seed, pair.id), {}, job.preset_name)
     meta["lp_attack"] = np.array(json.dumps(job.lp.to_dict()))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": result.best_flow, "target": result.target}
     write_attack_pair(lp_pair_output(job, pair.id), pair.to("cpu"), frames, opacity, meta, flows,
                       result.history, asdict(summary))
     return summary
+
+
+def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
+    """A Ray task: attack some pairs on the device this task was given."""
+    return attack_refs(job, refs, device=worker_device(job.device, "ray"))
 
 
 def prepare_attack_folder(job: AttackJob) -> Optional[dict]:
@@ -174,75 +258,93 @@ def prepare_attack_folder(job: AttackJob) -> Optional[dict]:
     previous = None
     if not job.overwrite and (out / MANIFEST).exists() and any(out.iterdir()):
         previous = read_attack_manifest(out) if (out / ATTACK_FOLDER.marker).exists() else None
-    prepare_folder(out, ATTACK_FOLDER, job.config(),
-                   None if previous is None else previous.get("config", {}),
-                   resume=job.resume, overwrite=job.overwrite)
+    prepare_folder(out, ATTACK_FOLDER, job.config(), previous=None if previous is None
+                   else previous.get("config", {}), resume=job.resume, overwrite=job.overwrite)
     return previous
 
 
 def run_attack(job: AttackJob,
                on_start: Callable[[int], None] = lambda n: None,
-               on_pair_start: Callable[[int, str], None] = lambda i, name: None,
-               on_step: Callable[[StepRecord], None] = lambda r: None,
+               on_step: Callable[[str, StepRecord], None] = lambda name, r: None,
                on_pair_done: Callable[[PairReport], None] = lambda r: None) -> dict:
     """Attack every selected pair; return the manifest's summary (mean figures).
 
-    Pairs complete on disk are skipped when resuming. The manifest is rewritten after every pair,
-    so an interrupted run (Ctrl-C) keeps what it finished.
+    Pairs complete on disk are skipped when resuming. Pairs go in work units of
+    ``job.batch_size`` (each optimised together where they share a size), run here or as Ray
+    tasks (``job.executor``). The manifest is rewritten after every unit, so an interrupted run
+    (Ctrl-C, or a killed driver) keeps what it finished. ``on_step`` receives the pair's name and
+    each step (local executor only: Ray tasks report whole pairs).
     """
     config = job.config()
+    check_executor(job.executor)
+    if job.batch_size < 1:
+        raise ConfigError(f"${{batch_size}} must be >= 1 (got {job.batch_size})")
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
     if not refs:
         raise ConfigError("the selection holds no frame pairs")
-    model = get_model(job.model, job.checkpoint, device=job.device, iters=job.iters,
-                      download=job.download, gradient_checkpointing=job.gradient_checkpointing)
+    local = job.executor == "local"
+    # The driver of a Ray run checks the network and its checkpoint on the CPU.
+    model = job_model(job) if local else get_model(
+        job.model, job.checkpoint, device="cpu", iters=job.iters, download=job.download)
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
+    if not local:
+        model = None
     previous = prepare_attack_folder(job)
 
+    order = [ref.id.key for ref in refs]
     pairs_entry: dict = dict(previous.get("pairs", {})) if previous else {}
     runs = list(previous.get("runs", [])) if previous else []
-    run = {"command": job.command, "device": job.device,
+    run = {"command": job.command, "device": job.device, "executor": job.executor,
+           "batch_size": job.batch_size,
            "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
            "written": 0, "skipped": 0, "failed": 0}
     runs.append(run)
-    summaries: list[PairSummary] = []
+    summaries: dict[str, PairSummary] = {}
 
     def save():
-        write_attack_manifest(job.out, config, pairs_entry, mean_summary(summaries), runs)
+        ordered = {k: pairs_entry[k] for k in order if k in pairs_entry}
+        ordered.update({k: v for k, v in pairs_entry.items() if k not in ordered})
+        write_attack_manifest(job.out, config, ordered,
+                              mean_summary([summaries[k] for k in order if k in summaries]), runs)
+
+    def record(report: PairReport):
+        if report.status == "failed":
+            pairs_entry[report.key] = {"status": "failed", "pair": report.pair,
+                                       "message": report.message}
+        else:
+            summaries[report.key] = report.summary
+            old = pairs_entry.get(report.key, {})
+            ran = report.ran if report.ran is not None else old.get("ran")
+            pairs_entry[report.key] = {"status": "written", **asdict(report.summary),
+                                       **({"ran": ran} if ran else {})}
+        run[report.status] += 1
+        on_pair_done(report)
 
     on_start(len(refs))
     t0 = time.perf_counter()
+    todo = []
     try:
-        for i, ref in enumerate(refs):
-            out = (lp_pair_output(job, ref.id) if job.lp is not None
-                   else AttackPairOutput.of(job.out, ref.id, job.pass_name))
-            on_pair_start(i, str(ref.id))
+        for ref in refs:
+            out = pair_output(job, ref.id)
             if not job.overwrite and out.is_complete():
                 stored = read_pair_summary(out)
                 if stored is not None:
-                    summary = PairSummary.from_dict(stored)
-                    summaries.append(summary)
-                    pairs_entry[ref.id.key] = {"status": "written", **stored}
-                    run["skipped"] += 1
-                    on_pair_done(PairReport(str(ref.id), "skipped", summary))
+                    record(PairReport(str(ref.id), "skipped", PairSummary.from_dict(stored),
+                                      key=ref.id.key))
                     continue
-            try:
-                pair = job.dataset.load(ref)
-                summary = attack_one(job, model, pair, target_file_flow, on_step)
-            except WeatherGenError as exc:
-                pairs_entry[ref.id.key] = {"status": "failed", "pair": str(ref.id),
-                                           "message": str(exc)}
-                run["failed"] += 1
-                on_pair_done(PairReport(str(ref.id), "failed", message=str(exc)))
-                save()
-                continue
-            summaries.append(summary)
-            pairs_entry[ref.id.key] = {"status": "written", **asdict(summary)}
-            run["written"] += 1
-            on_pair_done(PairReport(str(ref.id), "written", summary))
+            todo.append(ref)
+        units = [todo[i:i + job.batch_size] for i in range(0, len(todo), job.batch_size)]
+        if local:
+            results = (attack_refs(job, unit, model, target_file_flow, on_step) for unit in units)
+        else:
+            results = ray_map(_ray_attack_unit, [(job, unit) for unit in units],
+                              address=job.ray_address, num_gpus=ray_gpus_for(job.device))
+        for reports in results:
+            for report in reports:
+                record(report)
             save()
     finally:
         run["seconds"] = round(time.perf_counter() - t0, 3)
         save()
-    return mean_summary(summaries)
+    return mean_summary([summaries[k] for k in order if k in summaries])

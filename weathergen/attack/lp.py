@@ -41,7 +41,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import asdict, dataclass
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import torch
 
@@ -105,6 +105,12 @@ def l2_normalised(delta1: torch.Tensor, delta2: torch.Tensor) -> torch.Tensor:
     return (sq / (delta1.numel() + delta2.numel())).sqrt()
 
 
+def l2_normalised_per_pair(delta1: torch.Tensor, delta2: torch.Tensor) -> torch.Tensor:
+    """:func:`l2_normalised` of each pair of a batch: (B, 3, H, W) x2 -> (B,)."""
+    sq = delta1.pow(2).flatten(1).sum(1) + delta2.pow(2).flatten(1).sum(1)
+    return (sq / (delta1[0].numel() + delta2[0].numel())).sqrt()
+
+
 def random_perturbation(method: str, x1: torch.Tensor, x2: torch.Tensor, epsilon: float,
                         seed: int) -> tuple[torch.Tensor, torch.Tensor]:
     """Frames with a random perturbation of the method's budget (the "random" column), in the box.
@@ -123,17 +129,26 @@ def random_perturbation(method: str, x1: torch.Tensor, x2: torch.Tensor, epsilon
 
 
 class LpOptimisation:
-    """One pair's Lp attack state: clean frames, target, the frames being optimised.
+    """The Lp attack state of B pairs of one size, optimised together: clean frames, targets,
+    the frames being optimised.
 
-    Args: model (the package contract), image1/image2 (1, 3, H, W) in [0, 1] on the device,
+    The loss that is differentiated is the *sum* of the pairs' losses; a network in eval mode
+    treats batch elements independently, so each pair's gradient is that of its own loss, and
+    both updates (Adam, elementwise; the sign step of I-FGSM) and both projections act per pair:
+    a batch gives the results of B single-pair runs up to floating-point rounding.
+
+    Args: model (the package contract), image1/image2 (B, 3, H, W) in [0, 1] on the device,
     :class:`LpSettings`, :class:`TargetSpec`, target_file_flow (2, H, W) for a file target.
-    Attributes: benign and goal flows (1, 2, H, W); :meth:`frames` the current frames.
+    Attributes: benign and goal flows (B, 2, H, W); :meth:`frames` the current frames.
     """
 
     def __init__(self, model, image1: torch.Tensor, image2: torch.Tensor, settings: LpSettings,
                  target: TargetSpec = TargetSpec("zero"),
                  target_file_flow: Optional[torch.Tensor] = None):
-        self.model, self.settings = model, settings
+        if image1.dim() != 4 or image1.shape != image2.shape:
+            raise ConfigError(f"frames of an Lp attack must be (B, 3, H, W) of one size; got "
+                              f"{tuple(image1.shape)} and {tuple(image2.shape)}")
+        self.model, self.settings, self.size = model, settings, int(image1.shape[0])
         self.x0 = (image1.detach().float(), image2.detach().float())
         with torch.no_grad():
             self.benign = model(*self.x0)
@@ -152,19 +167,23 @@ class LpOptimisation:
         return self.x[0], self.x[1]
 
     def evaluate(self):
-        """``(frames, flow, loss, distance, penalty)`` for the current frames, with gradient."""
+        """``(frames, flow, losses, distances, penalties)`` for the current frames, with
+        gradient; the last three are (B,): each pair's loss, ``AEE(f̌, f_target)`` and bound
+        penalty (0 for I-FGSM)."""
         x1, x2 = self.frames()
         flow = self.model(x1, x2)
-        distance = aee(flow, self.goal).mean()
+        distances = aee(flow, self.goal)
         if self.settings.method == "pcfa":
-            norm = l2_normalised(x1 - self.x0[0], x2 - self.x0[1])
-            penalty = self.mu * torch.relu(norm - self.settings.epsilon).pow(2)
+            norms = l2_normalised_per_pair(x1 - self.x0[0], x2 - self.x0[1])
+            penalties = self.mu * torch.relu(norms - self.settings.epsilon).pow(2)
         else:
-            penalty = distance.new_zeros(())
-        return (x1, x2), flow, distance + penalty, distance, penalty
+            penalties = torch.zeros_like(distances)
+        return (x1, x2), flow, distances + penalties, distances, penalties
 
     def update(self, loss: torch.Tensor) -> None:
-        """One step, then the projection onto the constraint set."""
+        """One step on ``loss`` (the pairs' losses, summed here), then the projection onto the
+        constraint set."""
+        loss = loss.sum()
         if self.settings.method == "pcfa":
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
@@ -180,16 +199,22 @@ class LpOptimisation:
 
     @torch.no_grad()
     def _project_l2(self) -> None:
+        """Scale each pair's perturbation outside the ball back onto it (towards the clean
+        frames, which keeps the box)."""
         eps = self.settings.epsilon
         for _ in range(8):   # the tanh round trip can land a hair outside: shrink again
             x1, x2 = self.frames()
             d1, d2 = x1 - self.x0[0], x2 - self.x0[1]
-            norm = float(l2_normalised(d1, d2))
-            if norm <= eps:
+            norms = l2_normalised_per_pair(d1, d2)
+            outside = norms > eps
+            if not bool(outside.any()):
                 return
-            scale = eps / norm * (1 - 1e-4)
-            self.w[0].copy_(to_atanh(self.x0[0] + scale * d1))
-            self.w[1].copy_(to_atanh(self.x0[1] + scale * d2))
+            scale = torch.where(outside, eps / norms.clamp_min(1e-30) * (1 - 1e-4),
+                                torch.ones_like(norms)).view(-1, 1, 1, 1)
+            for w, x0, d, o in zip(self.w, self.x0, (d1, d2), (x1, x2)):
+                moved = to_atanh(x0 + scale * d)
+                # pairs inside the ball keep their variables bit for bit
+                w.copy_(torch.where(outside.view(-1, 1, 1, 1), moved, w))
         raise RuntimeError("PCFA projection did not reach the L2 ball")   # not reachable in practice
 
 
@@ -202,6 +227,65 @@ class LpResult(AttackResult):
     random_frames: tuple = ()
 
 
+def lp_attack_batch(model, images1: torch.Tensor, images2: torch.Tensor, settings: LpSettings,
+                    target: TargetSpec = TargetSpec("zero"), *, seeds: Sequence[int],
+                    target_file_flow: Optional[torch.Tensor] = None,
+                    on_step: Callable[[int, StepRecord], None] = lambda i, r: None
+                    ) -> list[LpResult]:
+    """Attack B pairs' frames with ``settings.method``, in one forward and backward pass per
+    step (see :class:`LpOptimisation`); keep each pair's step closest to its target.
+
+    Shape: images1, images2 (B, 3, H, W) in [0, 1] on the model's device; ``seeds`` (B) draw
+    each pair's random-perturbation frames. Every step (0 = clean frames) is measured like the
+    weather attack's (``penalty`` is PCFA's bound penalty, 0 for I-FGSM); ``on_step`` gets the
+    pair's index and its record. Returns one :class:`LpResult` per pair, as
+    :func:`lp_attack_pair` gives it for that pair alone (up to floating-point rounding).
+    """
+    run = LpOptimisation(model, images1, images2, settings, target, target_file_flow)
+    size = run.size
+    if len(seeds) != size:
+        raise ConfigError(f"{len(seeds)} seeds for {size} frame pairs")
+    rand = [random_perturbation(settings.method, run.x0[0][i:i + 1], run.x0[1][i:i + 1],
+                                settings.epsilon, seed) for i, seed in enumerate(seeds)]
+    rand1, rand2 = torch.cat([r[0] for r in rand]), torch.cat([r[1] for r in rand])
+    with torch.no_grad():
+        random_flow = model(rand1, rand2).cpu()
+    history: list[list[StepRecord]] = [[] for _ in range(size)]
+    best = [math.inf] * size
+    best_step = [0] * size
+    best_frames: list = [None] * size
+    best_flow: list = [None] * size
+    steps = int(settings.steps)
+    for step in range(steps + 1):
+        t0 = time.perf_counter()
+        frames, flow, losses, distances, penalties = run.evaluate()
+        dists = distances.detach().cpu().tolist()
+        for i in range(size):
+            if dists[i] < best[i] or best_frames[i] is None:
+                best[i], best_step[i] = dists[i], step
+                best_frames[i] = tuple(f[i:i + 1].detach().cpu().clone() for f in frames)
+                best_flow[i] = flow[i:i + 1].detach().cpu()
+        if step < steps:
+            run.update(losses)
+        robustness = aee(flow.detach(), run.benign).cpu().tolist()
+        loss_values = losses.detach().cpu().tolist()
+        penalty_values = penalties.detach().cpu().tolist()
+        seconds = time.perf_counter() - t0
+        for i in range(size):
+            record = StepRecord(step=step, loss=loss_values[i], distance=dists[i],
+                                penalty=penalty_values[i], robustness=robustness[i],
+                                best_distance=best[i], seconds=seconds)
+            history[i].append(record)
+            on_step(i, record)
+        del flow, losses, distances, penalties, frames
+    benign, goal = run.benign.cpu(), run.goal.cpu()
+    return [LpResult(best_particles=None, best_step=best_step[i], history=history[i],
+                     benign_flow=benign[i:i + 1], initial_flow=random_flow[i:i + 1],
+                     best_flow=best_flow[i], target=goal[i:i + 1], best_frames=best_frames[i],
+                     random_frames=(rand1[i:i + 1].cpu(), rand2[i:i + 1].cpu()))
+            for i in range(size)]
+
+
 def lp_attack_pair(model, image1: torch.Tensor, image2: torch.Tensor, settings: LpSettings,
                    target: TargetSpec = TargetSpec("zero"), *, seed: int = 0,
                    target_file_flow: Optional[torch.Tensor] = None,
@@ -212,34 +296,9 @@ def lp_attack_pair(model, image1: torch.Tensor, image2: torch.Tensor, settings: 
     frames) is measured like the weather attack's (``penalty`` is PCFA's bound penalty, 0 for
     I-FGSM). ``seed`` draws the random-perturbation frames.
     """
-    run = LpOptimisation(model, image1, image2, settings, target, target_file_flow)
-    rand = random_perturbation(settings.method, *run.x0, settings.epsilon, seed)
-    with torch.no_grad():
-        random_flow = model(*rand)
-    history: list[StepRecord] = []
-    best, best_step, best_frames, best_flow = math.inf, 0, None, None
-    steps = int(settings.steps)
-    for step in range(steps + 1):
-        t0 = time.perf_counter()
-        frames, flow, loss, distance, penalty = run.evaluate()
-        dist = float(distance.detach())
-        if dist < best or best_frames is None:
-            best, best_step = dist, step
-            best_frames = tuple(f.detach().cpu().clone() for f in frames)
-            best_flow = flow.detach().cpu()
-        if step < steps:
-            run.update(loss)
-        record = StepRecord(step=step, loss=float(loss.detach()), distance=dist,
-                            penalty=float(penalty.detach()),
-                            robustness=float(aee(flow.detach(), run.benign).mean()),
-                            best_distance=best, seconds=time.perf_counter() - t0)
-        history.append(record)
-        on_step(record)
-        del flow, loss, distance, penalty, frames
-    return LpResult(best_particles=None, best_step=best_step, history=history,
-                    benign_flow=run.benign.cpu(), initial_flow=random_flow.cpu(),
-                    best_flow=best_flow, target=run.goal.cpu(), best_frames=best_frames,
-                    random_frames=tuple(r.cpu() for r in rand))
+    return lp_attack_batch(model, image1, image2, settings, target, seeds=[seed],
+                           target_file_flow=target_file_flow,
+                           on_step=lambda i, record: on_step(record))[0]
 
 
 def plan_lp(method: str, epsilon: Optional[float] = None, steps: Optional[int] = None,

@@ -35,7 +35,7 @@ from __future__ import annotations
 import math
 import time
 from dataclasses import dataclass, fields
-from typing import Callable, Optional
+from typing import Callable, Optional, Sequence
 
 import torch
 
@@ -174,76 +174,227 @@ def _snapshot(particles):
                                 for n in TENSOR_FIELDS})
 
 
-class PairOptimisation:
-    """One pair's attack state: frames on the device, the target, the rasterised stamps, the
-    free variables and the Adam optimiser. :func:`attack_pair` runs its steps; the benchmark
-    times exactly the same step.
+class BatchOptimisation:
+    """The attack state of B pairs of one size, optimised together: frames stacked on the device,
+    the targets, the rasterised stamps, each pair's own free variables and one Adam optimiser
+    over all of them. :func:`attack_batch` runs its steps; the benchmark times exactly the same
+    step.
 
-    Args: as :func:`attack_pair`.
-    Attributes: benign (1, 2, H, W) flow on the clean frames and goal (1, 2, H, W) target flow,
-    both on the device without gradient; variables (:class:`WeatherVariables`).
+    The loss that is differentiated is the *sum* of the pairs' losses. A pair's variables reach
+    only its own frames (the renderer never mixes pairs, the networks in eval mode treat batch
+    elements independently), so each pair's gradient is the gradient of its own loss, and Adam,
+    being elementwise, moves each pair's variables exactly as an optimiser of its own would: the
+    batch gives the results of B single-pair runs up to the order of floating-point reductions.
+
+    Args: as :func:`attack_batch`.
+    Attributes: benign (B, 2, H, W) flow on the clean frames and goal (B, 2, H, W) target flow,
+    both on the device without gradient; variables, a list of B :class:`WeatherVariables`.
     """
 
-    def __init__(self, model: torch.nn.Module, pair: FramePair, particles,
+    def __init__(self, model: torch.nn.Module, pairs: Sequence[FramePair], particles: Sequence,
                  settings: AttackSettings, target: TargetSpec = TargetSpec("zero"), *,
                  device=None, target_file_flow: Optional[torch.Tensor] = None):
-        check_pair_for_engine(pair)
+        pairs, records = list(pairs), list(particles)
+        if not pairs or len(pairs) != len(records):
+            raise ConfigError(f"{len(records)} particle records for {len(pairs)} frame pairs")
+        sizes = {tuple(p.image1.shape[-2:]) for p in pairs}
+        if len(sizes) != 1:
+            raise ConfigError(f"pairs optimised together must have one size; got {sorted(sizes)}")
         if device is None:
             params = list(model.parameters())
             device = params[0].device if params else torch.device("cpu")
         device = torch.device(device)
-        pair = pair.to(device)
-        frame, c1, c2 = reference_transforms(pair)
-        if particles.frame != frame:
-            raise ConfigError(f"particles live in {particles.frame} coordinates but the frame "
-                              f"pair offers {frame} coordinates (sample them for this pair)")
-        particles = particles.to(device=device, dtype=torch.float32)
-        self.model, self.settings = model, settings
-        self.frames = dict(image1=pair.image1[None], image2=pair.image2[None],
-                           depth1=pair.depth1[None], depth2=pair.depth2[None],
-                           intrinsics=pair.intrinsics[None], cam1_from_ref=c1[None],
-                           cam2_from_ref=c2[None])
+        frames: dict[str, list] = {k: [] for k in ("image1", "image2", "depth1", "depth2",
+                                                   "intrinsics", "cam1_from_ref", "cam2_from_ref")}
+        moved, transforms = [], []
+        for pair, record in zip(pairs, records):
+            check_pair_for_engine(pair)
+            pair = pair.to(device)
+            frame, c1, c2 = reference_transforms(pair)
+            if record.frame != frame:
+                raise ConfigError(f"particles live in {record.frame} coordinates but the frame "
+                                  f"pair offers {frame} coordinates (sample them for this pair)")
+            moved.append(record.to(device=device, dtype=torch.float32))
+            transforms.append((c1, c2))
+            for name in ("image1", "image2", "depth1", "depth2", "intrinsics"):
+                frames[name].append(getattr(pair, name))
+            frames["cam1_from_ref"].append(c1)
+            frames["cam2_from_ref"].append(c2)
+        self.model, self.settings, self.size = model, settings, len(pairs)
+        self.frames = {k: torch.stack(v) for k, v in frames.items()}
         with torch.no_grad():
             self.benign = model(self.frames["image1"], self.frames["image2"])
         self.goal = target_flow(target, self.benign, target_file_flow)
-        self.templates = load_templates(particles.settings.templates)
+        names = {r.settings.templates for r in moved}
+        if len(names) != 1:
+            raise ConfigError(f"pairs optimised together must share templates; got {sorted(names)}")
+        self.templates = load_templates(names.pop())
         # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
-        self.stamps = (build_stamps([particles], self.templates, device=device)
-                       if particles.count else None)
-        self.variables = WeatherVariables(particles, settings.optimize)
-        self.reg_depths = particle_depths(particles, c1, c2)
-        self.optimizer = torch.optim.Adam(self.variables.parameters(), lr=settings.learning_rate)
+        self.stamps = (build_stamps(moved, self.templates, device=device)
+                       if any(r.count for r in moved) else None)
+        self.variables = [WeatherVariables(r, settings.optimize) for r in moved]
+        self.reg_depths = [particle_depths(r, c1, c2) for r, (c1, c2) in zip(moved, transforms)]
+        self.optimizer = torch.optim.Adam([p for v in self.variables for p in v.parameters()],
+                                          lr=settings.learning_rate)
 
-    def render(self, particles):
-        """The weather frames of ``particles`` (a :class:`~weathergen.engine.RenderOutput`)."""
-        return render(**self.frames, particles=particles, templates=self.templates,
+    def render(self, particles: Sequence):
+        """The weather frames of B records (a :class:`~weathergen.engine.RenderOutput`)."""
+        return render(**self.frames, particles=list(particles), templates=self.templates,
                       beta=self.settings.beta, stamps=self.stamps)
 
     def evaluate(self):
         """Render the current variables and run the network.
 
-        Returns ``(particles, flow, loss, distance, penalty)``: the current record, the flow
-        (1, 2, H, W) and the 0-d terms of :func:`attack_loss`, all with gradient.
+        Returns ``(records, flow, losses, distances, penalties)``: the B current records, the
+        flow (B, 2, H, W) and the (B,) terms of each pair's :func:`attack_loss`, with gradient.
+        Sets ``self.depends`` (B bools): whether each pair's loss depends on its own free
+        variables (some particle reaches its frames, or the penalty has a freed offset), i.e.
+        whether that pair alone would have anything to optimise.
         """
-        current = self.variables.particles()
+        current = [v.particles() for v in self.variables]
         out = self.render(current)
         flow = self.model(out.image1, out.image2)
-        loss, distance, penalty = attack_loss(flow, self.goal, current, *self.reg_depths,
-                                              self.settings.alpha1, self.settings.alpha2)
-        return current, flow, loss, distance, penalty
+        distances = aee(flow, self.goal)
+        penalties = [offset_penalty(r.offset1, r.offset2, d1, d2, self.settings.alpha1,
+                                    self.settings.alpha2)
+                     for r, (d1, d2) in zip(current, self.reg_depths)]
+        reached = out.reached.tolist() if out.reached is not None else [True] * self.size
+        self.depends = [bool(r) and out.image1.requires_grad or p.requires_grad
+                        for r, p in zip(reached, penalties)]
+        return current, flow, distances + torch.stack(penalties), distances, torch.stack(penalties)
 
-    def update(self, loss: torch.Tensor) -> None:
-        """One Adam step on the free variables."""
+    def update(self, loss: torch.Tensor, active: Optional[Sequence[bool]] = None) -> None:
+        """One Adam step on the free variables of the ``active`` pairs (default: all), with
+        ``loss`` the sum of the pairs' losses."""
         self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
+        if active is not None:
+            for v, keep in zip(self.variables, active):
+                if not keep:
+                    for p in v.parameters():     # a finished pair keeps its variables
+                        p.grad = None
         self.optimizer.step()
+
+
+class PairOptimisation(BatchOptimisation):
+    """:class:`BatchOptimisation` of a single pair (B = 1), with single-pair accessors:
+    ``variables`` is the pair's :class:`WeatherVariables`, :meth:`render` takes one record and
+    :meth:`evaluate` returns ``(particles, flow, loss, distance, penalty)`` with 0-d terms.
+    """
+
+    def __init__(self, model: torch.nn.Module, pair: FramePair, particles,
+                 settings: AttackSettings, target: TargetSpec = TargetSpec("zero"), *,
+                 device=None, target_file_flow: Optional[torch.Tensor] = None):
+        super().__init__(model, [pair], [particles], settings, target, device=device,
+                         target_file_flow=target_file_flow)
+        self.variables = self.variables[0]
+
+    def render(self, particles):
+        return super().render([particles])
+
+    def evaluate(self):
+        self.variables, single = [self.variables], self.variables
+        try:
+            current, flow, losses, distances, penalties = super().evaluate()
+        finally:
+            self.variables = single
+        return current[0], flow, losses[0], distances[0], penalties[0]
+
+    def update(self, loss: torch.Tensor) -> None:
+        self.variables, single = [self.variables], self.variables
+        try:
+            super().update(loss)
+        finally:
+            self.variables = single
+
+
+def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: Sequence,
+                 settings: AttackSettings, target: TargetSpec = TargetSpec("zero"), *,
+                 device=None, target_file_flow: Optional[torch.Tensor] = None,
+                 on_step: Callable[[int, StepRecord], None] = lambda i, r: None
+                 ) -> list[AttackResult]:
+    """Optimise the records ``particles[i]`` in ``pairs[i]`` against ``model``, all pairs in one
+    forward and backward pass per step (see :class:`BatchOptimisation`).
+
+    Args:
+        model: a flow network with the package contract, (B, 3, H, W) x2 -> (B, 2, H, W), in
+            eval mode; its parameters are not changed.
+        pairs: B frame pairs of one size (clean frames, depth, cameras).
+        particles: B starting records, one per pair (e.g. from ``sample_particles``).
+        settings: :class:`AttackSettings`, shared by the pairs.
+        target: :class:`TargetSpec`; for ``"file"`` pass the file's flow as ``target_file_flow``
+            (2, H, W).
+        device: where rendering and the network run (default: the model's device).
+        on_step: called with the pair's index and every :class:`StepRecord` of that pair.
+    Returns: one :class:`AttackResult` per pair, each as :func:`attack_pair` gives it for that
+    pair alone (best step, history, freeze when nothing of the pair is visible); a record's
+    ``seconds`` is the time of the batched step.
+    """
+    run = BatchOptimisation(model, pairs, particles, settings, target, device=device,
+                            target_file_flow=target_file_flow)
+    size = run.size
+    history: list[list[StepRecord]] = [[] for _ in range(size)]
+    best = [math.inf] * size
+    best_step = [0] * size
+    best_particles: list = [None] * size
+    best_flow: list = [None] * size
+    initial_flow: list = [None] * size
+    frozen = [False] * size
+    active = [True] * size
+    steps = int(settings.steps)
+    for step in range(steps + 1):
+        t0 = time.perf_counter()
+        current, flow, losses, distances, penalties = run.evaluate()
+        dists = distances.detach().cpu().tolist()
+        for i in range(size):
+            if not active[i]:
+                continue
+            if step == 0:
+                initial_flow[i] = flow[i:i + 1].detach().cpu()
+            if dists[i] < best[i] or best_particles[i] is None:
+                best[i], best_step[i] = dists[i], step
+                best_particles[i], best_flow[i] = (_snapshot(current[i]),
+                                                   flow[i:i + 1].detach().cpu())
+        last = step == steps
+        finishing = [False] * size
+        if not last:
+            # A pair none of whose particles reaches its frames, and whose penalty depends on
+            # no freed variable, has nothing to optimise: it stops at this step.
+            finishing = [a and not d for a, d in zip(active, run.depends)]
+            going = [a and d for a, d in zip(active, run.depends)]
+            if any(going):
+                run.update(losses.sum(), going)
+        robustness = aee(flow.detach(), run.benign).cpu().tolist()
+        loss_values = losses.detach().cpu().tolist()
+        penalty_values = penalties.detach().cpu().tolist()
+        seconds = time.perf_counter() - t0
+        for i in range(size):
+            if not active[i]:
+                continue
+            record = StepRecord(step=step, loss=loss_values[i], distance=dists[i],
+                                penalty=penalty_values[i], robustness=robustness[i],
+                                best_distance=best[i], seconds=seconds)
+            history[i].append(record)
+            on_step(i, record)
+            if finishing[i]:
+                frozen[i], active[i] = True, False
+            if last:
+                active[i] = False
+        del flow, losses, distances, penalties, current
+        if not any(active):
+            break
+    benign, goal = run.benign.cpu(), run.goal.cpu()
+    return [AttackResult(best_particles=best_particles[i], best_step=best_step[i],
+                         history=history[i], benign_flow=benign[i:i + 1],
+                         initial_flow=initial_flow[i], best_flow=best_flow[i],
+                         target=goal[i:i + 1], frozen=frozen[i]) for i in range(size)]
 
 
 def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: AttackSettings,
                 target: TargetSpec = TargetSpec("zero"), *, device=None,
                 target_file_flow: Optional[torch.Tensor] = None,
                 on_step: Callable[[StepRecord], None] = lambda r: None) -> AttackResult:
-    """Optimise ``particles`` in ``pair`` against ``model``.
+    """Optimise ``particles`` in ``pair`` against ``model``: :func:`attack_batch` of one pair.
 
     Args:
         model: a flow network with the package contract, (1, 3, H, W) x2 -> (1, 2, H, W); its
@@ -257,42 +408,9 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
         on_step: called with every :class:`StepRecord` (for progress reports).
     Returns: :class:`AttackResult`.
     """
-    run = PairOptimisation(model, pair, particles, settings, target, device=device,
-                           target_file_flow=target_file_flow)
-    history: list[StepRecord] = []
-    best = math.inf
-    best_step, best_particles, best_flow, initial_flow = 0, None, None, None
-    frozen = False
-    steps = int(settings.steps)
-    for step in range(steps + 1):
-        t0 = time.perf_counter()
-        current, flow, loss, distance, penalty = run.evaluate()
-        dist = float(distance.detach())
-        if step == 0:
-            initial_flow = flow.detach().cpu()
-        if dist < best or best_particles is None:
-            best, best_step = dist, step
-            best_particles, best_flow = _snapshot(current), flow.detach().cpu()
-        last = step == steps
-        if not last:
-            if not loss.requires_grad:
-                # No particle reaches the frames and no penalty depends on a freed variable:
-                # there is nothing to optimise.
-                frozen, last = True, True
-            else:
-                run.update(loss)
-        record = StepRecord(step=step, loss=float(loss.detach()), distance=dist,
-                            penalty=float(penalty.detach()),
-                            robustness=float(aee(flow.detach(), run.benign).mean()),
-                            best_distance=best, seconds=time.perf_counter() - t0)
-        history.append(record)
-        on_step(record)
-        del flow, loss, distance, penalty, current
-        if last:
-            break
-    return AttackResult(best_particles=best_particles, best_step=best_step, history=history,
-                        benign_flow=run.benign.cpu(), initial_flow=initial_flow,
-                        best_flow=best_flow, target=run.goal.cpu(), frozen=frozen)
+    return attack_batch(model, [pair], [particles], settings, target, device=device,
+                        target_file_flow=target_file_flow,
+                        on_step=lambda i, record: on_step(record))[0]
 
 
 @dataclass

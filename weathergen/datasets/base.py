@@ -77,6 +77,28 @@ def frame_numbers(folder: Path, pattern) -> list[int]:
     return sorted(found)
 
 
+#: What each file key of the readers holds, for messages.
+FILE_ROLES = {
+    "image1": "first frame", "image2": "second frame", "depth1": "frame-1 depth",
+    "depth2": "frame-2 depth", "disp1": "frame-1 disparity", "disp2": "frame-2 disparity",
+    "flow": "ground-truth flow", "objects": "object map", "calib": "calibration",
+    "cameras": "camera", "intrinsics": "intrinsics", "extrinsics": "extrinsics",
+    "cam1": "frame-1 camera", "cam2": "frame-2 camera", "disp2_own": "frame-2 disparity",
+}
+
+ERROR, WARNING = "error", "warning"
+
+
+@dataclass(frozen=True)
+class Problem:
+    """One problem found by checking: ``kind`` says what is wrong (problems of one kind are listed
+    together), ``where`` names the file, frame or folder; warnings leave a pair readable."""
+
+    kind: str
+    where: str = ""
+    severity: str = ERROR
+
+
 @dataclass(frozen=True)
 class PairRef:
     """A frame pair as listed: its identity and the files it is read from (None when missing)."""
@@ -92,6 +114,9 @@ class Dataset(ABC):
     name: str = ""
     #: Keys of :attr:`PairRef.files` that every pair needs for weather (images, depth, cameras).
     required_files: tuple[str, ...] = ()
+    #: How flow networks pad this dataset's frames in its benchmark protocol: "even" (top and
+    #: bottom alike, as on Sintel) or "bottom" (KITTI); see :mod:`weathergen.models.padding`.
+    padding: str = "even"
 
     def __init__(self, root: str | Path, selection: Selection = Selection()):
         self.root = Path(root)
@@ -130,7 +155,8 @@ class Dataset(ABC):
         }
 
     def check(self, ref: PairRef) -> Optional[str]:
-        """None if the pair reads cleanly, else a one-line description of the first problem.
+        """None if the pair reads cleanly, else a one-line description of the first problem
+        (:func:`weathergen.datasets.checking.check_pair` lists them all).
 
         ``load`` names a missing file itself, with a hint where a split lacks it by design (the
         Sintel test split has no depth or cameras).
@@ -140,6 +166,39 @@ class Dataset(ABC):
         except WeatherGenError as exc:
             return str(exc)
         return None
+
+    # -- checking (see weathergen.datasets.checking) -----------------------------------------------
+    def needed_files(self, ref: PairRef) -> tuple[str, ...]:
+        """Keys of ``ref.files`` the pair cannot be read without."""
+        return self.required_files
+
+    def missing_hint(self, key: str) -> str:
+        """Said after "file is missing" where a split lacks a file by design (a test split)."""
+        return ""
+
+    def missing_files(self, ref: PairRef) -> list[Problem]:
+        """One problem per needed file that does not exist (all of them, not only the first)."""
+        out = []
+        for key in self.needed_files(ref):
+            path = ref.files.get(key)
+            if path is None or not Path(path).exists():
+                # "frame-1 depth" and "frame-2 depth" are one kind of problem: "depth"
+                role = FILE_ROLES.get(key, key).replace("frame-1 ", "").replace("frame-2 ", "")
+                role = {"first frame": "frame", "second frame": "frame"}.get(role, role)
+                out.append(Problem(f"{role} file is missing{self.missing_hint(key)}", str(path)))
+        return out
+
+    def scene_problems(self) -> dict[str, list[Problem]]:
+        """Problems of whole scenes found while listing (scene -> problems); none by default."""
+        return {}
+
+    def pair_warnings(self, ref: PairRef, pair: FramePair) -> list[Problem]:
+        """Warnings about a pair that loaded (for example little valid depth); none by default."""
+        return []
+
+    def pair_notes(self, pair: FramePair) -> list[str]:
+        """Figures worth showing for a loaded pair (KITTI: the camera motion); none by default."""
+        return []
 
     def __iter__(self):
         for ref in self.pairs():

@@ -12,7 +12,7 @@ import torch
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
 from ..geometry import invert_rigid, to_homogeneous
-from .base import Dataset, Selection
+from .base import FILE_ROLES, Dataset, Selection
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
 #: and regions no measurement reaches. Far beyond where weather particles are placed.
@@ -148,15 +148,6 @@ class FarDepthDataset(ScaledDataset):
         out = super().describe()
         out.update(far_depth=self.far_depth)
         return out
-
-
-#: What each file key of the readers holds, for messages.
-FILE_ROLES = {
-    "image1": "first frame", "image2": "second frame", "depth1": "frame-1 depth",
-    "depth2": "frame-2 depth", "disp1": "frame-1 disparity", "disp2": "frame-2 disparity",
-    "flow": "ground-truth flow", "objects": "object map", "calib": "calibration",
-    "cameras": "camera", "intrinsics": "intrinsics", "extrinsics": "extrinsics",
-}
 
 
 def require_files(files: dict, keys: tuple[str, ...], hint: str = "") -> None:

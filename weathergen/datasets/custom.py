@@ -2,40 +2,52 @@
 
 Layout below the root (several scenes), or the root itself as the single scene::
 
-    SCENE/frames/0000.png         frames (8- or 16-bit PNG); the stem ends in the frame number
+    SCENE/frames/0000.png         frames (8- or 16-bit PNG, or JPEG), any names (see below)
     SCENE/depth/0000.npy          depth of each frame, same stem: .npy, 16-bit .png or .exr
     SCENE/cameras.json            intrinsics and one pose per frame (or cameras.txt)
     SCENE/flow/0000.flo           optional: flow from this frame to the next one (Middlebury .flo)
 
-Frame pairs are consecutive frames in numeric order (the numbers need not be contiguous). The
-split option does not apply (leave it at ``training``).
+Frame order and pairs (:mod:`~weathergen.datasets.framenames`): consecutive frames in order are
+the pairs. Where the names differ in one run of digits (``0000.png``, ``000012_left.png``,
+``frame7.png``), that run is the frame number and sets the order; otherwise the frames are in
+natural name order and numbered by position from 0. A ``frame_pattern`` (a glob such as
+``*_left.png``) picks the frames among other files; frames named in several ways without one are
+a problem that ``check`` explains. The camera file names frames by that number (or, in JSON, by the
+frame file's stem). The split option does not apply (leave it at ``training``).
 
 Conventions of the camera file (defaults in brackets): ``pose`` [cam_from_world] or
 world_from_cam; ``axes`` [opencv] (x right, y down, z forward) or opengl (x right, y up, z backward,
 as Blender and OpenGL cameras); ``depth`` [z] (camera-z distance) or range (distance along the
-ray); ``depth_png_scale`` (scene units per PNG step, required for PNG depth). Depth values that are
-0, NaN or infinite count as missing and get ``far_depth``; ``depth_measured1/2`` mark the rest.
+ray); ``depth_png_scale`` (scene units per PNG step, required for PNG depth).
+
+Valid depth. Depth values that are zero, negative, NaN or infinite are invalid: they get
+``far_depth`` and ``depth_measured1/2`` mark the valid rest. A frame without any valid depth is an
+error (with a hint about the sign convention when its values are negative); a frame whose valid
+fraction is below ``min_valid_depth`` (default 0.5) gets a warning from ``check``.
 """
 
 from __future__ import annotations
 
-import re
 from functools import lru_cache
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
 
-from ..errors import DatasetError, FormatError
+from ..errors import ConfigError, DatasetError, FormatError
 from ..framepair import FramePair, PairId
 from ..geometry import backproject, invert_rigid
 from ..io.custom_formats import DEPTH_SUFFIXES, CameraFile, read_camera_file, read_depth
 from ..io.images import read_image
 from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
+from .base import ERROR, WARNING, Problem
 from .common import FarDepthDataset, check_size, require_files
+from .framenames import order_frames
 
-_FRAME_RE = re.compile(r"^(.*?)(\d+)\.png$", re.IGNORECASE)
+#: Below this fraction of valid depth in a frame, ``check`` warns.
+DEFAULT_MIN_VALID_DEPTH = 0.5
 #: OpenGL camera axes (y up, z backward) -> OpenCV camera axes (y down, z forward)
 _CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -45,10 +57,18 @@ class CustomDataset(FarDepthDataset):
 
     name = "custom"
     split_folders = {"training": "."}
+    required_files = ("image1", "image2", "cameras", "depth1", "depth2")
 
-    def __init__(self, root, selection: Selection = Selection(), **options):
+    def __init__(self, root, selection: Selection = Selection(), *, frame_pattern: Optional[str] = None,
+                 min_valid_depth: float = DEFAULT_MIN_VALID_DEPTH, **options):
         super().__init__(root, selection, **options)
+        if not 0 <= min_valid_depth <= 1:
+            raise ConfigError(f"minimum valid-depth fraction must be in [0, 1], got {min_valid_depth}")
+        self.frame_pattern = frame_pattern
+        self.min_valid_depth = float(min_valid_depth)
         self._cameras = lru_cache(maxsize=8)(read_camera_file)
+        self._scene_problems: dict[str, list[Problem]] = {}
+        self._numbers: dict[str, int] = {}      # second frame of each listed pair -> its number
 
     # -- listing ---------------------------------------------------------------------------------
     def scene_dirs(self) -> dict[str, Path]:
@@ -65,34 +85,59 @@ class CustomDataset(FarDepthDataset):
         return sorted(self.scene_dirs())
 
     def frames(self, scene_dir: Path) -> dict[int, Path]:
-        """Frame number -> frame file. Two files with one number are an error."""
-        out: dict[int, Path] = {}
-        for p in sorted((scene_dir / "frames").iterdir()):
-            m = _FRAME_RE.match(p.name)
-            if not m:
-                continue
-            n = int(m.group(2))
-            if n in out:
-                raise DatasetError(f"{p}: frame number {n} is also used by {out[n].name}")
-            out[n] = p
-        return out
+        """Frame number -> frame file, in order. Raises :class:`DatasetError` saying why the
+        folder's images cannot be paired."""
+        folder = scene_dir / "frames"
+        order = order_frames([p.name for p in folder.iterdir() if p.is_file()], self.frame_pattern)
+        if order.problem:
+            raise DatasetError(f"{folder}: {order.problem}")
+        return {n: folder / name for n, name in order.frames}
 
     def pairs(self) -> list[PairRef]:
         dirs = self.scene_dirs()
         sel = self.selection
         refs = []
+        self._scene_problems = {}
         for scene in sel.pick_scenes(list(dirs), self.root):
-            frames = self.frames(dirs[scene])
-            numbers = sorted(frames)
+            try:
+                frames = self.frames(dirs[scene])
+            except DatasetError as exc:
+                # one scene that cannot be paired does not hide the others; check reports it
+                folder = str(dirs[scene] / "frames")
+                self._scene_problems[scene] = [
+                    Problem("frames cannot be paired: " + str(exc)[len(folder) + 2:], folder)]
+                continue
+            numbers = list(frames)
             starts = list(zip(numbers[:-1], numbers[1:]))
             if sel.first_frame is not None:
                 starts = [s for s in starts if s[0] >= sel.first_frame]
             if sel.frames_per_scene is not None:
                 starts = starts[: sel.frames_per_scene]
             for a, b in starts:
+                self._numbers[str(frames[b])] = b
                 refs.append(PairRef(PairId(self.name, sel.split, scene, a),
                                     self._files(dirs[scene], frames[a], frames[b])))
+        if not refs and self._scene_problems:
+            first = next(iter(self._scene_problems.values()))[0]
+            raise DatasetError(f"{first.where}: {first.kind}")
         return refs
+
+    def scene_problems(self) -> dict[str, list[Problem]]:
+        return dict(self._scene_problems)
+
+    def pair_warnings(self, ref: PairRef, pair: FramePair) -> list[Problem]:
+        out = []
+        for i, key in enumerate(("depth1", "depth2")):
+            stats = pair.meta.get("depth_values", [{}, {}])[i]
+            valid = stats.get("valid", 1.0)
+            where = f"{ref.files[key]} ({100 * valid:.0f}% valid)"
+            if valid < self.min_valid_depth:
+                out.append(Problem(f"less than {100 * self.min_valid_depth:g}% of the depth is valid "
+                                   f"(the rest gets the far depth)", where, WARNING))
+            if stats.get("negative", 0):
+                out.append(Problem(_NEGATIVE_HINT, f"{ref.files[key]} "
+                                   f"({100 * stats['negative']:.0f}% negative)", WARNING))
+        return out
 
     @staticmethod
     def _files(scene_dir: Path, frame1: Path, frame2: Path) -> dict:
@@ -116,17 +161,25 @@ class CustomDataset(FarDepthDataset):
         check_size(files["image2"], "frame", img2.shape, size)
 
         cams: CameraFile = self._cameras(Path(files["cameras"]))
-        n1, n2 = (int(_FRAME_RE.match(Path(files[k]).name).group(2)) for k in ("image1", "image2"))
-        (e1, k1), (e2, k2) = (self._camera(cams, files["cameras"], n) for n in (n1, n2))
+        n1, n2 = ref.id.frame, self._numbers.get(str(files["image2"]), ref.id.frame + 1)
+        (e1, k1), (e2, k2) = (self._camera(cams, files["cameras"], n, Path(files[key]).stem)
+                              for n, key in ((n1, "image1"), (n2, "image2")))
         if not np.allclose(k1, k2, rtol=1e-6, atol=1e-6):
             raise DatasetError(f"{files['cameras']}: frames {n1} and {n2} have different intrinsics; "
                                f"a frame pair holds one camera matrix")
 
-        depths, measured = [], []
+        depths, measured, values = [], [], []
         for key in ("depth1", "depth2"):
             d = read_depth(files[key], cams.depth_png_scale)
             check_size(files[key], "depth", d.shape, size)
             ok = np.isfinite(d) & (d > 0)
+            with np.errstate(invalid="ignore"):
+                negative = float((d < 0).mean())
+            if not ok.any():
+                reason = (f"{100 * negative:.0f}% of its values are negative: {_NEGATIVE_HINT}"
+                          if negative else "every value is zero, NaN or infinite")
+                raise DatasetError(f"{files[key]}: no valid depth in this frame; {reason}")
+            values.append({"valid": round(float(ok.mean()), 4), "negative": round(negative, 4)})
             if cams.depth == "range":
                 d = _range_to_z(d, k1)
             depths.append(np.where(ok, d, self.far_depth).astype(np.float32))
@@ -144,14 +197,22 @@ class CustomDataset(FarDepthDataset):
         return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
                                flow_valid=flow_valid, measured=measured,
                                meta={"far_depth": self.far_depth, "pose": cams.pose,
-                                     "axes": cams.axes, "depth": cams.depth})
+                                     "axes": cams.axes, "depth": cams.depth,
+                                     "depth_values": values})
+
+    def describe(self) -> dict:
+        out = super().describe()
+        out.update(frame_pattern=self.frame_pattern, min_valid_depth=self.min_valid_depth)
+        return out
 
     @staticmethod
-    def _camera(cams: CameraFile, path, number: int) -> tuple[np.ndarray, np.ndarray]:
-        """``(cam_from_world (4, 4) in OpenCV axes, intrinsics (3, 3))`` of one frame."""
-        if number not in cams.frames:
-            raise FormatError(path, f"has no pose for frame {number}")
-        pose, k = cams.frames[number]
+    def _camera(cams: CameraFile, path, number: int, stem: str) -> tuple[np.ndarray, np.ndarray]:
+        """``(cam_from_world (4, 4) in OpenCV axes, intrinsics (3, 3))`` of one frame, named in the
+        camera file by its stem or its number."""
+        key = stem if stem in cams.frames else number
+        if key not in cams.frames:
+            raise FormatError(path, f"has no pose for frame {number} ({stem})")
+        pose, k = cams.frames[key]
         k = k if k is not None else cams.intrinsics
         if k is None:
             raise FormatError(path, f"has no intrinsics for frame {number} (give 'intrinsics' at the top)")
@@ -159,6 +220,11 @@ class CustomDataset(FarDepthDataset):
         if cams.axes == "opengl":
             cam_from_world = _CV_FROM_GL @ cam_from_world
         return cam_from_world, k
+
+
+_NEGATIVE_HINT = ("negative depth is counted as missing; depth must be the positive camera-z distance "
+                  "(if your maps store negative values, e.g. OpenGL's -z or a signed disparity, "
+                  "negate them)")
 
 
 def _range_to_z(distance: np.ndarray, k: np.ndarray) -> np.ndarray:

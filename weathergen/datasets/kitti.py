@@ -3,11 +3,12 @@
 Layout below the root (the ``data_scene_flow`` folder; ``SPLIT`` is ``training`` or ``testing``)::
 
     SPLIT/image_2/NNNNNN_10.png, NNNNNN_11.png   left colour frames (the pair)
+    SPLIT/calib_cam_to_cam/NNNNNN.txt            P_rect_02, P_rect_03
     SPLIT/disp_occ_0/NNNNNN_10.png               disparity of frame 10 (sparse, 16-bit / 256)
     SPLIT/disp_occ_1/NNNNNN_10.png               disparity of frame 11, at the frame-10 pixels
     SPLIT/flow_occ/NNNNNN_10.png                 flow 10 -> 11 (sparse, 16-bit u, v, valid)
-    SPLIT/obj_map/NNNNNN_10.png                  0 = static background, 1, 2, ... moving objects
-    SPLIT/calib_cam_to_cam/NNNNNN.txt            P_rect_02, P_rect_03
+    SPLIT/obj_map/NNNNNN_10.png                  optional: 0 = static background, 1, 2, ... moving
+    SPLIT/disp_occ_0/NNNNNN_11.png               optional: disparity of frame 11 at its own pixels
 
 A pair is identified as scene ``NNNNNN``, frame 10.
 
@@ -18,31 +19,42 @@ it is filled in with an edge-aware interpolation guided by the frame
 measurement (the sky, and everything above the laser scanner's field of view) get ``far_depth``.
 ``depth_measured1/2`` in the record mark the measured pixels.
 
-Frame-2 depth. ``disp_occ_1`` holds frame 11's disparity *at frame-10 pixels*: the disparity the
-point seen at ``p`` in frame 10 has in frame 11, where it appears at ``p + flow(p)``. We move each
-such measurement to its frame-11 pixel (forward warping with the ground-truth flow, rounded to the
+Frame-2 depth. ``disp_occ_0/NNNNNN_11.png``, where it exists (for example a stereo network's
+prediction for frame 11), is frame 11's disparity at its own pixels and is used as it is.
+Otherwise ``disp_occ_1`` gives frame 11's disparity *at frame-10 pixels*: the disparity the point
+seen at ``p`` in frame 10 has in frame 11, where it appears at ``p + flow(p)``. We move each such
+measurement to its frame-11 pixel (forward warping with the ground-truth flow, rounded to the
 nearest pixel; where two land on one pixel the nearer surface wins) and fill the result guided by
 frame 11, exactly as for frame 10. This uses the measurements of moving objects too, which a depth
 computed from the camera-motion fit could not.
 
-Camera motion. KITTI has no poses, so ``cam2_from_cam1`` is estimated from the static background
-(``obj_map == 0``): every background pixel with valid flow and both disparities gives a 3D point in
-each camera, and a robust rigid fit (RANSAC + least squares,
-:func:`~weathergen.datasets.posefit.fit_camera_motion`) finds the motion. The record's
-``meta["camera_motion"]`` reports the fit (inliers, RMS residual in pixels). A pair is refused, with
-a one-line message, when fewer than ``min_static_points`` background points exist or fewer than
-``min_inlier_fraction`` of them agree with the motion within ``fit_threshold_px``.
+Camera motion. KITTI has no poses, so ``cam2_from_cam1`` is estimated
+(:mod:`~weathergen.datasets.camera_motion`): every pixel with valid flow and frame-10 disparity
+gives a 3D point in camera 10 and the pixel where it appears in frame 11, and OpenCV's robust
+perspective-n-point solver (RANSAC, then Levenberg-Marquardt on the inliers' reprojection error)
+finds the motion that the static scene agrees on. Moving objects are outliers; ``obj_map``, when
+present, removes them beforehand (``use_object_map=False`` ignores it). Without flow (the testing
+split with your own disparities), correspondences come from SIFT feature matching between the two
+frames, with frame-10 depth from the densified disparity.
+The record's ``meta["camera_motion"]`` reports the motion (translation, rotation angle), the
+inlier fraction and the reprojection error. A pair is refused, with a message naming it and giving
+these figures, when fewer than ``fit.min_points`` correspondences exist, when fewer than
+``fit.min_inlier_fraction`` of them agree within ``fit.threshold_px``, or when the inliers' RMS
+error exceeds ``fit.max_rms_px`` (:class:`~weathergen.datasets.camera_motion.FitSettings`).
 There is no world frame: ``cam1_from_world`` and ``cam2_from_world`` are None.
 
-Testing split. It ships only frames and calibration: no disparity, flow or object map, so neither
-depth nor camera motion exist there and loading a testing pair fails with a message saying so
-(listing and ``check`` work). Weather needs the training split.
+Testing split. It ships only frames and calibration: no disparity, flow or object map, so there is
+no depth and loading a testing pair fails with a message saying so (listing and ``check`` work).
+Put disparities of your own (a stereo network's) as ``disp_occ_0/NNNNNN_10.png`` and
+``disp_occ_0/NNNNNN_11.png`` to render weather into it.
 """
 
 from __future__ import annotations
 
 import re
+from dataclasses import replace
 from pathlib import Path
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -53,9 +65,10 @@ from ..framepair import FramePair, PairId
 from ..io.images import read_image
 from ..io.kitti_formats import read_disparity_png, read_flow_png, read_object_map, stereo_camera
 from .base import PairRef, Selection
+from .camera_motion import (FitSettings, MotionFit, backproject_pixels, check_fit, fit_motion_pnp,
+                            match_features)
 from .common import FarDepthDataset, check_size, chw, require_files, scaled_motion
 from .densify import fill_sparse
-from .posefit import fit_camera_motion
 
 _IMAGE_RE = re.compile(r"^(\d{6})_(\d{2})\.png$")
 #: KITTI 2015 gives ground truth for the pair (10, 11) only.
@@ -67,29 +80,36 @@ OCCLUSION_RATIO = 0.8
 
 
 class KittiDataset(FarDepthDataset):
-    """Pairs (10, 11) of every KITTI 2015 scene-flow sequence, with densified depth and fitted motion."""
+    """Pairs (10, 11) of every KITTI 2015 scene-flow sequence, with densified depth and fitted motion.
+
+    ``fit`` holds the camera-motion fit's thresholds (:class:`FitSettings`); the keyword options
+    ``fit_threshold_px``, ``fit_min_points``, ``fit_min_inlier_fraction`` and ``fit_max_rms_px``
+    set its fields one by one (as the command line does).
+    """
 
     name = "kitti"
     default_world_up = "-y"          # no world frame: camera 1 is the world, and KITTI's rig is level
     split_folders = {"training": "training", "train": "training", "testing": "testing", "test": "testing"}
+    #: Flow networks are evaluated on KITTI with the padding at the bottom (and split left/right).
+    padding = "bottom"
 
     def __init__(self, root, selection: Selection = Selection(), *, max_gap_px: float = 24.0,
-                 fit_threshold_px: float = 2.0, min_static_points: int = 200,
-                 min_inlier_fraction: float = 0.6, **options):
+                 fit: Optional[FitSettings] = None, fit_threshold_px: Optional[float] = None,
+                 fit_min_points: Optional[int] = None,
+                 fit_min_inlier_fraction: Optional[float] = None,
+                 fit_max_rms_px: Optional[float] = None, use_object_map: bool = True, **options):
         super().__init__(root, selection, **options)
         if not max_gap_px >= 0:
             raise ConfigError(f"max_gap_px must be zero or positive, got {max_gap_px}")
-        if not fit_threshold_px > 0:
-            raise ConfigError(f"fit_threshold_px must be positive, got {fit_threshold_px}")
-        if int(min_static_points) < 3:
-            # a rigid motion needs three points; fewer would reach the fit and fail there
-            raise ConfigError(f"min_static_points must be at least 3, got {min_static_points}")
-        if not 0 < min_inlier_fraction <= 1:
-            raise ConfigError(f"min_inlier_fraction must be in (0, 1], got {min_inlier_fraction}")
+        fit = fit or FitSettings()
+        overrides = {k: v for k, v in (("threshold_px", fit_threshold_px), ("min_points", fit_min_points),
+                                        ("min_inlier_fraction", fit_min_inlier_fraction),
+                                        ("max_rms_px", fit_max_rms_px)) if v is not None}
+        if overrides:
+            fit = replace(fit, **overrides)
         self.max_gap_px = float(max_gap_px)
-        self.fit_threshold_px = float(fit_threshold_px)
-        self.min_static_points = int(min_static_points)
-        self.min_inlier_fraction = float(min_inlier_fraction)
+        self.fit = fit
+        self.use_object_map = bool(use_object_map)
 
     @property
     def testing(self) -> bool:
@@ -132,17 +152,42 @@ class KittiDataset(FarDepthDataset):
             "calib": s / "calib_cam_to_cam" / f"{scene}.txt",
             "disp1": s / "disp_occ_0" / f"{scene}_10.png",
             "disp2": s / "disp_occ_1" / f"{scene}_10.png",
+            "disp2_own": s / "disp_occ_0" / f"{scene}_11.png",
             "flow": s / "flow_occ" / f"{scene}_10.png",
             "objects": s / "obj_map" / f"{scene}_10.png",
         }
+
+    def needed_files(self, ref: PairRef) -> tuple[str, ...]:
+        """Keys of the files this pair cannot do without (the optional ones depend on the others)."""
+        files = ref.files
+        keys = ["image1", "image2", "calib", "disp1"]
+        if not Path(files["disp2_own"]).exists():
+            keys += ["disp2", "flow"]
+        return tuple(keys)
+
+    def missing_hint(self, key: str) -> str:
+        if self.testing and key in ("disp1", "disp2", "flow"):
+            return (" (the KITTI testing split ships no disparity or flow, so it has no depth; use "
+                    "the training split, or put disparities of your own as "
+                    "disp_occ_0/NNNNNN_10.png and disp_occ_0/NNNNNN_11.png)")
+        return ""
+
+    def pair_notes(self, pair: FramePair) -> list[str]:
+        fit = pair.meta.get("camera_motion")
+        if not fit:
+            return []
+        t = fit["translation"]
+        return [f"camera motion t=({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}), rotation {fit['rotation_deg']:.2f}°, "
+                f"{100 * fit['inlier_fraction']:.0f}% of {fit['points']} points within "
+                f"{fit['threshold_px']:g} px, RMS {fit['rms_px']:.2f} px"]
 
     # -- reading ---------------------------------------------------------------------------------
     def load(self, ref: PairRef) -> FramePair:
         files = ref.files
         require_files(files, ("image1", "image2", "calib"))
-        hint = (" (the KITTI testing split ships no disparity, flow or object maps, so it has no "
-                "depth and no camera motion; use the training split)") if self.testing else ""
-        require_files(files, ("disp1", "disp2", "flow", "objects"), hint)
+        hint = self.missing_hint("disp1")
+        own2 = Path(files["disp2_own"]).exists()
+        require_files(files, ("disp1",) if own2 else ("disp1", "disp2", "flow"), hint)
 
         img1, img2 = read_image(files["image1"]), read_image(files["image2"])
         size = img1.shape[:2]
@@ -152,19 +197,27 @@ class KittiDataset(FarDepthDataset):
 
         disp1, valid1 = read_disparity_png(files["disp1"])
         check_size(files["disp1"], "disparity", disp1.shape, size)
-        disp2_at1, valid2_at1 = read_disparity_png(files["disp2"])
-        check_size(files["disp2"], "disparity", disp2_at1.shape, size)
-        flow, flow_valid = read_flow_png(files["flow"])
-        check_size(files["flow"], "flow", flow.shape, size)
-        objects = read_object_map(files["objects"])
-        check_size(files["objects"], "object map", objects.shape, size)
+        flow = flow_valid = None
+        if Path(files["flow"]).exists():
+            flow, flow_valid = read_flow_png(files["flow"])
+            check_size(files["flow"], "flow", flow.shape, size)
+        objects = None
+        if self.use_object_map and Path(files["objects"]).exists():
+            objects = read_object_map(files["objects"])
+            check_size(files["objects"], "object map", objects.shape, size)
 
-        fit = self._fit_motion(files, k, baseline, disp1, valid1, disp2_at1, valid2_at1, flow,
-                               flow_valid, objects)
+        if own2:
+            disp2, valid2 = read_disparity_png(files["disp2_own"])
+            check_size(files["disp2_own"], "disparity", disp2.shape, size)
+        else:
+            disp2_at1, valid2_at1 = read_disparity_png(files["disp2"])
+            check_size(files["disp2"], "disparity", disp2_at1.shape, size)
+            disp2, valid2 = forward_warp_disparity(disp2_at1, valid2_at1 & flow_valid, flow)
+        depth1, known1 = self._dense_depth(disp1, valid1, img1, focal_baseline)
+        depth2, _ = self._dense_depth(disp2, valid2, img2, focal_baseline)
 
-        disp2, valid2 = forward_warp_disparity(disp2_at1, valid2_at1 & flow_valid, flow)
-        depth1 = self._dense_depth(disp1, valid1, img1, focal_baseline)
-        depth2 = self._dense_depth(disp2, valid2, img2, focal_baseline)
+        fit = self._fit_motion(ref, files, k, depth1, known1, valid1, img1, img2, flow, flow_valid,
+                               objects)
 
         scale = self.scale_of(ref.id.scene)
         return FramePair(
@@ -173,55 +226,63 @@ class KittiDataset(FarDepthDataset):
             depth1=chw(depth1 * np.float32(scale)), depth2=chw(depth2 * np.float32(scale)),
             intrinsics=torch.from_numpy(k),
             cam2_from_cam1=scaled_motion(fit.cam2_from_cam1, scale, self.camera_translation),
-            flow=chw(flow), flow_valid=chw(flow_valid),
+            flow=None if flow is None else chw(flow),
+            flow_valid=None if flow_valid is None else chw(flow_valid),
             depth_measured1=chw(valid1), depth_measured2=chw(valid2),
-            sources={key: Path(v) for key, v in files.items()},
+            sources={key: Path(v) for key, v in files.items() if Path(v).exists()},
             depth_scale=scale,
             meta={"camera_motion": fit.summary(), "baseline_m": baseline, "far_depth": self.far_depth},
         ).validate()
 
-    def _dense_depth(self, disparity, valid, image, focal_baseline) -> np.ndarray:
+    def _dense_depth(self, disparity, valid, image, focal_baseline) -> tuple[np.ndarray, np.ndarray]:
         filled, known = fill_sparse(disparity, valid, image, max_gap_px=self.max_gap_px)
         depth = np.full(disparity.shape, self.far_depth, np.float32)
         depth[known] = focal_baseline / filled[known]
-        return depth
+        return depth, known
 
-    def _fit_motion(self, files, k, baseline, disp1, valid1, disp2_at1, valid2_at1, flow, flow_valid,
-                    objects):
-        focal_baseline = k[0, 0] * baseline
-        static = (objects == 0) & valid1 & valid2_at1 & flow_valid
-        n = int(static.sum())
-        if n < self.min_static_points:
-            raise DatasetError(
-                f"{files['objects']}: only {n} static background pixels have flow and both "
-                f"disparities; the camera-motion fit needs at least {self.min_static_points}")
-        ys, xs = np.nonzero(static)
-        pix1 = np.stack([xs, ys], 1).astype(np.float64)
-        pix2 = pix1 + flow[ys, xs].astype(np.float64)
-        points1 = _backproject(pix1, focal_baseline / disp1[ys, xs].astype(np.float64), k)
-        points2 = _backproject(pix2, focal_baseline / disp2_at1[ys, xs].astype(np.float64), k)
-        fit = fit_camera_motion(points1, points2, k, baseline, threshold_px=self.fit_threshold_px)
-        if fit.inlier_fraction < self.min_inlier_fraction:
-            raise DatasetError(
-                f"{files['flow']}: camera-motion fit is bad: only {100 * fit.inlier_fraction:.0f}% of "
-                f"{n} static points agree with one rigid motion within {self.fit_threshold_px:g} px "
-                f"(median residual {fit.median_px:.2f} px; at least "
-                f"{100 * self.min_inlier_fraction:.0f}% required)")
+    def _fit_motion(self, ref, files, k, depth1, known1, valid1, img1, img2, flow, flow_valid,
+                    objects) -> MotionFit:
+        """The camera motion of a pair, from flow where it exists, else from matched features."""
+        pair = f"pair {ref.id.scene} (frames 10-11)"
+        if flow is not None:
+            usable = valid1 & flow_valid
+            if objects is not None:
+                usable &= objects == 0
+            ys, xs = np.nonzero(usable)
+            pix1 = np.stack([xs, ys], 1).astype(np.float64)
+            pix2 = pix1 + flow[ys, xs].astype(np.float64)
+            z1 = depth1[ys, xs].astype(np.float64)
+            source, where = "flow", files["flow"]
+            count_where = files["objects"] if objects is not None else where
+            what = ("static pixels (obj_map 0) with" if objects is not None else "pixels with") + \
+                " flow and frame-10 disparity"
+        else:
+            pix1, pix2 = match_features(img1, img2)
+            xi = np.clip(np.rint(pix1[:, 0]).astype(int), 0, depth1.shape[1] - 1)
+            yi = np.clip(np.rint(pix1[:, 1]).astype(int), 0, depth1.shape[0] - 1)
+            keep = known1[yi, xi]
+            if objects is not None:
+                keep &= objects[yi, xi] == 0
+            pix1, pix2 = pix1[keep], pix2[keep]
+            z1 = depth1[yi[keep], xi[keep]].astype(np.float64)
+            source, where = "features", files["image2"]
+            count_where = where
+            what = "matched features (no flow_occ file) on pixels with frame-10 depth"
+        n = len(pix1)
+        if n < self.fit.min_points:
+            raise DatasetError(f"{count_where}: camera motion of {pair}: only {n} {what}; the fit needs "
+                               f"at least {self.fit.min_points}")
+        fit = fit_motion_pnp(backproject_pixels(pix1, z1, k), pix2, k, self.fit, source=source)
+        problem = check_fit(fit, self.fit)
+        if problem:
+            raise DatasetError(f"{where}: camera motion of {pair} is not trusted: {problem}")
         return fit
 
     def describe(self) -> dict:
         out = super().describe()
-        out.update(max_gap_px=self.max_gap_px, fit_threshold_px=self.fit_threshold_px,
-                   min_static_points=self.min_static_points,
-                   min_inlier_fraction=self.min_inlier_fraction)
+        out.update(max_gap_px=self.max_gap_px, use_object_map=self.use_object_map,
+                   **self.fit.describe())
         return out
-
-
-def _backproject(pixels: np.ndarray, z: np.ndarray, k: np.ndarray) -> np.ndarray:
-    """Camera points of pixels at camera-z depths. Shape: (N, 2), (N,), (3, 3) -> (N, 3)."""
-    y = (pixels[:, 1] - k[1, 2]) / k[1, 1]
-    x = (pixels[:, 0] - k[0, 2] - k[0, 1] * y) / k[0, 0]
-    return np.stack([x * z, y * z, z], 1)
 
 
 def forward_warp_disparity(disparity: np.ndarray, valid: np.ndarray,

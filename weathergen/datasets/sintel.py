@@ -142,12 +142,16 @@ class SintelDataset(ScaledDataset):
         }
 
     # -- reading ---------------------------------------------------------------------------------
+    def missing_hint(self, key: str) -> str:
+        if self.selection.split == "test" and key in ("depth1", "depth2", "cam1", "cam2"):
+            return " (the Sintel test split ships no depth or camera files, which weather needs)"
+        return ""
+
     def load(self, ref: PairRef) -> FramePair:
         files = ref.files
         for key in ("depth1", "depth2", "cam1", "cam2"):
             if not Path(files[key]).exists():
-                hint = (" (the Sintel test split ships no depth or camera files, which weather needs)"
-                        if self.selection.split == "test" else "")
+                hint = self.missing_hint(key)
                 raise DatasetError(f"{files[key]}: {'depth' if 'depth' in key else 'camera'} "
                                    f"file is missing{hint}")
         img1, img2 = read_image(files["image1"]), read_image(files["image2"])

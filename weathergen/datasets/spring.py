@@ -99,12 +99,18 @@ class SpringDataset(FarDepthDataset):
         }
 
     # -- reading ---------------------------------------------------------------------------------
+    required_files = ("image1", "image2", "disp1", "disp2", "intrinsics", "extrinsics")
+
+    def missing_hint(self, key: str) -> str:
+        if self.split_dir.name == "test" and key in ("disp1", "disp2"):
+            return (" (the Spring test split ships no disparity, so it has no depth and weather "
+                    "cannot be placed; use the train split)")
+        return ""
+
     def load(self, ref: PairRef) -> FramePair:
         files = ref.files
         require_files(files, ("image1", "image2"))
-        hint = (" (the Spring test split ships no disparity, so it has no depth and weather cannot "
-                "be placed; use the train split)" if self.split_dir.name == "test" else "")
-        require_files(files, ("disp1", "disp2"), hint)
+        require_files(files, ("disp1", "disp2"), self.missing_hint("disp1"))
         require_files(files, ("intrinsics", "extrinsics"))
         f = ref.id.frame
 

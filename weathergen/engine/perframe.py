@@ -205,7 +205,7 @@ def splat_view(view: View, record: Particles, start: torch.Tensor, displacement:
     }
     beta_eff = float(beta) if optics is None else min(float(beta), 1.0 / optics.depth_softness)
     depth_flat = view.depth.to(device=device, dtype=dtype).reshape(-1)
-    acc = _splat(depth_flat, inst, stamps, h, w, beta_eff, chunk_elements)
+    acc, _ = _splat(depth_flat, inst, stamps, h, w, beta_eff, chunk_elements)
     if acc is None:
         return ViewSplat(zero_alpha, torch.zeros(3, h, w, dtype=dtype, device=device), sel)
     return ViewSplat(acc[0].view(1, h, w), torch.stack([a.view(h, w) for a in acc[1:]]), sel)

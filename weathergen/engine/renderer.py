@@ -61,12 +61,15 @@ PER_FRAME_RENDERER = None
 
 @dataclass
 class RenderOutput:
-    """Shape: image1, image2 (B, 3, H, W) in [0, 1]; opacity1, opacity2 (B, 1, H, W) in [0, 1]."""
+    """Shape: image1, image2 (B, 3, H, W) in [0, 1]; opacity1, opacity2 (B, 1, H, W) in [0, 1];
+    reached (B,) bool: which pairs' frames any instance of their record was splatted into (a
+    pair that none reached has frames that do not depend on its particles)."""
 
     image1: torch.Tensor
     image2: torch.Tensor
     opacity1: torch.Tensor
     opacity2: torch.Tensor
+    reached: Optional[torch.Tensor] = None
 
 
 @dataclass
@@ -394,14 +397,19 @@ class _Splat(torch.autograd.Function):
 
 def _splat(depth_flat, inst, stamps: StampSet, height, width, beta, chunk_elements):
     """The per-pixel sums A, C_r, C_g, C_b (each (2 B H W,)) of every instance's weighted stamp,
-    or None when no instance reaches the image; see :class:`_Splat`."""
+    or None when no instance reaches the image; see :class:`_Splat`. Also returns which pairs of
+    the batch (B,) bool an instance reaches."""
     plan = _splat_plan(inst, stamps, height, width, chunk_elements)
+    bsz = max(1, depth_flat.numel() // (2 * height * width))    # one view counts as one pair
+    reached = torch.zeros(bsz, dtype=torch.bool, device=depth_flat.device)
+    for _, sel in plan:
+        reached[inst["target"][sel] % bsz] = True
     if not plan:
-        return None
+        return None, reached
     slots = stamps.slot_of[inst["particle"]]
     return list(_Splat.apply(inst["u"], inst["v"], inst["z"], inst["theta"], inst["color"],
                              inst["target"], slots, depth_flat.detach(), plan, height, width,
-                             beta))
+                             beta)), reached
 
 
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
@@ -453,6 +461,7 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
                                 templates, beta=beta, chunk_elements=chunk_elements)
 
     acc = None
+    reached = torch.zeros(bsz, dtype=torch.bool, device=device)
     intr = intrinsics.to(device)
     inst = _instances(records, intr, cam1_from_ref.to(device), cam2_from_ref.to(device),
                       dtype, device)
@@ -461,7 +470,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
             stamps = build_stamps(records, templates, dtype=dtype, device=device,
                                   chunk_elements=chunk_elements)
         depth_flat = torch.stack((depth1, depth2)).to(dtype).reshape(-1)
-        acc = _splat(depth_flat, inst, stamps, height, width, float(beta), chunk_elements)
+        acc, reached = _splat(depth_flat, inst, stamps, height, width, float(beta),
+                              chunk_elements)
     if acc is None:
         acc = [torch.zeros(2 * bsz * height * width, dtype=dtype, device=device)
                for _ in range(4)]
@@ -473,7 +483,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     alpha_mode = alpha_mode.view(1, bsz, 1, 1, 1)
     out = torch.where(alpha_mode, images * (1 - alpha) + colour, images + colour).clamp(0, 1)
     opacity = alpha.clamp(0, 1)
-    return RenderOutput(image1=out[0], image2=out[1], opacity1=opacity[0], opacity2=opacity[1])
+    return RenderOutput(image1=out[0], image2=out[1], opacity1=opacity[0], opacity2=opacity[1],
+                        reached=reached)
 
 
 def render_pair(pair: Union[FramePair, FramePairBatch],

@@ -127,8 +127,8 @@ def write_depth(path: str | Path, depth: np.ndarray, png_scale: Optional[float] 
 class CameraFile:
     """The content of a ``cameras.json`` / ``cameras.txt`` file, as written (not yet converted).
 
-    ``intrinsics``: (3, 3) default for every frame; ``frames``: frame number -> ``(pose (4, 4),
-    intrinsics (3, 3) or None)``; ``pose``, ``axes``, ``depth``: conventions (see the layout spec);
+    ``intrinsics``: (3, 3) default for every frame; ``frames``: frame number (or, in JSON, a frame
+    file's stem) -> ``(pose (4, 4), intrinsics (3, 3) or None)``; ``pose``, ``axes``, ``depth``: conventions (see the layout spec);
     ``depth_png_scale``: scene units per step of a 16-bit PNG depth map.
     """
 
@@ -215,7 +215,7 @@ def _parse_json(path: Path, text: str) -> CameraFile:
         try:
             number = int(key)
         except ValueError:
-            raise FormatError(path, f"frames key {key!r} is not a frame number") from None
+            number = str(key)          # a frame file's stem, e.g. "000012_left"
         where = f"frame {key}"
         if isinstance(entry, dict):
             if "pose" not in entry:

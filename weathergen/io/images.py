@@ -7,12 +7,29 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-# Our own errors name the file and the problem; OpenCV's warnings about the same corrupt file
-# ("buffer is incomplete") would only add a second, vaguer line.
-cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
-
 from ..errors import FormatError
 from .atomic import atomic_write_bytes
+
+#: OpenCV's log level "errors only" (the value of cv2.utils.logging.LOG_LEVEL_ERROR).
+_CV_LOG_LEVEL_ERROR = 2
+
+
+def quiet_opencv() -> None:
+    """Let OpenCV log errors only.
+
+    Our own errors name the file and the problem; OpenCV's warnings about the same corrupt file
+    ("buffer is incomplete") would only add a second, vaguer line. ``cv2.utils.logging`` is
+    missing from some wheels (4.8 and 4.11 among them), where the older ``cv2.setLogLevel`` does
+    the same; with neither, OpenCV keeps its default level.
+    """
+    logging = getattr(getattr(cv2, "utils", None), "logging", None)
+    if logging is not None and hasattr(logging, "setLogLevel"):
+        logging.setLogLevel(getattr(logging, "LOG_LEVEL_ERROR", _CV_LOG_LEVEL_ERROR))
+    elif hasattr(cv2, "setLogLevel"):
+        cv2.setLogLevel(_CV_LOG_LEVEL_ERROR)
+
+
+quiet_opencv()
 
 
 def read_image(path: str | Path) -> np.ndarray:

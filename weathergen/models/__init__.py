@@ -18,15 +18,20 @@ from .registry import (ModelSpec, available_checkpoints, available_models, build
 
 # Network modules register themselves; import each one here.
 from . import raft  # noqa: E402,F401  (registration side effect)
+from . import gma  # noqa: E402,F401
+from . import flowformer  # noqa: E402,F401
 from .raft import RAFT, RAFTModel  # noqa: E402
 from . import spynet, flownetc, flownetcrobust, flownet2  # noqa: E402,F401
 from .spynet import SpyNet, SpyNetModel  # noqa: E402
 from .flownetc import FlowNetC, FlowNetCModel  # noqa: E402
 from .flownetcrobust import FlowNetCRobust, FlowNetCRobustModel  # noqa: E402
 from .flownet2 import FlowNet2, FlowNet2Model  # noqa: E402
+from .gma import GMA, GMAModel  # noqa: E402
+from .flowformer import FlowFormer, FlowFormerModel  # noqa: E402
 
 __all__ = [
-    "FlowModel", "InputPadder", "ModelSpec", "CheckpointSpec", "RAFT", "RAFTModel",
+    "FlowModel", "InputPadder", "ModelSpec", "CheckpointSpec", "RAFT", "RAFTModel", "GMA",
+    "GMAModel", "FlowFormer", "FlowFormerModel",
     "get_model", "build_model", "available_models", "available_checkpoints", "model_spec",
     "checkpoint_spec", "register_model", "register_checkpoint", "cache_dir",
     "download_checkpoint", "read_state_dict",

@@ -39,6 +39,8 @@ class FlowModel(nn.Module):
     multiple: int = 1
     #: The network needs at least this many rows and columns (after padding).
     min_size: int = 0
+    #: Where padding rows go: "even" or "bottom" (KITTI's protocol); set from ``Dataset.padding``.
+    padding: str = "even"
 
     def normalize(self, image: torch.Tensor) -> torch.Tensor:
         """Turn ``(B, 3, H, W)`` RGB in ``[0, 1]`` into what the network was trained on."""
@@ -60,7 +62,8 @@ class FlowModel(nn.Module):
 
     def padder(self, height: int, width: int) -> InputPadder:
         """The padder this network uses for frames of ``height`` x ``width`` pixels."""
-        return InputPadder(height, width, multiple=self.multiple, min_size=self.min_size)
+        return InputPadder(height, width, multiple=self.multiple, min_size=self.min_size,
+                           placement=self.padding)
 
     def forward(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
         _check_images(image1, image2)

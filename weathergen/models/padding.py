@@ -5,6 +5,11 @@ multiple of it. :class:`InputPadder` records, for one frame size, how many rows 
 on each side, so that the same object pads both frames and crops the predicted flow back to the
 input size. Padding replicates the border pixels (a constant border would be an edge the
 network sees as structure); it is built from differentiable tensor operations.
+
+Where the rows go follows the benchmark's evaluation protocol (``placement``): on Sintel (and by
+default) they are split evenly between top and bottom; on KITTI they all go to the bottom, as in
+the published KITTI evaluation of RAFT and its successors, so that EPE figures compare. Columns are
+split evenly in both. A dataset reader names its protocol in ``Dataset.padding``.
 """
 
 from __future__ import annotations
@@ -15,11 +20,16 @@ import torch.nn.functional as F
 from ..errors import ShapeError
 
 
+#: Where the extra rows go: "even" (top and bottom, Sintel's protocol) or "bottom" (KITTI's).
+PLACEMENTS = ("even", "bottom")
+
+
 class InputPadder:
     """Pads ``(..., H, W)`` tensors to a multiple of ``multiple`` and crops them back.
 
-    The extra rows and columns are split evenly between the two sides (one more at the bottom
-    or right when the count is odd). ``min_size`` raises the padded size further where a network
+    The extra columns are split evenly between left and right (one more at the right when the
+    count is odd); the extra rows likewise between top and bottom with ``placement="even"``, or
+    all at the bottom with ``placement="bottom"``. ``min_size`` raises the padded size further where a network
     needs a minimum extent (e.g. enough pixels for every level of a pyramid).
 
     Shape:
@@ -28,18 +38,22 @@ class InputPadder:
     """
 
     def __init__(self, height: int, width: int, multiple: int = 8, min_size: int = 0,
-                 mode: str = "replicate"):
+                 mode: str = "replicate", placement: str = "even"):
         if height < 1 or width < 1:
             raise ValueError(f"expected a positive frame size, got {height}x{width}")
         if multiple < 1:
             raise ValueError(f"expected a positive padding multiple, got {multiple}")
+        if placement not in PLACEMENTS:
+            raise ValueError(f"padding placement must be one of {', '.join(PLACEMENTS)}, got {placement!r}")
+        self.placement = placement
         self.height, self.width = int(height), int(width)
         self.multiple = int(multiple)
         self.mode = mode
         padded_h = self._target(self.height, min_size)
         padded_w = self._target(self.width, min_size)
         extra_h, extra_w = padded_h - self.height, padded_w - self.width
-        self.top, self.bottom = extra_h // 2, extra_h - extra_h // 2
+        self.top = extra_h // 2 if placement == "even" else 0
+        self.bottom = extra_h - self.top
         self.left, self.right = extra_w // 2, extra_w - extra_w // 2
 
     def _target(self, size: int, min_size: int) -> int:

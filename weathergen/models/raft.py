@@ -437,6 +437,23 @@ class RAFT(nn.Module):
         Returns:
             ``(B, 2, H, W)`` flow in pixels.
         """
+        return self._run(image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
+                         every_step=False)[-1]
+
+    def flow_sequence(self, image1: torch.Tensor, image2: torch.Tensor,
+                      iters: int = DEFAULT_ITERS, flow_init: Optional[torch.Tensor] = None,
+                      detach_flow: bool = True, gradient_checkpointing: bool = False
+                      ) -> list[torch.Tensor]:
+        """The upsampled flow after every refinement step, as RAFT's sequence loss needs.
+
+        Arguments as :meth:`forward`. Returns ``iters`` tensors ``(B, 2, H, W)`` in pixels; the
+        last one is what :meth:`forward` returns.
+        """
+        return self._run(image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
+                         every_step=True)
+
+    def _run(self, image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
+             every_step: bool) -> list[torch.Tensor]:
         cfg = self.config
         b = image1.shape[0]
         fmaps = self.fnet(torch.cat([image1, image2], dim=0)).float()
@@ -452,7 +469,8 @@ class RAFT(nn.Module):
 
         step = partial(self._refine, corr)
         use_recompute = gradient_checkpointing and torch.is_grad_enabled()
-        for _ in range(iters):
+        flows = []
+        for i in range(iters):
             if detach_flow:
                 coords1 = coords1.detach()
             if use_recompute:
@@ -461,9 +479,14 @@ class RAFT(nn.Module):
             else:
                 hidden, delta = step(hidden, context, coords0, coords1)
             coords1 = coords1 + delta
+            if every_step or i == iters - 1:
+                flows.append(self._upsample(coords1 - coords0, hidden))
+        if not flows:   # no refinement step: the starting flow
+            flows.append(self._upsample(coords1 - coords0, hidden))
+        return flows
 
-        flow = coords1 - coords0
-        if cfg.small:
+    def _upsample(self, flow: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
+        if self.config.small:
             return bilinear_upsample(flow)
         return convex_upsample(flow, self.update_block.upsampling_weights(hidden))
 
@@ -516,6 +539,19 @@ class RAFTModel(FlowModel):
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
         return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
                             gradient_checkpointing=self.gradient_checkpointing)
+
+    def flow_sequence(self, image1: torch.Tensor, image2: torch.Tensor) -> list[torch.Tensor]:
+        """The flow after every refinement step (for RAFT's sequence loss in training).
+
+        Shape: image1, image2 ``(B, 3, H, W)`` RGB in ``[0, 1]`` -> :attr:`iters` tensors
+        ``(B, 2, H, W)`` in pixels, the last one equal to ``model(image1, image2)``.
+        """
+        padder = self.padder(image1.shape[-2], image1.shape[-1])
+        x1 = self.normalize(padder.pad(image1))
+        x2 = self.normalize(padder.pad(image2))
+        flows = self.network.flow_sequence(x1, x2, iters=self.iters, detach_flow=self.detach_flow,
+                                           gradient_checkpointing=self.gradient_checkpointing)
+        return [padder.unpad(f) for f in flows]
 
     def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
         """Load a file of the original RAFT release, with or without the ``module.`` prefix

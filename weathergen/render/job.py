@@ -15,7 +15,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Optional
@@ -30,6 +30,7 @@ from ..engine import (FieldPreset, View, load_templates, particle_truth, referen
 from ..engine.perframe import pair_starts, render_first_frame
 from ..engine.stereo import render_right, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
+from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
 from ..outputs import (RENDER_FOLDER, PairOutput, merge_manifest, pair_metadata, prepare_folder,
                        read_run_config, write_manifest_part, write_pair_outputs, write_run_config)
@@ -72,6 +73,8 @@ class RenderJob:
     resume: bool = False
     overwrite: bool = False
     command: list = field(default_factory=list)
+    executor: str = "local"             # "local" or "ray" (weathergen.execution)
+    ray_address: Optional[str] = "auto"
 
     def config(self) -> dict:
         """What must agree between the runs and shards that write one output folder."""
@@ -102,6 +105,7 @@ class PairResult:
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
+    ran: Optional[dict] = None  # where it was computed (weathergen.execution.where_ran) and batch
 
 
 # -- one pair ------------------------------------------------------------------------------------
@@ -150,10 +154,12 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
                                              message=str(exc))
             continue
         share = (time.perf_counter() - start) / len(group)
+        ran = {**where_ran(job.device), "batch": len(group)}
         for i, (ref, seed, pair, particles, spent) in enumerate(group):
             start = time.perf_counter()
             results[ref.id] = _write_one(job, ref, seed, pair, particles, rendered, i)
             results[ref.id].seconds = spent + share + time.perf_counter() - start
+            results[ref.id].ran = ran
     return [results[ref.id] for ref in refs]
 
 
@@ -337,6 +343,7 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     finished before are recorded), and :class:`~weathergen.errors.NothingRendered` when every
     selected pair fails (an output folder that this run created is removed again).
     """
+    check_executor(job.executor)
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     every = job.dataset.pairs()
     refs = shard_refs(every, job.shard)
@@ -388,7 +395,9 @@ def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> 
         job = dataclasses.replace(job, workers=auto_workers(len(todo), job.device))
     stopped_by: Optional[BaseException] = None
     try:
-        if job.workers <= 1 or len(todo) <= job.batch_size:
+        if job.executor == "ray":
+            _run_ray(job, todo, results, on_result)
+        elif job.workers <= 1 or len(todo) <= job.batch_size:
             threads = torch.get_num_threads()
             try:
                 for chunk in _chunks(todo, job.batch_size):
@@ -450,31 +459,52 @@ def _chunks(items: list, size: int) -> list[list]:
     return [items[i:i + size] for i in range(0, len(items), max(1, size))]
 
 
+def _run_ray(job, todo, results, on_result):
+    # Each task renders one batch on the device it was given; the driver records the results.
+    remote_job = replace(job, device=worker_device(job.device, "ray"))
+    units = [(remote_job, chunk) for chunk in _chunks(todo, job.batch_size)]
+    for batch in ray_map(render_batch, units, address=job.ray_address,
+                         num_gpus=ray_gpus_for(job.device)):
+        for r in batch:
+            results.append(r)
+            on_result(r)
+
+
 def _run_pool(job, todo, results, on_result):
     ctx = multiprocessing.get_context("spawn")
     pending = set()
+    ready: list = []        # finished chunks whose results are not all recorded yet
+    recorded: dict = {}     # chunk -> how many of its results are recorded
+
+    def record(fut):
+        rows = fut.result()
+        for r in rows[recorded.get(fut, 0):]:
+            results.append(r)
+            on_result(r)
+            recorded[fut] = recorded.get(fut, 0) + 1
+
     queue = list(todo)
     with ProcessPoolExecutor(max_workers=job.workers, mp_context=ctx, initializer=init_worker,
                              initargs=(os.getpid(),)) as pool:
         try:
-            while queue or pending:
+            while queue or pending or ready:
                 while queue and len(pending) < 2 * job.workers:
                     chunk, queue = queue[:job.batch_size], queue[job.batch_size:]
                     pending.add(pool.submit(render_batch, job, chunk))
-                done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                for fut in done:
-                    for r in fut.result():
-                        results.append(r)
-                        on_result(r)
+                if not ready:
+                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
+                    ready = list(done)
+                while ready:
+                    record(ready[0])
+                    ready.pop(0)
         except BaseException:
-            # Interrupted: start nothing new, but let the running chunks finish and record them.
+            # Interrupted (also while recording a finished chunk): start nothing new, but let the
+            # running chunks finish and record every result not recorded yet.
             for fut in pending:
                 fut.cancel()
-            for fut in pending:
+            for fut in [*ready, *pending]:
                 if not fut.cancelled() and fut.exception() is None:
-                    for r in fut.result():
-                        results.append(r)
-                        on_result(r)
+                    record(fut)
             raise
 
 

@@ -1,0 +1,135 @@
+"""What weather augmentation costs in training, against a RAFT training step on the same batch.
+
+A batch of 6 Sintel-size pairs (1024 x 436, a textured scene with a near block, moving cameras) as
+RAFT's Sintel stage uses it: the weather is rendered into the full frames, then every pair is
+cropped to 368 x 768. Prints, per preset and with every pair getting weather (``p = 1``; at the
+paper's ``p = 0.5`` the cost halves):
+
+- *per sample*: :class:`WeatherAugment` applied to the 6 pairs one by one on the CPU, the time the
+  DataLoader's workers spend on a batch (hidden behind the step when there are enough workers);
+- *per batch*: :meth:`WeatherAugment.apply_batch` on the device, particle sampling included (on
+  the CPU) and, with the particles prepared in the workers, the batched render alone;
+
+and the time of one training step (forward with every iteration, sequence loss, backward, AdamW)
+of RAFT-small and, with ``--model raft`` or on a GPU, full RAFT, on the cropped batch. Target:
+the weather under 10 % of the step. A benchmark, not a test: nothing here fails on slow machines.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import statistics
+import sys
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import torch
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from engine_scenes import plane_pair, pose, rotation  # noqa: E402
+
+from weathergen.framepair import PairId  # noqa: E402
+from weathergen.models import build_model  # noqa: E402
+from weathergen.training import (PairSample, RandomCrop, WeatherAugment,  # noqa: E402
+                                 collate_pairs, raft_optimizer, train_step)
+
+HEIGHT, WIDTH, BATCH, CROP = 436, 1024, 6, (368, 768)
+
+
+def sintel_size_samples() -> list:
+    """Six 1024 x 436 pairs with depth, cameras and flow (the flow's values do not matter here)."""
+    out = []
+    for i in range(BATCH):
+        cam1 = pose(rotation(roll_deg=3, pitch_deg=-5 + i))
+        cam2 = pose(rotation(roll_deg=3, pitch_deg=-4 + i, yaw_deg=1), centre=(0.05, 0.0, 0.1))
+        pair = plane_pair(HEIGHT, WIDTH, depth=6.0, near_block=True, cam1_from_world=cam1,
+                          cam2_from_world=cam2, seed=i)
+        pair.depth1[..., :, 600:] = 2.0
+        pair.depth2[..., :, 600:] = 2.0
+        flow = torch.randn(2, HEIGHT, WIDTH, generator=torch.Generator().manual_seed(i))
+        pair = replace(pair, id=PairId("bench", "training", "plane", i + 1), flow=flow,
+                       flow_valid=torch.ones(1, HEIGHT, WIDTH, dtype=torch.bool))
+        out.append(PairSample(pair=pair, index=i, epoch=0))
+    return out
+
+
+def timed(fn, repeats: int, sync, warm_up: bool = True) -> float:
+    """Median seconds of ``repeats`` calls, after one warm-up call if asked."""
+    if warm_up:
+        fn()
+        sync()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        sync()
+        times.append(time.perf_counter() - start)
+    return statistics.median(times)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
+    parser.add_argument("--presets", default="snow,rain", help="comma-separated presets")
+    parser.add_argument("--model", action="append", default=None,
+                        help="raft-small and/or raft (default: raft-small on the CPU, both on a GPU)")
+    parser.add_argument("--repeats", type=int, default=None,
+                        help="timed repeats (default 1 on the CPU, 5 on a GPU)")
+    parser.add_argument("--iters", type=int, default=12, help="RAFT iterations in the step")
+    parser.add_argument("--threads", type=int, default=min(2, os.cpu_count() or 1),
+                        help="CPU threads")
+    args = parser.parse_args(argv)
+    device = torch.device(args.device)
+    gpu = device.type == "cuda"
+    torch.set_num_threads(args.threads)
+    repeats = args.repeats or (5 if gpu else 1)
+    models = args.model or (["raft-small", "raft"] if gpu else ["raft-small"])
+    sync = torch.cuda.synchronize if gpu else (lambda: None)
+    name = torch.cuda.get_device_name(device) if gpu else f"CPU, {torch.get_num_threads()} thread(s)"
+    print(f"training cost: batch of {BATCH} pairs {WIDTH}x{HEIGHT}, cropped to "
+          f"{CROP[0]}x{CROP[1]} after the weather; {name}; median of {repeats}")
+
+    samples = sintel_size_samples()
+    crop = RandomCrop(CROP, seed=0)
+    batch_cpu = collate_pairs(samples)
+    batch_dev = batch_cpu.to(device)
+
+    weather_times = {}
+    for preset in args.presets.split(","):
+        aug = WeatherAugment(preset, p=1.0, seed=0)
+        per_sample = timed(lambda: [aug(s) for s in samples], repeats, lambda: None)
+        prepared = collate_pairs([aug.prepare(s) for s in samples]).to(device)
+        batched = timed(lambda: aug.apply_batch(batch_dev), repeats, sync)
+        render_only = timed(lambda: aug.apply_batch(prepared), repeats, sync)
+        weather_times[preset] = (per_sample, batched, render_only)
+
+    cropped = crop.apply_batch(batch_cpu).to(device)
+    p = cropped.pairs
+    step_times = {}
+    for model_name in models:
+        model = build_model(model_name, iters=args.iters).to(device)
+        model.requires_grad_(True).train()
+        optimizer, scheduler = raft_optimizer(model, steps=1000)
+        step_times[model_name] = timed(
+            lambda: train_step(model, optimizer, scheduler, p.image1, p.image2, p.flow,
+                               p.flow_valid), repeats, sync, warm_up=gpu)  # CPU: keep it short
+        del model, optimizer, scheduler
+        if gpu:
+            torch.cuda.empty_cache()
+
+    print(f"{'RAFT training step':<30}" + "".join(f"{m:>16}" for m in step_times))
+    print(f"{'':<30}" + "".join(f"{t:>15.2f}s" for t in step_times.values()))
+    print(f"{'weather, p = 1':<30}{'seconds':>10}" + "".join(f"{'% of ' + m:>16}"
+                                                           for m in step_times))
+    for preset, (per_sample, batched, render_only) in weather_times.items():
+        rows = [(f"{preset}: per sample (CPU)", per_sample),
+                (f"{preset}: per batch ({device.type})", batched),
+                (f"{preset}: prepared batch ({device.type})", render_only)]
+        for label, t in rows:
+            print(f"{label:<30}{t:>9.3f}s" + "".join(f"{100 * t / s:>15.1f}%"
+                                                  for s in step_times.values()))
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,246 @@
+"""GMA behind the model contract: the released key layout, strict loading, the global motion
+aggregation against a naive computation, shapes, gradients, named checkpoints and the CLI."""
+
+from __future__ import annotations
+
+import io
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from click.testing import CliRunner
+from conftest import write_fake_sintel
+
+from weathergen.errors import ConfigError, FormatError
+from weathergen.models import build_model, get_model
+from weathergen.models.gma import ContextAttention, MotionAggregator
+from model_layouts import gma_attention_layout, gma_update_layout, raft_encoder_layout
+
+
+
+# -- the released key layout ------------------------------------------------------------------
+
+GMA_LAYOUT = {**raft_encoder_layout("fnet.", 256, "instance"),
+              **raft_encoder_layout("cnet.", 256, "batch"),
+              **gma_update_layout("update_block.", 4 * 81),
+              **gma_attention_layout("att.")}
+
+
+def test_state_dict_has_the_released_names_and_shapes():
+    state = build_model("gma").network.state_dict()
+    assert {k: tuple(v.shape) for k, v in state.items()} == GMA_LAYOUT
+    assert state["att.pos_emb.rel_ind"].dtype == torch.int64
+    params = sum(p.numel() for p in build_model("gma").parameters())
+    assert params == 5_879_873  # GMA's published size, "5.9M"
+
+
+# -- strict loading ------------------------------------------------------------------------------
+
+def _random_release(prefix: str) -> tuple[dict, torch.nn.Module]:
+    model = build_model("gma", iters=2)
+    with torch.no_grad():
+        for name, buf in model.network.named_buffers():
+            if buf.is_floating_point():
+                buf.uniform_(0.5, 1.5)  # batch-norm statistics that matter
+        model.network.update_block.aggregator.gamma.fill_(0.7)  # the aggregation matters
+    return {prefix + k: v.clone() for k, v in model.network.state_dict().items()}, model
+
+
+@pytest.mark.parametrize("prefix", ["module.", ""])
+def test_a_saved_random_model_loads_strictly(prefix, tmp_path):
+    state, source = _random_release(prefix)
+    path = tmp_path / "gma.pth"
+    torch.save(state, path)
+    loaded = get_model("gma", checkpoint=path, iters=2)
+    for key, value in loaded.network.state_dict().items():
+        assert torch.equal(value, state[prefix + key]), key
+    x1, x2 = torch.rand(2, 1, 3, 64, 72).unbind(0)
+    with torch.no_grad():
+        assert torch.allclose(loaded(x1, x2), source(x1, x2), atol=1e-5)
+
+
+def test_a_perturbed_file_fails_listing_what_does_not_match(tmp_path):
+    state, _ = _random_release("module.")
+    del state["module.update_block.aggregator.gamma"]
+    state["module.update_block.aggregator.project.weight"] = torch.zeros(128, 128, 1, 1)
+    state["module.att.to_qk.weight"] = torch.zeros(512, 128, 1, 1)  # two heads
+    path = tmp_path / "perturbed.pth"
+    torch.save(state, path)
+    with pytest.raises(FormatError) as err:
+        get_model("gma", checkpoint=path)
+    message = str(err.value)
+    assert message.startswith(str(path))
+    assert "missing keys (1): update_block.aggregator.gamma" in message
+    assert "unexpected keys (1): update_block.aggregator.project.weight" in message
+    assert ("shape mismatches (1): att.to_qk.weight (file (512, 128, 1, 1), "
+            "model (256, 128, 1, 1))") in message
+
+
+def test_a_raft_file_is_not_a_gma_file(tmp_path):
+    state = build_model("raft").network.state_dict()
+    path = tmp_path / "raft.pth"
+    torch.save(state, path)
+    with pytest.raises(FormatError, match="missing keys .*update_block.aggregator"):
+        get_model("gma", checkpoint=path)
+
+
+# -- the global motion aggregation ---------------------------------------------------------------
+
+def test_attention_and_aggregation_against_a_naive_loop():
+    """Pixel i (row-major) attends to pixel j with softmax_j(<q_i, k_j> / sqrt(128)); the
+    aggregate adds gamma * sum_j a_ij v_j to the features."""
+    torch.manual_seed(0)
+    h, w = 3, 4
+    context = torch.randn(1, 128, h, w, dtype=torch.float64)
+    features = torch.randn(1, 128, h, w, dtype=torch.float64)
+    att = ContextAttention().double()
+    agg = MotionAggregator().double()
+    with torch.no_grad():
+        agg.gamma.fill_(0.3)
+        attention = att(context)
+        out = agg(attention, features)
+    with torch.no_grad():
+        qk = torch.nn.functional.conv2d(context, att.to_qk.weight)[0]
+        v = torch.nn.functional.conv2d(features, agg.to_v.weight)[0].reshape(128, -1)
+    q, k = qk[:128].reshape(128, -1), qk[128:].reshape(128, -1)
+    f = features[0].reshape(128, -1)
+    for i in range(h * w):
+        logits = torch.tensor([float(q[:, i] @ k[:, j]) / 128 ** 0.5 for j in range(h * w)],
+                              dtype=torch.float64)
+        weights = torch.exp(logits - logits.max())
+        weights = weights / weights.sum()
+        assert torch.allclose(attention[0, i], weights, atol=1e-12)
+        expected = f[:, i] + 0.3 * sum(weights[j] * v[:, j] for j in range(h * w))
+        assert torch.allclose(out[0].reshape(128, -1)[:, i], expected, atol=1e-10)
+
+
+def test_aggregation_changes_the_flow():
+    model = build_model("gma", iters=2)
+    x1, x2 = torch.rand(2, 1, 3, 64, 64).unbind(0)
+    with torch.no_grad():
+        plain = model(x1, x2)
+        model.network.update_block.aggregator.gamma.fill_(1.0)
+        aggregated = model(x1, x2)
+    assert not torch.allclose(plain, aggregated)
+
+
+# -- the contract --------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("size", [(37, 45), (67, 93)])
+def test_flow_comes_back_at_input_size(size):
+    model = build_model("gma", iters=2)
+    x1, x2 = torch.rand(2, 1, 3, *size).unbind(0)
+    with torch.no_grad():
+        flow = model(x1, x2)
+    assert flow.shape == (1, 2, *size) and torch.isfinite(flow).all()
+
+
+def test_input_gradients_are_finite_and_non_zero():
+    model = build_model("gma", iters=3).requires_grad_(False)
+    model.network.update_block.aggregator.gamma.fill_(0.5)
+    x1 = torch.rand(1, 3, 65, 71, requires_grad=True)
+    x2 = torch.rand(1, 3, 65, 71, requires_grad=True)
+    model(x1, x2).square().mean().backward()
+    for grad in (x1.grad, x2.grad):
+        assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+
+
+def test_gradient_checkpointing_gives_the_same_gradient():
+    torch.manual_seed(0)
+    plain = build_model("gma", iters=2)
+    plain.network.update_block.aggregator.gamma.data.fill_(0.5)
+    recomputing = build_model("gma", iters=2, gradient_checkpointing=True)
+    recomputing.load_state_dict(plain.state_dict())
+    x1, x2 = torch.rand(2, 1, 3, 64, 64).unbind(0)
+    grads = []
+    for model in (plain, recomputing):
+        a, b = x1.clone().requires_grad_(), x2.clone().requires_grad_()
+        model(a, b).sum().backward()
+        grads.append(torch.cat([a.grad.flatten(), b.grad.flatten()]))
+    assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-6)
+
+
+def test_default_iterations_are_the_papers():
+    assert build_model("gma").iters == 6
+    assert build_model("gma", iters=32).iters == 32
+
+
+# -- named checkpoints ---------------------------------------------------------------------------
+
+def test_named_checkpoints_and_the_default():
+    from weathergen.models import available_checkpoints
+
+    assert set(available_checkpoints("gma")) == {"gma-chairs", "gma-things", "gma-sintel",
+                                                  "gma-kitti"}
+
+
+def test_missing_named_checkpoint_says_which_file_to_put_where(tmp_path, monkeypatch):
+    monkeypatch.setenv("WEATHERGEN_CACHE", str(tmp_path))
+    with pytest.raises(ConfigError) as err:
+        get_model("gma")  # default: the Sintel checkpoint, as the paper attacks it
+    message = str(err.value)
+    assert str(tmp_path / "models" / "gma-sintel.pth") in message
+    assert "github.com/zacjiang/GMA" in message and "checkpoints/gma-sintel.pth" in message
+    assert "\n" not in message
+
+
+def test_download_of_a_single_file_lands_in_the_cache(tmp_path, monkeypatch):
+    import urllib.request
+
+    state, _ = _random_release("module.")
+    payload = io.BytesIO()
+    torch.save(state, payload)
+    requested = []
+
+    class Response(io.BytesIO):
+        def __enter__(self):
+            return self
+
+        def __exit__(self, *exc):
+            return False
+
+    def serve(url, timeout):
+        requested.append(url)
+        return Response(payload.getvalue())
+
+    monkeypatch.setattr(urllib.request, "urlopen", serve)
+    monkeypatch.setenv("WEATHERGEN_CACHE", str(tmp_path))
+    model = get_model("gma-kitti", download=True, iters=1)
+    assert requested and requested[0].endswith("/checkpoints/gma-kitti.pth")
+    assert sorted(p.name for p in (tmp_path / "models").iterdir()) == ["gma-kitti.pth"]
+    assert torch.equal(model.network.att.to_qk.weight, state["module.att.to_qk.weight"])
+
+
+# -- the command line ----------------------------------------------------------------------------
+
+def invoke(args):
+    from weathergen.cli.main import _register, cli
+
+    _register()
+    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+
+
+@pytest.fixture(scope="module")
+def random_gma_file(tmp_path_factory):
+    state, _ = _random_release("module.")
+    path = tmp_path_factory.mktemp("gma") / "random-gma.pth"
+    torch.save(state, path)
+    return path
+
+
+@pytest.mark.slow
+def test_attack_and_evaluate_run_with_gma(random_gma_file, tmp_path):
+    # A tiny Sintel-format dataset: one 40x56 frame pair.
+    root = write_fake_sintel(tmp_path / "sintel", scenes=("alley",), frames=2, size=(40, 56))
+    data = ["--dataset", "sintel", "--root", root, "--scenes", "alley", "--frames-per-scene", "1"]
+    checkpoint = random_gma_file
+    out = tmp_path / "snow"
+    attacked = invoke(["attack", "--model", "gma", "--checkpoint", checkpoint, "--iters", "1",
+                       *data, "--steps", "1", "--set", "count=40", "--seed", "1", "--out", out])
+    assert attacked.exit_code == 0, attacked.output
+    evaluated = invoke(["evaluate", "--weather", out, "--model", "gma", "--checkpoint",
+                        checkpoint, "--iters", "1", "--json", tmp_path / "eval.json"])
+    assert evaluated.exit_code == 0, evaluated.output
+    result = json.loads((tmp_path / "eval.json").read_text())
+    assert result["model"] == "gma" and len(result["pairs"]) == 1

@@ -1,0 +1,198 @@
+"""weathergen.training.augment: the weather transform, its keyed draws, and crops and flips after it."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+from torch.utils.data import DataLoader
+
+from weathergen.datasets import open_dataset
+from weathergen.errors import ConfigError, ShapeError
+from weathergen.framepair import _TENSOR_FIELDS
+from weathergen.geometry import reprojection_flow
+from weathergen.training import (Compose, PairDataset, RandomCrop, RandomFlip, WeatherAugment,
+                                 collate_pairs, crop_pair, flip_pair, pair_of)
+
+pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
+
+#: Few particles keep the tests fast; the demo frames are a ninth of Sintel's area anyway.
+LIGHT = {"count": 200}
+
+
+@pytest.fixture(scope="module")
+def demo(demo_root):
+    return open_dataset("demo")
+
+
+@pytest.fixture(scope="module")
+def samples(demo):
+    data = PairDataset(demo)
+    return [data[i] for i in range(len(data))]
+
+
+def test_p0_returns_the_input_bit_for_bit(samples):
+    aug = WeatherAugment(["snow", "rain"], p=0.0, seed=1, overrides=LIGHT)
+    for s in samples:
+        out = aug(s)
+        assert out.pair is s.pair and not out.weather.applied
+    batch = collate_pairs(samples)
+    out = aug.apply_batch(batch)
+    for name in _TENSOR_FIELDS:
+        a, b = getattr(out.pairs, name), getattr(batch.pairs, name)
+        assert (a is None and b is None) or torch.equal(a, b), name
+
+
+def test_p1_changes_every_pair_and_only_its_frames(samples):
+    aug = WeatherAugment(["snow", "rain"], p=1.0, seed=1, overrides=LIGHT)
+    drawn = set()
+    for s in samples:
+        out = aug(s)
+        assert out.weather.applied and out.weather.rendered
+        drawn.add(out.weather.source)
+        for name in ("image1", "image2"):
+            changed = getattr(out.pair, name) != getattr(s.pair, name)
+            assert int(changed.any(0).sum()) > 100, name      # weather covers many pixels
+        for name in _TENSOR_FIELDS:
+            if name not in ("image1", "image2") and getattr(s.pair, name) is not None:
+                assert torch.equal(getattr(out.pair, name), getattr(s.pair, name)), name
+    assert drawn == {"snow", "rain"}
+
+
+def test_draws_follow_the_probability_and_the_key():
+    aug = WeatherAugment("snow", p=0.5, seed=7)
+    draws = [aug.draw(i, 0) for i in range(400)]
+    assert 160 < sum(d.applied for d in draws) < 240
+    assert aug.draw(3, 2) == WeatherAugment("snow", p=0.5, seed=7).draw(3, 2)
+    seeds = {d.seed for d in draws if d.applied}
+    assert len(seeds) == sum(d.applied for d in draws)          # a new seed for every index
+    assert sum(aug.draw(i, 0) != aug.draw(i, 1) for i in range(50)) > 20    # epochs differ
+
+
+def loader_images(demo, workers, epoch, transform):
+    data = PairDataset(demo, transform)
+    data.set_epoch(epoch)
+    loader = DataLoader(data, batch_size=2, num_workers=workers, collate_fn=collate_pairs)
+    return [(b.indices.tolist(), b.pairs.image1.clone(), b.pairs.image2.clone(), b.weather)
+            for b in loader]
+
+
+def test_same_key_same_bytes_with_0_and_2_workers_new_epoch_new_weather(demo):
+    aug = Compose([WeatherAugment(["snow", "rain"], p=1.0, seed=11, overrides=LIGHT),
+                   RandomCrop((160, 360), seed=11), RandomFlip(0.5, 0.5, seed=11)])
+    serial = loader_images(demo, 0, 1, aug)
+    parallel = loader_images(demo, 2, 1, aug)
+    for (i0, a1, a2, w0), (i1, b1, b2, w1) in zip(serial, parallel):
+        assert i0 == i1 and w0 == w1
+        assert torch.equal(a1, b1) and torch.equal(a2, b2)
+        assert a1.numpy().tobytes() == b1.numpy().tobytes()
+    other = loader_images(demo, 0, 2, aug)
+    for (_, a1, _, w0), (_, c1, _, w2) in zip(serial, other):
+        assert [w.seed for w in w0] != [w.seed for w in w2]
+        for k in range(a1.shape[0]):
+            assert not torch.equal(a1[k], c1[k])
+
+
+@pytest.mark.parametrize("prepared", [False, True], ids=["sampled-per-batch", "prepared-in-workers"])
+def test_batched_path_equals_per_sample_path(samples, prepared):
+    aug = WeatherAugment(["snow", "rain"], p=0.5, seed=5, overrides=LIGHT)
+    per_sample = collate_pairs([aug(s) for s in samples])
+    inputs = [aug.prepare(s) for s in samples] if prepared else samples
+    batched = aug.apply_batch(collate_pairs(inputs))
+    assert batched.weather == per_sample.weather
+    assert 0 < sum(w.applied for w in batched.weather) < len(samples)
+    for name in ("image1", "image2"):
+        assert torch.equal(getattr(batched.pairs, name), getattr(per_sample.pairs, name)), name
+    for k, w in enumerate(batched.weather):
+        if not w.applied:
+            assert torch.equal(batched.pairs.image1[k], samples[k].pair.image1)
+    assert batched.particles == [None] * len(samples)
+
+
+def test_particles_prepared_in_two_workers_render_as_per_sample(demo, samples):
+    aug = WeatherAugment("snow", p=0.5, seed=9, overrides=LIGHT)
+    data = PairDataset(demo, aug.prepare)
+    data.set_epoch(4)
+    loader = DataLoader(data, batch_size=3, num_workers=2, collate_fn=collate_pairs)
+    for batch in loader:
+        rendered = aug.apply_batch(batch)
+        expected = collate_pairs([aug(replace(samples[i], epoch=4)) for i in batch.indices.tolist()])
+        assert rendered.weather == expected.weather
+        assert torch.equal(rendered.pairs.image1, expected.pairs.image1)
+        assert torch.equal(rendered.pairs.image2, expected.pairs.image2)
+
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_batched_path_on_cuda_matches_the_cpu(samples):
+    aug = WeatherAugment("snow", p=1.0, seed=5, overrides=LIGHT)
+    cpu = collate_pairs([aug(s) for s in samples[:3]])
+    gpu = aug.apply_batch(collate_pairs(samples[:3]).to("cuda"))
+    torch.testing.assert_close(gpu.pairs.image1.cpu(), cpu.pairs.image1, rtol=0, atol=1e-4)
+
+
+def test_keep_particles_keeps_the_rendered_record(samples):
+    aug = WeatherAugment("snow", p=1.0, seed=2, overrides=LIGHT, keep_particles=True)
+    out = aug(samples[0])
+    assert out.particles is not None and out.particles.count == LIGHT["count"]
+    batch = aug.apply_batch(collate_pairs(samples[:2]))
+    assert [p.count for p in batch.particles] == [LIGHT["count"]] * 2
+
+
+def test_bad_arguments_are_one_line_errors():
+    with pytest.raises(ConfigError, match="probability"):
+        WeatherAugment("snow", p=1.5)
+    with pytest.raises(ConfigError, match="at least one preset"):
+        WeatherAugment([])
+    with pytest.raises(ConfigError, match="nosuch"):
+        WeatherAugment(["nosuch"])
+    with pytest.raises(ConfigError, match="seed"):
+        WeatherAugment("snow", seed="x")
+    with pytest.raises(ConfigError, match="crop size"):
+        RandomCrop((0, 8))
+
+
+# -- geometric augmentation after the weather ----------------------------------------------
+
+def consistent(pair) -> float:
+    """Largest gap between the pair's flow and the flow its depth and cameras imply (static
+    scene), over pixels the flow marks visible in both frames."""
+    implied = reprojection_flow(pair.depth1.double(), pair.intrinsics, pair.cam2_from_cam1)
+    return float((implied.float() - pair.flow).abs().max())
+
+
+@pytest.mark.parametrize("horizontal,vertical", [(True, False), (False, True), (True, True)])
+def test_crops_and_flips_keep_flow_depth_and_cameras_consistent(samples, horizontal, vertical):
+    pair = samples[0].pair
+    base = consistent(pair)
+    assert base < 1e-3                     # the demo scene's flow is the reprojection
+    cropped = crop_pair(pair, 10, 30, 96, 200)
+    assert cropped.size == (96, 200)
+    assert torch.equal(cropped.image1, pair.image1[:, 10:106, 30:230])
+    assert consistent(cropped) < 1e-3
+    flipped = flip_pair(cropped, horizontal, vertical)
+    assert consistent(flipped) < 1e-3
+    flipped.validate()
+    assert torch.det(flipped.cam2_from_cam1[:3, :3]) > 0
+
+
+def test_weather_then_crop_and_flip_on_samples_and_on_batches(samples):
+    weather = WeatherAugment("snow", p=1.0, seed=3, overrides=LIGHT)
+    pipeline = Compose([weather, RandomCrop((96, 200), seed=3), RandomFlip(0.5, 0.5, seed=3)])
+    per_sample = collate_pairs([pipeline(s) for s in samples])
+    batched = pipeline.apply_batch(collate_pairs(samples))
+    assert per_sample.pairs.image1.shape == (len(samples), 3, 96, 200)
+    assert torch.equal(batched.pairs.image1, per_sample.pairs.image1)
+    assert torch.equal(batched.pairs.flow, per_sample.pairs.flow)
+    # the crop and flip of a weather frame is the weather frame cropped and flipped
+    rendered = weather(samples[0])
+    assert torch.equal(pipeline(samples[0]).pair.image2,
+                       RandomFlip(0.5, 0.5, seed=3)(RandomCrop((96, 200), seed=3)(rendered)).pair.image2)
+    # different samples get different windows
+    crops = {tuple(pair_of(per_sample.pairs, k).intrinsics[:2, 2].tolist()) for k in range(len(samples))}
+    assert len(crops) > 1
+
+
+def test_crop_larger_than_the_frames_is_refused(samples):
+    with pytest.raises(ShapeError, match="smaller than"):
+        RandomCrop((400, 400))(samples[0])
