@@ -150,3 +150,38 @@ def test_partly_missing_or_negative_depth_warns_and_lists_every_frame(tmp_path, 
     assert "holes: warning: negative depth is counted as missing" in out and "depth/0003.npy (25% negative)" in out
     res = run_cli("check", "--dataset", "custom", "--root", str(root), "--min-valid-depth", "0.2")
     assert res.exit_code == 0 and "less than" not in res.output
+
+
+def test_depth_and_flow_named_differently_are_found_by_the_frame_number(tmp_path, street):
+    # RGB-D exports often name each kind of file apart: frame-000000.color.jpg, frame-000000.depth.png
+    frames, pairs = street
+    root = write_fake_custom(tmp_path / "kitchen", frames, stem=lambda i: f"frame-{i:06d}.color",
+                             flows=pairs)
+    for i in range(len(frames)):
+        (root / "depth" / f"frame-{i:06d}.color.npy").rename(root / "depth" / f"frame-{i:06d}.depth.npy")
+        if i < len(pairs):
+            (root / "flow" / f"frame-{i:06d}.color.flo").rename(root / "flow" / f"frame-{i:06d}.flow.flo")
+    ds = open_dataset("custom", root)
+    ref = ds.pairs()[1]
+    assert ref.files["depth1"].name == "frame-000001.depth.npy"
+    assert ref.files["depth2"].name == "frame-000002.depth.npy"
+    assert ref.files["flow"].name == "frame-000001.flow.flo"
+    pair = ds.load(ref)
+    torch.testing.assert_close(pair.depth1, pairs[1].depth1, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(pair.depth2, pairs[1].depth2, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(pair.flow, pairs[1].flow)
+
+
+def test_missing_depth_says_how_depth_files_are_found(tmp_path, street):
+    frames, _ = street
+    root = write_fake_custom(tmp_path / "kitchen", frames[:2], stem=lambda i: f"frame-{i:06d}.color")
+    for i in range(2):      # two depth files whose number matches no frame: not taken by position
+        (root / "depth" / f"frame-{i:06d}.color.npy").rename(root / "depth" / f"frame-{i + 5:06d}.depth.npy")
+    ds = open_dataset("custom", root)
+    assert ds.pairs()[0].files["depth1"].name == "frame-000000.color.npy"
+    res = run_cli("check", "--dataset", "custom", "--root", str(root))
+    assert res.exit_code == 1
+    assert "kitchen: depth file is missing (a depth file is the frame's name with .npy, .png or .exr in " \
+           "depth/, or a file there with the frame's number" in res.output
+    res = run_cli("render", "--dataset", "custom", "--root", str(root), "--out", str(tmp_path / "out"))
+    assert res.exit_code == 2 and "frame-1 depth file is missing (a depth file is the frame's name" in res.output

@@ -69,6 +69,7 @@ class CustomDataset(FarDepthDataset):
         self._cameras = lru_cache(maxsize=8)(read_camera_file)
         self._scene_problems: dict[str, list[Problem]] = {}
         self._numbers: dict[str, int] = {}      # second frame of each listed pair -> its number
+        self._numbering = "name"                # how the frames of the scene last listed are numbered
 
     # -- listing ---------------------------------------------------------------------------------
     def scene_dirs(self) -> dict[str, Path]:
@@ -91,7 +92,25 @@ class CustomDataset(FarDepthDataset):
         order = order_frames([p.name for p in folder.iterdir() if p.is_file()], self.frame_pattern)
         if order.problem:
             raise DatasetError(f"{folder}: {order.problem}")
+        self._numbering = order.numbering
         return {n: folder / name for n, name in order.frames}
+
+    @staticmethod
+    def _numbered_files(scene_dir: Path) -> dict[str, dict[int, Path]]:
+        """Depth and flow files by frame number, for names that differ from the frames' in more
+        than the number (``frame-000012.color.jpg`` with ``frame-000012.depth.png``): folder
+        ("depth", "flow") -> number -> file. A folder whose files cannot be numbered by their
+        names (several kinds of name, no number) gives nothing; nothing is guessed."""
+        out: dict[str, dict[int, Path]] = {}
+        for sub, suffixes in (("depth", DEPTH_SUFFIXES), ("flow", (".flo",))):
+            folder = scene_dir / sub
+            if not folder.is_dir():
+                continue
+            names = [p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes]
+            order = order_frames(names, "*") if len(names) >= 2 else None
+            if order is not None and not order.problem and order.numbering == "name":
+                out[sub] = {n: folder / name for n, name in order.frames}
+        return out
 
     def pairs(self) -> list[PairRef]:
         dirs = self.scene_dirs()
@@ -108,6 +127,7 @@ class CustomDataset(FarDepthDataset):
                     Problem("frames cannot be paired: " + str(exc)[len(folder) + 2:], folder)]
                 continue
             numbers = list(frames)
+            by_number = self._numbered_files(dirs[scene]) if self._numbering == "name" else {}
             starts = list(zip(numbers[:-1], numbers[1:]))
             if sel.first_frame is not None:
                 starts = [s for s in starts if s[0] >= sel.first_frame]
@@ -116,7 +136,7 @@ class CustomDataset(FarDepthDataset):
             for a, b in starts:
                 self._numbers[str(frames[b])] = b
                 refs.append(PairRef(PairId(self.name, sel.split, scene, a),
-                                    self._files(dirs[scene], frames[a], frames[b])))
+                                    self._files(dirs[scene], frames[a], frames[b], (a, b), by_number)))
         if not refs and self._scene_problems:
             first = next(iter(self._scene_problems.values()))[0]
             raise DatasetError(f"{first.where}: {first.kind}")
@@ -140,22 +160,38 @@ class CustomDataset(FarDepthDataset):
         return out
 
     @staticmethod
-    def _files(scene_dir: Path, frame1: Path, frame2: Path) -> dict:
-        def depth_of(frame: Path) -> Path:
+    def _files(scene_dir: Path, frame1: Path, frame2: Path, numbers: tuple = (None, None),
+               by_number: Optional[dict] = None) -> dict:
+        """The files of a pair: depth and flow share the frame file's stem or, failing that,
+        its number (``by_number``, see :meth:`_numbered_files`)."""
+        by_number = by_number or {}
+
+        def depth_of(frame: Path, number) -> Path:
             candidates = [scene_dir / "depth" / (frame.stem + s) for s in DEPTH_SUFFIXES]
-            return next((c for c in candidates if c.exists()), candidates[0])
+            found = next((c for c in candidates if c.exists()), None)
+            return found or by_number.get("depth", {}).get(number, candidates[0])
 
         cams = scene_dir / "cameras.json"
         if not cams.exists() and (scene_dir / "cameras.txt").exists():
             cams = scene_dir / "cameras.txt"
-        return {"image1": frame1, "image2": frame2, "depth1": depth_of(frame1),
-                "depth2": depth_of(frame2), "cameras": cams,
-                "flow": scene_dir / "flow" / f"{frame1.stem}.flo"}
+        flow = scene_dir / "flow" / f"{frame1.stem}.flo"
+        if not flow.exists():
+            flow = by_number.get("flow", {}).get(numbers[0], flow)
+        return {"image1": frame1, "image2": frame2, "depth1": depth_of(frame1, numbers[0]),
+                "depth2": depth_of(frame2, numbers[1]), "cameras": cams, "flow": flow}
+
+    def missing_hint(self, key: str) -> str:
+        if key in ("depth1", "depth2"):
+            return (" (a depth file is the frame's name with .npy, .png or .exr in depth/, or a file "
+                    "there with the frame's number, such as frame-000012.depth.png for "
+                    "frame-000012.color.jpg)")
+        return ""
 
     # -- reading ---------------------------------------------------------------------------------
     def load(self, ref: PairRef) -> FramePair:
         files = ref.files
-        require_files(files, ("image1", "image2", "cameras", "depth1", "depth2"))
+        require_files(files, ("image1", "image2", "cameras"))
+        require_files(files, ("depth1", "depth2"), self.missing_hint("depth1"))
         img1, img2 = read_image(files["image1"]), read_image(files["image2"])
         size = img1.shape[:2]
         check_size(files["image2"], "frame", img2.shape, size)
