@@ -91,6 +91,28 @@ def test_depth_file_round_trips(tmp_path):
     np.testing.assert_array_equal(read_depth(tmp_path / "d.png", 0.25), [[1.25, 0], [0, 40]])
 
 
+def test_png_depth_of_65535_is_missing(tmp_path, street):
+    # Kinect-style sensors (7-Scenes) write the largest 16-bit value where they measured nothing
+    import cv2
+
+    raw = np.array([[1000, 65535], [0, 65534]], np.uint16)
+    cv2.imwrite(str(tmp_path / "d.png"), raw)
+    got = read_depth(tmp_path / "d.png", 0.001)
+    assert got[0, 0] == np.float32(1.0) and np.isnan(got[0, 1]) and got[1, 0] == 0
+    assert got[1, 1] == np.float32(65534) * np.float32(0.001)
+    write_depth(tmp_path / "far.png", np.array([[1e6, 2.0]], np.float32), png_scale=0.001)
+    assert read_depth(tmp_path / "far.png", 0.001)[0, 0] == np.float32(65534) * np.float32(0.001)   # never 65535
+    frames, _ = street
+    root = write_fake_custom(tmp_path / "s", frames[:2], depth_suffix=".png")
+    band = cv2.imread(str(root / "depth" / "0000.png"), cv2.IMREAD_UNCHANGED)
+    band[:10] = 65535
+    cv2.imwrite(str(root / "depth" / "0000.png"), band)
+    pair = load(root, far_depth=500.0)
+    assert not pair.depth_measured1[0, :10].any() and pair.depth_measured1[0, 10:].all()
+    assert (pair.depth1[0, :10] == 500.0).all()
+    assert pair.meta["depth_values"][0]["valid"] == pytest.approx(1 - 10 / band.shape[0], abs=1e-4)
+
+
 # -- bad input -----------------------------------------------------------------------------------
 def test_png_depth_needs_a_scale(tmp_path, street):
     frames, _ = street

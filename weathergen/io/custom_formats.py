@@ -25,6 +25,8 @@ from .atomic import atomic_write_bytes
 from .images import read_raw
 
 DEPTH_SUFFIXES = (".npy", ".png", ".exr")
+#: The 16-bit PNG depth value read as missing besides 0 (sensors write it where they measured nothing).
+PNG_DEPTH_MISSING = 65535
 POSES = ("cam_from_world", "world_from_cam")
 AXES = ("opencv", "opengl")
 DEPTH_KINDS = ("z", "range")
@@ -37,7 +39,7 @@ def read_depth(path: str | Path, png_scale: Optional[float] = None) -> np.ndarra
     """Read a depth map by suffix. Shape: returns (H, W) float32 (0, NaN or inf where missing).
 
     ``.npy``: a float (H, W) or (H, W, 1) array. ``.png``: one-channel 16-bit, depth = value *
-    ``png_scale`` (required). ``.exr``: channel Z, depth, Y or R (or the only channel).
+    ``png_scale`` (required); 0 and 65535 are missing (0 and NaN). ``.exr``: channel Z, depth, Y or R (or the only channel).
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -61,7 +63,10 @@ def read_depth(path: str | Path, png_scale: Optional[float] = None) -> np.ndarra
         if png_scale is None:
             raise FormatError(path, "16-bit PNG depth needs 'depth_png_scale' (scene units per step) "
                                     "in the camera file")
-        return raw.astype(np.float32) * np.float32(png_scale)
+        depth = raw.astype(np.float32) * np.float32(png_scale)
+        # 0 and the saturated 65535 mean "no measurement" (Kinect-style sensors, 7-Scenes)
+        depth[raw == PNG_DEPTH_MISSING] = np.nan
+        return depth
     if suffix == ".exr":
         return _read_exr_depth(path)
     raise FormatError(path, f"unsupported depth format {suffix!r}; use .npy, 16-bit .png or .exr")
@@ -86,7 +91,8 @@ def _read_exr_depth(path: Path) -> np.ndarray:
 def write_depth(path: str | Path, depth: np.ndarray, png_scale: Optional[float] = None) -> Path:
     """Write a depth map by suffix (.npy, .png with ``png_scale``, .exr channel Z) atomically.
 
-    Shape: depth (H, W); NaN/inf/<=0 are written as 0 in PNGs (missing).
+    Shape: depth (H, W); NaN/inf/<=0 are written as 0 in PNGs (missing); PNG values are clipped
+    to 1 .. 65534 (65535 reads as missing).
     """
     path = Path(path)
     depth = np.asarray(depth, np.float32)
@@ -101,7 +107,8 @@ def write_depth(path: str | Path, depth: np.ndarray, png_scale: Optional[float] 
         if not png_scale or png_scale <= 0:
             raise ValueError("a PNG depth map needs a positive png_scale")
         ok = np.isfinite(depth) & (depth > 0)
-        coded = np.where(ok, np.clip(np.round(np.where(ok, depth, 0) / png_scale), 1, 65535), 0)
+        coded = np.where(ok, np.clip(np.round(np.where(ok, depth, 0) / png_scale), 1,
+                                     PNG_DEPTH_MISSING - 1), 0)
         done, buf = cv2.imencode(".png", coded.astype(np.uint16))
         if not done:
             raise RuntimeError("PNG encoding failed")
