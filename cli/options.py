@@ -151,6 +151,7 @@ READER_OPTIONS = {
     "object_map": ("use_object_map", ("kitti",)),
     "frame_pattern": ("frame_pattern", ("custom",)),
     "min_valid_depth": ("min_valid_depth", ("custom",)),
+    "fill_gaps": ("max_gap_px", ("kitti", "custom")),
 }
 
 
@@ -177,6 +178,10 @@ def reader_options(func):
         click.option("--min-valid-depth", type=float, default=None, metavar="FRACTION",
                      help="custom: warn about frames with a smaller fraction of valid depth. "
                           "Default: 0.5."),
+        click.option("--fill-gaps", type=click.FloatRange(min=0), default=None, metavar="PX",
+                     help="kitti, custom: fill pixels without depth up to this distance from a "
+                          "measured one (guided by the frame's colours); farther ones get the far "
+                          "depth; 0 fills nothing. Default: 24."),
     )):
         func = option(func)
     return func

@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from fake_datasets import demo_sequence, write_fake_custom
 from weathergen.datasets import open_dataset
-from weathergen.errors import DatasetError, FormatError
+from weathergen.errors import ConfigError, DatasetError, FormatError
 from weathergen.geometry import reprojection_flow
 from weathergen.io.custom_formats import read_depth, write_depth
 from weathergen.io.sintel_formats import write_flo
@@ -61,7 +61,7 @@ def test_scenes_below_the_root_flow_and_missing_depth(tmp_path, street):
     write_flo(tmp_path / "a_scene" / "flow" / "0000.flo", pairs[0].flow.permute(1, 2, 0).numpy())
     ds = open_dataset("custom", tmp_path, frames_per_scene=2)
     assert [(r.id.scene, r.id.frame) for r in ds.pairs()] == [("a_scene", 0), ("a_scene", 1), ("b_scene", 0)]
-    pair = load(tmp_path, far_depth=321.0)
+    pair = load(tmp_path, far_depth=321.0, max_gap_px=0)      # no filling: the far depth
     assert (pair.depth1[0, :10] == 321.0).all()
     assert not pair.depth_measured1[0, :10].any() and pair.depth_measured1[0, 10:].all()
     torch.testing.assert_close(pair.flow, pairs[0].flow)
@@ -107,10 +107,39 @@ def test_png_depth_of_65535_is_missing(tmp_path, street):
     band = cv2.imread(str(root / "depth" / "0000.png"), cv2.IMREAD_UNCHANGED)
     band[:10] = 65535
     cv2.imwrite(str(root / "depth" / "0000.png"), band)
-    pair = load(root, far_depth=500.0)
+    pair = load(root, far_depth=500.0, max_gap_px=0)
     assert not pair.depth_measured1[0, :10].any() and pair.depth_measured1[0, 10:].all()
     assert (pair.depth1[0, :10] == 500.0).all()
     assert pair.meta["depth_values"][0]["valid"] == pytest.approx(1 - 10 / band.shape[0], abs=1e-4)
+
+
+def test_sensor_holes_are_filled_from_their_neighbours_and_large_gaps_get_the_far_depth(tmp_path, street):
+    # real depth sensors leave holes at object edges and on dark or shiny surfaces; the far depth
+    # there would put weather in front of the near object, drawing its outline
+    frames, pairs = street
+    root = write_fake_custom(tmp_path / "s", frames[:2], missing=(0, 40))      # rows 0-39 of frame 0
+    d = read_depth(root / "depth" / "0000.npy")
+    true = pairs[0].depth1[0].numpy()
+    h, w = d.shape
+    holes = np.zeros((h, w), bool)
+    holes[60:66, 100:106] = holes[120:123, 200:230] = True                     # small sensor holes
+    d[holes] = 0
+    write_depth(root / "depth" / "0000.npy", d)
+    pair = load(root, far_depth=700.0)
+    got = pair.depth1[0].numpy()
+    measured = pair.depth_measured1[0].numpy()
+    assert not measured[holes].any() and not measured[:40].any() and measured[40:][~holes[40:]].all()
+    np.testing.assert_array_equal(got[measured], true[measured])              # measured values kept
+    rel = np.abs(got[holes] - true[holes]) / true[holes]
+    assert np.median(rel) < 0.02 and rel.max() < 0.05, rel     # holes: their surface (two planes, a crease)
+    assert (got[:16] == 700.0).all()                                           # > 24 px from a measurement
+    near = got[17:40]
+    assert (near < 700.0).all() and (near >= true[40:].min()).all()           # extended from below
+    assert pair.meta["depth_values"][0]["filled"] == pytest.approx((holes.sum() + 24 * w) / (h * w), abs=2e-3)
+    unfilled = load(root, far_depth=700.0, max_gap_px=0).depth1[0].numpy()
+    assert (unfilled[holes] == 700.0).all()
+    with pytest.raises(ConfigError, match="max_gap_px"):
+        open_dataset("custom", root, max_gap_px=-1)
 
 
 # -- bad input -----------------------------------------------------------------------------------

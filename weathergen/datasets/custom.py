@@ -20,8 +20,10 @@ world_from_cam; ``axes`` [opencv] (x right, y down, z forward) or opengl (x righ
 as Blender and OpenGL cameras); ``depth`` [z] (camera-z distance) or range (distance along the
 ray); ``depth_png_scale`` (scene units per PNG step, required for PNG depth).
 
-Valid depth. Depth values that are zero, negative, NaN or infinite are invalid: they get
-``far_depth`` and ``depth_measured1/2`` mark the valid rest. A frame without any valid depth is an
+Valid depth. Depth values that are zero, negative, NaN or infinite are invalid: those within
+``max_gap_px`` (default 24) of a valid pixel are filled in from their neighbours (inverse depth,
+guided by the frame's colours: :func:`~weathergen.datasets.densify.fill_sparse`), the others get
+``far_depth``; ``depth_measured1/2`` mark the valid pixels. A frame without any valid depth is an
 error (with a hint about the sign convention when its values are negative); a frame whose valid
 fraction is below ``min_valid_depth`` (default 0.5) gets a warning from ``check``.
 """
@@ -44,10 +46,14 @@ from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
 from .base import ERROR, WARNING, Problem
 from .common import FarDepthDataset, check_size, require_files
+from .densify import fill_sparse
 from .framenames import order_frames
 
 #: Below this fraction of valid depth in a frame, ``check`` warns.
 DEFAULT_MIN_VALID_DEPTH = 0.5
+#: Gaps in the depth (sensor holes at object edges, dark or shiny surfaces) are filled up to this
+#: distance (pixels) from a valid pixel; farther pixels get the far depth.
+DEFAULT_MAX_GAP_PX = 24.0
 #: OpenGL camera axes (y up, z backward) -> OpenCV camera axes (y down, z forward)
 _CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -60,10 +66,14 @@ class CustomDataset(FarDepthDataset):
     required_files = ("image1", "image2", "cameras", "depth1", "depth2")
 
     def __init__(self, root, selection: Selection = Selection(), *, frame_pattern: Optional[str] = None,
-                 min_valid_depth: float = DEFAULT_MIN_VALID_DEPTH, **options):
+                 min_valid_depth: float = DEFAULT_MIN_VALID_DEPTH,
+                 max_gap_px: float = DEFAULT_MAX_GAP_PX, **options):
         super().__init__(root, selection, **options)
         if not 0 <= min_valid_depth <= 1:
             raise ConfigError(f"minimum valid-depth fraction must be in [0, 1], got {min_valid_depth}")
+        if not max_gap_px >= 0:
+            raise ConfigError(f"max_gap_px must be zero or positive, got {max_gap_px}")
+        self.max_gap_px = float(max_gap_px)
         self.frame_pattern = frame_pattern
         self.min_valid_depth = float(min_valid_depth)
         self._cameras = lru_cache(maxsize=8)(read_camera_file)
@@ -153,7 +163,8 @@ class CustomDataset(FarDepthDataset):
             where = f"{ref.files[key]} ({100 * valid:.0f}% valid)"
             if valid < self.min_valid_depth:
                 out.append(Problem(f"less than {100 * self.min_valid_depth:g}% of the depth is valid "
-                                   f"(the rest gets the far depth)", where, WARNING))
+                                   f"(the rest is filled in from valid pixels up to "
+                                   f"{self.max_gap_px:g} px away, or gets the far depth)", where, WARNING))
             if stats.get("negative", 0):
                 out.append(Problem(_NEGATIVE_HINT, f"{ref.files[key]} "
                                    f"({100 * stats['negative']:.0f}% negative)", WARNING))
@@ -215,10 +226,12 @@ class CustomDataset(FarDepthDataset):
                 reason = (f"{100 * negative:.0f}% of its values are negative: {_NEGATIVE_HINT}"
                           if negative else "every value is zero, NaN or infinite")
                 raise DatasetError(f"{files[key]}: no valid depth in this frame; {reason}")
-            values.append({"valid": round(float(ok.mean()), 4), "negative": round(negative, 4)})
             if cams.depth == "range":
                 d = _range_to_z(d, k1)
-            depths.append(np.where(ok, d, self.far_depth).astype(np.float32))
+            depth, filled = self._fill_gaps(d, ok, img1 if key == "depth1" else img2)
+            values.append({"valid": round(float(ok.mean()), 4), "negative": round(negative, 4),
+                           "filled": round(float(filled.mean()), 4)})
+            depths.append(depth)
             measured.append(ok)
 
         flow = flow_valid = None
@@ -238,8 +251,24 @@ class CustomDataset(FarDepthDataset):
 
     def describe(self) -> dict:
         out = super().describe()
-        out.update(frame_pattern=self.frame_pattern, min_valid_depth=self.min_valid_depth)
+        out.update(frame_pattern=self.frame_pattern, min_valid_depth=self.min_valid_depth,
+                   max_gap_px=self.max_gap_px)
         return out
+
+    def _fill_gaps(self, depth: np.ndarray, ok: np.ndarray, image: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Depth with its gaps filled: pixels within ``max_gap_px`` of a valid one get a value
+        from their neighbours (inverse depth, guided by the frame's colours, as KITTI's sparse
+        disparity), the rest the far depth. Shape: (H, W) each -> (depth float32, filled bool)."""
+        filled = np.zeros_like(ok)
+        out = np.where(ok, depth, self.far_depth).astype(np.float32)
+        if ok.all() or self.max_gap_px <= 0:
+            return out, filled
+        inverse = np.where(ok, 1.0 / np.where(ok, depth, 1.0), 0.0).astype(np.float32)
+        values, known = fill_sparse(inverse, ok, image, max_gap_px=self.max_gap_px)
+        filled = known & ~ok & np.isfinite(values) & (values > 0)
+        out[filled] = 1.0 / values[filled]
+        return out, filled
 
     @staticmethod
     def _camera(cams: CameraFile, path, number: int, stem: str) -> tuple[np.ndarray, np.ndarray]:
