@@ -174,6 +174,15 @@ def test_camera_file_problems_are_named(tmp_path, street):
     (root / "cameras.json").unlink()
     with pytest.raises(DatasetError, match=r"cameras\.json: camera file is missing"):
         load(root)
+    # a text file written with numpy scalars' repr (a mistake made converting a trajectory log)
+    write = "0 500 500 191.5 87.5 1 0 0 0 0 1 0 0 0 0 1 0\n1 500 500 191.5 87.5 np.float64(1.0) 0 0 0 0 1 0 0 0 0 1 0\n"
+    (root / "cameras.txt").write_text(write)
+    with pytest.raises(FormatError, match=r"cameras\.txt: line 2 is not a frame number followed by 16 numbers: "
+                                          r"'np\.float64\(1\.0\)' is not a number"):
+        load(root)
+    (root / "cameras.txt").write_text(write.replace("np.float64(1.0)", "1").replace("\n1 ", "\n1.5 "))
+    with pytest.raises(FormatError, match=r"line 2 .*: '1\.5' is not a whole frame number"):
+        load(root)
 
 
 def test_depth_of_the_wrong_size_names_the_file(tmp_path, street):

@@ -240,6 +240,11 @@ def _positive(path: Path, key: str, value) -> float:
     return float(value)
 
 
+def _short(token: str, at_most: int = 40) -> str:
+    """A token of a text file for a message, quoted and shortened."""
+    return repr(token if len(token) <= at_most else token[: at_most - 3] + "...")
+
+
 def _parse_txt(path: Path, text: str) -> CameraFile:
     cams = CameraFile()
     for i, line in enumerate(text.splitlines(), start=1):
@@ -269,9 +274,16 @@ def _parse_txt(path: Path, text: str) -> CameraFile:
                                     f"frame fx fy cx cy and a 3x4 pose, row-major")
         try:
             number = int(parts[0])
-            vals = [float(v) for v in parts[1:]]
         except ValueError:
-            raise FormatError(path, f"line {i} is not a frame number followed by 16 numbers") from None
+            raise FormatError(path, f"line {i} is not a frame number followed by 16 numbers: "
+                                    f"{_short(parts[0])} is not a whole frame number") from None
+        vals = []
+        for v in parts[1:]:
+            try:
+                vals.append(float(v))
+            except ValueError:
+                raise FormatError(path, f"line {i} is not a frame number followed by 16 numbers: "
+                                        f"{_short(v)} is not a number") from None
         fx, fy, cx, cy = vals[:4]
         k = _intrinsics(path, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], f"line {i}")
         cams.frames[number] = (_pose(path, vals[4:], f"line {i}"), k)
