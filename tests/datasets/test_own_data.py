@@ -190,3 +190,23 @@ def test_missing_depth_says_how_depth_files_are_found(tmp_path, street):
            "depth/, or a file there with the frame's number" in res.output
     res = run_cli("render", "--dataset", "custom", "--root", str(root), "--out", str(tmp_path / "out"))
     assert res.exit_code == 2 and "frame-1 depth file is missing (a depth file is the frame's name" in res.output
+
+
+def test_fill_gaps_option_reaches_the_reader(tmp_path, street, monkeypatch):
+    from weathergen.datasets import custom
+
+    frames, _ = street
+    root = write_fake_custom(tmp_path / "s", frames[:2], missing=(0, 10))
+    seen = []
+    original = custom.CustomDataset.__init__
+
+    def spy(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        seen.append(self.max_gap_px)
+
+    monkeypatch.setattr(custom.CustomDataset, "__init__", spy)
+    assert run_cli("check", "--dataset", "custom", "--root", str(root), "--fill-gaps", "0").exit_code == 0
+    assert run_cli("check", "--dataset", "custom", "--root", str(root)).exit_code == 0
+    assert seen == [0.0, 24.0]
+    res = run_cli("check", "--fill-gaps", "3")
+    assert res.exit_code == 2 and "--fill-gaps applies to kitti, custom only, not to demo" in res.output
