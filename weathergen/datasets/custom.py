@@ -3,7 +3,7 @@
 Layout below the root (several scenes), or the root itself as the single scene::
 
     SCENE/frames/0000.png         frames (8- or 16-bit PNG, or JPEG), any names (see below)
-    SCENE/depth/0000.npy          depth of each frame, same stem: .npy, 16-bit .png or .exr
+    SCENE/depth/0000.npy          depth of each frame, same stem (or number): .npy, 16-bit .png or .exr
     SCENE/cameras.json            intrinsics and one pose per frame (or cameras.txt)
     SCENE/flow/0000.flo           optional: flow from this frame to the next one (Middlebury .flo)
 
