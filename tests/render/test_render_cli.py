@@ -381,7 +381,8 @@ def test_world_up_is_a_dataset_setting_recorded_in_the_manifest(snow_run, tmp_pa
     # a direction (a world that is not level), here nearly -z, written with a leading minus
     res = run("render", "--out", tmp_path / "vector", "--world-up", "-0.001,0,-1", *FAST)
     assert res.exit_code == 0, res.output
-    up = read_metadata(tmp_path / "vector/training/particles/street_0001/frame_0001.npz")["motion"]
+    up = stored_values(read_metadata(tmp_path / "vector/training/particles/street_0001/frame_0001.npz"),
+                       "motion")
     assert (up[:, 2] > 0).all()
     assert json.loads((tmp_path / "vector/manifest.json").read_text())["input"]["world_up"] == "-0.001,0,-1"
 
