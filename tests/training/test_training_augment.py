@@ -9,11 +9,12 @@ import torch
 from torch.utils.data import DataLoader
 
 from weathergen.datasets import open_dataset
+from weathergen.engine import load_preset, sample_field_particles
 from weathergen.errors import ConfigError, ShapeError
 from weathergen.framepair import _TENSOR_FIELDS
 from weathergen.geometry import reprojection_flow
-from weathergen.training import (Compose, PairDataset, RandomCrop, RandomFlip, WeatherAugment,
-                                 collate_pairs, crop_pair, flip_pair, pair_of)
+from weathergen.training import (Compose, PairDataset, PresetSource, RandomCrop, RandomFlip,
+                                 WeatherAugment, collate_pairs, crop_pair, flip_pair, pair_of)
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -129,6 +130,55 @@ def test_batched_path_on_cuda_matches_the_cpu(samples):
     cpu = collate_pairs([aug(s) for s in samples[:3]])
     gpu = aug.apply_batch(collate_pairs(samples[:3]).to("cuda"))
     torch.testing.assert_close(gpu.pairs.image1.cpu(), cpu.pairs.image1, rtol=0, atol=1e-4)
+
+
+# -- weather-field presets (world units) ----------------------------------------------------
+
+#: A thin field keeps the tests fast: 5 flakes per cubic scene unit instead of snow-light's 40.
+THIN_FIELD = {"density": 5}
+
+
+def test_field_presets_render_in_both_paths_as_the_field_samples_them(samples):
+    field = PresetSource("snow-light", THIN_FIELD)
+    aug = WeatherAugment([field, PresetSource("snow", LIGHT)], p=1.0, seed=4, keep_particles=True)
+    assert field.model == "field" and aug.sources[1].model == "paper"
+    per_sample = [aug(s) for s in samples]
+    assert {s.weather.source for s in per_sample} == {"snow-light", "snow"}
+    for s, out in zip(samples, per_sample):
+        changed = (out.pair.image1 != s.pair.image1).any(0)
+        assert int(changed.sum()) > 50
+        if out.weather.source == "snow-light":
+            # the record is the field's, drawn from the draw's seed, with per-frame looks
+            expected = sample_field_particles(s.pair, field.preset, out.weather.seed)
+            assert out.particles.optics is not None and out.particles.count > 100
+            assert torch.equal(out.particles.position, expected.position)
+        else:
+            assert out.particles.optics is None and out.particles.count == LIGHT["count"]
+    expected = collate_pairs(per_sample)
+    for inputs in (samples, [aug.prepare(s) for s in samples]):
+        batched = aug.apply_batch(collate_pairs(inputs))
+        assert batched.weather == expected.weather
+        assert torch.equal(batched.pairs.image1, expected.pairs.image1)
+        assert torch.equal(batched.pairs.image2, expected.pairs.image2)
+
+
+def test_the_field_ladder_keeps_its_densities(samples):
+    """light, moderate and heavy snow by name: the same field tile (same seed) with 40, 120 and
+    350 flakes per cubic scene unit, so the pair gets particles in that ratio."""
+    counts = {}
+    for name in ("snow-light", "snow-moderate", "snow-heavy"):
+        prepared = WeatherAugment(name, p=1.0, seed=3).prepare(samples[0])
+        assert prepared.weather.source == name and prepared.particles.optics is not None
+        counts[name] = prepared.particles.count
+    density = {n: load_preset(n).density for n in counts}
+    for name in ("snow-moderate", "snow-heavy"):
+        ratio = counts[name] / counts["snow-light"]
+        assert ratio == pytest.approx(density[name] / density["snow-light"], rel=0.1), name
+
+
+def test_overrides_unknown_to_a_model_are_refused(samples):
+    with pytest.raises(ConfigError, match="snow-light.*'count'"):
+        WeatherAugment(["snow", "snow-light"], overrides={"count": 100})
 
 
 def test_keep_particles_keeps_the_rendered_record(samples):

@@ -26,8 +26,8 @@ the pair stays a consistent record) therefore come after the weather, on samples
 with their own ``(seed, epoch, index)`` draws.
 
 Other weather models plug in as a :class:`WeatherSource`: anything with a ``name``, the name of
-its template library and ``sample(pair, seed, world_up) -> Particles``. The paper's presets are
-:class:`PresetSource`; a source whose particles carry ground truth can be used with
+its template library and ``sample(pair, seed, world_up) -> Particles``. Presets of either model
+(the paper's, and the world-unit weather fields such as ``snow-light``) are :class:`PresetSource`; a source whose particles carry ground truth can be used with
 ``keep_particles=True``, which keeps each rendered particle record in the sample.
 """
 
@@ -41,8 +41,8 @@ from typing import Mapping, Optional, Protocol, Sequence, Union, runtime_checkab
 
 import torch
 
-from ..engine import (Preset, StampSet, build_stamps, load_preset, load_templates, render_pair,
-                      sample_particles)
+from ..engine import (FieldPreset, Preset, StampSet, build_stamps, load_preset, load_templates,
+                      render_pair, sample_weather)
 from ..engine.renderer import StampBucket
 from ..errors import ConfigError, ShapeError
 from ..framepair import FramePair, FramePairBatch
@@ -108,37 +108,54 @@ def preset_digest(preset: Preset) -> str:
 
 
 class PresetSource:
-    """The paper's particle model with one preset (:func:`~weathergen.engine.sample_particles`).
+    """One preset of either weather model, sampled as ``weathergen render`` samples it
+    (:func:`~weathergen.engine.sample_weather`): a paper preset places its ``count`` visible
+    particles in the pair (:func:`~weathergen.engine.sample_particles`); a weather-field preset
+    (``model = "field"``, world units: ``snow-light``, ``rain-heavy``, ...) draws the pair's
+    particles from the field of the draw's seed (:func:`~weathergen.engine.sample_field_particles`),
+    so every sample gets a field of its own and the same density in scene units.
 
     Args:
-        preset: a bundled preset name, a path to a ``.toml`` file, or a :class:`Preset`.
-        overrides: preset keys to change, as for ``--set`` (``{"count": 1500}``).
+        preset: a bundled preset name, a path to a ``.toml`` file, or a loaded :class:`Preset`
+            or :class:`FieldPreset`.
+        overrides: preset keys to change, as for ``--set`` (``{"count": 1500}``,
+            ``{"density": 60}``).
     """
 
-    def __init__(self, preset: Union[str, Path, Preset], overrides: Optional[Mapping] = None,
-                 name: Optional[str] = None):
-        if isinstance(preset, Preset):
+    def __init__(self, preset: Union[str, Path, Preset, FieldPreset],
+                 overrides: Optional[Mapping] = None, name: Optional[str] = None):
+        if isinstance(preset, (Preset, FieldPreset)):
             if overrides:
                 raise ConfigError("overrides apply to presets given by name or path, "
                                   "not to a loaded Preset")
             self.preset = preset
             self.name = name or f"preset-{preset_digest(preset)}"
         else:
-            self.preset = load_preset(preset, overrides=dict(overrides or {}))
+            try:
+                self.preset = load_preset(preset, overrides=dict(overrides or {}))
+            except ConfigError as exc:     # name the preset an override did not fit
+                if str(preset) in str(exc):
+                    raise
+                raise ConfigError(f"preset {preset}: {exc}") from None
             self.name = name or (Path(str(preset)).stem if str(preset).endswith(".toml")
                                  else str(preset))
         self.templates = self.preset.templates
 
+    @property
+    def model(self) -> str:
+        """``"field"`` for a weather-field preset, ``"paper"`` for the paper's model."""
+        return "field" if isinstance(self.preset, FieldPreset) else "paper"
+
     def sample(self, pair: FramePair, seed: int, world_up: str):
-        return sample_particles(pair, self.preset, seed, world_up=world_up,
-                                templates=load_templates(self.templates))
+        return sample_weather(pair, self.preset, seed, world_up=world_up,
+                              templates=load_templates(self.templates))
 
     def __repr__(self) -> str:
         return f"PresetSource({self.name!r})"
 
 
 def _is_source(obj) -> bool:
-    return not isinstance(obj, (str, Path, Preset)) and isinstance(obj, WeatherSource)
+    return not isinstance(obj, (str, Path, Preset, FieldPreset)) and isinstance(obj, WeatherSource)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -183,12 +200,12 @@ class WeatherAugment:
     def __init__(self, presets: Union[str, Preset, WeatherSource, Sequence] = ("snow",),
                  p: float = 0.5, seed: int = 0, *, overrides: Optional[Mapping] = None,
                  world_up: Optional[str] = None, keep_particles: bool = False):
-        single = isinstance(presets, (str, Path, Preset)) or _is_source(presets)
+        single = isinstance(presets, (str, Path, Preset, FieldPreset)) or _is_source(presets)
         items = [presets] if single else list(presets)
         if not items:
             raise ConfigError("WeatherAugment needs at least one preset")
         self.sources = [s if _is_source(s) else
-                        PresetSource(s, None if isinstance(s, Preset) else overrides)
+                        PresetSource(s, None if isinstance(s, (Preset, FieldPreset)) else overrides)
                         for s in items]
         names = [s.name for s in self.sources]
         if len(set(names)) != len(names):
@@ -280,11 +297,13 @@ class WeatherAugment:
         image1, image2 = pairs.image1.clone(), pairs.image2.clone()
         groups = defaultdict(list)
         for k in todo:
-            groups[records[k].settings.templates].append(k)
-        for members in groups.values():
+            # weather-field records (optics set) are rendered view by view, with their looks
+            # computed per frame: they get a call of their own and no prebuilt stamps
+            groups[records[k].settings.templates, records[k].optics is not None].append(k)
+        for (_, per_frame), members in groups.items():
             group = [records[k] for k in members]
-            out = render_pair(select_pairs(pairs, members), group,
-                              stamps=stamps_per_record(group, device=image1.device))
+            stamps = None if per_frame else stamps_per_record(group, device=image1.device)
+            out = render_pair(select_pairs(pairs, members), group, stamps=stamps)
             index = torch.tensor(members, device=image1.device)
             image1[index] = out.image1
             image2[index] = out.image2
