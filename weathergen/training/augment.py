@@ -27,7 +27,8 @@ with their own ``(seed, epoch, index)`` draws.
 
 Other weather models plug in as a :class:`WeatherSource`: anything with a ``name``, the name of
 its template library and ``sample(pair, seed, world_up) -> Particles``. Presets of either model
-(the paper's, and the world-unit weather fields such as ``snow-light``) are :class:`PresetSource`; a source whose particles carry ground truth can be used with
+(the paper's, and the world-unit weather fields such as ``snow-light``) are
+:class:`PresetSource`; a source whose particles carry ground truth can be used with
 ``keep_particles=True``, which keeps each rendered particle record in the sample.
 """
 
