@@ -42,11 +42,10 @@ from typing import Mapping, Optional, Protocol, Sequence, Union, runtime_checkab
 
 import torch
 
-from ..engine import (FieldPreset, Preset, StampSet, build_stamps, load_preset, load_templates,
-                      render_pair, sample_weather)
-from ..engine.renderer import StampBucket
+from ..engine import FieldPreset, Preset, load_preset, load_templates, render_pair, sample_weather
 from ..errors import ConfigError, ShapeError
 from ..framepair import FramePair, FramePairBatch
+from .batchrender import render_records, stamps_per_record
 from .datasets import (PairSample, PairSampleBatch, batch_to, collate_pairs, pair_of,
                        select_pairs)
 
@@ -193,6 +192,11 @@ class WeatherAugment:
             ``{"count": 1000}`` for frames much smaller than Sintel's).
         world_up: which world axis points up; ``None`` takes each sample's (its dataset's) setting.
         keep_particles: keep the rendered particle record in :attr:`PairSample.particles`.
+        exact_batches: how :meth:`apply_batch` rasterises the stamps of the paper's presets
+            (:mod:`weathergen.training.batchrender`): ``True`` record by record, bit for bit the
+            per-sample frames; ``False`` all records at once in a few buckets, far fewer device
+            operations, equal up to float rounding; ``None`` (default): exact on the CPU, fast on
+            other devices.
 
     Shape: frames ``(3, H, W)`` per sample or ``(B, 3, H, W)`` per batch, RGB in ``[0, 1]``;
     the pairs need depth and cameras (every weathergen reader provides them).
@@ -200,7 +204,8 @@ class WeatherAugment:
 
     def __init__(self, presets: Union[str, Preset, WeatherSource, Sequence] = ("snow",),
                  p: float = 0.5, seed: int = 0, *, overrides: Optional[Mapping] = None,
-                 world_up: Optional[str] = None, keep_particles: bool = False):
+                 world_up: Optional[str] = None, keep_particles: bool = False,
+                 exact_batches: Optional[bool] = None):
         single = isinstance(presets, (str, Path, Preset, FieldPreset)) or _is_source(presets)
         items = [presets] if single else list(presets)
         if not items:
@@ -215,6 +220,7 @@ class WeatherAugment:
         self.seed = _check_seed(seed)
         self.world_up = world_up
         self.keep_particles = bool(keep_particles)
+        self.exact_batches = exact_batches
 
     def __repr__(self) -> str:
         names = ", ".join(s.name for s in self.sources)
@@ -295,45 +301,33 @@ class WeatherAugment:
         if not todo:
             return replace(batch, weather=draws)
 
-        image1, image2 = pairs.image1.clone(), pairs.image2.clone()
         groups = defaultdict(list)
         for k in todo:
             # weather-field records (optics set) are rendered view by view, with their looks
             # computed per frame: they get a call of their own and no prebuilt stamps
             groups[records[k].settings.templates, records[k].optics is not None].append(k)
+        image1, image2 = pairs.image1, pairs.image2
+        whole = len(groups) == 1 and len(todo) == len(batch)
+        if not whole:                     # filled in place, group by group
+            image1, image2 = image1.clone(), image2.clone()
         for (_, per_frame), members in groups.items():
             group = [records[k] for k in members]
-            stamps = None if per_frame else stamps_per_record(group, device=image1.device)
-            out = render_pair(select_pairs(pairs, members), group, stamps=stamps)
-            index = torch.tensor(members, device=image1.device)
-            image1[index] = out.image1
-            image2[index] = out.image2
+            chosen = pairs if whole else select_pairs(pairs, members)
+            if per_frame:
+                out = render_pair(chosen, group)
+            else:
+                out = render_records(chosen, group, exact=self.exact_batches)
+            if whole:
+                image1, image2 = out.image1, out.image2
+            else:
+                index = torch.tensor(members, device=image1.device)
+                image1[index] = out.image1
+                image2[index] = out.image2
             for k in members:
                 draws[k] = replace(draws[k], rendered=True)
         kept = [r if self.keep_particles else None for r in records]
         return replace(batch, pairs=replace(pairs, image1=image1, image2=image2), weather=draws,
                        particles=kept)
-
-
-def stamps_per_record(records: Sequence, device=None) -> StampSet:
-    """The stamps of several particle records, rasterised record by record and put together.
-
-    Rasterising every record on its own makes each pair's pixels independent of the other pairs
-    in the batch (the defocus blur is a batched convolution whose last bits depend on how many
-    stamps it convolves at once), so the batched render equals the per-pair render bit for bit on
-    the CPU.
-    """
-    library = load_templates(records[0].settings.templates)
-    buckets, bucket_of, slot_of, first = [], [], [], 0
-    for record in records:
-        stamps = build_stamps([record], library, device=device)
-        offset = len(buckets)
-        buckets.extend(StampBucket(side=b.side, particles=b.particles + first, stamps=b.stamps)
-                       for b in stamps.buckets)
-        bucket_of.append(stamps.bucket_of + offset)
-        slot_of.append(stamps.slot_of)
-        first += record.count
-    return StampSet(buckets=buckets, bucket_of=torch.cat(bucket_of), slot_of=torch.cat(slot_of))
 
 
 def _geometry_on_cpu(pairs: FramePairBatch) -> FramePairBatch:
