@@ -15,8 +15,10 @@ It runs in one of two places:
   in one batched call (one per template library when presets with different templates are
   mixed). Without ``prepare`` the batch path samples the particles itself (on the CPU, from the
   pairs' depth and cameras). Both paths give the same frames: bit for bit on the CPU (each pair's
-  stamps are rasterised on their own, see :func:`stamps_per_record`), up to the last bits on CUDA,
-  where the renderer adds with atomics.
+  stamps are rasterised on their own, see :func:`stamps_per_record`); on other devices the batch
+  path by default takes the fast route of :mod:`weathergen.training.batchrender` (few buckets,
+  far fewer kernel launches), equal up to float rounding, and CUDA's frames agree with the CPU's
+  within one grey level.
 
 **Order: weather first, geometric augmentation after.** The presets place a number of *visible*
 particles in the whole frame, with pixel sizes meant for the full frame; rendering into the full
@@ -35,7 +37,9 @@ its template library and ``sample(pair, seed, world_up) -> Particles``. Presets 
 from __future__ import annotations
 
 import hashlib
+import os
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Mapping, Optional, Protocol, Sequence, Union, runtime_checkable
@@ -281,25 +285,37 @@ class WeatherAugment:
         template library, on the device the batch is on (``batch.to("cuda")`` first for a GPU).
 
         Particles prepared in the workers (:meth:`prepare`) are used as they are; the others are
-        sampled here, on the CPU, from the pairs' depth and cameras.
+        sampled here, on the CPU, from the pairs' depth and cameras, in threads (one per pair, up
+        to the CPU count; each pair's draw is its own, so the particles do not depend on them).
         Shape: ``batch.pairs`` images ``(B, 3, H, W)``; returns a batch of the same shapes.
         """
         pairs = batch.pairs
-        draws, records, todo = [], [], []
-        geometry = None
+        draws, records, todo, unsampled = [], [], [], []
         for k in range(len(batch)):
             draw, particles = self._pending(batch.weather[k], batch.particles[k],
                                             int(batch.indices[k]), int(batch.epochs[k]))
             if draw.applied and not draw.rendered:
                 if particles is None:
-                    if geometry is None:
-                        geometry = _geometry_on_cpu(pairs)
-                    particles = self._particles(pair_of(geometry, k), draw, batch.world_up[k])
+                    unsampled.append(k)
                 todo.append(k)
             draws.append(draw)
             records.append(particles)
         if not todo:
             return replace(batch, weather=draws)
+        if unsampled:
+            geometry = _geometry_on_cpu(pairs)
+
+            def sample(k):
+                return self._particles(pair_of(geometry, k), draws[k], batch.world_up[k])
+
+            threads = min(len(unsampled), os.cpu_count() or 1)
+            if threads > 1:
+                with ThreadPoolExecutor(threads) as pool:
+                    sampled = list(pool.map(sample, unsampled))
+            else:
+                sampled = [sample(k) for k in unsampled]
+            for k, particles in zip(unsampled, sampled):
+                records[k] = particles
 
         groups = defaultdict(list)
         for k in todo:
