@@ -308,8 +308,10 @@ def batch_instances(records: Sequence, intrinsics: torch.Tensor, cam1_from_ref: 
         cx, cy, skew = kk[pair, 0, 2, None], kk[pair, 1, 2, None], kk[pair, 0, 1, None]
         for t, start in enumerate((start1, start1 + displacement)):
             cam = cams[t][pair]                                                        # (P, 4, 4)
-            pts = torch.baddbmm(cam[:, None, :3, 3], start[:, None, :] + streak,
-                                cam[:, :3, :3].transpose(1, 2))                         # (P, K, 3)
+            # elementwise rather than a matrix product, which a training script's TF32
+            # setting would round to 10 bits
+            pts = (cam[:, None, :3, :3] * (start[:, None, :] + streak)[:, :, None, :]).sum(-1) \
+                + cam[:, None, :3, 3]                                                  # (P, K, 3)
             z = pts[..., 2]
             safe = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
             x, y = pts[..., 0] / safe, pts[..., 1] / safe
