@@ -11,13 +11,13 @@ paper-model records:
   (:func:`stamps_per_record`), so each pair's pixels are bit for bit those of rendering it alone;
   the batch has as many buckets as its records have together.
 - **fast** (the default on other devices): the stamps of all records are rasterised in one call
-  of the renderer's :func:`~weathergen.engine.build_stamps` (buckets shared by the records), in
-  float64 and stored in the images' dtype, and the buckets of each grid are then merged into a
-  few classes of side (:func:`coalesce_buckets`): a stamp is padded with zeros, centred, to its
-  class's side. Zero-padded pixels add exactly nothing, so the frames are the exact path's up to
-  the order of floating-point additions (CPU: within 1e-5, tested). Rasterising in float64 keeps
-  the stamps free of the rounding of the GPU's convolution algorithms (TF32, FFT-based), which
-  the brightening of defocused stamps (a cube root) would otherwise magnify near zero.
+  of the renderer's :func:`~weathergen.engine.build_stamps` (buckets shared by the records), and
+  the buckets of each grid are then merged into a few classes of side (:func:`coalesce_buckets`):
+  a stamp is padded with zeros, centred, to its class's side. Zero-padded pixels add exactly
+  nothing, so on the CPU the frames are the exact path's up to the order of floating-point
+  additions (within 1e-5, tested). Off the CPU the stamps are rasterised in float64 (and stored
+  in the images' dtype): the GPU's convolution algorithms (TF32, FFT-based) round the defocus
+  blur coarsely, and the brightening of defocused stamps (a cube root) magnifies that near zero.
 """
 
 from __future__ import annotations
@@ -66,11 +66,12 @@ def stamps_per_record(records: Sequence, device=None, dtype: torch.dtype = torch
 def batch_stamps(records: Sequence, device=None, *, coalesce: bool = True,
                  dtype: torch.dtype = torch.float32, ratio: float = CLASS_RATIO) -> StampSet:
     """The stamps of all ``records`` from one rasterisation (buckets shared by the records),
-    computed in float64 and stored in ``dtype``; with ``coalesce``, merged into side classes
-    (:func:`coalesce_buckets`)."""
+    computed in ``dtype`` on the CPU and in float64 elsewhere (see the module doc), stored in
+    ``dtype``; with ``coalesce``, merged into side classes (:func:`coalesce_buckets`)."""
     library = load_templates(records[0].settings.templates)
     device = torch.device(device) if device is not None else records[0].device
-    stamps = build_stamps(records, library, dtype=torch.float64, device=device)
+    work = dtype if device.type == "cpu" else torch.float64
+    stamps = build_stamps(records, library, dtype=work, device=device)
     stamps = StampSet(buckets=[dataclasses.replace(b, stamps=b.stamps.to(dtype))
                                for b in stamps.buckets],
                       bucket_of=stamps.bucket_of, slot_of=stamps.slot_of)
