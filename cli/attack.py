@@ -11,10 +11,11 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from weathergen.attack import ATTACK_CONFIGS, AttackJob, parse_target, run_attack
+from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, LP_METHODS, AttackJob, lp_pass_name,
+                               parse_target, plan_lp, run_attack)
 from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
 from weathergen.engine import parse_set_options, resolve_device
-
+from weathergen.errors import ConfigError
 from weathergen.execution import RunClock, check_executor
 
 from .options import (dataset_options, device_option, executor_options, model_options, out_option,
@@ -25,11 +26,11 @@ def _fmt(value, digits: int = 3) -> str:
     return "–" if value is None else f"{value:.{digits}f}"
 
 
-def summary_table(title: str, summary: dict) -> Table:
+def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
     """Mean figures over the attacked pairs (pixels): one row per measure, one column per input."""
     table = Table(title=title)
     table.add_column(f"mean over {summary['pairs']} pair(s)")
-    for col in ("clean", "random weather", "adversarial weather"):
+    for col in ("clean", f"random {what}", f"adversarial {what}"):
         table.add_column(col, justify="right")
     table.add_row("AEE(f, f̌)", "0", _fmt(summary["aee_random"]),
                   _fmt(summary["aee_adversarial"]))
@@ -43,6 +44,13 @@ def summary_table(title: str, summary: dict) -> Table:
 @click.command()
 @dataset_options
 @model_options
+@click.option("--method", type=click.Choice(("weather",) + LP_METHODS), default="weather",
+              show_default=True,
+              help="weather: optimise weather particles; pcfa: the L2 baseline PCFA; ifgsm: the "
+                   "L-infinity baseline I-FGSM (both perturb the frames themselves).")
+@click.option("--epsilon", type=float, default=None,
+              help="Bound of an Lp attack: pcfa the normalised L2 norm over both frames, ifgsm "
+                   "the L-infinity norm. Default 5e-3 (the paper's).")
 @click.option("--config", "config_name", default=None, metavar="NAME",
               help=f"An attack configuration of the paper's supplement ({', '.join(ATTACK_CONFIGS)}): "
                    "sets preset, --optimize, --lr and the occlusion gradient; explicit options win.")
@@ -54,13 +62,15 @@ def summary_table(title: str, summary: dict) -> Table:
 @click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
               default=None, help="Start from the particles of an earlier render (or attack) "
                                  "output instead of sampling.")
-@click.option("--steps", type=click.IntRange(min=0), default=750, show_default=True,
-              help="Adam steps per pair.")
+@click.option("--steps", type=click.IntRange(min=0), default=None,
+              help=f"Optimisation steps per pair. Default: {DEFAULT_STEPS} (weather), 20 (pcfa), "
+                   "25 (ifgsm).")
 @click.option("--optimize", default=None, metavar="A,B,...",
               help="Variables to optimise: offset1, offset2, color, transparency (or 'all'). "
                    "Default: the --config's, else all (fog: all but offset2).")
 @click.option("--lr", type=float, default=None,
-              help="Adam learning rate. Default: 1e-5 when an offset is optimised, else 1e-3.")
+              help="Adam learning rate. Default: 1e-5 when an offset is optimised, else 1e-3; "
+                   "pcfa 1e-3; for ifgsm the step size, default 2.5 * epsilon / steps.")
 @click.option("--alpha1", type=float, default=1000.0, show_default=True,
               help="Weight of the frame-1 offset penalty.")
 @click.option("--alpha2", type=float, default=1000.0, show_default=True,
@@ -84,7 +94,7 @@ def summary_table(title: str, summary: dict) -> Table:
 @resume_option("Finish an interrupted run: skip finished pairs.")
 @overwrite_option("Redo every pair, even in a folder that holds one.")
 @quiet_option
-def attack(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
+def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_name, preset, set_items,
            particles_dir, steps,
            optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, gradient_checkpointing,
            out, seed, device, batch_size, executor, ray_address, resume, overwrite, quiet):
@@ -98,6 +108,36 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
     if executor == "local":       # a Ray driver need not have the workers' devices
         resolve_device(device)
     target = parse_target(target_text)
+    execution = dict(batch_size=batch_size, executor=executor, ray_address=ray_address,
+                     threads=torch.get_num_threads())
+    if method != "weather":
+        lp = plan_lp(method, epsilon, steps, lr, config_name=config_name, preset=preset,
+                     overrides=tuple(set_items), particles_from=particles_dir, optimize=optimize,
+                     occlusion_gradient=occlusion_gradient)
+        out = out or default_attack_out(method)
+        job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
+                        preset=None, preset_name=method, settings=None, target=target,
+                        iters=iters, seed=seed, device=device,
+                        pass_name=lp_pass_name(method, dataset.selection.pass_),
+                        gradient_checkpointing=gradient_checkpointing, download=download,
+                        resume=resume, overwrite=overwrite,
+                        command=["weathergen", *sys.argv[1:]], lp=lp, **execution)
+        label, steps = method, lp.steps
+    else:
+        if epsilon is not None:
+            raise ConfigError("${epsilon} applies to --method pcfa or ifgsm only")
+        steps = DEFAULT_STEPS if steps is None else steps
+        job, label = _weather_job(dataset, model, checkpoint, iters, download, config_name,
+                                  preset, set_items, particles_dir, steps, optimize, lr, alpha1,
+                                  alpha2, target, occlusion_gradient, gradient_checkpointing, out,
+                                  seed, device, resume, overwrite, execution)
+        out = job.out
+    _run(job, model, label, target, steps, out, quiet)
+
+
+def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
+                 particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
+                 gradient_checkpointing, out, seed, device, resume, overwrite, execution):
     plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
                        optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
                        steps=steps, alpha1=alpha1, alpha2=alpha2)
@@ -110,9 +150,11 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
                     pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
                     gradient_checkpointing=gradient_checkpointing, download=download,
                     resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]],
-                    batch_size=batch_size, executor=executor, ray_address=ray_address,
-                    threads=torch.get_num_threads())
+                    **execution)
+    return job, label
 
+
+def _run(job, model, label, target, steps, out, quiet):
     console = Console()
     err = Console(stderr=True)
     interactive = console.is_terminal and not quiet
@@ -179,7 +221,8 @@ def attack(dataset, model, checkpoint, iters, download, config_name, preset, set
         sys.exit(130)
     if not quiet:
         console.print(summary_table(f"weathergen attack: {model}, {label}, target "
-                                    f"{target.describe()} (pixels)", summary))
+                                    f"{target.describe()} (pixels)", summary,
+                                    "weather" if job.lp is None else "perturbation"))
         console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
                       soft_wrap=True)
     if failed:

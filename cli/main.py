@@ -10,6 +10,7 @@ from weathergen import __version__
 from weathergen.errors import WeatherGenError
 
 from .attack import attack
+from .benchmark import benchmark
 from .check import check
 from .demo_scene import demo_scene
 from .evaluate import evaluate
@@ -40,7 +41,7 @@ def cli():
     """Physically placed weather for optical-flow datasets, and weather attacks on flow networks."""
 
 
-for _command in (attack, check, demo_scene, evaluate, inspect, preview, presets_command, render):
+for _command in (attack, benchmark, check, demo_scene, evaluate, inspect, preview, presets_command, render):
     cli.add_command(_command)
 
 

@@ -121,6 +121,7 @@ LAYERS = [("weathergen", "weathergen.errors", "weathergen.workers"),
           ("weathergen.datasets", "weathergen.models", "weathergen.engine"),
           ("weathergen.training",),
           ("weathergen.outputs",), ("weathergen.render",), ("weathergen.attack",),
+          ("weathergen.benchmark",),
           ("weathergen.cli",)]
 
 

@@ -91,6 +91,26 @@ def test_attack_on_ray_writes_the_local_bytes(cluster, raft_small_weights, tmp_p
     assert manifest["runs"][-1]["executor"] == "ray"
 
 
+def test_lp_attack_batched_on_ray_writes_the_local_bytes(cluster, raft_small_weights, tmp_path):
+    """An Lp baseline goes through the same work units: batched, and as Ray tasks."""
+    args = ["attack", "--method", "ifgsm", "--model", "raft-small", "--checkpoint",
+            raft_small_weights, "--iters", "1", *PAIRS, "--steps", "1", "--seed", "2",
+            "--batch-size", "2", "--quiet"]
+    local = invoke([*args, "--out", tmp_path / "local"])
+    assert local.exit_code == 0, local.output
+    remote = invoke([*args, "--out", tmp_path / "ray", "--executor", "ray",
+                     "--ray-address", cluster])
+    assert remote.exit_code == 0, remote.output
+    written = files(tmp_path / "local")
+    assert any(name.endswith(".exr") for name in written)      # the float frames, too
+    assert files(tmp_path / "ray") == written
+    for run in ("local", "ray"):
+        manifest = json.loads((tmp_path / run / "manifest.json").read_text())
+        assert [e["ran"]["batch"] for e in manifest["pairs"].values()] == [2, 2]
+        assert manifest["config"]["attack"]["method"] == "ifgsm"
+    assert manifest["runs"][-1]["executor"] == "ray"
+
+
 class KillOnce:
     """A dataset whose worker process dies (SIGKILL) the first time it loads ``victim``."""
 

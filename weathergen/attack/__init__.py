@@ -4,6 +4,7 @@
 - :mod:`.configs`: the named attack configurations of the paper's supplement;
 - :mod:`.targets`: the flow an attack pushes the network towards;
 - :mod:`.plan`: the precedence rules that turn a request into settings;
+- :mod:`.lp`: the Lp baselines PCFA (L2) and I-FGSM (L∞), perturbing the frames themselves;
 - :mod:`.pair`: the optimisation of one pair (tensors in, tensors out, no file I/O);
 - :mod:`.job`: the attack over a dataset, writing through :mod:`weathergen.outputs`;
 - :mod:`.evaluate`: robustness of a network to the weather of a render or attack output.
@@ -20,15 +21,20 @@ from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
 from .evaluate import (EvalRow, default_evaluation_path, evaluate_frames, mean_rows,
                        run_evaluation, write_evaluation)
 from .job import AttackJob, PairReport, attack_refs, prepare_attack_folder, run_attack
-from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisation, PairSummary, StepRecord,
-                   WeatherVariables, attack_batch, attack_loss, attack_pair, mean_summary, offset_penalty,
-                   particle_depths, summarize_pair)
+from .lp import (LP_DEFAULTS, LP_METHODS, LpOptimisation, LpResult, LpSettings, l2_normalised,
+                 l2_normalised_per_pair, lp_attack_batch, lp_attack_pair, lp_pass_name,
+                 lp_settings, plan_lp, random_perturbation)
+from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisation, PairSummary,
+                   StepRecord, WeatherVariables, attack_batch, attack_loss, attack_pair,
+                   mean_summary, offset_penalty, particle_depths, summarize_pair)
 from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack
 from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE,
                        POSITION_VARIABLES, AttackSettings, default_lr, parse_optimize)
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
-__all__ = ["AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
+__all__ = ["LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpResult", "LpSettings",
+           "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_attack_pair", "lp_pass_name", "lp_settings", "plan_lp",
+           "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
            "ATTACK_CONFIGS", "AttackConfig", "AttackJob", "AttackResult", "AttackSettings",
            "DEFAULT_ALPHA", "DEFAULT_STEPS", "EvalRow", "LR_APPEARANCE", "LR_POSITIONS",
            "MIN_REG_DEPTH", "OPTIMIZABLE", "POSITION_VARIABLES", "PairOptimisation", "PairReport",

@@ -12,12 +12,14 @@ same preset.
 
 from __future__ import annotations
 
+import json
 import time
 from dataclasses import asdict, dataclass, field
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Callable, Optional
 
+import numpy as np
 import torch
 
 from ..datasets import Dataset
@@ -26,10 +28,12 @@ from ..errors import ConfigError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
 from ..models import get_model
-from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, pair_metadata, prepare_folder,
-                       read_attack_manifest, read_pair_summary, write_attack_manifest,
-                       write_attack_pair)
-from ..render.particles import pair_particles, weather_seed
+from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pair_metadata,
+                       prepare_folder, read_attack_manifest, read_pair_summary,
+                       write_attack_manifest, write_attack_pair)
+from ..outputs.metadata import identity_arrays
+from ..render.particles import pair_particles, pair_seed, weather_seed
+from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
 from .targets import TargetSpec, read_target_flow
@@ -43,9 +47,9 @@ class AttackJob:
     out: Path
     model: str
     checkpoint: Optional[str]
-    preset: object                       # weathergen.engine.Preset
+    preset: object                       # weathergen.engine.Preset (None for an Lp attack)
     preset_name: str
-    settings: AttackSettings
+    settings: Optional[AttackSettings]   # None for an Lp attack
     target: TargetSpec = TargetSpec("zero")
     iters: Optional[int] = None
     seed: int = 0
@@ -58,6 +62,8 @@ class AttackJob:
     resume: bool = False
     overwrite: bool = False
     command: list = field(default_factory=list)
+    #: set for an Lp baseline (``pcfa``, ``ifgsm``) instead of weather: frames are perturbed
+    lp: Optional[LpSettings] = None
     batch_size: int = 1                 # pairs of one size optimised together
     executor: str = "local"             # "local" or "ray" (weathergen.execution)
     ray_address: Optional[str] = "auto"
@@ -65,6 +71,17 @@ class AttackJob:
 
     def config(self) -> dict:
         """What must agree between an interrupted run and its resumption."""
+        if self.lp is not None:
+            return {
+                "preset_name": self.preset_name, "preset": None, "seed": self.seed,
+                "input": self.dataset.describe(),
+                "outputs": {"pass": self.pass_name, "format": "both", "geometry": True},
+                "particles_from": None,
+                "attack": {"method": self.lp.method, **self.lp.to_dict(),
+                           "target": self.target.describe(), "configuration": None},
+                "model": {"name": self.model, "checkpoint": str(self.checkpoint)
+                          if self.checkpoint is not None else None, "iters": self.iters},
+            }
         return {
             "preset_name": self.preset_name, "preset": self.preset.to_dict(), "seed": self.seed,
             "input": self.dataset.describe(),
@@ -112,9 +129,10 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
                 device: Optional[str] = None) -> list[PairReport]:
     """Load, attack and write some pairs; one report per pair, in the order of ``refs``.
 
-    Pairs of one size are optimised together (:func:`~weathergen.attack.attack_batch`), pairs of
-    other sizes in batches of their own. A pair whose input is bad fails alone; an error in the
-    optimisation fails the pairs of its batch. This is the work unit of every executor.
+    Pairs of one size are optimised together (:func:`~weathergen.attack.attack_batch`, or
+    :func:`~weathergen.attack.lp_attack_batch` for an Lp baseline), pairs of other sizes in
+    batches of their own. A pair whose input is bad fails alone; an error in the optimisation
+    fails the pairs of its batch. This is the work unit of every executor.
     """
     device = device or job.device
     if model is None:
@@ -129,9 +147,9 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
-            particles = pair_particles(pair, job.preset, job.seed,
-                                       world_up=getattr(job.dataset, "world_up", "auto"),
-                                       particles_from=job.particles_from)
+            particles = None if job.lp is not None else pair_particles(
+                pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
+                particles_from=job.particles_from)
         except WeatherGenError as exc:
             reports[ref.id.key] = PairReport(str(ref.id), "failed", message=str(exc),
                                              key=ref.id.key)
@@ -141,11 +159,19 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
     for group in groups.values():
         start = time.perf_counter()
         names = [str(ref.id) for ref, _, _, _ in group]
+        pairs = [g[1] for g in group]
+        step = lambda i, record: on_step(names[i], record)     # noqa: E731
         try:
-            results = attack_batch(model, [g[1] for g in group], [g[2] for g in group],
-                                   job.settings, job.target, device=device,
-                                   target_file_flow=target_file_flow,
-                                   on_step=lambda i, record: on_step(names[i], record))
+            if job.lp is not None:
+                results = lp_attack_batch(
+                    model, torch.stack([p.image1 for p in pairs]).to(device),
+                    torch.stack([p.image2 for p in pairs]).to(device), job.lp, job.target,
+                    seeds=[pair_seed(job.seed, p.id) for p in pairs],
+                    target_file_flow=target_file_flow, on_step=step)
+            else:
+                results = attack_batch(model, pairs, [g[2] for g in group], job.settings,
+                                       job.target, device=device,
+                                       target_file_flow=target_file_flow, on_step=step)
         except WeatherGenError as exc:
             for ref, _, _, _ in group:
                 reports[ref.id.key] = PairReport(str(ref.id), "failed", message=str(exc),
@@ -153,9 +179,10 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
             continue
         share = (time.perf_counter() - start) / len(group)
         ran = {**where_ran(device), "batch": len(group)}
+        write = write_lp_pair if job.lp is not None else write_attacked_pair
         for (ref, pair, _, spent), result in zip(group, results):
             begin = time.perf_counter()
-            summary = write_attacked_pair(job, model, pair, result, device)
+            summary = write(job, model, pair, result, device)
             summary.seconds = spent + share + time.perf_counter() - begin
             reports[ref.id.key] = PairReport(str(ref.id), "written", summary, key=ref.id.key,
                                              ran=ran)
@@ -185,6 +212,37 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
     out = AttackPairOutput.of(job.out, pair.id, job.pass_name)
     write_attack_pair(out, pair.to("cpu"), frames, opacity, meta, flows, result.history,
                       asdict(summary))
+    return summary
+
+
+def lp_pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
+    """Where an Lp-attacked pair goes: the attack layout, with float EXR frames besides the PNGs
+    (an Lp perturbation is finer than the 8-bit steps of a PNG)."""
+    return AttackPairOutput(PairOutput.of(job.out, pair_id, job.pass_name, "both", geometry=True))
+
+
+def pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
+    """Where the job writes a pair."""
+    return (lp_pair_output(job, pair_id) if job.lp is not None
+            else AttackPairOutput.of(job.out, pair_id, job.pass_name))
+
+
+def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
+    """Write one Lp-attacked pair with the same files as a weather attack; return its figures.
+
+    The figures describe the float frames of the best step (written as EXR; the PNG frames are
+    those frames rounded to 8 bits). The metadata holds the pair's identity and the Lp settings,
+    no particles.
+    """
+    summary = summarize_pair(str(pair.id), result, result.best_flow, pair.flow, pair.flow_valid)
+    frames = tuple(f[0].permute(1, 2, 0).numpy() for f in result.best_frames)
+    opacity = tuple(np.zeros(f.shape[:2], dtype=np.float32) for f in frames)
+    meta = identity_arrays(pair.id, pair_seed(job.seed, pair.id), {}, job.preset_name)
+    meta["lp_attack"] = np.array(json.dumps(job.lp.to_dict()))
+    flows = {"benign": result.benign_flow, "initial": result.initial_flow,
+             "adversarial": result.best_flow, "target": result.target}
+    write_attack_pair(lp_pair_output(job, pair.id), pair.to("cpu"), frames, opacity, meta, flows,
+                      result.history, asdict(summary))
     return summary
 
 
@@ -268,7 +326,7 @@ def run_attack(job: AttackJob,
     todo = []
     try:
         for ref in refs:
-            out = AttackPairOutput.of(job.out, ref.id, job.pass_name)
+            out = pair_output(job, ref.id)
             if not job.overwrite and out.is_complete():
                 stored = read_pair_summary(out)
                 if stored is not None:

@@ -1,0 +1,93 @@
+"""``weathergen benchmark``: the paper's tables in one command."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+from rich.console import Console
+
+from weathergen.benchmark import (DEFAULT_LP, DEFAULT_PRESETS, BenchmarkSpec, run_grid, tr115_default, write_tables)
+from weathergen.engine import parse_set_options, resolve_device
+from weathergen.errors import ConfigError
+from weathergen.render.shards import parse_shard
+
+from .options import dataset_options, device_option, quiet_option, seed_option
+
+
+def _names(text: str) -> list[str]:
+    return [t.strip() for t in text.split(",") if t.strip()]
+
+
+def _checkpoints(items) -> dict:
+    out = {}
+    for item in items:
+        name, sep, value = item.partition("=")
+        if not sep or not name.strip() or not value.strip():
+            raise ConfigError(f"${{checkpoint}} {item!r}: expected NETWORK=FILE_OR_NAME")
+        out[name.strip()] = value.strip()
+    return out
+
+
+@click.command()
+@dataset_options
+@click.option("--networks", default="raft", show_default=True, metavar="A,B,...",
+              help="Flow networks (comma-separated), one table column each.")
+@click.option("--checkpoint", "checkpoint_items", multiple=True, metavar="NETWORK=CKPT",
+              help="Checkpoint file or name of one network (repeatable). Default: its own.")
+@click.option("--presets", default=",".join(DEFAULT_PRESETS), show_default=True,
+              metavar="A,B,...", help="Weather presets (random and adversarial); '' for none.")
+@click.option("--lp", "lp_text", default=",".join(DEFAULT_LP), show_default=True,
+              metavar="A,B,...", help="Lp attacks (pcfa, ifgsm); '' for none.")
+@click.option("--steps", type=click.IntRange(min=0), default=None,
+              help="Weather attack steps per pair. Default: the attack's (750).")
+@click.option("--lp-steps", type=click.IntRange(min=0), default=None,
+              help="Lp attack steps per pair. Default: each method's (pcfa 20, ifgsm 25).")
+@click.option("--iters", type=click.IntRange(min=1), default=None,
+              help="Refinement iterations of recurrent networks. Default: each network's.")
+@click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
+              help="Override one preset key in every weather run (repeatable).")
+@click.option("--shard", "shard_text", default=None, metavar="I/N",
+              help="Run only every N-th run of the grid, starting at the I-th (job arrays); the "
+                   "tables cover whatever is finished.")
+@click.option("--download", is_flag=True,
+              help="Fetch named checkpoints that are missing from the cache (needs a network).")
+@click.option("--out", type=click.Path(file_okay=False, path_type=Path),
+              default=Path("out/benchmark"), show_default=True, help="Benchmark folder.")
+@seed_option("Run seed of every run (weather as `weathergen render --seed`).")
+@device_option
+@quiet_option
+def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_steps, iters,
+              set_items, shard_text, download, out, seed, device, quiet):
+    """Run networks x {random weather, adversarial weather, Lp attacks} x presets and write
+    the paper's tables (CSV, JSON, Markdown, LaTeX) into OUT.
+
+    Without --frames-per-scene at most 5 pairs per scene are used (the
+    paper's Sintel-tr115 on Sintel training). Every run is an `attack` output under OUT/runs;
+    running the command again resumes where it stopped.
+    """
+    resolve_device(device)
+    spec = BenchmarkSpec(
+        dataset=tr115_default(dataset), out=out, networks=_names(networks),
+        presets=_names(presets), lp_methods=_names(lp_text),
+        checkpoints=_checkpoints(checkpoint_items), steps=steps, lp_steps=lp_steps, iters=iters,
+        overrides=parse_set_options(set_items), seed=seed, device=device, download=download,
+        command=["weathergen", *sys.argv[1:]])
+    shard = parse_shard(shard_text) if shard_text else None
+    console = Console()
+
+    def on_cell(i, n, cell):
+        if not quiet:
+            console.print(f"[{i + 1}/{n}] {cell.network} {cell.label}", highlight=False)
+
+    try:
+        run_grid(spec, shard, on_cell=on_cell)
+    except KeyboardInterrupt:
+        Console(stderr=True).print("Interrupted; run the same command again to resume.")
+        sys.exit(130)
+    paths = write_tables(spec)
+    if not quiet:
+        console.print(paths["markdown"].read_text(), highlight=False, markup=False)
+        console.print(f"Tables: {paths['markdown']}, {paths['latex']}; results: {paths['csv']}, "
+                      f"{paths['json']}", highlight=False, soft_wrap=True)

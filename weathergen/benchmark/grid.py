@@ -1,0 +1,138 @@
+"""The benchmark grid: networks × {random weather, adversarial weather, Lp attacks} × presets.
+
+A grid is a list of :class:`Cell` runs. Every cell is one ordinary ``attack`` run (an
+:class:`~weathergen.attack.AttackJob` handed to :func:`~weathergen.attack.run_attack`) into its
+own folder ``OUT/runs/<network>/<label>``, so each is resumable and readable like any attack
+output:
+
+- one *weather* cell per network and preset: its ``aee_random`` (step 0: the random weather that
+  ``render --seed S`` writes for the preset) fills the "augmentations" table and its
+  ``aee_adversarial`` the "weatherattacks" table;
+- one *Lp* cell per network and Lp method (``pcfa``, ``ifgsm``): its ``aee_adversarial`` fills
+  the "of_attacks" table, next to the adversarial snow of the same network.
+
+:func:`run_grid` runs the cells of one shard (``i/N`` takes every N-th cell) one after another
+through ``execute`` — the place where another executor (worker pool, cluster) plugs in: it gets
+the :class:`AttackJob` of a cell and must leave the cell's folder finished. Cells already
+finished are skipped (``attack --resume`` semantics: a half-done cell continues at its next pair),
+then the tables are written from the per-run ``summary.json`` files (:mod:`.tables`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Callable, Mapping, Optional, Sequence
+
+from ..attack import AttackJob, lp_pass_name, lp_settings, run_attack
+from ..attack.plan import attack_pass_name, plan_attack
+from ..datasets import Dataset, reopen_dataset
+from ..errors import ConfigError
+from ..models.checkpoints import sha256_of
+
+#: The paper's four weather presets and its two Lp baselines.
+DEFAULT_PRESETS = ("snow", "rain", "sparks", "fog")
+DEFAULT_LP = ("pcfa", "ifgsm")
+#: Pairs per scene of the paper's Sintel-tr115 selection, the benchmark's default.
+TR115_FRAMES_PER_SCENE = 5
+
+
+@dataclass(frozen=True)
+class Cell:
+    """One run of the grid: ``kind`` is ``weather`` (label = preset) or ``lp`` (label = method)."""
+
+    network: str
+    kind: str
+    label: str
+
+    def folder(self, out: Path) -> Path:
+        return Path(out) / "runs" / self.network / self.label
+
+
+@dataclass
+class BenchmarkSpec:
+    """What a benchmark runs. ``checkpoints`` maps a network to its checkpoint (None: its own);
+    ``overrides`` are preset keys applied to every weather cell (``--set``)."""
+
+    dataset: Dataset
+    out: Path
+    networks: Sequence[str]
+    presets: Sequence[str] = DEFAULT_PRESETS
+    lp_methods: Sequence[str] = DEFAULT_LP
+    checkpoints: Mapping[str, Optional[str]] = field(default_factory=dict)
+    steps: Optional[int] = None          # weather attack steps (None: the attack's default)
+    lp_steps: Optional[int] = None       # Lp steps (None: each method's default)
+    iters: Optional[int] = None
+    overrides: Mapping[str, str] = field(default_factory=dict)
+    seed: int = 0
+    device: str = "cpu"
+    download: bool = False
+    command: list = field(default_factory=list)
+
+    def cells(self) -> list[Cell]:
+        if not self.networks:
+            raise ConfigError("${networks} names no network")
+        cells = []
+        for net in self.networks:
+            cells += [Cell(net, "weather", p) for p in self.presets]
+            cells += [Cell(net, "lp", m) for m in self.lp_methods]
+        return cells
+
+
+def tr115_default(dataset: Dataset) -> Dataset:
+    """The selection with at most :data:`TR115_FRAMES_PER_SCENE` pairs per scene where it sets no
+    limit of its own (the paper's Sintel-tr115 on Sintel's training split)."""
+    if dataset.selection.frames_per_scene is not None:
+        return dataset
+    return reopen_dataset({**dataset.describe(), "frames_per_scene": TR115_FRAMES_PER_SCENE})
+
+
+def cell_job(spec: BenchmarkSpec, cell: Cell) -> AttackJob:
+    """The attack run of one cell (resuming whatever its folder holds)."""
+    common = dict(dataset=spec.dataset, out=cell.folder(spec.out), model=cell.network,
+                  checkpoint=spec.checkpoints.get(cell.network), iters=spec.iters,
+                  seed=spec.seed, device=spec.device, download=spec.download, resume=True,
+                  command=list(spec.command))
+    input_pass = spec.dataset.selection.pass_
+    if cell.kind == "lp":
+        return AttackJob(preset=None, preset_name=cell.label, settings=None,
+                         pass_name=lp_pass_name(cell.label, input_pass),
+                         lp=lp_settings(cell.label, steps=spec.lp_steps), **common)
+    kwargs = {} if spec.steps is None else {"steps": spec.steps}
+    plan = plan_attack(None, cell.label, dict(spec.overrides), **kwargs)
+    return AttackJob(preset=plan.preset, preset_name=plan.preset_name, settings=plan.settings,
+                     config_name=None, pass_name=attack_pass_name(plan.preset_name, input_pass),
+                     **common)
+
+
+def shard_cells(cells: list[Cell], shard: Optional[tuple[int, int]]) -> list[Cell]:
+    """The cells of shard ``i`` of ``N``: every N-th cell, starting at ``i - 1``."""
+    if shard is None:
+        return list(cells)
+    i, n = shard
+    return list(cells)[i - 1::n]
+
+
+def checkpoint_record(name: str, checkpoint: Optional[str]) -> dict:
+    """What identifies a network's weights: its name, the checkpoint given and, for a file, its
+    sha256."""
+    record = {"network": name, "checkpoint": checkpoint, "sha256": None}
+    if checkpoint is not None and Path(checkpoint).is_file():
+        record["sha256"] = sha256_of(Path(checkpoint))
+    return record
+
+
+def run_grid(spec: BenchmarkSpec, shard: Optional[tuple[int, int]] = None,
+             execute: Callable[[AttackJob], dict] = run_attack,
+             on_cell: Callable[[int, int, Cell], None] = lambda i, n, c: None) -> list[Cell]:
+    """Run the cells of ``shard`` (all without one) through ``execute``; return them.
+
+    Every cell's job is built before the first runs, so a bad preset, method or option fails
+    before anything is written.
+    """
+    cells = shard_cells(spec.cells(), shard)
+    jobs = [cell_job(spec, c) for c in cells]
+    for i, (cell, job) in enumerate(zip(cells, jobs)):
+        on_cell(i, len(cells), cell)
+        execute(job)
+    return cells
