@@ -10,6 +10,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from weathergen.engine.particles import stored_values
 from weathergen.io.atomic import write_error
 from weathergen.io.images import write_png
 from weathergen.outputs import read_metadata
@@ -58,7 +59,7 @@ def inspect(file: Path):
             continue
         a = arrays[name]
         if a.size:
-            f = a.astype(np.float64)
+            f = stored_values(arrays, name)       # grid and 8-bit codes decoded
             stats = (f"{f.min():.4g}", f"{f.max():.4g}", f"{f.mean():.4g}")
         else:
             stats = ("-", "-", "-")

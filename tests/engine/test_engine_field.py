@@ -293,12 +293,13 @@ def test_field_record_round_trips_and_rerenders_bit_identically(tmp_path):
     assert torch.equal(a.image1, b.image1) and torch.equal(a.image2, b.image2)
 
 
-def test_paper_records_keep_format_version_1(tmp_path):
+def test_paper_records_are_compact_version_3_without_optics(tmp_path):
     cams, depths = sequence(2)
     pair = seq_pair(cams, depths, 0)
     rec = sample_particles(pair, load_preset("snow", {"count": "20"}), 0)
     with np.load(rec.save(tmp_path / "p.npz")) as data:
-        assert int(data["format_version"]) == 1 and "optics" not in data.files
+        assert int(data["format_version"]) == 3 and "optics" not in data.files
+        assert data["position"].dtype == np.uint16
 
 
 def test_gradients_reach_the_offsets_of_field_records():

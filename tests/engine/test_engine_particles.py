@@ -41,9 +41,42 @@ def test_storage_is_small_and_plain_numpy(tmp_path, snow_pair_and_particles):
         path = rec.save(tmp_path / name)
         assert path.stat().st_size < 200_000, path.stat().st_size
     with np.load(tmp_path / "sampled.npz", allow_pickle=False) as data:
-        assert int(data["format_version"]) == 1
-        assert data["position"].dtype == np.float32 and data["position"].shape == (3000, 3)
+        assert int(data["format_version"]) == 3
+        assert data["position"].dtype == np.uint16 and data["position"].shape == (3000, 3)
+        assert data["position_grid"].dtype == np.float64 and data["position_grid"].shape == (2, 3)
         assert str(data["frame"]) == "world" and int(data["blur_samples"]) == 20
+
+
+@pytest.mark.parametrize("name", ["snow", "rain", "sparks"])
+def test_metadata_of_3000_particles_stays_under_60_kB(tmp_path, name):
+    """Positions and motions on 15- and 10-bit grids, colours and rotations in 8 bits."""
+    pair = plane_pair(436, 1024, depth=6.0, near_block=True)
+    parts = sample_particles(pair, load_preset(name), seed=3)
+    assert parts.count == 3000
+    assert parts.save(tmp_path / "p.npz").stat().st_size <= 60_000
+    q = parts.quantized()                                  # sampling already quantized: a no-op
+    for field in ("position", "motion", "color", "rotation", "scale", "transparency"):
+        assert torch.equal(getattr(q, field), getattr(parts, field)), field
+    # the grid really is fine: 15 bits over the sampled positions' extent
+    span = parts.position.max(0).values - parts.position.min(0).values
+    steps = torch.diff(torch.unique(parts.position[:, 0]))
+    assert float(steps.min()) >= float(span[0]) / 32767 * 0.99
+
+
+def test_version_1_files_are_still_read(tmp_path, snow_pair_and_particles):
+    pair, parts = snow_pair_and_particles
+    v1 = {"format_version": np.array(1, np.int32)}
+    for name, dtype in (("position", np.float32), ("motion", np.float32),
+                        ("offset1", np.float16), ("offset2", np.float16), ("color", np.float16),
+                        ("transparency", np.float16), ("template", np.uint16),
+                        ("rotation", np.float16), ("scale", np.float32), ("defocus", np.uint8)):
+        v1[name] = getattr(parts, name).numpy().astype(dtype)
+    v1["frame"] = np.array(parts.frame)
+    v1.update(parts.settings.to_arrays())
+    np.savez(tmp_path / "v1.npz", **v1)
+    again = Particles.load(tmp_path / "v1.npz")
+    assert torch.equal(again.position, parts.position) and torch.equal(again.motion, parts.motion)
+    torch.testing.assert_close(again.color, parts.color, atol=1e-3, rtol=0)
 
 
 def test_saving_quantizes_and_quantized_records_render_like_the_file(tmp_path):

@@ -78,32 +78,41 @@ def _naive_level(alphas: np.ndarray, level: int) -> np.ndarray:
 
 
 def _naive_stamp(lib, tid, rotation, scale, radius, brighten):
-    """The particle's alpha stamp around its centre pixel, as a dict {(dy, dx): value}."""
+    """The particle's alpha stamp around its centre pixel, as a dict {(dy, dx): value}: the
+    template rotated and scaled to the footprint, each pixel the mean of sub x sub samples
+    (box filter; 4 x 4 for stamps up to 5 pixels wide, 2 x 2 up to 9)."""
     res = lib.resolution
     footprint = max(scale * res, 1.0)
+    side = 2 * max(math.floor(footprint / 2 + 0.5), 1) + 1
+    sub = 4 if side <= 5 else (2 if side <= 9 else 1)
     level = 0
-    while level + 1 <= 3 and res / footprint >= 2 ** (level + 1) and (res >> level) % 2 == 0 \
-            and (res >> level) >= 4:
+    while level + 1 <= 3 and res / (footprint * sub) >= 2 ** (level + 1) \
+            and (res >> level) % 2 == 0 and (res >> level) >= 4:
         level += 1
     tmpl = _naive_level(lib.alphas.double().numpy(), level)[tid]
     rl = tmpl.shape[0]
-    half = int(math.ceil(footprint / 2)) + 1
+    half = int(math.ceil(footprint / 2)) + 2
     stamp = {}
     for dy in range(-half, half + 1):
         for dx in range(-half, half + 1):
-            # template offset = Rot(-rotation) * image offset, in units of half the footprint
-            xn = (math.cos(rotation) * dx + math.sin(rotation) * dy) / (footprint / 2)
-            yn = (-math.sin(rotation) * dx + math.cos(rotation) * dy) / (footprint / 2)
-            if xn * xn + yn * yn > 1:
-                continue
-            px, py = (xn + 1) / 2 * rl - 0.5, (yn + 1) / 2 * rl - 0.5
-            x0, y0 = math.floor(px), math.floor(py)
-            val = 0.0
-            for yy, wy in ((y0, 1 - (py - y0)), (y0 + 1, py - y0)):
-                for xx, wx in ((x0, 1 - (px - x0)), (x0 + 1, px - x0)):
-                    if 0 <= yy < rl and 0 <= xx < rl:
-                        val += wy * wx * tmpl[yy, xx]
-            stamp[(dy, dx)] = val
+            total = 0.0
+            for iy in range(sub):
+                for ix in range(sub):
+                    sy = dy + (iy + 0.5) / sub - 0.5
+                    sx = dx + (ix + 0.5) / sub - 0.5
+                    # template offset = Rot(-rotation) * image offset, in half-footprints
+                    xn = (math.cos(rotation) * sx + math.sin(rotation) * sy) / (footprint / 2)
+                    yn = (-math.sin(rotation) * sx + math.cos(rotation) * sy) / (footprint / 2)
+                    if xn * xn + yn * yn > 1:
+                        continue
+                    px, py = (xn + 1) / 2 * rl - 0.5, (yn + 1) / 2 * rl - 0.5
+                    x0, y0 = math.floor(px), math.floor(py)
+                    for yy, wy in ((y0, 1 - (py - y0)), (y0 + 1, py - y0)):
+                        for xx, wx in ((x0, 1 - (px - x0)), (x0 + 1, px - x0)):
+                            if 0 <= yy < rl and 0 <= xx < rl:
+                                total += wy * wx * tmpl[yy, xx]
+            if total:
+                stamp[(dy, dx)] = total / (sub * sub)
     if radius > 1:
         disc = [(a, b) for a in range(-radius, radius + 1) for b in range(-radius, radius + 1)
                 if a * a + b * b <= radius * radius]
@@ -111,7 +120,7 @@ def _naive_stamp(lib, tid, rotation, scale, radius, brighten):
         for dy in range(-half - radius, half + radius + 1):
             for dx in range(-half - radius, half + radius + 1):
                 v = sum(stamp.get((dy - a, dx - b), 0.0) for a, b in disc) / len(disc)
-                blurred[(dy, dx)] = min(max(v, 0.0) ** (1 / 3), 1.0) if brighten else v
+                blurred[(dy, dx)] = min(max(2 * v, 0.0) ** (1 / 3), 1.0) if brighten else v
         stamp = blurred
     return stamp
 
@@ -125,7 +134,6 @@ def naive_render(pair, parts: Particles, lib, beta):
     for t in range(2):
         alpha = [[0.0] * w for _ in range(h)]
         colour = [[[0.0] * w for _ in range(h)] for _ in range(3)]
-        cam = torch.eye(4, dtype=torch.float64) if t == 0 else pair.cam2_from_cam1
         for j in range(parts.count):
             stamp = _naive_stamp(lib, int(parts.template[j]), float(parts.rotation[j]),
                                  float(parts.scale[j]), int(parts.defocus[j]),
@@ -133,9 +141,12 @@ def naive_render(pair, parts: Particles, lib, beta):
             kk = parts.settings.blur_samples if parts.settings.blur_length > 0 else 1
             for s in range(kk):
                 frac = parts.settings.blur_length * s / (kk - 1) if kk > 1 else 0.0
-                disp = parts.motion[j] + parts.offset2[j]
-                p = parts.position[j] + parts.offset1[j] + (disp if t == 1 else 0) + frac * disp
-                x = cam[:3, :3].to(p.dtype) @ p + cam[:3, 3].to(p.dtype)
+                # the streak runs along the camera-space motion X2 - X1 (own + camera motion)
+                p1 = parts.position[j] + parts.offset1[j]
+                p2 = p1 + parts.motion[j] + parts.offset2[j]
+                c2 = pair.cam2_from_cam1.to(p1.dtype)
+                x1, x2 = p1, c2[:3, :3] @ p2 + c2[:3, 3]
+                x = (x1 if t == 0 else x2) + frac * (x2 - x1)
                 u = k[0, 0] * x[0] / x[2] + k[0, 2]
                 v = k[1, 1] * x[1] / x[2] + k[1, 2]
                 theta = parts.transparency[j] / kk

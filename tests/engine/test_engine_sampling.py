@@ -52,7 +52,7 @@ def test_appearance_follows_the_model():
     parts = sample_particles(pair, preset, seed=2)
     d = transform_points(pair.cam1_from_world, parts.position.double())[:, 2]
     footprint = (71 * torch.clamp(1 / (d * 9), max=1)).clamp(min=1)
-    torch.testing.assert_close(parts.scale.double() * 80, footprint, rtol=1e-6, atol=1e-5)
+    torch.testing.assert_close(parts.scale.double() * 80, footprint, rtol=1e-3, atol=0)  # float16
     torch.testing.assert_close(parts.transparency.double(), 0.75 * transparency_hat(d),
                                atol=1e-3, rtol=0)
     assert torch.equal(parts.defocus, defocus_radius(d))
@@ -88,8 +88,10 @@ def test_colour_jitter_stays_near_the_base_colour():
     hls = rgb_to_hls(parts.color.double())
     base = rgb_to_hls(torch.tensor([191, 79, 64], dtype=torch.float64) / 255)
     dh = torch.remainder(hls[:, 0] - base[0] + 0.5, 1.0) - 0.5
-    assert float(dh.abs().max()) <= 15 / 360 + 1e-3 and float(dh.std()) > 0.01
-    assert float((hls[:, 1] - base[1]).abs().max()) <= 0.1 + 1e-3
+    # colours are stored as 8-bit codes: half a code moves the hue of these darker, less
+    # saturated colours by up to ~3e-3 turns and the lightness by 2e-3
+    assert float(dh.abs().max()) <= 15 / 360 + 4e-3 and float(dh.std()) > 0.01
+    assert float((hls[:, 1] - base[1]).abs().max()) <= 0.1 + 3e-3
 
 
 @pytest.mark.parametrize("roll,pitch", [(0, 0), (25, 0), (-30, 10), (0, -35), (15, 30)])

@@ -17,6 +17,7 @@ from click.testing import CliRunner
 
 from weathergen.cli.main import _register, cli
 from weathergen.datasets import open_dataset
+from weathergen.engine.particles import stored_values
 from weathergen.io.images import read_image
 from weathergen.outputs import read_metadata
 
@@ -365,13 +366,15 @@ def test_preview_refuses_a_folder_that_is_not_a_render(tmp_path):
 
 def test_world_up_is_a_dataset_setting_recorded_in_the_manifest(snow_run, tmp_path):
     """Snow falls against the world's up axis: -z on the z-up demo world, +z if told the world is upside down."""
-    down = read_metadata(snow_run / "training/particles/street_0001/frame_0001.npz")["motion"]
+    down = stored_values(read_metadata(snow_run / "training/particles/street_0001/frame_0001.npz"),
+                         "motion")
     assert (down[:, 2] < 0).all() and np.abs(down[:, :2]).max() < 1e-6
     assert json.loads((snow_run / "manifest.json").read_text())["input"]["world_up"] == "+z"
     out = tmp_path / "flipped"
     res = run("render", "--out", out, "--world-up", "-z", *FAST)
     assert res.exit_code == 0, res.output
-    up = read_metadata(out / "training/particles/street_0001/frame_0001.npz")["motion"]
+    up = stored_values(read_metadata(out / "training/particles/street_0001/frame_0001.npz"),
+                       "motion")
     assert (up[:, 2] > 0).all()
     res = run("render", "--out", tmp_path / "bad", "--world-up", "up", *FAST)
     assert res.exit_code == 2 and "--world-up" in res.output

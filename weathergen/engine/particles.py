@@ -24,10 +24,17 @@ particle's diameter in scene units and ``transparency`` its base θ, and footpri
 depth fade are computed for every frame from that frame's own depth of the particle
 (:mod:`weathergen.engine.perframe`).
 
-Storage precision: positions, motions and scales are float32; offsets, colours, transparencies
-and rotations are float16; template indices uint16; defocus radii uint8. Sampling returns a
-record already rounded to these precisions (:meth:`Particles.quantized`), so rendering the
-in-memory record and rendering the reloaded file give identical bytes.
+Storage precision of the paper's records (format version 3): positions and motions as codes on a
+per-record linear grid (``lo + code * step`` per axis, the grid spanning the record's values; 15
+bits for positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for motions);
+colours as 8-bit codes; rotations in 256 steps of a turn; scales, offsets and transparencies
+float16; template indices uint16; defocus radii uint8.
+Field records (format version 2) keep float32 positions, motions and scales (a field's positions
+are exact multiples of its grid quantum, so that a frame is the same image in every pair that
+holds it) and float16 offsets, colours, transparencies and rotations, plus the ``optics`` entry.
+Sampling returns a record already rounded to these precisions (:meth:`Particles.quantized`,
+idempotent), so rendering the in-memory record and rendering the reloaded file give identical
+bytes. Version 1 files (the float32 layout of version 2 without optics) are still read.
 """
 
 from __future__ import annotations
@@ -45,10 +52,11 @@ from ..errors import FormatError
 from .optics import FieldOptics
 from .settings import RenderSettings
 
-FORMAT_VERSION = 1
-#: Records with field optics are written as version 2 (they would render wrongly in a reader that
-#: ignored the optics); records of the paper's model stay version 1, byte for byte.
+#: Records of the paper's model are written as version 3 (compact codes, see the module doc).
+FORMAT_VERSION = 3
+#: Records with field optics are written as version 2 (float layout plus the optics).
 FIELD_FORMAT_VERSION = 2
+READABLE_VERSIONS = (1, 2, 3)
 REFERENCE_FRAMES = ("world", "camera1")
 
 # Per-particle tensor fields: storage dtype and trailing shape.
@@ -65,6 +73,52 @@ _TENSOR_FIELDS = {
     "defocus": (np.uint8, ()),
 }
 _INTEGER_FIELDS = ("template", "defocus")
+# Format version 3 stores some fields as codes (see the module doc); the rest as in version 1.
+_GRID_FIELDS = ("position", "motion")                     # uint16 codes + "<name>_grid" (2, 3)
+_V3_DTYPES = {"color": np.uint8, "rotation": np.uint8, "scale": np.float16,
+              **{name: np.uint16 for name in _GRID_FIELDS}}
+# Grid levels: 15 bits for positions; 10 bits for motions (frame-to-frame displacements
+# spread over a much smaller range: rain's ±10 % of 0.2 units gives steps of 4e-5 units).
+_GRID_LEVELS = {"position": 32767, "motion": 1023}
+_ROTATION_STEPS = 256
+
+
+def _grid(values: torch.Tensor, levels: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Codes 0..levels of (N, 3) values on a per-axis grid spanning them: (codes (N, 3) int64,
+    lo (3,) float64, step (3,) float64). lo and lo + levels step are the (float32) extremes, so
+    decoding and encoding again gives the same codes."""
+    v = values.detach().cpu().to(torch.float32).to(torch.float64)
+    if v.shape[0] == 0:
+        zero = torch.zeros(v.shape[1:], dtype=torch.float64)
+        return torch.zeros(v.shape, dtype=torch.int64), zero, zero.clone()
+    lo, hi = v.min(0).values, v.max(0).values
+    step = (hi - lo) / levels
+    safe = torch.where(step > 0, step, torch.ones_like(step))
+    codes = torch.round((v - lo) / safe).clamp(0, levels).to(torch.int64)
+    return codes, lo, step
+
+
+def _ungrid(codes: torch.Tensor, lo: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
+    """float32 values of grid codes. Shape: (N, 3), (3,), (3,) -> (N, 3)."""
+    return (lo + codes.to(torch.float64) * step).to(torch.float32)
+
+
+def _quantize_field(name: str, t: torch.Tensor) -> torch.Tensor:
+    """One field rounded to its storage precision, float32 (int64 for integer fields), on the
+    CPU."""
+    t = t.detach().cpu()
+    if name in _INTEGER_FIELDS:
+        return t.to(torch.int64)
+    if name in _GRID_FIELDS:
+        return _ungrid(*_grid(t, _GRID_LEVELS[name]))
+    if name == "color":
+        return (torch.round(t.double().clamp(0, 1) * 255) / 255).to(torch.float32)
+    if name == "rotation":
+        turn = torch.remainder(torch.round(t.double() / (2 * np.pi) * _ROTATION_STEPS),
+                               _ROTATION_STEPS)
+        return (turn * (2 * np.pi / _ROTATION_STEPS)).to(torch.float32)
+    return t.to(torch.float16).to(torch.float32)
+
 #: The names of the per-particle tensors of a record.
 TENSOR_FIELDS = tuple(_TENSOR_FIELDS)
 
@@ -138,16 +192,20 @@ class Particles:
         return self.replace(**{name: getattr(self, name)[index] for name in _TENSOR_FIELDS})
 
     def quantized(self) -> "Particles":
-        """A detached copy with every field rounded to its storage precision (see module doc)."""
-        out = {}
-        for name, (np_dtype, _) in _TENSOR_FIELDS.items():
-            t = getattr(self, name).detach()
-            if name in _INTEGER_FIELDS:
-                out[name] = t.to(torch.int64)
-            else:
-                storage = torch.from_numpy(np.zeros(0, np_dtype)).dtype
-                out[name] = t.to(storage).to(torch.float32)
-        return self.replace(**out)
+        """A detached copy with every field rounded to its storage precision (see module doc).
+        Idempotent: quantizing a quantized record changes nothing."""
+        if self.optics is not None:     # field records: the float layout of version 2
+            out = {}
+            for name, (np_dtype, _) in _TENSOR_FIELDS.items():
+                t = getattr(self, name).detach()
+                if name in _INTEGER_FIELDS:
+                    out[name] = t.to(torch.int64)
+                else:
+                    storage = torch.from_numpy(np.zeros(0, np_dtype)).dtype
+                    out[name] = t.to(storage).to(torch.float32)
+            return self.replace(**out)
+        return self.replace(**{name: _quantize_field(name, getattr(self, name)).to(
+            getattr(self, name).device) for name in _TENSOR_FIELDS})
 
     def metadata(self) -> dict:
         """The non-tensor fields: reference frame and render settings."""
@@ -156,16 +214,39 @@ class Particles:
     # -- storage -----------------------------------------------------------------------------
 
     def to_numpy(self) -> dict[str, np.ndarray]:
-        """The ``.npz`` content: storage-precision arrays plus 0-d metadata arrays."""
+        """The ``.npz`` content (format version 3, or 2 for field records): storage arrays plus
+        0-d metadata arrays."""
+        if self.optics is not None:
+            return self._to_numpy_field()
+        arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
+        for name, (np_dtype, _) in _TENSOR_FIELDS.items():
+            t = getattr(self, name).detach().cpu()
+            if name in _GRID_FIELDS:
+                codes, lo, step = _grid(t, _GRID_LEVELS[name])
+                arrays[name] = codes.numpy().astype(np.uint16)
+                arrays[f"{name}_grid"] = torch.stack((lo, step)).numpy()
+            elif name == "color":
+                arrays[name] = np.round(t.double().clamp(0, 1).numpy() * 255).astype(np.uint8)
+            elif name == "rotation":
+                turn = np.round(t.double().numpy() / (2 * np.pi) * _ROTATION_STEPS)
+                arrays[name] = np.remainder(turn, _ROTATION_STEPS).astype(np.uint8)
+            else:
+                arrays[name] = _quantize_field(name, t).numpy().astype(
+                    _V3_DTYPES.get(name, np_dtype))
+        arrays["frame"] = np.array(self.frame)
+        arrays.update(self.settings.to_arrays())
+        return arrays
+
+    def _to_numpy_field(self) -> dict[str, np.ndarray]:
+        """Format version 2: float storage arrays plus the metadata and the ``optics`` entry."""
         q = self.quantized()
-        version = FORMAT_VERSION if self.optics is None else FIELD_FORMAT_VERSION
-        arrays: dict[str, np.ndarray] = {"format_version": np.array(version, np.int32)}
+        arrays: dict[str, np.ndarray] = {
+            "format_version": np.array(FIELD_FORMAT_VERSION, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
             arrays[name] = getattr(q, name).cpu().numpy().astype(np_dtype)
         arrays["frame"] = np.array(self.frame)
         arrays.update(self.settings.to_arrays())
-        if self.optics is not None:
-            arrays["optics"] = np.array(json.dumps(self.optics.to_dict(), sort_keys=True))
+        arrays["optics"] = np.array(json.dumps(self.optics.to_dict(), sort_keys=True))
         return arrays
 
     def save(self, path: str | Path) -> Path:
@@ -189,9 +270,10 @@ class Particles:
         version = arrays.get("format_version")
         if version is None:
             raise FormatError(path, "no format_version: not a weathergen particle file")
-        if int(version) not in (FORMAT_VERSION, FIELD_FORMAT_VERSION):
+        if int(version) not in READABLE_VERSIONS:
             raise FormatError(path, f"particle format version {int(version)}; this weathergen "
-                                    f"reads versions {FORMAT_VERSION} and {FIELD_FORMAT_VERSION}")
+                                    f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
+        v3 = int(version) == FORMAT_VERSION
         n = None
         fields = {}
         for name, (np_dtype, tail) in _TENSOR_FIELDS.items():
@@ -200,10 +282,23 @@ class Particles:
             a = arrays[name]
             if n is None:
                 n = a.shape[0] if a.ndim else -1
-            if a.dtype != np_dtype or a.shape != (n, *tail):
+            want = _V3_DTYPES.get(name, np_dtype) if v3 else np_dtype
+            if a.dtype != want or a.shape != (n, *tail):
                 raise FormatError(path, f"array '{name}' is {a.dtype} {a.shape}, expected "
-                                        f"{np.dtype(np_dtype)} {(n, *tail)}")
-            t = torch.from_numpy(a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32))
+                                        f"{np.dtype(want)} {(n, *tail)}")
+            if v3 and name in _GRID_FIELDS:
+                grid = arrays.get(f"{name}_grid")
+                if grid is None or grid.dtype != np.float64 or grid.shape != (2, 3):
+                    raise FormatError(path, f"array '{name}_grid' must be float64 (2, 3)")
+                g = torch.from_numpy(grid)
+                t = _ungrid(torch.from_numpy(a.astype(np.int64)), g[0], g[1])
+            elif v3 and name == "color":
+                t = torch.from_numpy((a.astype(np.float64) / 255).astype(np.float32))
+            elif v3 and name == "rotation":
+                t = torch.from_numpy((a.astype(np.float64) * (2 * np.pi / _ROTATION_STEPS))
+                                     .astype(np.float32))
+            else:
+                t = torch.from_numpy(a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32))
             fields[name] = t.to(device) if device is not None else t
         if "frame" not in arrays:
             raise FormatError(path, "missing field 'frame'")
@@ -220,6 +315,21 @@ class Particles:
                 raise FormatError(path, f"unreadable 'optics' entry ({exc})") from None
         return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path),
                    optics=optics)
+
+
+def stored_values(arrays: dict, name: str) -> np.ndarray:
+    """The values a particle file's array ``name`` stands for (codes decoded), for display.
+    Shape: as stored."""
+    a = arrays[name]
+    if int(arrays.get("format_version", FORMAT_VERSION)) == FORMAT_VERSION:
+        if name in _GRID_FIELDS and f"{name}_grid" in arrays:
+            grid = np.asarray(arrays[f"{name}_grid"], np.float64)
+            return grid[0] + a.astype(np.float64) * grid[1]
+        if name == "color":
+            return a.astype(np.float64) / 255
+        if name == "rotation":
+            return a.astype(np.float64) * (2 * np.pi / _ROTATION_STEPS)
+    return a.astype(np.float64)
 
 
 def empty_particles(frame: str = "world", settings: RenderSettings = RenderSettings(),

@@ -132,7 +132,8 @@ class Preset:
     blur_samples: int = _key(1, _number(1, 1000), "samples K per blurred particle", main=True)
     # -- out-of-focus blur
     defocus: bool = _key(True, None, "disc blur for particles near the focal distance")
-    defocus_brighten: bool = _key(True, None, "cube-root brighten the disc-blurred alpha")
+    defocus_brighten: bool = _key(True, None,
+                                  "brighten the disc-blurred alpha b to min(1, (2b)^(1/3))")
     # -- where particles are sampled, camera-1 coordinates
     volume_x: tuple = _key((-5.0, 5.0), _interval, "sampling box x range, camera 1")
     volume_y: tuple = _key((-5.0, 5.0), _interval, "sampling box y range, camera 1")

@@ -6,12 +6,13 @@ tensor follows the images' device). Four stages:
 1. **Stamps** (:func:`build_stamps`, no gradient): each particle's template is rotated and scaled
    to its own footprint (``scale`` x template resolution pixels), sampled from a mip level no
    finer than twice the footprint (no aliasing for far, tiny particles), and disc-blurred by its
-   defocus radius. A stamp is centred on a pixel. Particles are grouped into buckets of equal
+   defocus radius (then brightened, :func:`defocus_brighten`). A stamp is centred on a pixel. Particles are grouped into buckets of equal
    stamp side so that each bucket is one batched tensor operation; a far particle costs a few
    pixels, a near one its full size.
 2. **Instances**: each particle becomes ``K`` motion-blur samples per frame, spaced evenly from its
-   frame position along its 3D frame-to-frame displacement ``M + δ2`` up to ``blur_length`` times
-   it, each with transparency ``θ / K``; they are projected into their camera.
+   camera position ``X_t`` along its apparent 3D motion ``X2 − X1`` (camera-2 minus camera-1
+   coordinates: its own motion and the camera's) up to ``blur_length`` times it, each with
+   transparency ``θ / K``; they are projected into their camera.
 3. **Splatting**: every instance's stamp is shifted by its sub-pixel position with bilinear
    weights (an (s+1) x (s+1) patch: differentiable with respect to the position), multiplied by the
    visibility ``V = 1 / (1 + exp(β (d − D)))`` against the scene depth ``D`` under each patch pixel
@@ -53,6 +54,11 @@ from .templates import TemplateLibrary, load_templates
 BETA_RENDER = 250.0
 BETA_ATTACK = 30.0
 DEFAULT_CHUNK_ELEMENTS = 1 << 21
+# Stamps at least this many pixels wide (fog, large dust) are splatted on a coarser grid (a
+# power-of-two factor that keeps them >= COARSE_MIN_SIDE coarse pixels wide) and upsampled; see
+# docs/engine.md for the accuracy. None (the ``coarse_side`` argument) renders everything exactly.
+COARSE_SIDE = 128
+COARSE_MIN_SIDE = 32
 #: Renders records whose looks follow each frame's depth (``optics`` set: weather fields).
 #: :mod:`weathergen.engine.perframe` installs its ``render_per_frame`` here when it is imported (the
 #: engine package always imports it), so that this module does not import the one built on it.
@@ -75,11 +81,13 @@ class RenderOutput:
 @dataclass
 class StampBucket:
     """Stamps of one side length. Shape: stamps (n, side, side); particles (n,) int64 indices
-    into the concatenation of the rendered records' particles."""
+    into the concatenation of the rendered records' particles. ``coarse`` > 0: the stamps are
+    drawn on a grid ``2**coarse`` times coarser than the image (large billboards)."""
 
     side: int
     particles: torch.Tensor
     stamps: torch.Tensor
+    coarse: int = 0
 
 
 @dataclass
@@ -149,12 +157,33 @@ def _disc_blur(stamp: torch.Tensor, radius: int) -> torch.Tensor:
     return torch.where(out > 1e-12, out, torch.zeros_like(out)).to(stamp.dtype)
 
 
+def defocus_brighten(blurred: torch.Tensor) -> torch.Tensor:
+    """The depth-of-field alpha of a disc-blurred template: ``min(1, (2 b)^(1/3))``.
+
+    The blur spreads a particle's alpha thin; doubling it and taking the cube root brings it
+    back up (near, out-of-focus particles look like large soft discs rather than vanishing),
+    as the paper's research code does. Shape: any -> same.
+    """
+    return (2 * blurred).clamp(min=0).pow(1.0 / 3.0).clamp(max=1)
+
+
+def _supersampling(side: int) -> int:
+    """Samples per pixel and axis for a stamp of ``side`` pixels: tiny stamps are box-filtered
+    (each pixel averages 4 x 4 or 2 x 2 samples of the template and of its disc), so a far
+    particle keeps the opacity its continuous footprint covers."""
+    return 4 if side <= 5 else (2 if side <= 9 else 1)
+
+
 def _stamp_chunk(levels: list, level: int, template: torch.Tensor, rotation: torch.Tensor,
                  footprint: torch.Tensor, side: int) -> torch.Tensor:
     """Rotate and scale templates onto an integer-centred grid. Shape: -> (n, side, side)."""
     dtype, device = levels[0].dtype, levels[0].device
     h = (side - 1) // 2
+    sub = _supersampling(side)
     off = torch.arange(-h, h + 1, dtype=dtype, device=device)
+    if sub > 1:  # sample positions inside each pixel, pixel-major: (side * sub,)
+        frac = (torch.arange(sub, dtype=dtype, device=device) + 0.5) / sub - 0.5
+        off = (off[:, None] + frac[None, :]).reshape(-1)
     gy, gx = torch.meshgrid(off, off, indexing="ij")
     c = torch.cos(rotation)[:, None, None]
     s = torch.sin(rotation)[:, None, None]
@@ -165,14 +194,22 @@ def _stamp_chunk(levels: list, level: int, template: torch.Tensor, rotation: tor
     inside = (xn * xn + yn * yn) <= 1.0   # templates are round (see templates.py)
     src = levels[level][template]
     out = F.grid_sample(src, torch.stack((xn, yn), -1), mode="bilinear",
-                        padding_mode="zeros", align_corners=False)[:, 0]
-    return out * inside
+                        padding_mode="zeros", align_corners=False)[:, 0] * inside
+    if sub > 1:
+        out = out.view(-1, side, sub, side, sub).mean((2, 4))
+    return out
 
 
 def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
                  dtype: torch.dtype = torch.float32, device=None,
-                 chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> StampSet:
-    """Rasterise every particle's template at its footprint (no gradient; see module doc)."""
+                 chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
+                 coarse_side: Optional[int] = COARSE_SIDE) -> StampSet:
+    """Rasterise every particle's template at its footprint (no gradient; see module doc).
+
+    Stamps at least ``coarse_side`` pixels wide (template plus defocus) are drawn on a grid
+    ``f = 2**L`` times coarser (f the largest power of two keeping them >= COARSE_MIN_SIDE
+    coarse pixels wide): footprint and defocus radius divided by f; ``None`` disables this.
+    """
     device = torch.device(device) if device is not None else records[0].device
     with torch.no_grad():
         template = torch.cat([r.template for r in records]).to(device)
@@ -180,39 +217,54 @@ def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
         footprint = torch.cat([r.scale for r in records]).to(device=device, dtype=torch.float64)
         footprint = (footprint * lib.resolution).clamp(min=1.0)
         radius = torch.cat([r.defocus for r in records]).to(device)
-        radius = torch.where(radius > 1, radius, torch.zeros_like(radius))
-        brighten = torch.cat([torch.full((r.count,), bool(r.settings.defocus_brighten), device=device)
-                              for r in records])
+        blurred = radius > 1
+        radius = torch.where(blurred, radius, torch.zeros_like(radius))
+        brighten = torch.cat([torch.full((r.count,), bool(r.settings.defocus_brighten),
+                                         device=device) for r in records]) & blurred
         if int(template.numel()) and (int(template.min()) < 0 or int(template.max()) >= lib.count):
             raise ConfigError(f"particle template index out of range for the {lib.count} "
                               f"templates of '{lib.name}'")
         levels = mip_pyramid(lib, dtype, device)
-        raw_side = 2 * torch.floor(footprint / 2).clamp(min=1).long() + 1
+        coarse = torch.zeros_like(radius)
+        if coarse_side is not None:
+            full = footprint + 2 * radius
+            coarse = torch.where(full >= coarse_side,
+                                 torch.floor(torch.log2(full / COARSE_MIN_SIDE)).clamp(min=1),
+                                 torch.zeros_like(full)).long()
+            factor = (2.0 ** coarse).to(torch.float64)
+            footprint = (footprint / factor).clamp(min=1.0)
+            radius = torch.where(coarse > 0, torch.floor(radius / factor + 0.5).long(), radius)
+        # every pixel the footprint's disc reaches (partly covered ones are box-filtered)
+        raw_side = 2 * torch.floor(footprint / 2 + 0.5).clamp(min=1).long() + 1
         sides = _SIDES.to(device)
         side = sides[torch.searchsorted(sides, raw_side)]
-        level = torch.floor(torch.log2(lib.resolution / footprint)).clamp(0, len(levels) - 1).long()
-        key = ((side * 64 + level) * 64 + radius) * 2 + brighten.long()
+        sub = torch.where(side <= 5, 4, torch.where(side <= 9, 2, 1))
+        level = torch.floor(torch.log2(lib.resolution / (footprint * sub))) \
+            .clamp(0, len(levels) - 1).long()
+        key = (((side * 64 + level) * 64 + radius) * 2 + brighten.long()) * 16 + coarse
         keys, bucket_of = torch.unique(key, return_inverse=True)
         slot_of = torch.zeros_like(bucket_of)
         buckets = []
         for b, k in enumerate(keys.tolist()):
             members = torch.nonzero(bucket_of == b).squeeze(1)
             slot_of[members] = torch.arange(members.numel(), device=device)
+            lev, k = k % 16, k // 16
             bright, k = k % 2, k // 2
             r, k = k % 64, k // 64
             lvl, s = k % 64, k // 64
-            per_chunk = max(1, chunk_elements // (s * s * 4))
+            per_chunk = max(1, chunk_elements // (s * s * 4 * _supersampling(s) ** 2))
             parts = []
             for start in range(0, members.numel(), per_chunk):
                 m = members[start:start + per_chunk]
                 stamp = _stamp_chunk(levels, lvl, template[m], rotation[m],
                                      footprint[m].to(dtype), s)
-                if r > 1:
+                if r > 1 or (lev and r > 0):
                     stamp = _disc_blur(stamp, r)
-                    if bright:  # the blur spreads the alpha thin; a cube root brings it back up
-                        stamp = stamp.clamp(min=0).pow(1.0 / 3.0).clamp(0, 1)
+                if bright:
+                    stamp = defocus_brighten(stamp)
                 parts.append(stamp)
-            buckets.append(StampBucket(side=s + 2 * r, particles=members, stamps=torch.cat(parts)))
+            buckets.append(StampBucket(side=s + 2 * r, particles=members,
+                                       stamps=torch.cat(parts), coarse=lev))
     return StampSet(buckets=buckets, bucket_of=bucket_of, slot_of=slot_of)
 
 
@@ -245,17 +297,18 @@ def _instances(records, intrinsics, cam1_from_ref, cam2_from_ref, dtype, device)
         d2 = rec.offset2.to(device=device, dtype=dtype)
         steps = _blur_steps(rec, dtype, device)
         k = steps.numel()
-        start1 = pos + d1                      # P + δ1
-        displacement = motion + d2             # M + δ2
-        start2 = start1 + displacement
-        streak = steps[None, :, None] * displacement[:, None, :]          # (N, K, 3)
+        # Camera positions X1 = cam1 (P + δ1), X2 = cam2 (P + δ1 + M + δ2). The streak runs
+        # along X2 − X1, the particle's apparent 3D motion in camera coordinates, which holds
+        # its own motion and the camera's ("true motion blur respects 3D motion and camera
+        # motion"); frame t's samples sit at X_t + s (X2 − X1).
+        x1 = transform_points(cam1_from_ref[b], pos + d1)
+        x2 = transform_points(cam2_from_ref[b], pos + d1 + motion + d2)
+        streak = steps[None, :, None] * (x2 - x1)[:, None, :]            # (N, K, 3)
         theta = (rec.transparency.to(device=device, dtype=dtype) / k)[:, None].expand(n, k)
         color = rec.color.to(device=device, dtype=dtype)[:, None, :].expand(n, k, 3)
         index = (first + torch.arange(n, device=device))[:, None].expand(n, k)
-        for t, (start, cam_from_ref) in enumerate(((start1, cam1_from_ref[b]),
-                                                   (start2, cam2_from_ref[b]))):
-            pts = transform_points(cam_from_ref, (start[:, None, :] + streak).reshape(-1, 3))
-            pix, z = project(pts, intrinsics[b])
+        for t, x in enumerate((x1, x2)):
+            pix, z = project((x[:, None, :] + streak).reshape(-1, 3), intrinsics[b])
             out["u"].append(pix[:, 0])
             out["v"].append(pix[:, 1])
             out["z"].append(z)
@@ -270,18 +323,24 @@ def _instances(records, intrinsics, cam1_from_ref, cam2_from_ref, dtype, device)
     return {key: torch.cat(v) for key, v in out.items()}
 
 
-def _splat_plan(inst, stamps: StampSet, height, width, chunk_elements):
+def _splat_plan(inst, stamps: StampSet, height, width, chunk_elements, coarse=0, u=None,
+                v=None):
     """Which instances each chunk splats: a list of (bucket, instance indices (n,) int64), every
-    chunk at most ``chunk_elements`` patch pixels. Instances behind the camera or whose patch
-    misses the image are left out."""
+    chunk at most ``chunk_elements`` patch pixels. Only buckets of the given ``coarse`` level;
+    ``u``, ``v`` the instances' positions on that level's grid. Instances behind the camera or
+    whose patch misses the image are left out."""
     bucket = stamps.bucket_of[inst["particle"]]
+    u = inst["u"] if u is None else u
+    v = inst["v"] if v is None else v
     plan = []
     for b, bk in enumerate(stamps.buckets):
+        if bk.coarse != coarse:
+            continue
         half = (bk.side - 1) // 2
         sel = torch.nonzero(bucket == b).squeeze(1)
         if sel.numel() == 0:
             continue
-        u0, v0 = torch.floor(inst["u"][sel].detach()), torch.floor(inst["v"][sel].detach())
+        u0, v0 = torch.floor(u[sel].detach()), torch.floor(v[sel].detach())
         keep = (inst["z"][sel].detach() > NEAR) & (u0 + half + 1 >= 0) \
             & (u0 - half <= width - 1) & (v0 + half + 1 >= 0) & (v0 - half <= height - 1)
         sel = sel[keep]
@@ -333,14 +392,14 @@ class _Splat(torch.autograd.Function):
     applies the chain rule by hand, so memory with gradients is bounded by the chunk size too, not
     by the total footprint of all particles (which autograd would otherwise keep: patches,
     visibilities and pixel indices of every chunk).
-    Shape: u, v, z, theta (I,), color (I, 3) -> A, C_r, C_g, C_b, each (2 B H W,).
+    Shape: u, v, z, theta (I,), color (I, 3) -> (4, 2 B H W): A, C_r, C_g, C_b.
     """
 
     @staticmethod
     def forward(ctx, u, v, z, theta, color, target, slots, depth_flat, plan, height, width,
                 beta):
         size = depth_flat.numel()
-        acc = [torch.zeros(size, dtype=u.dtype, device=u.device) for _ in range(4)]
+        acc = torch.zeros(4, size, dtype=u.dtype, device=u.device)
         for bk, idx in plan:
             c = _Chunk(bk, slots[idx], u[idx], v[idx], target[idx], height, width)
             weight = (c.patch() * c.visibility(depth_flat, z[idx], beta)
@@ -354,11 +413,12 @@ class _Splat(torch.autograd.Function):
                 acc[ch + 1].index_add_(0, flat, weight * per_pixel)
         ctx.save_for_backward(u, v, z, theta, color, target, slots, depth_flat)
         ctx.plan, ctx.height, ctx.width, ctx.beta = plan, height, width, beta
-        return tuple(acc)
+        return acc
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_alpha, g_r, g_g, g_b):
+    def backward(ctx, g_acc):
+        g_alpha, g_r, g_g, g_b = g_acc.unbind(0)
         u, v, z, theta, color, target, slots, depth_flat = ctx.saved_tensors
         need = ctx.needs_input_grad[:5]
         grads = [torch.zeros_like(t) if n else None for t, n in zip((u, v, z, theta, color), need)]
@@ -395,21 +455,84 @@ class _Splat(torch.autograd.Function):
         return (*grads, None, None, None, None, None, None, None)
 
 
-def _splat(depth_flat, inst, stamps: StampSet, height, width, beta, chunk_elements):
-    """The per-pixel sums A, C_r, C_g, C_b (each (2 B H W,)) of every instance's weighted stamp,
-    or None when no instance reaches the image; see :class:`_Splat`. Also returns which pairs of
-    the batch (B,) bool an instance reaches."""
-    plan = _splat_plan(inst, stamps, height, width, chunk_elements)
-    bsz = max(1, depth_flat.numel() // (2 * height * width))    # one view counts as one pair
-    reached = torch.zeros(bsz, dtype=torch.bool, device=depth_flat.device)
-    for _, sel in plan:
-        reached[inst["target"][sel] % bsz] = True
-    if not plan:
-        return None, reached
+class _Upsample(torch.autograd.Function):
+    """Bilinear upsampling by an integer factor f (pixel centres aligned as in
+    ``(x + 0.5) / f − 0.5``, edges replicated), with a cheap backward pass: the adjoint is a
+    strided convolution with the 2f x 2f tent kernel (the CPU backward of ``F.interpolate`` is
+    several times slower than its forward). Shape: (C, 1, h, w) -> (C, 1, f h, f w)."""
+
+    @staticmethod
+    def forward(ctx, grid, factor):
+        ctx.factor, ctx.size = factor, grid.shape[-2:]
+        return F.interpolate(grid, scale_factor=factor, mode="bilinear", align_corners=False)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        f, (h, w) = ctx.factor, ctx.size
+        j = torch.arange(2 * f, dtype=grad.dtype, device=grad.device)
+        tent = (1 - ((j - f + 0.5) / f).abs()).clamp(min=0)
+        kernel = (tent[:, None] * tent[None, :])[None, None]
+        o = (3 * f) // 2    # where the image sits in the grid of the 1-pixel padded input
+        full = grad.new_zeros(grad.shape[0], 1, (h + 3) * f, (w + 3) * f)
+        full[..., o:o + h * f, o:o + w * f] = grad
+        padded = F.conv2d(full, kernel, stride=f)                  # (C, 1, h + 2, w + 2)
+        out = padded[..., 1:-1, :].clone()                         # fold the replicated rows
+        out[..., 0, :] += padded[..., 0, :]
+        out[..., -1, :] += padded[..., -1, :]
+        inner = out[..., 1:-1].clone()                             # and the columns
+        inner[..., 0] += out[..., 0]
+        inner[..., -1] += out[..., -1]
+        return inner, None
+
+
+def _upsample(grid: torch.Tensor, factor: int) -> torch.Tensor:
+    """Bilinear upsampling by an integer factor. Shape: (C, 1, h, w) -> (C, 1, f h, f w)."""
+    return _Upsample.apply(grid, factor)
+
+
+def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
+    """The per-pixel sums A, C_r, C_g, C_b, shape (4, V H W), of every instance's weighted
+    stamp, or None when no instance reaches the image; see :class:`_Splat`. Also returns which
+    pairs of the batch, (B,) bool, an instance reaches (B = V / 2; a single view counts as one
+    pair).
+
+    ``depths``: the scene depth of the V views, (2, B, 1, H, W) for a batch of pairs or any
+    shape of V H W elements (one view: (1, H, W)). Coarse buckets (large billboards) are
+    splatted on their own grid, ``f`` times coarser: positions ``(u + 0.5) / f − 0.5``, scene depth averaged over
+    f x f blocks; coarser grids are upsampled bilinearly into finer ones, coarsest first, and
+    the result into the image grid.
+    """
+    depths = depths.reshape(-1, 1, height, width)
+    bsz = max(1, depths.shape[0] // 2)
+    reached = torch.zeros(bsz, dtype=torch.bool, device=depths.device)
     slots = stamps.slot_of[inst["particle"]]
-    return list(_Splat.apply(inst["u"], inst["v"], inst["z"], inst["theta"], inst["color"],
-                             inst["target"], slots, depth_flat.detach(), plan, height, width,
-                             beta)), reached
+    carry = None        # the coarser levels' sums, (4 * 2B, 1, h, w)
+    levels = sorted({bk.coarse for bk in stamps.buckets}, reverse=True)
+    for i, coarse in enumerate(levels):
+        f = 2 ** coarse
+        if coarse == 0:
+            h, w, u, v, depth = height, width, inst["u"], inst["v"], depths
+        else:
+            h, w = -(-height // f), -(-width // f)
+            u, v = (inst["u"] + 0.5) / f - 0.5, (inst["v"] + 0.5) / f - 0.5
+            flat = F.pad(depths, (0, w * f - width, 0, h * f - height), mode="replicate")
+            depth = F.avg_pool2d(flat, f)
+        plan = _splat_plan(inst, stamps, h, w, chunk_elements, coarse, u, v)
+        for _, sel in plan:
+            reached[inst["target"][sel] % bsz] = True
+        sums = None
+        if plan:
+            sums = _Splat.apply(u, v, inst["z"], inst["theta"], inst["color"], inst["target"],
+                                slots, depth.detach().reshape(-1), plan, h, w,
+                                beta).view(-1, 1, h, w)
+        if carry is not None:  # bring the coarser levels to this grid, one upsampling each
+            up = _upsample(carry, 2 ** (levels[i - 1] - coarse))[..., :h, :w]
+            sums = up if sums is None else sums + up
+        carry = sums
+    if carry is not None and levels[-1] > 0:
+        carry = _upsample(carry, 2 ** levels[-1])[..., :height, :width]
+    return (None if carry is None else carry.reshape(4, -1)), reached
 
 
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
@@ -417,7 +540,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
            cam2_from_ref: torch.Tensor, particles: Union[Particles, Sequence[Particles]],
            templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
            stamps: Optional[StampSet] = None,
-           chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> RenderOutput:
+           chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
+           coarse_side: Optional[int] = COARSE_SIDE) -> RenderOutput:
     """Render particle records into a batch of frame pairs.
 
     Shape:
@@ -426,6 +550,10 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
             from each record's reference frame (see :func:`reference_transforms`).
         particles: one record per pair (a single record for B = 1).
     Computes in the images' dtype and device. Returns :class:`RenderOutput`.
+    ``coarse_side``: stamps at least this wide are splatted on a coarser grid and upsampled
+    (see :func:`build_stamps`); ``None`` renders every stamp at full resolution. Ignored when
+    ``stamps`` are given (they carry their own grids) and for weather-field records (their
+    per-frame path uses the default).
     """
     records = [particles] if isinstance(particles, Particles) else list(particles)
     if image1.dim() != 4 or image1.shape[1] != 3 or image2.shape != image1.shape:
@@ -468,21 +596,28 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     if inst is not None:
         if stamps is None:
             stamps = build_stamps(records, templates, dtype=dtype, device=device,
-                                  chunk_elements=chunk_elements)
-        depth_flat = torch.stack((depth1, depth2)).to(dtype).reshape(-1)
-        acc, reached = _splat(depth_flat, inst, stamps, height, width, float(beta),
-                              chunk_elements)
+                                  chunk_elements=chunk_elements, coarse_side=coarse_side)
+        depths = torch.stack((depth1, depth2)).to(dtype)
+        acc, reached = _splat(depths, inst, stamps, height, width, float(beta), chunk_elements)
     if acc is None:
-        acc = [torch.zeros(2 * bsz * height * width, dtype=dtype, device=device)
-               for _ in range(4)]
-
-    alpha = acc[0].view(2, bsz, 1, height, width)
-    colour = torch.stack([a.view(2, bsz, height, width) for a in acc[1:]], 2)
-    images = torch.stack((image1, image2))
-    alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
-    alpha_mode = alpha_mode.view(1, bsz, 1, 1, 1)
-    out = torch.where(alpha_mode, images * (1 - alpha) + colour, images + colour).clamp(0, 1)
-    opacity = alpha.clamp(0, 1)
+        acc = torch.zeros(4, 2 * bsz * height * width, dtype=dtype, device=device)
+    # per sum and frame (B, 1, H, W) views; unbind (not indexing) keeps the backward pass from
+    # filling full-size zero tensors for every slice
+    sums = [x.unbind(0) for x in acc.view(4, 2, bsz, 1, height, width).unbind(0)]
+    modes = [r.settings.blend == "alpha" for r in records]
+    out, opacity = [], []
+    for t, image in enumerate((image1, image2)):  # no stacked copies of the frames
+        alpha = sums[0][t]
+        colour = torch.cat([sums[c][t] for c in (1, 2, 3)], 1)          # (B, 3, H, W)
+        if all(modes):
+            blended = torch.addcmul(colour, image, 1 - alpha)
+        elif not any(modes):
+            blended = image + colour
+        else:
+            mode = torch.tensor(modes, device=device).view(bsz, 1, 1, 1)
+            blended = torch.where(mode, image * (1 - alpha) + colour, image + colour)
+        out.append(blended.clamp_(0, 1))
+        opacity.append(alpha.clamp(0, 1))
     return RenderOutput(image1=out[0], image2=out[1], opacity1=opacity[0], opacity2=opacity[1],
                         reached=reached)
 
@@ -490,7 +625,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
 def render_pair(pair: Union[FramePair, FramePairBatch],
                 particles: Union[Particles, Sequence[Particles]],
                 templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
-                device=None, stamps: Optional[StampSet] = None) -> RenderOutput:
+                device=None, stamps: Optional[StampSet] = None,
+                coarse_side: Optional[int] = COARSE_SIDE) -> RenderOutput:
     """Render particles into a :class:`FramePair` (B = 1) or a :class:`FramePairBatch`.
 
     Picks each record's reference transforms from the pair's poses; raises ConfigError when a
@@ -530,4 +666,4 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
     if dev is not None:
         records = [r.to(dev) for r in records]
     return render(**fields, cam1_from_ref=c1, cam2_from_ref=c2, particles=records,
-                  templates=templates, beta=beta, stamps=stamps)
+                  templates=templates, beta=beta, stamps=stamps, coarse_side=coarse_side)

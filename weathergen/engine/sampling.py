@@ -29,7 +29,7 @@ import torch
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
 from ..geometry import invert_rigid, project, transform_points
-from .particles import Particles, empty_particles
+from .particles import Particles, _quantize_field, empty_particles
 from .presets import Preset
 from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
@@ -268,8 +268,10 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
         kept_pos.append(pos_ref[vis])
         kept_motion.append(motion[vis])
         kept += int(vis.sum())
-    position = torch.cat(kept_pos)[:n]
-    motion = torch.cat(kept_motion)[:n]
+    # Round to the stored precision first, so that the depth-dependent properties below
+    # follow from exactly the positions a saved record holds.
+    position = _quantize_field("position", torch.cat(kept_pos)[:n]).double()
+    motion = _quantize_field("motion", torch.cat(kept_motion)[:n]).double()
 
     # Per-particle appearance, drawn for exactly n particles after the positions.
     u = torch.rand(n, 4, generator=gen, dtype=torch.float64)

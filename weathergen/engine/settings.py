@@ -35,8 +35,8 @@ class RenderSettings:
 
     blend: ``additive`` (glow) or ``alpha``; blur_length: the motion-blur streak as a fraction of
     the frame-to-frame motion (0: none); blur_samples: samples K per blurred particle (1: none);
-    defocus_brighten: cube-root brighten the disc-blurred alpha; templates: the template
-    library's name (``flakes``, ``dust`` or a folder); templates_digest: its digest ("" for
+    defocus_brighten: brighten the disc-blurred alpha b to min(1, (2 b)^(1/3)); templates: the
+    template library's name (``flakes``, ``dust`` or a folder); templates_digest: its digest ("" for
     any), so that particles are never drawn with other templates than they were sampled with.
     """
 

@@ -3,9 +3,13 @@
 Two built-in libraries ship with the package, both made by :func:`generate_templates` (our own,
 seeded, deterministic generators) and stored as PNGs under ``weathergen/engine/templates/``:
 
-- ``flakes``: snowflake-like stars and dendrites, hexagonal plates and soft round grains
-  (snow, rain and sparks);
-- ``dust``: soft cloud blobs (fog and the dust rows of the size sweep).
+- ``flakes``: nearly opaque round blobs with the inner structure of a dendrite (six brighter
+  arms), a hexagonal plate or a soft grain (snow, rain and sparks);
+- ``dust``: nearly opaque cloud blobs with a soft texture (fog and the dust rows of the size
+  sweep).
+
+Like the paper's billboards, each carries a mean alpha of 0.7-0.85 inside its disc
+(:data:`TEMPLATE_ALPHA_RANGE`); how transparent a particle looks comes from its θ.
 
 A preset may instead name a folder of grey-scale PNGs. Every template is treated as round: content
 outside its inscribed circle is dropped, so that a rotated template never needs a larger canvas.
@@ -33,6 +37,9 @@ FLAKE_RESOLUTION = 80
 DUST_RESOLUTION = 128
 FLAKE_COUNT = 8
 DUST_COUNT = 6
+# Mean alpha inside each built-in template's disc: the paper's flakes and smoke blobs are
+# nearly opaque (about 0.7-0.85 inside the disc); the depth hat and θ make them transparent.
+TEMPLATE_ALPHA_RANGE = (0.7, 0.85)
 
 
 @dataclass(frozen=True)
@@ -137,46 +144,41 @@ def _segment_distance(xx, yy, x0, y0, x1, y1):
     return np.hypot(xx - (x0 + t * dx), yy - (y0 + t * dy))
 
 
-def _radial_fade(r, radius):
-    """1 inside, smoothly 0 at the template's inscribed circle, so rotations never clip."""
-    return np.clip((radius - r) / (0.15 * radius), 0, 1) ** 2
+def _blob(r, radius, soft=0.25):
+    """A filled disc of ``radius`` whose edge falls smoothly to 0 over the outer ``soft``
+    fraction. Shape: any -> same, values in [0, 1]."""
+    t = np.clip((radius - r) / (soft * radius), 0, 1)
+    return t * t * (3 - 2 * t)                    # smoothstep
 
 
 def _flake(rng: np.random.Generator, res: int, style: str) -> np.ndarray:
+    """One flake: a filled, nearly opaque round blob (like the soft flakes of the paper's
+    figures) whose inner structure varies by ``style``. Mean alpha inside the template's
+    disc lies in [0.7, 0.85] (see TEMPLATE_ALPHA_RANGE)."""
     c = (res - 1) / 2
     yy, xx = np.mgrid[0:res, 0:res].astype(np.float64)
     xx, yy = (xx - c) / c, (yy - c) / c          # unit coordinates, the disc has radius 1
     r = np.hypot(xx, yy)
-    if style == "grain":                          # a soft round grain with a brighter core
-        sigma = rng.uniform(0.25, 0.4)
-        alpha = np.exp(-(r / sigma) ** 2) + 0.3 * np.exp(-(r / (2 * sigma)) ** 2)
-    elif style == "plate":                        # a hexagonal plate with a soft rim
+    ang = np.arctan2(yy, xx)
+    if style == "grain":                          # a soft grain, brightest in its core
+        body = _blob(r, 1.0, soft=0.2)
+        alpha = body * (0.9 + 0.1 * np.exp(-(r / 0.5) ** 2))
+    elif style == "plate":                        # a hexagonal plate with a bright rim
         phase = rng.uniform(0, np.pi / 3)
-        ang = np.arctan2(yy, xx) - phase
-        hexr = np.cos(np.pi / 6) / np.cos((ang % (np.pi / 3)) - np.pi / 6)
-        size = rng.uniform(0.5, 0.7)
-        edge = r / (size * hexr)
-        alpha = np.clip(1.2 - edge, 0, 1) ** 0.7 * (0.6 + 0.4 * np.exp(-(edge - 0.9) ** 2 / 0.02))
-    else:                                         # a six-armed dendrite with side branches
+        hexr = np.cos(np.pi / 6) / np.cos(((ang - phase) % (np.pi / 3)) - np.pi / 6)
+        edge = r / (rng.uniform(1.08, 1.15) * hexr)
+        body = _blob(edge, 1.0, soft=0.15) * _blob(r, 1.0, soft=0.12)
+        alpha = body * (0.88 + 0.12 * np.exp(-(edge - 0.75) ** 2 / 0.02))
+    else:                                         # a dendrite: six brighter arms in a soft disc
         arms = 6
         phase = rng.uniform(0, 2 * np.pi / arms)
-        length = rng.uniform(0.7, 0.9)
-        width = rng.uniform(0.05, 0.08)
-        branch_at = rng.uniform(0.3, 0.7, size=2)
-        branch_len = rng.uniform(0.15, 0.3, size=2)
+        width = rng.uniform(0.08, 0.12)
         dist = np.full_like(r, np.inf)
         for k in range(arms):
             a = phase + 2 * np.pi * k / arms
-            ex, ey = length * np.cos(a), length * np.sin(a)
-            dist = np.minimum(dist, _segment_distance(xx, yy, 0, 0, ex, ey))
-            for pos, blen in zip(branch_at * length, branch_len):
-                bx, by = pos * np.cos(a), pos * np.sin(a)
-                for side in (-1, 1):
-                    b = a + side * np.pi / 3
-                    dist = np.minimum(dist, _segment_distance(
-                        xx, yy, bx, by, bx + blen * np.cos(b), by + blen * np.sin(b)))
-        alpha = np.exp(-(dist / width) ** 2) + 0.6 * np.exp(-(r / 0.18) ** 2)
-    alpha = alpha * _radial_fade(r, 1.0)
+            dist = np.minimum(dist, _segment_distance(xx, yy, 0, 0, np.cos(a), np.sin(a)))
+        body = _blob(r, 1.0, soft=0.18)
+        alpha = body * (0.88 + 0.12 * np.exp(-(dist / width) ** 2))
     return (alpha / alpha.max()).astype(np.float32)
 
 
@@ -192,17 +194,21 @@ def _smooth_noise(rng: np.random.Generator, res: int, cells: int) -> np.ndarray:
 
 
 def _dust(rng: np.random.Generator, res: int) -> np.ndarray:
+    """A cloud: overlapping soft puffs with a band-limited texture, nearly opaque in its body
+    (mean alpha inside the disc in [0.7, 0.85], like the paper's smoke blobs)."""
     c = (res - 1) / 2
     yy, xx = np.mgrid[0:res, 0:res].astype(np.float64)
     xx, yy = (xx - c) / c, (yy - c) / c
     r = np.hypot(xx, yy)
-    alpha = np.zeros_like(r)
+    puffs = np.zeros_like(r)
     for _ in range(rng.integers(4, 8)):           # overlapping soft puffs make a cloud
-        cx, cy = rng.uniform(-0.3, 0.3, size=2)
-        s = rng.uniform(0.2, 0.4)
-        alpha += rng.uniform(0.5, 1.0) * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * s * s))
+        cx, cy = rng.uniform(-0.25, 0.25, size=2)
+        s = rng.uniform(0.3, 0.45)
+        puffs += rng.uniform(0.5, 1.0) * np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * s * s))
+    puffs = puffs / puffs.max()
     texture = 0.6 * _smooth_noise(rng, res, 4) + 0.4 * _smooth_noise(rng, res, 9)
-    alpha = alpha * (0.55 + 0.45 * texture) * _radial_fade(r, 1.0)
+    body = _blob(r, 1.0, soft=0.15) * np.clip(0.85 + 0.3 * puffs, 0, 1)
+    alpha = body * (0.88 + 0.12 * texture)
     return (alpha / alpha.max()).astype(np.float32)
 
 

@@ -38,7 +38,7 @@ from ..io.atomic import write_error
 from ..io.lock import FolderLock
 from ..outputs.folder import is_foreign
 from ..outputs.manifest import MANIFEST, MANIFEST_PARTS, RUN_CONFIG, jsonable, shard_part
-from ..workers import init_worker
+from ..workers import StopRequests, init_worker, spawning
 from .particles import pair_particles, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
@@ -471,41 +471,39 @@ def _run_ray(job, todo, results, on_result):
 
 
 def _run_pool(job, todo, results, on_result):
+    """Render the chunks on a pool of worker processes, recording each result as it arrives.
+
+    Ctrl-C and SIGTERM are held back while the pool runs (see :class:`StopRequests`): once one
+    comes, no new chunk starts, the chunks already running finish, every result is recorded, and
+    only then is the interruption passed on. Nothing a worker finished is left out of the record.
+    """
     ctx = multiprocessing.get_context("spawn")
-    pending = set()
-    ready: list = []        # finished chunks whose results are not all recorded yet
-    recorded: dict = {}     # chunk -> how many of its results are recorded
+    queue = _chunks(todo, job.batch_size)
+    order: dict = {}                       # future -> position, to record in a fixed order
+    pending: set = set()
+    with StopRequests() as stop, ProcessPoolExecutor(
+            max_workers=job.workers, mp_context=ctx, initializer=init_worker,
+            initargs=(os.getpid(),)) as pool:
+        while pending or (queue and stop.signum is None):
+            while queue and stop.signum is None and len(pending) < 2 * job.workers:
+                with spawning():           # the pool starts its workers on demand, in submit
+                    fut = pool.submit(render_batch, job, queue.pop(0))
+                order[fut] = len(order)
+                pending.add(fut)
+            done, pending = wait(pending, timeout=POLL_SECONDS, return_when=FIRST_COMPLETED)
+            if stop.signum is not None:
+                for fut in pending:
+                    fut.cancel()           # not started yet: it stays undone (--resume renders it)
+            for fut in sorted(done, key=order.__getitem__):
+                if fut.cancelled():
+                    continue
+                for r in fut.result():
+                    results.append(r)
+                    on_result(r)
 
-    def record(fut):
-        rows = fut.result()
-        for r in rows[recorded.get(fut, 0):]:
-            results.append(r)
-            on_result(r)
-            recorded[fut] = recorded.get(fut, 0) + 1
 
-    queue = list(todo)
-    with ProcessPoolExecutor(max_workers=job.workers, mp_context=ctx, initializer=init_worker,
-                             initargs=(os.getpid(),)) as pool:
-        try:
-            while queue or pending or ready:
-                while queue and len(pending) < 2 * job.workers:
-                    chunk, queue = queue[:job.batch_size], queue[job.batch_size:]
-                    pending.add(pool.submit(render_batch, job, chunk))
-                if not ready:
-                    done, pending = wait(pending, return_when=FIRST_COMPLETED)
-                    ready = list(done)
-                while ready:
-                    record(ready[0])
-                    ready.pop(0)
-        except BaseException:
-            # Interrupted (also while recording a finished chunk): start nothing new, but let the
-            # running chunks finish and record every result not recorded yet.
-            for fut in pending:
-                fut.cancel()
-            for fut in [*ready, *pending]:
-                if not fut.cancelled() and fut.exception() is None:
-                    record(fut)
-            raise
+#: How often the pool loop looks for a held-back Ctrl-C or SIGTERM (seconds).
+POLL_SECONDS = 0.1
 
 
 __all__ = ["RenderJob", "PairResult", "render_batch", "run_render", "prepare_output", "record_run"]
