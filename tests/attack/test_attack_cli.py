@@ -217,6 +217,24 @@ def test_interrupted_run_resumes_at_the_unfinished_pair(tmp_path, monkeypatch, r
 
 # -- error paths ----------------------------------------------------------------------------------
 
+def test_a_folder_another_run_is_writing_is_refused(attack_out, raft_small_weights):
+    """One attack run at a time writes a folder: a second one (here: its lock held by this test,
+    as a running attack holds it) stops with one line naming the holder, and touches nothing."""
+    from weathergen.attack.job import ATTACK_LOCK
+    from weathergen.io.lock import FolderLock
+
+    out, _ = attack_out
+    manifest = (out / "manifest.json").read_bytes()
+    with FolderLock(out / ATTACK_LOCK, str(out)):
+        busy = invoke(tiny_attack(raft_small_weights, out, "--resume"))
+    assert busy.exit_code == 2, busy.output
+    assert "being written by another weathergen run" in busy.output
+    assert len(busy.output.strip().splitlines()) == 1 and "Traceback" not in busy.output
+    assert (out / "manifest.json").read_bytes() == manifest
+    # the finished run released it: a resumed run may go on
+    assert invoke(tiny_attack(raft_small_weights, out, "--resume")).exit_code == 0
+
+
 def test_unknown_model_lists_the_known_ones(tmp_path):
     result = invoke(["attack", "--model", "flownet9", *ONE_PAIR, "--out", tmp_path / "x"])
     assert result.exit_code == 2

@@ -27,10 +27,12 @@ from ..engine import render_pair
 from ..errors import ConfigError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
+from ..io.lock import FolderLock
 from ..models import get_model
 from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pair_metadata,
                        prepare_folder, read_attack_manifest, read_pair_summary,
                        write_attack_manifest, write_attack_pair)
+from ..outputs.folder import is_foreign
 from ..outputs.metadata import identity_arrays
 from ..render.particles import pair_particles, pair_seed, weather_seed
 from .lp import LpSettings, lp_attack_batch
@@ -251,16 +253,43 @@ def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
     return attack_refs(job, refs, device=worker_device(job.device, "ray"))
 
 
-def prepare_attack_folder(job: AttackJob) -> Optional[dict]:
-    """Create or reuse the job's folder (see :func:`~weathergen.outputs.prepare_folder`); return
-    the manifest of the run it resumes, if any."""
+#: The lock file of an attack folder: one run at a time writes it.
+ATTACK_LOCK = ".weathergen-lock"
+
+
+def prepare_attack_folder(job: AttackJob) -> tuple[Optional[dict], FolderLock]:
+    """Create or reuse the job's folder (see :func:`~weathergen.outputs.prepare_folder`), locked.
+
+    Returns the manifest of the run it resumes (if any) and the folder's lock, held: the caller
+    releases it when the run ends. A second run in the same folder is refused while this one holds
+    it (:class:`~weathergen.io.lock.FolderBusy`).
+    """
     out = Path(job.out)
-    previous = None
-    if not job.overwrite and (out / MANIFEST).exists() and any(out.iterdir()):
-        previous = read_attack_manifest(out) if (out / ATTACK_FOLDER.marker).exists() else None
-    prepare_folder(out, ATTACK_FOLDER, job.config(), previous=None if previous is None
-                   else previous.get("config", {}), resume=job.resume, overwrite=job.overwrite)
-    return previous
+    ignore = (ATTACK_LOCK,)
+    if is_foreign(out, ATTACK_FOLDER, job.overwrite, ignore=ignore):
+        # not ours: refused (with the reason) before anything is created in it
+        prepare_folder(out, ATTACK_FOLDER, job.config(), None, resume=job.resume,
+                       overwrite=job.overwrite, ignore=ignore)
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        lock = FolderLock(out / ATTACK_LOCK, str(out)).acquire()
+    except OSError as exc:
+        raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
+    try:
+        # Read under the lock: what the run before us recorded is final.
+        previous = None
+        if not job.overwrite and (out / MANIFEST).exists():
+            previous = read_attack_manifest(out) if (out / ATTACK_FOLDER.marker).exists() else None
+        prepare_folder(out, ATTACK_FOLDER, job.config(), previous=None if previous is None
+                       else previous.get("config", {}), resume=job.resume,
+                       overwrite=job.overwrite, ignore=ignore)
+    except OSError as exc:
+        lock.release()
+        raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
+    except BaseException:
+        lock.release()
+        raise
+    return previous, lock
 
 
 def run_attack(job: AttackJob,
@@ -275,7 +304,6 @@ def run_attack(job: AttackJob,
     (Ctrl-C, or a killed driver) keeps what it finished. ``on_step`` receives the pair's name and
     each step (local executor only: Ray tasks report whole pairs).
     """
-    config = job.config()
     check_executor(job.executor)
     if job.batch_size < 1:
         raise ConfigError(f"${{batch_size}} must be >= 1 (got {job.batch_size})")
@@ -290,7 +318,18 @@ def run_attack(job: AttackJob,
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
     if not local:
         model = None
-    previous = prepare_attack_folder(job)
+    previous, lock = prepare_attack_folder(job)
+    try:
+        return _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_step,
+                              on_pair_done)
+    finally:
+        lock.release()
+
+
+def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_step,
+                   on_pair_done) -> dict:
+    config = job.config()
+    local = job.executor == "local"
 
     order = [ref.id.key for ref in refs]
     pairs_entry: dict = dict(previous.get("pairs", {})) if previous else {}
