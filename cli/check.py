@@ -19,7 +19,8 @@ from .options import dataset_options
 @click.option("--geometry", is_flag=True,
               help="Also measure how well depth and cameras reproduce the dataset's ground-truth "
                    "flow on static pixels seen in both frames (median, 90th percentile, share "
-                   "within 1 px).")
+                   "within 1 px); without ground-truth flow, how well they map frame 2 onto "
+                   "frame 1 (grey-level error against leaving frame 2 in place).")
 @click.option("--geometry-pairs", type=click.IntRange(min=1), default=3, show_default=True,
               help="With --geometry: pairs per scene compared (spread over the scene).")
 @click.option("--verbose", "-v", is_flag=True, help="List every file of a problem, not only the first few.")
@@ -66,7 +67,7 @@ def check(dataset, geometry, geometry_pairs, verbose):
         if geometry and sc.pairs:
             g = sc.geometry
             lines.append(f"{sc.scene}: geometry: " + (
-                "no ground-truth flow to compare with" if g is None else
+                _photometric_line(sc.photometric) if g is None else
                 "no pixel to compare (none static, measured and seen in both frames)" if not g.pixels
                 else f"flow error median {g.median_px:.3f} px, p90 {g.p90_px:.3f} px, "
                      f"{100 * g.within_1px:.1f}% within 1 px ({g.pairs} pair{'s' * (g.pairs != 1)}, "
@@ -93,3 +94,21 @@ def check(dataset, geometry, geometry_pairs, verbose):
     n = len(scenes)
     console.print(f"[green]{'All ' if total > 1 else ''}{pairs} in {n} scene{'s' if n != 1 else ''} "
                   f"{'are' if total != 1 else 'is'} readable.[/green]")
+
+
+def _photometric_line(p) -> str:
+    """The geometry line of a scene without ground-truth flow (the photometric check)."""
+    if p is None:
+        return "no ground-truth flow to compare with"
+    if not p.pixels:
+        return "no ground-truth flow, and no pixel to compare the frames on (none measured and seen in both)"
+    figures = (f"frame 2 moved by depth and cameras differs from frame 1 by {p.error:.4f} (mean grey "
+               f"level), left in place by {p.unmoved_error:.4f}; median motion {p.motion_px:.2f} px "
+               f"({p.pairs} pair{'s' * (p.pairs != 1)}, {100 * p.coverage:.0f}% of the pixels)")
+    if not p.judged:
+        verdict = "too little motion to judge"
+    elif p.explained:
+        verdict = "consistent"
+    else:
+        verdict = "NOT consistent"
+    return f"no ground-truth flow; photometric check {verdict}: {figures}"

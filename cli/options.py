@@ -9,6 +9,8 @@ import click
 
 from weathergen.datasets import DATASETS, default_dataset, load_scene_scales, open_dataset
 from weathergen.datasets.common import WORLD_UP_CHOICES
+from weathergen.errors import ConfigError
+from weathergen.geometry import up_direction
 
 
 #: Where the group keeps the command line it was given (``ctx.meta``), for manifests.
@@ -60,6 +62,17 @@ def overwrite_option(help: str):
 
 # -- option groups --------------------------------------------------------------------------
 
+def _world_up_option(ctx, param, value):
+    """Validate --world-up (an axis name or a direction X,Y,Z); keep the text as given."""
+    if value is None:
+        return None
+    try:
+        up_direction(value)
+    except ConfigError as exc:
+        raise click.BadParameter(str(exc).split(": ", 1)[-1]) from None
+    return value.strip()
+
+
 def dataset_options(func):
     """Add the dataset-selection options; the command receives ``dataset`` (an opened Dataset)."""
 
@@ -93,10 +106,12 @@ def dataset_options(func):
     @click.option("--far-depth", type=click.FloatRange(min=0, min_open=True), default=None,
                   help="kitti, spring, custom: depth (dataset units, before --depth-scale) given to "
                        "pixels without depth, such as the sky. Default: 1000.")
-    @click.option("--world-up", type=click.Choice(WORLD_UP_CHOICES), default=None,
-                  help="Axis of the dataset's world that points up (weather falls the other way). "
-                       "Default: the dataset's (demo +z, kitti -y, others auto: the world axis "
-                       "nearest to the cameras' up direction).")
+    @click.option("--world-up", metavar="|".join(WORLD_UP_CHOICES) + "|X,Y,Z", default=None,
+                  callback=_world_up_option,
+                  help="Axis of the dataset's world that points up (weather falls the other way), "
+                       "or the up direction X,Y,Z in world coordinates for a world that is not "
+                       "level. Default: the dataset's (demo +z, kitti -y, others auto: the world "
+                       "axis nearest to the cameras' up direction).")
     @reader_options
     @functools.wraps(func)
     def wrapper(*args, dataset_name, root, split, pass_, scenes, from_scene, frames_per_scene,
@@ -136,6 +151,7 @@ READER_OPTIONS = {
     "object_map": ("use_object_map", ("kitti",)),
     "frame_pattern": ("frame_pattern", ("custom",)),
     "min_valid_depth": ("min_valid_depth", ("custom",)),
+    "fill_gaps": ("max_gap_px", ("kitti", "custom")),
 }
 
 
@@ -162,6 +178,10 @@ def reader_options(func):
         click.option("--min-valid-depth", type=float, default=None, metavar="FRACTION",
                      help="custom: warn about frames with a smaller fraction of valid depth. "
                           "Default: 0.5."),
+        click.option("--fill-gaps", type=click.FloatRange(min=0), default=None, metavar="PX",
+                     help="kitti, custom: fill pixels without depth up to this distance from a "
+                          "measured one (guided by the frame's colours); farther ones get the far "
+                          "depth; 0 fills nothing. Default: 24."),
     )):
         func = option(func)
     return func

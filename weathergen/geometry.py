@@ -7,7 +7,14 @@ dimensions and keeps the dtype and device of its inputs, so it is differentiable
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
+
+from .errors import ConfigError
+
+#: The world-up settings that name an axis; besides these, "auto" and a direction "X,Y,Z".
+WORLD_UP_AXES = ("+x", "-x", "+y", "-y", "+z", "-z")
 
 
 def project(points: torch.Tensor, intrinsics: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
@@ -119,3 +126,28 @@ def rotation_angle_deg(rotation: torch.Tensor) -> torch.Tensor:
     """Angle of a rotation matrix in degrees. Shape: (..., 3, 3) -> (...)."""
     cos = ((rotation.diagonal(dim1=-2, dim2=-1).sum(-1) - 1) / 2).clamp(-1, 1)
     return torch.rad2deg(torch.arccos(cos))
+
+
+def up_direction(world_up: str) -> Optional[torch.Tensor]:
+    """The world's up direction a world-up setting names: ``None`` for ``"auto"``, else a unit
+    (3,) float64 vector. Settings: ``"auto"``, an axis ``"+x"`` … ``"-z"``, or a direction
+    ``"X,Y,Z"`` in world coordinates, any length (for a world that is not level, e.g. a SLAM
+    map in the first camera's axes, whose up is the measured gravity reversed).
+    Raises :class:`~weathergen.errors.ConfigError` for anything else.
+    """
+    text = str(world_up).strip()
+    if text == "auto":
+        return None
+    if text in WORLD_UP_AXES:
+        out = torch.zeros(3, dtype=torch.float64)
+        out["xyz".index(text[1])] = 1.0 if text[0] == "+" else -1.0
+        return out
+    parts = text.split(",")
+    try:
+        vec = torch.tensor([float(v) for v in parts], dtype=torch.float64) if len(parts) == 3 else None
+    except ValueError:
+        vec = None
+    if vec is None or not bool(torch.isfinite(vec).all()) or float(vec.norm()) < 1e-9:
+        raise ConfigError(f"world up {world_up!r}: must be auto, an axis ({', '.join(WORLD_UP_AXES)}) "
+                          f"or a direction X,Y,Z of three numbers, not all zero (e.g. 0,-1,0)")
+    return vec / vec.norm()

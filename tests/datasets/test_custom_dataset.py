@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from fake_datasets import demo_sequence, write_fake_custom
 from weathergen.datasets import open_dataset
-from weathergen.errors import DatasetError, FormatError
+from weathergen.errors import ConfigError, DatasetError, FormatError
 from weathergen.geometry import reprojection_flow
 from weathergen.io.custom_formats import read_depth, write_depth
 from weathergen.io.sintel_formats import write_flo
@@ -61,7 +61,7 @@ def test_scenes_below_the_root_flow_and_missing_depth(tmp_path, street):
     write_flo(tmp_path / "a_scene" / "flow" / "0000.flo", pairs[0].flow.permute(1, 2, 0).numpy())
     ds = open_dataset("custom", tmp_path, frames_per_scene=2)
     assert [(r.id.scene, r.id.frame) for r in ds.pairs()] == [("a_scene", 0), ("a_scene", 1), ("b_scene", 0)]
-    pair = load(tmp_path, far_depth=321.0)
+    pair = load(tmp_path, far_depth=321.0, max_gap_px=0)      # no filling: the far depth
     assert (pair.depth1[0, :10] == 321.0).all()
     assert not pair.depth_measured1[0, :10].any() and pair.depth_measured1[0, 10:].all()
     torch.testing.assert_close(pair.flow, pairs[0].flow)
@@ -89,6 +89,57 @@ def test_depth_file_round_trips(tmp_path):
         np.testing.assert_array_equal(read_depth(tmp_path / f"d{suffix}"), depth)
     write_depth(tmp_path / "d.png", depth, png_scale=0.25)
     np.testing.assert_array_equal(read_depth(tmp_path / "d.png", 0.25), [[1.25, 0], [0, 40]])
+
+
+def test_png_depth_of_65535_is_missing(tmp_path, street):
+    # Kinect-style sensors (7-Scenes) write the largest 16-bit value where they measured nothing
+    import cv2
+
+    raw = np.array([[1000, 65535], [0, 65534]], np.uint16)
+    cv2.imwrite(str(tmp_path / "d.png"), raw)
+    got = read_depth(tmp_path / "d.png", 0.001)
+    assert got[0, 0] == np.float32(1.0) and np.isnan(got[0, 1]) and got[1, 0] == 0
+    assert got[1, 1] == np.float32(65534) * np.float32(0.001)
+    write_depth(tmp_path / "far.png", np.array([[1e6, 2.0]], np.float32), png_scale=0.001)
+    assert read_depth(tmp_path / "far.png", 0.001)[0, 0] == np.float32(65534) * np.float32(0.001)   # never 65535
+    frames, _ = street
+    root = write_fake_custom(tmp_path / "s", frames[:2], depth_suffix=".png")
+    band = cv2.imread(str(root / "depth" / "0000.png"), cv2.IMREAD_UNCHANGED)
+    band[:10] = 65535
+    cv2.imwrite(str(root / "depth" / "0000.png"), band)
+    pair = load(root, far_depth=500.0, max_gap_px=0)
+    assert not pair.depth_measured1[0, :10].any() and pair.depth_measured1[0, 10:].all()
+    assert (pair.depth1[0, :10] == 500.0).all()
+    assert pair.meta["depth_values"][0]["valid"] == pytest.approx(1 - 10 / band.shape[0], abs=1e-4)
+
+
+def test_sensor_holes_are_filled_from_their_neighbours_and_large_gaps_get_the_far_depth(tmp_path, street):
+    # real depth sensors leave holes at object edges and on dark or shiny surfaces; the far depth
+    # there would put weather in front of the near object, drawing its outline
+    frames, pairs = street
+    root = write_fake_custom(tmp_path / "s", frames[:2], missing=(0, 40))      # rows 0-39 of frame 0
+    d = read_depth(root / "depth" / "0000.npy")
+    true = pairs[0].depth1[0].numpy()
+    h, w = d.shape
+    holes = np.zeros((h, w), bool)
+    holes[60:66, 100:106] = holes[120:123, 200:230] = True                     # small sensor holes
+    d[holes] = 0
+    write_depth(root / "depth" / "0000.npy", d)
+    pair = load(root, far_depth=700.0)
+    got = pair.depth1[0].numpy()
+    measured = pair.depth_measured1[0].numpy()
+    assert not measured[holes].any() and not measured[:40].any() and measured[40:][~holes[40:]].all()
+    np.testing.assert_array_equal(got[measured], true[measured])              # measured values kept
+    rel = np.abs(got[holes] - true[holes]) / true[holes]
+    assert np.median(rel) < 0.02 and rel.max() < 0.05, rel     # holes: their surface (two planes, a crease)
+    assert (got[:16] == 700.0).all()                                           # > 24 px from a measurement
+    near = got[17:40]
+    assert (near < 700.0).all() and (near >= true[40:].min()).all()           # extended from below
+    assert pair.meta["depth_values"][0]["filled"] == pytest.approx((holes.sum() + 24 * w) / (h * w), abs=2e-3)
+    unfilled = load(root, far_depth=700.0, max_gap_px=0).depth1[0].numpy()
+    assert (unfilled[holes] == 700.0).all()
+    with pytest.raises(ConfigError, match="max_gap_px"):
+        open_dataset("custom", root, max_gap_px=-1)
 
 
 # -- bad input -----------------------------------------------------------------------------------
@@ -122,6 +173,15 @@ def test_camera_file_problems_are_named(tmp_path, street):
         load(root)
     (root / "cameras.json").unlink()
     with pytest.raises(DatasetError, match=r"cameras\.json: camera file is missing"):
+        load(root)
+    # a text file written with numpy scalars' repr (a mistake made converting a trajectory log)
+    write = "0 500 500 191.5 87.5 1 0 0 0 0 1 0 0 0 0 1 0\n1 500 500 191.5 87.5 np.float64(1.0) 0 0 0 0 1 0 0 0 0 1 0\n"
+    (root / "cameras.txt").write_text(write)
+    with pytest.raises(FormatError, match=r"cameras\.txt: line 2 is not a frame number followed by 16 numbers: "
+                                          r"'np\.float64\(1\.0\)' is not a number"):
+        load(root)
+    (root / "cameras.txt").write_text(write.replace("np.float64(1.0)", "1").replace("\n1 ", "\n1.5 "))
+    with pytest.raises(FormatError, match=r"line 2 .*: '1\.5' is not a whole frame number"):
         load(root)
 
 

@@ -13,7 +13,8 @@ from click.testing import CliRunner
 from fake_datasets import demo_sequence, write_fake_custom
 from weathergen.datasets import open_dataset
 from weathergen.datasets.checking import check_dataset
-from weathergen.datasets.geometry_check import flow_errors, sample_indices, summarize
+from weathergen.datasets.geometry_check import (flow_errors, photometric_errors, sample_indices, summarize,
+                                               summarize_photometric)
 from weathergen.framepair import FramePair, PairId
 
 
@@ -87,14 +88,6 @@ def test_inverted_extrinsics_show_as_a_large_error(tmp_path, demo_root):
     assert median and float(median.group(1)) > 5, res.output
 
 
-def test_without_ground_truth_flow_there_are_no_figures(tmp_path, demo_root):
-    frames, _ = demo_sequence("street")
-    root = write_fake_custom(tmp_path / "walk", frames)
-    assert check_dataset(open_dataset("custom", root), geometry=True)[0].geometry is None
-    res = run_cli("check", "--dataset", "custom", "--root", str(root), "--geometry")
-    assert res.exit_code == 0 and "walk: geometry: no ground-truth flow to compare with" in res.output
-
-
 def test_spring_extrinsics_read_the_wrong_way_round_show(tmp_path, demo_root):
     from fake_datasets import write_fake_spring
 
@@ -104,3 +97,53 @@ def test_spring_extrinsics_read_the_wrong_way_round_show(tmp_path, demo_root):
     wrong = check_dataset(open_dataset("spring", root, extrinsics="camera-to-world"), geometry=True)[0].geometry
     assert right.median_px < 1e-3 and right.within_1px == 1.0
     assert wrong.median_px > 5 and wrong.within_1px < 0.05
+
+
+def ramp_pair(shift: float) -> FramePair:
+    """The plane of :func:`plane_pair` (static flow -5 px) with a grey ramp I1(x) = x / 20, and
+    frame 2 as the cameras see it: I2(x) = I1(x + 5). ``shift`` multiplies the camera motion."""
+    pair = plane_pair(-5.0)
+    pair.flow = pair.flow_valid = None
+    h, w = pair.size
+    x = torch.arange(w, dtype=torch.float32).expand(3, h, w)
+    pair.image1, pair.image2 = x / 20, (x + 5) / 20
+    pair.cam2_from_cam1[0, 3] *= shift
+    return pair
+
+
+def test_photometric_errors_by_hand():
+    warped, unmoved, motion = photometric_errors(ramp_pair(1.0))
+    # frame-1 columns 5..7 land on columns 0..2 of frame 2, which shows them there
+    assert warped.size == 6 * 3 and np.abs(warped).max() < 1e-6
+    assert np.allclose(unmoved, 0.25) and np.allclose(motion, 5.0)
+    wrong = photometric_errors(ramp_pair(-1.0))      # motion the wrong way: columns 0..2 land on 5..7
+    assert wrong[0].size == 18 and np.allclose(wrong[0], 0.5) and np.allclose(wrong[2], 5.0)
+    good = summarize_photometric([(warped, unmoved, motion)], 48)
+    assert good.judged and good.explained and good.coverage == pytest.approx(18 / 48)
+    bad = summarize_photometric([wrong], 48)
+    assert bad.judged and not bad.explained and bad.error == pytest.approx(0.5)
+    still = summarize_photometric([photometric_errors(ramp_pair(0.1))], 48)   # 0.5 px: too little
+    assert not still.judged and still.motion_px == pytest.approx(0.5)
+    assert summarize_photometric([], 0) is None
+
+
+def test_check_without_flow_uses_the_frames_and_warns_about_a_wrong_convention(tmp_path):
+    frames, _ = demo_sequence("street")
+    root = write_fake_custom(tmp_path / "walk", frames)             # no flow/: nothing to compare with
+    assert check_dataset(open_dataset("custom", root), geometry=True)[0].geometry is None
+    res = run_cli("check", "--dataset", "custom", "--root", str(root), "--geometry")
+    assert res.exit_code == 0, res.output
+    line = re.search(r"^walk: geometry: no ground-truth flow; photometric check consistent: .*$", res.output, re.M)
+    assert line, res.output
+    error, unmoved = (float(v) for v in re.search(r"frame 1 by ([\d.]+) .* in place by ([\d.]+)", line[0]).groups())
+    assert error < 0.5 * unmoved
+    assert "warning" not in res.output
+    cams = json.loads((root / "cameras.json").read_text())
+    cams["pose"] = "world_from_cam"                                  # declared the wrong way round
+    (root / "cameras.json").write_text(json.dumps(cams))
+    res = run_cli("check", "--dataset", "custom", "--root", str(root), "--geometry")
+    assert res.exit_code == 0, res.output                            # a warning, not an error
+    assert "walk: geometry: no ground-truth flow; photometric check NOT consistent" in res.output
+    assert "walk: warning: depth and cameras do not explain the frames" in res.output
+    scenes = check_dataset(open_dataset("custom", root), geometry=True)
+    assert scenes[0].photometric.judged and not scenes[0].photometric.explained

@@ -141,12 +141,72 @@ def test_partly_missing_or_negative_depth_warns_and_lists_every_frame(tmp_path, 
     pair = ds.load(ds.pairs()[0])
     assert pair.meta["depth_values"][0]["valid"] == pytest.approx(0.3, abs=0.01)
     assert pair.depth_measured1.float().mean() == pytest.approx(0.3, abs=0.01)
-    assert (pair.depth1[~pair.depth_measured1] == ds.far_depth).all()
+    # the band more than 24 px above the valid rows gets the far depth, the rest is filled in
+    far = pair.depth1[0, : int(0.7 * h) - 25]
+    assert (far == ds.far_depth).all()
+    assert (pair.depth1[0, int(0.7 * h) - 20: int(0.7 * h)] < ds.far_depth).all()
+    assert pair.meta["depth_values"][0]["filled"] == pytest.approx(24 / h, abs=0.01)
     res = run_cli("check", "--dataset", "custom", "--root", str(root))
     assert res.exit_code == 0, res.output             # warnings do not fail
     out = res.output.replace(f"{root}/", "")
-    assert re.search(r"holes: warning: less than 50% of the depth is valid \(the rest gets the far depth\): "
+    assert re.search(r"holes: warning: less than 50% of the depth is valid \(the rest is filled in from "
+                     r"valid pixels up to 24 px away, or gets the far depth\): "
                      r"depth/0000\.npy \(30% valid\), depth/0002\.npy \(30% valid\)$", out, re.M), out
     assert "holes: warning: negative depth is counted as missing" in out and "depth/0003.npy (25% negative)" in out
     res = run_cli("check", "--dataset", "custom", "--root", str(root), "--min-valid-depth", "0.2")
     assert res.exit_code == 0 and "less than" not in res.output
+
+
+def test_depth_and_flow_named_differently_are_found_by_the_frame_number(tmp_path, street):
+    # RGB-D exports often name each kind of file apart: frame-000000.color.jpg, frame-000000.depth.png
+    frames, pairs = street
+    root = write_fake_custom(tmp_path / "kitchen", frames, stem=lambda i: f"frame-{i:06d}.color",
+                             flows=pairs)
+    for i in range(len(frames)):
+        (root / "depth" / f"frame-{i:06d}.color.npy").rename(root / "depth" / f"frame-{i:06d}.depth.npy")
+        if i < len(pairs):
+            (root / "flow" / f"frame-{i:06d}.color.flo").rename(root / "flow" / f"frame-{i:06d}.flow.flo")
+    ds = open_dataset("custom", root)
+    ref = ds.pairs()[1]
+    assert ref.files["depth1"].name == "frame-000001.depth.npy"
+    assert ref.files["depth2"].name == "frame-000002.depth.npy"
+    assert ref.files["flow"].name == "frame-000001.flow.flo"
+    pair = ds.load(ref)
+    torch.testing.assert_close(pair.depth1, pairs[1].depth1, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(pair.depth2, pairs[1].depth2, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(pair.flow, pairs[1].flow)
+
+
+def test_missing_depth_says_how_depth_files_are_found(tmp_path, street):
+    frames, _ = street
+    root = write_fake_custom(tmp_path / "kitchen", frames[:2], stem=lambda i: f"frame-{i:06d}.color")
+    for i in range(2):      # two depth files whose number matches no frame: not taken by position
+        (root / "depth" / f"frame-{i:06d}.color.npy").rename(root / "depth" / f"frame-{i + 5:06d}.depth.npy")
+    ds = open_dataset("custom", root)
+    assert ds.pairs()[0].files["depth1"].name == "frame-000000.color.npy"
+    res = run_cli("check", "--dataset", "custom", "--root", str(root))
+    assert res.exit_code == 1
+    assert "kitchen: depth file is missing (a depth file is the frame's name with .npy, .png or .exr in " \
+           "depth/, or a file there with the frame's number" in res.output
+    res = run_cli("render", "--dataset", "custom", "--root", str(root), "--out", str(tmp_path / "out"))
+    assert res.exit_code == 2 and "frame-1 depth file is missing (a depth file is the frame's name" in res.output
+
+
+def test_fill_gaps_option_reaches_the_reader(tmp_path, street, monkeypatch):
+    from weathergen.datasets import custom
+
+    frames, _ = street
+    root = write_fake_custom(tmp_path / "s", frames[:2], missing=(0, 10))
+    seen = []
+    original = custom.CustomDataset.__init__
+
+    def spy(self, *args, **kwargs):
+        original(self, *args, **kwargs)
+        seen.append(self.max_gap_px)
+
+    monkeypatch.setattr(custom.CustomDataset, "__init__", spy)
+    assert run_cli("check", "--dataset", "custom", "--root", str(root), "--fill-gaps", "0").exit_code == 0
+    assert run_cli("check", "--dataset", "custom", "--root", str(root)).exit_code == 0
+    assert seen == [0.0, 24.0]
+    res = run_cli("check", "--fill-gaps", "3")
+    assert res.exit_code == 2 and "--fill-gaps applies to kitti, custom only, not to demo" in res.output

@@ -359,6 +359,20 @@ def test_severity_ladder_is_bundled_and_ordered():
         assert load_preset(f"{kind}-light").to_dict()["model"] == "field"
 
 
+@pytest.mark.parametrize("name", [n for n in LADDER if not n.startswith(("snow", "fog"))])
+@pytest.mark.parametrize("frame_rate", sorted(set(DATASET_FRAME_RATES.values())))
+def test_streaks_of_the_ladder_are_continuous(name, frame_rate):
+    """A streak is drawn as blur samples along it; samples further apart than the particle is wide
+    draw a dotted line (rain close to the camera, as in indoor RGB-D scenes, showed it)."""
+    preset = load_preset(name)
+    fld = make_field(preset, 0, down=torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64),
+                     frame_rate=frame_rate)
+    assert fld.streak > 0
+    length = torch.linalg.vector_norm(fld.step.double() * fld.quantum, dim=1) * fld.streak
+    spacing = length / (preset.blur_samples - 1)
+    assert bool((spacing <= fld.diameter).all()), float((spacing / fld.diameter).max())
+
+
 def test_presets_command_names_the_model():
     from click.testing import CliRunner
 

@@ -128,6 +128,30 @@ def test_explicit_world_up_and_rising_sparks():
         sample_particles(pair, load_preset("snow", {"count": 5}), seed=0, world_up="up")
 
 
+def test_world_up_as_a_direction_for_a_world_that_is_not_level():
+    from weathergen.engine.sampling import world_down
+    from weathergen.geometry import up_direction
+
+    assert up_direction("auto") is None
+    torch.testing.assert_close(up_direction("-y"), torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64))
+    torch.testing.assert_close(up_direction(" 0, -2, 0 "), torch.tensor([0.0, -1.0, 0.0], dtype=torch.float64))
+    for bad in ("up", "1,2", "0,0,0", "1,nan,0", "1,2,3,4"):
+        with pytest.raises(ConfigError, match="direction X,Y,Z"):
+            up_direction(bad)
+    eye = torch.eye(4, dtype=torch.float64)
+    tilted = "0.2,-0.9,-0.4"          # a SLAM world whose up is 25 degrees off its -y axis
+    down = world_down(eye, eye, tilted)
+    assert abs(float(down.norm()) - 1) < 1e-12
+    torch.testing.assert_close(down, torch.tensor([-0.2, 0.9, 0.4], dtype=torch.float64) / math.sqrt(1.01))
+    pair = plane_pair(40, 56)
+    parts = sample_particles(pair, load_preset("sparks", {"count": 200}), seed=0, world_up="1,1,0")
+    mean = parts.motion.double().mean(0)
+    cos = float(mean @ torch.tensor([1.0, 1.0, 0.0], dtype=torch.float64)) / (float(mean.norm()) * math.sqrt(2))
+    assert cos > 0.95                 # sparks rise along the given up direction
+    with pytest.raises(ConfigError, match="world_up"):
+        sample_particles(pair, load_preset("snow", {"count": 5}), seed=0, world_up="1,1")
+
+
 def test_camera_only_pairs_use_camera1_coordinates():
     parts = sample_particles(plane_pair(40, 56, world=False), load_preset("snow", {"count": 50}), 0)
     assert parts.frame == "camera1"

@@ -378,6 +378,13 @@ def test_world_up_is_a_dataset_setting_recorded_in_the_manifest(snow_run, tmp_pa
     assert (up[:, 2] > 0).all()
     res = run("render", "--out", tmp_path / "bad", "--world-up", "up", *FAST)
     assert res.exit_code == 2 and "--world-up" in res.output
+    # a direction (a world that is not level), here nearly -z, written with a leading minus
+    res = run("render", "--out", tmp_path / "vector", "--world-up", "-0.001,0,-1", *FAST)
+    assert res.exit_code == 0, res.output
+    up = stored_values(read_metadata(tmp_path / "vector/training/particles/street_0001/frame_0001.npz"),
+                       "motion")
+    assert (up[:, 2] > 0).all()
+    assert json.loads((tmp_path / "vector/manifest.json").read_text())["input"]["world_up"] == "-0.001,0,-1"
 
 
 def test_preview_caption_outline_stays_around_the_text():

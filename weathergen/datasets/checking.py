@@ -17,7 +17,13 @@ from typing import Callable, Optional
 
 from ..errors import WeatherGenError
 from .base import ERROR, WARNING, Dataset, PairRef, Problem
-from .geometry_check import GeometryStats, flow_errors, sample_indices, static_mask, summarize
+from .geometry_check import (GeometryStats, PhotometricStats, flow_errors, photometric_errors,
+                             sample_indices, static_mask, summarize, summarize_photometric)
+
+#: The warning of a scene whose depth and cameras do not explain its frames (photometric check).
+NOT_EXPLAINED = ("depth and cameras do not explain the frames: frame 2 moved by them looks less like "
+                 "frame 1 than frame 2 left in place (check the camera file's pose and axes "
+                 "conventions, the intrinsics and the depth scale)")
 
 @dataclass
 class PairCheck:
@@ -26,6 +32,8 @@ class PairCheck:
     #: figures the reader reports for the pair (KITTI: the camera motion), one line each
     notes: list = field(default_factory=list)
     geometry_errors: object = None
+    #: without ground-truth flow: :func:`photometric_errors` and the number of frame-1 pixels
+    photometric: object = None
 
     @property
     def readable(self) -> bool:
@@ -39,6 +47,8 @@ class SceneCheck:
     #: problems of the scene as a whole (for example images that cannot be paired)
     problems: list = field(default_factory=list)
     geometry: Optional[GeometryStats] = None
+    #: the photometric check of the sampled pairs without ground-truth flow
+    photometric: Optional[PhotometricStats] = None
     depth_scale: float = 1.0
 
     @property
@@ -86,6 +96,9 @@ def check_pair(dataset: Dataset, ref: PairRef, *, geometry: bool = False) -> Pai
     result.notes += dataset.pair_notes(pair)
     if geometry:
         result.geometry_errors = flow_errors(pair, static=static_mask(pair))
+        if result.geometry_errors is None:
+            h, w = pair.size
+            result.photometric = (photometric_errors(pair), h * w)
     return result
 
 
@@ -120,6 +133,10 @@ def check_dataset(dataset: Dataset, *, geometry: bool = False, geometry_pairs: i
         if geometry:
             sc.geometry = summarize([pc.geometry_errors for pc in sc.pairs
                                      if pc.geometry_errors is not None])
+            photo = [pc.photometric for pc in sc.pairs if pc.photometric is not None]
+            sc.photometric = summarize_photometric([r for r, _ in photo], sum(n for _, n in photo))
+            if sc.photometric is not None and sc.photometric.judged and not sc.photometric.explained:
+                sc.problems.append(Problem(NOT_EXPLAINED, severity=WARNING))
     for scene, sc in scenes.items():
         sc.depth_scale = getattr(dataset, "scale_of", lambda s: 1.0)(scene)
     return [scenes[s] for s in sorted(scenes)]

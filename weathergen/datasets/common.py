@@ -11,7 +11,7 @@ import torch
 
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
-from ..geometry import invert_rigid, to_homogeneous
+from ..geometry import WORLD_UP_AXES, invert_rigid, to_homogeneous, up_direction
 from .base import FILE_ROLES, Dataset, Selection
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
@@ -20,8 +20,9 @@ DEFAULT_FAR_DEPTH = 1000.0
 
 
 #: Which axis of a dataset's world points up: "auto" (the world axis nearest to the cameras' mean
-#: up direction) or an explicit signed axis.
-WORLD_UP_CHOICES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
+#: up direction) or an explicit signed axis; a direction "X,Y,Z" is accepted too
+#: (:func:`~weathergen.geometry.up_direction`).
+WORLD_UP_CHOICES = ("auto",) + WORLD_UP_AXES
 
 
 class ScaledDataset(Dataset):
@@ -44,8 +45,7 @@ class ScaledDataset(Dataset):
         if not depth_scale > 0:
             raise ConfigError(f"depth scale must be positive, got {depth_scale}")
         world_up = self.default_world_up if world_up is None else world_up
-        if world_up not in WORLD_UP_CHOICES:
-            raise ConfigError(f"world up {world_up!r}: choose from {', '.join(WORLD_UP_CHOICES)}")
+        up_direction(world_up)          # raises ConfigError for a setting it cannot read
         self.depth_scale = float(depth_scale)
         #: where the table came from (a file, see :func:`load_scene_scales`), for messages
         self.scene_scales_source = getattr(scene_scales, "source", None) or "scene scales"

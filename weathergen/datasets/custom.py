@@ -3,7 +3,7 @@
 Layout below the root (several scenes), or the root itself as the single scene::
 
     SCENE/frames/0000.png         frames (8- or 16-bit PNG, or JPEG), any names (see below)
-    SCENE/depth/0000.npy          depth of each frame, same stem: .npy, 16-bit .png or .exr
+    SCENE/depth/0000.npy          depth of each frame, same stem (or number): .npy, 16-bit .png or .exr
     SCENE/cameras.json            intrinsics and one pose per frame (or cameras.txt)
     SCENE/flow/0000.flo           optional: flow from this frame to the next one (Middlebury .flo)
 
@@ -20,8 +20,10 @@ world_from_cam; ``axes`` [opencv] (x right, y down, z forward) or opengl (x righ
 as Blender and OpenGL cameras); ``depth`` [z] (camera-z distance) or range (distance along the
 ray); ``depth_png_scale`` (scene units per PNG step, required for PNG depth).
 
-Valid depth. Depth values that are zero, negative, NaN or infinite are invalid: they get
-``far_depth`` and ``depth_measured1/2`` mark the valid rest. A frame without any valid depth is an
+Valid depth. Depth values that are zero, negative, NaN or infinite are invalid: those within
+``max_gap_px`` (default 24) of a valid pixel are filled in from their neighbours (inverse depth,
+guided by the frame's colours: :func:`~weathergen.datasets.densify.fill_sparse`), the others get
+``far_depth``; ``depth_measured1/2`` mark the valid pixels. A frame without any valid depth is an
 error (with a hint about the sign convention when its values are negative); a frame whose valid
 fraction is below ``min_valid_depth`` (default 0.5) gets a warning from ``check``.
 """
@@ -44,10 +46,14 @@ from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
 from .base import ERROR, WARNING, Problem
 from .common import FarDepthDataset, check_size, require_files
+from .densify import fill_sparse
 from .framenames import order_frames
 
 #: Below this fraction of valid depth in a frame, ``check`` warns.
 DEFAULT_MIN_VALID_DEPTH = 0.5
+#: Gaps in the depth (sensor holes at object edges, dark or shiny surfaces) are filled up to this
+#: distance (pixels) from a valid pixel; farther pixels get the far depth.
+DEFAULT_MAX_GAP_PX = 24.0
 #: OpenGL camera axes (y up, z backward) -> OpenCV camera axes (y down, z forward)
 _CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
 
@@ -60,15 +66,20 @@ class CustomDataset(FarDepthDataset):
     required_files = ("image1", "image2", "cameras", "depth1", "depth2")
 
     def __init__(self, root, selection: Selection = Selection(), *, frame_pattern: Optional[str] = None,
-                 min_valid_depth: float = DEFAULT_MIN_VALID_DEPTH, **options):
+                 min_valid_depth: float = DEFAULT_MIN_VALID_DEPTH,
+                 max_gap_px: float = DEFAULT_MAX_GAP_PX, **options):
         super().__init__(root, selection, **options)
         if not 0 <= min_valid_depth <= 1:
             raise ConfigError(f"minimum valid-depth fraction must be in [0, 1], got {min_valid_depth}")
+        if not max_gap_px >= 0:
+            raise ConfigError(f"max_gap_px must be zero or positive, got {max_gap_px}")
+        self.max_gap_px = float(max_gap_px)
         self.frame_pattern = frame_pattern
         self.min_valid_depth = float(min_valid_depth)
         self._cameras = lru_cache(maxsize=8)(read_camera_file)
         self._scene_problems: dict[str, list[Problem]] = {}
         self._numbers: dict[str, int] = {}      # second frame of each listed pair -> its number
+        self._numbering = "name"                # how the frames of the scene last listed are numbered
 
     # -- listing ---------------------------------------------------------------------------------
     def scene_dirs(self) -> dict[str, Path]:
@@ -91,7 +102,25 @@ class CustomDataset(FarDepthDataset):
         order = order_frames([p.name for p in folder.iterdir() if p.is_file()], self.frame_pattern)
         if order.problem:
             raise DatasetError(f"{folder}: {order.problem}")
+        self._numbering = order.numbering
         return {n: folder / name for n, name in order.frames}
+
+    @staticmethod
+    def _numbered_files(scene_dir: Path) -> dict[str, dict[int, Path]]:
+        """Depth and flow files by frame number, for names that differ from the frames' in more
+        than the number (``frame-000012.color.jpg`` with ``frame-000012.depth.png``): folder
+        ("depth", "flow") -> number -> file. A folder whose files cannot be numbered by their
+        names (several kinds of name, no number) gives nothing; nothing is guessed."""
+        out: dict[str, dict[int, Path]] = {}
+        for sub, suffixes in (("depth", DEPTH_SUFFIXES), ("flow", (".flo",))):
+            folder = scene_dir / sub
+            if not folder.is_dir():
+                continue
+            names = [p.name for p in folder.iterdir() if p.is_file() and p.suffix.lower() in suffixes]
+            order = order_frames(names, "*") if len(names) >= 2 else None
+            if order is not None and not order.problem and order.numbering == "name":
+                out[sub] = {n: folder / name for n, name in order.frames}
+        return out
 
     def pairs(self) -> list[PairRef]:
         dirs = self.scene_dirs()
@@ -108,6 +137,7 @@ class CustomDataset(FarDepthDataset):
                     Problem("frames cannot be paired: " + str(exc)[len(folder) + 2:], folder)]
                 continue
             numbers = list(frames)
+            by_number = self._numbered_files(dirs[scene]) if self._numbering == "name" else {}
             starts = list(zip(numbers[:-1], numbers[1:]))
             if sel.first_frame is not None:
                 starts = [s for s in starts if s[0] >= sel.first_frame]
@@ -116,7 +146,7 @@ class CustomDataset(FarDepthDataset):
             for a, b in starts:
                 self._numbers[str(frames[b])] = b
                 refs.append(PairRef(PairId(self.name, sel.split, scene, a),
-                                    self._files(dirs[scene], frames[a], frames[b])))
+                                    self._files(dirs[scene], frames[a], frames[b], (a, b), by_number)))
         if not refs and self._scene_problems:
             first = next(iter(self._scene_problems.values()))[0]
             raise DatasetError(f"{first.where}: {first.kind}")
@@ -133,29 +163,46 @@ class CustomDataset(FarDepthDataset):
             where = f"{ref.files[key]} ({100 * valid:.0f}% valid)"
             if valid < self.min_valid_depth:
                 out.append(Problem(f"less than {100 * self.min_valid_depth:g}% of the depth is valid "
-                                   f"(the rest gets the far depth)", where, WARNING))
+                                   f"(the rest is filled in from valid pixels up to "
+                                   f"{self.max_gap_px:g} px away, or gets the far depth)", where, WARNING))
             if stats.get("negative", 0):
                 out.append(Problem(_NEGATIVE_HINT, f"{ref.files[key]} "
                                    f"({100 * stats['negative']:.0f}% negative)", WARNING))
         return out
 
     @staticmethod
-    def _files(scene_dir: Path, frame1: Path, frame2: Path) -> dict:
-        def depth_of(frame: Path) -> Path:
+    def _files(scene_dir: Path, frame1: Path, frame2: Path, numbers: tuple = (None, None),
+               by_number: Optional[dict] = None) -> dict:
+        """The files of a pair: depth and flow share the frame file's stem or, failing that,
+        its number (``by_number``, see :meth:`_numbered_files`)."""
+        by_number = by_number or {}
+
+        def depth_of(frame: Path, number) -> Path:
             candidates = [scene_dir / "depth" / (frame.stem + s) for s in DEPTH_SUFFIXES]
-            return next((c for c in candidates if c.exists()), candidates[0])
+            found = next((c for c in candidates if c.exists()), None)
+            return found or by_number.get("depth", {}).get(number, candidates[0])
 
         cams = scene_dir / "cameras.json"
         if not cams.exists() and (scene_dir / "cameras.txt").exists():
             cams = scene_dir / "cameras.txt"
-        return {"image1": frame1, "image2": frame2, "depth1": depth_of(frame1),
-                "depth2": depth_of(frame2), "cameras": cams,
-                "flow": scene_dir / "flow" / f"{frame1.stem}.flo"}
+        flow = scene_dir / "flow" / f"{frame1.stem}.flo"
+        if not flow.exists():
+            flow = by_number.get("flow", {}).get(numbers[0], flow)
+        return {"image1": frame1, "image2": frame2, "depth1": depth_of(frame1, numbers[0]),
+                "depth2": depth_of(frame2, numbers[1]), "cameras": cams, "flow": flow}
+
+    def missing_hint(self, key: str) -> str:
+        if key in ("depth1", "depth2"):
+            return (" (a depth file is the frame's name with .npy, .png or .exr in depth/, or a file "
+                    "there with the frame's number, such as frame-000012.depth.png for "
+                    "frame-000012.color.jpg)")
+        return ""
 
     # -- reading ---------------------------------------------------------------------------------
     def load(self, ref: PairRef) -> FramePair:
         files = ref.files
-        require_files(files, ("image1", "image2", "cameras", "depth1", "depth2"))
+        require_files(files, ("image1", "image2", "cameras"))
+        require_files(files, ("depth1", "depth2"), self.missing_hint("depth1"))
         img1, img2 = read_image(files["image1"]), read_image(files["image2"])
         size = img1.shape[:2]
         check_size(files["image2"], "frame", img2.shape, size)
@@ -179,10 +226,12 @@ class CustomDataset(FarDepthDataset):
                 reason = (f"{100 * negative:.0f}% of its values are negative: {_NEGATIVE_HINT}"
                           if negative else "every value is zero, NaN or infinite")
                 raise DatasetError(f"{files[key]}: no valid depth in this frame; {reason}")
-            values.append({"valid": round(float(ok.mean()), 4), "negative": round(negative, 4)})
             if cams.depth == "range":
                 d = _range_to_z(d, k1)
-            depths.append(np.where(ok, d, self.far_depth).astype(np.float32))
+            depth, filled = self._fill_gaps(d, ok, img1 if key == "depth1" else img2)
+            values.append({"valid": round(float(ok.mean()), 4), "negative": round(negative, 4),
+                           "filled": round(float(filled.mean()), 4)})
+            depths.append(depth)
             measured.append(ok)
 
         flow = flow_valid = None
@@ -202,8 +251,24 @@ class CustomDataset(FarDepthDataset):
 
     def describe(self) -> dict:
         out = super().describe()
-        out.update(frame_pattern=self.frame_pattern, min_valid_depth=self.min_valid_depth)
+        out.update(frame_pattern=self.frame_pattern, min_valid_depth=self.min_valid_depth,
+                   max_gap_px=self.max_gap_px)
         return out
+
+    def _fill_gaps(self, depth: np.ndarray, ok: np.ndarray, image: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray]:
+        """Depth with its gaps filled: pixels within ``max_gap_px`` of a valid one get a value
+        from their neighbours (inverse depth, guided by the frame's colours, as KITTI's sparse
+        disparity), the rest the far depth. Shape: (H, W) each -> (depth float32, filled bool)."""
+        filled = np.zeros_like(ok)
+        out = np.where(ok, depth, self.far_depth).astype(np.float32)
+        if ok.all() or self.max_gap_px <= 0:
+            return out, filled
+        inverse = np.where(ok, 1.0 / np.where(ok, depth, 1.0), 0.0).astype(np.float32)
+        values, known = fill_sparse(inverse, ok, image, max_gap_px=self.max_gap_px)
+        filled = known & ~ok & np.isfinite(values) & (values > 0)
+        out[filled] = 1.0 / values[filled]
+        return out, filled
 
     @staticmethod
     def _camera(cams: CameraFile, path, number: int, stem: str) -> tuple[np.ndarray, np.ndarray]:

@@ -13,6 +13,13 @@ front of camera 2, and visible there: the camera-2 depth of the moved point agre
 own depth at the landing pixel within ``visibility_tolerance`` (relative). Moving objects a
 dataset does not mark (Sintel's characters) remain; they raise the upper percentiles, while the
 median stays at the static scene's figure.
+
+Without ground-truth flow (most real RGB-D recordings), the frames themselves are the witness
+(:func:`photometric_errors`): frame 2, sampled where depth and cameras say each frame-1 pixel
+lands, should look like frame 1 more than frame 2 at the same pixel does. A convention the wrong
+way round moves the pixels the wrong way and makes frame 2 look less like frame 1 than if nothing
+had moved. Lighting changes, moving things and sensor noise raise both figures alike; the check
+can only judge where the cameras move the scene by a pixel or more.
 """
 
 from __future__ import annotations
@@ -22,6 +29,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 import torch
+import torch.nn.functional as F
 
 from ..framepair import FramePair
 from ..geometry import backproject, project, transform_points
@@ -29,6 +37,8 @@ from ..io.kitti_formats import read_object_map
 
 #: Relative camera-z difference up to which a moved point counts as the surface frame 2 sees.
 VISIBILITY_TOLERANCE = 0.05
+#: Median predicted motion (px) below which the photometric check cannot judge the geometry.
+MIN_PHOTOMETRIC_MOTION_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -92,6 +102,88 @@ def flow_errors(pair: FramePair, *, visibility_tolerance: float = VISIBILITY_TOL
         keep &= pair.depth_measured2[0][ty.clamp(0, h - 1), tx.clamp(0, w - 1)]
     err = torch.linalg.vector_norm(predicted - pair.flow.double(), dim=0)
     return err[keep].numpy()
+
+
+def photometric_errors(pair: FramePair, *, visibility_tolerance: float = VISIBILITY_TOLERANCE
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The frames as witness of depth and cameras, for pairs without ground-truth flow.
+
+    For every frame-1 pixel with measured depth that lands inside frame 2, in front of camera 2
+    and visible there (as in :func:`flow_errors`, with frame 2's depth at the landing pixel):
+    the absolute grey-level difference between frame 1 and frame 2 sampled (bilinearly) at the
+    landing point, the same difference with frame 2 at the same pixel (no motion), and the length
+    of the predicted motion. Grey levels are the mean of the channels, in [0, 1].
+    Shape: returns three (M,) float64 arrays.
+    """
+    h, w = pair.size
+    k = pair.intrinsics.double().cpu()
+    pts1 = backproject(pair.depth1.double().cpu(), k).flatten(1).T            # (HW, 3)
+    pix2, z2 = project(transform_points(pair.cam2_from_cam1.double().cpu(), pts1), k)
+    x2, y2, z2 = pix2[:, 0].reshape(h, w), pix2[:, 1].reshape(h, w), z2.reshape(h, w)
+    grid = torch.stack(torch.meshgrid(torch.arange(h, dtype=torch.float64),
+                                      torch.arange(w, dtype=torch.float64), indexing="ij")[::-1])
+    # inside frame 2: within the pixels' extent (centres at 0 .. w - 1)
+    keep = (x2 >= -0.5) & (x2 <= w - 0.5) & (y2 >= -0.5) & (y2 <= h - 0.5) & (z2 > 0)
+    if pair.depth_measured1 is not None:
+        keep &= pair.depth_measured1[0].cpu()
+    tx, ty = x2.round().long().clamp(0, w - 1), y2.round().long().clamp(0, h - 1)
+    seen = pair.depth2[0].double().cpu()[ty, tx]
+    keep &= (z2 - seen).abs() <= visibility_tolerance * seen
+    if pair.depth_measured2 is not None:
+        keep &= pair.depth_measured2[0].cpu()[ty, tx]
+    grey1 = pair.image1.double().cpu().mean(0)
+    grey2 = pair.image2.double().cpu().mean(0)
+    where = torch.stack([x2 / max(w - 1, 1) * 2 - 1, y2 / max(h - 1, 1) * 2 - 1], dim=-1)[None]
+    warped = F.grid_sample(grey2[None, None], where, mode="bilinear", padding_mode="border",
+                           align_corners=True)[0, 0]
+    motion = torch.linalg.vector_norm(torch.stack([x2, y2]) - grid, dim=0)
+    return ((warped - grey1).abs()[keep].numpy(), (grey2 - grey1).abs()[keep].numpy(),
+            motion[keep].numpy())
+
+
+@dataclass(frozen=True)
+class PhotometricStats:
+    """Pooled :func:`photometric_errors` of a scene's pairs.
+
+    ``error``: mean grey-level difference between frame 1 and frame 2 moved by depth and cameras;
+    ``unmoved_error``: the same with nothing moved; ``motion_px``: median predicted motion;
+    ``coverage``: share of frame-1 pixels compared; ``pixels``, ``pairs``: how many compared.
+    """
+
+    error: float
+    unmoved_error: float
+    motion_px: float
+    coverage: float
+    pixels: int
+    pairs: int
+
+    @property
+    def judged(self) -> bool:
+        """Whether the cameras move the scene enough for the frames to tell."""
+        return self.pixels > 0 and self.motion_px >= MIN_PHOTOMETRIC_MOTION_PX
+
+    @property
+    def explained(self) -> bool:
+        """Whether depth and cameras explain frame 2 better than no motion at all does."""
+        return self.error < self.unmoved_error
+
+    def summary(self) -> dict:
+        return {"error": round(self.error, 5), "unmoved_error": round(self.unmoved_error, 5),
+                "motion_px": round(self.motion_px, 3), "coverage": round(self.coverage, 4),
+                "pixels": self.pixels, "pairs": self.pairs}
+
+
+def summarize_photometric(results: Sequence[tuple], total_pixels: int) -> Optional[PhotometricStats]:
+    """Pool :func:`photometric_errors` results; ``total_pixels``: frame-1 pixels of those pairs."""
+    if not results:
+        return None
+    warped, unmoved, motion = (np.concatenate([r[i] for r in results]) for i in range(3))
+    if warped.size == 0:
+        return PhotometricStats(float("nan"), float("nan"), float("nan"), 0.0, 0, len(results))
+    return PhotometricStats(error=float(warped.mean()), unmoved_error=float(unmoved.mean()),
+                            motion_px=float(np.median(motion)),
+                            coverage=float(warped.size / max(total_pixels, 1)),
+                            pixels=int(warped.size), pairs=len(results))
 
 
 def summarize(errors: Sequence[np.ndarray]) -> Optional[GeometryStats]:

@@ -28,13 +28,14 @@ import torch
 
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
-from ..geometry import invert_rigid, project, transform_points
+from ..geometry import WORLD_UP_AXES, invert_rigid, project, transform_points, up_direction
 from .particles import Particles, _quantize_field, empty_particles
 from .presets import Preset
 from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
 
-WORLD_UP_CHOICES = ("auto", "+x", "-x", "+y", "-y", "+z", "-z")
+#: The named world-up settings; a direction "X,Y,Z" is accepted too (see :func:`world_down`).
+WORLD_UP_CHOICES = ("auto",) + WORLD_UP_AXES
 DEFOCUS_B = 0.563
 DEFOCUS_A = 5 * (0.75 - DEFOCUS_B)
 DEFOCUS_MAX = 20
@@ -78,18 +79,19 @@ def world_down(cam1_from_ref: torch.Tensor, cam2_from_ref: torch.Tensor,
     """Unit "down" vector of the reference frame. Shape: (4, 4) each -> (3,) float64.
 
     ``"auto"`` picks the reference axis nearest to the mean camera-up vector (camera −y) of both
-    cameras; ``"+z"`` etc. name the up axis explicitly.
+    cameras; ``"+z"`` etc. name the up axis explicitly; ``"X,Y,Z"`` gives the up direction itself
+    (a world that is not level). Raises :class:`ConfigError` naming ``world_up`` otherwise.
     """
-    if world_up not in WORLD_UP_CHOICES:
-        raise ConfigError(f"world_up {world_up!r}: must be one of {', '.join(WORLD_UP_CHOICES)}")
-    if world_up == "auto":
-        # Row 1 of a cam_from_ref rotation is the camera's +y (down) axis in reference coordinates.
-        up = -(cam1_from_ref[1, :3] + cam2_from_ref[1, :3]).double().cpu()
-        axis = int(up.abs().argmax())
-        sign = 1.0 if float(up[axis]) >= 0 else -1.0
-    else:
-        axis = "xyz".index(world_up[1])
-        sign = 1.0 if world_up[0] == "+" else -1.0
+    try:
+        up = up_direction(world_up)
+    except ConfigError as exc:
+        raise ConfigError(f"world_up: {exc}") from None
+    if up is not None:
+        return -up
+    # Row 1 of a cam_from_ref rotation is the camera's +y (down) axis in reference coordinates.
+    mean_up = -(cam1_from_ref[1, :3] + cam2_from_ref[1, :3]).double().cpu()
+    axis = int(mean_up.abs().argmax())
+    sign = 1.0 if float(mean_up[axis]) >= 0 else -1.0
     down = torch.zeros(3, dtype=torch.float64)
     down[axis] = -sign
     return down

@@ -25,6 +25,8 @@ from .atomic import atomic_write_bytes
 from .images import read_raw
 
 DEPTH_SUFFIXES = (".npy", ".png", ".exr")
+#: The 16-bit PNG depth value read as missing besides 0 (sensors write it where they measured nothing).
+PNG_DEPTH_MISSING = 65535
 POSES = ("cam_from_world", "world_from_cam")
 AXES = ("opencv", "opengl")
 DEPTH_KINDS = ("z", "range")
@@ -37,7 +39,7 @@ def read_depth(path: str | Path, png_scale: Optional[float] = None) -> np.ndarra
     """Read a depth map by suffix. Shape: returns (H, W) float32 (0, NaN or inf where missing).
 
     ``.npy``: a float (H, W) or (H, W, 1) array. ``.png``: one-channel 16-bit, depth = value *
-    ``png_scale`` (required). ``.exr``: channel Z, depth, Y or R (or the only channel).
+    ``png_scale`` (required); 0 and 65535 are missing (0 and NaN). ``.exr``: channel Z, depth, Y or R (or the only channel).
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -61,7 +63,10 @@ def read_depth(path: str | Path, png_scale: Optional[float] = None) -> np.ndarra
         if png_scale is None:
             raise FormatError(path, "16-bit PNG depth needs 'depth_png_scale' (scene units per step) "
                                     "in the camera file")
-        return raw.astype(np.float32) * np.float32(png_scale)
+        depth = raw.astype(np.float32) * np.float32(png_scale)
+        # 0 and the saturated 65535 mean "no measurement" (Kinect-style sensors, 7-Scenes)
+        depth[raw == PNG_DEPTH_MISSING] = np.nan
+        return depth
     if suffix == ".exr":
         return _read_exr_depth(path)
     raise FormatError(path, f"unsupported depth format {suffix!r}; use .npy, 16-bit .png or .exr")
@@ -86,7 +91,8 @@ def _read_exr_depth(path: Path) -> np.ndarray:
 def write_depth(path: str | Path, depth: np.ndarray, png_scale: Optional[float] = None) -> Path:
     """Write a depth map by suffix (.npy, .png with ``png_scale``, .exr channel Z) atomically.
 
-    Shape: depth (H, W); NaN/inf/<=0 are written as 0 in PNGs (missing).
+    Shape: depth (H, W); NaN/inf/<=0 are written as 0 in PNGs (missing); PNG values are clipped
+    to 1 .. 65534 (65535 reads as missing).
     """
     path = Path(path)
     depth = np.asarray(depth, np.float32)
@@ -101,7 +107,8 @@ def write_depth(path: str | Path, depth: np.ndarray, png_scale: Optional[float] 
         if not png_scale or png_scale <= 0:
             raise ValueError("a PNG depth map needs a positive png_scale")
         ok = np.isfinite(depth) & (depth > 0)
-        coded = np.where(ok, np.clip(np.round(np.where(ok, depth, 0) / png_scale), 1, 65535), 0)
+        coded = np.where(ok, np.clip(np.round(np.where(ok, depth, 0) / png_scale), 1,
+                                     PNG_DEPTH_MISSING - 1), 0)
         done, buf = cv2.imencode(".png", coded.astype(np.uint16))
         if not done:
             raise RuntimeError("PNG encoding failed")
@@ -233,6 +240,11 @@ def _positive(path: Path, key: str, value) -> float:
     return float(value)
 
 
+def _short(token: str, at_most: int = 40) -> str:
+    """A token of a text file for a message, quoted and shortened."""
+    return repr(token if len(token) <= at_most else token[: at_most - 3] + "...")
+
+
 def _parse_txt(path: Path, text: str) -> CameraFile:
     cams = CameraFile()
     for i, line in enumerate(text.splitlines(), start=1):
@@ -262,9 +274,16 @@ def _parse_txt(path: Path, text: str) -> CameraFile:
                                     f"frame fx fy cx cy and a 3x4 pose, row-major")
         try:
             number = int(parts[0])
-            vals = [float(v) for v in parts[1:]]
         except ValueError:
-            raise FormatError(path, f"line {i} is not a frame number followed by 16 numbers") from None
+            raise FormatError(path, f"line {i} is not a frame number followed by 16 numbers: "
+                                    f"{_short(parts[0])} is not a whole frame number") from None
+        vals = []
+        for v in parts[1:]:
+            try:
+                vals.append(float(v))
+            except ValueError:
+                raise FormatError(path, f"line {i} is not a frame number followed by 16 numbers: "
+                                        f"{_short(v)} is not a number") from None
         fx, fy, cx, cy = vals[:4]
         k = _intrinsics(path, [[fx, 0, cx], [0, fy, cy], [0, 0, 1]], f"line {i}")
         cams.frames[number] = (_pose(path, vals[4:], f"line {i}"), k)
