@@ -8,7 +8,12 @@ paper's ``p = 0.5`` the cost halves):
 - *per sample*: :class:`WeatherAugment` applied to the 6 pairs one by one on the CPU, the time the
   DataLoader's workers spend on a batch (hidden behind the step when there are enough workers);
 - *per batch*: :meth:`WeatherAugment.apply_batch` on the device, particle sampling included (on
-  the CPU) and, with the particles prepared in the workers, the batched render alone;
+  the CPU) and, with the particles prepared in the workers, the batched render alone, both with
+  the batch path's default stamps (exact on the CPU, fast elsewhere) and, as *fast* / *exact*
+  rows, with the other one;
+- for every render of a prepared batch, the number of tensor operations it dispatches (about one
+  kernel launch each on a GPU, where their count rather than their arithmetic sets the time) and
+  of host synchronisations among them (``nonzero``, ``unique``, ``.item()``, ``.tolist()``);
 
 and the time of one training step (forward with every iteration, sequence loss, backward, AdamW)
 of RAFT-small and, with ``--model raft`` or on a GPU, full RAFT, on the cropped batch. Target:
@@ -26,6 +31,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from engine_scenes import plane_pair, pose, rotation  # noqa: E402
@@ -53,6 +59,40 @@ def sintel_size_samples() -> list:
                        flow_valid=torch.ones(1, HEIGHT, WIDTH, dtype=torch.bool))
         out.append(PairSample(pair=pair, index=i, epoch=0))
     return out
+
+
+#: Operators that wait for the device (their result's size or value goes to the host).
+SYNC_OPS = ("nonzero", "unique", "_unique", "_unique2", "unique_dim", "unique_consecutive",
+            "_local_scalar_dense", "masked_select", "equal", "is_nonzero", "repeat_interleave")
+
+
+class OpCounter(TorchDispatchMode):
+    """Counts the tensor operations dispatched while active that touch a tensor on ``device``
+    (on a GPU: about one kernel launch each; the CPU-side bookkeeping is left out), and the host
+    synchronisations among them. On the CPU every operation counts."""
+
+    def __init__(self, device: torch.device):
+        super().__init__()
+        self.device_type = torch.device(device).type
+        self.ops = 0
+        self.syncs = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        tensors = [a for a in torch.utils._pytree.tree_leaves((args, kwargs))
+                   if isinstance(a, torch.Tensor)]
+        if self.device_type == "cpu" or any(t.device.type == self.device_type for t in tensors):
+            self.ops += 1
+            if func.__name__.split(".")[0] in SYNC_OPS:
+                self.syncs += 1
+        return func(*args, **(kwargs or {}))
+
+
+def count_ops(fn, device) -> tuple[int, int]:
+    """(tensor operations, host synchronisations) on ``device`` of one call of ``fn``."""
+    counter = OpCounter(device)
+    with counter:
+        fn()
+    return counter.ops, counter.syncs
 
 
 def timed(fn, repeats: int, sync, warm_up: bool = True) -> float:
@@ -96,14 +136,24 @@ def main(argv=None):
     batch_cpu = collate_pairs(samples)
     batch_dev = batch_cpu.to(device)
 
-    weather_times = {}
+    weather_times, op_counts = {}, {}
+    default_mode = "exact" if device.type == "cpu" else "fast"
+    other_mode = "fast" if default_mode == "exact" else "exact"
     for preset in args.presets.split(","):
         aug = WeatherAugment(preset, p=1.0, seed=0)
+        other = WeatherAugment(preset, p=1.0, seed=0, exact_batches=other_mode == "exact")
         per_sample = timed(lambda: [aug(s) for s in samples], repeats, lambda: None)
         prepared = collate_pairs([aug.prepare(s) for s in samples]).to(device)
         batched = timed(lambda: aug.apply_batch(batch_dev), repeats, sync)
         render_only = timed(lambda: aug.apply_batch(prepared), repeats, sync)
-        weather_times[preset] = (per_sample, batched, render_only)
+        render_other = timed(lambda: other.apply_batch(prepared), repeats, sync)
+        weather_times[preset] = {
+            "per sample (CPU)": per_sample,
+            f"per batch ({device.type})": batched,
+            f"prepared, {default_mode} ({device.type})": render_only,
+            f"prepared, {other_mode} ({device.type})": render_other}
+        op_counts[preset] = {default_mode: count_ops(lambda: aug.apply_batch(prepared), device),
+                             other_mode: count_ops(lambda: other.apply_batch(prepared), device)}
 
     cropped = crop.apply_batch(batch_cpu).to(device)
     p = cropped.pairs
@@ -121,15 +171,19 @@ def main(argv=None):
 
     print(f"{'RAFT training step':<30}" + "".join(f"{m:>16}" for m in step_times))
     print(f"{'':<30}" + "".join(f"{t:>15.2f}s" for t in step_times.values()))
-    print(f"{'weather, p = 1':<30}{'seconds':>10}" + "".join(f"{'% of ' + m:>16}"
-                                                           for m in step_times))
-    for preset, (per_sample, batched, render_only) in weather_times.items():
-        rows = [(f"{preset}: per sample (CPU)", per_sample),
-                (f"{preset}: per batch ({device.type})", batched),
-                (f"{preset}: prepared batch ({device.type})", render_only)]
-        for label, t in rows:
-            print(f"{label:<30}{t:>9.3f}s" + "".join(f"{100 * t / s:>15.1f}%"
-                                                  for s in step_times.values()))
+    width = 36
+    print(f"{'weather, p = 1':<{width}}{'seconds':>10}" + "".join(f"{'% of ' + m:>16}"
+                                                                 for m in step_times))
+    for preset, rows in weather_times.items():
+        for label, t in rows.items():
+            print(f"{preset + ': ' + label:<{width}}{t:>9.3f}s"
+                  + "".join(f"{100 * t / s:>15.1f}%" for s in step_times.values()))
+    where = "every op" if device.type == "cpu" else f"ops on {device.type}"
+    print(f"{'render of a prepared batch (' + where + ')':<{width}}{'tensor ops':>12}"
+          f"{'host syncs':>12}")
+    for preset, counts in op_counts.items():
+        for mode, (ops, syncs) in counts.items():
+            print(f"{preset + ': ' + mode:<{width}}{ops:>12}{syncs:>12}")
 
 if __name__ == "__main__":
     main()

@@ -70,7 +70,7 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
                    "Default: the --config's, else all (fog: all but offset2).")
 @click.option("--lr", type=float, default=None,
               help="Adam learning rate. Default: 1e-5 when an offset is optimised, else 1e-3; "
-                   "pcfa 1e-3; for ifgsm the step size, default 2.5 * epsilon / steps.")
+                   "pcfa 1e-3; for ifgsm the step size, default epsilon / steps.")
 @click.option("--alpha1", type=float, default=1000.0, show_default=True,
               help="Weight of the frame-1 offset penalty.")
 @click.option("--alpha2", type=float, default=1000.0, show_default=True,

@@ -65,8 +65,8 @@ def test_pcfa_respects_its_l2_bound_and_the_box_after_every_step():
 def test_ifgsm_respects_its_linf_bound_and_the_box_after_every_step():
     x1, x2 = frames(1)
     eps = 5e-3
-    s = lp_settings("ifgsm", epsilon=eps, steps=6)
-    assert s.lr == pytest.approx(2.5 * eps / 6)
+    assert lp_settings("ifgsm", epsilon=eps, steps=6).lr == pytest.approx(eps / 6)  # default
+    s = lp_settings("ifgsm", epsilon=eps, steps=6, lr=2.5 * eps / 6)    # the projection binds
     run = LpOptimisation(ToyFlow(), x1, x2, s)
     for _ in range(s.steps):
         _, _, loss, _, _ = run.evaluate()
@@ -78,6 +78,22 @@ def test_ifgsm_respects_its_linf_bound_and_the_box_after_every_step():
     moved = (run.frames()[0].detach() - x1).abs()
     assert float(moved.max()) == pytest.approx(eps, rel=1e-4)   # interior pixels reach the bound
     assert float(moved[..., :2, :].max()) <= eps        # pixels at 0 cannot go below 0
+
+
+def test_pcfa_penalty_is_the_reference_implementations():
+    """μ · max(0, ‖δ‖² − ε²) with μ = 2500/ε, times 1.5 for a target other than zero flow."""
+    x1, x2 = (torch.full((1, 3, 4, 4), 0.5),) * 2
+    eps = 1e-2
+    for target, mu in ((TargetSpec("zero"), 2500 / eps), (TargetSpec("negative"), 3750 / eps)):
+        run = LpOptimisation(ToyFlow(), x1, x2, lp_settings("pcfa", epsilon=eps), target)
+        assert run.mu == pytest.approx(mu)
+        with torch.no_grad():      # every entry of both frames moved by 3ε: ‖δ‖ = 3ε
+            for w in run.w:
+                w.copy_(torch.atanh(2 * torch.full_like(w, 0.5 + 3 * eps) - 1))
+        _, _, losses, distances, penalties = (t.detach() if torch.is_tensor(t) else t
+                                              for t in run.evaluate())
+        assert float(penalties[0]) == pytest.approx(mu * (9 - 1) * eps ** 2, rel=1e-3)
+        assert float(losses[0]) == pytest.approx(float(distances[0] + penalties[0]))
 
 
 def test_random_perturbation_has_the_budget():

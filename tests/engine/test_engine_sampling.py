@@ -241,3 +241,35 @@ def test_motion_jitter_scales_and_turns_the_fall(name, scale, angle):
     deviation = torch.rad2deg(torch.acos(((m @ base) / m.norm(dim=1)).clamp(-1, 1)))
     assert float(deviation.max()) <= 3 * angle
     assert float(deviation.quantile(0.9)) > 0.5 * angle
+
+
+def test_the_motion_prefilter_never_drops_a_candidate_frame_2_could_see():
+    """Sampling computes the motion only of candidates within the longest motion of camera 2's
+    view cone (or seen by camera 1); that test must hold for every point a motion of at most
+    that length makes visible, also with a skewed camera, and fail well outside the reach."""
+    from weathergen.engine.sampling import _view_cone, _visible, _within_reach
+    h, w = 30, 50
+    k = torch.tensor([[40.0, 3.0, 24.0], [0.0, 45.0, 15.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
+    depth = torch.full((1, h, w), 50.0)
+    cone = _view_cone(k, h, w)
+    g = torch.Generator().manual_seed(0)
+    points = (torch.rand(20000, 3, generator=g, dtype=torch.float64) - 0.5) * 8
+    reach = 0.7
+    step = torch.randn(20000, 3, generator=g, dtype=torch.float64)
+    step = step / step.norm(dim=1, keepdim=True) * reach * torch.rand(20000, 1, generator=g,
+                                                                      dtype=torch.float64)
+    seen = _visible(points + step, k, depth)
+    kept = _within_reach(points, cone, reach)
+    assert int(seen.sum()) > 100 and bool(kept[seen].all())
+    assert int(kept.sum()) < 0.9 * len(points)          # it does filter
+    # hand-made: a point 1 unit outside the left plane (pixel edge x = -0.5), 4 units ahead
+    inv = torch.linalg.inv(k)
+
+    def ray(x, y):
+        return inv @ torch.tensor([x, y, 1.0], dtype=torch.float64)
+
+    left = torch.linalg.cross(ray(-0.5, -0.5), ray(-0.5, h - 0.5))
+    left = left / left.norm()
+    left = left if float(left @ ray(24.0, 15.5)) > 0 else -left      # inward
+    outside = (4 * ray(-0.5, 15.0) - left)[None]
+    assert bool(_within_reach(outside, cone, 1.01)) and not bool(_within_reach(outside, cone, 0.99))

@@ -6,27 +6,31 @@ flow towards the same target as the weather attack, measuring the same distance
 pair by pair. Tensors in, tensors out, no file I/O.
 
 **PCFA** (Schmalfuss et al., "A Perturbation-Constrained Adversarial Attack for Evaluating the
-Robustness of Optical Flow", ECCV 2022). The perturbation ``δ = (δ1, δ2)`` of both frames is
-bounded jointly in the *normalised* L2 norm::
+Robustness of Optical Flow", ECCV 2022). The perturbation ``δ = (δ1, δ2)`` of both frames
+("disjoint": one per frame) is bounded jointly in the *normalised* L2 norm::
 
     ‖δ‖ = ‖δ‖_2 / sqrt(2 · 3 · H · W)  <=  ε_2        (default ε_2 = 5e-3, as the paper used)
 
 i.e. the root mean square over every pixel and channel of both frames. The box ``[0, 1]`` holds
 by construction: the frames are ``x = from_atanh(w)`` (change of variables, the paper's "COV"
-box constraint) and ``w`` is optimised. Loss: ``AEE(f̌, f_target) + μ · max(0, ‖δ‖ − ε_2)²`` with
-``μ = 2500 / ε_2`` (the reference implementation's penalty weight). The reference
-implementation optimises it with L-BFGS and checks the bound at the end; here the optimiser is
-Adam (``lr``, default 1e-3 on ``w``) and, after every step, a ``δ`` outside the ball is scaled
-back onto it (scaling towards the clean frames keeps the box), so *every* step respects the
-bound — the run's best step is always a valid perturbation.
+box constraint) and ``w`` is optimised. Loss, as the reference implementation's:
+``AEE(f̌, f_target) + μ · max(0, ‖δ‖² − ε_2²)`` with ``μ = 2500 / ε_2`` for the zero-flow target
+and 1.5 times that for any other target. The reference implementation minimises it with L-BFGS
+(20 steps of up to 10 iterations each) and keeps the best step within the bound; here the
+optimiser is Adam (``lr``, default 1e-3 on ``w``, 20 steps: one network pass per step instead
+of up to ten) and, after every step, a ``δ`` outside the ball is scaled back onto it (scaling
+towards the clean frames keeps the box), so *every* step respects the bound — the run's best
+step is always a valid perturbation.
 
-**I-FGSM** (iterative fast gradient sign method, as the DistractingDownpour paper ran it for its
-Lp comparison: ``ε_∞ = 5e-3``, 25 steps)::
+**I-FGSM** (iterative fast gradient sign method, Kurakin et al.; for optical flow Schrodi et al.,
+CVPR 2022; the DistractingDownpour paper's comparison used ``ε_∞ = 5e-3`` and 25 steps)::
 
     x ← clip_[x0 − ε, x0 + ε] ∩ [0, 1] ( x − α · sign(∇_x AEE(f̌, f_target)) )
 
-on both frames, starting at the clean frames. The paper gives ε and the step count but not α;
-the default ``α = 2.5 · ε / steps`` is the usual projected-gradient choice (ours).
+on both frames, starting at the clean frames. The reference implementation has only a step
+size and a step count and clips to the box; the bound ``ε_∞`` after 25 steps means a step size
+of ``ε_∞ / 25``, so the default is ``α = ε / steps`` (the projection onto the ε-ball then never
+moves a pixel, and the run is the reference's); a larger ``--lr`` makes the projection bind.
 
 **The "random" column.** A weather attack starts from random weather, so its ``aee_random`` is
 the robustness to unoptimised weather. For an Lp attack the comparable figure is a random
@@ -53,11 +57,13 @@ from .targets import TargetSpec, target_flow
 
 LP_METHODS = ("pcfa", "ifgsm")
 #: Defaults per method: ε (PCFA: normalised L2; I-FGSM: L∞), steps, lr (PCFA: Adam on the tanh
-#: variables; I-FGSM: None = 2.5 ε / steps).
+#: variables; I-FGSM: None = ε / steps).
 LP_DEFAULTS = {"pcfa": {"epsilon": 5e-3, "steps": 20, "lr": 1e-3},
                "ifgsm": {"epsilon": 5e-3, "steps": 25, "lr": None}}
-#: PCFA's penalty weight is this over ε_2.
+#: PCFA's penalty weight is this over ε_2 (zero-flow target), times
+#: :data:`PCFA_MU_OTHER_TARGETS` for any other target (the reference implementation's rule).
 PCFA_MU_NUMERATOR = 2500.0
+PCFA_MU_OTHER_TARGETS = 1.5
 
 
 @dataclass(frozen=True)
@@ -91,11 +97,17 @@ def lp_settings(method: str, epsilon: Optional[float] = None, steps: Optional[in
         raise ConfigError("${steps} must be >= 0")
     rate = lr if lr is not None else d["lr"]
     if rate is None:
-        rate = 2.5 * eps / max(n, 1)
+        rate = eps / max(n, 1)
     rate = float(rate)
     if not (math.isfinite(rate) and rate > 0):
         raise ConfigError(f"${{lr}} must be a positive number, not {lr!r}")
     return LpSettings(method, eps, n, rate)
+
+
+def pcfa_mu(epsilon: float, target: TargetSpec) -> float:
+    """PCFA's penalty weight μ for bound ``epsilon`` and ``target``."""
+    mu = PCFA_MU_NUMERATOR / epsilon
+    return mu if target.kind == "zero" else PCFA_MU_OTHER_TARGETS * mu
 
 
 def l2_normalised(delta1: torch.Tensor, delta2: torch.Tensor) -> torch.Tensor:
@@ -156,7 +168,7 @@ class LpOptimisation:
         if settings.method == "pcfa":
             self.w = [to_atanh(x).requires_grad_(True) for x in self.x0]
             self.optimizer = torch.optim.Adam(self.w, lr=settings.lr)
-            self.mu = PCFA_MU_NUMERATOR / settings.epsilon
+            self.mu = pcfa_mu(settings.epsilon, target)
         else:
             self.x = [x.clone().requires_grad_(True) for x in self.x0]
 
@@ -175,7 +187,7 @@ class LpOptimisation:
         distances = aee(flow, self.goal)
         if self.settings.method == "pcfa":
             norms = l2_normalised_per_pair(x1 - self.x0[0], x2 - self.x0[1])
-            penalties = self.mu * torch.relu(norms - self.settings.epsilon).pow(2)
+            penalties = self.mu * torch.relu(norms.pow(2) - self.settings.epsilon ** 2)
         else:
             penalties = torch.zeros_like(distances)
         return (x1, x2), flow, distances + penalties, distances, penalties

@@ -5,7 +5,10 @@ particle is visible in frame 1 (in front of the camera, inside the image, in fro
 depth) or, after the camera motion and its own motion, in frame 2. Candidates are drawn and tested
 in vectorised batches whose size depends only on the requested count, on the CPU in float64 from
 one explicitly seeded ``torch.Generator``: the same seed gives the same bytes on any machine and
-with any number of workers. The record is then moved to the requested device.
+with any number of workers. Most candidates usually lie outside both views, so a candidate's
+motion is computed only when camera 1 sees it or when its motionless position lies within the
+longest motion of camera 2's view cone (the particles are those of testing every candidate). The
+record is then moved to the requested device.
 
 Depth-dependent properties use the particle's camera depth ``d`` (camera 1 where the particle is in
 front of camera 1, else camera 2), fixed at sampling:
@@ -139,6 +142,35 @@ def _visible(points_cam: torch.Tensor, intrinsics: torch.Tensor, depth: torch.Te
     return ok & (z < scene)
 
 
+def _view_cone(intrinsics: torch.Tensor, height: int, width: int) -> torch.Tensor:
+    """Inward unit normals of the four planes through the camera centre and the image border
+    (pixel edges at -0.5 and W - 0.5, H - 0.5) that :func:`_visible` tests. Shape: -> (4, 3)."""
+    inv = torch.linalg.inv(intrinsics.double().cpu())
+
+    def ray(x, y):
+        return inv @ torch.tensor([x, y, 1.0], dtype=torch.float64)
+
+    x0, x1, y0, y1 = -0.5, width - 0.5, -0.5, height - 0.5
+    centre = ray((x0 + x1) / 2, (y0 + y1) / 2)
+    corners = [ray(x0, y0), ray(x1, y0), ray(x1, y1), ray(x0, y1)]
+    normals = []
+    for a, b in zip(corners, corners[1:] + corners[:1]):
+        n = torch.linalg.cross(a, b)
+        n = n / n.norm()
+        normals.append(n if float(n @ centre) > 0 else -n)
+    return torch.stack(normals)
+
+
+def _within_reach(points_cam: torch.Tensor, cone: torch.Tensor, reach: float) -> torch.Tensor:
+    """Which camera points lie within ``reach`` of the view cone ``cone`` (see
+    :func:`_view_cone`) in front of :data:`NEAR`: a point moved by at most ``reach`` can only
+    become visible when this holds (with a margin for rounding). Shape: (N, 3) -> (N,) bool."""
+    size = float(points_cam.abs().max()) if points_cam.numel() else 0.0
+    slack = reach * (1 + 1e-6) + 1e-6 * (1 + size)
+    inside = (points_cam @ cone.T >= -slack).all(1)
+    return inside & (points_cam[:, 2] > NEAR - slack)
+
+
 def transparency_hat(d: torch.Tensor) -> torch.Tensor:
     """The depth hat in [0, 1] (peak at d = 1.5). Shape: any -> same."""
     t = torch.where(d < 1.5, 4.0 / 3.0 * d - 1.5, -4.0 / 3.0 * d + 2.5)
@@ -247,6 +279,10 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     angle = math.radians(preset.motion_angle_jitter)
     base = torch.tensor([0.0, preset.motion_y, 0.0], dtype=torch.float64)
 
+    cone2 = _view_cone(k, depth2.shape[-2], depth2.shape[-1])
+    # the longest motion (rotations keep lengths; a camera's scale, if any, stretches it)
+    reach = abs(preset.motion_y) * (1 + preset.motion_scale_jitter) \
+        * float(torch.linalg.matrix_norm(cam2_from_ref[:3, :3], ord=2))
     batch = min(max(4096, 4 * n), 1 << 18)  # depends on the count only: reproducible anywhere
     kept_pos, kept_motion, kept = [], [], 0
     tried = 0
@@ -260,13 +296,20 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
         u = torch.rand(batch, 7, generator=gen, dtype=torch.float64)
         tried += batch
         pos_cam1 = lo + (hi - lo) * u[:, :3]
-        rot = _euler((2 * u[:, 3:6] - 1) * angle)
-        factor = 1 + (2 * u[:, 6] - 1) * preset.motion_scale_jitter
+        pos_ref = transform_points(ref_from_cam1, pos_cam1)
+        vis1 = _visible(pos_cam1, k, depth1)
+        # Most candidates lie outside both views. Frame 2 can only see one whose motionless
+        # position is within the longest motion of its view cone, so only those and the ones
+        # frame 1 sees need their motion (the same particles as testing every candidate).
+        near2 = _within_reach(transform_points(cam2_from_ref, pos_ref), cone2, reach)
+        cand = torch.nonzero(vis1 | near2).squeeze(1)
+        uc = u[cand]
+        rot = _euler((2 * uc[:, 3:6] - 1) * angle)
+        factor = 1 + (2 * uc[:, 6] - 1) * preset.motion_scale_jitter
         motion_vertical = (rot @ base) * factor[:, None]
         motion = motion_vertical @ ref_from_vertical.T
-        pos_ref = transform_points(ref_from_cam1, pos_cam1)
-        vis = _visible(pos_cam1, k, depth1) | _visible(
-            transform_points(cam2_from_ref, pos_ref + motion), k, depth2)
+        pos_ref = pos_ref[cand]
+        vis = vis1[cand] | _visible(transform_points(cam2_from_ref, pos_ref + motion), k, depth2)
         kept_pos.append(pos_ref[vis])
         kept_motion.append(motion[vis])
         kept += int(vis.sum())

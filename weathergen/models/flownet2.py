@@ -33,11 +33,10 @@ import torch
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel
-from .checkpoints import CheckpointSpec, load_strict, strip_prefix
-from .flownet_parts import (RefinementDecoder, channel_norm, conv_block, deconv_block,
-                            flow_upsampler, init_flownet_weights, inner_conv, predict_flow,
-                            upsample_bilinear, upsample_nearest, warp)
+from .checkpoints import CheckpointSpec
+from .flownet_parts import (FlowNetFamilyModel, RefinementDecoder, channel_norm, conv_block,
+                            deconv_block, flow_upsampler, init_flownet_weights, inner_conv,
+                            predict_flow, upsample_bilinear, upsample_nearest, warp)
 from .flownetc import FLOW_DIVISOR, FlowNetC, subtract_joint_mean
 from .registry import ModelSpec, register_checkpoint, register_model
 
@@ -54,26 +53,17 @@ class FlowNetS(RefinementDecoder):
         self.conv1 = conv_block(in_channels, 64, kernel_size=7, stride=2)
         self.conv2 = conv_block(64, 128, kernel_size=5, stride=2)
         self.conv3 = conv_block(128, 256, kernel_size=5, stride=2)
-        self.conv3_1 = conv_block(256, 256)
-        self.conv4 = conv_block(256, 512, stride=2)
-        self.conv4_1 = conv_block(512, 512)
-        self.conv5 = conv_block(512, 512, stride=2)
-        self.conv5_1 = conv_block(512, 512)
-        self.conv6 = conv_block(512, 1024, stride=2)
-        self.conv6_1 = conv_block(1024, 1024)
+        self._add_deep_encoder(256)
         self._add_decoder(deconv_bias=True, upsampler_bias=False)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         conv2 = self.conv2(self.conv1(x))
-        conv3 = self.conv3_1(self.conv3(conv2))
-        conv4 = self.conv4_1(self.conv4(conv3))
-        conv5 = self.conv5_1(self.conv5(conv4))
-        conv6 = self.conv6_1(self.conv6(conv5))
-        return self.decode(conv6, conv5, conv4, conv3, conv2)
+        return self.decode(*self.encode_deep(self.conv3(conv2)), conv2)
 
 
-class FlowNetSD(nn.Module):
-    """FlowNetSD: FlowNetS for small displacements.
+class FlowNetSD(RefinementDecoder):
+    """FlowNetSD: FlowNetS for small displacements (a stride-1 first layer, 3x3 kernels, an
+    ``inter_conv`` before each flow prediction of the decoder).
 
     Shape: ``(B, 6, H, W)`` (both frames) -> ``(B, 2, H/4, W/4)``.
     """
@@ -86,47 +76,12 @@ class FlowNetSD(nn.Module):
         self.conv2 = conv_block(128, 128, stride=2)
         self.conv2_1 = conv_block(128, 128)
         self.conv3 = conv_block(128, 256, stride=2)
-        self.conv3_1 = conv_block(256, 256)
-        self.conv4 = conv_block(256, 512, stride=2)
-        self.conv4_1 = conv_block(512, 512)
-        self.conv5 = conv_block(512, 512, stride=2)
-        self.conv5_1 = conv_block(512, 512)
-        self.conv6 = conv_block(512, 1024, stride=2)
-        self.conv6_1 = conv_block(1024, 1024)
-        self.deconv5 = deconv_block(1024, 512)
-        self.deconv4 = deconv_block(1024 + 2, 256)
-        self.deconv3 = deconv_block(512 + 256 + 2, 128)
-        self.deconv2 = deconv_block(256 + 128 + 2, 64)
-        self.inter_conv5 = inner_conv(1024 + 2, 512)
-        self.inter_conv4 = inner_conv(512 + 256 + 2, 256)
-        self.inter_conv3 = inner_conv(256 + 128 + 2, 128)
-        self.inter_conv2 = inner_conv(128 + 64 + 2, 64)
-        self.predict_flow6 = predict_flow(1024)
-        self.predict_flow5 = predict_flow(512)
-        self.predict_flow4 = predict_flow(256)
-        self.predict_flow3 = predict_flow(128)
-        self.predict_flow2 = predict_flow(64)
-        self.upsampled_flow6_to_5 = flow_upsampler(bias=True)
-        self.upsampled_flow5_to_4 = flow_upsampler(bias=True)
-        self.upsampled_flow4_to_3 = flow_upsampler(bias=True)
-        self.upsampled_flow3_to_2 = flow_upsampler(bias=True)
+        self._add_deep_encoder(256)
+        self._add_decoder(deconv_bias=True, upsampler_bias=True, inter_conv=True)
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         conv2 = self.conv2_1(self.conv2(self.conv1_1(self.conv1(self.conv0(x)))))
-        conv3 = self.conv3_1(self.conv3(conv2))
-        conv4 = self.conv4_1(self.conv4(conv3))
-        conv5 = self.conv5_1(self.conv5(conv4))
-        conv6 = self.conv6_1(self.conv6(conv5))
-
-        flow6 = self.predict_flow6(conv6)
-        concat5 = torch.cat([conv5, self.deconv5(conv6), self.upsampled_flow6_to_5(flow6)], 1)
-        flow5 = self.predict_flow5(self.inter_conv5(concat5))
-        concat4 = torch.cat([conv4, self.deconv4(concat5), self.upsampled_flow5_to_4(flow5)], 1)
-        flow4 = self.predict_flow4(self.inter_conv4(concat4))
-        concat3 = torch.cat([conv3, self.deconv3(concat4), self.upsampled_flow4_to_3(flow4)], 1)
-        flow3 = self.predict_flow3(self.inter_conv3(concat3))
-        concat2 = torch.cat([conv2, self.deconv2(concat3), self.upsampled_flow3_to_2(flow3)], 1)
-        return self.predict_flow2(self.inter_conv2(concat2))
+        return self.decode(*self.encode_deep(self.conv3(conv2)), conv2)
 
 
 class FlowNetFusion(nn.Module):
@@ -211,7 +166,7 @@ class FlowNet2(nn.Module):
         return run(self.flownetfusion, fusion_input)
 
 
-class FlowNet2Model(FlowModel):
+class FlowNet2Model(FlowNetFamilyModel):
     """FlowNet2 behind the package contract.
 
     Normalisation: RGB (the released PyTorch weights take RGB), minus the per-channel mean of
@@ -221,12 +176,9 @@ class FlowNet2Model(FlowModel):
     """
 
     architecture = "flownet2"
-    multiple = 64
 
     def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False):
-        super().__init__()
-        self.network = FlowNet2()
-        self.gradient_checkpointing = gradient_checkpointing
+        super().__init__(FlowNet2(), gradient_checkpointing)
 
     def normalize(self, image: torch.Tensor) -> torch.Tensor:
         return image  # the mean of both frames is subtracted in predict
@@ -234,10 +186,6 @@ class FlowNet2Model(FlowModel):
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
         x1, x2 = subtract_joint_mean(image1, image2)
         return self.network(x1, x2, gradient_checkpointing=self.gradient_checkpointing)
-
-    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
-        """Load the released file (its ``state_dict``), with or without ``module.``."""
-        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
 
 
 register_model(ModelSpec(

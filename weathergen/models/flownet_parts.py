@@ -27,6 +27,10 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 from torch import nn
+from torch.utils.checkpoint import checkpoint as recompute
+
+from .base import FlowModel
+from .checkpoints import load_strict, strip_prefix
 
 #: Slope of the leaky ReLUs of every FlowNet.
 LEAKY_SLOPE = 0.1
@@ -91,35 +95,71 @@ def init_flownet_weights(module: nn.Module) -> None:
 
 
 # ---------------------------------------------------------------------------------------------
-# The refinement decoder shared by FlowNetS, FlowNetC and FlowNetCRobust
+# The encoder's deep stages and the refinement decoder shared by FlowNetS, FlowNetSD, FlowNetC
+# and FlowNetCRobust
 # ---------------------------------------------------------------------------------------------
 
 class RefinementDecoder(nn.Module):
-    """Base of the FlowNets whose decoder goes from 1/64 to 1/4 resolution in four steps.
+    """Base of the FlowNets whose encoder ends in the same deep stages (``conv3_1`` at 1/8 to
+    ``conv6_1`` at 1/64) and whose decoder goes from 1/64 to 1/4 resolution in four steps.
 
-    At each step a transposed convolution doubles the decoder's features, a learned upsampler
-    doubles the current flow estimate, and both are concatenated with the encoder's features of
-    that resolution; the next flow estimate is predicted from that concatenation. The layers are
-    registered on the network itself (``deconv5``, ``predict_flow6``, ...), as in the released
+    At each decoder step a transposed convolution doubles the decoder's features, a learned
+    upsampler doubles the current flow estimate, and both are concatenated with the encoder's
+    features of that resolution; the next flow estimate is predicted from that concatenation
+    (FlowNetSD first passes it through an ``inter_conv`` layer). The layers are registered on the
+    network itself (``conv4``, ``deconv5``, ``predict_flow6``, ...), in the order of the released
     files.
 
-    Subclasses call :meth:`_add_decoder` and then :meth:`decode`.
+    Subclasses call :meth:`_add_deep_encoder` after their first stages, then
+    :meth:`_add_decoder`; ``forward`` uses :meth:`encode_deep` and :meth:`decode`.
     """
 
-    def _add_decoder(self, deconv_bias: bool, upsampler_bias: bool) -> None:
+    def _add_deep_encoder(self, conv3_1_in: int) -> None:
+        """Register ``conv3_1`` (``conv3_1_in`` -> 256 channels at 1/8) to ``conv6_1``."""
+        self.conv3_1 = conv_block(conv3_1_in, 256)
+        self.conv4 = conv_block(256, 512, stride=2)
+        self.conv4_1 = conv_block(512, 512)
+        self.conv5 = conv_block(512, 512, stride=2)
+        self.conv5_1 = conv_block(512, 512)
+        self.conv6 = conv_block(512, 1024, stride=2)
+        self.conv6_1 = conv_block(1024, 1024)
+
+    def encode_deep(self, conv3_in: torch.Tensor
+                    ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+        """``(conv6, conv5, conv4, conv3)``: the deep stages from ``conv3_1``'s input at 1/8."""
+        conv3 = self.conv3_1(conv3_in)
+        conv4 = self.conv4_1(self.conv4(conv3))
+        conv5 = self.conv5_1(self.conv5(conv4))
+        conv6 = self.conv6_1(self.conv6(conv5))
+        return conv6, conv5, conv4, conv3
+
+    def _add_decoder(self, deconv_bias: bool, upsampler_bias: bool,
+                     inter_conv: bool = False) -> None:
+        """Register the decoder; ``inter_conv``: FlowNetSD's variant, a 3x3 convolution before
+        each flow prediction (which then sees its output)."""
         self.deconv5 = deconv_block(1024, 512, bias=deconv_bias)
         self.deconv4 = deconv_block(1024 + 2, 256, bias=deconv_bias)
         self.deconv3 = deconv_block(512 + 256 + 2, 128, bias=deconv_bias)
         self.deconv2 = deconv_block(256 + 128 + 2, 64, bias=deconv_bias)
+        concat = {5: 1024 + 2, 4: 512 + 256 + 2, 3: 256 + 128 + 2, 2: 128 + 64 + 2}
+        if inter_conv:
+            inner = {5: 512, 4: 256, 3: 128, 2: 64}
+            for level in (5, 4, 3, 2):
+                setattr(self, f"inter_conv{level}", inner_conv(concat[level], inner[level]))
+            concat = inner
         self.predict_flow6 = predict_flow(1024)
-        self.predict_flow5 = predict_flow(1024 + 2)
-        self.predict_flow4 = predict_flow(512 + 256 + 2)
-        self.predict_flow3 = predict_flow(256 + 128 + 2)
-        self.predict_flow2 = predict_flow(128 + 64 + 2)
+        for level in (5, 4, 3, 2):
+            setattr(self, f"predict_flow{level}", predict_flow(concat[level]))
         self.upsampled_flow6_to_5 = flow_upsampler(upsampler_bias)
         self.upsampled_flow5_to_4 = flow_upsampler(upsampler_bias)
         self.upsampled_flow4_to_3 = flow_upsampler(upsampler_bias)
         self.upsampled_flow3_to_2 = flow_upsampler(upsampler_bias)
+        self._inter_conv = inter_conv
+
+    def _predict(self, level: int, concat: torch.Tensor) -> torch.Tensor:
+        if self._inter_conv:
+            concat = getattr(self, f"inter_conv{level}")(concat)
+        return getattr(self, f"predict_flow{level}")(concat)
 
     def decode(self, conv6: torch.Tensor, conv5: torch.Tensor, conv4: torch.Tensor,
                conv3: torch.Tensor, conv2: torch.Tensor) -> torch.Tensor:
@@ -131,13 +171,72 @@ class RefinementDecoder(nn.Module):
         """
         flow6 = self.predict_flow6(conv6)
         concat5 = torch.cat([conv5, self.deconv5(conv6), self.upsampled_flow6_to_5(flow6)], 1)
-        flow5 = self.predict_flow5(concat5)
+        flow5 = self._predict(5, concat5)
         concat4 = torch.cat([conv4, self.deconv4(concat5), self.upsampled_flow5_to_4(flow5)], 1)
-        flow4 = self.predict_flow4(concat4)
+        flow4 = self._predict(4, concat4)
         concat3 = torch.cat([conv3, self.deconv3(concat4), self.upsampled_flow4_to_3(flow4)], 1)
-        flow3 = self.predict_flow3(concat3)
+        flow3 = self._predict(3, concat3)
         concat2 = torch.cat([conv2, self.deconv2(concat3), self.upsampled_flow3_to_2(flow3)], 1)
-        return self.predict_flow2(concat2)
+        return self._predict(2, concat2)
+
+
+class CorrelationFlowNet(RefinementDecoder):
+    """Base of FlowNetC and FlowNetCRobust: a shared encoder on both frames to 1/8, the
+    correlation of the two frames' 1/8 features (displacements up to 20 pixels at stride 2:
+    441 channels) beside frame 1's redirected features, then the deep stages and the decoder.
+
+    Subclasses register their encoder, then call :meth:`_add_correlation_head`, then
+    :meth:`_add_decoder`, and implement :meth:`_encode`.
+
+    Shape: ``image1``, ``image2`` ``(B, 3, H, W)`` (multiples of 64) -> ``(B, 2, H/4, W/4)``.
+    """
+
+    def _add_correlation_head(self) -> None:
+        self.conv_redir = conv_block(256, 32, kernel_size=1)
+        self._add_deep_encoder(32 + 441)
+
+    def _encode(self, both: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Both frames (stacked on the batch) through the shared encoder: 1/4 and 1/8."""
+        raise NotImplementedError
+
+    def forward(self, image1: torch.Tensor, image2: torch.Tensor,
+                gradient_checkpointing: bool = False) -> torch.Tensor:
+        """``gradient_checkpointing``: recompute the encoder and the rest separately in the
+        backward pass (less memory, about one more forward pass of time)."""
+        b = image1.shape[0]
+        both = torch.cat([image1, image2], dim=0)
+        if gradient_checkpointing and torch.is_grad_enabled():
+            conv2, conv3 = recompute(self._encode, both, use_reentrant=False)
+            return recompute(self._match_and_decode, conv2[:b], conv3, use_reentrant=False)
+        conv2, conv3 = self._encode(both)
+        return self._match_and_decode(conv2[:b], conv3)
+
+    def _match_and_decode(self, conv2a: torch.Tensor, conv3: torch.Tensor) -> torch.Tensor:
+        b = conv2a.shape[0]
+        conv3a, conv3b = conv3[:b], conv3[b:]
+        corr = F.leaky_relu(correlation(conv3a, conv3b, max_displacement=20, stride=2),
+                            LEAKY_SLOPE)
+        conv6, conv5, conv4, conv3_1 = self.encode_deep(
+            torch.cat([self.conv_redir(conv3a), corr], dim=1))
+        return self.decode(conv6, conv5, conv4, conv3_1, conv2a)
+
+
+class FlowNetFamilyModel(FlowModel):
+    """What the FlowNet adapters share: a network of the family as ``network``, padding to a
+    multiple of 64, ``gradient_checkpointing`` handed to the network, and the released files
+    loaded strictly with or without the ``module.`` prefix. ``iters`` is accepted for a uniform
+    interface and ignored (the FlowNets are not recurrent)."""
+
+    multiple = 64
+
+    def __init__(self, network: nn.Module, gradient_checkpointing: bool = False):
+        super().__init__()
+        self.network = network
+        self.gradient_checkpointing = gradient_checkpointing
+
+    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
+        """Load the released file (its ``state_dict``), with or without ``module.``."""
+        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -24,12 +24,9 @@ from __future__ import annotations
 from typing import Optional
 
 import torch
-import torch.nn.functional as F
-from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel
-from .checkpoints import CheckpointSpec, load_strict, strip_prefix
-from .flownet_parts import (LEAKY_SLOPE, RefinementDecoder, conv_block, correlation,
+from .checkpoints import CheckpointSpec
+from .flownet_parts import (CorrelationFlowNet, FlowNetFamilyModel, conv_block,
                             init_flownet_weights, upsample_bilinear)
 from .registry import ModelSpec, register_checkpoint, register_model
 
@@ -37,7 +34,7 @@ from .registry import ModelSpec, register_checkpoint, register_model
 FLOW_DIVISOR = 20.0
 
 
-class FlowNetC(RefinementDecoder):
+class FlowNetC(CorrelationFlowNet):
     """FlowNetC on normalised frames whose size is a multiple of 64.
 
     Shape: ``image1``, ``image2`` ``(B, 3, H, W)`` -> ``(B, 2, H/4, W/4)`` flow in 1/20 pixels
@@ -49,45 +46,13 @@ class FlowNetC(RefinementDecoder):
         self.conv1 = conv_block(3, 64, kernel_size=7, stride=2)
         self.conv2 = conv_block(64, 128, kernel_size=5, stride=2)
         self.conv3 = conv_block(128, 256, kernel_size=5, stride=2)
-        self.conv_redir = conv_block(256, 32, kernel_size=1)
-        self.conv3_1 = conv_block(32 + 441, 256)
-        self.conv4 = conv_block(256, 512, stride=2)
-        self.conv4_1 = conv_block(512, 512)
-        self.conv5 = conv_block(512, 512, stride=2)
-        self.conv5_1 = conv_block(512, 512)
-        self.conv6 = conv_block(512, 1024, stride=2)
-        self.conv6_1 = conv_block(1024, 1024)
+        self._add_correlation_head()
         self._add_decoder(deconv_bias=True, upsampler_bias=True)
         init_flownet_weights(self)
 
-    def forward(self, image1: torch.Tensor, image2: torch.Tensor,
-                gradient_checkpointing: bool = False) -> torch.Tensor:
-        """``gradient_checkpointing``: recompute the encoder and the rest separately in the
-        backward pass (less memory, about one more forward pass of time)."""
-        b = image1.shape[0]
-        both = torch.cat([image1, image2], dim=0)
-        if gradient_checkpointing and torch.is_grad_enabled():
-            conv2, conv3 = recompute(self._encode, both, use_reentrant=False)
-            return recompute(self._match_and_decode, conv2[:b], conv3, use_reentrant=False)
-        conv2, conv3 = self._encode(both)
-        return self._match_and_decode(conv2[:b], conv3)
-
     def _encode(self, both: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Both frames (stacked on the batch) through the shared encoder: 1/4 and 1/8."""
         conv2 = self.conv2(self.conv1(both))
-        conv3 = self.conv3(conv2)
-        return conv2, conv3
-
-    def _match_and_decode(self, conv2a: torch.Tensor, conv3: torch.Tensor) -> torch.Tensor:
-        b = conv2a.shape[0]
-        conv3a, conv3b = conv3[:b], conv3[b:]
-        corr = F.leaky_relu(correlation(conv3a, conv3b, max_displacement=20, stride=2),
-                            LEAKY_SLOPE)
-        conv3_1 = self.conv3_1(torch.cat([self.conv_redir(conv3a), corr], dim=1))
-        conv4 = self.conv4_1(self.conv4(conv3_1))
-        conv5 = self.conv5_1(self.conv5(conv4))
-        conv6 = self.conv6_1(self.conv6(conv5))
-        return self.decode(conv6, conv5, conv4, conv3_1, conv2a)
+        return conv2, self.conv3(conv2)
 
 
 def subtract_joint_mean(image1: torch.Tensor,
@@ -98,7 +63,7 @@ def subtract_joint_mean(image1: torch.Tensor,
     return image1 - mean, image2 - mean
 
 
-class FlowNetCModel(FlowModel):
+class FlowNetCModel(FlowNetFamilyModel):
     """FlowNetC behind the package contract: RGB in ``[0, 1]`` of any size in, flow in pixels out.
 
     Normalisation: RGB (the released PyTorch weights take RGB), minus the per-channel mean of
@@ -111,12 +76,9 @@ class FlowNetCModel(FlowModel):
     """
 
     architecture = "flownetc"
-    multiple = 64
 
     def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False):
-        super().__init__()
-        self.network = FlowNetC()
-        self.gradient_checkpointing = gradient_checkpointing
+        super().__init__(FlowNetC(), gradient_checkpointing)
 
     def normalize(self, image: torch.Tensor) -> torch.Tensor:
         return image  # the mean of both frames is subtracted in predict
@@ -125,10 +87,6 @@ class FlowNetCModel(FlowModel):
         x1, x2 = subtract_joint_mean(image1, image2)
         flow = self.network(x1, x2, gradient_checkpointing=self.gradient_checkpointing)
         return upsample_bilinear(FLOW_DIVISOR * flow, 4)
-
-    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
-        """Load the released file (its ``state_dict``), with or without ``module.``."""
-        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
 
 
 #: Where NVIDIA's flownet2-pytorch publishes the converted FlowNet2 checkpoints (Google Drive

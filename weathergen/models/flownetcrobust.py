@@ -19,13 +19,10 @@ from __future__ import annotations
 from typing import Optional
 
 import torch
-import torch.nn.functional as F
 from torch import nn
-from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel
-from .checkpoints import CheckpointSpec, load_strict, strip_prefix
-from .flownet_parts import (LEAKY_SLOPE, RefinementDecoder, conv_block, correlation,
+from .checkpoints import CheckpointSpec
+from .flownet_parts import (CorrelationFlowNet, FlowNetFamilyModel, conv_block,
                             init_flownet_weights, upsample_bilinear)
 from .registry import ModelSpec, register_checkpoint, register_model
 
@@ -33,7 +30,7 @@ from .registry import ModelSpec, register_checkpoint, register_model
 RGB_MEAN = (0.40066648, 0.39482617, 0.3784785)
 
 
-class FlowNetCRobust(RefinementDecoder):
+class FlowNetCRobust(CorrelationFlowNet):
     """FlowNetCRobust on normalised frames whose size is a multiple of 64.
 
     Args:
@@ -47,61 +44,24 @@ class FlowNetCRobust(RefinementDecoder):
     def __init__(self, kernel_size: int = 3, repeats: int = 3):
         super().__init__()
 
-        def stage(cin: int, cout: int, first_kernel: int) -> nn.ModuleList:
-            return nn.ModuleList([conv_block(cin, cout, first_kernel, stride=2)]
-                                 + [conv_block(cout, cout, kernel_size) for _ in range(repeats)])
+        def stage(cin: int, cout: int, first_kernel: int) -> nn.Sequential:
+            # an nn.Sequential names its layers 0, 1, ... as the released ModuleList does
+            return nn.Sequential(conv_block(cin, cout, first_kernel, stride=2),
+                                 *[conv_block(cout, cout, kernel_size) for _ in range(repeats)])
 
         self.convs1 = stage(3, 64, 7)
         self.convs2 = stage(64, 128, kernel_size)
         self.convs3 = stage(128, 256, kernel_size)
-        self.conv_redir = conv_block(256, 32, kernel_size=1)
-        self.conv3_1 = conv_block(32 + 441, 256)
-        self.conv4 = conv_block(256, 512, stride=2)
-        self.conv4_1 = conv_block(512, 512)
-        self.conv5 = conv_block(512, 512, stride=2)
-        self.conv5_1 = conv_block(512, 512)
-        self.conv6 = conv_block(512, 1024, stride=2)
-        self.conv6_1 = conv_block(1024, 1024)
+        self._add_correlation_head()
         self._add_decoder(deconv_bias=False, upsampler_bias=False)
         init_flownet_weights(self)
 
-    @staticmethod
-    def _run(layers: nn.ModuleList, x: torch.Tensor) -> torch.Tensor:
-        for layer in layers:
-            x = layer(x)
-        return x
-
-    def forward(self, image1: torch.Tensor, image2: torch.Tensor,
-                gradient_checkpointing: bool = False) -> torch.Tensor:
-        """``gradient_checkpointing``: recompute the encoder and the rest separately in the
-        backward pass (less memory, about one more forward pass of time)."""
-        b = image1.shape[0]
-        both = torch.cat([image1, image2], dim=0)
-        if gradient_checkpointing and torch.is_grad_enabled():
-            conv2, conv3 = recompute(self._encode, both, use_reentrant=False)
-            return recompute(self._match_and_decode, conv2[:b], conv3, use_reentrant=False)
-        conv2, conv3 = self._encode(both)
-        return self._match_and_decode(conv2[:b], conv3)
-
     def _encode(self, both: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Both frames (stacked on the batch) through the shared encoder: 1/4 and 1/8."""
-        conv2 = self._run(self.convs2, self._run(self.convs1, both))
-        conv3 = self._run(self.convs3, conv2)
-        return conv2, conv3
-
-    def _match_and_decode(self, conv2a: torch.Tensor, conv3: torch.Tensor) -> torch.Tensor:
-        b = conv2a.shape[0]
-        conv3a, conv3b = conv3[:b], conv3[b:]
-        corr = F.leaky_relu(correlation(conv3a, conv3b, max_displacement=20, stride=2),
-                            LEAKY_SLOPE)
-        conv3_1 = self.conv3_1(torch.cat([self.conv_redir(conv3a), corr], dim=1))
-        conv4 = self.conv4_1(self.conv4(conv3_1))
-        conv5 = self.conv5_1(self.conv5(conv4))
-        conv6 = self.conv6_1(self.conv6(conv5))
-        return self.decode(conv6, conv5, conv4, conv3_1, conv2a)
+        conv2 = self.convs2(self.convs1(both))
+        return conv2, self.convs3(conv2)
 
 
-class FlowNetCRobustModel(FlowModel):
+class FlowNetCRobustModel(FlowNetFamilyModel):
     """FlowNetCRobust behind the package contract.
 
     Normalisation: RGB in ``[0, 1]`` minus the fixed mean :data:`RGB_MEAN` (the authors'
@@ -111,12 +71,9 @@ class FlowNetCRobustModel(FlowModel):
     """
 
     architecture = "flownetcrobust"
-    multiple = 64
 
     def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False):
-        super().__init__()
-        self.network = FlowNetCRobust()
-        self.gradient_checkpointing = gradient_checkpointing
+        super().__init__(FlowNetCRobust(), gradient_checkpointing)
         self.register_buffer("rgb_mean", torch.tensor(RGB_MEAN).view(1, 3, 1, 1),
                              persistent=False)
 
@@ -126,10 +83,6 @@ class FlowNetCRobustModel(FlowModel):
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
         flow = self.network(image1, image2, gradient_checkpointing=self.gradient_checkpointing)
         return upsample_bilinear(flow, 4)
-
-    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
-        """Load the released state dict, with or without ``module.``."""
-        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
 
 
 register_model(ModelSpec(

@@ -15,8 +15,10 @@ It runs in one of two places:
   in one batched call (one per template library when presets with different templates are
   mixed). Without ``prepare`` the batch path samples the particles itself (on the CPU, from the
   pairs' depth and cameras). Both paths give the same frames: bit for bit on the CPU (each pair's
-  stamps are rasterised on their own, see :func:`stamps_per_record`), up to the last bits on CUDA,
-  where the renderer adds with atomics.
+  stamps are rasterised on their own, see :func:`stamps_per_record`); on other devices the batch
+  path by default takes the fast route of :mod:`weathergen.training.batchrender` (few buckets,
+  far fewer kernel launches), equal up to float rounding, and CUDA's frames agree with the CPU's
+  within one grey level.
 
 **Order: weather first, geometric augmentation after.** The presets place a number of *visible*
 particles in the whole frame, with pixel sizes meant for the full frame; rendering into the full
@@ -26,7 +28,8 @@ the pair stays a consistent record) therefore come after the weather, on samples
 with their own ``(seed, epoch, index)`` draws.
 
 Other weather models plug in as a :class:`WeatherSource`: anything with a ``name``, the name of
-its template library and ``sample(pair, seed, world_up) -> Particles``. The paper's presets are
+its template library and ``sample(pair, seed, world_up) -> Particles``. Presets of either model
+(the paper's, and the world-unit weather fields such as ``snow-light``) are
 :class:`PresetSource`; a source whose particles carry ground truth can be used with
 ``keep_particles=True``, which keeps each rendered particle record in the sample.
 """
@@ -34,18 +37,19 @@ its template library and ``sample(pair, seed, world_up) -> Particles``. The pape
 from __future__ import annotations
 
 import hashlib
+import os
 from collections import defaultdict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Mapping, Optional, Protocol, Sequence, Union, runtime_checkable
 
 import torch
 
-from ..engine import (Preset, StampSet, build_stamps, load_preset, load_templates, render_pair,
-                      sample_particles)
-from ..engine.renderer import StampBucket
+from ..engine import FieldPreset, Preset, load_preset, load_templates, render_pair, sample_weather
 from ..errors import ConfigError, ShapeError
 from ..framepair import FramePair, FramePairBatch
+from .batchrender import render_records, stamps_per_record
 from .datasets import (PairSample, PairSampleBatch, batch_to, collate_pairs, pair_of,
                        select_pairs)
 
@@ -108,37 +112,54 @@ def preset_digest(preset: Preset) -> str:
 
 
 class PresetSource:
-    """The paper's particle model with one preset (:func:`~weathergen.engine.sample_particles`).
+    """One preset of either weather model, sampled as ``weathergen render`` samples it
+    (:func:`~weathergen.engine.sample_weather`): a paper preset places its ``count`` visible
+    particles in the pair (:func:`~weathergen.engine.sample_particles`); a weather-field preset
+    (``model = "field"``, world units: ``snow-light``, ``rain-heavy``, ...) draws the pair's
+    particles from the field of the draw's seed (:func:`~weathergen.engine.sample_field_particles`),
+    so every sample gets a field of its own and the same density in scene units.
 
     Args:
-        preset: a bundled preset name, a path to a ``.toml`` file, or a :class:`Preset`.
-        overrides: preset keys to change, as for ``--set`` (``{"count": 1500}``).
+        preset: a bundled preset name, a path to a ``.toml`` file, or a loaded :class:`Preset`
+            or :class:`FieldPreset`.
+        overrides: preset keys to change, as for ``--set`` (``{"count": 1500}``,
+            ``{"density": 60}``).
     """
 
-    def __init__(self, preset: Union[str, Path, Preset], overrides: Optional[Mapping] = None,
-                 name: Optional[str] = None):
-        if isinstance(preset, Preset):
+    def __init__(self, preset: Union[str, Path, Preset, FieldPreset],
+                 overrides: Optional[Mapping] = None, name: Optional[str] = None):
+        if isinstance(preset, (Preset, FieldPreset)):
             if overrides:
                 raise ConfigError("overrides apply to presets given by name or path, "
                                   "not to a loaded Preset")
             self.preset = preset
             self.name = name or f"preset-{preset_digest(preset)}"
         else:
-            self.preset = load_preset(preset, overrides=dict(overrides or {}))
+            try:
+                self.preset = load_preset(preset, overrides=dict(overrides or {}))
+            except ConfigError as exc:     # name the preset an override did not fit
+                if str(preset) in str(exc):
+                    raise
+                raise ConfigError(f"preset {preset}: {exc}") from None
             self.name = name or (Path(str(preset)).stem if str(preset).endswith(".toml")
                                  else str(preset))
         self.templates = self.preset.templates
 
+    @property
+    def model(self) -> str:
+        """``"field"`` for a weather-field preset, ``"paper"`` for the paper's model."""
+        return "field" if isinstance(self.preset, FieldPreset) else "paper"
+
     def sample(self, pair: FramePair, seed: int, world_up: str):
-        return sample_particles(pair, self.preset, seed, world_up=world_up,
-                                templates=load_templates(self.templates))
+        return sample_weather(pair, self.preset, seed, world_up=world_up,
+                              templates=load_templates(self.templates))
 
     def __repr__(self) -> str:
         return f"PresetSource({self.name!r})"
 
 
 def _is_source(obj) -> bool:
-    return not isinstance(obj, (str, Path, Preset)) and isinstance(obj, WeatherSource)
+    return not isinstance(obj, (str, Path, Preset, FieldPreset)) and isinstance(obj, WeatherSource)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -175,6 +196,11 @@ class WeatherAugment:
             ``{"count": 1000}`` for frames much smaller than Sintel's).
         world_up: which world axis points up; ``None`` takes each sample's (its dataset's) setting.
         keep_particles: keep the rendered particle record in :attr:`PairSample.particles`.
+        exact_batches: how :meth:`apply_batch` rasterises the stamps of the paper's presets
+            (:mod:`weathergen.training.batchrender`): ``True`` record by record, bit for bit the
+            per-sample frames; ``False`` all records at once in a few buckets, far fewer device
+            operations, equal up to float rounding; ``None`` (default): exact on the CPU, fast on
+            other devices.
 
     Shape: frames ``(3, H, W)`` per sample or ``(B, 3, H, W)`` per batch, RGB in ``[0, 1]``;
     the pairs need depth and cameras (every weathergen reader provides them).
@@ -182,13 +208,14 @@ class WeatherAugment:
 
     def __init__(self, presets: Union[str, Preset, WeatherSource, Sequence] = ("snow",),
                  p: float = 0.5, seed: int = 0, *, overrides: Optional[Mapping] = None,
-                 world_up: Optional[str] = None, keep_particles: bool = False):
-        single = isinstance(presets, (str, Path, Preset)) or _is_source(presets)
+                 world_up: Optional[str] = None, keep_particles: bool = False,
+                 exact_batches: Optional[bool] = None):
+        single = isinstance(presets, (str, Path, Preset, FieldPreset)) or _is_source(presets)
         items = [presets] if single else list(presets)
         if not items:
             raise ConfigError("WeatherAugment needs at least one preset")
         self.sources = [s if _is_source(s) else
-                        PresetSource(s, None if isinstance(s, Preset) else overrides)
+                        PresetSource(s, None if isinstance(s, (Preset, FieldPreset)) else overrides)
                         for s in items]
         names = [s.name for s in self.sources]
         if len(set(names)) != len(names):
@@ -197,6 +224,7 @@ class WeatherAugment:
         self.seed = _check_seed(seed)
         self.world_up = world_up
         self.keep_particles = bool(keep_particles)
+        self.exact_batches = exact_batches
 
     def __repr__(self) -> str:
         names = ", ".join(s.name for s in self.sources)
@@ -257,63 +285,65 @@ class WeatherAugment:
         template library, on the device the batch is on (``batch.to("cuda")`` first for a GPU).
 
         Particles prepared in the workers (:meth:`prepare`) are used as they are; the others are
-        sampled here, on the CPU, from the pairs' depth and cameras.
+        sampled here, on the CPU, from the pairs' depth and cameras, in threads (one per pair, up
+        to the CPU count; each pair's draw is its own, so the particles do not depend on them).
         Shape: ``batch.pairs`` images ``(B, 3, H, W)``; returns a batch of the same shapes.
         """
         pairs = batch.pairs
-        draws, records, todo = [], [], []
-        geometry = None
+        draws, records, todo, unsampled = [], [], [], []
         for k in range(len(batch)):
             draw, particles = self._pending(batch.weather[k], batch.particles[k],
                                             int(batch.indices[k]), int(batch.epochs[k]))
             if draw.applied and not draw.rendered:
                 if particles is None:
-                    if geometry is None:
-                        geometry = _geometry_on_cpu(pairs)
-                    particles = self._particles(pair_of(geometry, k), draw, batch.world_up[k])
+                    unsampled.append(k)
                 todo.append(k)
             draws.append(draw)
             records.append(particles)
         if not todo:
             return replace(batch, weather=draws)
+        if unsampled:
+            geometry = _geometry_on_cpu(pairs)
 
-        image1, image2 = pairs.image1.clone(), pairs.image2.clone()
+            def sample(k):
+                return self._particles(pair_of(geometry, k), draws[k], batch.world_up[k])
+
+            threads = min(len(unsampled), os.cpu_count() or 1)
+            if threads > 1:
+                with ThreadPoolExecutor(threads) as pool:
+                    sampled = list(pool.map(sample, unsampled))
+            else:
+                sampled = [sample(k) for k in unsampled]
+            for k, particles in zip(unsampled, sampled):
+                records[k] = particles
+
         groups = defaultdict(list)
         for k in todo:
-            groups[records[k].settings.templates].append(k)
-        for members in groups.values():
+            # weather-field records (optics set) are rendered view by view, with their looks
+            # computed per frame: they get a call of their own and no prebuilt stamps
+            groups[records[k].settings.templates, records[k].optics is not None].append(k)
+        image1, image2 = pairs.image1, pairs.image2
+        whole = len(groups) == 1 and len(todo) == len(batch)
+        if not whole:                     # filled in place, group by group
+            image1, image2 = image1.clone(), image2.clone()
+        for (_, per_frame), members in groups.items():
             group = [records[k] for k in members]
-            out = render_pair(select_pairs(pairs, members), group,
-                              stamps=stamps_per_record(group, device=image1.device))
-            index = torch.tensor(members, device=image1.device)
-            image1[index] = out.image1
-            image2[index] = out.image2
+            chosen = pairs if whole else select_pairs(pairs, members)
+            if per_frame:
+                out = render_pair(chosen, group)
+            else:
+                out = render_records(chosen, group, exact=self.exact_batches)
+            if whole:
+                image1, image2 = out.image1, out.image2
+            else:
+                index = torch.tensor(members, device=image1.device)
+                image1[index] = out.image1
+                image2[index] = out.image2
             for k in members:
                 draws[k] = replace(draws[k], rendered=True)
         kept = [r if self.keep_particles else None for r in records]
         return replace(batch, pairs=replace(pairs, image1=image1, image2=image2), weather=draws,
                        particles=kept)
-
-
-def stamps_per_record(records: Sequence, device=None) -> StampSet:
-    """The stamps of several particle records, rasterised record by record and put together.
-
-    Rasterising every record on its own makes each pair's pixels independent of the other pairs
-    in the batch (the defocus blur is a batched convolution whose last bits depend on how many
-    stamps it convolves at once), so the batched render equals the per-pair render bit for bit on
-    the CPU.
-    """
-    library = load_templates(records[0].settings.templates)
-    buckets, bucket_of, slot_of, first = [], [], [], 0
-    for record in records:
-        stamps = build_stamps([record], library, device=device)
-        offset = len(buckets)
-        buckets.extend(StampBucket(side=b.side, particles=b.particles + first, stamps=b.stamps)
-                       for b in stamps.buckets)
-        bucket_of.append(stamps.bucket_of + offset)
-        slot_of.append(stamps.slot_of)
-        first += record.count
-    return StampSet(buckets=buckets, bucket_of=torch.cat(bucket_of), slot_of=torch.cat(slot_of))
 
 
 def _geometry_on_cpu(pairs: FramePairBatch) -> FramePairBatch:
