@@ -32,7 +32,7 @@ from ..models import get_model
 from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pair_metadata,
                        prepare_folder, read_attack_manifest, read_pair_summary,
                        write_attack_manifest, write_attack_pair)
-from ..outputs.folder import is_foreign
+from ..outputs.folder import lock_folder, released_on_failure
 from ..outputs.metadata import identity_arrays
 from ..render.particles import pair_particles, pair_seed, weather_seed
 from .lp import LpSettings, lp_attack_batch
@@ -265,30 +265,16 @@ def prepare_attack_folder(job: AttackJob) -> tuple[Optional[dict], FolderLock]:
     it (:class:`~weathergen.io.lock.FolderBusy`).
     """
     out = Path(job.out)
-    ignore = (ATTACK_LOCK,)
-    if is_foreign(out, ATTACK_FOLDER, job.overwrite, ignore=ignore):
-        # not ours: refused (with the reason) before anything is created in it
-        prepare_folder(out, ATTACK_FOLDER, job.config(), None, resume=job.resume,
-                       overwrite=job.overwrite, ignore=ignore)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        lock = FolderLock(out / ATTACK_LOCK, str(out)).acquire()
-    except OSError as exc:
-        raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
-    try:
+    lock = lock_folder(out, ATTACK_FOLDER, ATTACK_LOCK, job.config(), resume=job.resume,
+                       overwrite=job.overwrite)
+    with released_on_failure(lock, out):
         # Read under the lock: what the run before us recorded is final.
         previous = None
         if not job.overwrite and (out / MANIFEST).exists():
             previous = read_attack_manifest(out) if (out / ATTACK_FOLDER.marker).exists() else None
         prepare_folder(out, ATTACK_FOLDER, job.config(), previous=None if previous is None
                        else previous.get("config", {}), resume=job.resume,
-                       overwrite=job.overwrite, ignore=ignore)
-    except OSError as exc:
-        lock.release()
-        raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
-    except BaseException:
-        lock.release()
-        raise
+                       overwrite=job.overwrite, ignore=(ATTACK_LOCK,))
     return previous, lock
 
 

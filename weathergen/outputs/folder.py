@@ -6,12 +6,14 @@ marker file, so that neither writes into the other's folder, nor into a folder o
 
 from __future__ import annotations
 
+import contextlib
 import glob
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Iterable, Optional
+from typing import Iterable, Iterator, Optional
 
 from ..errors import ConfigError
+from ..io.lock import FolderLock
 from .manifest import jsonable
 
 
@@ -97,3 +99,36 @@ def prepare_folder(out: Path, kind: FolderKind, config: dict, previous: Optional
 def folder_size(root: Path) -> int:
     """Bytes of every file below ``root``."""
     return sum(p.stat().st_size for p in Path(root).rglob("*") if p.is_file())
+
+
+def lock_folder(out: Path, kind: FolderKind, lock_file: str, config: dict, *, resume: bool,
+                overwrite: bool) -> FolderLock:
+    """Take the lock of run folder ``out`` (creating the folder), held, for the caller to release.
+
+    A folder that is not ``kind``'s (and that ``overwrite`` does not allow) is refused with the
+    reason before anything is created in it; a folder another run holds raises
+    :class:`~weathergen.io.lock.FolderBusy`. Check the folder's earlier run under the lock, with
+    :func:`prepare_folder` inside :func:`released_on_failure`.
+    """
+    out = Path(out)
+    if is_foreign(out, kind, overwrite, ignore=(lock_file,)):
+        prepare_folder(out, kind, config, None, resume=resume, overwrite=overwrite,
+                       ignore=(lock_file,))
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        return FolderLock(out / lock_file, str(out)).acquire()
+    except OSError as exc:
+        raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
+
+
+@contextlib.contextmanager
+def released_on_failure(lock: FolderLock, out: Path) -> Iterator[None]:
+    """Release ``lock`` when the block fails (a disk error becomes a one-line ConfigError)."""
+    try:
+        yield
+    except OSError as exc:
+        lock.release()
+        raise ConfigError(f"{out}: cannot write here ({exc.strerror})") from None
+    except BaseException:
+        lock.release()
+        raise

@@ -36,7 +36,7 @@ from ..outputs import (RENDER_FOLDER, PairOutput, merge_manifest, pair_metadata,
                        read_run_config, write_manifest_part, write_pair_outputs, write_run_config)
 from ..io.atomic import write_error
 from ..io.lock import FolderLock
-from ..outputs.folder import is_foreign
+from ..outputs.folder import lock_folder, released_on_failure
 from ..outputs.manifest import MANIFEST, MANIFEST_PARTS, RUN_CONFIG, jsonable, shard_part
 from ..workers import StopRequests, init_worker, spawning
 from .particles import pair_particles, weather_seed
@@ -261,16 +261,9 @@ def prepare_output(job: RenderJob, refs: list[PairRef] = ()) -> FolderLock:
     are the pairs of the job's shard, whose leftover temporary files a resumed run deletes.
     """
     name = lock_name(job.shard)
-    if is_foreign(job.out, RENDER_FOLDER, job.overwrite, ignore=(name,)):
-        # not ours: refused (with the reason) before anything is created in it
-        prepare_folder(job.out, RENDER_FOLDER, job.config(), None, resume=job.resume,
-                       overwrite=job.overwrite, ignore=(name,))
-    try:
-        job.out.mkdir(parents=True, exist_ok=True)
-        lock = FolderLock(job.out / name, str(job.out)).acquire()
-    except OSError as exc:
-        raise ConfigError(f"{job.out}: cannot write here ({exc.strerror})") from None
-    try:
+    lock = lock_folder(job.out, RENDER_FOLDER, name, job.config(), resume=job.resume,
+                       overwrite=job.overwrite)
+    with released_on_failure(lock, job.out):
         # Read under the lock: what the run before us recorded is final.
         # A new shard of a sharded run may start in a folder that other shards have written.
         other_shard = job.shard[1] > 1 and not shard_part(job.out, job.shard).exists()
@@ -278,12 +271,6 @@ def prepare_output(job: RenderJob, refs: list[PairRef] = ()) -> FolderLock:
                        resume=job.resume, overwrite=job.overwrite, shared=other_shard,
                        ignore=(name,), temporary=_temporary_places(job, refs))
         write_run_config(job.out, job.config())
-    except OSError as exc:
-        lock.release()
-        raise ConfigError(f"{job.out}: cannot write here ({exc.strerror})") from None
-    except BaseException:
-        lock.release()
-        raise
     return lock
 
 
