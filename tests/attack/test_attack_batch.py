@@ -12,9 +12,13 @@ from weathergen.errors import ConfigError
 
 from .test_attack_pair import crop_pair, grey_particles
 
-#: The tolerance docs/attack.md states for batched against single-pair results (pixels for
-#: distances and flows; scene units / atanh-domain values for the particle fields).
+#: The tolerances docs/attack.md states for batched against single-pair results: losses and
+#: distances (pixels) per step; the optimised particle fields (scene units / atanh-domain values)
+#: and the flows computed from them (pixels), which Adam's normalised steps make more sensitive
+#: to rounding where a variable's gradient is about as small as Adam's epsilon.
 RTOL, ATOL = 1e-4, 1e-4
+PARTICLE_ATOL = 1e-3
+FLOW_ATOL = 2e-2
 
 
 @pytest.fixture(scope="module")
@@ -50,18 +54,29 @@ def assert_same_result(batched, single):
     for b, s in zip(batched.history, single.history):
         for name in ("loss", "distance", "penalty", "robustness", "best_distance"):
             assert getattr(b, name) == pytest.approx(getattr(s, name), rel=RTOL, abs=ATOL), name
-    for name in ("benign_flow", "initial_flow", "best_flow", "target"):
+    for name in ("benign_flow", "initial_flow", "target"):     # before any step
         torch.testing.assert_close(getattr(batched, name), getattr(single, name),
                                    rtol=RTOL, atol=ATOL, msg=name)
+    torch.testing.assert_close(batched.best_flow, single.best_flow, rtol=0, atol=FLOW_ATOL,
+                               msg="best_flow")
     for name in TENSOR_FIELDS:
         a, b = getattr(batched.best_particles, name), getattr(single.best_particles, name)
         if a.is_floating_point():
-            torch.testing.assert_close(a, b, rtol=RTOL, atol=ATOL, msg=name)
+            torch.testing.assert_close(a, b, rtol=0, atol=PARTICLE_ATOL, msg=name)
         else:
             assert torch.equal(a, b), name
 
 
-def test_a_batch_equals_pairs_attacked_one_by_one(demo_pair, raft_small):
+@pytest.fixture(params=[1, 2], ids=["1-thread", "2-threads"])
+def threads(request):
+    """Rounding differs with the number of threads torch uses: the tolerance holds for both."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(request.param)
+    yield request.param
+    torch.set_num_threads(before)
+
+
+def test_a_batch_equals_pairs_attacked_one_by_one(demo_pair, raft_small, threads):
     pairs = [crop_pair(demo_pair, top, left, 96, 128).validate()
              for top, left in ((40, 120), (60, 60), (0, 0))]
     records = [grey_particles(p, count=60, seed=s) for s, p in enumerate(pairs)]
