@@ -2,7 +2,7 @@
 
 Runs the command exactly as the README gives it (in a temporary folder) and prints its wall time,
 the process's CPU time, and the mean AEE(f, f̌) of random and of adversarial weather from its
-``summary.json``. The README promises about a minute on 2 CPU cores and an adversarial AEE
+``summary.json``. The README promises under a minute on 2 CPU cores and an adversarial AEE
 several times the random one.
 
     python benchmarks/bench_quick_look.py --checkpoint ../shared/weights/raft-small.pth
