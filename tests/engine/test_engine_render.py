@@ -392,3 +392,21 @@ def test_each_stamp_is_as_large_as_its_footprint_not_the_template():
     sides = torch.tensor([stamps.buckets[b].side for b in stamps.bucket_of.tolist()])
     assert bool((sides >= footprints).all())                         # the whole footprint fits
     assert bool((sides <= 1.2 * footprints + 3).all()), sides.tolist()  # and little more
+
+
+@pytest.mark.parametrize("rotation", [0.0, math.pi / 2, math.pi, 3 * math.pi / 2, 0.25])
+def test_rim_of_an_even_footprint_does_not_depend_on_rounding(rotation):
+    """Rim samples of an even-sized footprint lie exactly on the template's circle: whether they are
+    drawn must not depend on float32 against float64 (or CPU against GPU rounding)."""
+    from weathergen.engine.renderer import _stamp_chunk
+
+    masks = []
+    for dtype in (torch.float32, torch.float64):
+        levels = [torch.ones(1, 1, 16, 16, dtype=dtype)]
+        stamp = _stamp_chunk(levels, 0, torch.tensor([0]), torch.tensor([rotation], dtype=dtype),
+                             torch.tensor([10.0], dtype=dtype), 11)[0]
+        masks.append(stamp > 0)
+    assert torch.equal(masks[0], masks[1])
+    # the four rim points on the axes, at exactly 5 px from the centre, are drawn
+    for y, x in ((5, 0), (5, 10), (0, 5), (10, 5)):
+        assert masks[0][y, x] and masks[1][y, x]

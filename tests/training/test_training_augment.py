@@ -184,9 +184,7 @@ def test_side_classes_group_sides_within_a_factor():
 def test_batched_path_on_cuda_matches_the_cpu(samples, exact):
     """What docs/training.md promises for CUDA: the same draws and particles, and frames within
     one grey level of the CPU's, the 8-bit frames differing in under 0.1 % of their values
-    (float rounding, atomic additions, the GPU's convolution algorithms). None of these
-    particles has a stamp whose disc edge passes exactly through pixel centres, where rounding
-    decides whether a rim pixel is drawn (see the docs)."""
+    (float rounding, atomic additions, the GPU's convolution algorithms)."""
     aug = WeatherAugment(["snow", "rain"], p=1.0, seed=5, overrides=LIGHT, exact_batches=exact)
     cpu = collate_pairs([aug(s) for s in samples[:3]])
     for inputs in (samples[:3], [aug.prepare(s) for s in samples[:3]]):

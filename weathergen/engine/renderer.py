@@ -187,6 +187,10 @@ def _supersampling(side: int) -> int:
     return 4 if side <= 5 else (2 if side <= 9 else 1)
 
 
+#: Tolerance of the disc test in :func:`_stamp_chunk` (relative squared radius).
+RIM_MARGIN = 1e-5
+
+
 def _stamp_chunk(levels: list, level: int, template: torch.Tensor, rotation: torch.Tensor,
                  footprint: torch.Tensor, side: int) -> torch.Tensor:
     """Rotate and scale templates onto an integer-centred grid. Shape: -> (n, side, side)."""
@@ -204,7 +208,10 @@ def _stamp_chunk(levels: list, level: int, template: torch.Tensor, rotation: tor
     # Image offset = Rot(rotation) · template offset, so sample the template at Rot(−rotation).
     xn = (c * gx + s * gy) / half
     yn = (-s * gx + c * gy) / half
-    inside = (xn * xn + yn * yn) <= 1.0   # templates are round (see templates.py)
+    # Templates are round (see templates.py). Rim samples of even-sized footprints lie exactly on
+    # the circle; the margin keeps them inside whatever the last bit of rounding (float32 or
+    # float64, CPU or GPU) makes of it.
+    inside = (xn * xn + yn * yn) <= 1.0 + RIM_MARGIN
     src = levels[level][template]
     out = F.grid_sample(src, torch.stack((xn, yn), -1), mode="bilinear",
                         padding_mode="zeros", align_corners=False)[:, 0] * inside
