@@ -39,9 +39,8 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel
-from .checkpoints import CheckpointSpec, load_strict, strip_prefix
-from .gma import ContextAttention, GMAUpdateBlock
+from .checkpoints import CheckpointSpec
+from .gma import ContextAttention, GMAUpdateBlock, IteratedFlowModel
 from .raft import _pixel_grid, convex_upsample, sample_bilinear
 from .registry import ModelSpec, register_checkpoint, register_model
 from .twins import (TwinsEncoder, merge_heads, split_heads, window_merge, window_partition)
@@ -517,7 +516,7 @@ class FlowFormer(nn.Module):
 # The adapter and its registration
 # ---------------------------------------------------------------------------------------------
 
-class FlowFormerModel(FlowModel):
+class FlowFormerModel(IteratedFlowModel):
     """FlowFormer behind the package contract: RGB in ``[0, 1]`` of any size in, flow out.
 
     The whole (padded) frame is processed at once, as the paper's attack code does; the
@@ -540,25 +539,7 @@ class FlowFormerModel(FlowModel):
     def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False,
                  detach_flow: bool = True):
         super().__init__()
-        self.network = FlowFormer()
-        self.iters = DEFAULT_ITERS if iters is None else int(iters)
-        self.gradient_checkpointing = gradient_checkpointing
-        self.detach_flow = detach_flow
-
-    def normalize(self, image: torch.Tensor) -> torch.Tensor:
-        # Trained on 2 * (pixel / 255) - 1, as RAFT.
-        return 2.0 * image - 1.0
-
-    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
-                            gradient_checkpointing=self.gradient_checkpointing)
-
-    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
-        """Load a file of the original FlowFormer release, with or without ``module.``."""
-        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
-
-    def extra_repr(self) -> str:
-        return f"iters={self.iters}, gradient_checkpointing={self.gradient_checkpointing}"
+        self._setup(FlowFormer(), iters, DEFAULT_ITERS, gradient_checkpointing, detach_flow)
 
 
 #: The authors share their checkpoints in a Google Drive folder (no direct download address).

@@ -205,7 +205,36 @@ class GMA(nn.Module):
 # The adapter and its registration
 # ---------------------------------------------------------------------------------------------
 
-class GMAModel(FlowModel):
+class IteratedFlowModel(FlowModel):
+    """What the adapters of GMA and FlowFormer share: a network run for ``iters`` refinement
+    steps on RAFT's input range, optionally with gradient checkpointing, loaded from its authors'
+    files as they are (with or without the ``module.`` prefix of their training wrapper).
+    Subclasses set :attr:`network` and :attr:`iters` (see :meth:`_setup`)."""
+
+    def _setup(self, network: nn.Module, iters: Optional[int], default_iters: int,
+               gradient_checkpointing: bool, detach_flow: bool) -> None:
+        self.network = network
+        self.iters = default_iters if iters is None else int(iters)
+        self.gradient_checkpointing = gradient_checkpointing
+        self.detach_flow = detach_flow
+
+    def normalize(self, image: torch.Tensor) -> torch.Tensor:
+        # As RAFT: the released models were trained on 2 * (pixel / 255) - 1.
+        return 2.0 * image - 1.0
+
+    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
+        return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
+                            gradient_checkpointing=self.gradient_checkpointing)
+
+    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
+        """Load a file of the authors' release, with or without the ``module.`` prefix."""
+        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
+
+    def extra_repr(self) -> str:
+        return f"iters={self.iters}, gradient_checkpointing={self.gradient_checkpointing}"
+
+
+class GMAModel(IteratedFlowModel):
     """GMA behind the package contract: RGB in ``[0, 1]`` of any size in, flow in pixels out.
 
     Args:
@@ -223,27 +252,9 @@ class GMAModel(FlowModel):
     def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False,
                  detach_flow: bool = True):
         super().__init__()
-        self.network = GMA()
-        self.iters = DEFAULT_ITERS if iters is None else int(iters)
-        self.gradient_checkpointing = gradient_checkpointing
-        self.detach_flow = detach_flow
+        self._setup(GMA(), iters, DEFAULT_ITERS, gradient_checkpointing, detach_flow)
         # Every level of the correlation pyramid needs at least one pixel.
         self.min_size = 8 * 2 ** (self.network.config.corr_levels - 1)
-
-    def normalize(self, image: torch.Tensor) -> torch.Tensor:
-        # As RAFT: the released models were trained on 2 * (pixel / 255) - 1.
-        return 2.0 * image - 1.0
-
-    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
-                            gradient_checkpointing=self.gradient_checkpointing)
-
-    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
-        """Load a file of the original GMA release, with or without the ``module.`` prefix."""
-        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
-
-    def extra_repr(self) -> str:
-        return f"iters={self.iters}, gradient_checkpointing={self.gradient_checkpointing}"
 
 
 #: The authors keep their four checkpoints in their repository, one file each.
