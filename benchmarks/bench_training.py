@@ -13,7 +13,10 @@ paper's ``p = 0.5`` the cost halves):
   rows, with the other one;
 - for every render of a prepared batch, the number of tensor operations it dispatches (about one
   kernel launch each on a GPU, where their count rather than their arithmetic sets the time) and
-  of host synchronisations among them (``nonzero``, ``unique``, ``.item()``, ``.tolist()``);
+  of host synchronisations among them (``nonzero``, ``unique``, ``.item()``, ``.tolist()``), set
+  against the same counts for the training step (counted on a small crop: a step's operations do
+  not depend on the image size): without a GPU, the share of launches is the estimate of the
+  weather's share of a GPU step;
 
 and the time of one training step (forward with every iteration, sequence loss, backward, AdamW)
 of RAFT-small and, with ``--model raft`` or on a GPU, full RAFT, on the cropped batch. Target:
@@ -157,7 +160,8 @@ def main(argv=None):
 
     cropped = crop.apply_batch(batch_cpu).to(device)
     p = cropped.pairs
-    step_times = {}
+    small = RandomCrop((64, 128), seed=0).apply_batch(batch_cpu).to(device).pairs
+    step_times, step_ops = {}, {}
     for model_name in models:
         model = build_model(model_name, iters=args.iters).to(device)
         model.requires_grad_(True).train()
@@ -165,6 +169,9 @@ def main(argv=None):
         step_times[model_name] = timed(
             lambda: train_step(model, optimizer, scheduler, p.image1, p.image2, p.flow,
                                p.flow_valid), repeats, sync, warm_up=gpu)  # CPU: keep it short
+        step_ops[model_name] = count_ops(
+            lambda: train_step(model, optimizer, scheduler, small.image1, small.image2,
+                               small.flow, small.flow_valid), device)
         del model, optimizer, scheduler
         if gpu:
             torch.cuda.empty_cache()
@@ -179,11 +186,15 @@ def main(argv=None):
             print(f"{preset + ': ' + label:<{width}}{t:>9.3f}s"
                   + "".join(f"{100 * t / s:>15.1f}%" for s in step_times.values()))
     where = "every op" if device.type == "cpu" else f"ops on {device.type}"
-    print(f"{'render of a prepared batch (' + where + ')':<{width}}{'tensor ops':>12}"
-          f"{'host syncs':>12}")
+    print(f"{'tensor operations (' + where + ')':<{width}}{'ops':>10}{'syncs':>8}"
+          + "".join(f"{'% of ' + m + ' ops':>20}" for m in step_ops))
+    for model_name, (ops, syncs) in step_ops.items():
+        print(f"{model_name + ' training step':<{width}}{ops:>10}{syncs:>8}")
     for preset, counts in op_counts.items():
         for mode, (ops, syncs) in counts.items():
-            print(f"{preset + ': ' + mode:<{width}}{ops:>12}{syncs:>12}")
+            print(f"{preset + ': render, ' + mode:<{width}}{ops:>10}{syncs:>8}"
+                  + "".join(f"{100 * ops / s:>19.1f}%" for s, _ in step_ops.values()))
+
 
 if __name__ == "__main__":
     main()

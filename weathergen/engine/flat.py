@@ -67,9 +67,10 @@ _FLOAT_FIELDS = ("position", "motion", "offset1", "offset2", "color")
 def _atlas(lib: TemplateLibrary, dtype, device) -> tuple:
     """Every mip level of every template with a one-pixel zero border, flattened into one tensor.
 
-    Returns ``(atlas (sum of T (R_L + 2)^2,), first (L,) int64 offset of each level, sides (L,)
-    int64 R_L)``; template ``t``'s pixel ``(y, x)`` of level ``L`` sits at
-    ``first[L] + (t (R_L + 2) + y + 1) (R_L + 2) + x + 1``.
+    Returns ``(atlas, first (L,) int64 offset of each level, sides (L,) int64 R_L)``; template
+    ``t``'s pixel ``(y, x)`` of level ``L`` sits at ``first[L] + (t (R_L + 2) + y + 1) (R_L + 2)
+    + x + 1``. The atlas ends in a row of zeros, so that a bilinear read ``at``, ``at + 1``,
+    ``at + R_L + 2``, ``at + R_L + 3`` stays inside it for any ``at`` up to its last pixel.
     """
     key = (lib.digest, lib.name, dtype, str(device))
     if key not in _ATLAS_CACHE:
@@ -80,7 +81,8 @@ def _atlas(lib: TemplateLibrary, dtype, device) -> tuple:
         sides = torch.tensor([lv.shape[-1] for lv in levels], device=device)
         if len(_ATLAS_CACHE) > 16:
             _ATLAS_CACHE.clear()
-        _ATLAS_CACHE[key] = (torch.cat(padded), first, sides)
+        tail = torch.zeros(lib.resolution + 4, dtype=dtype, device=device)
+        _ATLAS_CACHE[key] = (torch.cat(padded + [tail]), first, sides)
     return _ATLAS_CACHE[key]
 
 
@@ -194,38 +196,41 @@ def _rasterise(lay: _Layout, lib: TemplateLibrary, stamp_dtype, chunk: int) -> t
     and scaled sample position, zero outside the footprint's disc (:func:`renderer._stamp_chunk`).
     """
     atlas, level_first, level_sides = _atlas(lib, stamp_dtype, lay.position.device)
+    last = atlas.numel() - lib.resolution - 5               # the last pixel before the zero tail
     side, sub = lay.side, lay.sub
     npix = side * side
     first = torch.cumsum(npix, 0) - npix
     pixels = torch.zeros(int(npix.sum()), dtype=stamp_dtype, device=atlas.device)
     across = side * sub                                           # samples along a row
     res = level_sides[lay.level]
-    # per particle, gathered once per chunk: integers and reals
-    ints = torch.stack((across, sub, (side - 1) // 2, side, first, res + 2,
-                        level_first[lay.level] + lay.template * (res + 2) ** 2, res - 1), 1)
-    reals = torch.stack((lay.cos, lay.sin, lay.half, res.to(stamp_dtype), sub.to(stamp_dtype)), 1)
+    # A sample ``k`` along a row sits at ``g = (k + 0.5) / sub − 0.5 − h`` pixels from the centre;
+    # its place in the template level (grid_sample's pixel coordinates, align_corners=False) is
+    # ``centre + R (g cos + g' sin) / (2 half)``: per particle the scale ``a``, ``b`` of the
+    # rotation, the centre and the disc's squared radius in those units.
+    r = res.to(stamp_dtype)
+    scale = r / (2 * lay.half)
+    ints = torch.stack((across, sub, side, first, res + 2,
+                        level_first[lay.level] + lay.template * (res + 2) ** 2), 1)
+    reals = torch.stack((lay.cos * scale, lay.sin * scale, (r - 1) / 2,
+                         (r / 2) ** 2 * (1.0 + RIM_MARGIN), 1.0 / sub.to(stamp_dtype),
+                         0.5 / sub.to(stamp_dtype) - 0.5 - ((side - 1) // 2).to(stamp_dtype)), 1)
     for p, local in _runs(across * across, chunk):
-        n, s_p, h, sd, fst, stride, base, top = ints[p].unbind(1)
-        c, s, half, r, s_f = reals[p].unbind(1)
+        n, s_p, sd, fst, stride, base = ints[p].unbind(1)
+        a, b, centre, radius2, step, offset = reals[p].unbind(1)
         row = torch.div(local, n, rounding_mode="floor")
         col = local - row * n
-        py, px = torch.div(row, s_p, rounding_mode="floor"), torch.div(col, s_p, rounding_mode="floor")
-        # sample offsets from the stamp's centre: pixel offset plus the sample's place inside it
-        gx = (px - h).to(stamp_dtype) + ((col - px * s_p).to(stamp_dtype) + 0.5) / s_f - 0.5
-        gy = (py - h).to(stamp_dtype) + ((row - py * s_p).to(stamp_dtype) + 0.5) / s_f - 0.5
-        xn = (c * gx + s * gy) / half
-        yn = (c * gy - s * gx) / half
-        inside = (xn * xn + yn * yn) <= 1.0 + RIM_MARGIN
-        ix = ((xn + 1) * r - 1) / 2                   # grid_sample, align_corners=False
-        iy = ((yn + 1) * r - 1) / 2
+        gx, gy = col * step + offset, row * step + offset
+        dx, dy = a * gx + b * gy, a * gy - b * gx
+        inside = dx * dx + dy * dy <= radius2
+        ix, iy = dx + centre, dy + centre
         x0, y0 = torch.floor(ix), torch.floor(iy)
-        wx, wy = ix - x0, iy - y0
-        # samples outside the disc may reach past the border: clamp them (they are zeroed)
-        at = base + (y0.long().clamp(min=-1).minimum(top) + 1) * stride \
-            + x0.long().clamp(min=-1).minimum(top) + 1
-        value = torch.lerp(torch.lerp(atlas[at], atlas[at + 1], wx),
-                           torch.lerp(atlas[at + stride], atlas[at + stride + 1], wx), wy)
-        pixels.index_add_(0, fst + py * sd + px, value * inside)
+        # samples outside the disc may point anywhere: clamped into the atlas, then zeroed
+        at = (base + (y0 + 1) * stride + x0 + 1).clamp(0, last).long()
+        value = torch.lerp(torch.lerp(atlas[at], atlas[at + 1], ix - x0),
+                           torch.lerp(atlas[at + stride], atlas[at + stride + 1], ix - x0), iy - y0)
+        target = fst + torch.div(row, s_p, rounding_mode="floor") * sd \
+            + torch.div(col, s_p, rounding_mode="floor")
+        pixels.index_add_(0, target, value * inside)
     pixels = pixels / torch.repeat_interleave((sub * sub).to(stamp_dtype), npix,
                                               output_size=pixels.numel())
     return pixels, first
