@@ -291,7 +291,7 @@ class BatchOptimisation:
         whether that pair alone would have anything to optimise.
         """
         current = [v.particles() for v in self.variables]
-        out = self.render(current)
+        out = BatchOptimisation.render(self, current)   # B records, also in a PairOptimisation
         flow = self.model(out.image1, out.image2)
         distances = aee(flow, self.goal)
         penalties = [offset_penalty(r.offset1, r.offset2, d1, d2, self.settings.alpha1,
