@@ -15,7 +15,6 @@ from weathergen.framepair import _TENSOR_FIELDS
 from weathergen.geometry import reprojection_flow
 from weathergen.training import (Compose, PairDataset, PresetSource, RandomCrop, RandomFlip,
                                  WeatherAugment, collate_pairs, crop_pair, flip_pair, pair_of)
-from weathergen.training.batchrender import batch_stamps, coalesce_buckets, side_classes
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
@@ -132,8 +131,9 @@ def with_dtype(sample, dtype):
 
 @pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
 def test_fast_batches_equal_exact_batches_up_to_rounding(samples, dtype):
-    """The fast batch path (few buckets, float64 stamps) only reorders float additions: within
-    1e-5 of the exact path (sums of a few dozen float32 terms <= 1 round to within ~1e-6)."""
+    """The fast batch path (the ragged renderer, stamps and projections in float64) computes the
+    same model in another order: within 1e-9 of the exact path in float64, and in float32
+    within a quarter of a grey level (the exact path's float32 projections are off by ~1e-4 px)."""
     inputs = [with_dtype(s, dtype) for s in samples[:4]]
     exact = WeatherAugment(["snow", "rain"], p=0.7, seed=8, overrides=LIGHT, exact_batches=True)
     fast = WeatherAugment(["snow", "rain"], p=0.7, seed=8, overrides=LIGHT, exact_batches=False)
@@ -145,38 +145,10 @@ def test_fast_batches_equal_exact_batches_up_to_rounding(samples, dtype):
         x, y = getattr(a.pairs, name), getattr(b.pairs, name)
         assert x.dtype == y.dtype == dtype
         assert torch.equal(x, getattr(per_sample.pairs, name)), name      # exact: bit for bit
-        assert float((x - y).abs().max()) <= 1e-5, name
+        assert float((x - y).abs().max()) <= (1e-9 if dtype == torch.float64 else 1e-3), name
         for k, w in enumerate(a.weather):
             changed = int((y[k] != getattr(collate_pairs(inputs).pairs, name)[k]).any(0).sum())
             assert (changed > 100) == w.applied, (name, k)
-
-
-def test_coalesced_buckets_hold_the_same_stamps_padded_with_zeros(samples):
-    aug = WeatherAugment(["snow", "rain"], p=1.0, seed=6, overrides=LIGHT)
-    records = [aug.prepare(s).particles for s in samples[:3]]
-    records = [r for r in records if r.settings.blur_samples == records[0].settings.blur_samples]
-    stamps = batch_stamps(records, "cpu", coalesce=False)
-    merged = coalesce_buckets(stamps)
-    grids = {b.coarse for b in stamps.buckets}
-    classes = {g: side_classes([b.side for b in stamps.buckets if b.coarse == g]) for g in grids}
-    assert len(merged.buckets) == sum(len(set(c.values())) for c in classes.values())
-    assert len(merged.buckets) < len(stamps.buckets)
-    for p in range(sum(r.count for r in records)):
-        old = stamps.buckets[int(stamps.bucket_of[p])]
-        a = old.stamps[int(stamps.slot_of[p])]
-        bucket = merged.buckets[int(merged.bucket_of[p])]
-        b = bucket.stamps[int(merged.slot_of[p])]
-        side, pad = a.shape[-1], (bucket.side - a.shape[-1]) // 2
-        assert bucket.coarse == old.coarse and bucket.side == classes[old.coarse][side]
-        assert b.shape == (bucket.side, bucket.side)
-        assert torch.equal(b[pad:pad + side, pad:pad + side], a)
-        assert float(b.abs().sum()) == pytest.approx(float(a.abs().sum()), rel=1e-6)
-
-
-def test_side_classes_group_sides_within_a_factor():
-    got = side_classes([3, 5, 7, 9, 13, 31, 61, 63, 71], ratio=2.0)
-    assert got == {3: 5, 5: 5, 7: 13, 9: 13, 13: 13, 31: 61, 61: 61, 63: 71, 71: 71}
-    assert side_classes([9]) == {9: 9}
 
 
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")

@@ -583,6 +583,26 @@ def _depth_levels(depths: torch.Tensor, levels: Sequence[int]) -> dict:
     return out
 
 
+def check_records(records: Sequence[Particles],
+                  templates: Optional[TemplateLibrary] = None) -> TemplateLibrary:
+    """The template library the records of one render call are drawn with (``templates``, or
+    the one their settings name), after checking that they share it, that it is the library
+    they were sampled with, and their blend modes. Raises ConfigError."""
+    if templates is None:
+        names = {r.settings.templates for r in records}
+        if len(names) != 1:
+            raise ConfigError(f"records of one render call must share templates; got {sorted(names)}")
+        templates = load_templates(names.pop())
+    for r in records:
+        if r.settings.templates_digest and templates.digest != r.settings.templates_digest:
+            raise ConfigError(f"particles were sampled with templates '{r.settings.templates}' "
+                              f"(digest {r.settings.templates_digest}) but are rendered with "
+                              f"'{templates.name}' (digest {templates.digest})")
+        if r.settings.blend not in BLEND_MODES:
+            raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
+    return templates
+
+
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
            depth2: torch.Tensor, intrinsics: torch.Tensor, cam1_from_ref: torch.Tensor,
            cam2_from_ref: torch.Tensor, particles: Union[Particles, Sequence[Particles]],
@@ -617,18 +637,7 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     if len(records) != bsz:
         raise ConfigError(f"{len(records)} particle records for a batch of {bsz} frame pairs")
     dtype, device = image1.dtype, image1.device
-    if templates is None:
-        names = {r.settings.templates for r in records}
-        if len(names) != 1:
-            raise ConfigError(f"records of one render call must share templates; got {sorted(names)}")
-        templates = load_templates(names.pop())
-    for r in records:
-        if r.settings.templates_digest and templates.digest != r.settings.templates_digest:
-            raise ConfigError(f"particles were sampled with templates '{r.settings.templates}' "
-                              f"(digest {r.settings.templates_digest}) but are rendered with "
-                              f"'{templates.name}' (digest {templates.digest})")
-        if r.settings.blend not in BLEND_MODES:
-            raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
+    templates = check_records(records, templates)
 
     if any(r.optics is not None for r in records):
         # Weather-field records look different in each frame: one view at a time (perframe.py).

@@ -1,0 +1,133 @@
+"""weathergen.engine.flat: the ragged, fixed-operation-count forward renderer against the renderer."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+from engine_scenes import plane_pair, pose, rotation
+from weathergen.engine import load_preset, render, render_pair, sample_particles
+from weathergen.engine.flat import render_flat
+from weathergen.errors import ConfigError
+from weathergen.framepair import FramePairBatch
+
+
+def scene(i: int, dtype=torch.float64, size=(40, 72)):
+    """A plane with a near block seen by two moving cameras (particles near and far)."""
+    cam1 = pose(rotation(roll_deg=2, pitch_deg=-3 + i))
+    cam2 = pose(rotation(roll_deg=2, pitch_deg=-2 + i, yaw_deg=1), centre=(0.05, 0.0, 0.1))
+    return plane_pair(*size, depth=5.0, near_block=True, cam1_from_world=cam1,
+                      cam2_from_world=cam2, seed=i, dtype=dtype)
+
+
+def records_for(pairs, presets, count=120):
+    return [sample_particles(p, load_preset(name, {"count": count}), seed=10 + i)
+            for i, (p, name) in enumerate(zip(pairs, presets))]
+
+
+def both(pairs, records, **flat_options):
+    """The renderer's output and render_flat's on the same batch and records."""
+    b = FramePairBatch.stack(pairs)
+    args = (b.image1, b.image2, b.depth1, b.depth2, b.intrinsics, b.cam1_from_world,
+            b.cam2_from_world, records)
+    return render(*args), render_flat(*args, **flat_options)
+
+
+def assert_close(a, b, tol):
+    for name in ("image1", "image2", "opacity1", "opacity2"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and x.shape == y.shape, name
+        assert float((x - y).abs().max()) <= tol, (name, float((x - y).abs().max()))
+    assert torch.equal(a.reached, b.reached)
+
+
+@pytest.mark.parametrize("presets", [("snow", "snow"), ("rain", "snow"), ("sparks", "rain"),
+                                     ("fog",)], ids=["snow", "rain+snow", "sparks+rain", "fog"])
+def test_equals_the_renderer_in_float64(presets):
+    """Defocused and brightened stamps (near snow), blur samples of different counts in one call
+    (rain's 20, snow's 1), glows and fog's large alpha billboards on coarse grids."""
+    pairs = [scene(i) for i in range(len(presets))]
+    records = records_for(pairs, presets)
+    a, b = both(pairs, records)
+    assert bool((a.image1 != pairs[0].image1[None]).any())          # the weather is there
+    assert_close(a, b, 1e-9)
+
+
+def test_defocus_and_coarse_grids_are_exercised():
+    """The equality above covers the blur and the coarse grids: the records hold defocused
+    particles and billboards wide enough for a coarse grid."""
+    pairs = [scene(0), scene(1)]
+    snow, fog = records_for(pairs, ("snow", "fog"))
+    assert int((snow.defocus > 1).sum()) > 0
+    lib_res = 128
+    assert float((fog.scale * lib_res).max()) >= 128
+
+
+def test_float32_within_a_fraction_of_a_grey_level():
+    pairs = [scene(i, torch.float32) for i in range(3)]
+    records = records_for(pairs, ("snow", "rain", "sparks"))
+    a, b = both(pairs, records)
+    assert_close(a, b, 1e-3)
+
+
+def test_chunks_do_not_change_the_frames():
+    pairs = [scene(i) for i in range(2)]
+    records = records_for(pairs, ("snow", "rain"))
+    b = FramePairBatch.stack(pairs)
+    args = (b.image1, b.image2, b.depth1, b.depth2, b.intrinsics, b.cam1_from_world,
+            b.cam2_from_world, records)
+    whole = render_flat(*args, chunk_elements=1 << 24)
+    small = render_flat(*args, chunk_elements=3000)
+    assert_close(whole, small, 1e-12)
+
+
+def test_particles_behind_the_camera_or_outside_the_frame_reach_nothing():
+    pairs = [scene(0), scene(1)]
+    records = records_for(pairs, ("snow", "snow"))
+    gone = records[1].replace(position=records[1].position + torch.tensor([0.0, 0.0, -50.0]))
+    a, b = both(pairs, [records[0], gone])
+    assert b.reached.tolist() == [True, False]
+    assert torch.equal(b.image1[1], pairs[1].image1.clamp(0, 1))
+    assert_close(a, b, 1e-9)
+
+
+class Counter(TorchDispatchMode):
+    def __init__(self):
+        super().__init__()
+        self.ops = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.ops += 1
+        return func(*args, **(kwargs or {}))
+
+
+def test_operation_count_does_not_grow_with_particles_or_pairs():
+    """What the fast batch path is for: the number of tensor operations (kernel launches on a
+    GPU) stays the same for ten times the particles and twice the pairs; the renderer's grows."""
+    counts = {}
+    for n, pairs in ((40, 2), (400, 2), (400, 4)):
+        scenes = [scene(i) for i in range(pairs)]
+        records = records_for(scenes, ["snow"] * pairs, count=n)
+        b = FramePairBatch.stack(scenes)
+        args = (b.image1, b.image2, b.depth1, b.depth2, b.intrinsics, b.cam1_from_world,
+                b.cam2_from_world, records)
+        for name, fn in (("flat", render_flat), ("render", render)):
+            counter = Counter()
+            with counter:
+                fn(*args)
+            counts[name, n, pairs] = counter.ops
+    flat = [counts["flat", n, p] for n, p in ((40, 2), (400, 2), (400, 4))]
+    assert max(flat) - min(flat) <= 10, flat         # a few per-record host values at most
+    assert counts["render", 400, 4] > 2 * max(flat), counts
+
+
+def test_weather_field_records_are_refused():
+    from weathergen.engine import load_preset as preset, sample_field_particles
+    pair = scene(0)
+    field = sample_field_particles(pair, preset("snow-light", {"density": 5}), seed=1)
+    b = FramePairBatch.stack([pair])
+    with pytest.raises(ConfigError, match="view by view"):
+        render_flat(b.image1, b.image2, b.depth1, b.depth2, b.intrinsics, b.cam1_from_world,
+                    b.cam2_from_world, [field])
+    assert render_pair(pair, field).image1.shape == (1, 3, 40, 72)
