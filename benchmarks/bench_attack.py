@@ -14,12 +14,12 @@ do not depend on them); the scene is a synthetic 1024x436 frame pair with a slan
 
 from __future__ import annotations
 
-import argparse
 import json
 import resource
-import subprocess
 import sys
 import time
+
+import bench_options
 
 
 def synthetic_pair(width: int, height: int):
@@ -90,18 +90,13 @@ def measure(model_name: str, preset: str, width: int, height: int, iters: int, s
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--models", nargs="+", default=["raft"])
-    parser.add_argument("--preset", default="snow")
-    parser.add_argument("--size", default="1024x436", help="WIDTHxHEIGHT")
-    parser.add_argument("--iters", type=int, default=12)
-    parser.add_argument("--steps", type=int, default=1, help="timed steps (the fastest counts)")
+    parser = bench_options.parser(__doc__, models=["raft"])
+    bench_options.add_run_options(parser, steps=1)
     parser.add_argument("--checkpointing", choices=("off", "on", "both"), default="off",
                         help="gradient checkpointing in the network")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
-    parser.add_argument("--one", help=argparse.SUPPRESS)   # internal: one measurement, as JSON
-    args = parser.parse_args(argv)
-    width, height = (int(v) for v in args.size.lower().split("x"))
+    args = bench_options.parse(parser, argv)
+    width, height = args.width, args.height
 
     if args.one:
         model_name, ckpt = args.one.split(":")
@@ -118,14 +113,11 @@ def main(argv=None) -> int:
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     for model_name in args.models:
         for mode in modes:
-            cmd = [sys.executable, __file__, "--one", f"{model_name}:{mode}", "--preset",
-                   args.preset, "--size", args.size, "--iters", str(args.iters), "--steps",
-                   str(args.steps), "--threads", str(args.threads)]
-            done = subprocess.run(cmd, capture_output=True, text=True)
-            if done.returncode != 0:
-                print(f"| {model_name} | {mode} | failed: {done.stderr.strip().splitlines()[-1]} |")
+            r, error = bench_options.measure_in_new_process(
+                __file__, f"{model_name}:{mode}", args, "--threads", str(args.threads))
+            if r is None:
+                print(f"| {model_name} | {mode} | failed: {error} |")
                 continue
-            r = json.loads(done.stdout.strip().splitlines()[-1])
             share = r["render_seconds"] / r["step_seconds"]
             print(f"| {model_name} | {mode} | {r['particles']} | {r['step_seconds']:.2f} "
                   f"| {r['render_seconds']:.2f} | {100 * share:.0f}% | {r['peak_gib']:.2f} "

@@ -12,15 +12,14 @@ synthetic 1024x436 pair (see bench_attack.py), each pair of the batch with its o
 
 from __future__ import annotations
 
-import argparse
 import json
 import os
 import resource
-import subprocess
 import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import bench_options  # noqa: E402
 from bench_attack import synthetic_pair  # noqa: E402
 
 
@@ -63,17 +62,12 @@ def measure(model_name: str, preset: str, width: int, height: int, iters: int, s
 
 
 def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--models", nargs="+", default=["raft-small"])
+    parser = bench_options.parser(__doc__, models=["raft-small"])
     parser.add_argument("--batch-sizes", nargs="+", type=int, default=[1, 2, 4])
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
-    parser.add_argument("--preset", default="snow")
-    parser.add_argument("--size", default="1024x436", help="WIDTHxHEIGHT")
-    parser.add_argument("--iters", type=int, default=12)
-    parser.add_argument("--steps", type=int, default=2, help="timed steps (the fastest counts)")
-    parser.add_argument("--one", help=argparse.SUPPRESS)   # internal: one measurement, as JSON
-    args = parser.parse_args(argv)
-    width, height = (int(v) for v in args.size.lower().split("x"))
+    bench_options.add_run_options(parser, steps=2)
+    args = bench_options.parse(parser, argv)
+    width, height = args.width, args.height
 
     if args.one:
         model_name, batch = args.one.split(":")
@@ -89,15 +83,11 @@ def main(argv=None) -> int:
     print("|---|---:|---:|---:|---:|")
     for model_name in args.models:
         for batch in args.batch_sizes:
-            cmd = [sys.executable, __file__, "--one", f"{model_name}:{batch}", "--preset",
-                   args.preset, "--size", args.size, "--iters", str(args.iters), "--steps",
-                   str(args.steps), "--device", args.device]
-            done = subprocess.run(cmd, capture_output=True, text=True)
-            if done.returncode != 0:
-                last = (done.stderr.strip().splitlines() or ["?"])[-1]
-                print(f"| {model_name} | {batch} | failed: {last} | | |", flush=True)
+            r, error = bench_options.measure_in_new_process(
+                __file__, f"{model_name}:{batch}", args, "--device", args.device)
+            if r is None:
+                print(f"| {model_name} | {batch} | failed: {error} | | |", flush=True)
                 continue
-            r = json.loads(done.stdout.strip().splitlines()[-1])
             print(f"| {model_name} | {batch} | {r['step_seconds']:.2f} "
                   f"| {r['pair_steps_per_second']:.3f} | {r['memory_gib']:.2f} |", flush=True)
     return 0

@@ -219,6 +219,25 @@ def test_loop_keeps_the_best_step_and_improves(small_pair, raft_small):
     assert torch.allclose(again, result.best_flow, atol=1e-3)
 
 
+def test_pair_optimisation_takes_the_loops_steps(small_pair, raft_small):
+    """The single-pair state (the benchmark's step): one record in, 0-d terms out, the same
+    losses as the loop's records."""
+    from weathergen.attack import PairOptimisation
+
+    particles = grey_particles(small_pair)
+    settings = AttackSettings(optimize=OPTIMIZABLE, steps=2, lr=2e-3)
+    result = attack_pair(raft_small, small_pair, particles, settings)
+    run = PairOptimisation(raft_small, small_pair, particles, settings)
+    for record in result.history:
+        current, flow, loss, distance, penalty = run.evaluate()
+        assert loss.dim() == distance.dim() == penalty.dim() == 0
+        assert flow.shape == (1, 2, 96, 128) and current.count == particles.count
+        assert loss.item() == pytest.approx(record.loss, rel=1e-5, abs=1e-6)
+        run.update(loss)
+    out = run.render(run.variables.particles())
+    assert out.image1.shape == out.image2.shape == (1, 3, 96, 128)
+
+
 def test_zero_steps_measure_only_the_random_weather(small_pair, raft_small):
     particles = grey_particles(small_pair, count=30)
     result = attack_pair(raft_small, small_pair, particles, AttackSettings(steps=0))

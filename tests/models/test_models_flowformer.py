@@ -4,15 +4,15 @@ gradients, batch independence, named checkpoints and the CLI."""
 
 from __future__ import annotations
 
-import json
 import math
 
 import pytest
 import torch
-from click.testing import CliRunner
-from conftest import write_fake_sintel
+from model_checks import (assert_flow_at_input_size, assert_gradient_reaches_both_images,
+                          assert_loads_strictly, attack_then_evaluate, batch_and_alone,
+                          input_gradient, load_error, random_release, saved, tiny_sintel)
 
-from weathergen.errors import ConfigError, FormatError
+from weathergen.errors import ConfigError
 from weathergen.models import build_model, get_model
 from weathergen.models.flowformer import cost_window, position_encoding
 from model_layouts import gma_attention_layout, gma_update_layout
@@ -142,46 +142,30 @@ def test_state_dict_has_the_released_names_and_shapes():
 # -- strict loading ------------------------------------------------------------------------------
 
 @pytest.fixture(scope="module")
-def random_release():
-    torch.manual_seed(3)
-    model = build_model("flowformer", iters=2)
-    with torch.no_grad():
-        model.network.memory_decoder.update_block.aggregator.gamma.fill_(0.7)
-    return {"module." + k: v.clone() for k, v in model.network.state_dict().items()}, model
+def released():
+    return random_release("flowformer", seed=3)
 
 
 @pytest.fixture(scope="module")
-def random_file(random_release, tmp_path_factory):
-    path = tmp_path_factory.mktemp("flowformer") / "random-flowformer.pth"
-    torch.save(random_release[0], path)
-    return path
+def random_file(released, tmp_path_factory):
+    return saved(released[0], tmp_path_factory.mktemp("flowformer") / "random-flowformer.pth")
 
 
-def test_a_saved_random_model_loads_strictly(random_release, random_file, tmp_path):
-    state, source = random_release
-    loaded = get_model("flowformer", checkpoint=random_file, iters=2)
-    for key, value in loaded.network.state_dict().items():
-        assert torch.equal(value, state["module." + key]), key
-    x1, x2 = torch.rand(2, 1, 3, *SIZE).unbind(0)
-    with torch.no_grad():
-        assert torch.allclose(loaded(x1, x2), source(x1, x2), atol=1e-5)
+def test_a_saved_random_model_loads_strictly(released, random_file, tmp_path):
+    state, source = released
+    assert_loads_strictly("flowformer", random_file, state, source, "module.", SIZE)
     # Without the DataParallel prefix too.
     bare = tmp_path / "bare.pth"
     torch.save({k[len("module."):]: v for k, v in state.items()}, bare)
     assert get_model("flowformer", checkpoint=bare).iters == 32
 
 
-def test_a_perturbed_file_fails_listing_what_does_not_match(random_release, tmp_path):
-    state = dict(random_release[0])
+def test_a_perturbed_file_fails_listing_what_does_not_match(released, tmp_path):
+    state = dict(released[0])
     del state["module.context_encoder.svt.norm.weight"]
     state["module.context_encoder.svt.head.weight"] = torch.zeros(1000, 1024)
     state["module.memory_encoder.cost_perceiver_encoder.latent_tokens"] = torch.zeros(1, 16, 128)
-    path = tmp_path / "perturbed.pth"
-    torch.save(state, path)
-    with pytest.raises(FormatError) as err:
-        get_model("flowformer", checkpoint=path)
-    message = str(err.value)
-    assert message.startswith(str(path))
+    message = load_error("flowformer", state, tmp_path / "perturbed.pth")
     assert "missing keys (1): context_encoder.svt.norm.weight" in message
     assert "unexpected keys (1): context_encoder.svt.head.weight" in message
     assert ("shape mismatches (1): memory_encoder.cost_perceiver_encoder.latent_tokens "
@@ -232,18 +216,11 @@ def small_model():
 
 @pytest.mark.parametrize("size", [(37, 45), (19, 70)])
 def test_flow_comes_back_at_input_size(small_model, size):
-    x1, x2 = torch.rand(2, 1, 3, *size).unbind(0)
-    with torch.no_grad():
-        flow = small_model(x1, x2)
-    assert flow.shape == (1, 2, *size) and torch.isfinite(flow).all()
+    assert_flow_at_input_size(small_model, size)
 
 
 def test_input_gradients_are_finite_and_non_zero(small_model):
-    x1 = torch.rand(1, 3, 37, 45, requires_grad=True)
-    x2 = torch.rand(1, 3, 37, 45, requires_grad=True)
-    small_model(x1, x2).square().mean().backward()
-    for grad in (x1.grad, x2.grad):
-        assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+    assert_gradient_reaches_both_images(small_model, (37, 45))
 
 
 def test_gradient_checkpointing_gives_the_same_gradient(monkeypatch):
@@ -256,20 +233,15 @@ def test_gradient_checkpointing_gives_the_same_gradient(monkeypatch):
     grads = []
     for checkpointing in (False, True):
         model.gradient_checkpointing = checkpointing
-        a, b = x1.clone().requires_grad_(), x2.clone().requires_grad_()
-        model(a, b).sum().backward()
-        grads.append(torch.cat([a.grad.flatten(), b.grad.flatten()]))
+        grads.append(input_gradient(model, x1, x2))
     # The same up to float32 rounding (the chunked convolutions sum in another order).
     assert (grads[0] - grads[1]).norm() <= 1e-5 * grads[0].norm()
 
 
 def test_batch_elements_are_independent(small_model):
     # The context of each frame pair meets only that pair's cost tokens.
-    x1, x2 = torch.rand(2, 2, 3, *SIZE).unbind(0)
-    with torch.no_grad():
-        both = small_model(x1, x2)
-        second = small_model(x1[1:], x2[1:])
-    assert torch.allclose(both[1:], second, atol=1e-4)
+    in_batch, alone = batch_and_alone(small_model, SIZE, index=1)
+    assert torch.allclose(in_batch, alone, atol=1e-4)
 
 
 def test_default_iterations_are_the_authors_evaluation_setting():
@@ -295,25 +267,8 @@ def test_named_checkpoints_and_the_offline_message(tmp_path, monkeypatch):
 
 # -- the command line ----------------------------------------------------------------------------
 
-def invoke(args):
-    from weathergen.cli.main import _register, cli
-
-    _register()
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
-
-
 @pytest.mark.slow
 def test_attack_and_evaluate_run_with_flowformer(random_file, tmp_path):
-    # A tiny Sintel-format dataset: one 40x56 frame pair.
-    root = write_fake_sintel(tmp_path / "sintel", scenes=("alley",), frames=2, size=(40, 56))
-    data = ["--dataset", "sintel", "--root", root, "--scenes", "alley", "--frames-per-scene", "1"]
-    checkpoint = random_file
-    out = tmp_path / "snow"
-    attacked = invoke(["attack", "--model", "flowformer", "--checkpoint", checkpoint, "--iters", "1",
-                       *data, "--steps", "1", "--set", "count=40", "--seed", "1", "--out", out])
-    assert attacked.exit_code == 0, attacked.output
-    evaluated = invoke(["evaluate", "--weather", out, "--model", "flowformer", "--checkpoint",
-                        checkpoint, "--iters", "1", "--json", tmp_path / "eval.json"])
-    assert evaluated.exit_code == 0, evaluated.output
-    result = json.loads((tmp_path / "eval.json").read_text())
+    model = ["--model", "flowformer", "--checkpoint", random_file, "--iters", "1"]
+    *_, result = attack_then_evaluate(model, tiny_sintel(tmp_path / "sintel"), tmp_path)
     assert result["model"] == "flowformer" and len(result["pairs"]) == 1

@@ -8,6 +8,8 @@ import math
 
 import pytest
 import torch
+from model_checks import (assert_gradient_reaches_both_images, batch_and_alone, input_gradient,
+                          serve)
 
 from weathergen.errors import ConfigError, FormatError
 from weathergen.models import build_model, get_model
@@ -247,24 +249,10 @@ def test_missing_named_checkpoint_says_which_file_to_put_where(name, where, tmp_
 
 def test_spynet_checkpoint_downloads_as_a_plain_file(tmp_path, monkeypatch):
     import io
-    import urllib.request
 
     buf = io.BytesIO()
     torch.save(_state("spynet"), buf)
-    asked = []
-
-    class Response(io.BytesIO):
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-    def fake_urlopen(url, timeout):
-        asked.append(url)
-        return Response(buf.getvalue())
-
-    monkeypatch.setattr(urllib.request, "urlopen", fake_urlopen)
+    asked = serve(monkeypatch, buf.getvalue())
     monkeypatch.setenv("WEATHERGEN_CACHE", str(tmp_path))
     loaded = get_model("spynet-sintel-final", download=True)
     assert asked == ["http://content.sniklaus.com/github/pytorch-spynet/"
@@ -277,23 +265,16 @@ def test_spynet_checkpoint_downloads_as_a_plain_file(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("arch", ARCHS)
 def test_flow_at_odd_input_size_with_finite_non_zero_input_gradients(arch):
+    net = model(arch)
     torch.manual_seed(1)
-    x1 = torch.rand(1, 3, 37, 53, requires_grad=True)
-    x2 = torch.rand(1, 3, 37, 53, requires_grad=True)
-    flow = model(arch)(x1, x2)
+    flow = assert_gradient_reaches_both_images(net, (37, 53))
     assert flow.shape == (1, 2, 37, 53)
     assert torch.isfinite(flow).all()
-    flow.square().mean().backward()
-    for grad in (x1.grad, x2.grad):
-        assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0
 
 
 def test_batch_elements_are_independent():
-    x1, x2 = torch.rand(2, 2, 3, 40, 70).unbind(0)
-    with torch.no_grad():
-        both = model("flownetc")(x1, x2)
-        first = model("flownetc")(x1[:1], x2[:1])
-    assert torch.allclose(both[:1], first, atol=1e-4 * (1 + first.abs().max().item()))
+    in_batch, alone = batch_and_alone(model("flownetc"), (40, 70))
+    assert torch.allclose(in_batch, alone, atol=1e-4 * (1 + alone.abs().max().item()))
 
 
 @pytest.mark.parametrize("arch", ["spynet", "flownetc"])
@@ -302,11 +283,7 @@ def test_gradient_checkpointing_gives_the_same_gradient(arch):
     recomputing = build_model(arch, gradient_checkpointing=True)
     recomputing.load_state_dict(plain.state_dict())
     x1, x2 = torch.rand(2, 1, 3, 32, 64).unbind(0)  # SpyNet: two pyramid levels
-    grads = []
-    for m in (plain, recomputing):
-        a, b = x1.clone().requires_grad_(), x2.clone().requires_grad_()
-        m(a, b).sum().backward()
-        grads.append(torch.cat([a.grad.flatten(), b.grad.flatten()]))
+    grads = [input_gradient(m, x1, x2) for m in (plain, recomputing)]
     assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-10)
 
 

@@ -4,19 +4,17 @@ aggregation against a naive computation, shapes, gradients, named checkpoints an
 from __future__ import annotations
 
 import io
-import json
-from pathlib import Path
 
 import pytest
 import torch
-from click.testing import CliRunner
-from conftest import write_fake_sintel
+from model_checks import (assert_flow_at_input_size, assert_gradient_reaches_both_images,
+                          assert_loads_strictly, attack_then_evaluate, input_gradient,
+                          load_error, random_release, saved, serve, tiny_sintel)
 
 from weathergen.errors import ConfigError, FormatError
 from weathergen.models import build_model, get_model
 from weathergen.models.gma import ContextAttention, MotionAggregator
 from model_layouts import gma_attention_layout, gma_update_layout, raft_encoder_layout
-
 
 
 # -- the released key layout ------------------------------------------------------------------
@@ -37,40 +35,19 @@ def test_state_dict_has_the_released_names_and_shapes():
 
 # -- strict loading ------------------------------------------------------------------------------
 
-def _random_release(prefix: str) -> tuple[dict, torch.nn.Module]:
-    model = build_model("gma", iters=2)
-    with torch.no_grad():
-        for name, buf in model.network.named_buffers():
-            if buf.is_floating_point():
-                buf.uniform_(0.5, 1.5)  # batch-norm statistics that matter
-        model.network.update_block.aggregator.gamma.fill_(0.7)  # the aggregation matters
-    return {prefix + k: v.clone() for k, v in model.network.state_dict().items()}, model
-
-
 @pytest.mark.parametrize("prefix", ["module.", ""])
 def test_a_saved_random_model_loads_strictly(prefix, tmp_path):
-    state, source = _random_release(prefix)
-    path = tmp_path / "gma.pth"
-    torch.save(state, path)
-    loaded = get_model("gma", checkpoint=path, iters=2)
-    for key, value in loaded.network.state_dict().items():
-        assert torch.equal(value, state[prefix + key]), key
-    x1, x2 = torch.rand(2, 1, 3, 64, 72).unbind(0)
-    with torch.no_grad():
-        assert torch.allclose(loaded(x1, x2), source(x1, x2), atol=1e-5)
+    state, source = random_release("gma", prefix)
+    path = saved(state, tmp_path / "gma.pth")
+    assert_loads_strictly("gma", path, state, source, prefix, (64, 72))
 
 
 def test_a_perturbed_file_fails_listing_what_does_not_match(tmp_path):
-    state, _ = _random_release("module.")
+    state, _ = random_release("gma")
     del state["module.update_block.aggregator.gamma"]
     state["module.update_block.aggregator.project.weight"] = torch.zeros(128, 128, 1, 1)
     state["module.att.to_qk.weight"] = torch.zeros(512, 128, 1, 1)  # two heads
-    path = tmp_path / "perturbed.pth"
-    torch.save(state, path)
-    with pytest.raises(FormatError) as err:
-        get_model("gma", checkpoint=path)
-    message = str(err.value)
-    assert message.startswith(str(path))
+    message = load_error("gma", state, tmp_path / "perturbed.pth")
     assert "missing keys (1): update_block.aggregator.gamma" in message
     assert "unexpected keys (1): update_block.aggregator.project.weight" in message
     assert ("shape mismatches (1): att.to_qk.weight (file (512, 128, 1, 1), "
@@ -129,21 +106,13 @@ def test_aggregation_changes_the_flow():
 
 @pytest.mark.parametrize("size", [(37, 45), (67, 93)])
 def test_flow_comes_back_at_input_size(size):
-    model = build_model("gma", iters=2)
-    x1, x2 = torch.rand(2, 1, 3, *size).unbind(0)
-    with torch.no_grad():
-        flow = model(x1, x2)
-    assert flow.shape == (1, 2, *size) and torch.isfinite(flow).all()
+    assert_flow_at_input_size(build_model("gma", iters=2), size)
 
 
 def test_input_gradients_are_finite_and_non_zero():
     model = build_model("gma", iters=3).requires_grad_(False)
     model.network.update_block.aggregator.gamma.fill_(0.5)
-    x1 = torch.rand(1, 3, 65, 71, requires_grad=True)
-    x2 = torch.rand(1, 3, 65, 71, requires_grad=True)
-    model(x1, x2).square().mean().backward()
-    for grad in (x1.grad, x2.grad):
-        assert torch.isfinite(grad).all() and grad.abs().sum() > 0
+    assert_gradient_reaches_both_images(model, (65, 71))
 
 
 def test_gradient_checkpointing_gives_the_same_gradient():
@@ -153,11 +122,7 @@ def test_gradient_checkpointing_gives_the_same_gradient():
     recomputing = build_model("gma", iters=2, gradient_checkpointing=True)
     recomputing.load_state_dict(plain.state_dict())
     x1, x2 = torch.rand(2, 1, 3, 64, 64).unbind(0)
-    grads = []
-    for model in (plain, recomputing):
-        a, b = x1.clone().requires_grad_(), x2.clone().requires_grad_()
-        model(a, b).sum().backward()
-        grads.append(torch.cat([a.grad.flatten(), b.grad.flatten()]))
+    grads = [input_gradient(model, x1, x2) for model in (plain, recomputing)]
     assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-6)
 
 
@@ -186,25 +151,10 @@ def test_missing_named_checkpoint_says_which_file_to_put_where(tmp_path, monkeyp
 
 
 def test_download_of_a_single_file_lands_in_the_cache(tmp_path, monkeypatch):
-    import urllib.request
-
-    state, _ = _random_release("module.")
+    state, _ = random_release("gma")
     payload = io.BytesIO()
     torch.save(state, payload)
-    requested = []
-
-    class Response(io.BytesIO):
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-    def serve(url, timeout):
-        requested.append(url)
-        return Response(payload.getvalue())
-
-    monkeypatch.setattr(urllib.request, "urlopen", serve)
+    requested = serve(monkeypatch, payload.getvalue())
     monkeypatch.setenv("WEATHERGEN_CACHE", str(tmp_path))
     model = get_model("gma-kitti", download=True, iters=1)
     assert requested and requested[0].endswith("/checkpoints/gma-kitti.pth")
@@ -214,33 +164,14 @@ def test_download_of_a_single_file_lands_in_the_cache(tmp_path, monkeypatch):
 
 # -- the command line ----------------------------------------------------------------------------
 
-def invoke(args):
-    from weathergen.cli.main import _register, cli
-
-    _register()
-    return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
-
-
 @pytest.fixture(scope="module")
 def random_gma_file(tmp_path_factory):
-    state, _ = _random_release("module.")
-    path = tmp_path_factory.mktemp("gma") / "random-gma.pth"
-    torch.save(state, path)
-    return path
+    state, _ = random_release("gma")
+    return saved(state, tmp_path_factory.mktemp("gma") / "random-gma.pth")
 
 
 @pytest.mark.slow
 def test_attack_and_evaluate_run_with_gma(random_gma_file, tmp_path):
-    # A tiny Sintel-format dataset: one 40x56 frame pair.
-    root = write_fake_sintel(tmp_path / "sintel", scenes=("alley",), frames=2, size=(40, 56))
-    data = ["--dataset", "sintel", "--root", root, "--scenes", "alley", "--frames-per-scene", "1"]
-    checkpoint = random_gma_file
-    out = tmp_path / "snow"
-    attacked = invoke(["attack", "--model", "gma", "--checkpoint", checkpoint, "--iters", "1",
-                       *data, "--steps", "1", "--set", "count=40", "--seed", "1", "--out", out])
-    assert attacked.exit_code == 0, attacked.output
-    evaluated = invoke(["evaluate", "--weather", out, "--model", "gma", "--checkpoint",
-                        checkpoint, "--iters", "1", "--json", tmp_path / "eval.json"])
-    assert evaluated.exit_code == 0, evaluated.output
-    result = json.loads((tmp_path / "eval.json").read_text())
+    model = ["--model", "gma", "--checkpoint", random_gma_file, "--iters", "1"]
+    *_, result = attack_then_evaluate(model, tiny_sintel(tmp_path / "sintel"), tmp_path)
     assert result["model"] == "gma" and len(result["pairs"]) == 1

@@ -8,6 +8,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from model_checks import (assert_flow_at_input_size, assert_gradient_reaches_both_images,
+                          batch_and_alone, input_gradient)
 
 from weathergen.flow import aee
 from weathergen.models import InputPadder, build_model, get_model
@@ -49,21 +51,12 @@ def test_padding_rejects_other_sizes():
 
 @pytest.mark.parametrize("size", [(20, 30), (67, 93)])
 def test_flow_comes_back_at_input_size(size):
-    model = build_model("raft-small", iters=2)
-    x1, x2 = torch.rand(2, 2, 3, *size).unbind(0)
-    with torch.no_grad():
-        flow = model(x1, x2)
-    assert flow.shape == (2, 2, *size)
-    assert torch.isfinite(flow).all()
+    assert_flow_at_input_size(build_model("raft-small", iters=2), size, batch=2)
 
 
 def test_batch_elements_are_independent():
-    model = build_model("raft", iters=2)
-    x1, x2 = torch.rand(2, 2, 3, 64, 80).unbind(0)
-    with torch.no_grad():
-        both = model(x1, x2)
-        first = model(x1[:1], x2[:1])
-    assert torch.allclose(both[:1], first, atol=1e-4)
+    in_batch, alone = batch_and_alone(build_model("raft", iters=2), (64, 80))
+    assert torch.allclose(in_batch, alone, atol=1e-4)
 
 
 def test_float64_images_get_float64_flow_with_a_gradient():
@@ -86,12 +79,7 @@ def test_bad_inputs_are_rejected_with_shapes():
 
 @pytest.mark.parametrize("arch", ["raft", "raft-small"])
 def test_gradient_reaches_both_images(arch):
-    model = build_model(arch, iters=3).requires_grad_(False)
-    x1 = torch.rand(1, 3, 64, 72, requires_grad=True)
-    x2 = torch.rand(1, 3, 64, 72, requires_grad=True)
-    model(x1, x2).square().mean().backward()
-    for grad in (x1.grad, x2.grad):
-        assert grad is not None and torch.isfinite(grad).all() and grad.abs().sum() > 0
+    assert_gradient_reaches_both_images(build_model(arch, iters=3).requires_grad_(False), (64, 72))
 
 
 def test_gradient_checkpointing_gives_the_same_gradient():
@@ -100,11 +88,7 @@ def test_gradient_checkpointing_gives_the_same_gradient():
     recomputing = build_model("raft", iters=3, gradient_checkpointing=True)
     recomputing.load_state_dict(plain.state_dict())
     x1, x2 = torch.rand(2, 1, 3, 64, 64).unbind(0)
-    grads = []
-    for model in (plain, recomputing):
-        a, b = x1.clone().requires_grad_(), x2.clone().requires_grad_()
-        model(a, b).sum().backward()
-        grads.append(torch.cat([a.grad.flatten(), b.grad.flatten()]))
+    grads = [input_gradient(model, x1, x2) for model in (plain, recomputing)]
     assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-6)
 
 

@@ -6,6 +6,7 @@ from pathlib import Path
 
 import pytest
 import torch
+from model_checks import serve
 
 from weathergen.errors import ConfigError
 from weathergen.models import (FlowModel, available_checkpoints, available_models, build_model,
@@ -120,7 +121,6 @@ def test_download_refused_without_network_says_where_to_put_the_file(tmp_path, m
 def test_download_extracts_the_member_atomically(tmp_path, monkeypatch):
     """A fake release archive served from disk: the checkpoint lands in the cache and loads."""
     import io
-    import urllib.request
     import zipfile
 
     buf = io.BytesIO()
@@ -131,14 +131,7 @@ def test_download_extracts_the_member_atomically(tmp_path, monkeypatch):
         zf.writestr("models/raft-small.pth", member.getvalue())
     archive = buf.getvalue()
 
-    class Response(io.BytesIO):
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-    monkeypatch.setattr(urllib.request, "urlopen", lambda url, timeout: Response(archive))
+    serve(monkeypatch, archive)
     monkeypatch.setenv("WEATHERGEN_CACHE", str(tmp_path))
     from weathergen.models import checkpoint_spec, download_checkpoint
     from dataclasses import replace
@@ -152,22 +145,13 @@ def test_download_extracts_the_member_atomically(tmp_path, monkeypatch):
 
 def test_download_with_a_wrong_checksum_leaves_nothing_behind(tmp_path, monkeypatch):
     import io
-    import urllib.request
     import zipfile
 
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as zf:
         zf.writestr("models/raft-small.pth", b"not the released file")
 
-    class Response(io.BytesIO):
-        def __enter__(self):
-            return self
-
-        def __exit__(self, *exc):
-            return False
-
-    monkeypatch.setattr(urllib.request, "urlopen",
-                        lambda url, timeout: Response(buf.getvalue()))
+    serve(monkeypatch, buf.getvalue())
     monkeypatch.setenv("WEATHERGEN_CACHE", str(tmp_path))
     with pytest.raises(ConfigError, match="sha256"):
         get_model("raft-small", download=True)

@@ -52,7 +52,7 @@ import torch
 from ..engine import from_atanh, to_atanh
 from ..errors import ConfigError
 from ..flow import aee
-from .pair import AttackResult, StepRecord
+from .pair import AttackResult, StepLog, StepRecord
 from .targets import TargetSpec, target_flow
 
 LP_METHODS = ("pcfa", "ifgsm")
@@ -262,38 +262,24 @@ def lp_attack_batch(model, images1: torch.Tensor, images2: torch.Tensor, setting
     rand1, rand2 = torch.cat([r[0] for r in rand]), torch.cat([r[1] for r in rand])
     with torch.no_grad():
         random_flow = model(rand1, rand2).cpu()
-    history: list[list[StepRecord]] = [[] for _ in range(size)]
-    best = [math.inf] * size
-    best_step = [0] * size
+    log = StepLog(size, on_step)
     best_frames: list = [None] * size
-    best_flow: list = [None] * size
     steps = int(settings.steps)
     for step in range(steps + 1):
         t0 = time.perf_counter()
         frames, flow, losses, distances, penalties = run.evaluate()
         dists = distances.detach().cpu().tolist()
         for i in range(size):
-            if dists[i] < best[i] or best_frames[i] is None:
-                best[i], best_step[i] = dists[i], step
+            if log.improves(i, step, dists[i], flow):
                 best_frames[i] = tuple(f[i:i + 1].detach().cpu().clone() for f in frames)
-                best_flow[i] = flow[i:i + 1].detach().cpu()
         if step < steps:
             run.update(losses)
-        robustness = aee(flow.detach(), run.benign).cpu().tolist()
-        loss_values = losses.detach().cpu().tolist()
-        penalty_values = penalties.detach().cpu().tolist()
-        seconds = time.perf_counter() - t0
-        for i in range(size):
-            record = StepRecord(step=step, loss=loss_values[i], distance=dists[i],
-                                penalty=penalty_values[i], robustness=robustness[i],
-                                best_distance=best[i], seconds=seconds)
-            history[i].append(record)
-            on_step(i, record)
+        log.record(step, range(size), flow, run.benign, losses, dists, penalties, t0)
         del flow, losses, distances, penalties, frames
     benign, goal = run.benign.cpu(), run.goal.cpu()
-    return [LpResult(best_particles=None, best_step=best_step[i], history=history[i],
+    return [LpResult(best_particles=None, best_step=log.best_step[i], history=log.history[i],
                      benign_flow=benign[i:i + 1], initial_flow=random_flow[i:i + 1],
-                     best_flow=best_flow[i], target=goal[i:i + 1], best_frames=best_frames[i],
+                     best_flow=log.best_flow[i], target=goal[i:i + 1], best_frames=best_frames[i],
                      random_frames=(rand1[i:i + 1].cpu(), rand2[i:i + 1].cpu()))
             for i in range(size)]
 

@@ -168,6 +168,45 @@ class AttackResult:
     frozen: bool = False    # True when no variable could influence the loss (nothing visible)
 
 
+class StepLog:
+    """The per-step bookkeeping of an attack loop over B pairs (the weather attack's and the Lp
+    attacks'): each pair's :class:`StepRecord` history and its best step so far, the one with
+    the lowest distance to the target (the first measured step always counts), with its flow."""
+
+    def __init__(self, size: int, on_step: Callable[[int, StepRecord], None]):
+        self.history: list[list[StepRecord]] = [[] for _ in range(size)]
+        self.best = [math.inf] * size
+        self.best_step = [0] * size
+        self.best_flow: list = [None] * size
+        self.on_step = on_step
+
+    def improves(self, i: int, step: int, distance: float, flow: torch.Tensor) -> bool:
+        """Whether ``step`` is pair ``i``'s best so far; if so, keep its step, ``distance`` and
+        flow (row ``i`` of ``flow``, detached, on the CPU)."""
+        if distance < self.best[i] or self.best_flow[i] is None:
+            self.best[i], self.best_step[i] = distance, step
+            self.best_flow[i] = flow[i:i + 1].detach().cpu()
+            return True
+        return False
+
+    def record(self, step: int, pairs: Sequence[int], flow: torch.Tensor, benign: torch.Tensor,
+               losses: torch.Tensor, distances: Sequence[float], penalties: torch.Tensor,
+               t0: float) -> None:
+        """Append step ``step``'s :class:`StepRecord` to the history of each pair in ``pairs``
+        and report it to ``on_step``; ``seconds`` is the time since ``t0``.
+        Shape: flow and benign (B, 2, H, W), losses and penalties (B,), distances B floats."""
+        robustness = aee(flow.detach(), benign).cpu().tolist()
+        loss_values = losses.detach().cpu().tolist()
+        penalty_values = penalties.detach().cpu().tolist()
+        seconds = time.perf_counter() - t0
+        for i in pairs:
+            record = StepRecord(step=step, loss=loss_values[i], distance=distances[i],
+                                penalty=penalty_values[i], robustness=robustness[i],
+                                best_distance=self.best[i], seconds=seconds)
+            self.history[i].append(record)
+            self.on_step(i, record)
+
+
 def _snapshot(particles):
     """A detached CPU copy of a record."""
     return particles.replace(**{n: getattr(particles, n).detach().cpu().clone()
@@ -252,7 +291,7 @@ class BatchOptimisation:
         whether that pair alone would have anything to optimise.
         """
         current = [v.particles() for v in self.variables]
-        out = self.render(current)
+        out = BatchOptimisation.render(self, current)   # B records, also in a PairOptimisation
         flow = self.model(out.image1, out.image2)
         distances = aee(flow, self.goal)
         penalties = [offset_penalty(r.offset1, r.offset2, d1, d2, self.settings.alpha1,
@@ -333,11 +372,8 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
     run = BatchOptimisation(model, pairs, particles, settings, target, device=device,
                             target_file_flow=target_file_flow)
     size = run.size
-    history: list[list[StepRecord]] = [[] for _ in range(size)]
-    best = [math.inf] * size
-    best_step = [0] * size
+    log = StepLog(size, on_step)
     best_particles: list = [None] * size
-    best_flow: list = [None] * size
     initial_flow: list = [None] * size
     frozen = [False] * size
     active = [True] * size
@@ -351,10 +387,8 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
                 continue
             if step == 0:
                 initial_flow[i] = flow[i:i + 1].detach().cpu()
-            if dists[i] < best[i] or best_particles[i] is None:
-                best[i], best_step[i] = dists[i], step
-                best_particles[i], best_flow[i] = (_snapshot(current[i]),
-                                                   flow[i:i + 1].detach().cpu())
+            if log.improves(i, step, dists[i], flow):
+                best_particles[i] = _snapshot(current[i])
         last = step == steps
         finishing = [False] * size
         if not last:
@@ -364,19 +398,10 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
             going = [a and d for a, d in zip(active, run.depends)]
             if any(going):
                 run.update(losses.sum(), going)
-        robustness = aee(flow.detach(), run.benign).cpu().tolist()
-        loss_values = losses.detach().cpu().tolist()
-        penalty_values = penalties.detach().cpu().tolist()
-        seconds = time.perf_counter() - t0
+        log.record(step, [i for i in range(size) if active[i]], flow, run.benign, losses, dists,
+                   penalties, t0)
         for i in range(size):
-            if not active[i]:
-                continue
-            record = StepRecord(step=step, loss=loss_values[i], distance=dists[i],
-                                penalty=penalty_values[i], robustness=robustness[i],
-                                best_distance=best[i], seconds=seconds)
-            history[i].append(record)
-            on_step(i, record)
-            if finishing[i]:
+            if finishing[i]:        # only an active pair can be finishing
                 frozen[i], active[i] = True, False
             if last:
                 active[i] = False
@@ -384,9 +409,9 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
         if not any(active):
             break
     benign, goal = run.benign.cpu(), run.goal.cpu()
-    return [AttackResult(best_particles=best_particles[i], best_step=best_step[i],
-                         history=history[i], benign_flow=benign[i:i + 1],
-                         initial_flow=initial_flow[i], best_flow=best_flow[i],
+    return [AttackResult(best_particles=best_particles[i], best_step=log.best_step[i],
+                         history=log.history[i], benign_flow=benign[i:i + 1],
+                         initial_flow=initial_flow[i], best_flow=log.best_flow[i],
                          target=goal[i:i + 1], frozen=frozen[i]) for i in range(size)]
 
 

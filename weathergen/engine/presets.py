@@ -145,11 +145,7 @@ class Preset:
 
     def to_dict(self) -> dict:
         """Every key with its resolved value, plus ``name`` and ``source`` (for manifests)."""
-        out = {"name": self.name, "source": self.source}
-        for f in preset_keys():
-            v = getattr(self, f.name)
-            out[f.name] = list(v) if isinstance(v, tuple) else v
-        return out
+        return {"name": self.name, "source": self.source, **_key_values(self, preset_keys())}
 
     @property
     def blur_sample_count(self) -> int:
@@ -159,6 +155,15 @@ class Preset:
     @property
     def effective_blur_length(self) -> float:
         return self.blur_length if self.motion_blur else 0.0
+
+
+def _key_values(preset, keys: list[dataclasses.Field]) -> dict:
+    """The values of a preset's ``keys``, tuples as lists (as TOML and JSON write them)."""
+    out = {}
+    for f in keys:
+        v = getattr(preset, f.name)
+        out[f.name] = list(v) if isinstance(v, tuple) else v
+    return out
 
 
 def preset_keys() -> list[dataclasses.Field]:
@@ -307,26 +312,39 @@ def load_preset(name_or_path: str | Path = "snow",
         return build_field_preset(name, where, data, overrides, base_dir)
     if model != "paper":
         raise ConfigError(f"{where}: key 'model' = {model!r}: must be paper or field")
+    values, templates_from = _preset_values(where, data, overrides, base_dir, _KEYS)
+    preset = Preset(name=name, source=where, **values)
+    _check_consistency(preset, where)
+    _check_template_folder(preset.templates, templates_from)
+    return preset
+
+
+def _preset_values(where: str, data: Mapping[str, Any], overrides: Mapping[str, Any],
+                   base_dir: Optional[Path], keys: Mapping[str, dataclasses.Field],
+                   ignored: tuple[str, ...] = ()) -> tuple[dict, str]:
+    """Type-check a preset file's values (``data``, read from ``where``) and then ``overrides``
+    (later ones win) against the schema ``keys``; override keys in ``ignored`` are skipped. A
+    relative ``templates`` folder in the file is resolved against ``base_dir`` (None: as given).
+    Returns the values and where the ``templates`` value came from (for messages)."""
     values = {}
     templates_from = where
     for key, value in data.items():
         if isinstance(value, dict):
             raise ConfigError(f"{where}: key '{key}' is a table; preset files are flat "
-                              f"(known keys: {', '.join(_KEYS)})")
-        values[key] = _coerce(where, key, value)
+                              f"(known keys: {', '.join(keys)})")
+        values[key] = _coerce(where, key, value, keys)
     if base_dir is not None and "templates" in values:
         values["templates"] = _resolve_templates(values["templates"], base_dir)
-    for key, value in (overrides or {}).items():
+    for key, value in overrides.items():
+        if key in ignored:
+            continue
         if isinstance(value, str):
-            values[key] = parse_override(key, value)
+            values[key] = parse_override(key, value, keys=keys)
         else:
-            values[key] = _coerce("override", key, value)
+            values[key] = _coerce("override", key, value, keys)
         if key == "templates":
             templates_from = "${overrides}" if isinstance(value, str) else "override"
-    preset = Preset(name=name, source=where, **values)
-    _check_consistency(preset, where)
-    _check_template_folder(preset.templates, templates_from)
-    return preset
+    return values, templates_from
 
 
 def _check_template_folder(value: str, where: str) -> None:
@@ -457,11 +475,8 @@ class FieldPreset:
 
     def to_dict(self) -> dict:
         """Every key with its resolved value, plus ``model``, ``name`` and ``source``."""
-        out = {"name": self.name, "source": self.source, "model": self.model}
-        for f in field_preset_keys():
-            v = getattr(self, f.name)
-            out[f.name] = list(v) if isinstance(v, tuple) else v
-        return out
+        return {"name": self.name, "source": self.source, "model": self.model,
+                **_key_values(self, field_preset_keys())}
 
     def tile_count(self) -> int:
         """Particles per tile: ``round(density x tile^3)``."""
@@ -494,24 +509,8 @@ _FIELD_KEYS = {f.name: f for f in field_preset_keys()}
 def build_field_preset(name: str, where: str, data: Mapping[str, Any],
                        overrides: Mapping[str, Any], base_dir: Optional[Path]) -> FieldPreset:
     """Validate a field preset's file values and overrides (see :func:`presets.load_preset`)."""
-    values = {}
-    templates_from = where
-    for key, value in data.items():
-        if isinstance(value, dict):
-            raise ConfigError(f"{where}: key '{key}' is a table; preset files are flat "
-                              f"(known keys: {', '.join(_FIELD_KEYS)})")
-        values[key] = _coerce(where, key, value, _FIELD_KEYS)
-    if base_dir is not None and "templates" in values:
-        values["templates"] = _resolve_templates(values["templates"], base_dir)
-    for key, value in overrides.items():
-        if key in ("name", "source"):
-            continue
-        if isinstance(value, str):
-            values[key] = parse_override(key, value, keys=_FIELD_KEYS)
-        else:
-            values[key] = _coerce("override", key, value, _FIELD_KEYS)
-        if key == "templates":
-            templates_from = "${overrides}" if isinstance(value, str) else "override"
+    values, templates_from = _preset_values(where, data, overrides, base_dir, _FIELD_KEYS,
+                                            ignored=("name", "source"))
     preset = FieldPreset(name=name, source=where, **values)
     if not preset.far > preset.near:
         raise ConfigError(f"{where}: key 'far' = {preset.far!r}: must be greater than near "
