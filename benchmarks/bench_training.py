@@ -16,7 +16,8 @@ paper's ``p = 0.5`` the cost halves):
   of host synchronisations among them (``nonzero``, ``unique``, ``.item()``, ``.tolist()``), set
   against the same counts for the training step (counted on a small crop: a step's operations do
   not depend on the image size): without a GPU, the share of launches is the estimate of the
-  weather's share of a GPU step;
+  weather's share of a GPU step (on the CPU also for the fast path with the larger chunks a GPU
+  uses, and counting the host-side bookkeeping a GPU count leaves out);
 
 and the time of one training step (forward with every iteration, sequence loss, backward, AdamW)
 of RAFT-small and, with ``--model raft`` or on a GPU, full RAFT, on the cropped batch. Target:
@@ -39,6 +40,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from engine_scenes import plane_pair, pose, rotation  # noqa: E402
 
+from weathergen.engine.flat import render_flat  # noqa: E402
 from weathergen.framepair import PairId  # noqa: E402
 from weathergen.models import build_model  # noqa: E402
 from weathergen.training import (PairSample, RandomCrop, WeatherAugment,  # noqa: E402
@@ -96,6 +98,13 @@ def count_ops(fn, device) -> tuple[int, int]:
     with counter:
         fn()
     return counter.ops, counter.syncs
+
+
+def flat_arguments(batch) -> tuple:
+    """The arguments of :func:`render_flat` for a batch with prepared particles."""
+    p = batch.pairs
+    return (p.image1, p.image2, p.depth1, p.depth2, p.intrinsics, p.cam1_from_world,
+            p.cam2_from_world, list(batch.particles))
 
 
 def timed(fn, repeats: int, sync, warm_up: bool = True) -> float:
@@ -157,6 +166,9 @@ def main(argv=None):
             f"prepared, {other_mode} ({device.type})": render_other}
         op_counts[preset] = {default_mode: count_ops(lambda: aug.apply_batch(prepared), device),
                              other_mode: count_ops(lambda: other.apply_batch(prepared), device)}
+        if device.type == "cpu":    # the fast path's chunks as a GPU with free memory sizes them
+            op_counts[preset]["fast, GPU-size chunks"] = count_ops(
+                lambda: render_flat(*flat_arguments(prepared), chunk_elements=1 << 25), device)
 
     cropped = crop.apply_batch(batch_cpu).to(device)
     p = cropped.pairs

@@ -113,12 +113,14 @@ def test_operation_count_does_not_grow_with_particles_or_pairs():
         args = (b.image1, b.image2, b.depth1, b.depth2, b.intrinsics, b.cam1_from_world,
                 b.cam2_from_world, records)
         for name, fn in (("flat", render_flat), ("render", render)):
+            fn(*args)                       # the first call builds the template atlas (cached)
             counter = Counter()
             with counter:
                 fn(*args)
             counts[name, n, pairs] = counter.ops
     flat = [counts["flat", n, p] for n, p in ((40, 2), (400, 2), (400, 4))]
     assert max(flat) - min(flat) <= 10, flat         # a few per-record host values at most
+    assert max(flat) < 1000, flat                    # "a few hundred" (README, docs/training.md)
     assert counts["render", 400, 4] > 2 * max(flat), counts
 
 

@@ -16,8 +16,9 @@ It runs in one of two places:
   mixed). Without ``prepare`` the batch path samples the particles itself (on the CPU, from the
   pairs' depth and cameras). Both paths give the same frames: bit for bit on the CPU (each pair's
   stamps are rasterised on their own, see :func:`stamps_per_record`); on other devices the batch
-  path by default takes the fast route of :mod:`weathergen.training.batchrender` (few buckets,
-  far fewer kernel launches), equal up to float rounding, and CUDA's frames agree with the CPU's
+  path by default takes the fast route of :mod:`weathergen.training.batchrender` (the ragged
+  renderer :func:`~weathergen.engine.flat.render_flat`: a few hundred kernel launches per batch),
+  equal up to float rounding, and CUDA's frames agree with the CPU's
   within one grey level.
 
 **Order: weather first, geometric augmentation after.** The presets place a number of *visible*
@@ -196,11 +197,11 @@ class WeatherAugment:
             ``{"count": 1000}`` for frames much smaller than Sintel's).
         world_up: which world axis points up; ``None`` takes each sample's (its dataset's) setting.
         keep_particles: keep the rendered particle record in :attr:`PairSample.particles`.
-        exact_batches: how :meth:`apply_batch` rasterises the stamps of the paper's presets
-            (:mod:`weathergen.training.batchrender`): ``True`` record by record, bit for bit the
-            per-sample frames; ``False`` all records at once in a few buckets, far fewer device
-            operations, equal up to float rounding; ``None`` (default): exact on the CPU, fast on
-            other devices.
+        exact_batches: how :meth:`apply_batch` renders the paper's presets
+            (:mod:`weathergen.training.batchrender`): ``True`` with the renderer, stamps record by
+            record, bit for bit the per-sample frames; ``False`` with the ragged renderer, a few
+            hundred device operations per batch, equal up to float rounding; ``None`` (default):
+            exact on the CPU, fast on other devices.
 
     Shape: frames ``(3, H, W)`` per sample or ``(B, 3, H, W)`` per batch, RGB in ``[0, 1]``;
     the pairs need depth and cameras (every weathergen reader provides them).
