@@ -33,11 +33,11 @@ from typing import Optional, Sequence
 import torch
 
 from ..errors import ConfigError
-from .compositing import blend, upsample
+from .compositing import upsample
 from .particles import Particles
-from .renderer import (_SIDES, BETA_RENDER, COARSE_MAX_LEVEL, COARSE_MIN_SIDE, COARSE_SIDE,
-                       RIM_MARGIN, RenderOutput, _blur_steps, _depth_levels, check_records,
-                       defocus_brighten, mip_pyramid)
+from .renderer import (BETA_RENDER, COARSE_MAX_LEVEL, COARSE_SIDE, RIM_MARGIN, RenderOutput,
+                       _blur_steps, _depth_levels, blend_sums, check_records, defocus_brighten,
+                       mip_pyramid, stamp_geometry)
 from .sampling import NEAR
 from .templates import TemplateLibrary
 
@@ -160,29 +160,12 @@ class _Layout:
         if self.count and (int(self.template.min()) < 0 or int(self.template.max()) >= lib.count):
             raise ConfigError(f"particle template index out of range for the {lib.count} "
                               f"templates of '{lib.name}'")
-        # stamp geometry, as renderer.build_stamps computes it
         rotation = reals[:, 16].to(stamp_dtype)
         footprint = (reals[:, 17] * lib.resolution).clamp(min=1.0)
-        blurred = defocus > 1
-        radius = torch.where(blurred, defocus, torch.zeros_like(defocus))
-        self.brighten = (bright > 0) & blurred
-        coarse = torch.zeros_like(radius)
-        if coarse_side is not None:
-            full = footprint + 2 * radius
-            coarse = torch.where(full >= coarse_side,
-                                 torch.floor(torch.log2(full / COARSE_MIN_SIDE))
-                                 .clamp(1, COARSE_MAX_LEVEL),
-                                 torch.zeros_like(full)).long()
-            factor = (2.0 ** coarse).to(torch.float64)
-            footprint = (footprint / factor).clamp(min=1.0)
-            radius = torch.where(coarse > 0, torch.floor(radius / factor + 0.5).long(), radius)
-        raw_side = 2 * torch.floor(footprint / 2 + 0.5).clamp(min=1).long() + 1
-        sides = _SIDES.to(device)
-        self.side = sides[torch.searchsorted(sides, raw_side)]
-        self.sub = torch.where(self.side <= 5, 4, torch.where(self.side <= 9, 2, 1))
+        self.brighten = (bright > 0) & (defocus > 1)
         _, _, level_sides = _atlas(lib, stamp_dtype, device)
-        self.level = torch.floor(torch.log2(lib.resolution / (footprint * self.sub))) \
-            .clamp(0, level_sides.numel() - 1).long()
+        footprint, radius, coarse, self.side, self.sub, self.level = stamp_geometry(
+            footprint, defocus, lib.resolution, level_sides.numel(), coarse_side)
         self.radius, self.coarse = radius, coarse
         self.full_side = self.side + 2 * radius          # the stamp's side after its blur
         self.cos, self.sin = torch.cos(rotation), torch.sin(rotation)
@@ -364,13 +347,7 @@ def render_flat(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor
             depths = torch.stack((depth1, depth2)).to(dtype).reshape(-1, 1, height, width)
             acc = _splat(lay, stamps.to(dtype), first, inst, depths, float(beta),
                          chunk_elements, reached)
-        if acc is None:
-            acc = torch.zeros(4, 2 * bsz * height * width, dtype=dtype, device=device)
-        alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
-        out1, out2, opacity1, opacity2 = blend(acc.view(4, 2, bsz, 1, height, width), image1,
-                                               image2, alpha_mode)
-    return RenderOutput(image1=out1, image2=out2, opacity1=opacity1, opacity2=opacity2,
-                        reached=reached)
+        return blend_sums(acc, image1, image2, records, reached)
 
 
 def _splat(lay: _Layout, stamps, first, inst: dict, depths: torch.Tensor, beta: float,

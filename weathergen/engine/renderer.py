@@ -220,6 +220,39 @@ def _stamp_chunk(levels: list, level: int, template: torch.Tensor, rotation: tor
     return out
 
 
+def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: int,
+                   level_count: int, coarse_side: Optional[int] = COARSE_SIDE) -> tuple:
+    """Each particle's stamp layout from its footprint (pixels, float64, >= 1) and defocus radius.
+
+    Stamps at least ``coarse_side`` pixels wide (template plus defocus) go to a grid ``f = 2**L``
+    times coarser (f the largest power of two up to ``2**COARSE_MAX_LEVEL`` keeping them >=
+    COARSE_MIN_SIDE coarse pixels wide), footprint and radius divided by f. Returns
+    ``(footprint, radius, coarse, side, sub, level)``, all (P,): the footprint on its grid, the
+    disc-blur radius (0: none; radii <= 1 do not blur), the grid level L, the stamp side before
+    the blur (an allowed bucket side covering every pixel the footprint's disc reaches), the
+    supersampling per axis and the mip level (no finer than twice the footprint).
+    """
+    radius = torch.where(defocus > 1, defocus, torch.zeros_like(defocus))
+    coarse = torch.zeros_like(radius)
+    if coarse_side is not None:
+        full = footprint + 2 * radius
+        coarse = torch.where(full >= coarse_side,
+                             torch.floor(torch.log2(full / COARSE_MIN_SIDE))
+                             .clamp(1, COARSE_MAX_LEVEL),
+                             torch.zeros_like(full)).long()
+        factor = (2.0 ** coarse).to(torch.float64)
+        footprint = (footprint / factor).clamp(min=1.0)
+        radius = torch.where(coarse > 0, torch.floor(radius / factor + 0.5).long(), radius)
+    # every pixel the footprint's disc reaches (partly covered ones are box-filtered)
+    raw_side = 2 * torch.floor(footprint / 2 + 0.5).clamp(min=1).long() + 1
+    sides = _SIDES.to(footprint.device)
+    side = sides[torch.searchsorted(sides, raw_side)]
+    sub = torch.where(side <= 5, 4, torch.where(side <= 9, 2, 1))
+    level = torch.floor(torch.log2(resolution / (footprint * sub))) \
+        .clamp(0, level_count - 1).long()
+    return footprint, radius, coarse, side, sub, level
+
+
 def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
                  dtype: torch.dtype = torch.float32, device=None,
                  chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
@@ -238,32 +271,15 @@ def build_stamps(records: Sequence[Particles], lib: TemplateLibrary, *,
         rotation = torch.cat([r.rotation for r in records]).to(device=device, dtype=dtype)
         footprint = torch.cat([r.scale for r in records]).to(device=device, dtype=torch.float64)
         footprint = (footprint * lib.resolution).clamp(min=1.0)
-        radius = torch.cat([r.defocus for r in records]).to(device)
-        blurred = radius > 1
-        radius = torch.where(blurred, radius, torch.zeros_like(radius))
+        defocus = torch.cat([r.defocus for r in records]).to(device)
         brighten = torch.cat([torch.full((r.count,), bool(r.settings.defocus_brighten),
-                                         device=device) for r in records]) & blurred
+                                         device=device) for r in records]) & (defocus > 1)
         if int(template.numel()) and (int(template.min()) < 0 or int(template.max()) >= lib.count):
             raise ConfigError(f"particle template index out of range for the {lib.count} "
                               f"templates of '{lib.name}'")
         levels = mip_pyramid(lib, dtype, device)
-        coarse = torch.zeros_like(radius)
-        if coarse_side is not None:
-            full = footprint + 2 * radius
-            coarse = torch.where(full >= coarse_side,
-                                 torch.floor(torch.log2(full / COARSE_MIN_SIDE))
-                                 .clamp(1, COARSE_MAX_LEVEL),
-                                 torch.zeros_like(full)).long()
-            factor = (2.0 ** coarse).to(torch.float64)
-            footprint = (footprint / factor).clamp(min=1.0)
-            radius = torch.where(coarse > 0, torch.floor(radius / factor + 0.5).long(), radius)
-        # every pixel the footprint's disc reaches (partly covered ones are box-filtered)
-        raw_side = 2 * torch.floor(footprint / 2 + 0.5).clamp(min=1).long() + 1
-        sides = _SIDES.to(device)
-        side = sides[torch.searchsorted(sides, raw_side)]
-        sub = torch.where(side <= 5, 4, torch.where(side <= 9, 2, 1))
-        level = torch.floor(torch.log2(lib.resolution / (footprint * sub))) \
-            .clamp(0, len(levels) - 1).long()
+        footprint, radius, coarse, side, _, level = stamp_geometry(
+            footprint, defocus, lib.resolution, len(levels), coarse_side)
         key = (((side * 64 + level) * 64 + radius) * 2 + brighten.long()) * 16 + coarse
         keys, bucket_of = torch.unique(key, return_inverse=True)
         slot_of = torch.zeros_like(bucket_of)
@@ -656,10 +672,20 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
                                   chunk_elements=chunk_elements, coarse_side=coarse_side)
         depths = torch.stack((depth1, depth2)).to(dtype)
         acc, reached = _splat(depths, inst, stamps, height, width, float(beta), chunk_elements)
+    return blend_sums(acc, image1, image2, records, reached)
+
+
+def blend_sums(acc: Optional[torch.Tensor], image1: torch.Tensor, image2: torch.Tensor,
+           records: Sequence[Particles], reached: torch.Tensor) -> RenderOutput:
+    """Blend the per-pixel sums ``acc`` (4, 2 B H W) of A, C_r, C_g, C_b (None: nothing was
+    splatted) into both frames, each pair with its record's blend mode. Shape: images
+    (B, 3, H, W); returns :class:`RenderOutput`."""
+    bsz, _, height, width = image1.shape
     if acc is None:
-        acc = torch.zeros(4, 2 * bsz * height * width, dtype=dtype, device=device)
+        acc = torch.zeros(4, 2 * bsz * height * width, dtype=image1.dtype, device=image1.device)
     # blending both frames is one autograd node with a hand-written backward (compositing.py)
-    alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
+    alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records],
+                              device=image1.device)
     out1, out2, opacity1, opacity2 = blend(acc.view(4, 2, bsz, 1, height, width), image1,
                                            image2, alpha_mode)
     return RenderOutput(image1=out1, image2=out2, opacity1=opacity1, opacity2=opacity2,
