@@ -133,3 +133,17 @@ def test_weather_field_records_are_refused():
         render_flat(b.image1, b.image2, b.depth1, b.depth2, b.intrinsics, b.cam1_from_world,
                     b.cam2_from_world, [field])
     assert render_pair(pair, field).image1.shape == (1, 3, 40, 72)
+
+
+def test_records_without_particles_leave_their_frames_unchanged():
+    from weathergen.engine import empty_particles
+    pairs = [scene(0), scene(1)]
+    records = records_for(pairs, ("snow", "snow"))
+    empty = empty_particles(settings=records[1].settings)
+    a, b = both(pairs, [records[0], empty])
+    assert_close(a, b, 1e-9)
+    assert b.reached.tolist() == [True, False]
+    assert torch.equal(b.image2[1], pairs[1].image2.clamp(0, 1))
+    a, b = both(pairs, [empty, empty])
+    assert_close(a, b, 0.0)
+    assert not bool(b.reached.any())

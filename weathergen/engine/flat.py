@@ -142,8 +142,9 @@ class _Layout:
             return torch.cat([getattr(r, name).to(host) for r in records])
 
         # two copies to the device: the reals, in float64, and the integers
-        reals = torch.cat([joined(f).to(torch.float64).reshape(self.count, -1)
-                           for f in _FLOAT_FIELDS + ("transparency", "rotation", "scale")], 1)
+        reals = torch.cat([joined(f).to(torch.float64).view(self.count, 3 if i < 5 else 1)
+                           for i, f in enumerate(_FLOAT_FIELDS + ("transparency", "rotation",
+                                                                   "scale"))], 1)
         flags = torch.tensor([[i, int(bool(r.settings.defocus_brighten))]
                               for i, r in enumerate(records)], device=host)
         flags = torch.repeat_interleave(flags, torch.tensor(counts, device=host), dim=0,
