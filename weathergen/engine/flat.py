@@ -22,8 +22,9 @@ billboards, blur samples, visibility and blending. What differs is arithmetic or
 - stamps are computed in ``stamp_dtype`` (float64 by default) and splatted in the images' dtype.
 
 So the frames equal :func:`~weathergen.engine.render`'s up to float rounding (tested against it
-in float64 to 1e-9 and in float32 to within one grey level). There is no backward pass: this is
-for augmentation, where nothing is differentiated; attacks use :func:`~weathergen.engine.render`.
+in float64 to 1e-9 and in float32 to 1e-3, a quarter of a grey level). There is no backward
+pass: this is for augmentation, where nothing is differentiated; attacks use
+:func:`~weathergen.engine.render`.
 """
 
 from __future__ import annotations
@@ -59,6 +60,7 @@ def chunk_elements_for(device: torch.device) -> int:
         return FLAT_CHUNK_ELEMENTS
     free, _ = torch.cuda.mem_get_info(device)
     return int(min(1 << 25, max(1 << 21, GPU_MEMORY_SHARE * free // BYTES_PER_ELEMENT)))
+
 
 _ATLAS_CACHE: dict = {}
 _FLOAT_FIELDS = ("position", "motion", "offset1", "offset2", "color")
