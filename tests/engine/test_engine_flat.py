@@ -7,9 +7,8 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from engine_scenes import plane_pair, pose, rotation
-from weathergen.engine import load_preset, render, render_pair, sample_particles
+from weathergen.engine import load_preset, render, sample_field_particles, sample_particles
 from weathergen.engine.flat import render_flat
-from weathergen.errors import ConfigError
 from weathergen.framepair import FramePairBatch
 
 
@@ -124,15 +123,37 @@ def test_operation_count_does_not_grow_with_particles_or_pairs():
     assert counts["render", 400, 4] > 2 * max(flat), counts
 
 
-def test_weather_field_records_are_refused():
-    from weathergen.engine import load_preset as preset, sample_field_particles
-    pair = scene(0)
-    field = sample_field_particles(pair, preset("snow-light", {"density": 5}), seed=1)
-    b = FramePairBatch.stack([pair])
-    with pytest.raises(ConfigError, match="view by view"):
-        render_flat(b.image1, b.image2, b.depth1, b.depth2, b.intrinsics, b.cam1_from_world,
-                    b.cam2_from_world, [field])
-    assert render_pair(pair, field).image1.shape == (1, 3, 40, 72)
+def field_records(pairs, presets, density=8.0, **overrides):
+    return [sample_field_particles(p, load_preset(name, {"density": density, **overrides}),
+                                   seed=20 + i)
+            for i, (p, name) in enumerate(zip(pairs, presets))]
+
+
+@pytest.mark.parametrize("presets,overrides", [
+    (("snow-light", "snow-light"), {}), (("snow-light",), {"aperture": 0.2}),
+    (("rain-light",), {}), (("sparks-light",), {}), (("fog-light",), {"density": 0.5})],
+    ids=["snow-light", "snow-light-defocused", "rain-light", "sparks-light", "fog-light"])
+def test_weather_field_records_equal_the_per_frame_renderer(presets, overrides):
+    """Field records look different in each frame (footprint f d / z, depth fade, thin-lens
+    defocus, the view mask, softer occlusion): render_flat draws them as the per-frame
+    renderer does, every pair and frame in the same few operations."""
+    pairs = [scene(i) for i in range(len(presets))]
+    records = field_records(pairs, presets, **overrides)
+    assert all(r.optics is not None and r.count > 0 for r in records)
+    a, b = both(pairs, records)
+    assert bool((b.image1 != FramePairBatch.stack(pairs).image1).any())
+    for name in ("image1", "image2", "opacity1", "opacity2"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert float((x - y).abs().max()) <= 1e-9, (name, float((x - y).abs().max()))
+
+
+def test_field_and_paper_records_in_one_call():
+    pairs = [scene(0), scene(1)]
+    paper = records_for(pairs[:1], ("snow",))[0]
+    field = field_records(pairs[1:], ("snow-light",))[0]
+    a, b = both(pairs, [paper, field])
+    for name in ("image1", "image2", "opacity1", "opacity2"):
+        assert float((getattr(a, name) - getattr(b, name)).abs().max()) <= 1e-9, name
 
 
 def test_records_without_particles_leave_their_frames_unchanged():

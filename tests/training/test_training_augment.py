@@ -199,6 +199,14 @@ def test_field_presets_render_in_both_paths_as_the_field_samples_them(samples):
         assert batched.weather == expected.weather
         assert torch.equal(batched.pairs.image1, expected.pairs.image1)
         assert torch.equal(batched.pairs.image2, expected.pairs.image2)
+    # the fast path draws both models in one ragged call, equal up to rounding
+    fast = WeatherAugment([field, PresetSource("snow", LIGHT)], p=1.0, seed=4,
+                          exact_batches=False)
+    batched = fast.apply_batch(collate_pairs(samples))
+    assert batched.weather == expected.weather
+    for name in ("image1", "image2"):
+        diff = (getattr(batched.pairs, name) - getattr(expected.pairs, name)).abs()
+        assert float(diff.max()) <= 1e-3, name
 
 
 def test_the_field_ladder_keeps_its_densities(samples):

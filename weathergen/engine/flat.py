@@ -36,6 +36,7 @@ import torch
 from ..errors import ConfigError
 from .compositing import upsample
 from .particles import Particles
+from .perframe import MAX_DEFOCUS, _smoothstep
 from .renderer import (BETA_RENDER, COARSE_MAX_LEVEL, COARSE_SIDE, RIM_MARGIN, RenderOutput,
                        _blur_steps, _depth_levels, blend_sums, check_records, defocus_brighten,
                        mip_pyramid, stamp_geometry)
@@ -129,46 +130,228 @@ def _disc_counts(radius: torch.Tensor) -> torch.Tensor:
     return ((2 * rows + 1) * inside).sum(1)
 
 
+def _packed(records: Sequence[Particles], device) -> tuple:
+    """The records' particles concatenated in record order, copied to ``device`` in two
+    tensors: ``reals`` (P, 18) float64 (position, motion, offset1, offset2, colour, θ, rotation,
+    scale) and ``ints`` (P, 3) int64 (template, defocus, the record's index in ``records``)."""
+    counts = [r.count for r in records]
+    total = sum(counts)
+    host = records[0].position.device
+
+    def joined(name):
+        return torch.cat([getattr(r, name).to(host) for r in records])
+
+    reals = torch.cat([joined(f).to(torch.float64).view(total, 3 if i < 5 else 1)
+                       for i, f in enumerate(_FLOAT_FIELDS + ("transparency", "rotation",
+                                                               "scale"))], 1)
+    record = torch.repeat_interleave(torch.arange(len(records), device=host),
+                                     torch.tensor(counts, device=host), output_size=total)
+    ints = torch.stack((joined("template").long(), joined("defocus").long(), record), 1)
+    return reals.to(device), ints.to(device)
+
+
+def _cameras(intrinsics, cam1_from_ref, cam2_from_ref, device) -> tuple:
+    """Per view ``v = t B + b`` (frame t of pair b): ``K [R | t]`` (2B, 3, 4) and ``K R``
+    (2B, 3, 3), float64."""
+    k = intrinsics.to(device, torch.float64)
+    k = torch.cat((k, k))
+    cams = torch.cat((cam1_from_ref, cam2_from_ref)).to(device, torch.float64)[:, :3, :]
+    full = k @ cams
+    return full, full[:, :, :3]
+
+
+def _homogeneous(matrix: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """``matrix @ [points; 1]`` row by row. Shape: (N, 3, 4), (N, 3) -> (N, 3)."""
+    return (matrix[:, :, :3] @ points[:, :, None])[:, :, 0] + matrix[:, :, 3]
+
+
+def _step_groups(records: Sequence[Particles], dtype) -> dict:
+    """Records grouped by their blur samples: ``{steps (tuple of floats): [record indices]}``."""
+    groups: dict = {}
+    for i, r in enumerate(records):
+        groups.setdefault(tuple(_blur_steps(r, dtype, torch.device("cpu")).tolist()), []).append(i)
+    return groups
+
+
+def _members(groups: dict, record: torch.Tensor) -> list:
+    """For each group of :func:`_step_groups`, which rows (of a table whose rows belong to the
+    records ``record``) it holds: None for all (a single group)."""
+    if len(groups) == 1:
+        return [(steps, None) for steps in groups]
+    out = []
+    for steps, members in groups.items():
+        chosen = torch.zeros(int(record.max()) + 1 if record.numel() else 1, dtype=torch.bool,
+                             device=record.device)
+        chosen[members] = True
+        out.append((steps, torch.nonzero(chosen[record]).squeeze(1)))
+    return out
+
+
+def _paper_entries(records, pairs: list, views: tuple, lib, dtype, beta: float) -> tuple:
+    """Stamps and tracks of records of the paper's model (fixed looks, one stamp per particle
+    drawn in both frames of its pair ``pairs[i]``; the streak follows ``X2 − X1``, the apparent
+    motion in camera coordinates). See :func:`_layout` for what is returned."""
+    full, _ = views
+    device = full.device
+    bsz = full.shape[0] // 2
+    reals, ints = _packed(records, device)
+    template, defocus, record = ints.unbind(1)
+    pair = torch.tensor(pairs, device=device)[record]
+    flags = torch.tensor([bool(r.settings.defocus_brighten) for r in records], device=device)
+    entries = dict(footprint=reals[:, 17] * lib.resolution, defocus=defocus,
+                   rotation=reals[:, 16], template=template,
+                   brighten=flags[record] & (defocus > 1), theta=reals[:, 15].to(dtype),
+                   color=reals[:, 12:15].to(dtype))
+    start = reals[:, 0:3] + reals[:, 6:9]
+    end = start + reals[:, 3:6] + reals[:, 9:12]
+    h1 = _homogeneous(full[pair], start)
+    h2 = _homogeneous(full[bsz + pair], end)
+    tracks = []
+    for steps, rows in _members(_step_groups(records, dtype), record):
+        pick = (lambda t: t) if rows is None else (lambda t: t[rows])  # noqa: E731
+        entry = torch.arange(reals.shape[0], device=device) if rows is None else rows
+        p = pick(pair)
+        hd = pick(h2 - h1)
+        tracks.append(dict(steps=steps, entry=torch.cat((entry, entry)),
+                           view=torch.cat((p, bsz + p)), h0=torch.cat((pick(h1), pick(h2))),
+                           hd=torch.cat((hd, hd)), beta=torch.full((2 * p.numel(),), beta,
+                                                                   dtype=torch.float64,
+                                                                   device=device)))
+    return entries, tracks
+
+
+def _field_entries(records, pairs: list, views: tuple, intrinsics, cam_from_ref,
+                   depths: torch.Tensor, lib, dtype, beta: float) -> tuple:
+    """Stamps and tracks of weather-field records: each particle is a candidate in both frames
+    of its pair, and a frame draws it with its own looks, as
+    :mod:`weathergen.engine.perframe` computes them (the view mask, footprint ``f d / z``, θ
+    faded with depth and scaled by the area below one pixel, thin-lens defocus, occlusion
+    softness), vectorised over every candidate. See :func:`_layout` for what is returned."""
+    full, rotation = views
+    device = full.device
+    bsz = full.shape[0] // 2
+    height, width = depths.shape[-2:]
+    reals, ints = _packed(records, device)
+    n = reals.shape[0]
+    template, _, record = ints.unbind(1)
+    pair = torch.tensor(pairs, device=device)[record]
+    optics = torch.tensor([[r.optics.near, r.optics.far, r.optics.fade, r.optics.aperture,
+                            r.optics.focus, r.optics.depth_softness,
+                            float(r.settings.blur_length), float(bool(r.settings.defocus_brighten))]
+                           for r in records], dtype=torch.float64, device=device)
+    start1 = reals[:, 0:3] + reals[:, 6:9]
+    motion = reals[:, 3:6] + reals[:, 9:12]
+    # candidates: every particle in frame 1, then in frame 2
+    which = torch.cat((torch.arange(n, device=device),) * 2)
+    rec = record[which]
+    view = torch.cat((pair, bsz + pair))
+    near, far, fade, aperture, focus, softness, blur, bright = optics[rec].unbind(1)
+    start = torch.cat((start1, start1 + motion))
+    cam = torch.cat((cam_from_ref[0], cam_from_ref[1])).to(device, torch.float64)[view]
+    k = torch.cat((intrinsics, intrinsics)).to(device, torch.float64)[view]
+    f = torch.sqrt(k[:, 0, 0] * k[:, 1, 1])
+    diameter = reals[which, 17]
+    head = _homogeneous(cam[:, :3, :], start)
+    tail = _homogeneous(cam[:, :3, :], start + blur[:, None] * motion[which])
+    z = head[:, 2]
+
+    def blur_radius(depth):
+        r = 0.5 * f * aperture * (1.0 / depth - 1.0 / focus).abs()
+        return torch.where(aperture > 0, torch.floor(r.clamp(0, MAX_DEFOCUS) + 0.5),
+                           torch.zeros_like(r))
+
+    in_range = (z >= near) & (z <= far)
+    safe = torch.where(in_range, z, far)
+    reach = 0.5 * f * diameter / safe + blur_radius(safe) + 2
+    scene = depths.reshape(-1).to(torch.float64)
+
+    def looks_in(points):
+        zz = points[:, 2]
+        zs = torch.where(zz.abs() > 1e-12, zz, torch.full_like(zz, 1e-12))
+        x, y = points[:, 0] / zs, points[:, 1] / zs
+        u = k[:, 0, 0] * x + k[:, 0, 1] * y + k[:, 0, 2]
+        v = k[:, 1, 1] * y + k[:, 1, 2]
+        reaches = (zz > 1e-6) & (u >= -0.5 - reach) & (u <= width - 0.5 + reach) \
+            & (v >= -0.5 - reach) & (v <= height - 0.5 + reach)
+        col = torch.floor(u + 0.5).clamp(0, width - 1).long()
+        row = torch.floor(v + 0.5).clamp(0, height - 1).long()
+        return reaches & (zz <= scene[(view * height + row) * width + col] + 3 * softness)
+
+    footprint = f * diameter / z
+    fade_out = torch.where(fade > 0, _smoothstep((far - z) / (fade * far)),
+                           (z <= far).to(z.dtype))
+    factor = (_smoothstep((z - near) / near) * fade_out * footprint.clamp(max=1.0) ** 2)
+    kind = records[0].transparency.dtype            # θ is faded in the record's dtype
+    theta = (reals[which, 15].to(kind) * factor.to(kind)).to(dtype)
+    keep = torch.nonzero(in_range & (looks_in(head) | looks_in(tail)) & (theta != 0)).squeeze(1)
+    defocus = blur_radius(z)[keep].long()
+    entries = dict(footprint=footprint[keep].clamp(min=1.0) / lib.resolution * lib.resolution,
+                   defocus=defocus, rotation=reals[which[keep], 16], template=template[which[keep]],
+                   brighten=(bright[keep] > 0) & (defocus > 1), theta=theta[keep],
+                   color=reals[which[keep], 12:15].to(dtype))
+    tracks = []
+    view, rec = view[keep], rec[keep]
+    h0 = (k[keep] @ head[keep][:, :, None])[:, :, 0]
+    hd = (k[keep] @ (cam[keep, :3, :3] @ motion[which[keep]][:, :, None]))[:, :, 0]
+    beta_view = torch.clamp(1.0 / softness[keep], max=beta)
+    for steps, rows in _members(_step_groups(records, dtype), rec):
+        pick = (lambda t: t) if rows is None else (lambda t: t[rows])  # noqa: E731
+        entry = torch.arange(keep.numel(), device=device) if rows is None else rows
+        tracks.append(dict(steps=steps, entry=entry, view=pick(view), h0=pick(h0), hd=pick(hd),
+                           beta=pick(beta_view)))
+    return entries, tracks
+
+
+def _layout(records, views, intrinsics, cam1_from_ref, cam2_from_ref, depths, lib, dtype,
+            beta) -> tuple:
+    """What the render call draws, as two tables:
+
+    - *entries* (E,): one stamp each, ``footprint`` (pixels, float64), ``defocus`` (int64),
+      ``rotation`` (float64), ``template``, ``brighten`` (bool), ``theta`` and ``color`` (E, 3)
+      in the images' dtype: a particle of the paper's model is one entry drawn in both frames,
+      a field particle one entry per frame that draws it;
+    - *tracks*: a list of sets (one per distinct blur samples ``steps``) of tracks, each an
+      entry's streak in one view: ``entry``, ``view`` (t B + b), ``h0`` and ``hd`` (float64
+      (T, 3): the streak's start and direction in homogeneous image coordinates, ``K X`` and
+      ``K ΔX``; the blur samples sit at ``h0 + s hd``), ``beta`` (the occlusion test's β).
+    """
+    paper = [i for i, r in enumerate(records) if r.optics is None and r.count]
+    field = [i for i, r in enumerate(records) if r.optics is not None and r.count]
+    parts = []
+    if paper:
+        parts.append(_paper_entries([records[i] for i in paper], paper, views, lib, dtype, beta))
+    if field:
+        parts.append(_field_entries([records[i] for i in field], field, views, intrinsics,
+                                    (cam1_from_ref, cam2_from_ref), depths, lib, dtype, beta))
+    if not parts:
+        return None, []
+    entries = {key: torch.cat([e[key] for e, _ in parts]) for key in parts[0][0]}
+    tracks, offset = [], 0
+    for e, sets in parts:
+        for t in sets:
+            tracks.append(dict(t, entry=t["entry"] + offset))
+        offset += int(e["template"].numel())
+    return entries, tracks
+
+
 class _Layout:
-    """The particles of a render call, concatenated in record order (the renderer's global
-    particle index), with their stamp geometry; all tensors (P,)."""
+    """The stamps of a render call's entries (:func:`_layout`), with their geometry as the
+    renderer computes it (:func:`~weathergen.engine.renderer.stamp_geometry`); all (E,)."""
 
-    def __init__(self, records: Sequence[Particles], lib: TemplateLibrary, device, dtype,
-                 stamp_dtype, coarse_side):
-        counts = [r.count for r in records]
-        self.count = sum(counts)
-
-        host = records[0].position.device
-
-        def joined(name):
-            return torch.cat([getattr(r, name).to(host) for r in records])
-
-        # two copies to the device: the reals, in float64, and the integers
-        reals = torch.cat([joined(f).to(torch.float64).view(self.count, 3 if i < 5 else 1)
-                           for i, f in enumerate(_FLOAT_FIELDS + ("transparency", "rotation",
-                                                                   "scale"))], 1)
-        flags = torch.tensor([[i, int(bool(r.settings.defocus_brighten))]
-                              for i, r in enumerate(records)], device=host)
-        flags = torch.repeat_interleave(flags, torch.tensor(counts, device=host), dim=0,
-                                        output_size=self.count)
-        ints = torch.cat((torch.stack((joined("template").long(), joined("defocus").long()), 1),
-                          flags), 1)
-        reals, ints = reals.to(device), ints.to(device)
-        # positions stay in float64 (blur samples are projected in float64)
-        self.position, self.motion, self.offset1, self.offset2 = (
-            reals[:, 3 * i:3 * i + 3] for i in range(4))
-        self.color = reals[:, 12:15].to(dtype)
-        self.transparency = reals[:, 15].to(dtype)
-        self.template, defocus, self.record, bright = ints.unbind(1)
+    def __init__(self, entries: dict, lib: TemplateLibrary, stamp_dtype, coarse_side):
+        self.template, self.theta, self.color = (entries[k] for k in ("template", "theta",
+                                                                     "color"))
+        self.count = int(self.template.numel())
+        device = self.template.device
         if self.count and (int(self.template.min()) < 0 or int(self.template.max()) >= lib.count):
             raise ConfigError(f"particle template index out of range for the {lib.count} "
                               f"templates of '{lib.name}'")
-        rotation = reals[:, 16].to(stamp_dtype)
-        footprint = (reals[:, 17] * lib.resolution).clamp(min=1.0)
-        self.brighten = (bright > 0) & (defocus > 1)
+        rotation = entries["rotation"].to(stamp_dtype)
+        self.brighten = entries["brighten"]
         _, _, level_sides = _atlas(lib, stamp_dtype, device)
         footprint, radius, coarse, self.side, self.sub, self.level = stamp_geometry(
-            footprint, defocus, lib.resolution, level_sides.numel(), coarse_side)
+            entries["footprint"].clamp(min=1.0), entries["defocus"], lib.resolution,
+            level_sides.numel(), coarse_side)
         self.radius, self.coarse = radius, coarse
         self.full_side = self.side + 2 * radius          # the stamp's side after its blur
         self.cos, self.sin = torch.cos(rotation), torch.sin(rotation)
@@ -181,7 +364,7 @@ def _rasterise(lay: _Layout, lib: TemplateLibrary, stamp_dtype, chunk: int) -> t
     Each pixel averages ``sub x sub`` bilinear samples of the template's mip level at the rotated
     and scaled sample position, zero outside the footprint's disc (:func:`renderer._stamp_chunk`).
     """
-    atlas, level_first, level_sides = _atlas(lib, stamp_dtype, lay.position.device)
+    atlas, level_first, level_sides = _atlas(lib, stamp_dtype, lay.template.device)
     last = atlas.numel() - lib.resolution - 5               # the last pixel before the zero tail
     side, sub = lay.side, lay.sub
     npix = side * side
@@ -264,52 +447,27 @@ def _blur(lay: _Layout, pixels: torch.Tensor, first: torch.Tensor, chunk: int) -
     return out, out_first
 
 
-def _instances(lay: _Layout, records, intrinsics, cam1_from_ref, cam2_from_ref, dtype) -> dict:
-    """Every particle's blur samples in both frames, projected: flat tensors (I,) of ``u``,
-    ``v``, ``z``, ``theta`` (θ / K), ``target`` (frame t * B + pair), ``particle``, and ``color``
-    (I, 3); one pass per distinct (blur samples, blur length) among the records."""
-    device = lay.position.device
-    bsz = len(records)
-    groups: dict = {}
-    for i, r in enumerate(records):
-        steps = _blur_steps(r, dtype, torch.device("cpu"))
-        groups.setdefault(tuple(steps.tolist()), []).append(i)
-    k_all = intrinsics.to(device, torch.float64)
-    proj1, proj2 = (k_all @ c.to(device, torch.float64)[:, :3, :]
-                    for c in (cam1_from_ref, cam2_from_ref))
+def _instances(lay: _Layout, tracks: list, dtype) -> dict:
+    """Every track's blur samples, projected: flat tensors (I,) of ``u``, ``v``, ``z``,
+    ``theta`` (the entry's θ / K), ``target`` (its view), ``particle`` (its entry), ``beta``,
+    and ``color`` (I, 3)."""
     parts = []
-    for steps, members in groups.items():
-        if len(groups) == 1:
-            index = None
-        else:
-            chosen = torch.zeros(bsz, dtype=torch.bool, device=device)
-            chosen[members] = True
-            index = torch.nonzero(chosen[lay.record]).squeeze(1)
-        pick = (lambda t: t) if index is None else (lambda t: t[index])  # noqa: E731
-        rec = pick(lay.record)
-        start = pick(lay.position) + pick(lay.offset1)
-        end = start + pick(lay.motion) + pick(lay.offset2)
-        # K (R X + t) per frame: the blur samples X_t + s (X2 − X1) of camera space are
-        # K X_t + s (K X2 − K X1) in homogeneous image coordinates (z the camera depth)
-        h1 = (proj1[rec] @ torch.cat((start, torch.ones_like(start[:, :1])), 1)[:, :, None])
-        h2 = (proj2[rec] @ torch.cat((end, torch.ones_like(end[:, :1])), 1)[:, :, None])
-        h1, h2 = h1[:, :, 0], h2[:, :, 0]
-        k = len(steps)
-        step = torch.tensor(steps, dtype=torch.float64, device=device)
-        pts = torch.stack((h1, h2))[:, :, None, :] + step[:, None] * (h2 - h1)[None, :, None, :]
+    for t in tracks:
+        k = len(t["steps"])
+        n = t["entry"].numel()
+        step = torch.tensor(t["steps"], dtype=torch.float64, device=t["h0"].device)
+        pts = t["h0"][:, None, :] + step[:, None] * t["hd"][:, None, :]          # (T, K, 3)
         z = pts[..., 2]
         safe = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
         u, v = (pts[..., :2] / safe[..., None]).to(dtype).unbind(-1)
-        z = z.to(dtype)
-        n = rec.numel()
-        particle = torch.arange(lay.count, device=device) if index is None else index
-        frame = torch.arange(2, device=device)[:, None, None]
-        parts.append(dict(
-            u=u.reshape(-1), v=v.reshape(-1), z=z.reshape(-1),
-            theta=(pick(lay.transparency) / k)[None, :, None].expand(2, n, k).reshape(-1),
-            target=(frame * bsz + rec[None, :, None]).expand(2, n, k).reshape(-1),
-            particle=particle[None, :, None].expand(2, n, k).reshape(-1),
-            color=pick(lay.color)[None, :, None, :].expand(2, n, k, 3).reshape(-1, 3)))
+
+        def each(values):
+            return values[:, None].expand(n, k, *values.shape[1:]).reshape(n * k, -1).squeeze(1)
+
+        parts.append(dict(u=u.reshape(-1), v=v.reshape(-1), z=z.to(dtype).reshape(-1),
+                          theta=each(lay.theta[t["entry"]] / k), target=each(t["view"]),
+                          particle=each(t["entry"]), beta=each(t["beta"].to(dtype)),
+                          color=each(lay.color[t["entry"]]).reshape(-1, 3)))
     if len(parts) == 1:
         return parts[0]
     return {key: torch.cat([p[key] for p in parts]) for key in parts[0]}
@@ -322,39 +480,40 @@ def render_flat(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor
                 chunk_elements: Optional[int] = None,
                 coarse_side: Optional[int] = COARSE_SIDE,
                 stamp_dtype: torch.dtype = torch.float64) -> RenderOutput:
-    """Render one paper-model record per pair, as :func:`~weathergen.engine.render` does (same
-    arguments; the shapes and reference frames are the caller's to check, see
-    :func:`weathergen.training.batchrender.render_records`), in a fixed number of tensor
-    operations and without gradients (see the module doc). ``templates``: default, the library
-    the records name. ``chunk_elements``: default :func:`chunk_elements_for` the device.
+    """Render one particle record per pair, of the paper's model or sampled from a weather
+    field, as :func:`~weathergen.engine.render` does (same arguments; the shapes and reference
+    frames are the caller's to check, see :func:`weathergen.training.batchrender.render_records`),
+    in a fixed number of tensor operations and without gradients (see the module doc).
+    ``templates``: default, the library the records name. ``chunk_elements``: default
+    :func:`chunk_elements_for` the device.
 
     Shape: images (B, 3, H, W), depths (B, 1, H, W), intrinsics (B, 3, 3), transforms
     (B, 4, 4); returns :class:`RenderOutput` with images (B, 3, H, W), opacities (B, 1, H, W).
     """
     templates = check_records(records, templates)
-    if any(r.optics is not None for r in records):
-        raise ConfigError("render_flat renders the paper's particle records; weather-field "
-                          "records are rendered view by view (weathergen.engine.render)")
     bsz, _, height, width = image1.shape
     dtype, device = image1.dtype, image1.device
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(device)
     with torch.no_grad():
-        lay = _Layout(records, templates, device, dtype, stamp_dtype, coarse_side)
         reached = torch.zeros(bsz, dtype=torch.bool, device=device)
+        depths = torch.stack((depth1, depth2)).to(dtype).reshape(-1, 1, height, width)
+        views = _cameras(intrinsics, cam1_from_ref, cam2_from_ref, device)
+        entries, tracks = _layout(records, views, intrinsics, cam1_from_ref, cam2_from_ref,
+                                  depths, templates, dtype, float(beta))
         acc = None
-        if lay.count:
+        if entries is not None:
+            lay = _Layout(entries, templates, stamp_dtype, coarse_side)
+        if entries is not None and lay.count:
             pixels, first = _rasterise(lay, templates, stamp_dtype, chunk_elements)
             stamps, first = _blur(lay, pixels, first, chunk_elements)
-            inst = _instances(lay, records, intrinsics, cam1_from_ref, cam2_from_ref, dtype)
-            depths = torch.stack((depth1, depth2)).to(dtype).reshape(-1, 1, height, width)
-            acc = _splat(lay, stamps.to(dtype), first, inst, depths, float(beta),
-                         chunk_elements, reached)
+            inst = _instances(lay, tracks, dtype)
+            acc = _splat(lay, stamps.to(dtype), first, inst, depths, chunk_elements, reached)
         return blend_sums(acc, image1, image2, records, reached)
 
 
-def _splat(lay: _Layout, stamps, first, inst: dict, depths: torch.Tensor, beta: float,
-           chunk: int, reached: torch.Tensor) -> Optional[torch.Tensor]:
+def _splat(lay: _Layout, stamps, first, inst: dict, depths: torch.Tensor, chunk: int,
+           reached: torch.Tensor) -> Optional[torch.Tensor]:
     """The per-pixel sums A, C_r, C_g, C_b of every blur sample's bilinearly shifted stamp times
     its visibility and θ / K, on every grid at once (full resolution, and the coarse grids of
     large billboards, whose sums are upsampled into the finer ones). Marks ``reached``.
@@ -370,7 +529,7 @@ def _splat(lay: _Layout, stamps, first, inst: dict, depths: torch.Tensor, beta: 
         grids[c] = (offset, h, w)
         flat_depths.append((depths if c == 0 else pooled[c]).reshape(-1))
         offset += views * h * w
-    scaled = beta * torch.cat(flat_depths)
+    scene = torch.cat(flat_depths)
     table = torch.tensor([[*grids.get(c, (0, 1, 1)), 2 ** c] for c in range(COARSE_MAX_LEVEL + 1)],
                          device=device)
     geometry = torch.stack((lay.full_side, lay.coarse), 1)[inst["particle"]]
@@ -394,13 +553,13 @@ def _splat(lay: _Layout, stamps, first, inst: dict, depths: torch.Tensor, beta: 
     ints = torch.stack((side + 1, u0.long() - half, v0.long() - half, side + 2,
                         first[inst["particle"]], start + target * h * w, h, w), 1)[sel]
     ones = torch.ones_like(inst["u"])[:, None]
-    reals = torch.cat((torch.stack((u - u0, v - v0, beta * inst["z"], inst["theta"]), 1), ones,
-                       inst["color"]), 1)[sel]
+    reals = torch.cat((torch.stack((u - u0, v - v0, inst["beta"], inst["beta"] * inst["z"],
+                                    inst["theta"]), 1), ones, inst["color"]), 1)[sel]
     acc = torch.zeros(4, offset, dtype=stamps.dtype, device=device)
     for i, local in _runs(ints[:, 0] * ints[:, 0], chunk):
         n, x0, y0, stride, fst, base, hh, ww = ints[i].unbind(1)
         here = reals[i]
-        fu, fv, beta_z, theta = here[:, :4].unbind(1)
+        fu, fv, beta, beta_z, theta = here[:, :5].unbind(1)
         row = torch.div(local, n, rounding_mode="floor")
         col = local - row * n
         # the bordered stamp's pixel (row, col) is the stamp's (row − 1, col − 1): the four
@@ -412,8 +571,8 @@ def _splat(lay: _Layout, stamps, first, inst: dict, depths: torch.Tensor, beta: 
         x, y = x0 + col, y0 + row
         valid = (x >= 0) & (x < ww) & (y >= 0) & (y < hh)
         pix = base + y.clamp(min=0).minimum(hh - 1) * ww + x.clamp(min=0).minimum(ww - 1)
-        weight = value * torch.sigmoid(scaled[pix] - beta_z) * theta * valid
-        acc.index_add_(1, pix, here[:, 4:].t() * weight)
+        weight = value * torch.sigmoid(beta * scene[pix] - beta_z) * theta * valid
+        acc.index_add_(1, pix, here[:, 5:].t() * weight)
     out, carry = None, None
     for k, c in enumerate(levels):
         start, h, w = grids[c]

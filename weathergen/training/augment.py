@@ -319,21 +319,16 @@ class WeatherAugment:
                 records[k] = particles
 
         groups = defaultdict(list)
-        for k in todo:
-            # weather-field records (optics set) are rendered view by view, with their looks
-            # computed per frame: they get a call of their own and no prebuilt stamps
-            groups[records[k].settings.templates, records[k].optics is not None].append(k)
+        for k in todo:                    # one render call per template library
+            groups[records[k].settings.templates].append(k)
         image1, image2 = pairs.image1, pairs.image2
         whole = len(groups) == 1 and len(todo) == len(batch)
         if not whole:                     # filled in place, group by group
             image1, image2 = image1.clone(), image2.clone()
-        for (_, per_frame), members in groups.items():
+        for members in groups.values():
             group = [records[k] for k in members]
             chosen = pairs if whole else select_pairs(pairs, members)
-            if per_frame:
-                out = render_pair(chosen, group)
-            else:
-                out = render_records(chosen, group, exact=self.exact_batches)
+            out = render_records(chosen, group, exact=self.exact_batches)
             if whole:
                 image1, image2 = out.image1, out.image2
             else:

@@ -1,18 +1,19 @@
 """Rendering the weather of a training batch: exactly as pair by pair, or in few device operations.
 
-Two ways to render a batch of paper-model records:
+Two ways to render a batch of particle records (the paper's model, weather fields, or both):
 
-- **exact** (the default on the CPU): every record's stamps are rasterised on their own
-  (:func:`stamps_per_record`) and the batch goes through :func:`~weathergen.engine.render`, so each
-  pair's pixels are bit for bit those of rendering it alone. The renderer works in buckets of
+- **exact** (the default on the CPU): the batch goes through :func:`~weathergen.engine.render`
+  with every paper-model record's stamps rasterised on their own (:func:`stamps_per_record`;
+  weather-field records take the renderer's per-frame path, one view at a time), so each pair's
+  pixels are bit for bit those of rendering it alone. The renderer works in buckets of
   equal stamp side, a fixed set of tensor operations each (tens of thousands of operations for a
   batch of six Sintel-size pairs).
 - **fast** (the default on other devices): :func:`~weathergen.engine.flat.render_flat`, the same
-  model with the particles laid out ragged, in a few hundred tensor operations whatever the
-  particles' sizes. On a GPU every operation is a kernel launch with Python around it, and their
+  models with the particles laid out ragged, in a few hundred tensor operations whatever the
+  particles' number and sizes and whatever mix of models the batch holds. On a GPU every operation is a kernel launch with Python around it, and their
   number, not their arithmetic, sets the time of a batch's weather. The frames equal the exact
-  path's up to float rounding (stamps in float64; tested to 1e-9 in float64 and within a small
-  fraction of a grey level in float32).
+  path's up to float rounding (stamps in float64; tested to 1e-9 in float64 and 1e-3, a quarter
+  of a grey level, in float32).
 """
 
 from __future__ import annotations
@@ -52,10 +53,11 @@ def stamps_per_record(records: Sequence, device=None, dtype: torch.dtype = torch
 
 def render_records(pairs: FramePairBatch, records: Sequence, *, exact: Optional[bool] = None
                    ) -> RenderOutput:
-    """Render one paper-model record per pair of ``pairs`` on the pairs' device: with
+    """Render one particle record per pair of ``pairs`` (of the paper's model or sampled from a
+    weather field) on the pairs' device: with
     ``exact`` (default: on the CPU) through :func:`~weathergen.engine.render` with the stamps of
-    :func:`stamps_per_record`, else with :func:`~weathergen.engine.flat.render_flat` (see the
-    module doc). Same reference frames and checks as :func:`~weathergen.engine.render_pair`.
+    :func:`stamps_per_record` (field records: the renderer's per-frame path), else with
+    :func:`~weathergen.engine.flat.render_flat` (see the module doc). Same reference frames and checks as :func:`~weathergen.engine.render_pair`.
     Shape: ``pairs`` images (B, 3, H, W); returns images (B, 3, H, W), opacities (B, 1, H, W).
     """
     device = pairs.image1.device
@@ -74,8 +76,12 @@ def render_records(pairs: FramePairBatch, records: Sequence, *, exact: Optional[
     if not exact:
         return render_flat(pairs.image1, pairs.image2, pairs.depth1, pairs.depth2,
                            pairs.intrinsics, c1, c2, list(records))
+    # weather-field records are drawn view by view with looks computed per frame (no prebuilt
+    # stamps); the renderer gives each pair's paper-model record its own call there
+    per_frame = any(r.optics is not None for r in records)
+    stamps = None if per_frame else stamps_per_record(records, device, pairs.image1.dtype)
     return render(pairs.image1, pairs.image2, pairs.depth1, pairs.depth2, pairs.intrinsics, c1, c2,
-                  list(records), stamps=stamps_per_record(records, device, pairs.image1.dtype))
+                  list(records), stamps=stamps)
 
 
 __all__ = ["render_records", "stamps_per_record"]
