@@ -124,7 +124,8 @@ def timed(fn, repeats: int, sync, warm_up: bool = True) -> float:
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
-    parser.add_argument("--presets", default="snow,rain", help="comma-separated presets")
+    parser.add_argument("--presets", default="snow,rain,snow-light",
+                        help="comma-separated presets (of either model)")
     parser.add_argument("--model", action="append", default=None,
                         help="raft-small and/or raft (default: raft-small on the CPU, both on a GPU)")
     parser.add_argument("--repeats", type=int, default=None,
