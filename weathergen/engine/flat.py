@@ -220,14 +220,14 @@ def _paper_entries(records, pairs: list, views: tuple, lib, dtype, beta: float) 
     return entries, tracks
 
 
-def _field_entries(records, pairs: list, views: tuple, intrinsics, cam_from_ref,
-                   depths: torch.Tensor, lib, dtype, beta: float) -> tuple:
+def _field_entries(records, pairs: list, views: tuple, intrinsics, depths: torch.Tensor, lib,
+                   dtype, beta: float) -> tuple:
     """Stamps and tracks of weather-field records: each particle is a candidate in both frames
     of its pair, and a frame draws it with its own looks, as
     :mod:`weathergen.engine.perframe` computes them (the view mask, footprint ``f d / z``, θ
     faded with depth and scaled by the area below one pixel, thin-lens defocus, occlusion
     softness), vectorised over every candidate. See :func:`_layout` for what is returned."""
-    full, rotation = views
+    full, turn = views
     device = full.device
     bsz = full.shape[0] // 2
     height, width = depths.shape[-2:]
@@ -239,6 +239,8 @@ def _field_entries(records, pairs: list, views: tuple, intrinsics, cam_from_ref,
                             r.optics.focus, r.optics.depth_softness,
                             float(r.settings.blur_length), float(bool(r.settings.defocus_brighten))]
                            for r in records], dtype=torch.float64, device=device)
+    k = intrinsics.to(device, torch.float64)
+    focal = torch.sqrt(k[:, 0, 0] * k[:, 1, 1])
     start1 = reals[:, 0:3] + reals[:, 6:9]
     motion = reals[:, 3:6] + reals[:, 9:12]
     # candidates: every particle in frame 1, then in frame 2
@@ -246,13 +248,10 @@ def _field_entries(records, pairs: list, views: tuple, intrinsics, cam_from_ref,
     rec = record[which]
     view = torch.cat((pair, bsz + pair))
     near, far, fade, aperture, focus, softness, blur, bright = optics[rec].unbind(1)
+    f = torch.cat((focal, focal))[view]
     start = torch.cat((start1, start1 + motion))
-    cam = torch.cat((cam_from_ref[0], cam_from_ref[1])).to(device, torch.float64)[view]
-    k = torch.cat((intrinsics, intrinsics)).to(device, torch.float64)[view]
-    f = torch.sqrt(k[:, 0, 0] * k[:, 1, 1])
-    diameter = reals[which, 17]
-    head = _homogeneous(cam[:, :3, :], start)
-    tail = _homogeneous(cam[:, :3, :], start + blur[:, None] * motion[which])
+    head = _homogeneous(full[view], start)                     # K X: (u z, v z, z)
+    tail = _homogeneous(full[view], start + blur[:, None] * motion[which])
     z = head[:, 2]
 
     def blur_radius(depth):
@@ -262,38 +261,37 @@ def _field_entries(records, pairs: list, views: tuple, intrinsics, cam_from_ref,
 
     in_range = (z >= near) & (z <= far)
     safe = torch.where(in_range, z, far)
-    reach = 0.5 * f * diameter / safe + blur_radius(safe) + 2
+    reach = 0.5 * f * reals[which, 17] / safe + blur_radius(safe) + 2
     scene = depths.reshape(-1).to(torch.float64)
 
-    def looks_in(points):
-        zz = points[:, 2]
+    def seen(h):
+        """In front, reaching into the image, and not behind the scene at the nearest pixel."""
+        zz = h[:, 2]
         zs = torch.where(zz.abs() > 1e-12, zz, torch.full_like(zz, 1e-12))
-        x, y = points[:, 0] / zs, points[:, 1] / zs
-        u = k[:, 0, 0] * x + k[:, 0, 1] * y + k[:, 0, 2]
-        v = k[:, 1, 1] * y + k[:, 1, 2]
+        u, v = h[:, 0] / zs, h[:, 1] / zs
         reaches = (zz > 1e-6) & (u >= -0.5 - reach) & (u <= width - 0.5 + reach) \
             & (v >= -0.5 - reach) & (v <= height - 0.5 + reach)
         col = torch.floor(u + 0.5).clamp(0, width - 1).long()
         row = torch.floor(v + 0.5).clamp(0, height - 1).long()
         return reaches & (zz <= scene[(view * height + row) * width + col] + 3 * softness)
 
-    footprint = f * diameter / z
+    footprint = f * reals[which, 17] / z
     fade_out = torch.where(fade > 0, _smoothstep((far - z) / (fade * far)),
                            (z <= far).to(z.dtype))
-    factor = (_smoothstep((z - near) / near) * fade_out * footprint.clamp(max=1.0) ** 2)
+    factor = _smoothstep((z - near) / near) * fade_out * footprint.clamp(max=1.0) ** 2
     kind = records[0].transparency.dtype            # θ is faded in the record's dtype
     theta = (reals[which, 15].to(kind) * factor.to(kind)).to(dtype)
-    keep = torch.nonzero(in_range & (looks_in(head) | looks_in(tail)) & (theta != 0)).squeeze(1)
+    keep = torch.nonzero(in_range & (seen(head) | seen(tail)) & (theta != 0)).squeeze(1)
     defocus = blur_radius(z)[keep].long()
+    drawn = which[keep]
     entries = dict(footprint=footprint[keep].clamp(min=1.0) / lib.resolution * lib.resolution,
-                   defocus=defocus, rotation=reals[which[keep], 16], template=template[which[keep]],
+                   defocus=defocus, rotation=reals[drawn, 16], template=template[drawn],
                    brighten=(bright[keep] > 0) & (defocus > 1), theta=theta[keep],
-                   color=reals[which[keep], 12:15].to(dtype))
-    tracks = []
-    view, rec = view[keep], rec[keep]
-    h0 = (k[keep] @ head[keep][:, :, None])[:, :, 0]
-    hd = (k[keep] @ (cam[keep, :3, :3] @ motion[which[keep]][:, :, None]))[:, :, 0]
+                   color=reals[drawn, 12:15].to(dtype))
+    view, rec, h0 = view[keep], rec[keep], head[keep]
+    hd = (turn[view] @ motion[drawn][:, :, None])[:, :, 0]            # K R (M + δ2)
     beta_view = torch.clamp(1.0 / softness[keep], max=beta)
+    tracks = []
     for steps, rows in _members(_step_groups(records, dtype), rec):
         pick = (lambda t: t) if rows is None else (lambda t: t[rows])  # noqa: E731
         entry = torch.arange(keep.numel(), device=device) if rows is None else rows
@@ -302,8 +300,7 @@ def _field_entries(records, pairs: list, views: tuple, intrinsics, cam_from_ref,
     return entries, tracks
 
 
-def _layout(records, views, intrinsics, cam1_from_ref, cam2_from_ref, depths, lib, dtype,
-            beta) -> tuple:
+def _layout(records, views, intrinsics, depths, lib, dtype, beta) -> tuple:
     """What the render call draws, as two tables:
 
     - *entries* (E,): one stamp each, ``footprint`` (pixels, float64), ``defocus`` (int64),
@@ -322,7 +319,7 @@ def _layout(records, views, intrinsics, cam1_from_ref, cam2_from_ref, depths, li
         parts.append(_paper_entries([records[i] for i in paper], paper, views, lib, dtype, beta))
     if field:
         parts.append(_field_entries([records[i] for i in field], field, views, intrinsics,
-                                    (cam1_from_ref, cam2_from_ref), depths, lib, dtype, beta))
+                                    depths, lib, dtype, beta))
     if not parts:
         return None, []
     entries = {key: torch.cat([e[key] for e, _ in parts]) for key in parts[0][0]}
@@ -499,8 +496,8 @@ def render_flat(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor
         reached = torch.zeros(bsz, dtype=torch.bool, device=device)
         depths = torch.stack((depth1, depth2)).to(dtype).reshape(-1, 1, height, width)
         views = _cameras(intrinsics, cam1_from_ref, cam2_from_ref, device)
-        entries, tracks = _layout(records, views, intrinsics, cam1_from_ref, cam2_from_ref,
-                                  depths, templates, dtype, float(beta))
+        entries, tracks = _layout(records, views, intrinsics, depths, templates, dtype,
+                                  float(beta))
         acc = None
         if entries is not None:
             lay = _Layout(entries, templates, stamp_dtype, coarse_side)
