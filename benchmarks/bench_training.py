@@ -191,7 +191,7 @@ def main(argv=None):
 
     print(f"{'RAFT training step':<30}" + "".join(f"{m:>16}" for m in step_times))
     print(f"{'':<30}" + "".join(f"{t:>15.2f}s" for t in step_times.values()))
-    width = 36
+    width = 44
     print(f"{'weather, p = 1':<{width}}{'seconds':>10}" + "".join(f"{'% of ' + m:>16}"
                                                                  for m in step_times))
     for preset, rows in weather_times.items():

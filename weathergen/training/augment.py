@@ -197,11 +197,11 @@ class WeatherAugment:
             ``{"count": 1000}`` for frames much smaller than Sintel's).
         world_up: which world axis points up; ``None`` takes each sample's (its dataset's) setting.
         keep_particles: keep the rendered particle record in :attr:`PairSample.particles`.
-        exact_batches: how :meth:`apply_batch` renders the paper's presets
-            (:mod:`weathergen.training.batchrender`): ``True`` with the renderer, stamps record by
-            record, bit for bit the per-sample frames; ``False`` with the ragged renderer, a few
-            hundred device operations per batch, equal up to float rounding; ``None`` (default):
-            exact on the CPU, fast on other devices.
+        exact_batches: how :meth:`apply_batch` renders (:mod:`weathergen.training.batchrender`):
+            ``True`` with the renderer, stamps record by record, bit for bit the per-sample
+            frames; ``False`` with the ragged renderer, under a thousand device operations per
+            batch, equal up to float rounding; ``None`` (default): exact on the CPU, fast on
+            other devices.
 
     Shape: frames ``(3, H, W)`` per sample or ``(B, 3, H, W)`` per batch, RGB in ``[0, 1]``;
     the pairs need depth and cameras (every weathergen reader provides them).
