@@ -157,8 +157,10 @@ def test_batched_path_on_cuda_matches_the_cpu(samples, exact):
     """What docs/training.md promises for CUDA: the same draws and particles, and frames within
     one grey level of the CPU's, the 8-bit frames differing in under 0.1 % of their values
     (float rounding, atomic additions, the GPU's convolution algorithms)."""
-    aug = WeatherAugment(["snow", "rain"], p=1.0, seed=5, overrides=LIGHT, exact_batches=exact)
+    aug = WeatherAugment(["snow", "rain", PresetSource("snow-light", THIN_FIELD)], p=1.0, seed=6,
+                         overrides=LIGHT, exact_batches=exact)
     cpu = collate_pairs([aug(s) for s in samples[:3]])
+    assert {w.source for w in cpu.weather} == {"snow", "rain", "snow-light"}  # both models
     for inputs in (samples[:3], [aug.prepare(s) for s in samples[:3]]):
         gpu = aug.apply_batch(collate_pairs(inputs).to("cuda"))
         assert gpu.weather == cpu.weather
