@@ -32,6 +32,7 @@ from __future__ import annotations
 from typing import Optional, Sequence
 
 import torch
+import torch.nn.functional as F
 
 from ..errors import ConfigError
 from .compositing import upsample
@@ -78,7 +79,7 @@ def _atlas(lib: TemplateLibrary, dtype, device) -> tuple:
     key = (lib.digest, lib.name, dtype, str(device))
     if key not in _ATLAS_CACHE:
         levels = mip_pyramid(lib, dtype, device)
-        padded = [torch.nn.functional.pad(lv[:, 0], (1, 1, 1, 1)).reshape(-1) for lv in levels]
+        padded = [F.pad(lv[:, 0], (1, 1, 1, 1)).reshape(-1) for lv in levels]
         sizes = [p.numel() for p in padded]
         first = torch.tensor([sum(sizes[:i]) for i in range(len(sizes))], device=device)
         sides = torch.tensor([lv.shape[-1] for lv in levels], device=device)
@@ -403,13 +404,15 @@ def _rasterise(lay: _Layout, lib: TemplateLibrary, stamp_dtype, chunk: int) -> t
 
 
 def _blur(lay: _Layout, pixels: torch.Tensor, first: torch.Tensor, chunk: int) -> tuple:
-    """Every particle's final stamp (disc-blurred where its radius is > 0, brightened where
-    flagged), ragged with a one-pixel zero border: ``(stamps, first (P,))``, particle ``p``'s
+    """Every entry's final stamp (disc-blurred where its radius is > 0, brightened where
+    flagged), ragged with a one-pixel zero border: ``(stamps, first (E,))``, entry ``p``'s
     pixel ``(y, x)`` at ``first[p] + (y + 1) (S + 2) + x + 1`` with ``S = side + 2 radius``.
 
-    A blurred pixel sums, over the disc's rows ``dy``, the stamp's row ``y − r + dy`` between
-    columns ``x − r ∓ w(dy)``, read as a difference of the row's prefix sums; a stamp without
-    blur (one row, ``r = 0``) is copied.
+    The disc is a stack of rows ``dy`` of half-width ``w(dy)``: the blurred pixel ``(Y, X)``
+    sums, over ``dy``, the stamp's row ``Y − r + dy`` between columns ``X − r ∓ w``. So every
+    (entry, stamp row ``y``, disc row ``dy``) is a *segment* that adds the box sums of row ``y``
+    (differences of its prefix sums) to the ``s + 2 w`` columns of output row ``y + r − dy`` it
+    reaches; a stamp without blur (``r = 0``: one segment per row, ``w = 0``) is copied.
     """
     side, radius, full = lay.side, lay.radius, lay.full_side
     block = (full + 2) * (full + 2)
@@ -417,23 +420,23 @@ def _blur(lay: _Layout, pixels: torch.Tensor, first: torch.Tensor, chunk: int) -
     out = torch.zeros(int(block.sum()), dtype=pixels.dtype, device=pixels.device)
     prefix = torch.cat((pixels.new_zeros(1), torch.cumsum(pixels.to(torch.float64), 0)))
     rows = 2 * radius + 1
-    ints = torch.stack((rows, radius, side, full, first, out_first), 1)
-    for p, local in _runs(full * full * rows, chunk):
-        n, r, s, S, fst, ofst = ints[p].unbind(1)
-        pix = torch.div(local, n, rounding_mode="floor")
-        dy = local - pix * n - r
-        y_out = torch.div(pix, S, rounding_mode="floor")
-        x_out = pix - y_out * S
+    for entry, local in _runs(side * rows, 1 << 62):             # the segments, all at once
+        r, s = radius[entry], side[entry]
+        y = torch.div(local, rows[entry], rounding_mode="floor")
+        dy = local - y * rows[entry] - r
         w = torch.floor(torch.sqrt((r * r - dy * dy).to(torch.float64))).long()
-        y = y_out - r + dy
-        a = (x_out - r - w).clamp(min=0)
-        b = (x_out - r + w).minimum(s - 1)
-        start = fst + y.clamp(min=0) * s
-        at_a = (start + a).clamp(max=pixels.numel() - 1)
-        at_b = (start + b + 1).clamp(max=pixels.numel())
-        value = torch.where(r == 0, pixels[at_a].to(prefix.dtype), prefix[at_b] - prefix[at_a])
-        value = torch.where((y >= 0) & (y < s) & (a <= b), value, prefix.new_zeros(()))
-        out.index_add_(0, ofst + (y_out + 1) * (S + 2) + x_out + 1, value.to(out.dtype))
+        # per segment: where its stamp row starts, the output index of its first column
+        # (X = r − w), 2 w, the row's last column, and whether the stamp is sharp
+        segments = torch.stack((first[entry] + y * s,
+                                out_first[entry] + (y + r - dy + 1) * (full[entry] + 2) + 1 + r - w,
+                                2 * w, s - 1, (r == 0).long()), 1)
+        for seg, x in _runs(s + 2 * w, chunk):
+            start, at, w2, last, sharp = segments[seg].unbind(1)
+            a = (x - w2).clamp(min=0)                  # columns a..b of the stamp row: never empty
+            b = torch.minimum(x, last)
+            value = torch.where(sharp > 0, pixels[start + b].to(prefix.dtype),
+                                prefix[start + b + 1] - prefix[start + a])
+            out.index_add_(0, at + x, value.to(out.dtype))
     sharp = radius == 0
     weight = torch.where(sharp, 1.0, 1.0 / _disc_counts(radius)).to(out.dtype)
     brighten = torch.stack((weight, lay.brighten.to(out.dtype)), 1)
@@ -514,24 +517,34 @@ def _splat(lay: _Layout, stamps, first, inst: dict, depths: torch.Tensor, chunk:
     """The per-pixel sums A, C_r, C_g, C_b of every blur sample's bilinearly shifted stamp times
     its visibility and θ / K, on every grid at once (full resolution, and the coarse grids of
     large billboards, whose sums are upsampled into the finer ones). Marks ``reached``.
+
+    Each grid is drawn with a margin as wide as its largest patch, so a patch that hangs over the
+    image's edge needs no bounds checks: what lands in the margin is cropped away.
     Shape: depths (2 B, 1, H, W) -> (4, 2 B H W), or None when no sample reaches a frame."""
     views, _, height, width = depths.shape
     device = depths.device
-    levels = sorted(set(lay.coarse.unique().tolist()), reverse=True)
+    # per grid level: whether it holds stamps, and its widest stamp (one synchronisation)
+    top = COARSE_MAX_LEVEL + 1
+    held = torch.stack((torch.bincount(lay.coarse, minlength=top),
+                        torch.zeros(top, dtype=torch.long, device=device)
+                        .scatter_reduce(0, lay.coarse, lay.full_side, "amax")))
+    held = held.tolist()
+    levels = [c for c in reversed(range(top)) if held[0][c]]
     pooled = _depth_levels(depths, [c for c in levels if c > 0])
-    grids, offset, flat_depths = {}, 0, []
+    grids, offset, padded_depths = {}, 0, []
     for c in levels:
         f = 2 ** c
         h, w = (height, width) if c == 0 else (-(-height // f), -(-width // f))
-        grids[c] = (offset, h, w)
-        flat_depths.append((depths if c == 0 else pooled[c]).reshape(-1))
-        offset += views * h * w
-    scene = torch.cat(flat_depths)
-    table = torch.tensor([[*grids.get(c, (0, 1, 1)), 2 ** c] for c in range(COARSE_MAX_LEVEL + 1)],
+        m = held[1][c] + 1                                   # the margin, pixels
+        grids[c] = (offset, h, w, m)
+        padded_depths.append(F.pad(depths if c == 0 else pooled[c], (m, m, m, m)).reshape(-1))
+        offset += views * (h + 2 * m) * (w + 2 * m)
+    scene = torch.cat(padded_depths)
+    table = torch.tensor([[*grids.get(c, (0, 1, 1, 0)), 2 ** c] for c in range(top)],
                          device=device)
     geometry = torch.stack((lay.full_side, lay.coarse), 1)[inst["particle"]]
     side, coarse = geometry.unbind(1)
-    start, h, w, f = table[coarse].unbind(1)                    # the particle's grid
+    start, h, w, m, f = table[coarse].unbind(1)                 # the particle's grid
     f = f.to(inst["u"].dtype)
     u = torch.where(f > 1, (inst["u"] + 0.5) / f - 0.5, inst["u"])
     v = torch.where(f > 1, (inst["v"] + 0.5) / f - 0.5, inst["v"])
@@ -545,42 +558,43 @@ def _splat(lay: _Layout, stamps, first, inst: dict, depths: torch.Tensor, chunk:
     bsz = views // 2
     target = inst["target"]
     reached[target[sel] % bsz] = True
-    # per kept sample, gathered once per chunk: integers (the patch's top-left pixel, its side,
-    # the stamp's place, the grid) and reals (sub-pixel shift, β z, θ / K, weights of A and C)
-    ints = torch.stack((side + 1, u0.long() - half, v0.long() - half, side + 2,
-                        first[inst["particle"]], start + target * h * w, h, w), 1)[sel]
-    ones = torch.ones_like(inst["u"])[:, None]
-    reals = torch.cat((torch.stack((u - u0, v - v0, inst["beta"], inst["beta"] * inst["z"],
-                                    inst["theta"]), 1), ones, inst["color"]), 1)[sel]
+    # per kept sample, gathered once per chunk: integers (the patch's side, the stamp's place
+    # and row stride, the padded grid's row stride and the patch's first pixel in it) and reals
+    # (sub-pixel shift, β, β z, and θ / K times the weights of A and C)
+    row_stride = w + 2 * m
+    corner = start + (target * (h + 2 * m) + v0.long() - half + m) * row_stride \
+        + u0.long() - half + m
+    ints = torch.stack((side + 1, side + 2, first[inst["particle"]], row_stride, corner), 1)[sel]
+    theta = inst["theta"][:, None]
+    reals = torch.cat((torch.stack((u - u0, v - v0, inst["beta"], inst["beta"] * inst["z"]), 1),
+                       theta, theta * inst["color"]), 1)[sel]
     acc = torch.zeros(4, offset, dtype=stamps.dtype, device=device)
     for i, local in _runs(ints[:, 0] * ints[:, 0], chunk):
-        n, x0, y0, stride, fst, base, hh, ww = ints[i].unbind(1)
+        n, stride, fst, grid_stride, corner = ints[i].unbind(1)
         here = reals[i]
-        fu, fv, beta, beta_z, theta = here[:, :5].unbind(1)
+        fu, fv, beta, beta_z = here[:, :4].unbind(1)
         row = torch.div(local, n, rounding_mode="floor")
         col = local - row * n
         # the bordered stamp's pixel (row, col) is the stamp's (row − 1, col − 1): the four
         # neighbours stamp[row − a, col − b] (a, b in {0, 1}) are always inside the block
         at = fst + row * stride + col
-        top = torch.lerp(stamps[at + stride + 1], stamps[at + stride], fu)
+        top_row = torch.lerp(stamps[at + stride + 1], stamps[at + stride], fu)
         bottom = torch.lerp(stamps[at + 1], stamps[at], fu)
-        value = torch.lerp(top, bottom, fv)
-        x, y = x0 + col, y0 + row
-        valid = (x >= 0) & (x < ww) & (y >= 0) & (y < hh)
-        pix = base + y.clamp(min=0).minimum(hh - 1) * ww + x.clamp(min=0).minimum(ww - 1)
-        weight = value * torch.sigmoid(beta * scene[pix] - beta_z) * theta * valid
-        acc.index_add_(1, pix, here[:, 5:].t() * weight)
-    out, carry = None, None
+        value = torch.lerp(top_row, bottom, fv)
+        pix = corner + row * grid_stride + col
+        weight = value * torch.sigmoid(beta * scene[pix] - beta_z)
+        acc.index_add_(1, pix, here[:, 4:].t() * weight)
+    carry = None
     for k, c in enumerate(levels):
-        start, h, w = grids[c]
-        sums = acc[:, start:start + views * h * w].reshape(-1, 1, h, w)
+        start, h, w, m = grids[c]
+        sums = acc[:, start:start + views * (h + 2 * m) * (w + 2 * m)] \
+            .view(-1, 1, h + 2 * m, w + 2 * m)[..., m:m + h, m:m + w]
         if carry is not None:
             sums = sums + upsample(carry, 2 ** (levels[k - 1] - c), (h, w))
         carry = sums
     if levels[-1] > 0:
         carry = upsample(carry, 2 ** levels[-1], (height, width))
-    out = carry.reshape(4, -1)
-    return out
+    return carry.reshape(4, -1)
 
 
 __all__ = ["FLAT_CHUNK_ELEMENTS", "chunk_elements_for", "render_flat"]
