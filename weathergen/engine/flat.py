@@ -5,20 +5,23 @@ fixed set of tensor operations per bucket (rasterising, blurring, planning and s
 dozen buckets per batch and a few hundred operations per disc blur. On a GPU every operation is a
 kernel launch with Python around it, and their number, not their arithmetic, sets the time of a
 training batch's weather. :func:`render_flat` computes the same frames with the particles laid
-out *ragged*: every particle's stamp pixels, every output pixel's blur rows and every blur
-sample's patch pixels are one flat run of a long tensor, located by ``repeat_interleave`` and
-offsets, so a whole batch costs a few hundred operations whatever the particles' sizes (plus a
+out *ragged*: every particle's stamp samples, the columns each row of its defocus disc reaches
+and every blur sample's patch pixels are flat runs of long tensors, located by
+``repeat_interleave`` and offsets, so a whole batch costs a few hundred operations whatever the particles' sizes (plus a
 handful per chunk of :data:`FLAT_CHUNK_ELEMENTS` elements, which bounds the memory).
 
 The model is the renderer's, step for step (see :mod:`weathergen.engine.renderer`): the same stamp
 sides, supersampling, mip levels, disc test, disc blur and brightening, coarse grids for large
-billboards, blur samples, visibility and blending. What differs is arithmetic order:
+billboards, blur samples, visibility and blending; records sampled from a weather field get the
+looks :mod:`weathergen.engine.perframe` gives them in each frame (view mask, footprint, depth
+fade, thin-lens defocus, softer occlusion), computed for every particle and frame at once. What
+differs is arithmetic order:
 
 - the template is sampled by hand-written bilinear interpolation (``grid_sample``'s formula, zero
   padding by a one-pixel border) from a flat atlas of every mip level;
-- the disc blur sums each disc row from row prefix sums (``cumsum``) in float64, instead of
-  adding shifted copies (or an FFT for large stamps); where a row is all zeros the difference of
-  prefix sums is exactly zero, so blurred stamps stay exactly zero outside their support;
+- the disc blur sums each disc row as a difference of the stamp row's prefix sums (``cumsum``)
+  in float64, instead of adding shifted copies (or an FFT for large stamps); where a row is all
+  zeros the difference is exactly zero, so blurred stamps stay exactly zero outside their support;
 - stamps are computed in ``stamp_dtype`` (float64 by default) and splatted in the images' dtype.
 
 So the frames equal :func:`~weathergen.engine.render`'s up to float rounding (tested against it
@@ -94,7 +97,7 @@ def _runs(sizes: torch.Tensor, limit: int):
     """Split items with ``sizes`` elements each (a ragged layout) into chunks of about ``limit``
     elements (an item larger than that is a chunk of its own). Yields, per chunk,
     ``(item (m,), local (m,))``: each element's item index and its index inside the item's run.
-    Two host synchronisations for the whole layout (plus one per extra chunk)."""
+    One host synchronisation for the whole layout (three when it is split into chunks)."""
     count = int(sizes.numel())
     if count == 0:
         return
