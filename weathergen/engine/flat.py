@@ -7,8 +7,9 @@ kernel launch with Python around it, and their number, not their arithmetic, set
 training batch's weather. :func:`render_flat` computes the same frames with the particles laid
 out *ragged*: every particle's stamp samples, the columns each row of its defocus disc reaches
 and every blur sample's patch pixels are flat runs of long tensors, located by
-``repeat_interleave`` and offsets, so a whole batch costs a few hundred operations whatever the particles' sizes (plus a
-handful per chunk of :data:`FLAT_CHUNK_ELEMENTS` elements, which bounds the memory).
+``repeat_interleave`` and offsets, so a whole batch costs a few hundred operations whatever the
+particles' number and sizes (plus a handful per chunk of :data:`FLAT_CHUNK_ELEMENTS`
+elements, which bounds the memory).
 
 The model is the renderer's, step for step (see :mod:`weathergen.engine.renderer`): the same stamp
 sides, supersampling, mip levels, disc test, disc blur and brightening, coarse grids for large

@@ -18,8 +18,7 @@ It runs in one of two places:
   stamps are rasterised on their own, see :func:`stamps_per_record`); on other devices the batch
   path by default takes the fast route of :mod:`weathergen.training.batchrender` (the ragged
   renderer :func:`~weathergen.engine.flat.render_flat`: a few hundred kernel launches per batch),
-  equal up to float rounding, and CUDA's frames agree with the CPU's
-  within one grey level.
+  equal up to float rounding, and CUDA's frames agree with the CPU's within one grey level.
 
 **Order: weather first, geometric augmentation after.** The presets place a number of *visible*
 particles in the whole frame, with pixel sizes meant for the full frame; rendering into the full
