@@ -1,6 +1,7 @@
 # weathergen: set-up, tests, demo and benchmarks in a local virtual environment.
 #
-#   make test                  create .venv, install the pinned CPU torch, the package, run the tests
+#   make test                  create .venv, install the pinned CPU torch, the package, run the
+#                              linter (ruff, configured in pyproject.toml) and the tests
 #   make demo                  render the default preset on the bundled demo scene
 #   make bench                 print speed and memory figures (renderer, weather field, networks,
 #                              attack step, batched attacks, training); FOG_BEFORE=DIR also times
@@ -50,6 +51,7 @@ install: $(STAMP)
 	$(BIN)/python -m pip install -q --no-deps --force-reinstall .
 
 test: install
+	$(BIN)/ruff check .
 	$(BIN)/pytest -q $(PYTEST_ARGS)
 
 # The dependency floors of setup.cfg, installed exactly; torch as for `make test`.

@@ -15,7 +15,6 @@ A benchmark, not a test: nothing here fails on slow machines.
 from __future__ import annotations
 
 import argparse
-import os
 import statistics
 import sys
 import time

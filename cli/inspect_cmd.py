@@ -6,7 +6,6 @@ import json
 from pathlib import Path
 
 import click
-import numpy as np
 from rich.console import Console
 from rich.table import Table
 
@@ -34,14 +33,16 @@ def inspect(file: Path):
     head.add_column("key")
     head.add_column("value")
     rows = [
-        ("pair", f"{arrays['pair_dataset']}/{arrays['pair_split']}/{arrays['pair_scene']} frame {int(arrays['pair_frame'])}"),
+        ("pair", f"{arrays['pair_dataset']}/{arrays['pair_split']}/{arrays['pair_scene']} "
+                 f"frame {int(arrays['pair_frame'])}"),
         ("seed", str(int(arrays["seed"]))),
         ("preset", _preset_origin(str(arrays["preset_name"]), preset.get("source", ""))),
         ("particles", str(n)),
         ("visible in frame 1 / 2", f"{int(arrays.get('visible1', -1))} / {int(arrays.get('visible2', -1))}"),
         ("reference frame", str(arrays.get("frame", "?"))),
         ("blend", str(arrays.get("blend", "?"))),
-        ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, {int(arrays.get('blur_samples', 1))} samples"),
+        ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, "
+                        f"{int(arrays.get('blur_samples', 1))} samples"),
         ("templates", str(arrays.get("templates", "?"))),
         ("format", f"metadata v{int(arrays['metadata_version'])}, particles v{int(arrays.get('format_version', 0))}, "
                    f"written by weathergen {arrays.get('weathergen_version', '?')}"),
@@ -71,8 +72,10 @@ def inspect(file: Path):
 @click.argument("render_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="PNG to write. Default: RENDER_DIR/preview.png.")
-@click.option("--pairs", type=click.IntRange(min=1), default=4, show_default=True, help="Pairs to show (the first ones); the sheet says when there are more.")
-@click.option("--width", type=click.IntRange(min=64), default=480, show_default=True, help="Width of each tile.")
+@click.option("--pairs", type=click.IntRange(min=1), default=4, show_default=True,
+              help="Pairs to show (the first ones); the sheet says when there are more.")
+@click.option("--width", type=click.IntRange(min=64), default=480, show_default=True,
+              help="Width of each tile.")
 def preview(render_dir: Path, out, pairs, width):
     """Write a contact sheet of a render output: original, weather frame and particle opacity."""
     sheet = contact_sheet(render_dir, pairs=pairs, width=width)

@@ -18,8 +18,8 @@ The weather is drawn per (seed, epoch, index): rerunning gives the same batches,
 ``--workers``. ``--weather-on workers`` renders it per pair in the DataLoader's worker processes,
 ``--weather-on device`` draws the particles in the workers and renders each batch in one call on
 ``--device``. Each step prints the training loss; before the first step and after the last, the
-loss and EPE on a fixed set of pairs (``--eval-pairs``, clean and with weather) are printed too. ``--out`` writes the fine-tuned
-weights (``raft-small-finetuned.pth``, loadable with ``--checkpoint``) and ``log.csv``.
+loss and EPE on a fixed set of pairs (``--eval-pairs``, clean and with weather) are printed too.
+``--out`` writes the fine-tuned weights (``raft-small-finetuned.pth``, loadable with ``--checkpoint``) and ``log.csv``.
 """
 
 from __future__ import annotations

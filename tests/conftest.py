@@ -25,16 +25,17 @@ def pytest_unconfigure(config):
 
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
-#: The released RAFT-small checkpoint (sha256 c7d41b9c...), kept outside the repository.
-RAFT_SMALL_WEIGHTS = PROJECT_ROOT.parent / "shared" / "weights" / "raft-small.pth"
+#: The released RAFT-small checkpoint (sha256 c7d41b9c...), shipped with its BSD-3 licence in
+#: tests/data/ so that a fresh clone tests everything.
+RAFT_SMALL_WEIGHTS = PROJECT_ROOT / "tests" / "data" / "raft-small.pth"
 
 
 @pytest.fixture(scope="session")
 def raft_small_weights() -> Path:
-    """The released RAFT-small weights; a test that needs them is skipped where they are missing."""
+    """The released RAFT-small weights (part of the repository: missing means a broken checkout)."""
     if not RAFT_SMALL_WEIGHTS.is_file():
-        pytest.skip(f"released RAFT-small weights missing: put raft-small.pth (sha256 c7d41b9c...) "
-                    f"at {RAFT_SMALL_WEIGHTS}")
+        raise FileNotFoundError(f"{RAFT_SMALL_WEIGHTS} is missing: the released RAFT-small weights "
+                                f"are part of the repository (git checkout -- tests/data)")
     return RAFT_SMALL_WEIGHTS
 
 

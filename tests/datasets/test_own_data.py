@@ -52,7 +52,8 @@ def test_frames_are_ordered_whatever_their_names(names, expected, numbering):
     (["0001.png", "0002.png", "cover.png"], None, "holds frames named in 2 ways"),
     (["0001.png"], None, "holds a single frame (0001.png); a pair needs two"),
     (["a.tif", "b.tif", "notes.txt"], None, "holds no image files (.png, .jpg, .jpeg); found 2 .tif, 1 .txt"),
-    (["0001.png", "0002.png"], "*_left.png", "no file matches the frame pattern '*_left.png' (2 files there: 0001.png, 0002.png)"),
+    (["0001.png", "0002.png"], "*_left.png",
+     "no file matches the frame pattern '*_left.png' (2 files there: 0001.png, 0002.png)"),
     (["f01.png", "f1.png"], None, "frames f01.png and f1.png have the same number 1"),
 ])
 def test_why_frames_cannot_be_paired(names, pattern, problem):

@@ -15,7 +15,7 @@ def _original_layout(arch: str, prefix: str) -> tuple[dict, torch.nn.Module]:
     """A randomly initialised network's weights, keyed as the authors' files key them."""
     model = build_model(arch, iters=2)
     with torch.no_grad():  # make the batch-norm statistics non-trivial so that they matter
-        for name, buf in model.network.named_buffers():
+        for _name, buf in model.network.named_buffers():
             if buf.is_floating_point():
                 buf.uniform_(0.5, 1.5)
     return {prefix + k: v.clone() for k, v in model.network.state_dict().items()}, model

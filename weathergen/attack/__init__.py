@@ -33,13 +33,15 @@ from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE, LR_POSITIONS
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
 __all__ = ["LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpResult", "LpSettings",
-           "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_attack_pair", "lp_pass_name", "lp_settings", "plan_lp",
+           "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_attack_pair", "lp_pass_name",
+           "lp_settings", "plan_lp",
            "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
            "ATTACK_CONFIGS", "AttackConfig", "AttackJob", "AttackResult", "AttackSettings",
            "DEFAULT_ALPHA", "DEFAULT_STEPS", "EvalRow", "LR_APPEARANCE", "LR_POSITIONS",
            "MIN_REG_DEPTH", "OPTIMIZABLE", "POSITION_VARIABLES", "PairOptimisation", "PairReport",
            "PairSummary", "StepRecord", "TargetSpec", "WeatherVariables", "attack_config",
-           "attack_loss", "attack_batch", "attack_pair", "attack_refs", "BatchOptimisation", "default_evaluation_path", "default_lr", "evaluate_frames",
+           "attack_loss", "attack_batch", "attack_pair", "attack_refs", "BatchOptimisation",
+           "default_evaluation_path", "default_lr", "evaluate_frames",
            "mean_rows", "mean_summary", "offset_penalty", "parse_optimize", "parse_target",
            "particle_depths", "prepare_attack_folder", "read_target_flow", "run_attack",
            "run_evaluation", "summarize_pair", "target_flow", "write_evaluation"]

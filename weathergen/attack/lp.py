@@ -223,7 +223,7 @@ class LpOptimisation:
                 return
             scale = torch.where(outside, eps / norms.clamp_min(1e-30) * (1 - 1e-4),
                                 torch.ones_like(norms)).view(-1, 1, 1, 1)
-            for w, x0, d, o in zip(self.w, self.x0, (d1, d2), (x1, x2)):
+            for w, x0, d in zip(self.w, self.x0, (d1, d2)):
                 moved = to_atanh(x0 + scale * d)
                 # pairs inside the ball keep their variables bit for bit
                 w.copy_(torch.where(outside.view(-1, 1, 1, 1), moved, w))

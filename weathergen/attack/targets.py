@@ -10,7 +10,7 @@ from typing import Optional
 
 import torch
 
-from ..errors import ConfigError, ShapeError
+from ..errors import ConfigError
 from ..io.sintel_formats import read_flo
 
 @dataclass(frozen=True)

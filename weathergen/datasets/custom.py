@@ -44,7 +44,7 @@ from ..io.custom_formats import DEPTH_SUFFIXES, CameraFile, read_camera_file, re
 from ..io.images import read_image
 from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
-from .base import ERROR, WARNING, Problem
+from .base import WARNING, Problem
 from .common import FarDepthDataset, check_size, require_files
 from .densify import fill_sparse
 from .framenames import order_frames

@@ -274,7 +274,8 @@ def write_demo_scene(root: str | Path) -> Path:
             next_depth = frames[i][1]
             seen = np.zeros(len(uv), bool)
             seen[inside] = next_depth[row[inside], col[inside]] >= cam_pts[inside, 2] * (1 - 2e-2)
-            write_png(tr / "occlusions" / name / f"{fname}.png", np.where(seen, 0, 255).astype(np.uint8).reshape(HEIGHT, WIDTH))
+            write_png(tr / "occlusions" / name / f"{fname}.png",
+                      np.where(seen, 0, 255).astype(np.uint8).reshape(HEIGHT, WIDTH))
     return root
 
 

@@ -149,7 +149,6 @@ class Field:
         offsets = torch.cumsum(counts, 0) - counts
         sub_xyz = torch.stack(torch.meshgrid(*(torch.arange(sd),) * 3, indexing="ij"), -1)
         sub_xyz = sub_xyz.reshape(-1, 3).double()
-        n = self.count
         streak = self.step.double() * q * self.streak
         found_j, found_k = [], []
         per = max(1, chunk // (sd ** 3))

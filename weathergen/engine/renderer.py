@@ -6,9 +6,9 @@ tensor follows the images' device). Four stages:
 1. **Stamps** (:func:`build_stamps`, no gradient): each particle's template is rotated and scaled
    to its own footprint (``scale`` x template resolution pixels), sampled from a mip level no
    finer than twice the footprint (no aliasing for far, tiny particles), and disc-blurred by its
-   defocus radius (then brightened, :func:`defocus_brighten`). A stamp is centred on a pixel. Particles are grouped into buckets of equal
-   stamp side so that each bucket is one batched tensor operation; a far particle costs a few
-   pixels, a near one its full size.
+   defocus radius (then brightened, :func:`defocus_brighten`). A stamp is centred on a pixel.
+   Particles are grouped into buckets of equal stamp side so that each bucket is one batched
+   tensor operation; a far particle costs a few pixels, a near one its full size.
 2. **Instances**: each particle becomes ``K`` motion-blur samples per frame, spaced evenly from its
    camera position ``X_t`` along its apparent 3D motion ``X2 − X1`` (camera-2 minus camera-1
    coordinates: its own motion and the camera's) up to ``blur_length`` times it, each with

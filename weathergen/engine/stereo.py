@@ -4,9 +4,10 @@ A field record (or the paper's) is data in a reference frame, so a second camera
 own transform from that frame, ``cam_right_from_ref = right_from_left @ cam_left_from_ref``, and
 its own scene depth for the occlusion test. Datasets rarely ship the right view's depth; it is
 forward-warped from the left one (:func:`warp_depth`): each left pixel is back-projected, moved into
-the right camera and z-buffered into the four pixels around where it lands, and pixels that no left pixel reaches (disoccluded, or beyond the
-left view) get ``fill`` (by default the farthest left depth), so particles in front of them stay
-visible. For a rectified pair the particles land at disparity ``f · B / z`` (tested).
+the right camera and z-buffered into the four pixels around where it lands, and pixels that no
+left pixel reaches (disoccluded, or beyond the left view) get ``fill`` (by default the farthest
+left depth), so particles in front of them stay visible. For a rectified pair the particles land
+at disparity ``f · B / z`` (tested).
 """
 
 from __future__ import annotations

@@ -39,7 +39,8 @@ def read_depth(path: str | Path, png_scale: Optional[float] = None) -> np.ndarra
     """Read a depth map by suffix. Shape: returns (H, W) float32 (0, NaN or inf where missing).
 
     ``.npy``: a float (H, W) or (H, W, 1) array. ``.png``: one-channel 16-bit, depth = value *
-    ``png_scale`` (required); 0 and 65535 are missing (0 and NaN). ``.exr``: channel Z, depth, Y or R (or the only channel).
+    ``png_scale`` (required); 0 and 65535 are missing (0 and NaN). ``.exr``: channel Z, depth, Y
+    or R (or the only channel).
     """
     path = Path(path)
     suffix = path.suffix.lower()
@@ -135,7 +136,8 @@ class CameraFile:
     """The content of a ``cameras.json`` / ``cameras.txt`` file, as written (not yet converted).
 
     ``intrinsics``: (3, 3) default for every frame; ``frames``: frame number (or, in JSON, a frame
-    file's stem) -> ``(pose (4, 4), intrinsics (3, 3) or None)``; ``pose``, ``axes``, ``depth``: conventions (see the layout spec);
+    file's stem) -> ``(pose (4, 4), intrinsics (3, 3) or None)``; ``pose``, ``axes``, ``depth``:
+    conventions (see the layout spec);
     ``depth_png_scale``: scene units per step of a 16-bit PNG depth map.
     """
 

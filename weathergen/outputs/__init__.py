@@ -18,7 +18,7 @@ from .manifest import (MANIFEST, MANIFEST_PARTS, SUMMARY, OutputManifest, jsonab
                        write_attack_manifest, write_manifest_part, write_run_config)
 from .metadata import (METADATA_KEYS, METADATA_VERSION, identity_arrays, pair_identity,
                        pair_metadata, read_metadata, write_metadata)
-from .pairs import FORMATS, NATIVE_FLOW, SINTEL_SPLIT_FOLDER, PairOutput, write_pair_outputs
+from .pairs import FORMATS, NATIVE_FLOW, SINTEL_SPLIT_FOLDER, PairOutput, write_pair_outputs  # noqa: F401  (documented above)
 from .reading import WeatherFolder, load_pair_particles
 
 __all__ = ["ATTACK_FOLDER", "AttackPairOutput", "FLOW_KINDS", "FORMATS", "FolderKind", "MANIFEST",

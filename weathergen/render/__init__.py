@@ -19,6 +19,7 @@ from .preview import contact_sheet
 from .shards import parse_shard, shard_refs
 
 __all__ = ["APPEARANCE_KEYS", "RENDER_THREADS", "ResolvedPreset", "default_batch_size",
-           "default_out", "default_pass_name", "resolve_preset", "PairResult", "RenderJob", "contact_sheet", "pair_particles",
+           "default_out", "default_pass_name", "resolve_preset", "PairResult", "RenderJob",
+           "contact_sheet", "pair_particles",
            "pair_seed", "parse_shard", "prepare_output", "record_run", "render_batch",
            "run_render", "shard_refs"]

@@ -10,8 +10,9 @@ Two ways to render a batch of particle records (the paper's model, weather field
   batch of six Sintel-size pairs).
 - **fast** (the default on other devices): :func:`~weathergen.engine.flat.render_flat`, the same
   models with the particles laid out ragged, in a few hundred tensor operations whatever the
-  particles' number and sizes and whatever mix of models the batch holds. On a GPU every operation is a kernel launch with Python around it, and their
-  number, not their arithmetic, sets the time of a batch's weather. The frames equal the exact
+  particles' number and sizes and whatever mix of models the batch holds. On a GPU every
+  operation is a kernel launch with Python around it, and their number, not their arithmetic,
+  sets the time of a batch's weather. The frames equal the exact
   path's up to float rounding (stamps in float64; tested to 1e-9 in float64 and 1e-3, a quarter
   of a grey level, in float32).
 """
@@ -57,7 +58,8 @@ def render_records(pairs: FramePairBatch, records: Sequence, *, exact: Optional[
     weather field) on the pairs' device: with
     ``exact`` (default: on the CPU) through :func:`~weathergen.engine.render` with the stamps of
     :func:`stamps_per_record` (field records: the renderer's per-frame path), else with
-    :func:`~weathergen.engine.flat.render_flat` (see the module doc). Same reference frames and checks as :func:`~weathergen.engine.render_pair`.
+    :func:`~weathergen.engine.flat.render_flat` (see the module doc). Same reference frames and
+    checks as :func:`~weathergen.engine.render_pair`.
     Shape: ``pairs`` images (B, 3, H, W); returns images (B, 3, H, W), opacities (B, 1, H, W).
     """
     device = pairs.image1.device
