@@ -52,8 +52,9 @@ from ..geometry import invert_rigid, transform_points
 from .presets import FieldPreset
 from .particles import Particles, empty_particles
 from .perframe import MAX_DEFOCUS, View, focal, view_mask
-from .sampling import (_euler, _generator, check_pair_for_engine, hls_to_rgb, reference_transforms,
-                       resolve_device, rgb_to_hls, sample_particles, world_down)
+from .sampling import (check_pair_for_engine, cpu_generator, euler_rotations, hls_to_rgb,
+                       reference_transforms, resolve_device, rgb_to_hls, sample_particles,
+                       world_down)
 from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
 
@@ -261,7 +262,7 @@ def make_field(preset: FieldPreset, seed, *, down: torch.Tensor, frame_rate: flo
     """
     if not frame_rate > 0:
         raise ConfigError(f"frame rate {frame_rate!r}: must be > 0")
-    gen = _generator(seed)
+    gen = cpu_generator(seed)
     lib = templates if templates is not None else load_templates(preset.templates)
     quantum = 2.0 ** math.floor(math.log2(preset.tile) - GRID_BITS)
     tile_units = max(1, int(round(preset.tile / quantum)))
@@ -271,7 +272,7 @@ def make_field(preset: FieldPreset, seed, *, down: torch.Tensor, frame_rate: flo
     start = torch.floor(u * tile_units).long().clamp(max=tile_units - 1)
     angle = math.radians(preset.angle_jitter)
     u = torch.rand(n, 5, generator=gen, dtype=torch.float64)
-    rot = _euler((2 * u[:, :3] - 1) * angle)
+    rot = euler_rotations((2 * u[:, :3] - 1) * angle)
     speed = preset.fall_speed * (1 + (2 * u[:, 3] - 1) * preset.speed_jitter)
     velocity = (rot @ down) * speed[:, None]
     a, b = horizontal_axes(down)

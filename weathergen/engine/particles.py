@@ -103,7 +103,7 @@ def _ungrid(codes: torch.Tensor, lo: torch.Tensor, step: torch.Tensor) -> torch.
     return (lo + codes.to(torch.float64) * step).to(torch.float32)
 
 
-def _quantize_field(name: str, t: torch.Tensor) -> torch.Tensor:
+def quantize_field(name: str, t: torch.Tensor) -> torch.Tensor:
     """One field rounded to its storage precision, float32 (int64 for integer fields), on the
     CPU."""
     t = t.detach().cpu()
@@ -204,7 +204,7 @@ class Particles:
                     storage = torch.from_numpy(np.zeros(0, np_dtype)).dtype
                     out[name] = t.to(storage).to(torch.float32)
             return self.replace(**out)
-        return self.replace(**{name: _quantize_field(name, getattr(self, name)).to(
+        return self.replace(**{name: quantize_field(name, getattr(self, name)).to(
             getattr(self, name).device) for name in _TENSOR_FIELDS})
 
     def metadata(self) -> dict:
@@ -231,7 +231,7 @@ class Particles:
                 turn = np.round(t.double().numpy() / (2 * np.pi) * _ROTATION_STEPS)
                 arrays[name] = np.remainder(turn, _ROTATION_STEPS).astype(np.uint8)
             else:
-                arrays[name] = _quantize_field(name, t).numpy().astype(
+                arrays[name] = quantize_field(name, t).numpy().astype(
                     _V3_DTYPES.get(name, np_dtype))
         arrays["frame"] = np.array(self.frame)
         arrays.update(self.settings.to_arrays())

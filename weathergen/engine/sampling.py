@@ -32,7 +32,7 @@ import torch
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
 from ..geometry import WORLD_UP_AXES, invert_rigid, project, transform_points, up_direction
-from .particles import Particles, _quantize_field, empty_particles
+from .particles import Particles, quantize_field, empty_particles
 from .presets import Preset
 from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
@@ -117,7 +117,7 @@ def _vertical_frame(down: torch.Tensor, cam1_from_ref: torch.Tensor) -> torch.Te
     return torch.stack((x, down, z), dim=1)
 
 
-def _euler(angles: torch.Tensor) -> torch.Tensor:
+def euler_rotations(angles: torch.Tensor) -> torch.Tensor:
     """Rotation matrices Rz Ry Rx from angles (radians). Shape: (N, 3) -> (N, 3, 3)."""
     cx, cy, cz = torch.cos(angles).unbind(-1)
     sx, sy, sz = torch.sin(angles).unbind(-1)
@@ -222,7 +222,9 @@ def hls_to_rgb(hls: torch.Tensor) -> torch.Tensor:
 
 # -- sampling ------------------------------------------------------------------------------
 
-def _generator(seed: Union[int, torch.Generator]) -> torch.Generator:
+def cpu_generator(seed: Union[int, torch.Generator]) -> torch.Generator:
+    """A CPU generator seeded with ``seed`` (an int), or ``seed`` itself (a CPU generator).
+    Raises ConfigError otherwise."""
     if isinstance(seed, torch.Generator):
         if seed.device.type != "cpu":
             raise ConfigError("the sampling generator must be a CPU torch.Generator")
@@ -258,7 +260,7 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     """
     check_pair_for_engine(pair)
     dev = resolve_device(device)
-    gen = _generator(seed)
+    gen = cpu_generator(seed)
     lib = templates if templates is not None else load_templates(preset.templates)
     frame, cam1_from_ref, cam2_from_ref = reference_transforms(pair)
     cam1_from_ref, cam2_from_ref = cam1_from_ref.cpu(), cam2_from_ref.cpu()
@@ -304,7 +306,7 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
         near2 = _within_reach(transform_points(cam2_from_ref, pos_ref), cone2, reach)
         cand = torch.nonzero(vis1 | near2).squeeze(1)
         uc = u[cand]
-        rot = _euler((2 * uc[:, 3:6] - 1) * angle)
+        rot = euler_rotations((2 * uc[:, 3:6] - 1) * angle)
         factor = 1 + (2 * uc[:, 6] - 1) * preset.motion_scale_jitter
         motion_vertical = (rot @ base) * factor[:, None]
         motion = motion_vertical @ ref_from_vertical.T
@@ -315,8 +317,8 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
         kept += int(vis.sum())
     # Round to the stored precision first, so that the depth-dependent properties below
     # follow from exactly the positions a saved record holds.
-    position = _quantize_field("position", torch.cat(kept_pos)[:n]).double()
-    motion = _quantize_field("motion", torch.cat(kept_motion)[:n]).double()
+    position = quantize_field("position", torch.cat(kept_pos)[:n]).double()
+    motion = quantize_field("motion", torch.cat(kept_motion)[:n]).double()
 
     # Per-particle appearance, drawn for exactly n particles after the positions.
     u = torch.rand(n, 4, generator=gen, dtype=torch.float64)

@@ -41,7 +41,7 @@ from torch.utils.checkpoint import checkpoint as recompute
 
 from .checkpoints import CheckpointSpec
 from .gma import ContextAttention, GMAUpdateBlock, IteratedFlowModel
-from .raft import _pixel_grid, convex_upsample, sample_bilinear
+from .raft import coords_grid, convex_upsample, sample_bilinear
 from .registry import ModelSpec, register_checkpoint, register_model
 from .twins import (TwinsEncoder, merge_heads, split_heads, window_merge, window_partition)
 
@@ -453,7 +453,7 @@ class MemoryDecoder(nn.Module):
         attention = self.att(inp)
         keys, values = self.decoder_layer.cross_attend.keys_values(memory)
 
-        coords0 = _pixel_grid(b, h, w, context.device, context.dtype)
+        coords0 = coords_grid(b, h, w, context.device, context.dtype)
         coords1 = coords0
         run = _runner(gradient_checkpointing)
         step = partial(self._refine, cost_maps)

@@ -34,7 +34,7 @@ from torch.utils.checkpoint import checkpoint as recompute
 from .base import FlowModel
 from .checkpoints import CheckpointSpec, load_strict, strip_prefix
 from .raft import (RAFT_FULL, CorrelationPyramid, Encoder, FlowHead, MotionEncoder, SepConvGRU,
-                   _pixel_grid, convex_upsample)
+                   coords_grid, convex_upsample)
 from .registry import ModelSpec, register_checkpoint, register_model
 
 #: Refinement iterations when none are given: what the paper's attack code uses for GMA (the
@@ -180,7 +180,7 @@ class GMA(nn.Module):
         attention = self.att(context)
 
         h, w = fmaps.shape[-2:]
-        coords0 = _pixel_grid(b, h, w, fmaps.device, fmaps.dtype)
+        coords0 = coords_grid(b, h, w, fmaps.device, fmaps.dtype)
         coords1 = coords0
 
         step = partial(self._refine, corr)

@@ -464,7 +464,7 @@ class RAFT(nn.Module):
 
         # coords0: every working-resolution pixel; coords1: where it is estimated to be in frame 2.
         h, w = fmaps.shape[-2:]
-        coords0 = _pixel_grid(b, h, w, fmaps.device, fmaps.dtype)
+        coords0 = coords_grid(b, h, w, fmaps.device, fmaps.dtype)
         coords1 = coords0 if flow_init is None else coords0 + flow_init
 
         step = partial(self._refine, corr)
@@ -494,7 +494,7 @@ class RAFT(nn.Module):
         return self.update_block(hidden, context, corr.lookup(coords1), coords1 - coords0)
 
 
-def _pixel_grid(b: int, h: int, w: int, device, dtype) -> torch.Tensor:
+def coords_grid(b: int, h: int, w: int, device, dtype) -> torch.Tensor:
     """``(b, 2, h, w)`` pixel coordinates, channel 0 = x (column), channel 1 = y (row)."""
     ys, xs = torch.meshgrid(torch.arange(h, device=device, dtype=dtype),
                             torch.arange(w, device=device, dtype=dtype), indexing="ij")
