@@ -27,7 +27,8 @@ from engine_scenes import pose, rotation  # noqa: E402
 
 from weathergen.engine import load_preset  # noqa: E402
 from weathergen.engine.field import make_field, pair_particles  # noqa: E402
-from weathergen.engine.perframe import View, render_first_frame  # noqa: E402
+from weathergen.engine import View  # noqa: E402
+from weathergen.engine.renderer import render_first_frame  # noqa: E402
 from weathergen.framepair import FramePair, PairId  # noqa: E402
 
 HEIGHT, WIDTH, FOCAL = 436, 1024, 1120.0

@@ -8,16 +8,15 @@ paper's ``p = 0.5`` the cost halves):
 - *per sample*: :class:`WeatherAugment` applied to the 6 pairs one by one on the CPU, the time the
   DataLoader's workers spend on a batch (hidden behind the step when there are enough workers);
 - *per batch*: :meth:`WeatherAugment.apply_batch` on the device, particle sampling included (on
-  the CPU) and, with the particles prepared in the workers, the batched render alone, both with
-  the batch path's default stamps (exact on the CPU, fast elsewhere) and, as *fast* / *exact*
-  rows, with the other one;
+  the CPU) and, with the particles prepared in the workers, the batched render alone (the
+  engine's one render core, ragged: both paths give the same frames);
 - for every render of a prepared batch, the number of tensor operations it dispatches (about one
   kernel launch each on a GPU, where their count rather than their arithmetic sets the time) and
   of host synchronisations among them (``nonzero``, ``unique``, ``.item()``, ``.tolist()``), set
   against the same counts for the training step (counted on a small crop: a step's operations do
   not depend on the image size): without a GPU, the share of launches is the estimate of the
-  weather's share of a GPU step (on the CPU also for the fast path with the larger chunks a GPU
-  uses, and counting the host-side bookkeeping a GPU count leaves out);
+  weather's share of a GPU step (on the CPU also with the larger chunks a GPU uses, and
+  counting the host-side bookkeeping a GPU count leaves out);
 
 and the time of one training step (forward with every iteration, sequence loss, backward, AdamW)
 of RAFT-small and, with ``--model raft`` or on a GPU, full RAFT, on the cropped batch. Target:
@@ -41,7 +40,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from engine_scenes import plane_pair, pose, rotation  # noqa: E402
 
-from weathergen.engine.flat import render_flat  # noqa: E402
+from weathergen.engine import render  # noqa: E402
 from weathergen.framepair import PairId  # noqa: E402
 from weathergen.models import build_model  # noqa: E402
 from weathergen.training import (PairSample, RandomCrop, WeatherAugment,  # noqa: E402
@@ -102,7 +101,7 @@ def count_ops(fn, device) -> tuple[int, int]:
 
 
 def flat_arguments(batch) -> tuple:
-    """The arguments of :func:`render_flat` for a batch with prepared particles."""
+    """The arguments of :func:`~weathergen.engine.render` for a batch with prepared particles."""
     p = batch.pairs
     return (p.image1, p.image2, p.depth1, p.depth2, p.intrinsics, p.cam1_from_world,
             p.cam2_from_world, list(batch.particles))
@@ -151,26 +150,21 @@ def main(argv=None):
     batch_dev = batch_cpu.to(device)
 
     weather_times, op_counts = {}, {}
-    default_mode = "exact" if device.type == "cpu" else "fast"
-    other_mode = "fast" if default_mode == "exact" else "exact"
     for preset in args.presets.split(","):
         aug = WeatherAugment(preset, p=1.0, seed=0)
-        other = WeatherAugment(preset, p=1.0, seed=0, exact_batches=other_mode == "exact")
         per_sample = timed(lambda: [aug(s) for s in samples], repeats, lambda: None)
         prepared = collate_pairs([aug.prepare(s) for s in samples]).to(device)
         batched = timed(lambda: aug.apply_batch(batch_dev), repeats, sync)
         render_only = timed(lambda: aug.apply_batch(prepared), repeats, sync)
-        render_other = timed(lambda: other.apply_batch(prepared), repeats, sync)
         weather_times[preset] = {
             "per sample (CPU)": per_sample,
             f"per batch ({device.type})": batched,
-            f"prepared, {default_mode} ({device.type})": render_only,
-            f"prepared, {other_mode} ({device.type})": render_other}
-        op_counts[preset] = {default_mode: count_ops(lambda: aug.apply_batch(prepared), device),
-                             other_mode: count_ops(lambda: other.apply_batch(prepared), device)}
-        if device.type == "cpu":    # the fast path's chunks as a GPU with free memory sizes them
-            op_counts[preset]["fast, GPU-size chunks"] = count_ops(
-                lambda: render_flat(*flat_arguments(prepared), chunk_elements=1 << 25), device)
+            f"prepared, render only ({device.type})": render_only}
+        op_counts[preset] = {"default chunks": count_ops(lambda: aug.apply_batch(prepared),
+                                                         device)}
+        if device.type == "cpu":    # the chunks a GPU with free memory would use
+            op_counts[preset]["GPU-size chunks"] = count_ops(
+                lambda: render(*flat_arguments(prepared), chunk_elements=1 << 25), device)
 
     cropped = crop.apply_batch(batch_cpu).to(device)
     p = cropped.pairs

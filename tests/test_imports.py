@@ -134,3 +134,60 @@ def test_each_layer_imports_only_the_layers_below_it():
     upward = [f"{a} imports {b}" for a, targets in _graph().items() for b in targets
               if package(a) != package(b) and rank[package(a)] <= rank[package(b)]]
     assert not upward, "imports that do not go down a layer:\n" + "\n".join(upward)
+
+
+def _private(name: str) -> bool:
+    return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
+
+
+def _private_uses(name: str) -> list[str]:
+    """Private names of another weathergen module that ``name`` reaches: ``from .x import _y``,
+    ``from . import _x`` (a private module is private to its package) and ``x._y`` where ``x``
+    is a weathergen module bound by an import."""
+    tree = ast.parse(MODULES[name].read_text())
+    base = name if _is_package(name) else name.rpartition(".")[0]
+    found, modules = [], {}
+    for node in ast.walk(tree):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                anchor = base.split(".")
+                anchor = anchor[:len(anchor) - (node.level - 1)]
+                stem = ".".join(anchor + ([node.module] if node.module else []))
+            else:
+                stem = node.module or ""
+            if not stem.startswith("weathergen"):
+                continue
+            for alias in node.names:
+                if f"{stem}.{alias.name}" in MODULES:
+                    modules[alias.asname or alias.name] = f"{stem}.{alias.name}"
+                if _private(alias.name):
+                    found.append(f"line {node.lineno}: from {stem} import {alias.name}")
+        elif isinstance(node, ast.Import):
+            for alias in node.names:
+                if alias.name.startswith("weathergen"):
+                    modules[alias.asname or alias.name.split(".")[0]] = alias.name
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Attribute) and _private(node.attr):
+            root = node.value
+            if isinstance(root, ast.Name) and root.id in modules:
+                found.append(f"line {node.lineno}: {root.id}.{node.attr}")
+    return found
+
+
+def test_no_module_uses_a_private_name_of_another():
+    """A leading underscore means "this module's own": another module that needs the name
+    needs it made public (or moved to where both can see it)."""
+    uses = [f"{MODULES[name].relative_to(ROOT)} {use}" for name in MODULES
+            for use in _private_uses(name)]
+    assert not uses, "private names used across modules:\n" + "\n".join(uses)
+
+
+def test_private_name_check_catches_both_forms(tmp_path, monkeypatch):
+    """The check above sees both an imported private name and an attribute of an imported
+    module (a check that cannot fail proves nothing)."""
+    probe = tmp_path / "probe.py"
+    probe.write_text("from .engine.renderer import _hidden\nfrom .engine import sampling\n"
+                     "x = sampling._generator(0)\nfrom .engine import __version__\n")
+    monkeypatch.setitem(MODULES, "weathergen.probe", probe)
+    found = _private_uses("weathergen.probe")
+    assert len(found) == 2 and "_hidden" in found[0] and "sampling._generator" in found[1], found

@@ -1,4 +1,4 @@
-"""Weather fields: geometry of the per-frame path, frame identity between pairs, density, stereo,
+"""Weather fields: geometry of the per-frame looks, frame identity between pairs, density, stereo,
 particle ground truth, presets and storage."""
 
 from __future__ import annotations
@@ -19,8 +19,8 @@ from weathergen.engine.presets import DATASET_FRAME_RATES, FieldPreset
 from weathergen.engine.groundtruth import particle_truth, seen_flow
 from weathergen.engine.optics import FieldOptics
 from weathergen.engine.settings import RenderSettings
-from weathergen.engine.perframe import (View, defocus_radius, depth_fade, footprint,
-                                        render_view, view_mask)
+from weathergen.engine.renderer import render_view
+from weathergen.engine.tracks import View, defocus_radius, depth_fade, footprint, view_mask
 from weathergen.errors import ConfigError
 from weathergen.framepair import FramePair, PairId
 from weathergen.geometry import project, transform_points

@@ -389,7 +389,7 @@ def test_each_stamp_is_as_large_as_its_footprint_not_the_template():
         scale=footprints / lib.resolution, defocus=torch.zeros(5, dtype=torch.int64),
         template=torch.zeros(5, dtype=torch.int64), settings=RenderSettings(templates="flakes"))
     stamps = build_stamps([parts], lib)
-    sides = torch.tensor([stamps.buckets[b].side for b in stamps.bucket_of.tolist()])
+    sides = stamps.side
     assert bool((sides >= footprints).all())                         # the whole footprint fits
     assert bool((sides <= 1.2 * footprints + 3).all()), sides.tolist()  # and little more
 
@@ -398,13 +398,19 @@ def test_each_stamp_is_as_large_as_its_footprint_not_the_template():
 def test_rim_of_an_even_footprint_does_not_depend_on_rounding(rotation):
     """Rim samples of an even-sized footprint lie exactly on the template's circle: whether they are
     drawn must not depend on float32 against float64 (or CPU against GPU rounding)."""
-    from weathergen.engine.renderer import _stamp_chunk
+    from weathergen.engine.stamps import build
+    from weathergen.engine.tracks import Looks
 
+    lib = TemplateLibrary(name="ones", alphas=torch.ones(1, 16, 16), digest="")
+    looks = Looks(footprint=torch.tensor([10.0], dtype=torch.float64),
+                  defocus=torch.tensor([0]), rotation=torch.tensor([rotation], dtype=torch.float64),
+                  template=torch.tensor([0]), brighten=torch.tensor([False]))
     masks = []
     for dtype in (torch.float32, torch.float64):
-        levels = [torch.ones(1, 1, 16, 16, dtype=dtype)]
-        stamp = _stamp_chunk(levels, 0, torch.tensor([0]), torch.tensor([rotation], dtype=dtype),
-                             torch.tensor([10.0], dtype=dtype), 11)[0]
+        stamps = build(looks, lib, dtype=dtype)
+        side = int(stamps.side[0])
+        assert side == 11
+        stamp = stamps.pixels.view(side + 2, side + 2)[1:-1, 1:-1]
         masks.append(stamp > 0)
     assert torch.equal(masks[0], masks[1])
     # the four rim points on the axes, at exactly 5 px from the centre, are drawn

@@ -17,17 +17,17 @@ from .field import (Field, frame_particles, make_field, pair_particles, sample_f
                     sample_weather, scene_seed)
 from .groundtruth import ParticleTruth, particle_truth, seen_flow
 from .particles import Particles, empty_particles, from_atanh, to_atanh
-from .perframe import View, render_view
 from .optics import FieldOptics
 from .presets import (DATASET_FRAME_RATES, FieldPreset, Preset, list_presets, load_preset,
                       parse_override, parse_set_options, preset_keys)
 from .renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps, render,
-                       render_pair)
+                       render_pair, render_view)
 from .sampling import (reference_transforms, resolve_device, sample_particles, visible_counts,
                        world_down)
 from .settings import APPEARANCE_KEYS, RenderSettings
 from .templates import (TemplateLibrary, generate_templates, load_templates,
                         write_builtin_templates)
+from .tracks import View
 
 __all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "DATASET_FRAME_RATES", "Field",
            "FieldOptics", "FieldPreset", "ParticleTruth", "Particles", "Preset", "RenderOutput",

@@ -19,7 +19,7 @@ field see new particles enter and none pile up, and the field is never re-sample
 
 A frame's particles are enumerated from the copies that meet its view volume (the frustum from the
 preset's ``near`` to ``far``, widened by the largest footprint and streak) and kept when
-:func:`~weathergen.engine.perframe.view_mask` says so: in that depth range, inside the image (or
+:func:`~weathergen.engine.tracks.view_mask` says so: in that depth range, inside the image (or
 close enough that the stamp reaches it), and not behind the scene surface at its pixel. Particles
 inside solid objects are therefore never drawn (no camera sees them in front of the surface), and a
 near wall hides the weather behind it instead of concentrating it in the visible strip.
@@ -51,12 +51,12 @@ from ..framepair import FramePair
 from ..geometry import invert_rigid, transform_points
 from .presets import FieldPreset
 from .particles import Particles, empty_particles
-from .perframe import MAX_DEFOCUS, View, focal, view_mask
 from .sampling import (check_pair_for_engine, cpu_generator, euler_rotations, hls_to_rgb,
                        reference_transforms, resolve_device, rgb_to_hls, sample_particles,
                        world_down)
 from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
+from .tracks import MAX_DEFOCUS, View, focal, view_mask
 
 #: Bits of the grid below the tile side: quantum = 2^floor(log2(L) - GRID_BITS).
 GRID_BITS = 16

@@ -3,8 +3,8 @@
 - **Particle flow** ``(2, H, W)``: at every pixel, the opacity-weighted mean of the projected
   displacements (frame 1 to frame 2) of the particles covering it in frame 1,
   ``Σ_i w_i f_i / Σ_i w_i`` with ``w_i = θ_i B_i V_i`` the particle's splatted weight and ``f_i`` the
-  displacement of its centre's projection; zero where no particle is. Computed by the renderer's
-  splat core with the displacements in place of the colour.
+  displacement of its centre's projection; zero where no particle is. Computed by the render
+  core's splat with the displacements in place of the colour (:func:`~weathergen.engine.renderer.view_sums`).
 - **Opacity** ``(1, H, W)``: ``clamp(Σ_i w_i, 0, 1)``, the renderer's opacity of frame 1.
 - **Seen flow** ``(2, H, W)``: the particle flow where the particles dominate a pixel
   (opacity >= ``threshold``, 0.5 by default) and the scene's flow elsewhere; valid where the
@@ -27,10 +27,10 @@ import torch
 from ..framepair import FramePair
 from ..geometry import project, transform_points
 from .particles import Particles
-from .perframe import View, pair_starts, splat_view
-from .renderer import BETA_RENDER, DEFAULT_CHUNK_ELEMENTS
+from .renderer import BETA_RENDER, pair_starts, view_sums
 from .sampling import check_pair_for_engine, reference_transforms
 from .templates import TemplateLibrary, load_templates
+from .tracks import View
 
 SEEN_THRESHOLD = 0.5
 
@@ -46,7 +46,7 @@ class ParticleTruth:
 
 def particle_truth(pair: FramePair, particles: Particles,
                    templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
-                   chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> ParticleTruth:
+                   chunk_elements: Optional[int] = None) -> ParticleTruth:
     """Particle flow and opacity of frame 1 of ``pair`` (float64 accumulation on the CPU)."""
     check_pair_for_engine(pair)
     lib = templates if templates is not None else load_templates(particles.settings.templates)
@@ -59,12 +59,11 @@ def particle_truth(pair: FramePair, particles: Particles,
     p2, _ = project(transform_points(c2.double().cpu(), start2), k)
     values = torch.cat((p2 - p1, torch.zeros(rec.count, 1, dtype=dtype)), 1)
     view = View(k, c1.double().cpu(), pair.depth1.cpu())
-    sp = splat_view(view, rec, start1, disp, lib, beta=beta, chunk_elements=chunk_elements,
-                    dtype=dtype, device=device, values=values)
-    weight = sp.alpha
+    weight, colour = view_sums(view, rec, start1, disp, lib, beta=beta, values=values,
+                               dtype=dtype, device=device, chunk_elements=chunk_elements)
     covered = weight > 0
     safe = torch.where(covered, weight, torch.ones_like(weight))
-    flow = torch.where(covered, sp.colour[:2] / safe, torch.zeros_like(sp.colour[:2]))
+    flow = torch.where(covered, colour[:2] / safe, torch.zeros_like(colour[:2]))
     return ParticleTruth(flow=flow.float(), opacity=weight.clamp(0, 1).float(),
                          weight=weight.float())
 

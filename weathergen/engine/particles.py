@@ -22,7 +22,7 @@ Appearance: a record sampled by the paper's model (``optics is None``) carries i
 field (:mod:`weathergen.engine.field`) carries :class:`FieldOptics`: its ``scale`` is then the
 particle's diameter in scene units and ``transparency`` its base θ, and footprint, defocus and
 depth fade are computed for every frame from that frame's own depth of the particle
-(:mod:`weathergen.engine.perframe`).
+(:mod:`weathergen.engine.tracks`).
 
 Storage precision of the paper's records (format version 3): positions and motions as codes on a
 per-record linear grid (``lo + code * step`` per axis, the grid spanning the record's values; 15

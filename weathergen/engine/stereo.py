@@ -18,8 +18,8 @@ import torch
 
 from ..geometry import backproject, project, transform_points
 from .particles import Particles
-from .perframe import View, render_view
-from .renderer import BETA_RENDER, DEFAULT_CHUNK_ELEMENTS
+from .renderer import BETA_RENDER, render_view
+from .tracks import View
 
 
 def warp_depth(depth: torch.Tensor, intrinsics: torch.Tensor, right_from_left: torch.Tensor,
@@ -56,7 +56,7 @@ def stereo_view(left: View, right_from_left: torch.Tensor, right_depth: torch.Te
 
 def render_right(image: torch.Tensor, right: View, particles: Particles, start: torch.Tensor,
                  displacement: torch.Tensor, templates, *, beta: float = BETA_RENDER,
-                 chunk_elements: int = DEFAULT_CHUNK_ELEMENTS):
+                 chunk_elements: Optional[int] = None):
     """The weather frame of the right camera: the same particles, its own looks per frame.
 
     Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W)).

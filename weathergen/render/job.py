@@ -27,7 +27,7 @@ from ..datasets import Dataset, PairRef
 from ..datasets.stereo import right_camera
 from ..engine import (FieldPreset, View, load_templates, particle_truth, reference_transforms,
                       render_pair, visible_counts)
-from ..engine.perframe import pair_starts, render_first_frame
+from ..engine.renderer import pair_starts, render_first_frame
 from ..engine.stereo import render_right, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device

@@ -14,11 +14,11 @@ It runs in one of two places:
   moved to the device and :meth:`WeatherAugment.apply_batch` renders every pair that gets weather
   in one batched call (one per template library when presets with different templates are
   mixed). Without ``prepare`` the batch path samples the particles itself (on the CPU, from the
-  pairs' depth and cameras). Both paths give the same frames: bit for bit on the CPU (each pair's
-  stamps are rasterised on their own, see :func:`stamps_per_record`); on other devices the batch
-  path by default takes the fast route of :mod:`weathergen.training.batchrender` (the ragged
-  renderer :func:`~weathergen.engine.flat.render_flat`: a few hundred kernel launches per batch),
-  equal up to float rounding, and CUDA's frames agree with the CPU's within one grey level.
+  pairs' depth and cameras). Both paths render with the engine's one render core
+  (:func:`~weathergen.engine.render`), which lays every pair's particles out as ragged runs: a
+  batch costs a few hundred tensor operations (kernel launches on a GPU) whatever the particles'
+  number and sizes, and on the CPU each pair's frames are bit for bit those of rendering it alone,
+  so both paths give the same frames; CUDA's agree with the CPU's within one grey level.
 
 **Order: weather first, geometric augmentation after.** The presets place a number of *visible*
 particles in the whole frame, with pixel sizes meant for the full frame; rendering into the full
@@ -49,7 +49,6 @@ import torch
 from ..engine import FieldPreset, Preset, load_preset, load_templates, render_pair, sample_weather
 from ..errors import ConfigError, ShapeError
 from ..framepair import FramePair, FramePairBatch
-from .batchrender import render_records, stamps_per_record
 from .datasets import (PairSample, PairSampleBatch, batch_to, collate_pairs, pair_of,
                        select_pairs)
 
@@ -196,11 +195,6 @@ class WeatherAugment:
             ``{"count": 1000}`` for frames much smaller than Sintel's).
         world_up: which world axis points up; ``None`` takes each sample's (its dataset's) setting.
         keep_particles: keep the rendered particle record in :attr:`PairSample.particles`.
-        exact_batches: how :meth:`apply_batch` renders (:mod:`weathergen.training.batchrender`):
-            ``True`` with the renderer, stamps record by record, bit for bit the per-sample
-            frames; ``False`` with the ragged renderer, under a thousand device operations per
-            batch, equal up to float rounding; ``None`` (default): exact on the CPU, fast on
-            other devices.
 
     Shape: frames ``(3, H, W)`` per sample or ``(B, 3, H, W)`` per batch, RGB in ``[0, 1]``;
     the pairs need depth and cameras (every weathergen reader provides them).
@@ -208,8 +202,7 @@ class WeatherAugment:
 
     def __init__(self, presets: Union[str, Preset, WeatherSource, Sequence] = ("snow",),
                  p: float = 0.5, seed: int = 0, *, overrides: Optional[Mapping] = None,
-                 world_up: Optional[str] = None, keep_particles: bool = False,
-                 exact_batches: Optional[bool] = None):
+                 world_up: Optional[str] = None, keep_particles: bool = False):
         single = isinstance(presets, (str, Path, Preset, FieldPreset)) or _is_source(presets)
         items = [presets] if single else list(presets)
         if not items:
@@ -224,7 +217,6 @@ class WeatherAugment:
         self.seed = _check_seed(seed)
         self.world_up = world_up
         self.keep_particles = bool(keep_particles)
-        self.exact_batches = exact_batches
 
     def __repr__(self) -> str:
         names = ", ".join(s.name for s in self.sources)
@@ -327,7 +319,7 @@ class WeatherAugment:
         for members in groups.values():
             group = [records[k] for k in members]
             chosen = pairs if whole else select_pairs(pairs, members)
-            out = render_records(chosen, group, exact=self.exact_batches)
+            out = render_pair(chosen, group)
             if whole:
                 image1, image2 = out.image1, out.image2
             else:
@@ -476,5 +468,4 @@ class Compose:
 
 
 __all__ = ["Compose", "PresetSource", "RandomCrop", "RandomFlip", "WeatherAugment",
-           "WeatherDraw", "WeatherSource", "crop_pair", "flip_pair", "keyed_digest",
-           "stamps_per_record"]
+           "WeatherDraw", "WeatherSource", "crop_pair", "flip_pair", "keyed_digest"]

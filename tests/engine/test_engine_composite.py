@@ -1,4 +1,4 @@
-"""The renderer's full-resolution steps with hand-written backward passes (engine/compositing.py)
+"""The renderer's full-resolution steps with hand-written backward passes (engine/composite.py)
 against the plain torch expressions they replace."""
 
 from __future__ import annotations
@@ -7,7 +7,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from weathergen.engine.compositing import blend, upsample, upsample_adjoint
+from weathergen.engine.composite import blend, upsample, upsample_adjoint
 
 
 @pytest.mark.parametrize("factor", [2, 4, 8])

@@ -1,18 +1,26 @@
-"""Full-resolution steps of the renderer with hand-written backward passes: bilinear upsampling of
-the coarse-grid sums (large billboards) and blending the sums into the frames.
+"""Stage 4 of the render core: per-pixel sums -> weather frames and opacities.
 
-Both touch every pixel of both frames, for every channel, so on the CPU their cost is the memory
-traffic: autograd's generic backward of the same expressions would allocate and fill several
-full-size tensors more (zero gradients of slices, the stack that undoes an ``unbind``, masks of
-each ``clamp``). Each function here computes its gradient in one allocation.
+The splat's :class:`~weathergen.engine.splat.Sums` hold, per view, ``A = Σ θ B V`` and
+``C_c = Σ γ_c θ B V`` on the image grid and on the coarse grids of large billboards.
+:func:`planes` brings the coarse grids to the image grid (bilinear upsampling, coarsest first)
+and :func:`composite` blends: additive ``I + C`` or order-independent alpha ``I (1 − A) + C``
+(Meshkin), each view with its record's mode, clamped to [0, 1]; the opacity is ``clamp(A, 0, 1)``.
+
+Both steps touch every pixel of every frame, for every channel, so on the CPU their cost is the
+memory traffic: autograd's generic backward of the same expressions would allocate and fill
+several full-size tensors more (zero gradients of slices, the stack that undoes an ``unbind``,
+masks of each ``clamp``). Each function here computes its gradient in one allocation.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import torch
 import torch.nn.functional as F
+
+from .splat import Sums
 
 
 def _phase_weights(factor: int, dtype, device) -> torch.Tensor:
@@ -88,22 +96,71 @@ def upsample(grid: torch.Tensor, factor: int, size: Sequence[int]) -> torch.Tens
     return _Upsample.apply(grid, factor, tuple(size))
 
 
+@dataclass
+class RenderOutput:
+    """Shape: image1, image2 (B, 3, H, W) in [0, 1]; opacity1, opacity2 (B, 1, H, W) in [0, 1];
+    reached (B,) bool: which pairs' frames any blur sample of their record was splatted into (a
+    pair that none reached has frames that do not depend on its particles)."""
+
+    image1: torch.Tensor
+    image2: torch.Tensor
+    opacity1: torch.Tensor
+    opacity2: torch.Tensor
+    reached: Optional[torch.Tensor] = None
+
+
+class _Crop(torch.autograd.Function):
+    """One level's planes without margins (a view of the sums); the backward pass writes the
+    gradient into one zero tensor of the sums' shape (autograd's slices would allocate one
+    per slice). Shape: values (4, N) -> (4, V, h, w)."""
+
+    @staticmethod
+    def forward(ctx, values, grids, index):
+        ctx.grids, ctx.index, ctx.shape = grids, index, values.shape
+        return grids.planes(values, index)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, grad):
+        out = grad.new_zeros(ctx.shape)
+        ctx.grids.planes(out, ctx.index).copy_(grad)
+        return out, None, None
+
+
+def planes(sums: Sums) -> torch.Tensor:
+    """The sums of every view on the image grid: each coarse grid cropped and upsampled to the
+    image grid, added coarsest first, then the image grid's own sums. A level that holds
+    nothing of a view adds exact zeros to it, so a view's sums do not depend on which levels the
+    other views of the call need. Shape: -> (4, V, 1, H, W) (a view of the sums where no coarse
+    grid is drawn)."""
+    grids = sums.grids
+    total = None
+    for index, (level, _, h, w, _) in enumerate(grids.levels):
+        grid = _Crop.apply(sums.values, grids, index)
+        if level:   # one plane per image: the kernel treats every plane alike, whatever V
+            grid = upsample(grid.reshape(4 * grids.views, 1, h, w), 2 ** level,
+                            (grids.height, grids.width)).view(4, grids.views, grids.height,
+                                                              grids.width)
+        total = grid if total is None else total + grid
+    return total.view(4, grids.views, 1, grids.height, grids.width)
+
+
 class _Blend(torch.autograd.Function):
-    """Both frames of a batch blended with their sums: ``I (1 − A) + C`` (alpha) or ``I + C``
+    """T frames of a batch of B blended with their sums: ``I (1 − A) + C`` (alpha) or ``I + C``
     (additive), clamped to [0, 1], and the opacity ``clamp(A, 0, 1)``.
 
-    Shape: sums (4, 2, B, 1, H, W) (A, C_r, C_g, C_b per frame), image1, image2 (B, 3, H, W),
-    alpha_mode (B,) bool -> image1, image2 (B, 3, H, W), opacity1, opacity2 (B, 1, H, W).
+    Shape: sums (4, T, B, 1, H, W) (A, C_r, C_g, C_b per frame), alpha_mode (B,) bool, images T
+    tensors (B, 3, H, W) -> T images (B, 3, H, W), then T opacities (B, 1, H, W).
     Gradients flow to the sums and the images; a clamped value passes none (as ``clamp``).
     """
 
     @staticmethod
-    def forward(ctx, sums, image1, image2, alpha_mode):
+    def forward(ctx, sums, alpha_mode, *images):
         mode = alpha_mode.view(-1, 1, 1, 1)
         all_alpha, no_alpha = bool(alpha_mode.all()), not bool(alpha_mode.any())
-        grad = any(ctx.needs_input_grad[:3])
+        grad = any(ctx.needs_input_grad[:1] + ctx.needs_input_grad[2:])
         outs, opacities, masks = [], [], []
-        for t, image in enumerate((image1, image2)):
+        for t, image in enumerate(images):
             alpha = sums[0, t]                                           # (B, 1, H, W)
             colour = sums[1:, t, :, 0].transpose(0, 1)                   # (B, 3, H, W)
             if all_alpha:
@@ -120,18 +177,21 @@ class _Blend(torch.autograd.Function):
             outs.append(out)
             opacities.append(opacity)
         if grad:
-            ctx.save_for_backward(sums, image1, image2, alpha_mode, *masks)
+            ctx.save_for_backward(sums, alpha_mode, *images, *masks)
+        ctx.frames = len(images)
         return (*outs, *opacities)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, g_out1, g_out2, g_op1, g_op2):
-        sums, image1, image2, alpha_mode, *masks = ctx.saved_tensors
+    def backward(ctx, *grads):
+        frames = ctx.frames
+        sums, alpha_mode, *rest = ctx.saved_tensors
+        images, masks = rest[:frames], rest[frames:]
+        g_outs, g_ops = grads[:frames], grads[frames:]
         mode = alpha_mode.view(-1, 1, 1, 1).to(sums.dtype)
         g_sums = sums.new_empty(sums.shape) if ctx.needs_input_grad[0] else None
-        g_images = [None, None]
-        for t, (image, g_out, g_op) in enumerate(((image1, g_out1, g_op1),
-                                                  (image2, g_out2, g_op2))):
+        g_images = []
+        for t, (image, g_out, g_op) in enumerate(zip(images, g_outs, g_ops)):
             mask_out, mask_op = masks[2 * t], masks[2 * t + 1]
             if g_sums is not None:      # dL/dC: the output gradient where it passes the clamp
                 g = g_sums[1:, t, :, 0].transpose(0, 1)                      # (B, 3, H, W)
@@ -141,8 +201,7 @@ class _Blend(torch.autograd.Function):
                     torch.mul(g_out, mask_out, out=g)
             else:
                 g = torch.zeros_like(image) if g_out is None else g_out * mask_out
-            if ctx.needs_input_grad[1 + t]:
-                g_images[t] = g * (1 - sums[0, t] * mode)
+            g_images.append(g * (1 - sums[0, t] * mode) if ctx.needs_input_grad[2 + t] else None)
             if g_sums is None:
                 continue
             g_alpha = g_sums[0, t]                                           # (B, 1, H, W)
@@ -155,10 +214,24 @@ class _Blend(torch.autograd.Function):
                 g_alpha.zero_()
             if g_op is not None:
                 g_alpha.addcmul_(g_op, mask_op.to(g_op.dtype))
-        return g_sums, g_images[0], g_images[1], None
+        return (g_sums, None, *g_images)
 
 
 def blend(sums: torch.Tensor, image1: torch.Tensor, image2: torch.Tensor,
-          alpha_mode: Optional[torch.Tensor]):
-    """See :class:`_Blend`. Returns (image1, image2, opacity1, opacity2)."""
-    return _Blend.apply(sums, image1, image2, alpha_mode)
+          alpha_mode: torch.Tensor):
+    """Both frames of a batch of pairs (see :class:`_Blend`; sums (4, 2, B, 1, H, W)).
+    Returns (image1, image2, opacity1, opacity2)."""
+    return _Blend.apply(sums, alpha_mode, image1, image2)
+
+
+def composite(sums: Sums, images: Sequence[torch.Tensor], alpha_mode: torch.Tensor) -> tuple:
+    """The weather frames: view ``t B + b`` of the sums is frame ``t`` of image batch ``b``.
+
+    Shape: images T tensors (B, 3, H, W) (V = T B views), alpha_mode (B,) bool -> (T images
+    (B, 3, H, W), T opacities (B, 1, H, W)).
+    """
+    frames = len(images)
+    bsz, _, height, width = images[0].shape
+    grid = planes(sums).view(4, frames, bsz, 1, height, width)
+    out = _Blend.apply(grid, alpha_mode, *images)
+    return list(out[:frames]), list(out[frames:])

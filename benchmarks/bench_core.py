@@ -1,0 +1,209 @@
+"""The render core on the Sintel-size bench scene: forward and forward + backward per preset, and
+the tensor operations of an attack step's render and of a training batch's weather.
+
+Times ``render_pair`` forward (no gradient) and forward + backward (gradients for both offsets,
+colour and transparency, beta = 30) for snow, rain and sparks at 3000 particles and fog at its
+preset's count, on the 1024 x 436 scene of ``bench.py``, one torch thread, the process's CPU time,
+medians. With ``--before SRC`` (the source tree of an earlier weathergen, e.g.
+``git worktree add /tmp/before <commit>``) the same timings run on that code in subprocesses,
+alternating with the installed one for ``--rounds`` rounds so that both see the same machine
+load, and the ratios are printed (the targets: no slower anywhere, at least 2x faster forward +
+backward for snow and sparks).
+
+Then the counts of tensor operations (kernel launches on a GPU; counted here on the CPU, every
+dispatched operation, views and host-side bookkeeping included) of the render part of one attack
+step (forward + backward of snow on one Sintel-size pair, stamps reused as the attack does) and of
+the weather of a training batch of 8 Sintel-size pairs (snow and rain, a weather field, and a mix
+of both models), with the CPU's chunk size and with a GPU's. The CUDA table is still to be
+measured (no GPU was lent when these figures were taken).
+
+    python benchmarks/bench_core.py [--before SRC] [--rounds 3] [--repeats 5]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+PRESETS = ("snow", "rain", "sparks", "fog")
+
+
+def measure(repeats: int) -> dict:
+    """Median CPU seconds of forward and forward + backward per preset with the importable
+    weathergen."""
+    import torch
+
+    sys.path.insert(0, str(REPO / "tests"))
+    from engine_scenes import plane_pair, pose, rotation
+
+    from weathergen.engine import BETA_ATTACK, load_preset, render_pair, sample_particles
+
+    torch.set_num_threads(1)
+    cam1 = pose(rotation(roll_deg=3, pitch_deg=-5))
+    cam2 = pose(rotation(roll_deg=3, pitch_deg=-4, yaw_deg=1), centre=(0.05, 0.0, 0.1))
+    pair = plane_pair(436, 1024, depth=6.0, near_block=True, cam1_from_world=cam1,
+                      cam2_from_world=cam2)
+    pair.depth1[..., :, 600:] = 2.0     # the scene of bench.py
+    pair.depth2[..., :, 600:] = 2.0
+    result = {}
+    for name in PRESETS:
+        parts = sample_particles(pair, load_preset(name), seed=0)
+
+        def forward():
+            with torch.no_grad():
+                render_pair(pair, parts)
+
+        def forward_backward():
+            leaves = {k: getattr(parts, k).clone().requires_grad_(True)
+                      for k in ("offset1", "offset2", "color", "transparency")}
+            out = render_pair(pair, parts.replace(**leaves), beta=BETA_ATTACK)
+            (out.image1.sum() + out.image2.sum()).backward()
+
+        for label, fn in (("forward", forward), ("forward_backward", forward_backward)):
+            fn()
+            times = []
+            for _ in range(repeats):
+                start = time.process_time()
+                fn()
+                times.append(time.process_time() - start)
+            result[f"{name} {label}"] = statistics.median(times)
+    return result
+
+
+def run_worker(repeats: int, pythonpath: str | None = None) -> dict:
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    if pythonpath is not None:
+        env["PYTHONPATH"] = pythonpath
+    out = subprocess.run([sys.executable, __file__, "--worker", "--repeats", str(repeats)],
+                         env=env, check=True, capture_output=True, text=True,
+                         cwd=tempfile.gettempdir())
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def operation_counts() -> None:
+    """Tensor operations of an attack step's render and of a training batch's weather."""
+    import torch
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    sys.path.insert(0, str(REPO / "tests"))
+    from engine_scenes import plane_pair, pose, rotation
+
+    from weathergen.engine import (BETA_ATTACK, build_stamps, load_preset, load_templates,
+                                   render_pair, sample_weather)
+    from weathergen.framepair import FramePairBatch
+
+    class Counter(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.ops = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.ops += 1
+            return func(*args, **(kwargs or {}))
+
+    def count(fn) -> int:
+        fn()
+        counter = Counter()
+        with counter:
+            fn()
+        return counter.ops
+
+    torch.set_num_threads(1)
+
+    def sintel(i):
+        cam1 = pose(rotation(roll_deg=3, pitch_deg=-5 + i))
+        cam2 = pose(rotation(roll_deg=3, pitch_deg=-4 + i, yaw_deg=1), centre=(0.05, 0.0, 0.1))
+        pair = plane_pair(436, 1024, depth=6.0, near_block=True, cam1_from_world=cam1,
+                          cam2_from_world=cam2, seed=i)
+        pair.depth1[..., :, 600:] = 2.0
+        pair.depth2[..., :, 600:] = 2.0
+        return pair
+
+    print("\ntensor operations (every dispatched operation, counted on the CPU)")
+    pair = sintel(0)
+    parts = sample_weather(pair, load_preset("snow"), 0)
+    stamps = build_stamps([parts], load_templates("flakes"))
+    leaves = {k: getattr(parts, k).clone().requires_grad_(True)
+              for k in ("offset1", "offset2", "color", "transparency")}
+
+    def attack_render():
+        out = render_pair(pair, parts.replace(**leaves), beta=BETA_ATTACK, stamps=stamps)
+        (out.image1.sum() + out.image2.sum()).backward()
+
+    print(f"  attack step's render (snow, 3000 particles, forward + backward): "
+          f"{count(attack_render)}")
+    pairs = [sintel(i) for i in range(8)]
+    batch = FramePairBatch.stack(pairs)
+    for label, names in (("snow and rain", ["snow", "rain"] * 4),
+                         ("snow-light", ["snow-light"] * 8),
+                         ("snow, rain, snow-light, rain-light", ["snow", "rain", "snow-light",
+                                                                 "rain-light"] * 2)):
+        records = [sample_weather(p, load_preset(n), i) for i, (p, n) in enumerate(zip(pairs,
+                                                                                      names))]
+        cpu = count(lambda: render_pair(batch, records))
+        gpu = count(lambda: _gpu_chunks(batch, records))
+        print(f"  training batch of 8 Sintel-size pairs, {label}: {cpu} (CPU chunks), "
+              f"{gpu} (a GPU's chunks)")
+
+
+def _gpu_chunks(batch, records):
+    """Render chunked as on a GPU with free memory: 2**25 elements per chunk, and views not cut
+    into the CPU's fixed pieces (which keep a view's additions in one order)."""
+    from weathergen.engine import render, splat
+
+    split, splat.PLANE_SPLIT = splat.PLANE_SPLIT, 1 << 40
+    try:
+        return render(batch.image1, batch.image2, batch.depth1, batch.depth2, batch.intrinsics,
+                      batch.cam1_from_world, batch.cam2_from_world, records,
+                      chunk_elements=1 << 25)
+    finally:
+        splat.PLANE_SPLIT = split
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--before", type=Path, help="source tree of an earlier weathergen")
+    parser.add_argument("--rounds", type=int, default=3)
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.worker:
+        print(json.dumps(measure(args.repeats)))
+        return
+    print(f"render core, 1024x436, one thread, CPU time, medians of {args.repeats}"
+          + (f" x {args.rounds} rounds" if args.before else ""))
+    if args.before is None:
+        now = run_worker(args.repeats)
+        for key, value in now.items():
+            print(f"  {key:24} {value:.3f} s")
+    else:
+        if not (args.before / "weathergen").is_dir():
+            sys.exit(f"--before {args.before}: not a weathergen source tree "
+                     f"(no weathergen/ folder)")
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from bench_fog import staged_copy
+
+        with tempfile.TemporaryDirectory() as tmp:
+            old_path = str(staged_copy(args.before.resolve(), Path(tmp)))
+            before, after = [], []
+            for _ in range(args.rounds):
+                before.append(run_worker(args.repeats, old_path))
+                after.append(run_worker(args.repeats))
+        print(f"  {'':24} {'before s':>9} {'now s':>9} {'speed-up':>9}")
+        for key in before[0]:
+            b = statistics.median(r[key] for r in before)
+            a = statistics.median(r[key] for r in after)
+            print(f"  {key:24} {b:9.3f} {a:9.3f} {b / a:8.2f}x")
+    operation_counts()
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,313 @@
+"""A naive renderer: the render core's model written loop by loop, for clarity, not speed.
+
+For every frame pair, every frame, every particle that frame draws, every blur sample and every
+stamp pixel, it adds the stamp pixel's share to the (at most four) grid pixels its bilinear tent
+reaches, times the visibility and θ / K; then it brings coarse grids to the image grid and
+blends. Nothing is shared with the engine's code but the model's constants (pytorch3d tests its
+rasterizer the same way). Two number types run through the same loops: Python floats (fast
+enough for forward comparisons on small scenes) and 0-d float64 tensors that require grad (for
+gradient comparisons on tiny ones).
+"""
+
+from __future__ import annotations
+
+import math
+
+import torch
+
+from weathergen.engine.sampling import NEAR
+from weathergen.engine.stamps import COARSE_MAX_LEVEL, COARSE_MIN_SIDE, COARSE_SIDE, RIM_MARGIN
+from weathergen.engine.tracks import MAX_DEFOCUS
+
+
+# -- number helpers: floats or 0-d tensors ---------------------------------------------------
+
+def _exp(x):
+    return torch.exp(x) if isinstance(x, torch.Tensor) else math.exp(min(x, 700.0))
+
+
+def _value(x) -> float:
+    return float(x.detach()) if isinstance(x, torch.Tensor) else float(x)
+
+
+def _stack(rows):
+    """Nested lists of numbers -> a float64 tensor (a differentiable stack where needed)."""
+    if isinstance(rows, list):
+        return torch.stack([_stack(r) for r in rows])
+    return rows if isinstance(rows, torch.Tensor) else torch.tensor(float(rows), dtype=torch.float64)
+
+
+# -- stamps ---------------------------------------------------------------------------------
+
+def allowed_sides(limit: int = 8193) -> list:
+    """Odd sides up to 15, then each the odd number at or above 1.15 times the last."""
+    sides = [3, 5, 7, 9, 11, 13, 15]
+    while sides[-1] < limit:
+        nxt = math.ceil(sides[-1] * 1.15)
+        sides.append(nxt if nxt % 2 else nxt + 1)
+    return sides
+
+
+SIDES = allowed_sides()
+
+
+def mip_levels(alphas: torch.Tensor) -> list:
+    """The templates (float64 lists of rows) and their 2 x 2 averages while even and >= 4."""
+    levels = [alphas.double().tolist()]
+    while len(levels[-1][0]) % 2 == 0 and len(levels[-1][0]) >= 4:
+        last = levels[-1]
+        r = len(last[0]) // 2
+        levels.append([[[(t[2 * i][2 * j] + t[2 * i][2 * j + 1] + t[2 * i + 1][2 * j]
+                          + t[2 * i + 1][2 * j + 1]) / 4 for j in range(r)] for i in range(r)]
+                       for t in last])
+    return levels
+
+
+def geometry(footprint: float, defocus: int, resolution: int, level_count: int, coarse_side):
+    """(grid level, footprint on it, blur radius, side, supersampling, mip level)."""
+    radius = defocus if defocus > 1 else 0
+    level = 0
+    if coarse_side is not None and footprint + 2 * radius >= coarse_side:
+        level = min(max(math.floor(math.log2((footprint + 2 * radius) / COARSE_MIN_SIDE)), 1),
+                    COARSE_MAX_LEVEL)
+        f = 2 ** level
+        footprint = max(footprint / f, 1.0)
+        radius = math.floor(radius / f + 0.5)
+    raw = 2 * max(math.floor(footprint / 2 + 0.5), 1) + 1
+    side = next(s for s in SIDES if s >= raw)
+    sub = 4 if side <= 5 else (2 if side <= 9 else 1)
+    mip = min(max(math.floor(math.log2(resolution / (footprint * sub))), 0), level_count - 1)
+    return level, footprint, radius, side, sub, mip
+
+
+def stamp(levels, template: int, footprint: float, defocus: int, rotation: float,
+          brighten: bool, resolution: int, coarse_side):
+    """A stamp entry's grid level and its pixels ``{(dy, dx): alpha}`` around the centre."""
+    level, footprint, radius, side, sub, mip = geometry(footprint, defocus, resolution,
+                                                        len(levels), coarse_side)
+    tmpl = levels[mip][template]
+    res = len(tmpl)
+    half = (side - 1) // 2
+    c, s = math.cos(rotation), math.sin(rotation)
+    pixels = {}
+    for i in range(side):
+        for j in range(side):
+            total = 0.0
+            for si in range(sub):
+                for sj in range(sub):
+                    gx = j - half + (sj + 0.5) / sub - 0.5
+                    gy = i - half + (si + 0.5) / sub - 0.5
+                    # the template at Rot(−rotation) (gx, gy), in half-footprints
+                    xn = (c * gx + s * gy) / (footprint / 2)
+                    yn = (-s * gx + c * gy) / (footprint / 2)
+                    if xn * xn + yn * yn > 1 + RIM_MARGIN:
+                        continue
+                    px, py = (xn + 1) / 2 * res - 0.5, (yn + 1) / 2 * res - 0.5
+                    x0, y0 = math.floor(px), math.floor(py)
+                    for yy, wy in ((y0, 1 - (py - y0)), (y0 + 1, py - y0)):
+                        for xx, wx in ((x0, 1 - (px - x0)), (x0 + 1, px - x0)):
+                            if 0 <= yy < res and 0 <= xx < res:
+                                total += wy * wx * tmpl[yy][xx]
+            pixels[(i - half, j - half)] = total / (sub * sub)
+    if radius > 0:
+        disc = [(a, b) for a in range(-radius, radius + 1) for b in range(-radius, radius + 1)
+                if a * a + b * b <= radius * radius]
+        full = half + radius
+        pixels = {(y, x): sum(pixels.get((y - a, x - b), 0.0) for a, b in disc) / len(disc)
+                  for y in range(-full, full + 1) for x in range(-full, full + 1)}
+    if brighten:
+        pixels = {k: min((2 * max(v, 0.0)) ** (1 / 3), 1.0) for k, v in pixels.items()}
+    return level, pixels
+
+
+# -- what each frame draws ----------------------------------------------------------------
+
+def _apply(cam, p):
+    return [sum(cam[i][k] * p[k] for k in range(3)) + cam[i][3] for i in range(3)]
+
+
+def _project(k, x):
+    return ((k[0][0] * x[0] + k[0][1] * x[1]) / x[2] + k[0][2], k[1][1] * x[1] / x[2] + k[1][2])
+
+
+def _smoothstep(x: float) -> float:
+    x = min(max(x, 0.0), 1.0)
+    return x * x * (3 - 2 * x)
+
+
+def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number):
+    """What frame ``t`` of a pair draws of ``record``: per drawn particle, its looks (template,
+    footprint, defocus, rotation, brighten), blur samples [(u, v, z)], θ / K, colour and β.
+
+    ``number`` turns a record value into a float or a differentiable 0-d tensor.
+    """
+    s = record.settings
+    samples = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
+    steps = [s.blur_length * i / (samples - 1) if samples > 1 else 0.0 for i in range(samples)]
+    height, width = len(depth), len(depth[0])
+    f = math.sqrt(k[0][0] * k[1][1])
+    out = []
+    for j in range(record.count):
+        p1 = [number(record.position[j, a]) + number(record.offset1[j, a]) for a in range(3)]
+        d = [number(record.motion[j, a]) + number(record.offset2[j, a]) for a in range(3)]
+        p2 = [p1[a] + d[a] for a in range(3)]
+        theta = number(record.transparency[j])
+        colour = [number(record.color[j, a]) for a in range(3)]
+        template, rotation = int(record.template[j]), float(record.rotation[j])
+        if record.optics is None:
+            # the paper's model: looks fixed at sampling; the streak along X2 − X1
+            x1, x2 = _apply(cams[0], p1), _apply(cams[1], p2)
+            xt = x1 if t == 0 else x2
+            points = [[xt[a] + q * (x2[a] - x1[a]) for a in range(3)] for q in steps]
+            looks = (template, max(float(record.scale[j]) * resolution, 1.0),
+                     int(record.defocus[j]), rotation,
+                     bool(s.defocus_brighten) and int(record.defocus[j]) > 1)
+            weight, b = theta, beta
+        else:
+            # a weather field: this frame's looks from this frame's depth of the particle
+            o = record.optics
+            start = p1 if t == 0 else p2
+            x = _apply(cams[t], start)
+            z = _value(x[2])
+            if not o.near <= z <= o.far:
+                continue
+            diameter = float(record.scale[j])
+            footprint = f * diameter / z
+            coc = 0.0 if o.aperture <= 0 else min(max(0.5 * f * o.aperture
+                                                      * abs(1 / z - 1 / o.focus), 0.0),
+                                                  MAX_DEFOCUS)
+            radius = math.floor(coc + 0.5) if o.aperture > 0 else 0
+            reach = 0.5 * footprint + radius + 2
+            seen = False
+            for end in (start, [start[a] + s.blur_length * d[a] for a in range(3)]):
+                xe = [_value(v) for v in _apply(cams[t], end)]
+                if xe[2] <= 1e-6:
+                    continue
+                u, v = _project(k, xe)
+                if not (-0.5 - reach <= u <= width - 0.5 + reach
+                        and -0.5 - reach <= v <= height - 0.5 + reach):
+                    continue
+                col = min(max(math.floor(u + 0.5), 0), width - 1)
+                row = min(max(math.floor(v + 0.5), 0), height - 1)
+                seen = seen or xe[2] <= depth[row][col] + 3 * o.depth_softness
+            fade = _smoothstep((z - o.near) / o.near) * (
+                _smoothstep((o.far - z) / (o.fade * o.far)) if o.fade > 0 else float(z <= o.far))
+            factor = fade * min(footprint, 1.0) ** 2
+            if not seen or factor * _value(theta) == 0:
+                continue
+            points = [_apply(cams[t], [start[a] + q * d[a] for a in range(3)]) for q in steps]
+            looks = (template, max(footprint, 1.0), radius, rotation,
+                     bool(s.defocus_brighten) and radius > 1)
+            weight, b = theta * factor, min(beta, 1 / o.depth_softness)
+        projected = []
+        for x in points:
+            u, v = _project(k, x)
+            projected.append((u, v, x[2]))
+        out.append((looks, projected, weight / samples, colour, b))
+    return out
+
+
+# -- splatting, upsampling, blending ------------------------------------------------------
+
+def block_depth(depth, f: int):
+    """The scene depth averaged over f x f blocks, the image's edge replicated."""
+    height, width = len(depth), len(depth[0])
+    h, w = -(-height // f), -(-width // f)
+    return [[sum(depth[min(y * f + a, height - 1)][min(x * f + b, width - 1)]
+                 for a in range(f) for b in range(f)) / (f * f) for x in range(w)]
+            for y in range(h)]
+
+
+def upsample(grid, f: int, height: int, width: int):
+    """Bilinear upsampling by f (pixel centres aligned, edges replicated), cropped."""
+    h, w = len(grid), len(grid[0])
+
+    def taps(dst, n):
+        src = max((dst + 0.5) / f - 0.5, 0.0)
+        i0 = math.floor(src)
+        return i0, min(i0 + 1, n - 1), src - i0
+
+    out = []
+    for y in range(height):
+        y0, y1, ly = taps(y, h)
+        row = []
+        for x in range(width):
+            x0, x1, lx = taps(x, w)
+            row.append((1 - ly) * ((1 - lx) * grid[y0][x0] + lx * grid[y0][x1])
+                       + ly * ((1 - lx) * grid[y1][x0] + lx * grid[y1][x1]))
+        out.append(row)
+    return out
+
+
+def render_frame(image, depth, frame_draws, levels, resolution, blend, coarse_side,
+                 detach_occlusion=False):
+    """One weather frame and its opacity from what it draws. Shape: image (3, H, W) tensor."""
+    height, width = len(depth), len(depth[0])
+    grids = {}                       # level -> [A, C_r, C_g, C_b] lists of rows
+    for looks, samples, theta, colour, b in frame_draws:
+        level, pixels = stamp(levels, *looks, resolution, coarse_side)
+        f = 2 ** level
+        if level not in grids:
+            h, w = -(-height // f), -(-width // f)
+            grids[level] = ([[[0.0] * w for _ in range(h)] for _ in range(4)],
+                            depth if level == 0 else block_depth(depth, f))
+        sums, scene = grids[level]
+        h, w = len(scene), len(scene[0])
+        for u, v, z in samples:
+            if _value(z) <= NEAR:
+                continue
+            uc, vc = (u + 0.5) / f - 0.5, (v + 0.5) / f - 0.5       # on the level's grid
+            for (dy, dx), alpha in pixels.items():
+                if alpha == 0:
+                    continue
+                cu, cv = uc + dx, vc + dy
+                for px in (math.floor(_value(cu)), math.floor(_value(cu)) + 1):
+                    for py in (math.floor(_value(cv)), math.floor(_value(cv)) + 1):
+                        if not (0 <= px < w and 0 <= py < h):
+                            continue
+                        tent = (1 - abs(px - cu)) * (1 - abs(py - cv))
+                        if _value(tent) <= 0:
+                            continue
+                        d = _value(z) if detach_occlusion else z
+                        vis = 1 / (1 + _exp(b * (d - scene[py][px])))
+                        a = alpha * tent * vis * theta
+                        sums[0][py][px] = sums[0][py][px] + a
+                        for c in range(3):
+                            sums[1 + c][py][px] = sums[1 + c][py][px] + a * colour[c]
+    total = torch.zeros(4, height, width, dtype=torch.float64)
+    for level in sorted(grids, reverse=True):
+        sums = grids[level][0]
+        if level:
+            sums = [upsample(s, 2 ** level, height, width) for s in sums]
+        total = total + _stack(sums)
+    alpha, colour = total[:1], total[1:]
+    image = image.double()
+    out = image * (1 - alpha) + colour if blend == "alpha" else image + colour
+    return out.clamp(0, 1), alpha.clamp(0, 1)
+
+
+def oracle_render(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam2_from_ref,
+                  records, lib, *, beta: float, coarse_side=COARSE_SIDE, grad: bool = False,
+                  detach_occlusion: bool = False):
+    """The render core's outputs for a batch of pairs, one record per pair (shapes as
+    :func:`weathergen.engine.render`). With ``grad`` the record's float tensors are read as
+    differentiable 0-d tensors, so gradients reach them. Returns (image1, image2, opacity1,
+    opacity2), float64. ``detach_occlusion``: the visibility sees the particle depth as a
+    constant (no gradient through it)."""
+    levels = mip_levels(lib.alphas)
+    outs = [[], [], [], []]
+    for b, record in enumerate(records):
+        k = intrinsics[b].double().tolist()
+        cams = [cam1_from_ref[b].double().tolist(), cam2_from_ref[b].double().tolist()]
+
+        def number(x):
+            return x.double() if grad else float(x)
+
+        for t, (image, depth) in enumerate(((image1[b], depth1[b]), (image2[b], depth2[b]))):
+            scene = depth[0].double().tolist()
+            frame = draws(record, t, k, cams, scene, beta, lib.resolution, number)
+            out, opacity = render_frame(image, scene, frame, levels, lib.resolution,
+                                        record.settings.blend, coarse_side, detach_occlusion)
+            outs[t].append(out)
+            outs[2 + t].append(opacity)
+    return tuple(torch.stack(o) for o in outs)

@@ -1,0 +1,396 @@
+"""Stage 3 of the render core: blur samples and stamps -> per-pixel sums, differentiably.
+
+Every blur sample (:class:`~weathergen.engine.tracks.Instances`) leaves its entry's stamp
+(:class:`~weathergen.engine.stamps.StampSet`), shifted by its sub-pixel position with bilinear
+weights (an ``(s + 1) x (s + 1)`` patch ``B``: differentiable in the position), times the
+visibility ``V = 1 / (1 + exp(β (d − D)))`` of its depth ``d`` against the scene depth ``D``
+under each patch pixel, times its ``θ / K``; the products are added into per-pixel sums
+``A = Σ θ B V`` and ``C_c = Σ γ_c θ B V`` (:class:`Sums`), one plane per view. Entries drawn on
+a coarse grid (large billboards) are splatted into that grid's planes, at ``(u + 0.5) / f − 0.5``
+against the scene depth averaged over ``f x f`` blocks; :mod:`~weathergen.engine.composite`
+brings them to the image grid.
+
+Layout: a patch has an even side (stamp sides are odd), so it is cut into 2 x 2 blocks: a
+sample's blocks are rows of blocks, and the rows of every sample of the call are one ragged run
+(what a block needs is computed once per row of blocks). Per block the stamp's 3 x 3
+neighbourhood is read once and the four pixels are computed side by side (element arrays are
+(2, 2, blocks): a block's numbers broadcast along the last, contiguous axis). A grid plane has a
+margin left and right as wide as the call's widest patch and one extra row below, where patch
+pixels outside the image land (their scene depth is −∞: V = 0, they add nothing; rows outside
+the image are sent to the extra row), so no pixel needs a bounds check.
+
+Memory: :class:`_Splat` keeps, for the backward pass, a few numbers per blur sample and recomputes
+each chunk of patch pixels (at most ``chunk_elements``), so memory is bounded by the chunk size
+with or without gradients, whatever the particles' footprints.
+
+Order: on the CPU the samples of one plane are added in one order whatever else the call holds
+and whatever the chunk size (a plane is cut into pieces of :data:`PLANE_SPLIT` blocks counting
+from its start, see :func:`~weathergen.engine.ragged.runs`), and every elementwise operation gives the same bits at
+any position of its tensor, so a pair's frames are the same bytes alone or in a batch. On CUDA
+the additions are atomic, and their order (the last bits) may change between runs.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+import torch.nn.functional as F
+
+from .ragged import runs, starts
+from .sampling import NEAR
+from .stamps import COARSE_MAX_LEVEL, StampSet
+from .tracks import Instances
+
+#: Patch pixels handled per chunk on the CPU (each costs about a hundred bytes of temporaries).
+SPLAT_CHUNK_ELEMENTS = 1 << 16
+#: On a GPU, chunks take at most this share of the free memory (and at most 2**25 elements).
+GPU_MEMORY_SHARE = 0.25
+BYTES_PER_ELEMENT = 256
+#: On the CPU, planes of more blocks are splatted in pieces of this many blocks.
+PLANE_SPLIT = SPLAT_CHUNK_ELEMENTS // 4
+#: Side of the image tiles samples are sorted by within a plane (pixels).
+TILE = 32
+#: The visibility's exponent β (d − D) is clamped to ± this (see :class:`_Blocks`).
+VISIBILITY_CLAMP = 40.0
+
+
+def chunk_elements_for(device: torch.device) -> int:
+    """The default chunk size on ``device``: :data:`SPLAT_CHUNK_ELEMENTS` on the CPU (small
+    chunks stay in the caches); on a CUDA device as many elements as :data:`GPU_MEMORY_SHARE`
+    of its free memory holds, between 2**21 and 2**25 (fewer chunks, fewer kernel launches)."""
+    if device.type != "cuda":
+        return SPLAT_CHUNK_ELEMENTS
+    free, _ = torch.cuda.mem_get_info(device)
+    return int(min(1 << 25, max(1 << 21, GPU_MEMORY_SHARE * free // BYTES_PER_ELEMENT)))
+
+
+@dataclass
+class Grids:
+    """Where the planes of each grid level sit in the flat sums.
+
+    ``levels``: ``(level, offset, h, w, margin)`` per level drawn (coarsest first): V planes of
+    ``(h + 1) x (w + 2 margin)`` values from ``offset`` on, plane ``v``'s pixel ``(y, x)`` at
+    ``offset + (v (h + 1) + y) (w + 2 margin) + margin + x``; the margins and row ``h`` collect
+    what falls outside the image. ``size``: the total; ``views``: V; ``height``, ``width``: the
+    image's.
+    """
+
+    levels: list
+    size: int
+    views: int
+    height: int
+    width: int
+
+    def planes(self, values: torch.Tensor, level_index: int) -> torch.Tensor:
+        """One level's sums without margins. Shape: (C, N) -> (C, V, h, w) (a view)."""
+        _, offset, h, w, m = self.levels[level_index]
+        size = self.views * (h + 1) * (w + 2 * m)
+        grid = values[:, offset:offset + size].view(values.shape[0], self.views, h + 1,
+                                                   w + 2 * m)
+        return grid[..., :h, m:m + w]
+
+
+@dataclass
+class Sums:
+    """The splat's output. Shape: values (4, N), the sums A, C_r, C_g, C_b laid out as
+    :class:`Grids` says; reached (V,) bool, which views any blur sample was splatted into (a
+    view none reached does not depend on the particles)."""
+
+    values: torch.Tensor
+    grids: Grids
+    reached: torch.Tensor
+
+
+def grids_for(stamps: StampSet, views: int, height: int, width: int) -> Grids:
+    """The grid levels the stamps need (the image grid always), each with a margin as wide as
+    its widest patch. One host synchronisation."""
+    top = COARSE_MAX_LEVEL + 1
+    if stamps.count:
+        widest = torch.zeros(top, dtype=torch.long, device=stamps.side.device) \
+            .scatter_reduce(0, stamps.coarse, stamps.side + 1, "amax")
+        used = torch.stack((torch.bincount(stamps.coarse, minlength=top), widest)).tolist()
+    else:
+        used = [[0] * top, [0] * top]
+    levels, offset = [], 0
+    for c in sorted({0} | {c for c, n in enumerate(used[0]) if n}, reverse=True):
+        f = 2 ** c
+        h, w = -(-height // f), -(-width // f)
+        m = used[1][c]
+        levels.append((c, offset, h, w, m))
+        offset += views * (h + 1) * (w + 2 * m)
+    return Grids(levels=levels, size=offset, views=views, height=height, width=width)
+
+
+def scene_depths(depth: torch.Tensor, grids: Grids, dtype) -> torch.Tensor:
+    """The scene depth on every grid, laid out as the sums (coarse grids: averaged over f x f
+    blocks, the image's edge replicated up to a whole block; margins and the extra row −∞).
+    Shape: depth (V, 1, H, W) -> (N,)."""
+    depth = depth.detach().to(dtype)
+    parts = []
+    for c, _, _, _, m in grids.levels:
+        f = 2 ** c
+        d = depth
+        if c:
+            pad = (0, -grids.width % f, 0, -grids.height % f)
+            d = F.avg_pool2d(F.pad(d, pad, mode="replicate") if any(pad) else d, f)
+        parts.append(F.pad(d, (m, m, 0, 1), value=-float("inf")).reshape(-1))
+    return torch.cat(parts)
+
+
+def splat(inst: Instances, stamps: StampSet, depth: torch.Tensor, *,
+          chunk_elements: Optional[int] = None, detach_occlusion: bool = False) -> Sums:
+    """The per-pixel sums of every blur sample's stamp (see the module doc).
+
+    Shape: depth (V, 1, H, W) the scene depth of the V views; returns :class:`Sums`.
+    Differentiable in ``inst.u``, ``inst.v``, ``inst.theta``, ``inst.color`` and, unless
+    ``detach_occlusion``, ``inst.z`` (through the visibility ``V``).
+    """
+    views, _, height, width = depth.shape
+    dtype = inst.u.dtype
+    grids = grids_for(stamps, views, height, width)
+    if chunk_elements is None:
+        chunk_elements = chunk_elements_for(depth.device)
+    plan = _Plan(inst, stamps, scene_depths(depth, grids, dtype), grids, chunk_elements)
+    z = inst.z.detach() if detach_occlusion else inst.z
+    values = _Splat.apply(inst.u, inst.v, z, inst.theta, inst.color, plan)
+    return Sums(values=values, grids=grids, reached=plan.reached)
+
+
+class _Plan:
+    """What a splat call draws, fixed before its autograd function runs.
+
+    Samples kept (in front of the camera, patch touching the image), sorted by plane and image
+    tile: ``kept`` (K,) int64 indices into the instances, ``level`` (K,). Their rows of blocks
+    (R rows, a sample's q rows consecutive, q = (side + 1) / 2 blocks per side): ``row_sample``
+    (R,) the row's kept sample; ``row_at`` (R,) the bordered stamp pixel at the top left of the
+    row's first block; ``row_stride`` (R,) the bordered stamp's row length; ``row_pix`` (2, R)
+    where the row's first block's two pixel rows start in the sums (rows outside the image: the
+    extra row); ``sizes`` (R,) blocks per row (q); ``groups`` (R,) plane keys (for the chunking
+    rule on the CPU).
+    """
+
+    def __init__(self, inst: Instances, stamps: StampSet, scene: torch.Tensor, grids: Grids,
+                 chunk_elements: int):
+        device = scene.device
+        self.stamps, self.scene, self.grids = stamps, scene, grids
+        self.dtype = inst.u.dtype
+        self.beta = inst.beta
+        self.blocks_per_chunk = max(1, chunk_elements // 4)
+        self.cpu = device.type == "cpu"
+        self.reached = torch.zeros(grids.views, dtype=torch.bool, device=device)
+        self.count = 0
+        if inst.count == 0 or stamps.count == 0:
+            return
+        top = COARSE_MAX_LEVEL + 1
+        rows = [[0] * 5 for _ in range(top)]
+        for c, offset, h, w, m in grids.levels:
+            rows[c] = [offset, h, w, m, 2 ** c]
+        table = torch.tensor(rows, device=device)
+        self.coarse = len(grids.levels) > 1
+        with torch.no_grad():
+            # per sample: its stamp's side, level and start, and its level's grid
+            side, level, first = torch.stack((stamps.side, stamps.coarse, stamps.first)) \
+                .index_select(1, inst.entry)
+            offset, h, w, m, f = table.index_select(0, level).t()
+            u, v = inst.u.detach(), inst.v.detach()
+            if self.coarse:
+                u, v = _on_grid(u, f), _on_grid(v, f)
+            u0, v0 = torch.floor(u).long(), torch.floor(v).long()
+            half = (side - 1) // 2
+            col0, row0 = u0 - half, v0 - half                  # the patch's first column, row
+            keep = (inst.z.detach() > NEAR) & (col0 + side >= 0) & (col0 <= w - 1) \
+                & (row0 + side >= 0) & (row0 <= h - 1)
+            kept = torch.nonzero(keep).squeeze(1)
+            # by plane, then by tile of the image (samples of a chunk hit nearby pixels: fewer
+            # cache misses in the scatter); the key depends on the sample alone
+            plane_key = level * grids.views + inst.view
+            tile = torch.div(torch.stack((v0, u0)), TILE, rounding_mode="floor") \
+                .clamp_(-1, 1 << 12).add_(1)
+            key = (plane_key * (1 << 28) + tile[0] * (1 << 14) + tile[1]).index_select(0, kept)
+            order = torch.sort(key, stable=True).indices
+            kept = kept.index_select(0, order)
+            self.count = int(kept.numel())
+            if self.count == 0:
+                return
+            ints = torch.stack((side, col0, row0, h, w + 2 * m, offset + m, inst.view, first,
+                                level, plane_key)).index_select(1, kept)
+            side, col0, row0, h, row_len, offset, view, first, level, groups = ints
+            self.reached[view] = True
+            self.kept, self.level = kept, level
+            q = (side + 1) // 2
+            plane = offset + view * (h + 1) * row_len + col0           # + the patch's column
+            rows = int(q.sum())
+            sample = torch.repeat_interleave(torch.arange(self.count, device=device), q,
+                                             output_size=rows)
+            per_row = torch.stack((side + 2, first, row0, h, plane, row_len, q, groups)) \
+                .index_select(1, sample)
+            stride, first, row0, h, plane, row_len, self.sizes, self.groups = per_row
+            br = torch.arange(rows, device=device) - starts(q).index_select(0, sample)
+            self.row_sample, self.row_stride = sample, stride
+            self.row_at = first + 2 * br * stride
+            y = (row0 + 2 * br) + torch.arange(2, device=device)[:, None]
+            y = torch.where((y >= 0) & (y < h), y, h)                  # outside: the extra row
+            self.row_pix = torch.addcmul(plane, y, row_len)
+
+    def chunks(self):
+        """``(row (n,), column (n,))`` per chunk: each block's row of blocks and its index in
+        the row. On the CPU a plane larger than :data:`PLANE_SPLIT` blocks is cut at multiples
+        of it (whatever the chunk size), so the order its samples are added in is fixed."""
+        if self.cpu:      # the module's constant, read at call time (benchmarks replace it)
+            return runs(self.sizes, self.blocks_per_chunk, self.groups, PLANE_SPLIT)
+        return runs(self.sizes, self.blocks_per_chunk)
+
+
+def _on_grid(x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
+    """Image pixel coordinates on a grid ``f`` times coarser: ``(x + 0.5) / f − 0.5``."""
+    f = f.to(x.dtype)
+    return torch.where(f > 1, (x + 0.5) / f - 0.5, x)
+
+
+_THREE = (0, 1, 2)
+
+
+class _Blocks:
+    """One chunk of 2 x 2 pixel blocks: their patches, pixels and visibilities.
+
+    Element arrays are (2, 2, n) for n blocks, indexed (patch column j, patch row i, block), so
+    that a block's numbers (n,) broadcast along the last, contiguous axis. ``sample`` (n,) the
+    block's kept sample; ``per`` (P, n) the per-sample numbers of :func:`_per_sample` for each
+    block; ``near`` (3 arrays (3, n)): the block's 3 x 3 neighbourhood of the bordered stamp,
+    column c; ``rows`` (2 arrays (3, n)): the stamp rows interpolated at the sub-pixel column
+    shift, for patch columns j = 0, 1; ``patch`` B; ``pix`` int64 indices into the sums;
+    ``vis`` V.
+    """
+
+    def __init__(self, plan: _Plan, row: torch.Tensor, column: torch.Tensor, per: torch.Tensor):
+        self.sample = plan.row_sample.index_select(0, row)
+        self.per = per.index_select(1, self.sample)
+        fu, fv, beta_z, beta = self.per[:4]
+        n = row.numel()
+        two_columns = 2 * column
+        at = plan.row_at.index_select(0, row) + two_columns   # the block's top-left stamp pixel
+        index = torch.addcmul(at, plan.row_stride.index_select(0, row),
+                              torch.arange(3, device=at.device)[:, None]).view(-1)
+        pixels = plan.stamps.pixels
+        self.near = [pixels[c:].index_select(0, index).view(3, n) for c in _THREE]
+        # stamp pixel (y, x) sits at bordered (y + 1, x + 1); patch pixel (py, px) mixes
+        # stamp[py − a, px − b] for a, b in {0, 1}: columns first (weight fu), then rows (fv)
+        self.rows = [torch.lerp(self.near[j + 1], self.near[j], fu) for j in range(2)]
+        self.patch = torch.empty(2, 2, n, dtype=pixels.dtype, device=pixels.device)
+        for j in range(2):
+            torch.lerp(self.rows[j][1:], self.rows[j][:2], fv, out=self.patch[j])
+        start = plan.row_pix.index_select(1, row) + two_columns       # (2 i, n)
+        self.pix = start[None] + torch.arange(2, device=at.device)[:, None, None]
+        depth = plan.scene.index_select(0, self.pix.view(-1)).view(2, 2, n)
+        # V = 1 / (1 + exp(β d − β D)): exp and a reciprocal, whose bits do not depend on an
+        # element's place in the tensor (the CPU's sigmoid kernel rounds its tail differently).
+        # The exponent is clamped to ±VISIBILITY_CLAMP: V is then off by at most 4e-18, and
+        # float32's exp stays on its fast path (and products stay clear of denormals).
+        self.vis = torch.addcmul(beta_z, depth, beta, value=-1) \
+            .clamp_(-VISIBILITY_CLAMP, VISIBILITY_CLAMP).exp_().add_(1).reciprocal_()
+
+
+def _block_sum(x: torch.Tensor) -> torch.Tensor:
+    """Sum over a block's four pixels in a fixed order. Shape: (2, 2, n) -> (n,)."""
+    return (x[0, 0] + x[0, 1]) + (x[1, 0] + x[1, 1])
+
+
+class _Splat(torch.autograd.Function):
+    """Scatter-add every kept blur sample's weighted patch into ``A = Σ θ B V`` and
+    ``C_c = Σ γ_c θ B V``.
+
+    The forward pass keeps nothing per patch pixel; the backward pass recomputes each chunk and
+    applies the chain rule by hand. Shape: u, v, z, theta (I,), color (I, 3) -> (4, N).
+    """
+
+    @staticmethod
+    def forward(ctx, u, v, z, theta, color, plan: _Plan):
+        acc = torch.zeros(4, plan.grids.size, dtype=plan.dtype, device=plan.scene.device)
+        ctx.plan = plan
+        ctx.save_for_backward(u, v, z, theta, color)
+        if plan.count == 0:
+            return acc
+        per = _per_sample(plan, u, v, z, theta, color)
+        for row, column in plan.chunks():
+            b = _Blocks(plan, row, column, per)
+            weight = b.patch.mul_(b.vis)
+            flat = b.pix.view(-1)
+            for c in range(4):
+                acc[c].scatter_add_(0, flat, (weight * b.per[5 + c]).view(-1))
+        return acc
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_acc):
+        u, v, z, theta, color = ctx.saved_tensors
+        plan = ctx.plan
+        need = ctx.needs_input_grad[:5]
+        grads = [torch.zeros_like(t) if n else None for t, n in zip((u, v, z, theta, color), need)]
+        if plan.count == 0 or not any(need):
+            return (*grads, None)
+        per = _per_sample(plan, u, v, z, theta, color)
+        g_acc = g_acc.contiguous()
+        sums = torch.zeros(7, plan.count, dtype=u.dtype, device=u.device)
+        for row, column in plan.chunks():
+            b = _Blocks(plan, row, column, per)
+            fv, beta, gamma = b.per[1], b.per[3], b.per[9:12]
+            flat = b.pix.view(-1)
+            g = [g_acc[c].index_select(0, flat).view(b.pix.shape) for c in range(4)]
+            # dL/d(θ B V) per pixel: the opacity sum's and the colour sums' gradients
+            g_w = torch.addcmul(g[0], g[1], gamma[0])
+            g_w.addcmul_(g[2], gamma[1]).addcmul_(g[3], gamma[2])
+            g_bv = g_w.mul_(b.vis)                               # dL/d(θ B) per pixel
+            out = [None] * 7
+            if need[0]:   # dB/dfu: the column difference of the stamp, interpolated in fv
+                d_fu = torch.empty_like(b.patch)
+                for j in range(2):
+                    diff = b.near[j] - b.near[j + 1]
+                    torch.lerp(diff[1:], diff[:2], fv, out=d_fu[j])
+                out[0] = _block_sum(d_fu.mul_(g_bv))
+            if need[1]:   # dB/dfv: the row difference of the interpolated rows
+                d_fv = torch.stack([r[:2] - r[1:] for r in b.rows])
+                out[1] = _block_sum(d_fv.mul_(g_bv))
+            g_bvp = g_bv * b.patch                               # dL/dθ per pixel
+            if need[2]:   # dV/dd = −β V (1 − V)
+                out[2] = _block_sum(g_bvp - g_bvp * b.vis) * beta
+            if need[3]:
+                out[3] = _block_sum(g_bvp)
+            if need[4]:
+                bv = b.patch.mul_(b.vis)
+                for c in range(3):
+                    out[4 + c] = _block_sum(g[1 + c].mul_(bv))
+            for k, value in enumerate(out):
+                if value is not None:
+                    sums[k].index_add_(0, b.sample, value)
+        th = per[4]
+        index = plan.kept
+        scale = th / (2.0 ** plan.level).to(u.dtype) if plan.coarse else th    # du' / du = 1 / f
+        if need[0]:
+            grads[0].index_add_(0, index, scale * sums[0])
+        if need[1]:
+            grads[1].index_add_(0, index, scale * sums[1])
+        if need[2]:
+            grads[2].index_add_(0, index, -th * sums[2])
+        if need[3]:
+            grads[3].index_add_(0, index, sums[3])
+        if need[4]:
+            grads[4].index_add_(0, index, (th[:, None] * sums[4:].t()))
+        return (*grads, None)
+
+
+def _per_sample(plan: _Plan, u, v, z, theta, color) -> torch.Tensor:
+    """Per kept sample, packed (12, K): fu, fv (the sub-pixel shift on its grid), β d, β, θ / K,
+    the weights of the four sums θ, θ γ_r, θ γ_g, θ γ_b, and the colour γ (3)."""
+    kept = plan.kept
+    uu, vv = u.detach().index_select(0, kept), v.detach().index_select(0, kept)
+    if plan.coarse:
+        f = (2.0 ** plan.level).to(u.dtype)
+        uu, vv = _on_grid(uu, f), _on_grid(vv, f)
+    beta = plan.beta.index_select(0, kept).to(u.dtype)
+    th = theta.detach().index_select(0, kept)
+    col = color.detach().index_select(0, kept)
+    return torch.cat((torch.stack((uu - torch.floor(uu), vv - torch.floor(vv),
+                                   beta * z.detach().index_select(0, kept), beta, th, th)),
+                      th * col.t(), col.t()))

@@ -1,0 +1,380 @@
+"""Stage 2 of the render core: looks -> stamps (no gradient).
+
+Each stamp entry's template (:class:`~weathergen.engine.tracks.Looks`) is rotated and scaled to
+its own footprint on a pixel-centred grid, sampled from a mip level no finer than twice the
+footprint (no aliasing for far, tiny particles), tiny stamps box-filtered (each pixel averages
+4 x 4 samples up to 5 pixels wide, 2 x 2 up to 9), zero outside the footprint's disc; then
+disc-blurred by the defocus radius (a normalised disc, the stamp growing by 2 r) and brightened
+where asked (:func:`defocus_brighten`). Stamps at least :data:`COARSE_SIDE` pixels wide (fog,
+large dust) are drawn for a grid ``2**L`` times coarser than the image (see
+:func:`stamp_geometry`). A stamp's looks are this file's alone: how a template is sampled, the
+disc that cuts it, the defocus kernel.
+
+Layout (:class:`StampSet`): every stamp with a one-pixel zero border, row-major, one after the
+other in one flat tensor; ragged, so a call costs a bounded number of tensor operations:
+
+- samples: every stamp pixel's ``sub x sub`` sample positions are computed for all entries of a
+  supersampling factor at once and read with one ``grid_sample`` from an atlas holding every mip
+  level of every template (one-pixel zero borders between them, so a read never bleeds into a
+  neighbour);
+- disc blur: the disc is a stack of rows of half-width ``w(dy)``; a blurred pixel sums, over the
+  disc's rows, box sums of the stamp's rows, each the difference of two prefix sums. Prefix sums
+  are taken per stamp row (never across stamps, so a stamp does not depend on the others), in
+  float64 (where a row is all zeros the difference is exactly zero: blurred stamps stay exactly
+  zero outside their support).
+
+Elementwise operations are those whose result does not depend on an element's position in its
+tensor (``exp``/``log`` rather than ``pow`` and ``sigmoid``, whose vectorised and scalar CPU
+kernels round differently), so a stamp is the same whatever other stamps the call holds.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import torch
+import torch.nn.functional as F
+
+from ..errors import ConfigError
+from .ragged import runs, starts
+from .templates import TemplateLibrary
+from .tracks import Looks
+
+# Stamps at least this many pixels wide (fog, large dust) are splatted on a coarser grid (the
+# largest power-of-two factor up to 2**COARSE_MAX_LEVEL = 8 that keeps them >= COARSE_MIN_SIDE
+# coarse pixels wide: 8 for every stamp of 128 px or more) and upsampled; see docs/engine.md for
+# the accuracy. None (the ``coarse_side`` argument) renders everything exactly.
+COARSE_SIDE = 128
+COARSE_MIN_SIDE = 16
+COARSE_MAX_LEVEL = 3
+#: Tolerance of the disc test (relative squared radius): rim samples of even-sized footprints
+#: lie exactly on the circle, and the margin keeps them inside whatever the last bit of rounding.
+RIM_MARGIN = 1e-5
+#: Stamp samples (or blur elements) handled per chunk.
+STAMP_CHUNK_ELEMENTS = 1 << 16
+
+
+def _allowed_sides(limit: int = 8193) -> torch.Tensor:
+    """Allowed stamp sides: every odd size up to 15, then odd sizes ~15 % apart (at most ~30 %
+    more pixels than the footprint needs)."""
+    sides = list(range(3, 16, 2))
+    while sides[-1] < limit:
+        nxt = int(math.ceil(sides[-1] * 1.15))
+        sides.append(nxt + 1 - nxt % 2)
+    return torch.tensor(sides)
+
+
+SIDES = _allowed_sides()
+_MIP_CACHE: dict = {}
+_ATLAS_CACHE: dict = {}
+
+
+def mip_pyramid(lib: TemplateLibrary, dtype: torch.dtype, device) -> list:
+    """The template library and its 2x2-averaged reductions while the side stays even and >= 4.
+    Shape: list of (T, 1, R_L, R_L)."""
+    key = (lib.digest, lib.name, dtype, str(device))
+    if key not in _MIP_CACHE:
+        level = lib.alphas.to(device=device, dtype=dtype)[:, None]
+        levels = [level]
+        while level.shape[-1] % 2 == 0 and level.shape[-1] >= 4:
+            level = F.avg_pool2d(level, 2)
+            levels.append(level)
+        if len(_MIP_CACHE) > 16:
+            _MIP_CACHE.clear()
+        _MIP_CACHE[key] = levels
+    return _MIP_CACHE[key]
+
+
+@dataclass
+class Atlas:
+    """Every mip level of every template in one image, each with a zero border of at least one
+    pixel. Shape: image (1, 1, Ha, Wa); x0 (T,) and y0 (T, L) float64, the atlas position of
+    template t's pixel (0, 0) at level L; res (L,) float64 each level's side."""
+
+    image: torch.Tensor
+    x0: torch.Tensor
+    y0: torch.Tensor
+    res: torch.Tensor
+
+
+def atlas(lib: TemplateLibrary, dtype: torch.dtype, device) -> Atlas:
+    """The library's :class:`Atlas` (cached): templates on a near-square grid of cells, each
+    cell holding the template's levels one above the other."""
+    key = (lib.digest, lib.name, dtype, str(device))
+    if key not in _ATLAS_CACHE:
+        levels = mip_pyramid(lib, dtype, device)
+        sides = [lv.shape[-1] for lv in levels]
+        cell_w = sides[0] + 2
+        tops = [sum(s + 2 for s in sides[:i]) + 1 for i in range(len(sides))]
+        cell_h = sum(s + 2 for s in sides)
+        count = lib.count
+        cols = max(1, math.ceil(math.sqrt(count * cell_h / cell_w)))
+        rows = math.ceil(count / cols)
+        image = torch.zeros(rows * cell_h, cols * cell_w, dtype=dtype, device=device)
+        x0, y0 = [], []
+        for t in range(count):
+            r, c = divmod(t, cols)
+            x0.append(c * cell_w + 1)
+            y0.append([r * cell_h + top for top in tops])
+            for lv, top, s in zip(levels, tops, sides):
+                image[r * cell_h + top:r * cell_h + top + s, c * cell_w + 1:c * cell_w + 1 + s] = \
+                    lv[t, 0]
+        f64 = torch.float64
+        if len(_ATLAS_CACHE) > 16:
+            _ATLAS_CACHE.clear()
+        _ATLAS_CACHE[key] = Atlas(image=image[None, None], x0=torch.tensor(x0, dtype=f64,
+                                                                            device=device),
+                                  y0=torch.tensor(y0, dtype=f64, device=device).view(count, -1),
+                                  res=torch.tensor(sides, dtype=f64, device=device))
+    return _ATLAS_CACHE[key]
+
+
+def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: int,
+                   level_count: int, coarse_side: Optional[int] = COARSE_SIDE) -> tuple:
+    """Each entry's stamp layout from its footprint (pixels, float64, >= 1) and defocus radius.
+
+    Stamps at least ``coarse_side`` pixels wide (template plus defocus) go to a grid ``f = 2**L``
+    times coarser (f the largest power of two up to ``2**COARSE_MAX_LEVEL`` keeping them >=
+    COARSE_MIN_SIDE coarse pixels wide), footprint and radius divided by f. Returns
+    ``(footprint, radius, coarse, side, sub, level)``, all (E,): the footprint on its grid, the
+    disc-blur radius (0: none; radii <= 1 do not blur on the image grid), the grid level L, the
+    stamp side before the blur (an allowed side covering every pixel the footprint's disc
+    reaches), the supersampling per axis and the mip level (no finer than twice the footprint).
+    """
+    radius = torch.where(defocus > 1, defocus, torch.zeros_like(defocus))
+    coarse = torch.zeros_like(radius)
+    full = footprint + 2 * radius
+    if coarse_side is not None and bool((full >= coarse_side).any()):
+        coarse = torch.where(full >= coarse_side,
+                             torch.floor(torch.log2(full / COARSE_MIN_SIDE))
+                             .clamp(1, COARSE_MAX_LEVEL),
+                             torch.zeros_like(full)).long()
+        factor = (2.0 ** coarse).to(torch.float64)
+        footprint = (footprint / factor).clamp(min=1.0)
+        radius = torch.where(coarse > 0, torch.floor(radius / factor + 0.5).long(), radius)
+    # every pixel the footprint's disc reaches (partly covered ones are box-filtered)
+    raw_side = 2 * torch.floor(footprint / 2 + 0.5).clamp(min=1).long() + 1
+    sides = SIDES.to(footprint.device)
+    side = sides[torch.searchsorted(sides, raw_side)]
+    sub = torch.where(side <= 5, 4, torch.where(side <= 9, 2, 1))
+    level = torch.floor(torch.log2(resolution / (footprint * sub))) \
+        .clamp(0, level_count - 1).long()
+    return footprint, radius, coarse, side, sub, level
+
+
+def defocus_brighten(blurred: torch.Tensor) -> torch.Tensor:
+    """The depth-of-field alpha of a disc-blurred template: ``min(1, (2 b)^(1/3))``.
+
+    The blur spreads a particle's alpha thin; doubling it and taking the cube root brings it
+    back up (near, out-of-focus particles look like large soft discs rather than vanishing),
+    as the paper's research code does. Shape: any -> same.
+    """
+    return torch.exp(torch.log((2 * blurred).clamp(min=0)) / 3).clamp(max=1)
+
+
+#: Taps of the disc of radius r (integer offsets with dx² + dy² <= r²) for r = 0 .. 255 (the
+#: defocus radii a record can store).
+DISC_TAPS = [sum(2 * math.isqrt(r * r - a * a) + 1 for a in range(-r, r + 1)) for r in range(256)]
+_CONSTANTS: dict = {}
+
+
+def _constant(name: str, values, dtype, device) -> torch.Tensor:
+    """A small constant tensor, made once per dtype and device."""
+    key = (name, dtype, str(device))
+    if key not in _CONSTANTS:
+        _CONSTANTS[key] = torch.tensor(values, dtype=dtype, device=device)
+    return _CONSTANTS[key]
+
+
+def disc_counts(radius: torch.Tensor) -> torch.Tensor:
+    """Taps of the disc of each radius r (integer offsets with dx² + dy² <= r²).
+    Shape: (n,) int64 -> (n,) float64."""
+    return _constant("taps", DISC_TAPS, torch.float64, radius.device).index_select(0, radius)
+
+
+@dataclass
+class StampSet:
+    """The stamps of E entries, ragged: entry e's stamp, ``side x side`` pixels with a one-pixel
+    zero border around it, row-major at ``pixels[first[e]:first[e] + (side + 2)**2]``.
+
+    Reusable while the looks stay fixed (e.g. the paper's particles across attack steps).
+    Shape: pixels (L,) in the images' dtype; first, side (odd), coarse (the grid level) (E,)
+    int64.
+    """
+
+    pixels: torch.Tensor
+    first: torch.Tensor
+    side: torch.Tensor
+    coarse: torch.Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.side.numel())
+
+    def to(self, dtype: torch.dtype, device=None) -> "StampSet":
+        device = self.pixels.device if device is None else device
+        return StampSet(pixels=self.pixels.to(device=device, dtype=dtype),
+                        first=self.first.to(device), side=self.side.to(device),
+                        coarse=self.coarse.to(device))
+
+    @staticmethod
+    def cat(parts: Sequence["StampSet"]) -> "StampSet":
+        offsets = [0]
+        for p in parts[:-1]:
+            offsets.append(offsets[-1] + int(p.pixels.numel()))
+        return StampSet(pixels=torch.cat([p.pixels for p in parts]),
+                        first=torch.cat([p.first + o for p, o in zip(parts, offsets)]),
+                        side=torch.cat([p.side for p in parts]),
+                        coarse=torch.cat([p.coarse for p in parts]))
+
+
+def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.float32,
+          coarse_side: Optional[int] = COARSE_SIDE,
+          chunk_elements: int = STAMP_CHUNK_ELEMENTS) -> StampSet:
+    """Every entry's stamp (see the module doc). Shape: E entries -> :class:`StampSet`."""
+    device = looks.template.device
+    if looks.count and (int(looks.template.min()) < 0 or int(looks.template.max()) >= lib.count):
+        raise ConfigError(f"particle template index out of range for the {lib.count} "
+                          f"templates of '{lib.name}'")
+    with torch.no_grad():
+        book = atlas(lib, dtype, device)
+        footprint, radius, coarse, side, sub, level = stamp_geometry(
+            looks.footprint.to(torch.float64), looks.defocus, lib.resolution,
+            int(book.res.numel()), coarse_side)
+        full = side + 2 * radius
+        block = (full + 2) * (full + 2)
+        first = starts(block)
+        size = int(block.sum()) if looks.count else 0
+        # One float64 buffer: every stamp in its bordered place, then, for the stamps to blur,
+        # their rows before the blur, one per row of ``width`` values: 2 r zeros, the row, 2 r
+        # zeros (so that every box of the blur lies inside it): the sampled pixels go straight
+        # where they belong, and a row's prefix sums are the cumulative sum of its values.
+        blurred = radius > 0
+        rows = torch.where(blurred, side, torch.zeros_like(side))
+        rows_first = starts(rows)
+        width = int((side + 4 * radius).max()) + 1 if bool(blurred.any()) else 1
+        work = torch.zeros(size + int(rows.sum()) * width if looks.count else 0,
+                           dtype=torch.float64, device=device)
+        # pixel (y, x) of entry e goes to ``place[e] + y * pitch[e] + x``
+        place = torch.where(blurred, size + rows_first * width + 2 * radius + 1,
+                            first + full + 3)
+        pitch = torch.where(blurred, torch.full_like(side, width), full + 2)
+        # stamps brightened without a blur (a defocus radius that rounds to 0 on a coarse grid)
+        bright = looks.brighten & ~blurred
+        _sample(looks, book, footprint, side, sub, level, place, pitch, work, dtype,
+                bright if bool(bright.any()) else None, chunk_elements)
+        if bool(blurred.any()):
+            members = torch.nonzero(blurred).squeeze(1)
+            # each row divided by its disc's taps (the blur's normalisation, linear), then
+            # summed up
+            rows_of = torch.repeat_interleave(disc_counts(radius.index_select(0, members)),
+                                              side.index_select(0, members))
+            prefix = work[size:].view(-1, width).div_(rows_of[:, None]).cumsum_(1).view(-1)
+            _blur(prefix, members, side, radius, looks.brighten, rows_first, width, first,
+                  full, work, chunk_elements)
+    return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse)
+
+
+def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch,
+            work: torch.Tensor, dtype, bright: Optional[torch.Tensor], chunk: int) -> None:
+    """Every entry's stamp before its blur, written to ``work`` (pixel (y, x) of entry e at
+    ``place[e] + y pitch[e] + x``): each pixel the mean of its ``sub x sub`` bilinear samples of
+    the template's mip level at the rotated and scaled position, zero outside the footprint's
+    disc; brightened where ``bright`` (E,) says so."""
+    if looks.count == 0:
+        return
+    device = looks.template.device
+    # Per entry, a sample at (gx, gy) pixels from the stamp's centre reads the atlas at the
+    # normalised position (bx + ax gx + cx gy, by + ay gx + cy gy): the template at
+    # Rot(−rotation) (gx, gy) in units of half the footprint (so image offset = Rot(rotation) ·
+    # template offset), grid_sample's pixel convention (align_corners=False). It is inside the
+    # disc when gx² + gy² <= (footprint / 2)² (1 + RIM_MARGIN).
+    height, width = book.image.shape[-2:]
+    res = book.res.index_select(0, level)
+    scale = res / footprint
+    cos, sin = torch.cos(looks.rotation), torch.sin(looks.rotation)
+    x0 = book.x0.index_select(0, looks.template)
+    y0 = book.y0.view(-1).index_select(0, looks.template * book.y0.shape[1] + level)
+    coef = torch.stack(((2 * x0 + res) / width - 1, 2 * scale * cos / width,
+                        2 * scale * sin / width, (2 * y0 + res) / height - 1,
+                        -2 * scale * sin / height, 2 * scale * cos / height,
+                        (footprint / 2) ** 2 * (1.0 + RIM_MARGIN),
+                        -((side - 1) // 2).to(torch.float64)), 1).to(dtype)
+    for factor in (4, 2, 1):
+        members = torch.nonzero(sub == factor).squeeze(1)
+        if members.numel() == 0:
+            continue
+        s = side.index_select(0, members)
+        frac = [(k + 0.5) / factor - 0.5 for k in range(factor)]
+        # sample offsets in a pixel, row-major: (sub², 1)
+        ox = _constant(f"ox{factor}", [[frac[k % factor]] for k in range(factor * factor)],
+                       dtype, device)
+        oy = _constant(f"oy{factor}", [[frac[k // factor]] for k in range(factor * factor)],
+                       dtype, device)
+        for item, local in runs(s * s, max(1, chunk // (factor * factor))):
+            e = members.index_select(0, item)
+            width_e = s.index_select(0, item)
+            row = torch.floor((local + 0.5) / width_e).long()   # exact: local < side² < 2**40
+            col = local - row * width_e
+            bx, ax, cx, by, ay, cy, rho2, centre = coef.index_select(0, e).t()
+            gx = (col.to(dtype) + centre) + ox                  # (sub², n)
+            gy = (row.to(dtype) + centre) + oy
+            grid = torch.empty(*gx.shape, 2, dtype=dtype, device=device)
+            grid_x, grid_y = grid.unbind(-1)
+            torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
+            torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
+            inside = torch.addcmul(gx * gx, gy, gy) <= rho2
+            value = F.grid_sample(book.image, grid[None], mode="bilinear", padding_mode="zeros",
+                                  align_corners=False).view(gx.shape) * inside
+            while value.shape[0] > 1:        # pairwise, in a fixed order: the same bits anywhere
+                value = value.view(2, -1, value.shape[-1]).sum(0)
+            value = value.view(-1) / (factor * factor)
+            if bright is not None:
+                value = torch.where(bright.index_select(0, e), defocus_brighten(value), value)
+            at = torch.addcmul(place.index_select(0, e) + col, row, pitch.index_select(0, e))
+            work.index_copy_(0, at, value.to(torch.float64))
+
+
+def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, work,
+          chunk: int) -> None:
+    """Disc-blurred (and brightened where flagged) stamps ``members`` from their rows' prefix
+    sums (already divided by the disc's taps) into their bordered places in ``work``.
+
+    The blurred pixel (Y, X) of a stamp of side s and radius r sums, over the disc's rows
+    ``a`` in [−r, r] of half-width ``w = floor(sqrt(r² − a²))``, the stamp's row
+    ``y = Y − r − a`` between columns ``X − r − w`` and ``X − r + w``. So every (entry, stamp row
+    y, disc row a) is a *segment* that adds box sums of row y (differences of its prefix sums;
+    the row's 2 r zeros on either side hold every box) to the ``s + 2 w`` columns of output row
+    ``y + r + a`` it reaches, from column ``r − w`` on.
+    """
+    s, r = side.index_select(0, members), radius.index_select(0, members)
+    f = full.index_select(0, members)
+    taps = 2 * r + 1
+    item, local = next(runs(s * taps, 1 << 62))                 # the segments, all at once
+    per = torch.stack((r, s, taps, rows_first.index_select(0, members),
+                       first.index_select(0, members), f)).index_select(1, item)
+    rr, ss, tt, row_first, at0, ff = per
+    y = torch.div(local, tt, rounding_mode="floor")
+    a = local - y * tt - rr
+    w = torch.floor(torch.sqrt((rr * rr - a * a).to(torch.float64))).long()
+    base = (row_first + y) * width + 2 * rr
+    # bordered output pixel (Y + 1, X + 1) of row Y = y + r + a from column X = r − w on
+    at = at0 + (y + rr + a + 1) * (ff + 2) + rr - w + 1
+    # element x of a segment: the box over the row's columns x − 2 w .. x
+    consts = torch.stack((base + 1, base - 2 * w, at))
+    for seg, x in runs(ss + 2 * w, chunk):
+        c_hi, c_lo, c_out = consts.index_select(1, seg)
+        work.index_add_(0, x + c_out, prefix.index_select(0, x + c_hi)
+                        - prefix.index_select(0, x + c_lo))
+    flags = brighten.index_select(0, members)
+    if bool(flags.any()):
+        bright = members.index_select(0, torch.nonzero(flags).squeeze(1))
+        fb = full.index_select(0, bright)
+        for e, local in runs(fb * fb, chunk):
+            fe = fb.index_select(0, e)
+            row = torch.div(local, fe, rounding_mode="floor")
+            at = first.index_select(0, bright.index_select(0, e)) + (row + 1) * (fe + 2) \
+                + local - row * fe + 1
+            work.index_copy_(0, at, defocus_brighten(work.index_select(0, at)))

@@ -1,0 +1,575 @@
+"""Stage 1 of the render core: particle records and cameras -> what every view draws.
+
+Both weather models end in the same drawing problem; they differ only in where the numbers of a
+particle's drawing come from. This stage computes those numbers and nothing else:
+
+- :class:`Looks`, one row per *stamp entry*: footprint (pixels), defocus radius, rotation,
+  template, brightening. A particle of the paper's model is one entry, the same in both frames of
+  its pair (looks fixed at sampling). A particle of a weather field (``optics`` set) is one entry
+  per view that draws it, with that view's looks: footprint ``f d / z``, thin-lens defocus,
+  depth fade, the view mask (see :func:`field_looks`). Per-frame looks are rows of this table,
+  not a second renderer.
+- :class:`Tracks`, one row per (entry, view): the streak in homogeneous image coordinates
+  (``h0``, ``hd``: blur sample ``k`` sits at ``h0 + k · spacing · hd``), the number of blur
+  samples, θ, colour and the occlusion sharpness β. The paper's streaks follow ``X2 − X1`` (both
+  cameras of the pair); a field's (and a single view's) follow the particle's own displacement.
+- :class:`Instances` (:func:`blur_samples`): every track's blur samples, projected: the input of
+  the splat. The number of samples is a per-track column, so a rule that adapts it to the
+  streak's length in pixels changes this file alone.
+
+Every geometric product is an elementwise product and a sum over the last axis (no matrix
+products), so that a track's numbers do not depend on how many other tracks the call holds
+(batched matrix kernels may sum in another order for another batch size).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import torch
+
+from .optics import FieldOptics
+from .particles import Particles
+from .sampling import NEAR
+
+#: Largest thin-lens defocus radius of a field particle, pixels.
+MAX_DEFOCUS = 20
+
+
+# -- one camera ------------------------------------------------------------------------------
+
+@dataclass
+class View:
+    """One camera looking at the particles.
+
+    Shape: intrinsics (3, 3), cam_from_ref (4, 4), depth (1, H, W) camera-z of the scene.
+    """
+
+    intrinsics: torch.Tensor
+    cam_from_ref: torch.Tensor
+    depth: torch.Tensor
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.depth.shape[-2]), int(self.depth.shape[-1])
+
+
+@dataclass
+class Views:
+    """The V cameras of one render call, all of one image size.
+
+    Shape: project (V, 3, 4) float64, ``K [R | t]`` (reference frame -> homogeneous pixels);
+    focal (V,) float64, ``sqrt(fx fy)``; depth (V, 1, H, W), the scene's camera-z (no gradient).
+    """
+
+    project: torch.Tensor
+    focal: torch.Tensor
+    depth: torch.Tensor
+
+    @classmethod
+    def of(cls, intrinsics: torch.Tensor, cam_from_ref: torch.Tensor, depth: torch.Tensor,
+           device=None) -> "Views":
+        """Shape: intrinsics (V, 3, 3), cam_from_ref (V, 4, 4), depth (V, 1, H, W)."""
+        device = depth.device if device is None else device
+        k = intrinsics.to(device=device, dtype=torch.float64)
+        cam = cam_from_ref.to(device=device, dtype=torch.float64)[:, :3, :]
+        project = k[:, :, 0, None] * cam[:, None, 0, :] + k[:, :, 1, None] * cam[:, None, 1, :] \
+            + k[:, :, 2, None] * cam[:, None, 2, :]
+        return cls(project=project, focal=torch.sqrt(k[:, 0, 0] * k[:, 1, 1]),
+                   depth=depth.detach().to(device))
+
+    @property
+    def count(self) -> int:
+        return int(self.project.shape[0])
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.depth.shape[-2]), int(self.depth.shape[-1])
+
+
+def homogeneous(project: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    """``K [R | t] [X; 1]`` row by row: (u z, v z, z), each a sum over the three coordinates
+    (an innermost reduction: the same bits whatever the number of rows, unlike a batched matrix
+    product). Shape: (N, 3, 4), (..., N, 3) -> (..., N, 3)."""
+    return (project[:, :, :3] * points[..., None, :]).sum(-1) + project[:, :, 3]
+
+
+def direction(project: torch.Tensor, vectors: torch.Tensor) -> torch.Tensor:
+    """``K R d`` row by row. Shape: (N, 3, 4), (N, 3) -> (N, 3)."""
+    return (project[:, :, :3] * vectors[:, None, :]).sum(-1)
+
+
+# -- the weather-field model's looks ----------------------------------------------------------
+
+def focal(intrinsics: torch.Tensor) -> float:
+    """``sqrt(fx fy)``: pixels per scene unit at unit depth."""
+    k = intrinsics.double()
+    return float(torch.sqrt(k[0, 0] * k[1, 1]))
+
+
+def footprint(f, diameter: torch.Tensor, z: torch.Tensor) -> torch.Tensor:
+    """Particle diameter on screen in pixels. Shape: (N,), (N,) -> (N,)."""
+    return f * diameter / z
+
+
+def _smoothstep(x: torch.Tensor) -> torch.Tensor:
+    x = x.clamp(0, 1)
+    return x * x * (3 - 2 * x)
+
+
+def coc_radius(f, aperture, focus, z: torch.Tensor) -> torch.Tensor:
+    """Thin-lens circle of confusion ``round(clip(f A |1/z − 1/focus| / 2, 0, MAX_DEFOCUS))``
+    in whole pixels (0 where the aperture is 0). Arguments broadcast. Shape: -> z's, int64."""
+    r = 0.5 * f * aperture * (1.0 / z - 1.0 / focus).abs()
+    r = torch.floor(r.clamp(0, MAX_DEFOCUS) + 0.5)
+    return torch.where(torch.as_tensor(aperture, device=z.device) > 0, r,
+                       torch.zeros_like(r)).long()
+
+
+def defocus_radius(f: float, optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
+    """Circle-of-confusion radius in whole pixels. Shape: (N,) -> (N,) int64."""
+    return coc_radius(f, optics.aperture, optics.focus, z)
+
+
+def fade(near, far, fraction, z: torch.Tensor) -> torch.Tensor:
+    """Fade-in over ``[near, 2 near]``, fade-out over the last ``fraction`` of ``far`` (a cut at
+    ``far`` where the fraction is 0). Arguments broadcast. Shape: -> z's."""
+    fade_in = _smoothstep((z - near) / near)
+    fraction = torch.as_tensor(fraction, dtype=z.dtype, device=z.device)
+    safe = torch.where(fraction > 0, fraction, torch.ones_like(fraction))
+    fade_out = torch.where(fraction > 0, _smoothstep((far - z) / (safe * far)),
+                           (z <= far).to(z.dtype))
+    return fade_in * fade_out
+
+
+def depth_fade(optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
+    """Fade-in after ``near`` and fade-out before ``far``, in [0, 1]. Shape: any -> same."""
+    return fade(optics.near, optics.far, optics.fade, z)
+
+
+def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
+            depth: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+    """Whether a streak's start or end lands in its view's image widened by ``reach`` pixels and
+    not behind the scene there by more than ``tolerance`` (tested at the nearest pixel of the
+    image, its border for a point just outside, where its stamp reaches in).
+
+    Shape: ends (2, M, 3) float64 homogeneous pixels of the start and the end, reach, tolerance
+    (M,), depth (V, 1, H, W), view (M,) int64 -> (M,) bool.
+    """
+    height, width = depth.shape[-2:]
+    scene = depth.reshape(-1).to(torch.float64)
+    zz = ends[..., 2]
+    safe = torch.where(zz.abs() > 1e-12, zz, torch.full_like(zz, 1e-12))
+    u, v = ends[..., 0] / safe, ends[..., 1] / safe
+    reaches = (zz > 1e-6) & (u >= -0.5 - reach) & (u <= width - 0.5 + reach) \
+        & (v >= -0.5 - reach) & (v <= height - 0.5 + reach)
+    col = torch.floor(u + 0.5).clamp(0, width - 1).long()
+    row = torch.floor(v + 0.5).clamp(0, height - 1).long()
+    under = scene.index_select(0, ((view * height + row) * width + col).view(-1)).view_as(zz)
+    seen = reaches & (zz <= under + tolerance)
+    return seen[0] | seen[1]
+
+
+@dataclass
+class OpticsRows:
+    """Field optics per row (a broadcastable stand-in for :class:`FieldOptics`). Shape: (M,)
+    float64 each."""
+
+    near: torch.Tensor
+    far: torch.Tensor
+    fade: torch.Tensor
+    aperture: torch.Tensor
+    focus: torch.Tensor
+    depth_softness: torch.Tensor
+
+
+def field_mask(project: torch.Tensor, f: torch.Tensor, start: torch.Tensor,
+               streak: torch.Tensor, diameter: torch.Tensor, optics, depth: torch.Tensor,
+               view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Which field particles a view draws, their camera depth there and their defocus radius:
+    camera depth in ``[near, far]``, start or streak end inside the image widened by the
+    stamp's reach (half the footprint, the defocus radius and 2 pixels), not behind the scene at
+    that pixel by more than three ``depth_softness``.
+
+    Shape: project (M, 3, 4), f (M,), start, streak (M, 3), diameter (M,) float64; ``optics`` a
+    :class:`FieldOptics` or :class:`OpticsRows`; depth (V, 1, H, W); view (M,) int64 ->
+    ``(mask (M,) bool, z (M,) float64, radius (M,) int64)`` (z and radius where drawn, those
+    at ``far`` elsewhere).
+    """
+    ends = homogeneous(project, torch.stack((start, start + streak)))
+    z = ends[0, :, 2]
+    in_range = (z >= optics.near) & (z <= optics.far)
+    far = torch.as_tensor(optics.far, dtype=z.dtype, device=z.device).expand_as(z)
+    safe = torch.where(in_range, z, far)
+    radius = coc_radius(f, optics.aperture, optics.focus, safe)
+    reach = 0.5 * footprint(f, diameter, safe) + radius + 2
+    tolerance = torch.as_tensor(3 * optics.depth_softness, dtype=z.dtype, device=z.device)
+    seen = in_view(ends, reach, tolerance.expand_as(z), depth, view)
+    return in_range & seen, safe, radius
+
+
+def view_mask(view: View, points: torch.Tensor, streak: torch.Tensor, diameter: torch.Tensor,
+              optics: FieldOptics) -> torch.Tensor:
+    """Which particles a view draws (see :func:`field_mask`; the render core applies the same
+    test to every view it draws).
+
+    Shape: points (M, 3) reference coordinates, streak (M, 3) the streak's end minus its start,
+    diameter (M,) -> (M,) bool. Computed in float64 on the CPU.
+    """
+    views = Views.of(view.intrinsics[None], view.cam_from_ref[None], view.depth[None].cpu(),
+                     device="cpu")
+    m = points.shape[0]
+    index = torch.zeros(m, dtype=torch.long)
+    mask, _, _ = field_mask(views.project.expand(m, 3, 4), views.focal.expand(m),
+                            points.double().cpu(), streak.double().cpu(),
+                            diameter.double().cpu(), optics, views.depth, index)
+    return mask
+
+
+# -- records, looks and tracks -----------------------------------------------------------------
+
+@dataclass
+class ParticleTable:
+    """The particles of several records, concatenated in record order (P particles).
+
+    Shape: start (P, 3) float64 ``P + δ1`` and displacement (P, 3) float64 ``M + δ2``
+    (differentiable in the offsets); color (P, 3), transparency (P,) as the records hold them
+    (differentiable); rotation, scale (P,) float64; template, defocus, record (P,) int64.
+    """
+
+    start: torch.Tensor
+    displacement: torch.Tensor
+    color: torch.Tensor
+    transparency: torch.Tensor
+    rotation: torch.Tensor
+    scale: torch.Tensor
+    template: torch.Tensor
+    defocus: torch.Tensor
+    record: torch.Tensor
+
+    @classmethod
+    def of(cls, records: Sequence[Particles], device) -> "ParticleTable":
+        def cat(name, dtype=None):
+            t = torch.cat([getattr(r, name).to(device) for r in records])
+            return t if dtype is None else t.to(dtype)
+
+        f64 = torch.float64
+        counts = torch.tensor([r.count for r in records], device=device)
+        start = cat("position", f64) + cat("offset1", f64)
+        return cls(start=start, displacement=cat("motion", f64) + cat("offset2", f64),
+                   color=cat("color"), transparency=cat("transparency"),
+                   rotation=cat("rotation", f64), scale=cat("scale", f64),
+                   template=cat("template", torch.long), defocus=cat("defocus", torch.long),
+                   record=torch.repeat_interleave(torch.arange(len(records), device=device),
+                                                  counts, output_size=int(sum(r.count
+                                                                              for r in records))))
+
+    @property
+    def count(self) -> int:
+        return int(self.record.numel())
+
+    def select(self, rows: torch.Tensor) -> "ParticleTable":
+        return ParticleTable(**{k: getattr(self, k)[rows] for k in self.__dataclass_fields__})
+
+    def head(self, n: int) -> "ParticleTable":
+        """The first n particles (views)."""
+        return ParticleTable(**{k: getattr(self, k)[:n] for k in self.__dataclass_fields__})
+
+
+@dataclass
+class Looks:
+    """How each stamp entry looks (E entries). Shape: footprint (E,) float64 pixels (>= 1);
+    defocus (E,) int64 disc radius in pixels; rotation (E,) float64 radians; template (E,)
+    int64; brighten (E,) bool (the disc-blurred alpha b becomes ``min(1, (2 b)^(1/3))``)."""
+
+    footprint: torch.Tensor
+    defocus: torch.Tensor
+    rotation: torch.Tensor
+    template: torch.Tensor
+    brighten: torch.Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.template.numel())
+
+    def select(self, rows: torch.Tensor) -> "Looks":
+        return Looks(**{k: getattr(self, k)[rows] for k in Looks.__dataclass_fields__})
+
+    @staticmethod
+    def cat(parts: Sequence["Looks"]) -> "Looks":
+        return Looks(**{k: torch.cat([getattr(p, k) for p in parts])
+                        for k in Looks.__dataclass_fields__})
+
+
+@dataclass
+class Tracks:
+    """T tracks, each an entry's streak in one view.
+
+    Shape: entry, view (T,) int64 (into :class:`Looks`, :class:`Views`); h0, hd (T, 3) float64
+    homogeneous pixels (``K X`` of the streak's start and ``K ΔX`` of its direction; blur sample
+    ``k`` sits at ``h0 + k · spacing · hd``), differentiable in the offsets; samples (T,) int64
+    the number K of blur samples; spacing (T,) float64; theta (T,) and color (T, 3) in the
+    images' dtype, differentiable (each sample carries θ / K); beta (T,) float64, the occlusion
+    test's sharpness.
+    """
+
+    entry: torch.Tensor
+    view: torch.Tensor
+    h0: torch.Tensor
+    hd: torch.Tensor
+    samples: torch.Tensor
+    spacing: torch.Tensor
+    theta: torch.Tensor
+    color: torch.Tensor
+    beta: torch.Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.entry.numel())
+
+    @staticmethod
+    def cat(parts: Sequence["Tracks"], entry_offsets: Sequence[int]) -> "Tracks":
+        """Tracks of several parts, each part's entries shifted by its offset."""
+        fields = {k: torch.cat([getattr(p, k) for p in parts]) for k in Tracks.__dataclass_fields__
+                  if k != "entry"}
+        return Tracks(entry=torch.cat([p.entry + o for p, o in zip(parts, entry_offsets)]),
+                      **fields)
+
+
+@dataclass
+class RecordRows:
+    """Per-record settings as tensors (R records). Shape: samples (R,) int64 (K: 1 without motion
+    blur); spacing (R,) float64 (``blur_length / (K − 1)``, 0 for K = 1); blur_length (R,)
+    float64; brighten (R,) bool; optics (R, 6) float64 (near, far, fade, aperture, focus,
+    depth_softness; zeros for the paper's records)."""
+
+    samples: torch.Tensor
+    spacing: torch.Tensor
+    blur_length: torch.Tensor
+    brighten: torch.Tensor
+    optics: torch.Tensor
+
+    @classmethod
+    def of(cls, records: Sequence[Particles], device) -> "RecordRows":
+        samples, spacing, length, bright, optics = [], [], [], [], []
+        for r in records:
+            s = r.settings
+            k = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
+            samples.append(k)
+            spacing.append(float(s.blur_length) / (k - 1) if k > 1 else 0.0)
+            length.append(float(s.blur_length))
+            bright.append(bool(s.defocus_brighten))
+            o = r.optics
+            optics.append([0.0] * 6 if o is None else
+                          [o.near, o.far, o.fade, o.aperture, o.focus, o.depth_softness])
+        f64 = torch.float64
+        return cls(samples=torch.tensor(samples, device=device),
+                   spacing=torch.tensor(spacing, dtype=f64, device=device),
+                   blur_length=torch.tensor(length, dtype=f64, device=device),
+                   brighten=torch.tensor(bright, device=device),
+                   optics=torch.tensor(optics, dtype=f64, device=device).view(-1, 6))
+
+
+def fixed_looks(table: ParticleTable, rows: RecordRows, resolution: int) -> Looks:
+    """The paper's model: looks fixed at sampling (footprint ``scale`` x template pixels)."""
+    return Looks(footprint=(table.scale * resolution).clamp(min=1.0), defocus=table.defocus,
+                 rotation=table.rotation, template=table.template,
+                 brighten=rows.brighten[table.record] & (table.defocus > 1))
+
+
+def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, views: Views,
+                view: torch.Tensor, start: torch.Tensor, *, beta: float, dtype: torch.dtype,
+                color: Optional[torch.Tensor] = None) -> tuple[Looks, Tracks]:
+    """A weather field's particles as the views ``view`` (C,) see them, candidate ``c`` being
+    particle ``which[c]`` of ``table`` seen from ``start[c]`` (C, 3; its reference position in
+    that view's frame): the
+    candidates the view mask keeps become one entry and one track each, with footprint
+    ``f d / z`` (at least one pixel; below it θ is scaled by the footprint's area), θ faded with
+    depth, a thin-lens defocus disc (light spread, not brightened) and ``β = min(beta,
+    1 / depth_softness)``. Looks depend on the detached positions; the track's positions keep
+    their gradient."""
+    record = table.record.index_select(0, which)
+    near, far, fraction, aperture, focus, softness = rows.optics.index_select(0, record).unbind(1)
+    project = views.project.index_select(0, view)
+    f = views.focal.index_select(0, view)
+    displacement = table.displacement.index_select(0, which)
+    scale = table.scale.index_select(0, which)
+    streak = rows.blur_length.index_select(0, record)[:, None] * displacement.detach()
+    mask, z, radius = field_mask(project, f, start.detach(), streak, scale,
+                                 OpticsRows(near, far, fraction, aperture, focus, softness),
+                                 views.depth, view)
+    fp = footprint(f, scale, z)
+    factor = fade(near, far, fraction, z) * fp.clamp(max=1.0) ** 2
+    theta = (table.transparency.index_select(0, which).to(torch.float64) * factor).to(dtype)
+    keep = torch.nonzero(mask & (theta.detach() != 0)).squeeze(1)
+    drawn = which.index_select(0, keep)
+    record = record.index_select(0, keep)
+    radius = radius.index_select(0, keep)
+    looks = Looks(footprint=fp.index_select(0, keep).clamp(min=1.0), defocus=radius,
+                  rotation=table.rotation.index_select(0, drawn),
+                  template=table.template.index_select(0, drawn),
+                  brighten=rows.brighten.index_select(0, record) & (radius > 1))
+    colour = table.color if color is None else color
+    kept = project.index_select(0, keep)
+    tracks = Tracks(entry=torch.arange(keep.numel(), device=keep.device),
+                    view=view.index_select(0, keep),
+                    h0=homogeneous(kept, start.index_select(0, keep)),
+                    hd=direction(kept, displacement.index_select(0, keep)),
+                    samples=rows.samples.index_select(0, record),
+                    spacing=rows.spacing.index_select(0, record),
+                    theta=theta.index_select(0, keep), color=colour.index_select(0, drawn).to(dtype),
+                    beta=torch.clamp(1.0 / softness.index_select(0, keep), max=beta))
+    return looks, tracks
+
+
+def pair_tracks(records: Sequence[Particles], views: Views, resolution: int, *, beta: float,
+                dtype: torch.dtype, pairs: Optional[Sequence[int]] = None
+                ) -> tuple[Looks, Tracks]:
+    """Looks and tracks of particle records drawn into frame pairs: record ``i`` into pair
+    ``pairs[i]`` (default ``i``), whose frames are views ``p`` and ``B + p`` (B = V / 2).
+
+    Entries: the paper's particles first, in record order (one entry each, drawn in both frames:
+    its streak runs along ``X2 − X1``, frame t's from ``X_t``), then the field particles each
+    view draws (frame 1 from ``P + δ1``, frame 2 from ``P + δ1 + M + δ2``, both along
+    ``M + δ2``).
+    """
+    device = views.project.device
+    bsz = views.count // 2
+    pairs = list(range(len(records))) if pairs is None else list(pairs)
+    paper = [i for i, r in enumerate(records) if r.optics is None and r.count]
+    field = [i for i, r in enumerate(records) if r.optics is not None and r.count]
+    if not paper and not field:
+        return empty_looks(device), empty_tracks(device, dtype)
+    # one table, the paper's records first: their particles are rows 0 .. n - 1
+    order = paper + field
+    chosen = [records[i] for i in order]
+    table = ParticleTable.of(chosen, device)
+    rows = RecordRows.of(chosen, device)
+    pair = torch.tensor([pairs[i] for i in order], device=device).index_select(0, table.record)
+    n = sum(records[i].count for i in paper)
+    parts, entries = [], []
+    if paper:
+        head = table.head(n)
+        looks = fixed_looks(head, rows, resolution)
+        start, record, p = head.start, head.record, pair[:n]
+        h1 = homogeneous(views.project.index_select(0, p), start)
+        h2 = homogeneous(views.project.index_select(0, bsz + p), start + table.displacement[:n])
+        hd = h2 - h1
+        entry = torch.arange(n, device=device)
+        parts.append(Tracks(entry=entry.repeat(2), view=torch.cat((p, bsz + p)),
+                            h0=torch.cat((h1, h2)), hd=hd.repeat(2, 1),
+                            samples=rows.samples.index_select(0, record).repeat(2),
+                            spacing=rows.spacing.index_select(0, record).repeat(2),
+                            theta=table.transparency[:n].to(dtype).repeat(2),
+                            color=table.color[:n].to(dtype).repeat(2, 1),
+                            beta=torch.full((2 * n,), float(beta), dtype=torch.float64,
+                                            device=device)))
+        entries.append(looks)
+    if field:
+        # every field particle is a candidate in both frames of its pair
+        which = torch.arange(n, table.count, device=device).repeat(2)
+        p = pair[n:]
+        start = torch.cat((table.start[n:], table.start[n:] + table.displacement[n:]))
+        looks, tracks = field_looks(table, which, rows, views, torch.cat((p, bsz + p)), start,
+                                    beta=float(beta), dtype=dtype)
+        parts.append(tracks)
+        entries.append(looks)
+    if len(parts) == 1:
+        return entries[0], parts[0]
+    return Looks.cat(entries), Tracks.cat(parts, [0, entries[0].count])
+
+
+def view_tracks(record: Particles, views: Views, start: torch.Tensor, displacement: torch.Tensor,
+                resolution: int, *, beta: float, dtype: torch.dtype,
+                color: Optional[torch.Tensor] = None) -> tuple[Looks, Tracks]:
+    """Looks and tracks of one record drawn into a single view (view 0 of ``views``): every
+    particle from ``start`` (N, 3) along ``displacement`` (N, 3) (reference frame). A field
+    record gets the view's looks (:func:`field_looks`); a record of the paper's model keeps its
+    looks and draws the particles whose start lies in front of the camera. ``color`` (N, 3)
+    replaces the colour (e.g. by flow vectors)."""
+    device = views.project.device
+    if record.count == 0:
+        return empty_looks(device), empty_tracks(device, dtype)
+    table = ParticleTable.of([record], device)
+    table.start = start.to(device=device, dtype=torch.float64)
+    table.displacement = displacement.to(device=device, dtype=torch.float64)
+    rows = RecordRows.of([record], device)
+    view = torch.zeros(table.count, dtype=torch.long, device=device)
+    colour = None if color is None else color.to(device)
+    if record.optics is not None:
+        return field_looks(table, torch.arange(table.count, device=device), rows, views, view,
+                           table.start, beta=float(beta), dtype=dtype, color=colour)
+    h0 = homogeneous(views.project[view], table.start)
+    keep = torch.nonzero(h0.detach()[:, 2] > NEAR).squeeze(1)
+    looks = fixed_looks(table.select(keep), rows, resolution)
+    colour = table.color if colour is None else colour
+    n = keep.numel()
+    return looks, Tracks(entry=torch.arange(n, device=device), view=view[keep], h0=h0[keep],
+                         hd=direction(views.project[view[keep]], table.displacement[keep]),
+                         samples=rows.samples[table.record[keep]],
+                         spacing=rows.spacing[table.record[keep]],
+                         theta=table.transparency[keep].to(dtype), color=colour[keep].to(dtype),
+                         beta=torch.full((n,), float(beta), dtype=torch.float64, device=device))
+
+
+def empty_looks(device) -> Looks:
+    z = torch.zeros(0, dtype=torch.float64, device=device)
+    i = torch.zeros(0, dtype=torch.long, device=device)
+    return Looks(footprint=z, defocus=i, rotation=z, template=i,
+                 brighten=torch.zeros(0, dtype=torch.bool, device=device))
+
+
+def empty_tracks(device, dtype) -> Tracks:
+    i = torch.zeros(0, dtype=torch.long, device=device)
+    h = torch.zeros(0, 3, dtype=torch.float64, device=device)
+    return Tracks(entry=i, view=i, h0=h, hd=h, samples=i,
+                  spacing=torch.zeros(0, dtype=torch.float64, device=device),
+                  theta=torch.zeros(0, dtype=dtype, device=device),
+                  color=torch.zeros(0, 3, dtype=dtype, device=device),
+                  beta=torch.zeros(0, dtype=torch.float64, device=device))
+
+
+# -- blur samples ----------------------------------------------------------------------------
+
+@dataclass
+class Instances:
+    """I blur samples, projected: the splat's input.
+
+    Shape: u, v, z (I,) in the images' dtype (pixel position and camera depth, differentiable);
+    theta (I,) θ / K; color (I, 3); beta (I,) float64; entry, view (I,) int64.
+    """
+
+    u: torch.Tensor
+    v: torch.Tensor
+    z: torch.Tensor
+    theta: torch.Tensor
+    color: torch.Tensor
+    beta: torch.Tensor
+    entry: torch.Tensor
+    view: torch.Tensor
+
+    @property
+    def count(self) -> int:
+        return int(self.entry.numel())
+
+
+def blur_samples(tracks: Tracks, dtype: torch.dtype) -> Instances:
+    """Every track's K blur samples at ``h0 + k · spacing · hd`` (k = 0 .. K − 1), projected,
+    each with θ / K. Shape: T tracks -> I = Σ K instances, a track's samples consecutive."""
+    device = tracks.h0.device
+    total = int(tracks.samples.sum()) if tracks.count else 0
+    track = torch.repeat_interleave(torch.arange(tracks.count, device=device), tracks.samples,
+                                    output_size=total)
+    first = torch.cumsum(tracks.samples, 0) - tracks.samples
+    k = torch.arange(total, device=device) - first.index_select(0, track)
+    step = (k * tracks.spacing.index_select(0, track))[:, None]
+    h = tracks.h0.index_select(0, track) + step * tracks.hd.index_select(0, track)
+    z = h[:, 2]
+    safe = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
+    per_sample = tracks.theta / tracks.samples.to(tracks.theta.dtype)
+    entry, view = torch.stack((tracks.entry, tracks.view)).index_select(1, track)
+    return Instances(u=(h[:, 0] / safe).to(dtype), v=(h[:, 1] / safe).to(dtype), z=z.to(dtype),
+                     theta=per_sample.index_select(0, track),
+                     color=tracks.color.index_select(0, track),
+                     beta=tracks.beta.index_select(0, track), entry=entry, view=view)
