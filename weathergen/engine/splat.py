@@ -191,8 +191,8 @@ class _Plan:
         self.coarse = len(grids.levels) > 1
         with torch.no_grad():
             # per sample: its stamp's side, level and start, and its level's grid
-            side, level, first = torch.stack((stamps.side, stamps.coarse, stamps.first)) \
-                .index_select(1, inst.entry)
+            side, level, first = torch.stack((stamps.side, stamps.coarse, stamps.first), 1) \
+                .index_select(0, inst.entry).unbind(1)
             offset, h, w, m, f = table.index_select(0, level).t()
             u, v = inst.u.detach(), inst.v.detach()
             if self.coarse:
@@ -214,9 +214,11 @@ class _Plan:
             self.count = int(kept.numel())
             if self.count == 0:
                 return
+            # (gathering whole rows of a stacked table is several times faster than gathering
+            # along its second axis)
             ints = torch.stack((side, col0, row0, h, w + 2 * m, offset + m, inst.view, first,
-                                level, plane_key)).index_select(1, kept)
-            side, col0, row0, h, row_len, offset, view, first, level, groups = ints
+                                level, plane_key), 1).index_select(0, kept)
+            side, col0, row0, h, row_len, offset, view, first, level, groups = ints.unbind(1)
             self.reached[view] = True
             self.kept, self.level = kept, level
             q = (side + 1) // 2
@@ -224,11 +226,12 @@ class _Plan:
             rows = int(q.sum())
             sample = torch.repeat_interleave(torch.arange(self.count, device=device), q,
                                              output_size=rows)
-            per_row = torch.stack((side + 2, first, row0, h, plane, row_len, q, groups)) \
-                .index_select(1, sample)
-            stride, first, row0, h, plane, row_len, self.sizes, self.groups = per_row
+            per_row = torch.stack((side + 2, first, row0, h, plane, row_len, q, groups), 1) \
+                .index_select(0, sample)
+            stride, first, row0, h, plane, row_len, sizes, groups = per_row.unbind(1)
+            self.sizes, self.groups = sizes.contiguous(), groups.contiguous()
             br = torch.arange(rows, device=device) - starts(q).index_select(0, sample)
-            self.row_sample, self.row_stride = sample, stride
+            self.row_sample, self.row_stride = sample, stride.contiguous()
             self.row_at = first + 2 * br * stride
             y = (row0 + 2 * br) + torch.arange(2, device=device)[:, None]
             y = torch.where((y >= 0) & (y < h), y, h)                  # outside: the extra row
