@@ -8,8 +8,9 @@ import math
 import pytest
 import torch
 
-from engine_scenes import plane_pair, pose, rotation
-from weathergen.engine import load_preset, reference_transforms, sample_particles, world_down
+from engine_scenes import forward_scene, plane_pair, pose, rotation, wall_scene
+from weathergen.engine import (load_preset, reference_transforms, sample_particles,
+                               visible_counts, world_down)
 from weathergen.engine.sampling import (defocus_radius, hls_to_rgb, resolve_device, rgb_to_hls,
                                         transparency_hat)
 from weathergen.errors import ConfigError, DatasetError, WeatherGenError
@@ -44,6 +45,60 @@ def test_every_particle_is_visible_in_one_frame():
         inside = (pix[:, 0] >= -0.5) & (pix[:, 0] < 55.5) & (pix[:, 1] >= -0.5) & (pix[:, 1] < 39.5)
         seen |= inside & (z > 0) & (z < depth[0, row, col].double() + 1e-5)
     assert bool(seen.all())
+
+
+def _visible_by_hand(pair, points, cam, depth):
+    """Which world points are inside the image, in front of the camera and nearer than the scene
+    at their nearest pixel, projected by hand with K. Shape: (N, 3) -> (N,) bool."""
+    h, w = depth.shape[-2:]
+    x = points.double() @ cam[:3, :3].T.double() + cam[:3, 3].double()
+    k = pair.intrinsics.double()
+    z = x[:, 2]
+    u = k[0, 0] * x[:, 0] / z + k[0, 2]
+    v = k[1, 1] * x[:, 1] / z + k[1, 2]
+    inside = (u >= -0.5) & (u < w - 0.5) & (v >= -0.5) & (v < h - 0.5) & (z > 1e-3)
+    col = torch.floor(u + 0.5).clamp(0, w - 1).long()
+    row = torch.floor(v + 0.5).clamp(0, h - 1).long()
+    return inside & (z < depth[0, row, col].double())
+
+
+def test_forward_camera_samples_particles_seen_in_frame_1_or_frame_2():
+    """The paper's initialisation: positions among the points visible in frame 1 or, after the
+    motion, in frame 2. With the camera moving forward past a near wall, particles that only
+    frame 2 sees (revealed behind the wall's edge, fallen in from above) are sampled as often as
+    their share of that union predicts (4 sigma), and none is visible in neither frame."""
+    pair = forward_scene(0.5)
+    n = 3000
+    parts = sample_particles(pair, load_preset("snow", {"count": n}), seed=3)
+    start = parts.position.double()
+    vis1 = _visible_by_hand(pair, start, pair.cam1_from_world, pair.depth1)
+    vis2 = _visible_by_hand(pair, start + parts.motion.double(), pair.cam2_from_world, pair.depth2)
+    assert not bool((~vis1 & ~vis2).any())
+    only2 = int((vis2 & ~vis1).sum())
+    # the share of frame-2-only points in the union, from uniform points of the box (snow falls
+    # 0.2 units straight down the y axis of these cameras)
+    g = torch.Generator().manual_seed(11)
+    box = torch.rand(1_000_000, 3, generator=g, dtype=torch.float64) \
+        * torch.tensor([10.0, 10.0, 3.0], dtype=torch.float64) - torch.tensor([5.0, 5.0, 0.0])
+    fall = torch.tensor([0.0, 0.2, 0.0], dtype=torch.float64)
+    u1 = _visible_by_hand(pair, box, pair.cam1_from_world, pair.depth1)
+    u2 = _visible_by_hand(pair, box + fall, pair.cam2_from_world, pair.depth2)
+    share = float((u2 & ~u1).sum()) / float((u1 | u2).sum())
+    assert 0.05 < share < 0.5
+    sigma = math.sqrt(n * share * (1 - share))
+    assert abs(only2 - n * share) < 4 * sigma + 0.01 * n * share, (only2, n * share)
+
+
+@pytest.mark.parametrize("forward, low, high", [(0.0, 0.95, 1.05), (0.5, 0.62, 0.76),
+                                                (1.0, 0.33, 0.47)])
+def test_frame2_keeps_the_documented_share_of_frame_1(forward, low, high):
+    """docs/engine.md reports visible(frame 2) / visible(frame 1) for the paper's presets on the
+    Sintel-size wall scene: about 1 with a still camera, 0.7 half a unit forward, 0.4 one unit
+    forward (the camera moves into the sampling box, which lies in front of camera 1)."""
+    pair = wall_scene(forward=forward)
+    for name in ("snow", "rain", "sparks"):
+        v1, v2 = visible_counts(pair, sample_particles(pair, load_preset(name), seed=0))
+        assert low < v2 / v1 < high, (name, v1, v2)
 
 
 def test_appearance_follows_the_model():
