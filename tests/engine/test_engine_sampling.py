@@ -112,7 +112,8 @@ def test_appearance_follows_the_model():
                                atol=1e-3, rtol=0)
     assert torch.equal(parts.defocus, defocus_radius(d))
     assert torch.equal(parts.color, torch.ones_like(parts.color))
-    fog = sample_particles(pair, load_preset("fog"), seed=2)
+    fog = sample_particles(pair, load_preset("fog", {"transparency_mode": "constant",
+                                                     "transparency": 0.3}), seed=2)
     # depth-constant 0.3 (float16 storage)
     torch.testing.assert_close(fog.transparency, torch.full_like(fog.transparency, 0.3),
                                atol=2e-4, rtol=0)
