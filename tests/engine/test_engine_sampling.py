@@ -89,16 +89,27 @@ def test_forward_camera_samples_particles_seen_in_frame_1_or_frame_2():
     assert abs(only2 - n * share) < 4 * sigma + 0.01 * n * share, (only2, n * share)
 
 
-@pytest.mark.parametrize("forward, low, high", [(0.0, 0.95, 1.05), (0.5, 0.62, 0.76),
-                                                (1.0, 0.33, 0.47)])
-def test_frame2_keeps_the_documented_share_of_frame_1(forward, low, high):
-    """docs/engine.md reports visible(frame 2) / visible(frame 1) for the paper's presets on the
+#: visible(frame 2) / visible(frame 1) on the wall scene, as docs/engine.md reports it, for a still
+#: camera and one moved 0.5 and 1 unit forward.
+FRAME2_RATIOS = {"snow": (1.01, 0.68, 0.40), "sparks": (1.00, 0.68, 0.40),
+                 "size-medium": (1.00, 0.68, 0.43), "fog": (1.00, 0.72, 0.47)}
+
+
+@pytest.mark.parametrize("column, forward", [(0, 0.0), (1, 0.5), (2, 1.0)])
+def test_frame2_keeps_the_documented_share_of_frame_1(column, forward):
+    """docs/engine.md's table of visible(frame 2) / visible(frame 1) for the paper's presets on the
     Sintel-size wall scene: about 1 with a still camera, 0.7 half a unit forward, 0.4 one unit
-    forward (the camera moves into the sampling box, which lies in front of camera 1)."""
+    forward (the camera moves into the sampling box, which lies in front of camera 1). Within 0.04
+    for 3000 particles (one seed), 0.08 for the mean of three seeds of 60 fog and 141 size-medium
+    particles (rain, grey and the sweeps share snow's or sparks' geometry)."""
     pair = wall_scene(forward=forward)
-    for name in ("snow", "rain", "sparks"):
-        v1, v2 = visible_counts(pair, sample_particles(pair, load_preset(name), seed=0))
-        assert low < v2 / v1 < high, (name, v1, v2)
+    for name, ratios in FRAME2_RATIOS.items():
+        many = load_preset(name).count >= 1000
+        got = []
+        for seed in range(1 if many else 3):
+            v1, v2 = visible_counts(pair, sample_particles(pair, load_preset(name), seed=seed))
+            got.append(v2 / v1)
+        assert abs(sum(got) / len(got) - ratios[column]) < (0.04 if many else 0.08), (name, got)
 
 
 def test_appearance_follows_the_model():
