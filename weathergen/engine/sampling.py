@@ -7,8 +7,10 @@ in vectorised batches whose size depends only on the requested count, on the CPU
 one explicitly seeded ``torch.Generator``: the same seed gives the same bytes on any machine and
 with any number of workers. Most candidates usually lie outside both views, so a candidate's
 motion is computed only when camera 1 sees it or when its motionless position lies within the
-longest motion of camera 2's view cone (the particles are those of testing every candidate). The
-record is then moved to the requested device.
+longest motion of camera 2's view cone (the particles are those of testing every candidate).
+Positions and motions are rounded to their stored precision; a candidate the rounding moves out of
+both views gives its place to the next kept one, so every stored particle is visible in frame 1 or
+frame 2 (:func:`visibility`). The record is then moved to the requested device.
 
 Depth-dependent properties use the particle's camera depth ``d`` (camera 1 where the particle is in
 front of camera 1, else camera 2), fixed at sampling:
