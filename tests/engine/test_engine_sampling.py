@@ -89,6 +89,28 @@ def test_forward_camera_samples_particles_seen_in_frame_1_or_frame_2():
     assert abs(only2 - n * share) < 4 * sigma + 0.01 * n * share, (only2, n * share)
 
 
+def test_particles_only_frame_2_sees_take_their_looks_from_frame_2():
+    """Size, transparency and defocus follow the depth in the frame that accepted the particle
+    (the research code's rule): camera 1's where frame 1 sees it, camera 2's for the particles
+    only frame 2 sees (nearer, hence larger, with the camera moving forward)."""
+    pair = forward_scene(0.5)
+    parts = sample_particles(pair, load_preset("snow", {"count": 1500}), seed=4)
+    start = parts.position.double()
+    end = start + parts.motion.double()
+    vis1 = _visible_by_hand(pair, start, pair.cam1_from_world, pair.depth1)
+    only2 = ~vis1 & _visible_by_hand(pair, end, pair.cam2_from_world, pair.depth2)
+    assert int(only2.sum()) > 50
+    z1 = start[:, 2]
+    z2 = end[:, 2] - 0.5                        # camera 2 sits 0.5 units forward
+    d = torch.where(only2, z2, z1)
+    footprint = (71 * torch.clamp(1 / (d * 9), max=1)).clamp(min=1)
+    torch.testing.assert_close(parts.scale.double() * 80, footprint, rtol=1e-3, atol=0)  # float16
+    torch.testing.assert_close(parts.transparency.double(), 0.75 * transparency_hat(d),
+                               atol=1e-3, rtol=0)
+    assert torch.equal(parts.defocus, defocus_radius(d))
+    assert bool((d[only2] < z1[only2]).all())
+
+
 #: visible(frame 2) / visible(frame 1) on the wall scene, as docs/engine.md reports it, for a still
 #: camera and one moved 0.5 and 1 unit forward.
 FRAME2_RATIOS = {"snow": (1.01, 0.68, 0.40), "sparks": (1.00, 0.68, 0.40),

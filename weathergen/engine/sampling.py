@@ -12,8 +12,9 @@ Positions and motions are rounded to their stored precision; a candidate the rou
 both views gives its place to the next kept one, so every stored particle is visible in frame 1 or
 frame 2 (:func:`visibility`). The record is then moved to the requested device.
 
-Depth-dependent properties use the particle's camera depth ``d`` (camera 1 where the particle is in
-front of camera 1, else camera 2), fixed at sampling:
+Depth-dependent properties use the particle's camera depth ``d`` in the frame that accepted it
+(camera 1 where frame 1 sees it, else camera 2, as the paper's research code does: a particle that
+only frame 2 shows is drawn at the size its frame-2 depth gives), fixed at sampling:
 
 - footprint (pixels) ``size * min(1, 1 / (d * depth_decay))``, at least 1;
   ``scale = footprint / template resolution``;
@@ -346,9 +347,10 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     template = torch.randint(0, lib.count, (n,), generator=gen)
     rotation = u[:, 0] * 2 * math.pi
 
-    z1 = transform_points(cam1_from_ref, position)[:, 2]
+    x1 = transform_points(cam1_from_ref, position)
     z2 = transform_points(cam2_from_ref, position + motion)[:, 2]
-    d = torch.where(z1 > NEAR, z1, z2)
+    # the depth in the frame that accepted the particle: frame 1 where it sees it, else frame 2
+    d = torch.where(_visible(x1, k, depth1), x1[:, 2], z2)
     footprint = (preset.size * torch.clamp(1.0 / (d * preset.depth_decay), max=1.0)).clamp(min=1.0)
     scale = footprint / lib.resolution
     if preset.transparency_mode == "constant":
