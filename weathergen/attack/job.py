@@ -151,7 +151,7 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
             pair = job.dataset.load(ref)
             particles = None if job.lp is not None else pair_particles(
                 pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
-                particles_from=job.particles_from)
+                frame_rate=job.dataset.frame_rate, particles_from=job.particles_from)
         except WeatherGenError as exc:
             reports[ref.id.key] = PairReport(str(ref.id), "failed", message=str(exc),
                                              key=ref.id.key)
@@ -211,7 +211,7 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
                          job.preset_name)
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
-    out = AttackPairOutput.of(job.out, pair.id, job.pass_name)
+    out = pair_output(job, pair.id)
     write_attack_pair(out, pair.to("cpu"), frames, opacity, meta, flows, result.history,
                       asdict(summary))
     return summary
@@ -220,13 +220,15 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
 def lp_pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
     """Where an Lp-attacked pair goes: the attack layout, with float EXR frames besides the PNGs
     (an Lp perturbation is finer than the 8-bit steps of a PNG)."""
-    return AttackPairOutput(PairOutput.of(job.out, pair_id, job.pass_name, "both", geometry=True))
+    return AttackPairOutput(PairOutput.of(job.out, pair_id, job.pass_name, "both", geometry=True,
+                                          native=job.dataset.native_flow))
 
 
 def pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
     """Where the job writes a pair."""
     return (lp_pair_output(job, pair_id) if job.lp is not None
-            else AttackPairOutput.of(job.out, pair_id, job.pass_name))
+            else AttackPairOutput.of(job.out, pair_id, job.pass_name,
+                                     native=job.dataset.native_flow))
 
 
 def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:

@@ -19,7 +19,7 @@ from .groundtruth import ParticleTruth, particle_truth, seen_flow
 from .particles import Particles, empty_particles, from_atanh, to_atanh
 from .perframe import View, render_view
 from .optics import FieldOptics
-from .presets import (DATASET_FRAME_RATES, FieldPreset, Preset, list_presets, load_preset,
+from .presets import (FieldPreset, Preset, list_presets, load_preset,
                       parse_override, parse_set_options, preset_keys)
 from .renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps, render,
                        render_pair)
@@ -29,7 +29,7 @@ from .settings import APPEARANCE_KEYS, RenderSettings
 from .templates import (TemplateLibrary, generate_templates, load_templates,
                         write_builtin_templates)
 
-__all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "DATASET_FRAME_RATES", "Field",
+__all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "Field",
            "FieldOptics", "FieldPreset", "ParticleTruth", "Particles", "Preset", "RenderOutput",
            "RenderSettings", "StampSet", "TemplateLibrary", "View", "build_stamps",
            "empty_particles", "frame_particles", "from_atanh", "generate_templates",

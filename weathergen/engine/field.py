@@ -339,12 +339,14 @@ def pair_particles(fld: Field, views: Sequence[View], frames: tuple[int, int]) -
 
 
 def field_for_pair(pair: FramePair, preset: FieldPreset, seed, *, world_up: str = "auto",
+                   frame_rate: Optional[float] = None,
                    templates: Optional[TemplateLibrary] = None) -> Field:
     """The field of the pair's scene: reference frame and down axis from the pair's cameras,
-    the frame rate from the preset or the pair's dataset."""
+    the frame rate from the preset or, where it sets none, ``frame_rate`` (the dataset's: its
+    reader's :attr:`~weathergen.datasets.Dataset.frame_rate`)."""
     frame, c1, c2 = reference_transforms(pair)
     down = world_down(c1.cpu(), c2.cpu(), world_up)
-    rate = preset.frame_rate_for(pair.id.dataset)
+    rate = preset.frame_rate_for(frame_rate)
     return make_field(preset, seed, down=down, frame_rate=rate, frame=frame, templates=templates)
 
 
@@ -356,28 +358,33 @@ def pair_views(pair: FramePair) -> tuple[View, View]:
 
 
 def sample_field_particles(pair: FramePair, preset: FieldPreset, seed=0, *,
-                           world_up: str = "auto", templates: Optional[TemplateLibrary] = None,
+                           world_up: str = "auto", frame_rate: Optional[float] = None,
+                           templates: Optional[TemplateLibrary] = None,
                            device=None) -> Particles:
     """The record of one pair sampled from the field of seed ``seed`` (the *scene's* seed: pairs of
     one scene sampled with the same seed share their frames, see :func:`scene_seed`).
 
     Frame numbers are the pair's (``pair.id.frame`` and the next one), so that the field's time
-    is the dataset's. Returns a quantized record on ``device`` (default CPU).
+    is the dataset's; ``frame_rate`` is the dataset's frames per second (see
+    :func:`field_for_pair`). Returns a quantized record on ``device`` (default CPU).
     """
     check_pair_for_engine(pair)
     dev = resolve_device(device)
-    fld = field_for_pair(pair, preset, seed, world_up=world_up, templates=templates)
+    fld = field_for_pair(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
+                         templates=templates)
     n = int(pair.id.frame)
     return pair_particles(fld, pair_views(pair), (n, n + 1)).to(dev)
 
 
 def sample_weather(pair: FramePair, preset, seed=0, *, world_up: str = "auto",
+                   frame_rate: Optional[float] = None,
                    templates: Optional[TemplateLibrary] = None, device=None) -> Particles:
     """Sample a pair's particles with the preset's model: a field preset draws from the field of
-    ``seed`` (:func:`sample_field_particles`), a paper preset samples the pair
+    ``seed`` (:func:`sample_field_particles`; ``frame_rate``: the dataset's, needed unless the
+    preset sets one), a paper preset samples the pair
     (:func:`~weathergen.engine.sampling.sample_particles`)."""
     if isinstance(preset, FieldPreset):
-        return sample_field_particles(pair, preset, seed, world_up=world_up, templates=templates,
-                                      device=device)
+        return sample_field_particles(pair, preset, seed, world_up=world_up,
+                                      frame_rate=frame_rate, templates=templates, device=device)
     return sample_particles(pair, preset, seed, world_up=world_up, templates=templates,
                             device=device)

@@ -394,14 +394,10 @@ def parse_set_options(items: list[str] | tuple[str, ...]) -> dict[str, str]:
 # key and the value.
 #
 # Frame rates: particles move ``velocity / frame_rate`` scene units per frame. ``frame_rate = 0``
-# (the default) takes the dataset's rate from :data:`DATASET_FRAME_RATES`; any other value overrides
-# it (``--set frame_rate=30``).
+# (the default) takes the dataset's rate, which its reader declares
+# (:attr:`weathergen.datasets.Dataset.frame_rate`) and the caller passes in; any other value
+# overrides it (``--set frame_rate=30``).
 
-#: Frames per second of each dataset's sequences. Sintel and Spring come from Blender open movies
-#: made at 24 fps; KITTI's cameras record at 10 Hz; the bundled demo scene is defined at 24 fps.
-#: Custom data has no recorded rate: 30 fps is assumed unless the preset's frame_rate says otherwise.
-DATASET_FRAME_RATES = {"sintel": 24.0, "spring": 24.0, "kitti": 10.0, "demo": 24.0, "custom": 30.0}
-DEFAULT_FRAME_RATE = 30.0
 #: At most this many particles in one tile of the field (memory of the tile and of a frame's cull).
 MAX_TILE_PARTICLES = 2_000_000
 
@@ -482,11 +478,16 @@ class FieldPreset:
         """Particles per tile: ``round(density x tile^3)``."""
         return int(round(self.density * self.tile ** 3))
 
-    def frame_rate_for(self, dataset: str) -> float:
-        """The frame rate used for ``dataset``: the preset's when set, else the dataset's."""
+    def frame_rate_for(self, dataset_rate: Optional[float]) -> float:
+        """The frame rate used on a dataset recorded at ``dataset_rate`` frames per second: the
+        preset's when set, else the dataset's (ConfigError when neither is known)."""
         if self.frame_rate > 0:
             return self.frame_rate
-        return DATASET_FRAME_RATES.get(dataset, DEFAULT_FRAME_RATE)
+        if dataset_rate is None:
+            raise ConfigError(f"{self.source}: a weather field needs a frame rate: pass the "
+                              "dataset's ${frame_rate} (its reader's frame_rate), or set the "
+                              "preset's frame_rate")
+        return float(dataset_rate)
 
     def streak_fraction(self, frame_rate: float) -> float:
         """The streak as a fraction of one frame's displacement: ``exposure x frame_rate``, at

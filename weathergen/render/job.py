@@ -126,6 +126,7 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
             pair = job.dataset.load(ref)
             particles = pair_particles(pair, job.preset, job.seed,
                                        world_up=getattr(job.dataset, "world_up", "auto"),
+                                       frame_rate=job.dataset.frame_rate,
                                        particles_from=job.particles_from, appearance=job.appearance,
                                        preset_name=job.preset_name, sequence=job.sequence)
             ready.append((ref, seed, pair, particles, time.perf_counter() - start))
@@ -202,7 +203,7 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name)
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                        job.sequence)
+                        job.sequence, job.dataset.native_flow)
     right = None
     if job.stereo:
         try:
@@ -285,13 +286,13 @@ def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
     folders = set()
     for ref in refs:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                            job.sequence)
-        native = out.native_flow(ref.id.dataset)
+                            job.sequence, job.dataset.native_flow)
+        native = out.native_flow
         extra = list(out.frames_right_png) if job.stereo else []
         if job.truth:
             extra += list(out.truth_files().values())
-            extra += [p for p in (out.native_truth(ref.id.dataset, kind)
-                                  for kind in ("particle", "seen")) if p is not None]
+            extra += [p for p in (out.native_truth(kind) for kind in ("particle", "seen"))
+                      if p is not None]
         for path in (out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else [])
                      + extra):
             folders.add(path.parent)
@@ -369,7 +370,7 @@ def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> 
     todo: list[PairRef] = []
     for ref in refs:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                            job.sequence)
+                            job.sequence, job.dataset.native_flow)
         if not job.overwrite and out.is_complete():
             results.append(PairResult(ref.id.key, str(ref.id), "skipped",
                                       weather_seed(job.preset, job.seed, ref.id)))
