@@ -27,12 +27,9 @@ from ..engine import render_pair
 from ..errors import ConfigError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
-from ..io.lock import FolderLock
 from ..models import get_model
-from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pair_metadata,
-                       prepare_folder, read_attack_manifest, read_pair_summary,
-                       write_attack_manifest, write_attack_pair)
-from ..outputs.folder import lock_folder, released_on_failure
+from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
+                       pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
 from ..render.particles import pair_particles, pair_seed, weather_seed
 from .lp import LpSettings, lp_attack_batch
@@ -256,41 +253,24 @@ def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
 
 
 #: The lock file of an attack folder: one run at a time writes it.
-ATTACK_LOCK = ".weathergen-lock"
-
-
-def prepare_attack_folder(job: AttackJob) -> tuple[Optional[dict], FolderLock]:
-    """Create or reuse the job's folder (see :func:`~weathergen.outputs.prepare_folder`), locked.
-
-    Returns the manifest of the run it resumes (if any) and the folder's lock, held: the caller
-    releases it when the run ends. A second run in the same folder is refused while this one holds
-    it (:class:`~weathergen.io.lock.FolderBusy`).
-    """
-    out = Path(job.out)
-    lock = lock_folder(out, ATTACK_FOLDER, ATTACK_LOCK, job.config(), resume=job.resume,
-                       overwrite=job.overwrite)
-    with released_on_failure(lock, out):
-        # Read under the lock: what the run before us recorded is final.
-        previous = None
-        if not job.overwrite and (out / MANIFEST).exists():
-            previous = read_attack_manifest(out) if (out / ATTACK_FOLDER.marker).exists() else None
-        prepare_folder(out, ATTACK_FOLDER, job.config(), previous=None if previous is None
-                       else previous.get("config", {}), resume=job.resume,
-                       overwrite=job.overwrite, ignore=(ATTACK_LOCK,))
-    return previous, lock
+ATTACK_LOCK = lock_file()
 
 
 def run_attack(job: AttackJob,
                on_start: Callable[[int], None] = lambda n: None,
                on_step: Callable[[str, StepRecord], None] = lambda name, r: None,
-               on_pair_done: Callable[[PairReport], None] = lambda r: None) -> dict:
+               on_pair_done: Callable[[PairReport], None] = lambda r: None,
+               on_note: Callable[[str], None] = lambda text: None) -> dict:
     """Attack every selected pair; return the manifest's summary (mean figures).
 
     Pairs complete on disk are skipped when resuming. Pairs go in work units of
     ``job.batch_size`` (each optimised together where they share a size), run here or as Ray
     tasks (``job.executor``). The manifest is rewritten after every unit, so an interrupted run
     (Ctrl-C, or a killed driver) keeps what it finished. ``on_step`` receives the pair's name and
-    each step (local executor only: Ray tasks report whole pairs).
+    each step (local executor only: Ray tasks report whole pairs); ``on_note`` warnings worth a
+    line (a stale lock taken over). The output folder is claimed for the run
+    (:func:`~weathergen.outputs.claim_folder`): a second run in it raises
+    :class:`~weathergen.errors.FolderBusy`.
     """
     check_executor(job.executor)
     if job.batch_size < 1:
@@ -306,12 +286,10 @@ def run_attack(job: AttackJob,
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
     if not local:
         model = None
-    previous, lock = prepare_attack_folder(job)
-    try:
-        return _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_step,
-                              on_pair_done)
-    finally:
-        lock.release()
+    with claim_folder(job.out, ATTACK_FOLDER, job.config(), resume=job.resume,
+                      overwrite=job.overwrite, on_note=on_note) as claim:
+        return _attack_locked(job, refs, model, target_file_flow, claim.previous, on_start,
+                              on_step, on_pair_done)
 
 
 def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_step,

@@ -28,6 +28,7 @@ from typing import Optional, Sequence
 
 from .. import __version__
 from ..io.atomic import atomic_write_bytes
+from ..outputs import read_summary
 from .grid import BenchmarkSpec, checkpoint_record
 
 FIGURES = ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
@@ -54,7 +55,7 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
     records = {net: checkpoint_record(net, spec.checkpoints.get(net)) for net in spec.networks}
     for cell in spec.cells():
         folder = cell.folder(spec.out)
-        summary = _read_summary(folder)
+        summary = read_summary(folder)
         row = {"network": cell.network, "kind": cell.kind, "label": cell.label,
                "pairs": summary.get("pairs") if summary else None}
         for key in FIGURES:
@@ -64,13 +65,6 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
                    folder=str(folder.relative_to(spec.out)))
         rows.append(row)
     return rows
-
-
-def _read_summary(folder: Path) -> Optional[dict]:
-    path = folder / "summary.json"
-    if not path.is_file():
-        return None
-    return json.loads(path.read_text())
 
 
 def table_rows(rows: list[dict], networks: Sequence[str], name: str) -> list[tuple[str, list]]:
