@@ -85,6 +85,12 @@ def test_rerun_resumes_without_redoing(bench, raft_small_weights):
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*.png")} == before
 
 
+def test_a_finished_benchmark_leaves_no_lock_file(bench):
+    out, _ = bench
+    assert len(list((out / "runs").glob("*/*/manifest.json"))) == 2
+    assert not list(out.rglob(".weathergen-lock*"))
+
+
 def test_bad_options_fail_before_writing(tmp_path):
     out = tmp_path / "b"
     result = invoke(["benchmark", "--presets", "hail", "--lp", "", "--out", out])
