@@ -1,4 +1,5 @@
-"""``weathergen inspect FILE`` and ``weathergen preview DIR``: look at what a render wrote."""
+"""``weathergen inspect FILE`` and ``weathergen preview DIR`` (a contact sheet, or ``--video``):
+look at what a render wrote."""
 
 from __future__ import annotations
 
@@ -10,10 +11,12 @@ from rich.console import Console
 from rich.table import Table
 
 from weathergen.engine.particles import stored_values
+from weathergen.errors import ConfigError
 from weathergen.io.atomic import write_error
 from weathergen.io.images import write_png
+from weathergen.io.video import check_video_path, write_video
 from weathergen.outputs import read_metadata
-from weathergen.render import contact_sheet
+from weathergen.render import contact_sheet, video_preview
 
 
 def _preset_origin(name: str, source: str) -> str:
@@ -71,14 +74,45 @@ def inspect(file: Path):
 @click.command()
 @click.argument("render_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="PNG to write. Default: RENDER_DIR/preview.png.")
-@click.option("--pairs", type=click.IntRange(min=1), default=4, show_default=True,
-              help="Pairs to show (the first ones); the sheet says when there are more.")
-@click.option("--width", type=click.IntRange(min=64), default=480, show_default=True,
-              help="Width of each tile.")
-def preview(render_dir: Path, out, pairs, width):
-    """Write a contact sheet of a render output: original, weather frame and particle opacity."""
-    sheet = contact_sheet(render_dir, pairs=pairs, width=width)
+              help="Contact sheet (PNG) to write. Default: RENDER_DIR/preview.png.")
+@click.option("--video", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              metavar="FILE.mp4|FILE.gif",
+              help="Write a video instead of the contact sheet: a --sequence output's frames in "
+                   "order, an output of pairs as frame 1 / frame 2 alternating, at the dataset's "
+                   "frame rate.")
+@click.option("--pairs", type=click.IntRange(min=1), default=None,
+              help="Pairs to show (the first ones). Default: 4 on the contact sheet (it says when "
+                   "there are more), all in a video.")
+@click.option("--width", type=click.IntRange(min=64), default=None,
+              help="Width of each tile. Default: 480 on the contact sheet, the frames' own in a "
+                   "video.")
+@click.option("--with-input", is_flag=True,
+              help="--video: show the clean input frame left of the weather frame.")
+@click.option("--with-opacity", is_flag=True,
+              help="--video: show the particles' opacity right of the weather frame.")
+@click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="--video: frames per second. Default: the dataset's (sintel, spring, demo 24; "
+                   "kitti 10; custom 30) or a field preset's frame_rate.")
+@click.option("--cycles", type=click.IntRange(min=1), default=None,
+              help="--video of pairs: how often each pair shows frame 1 and frame 2. "
+                   "Default: for one second.")
+@click.option("--captions/--no-captions", default=True, show_default=True,
+              help="--video: scene, frame and preset written on the tiles.")
+def preview(render_dir: Path, out, video, pairs, width, with_input, with_opacity, fps, cycles,
+            captions):
+    """Write a contact sheet of a render output (original, weather frame and particle opacity),
+    or with --video a video of it (MP4 or GIF)."""
+    if video is not None:
+        _preview_video(render_dir, out, video, pairs, width, with_input, with_opacity, fps, cycles,
+                       captions)
+        return
+    for flag, given in (("with_input", with_input), ("with_opacity", with_opacity),
+                        ("fps", fps is not None), ("cycles", cycles is not None),
+                        ("captions", not captions)):
+        if given:
+            raise ConfigError(f"${{{flag}}} applies to ${{video}} only (the contact sheet always "
+                              "shows the input, the weather and the opacity)")
+    sheet = contact_sheet(render_dir, pairs=pairs or 4, width=width or 480)
     out = out or render_dir / "preview.png"
     try:
         write_png(out, sheet.image)
@@ -89,3 +123,21 @@ def preview(render_dir: Path, out, pairs, width):
                    f"(--pairs {sheet.total} shows all)")
     else:
         click.echo(f"Preview of {sheet.total} pair{'s' if sheet.total != 1 else ''} written to {out}")
+
+
+def _preview_video(render_dir: Path, out, video: Path, pairs, width, with_input, with_opacity,
+                   fps, cycles, captions):
+    if out is not None:
+        raise ConfigError("${out} names the contact sheet; with ${video} give only the video file")
+    check_video_path(video)          # before any work
+    plan = video_preview(render_dir, pairs=pairs, cycles=cycles, fps=fps, with_input=with_input,
+                         with_opacity=with_opacity, width=width, captions=captions)
+    try:
+        count = write_video(video, plan.frames(), plan.fps)
+    except OSError as exc:
+        raise write_error(exc, video, "pass --video PATH to write it elsewhere") from None
+    w, h = plan.size
+    shown = (f"{plan.pairs} of {plan.total} pairs" if plan.pairs < plan.total
+             else f"{plan.total} pair{'s' if plan.total != 1 else ''}")
+    click.echo(f"Video of {shown} written to {video}: {count} frames of {w}x{h} at "
+               f"{plan.fps:g} fps ({count / plan.fps:.1f} s)")
