@@ -7,10 +7,12 @@ import json
 from pathlib import Path
 
 import click
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from weathergen.engine.particles import stored_values
+from weathergen.engine.layers import layer_arrays
+from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, stored_values
 from weathergen.errors import ConfigError
 from weathergen.io.atomic import write_error
 from weathergen.io.images import write_png
@@ -27,11 +29,18 @@ def _preset_origin(name: str, source: str) -> str:
 @click.command()
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 def inspect(file: Path):
-    """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges."""
+    """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges
+    (per layer for a combined preset)."""
     arrays = read_metadata(file)
     console = Console()
-    n = int(arrays["position"].shape[0]) if "position" in arrays else 0
     preset = json.loads(str(arrays["preset"])) if "preset" in arrays else {}
+    layered = int(arrays.get("format_version", 0)) == LAYERED_FORMAT_VERSION
+    if layered:
+        names = [str(n) for n in np.atleast_1d(arrays["layer_names"])]
+        layers = [layer_arrays(arrays, k) for k in range(len(names))]
+    else:
+        names, layers = [""], [arrays]
+    counts = [int(a["position"].shape[0]) if "position" in a else 0 for a in layers]
     head = Table(title=str(file), show_header=False)
     head.add_column("key")
     head.add_column("value")
@@ -40,25 +49,50 @@ def inspect(file: Path):
                  f"frame {int(arrays['pair_frame'])}"),
         ("seed", str(int(arrays["seed"]))),
         ("preset", _preset_origin(str(arrays["preset_name"]), preset.get("source", ""))),
-        ("particles", str(n)),
+        ("particles", str(sum(counts))),
         ("visible in frame 1 / 2", f"{int(arrays.get('visible1', -1))} / {int(arrays.get('visible2', -1))}"),
-        ("reference frame", str(arrays.get("frame", "?"))),
-        ("blend", str(arrays.get("blend", "?"))),
-        ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, "
-                        f"{int(arrays.get('blur_samples', 1))} samples"),
-        ("templates", str(arrays.get("templates", "?"))),
-        ("format", f"metadata v{int(arrays['metadata_version'])}, particles v{int(arrays.get('format_version', 0))}, "
+    ]
+    if layered:
+        seeds = np.atleast_1d(arrays.get("layer_seeds", np.zeros(0, np.uint64)))
+        for k, (name, a, n) in enumerate(zip(names, layers, counts)):
+            seed = f", seed {int(seeds[k])}" if k < len(seeds) else ""
+            rows.append((f"layer {k}", f"{name}: {n} particles, {_looks(a)}{seed}"))
+        rows.append(("reference frame", str(layers[0].get("frame", "?"))))
+    else:
+        rows += [
+            ("reference frame", str(arrays.get("frame", "?"))),
+            ("blend", str(arrays.get("blend", "?"))),
+            ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, "
+                            f"{int(arrays.get('blur_samples', 1))} samples"),
+            ("templates", str(arrays.get("templates", "?"))),
+        ]
+    version = int(layers[0].get("format_version", 0))
+    rows += [
+        ("format", f"metadata v{int(arrays['metadata_version'])}, particles v{version}"
+                   f"{f' in layers (v{LAYERED_FORMAT_VERSION})' if layered else ''}, "
                    f"written by weathergen {arrays.get('weathergen_version', '?')}"),
         ("file size", f"{file.stat().st_size:,} bytes"),
     ]
     for k, v in rows:
         head.add_row(k, v)
     console.print(head)
-    ranges = Table(title="per-particle values")
+    for name, a in zip(names, layers):
+        console.print(_ranges(a, f"per-particle values{f' of layer {name}' if name else ''}"))
+
+
+def _looks(arrays: dict) -> str:
+    """Blend, motion blur and templates of a record's file entries, in one line."""
+    return (f"{arrays.get('blend', '?')} blend, motion blur length "
+            f"{float(arrays.get('blur_length', 0)):g} in {int(arrays.get('blur_samples', 1))} "
+            f"samples, templates {arrays.get('templates', '?')}")
+
+
+def _ranges(arrays: dict, title: str) -> Table:
+    """dtype, shape and value range of every per-particle array of one record's entries."""
+    ranges = Table(title=title)
     for col in ("field", "dtype", "shape", "min", "max", "mean"):
         ranges.add_column(col, justify="right" if col in ("min", "max", "mean") else "left")
-    for name in ("position", "motion", "offset1", "offset2", "color", "transparency", "template",
-                 "rotation", "scale", "defocus"):
+    for name in TENSOR_FIELDS:
         if name not in arrays:
             continue
         a = arrays[name]
@@ -68,7 +102,7 @@ def inspect(file: Path):
         else:
             stats = ("-", "-", "-")
         ranges.add_row(name, str(a.dtype), str(tuple(a.shape)), *stats)
-    console.print(ranges)
+    return ranges
 
 
 @click.command()
