@@ -23,11 +23,11 @@ import cv2
 import numpy as np
 import torch
 
-from ..datasets import PairRef, reopen_dataset
+from ..datasets import Dataset, reopen_dataset
 from ..engine import DATASET_FRAME_RATES, Particles, render_pair
 from ..engine.presets import DEFAULT_FRAME_RATE
 from ..errors import ConfigError, DatasetError
-from ..framepair import PairId
+from ..framepair import FramePair, PairId
 from ..io.exr import read_exr
 from ..io.images import read_image
 from ..outputs import OutputManifest, PairOutput, WeatherFolder, read_manifest, read_metadata
@@ -75,7 +75,7 @@ class VideoPreview:
     sequence: bool = False
     pairs: int = 0                                 # pairs shown
     total: int = 0                                 # complete pairs in the output
-    _refs: dict = field(default_factory=dict, repr=False)
+    _input: Optional[tuple[Dataset, dict]] = field(default=None, repr=False)   # opened on first use
 
     @property
     def columns(self) -> int:
@@ -134,16 +134,16 @@ class VideoPreview:
             tiles[second] = np.hstack(row)
         return tiles
 
-    def _dataset_pair(self, pair_id: PairId):
+    def _dataset_pair(self, pair_id: PairId) -> FramePair:
         """The clean pair from the input the manifest records (opened on first use)."""
-        if not self._refs:
+        if self._input is None:
             ds = reopen_dataset(self.manifest.input)
-            self._refs = {"dataset": ds, **{ref.id: ref for ref in ds.pairs()}}
-        ref: Optional[PairRef] = self._refs.get(pair_id)
-        if ref is None:
+            self._input = (ds, {ref.id: ref for ref in ds.pairs()})
+        ds, refs = self._input
+        if pair_id not in refs:
             raise DatasetError(f"{self.manifest.input.get('root')}: the recorded input has no pair "
                                f"{pair_id} (moved or changed since the render?)")
-        return self._refs["dataset"].load(ref)
+        return ds.load(refs[pair_id])
 
 
 def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
