@@ -29,7 +29,8 @@ from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisat
                    mean_summary, offset_penalty, particle_depths, summarize_pair)
 from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack
 from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE,
-                       POSITION_VARIABLES, AttackSettings, default_lr, parse_optimize)
+                       POSITION_VARIABLES, AttackSettings, default_lr, parse_optimize,
+                       transparency_bound)
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
 __all__ = ["LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpResult", "LpSettings",
@@ -44,4 +45,5 @@ __all__ = ["LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpResult", "LpSetting
            "default_evaluation_path", "default_lr", "evaluate_frames",
            "mean_rows", "mean_summary", "offset_penalty", "parse_optimize", "parse_target",
            "particle_depths", "prepare_attack_folder", "read_target_flow", "run_attack",
-           "run_evaluation", "summarize_pair", "target_flow", "write_evaluation"]
+           "run_evaluation", "summarize_pair", "target_flow", "transparency_bound",
+           "write_evaluation"]

@@ -6,11 +6,16 @@ tensors out, no file I/O (the job runner in :mod:`weathergen.attack.job` reads a
 The free variables (all start at zero, so step 0 is the random, unoptimised weather):
 
 - ``offset1`` Δ1 (N, 3) and ``offset2`` Δ2 (N, 3), added to the record's offsets δ1, δ2 (scene
-  units, the record's reference-frame axes; δ1 moves the particle before its motion, δ2 after it);
+  units; δ1 moves the particle before its motion, δ2 after it). As in the paper's equations
+  ``p1 = P (X1 + δ1)`` and ``p2 = P (T_rel (X1 + δ1) + (m + δ2))``, Δ1 is expressed in camera-1
+  axes and Δ2 in camera-2 axes; the record's offsets live in its reference frame's axes, so the
+  record gets ``R_ref←cam1 Δ1`` and ``R_ref←cam2 Δ2`` (norms, and so the penalty, are the same
+  in both; Adam, being elementwise, is not indifferent to the axes);
 - ``color`` (N, 3) and ``transparency`` (N,), offsets in the unbounded atanh domain
   ``η = atanh(2ξ − 1)``: the particle gets ``ξ = from_atanh(η0 + Δ)``, which can never leave
-  (0, 1) (Carlini–Wagner box trick). Transparencies may exceed 1 (glowing sparks), so θ is
-  divided by ``θ_max = max(1, max θ)`` before the transform and multiplied back after it.
+  (0, 1) (Carlini–Wagner box trick). Transparency is ``θ = θ_max ξ`` with the preset's bound
+  ``θ_max`` (:func:`~weathergen.attack.settings.transparency_bound`: 1, or more for presets such
+  as sparks whose θ exceeds 1), never below the record's own largest θ.
 
 Loss (pixels)::
 
@@ -60,17 +65,32 @@ class WeatherVariables:
     Args:
         particles: the starting record (N particles); any device, float fields float32.
         optimize: which of :data:`OPTIMIZABLE` to free.
+        cam1_from_ref, cam2_from_ref: (4, 4) the cameras' transforms from the record's reference
+            frame; the offset variables live in these cameras' axes (None: the reference axes).
+        transparency_max: the largest θ the attack may reach (None: 1); never below the
+            record's largest θ.
     The record's other fields (positions, motions, templates, ...) stay fixed.
     """
 
-    def __init__(self, particles, optimize: tuple[str, ...]):
+    def __init__(self, particles, optimize: tuple[str, ...], *,
+                 cam1_from_ref: Optional[torch.Tensor] = None,
+                 cam2_from_ref: Optional[torch.Tensor] = None,
+                 transparency_max: Optional[float] = None):
         self.base = particles
         self.optimize = tuple(optimize)
         dev, dtype = particles.position.device, particles.position.dtype
         n = particles.count
-        self.theta_max = max(1.0, float(particles.transparency.max())) if n else 1.0
+        largest = float(particles.transparency.max()) if n else 0.0
+        self.theta_max = max(1.0 if transparency_max is None else float(transparency_max), largest)
         self.eta_color = to_atanh(particles.color.detach())
         self.eta_theta = to_atanh(particles.transparency.detach() / self.theta_max)
+        # Rows Δ (N, 3) in camera axes -> rows in reference axes: Δ R with R = cam_from_ref[:3, :3]
+        # (a reference vector is Rᵀ Δ).
+        eye = torch.eye(4, dtype=torch.float64)
+        c1 = eye if cam1_from_ref is None else cam1_from_ref.detach().double().cpu()
+        c2 = eye if cam2_from_ref is None else cam2_from_ref.detach().double().cpu()
+        self.axes1 = c1[:3, :3].to(device=dev, dtype=dtype)
+        self.axes2 = c2[:3, :3].to(device=dev, dtype=dtype)
         shapes = {"offset1": (n, 3), "offset2": (n, 3), "color": (n, 3), "transparency": (n,)}
         self.delta = {name: torch.zeros(shapes[name], dtype=dtype, device=dev, requires_grad=True)
                       for name in self.optimize}
@@ -84,9 +104,9 @@ class WeatherVariables:
         b, d = self.base, self.delta
         changes = {}
         if "offset1" in d:
-            changes["offset1"] = b.offset1 + d["offset1"]
+            changes["offset1"] = b.offset1 + d["offset1"] @ self.axes1
         if "offset2" in d:
-            changes["offset2"] = b.offset2 + d["offset2"]
+            changes["offset2"] = b.offset2 + d["offset2"] @ self.axes2
         if "color" in d:
             changes["color"] = from_atanh(self.eta_color + d["color"])
         if "transparency" in d:
@@ -271,7 +291,9 @@ class BatchOptimisation:
         # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
         self.stamps = (build_stamps(moved, self.templates, device=device)
                        if any(r.count for r in moved) else None)
-        self.variables = [WeatherVariables(r, settings.optimize) for r in moved]
+        self.variables = [WeatherVariables(r, settings.optimize, cam1_from_ref=c1, cam2_from_ref=c2,
+                                           transparency_max=settings.transparency_max)
+                          for r, (c1, c2) in zip(moved, transforms)]
         self.reg_depths = [particle_depths(r, c1, c2) for r, (c1, c2) in zip(moved, transforms)]
         self.optimizer = torch.optim.Adam([p for v in self.variables for p in v.parameters()],
                                           lr=settings.learning_rate)

@@ -24,7 +24,8 @@ from ..engine import BETA_ATTACK, BETA_RENDER, Preset
 from ..errors import ConfigError
 from ..render.plan import resolve_preset
 from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
-from .settings import DEFAULT_ALPHA, DEFAULT_STEPS, OPTIMIZABLE, AttackSettings, parse_optimize
+from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, OPTIMIZABLE, AttackSettings, parse_optimize,
+                       transparency_bound)
 
 
 @dataclass(frozen=True)
@@ -74,7 +75,8 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
     if occlusion_gradient is None:
         occlusion_gradient = bool(config and config.occlusion_gradient)
     settings = AttackSettings(optimize=variables, steps=steps, lr=lr, alpha1=alpha1,
-                              alpha2=alpha2, beta=BETA_ATTACK if occlusion_gradient else BETA_RENDER)
+                              alpha2=alpha2, beta=BETA_ATTACK if occlusion_gradient else BETA_RENDER,
+                              transparency_max=transparency_bound(resolved.preset))
     return AttackPlan(resolved.preset, name, config, settings, config_name or name)
 
 
