@@ -105,3 +105,18 @@ def test_default_selection_is_five_pairs_per_scene(demo_root):
     assert tr115_default(everything).selection.frames_per_scene == 5
     chosen = open_dataset("demo", frames_per_scene=1)
     assert tr115_default(chosen) is chosen
+
+
+def test_compat_reaches_every_weather_run(demo_root):
+    """--compat is passed to each weather cell's attack settings (Lp cells have none)."""
+    from weathergen.benchmark import BenchmarkSpec, cell_job
+    from weathergen.datasets import open_dataset
+
+    for compat in ("paper", "reference"):
+        spec = BenchmarkSpec(dataset=open_dataset("demo", frames_per_scene=1), out="b",
+                             networks=["raft-small"], presets=["snow", "fog"],
+                             lp_methods=["pcfa"], compat=compat)
+        jobs = {c.label: cell_job(spec, c) for c in spec.cells()}
+        assert jobs["snow"].settings.compat == jobs["fog"].settings.compat == compat
+        assert jobs["snow"].config()["attack"]["compat"] == compat
+        assert jobs["pcfa"].settings is None

@@ -4,6 +4,8 @@
 - :mod:`.configs`: the named attack configurations of the paper's supplement;
 - :mod:`.targets`: the flow an attack pushes the network towards;
 - :mod:`.plan`: the precedence rules that turn a request into settings;
+- :mod:`.compat`: the terms in which the research code departs from the paper
+  (``compat="reference"``);
 - :mod:`.lp`: the Lp baselines PCFA (L2) and I-FGSM (L∞), perturbing the frames themselves;
 - :mod:`.pair`: the optimisation of one pair (tensors in, tensors out, no file I/O);
 - :mod:`.job`: the attack over a dataset, writing through :mod:`weathergen.outputs`;
@@ -17,6 +19,7 @@ Typical use::
 
 from __future__ import annotations
 
+from .compat import COMPAT_MODES
 from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
 from .evaluate import (EvalRow, default_evaluation_path, evaluate_frames, mean_rows,
                        run_evaluation, write_evaluation)
@@ -33,7 +36,7 @@ from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE, LR_POSITIONS
                        transparency_bound)
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
-__all__ = ["LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpResult", "LpSettings",
+__all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpResult", "LpSettings",
            "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_attack_pair", "lp_pass_name",
            "lp_settings", "plan_lp",
            "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",

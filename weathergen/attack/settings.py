@@ -17,6 +17,9 @@ DEFAULT_STEPS = 750
 DEFAULT_ALPHA = 1000.0
 LR_POSITIONS = 1e-5
 LR_APPEARANCE = 1e-3
+#: ``paper``: the paper's equations and tables; ``reference``: the research code's behaviour
+#: where it departs from them (see :mod:`weathergen.attack.compat`).
+COMPAT_MODES = ("paper", "reference")
 
 
 def parse_optimize(text: str) -> tuple[str, ...]:
@@ -62,7 +65,8 @@ class AttackSettings:
     beta: occlusion sharpness of the renderer during the attack (``BETA_ATTACK`` = 30 to
     differentiate through occlusion, ``BETA_RENDER`` = 250 otherwise); transparency_max: the
     largest θ the attack may reach (:func:`transparency_bound` of the preset; ``None``: 1, or the
-    record's largest θ where that is more).
+    record's largest θ where that is more); compat: ``paper`` (default) or ``reference``, the
+    research code's terms (:mod:`weathergen.attack.compat`).
     """
 
     optimize: tuple[str, ...] = OPTIMIZABLE
@@ -72,6 +76,7 @@ class AttackSettings:
     alpha2: float = DEFAULT_ALPHA
     beta: float = 250.0
     transparency_max: Optional[float] = None
+    compat: str = "paper"
 
     def __post_init__(self):
         parse_optimize(",".join(self.optimize))  # validates names and non-emptiness
@@ -89,6 +94,9 @@ class AttackSettings:
                                                       and math.isfinite(self.transparency_max)):
             raise ConfigError(f"${{transparency_max}} must be a positive number, "
                               f"got {self.transparency_max}")
+        if self.compat not in COMPAT_MODES:
+            raise ConfigError(f"${{compat}} must be one of {', '.join(COMPAT_MODES)}, "
+                              f"got {self.compat!r}")
 
     @property
     def learning_rate(self) -> float:
@@ -97,4 +105,5 @@ class AttackSettings:
     def to_dict(self) -> dict:
         return {"optimize": list(self.optimize), "steps": int(self.steps),
                 "lr": self.learning_rate, "alpha1": self.alpha1, "alpha2": self.alpha2,
-                "beta": self.beta, "transparency_max": self.transparency_max}
+                "beta": self.beta, "transparency_max": self.transparency_max,
+                "compat": self.compat}

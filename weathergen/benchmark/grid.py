@@ -52,7 +52,8 @@ class Cell:
 @dataclass
 class BenchmarkSpec:
     """What a benchmark runs. ``checkpoints`` maps a network to its checkpoint (None: its own);
-    ``overrides`` are preset keys applied to every weather cell (``--set``)."""
+    ``overrides`` are preset keys applied to every weather cell (``--set``); ``compat`` the
+    weather attacks' terms (``paper`` or ``reference``, see :mod:`weathergen.attack.compat`)."""
 
     dataset: Dataset
     out: Path
@@ -68,6 +69,7 @@ class BenchmarkSpec:
     device: str = "cpu"
     download: bool = False
     command: list = field(default_factory=list)
+    compat: str = "paper"                # the weather attacks' terms (paper or reference)
 
     def cells(self) -> list[Cell]:
         if not self.networks:
@@ -99,7 +101,7 @@ def cell_job(spec: BenchmarkSpec, cell: Cell) -> AttackJob:
                          pass_name=lp_pass_name(cell.label, input_pass),
                          lp=lp_settings(cell.label, steps=spec.lp_steps), **common)
     kwargs = {} if spec.steps is None else {"steps": spec.steps}
-    plan = plan_attack(None, cell.label, dict(spec.overrides), **kwargs)
+    plan = plan_attack(None, cell.label, dict(spec.overrides), compat=spec.compat, **kwargs)
     return AttackJob(preset=plan.preset, preset_name=plan.preset_name, settings=plan.settings,
                      config_name=None, pass_name=attack_pass_name(plan.preset_name, input_pass),
                      **common)

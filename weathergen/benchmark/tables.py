@@ -151,7 +151,8 @@ def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
                 "seed": spec.seed,
                 "networks": [checkpoint_record(n, spec.checkpoints.get(n)) for n in networks],
                 "settings": {"weather_steps": spec.steps, "lp_steps": spec.lp_steps,
-                             "iters": spec.iters, "overrides": dict(spec.overrides)},
+                             "iters": spec.iters, "overrides": dict(spec.overrides),
+                             "compat": spec.compat},
                 "rows": rows}
     bodies = {name: table_rows(rows, networks, name) for name in TABLES}
     md = "\n".join(markdown_table(n, b, networks) for n, b in bodies.items())
