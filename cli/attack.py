@@ -38,7 +38,23 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
                   _fmt(summary["target_adversarial"]))
     table.add_row("EPE vs ground truth", _fmt(summary["epe_benign"]), _fmt(summary["epe_random"]),
                   _fmt(summary["epe_adversarial"]))
+    for row in region_rows(summary):
+        table.add_row(row[0], "", "", row[1])
     return table
+
+
+def region_rows(summary: dict) -> list[tuple[str, str]]:
+    """The figures by region and the outlier rates of a summary as (label, value) rows."""
+    def pair(a, b):
+        return f"{_fmt(summary[a])} / {_fmt(summary[b])}"
+
+    coverage = summary.get("weather_coverage")
+    covers = "" if coverage is None else f" ({coverage:.1f} % of pixels)"
+    return [(f"AEE(f, f̌) weather{covers} / clear pixels", pair("aee_weather_px", "aee_clear_px")),
+            ("EPE weather / clear pixels", pair("epe_weather_px", "epe_clear_px")),
+            ("Fl-all; outliers > 1, 3, 5 px (%)",
+             f"{_fmt(summary['fl_all'], 2)}; " + ", ".join(
+                 _fmt(summary[f"outliers_{n}px"], 2) for n in (1, 3, 5)))]
 
 
 @click.command()

@@ -106,6 +106,16 @@ def test_attack_log_and_summary(attack_out):
     assert attack["optimize"] == ["offset1", "offset2", "color", "transparency"]
     assert attack["lr"] == 1e-5 and attack["alpha1"] == attack["alpha2"] == 1000.0
     assert attack["compat"] == summary["compat"] == "paper"          # the default
+    # Figures by region: the two regions split the pixels, so their AEEs, weighted by the
+    # weather's coverage, make up AEE(f, f̌) (one pair); the demo scene has ground truth.
+    share = summary["weather_coverage"] / 100
+    assert 0 < share < 1
+    assert (share * summary["aee_weather_px"] + (1 - share) * summary["aee_clear_px"]
+            == pytest.approx(summary["aee_adversarial"], rel=1e-4))
+    for key in ("epe_weather_px", "epe_clear_px", "fl_all", "outliers_1px", "outliers_3px",
+                "outliers_5px"):
+        assert summary[key] is not None and summary[key] >= 0, key
+    assert summary["outliers_1px"] >= summary["outliers_3px"] >= summary["outliers_5px"]
     assert attack["transparency_max"] == 1.0
     (entry,) = manifest["pairs"].values()
     assert entry["status"] == "written" and entry["steps"] == 2

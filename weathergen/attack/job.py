@@ -25,6 +25,7 @@ import torch
 from ..datasets import Dataset
 from ..engine import render_pair
 from ..errors import ConfigError, WeatherGenError
+from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
 from ..io.lock import FolderLock
@@ -205,8 +206,9 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
               for f in frames]
     with torch.no_grad():
         adversarial = model(*stored).cpu()
+    covered = weather_mask(rendered.opacity1, rendered.opacity2)[0, 0].cpu()
     summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
-                             compat=job.settings.compat)
+                             compat=job.settings.compat, covered=covered)
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
     meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
                          job.preset_name)

@@ -56,6 +56,7 @@ from ..errors import ConfigError
 from ..flow import aee
 from ..framepair import FramePair
 from ..geometry import transform_points
+from .figures import FIGURE_KEYS, mean_figures, region_figures
 from .compat import (camera_translation_in_reference, detaches_occlusion, reference_figure_flows,
                      reference_offset_penalty, resets_gradients)
 from .settings import DEFAULT_ALPHA, AttackSettings
@@ -512,7 +513,8 @@ class PairSummary:
 
     aee_random: AEE(f, f̌) for the unoptimised weather (step 0, float frames); aee_adversarial:
     for the best step as written (particles at storage precision, 8-bit frames);
-    target_initial / target_adversarial: AEE(f̌, target) for the same two flows.
+    target_initial / target_adversarial: AEE(f̌, target) for the same two flows. The figures by
+    region and the outlier rates (:mod:`weathergen.attack.figures`) describe the adversarial flow.
     """
 
     pair: str
@@ -525,6 +527,16 @@ class PairSummary:
     epe_benign: Optional[float] = None
     epe_random: Optional[float] = None
     epe_adversarial: Optional[float] = None
+    aee_weather_px: Optional[float] = None
+    aee_clear_px: Optional[float] = None
+    epe_weather_px: Optional[float] = None
+    epe_clear_px: Optional[float] = None
+    weather_coverage: Optional[float] = None
+    fl_all: Optional[float] = None
+    outliers_1px: Optional[float] = None
+    outliers_3px: Optional[float] = None
+    outliers_5px: Optional[float] = None
+    gt_valid_px: Optional[int] = None
     seconds: float = 0.0
     nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
 
@@ -538,9 +550,11 @@ class PairSummary:
 def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch.Tensor,
                    gt_flow: Optional[torch.Tensor] = None,
                    gt_valid: Optional[torch.Tensor] = None, seconds: float = 0.0,
-                   compat: str = "paper") -> PairSummary:
+                   compat: str = "paper", covered: Optional[torch.Tensor] = None) -> PairSummary:
     """Figures of one attacked pair. ``adversarial_flow`` is the flow on the frames as written
-    (best particles at storage precision, 8-bit frames).
+    (best particles at storage precision, 8-bit frames); ``covered`` (H, W) bool the pixels its
+    weather covers (:func:`~weathergen.flow.weather_mask`; None: none, as for an Lp attack), for
+    the figures by region, which compare the adversarial flow with the clean one.
 
     ``compat="reference"`` measures the adversarial figures as the research code does: on the
     best step's float frames (``result.best_flow``), and ``aee_adversarial`` against the random
@@ -563,6 +577,8 @@ def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch
         target_initial=float(aee(initial, goal).mean()),
         target_adversarial=float(aee(adv, goal).mean()), seconds=seconds,
         nothing_visible=bool(result.frozen))
+    for key, value in region_figures(benign, adv, covered, gt_flow, gt_valid).items():
+        setattr(summary, key, value)
     if gt_flow is not None:
         gt = gt_flow.detach().cpu().float()[None]
         valid = None if gt_valid is None else gt_valid.detach().cpu()[None]
@@ -573,10 +589,13 @@ def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch
 
 
 def mean_summary(rows: list[PairSummary]) -> dict:
-    """Means over pairs of every figure (EPE means over the pairs that have ground truth)."""
+    """Means over pairs of every figure (EPE means over the pairs that have ground truth; the
+    figures by region and outlier rates as :func:`~weathergen.attack.figures.mean_figures`)."""
     out: dict = {"pairs": len(rows)}
     for key in ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
                 "epe_benign", "epe_random", "epe_adversarial"):
         values = [getattr(r, key) for r in rows if getattr(r, key) is not None]
         out[key] = sum(values) / len(values) if values else None
+    out.update(mean_figures([{k: getattr(r, k) for k in (*FIGURE_KEYS, "gt_valid_px")}
+                             for r in rows]))
     return out

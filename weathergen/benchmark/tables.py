@@ -27,11 +27,12 @@ from pathlib import Path
 from typing import Optional, Sequence
 
 from .. import __version__
+from ..attack.figures import FIGURE_KEYS
 from ..io.atomic import atomic_write_bytes
 from .grid import BenchmarkSpec, checkpoint_record
 
 FIGURES = ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
-           "epe_benign", "epe_random", "epe_adversarial")
+           "epe_benign", "epe_random", "epe_adversarial") + FIGURE_KEYS
 COLUMNS = ("network", "kind", "label", "pairs") + FIGURES + ("checkpoint", "sha256", "folder")
 LP_NAMES = {"pcfa": "PCFA", "ifgsm": "I-FGSM"}
 TABLES = {
