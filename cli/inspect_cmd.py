@@ -9,10 +9,11 @@ import click
 from rich.console import Console
 from rich.table import Table
 
+from weathergen.engine import FrameScaling
 from weathergen.engine.particles import stored_values
 from weathergen.io.atomic import write_error
 from weathergen.io.images import write_png
-from weathergen.outputs import read_metadata
+from weathergen.outputs import read_metadata, stored_frame_scaling
 from weathergen.render import contact_sheet
 
 
@@ -29,6 +30,7 @@ def inspect(file: Path):
     console = Console()
     n = int(arrays["position"].shape[0]) if "position" in arrays else 0
     preset = json.loads(str(arrays["preset"])) if "preset" in arrays else {}
+    scaling = stored_frame_scaling(arrays, file)
     head = Table(title=str(file), show_header=False)
     head.add_column("key")
     head.add_column("value")
@@ -38,6 +40,8 @@ def inspect(file: Path):
         ("seed", str(int(arrays["seed"]))),
         ("preset", _preset_origin(str(arrays["preset_name"]), preset.get("source", ""))),
         ("particles", str(n)),
+        ("for the frame", FrameScaling.from_dict(scaling).describe() if scaling else
+         "not recorded (a weather field, or written before frame scaling: the preset's count)"),
         ("visible in frame 1 / 2", f"{int(arrays.get('visible1', -1))} / {int(arrays.get('visible2', -1))}"),
         ("reference frame", str(arrays.get("frame", "?"))),
         ("blend", str(arrays.get("blend", "?"))),

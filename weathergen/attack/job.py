@@ -34,7 +34,7 @@ from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pa
                        write_attack_manifest, write_attack_pair)
 from ..outputs.folder import lock_folder, released_on_failure
 from ..outputs.metadata import identity_arrays
-from ..render.particles import pair_particles, pair_seed, weather_seed
+from ..render.particles import pair_particles, pair_seed, weather_scaling, weather_seed
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -206,9 +206,10 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
     with torch.no_grad():
         adversarial = model(*stored).cpu()
     summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid)
+    summary.particles = best.count
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
     meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
-                         job.preset_name)
+                         job.preset_name, weather_scaling(job.preset, pair))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
     out = AttackPairOutput.of(job.out, pair.id, job.pass_name)

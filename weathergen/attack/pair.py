@@ -459,6 +459,7 @@ class PairSummary:
     epe_adversarial: Optional[float] = None
     seconds: float = 0.0
     nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
+    particles: Optional[int] = None   # particles in the record (the count the frame size gave)
 
     @classmethod
     def from_dict(cls, data: dict) -> "PairSummary":

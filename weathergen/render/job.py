@@ -39,7 +39,7 @@ from ..io.lock import FolderLock
 from ..outputs.folder import lock_folder, released_on_failure
 from ..outputs.manifest import MANIFEST, MANIFEST_PARTS, RUN_CONFIG, jsonable, shard_part
 from ..workers import StopRequests, init_worker, spawning
-from .particles import pair_particles, weather_seed
+from .particles import pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
 
@@ -104,6 +104,8 @@ class PairResult:
     bytes: int = 0
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
+    particles: Optional[int] = None   # written: particles in the pair's record (the count its
+                                      # frame size gave, see the metadata's frame_scaling)
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
     ran: Optional[dict] = None  # where it was computed (weathergen.execution.where_ran) and batch
 
@@ -199,7 +201,8 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     opacity = tuple(a[index, 0].cpu().numpy()
                     for a in (rendered.opacity1, rendered.opacity2) if a is not None)
     visible = visible_counts(pair, particles)
-    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name)
+    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name,
+                         weather_scaling(job.preset, pair))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                         job.sequence)
@@ -217,6 +220,7 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
         raise write_error(exc, job.out, "then rerun with ${resume}") from None
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
+                      particles=particles.count,
                       input=jsonable(getattr(pair, "meta", None) or {}))
 
 

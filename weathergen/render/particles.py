@@ -10,7 +10,7 @@ import hashlib
 from pathlib import Path
 from typing import Optional
 
-from ..engine import FieldPreset, Particles, Preset, sample_weather, scene_seed
+from ..engine import FieldPreset, Particles, Preset, frame_scaling, sample_weather, scene_seed
 from ..framepair import FramePair, PairId
 from ..outputs.reading import load_pair_particles
 
@@ -27,6 +27,14 @@ def weather_seed(preset, run_seed: int, pair_id: PairId) -> int:
     if isinstance(preset, FieldPreset):
         return scene_seed(run_seed, pair_id.dataset, pair_id.split, pair_id.scene)
     return pair_seed(run_seed, pair_id)
+
+
+def weather_scaling(preset, pair: FramePair) -> Optional[dict]:
+    """How a paper preset's count and size are set for the pair's frame size (the particle
+    metadata's ``frame_scaling`` entry); None for a weather field (world units: nothing scales)."""
+    if isinstance(preset, FieldPreset):
+        return None
+    return frame_scaling(preset, *pair.size).to_dict()
 
 
 def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: str = "auto",
