@@ -107,6 +107,13 @@ def test_attack_log_and_summary(attack_out):
     assert attack["lr"] == 1e-5 and attack["alpha1"] == attack["alpha2"] == 1000.0
     (entry,) = manifest["pairs"].values()
     assert entry["status"] == "written" and entry["steps"] == 2
+    # the explicit count is used on the demo frame as given, and recorded with its rule
+    assert entry["particles"] == 150 and manifest["preset"]["scale_count"] is False
+    from weathergen.outputs import read_metadata, stored_frame_scaling
+
+    (npz,) = (out / "training" / "particles").rglob("*.npz")
+    recorded = stored_frame_scaling(read_metadata(npz))
+    assert (recorded["count"], recorded["count_rule"], recorded["width"]) == (150, "fixed", 384)
 
 
 def test_attack_output_rerenders_through_render_particles(attack_out, tmp_path):
