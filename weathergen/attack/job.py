@@ -209,7 +209,7 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
     summary.particles = best.count
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
     meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
-                         job.preset_name, weather_scaling(job.preset, pair))
+                         job.preset_name, scaling=weather_scaling(job.preset, pair))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
     out = AttackPairOutput.of(job.out, pair.id, job.pass_name)

@@ -1,11 +1,13 @@
 """Particle-metadata files: one ``.npz`` per pair holding the particle record and its identity.
 
-The file is the particle record of :meth:`weathergen.engine.Particles.to_numpy` plus the entries of
-:data:`METADATA_KEYS` (which pair, seed and preset the particles belong to, which files the pair
-wrote). It is written last, so a pair whose metadata loads is complete. Particles of a paper preset
-also carry ``frame_scaling`` (JSON: the count and size used on the pair's frame size and the rule
-that gave them, :meth:`weathergen.engine.FrameScaling.to_dict`); files written before it existed
-lack it and still read (:func:`stored_frame_scaling` returns None for them).
+The file is the particle record of :meth:`weathergen.engine.Particles.to_numpy` (a combined
+preset's: :meth:`weathergen.engine.LayeredParticles.to_numpy`, with ``layer_seeds``) plus the
+entries of :data:`METADATA_KEYS` (which pair, seed and preset the particles belong to, which files
+the pair wrote). It is written last, so a pair whose metadata loads is complete. Particles of a
+paper preset also carry ``frame_scaling`` (JSON: the count and size used on the pair's frame size
+and the rule that gave them, :meth:`weathergen.engine.FrameScaling.to_dict`; a combined preset's
+``{"layers": [...]}``, one per layer); files written before it existed lack it and still read
+(:func:`stored_frame_scaling` returns None for them).
 """
 
 from __future__ import annotations
@@ -13,7 +15,7 @@ from __future__ import annotations
 import io
 import json
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -84,12 +86,19 @@ def identity_arrays(pair_id: PairId, seed: int, preset: dict, preset_name: str) 
     }
 
 
-def pair_metadata(particles, pair_id: PairId, seed: int, preset: dict,
-                  preset_name: str, scaling: Optional[dict] = None) -> dict[str, np.ndarray]:
-    """The metadata of one pair: the particle record at storage precision and its identity, and
-    (``scaling``, for a paper preset) how the preset's count and size were set for its frame."""
+def pair_metadata(particles, pair_id: PairId, seed: int, preset: dict, preset_name: str,
+                  layer_seeds: Optional[Sequence[int]] = None, *,
+                  scaling: Optional[dict] = None) -> dict[str, np.ndarray]:
+    """The metadata of one pair: the particle record at storage precision and its identity.
+
+    A combined preset's :class:`~weathergen.engine.LayeredParticles` are stored in their layered
+    format (every particle's layer index included); ``layer_seeds``, one per layer, are recorded
+    as ``layer_seeds`` beside the pair's ``seed``. ``scaling`` (paper presets) says how the
+    preset's count and size were set for the pair's frame; it is stored as ``frame_scaling``."""
     arrays = particles.to_numpy()
     arrays.update(identity_arrays(pair_id, seed, preset, preset_name))
+    if layer_seeds is not None:
+        arrays["layer_seeds"] = np.array(list(layer_seeds), np.uint64)
     if scaling is not None:
         arrays[FRAME_SCALING] = np.array(json.dumps(scaling, sort_keys=True))
     return arrays

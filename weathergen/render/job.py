@@ -202,7 +202,7 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
                     for a in (rendered.opacity1, rendered.opacity2) if a is not None)
     visible = visible_counts(pair, particles)
     meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name,
-                         weather_scaling(job.preset, pair))
+                         scaling=weather_scaling(job.preset, pair))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                         job.sequence)
