@@ -22,7 +22,7 @@ from . import gma  # noqa: E402,F401
 from . import flowformer  # noqa: E402,F401
 from .raft import RAFT, RAFTModel  # noqa: E402
 from . import spynet, flownetc, flownetcrobust, flownet2  # noqa: E402,F401
-from .spynet import SpyNet, SpyNetModel  # noqa: E402
+from .spynet import SpyNet, SpyNetModel, SpyNetSniklaus, SpyNetSniklausModel  # noqa: E402
 from .flownetc import FlowNetC, FlowNetCModel  # noqa: E402
 from .flownetcrobust import FlowNetCRobust, FlowNetCRobustModel  # noqa: E402
 from .flownet2 import FlowNet2, FlowNet2Model  # noqa: E402
@@ -35,6 +35,6 @@ __all__ = [
     "get_model", "build_model", "available_models", "available_checkpoints", "model_spec",
     "checkpoint_spec", "register_model", "register_checkpoint", "cache_dir",
     "download_checkpoint", "read_state_dict",
-    "SpyNet", "SpyNetModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
+    "SpyNet", "SpyNetModel", "SpyNetSniklaus", "SpyNetSniklausModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
     "FlowNetCRobustModel", "FlowNet2", "FlowNet2Model",
 ]

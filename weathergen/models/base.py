@@ -17,7 +17,7 @@ import torch
 from torch import nn
 
 from ..errors import ShapeError
-from .checkpoints import load_strict
+from .checkpoints import load_strict, read_state_dict
 from .padding import InputPadder
 
 
@@ -49,6 +49,17 @@ class FlowModel(nn.Module):
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
         """Flow ``(B, 2, H, W)`` in pixels for normalised, padded frames ``(B, 3, H, W)``."""
         raise NotImplementedError
+
+    def read_checkpoint(self, path) -> dict:
+        """The state dict a checkpoint path holds (a file saved with ``torch.save``).
+
+        Adapters whose authors published weights in other forms (several files, another
+        framework's format) override this.
+
+        Raises:
+            FormatError: naming the file that cannot be read.
+        """
+        return read_state_dict(path)
 
     def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
         """Load a published ``state_dict`` strictly (names and shapes must match).

@@ -25,7 +25,7 @@ import torch
 
 from ..errors import ConfigError
 from .base import FlowModel
-from .checkpoints import CheckpointSpec, read_state_dict, resolve_named
+from .checkpoints import CheckpointSpec, resolve_named
 
 #: Builds an untrained adapter: ``build(iters=..., gradient_checkpointing=...)``.
 Builder = Callable[..., FlowModel]
@@ -118,7 +118,8 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
 
     Args:
         name: an architecture (``raft``, ``raft-small``) or a checkpoint name (``raft-kitti``).
-        checkpoint: a checkpoint name, a file path, or ``None`` for the default of ``name``.
+        checkpoint: a checkpoint name, a file path (an adapter may take a folder: SpyNet's
+            per-level files), or ``None`` for the default of ``name``.
         device: where the model runs (``"cpu"``, ``"cuda"``, ``"cuda:1"``...).
         iters: refinement iterations for recurrent networks; ``None`` for the default.
         download: fetch a named checkpoint missing from the cache (needs a network).
@@ -150,7 +151,7 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
     path, what = _resolve_checkpoint(arch, checkpoint, download, timeout)
     device = _device(device)
     model = build_model(arch, iters=iters, gradient_checkpointing=gradient_checkpointing)
-    model.load_checkpoint(read_state_dict(path), source=path, what=what)
+    model.load_checkpoint(model.read_checkpoint(path), source=path, what=what)
     model.requires_grad_(False)
     return model.to(device).eval()
 
@@ -165,7 +166,7 @@ def _resolve_checkpoint(arch: str, checkpoint: Union[str, Path], download: bool,
                               f"{', '.join(available_checkpoints(arch)) or 'none'}")
         return resolve_named(spec, download=download, timeout=timeout), arch
     path = Path(checkpoint).expanduser()
-    if not path.is_file():
+    if not path.exists():   # a folder is for the adapter to judge (SpyNet's per-level files)
         raise ConfigError(f"checkpoint {str(checkpoint)!r} is neither a file nor a known "
                           f"checkpoint name ({', '.join(available_checkpoints(arch))})")
     return path, arch
