@@ -94,7 +94,8 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
 @resume_option("Finish an interrupted run: skip finished pairs.")
 @overwrite_option("Redo every pair, even in a folder that holds one.")
 @quiet_option
-def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_name, preset, set_items,
+def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, config_name, preset,
+           set_items,
            particles_dir, steps,
            optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, gradient_checkpointing,
            out, seed, device, batch_size, executor, ray_address, resume, overwrite, quiet):
@@ -120,7 +121,7 @@ def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_
                         iters=iters, seed=seed, device=device,
                         pass_name=lp_pass_name(method, dataset.selection.pass_),
                         gradient_checkpointing=gradient_checkpointing, download=download,
-                        resume=resume, overwrite=overwrite,
+                        amp=amp, resume=resume, overwrite=overwrite,
                         command=["weathergen", *sys.argv[1:]], lp=lp, **execution)
         label, steps = method, lp.steps
     else:
@@ -130,14 +131,14 @@ def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_
         job, label = _weather_job(dataset, model, checkpoint, iters, download, config_name,
                                   preset, set_items, particles_dir, steps, optimize, lr, alpha1,
                                   alpha2, target, occlusion_gradient, gradient_checkpointing, out,
-                                  seed, device, resume, overwrite, execution)
+                                  seed, device, resume, overwrite, execution, amp)
         out = job.out
     _run(job, model, label, target, steps, out, quiet)
 
 
 def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
                  particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
-                 gradient_checkpointing, out, seed, device, resume, overwrite, execution):
+                 gradient_checkpointing, out, seed, device, resume, overwrite, execution, amp):
     plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
                        optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
                        steps=steps, alpha1=alpha1, alpha2=alpha2)
@@ -148,7 +149,7 @@ def _weather_job(dataset, model, checkpoint, iters, download, config_name, prese
                     target=target, iters=iters, seed=seed, device=device,
                     particles_from=particles_dir, config_name=config_name,
                     pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
-                    gradient_checkpointing=gradient_checkpointing, download=download,
+                    gradient_checkpointing=gradient_checkpointing, download=download, amp=amp,
                     resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]],
                     **execution)
     return job, label

@@ -13,7 +13,7 @@ from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.render.shards import parse_shard
 
-from .options import dataset_options, device_option, quiet_option, seed_option
+from .options import amp_option, dataset_options, device_option, quiet_option, seed_option
 
 
 def _names(text: str) -> list[str]:
@@ -57,9 +57,10 @@ def _checkpoints(items) -> dict:
               default=Path("out/benchmark"), show_default=True, help="Benchmark folder.")
 @seed_option("Run seed of every run (weather as `weathergen render --seed`).")
 @device_option
+@amp_option
 @quiet_option
 def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_steps, iters,
-              set_items, shard_text, download, out, seed, device, quiet):
+              set_items, shard_text, download, out, seed, device, amp, quiet):
     """Run networks x {random weather, adversarial weather, Lp attacks} x presets and write
     the paper's tables (CSV, JSON, Markdown, LaTeX) into OUT.
 
@@ -73,7 +74,7 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_s
         presets=_names(presets), lp_methods=_names(lp_text),
         checkpoints=_checkpoints(checkpoint_items), steps=steps, lp_steps=lp_steps, iters=iters,
         overrides=parse_set_options(set_items), seed=seed, device=device, download=download,
-        command=["weathergen", *sys.argv[1:]])
+        amp=amp, command=["weathergen", *sys.argv[1:]])
     shard = parse_shard(shard_text) if shard_text else None
     console = Console()
 

@@ -14,7 +14,7 @@ from .checkpoints import CheckpointSpec, cache_dir, download_checkpoint, read_st
 from .padding import InputPadder
 from .registry import (ModelSpec, available_checkpoints, available_models, build_model,
                        checkpoint_spec, get_model, model_spec, register_checkpoint,
-                       register_model)
+                       register_model, resolve_amp)
 
 # Network modules register themselves; import each one here.
 from . import raft  # noqa: E402,F401  (registration side effect)
@@ -33,7 +33,7 @@ __all__ = [
     "FlowModel", "InputPadder", "ModelSpec", "CheckpointSpec", "RAFT", "RAFTModel", "GMA",
     "GMAModel", "FlowFormer", "FlowFormerModel",
     "get_model", "build_model", "available_models", "available_checkpoints", "model_spec",
-    "checkpoint_spec", "register_model", "register_checkpoint", "cache_dir",
+    "checkpoint_spec", "register_model", "register_checkpoint", "resolve_amp", "cache_dir",
     "download_checkpoint", "read_state_dict",
     "SpyNet", "SpyNetModel", "SpyNetSniklaus", "SpyNetSniklausModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
     "FlowNetCRobustModel", "FlowNet2", "FlowNet2Model",
