@@ -57,6 +57,8 @@ FORMAT_VERSION = 3
 #: Records with field optics are written as version 2 (float layout plus the optics).
 FIELD_FORMAT_VERSION = 2
 READABLE_VERSIONS = (1, 2, 3)
+#: Files of a combined preset's layers (:mod:`weathergen.engine.layers`) are version 4.
+LAYERED_FORMAT_VERSION = 4
 REFERENCE_FRAMES = ("world", "camera1")
 
 # Per-particle tensor fields: storage dtype and trailing shape.
@@ -259,17 +261,20 @@ class Particles:
     @classmethod
     def load(cls, path: str | Path, device=None) -> "Particles":
         """Read a record written by :meth:`save`; FormatError names the file on any problem."""
+        return cls.from_arrays(read_particle_arrays(path), path, device)
+
+    @classmethod
+    def from_arrays(cls, arrays: dict[str, np.ndarray], path: str | Path = "<arrays>",
+                    device=None) -> "Particles":
+        """The record stored as ``arrays`` (what :meth:`to_numpy` gives, or a file's entries);
+        FormatError names ``path`` on any problem."""
         path = Path(path)
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                arrays = {k: data[k] for k in data.files}
-        except FileNotFoundError:
-            raise FormatError(path, "particle file does not exist") from None
-        except Exception as exc:  # numpy raises several types for corrupt archives
-            raise FormatError(path, f"not a particle .npz file ({exc})") from None
         version = arrays.get("format_version")
         if version is None:
             raise FormatError(path, "no format_version: not a weathergen particle file")
+        if int(version) == LAYERED_FORMAT_VERSION:
+            raise FormatError(path, "holds the layers of a combined preset; read it with "
+                                    "LayeredParticles.load (or load_particles)")
         if int(version) not in READABLE_VERSIONS:
             raise FormatError(path, f"particle format version {int(version)}; this weathergen "
                                     f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
@@ -315,6 +320,18 @@ class Particles:
                 raise FormatError(path, f"unreadable 'optics' entry ({exc})") from None
         return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path),
                    optics=optics)
+
+
+def read_particle_arrays(path: str | Path) -> dict[str, np.ndarray]:
+    """Every entry of a particle ``.npz`` file; FormatError names the file when it cannot be read."""
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except FileNotFoundError:
+        raise FormatError(path, "particle file does not exist") from None
+    except Exception as exc:  # numpy raises several types for corrupt archives
+        raise FormatError(path, f"not a particle .npz file ({exc})") from None
 
 
 def stored_values(arrays: dict, name: str) -> np.ndarray:
