@@ -429,7 +429,8 @@ def test_strong_forward_motion_is_recorded_and_noted_once(tmp_path):
     write_sintel_scene(root, "ahead_b", wall_scene(forward=1.0, plane_depth=8.0, **small))
     write_sintel_scene(root, "still", wall_scene(**small))
     out = tmp_path / "out"
-    res = run("render", "--root", root, "--out", out, "--set", "count=300", "--quiet")
+    res = run("render", "--root", root, "--out", out, "--set", "count=300", "--set", "scale_count=false",
+              "--quiet")
     assert res.exit_code == 0, res.output
     notes = [line for line in res.output.splitlines() if "frame 2" in line]
     assert len(notes) == 1, res.output

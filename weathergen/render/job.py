@@ -38,7 +38,7 @@ from ..outputs import (RENDER_FOLDER, PairOutput, claim_folder, merge_manifest, 
 from ..io.atomic import write_error
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
-from .particles import pair_particles, weather_seed
+from .particles import pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
 
@@ -109,6 +109,8 @@ class PairResult:
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
     few_in_frame2: bool = False # a paper preset's pair that keeps < FRAME2_KEPT_MIN of them
+    particles: Optional[int] = None   # written: particles in the pair's record (the count its
+                                      # frame size gave, see the metadata's frame_scaling)
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
     ran: Optional[dict] = None  # where it was computed (weathergen.execution.where_ran) and batch
 
@@ -205,7 +207,8 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     opacity = tuple(a[index, 0].cpu().numpy()
                     for a in (rendered.opacity1, rendered.opacity2) if a is not None)
     visible = visible_counts(pair, particles)
-    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name)
+    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name,
+                         scaling=weather_scaling(job.preset, pair))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                         job.sequence, job.dataset.native_flow)
@@ -224,6 +227,7 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
                       few_in_frame2=particles.optics is None and few_in_frame2(*visible),
+                      particles=particles.count,
                       input=jsonable(getattr(pair, "meta", None) or {}))
 
 
