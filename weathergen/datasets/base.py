@@ -64,6 +64,44 @@ class Selection:
         return starts
 
 
+def numbering_gap(selection: Selection, frames: list[int]) -> Optional[str]:
+    """What missing frame numbers of a scene change in the selection, or None when nothing.
+
+    Pairs are consecutive numbers, so a missing frame removes the two pairs it belongs to, and
+    ``frames_per_scene`` then counts from the pairs that are left (it takes others than with the
+    frame present): the warning names the missing frames, the pairs lost and those taken instead.
+    """
+    if not frames:
+        return None
+    present = set(frames)
+    missing = [f for f in range(frames[0], frames[-1] + 1) if f not in present]
+    if not missing:
+        return None
+    complete = selection.pick_frames(list(range(frames[0], frames[-1] + 1)))
+    chosen = selection.pick_frames(frames)
+    lost = [f for f in complete if f not in chosen]
+    if not lost:
+        return None
+    extra = [f for f in chosen if f not in complete]
+    text = (f"gap in the frame numbering: no frame {_numbers(missing)}, so pair{'s' * (len(lost) > 1)} "
+            f"{_numbers(lost)} cannot be formed")
+    if extra:
+        text += (f" and the selection takes pair{'s' * (len(extra) > 1)} {_numbers(extra)} "
+                 f"instead")
+    return text
+
+
+def _numbers(values: list[int]) -> str:
+    """``1, 4-6, 9``: sorted integers with runs joined."""
+    runs: list[list[int]] = []
+    for v in values:
+        if runs and v == runs[-1][-1] + 1:
+            runs[-1].append(v)
+        else:
+            runs.append([v])
+    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in runs)
+
+
 def frame_numbers(folder: Path, pattern) -> list[int]:
     """Sorted frame numbers of the files in ``folder`` whose names match ``pattern``.
 
@@ -121,6 +159,8 @@ class Dataset(ABC):
     def __init__(self, root: str | Path, selection: Selection = Selection()):
         self.root = Path(root)
         self.selection = selection
+        #: problems of whole scenes found by the last :meth:`pairs` (see :meth:`scene_problems`)
+        self._listing_problems: dict[str, list[Problem]] = {}
         if not self.root.exists():
             raise DatasetError(f"{self.root}: dataset root does not exist")
         if not self.root.is_dir():
@@ -189,8 +229,16 @@ class Dataset(ABC):
         return out
 
     def scene_problems(self) -> dict[str, list[Problem]]:
-        """Problems of whole scenes found while listing (scene -> problems); none by default."""
-        return {}
+        """Problems of whole scenes found by the last :meth:`pairs` (scene -> problems), such as
+        gaps in the frame numbering (warnings)."""
+        return dict(self._listing_problems)
+
+    def _note_gaps(self, scene: str, frames: list[int], folder: Path) -> None:
+        """Record a warning when missing frame numbers change the selection (see
+        :func:`numbering_gap`)."""
+        gap = numbering_gap(self.selection, frames)
+        if gap:
+            self._listing_problems[scene] = [Problem(gap, str(folder), WARNING)]
 
     def pair_warnings(self, ref: PairRef, pair: FramePair) -> list[Problem]:
         """Warnings about a pair that loaded (for example little valid depth); none by default."""

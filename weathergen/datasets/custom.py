@@ -77,7 +77,6 @@ class CustomDataset(FarDepthDataset):
         self.frame_pattern = frame_pattern
         self.min_valid_depth = float(min_valid_depth)
         self._cameras = lru_cache(maxsize=8)(read_camera_file)
-        self._scene_problems: dict[str, list[Problem]] = {}
         self._numbers: dict[str, int] = {}      # second frame of each listed pair -> its number
         self._numbering = "name"                # how the frames of the scene last listed are numbered
 
@@ -126,14 +125,14 @@ class CustomDataset(FarDepthDataset):
         dirs = self.scene_dirs()
         sel = self.selection
         refs = []
-        self._scene_problems = {}
+        self._listing_problems = {}
         for scene in sel.pick_scenes(list(dirs), self.root):
             try:
                 frames = self.frames(dirs[scene])
             except DatasetError as exc:
                 # one scene that cannot be paired does not hide the others; check reports it
                 folder = str(dirs[scene] / "frames")
-                self._scene_problems[scene] = [
+                self._listing_problems[scene] = [
                     Problem("frames cannot be paired: " + str(exc)[len(folder) + 2:], folder)]
                 continue
             numbers = list(frames)
@@ -147,13 +146,10 @@ class CustomDataset(FarDepthDataset):
                 self._numbers[str(frames[b])] = b
                 refs.append(PairRef(PairId(self.name, sel.split, scene, a),
                                     self._files(dirs[scene], frames[a], frames[b], (a, b), by_number)))
-        if not refs and self._scene_problems:
-            first = next(iter(self._scene_problems.values()))[0]
+        if not refs and self._listing_problems:
+            first = next(iter(self._listing_problems.values()))[0]
             raise DatasetError(f"{first.where}: {first.kind}")
         return refs
-
-    def scene_problems(self) -> dict[str, list[Problem]]:
-        return dict(self._scene_problems)
 
     def pair_warnings(self, ref: PairRef, pair: FramePair) -> list[Problem]:
         out = []

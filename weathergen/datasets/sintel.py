@@ -113,8 +113,10 @@ class SintelDataset(ScaledDataset):
 
     def pairs(self) -> list[PairRef]:
         refs = []
+        self._listing_problems = {}
         for scene in self.selection.pick_scenes(self.scenes(), self.image_dir):
             frames = self.frames(scene)
+            self._note_gaps(scene, frames, self.image_dir / scene)
             present = set(frames)
             if not any(f + 1 in present for f in frames):
                 # a scene folder the selection names but that holds no pair would otherwise vanish

@@ -81,8 +81,11 @@ class SpringDataset(FarDepthDataset):
 
     def pairs(self) -> list[PairRef]:
         refs = []
+        self._listing_problems = {}
         for scene in self.selection.pick_scenes(self.scenes(), self.split_dir):
-            for f in self.selection.pick_frames(self.frames(scene)):
+            frames = self.frames(scene)
+            self._note_gaps(scene, frames, self.split_dir / scene / "frame_left")
+            for f in self.selection.pick_frames(frames):
                 refs.append(PairRef(PairId(self.name, self.split_dir.name, scene, f), self._files(scene, f)))
         return refs
 

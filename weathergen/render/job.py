@@ -322,9 +322,10 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
 
     Pairs already complete on disk are skipped when resuming (or when another shard's folder is
     reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives,
-    ``on_note`` warnings worth a line (a stale lock taken over). Interruptions (Ctrl-C, SIGTERM)
-    record what was finished in the manifest and re-raise. The output folder is locked for the
-    run: a second run in it (same shard) raises :class:`~weathergen.errors.FolderBusy`.
+    ``on_note`` warnings worth a line (a stale lock taken over, a gap in a scene's frame
+    numbering, a scene whose frames cannot be paired). Interruptions (Ctrl-C, SIGTERM) record
+    what was finished in the manifest and re-raise. The output folder is locked for the run: a
+    second run in it (same shard) raises :class:`~weathergen.errors.FolderBusy`.
 
     Raises :class:`~weathergen.errors.OutputError` when the outputs cannot be written (the pairs
     finished before are recorded), and :class:`~weathergen.errors.NothingRendered` when every
@@ -333,6 +334,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     check_executor(job.executor)
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     every = job.dataset.pairs()
+    for problems in job.dataset.scene_problems().values():
+        for problem in problems:        # e.g. a gap in a scene's frame numbering
+            on_note(f"{problem.where}: {problem.kind}" if problem.where else problem.kind)
     refs = shard_refs(every, job.shard)
     if not refs:
         raise ConfigError("the selection holds no frame pairs")
