@@ -180,6 +180,12 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
                                        soft_wrap=True)
             else:
                 click.echo(f"failed {r.pair}: {r.message}", err=True)
+        for text in r.warnings:    # written, but the input looks wrong
+            if progress is not None:
+                progress.console.print(f"[yellow]warning[/yellow] {r.pair}: {text}", highlight=False,
+                                       soft_wrap=True)
+            else:
+                click.echo(f"warning {r.pair}: {text}", err=True)
         if progress is not None:
             progress.update(task, advance=1, pair=r.pair)
         elif not quiet:

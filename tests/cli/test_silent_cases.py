@@ -41,3 +41,24 @@ def test_check_and_render_report_a_gap_in_a_scenes_frame_numbering(sintel_with_a
     # a selection the gap does not touch says nothing
     res = run("check", "--root", root, "--scenes", "alley", "--first-frame", "3")
     assert res.exit_code == 0 and "gap" not in res.output, res.output
+
+
+# -- frames of a pair that differ in channels ------------------------------------------------------
+
+def test_a_pair_of_a_grey_and_a_colour_frame_is_warned_about(fake_sintel, tmp_path):
+    from weathergen.io.images import read_image, write_png
+
+    grey = fake_sintel / "training" / "clean" / "alley" / "frame_0002.png"
+    write_png(grey, read_image(grey).mean(axis=2))          # stored with one channel
+    res = run("render", "--root", fake_sintel, "--scenes", "alley", "--frames-per-scene", "1",
+              "--set", "count=20", "--out", tmp_path / "o", "-q")
+    assert res.exit_code == 0, res.output
+    assert (f"warning sintel/training/alley/0001: {grey}: the second frame is grey but the first "
+            f"(frame_0001.png) is colour") in res.output, res.output
+    res = run("check", "--root", fake_sintel, "--scenes", "alley")
+    assert res.exit_code == 0, res.output
+    assert "alley: warning: the second frame is grey but the first (frame_0001.png) is colour" in res.output
+    assert "alley: warning: the second frame is colour but the first (frame_0002.png) is grey" in res.output
+    # frames of one kind say nothing
+    res = run("check", "--root", fake_sintel, "--scenes", "bamboo")
+    assert res.exit_code == 0 and "warning" not in res.output, res.output

@@ -241,8 +241,14 @@ class Dataset(ABC):
             self._listing_problems[scene] = [Problem(gap, str(folder), WARNING)]
 
     def pair_warnings(self, ref: PairRef, pair: FramePair) -> list[Problem]:
-        """Warnings about a pair that loaded (for example little valid depth); none by default."""
-        return []
+        """Warnings about a pair that loaded: those the reader put in ``pair.meta["warnings"]``
+        (``"FILE: what"`` lines; frames of which one is grey, the other colour), and whatever a
+        reader adds (little valid depth)."""
+        out = []
+        for line in pair.meta.get("warnings", []):
+            where, _, kind = line.partition(": ")
+            out.append(Problem(kind, where, WARNING) if kind else Problem(line, "", WARNING))
+        return out
 
     def pair_notes(self, pair: FramePair) -> list[str]:
         """Figures worth showing for a loaded pair (KITTI: the camera motion); none by default."""

@@ -12,6 +12,7 @@ import torch
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
 from ..geometry import WORLD_UP_AXES, invert_rigid, to_homogeneous, up_direction
+from ..io.images import read_image_kind
 from .base import FILE_ROLES, Dataset, Selection
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
@@ -148,6 +149,21 @@ class FarDepthDataset(ScaledDataset):
         out = super().describe()
         out.update(far_depth=self.far_depth)
         return out
+
+
+def read_frames(files: dict) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Both frames of a pair (``files["image1"]``, ``files["image2"]``) as RGB, and facts for the
+    record's ``meta``: ``{"warnings": [...]}`` when one frame is grey and the other colour (both
+    are read as RGB, a grey frame replicated, so the pair reads, but no camera gives such a pair:
+    a frame from another folder or pass, or a converted file). Shape: (H, W, 3) float32 each.
+    """
+    (img1, kind1), (img2, kind2) = read_image_kind(files["image1"]), read_image_kind(files["image2"])
+    meta = {}
+    if kind1 != kind2:
+        meta["warnings"] = [f"{files['image2']}: the second frame is {kind2} but the first "
+                            f"({Path(files['image1']).name}) is {kind1}; both are read as RGB "
+                            f"(grey replicated to three channels)"]
+    return img1, img2, meta
 
 
 def require_files(files: dict, keys: tuple[str, ...], hint: str = "") -> None:

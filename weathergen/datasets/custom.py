@@ -41,11 +41,10 @@ from ..errors import ConfigError, DatasetError, FormatError
 from ..framepair import FramePair, PairId
 from ..geometry import backproject, invert_rigid
 from ..io.custom_formats import DEPTH_SUFFIXES, CameraFile, read_camera_file, read_depth
-from ..io.images import read_image
 from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
 from .base import WARNING, Problem
-from .common import FarDepthDataset, check_size, require_files
+from .common import FarDepthDataset, check_size, read_frames, require_files
 from .densify import fill_sparse
 from .framenames import order_frames
 
@@ -152,7 +151,7 @@ class CustomDataset(FarDepthDataset):
         return refs
 
     def pair_warnings(self, ref: PairRef, pair: FramePair) -> list[Problem]:
-        out = []
+        out = super().pair_warnings(ref, pair)
         for i, key in enumerate(("depth1", "depth2")):
             stats = pair.meta.get("depth_values", [{}, {}])[i]
             valid = stats.get("valid", 1.0)
@@ -199,7 +198,7 @@ class CustomDataset(FarDepthDataset):
         files = ref.files
         require_files(files, ("image1", "image2", "cameras"))
         require_files(files, ("depth1", "depth2"), self.missing_hint("depth1"))
-        img1, img2 = read_image(files["image1"]), read_image(files["image2"])
+        img1, img2, meta = read_frames(files)
         size = img1.shape[:2]
         check_size(files["image2"], "frame", img2.shape, size)
 
@@ -243,7 +242,7 @@ class CustomDataset(FarDepthDataset):
                                flow_valid=flow_valid, measured=measured,
                                meta={"far_depth": self.far_depth, "pose": cams.pose,
                                      "axes": cams.axes, "depth": cams.depth,
-                                     "depth_values": values})
+                                     "depth_values": values, **meta})
 
     def describe(self) -> dict:
         out = super().describe()

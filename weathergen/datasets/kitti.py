@@ -62,12 +62,11 @@ import torch
 
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
-from ..io.images import read_image
 from ..io.kitti_formats import read_disparity_png, read_flow_png, read_object_map, stereo_camera
 from .base import PairRef, Selection
 from .camera_motion import (FitSettings, MotionFit, backproject_pixels, check_fit, fit_motion_pnp,
                             match_features)
-from .common import FarDepthDataset, check_size, chw, require_files, scaled_motion
+from .common import FarDepthDataset, check_size, chw, read_frames, require_files, scaled_motion
 from .densify import fill_sparse
 
 _IMAGE_RE = re.compile(r"^(\d{6})_(\d{2})\.png$")
@@ -189,7 +188,7 @@ class KittiDataset(FarDepthDataset):
         own2 = Path(files["disp2_own"]).exists()
         require_files(files, ("disp1",) if own2 else ("disp1", "disp2", "flow"), hint)
 
-        img1, img2 = read_image(files["image1"]), read_image(files["image2"])
+        img1, img2, meta = read_frames(files)
         size = img1.shape[:2]
         check_size(files["image2"], "frame", img2.shape, size)
         k, baseline = stereo_camera(files["calib"])
@@ -231,7 +230,8 @@ class KittiDataset(FarDepthDataset):
             depth_measured1=chw(valid1), depth_measured2=chw(valid2),
             sources={key: Path(v) for key, v in files.items() if Path(v).exists()},
             depth_scale=scale,
-            meta={"camera_motion": fit.summary(), "baseline_m": baseline, "far_depth": self.far_depth},
+            meta={"camera_motion": fit.summary(), "baseline_m": baseline, "far_depth": self.far_depth,
+                  **meta},
         ).validate()
 
     def _dense_depth(self, disparity, valid, image, focal_baseline) -> tuple[np.ndarray, np.ndarray]:

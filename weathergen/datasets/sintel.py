@@ -30,11 +30,11 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
-from ..io.images import read_image, read_raw
+from ..io.images import read_raw
 from ..io.sintel_formats import read_cam, read_dpt, read_flo
 from ..io.text import read_text_file
 from .base import PairRef, Selection, frame_numbers
-from .common import ScaledDataset
+from .common import ScaledDataset, read_frames
 
 _FRAME_RE = re.compile(r"^frame_(\d{4,})\.png$")
 SPLITS = ("training", "test")
@@ -156,7 +156,7 @@ class SintelDataset(ScaledDataset):
                 hint = self.missing_hint(key)
                 raise DatasetError(f"{files[key]}: {'depth' if 'depth' in key else 'camera'} "
                                    f"file is missing{hint}")
-        img1, img2 = read_image(files["image1"]), read_image(files["image2"])
+        img1, img2, meta = read_frames(files)
         raw_depths = [read_dpt(files["depth1"]), read_dpt(files["depth2"])]
         h, w = _common_size(files, {"image1": img1.shape[:2], "image2": img2.shape[:2],
                                     "depth1": raw_depths[0].shape, "depth2": raw_depths[1].shape})
@@ -187,7 +187,7 @@ class SintelDataset(ScaledDataset):
                 valid = inv == 0
 
         return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
-                               flow_valid=valid)
+                               flow_valid=valid, meta=meta)
 
 
 def _common_size(files: dict, sizes: dict) -> tuple[int, int]:

@@ -105,6 +105,7 @@ class PairResult:
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
+    warnings: list = field(default_factory=list)  # what the reader found odd ("FILE: what" lines)
     ran: Optional[dict] = None  # where it was computed (weathergen.execution.where_ran) and batch
 
 
@@ -215,9 +216,11 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
                                    right=right)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
         raise write_error(exc, job.out, "then rerun with ${resume}") from None
+    facts = dict(getattr(pair, "meta", None) or {})
+    warnings = list(facts.pop("warnings", []))
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
-                      input=jsonable(getattr(pair, "meta", None) or {}))
+                      input=jsonable(facts), warnings=warnings)
 
 
 def _render_right(job: RenderJob, pair, particles, second: bool) -> tuple:
