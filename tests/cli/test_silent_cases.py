@@ -62,3 +62,18 @@ def test_a_pair_of_a_grey_and_a_colour_frame_is_warned_about(fake_sintel, tmp_pa
     # frames of one kind say nothing
     res = run("check", "--root", fake_sintel, "--scenes", "bamboo")
     assert res.exit_code == 0 and "warning" not in res.output, res.output
+
+
+# -- an attack without steps ---------------------------------------------------------------------
+
+@pytest.mark.parametrize("command", [
+    ("attack", "--steps", "0"), ("attack", "--method", "pcfa", "--steps", "0"),
+    ("benchmark", "--steps", "0"), ("benchmark", "--lp-steps", "0")])
+def test_an_attack_of_zero_steps_is_refused_naming_random_weather(tmp_path, command):
+    out = tmp_path / "o"
+    res = run(*command, "--model", "raft-small", "--out", out) if command[0] == "attack" else \
+        run(*command, "--networks", "raft-small", "--out", out)
+    assert res.exit_code == 2, res.output
+    line = res.output.strip().splitlines()[-1]
+    assert "at least one step" in line and "random weather" in line, res.output
+    assert not out.exists()
