@@ -77,3 +77,19 @@ def test_an_attack_of_zero_steps_is_refused_naming_random_weather(tmp_path, comm
     line = res.output.strip().splitlines()[-1]
     assert "at least one step" in line and "random weather" in line, res.output
     assert not out.exists()
+
+
+# -- a depth scale that is not a finite number -------------------------------------------------
+
+@pytest.mark.parametrize("value", ["inf", "nan"])
+def test_an_infinite_depth_scale_names_the_option_not_the_depth_file(tmp_path, value, demo_root):
+    res = run("render", "--depth-scale", value, "--out", tmp_path / "o", "-q")
+    assert res.exit_code == 2, res.output
+    assert res.output.strip().splitlines() == [
+        f"Error: --depth-scale must be a positive finite number, got {value}"], res.output
+    assert not (tmp_path / "o").exists()
+    table = tmp_path / "scales.toml"
+    table.write_text(f"street = {value}\n")
+    res = run("check", "--scene-scales", table)
+    assert res.exit_code == 2 and f"{table}: scale of scene 'street' must be a positive finite " \
+        f"number, got {value}" in res.output, res.output

@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Optional
 
@@ -43,8 +44,9 @@ class ScaledDataset(Dataset):
                  scene_scales: Optional[dict[str, float]] = None, camera_translation: bool = True,
                  world_up: Optional[str] = None):
         super().__init__(root, selection)
-        if not depth_scale > 0:
-            raise ConfigError(f"depth scale must be positive, got {depth_scale}")
+        if not (math.isfinite(depth_scale) and depth_scale > 0):
+            # an infinite or NaN scale would make every depth map look corrupt instead
+            raise ConfigError(f"${{depth_scale}} must be a positive finite number, got {depth_scale}")
         world_up = self.default_world_up if world_up is None else world_up
         up_direction(world_up)          # raises ConfigError for a setting it cannot read
         self.depth_scale = float(depth_scale)
@@ -126,7 +128,7 @@ class FarDepthDataset(ScaledDataset):
                               f"does not apply (leave it at 'clean')")
         far = DEFAULT_FAR_DEPTH if far_depth is None else far_depth
         if not (np.isfinite(far) and far > 0):
-            raise ConfigError(f"far depth must be a positive number, got {far_depth}")
+            raise ConfigError(f"${{far_depth}} must be a positive finite number, got {far_depth}")
         self.far_depth = float(far)
 
     @property

@@ -21,6 +21,7 @@ translation between the two cameras (also what that research code did), keeping 
 from __future__ import annotations
 
 import json
+import math
 import re
 import tomllib
 from collections import Counter
@@ -66,8 +67,10 @@ def load_scene_scales(path: str | Path) -> dict[str, float]:
     out = SceneScales()
     out.source = str(path)
     for scene, value in table.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            raise ConfigError(f"{path}: scale of scene {scene!r} must be a positive number, got {value!r}")
+        if (isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0
+                or not math.isfinite(value)):
+            raise ConfigError(f"{path}: scale of scene {scene!r} must be a positive finite number, "
+                              f"got {value!r}")
         out[str(scene)] = float(value)
     return out
 
