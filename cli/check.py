@@ -33,7 +33,7 @@ def check(dataset, geometry, geometry_pairs, verbose):
     console = Console()
     scenes = check_dataset(dataset, geometry=geometry, geometry_pairs=geometry_pairs)
     if not scenes:
-        raise DatasetError(f"{dataset.root}: the selection holds no frame pairs")
+        raise DatasetError(dataset.no_pairs_message())
 
     single_pass = dataset.name in ("kitti", "spring", "custom")   # one rendering, no pass to name
     where = dataset.selection.split if single_pass else f"{dataset.selection.split}/{dataset.selection.pass_}"

@@ -93,3 +93,22 @@ def test_an_infinite_depth_scale_names_the_option_not_the_depth_file(tmp_path, v
     res = run("check", "--scene-scales", table)
     assert res.exit_code == 2 and f"{table}: scale of scene 'street' must be a positive finite " \
         f"number, got {value}" in res.output, res.output
+
+
+# -- an empty selection --------------------------------------------------------------------------
+
+def test_an_empty_selection_names_the_options_that_emptied_it(tmp_path, demo_root):
+    said = ("the selection holds no frame pairs (--scenes street, --first-frame 9); without "
+            "--first-frame the pairs start at frames 1 to 3")
+    for command in ("check", "render", "attack"):
+        extra = ("--model", "raft-small") if command == "attack" else ()
+        if command != "check":
+            extra += ("--out", tmp_path / command)
+        res = run(command, "--scenes", "street", "--first-frame", "9", *extra)
+        assert res.exit_code == 2, res.output
+        assert res.output.strip().splitlines()[-1] == f"Error: {demo_root}: {said}", res.output
+        assert not (tmp_path / command).exists()
+    res = run("render", "--frames-per-scene", "1", "--shard", "3/3", "--out", tmp_path / "o")
+    assert res.exit_code == 2 and res.output.strip().splitlines()[-1] == (
+        "Error: --shard 3/3 holds no frame pairs: the selection holds 2, one for each of the first "
+        "2 shards"), res.output

@@ -7,8 +7,9 @@ never write files.
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional
 
@@ -36,6 +37,19 @@ class Selection:
             raise ConfigError(f"frames per scene must be at least 1, got {self.frames_per_scene}")
         if self.first_frame is not None and self.first_frame < 0:
             raise ConfigError(f"first frame must not be negative, got {self.first_frame}")
+
+    def narrowing(self) -> list[str]:
+        """The options that narrow this selection, as ``"${option} value"`` for messages."""
+        out = []
+        if self.scenes:
+            out.append(f"${{scenes}} {','.join(self.scenes)}")
+        if self.from_scene is not None:
+            out.append(f"${{from_scene}} {self.from_scene}")
+        if self.first_frame is not None:
+            out.append(f"${{first_frame}} {self.first_frame}")
+        if self.frames_per_scene is not None:
+            out.append(f"${{frames_per_scene}} {self.frames_per_scene}")
+        return out
 
     def pick_scenes(self, available: list[str], where: Path) -> list[str]:
         """Apply ``scenes`` and ``from_scene`` to the sorted list of scenes found at ``where``."""
@@ -169,6 +183,27 @@ class Dataset(ABC):
     @abstractmethod
     def pairs(self) -> list[PairRef]:
         """The selected pairs, sorted by scene then frame. Lists files only; reads nothing."""
+
+    def no_pairs_message(self) -> str:
+        """The one line for a selection that holds no frame pair: the options that emptied it and,
+        when ``first_frame`` did, where the pairs start without it."""
+        sel = self.selection
+        message = f"{self.root}: the selection holds no frame pairs"
+        narrowing = sel.narrowing()
+        if not narrowing:
+            return f"{message} (split {sel.split!r})"
+        message += f" ({', '.join(narrowing)})"
+        if sel.first_frame is not None:
+            wider = copy.copy(self)
+            wider.selection = replace(sel, first_frame=None)
+            try:
+                starts = sorted({ref.id.frame for ref in wider.pairs()})
+            except WeatherGenError:
+                starts = []
+            if starts:
+                message += "; without ${first_frame} the pairs start at " + (
+                    f"frames {starts[0]} to {starts[-1]}" if len(starts) > 1 else f"frame {starts[0]}")
+        return message
 
     def all_scenes(self) -> Optional[list[str]]:
         """Every scene of the split, before the selection; None for a reader without scenes."""

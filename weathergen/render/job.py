@@ -341,8 +341,12 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
         for problem in problems:        # e.g. a gap in a scene's frame numbering
             on_note(f"{problem.where}: {problem.kind}" if problem.where else problem.kind)
     refs = shard_refs(every, job.shard)
+    if not every:
+        raise ConfigError(job.dataset.no_pairs_message())
     if not refs:
-        raise ConfigError("the selection holds no frame pairs")
+        raise ConfigError(f"${{shard}} {job.shard[0]}/{job.shard[1]} holds no frame pairs: the "
+                          f"selection holds {len(every)}, one for each of the first {len(every)} "
+                          f"shards")
     if job.sequence:
         if not isinstance(job.preset, FieldPreset):
             raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "
