@@ -112,3 +112,21 @@ def test_an_empty_selection_names_the_options_that_emptied_it(tmp_path, demo_roo
     assert res.exit_code == 2 and res.output.strip().splitlines()[-1] == (
         "Error: --shard 3/3 holds no frame pairs: the selection holds 2, one for each of the first "
         "2 shards"), res.output
+
+
+# -- cameras that stand still while the frames move ----------------------------------------------
+
+def test_check_geometry_warns_when_the_cameras_stand_still_while_the_frames_differ(tmp_path):
+    from fake_datasets import demo_sequence, write_fake_custom
+
+    frames, _ = demo_sequence("street")                 # the camera moves 7-8 px per frame
+    root = write_fake_custom(tmp_path / "walk", [dict(f, cam=frames[0]["cam"]) for f in frames])
+    res = run("check", "--dataset", "custom", "--root", root, "--geometry")
+    assert res.exit_code == 0, res.output                         # a warning, not an error
+    assert "photometric check too little motion to judge" in res.output
+    assert ("walk: warning: the cameras say the camera hardly moves (median predicted motion 0.00 "
+            "px) while the frames differ") in res.output, res.output
+    # a camera that does stand still, with frames that do not change: nothing to say
+    still = write_fake_custom(tmp_path / "still", [dict(frames[0]) for _ in frames])
+    res = run("check", "--dataset", "custom", "--root", still, "--geometry")
+    assert res.exit_code == 0 and "warning" not in res.output, res.output
