@@ -130,3 +130,42 @@ def test_check_geometry_warns_when_the_cameras_stand_still_while_the_frames_diff
     still = write_fake_custom(tmp_path / "still", [dict(frames[0]) for _ in frames])
     res = run("check", "--dataset", "custom", "--root", still, "--geometry")
     assert res.exit_code == 0 and "warning" not in res.output, res.output
+
+
+# -- KITTI: what a missing flow_occ and the testing split ask for ----------------------------------
+
+def test_kitti_messages_name_the_files_that_make_a_pair_readable(tmp_path):
+    from fake_datasets import KITTI_BASELINE, write_fake_kitti
+    from weathergen.datasets import demo_pairs
+    from weathergen.io.kitti_formats import write_disparity_png
+
+    pair = demo_pairs(scenes=["street"])[1]
+    fb = pair.intrinsics[0, 0].item() * KITTI_BASELINE
+    # training without flow_occ: the message says what replaces it
+    train = write_fake_kitti(tmp_path / "train", pair)
+    (train / "flow_occ" / "000000_10.png").unlink()
+    res = run("check", "--dataset", "kitti", "--root", tmp_path / "train")
+    assert res.exit_code == 1
+    assert ("000000: ground-truth flow file is missing (without disp_occ_1 and flow_occ, frame 11's "
+            "own disparity as disp_occ_0/NNNNNN_11.png lets the pair be read: frame-2 depth from "
+            "it, the camera motion from feature matching): training/flow_occ/000000_10.png") \
+        in res.output.replace("\n", " "), res.output
+    # the testing split: check lists exactly the two files its hint asks for
+    test = write_fake_kitti(tmp_path / "test", pair, split="testing")
+    res = run("check", "--dataset", "kitti", "--root", tmp_path / "test", "--split", "testing")
+    assert res.exit_code == 1
+    assert ("put disparities of your own as disp_occ_0/NNNNNN_10.png and disp_occ_0/NNNNNN_11.png): "
+            "testing/disp_occ_0/000000_10.png, testing/disp_occ_0/000000_11.png\n") in res.output, \
+        res.output
+    assert "disp_occ_1" not in res.output and "flow_occ" not in res.output
+    res = run("render", "--dataset", "kitti", "--root", tmp_path / "test", "--split", "testing",
+              "--out", tmp_path / "o")
+    assert res.exit_code == 2 and ("put disparities of your own as disp_occ_0/000000_10.png and "
+                                   "disp_occ_0/000000_11.png)") in res.output, res.output
+    # and following either hint makes the pair readable
+    write_disparity_png(train / "disp_occ_0" / "000000_11.png", fb / pair.depth2[0].numpy())
+    for path in (test / "disp_occ_0" / "000000_10.png", test / "disp_occ_0" / "000000_11.png"):
+        write_disparity_png(path, fb / (pair.depth1 if path.stem.endswith("10") else pair.depth2)[0].numpy())
+    for root, split in ((tmp_path / "train", "training"), (tmp_path / "test", "testing")):
+        res = run("check", "--dataset", "kitti", "--root", root, "--split", split, "--fit-min-points", "30")
+        assert res.exit_code == 0, res.output
