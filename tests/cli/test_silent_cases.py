@@ -6,6 +6,8 @@ demo scene.
 
 from __future__ import annotations
 
+import json
+
 import pytest
 from click.testing import CliRunner
 
@@ -169,3 +171,60 @@ def test_kitti_messages_name_the_files_that_make_a_pair_readable(tmp_path):
     for root, split in ((tmp_path / "train", "training"), (tmp_path / "test", "testing")):
         res = run("check", "--dataset", "kitti", "--root", root, "--split", split, "--fit-min-points", "30")
         assert res.exit_code == 0, res.output
+
+
+# -- the right view of a stereo render gets what the left gets ------------------------------------
+
+def test_stereo_with_format_both_writes_the_right_view_as_the_left(tmp_path, demo_root):
+    import shutil
+
+    import numpy as np
+    import torch
+
+    from fake_datasets import KITTI_BASELINE, demo_sequence, write_fake_kitti
+    from weathergen.engine.stereo import warp_depth
+    from weathergen.io.exr import read_exr
+    from weathergen.io.images import read_image
+    from weathergen.io.sintel_formats import read_cam, read_dpt
+    from weathergen.outputs import read_metadata
+
+    _, pairs = demo_sequence("street")
+    split = write_fake_kitti(tmp_path / "kitti", pairs[0], scene="000004")
+    (split / "image_3").mkdir()
+    for n in (10, 11):
+        shutil.copy(split / "image_2" / f"000004_{n}.png", split / "image_3" / f"000004_{n}.png")
+    out = tmp_path / "stereo"
+    res = run("render", "--dataset", "kitti", "--root", tmp_path / "kitti", "--preset", "snow-moderate",
+              "--set", "far=5", "--stereo", "--format", "both", "--out", out, "-q")
+    assert res.exit_code == 0, res.output
+    t = out / "training"
+    pair = "000004_0010"
+    for side in ("", "_right"):
+        for n in (10, 11):
+            png = read_image(t / f"snow-moderate_clean{side}" / pair / f"frame_{n:04d}.png")
+            exr = read_exr(t / f"snow-moderate_clean{side}_exr" / pair / f"frame_{n:04d}.exr")
+            assert set(exr) >= {"opacity"} and exr["opacity"].max() > 0.1
+            assert np.abs(exr["RGB"] - png).max() <= 0.5 / 255 + 1e-6   # the PNG is the EXR rounded
+    # its depth and cameras: the left's depth warped into it, cameras moved by the baseline
+    left_depth = read_dpt(t / "depth" / pair / "frame_0010.dpt")
+    right_depth = read_dpt(t / "depth_right" / pair / "frame_0010.dpt")
+    k_left, e_left = read_cam(t / "camdata_left" / pair / "frame_0010.cam")
+    k_right, e_right = read_cam(t / "camdata_right" / pair / "frame_0011.cam")
+    _, e_left2 = read_cam(t / "camdata_left" / pair / "frame_0011.cam")
+    right_from_left = np.eye(4)
+    right_from_left[0, 3] = -KITTI_BASELINE
+    np.testing.assert_allclose(k_right, k_left)
+    np.testing.assert_allclose(e_right, (right_from_left @ np.vstack([e_left2, [0, 0, 0, 1]]))[:3],
+                               atol=1e-6)
+    np.testing.assert_allclose(e_left, np.eye(4)[:3])       # KITTI: camera 1 is the world
+    expected = warp_depth(torch.from_numpy(left_depth)[None], torch.from_numpy(k_left),
+                          torch.from_numpy(right_from_left))[0].numpy()
+    np.testing.assert_allclose(right_depth, expected, rtol=1e-6)
+    # and the metadata places the right camera; the pair lists every file (resume finds them)
+    meta = read_metadata(t / "particles" / pair / "frame_0010.npz")
+    np.testing.assert_allclose(meta["right_from_left"], right_from_left, atol=1e-9)
+    np.testing.assert_allclose(meta["right_intrinsics"], k_left)
+    listed = set(json.loads(str(meta["files"])))
+    assert {f"training/snow-moderate_clean_right_exr/{pair}/frame_0011.exr",
+            f"training/depth_right/{pair}/frame_0011.dpt",
+            f"training/camdata_right/{pair}/frame_0010.cam"} <= listed

@@ -18,12 +18,13 @@ from .manifest import (MANIFEST, MANIFEST_PARTS, SUMMARY, OutputManifest, jsonab
                        write_attack_manifest, write_manifest_part, write_run_config)
 from .metadata import (METADATA_KEYS, METADATA_VERSION, identity_arrays, pair_identity,
                        pair_metadata, read_metadata, write_metadata)
-from .pairs import FORMATS, NATIVE_FLOW, SINTEL_SPLIT_FOLDER, PairOutput, write_pair_outputs  # noqa: F401  (documented above)
+from .pairs import (FORMATS, NATIVE_FLOW, SINTEL_SPLIT_FOLDER, PairOutput, RightView,  # noqa: F401
+                    write_pair_outputs)
 from .reading import WeatherFolder, load_pair_particles
 
 __all__ = ["ATTACK_FOLDER", "AttackPairOutput", "FLOW_KINDS", "FORMATS", "FolderKind", "MANIFEST",
            "MANIFEST_PARTS", "METADATA_KEYS", "METADATA_VERSION", "NATIVE_FLOW", "OutputManifest",
-           "RENDER_FOLDER", "SINTEL_SPLIT_FOLDER", "SUMMARY", "WeatherFolder", "encode_log",
+           "RENDER_FOLDER", "RightView", "SINTEL_SPLIT_FOLDER", "SUMMARY", "WeatherFolder", "encode_log",
            "folder_size", "identity_arrays", "jsonable", "load_pair_particles", "merge_manifest",
            "pair_identity", "pair_metadata", "prepare_folder", "read_attack_manifest", "read_log",
            "read_manifest", "read_metadata", "read_pair_summary", "read_run_config", "shard_part",

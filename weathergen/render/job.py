@@ -32,7 +32,7 @@ from ..engine.stereo import render_right, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
-from ..outputs import (RENDER_FOLDER, PairOutput, merge_manifest, pair_metadata, prepare_folder,
+from ..outputs import (RENDER_FOLDER, PairOutput, RightView, merge_manifest, pair_metadata, prepare_folder,
                        read_run_config, write_manifest_part, write_pair_outputs, write_run_config)
 from ..io.atomic import write_error
 from ..io.lock import FolderLock
@@ -223,24 +223,29 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
                       input=jsonable(facts), warnings=warnings)
 
 
-def _render_right(job: RenderJob, pair, particles, second: bool) -> tuple:
-    """The right camera's weather frames (the first, and the second when ``second``): the same
-    particles seen from the dataset's second camera, occluded by its forward-warped depth.
-    Shape: returns (H, W, 3) float arrays."""
+def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
+    """The right camera's outputs (the first frame, and the second when ``second``): the same
+    particles seen from the dataset's second camera, occluded by its forward-warped depth, with
+    that depth, its opacity and its cameras (in the left camera files' world)."""
     rc = right_camera(job.dataset, pair)
     _, c1, c2 = reference_transforms(pair)
     lib = load_templates(particles.settings.templates)
     start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
-    frames = []
+    k_right = pair.intrinsics if rc.intrinsics is None else rc.intrinsics
+    frames, opacity, depths, cams = [], [], [], []
     for image, depth, cam, start in ((rc.image1, pair.depth1, c1, start1),
                                      (rc.image2, pair.depth2, c2, start2))[:2 if second else 1]:
         left = View(pair.intrinsics, cam, depth)
         right_depth = warp_depth(depth, pair.intrinsics, rc.right_from_left, rc.intrinsics)
         view = stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics)
         with torch.no_grad():
-            out, _ = render_right(image, view, particles, start, disp, lib)
+            out, alpha = render_right(image, view, particles, start, disp, lib)
         frames.append(out.permute(1, 2, 0).numpy())
-    return tuple(frames)
+        opacity.append(alpha[0].numpy())
+        depths.append(right_depth[0].numpy())
+        cams.append(view.cam_from_ref.numpy())
+    return RightView(tuple(frames), tuple(opacity), tuple(depths), k_right.double().numpy(),
+                     tuple(cams), rc.right_from_left.double().numpy())
 
 
 def sequence_ends(ids: list[PairId]) -> frozenset:
@@ -290,7 +295,7 @@ def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                             job.sequence)
         native = out.native_flow(ref.id.dataset)
-        extra = list(out.frames_right_png) if job.stereo else []
+        extra = out.right_files() if job.stereo else []
         if job.truth:
             extra += list(out.truth_files().values())
             extra += [p for p in (out.native_truth(ref.id.dataset, kind)
