@@ -183,7 +183,7 @@ def _run(job, model, label, target, steps, out, quiet):
             console.print(text, highlight=False, soft_wrap=True)
 
     def on_pair_done(report):
-        clock.add(computed=report.status != "skipped")
+        clock.add(computed=report.status == "written")
         if report.summary is not None:
             rows.append(report.summary)
             if report.summary.nothing_visible and report.status == "written":

@@ -228,3 +228,26 @@ def test_stereo_with_format_both_writes_the_right_view_as_the_left(tmp_path, dem
     assert {f"training/snow-moderate_clean_right_exr/{pair}/frame_0011.exr",
             f"training/depth_right/{pair}/frame_0011.dpt",
             f"training/camdata_right/{pair}/frame_0010.cam"} <= listed
+
+
+# -- the progress rate counts computed pairs only ------------------------------------------------
+
+def test_progress_rate_counts_computed_pairs_only(fake_sintel, tmp_path):
+    from weathergen.execution import RunClock
+
+    (fake_sintel / "training" / "depth" / "alley" / "frame_0001.dpt").write_bytes(b"PIEH")
+    res = run("render", "--root", fake_sintel, "--scenes", "alley", "--frames-per-scene", "2",
+              "--set", "count=20", "--out", tmp_path / "o")
+    assert res.exit_code == 1, res.output
+    progress = [line for line in res.output.splitlines() if line.startswith("[")]
+    assert progress[0].startswith("[1/2 pairs] sintel/training/alley/0001 failed"), progress
+    assert progress[1].startswith("[2/2 pairs, ") and " pairs/h" in progress[1], progress
+    now = [0.0]
+    clock = RunClock(3, now=lambda: now[0])
+    now[0] = 1.0
+    clock.add(computed=False)                # a failed pair: done in moments, not the pace
+    assert clock.per_hour() is None and clock.pace() == "" and clock.time_left() == ""
+    now[0] = 10.0
+    clock.add()
+    assert clock.per_hour() == pytest.approx(360.0) and clock.pace() == "10.0 s/pair"
+    assert clock.time_left() == "10 s"
