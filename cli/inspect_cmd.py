@@ -9,7 +9,7 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from weathergen.engine.particles import stored_values
+from weathergen.engine.particles import TENSOR_FIELDS, Particles, stored_as
 from weathergen.io.atomic import write_error
 from weathergen.io.images import write_png
 from weathergen.outputs import read_metadata
@@ -51,20 +51,21 @@ def inspect(file: Path):
     for k, v in rows:
         head.add_row(k, v)
     console.print(head)
-    ranges = Table(title="per-particle values")
-    for col in ("field", "dtype", "shape", "min", "max", "mean"):
-        ranges.add_column(col, justify="right" if col in ("min", "max", "mean") else "left")
-    for name in ("position", "motion", "offset1", "offset2", "color", "transparency", "template",
-                 "rotation", "scale", "defocus"):
-        if name not in arrays:
-            continue
-        a = arrays[name]
-        if a.size:
-            f = stored_values(arrays, name)       # grid and 8-bit codes decoded
-            stats = (f"{f.min():.4g}", f"{f.max():.4g}", f"{f.mean():.4g}")
+    # What Particles.load gives (codes decoded), with how the file stores it beside
+    particles = Particles.load(file)
+    ranges = Table(title="per-particle values (as Particles.load reads them)")
+    for col in ("field", "dtype", "shape", "min", "max", "mean", "stored as"):
+        ranges.add_column(col, justify="right" if col in ("min", "max", "mean") else "left",
+                          no_wrap=True)
+    for name in TENSOR_FIELDS:
+        t = getattr(particles, name)
+        if t.numel():
+            f = t.double()
+            stats = (f"{f.min().item():.4g}", f"{f.max().item():.4g}", f"{f.mean().item():.4g}")
         else:
             stats = ("-", "-", "-")
-        ranges.add_row(name, str(a.dtype), str(tuple(a.shape)), *stats)
+        ranges.add_row(name, str(t.dtype).removeprefix("torch."), "×".join(map(str, t.shape)), *stats,
+                       stored_as(arrays, name))
     console.print(ranges)
 
 

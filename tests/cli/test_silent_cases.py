@@ -251,3 +251,33 @@ def test_progress_rate_counts_computed_pairs_only(fake_sintel, tmp_path):
     clock.add()
     assert clock.per_hour() == pytest.approx(360.0) and clock.pace() == "10.0 s/pair"
     assert clock.time_left() == "10 s"
+
+
+# -- inspect shows what a user reads ---------------------------------------------------------------
+
+def test_inspect_shows_the_types_a_user_reads_beside_how_they_are_stored(tmp_path, demo_root):
+    import torch
+
+    from weathergen.engine import Particles
+
+    out = tmp_path / "o"
+    res = run("render", "--scenes", "street", "--frames-per-scene", "1", "--set", "count=200",
+              "--out", out, "-q")
+    assert res.exit_code == 0, res.output
+    meta = out / "training" / "particles" / "street_0001" / "frame_0001.npz"
+    res = run("inspect", meta)
+    assert res.exit_code == 0, res.output
+    rows = {cells[0]: cells[1:] for cells in (
+        [c.strip() for c in line.strip("│ ").split("│")] for line in res.output.splitlines()
+        if line.startswith("│")) if len(cells) == 7}
+    particles = Particles.load(meta)
+    for name in ("position", "color", "rotation", "template"):
+        dtype, shape, low, high, _, stored = rows[name]
+        t = getattr(particles, name)
+        assert dtype == str(t.dtype).removeprefix("torch."), (name, rows[name])
+        assert shape == "×".join(map(str, t.shape))
+        assert float(low) == pytest.approx(t.double().min().item(), rel=1e-3, abs=1e-6)
+        assert float(high) == pytest.approx(t.double().max().item(), rel=1e-3, abs=1e-6)
+    assert rows["position"][0] == "float32" and rows["position"][-1] == "uint16 grid"
+    assert rows["color"][-1] == "uint8 /255" and rows["template"][0] == "int64"
+    assert particles.template.dtype == torch.int64

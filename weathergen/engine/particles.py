@@ -317,6 +317,20 @@ class Particles:
                    optics=optics)
 
 
+def stored_as(arrays: dict, name: str) -> str:
+    """How a particle file stores the array ``name``, for display: its numpy dtype, and how its
+    codes decode (``"uint16 grid"``: codes on ``NAME_grid``; ``"uint8 /255"``)."""
+    a = arrays[name]
+    if int(arrays.get("format_version", FORMAT_VERSION)) == FORMAT_VERSION:
+        if name in _GRID_FIELDS and f"{name}_grid" in arrays:
+            return f"{a.dtype} grid"
+        if name == "color":
+            return f"{a.dtype} /255"
+        if name == "rotation":
+            return f"{a.dtype} 2π/{_ROTATION_STEPS}"
+    return str(a.dtype)
+
+
 def stored_values(arrays: dict, name: str) -> np.ndarray:
     """The values a particle file's array ``name`` stands for (codes decoded), for display.
     Shape: as stored."""
