@@ -153,7 +153,7 @@ def test_resume_skips_finished_pairs_and_plain_rerun_refuses(attack_out, raft_sm
 def test_fog_configuration_freezes_the_second_offset(tmp_path, raft_small_weights):
     out = tmp_path / "fog"
     result = invoke(["attack", "--config", "fog", "--model", "raft-small", "--checkpoint",
-                     raft_small_weights, "--iters", "2", *ONE_PAIR, "--steps", "0", "--set", "count=2",
+                     raft_small_weights, "--iters", "2", *ONE_PAIR, "--steps", "1", "--set", "count=2",
                      "--out", out, "--target", "1.5,-2"])
     assert result.exit_code == 0, result.output
     config = json.loads((out / "manifest.json").read_text())["config"]
@@ -169,7 +169,7 @@ def test_stored_fog_particles_keep_the_second_offset_fixed(tmp_path, raft_small_
     assert rendered.exit_code == 0, rendered.output
     out = tmp_path / "attack"
     result = invoke(["attack", "--particles", fog, "--model", "raft-small", "--checkpoint",
-                     raft_small_weights, "--iters", "1", *ONE_PAIR, "--steps", "0", "--out", out])
+                     raft_small_weights, "--iters", "1", *ONE_PAIR, "--steps", "1", "--out", out])
     assert result.exit_code == 0, result.output
     config = json.loads((out / "manifest.json").read_text())["config"]
     assert config["preset_name"] == "fog"
