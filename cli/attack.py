@@ -18,8 +18,9 @@ from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.execution import RunClock, check_executor
 
-from .options import (attack_steps, dataset_options, device_option, executor_options, model_options,
-                      out_option, overwrite_option, quiet_option, resume_option, seed_option)
+from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
+                      model_options, out_option, overwrite_option, quiet_option, resume_option,
+                      seed_option)
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -38,7 +39,23 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
                   _fmt(summary["target_adversarial"]))
     table.add_row("EPE vs ground truth", _fmt(summary["epe_benign"]), _fmt(summary["epe_random"]),
                   _fmt(summary["epe_adversarial"]))
+    for row in region_rows(summary):
+        table.add_row(row[0], "", "", row[1])
     return table
+
+
+def region_rows(summary: dict) -> list[tuple[str, str]]:
+    """The figures by region and the outlier rates of a summary as (label, value) rows."""
+    def pair(a, b):
+        return f"{_fmt(summary[a])} / {_fmt(summary[b])}"
+
+    coverage = summary.get("weather_coverage")
+    covers = "" if coverage is None else f" ({coverage:.1f} % of pixels)"
+    return [(f"AEE(f, f̌) weather{covers} / clear pixels", pair("aee_weather_px", "aee_clear_px")),
+            ("EPE weather / clear pixels", pair("epe_weather_px", "epe_clear_px")),
+            ("Fl-all; outliers > 1, 3, 5 px (%)",
+             f"{_fmt(summary['fl_all'], 2)}; " + ", ".join(
+                 _fmt(summary[f"outliers_{n}px"], 2) for n in (1, 3, 5)))]
 
 
 @click.command()
@@ -81,6 +98,7 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
 @click.option("--occlusion-gradient/--no-occlusion-gradient", default=None,
               help="Soften occlusion (beta 30 instead of 250) so gradients pass through it. "
                    "Default: on for fog, off otherwise.")
+@compat_option
 @click.option("--gradient-checkpointing", is_flag=True,
               help="Recompute the network's refinement steps in the backward pass (less memory, "
                    "more time).")
@@ -96,8 +114,9 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
 @quiet_option
 def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_name, preset, set_items,
            particles_dir, steps,
-           optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, gradient_checkpointing,
-           out, seed, device, batch_size, executor, ray_address, resume, overwrite, quiet):
+           optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, compat,
+           gradient_checkpointing, out, seed, device, batch_size, executor, ray_address, resume,
+           overwrite, quiet):
     """Optimise weather particles so that a flow network's output moves towards a target.
 
     With no option it attacks RAFT with snow on the bundled demo scene into out/attack-snow.
@@ -113,7 +132,8 @@ def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_
     if method != "weather":
         lp = plan_lp(method, epsilon, steps, lr, config_name=config_name, preset=preset,
                      overrides=tuple(set_items), particles_from=particles_dir, optimize=optimize,
-                     occlusion_gradient=occlusion_gradient)
+                     occlusion_gradient=occlusion_gradient,
+                     compat=None if compat in (None, "paper") else compat)
         out = out or default_attack_out(method)
         job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
                         preset=None, preset_name=method, settings=None, target=target,
@@ -129,18 +149,19 @@ def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_
         steps = DEFAULT_STEPS if steps is None else steps
         job, label = _weather_job(dataset, model, checkpoint, iters, download, config_name,
                                   preset, set_items, particles_dir, steps, optimize, lr, alpha1,
-                                  alpha2, target, occlusion_gradient, gradient_checkpointing, out,
-                                  seed, device, resume, overwrite, execution)
+                                  alpha2, target, occlusion_gradient, compat or "paper",
+                                  gradient_checkpointing, out, seed, device, resume, overwrite,
+                                  execution)
         out = job.out
     _run(job, model, label, target, steps, out, quiet)
 
 
 def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
                  particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
-                 gradient_checkpointing, out, seed, device, resume, overwrite, execution):
+                 compat, gradient_checkpointing, out, seed, device, resume, overwrite, execution):
     plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
                        optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
-                       steps=steps, alpha1=alpha1, alpha2=alpha2)
+                       steps=steps, alpha1=alpha1, alpha2=alpha2, compat=compat)
     label = plan.label
     out = out or default_attack_out(label)
     job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
@@ -220,8 +241,10 @@ def _run(job, model, label, target, steps, out, quiet):
                   f"--resume to continue at the next unfinished pair.")
         sys.exit(130)
     if not quiet:
+        mode = "" if job.lp is not None or job.settings.compat == "paper" else \
+            f", compat {job.settings.compat}"
         console.print(summary_table(f"weathergen attack: {model}, {label}, target "
-                                    f"{target.describe()} (pixels)", summary,
+                                    f"{target.describe()}{mode} (pixels)", summary,
                                     "weather" if job.lp is None else "perturbation"))
         console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
                       soft_wrap=True)

@@ -13,7 +13,8 @@ from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.render.shards import parse_shard
 
-from .options import attack_steps, dataset_options, device_option, quiet_option, seed_option
+from .options import (attack_steps, compat_option, dataset_options, device_option, quiet_option,
+                      seed_option)
 
 
 def _names(text: str) -> list[str]:
@@ -37,7 +38,9 @@ def _checkpoints(items) -> dict:
 @click.option("--checkpoint", "checkpoint_items", multiple=True, metavar="NETWORK=CKPT",
               help="Checkpoint file or name of one network (repeatable). Default: its own.")
 @click.option("--presets", default=",".join(DEFAULT_PRESETS), show_default=True,
-              metavar="A,B,...", help="Weather presets (random and adversarial); '' for none.")
+              metavar="A,B,...",
+              help="Weather presets (random and adversarial) or attack configurations of the "
+                   "supplement (grey-offset1 ... grey-all: the paper's Table 2); '' for none.")
 @click.option("--lp", "lp_text", default=",".join(DEFAULT_LP), show_default=True,
               metavar="A,B,...", help="Lp attacks (pcfa, ifgsm); '' for none.")
 @click.option("--steps", type=int, default=None, callback=attack_steps,
@@ -55,13 +58,15 @@ def _checkpoints(items) -> dict:
               help="Fetch named checkpoints that are missing from the cache (needs a network).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path),
               default=Path("out/benchmark"), show_default=True, help="Benchmark folder.")
+@compat_option
 @seed_option("Run seed of every run (weather as `weathergen render --seed`).")
 @device_option
 @quiet_option
 def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_steps, iters,
-              set_items, shard_text, download, out, seed, device, quiet):
+              set_items, shard_text, download, out, compat, seed, device, quiet):
     """Run networks x {random weather, adversarial weather, Lp attacks} x presets and write
-    the paper's tables (CSV, JSON, Markdown, LaTeX) into OUT.
+    the paper's tables (CSV, JSON, Markdown, LaTeX; one file per table in OUT/tables) and a plot
+    of AEE per network and preset (OUT/aee.png) into OUT.
 
     Without --frames-per-scene at most 5 pairs per scene are used (the
     paper's Sintel-tr115 on Sintel training). Every run is an `attack` output under OUT/runs;
@@ -73,7 +78,7 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_s
         presets=_names(presets), lp_methods=_names(lp_text),
         checkpoints=_checkpoints(checkpoint_items), steps=steps, lp_steps=lp_steps, iters=iters,
         overrides=parse_set_options(set_items), seed=seed, device=device, download=download,
-        command=["weathergen", *sys.argv[1:]])
+        command=["weathergen", *sys.argv[1:]], compat=compat or "paper")
     shard = parse_shard(shard_text) if shard_text else None
     console = Console()
 
@@ -89,5 +94,6 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_s
     paths = write_tables(spec)
     if not quiet:
         console.print(paths["markdown"].read_text(), highlight=False, markup=False)
-        console.print(f"Tables: {paths['markdown']}, {paths['latex']}; results: {paths['csv']}, "
+        console.print(f"Tables: {paths['markdown']}, {paths['latex']} (one file per table in "
+                      f"{Path(out) / 'tables'}); plot: {paths['plot']}; results: {paths['csv']}, "
                       f"{paths['json']}", highlight=False, soft_wrap=True)

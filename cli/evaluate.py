@@ -13,6 +13,7 @@ from weathergen.engine import resolve_device
 from weathergen.models import get_model
 from weathergen.outputs import WeatherFolder
 
+from .attack import region_rows
 from .options import device_option, model_options, quiet_option
 
 
@@ -41,7 +42,9 @@ def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root
     """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
 
     Also reports the end-point error against ground truth, for the clean and the weather frames,
-    where the dataset has it. All figures are in pixels.
+    where the dataset has it, both figures on the pixels the weather covers (its opacity above
+    1/255 in either frame) and on the rest, and KITTI's Fl-all and 1/3/5 px outlier rates of the
+    weather flow. All figures are in pixels, rates in percent.
     """
     resolve_device(device)
     folder = WeatherFolder.open(weather_dir)
@@ -70,4 +73,6 @@ def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root
     table.add_row(f"mean of {summary['pairs']}", _fmt(summary["aee_weather"]),
                   _fmt(summary["epe_clean"]), _fmt(summary["epe_weather"]))
     console.print(table)
+    for label, value in region_rows(summary):
+        console.print(f"{label}: {value}", highlight=False, soft_wrap=True)
     console.print(f"Figures: {json_path}", highlight=False, soft_wrap=True)

@@ -55,6 +55,17 @@ def resume_option(help: str):
     return click.option("--resume", is_flag=True, help=help)
 
 
+def compat_option(func):
+    """``--compat``: the paper's attack terms (default) or the research code's."""
+    return click.option(
+        "--compat", type=click.Choice(("paper", "reference")), default=None,
+        help="paper (default): the attack of the paper's equations and tables; reference: the "
+             "authors' research code where it departs from them (gradients accumulated over the "
+             "steps, occlusion detached, penalty over the squared frame-1 depth, homogeneous "
+             "offsets, transparency capped at the preset's, its figures), to reproduce its "
+             "published tables. See docs/attack.md.")(func)
+
+
 def overwrite_option(help: str):
     """``--overwrite``: redo or replace what a folder holds; ``help`` says what."""
     return click.option("--overwrite", is_flag=True, help=help)

@@ -105,6 +105,18 @@ def test_attack_log_and_summary(attack_out):
     attack = manifest["config"]["attack"]
     assert attack["optimize"] == ["offset1", "offset2", "color", "transparency"]
     assert attack["lr"] == 1e-5 and attack["alpha1"] == attack["alpha2"] == 1000.0
+    assert attack["compat"] == summary["compat"] == "paper"          # the default
+    # Figures by region: the two regions split the pixels, so their AEEs, weighted by the
+    # weather's coverage, make up AEE(f, f̌) (one pair); the demo scene has ground truth.
+    share = summary["weather_coverage"] / 100
+    assert 0 < share < 1
+    assert (share * summary["aee_weather_px"] + (1 - share) * summary["aee_clear_px"]
+            == pytest.approx(summary["aee_adversarial"], rel=1e-4))
+    for key in ("epe_weather_px", "epe_clear_px", "fl_all", "outliers_1px", "outliers_3px",
+                "outliers_5px"):
+        assert summary[key] is not None and summary[key] >= 0, key
+    assert summary["outliers_1px"] >= summary["outliers_3px"] >= summary["outliers_5px"]
+    assert attack["transparency_max"] == 1.0
     (entry,) = manifest["pairs"].values()
     assert entry["status"] == "written" and entry["steps"] == 2
 
@@ -273,3 +285,24 @@ def test_missing_target_file(tmp_path, raft_small_weights):
     result = invoke(["attack", "--model", "raft-small", "--checkpoint", raft_small_weights, *ONE_PAIR,
                      "--target", tmp_path / "goal.flo", "--out", tmp_path / "x"])
     assert result.exit_code == 2 and "goal.flo" in result.output
+
+
+def test_compat_reference_is_recorded_in_manifest_and_summary(tmp_path, raft_small_weights):
+    out = tmp_path / "reference"
+    result = invoke(tiny_attack(raft_small_weights, out, "--compat", "reference"))
+    assert result.exit_code == 0, result.output
+    assert "compat reference" in result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["compat"] == "reference" and summary["aee_adversarial"] >= 0
+    attack = json.loads((out / "manifest.json").read_text())["config"]["attack"]
+    assert attack["compat"] == "reference" and attack["transparency_max"] == 0.75   # snow
+    # Resuming under the other mode is refused: the settings differ.
+    again = invoke(tiny_attack(raft_small_weights, out, "--resume"))
+    assert again.exit_code == 2 and "different settings" in again.output
+
+
+def test_compat_reference_is_refused_for_lp_attacks(tmp_path):
+    result = invoke(["attack", "--method", "ifgsm", "--compat", "reference", *ONE_PAIR,
+                     "--out", tmp_path / "x"])
+    assert result.exit_code == 2 and "--compat" in result.output and "weather" in result.output
+    assert not (tmp_path / "x").exists()

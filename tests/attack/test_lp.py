@@ -246,6 +246,10 @@ def test_cli_ifgsm_end_to_end(tmp_path, raft_small_weights):
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["target_adversarial"] < summary["target_initial"]
+    # No weather covers any pixel: every pixel is "clear", and the summary has no mode.
+    assert summary["weather_coverage"] == 0.0 and summary["aee_weather_px"] is None
+    assert summary["aee_clear_px"] == pytest.approx(summary["aee_adversarial"], rel=1e-5)
+    assert summary["fl_all"] is not None and summary["compat"] is None
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["config"]["attack"]["norm"] == "Linf"
 

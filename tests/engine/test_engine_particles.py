@@ -43,7 +43,7 @@ def test_storage_is_small_and_plain_numpy(tmp_path, snow_pair_and_particles):
         path = rec.save(tmp_path / name)
         assert path.stat().st_size < 200_000, path.stat().st_size
     with np.load(tmp_path / "sampled.npz", allow_pickle=False) as data:
-        assert int(data["format_version"]) == 4
+        assert int(data["format_version"]) == 5
         assert data["position"].dtype == np.uint16 and data["position"].shape == (3000, 3)
         assert data["position_grid"].dtype == np.float64 and data["position_grid"].shape == (2, 3)
         # three 10-bit motion codes per particle in one uint32, decoded by shifts
@@ -91,7 +91,7 @@ def test_version_1_files_are_still_read(tmp_path, snow_pair_and_particles):
 
 
 def _as_version_3(arrays: dict) -> dict:
-    """A version 4 record's entries in version 3's layout (motion codes (N, 3) uint16; numpy's
+    """A version 5 record's entries in version 3's layout (motion codes (N, 3) uint16; numpy's
     own .npz, one entry per 0-d value), as earlier releases wrote it."""
     old = dict(arrays, format_version=np.array(3, np.int32))
     w = arrays["motion"].astype(np.int64)

@@ -74,7 +74,7 @@ def test_outputs_in_the_earlier_format_re_render_bit_identically(tmp_path, demo_
         with np.load(path) as data:
             assert SCALARS not in data.files and "pair_scene" in data.files
         again = read_metadata(path)
-        assert Particles.load(path).count == Particles.from_numpy(current, path).count
+        assert Particles.load(path).count == Particles.from_arrays(current, path).count
         assert int(again["metadata_version"]) == 1
     out = tmp_path / "again"
     res = CliRunner().invoke(cli, ["render", "--out", str(out), "--particles", str(src), "-q",

@@ -390,9 +390,9 @@ def test_world_up_is_a_dataset_setting_recorded_in_the_manifest(snow_run, tmp_pa
 def test_preview_caption_outline_stays_around_the_text():
     # The dark outline must follow the white caption; a thicker stroke advances wider per
     # character and leaves a dark copy of the last letters beside the caption.
-    from weathergen.render.preview import _tile
+    from weathergen.render.preview import caption_tile
 
-    tile = _tile(np.full((100, 200, 3), 0.5, np.float32), (200, 100), "courtyard 10")
+    tile = caption_tile(np.full((100, 200, 3), 0.5, np.float32), (200, 100), "courtyard 10")
     band = tile[:30].astype(int).sum(axis=2)
     white_cols = np.nonzero((band > 3 * 200).any(axis=0))[0]
     dark_cols = np.nonzero((band < 3 * 60).any(axis=0))[0]

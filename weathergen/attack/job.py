@@ -25,6 +25,7 @@ import torch
 from ..datasets import Dataset
 from ..engine import render_pair
 from ..errors import ConfigError, WeatherGenError
+from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
 from ..io.lock import FolderLock
@@ -205,7 +206,9 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
               for f in frames]
     with torch.no_grad():
         adversarial = model(*stored).cpu()
-    summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid)
+    covered = weather_mask(rendered.opacity1, rendered.opacity2)[0, 0].cpu()
+    summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
+                             compat=job.settings.compat, covered=covered)
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
     meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
                          job.preset_name)
@@ -246,6 +249,12 @@ def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
     write_attack_pair(lp_pair_output(job, pair.id), pair.to("cpu"), frames, opacity, meta, flows,
                       result.history, asdict(summary))
     return summary
+
+
+def run_summary(job: AttackJob, rows: list[PairSummary]) -> dict:
+    """The run's summary (``summary.json``): the means over pairs (:func:`mean_summary`) and the
+    attack's ``compat`` mode (None for an Lp attack)."""
+    return {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None}
 
 
 def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
@@ -331,7 +340,8 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
         ordered = {k: pairs_entry[k] for k in order if k in pairs_entry}
         ordered.update({k: v for k, v in pairs_entry.items() if k not in ordered})
         write_attack_manifest(job.out, config, ordered,
-                              mean_summary([summaries[k] for k in order if k in summaries]), runs)
+                              run_summary(job, [summaries[k] for k in order if k in summaries]),
+                              runs)
 
     def record(report: PairReport):
         if report.status == "failed":
@@ -372,4 +382,4 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
     finally:
         run["seconds"] = round(time.perf_counter() - t0, 3)
         save()
-    return mean_summary([summaries[k] for k in order if k in summaries])
+    return run_summary(job, [summaries[k] for k in order if k in summaries])

@@ -42,14 +42,15 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Union
 
 import torch
 
 from ..errors import ConfigError
 from ..framepair import FramePair
 from ..geometry import invert_rigid, transform_points
-from .presets import FieldPreset
+from .layers import LayeredParticles, layer_seed
+from .presets import CombinedPreset, FieldPreset
 from .particles import Particles, empty_particles
 from .perframe import MAX_DEFOCUS, View, focal, view_mask
 from .sampling import (_euler, _generator, check_pair_for_engine, hls_to_rgb, reference_transforms,
@@ -372,12 +373,43 @@ def sample_field_particles(pair: FramePair, preset: FieldPreset, seed=0, *,
 
 
 def sample_weather(pair: FramePair, preset, seed=0, *, world_up: str = "auto",
-                   templates: Optional[TemplateLibrary] = None, device=None) -> Particles:
+                   templates: Optional[TemplateLibrary] = None, device=None
+                   ) -> Union[Particles, LayeredParticles]:
     """Sample a pair's particles with the preset's model: a field preset draws from the field of
     ``seed`` (:func:`sample_field_particles`), a paper preset samples the pair
-    (:func:`~weathergen.engine.sampling.sample_particles`)."""
+    (:func:`~weathergen.engine.sampling.sample_particles`), a combined preset samples each layer
+    (:func:`sample_layers`; ``seed`` may then be one seed per layer, ``templates`` is not taken)."""
+    if isinstance(preset, CombinedPreset):
+        if templates is not None:
+            raise ConfigError("a combined preset's layers each load their own templates")
+        return sample_layers(pair, preset, seed, world_up=world_up, device=device)
     if isinstance(preset, FieldPreset):
         return sample_field_particles(pair, preset, seed, world_up=world_up, templates=templates,
                                       device=device)
     return sample_particles(pair, preset, seed, world_up=world_up, templates=templates,
                             device=device)
+
+
+def sample_layers(pair: FramePair, preset: CombinedPreset, seed: Union[int, Sequence[int]] = 0, *,
+                  world_up: str = "auto", device=None) -> LayeredParticles:
+    """The particles of every layer of a combined preset for one pair.
+
+    ``seed`` is one seed per layer, or one seed from which each layer's is derived
+    (:func:`~weathergen.engine.layers.layer_seed`, by the layer's name). Each layer is sampled as
+    :func:`sample_weather` samples its preset alone with that seed, so a layer's particles depend
+    neither on the other layers nor on their order. For a field layer the seed is its field's:
+    pass each field layer a seed derived from its scene's (as ``weathergen render`` will) for the
+    pairs of a scene to share their frames.
+    """
+    if isinstance(seed, torch.Generator):
+        raise ConfigError("a combined preset takes an integer seed (or one per layer)")
+    if isinstance(seed, int):
+        seeds = tuple(layer_seed(seed, name) for name in preset.layer_names)
+    else:
+        seeds = tuple(int(s) for s in seed)
+        if len(seeds) != len(preset.layers):
+            raise ConfigError(f"{len(seeds)} seeds for the {len(preset.layers)} layers of "
+                              f"{preset.name}")
+    records = tuple(sample_weather(pair, layer, s, world_up=world_up, device=device)
+                    for layer, s in zip(preset.layers, seeds))
+    return LayeredParticles(records, preset.layer_names)

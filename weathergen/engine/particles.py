@@ -37,11 +37,13 @@ reloaded file give identical bytes.
 
 File format versions (every one is still read):
 
-- 4 (written now): the 0-d entries (reference frame, render settings, ...) gathered in one
-  ``scalars`` entry (:mod:`weathergen.io.npz`; ``format_version`` stays an entry of its own).
-  Paper records: the codes above, the three 10-bit motion codes of a particle packed into one
-  uint32 (``x << 20 | y << 10 | z``, shape (N,)). Field records (with ``optics``): the float
-  layout of version 2.
+- 5 (written now for a single record): the 0-d entries (reference frame, render settings, ...)
+  gathered in one ``scalars`` entry (:mod:`weathergen.io.npz`; ``format_version`` stays an entry
+  of its own). Paper records: the codes above, the three 10-bit motion codes of a particle packed
+  into one uint32 (``x << 20 | y << 10 | z``, shape (N,)). Field records (with ``optics``): the
+  float layout of version 2.
+- 4: the layers of a combined preset, each a single record's entries under ``layer<k>.``
+  (:mod:`weathergen.engine.layers`; read with ``LayeredParticles.load`` or ``load_particles``).
 - 3: paper records, the codes above with motion codes as uint16 (N, 3); one entry per 0-d value.
 - 2: field records, the float layout plus ``optics``.
 - 1: the float layout of version 2 without optics.
@@ -64,11 +66,13 @@ from ..io.npz import npz_bytes, read_npz
 from .optics import FieldOptics
 from .settings import RenderSettings
 
-#: Every record is written as version 4 (see the module doc).
-FORMAT_VERSION = 4
-READABLE_VERSIONS = (1, 2, 3, 4)
+#: Single records are written as version 5 (see the module doc).
+FORMAT_VERSION = 5
+#: Files of a combined preset's layers (:mod:`weathergen.engine.layers`) are version 4.
+LAYERED_FORMAT_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 5)
 #: Versions whose paper records store codes (grids, 8-bit colours and rotations).
-_CODED_VERSIONS = (3, 4)
+_CODED_VERSIONS = (3, 5)
 #: Entries a particle file keeps out of the gathered ``scalars`` (a reader must find them).
 VERSION_ENTRIES = ("format_version", "metadata_version")
 REFERENCE_FRAMES = ("world", "camera1")
@@ -240,7 +244,7 @@ class Particles:
     # -- storage -----------------------------------------------------------------------------
 
     def to_numpy(self) -> dict[str, np.ndarray]:
-        """The ``.npz`` content (format version 4): storage arrays plus 0-d metadata arrays."""
+        """The ``.npz`` content (format version 5): storage arrays plus 0-d metadata arrays."""
         if self.optics is not None:
             return self._to_numpy_field()
         arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
@@ -282,28 +286,25 @@ class Particles:
     def load(cls, path: str | Path, device=None) -> "Particles":
         """Read a record written by :meth:`save` (any readable version); FormatError names the
         file on any problem."""
-        path = Path(path)
-        try:
-            arrays = read_npz(path)
-        except FileNotFoundError:
-            raise FormatError(path, "particle file does not exist") from None
-        except Exception as exc:  # numpy raises several types for corrupt archives
-            raise FormatError(path, f"not a particle .npz file ({exc})") from None
-        return cls.from_numpy(arrays, path, device)
+        return cls.from_arrays(read_particle_arrays(path), path, device)
 
     @classmethod
-    def from_numpy(cls, arrays: dict[str, np.ndarray], path: str | Path = "<arrays>",
-                   device=None) -> "Particles":
-        """The record of a particle file's entries (as :func:`weathergen.io.npz.read_npz` gives
-        them); FormatError names ``path``."""
+    def from_arrays(cls, arrays: dict[str, np.ndarray], path: str | Path = "<arrays>",
+                    device=None) -> "Particles":
+        """The record stored as ``arrays`` (what :meth:`to_numpy` gives, or a file's entries as
+        :func:`read_particle_arrays` gives them); FormatError names ``path`` on any problem."""
+        path = Path(path)
         version = arrays.get("format_version")
         if version is None:
             raise FormatError(path, "no format_version: not a weathergen particle file")
         version = int(version)
+        if version == LAYERED_FORMAT_VERSION:
+            raise FormatError(path, "holds the layers of a combined preset; read it with "
+                                    "LayeredParticles.load (or load_particles)")
         if version not in READABLE_VERSIONS:
             raise FormatError(path, f"particle format version {version}; this weathergen "
                                     f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
-        field_record = "optics" in arrays if version == 4 else version in (1, 2)
+        field_record = "optics" in arrays if version == FORMAT_VERSION else version in (1, 2)
         coded = version in _CODED_VERSIONS and not field_record
         n = None
         fields = {}
@@ -316,7 +317,7 @@ class Particles:
             want, shape = np_dtype, (n, *tail)
             if coded:
                 want = _CODED_DTYPES.get(name, np_dtype)
-                if name == "motion" and version == 4:
+                if name == "motion" and version == FORMAT_VERSION:
                     want, shape = np.uint32, (n,)
             if a.dtype != want or a.shape != shape:
                 raise FormatError(path, f"array '{name}' is {a.dtype} {a.shape}, expected "
@@ -330,7 +331,7 @@ class Particles:
         if frame not in REFERENCE_FRAMES:
             raise FormatError(path, f"unknown reference frame {frame!r}")
         optics = None
-        if version == 2 or (version == 4 and field_record):
+        if version == 2 or (version == FORMAT_VERSION and field_record):
             if "optics" not in arrays:
                 raise FormatError(path, f"version {version} field record without 'optics'")
             try:
@@ -342,14 +343,15 @@ class Particles:
 
 
 def _decoded(arrays: dict, name: str, version: int, path) -> np.ndarray:
-    """The values of a coded record's array ``name`` (versions 3 and 4), float32 (int64 for
+    """The values of a coded record's array ``name`` (versions 3 and 5), float32 (int64 for
     integer fields)."""
     a = arrays[name]
     if name in _GRID_FIELDS:
         grid = arrays.get(f"{name}_grid")
         if grid is None or grid.dtype != np.float64 or grid.shape != (2, 3):
             raise FormatError(path, f"array '{name}_grid' must be float64 (2, 3)")
-        codes = _unpack_motion(a) if name == "motion" and version == 4 else a.astype(np.int64)
+        codes = (_unpack_motion(a) if name == "motion" and version == FORMAT_VERSION
+                 else a.astype(np.int64))
         return _ungrid(torch.from_numpy(codes), torch.from_numpy(grid[0]),
                        torch.from_numpy(grid[1])).numpy()
     if name == "color":
@@ -361,7 +363,7 @@ def _decoded(arrays: dict, name: str, version: int, path) -> np.ndarray:
 
 def _coded(arrays: dict) -> bool:
     version = int(arrays.get("format_version", FORMAT_VERSION))
-    return version in _CODED_VERSIONS and not (version == 4 and "optics" in arrays)
+    return version in _CODED_VERSIONS and not (version == FORMAT_VERSION and "optics" in arrays)
 
 
 def stored_as(arrays: dict, name: str) -> str:
@@ -376,6 +378,17 @@ def stored_as(arrays: dict, name: str) -> str:
         if name == "rotation":
             return f"{a.dtype} 2π/{_ROTATION_STEPS}"
     return str(a.dtype)
+
+
+def read_particle_arrays(path: str | Path) -> dict[str, np.ndarray]:
+    """Every entry of a particle ``.npz`` file; FormatError names the file when it cannot be read."""
+    path = Path(path)
+    try:
+        return read_npz(path)           # the gathered 0-d entries as their own arrays again
+    except FileNotFoundError:
+        raise FormatError(path, "particle file does not exist") from None
+    except Exception as exc:  # numpy raises several types for corrupt archives
+        raise FormatError(path, f"not a particle .npz file ({exc})") from None
 
 
 def stored_values(arrays: dict, name: str) -> np.ndarray:

@@ -153,7 +153,7 @@ class ViewSplat:
 
 def splat_view(view: View, record: Particles, start: torch.Tensor, displacement: torch.Tensor,
                lib, *, beta: float, chunk_elements: int, dtype, device,
-               values: Optional[torch.Tensor] = None) -> ViewSplat:
+               values: Optional[torch.Tensor] = None, detach_occlusion: bool = False) -> ViewSplat:
     """Splat a field record into one view.
 
     Shape: start (N, 3) the particles' reference positions in this view's frame, displacement
@@ -205,7 +205,7 @@ def splat_view(view: View, record: Particles, start: torch.Tensor, displacement:
     }
     beta_eff = float(beta) if optics is None else min(float(beta), 1.0 / optics.depth_softness)
     depth_flat = view.depth.to(device=device, dtype=dtype).reshape(-1)
-    acc, _ = _splat(depth_flat, inst, stamps, h, w, beta_eff, chunk_elements)
+    acc, _ = _splat(depth_flat, inst, stamps, h, w, beta_eff, chunk_elements, detach_occlusion)
     if acc is None:
         return ViewSplat(zero_alpha, torch.zeros(3, h, w, dtype=dtype, device=device), sel)
     return ViewSplat(acc[0].view(1, h, w), torch.stack([a.view(h, w) for a in acc[1:]]), sel)
@@ -219,11 +219,12 @@ def blend(image: torch.Tensor, splat: ViewSplat, mode: str) -> torch.Tensor:
 
 
 def render_view(image: torch.Tensor, view: View, record: Particles, start: torch.Tensor,
-                displacement: torch.Tensor, lib, *, beta: float, chunk_elements: int
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+                displacement: torch.Tensor, lib, *, beta: float, chunk_elements: int,
+                detach_occlusion: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """One weather frame. Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W))."""
     sp = splat_view(view, record, start, displacement, lib, beta=beta,
-                    chunk_elements=chunk_elements, dtype=image.dtype, device=image.device)
+                    chunk_elements=chunk_elements, dtype=image.dtype, device=image.device,
+                    detach_occlusion=detach_occlusion)
     return blend(image, sp, record.settings.blend), sp.alpha.clamp(0, 1)
 
 
@@ -239,7 +240,7 @@ def pair_starts(record: Particles, dtype, device) -> tuple[torch.Tensor, torch.T
 
 def render_per_frame(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam2_from_ref,
                      records: Sequence[Particles], templates, *, beta: float,
-                     chunk_elements: int):
+                     chunk_elements: int, detach_occlusion: bool = False):
     """The per-frame-appearance path of :func:`weathergen.engine.renderer.render`: every pair and
     frame is rendered as its own view. Shapes as there; returns a ``RenderOutput``."""
     outs = {k: [] for k in ("image1", "image2", "opacity1", "opacity2")}
@@ -247,7 +248,8 @@ def render_per_frame(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, 
         if rec.optics is None:   # a record of the paper's model in the same batch
             o = renderer.render(image1[b:b + 1], image2[b:b + 1], depth1[b:b + 1], depth2[b:b + 1],
                        intrinsics[b:b + 1], cam1_from_ref[b:b + 1], cam2_from_ref[b:b + 1],
-                       [rec], templates, beta=beta, chunk_elements=chunk_elements)
+                       [rec], templates, beta=beta, chunk_elements=chunk_elements,
+                       detach_occlusion=detach_occlusion)
             for key in outs:
                 outs[key].append(getattr(o, key)[0])
             continue
@@ -257,7 +259,8 @@ def render_per_frame(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, 
                                                     (image2, depth2, cam2_from_ref, start2))):
             view = View(intrinsics[b], cam[b], dep[b])
             out, alpha = render_view(img[b], view, rec, start, disp, templates, beta=beta,
-                                     chunk_elements=chunk_elements)
+                                     chunk_elements=chunk_elements,
+                                     detach_occlusion=detach_occlusion)
             outs[f"image{t + 1}"].append(out)
             outs[f"opacity{t + 1}"].append(alpha)
     return RenderOutput(**{k: torch.stack(v) for k, v in outs.items()})

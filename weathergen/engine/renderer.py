@@ -30,7 +30,8 @@ and splat core of this module.
 
 Gradients flow to ``offset1``, ``offset2`` (through the projected positions and the particle depth
 in ``V``), ``color`` and ``transparency``; use ``beta=BETA_ATTACK`` when differentiating
-through occlusion. On CUDA, ``index_add_`` uses atomics, so results may differ in the last bits
+through occlusion, and ``detach_occlusion=True`` for a ``V`` that passes no gradient (the
+authors' research code detaches it). On CUDA, ``index_add_`` uses atomics, so results may differ in the last bits
 between runs; on the CPU they are reproducible bit for bit.
 """
 
@@ -543,7 +544,8 @@ class _Splat(torch.autograd.Function):
         return (*grads, None, None, None, None, None, None, None)
 
 
-def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
+def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements,
+           detach_occlusion: bool = False):
     """The per-pixel sums A, C_r, C_g, C_b, shape (4, V H W), of every instance's weighted
     stamp, or None when no instance reaches the image; see :class:`_Splat`. Also returns which
     pairs of the batch, (B,) bool, an instance reaches (B = V / 2; a single view counts as one
@@ -553,9 +555,11 @@ def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
     shape of V H W elements (one view: (1, H, W)). Coarse buckets (large billboards) are
     splatted on their own grid, ``f`` times coarser: positions ``(u + 0.5) / f − 0.5``, scene depth averaged over
     f x f blocks; coarser grids are upsampled bilinearly into finer ones, coarsest first, and
-    the result into the image grid.
+    the result into the image grid. ``detach_occlusion``: the particle depth reaches ``V`` without
+    gradient (positions still get theirs through the bilinear splat).
     """
     depths = depths.reshape(-1, 1, height, width)
+    z = inst["z"].detach() if detach_occlusion else inst["z"]
     bsz = max(1, depths.shape[0] // 2)
     reached = torch.zeros(bsz, dtype=torch.bool, device=depths.device)
     slots = stamps.slot_of[inst["particle"]]
@@ -575,7 +579,7 @@ def _splat(depths, inst, stamps: StampSet, height, width, beta, chunk_elements):
             reached[inst["target"][sel] % bsz] = True
         sums = None
         if plan:
-            sums = _Splat.apply(u, v, inst["z"], inst["theta"], inst["color"], inst["target"],
+            sums = _Splat.apply(u, v, z, inst["theta"], inst["color"], inst["target"],
                                 slots, depth.detach().reshape(-1), plan, h, w,
                                 beta).view(-1, 1, h, w)
         if carry is not None:  # bring the coarser levels to this grid, one upsampling each
@@ -625,7 +629,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
            templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
            stamps: Optional[StampSet] = None,
            chunk_elements: int = DEFAULT_CHUNK_ELEMENTS,
-           coarse_side: Optional[int] = COARSE_SIDE) -> RenderOutput:
+           coarse_side: Optional[int] = COARSE_SIDE,
+           detach_occlusion: bool = False) -> RenderOutput:
     """Render particle records into a batch of frame pairs.
 
     Shape:
@@ -637,7 +642,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     ``coarse_side``: stamps at least this wide are splatted on a coarser grid and upsampled
     (see :func:`build_stamps`); ``None`` renders every stamp at full resolution. Ignored when
     ``stamps`` are given (they carry their own grids) and for weather-field records (their
-    per-frame path uses the default).
+    per-frame path uses the default). ``detach_occlusion``: the visibility ``V`` passes no
+    gradient to the particles' depth (the same forward pass).
     """
     records = [particles] if isinstance(particles, Particles) else list(particles)
     if image1.dim() != 4 or image1.shape[1] != 3 or image2.shape != image1.shape:
@@ -659,7 +665,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         # Weather-field records look different in each frame: one view at a time (perframe.py).
         return PER_FRAME_RENDERER(image1, image2, depth1, depth2, intrinsics.to(device),
                                 cam1_from_ref.to(device), cam2_from_ref.to(device), records,
-                                templates, beta=beta, chunk_elements=chunk_elements)
+                                templates, beta=beta, chunk_elements=chunk_elements,
+                                detach_occlusion=detach_occlusion)
 
     acc = None
     reached = torch.zeros(bsz, dtype=torch.bool, device=device)
@@ -671,7 +678,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
             stamps = build_stamps(records, templates, dtype=dtype, device=device,
                                   chunk_elements=chunk_elements, coarse_side=coarse_side)
         depths = torch.stack((depth1, depth2)).to(dtype)
-        acc, reached = _splat(depths, inst, stamps, height, width, float(beta), chunk_elements)
+        acc, reached = _splat(depths, inst, stamps, height, width, float(beta), chunk_elements,
+                              detach_occlusion)
     return blend_sums(acc, image1, image2, records, reached)
 
 
@@ -696,11 +704,13 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
                 particles: Union[Particles, Sequence[Particles]],
                 templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
                 device=None, stamps: Optional[StampSet] = None,
-                coarse_side: Optional[int] = COARSE_SIDE) -> RenderOutput:
+                coarse_side: Optional[int] = COARSE_SIDE,
+                detach_occlusion: bool = False) -> RenderOutput:
     """Render particles into a :class:`FramePair` (B = 1) or a :class:`FramePairBatch`.
 
     Picks each record's reference transforms from the pair's poses; raises ConfigError when a
     record sampled in world coordinates meets a pair without absolute poses.
+    ``detach_occlusion`` as for :func:`render`.
     Shape: returns images (B, 3, H, W) and opacities (B, 1, H, W).
     """
     dev = resolve_device(device) if device is not None else None
@@ -736,4 +746,5 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
     if dev is not None:
         records = [r.to(dev) for r in records]
     return render(**fields, cam1_from_ref=c1, cam2_from_ref=c2, particles=records,
-                  templates=templates, beta=beta, stamps=stamps, coarse_side=coarse_side)
+                  templates=templates, beta=beta, stamps=stamps, coarse_side=coarse_side,
+                  detach_occlusion=detach_occlusion)

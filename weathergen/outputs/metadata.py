@@ -1,8 +1,9 @@
 """Particle-metadata files: one ``.npz`` per pair holding the particle record and its identity.
 
-The file is the particle record of :meth:`weathergen.engine.Particles.to_numpy` plus the entries of
-:data:`METADATA_KEYS` (which pair, seed and preset the particles belong to, which files the pair
-wrote). It is written last, so a pair whose metadata loads is complete.
+The file is the particle record of :meth:`weathergen.engine.Particles.to_numpy` (a combined
+preset's: :meth:`weathergen.engine.LayeredParticles.to_numpy`, with ``layer_seeds``) plus the
+entries of :data:`METADATA_KEYS` (which pair, seed and preset the particles belong to, which files
+the pair wrote). It is written last, so a pair whose metadata loads is complete.
 
 Metadata version 2 (written now) gathers the 0-d entries in one ``scalars`` entry
 (:mod:`weathergen.io.npz`; ``metadata_version`` and ``format_version`` stay entries of their
@@ -14,6 +15,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Optional, Sequence
 
 import numpy as np
 
@@ -81,9 +83,15 @@ def identity_arrays(pair_id: PairId, seed: int, preset: dict, preset_name: str) 
     }
 
 
-def pair_metadata(particles, pair_id: PairId, seed: int, preset: dict,
-                  preset_name: str) -> dict[str, np.ndarray]:
-    """The metadata of one pair: the particle record at storage precision and its identity."""
+def pair_metadata(particles, pair_id: PairId, seed: int, preset: dict, preset_name: str,
+                  layer_seeds: Optional[Sequence[int]] = None) -> dict[str, np.ndarray]:
+    """The metadata of one pair: the particle record at storage precision and its identity.
+
+    A combined preset's :class:`~weathergen.engine.LayeredParticles` are stored in their layered
+    format (every particle's layer index included); ``layer_seeds``, one per layer, are recorded
+    as ``layer_seeds`` beside the pair's ``seed``."""
     arrays = particles.to_numpy()
     arrays.update(identity_arrays(pair_id, seed, preset, preset_name))
+    if layer_seeds is not None:
+        arrays["layer_seeds"] = np.array(list(layer_seeds), np.uint64)
     return arrays

@@ -111,6 +111,14 @@ class WeatherFolder:
             images = [read_image(p) for p in out.frames_png]
         return tuple(torch.from_numpy(img.copy()).permute(2, 0, 1).contiguous() for img in images)
 
+    def particles(self, pair_id: PairId) -> Optional[Particles]:
+        """The particles stored for a pair, or None where the folder holds none (an Lp attack's
+        metadata names the pair and the perturbation only)."""
+        path = PairOutput.of(self.root, pair_id, "", sequence=self.sequence).metadata
+        if "position" not in read_metadata(path):
+            return None
+        return load_pair_particles(self.root, pair_id, sequence=self.sequence)
+
     def clean_dataset(self, dataset: Optional[str] = None, root: Optional[str] = None,
                       pass_: Optional[str] = None) -> Dataset:
         """The dataset the weather was rendered into (as recorded), or the one given."""

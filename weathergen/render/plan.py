@@ -20,8 +20,9 @@ from typing import Mapping, NamedTuple, Optional
 
 import torch
 
-from ..engine import (APPEARANCE_KEYS, FieldPreset, Preset, RenderSettings, list_presets,
-                      load_preset)
+from ..engine import (APPEARANCE_KEYS, CombinedPreset, FieldPreset, Preset, RenderSettings,
+                      list_presets, load_preset)
+from ..engine.presets import LAYER_JOIN
 from ..errors import ConfigError
 from ..outputs import read_manifest
 
@@ -47,6 +48,11 @@ def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = Non
     overrides = dict(overrides or {})
     if particles_from is None:
         resolved = load_preset(preset_file or preset, overrides)
+        if isinstance(resolved, CombinedPreset):
+            # sampled and stored by the engine (sample_layers, LayeredParticles), not drawn yet
+            raise ConfigError(f"${{preset}} {resolved.name}: combined presets (layers joined by "
+                              f"{LAYER_JOIN}) are not yet supported by render and attack; "
+                              f"`weathergen presets {resolved.name}` shows how they resolve")
         return ResolvedPreset(resolved, Path(preset_file).stem if preset_file else preset, {})
     # Re-rendering: the sampled particles fix everything but their appearance settings.
     stored = read_manifest(particles_from, "particles_from")

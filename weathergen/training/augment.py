@@ -46,7 +46,8 @@ from typing import Mapping, Optional, Protocol, Sequence, Union, runtime_checkab
 
 import torch
 
-from ..engine import FieldPreset, Preset, load_preset, load_templates, render_pair, sample_weather
+from ..engine import (CombinedPreset, FieldPreset, Preset, load_preset, load_templates, render_pair,
+                      sample_weather)
 from ..errors import ConfigError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from .batchrender import render_records, stamps_per_record
@@ -105,6 +106,10 @@ class WeatherSource(Protocol):
         ...
 
 
+#: Loaded presets of every kind (a combined preset is refused, see :class:`PresetSource`).
+_PRESET_TYPES = (Preset, FieldPreset, CombinedPreset)
+
+
 def preset_digest(preset: Preset) -> str:
     """Eight hex digits that identify a preset's resolved values."""
     text = repr(sorted(preset.to_dict().items()))
@@ -128,7 +133,7 @@ class PresetSource:
 
     def __init__(self, preset: Union[str, Path, Preset, FieldPreset],
                  overrides: Optional[Mapping] = None, name: Optional[str] = None):
-        if isinstance(preset, (Preset, FieldPreset)):
+        if isinstance(preset, _PRESET_TYPES):
             if overrides:
                 raise ConfigError("overrides apply to presets given by name or path, "
                                   "not to a loaded Preset")
@@ -143,6 +148,9 @@ class PresetSource:
                 raise ConfigError(f"preset {preset}: {exc}") from None
             self.name = name or (Path(str(preset)).stem if str(preset).endswith(".toml")
                                  else str(preset))
+        if isinstance(self.preset, CombinedPreset):
+            raise ConfigError(f"preset {self.preset.name}: combined presets (layers joined by +) "
+                              "are not yet supported by WeatherAugment")
         self.templates = self.preset.templates
 
     @property
@@ -159,7 +167,7 @@ class PresetSource:
 
 
 def _is_source(obj) -> bool:
-    return not isinstance(obj, (str, Path, Preset, FieldPreset)) and isinstance(obj, WeatherSource)
+    return not isinstance(obj, (str, Path, *_PRESET_TYPES)) and isinstance(obj, WeatherSource)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -210,12 +218,12 @@ class WeatherAugment:
                  p: float = 0.5, seed: int = 0, *, overrides: Optional[Mapping] = None,
                  world_up: Optional[str] = None, keep_particles: bool = False,
                  exact_batches: Optional[bool] = None):
-        single = isinstance(presets, (str, Path, Preset, FieldPreset)) or _is_source(presets)
+        single = isinstance(presets, (str, Path, *_PRESET_TYPES)) or _is_source(presets)
         items = [presets] if single else list(presets)
         if not items:
             raise ConfigError("WeatherAugment needs at least one preset")
         self.sources = [s if _is_source(s) else
-                        PresetSource(s, None if isinstance(s, (Preset, FieldPreset)) else overrides)
+                        PresetSource(s, None if isinstance(s, _PRESET_TYPES) else overrides)
                         for s in items]
         names = [s.name for s in self.sources]
         if len(set(names)) != len(names):
