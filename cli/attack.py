@@ -21,6 +21,7 @@ from weathergen.execution import RunClock, check_executor
 from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
                       model_options, out_option, overwrite_option, quiet_option, resume_option,
                       seed_option)
+from .stopping import exit_interrupted, terminate_as_interrupt
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -179,7 +180,7 @@ def _run(job, model, label, target, steps, out, quiet):
     console = Console()
     err = Console(stderr=True)
     interactive = console.is_terminal and not quiet
-    state = {"n": 0}
+    state = {"n": 0, "written": 0}
     clock = None
     rows = []
     failed = []
@@ -203,8 +204,12 @@ def _run(job, model, label, target, steps, out, quiet):
         elif not quiet and (rec.step % 50 == 0 or rec.step == total_steps):
             console.print(text, highlight=False, soft_wrap=True)
 
+    def on_note(text):
+        click.echo(f"Note: {text}", err=True)
+
     def on_pair_done(report):
         clock.add(computed=report.status == "written")
+        state["written"] += report.status == "written"
         if report.summary is not None:
             rows.append(report.summary)
             if report.summary.nothing_visible and report.status == "written":
@@ -230,16 +235,16 @@ def _run(job, model, label, target, steps, out, quiet):
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
                             MofNCompleteColumn(), TimeElapsedColumn(),
                             TextColumn("{task.fields[status]}"), console=console)
+    stopped_by = None
     try:
-        if progress is not None:
-            with progress:
-                summary = run_attack(job, on_start, on_step, on_pair_done)
-        else:
-            summary = run_attack(job, on_start, on_step, on_pair_done)
+        with terminate_as_interrupt() as stopped_by:
+            if progress is not None:
+                with progress:
+                    summary = run_attack(job, on_start, on_step, on_pair_done, on_note)
+            else:
+                summary = run_attack(job, on_start, on_step, on_pair_done, on_note)
     except KeyboardInterrupt:
-        err.print(f"Interrupted with {len(rows)} of {state['n']} pair(s) finished; rerun with "
-                  f"--resume to continue at the next unfinished pair.")
-        sys.exit(130)
+        exit_interrupted(state["written"], stopped_by)
     if not quiet:
         mode = "" if job.lp is not None or job.settings.compat == "paper" else \
             f", compat {job.settings.compat}"

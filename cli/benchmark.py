@@ -8,6 +8,7 @@ from pathlib import Path
 import click
 from rich.console import Console
 
+from weathergen.attack import run_attack
 from weathergen.benchmark import (DEFAULT_LP, DEFAULT_PRESETS, BenchmarkSpec, run_grid, tr115_default, write_tables)
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
@@ -15,6 +16,7 @@ from weathergen.render.shards import parse_shard
 
 from .options import (attack_steps, compat_option, dataset_options, device_option, quiet_option,
                       seed_option)
+from .stopping import exit_interrupted, terminate_as_interrupt
 
 
 def _names(text: str) -> list[str]:
@@ -82,15 +84,29 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_s
     shard = parse_shard(shard_text) if shard_text else None
     console = Console()
 
+    written = []
+
     def on_cell(i, n, cell):
         if not quiet:
             console.print(f"[{i + 1}/{n}] {cell.network} {cell.label}", highlight=False)
 
+    def on_pair_done(report):
+        if report.status == "written":
+            written.append(report.pair)
+
+    def on_note(text):
+        click.echo(f"Note: {text}", err=True)
+
+    def execute(job):
+        return run_attack(job, on_pair_done=on_pair_done, on_note=on_note)
+
+    stopped_by = None
     try:
-        run_grid(spec, shard, on_cell=on_cell)
+        with terminate_as_interrupt() as stopped_by:
+            run_grid(spec, shard, execute=execute, on_cell=on_cell)
     except KeyboardInterrupt:
-        Console(stderr=True).print("Interrupted; run the same command again to resume.")
-        sys.exit(130)
+        # every run of the grid resumes by itself: the same command finishes it
+        exit_interrupted(len(written), stopped_by, again="rerun the same command")
     paths = write_tables(spec)
     if not quiet:
         console.print(paths["markdown"].read_text(), highlight=False, markup=False)

@@ -143,18 +143,20 @@ def dataset_options(func):
                 first_frame, depth_scale, scene_scales, camera_translation, far_depth, world_up,
                 **kwargs):
         name = dataset_name or default_dataset(root)
+        reader = DATASETS[name]
         options = dict(depth_scale=depth_scale, camera_translation=camera_translation,
                        scene_scales=load_scene_scales(scene_scales) if scene_scales else None,
                        world_up=world_up)
-        for flag, (keyword, names) in READER_OPTIONS.items():
+        for flag, keyword in READER_OPTIONS.items():
             value = kwargs.pop(flag)
             if value is not None:
-                if name not in names:
+                if keyword not in reader.options:
+                    names = [n for n, cls in DATASETS.items() if keyword in cls.options]
                     raise click.UsageError(f"--{flag.replace('_', '-')} applies to "
                                            f"{', '.join(names)} only, not to {name}")
                 options[keyword] = value
         if far_depth is not None:
-            if name in ("sintel", "demo"):
+            if reader.dense_depth:
                 raise click.UsageError(f"--far-depth does not apply to {name}: its depth is dense")
             options["far_depth"] = far_depth
         kwargs["dataset"] = open_dataset(
@@ -167,16 +169,17 @@ def dataset_options(func):
     return wrapper
 
 
-#: Options of one reader or two: option name -> (the reader's keyword, the datasets it applies to).
+#: Options of one reader or two: option name -> the reader's keyword. Which readers take it is
+#: theirs to say (:attr:`~weathergen.datasets.Dataset.options`).
 READER_OPTIONS = {
-    "fit_threshold": ("fit_threshold_px", ("kitti",)),
-    "fit_min_inliers": ("fit_min_inlier_fraction", ("kitti",)),
-    "fit_min_points": ("fit_min_points", ("kitti",)),
-    "fit_max_rms": ("fit_max_rms_px", ("kitti",)),
-    "object_map": ("use_object_map", ("kitti",)),
-    "frame_pattern": ("frame_pattern", ("custom",)),
-    "min_valid_depth": ("min_valid_depth", ("custom",)),
-    "fill_gaps": ("max_gap_px", ("kitti", "custom")),
+    "fit_threshold": "fit_threshold_px",
+    "fit_min_inliers": "fit_min_inlier_fraction",
+    "fit_min_points": "fit_min_points",
+    "fit_max_rms": "fit_max_rms_px",
+    "object_map": "use_object_map",
+    "frame_pattern": "frame_pattern",
+    "min_valid_depth": "min_valid_depth",
+    "fill_gaps": "max_gap_px",
 }
 
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import signal
 import sys
 import time
 from pathlib import Path
@@ -25,6 +23,7 @@ from weathergen.render.plan import default_batch_size, default_out, default_pass
 from .options import (ARGV_KEY, dataset_options, device_option, executor_options, out_option,
                       overwrite_option,
                       quiet_option, resume_option, seed_option)
+from .stopping import exit_interrupted, terminate_as_interrupt
 
 class _RateColumn(ProgressColumn):
     """Pairs per second (or seconds per pair when slower than one a second), of the pairs computed
@@ -40,31 +39,6 @@ def _human_bytes(n: float) -> str:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1000
     return f"{n:.1f} TB"
-
-
-@contextlib.contextmanager
-def _terminate_as_interrupt():
-    """Treat SIGTERM (``kill``, a cluster's time limit) like Ctrl-C while rendering.
-
-    Either way the run stops cleanly: the pairs in progress finish or leave no file, the manifest
-    records what was written, and ``--resume`` finishes the job. Yields a list that receives the
-    number of the signal that stopped the run.
-    """
-    stopped_by = []
-
-    def handler(signum, frame):
-        stopped_by.append(signum)
-        raise KeyboardInterrupt
-
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:          # not the main thread: leave signals alone
-        yield stopped_by
-        return
-    try:
-        yield stopped_by
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _parse_workers(ctx, param, value):
@@ -197,16 +171,14 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
                             console=console)
     stopped_by = None
     try:
-        with _terminate_as_interrupt() as stopped_by:
+        with terminate_as_interrupt() as stopped_by:
             if progress is not None:
                 with progress:
                     run_render(job, on_result, on_start, on_note)
             else:
                 run_render(job, on_result, on_start, on_note)
     except KeyboardInterrupt:
-        click.echo(f"Interrupted after {sum(r.status == 'written' for r in results)} pairs; rerun with "
-                   f"--resume to finish (finished pairs are kept).", err=True)
-        sys.exit(128 + (stopped_by[0] if stopped_by else signal.SIGINT))
+        exit_interrupted(sum(r.status == "written" for r in results), stopped_by)
     elapsed = time.perf_counter() - t0
     written = [r for r in results if r.status == "written"]
     failed = [r for r in results if r.status == "failed"]

@@ -247,6 +247,11 @@ def test_a_folder_another_run_is_writing_is_refused(attack_out, raft_small_weigh
     assert invoke(tiny_attack(raft_small_weights, out, "--resume")).exit_code == 0
 
 
+def test_a_finished_attack_leaves_no_lock_file(attack_out):
+    out, _ = attack_out
+    assert (out / "manifest.json").is_file() and not list(out.rglob(".weathergen-lock*"))
+
+
 def test_unknown_model_lists_the_known_ones(tmp_path):
     result = invoke(["attack", "--model", "flownet9", *ONE_PAIR, "--out", tmp_path / "x"])
     assert result.exit_code == 2

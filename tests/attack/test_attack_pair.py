@@ -256,7 +256,8 @@ def test_attack_runs_on_pairs_sampled_from_a_weather_field(small_pair, raft_smal
     """Field records (per-frame looks) go through the same loop: offsets and loss unchanged."""
     from weathergen.engine import load_preset, render_pair, sample_weather
 
-    particles = sample_weather(small_pair, load_preset("snow-moderate", {"far": "6"}), 4)
+    particles = sample_weather(small_pair, load_preset("snow-moderate", {"far": "6"}), 4,
+                               frame_rate=24.0)      # the demo scene's rate
     assert particles.optics is not None and particles.count > 100
     settings = AttackSettings(optimize=OPTIMIZABLE, steps=2, lr=2e-3)
     result = attack_pair(raft_small, small_pair, particles, settings, TargetSpec("zero"))

@@ -179,6 +179,13 @@ def test_rerun_resumes_without_redoing(bench, raft_small_weights):
     assert {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*.png")} == before
 
 
+def test_a_finished_benchmark_leaves_no_lock_file(bench):
+    out, _ = bench
+    runs = list((out / "runs").glob("*/*/manifest.json"))
+    assert len(runs) == len(json.loads((out / "results.json").read_text())["rows"])   # every cell ran
+    assert not list(out.rglob(".weathergen-lock*"))
+
+
 def test_bad_options_fail_before_writing(tmp_path):
     out = tmp_path / "b"
     result = invoke(["benchmark", "--presets", "hail", "--lp", "", "--out", out])

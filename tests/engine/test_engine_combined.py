@@ -10,6 +10,7 @@ import pytest
 import torch
 
 from engine_scenes import plane_pair
+from weathergen.datasets import frame_rate_of
 from weathergen.engine import (EXAMPLE_COMBINATIONS, CombinedPreset, FieldPreset, LayeredParticles,
                                Particles, Preset, layer_seed, load_particles, load_preset,
                                sample_layers, sample_weather)
@@ -22,6 +23,10 @@ def spelled(exc: pytest.ExceptionInfo) -> str:
     from weathergen.cli.options import option_of
 
     return exc.value.render(option_of)
+
+
+#: The frame rate of the test pairs' data (a dataset without a recorded rate).
+RATE = frame_rate_of("synthetic")
 
 
 @pytest.fixture(scope="module")
@@ -135,9 +140,10 @@ def test_severity_ladders_keep_their_ratios_in_combination(pair):
     # (fields drawn out to 3 m, the plane's depth is 4 m: quick)
     counts = []
     for lvl in levels:
-        layers = sample_weather(pair, load_preset(f"snow-{lvl}+fog-moderate", {"far": "3"}), seed=4)
+        layers = sample_weather(pair, load_preset(f"snow-{lvl}+fog-moderate", {"far": "3"}), seed=4,
+                                frame_rate=RATE)
         alone_near = sample_weather(pair, load_preset(f"snow-{lvl}", {"far": "3"}),
-                                    layer_seed(4, f"snow-{lvl}"))
+                                    layer_seed(4, f"snow-{lvl}"), frame_rate=RATE)
         assert same_record(layers.layer(0), alone_near)
         counts.append(layers.counts[0])
     assert counts[0] < counts[1] < counts[2]
@@ -147,21 +153,22 @@ def test_severity_ladders_keep_their_ratios_in_combination(pair):
 
 def test_each_layer_is_its_preset_alone_with_its_own_seed(pair):
     c = load_preset("snow+fog-light", {"snow.count": "300"})
-    layers = sample_layers(pair, c, seed=7)
+    layers = sample_layers(pair, c, seed=7, frame_rate=RATE)
     assert isinstance(layers, LayeredParticles) and layers.names == c.layer_names
     for name, preset, record in zip(c.layer_names, c.layers, layers.layers):
-        assert same_record(record, sample_weather(pair, preset, layer_seed(7, name)))
+        assert same_record(record, sample_weather(pair, preset, layer_seed(7, name), frame_rate=RATE))
     # same seed, same particles; the order of the layers changes no layer
-    again = sample_weather(pair, c, seed=7)
+    again = sample_weather(pair, c, seed=7, frame_rate=RATE)
     assert all(same_record(a, b) for a, b in zip(layers.layers, again.layers))
-    swapped = sample_layers(pair, load_preset("fog-light+snow", {"snow.count": "300"}), seed=7)
+    swapped = sample_layers(pair, load_preset("fog-light+snow", {"snow.count": "300"}), seed=7,
+                            frame_rate=RATE)
     assert same_record(swapped.layer("snow"), layers.layer("snow"))
     assert same_record(swapped.layer("fog-light"), layers.layer("fog-light"))
     # explicit seeds, one per layer
-    given = sample_layers(pair, c, seed=(11, 12))
-    assert same_record(given.layer(1), sample_weather(pair, c.layer(1), 11 + 1))
+    given = sample_layers(pair, c, seed=(11, 12), frame_rate=RATE)
+    assert same_record(given.layer(1), sample_weather(pair, c.layer(1), 11 + 1, frame_rate=RATE))
     with pytest.raises(ConfigError, match="3 seeds for the 2 layers"):
-        sample_layers(pair, c, seed=(1, 2, 3))
+        sample_layers(pair, c, seed=(1, 2, 3), frame_rate=RATE)
 
 
 def test_layers_never_share_random_numbers(pair):
@@ -173,7 +180,8 @@ def test_layers_never_share_random_numbers(pair):
 
 
 def test_the_layered_record_numbers_every_particle(pair):
-    layers = sample_layers(pair, load_preset("snow+fog", {"snow.count": "30", "fog.count": "4"}), 0)
+    layers = sample_layers(pair, load_preset("snow+fog", {"snow.count": "30", "fog.count": "4"}), 0,
+                           frame_rate=RATE)
     assert layers.counts == (30, 4) and layers.count == len(layers) == 34
     assert layers.layer_index().tolist() == [0] * 30 + [1] * 4
     assert torch.equal(layers.concat("position")[30:], layers.layer("fog").position)
@@ -194,7 +202,7 @@ def test_the_layered_record_numbers_every_particle(pair):
 @pytest.fixture(scope="module")
 def mixed_layers(pair):
     c = load_preset("snow+fog-light", {"snow.count": "300", "fog-light.density": "0.5"})
-    layers = sample_layers(pair, c, seed=3)
+    layers = sample_layers(pair, c, seed=3, frame_rate=RATE)
     assert min(layers.counts) > 0
     return layers
 

@@ -7,6 +7,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from engine_scenes import plane_pair, pose, rotation
+from weathergen.datasets import frame_rate_of
 from weathergen.engine import load_preset, render, sample_field_particles, sample_particles
 from weathergen.engine.flat import render_flat
 from weathergen.framepair import FramePairBatch
@@ -138,7 +139,7 @@ def test_operation_count_does_not_grow_with_particles_or_pairs():
 
 def field_records(pairs, presets, density=8.0, **overrides):
     return [sample_field_particles(p, load_preset(name, {"density": density, **overrides}),
-                                   seed=20 + i)
+                                   seed=20 + i, frame_rate=frame_rate_of(p.id.dataset))
             for i, (p, name) in enumerate(zip(pairs, presets))]
 
 

@@ -170,6 +170,26 @@ def test_invalid_override_and_unknown_preset():
     assert "unknown preset 'hail'" in str(err.value) and "snow" in str(err.value)
 
 
+def test_keys_of_both_models_are_declared_once():
+    """The keys the paper's presets and the weather fields share have one declaration: the same
+    default, the same check and the same place in `weathergen presets`."""
+    from weathergen.engine.presets import SHARED_KEYS, field_preset_keys, preset_keys
+
+    paper = {f.name: f for f in preset_keys()}
+    field = {f.name: f for f in field_preset_keys()}
+    assert set(paper) & set(field) == set(SHARED_KEYS)
+    for name in SHARED_KEYS:
+        a, b = paper[name], field[name]
+        assert a.default == b.default == SHARED_KEYS[name][0]
+        assert a.metadata["check"] is b.metadata["check"] is SHARED_KEYS[name][1]
+        assert a.metadata["main"] == b.metadata["main"]
+        assert a.metadata["doc"] and b.metadata["doc"]
+    # a shared check is the one both models run: an out-of-range value fails alike
+    for model in ("snow", "snow-light"):
+        with pytest.raises(ConfigError, match="hue_jitter"):
+            load_preset(model, {"hue_jitter": "181"})
+
+
 def test_template_folder_problems_name_the_key_at_load_time(tmp_path):
     (tmp_path / "empty").mkdir()
     f = tmp_path / "mine.toml"

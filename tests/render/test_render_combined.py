@@ -47,9 +47,9 @@ def test_each_layer_seed_comes_from_its_own_models_seed():
 def test_a_runs_pair_samples_every_layer_with_its_seed():
     pair = plane_pair(40, 56)
     c = load_preset("snow+fog-light", {"snow.count": "100"})
-    layers = pair_particles(pair, c, 3)
+    layers = pair_particles(pair, c, 3, frame_rate=30.0)
     assert isinstance(layers, LayeredParticles)
-    expected = sample_layers(pair, c, layer_seeds(c, 3, pair.id))
+    expected = sample_layers(pair, c, layer_seeds(c, 3, pair.id), frame_rate=30.0)
     for a, b in zip(layers.layers, expected.layers):
         assert torch.equal(a.position, b.position) and a.settings == b.settings
 
@@ -97,7 +97,7 @@ def test_inspect_shows_the_layers_of_a_metadata_file(tmp_path):
 
     pair = plane_pair(40, 56)
     c = load_preset("snow+fog", {"snow.count": "50", "fog.count": "3"})
-    layers = sample_layers(pair, c, (1, 2))
+    layers = sample_layers(pair, c, (1, 2), frame_rate=30.0)
     arrays = pair_metadata(layers, pair.id, 5, c.to_dict(), c.name, layer_seeds=(1, 2))
     arrays["files"] = np.array(json.dumps([]))
     path = write_metadata(tmp_path / "frame_0001.npz", arrays)

@@ -306,6 +306,14 @@ def test_stale_lock_of_a_killed_run_is_reported_and_taken_over(tmp_path):
     assert f"stale lock of pid {proc.pid} on {socket.gethostname()}" in res.output
 
 
+def test_a_finished_render_leaves_no_lock_file(tmp_path, clean_six):
+    assert not list(clean_six.rglob(".weathergen-lock*"))
+    out = tmp_path / "shards"                      # each shard's own lock file goes too
+    for shard in ("1/2", "2/2"):
+        assert run("render", "--out", out, "--shard", shard, "-q", *TWO).exit_code == 0
+    assert not list(out.rglob(".weathergen-lock*"))
+
+
 def test_resume_of_one_shard_spares_the_temporary_files_of_another(tmp_path):
     out = tmp_path / "shards"
     assert run("render", "--out", out, "--shard", "1/2", "-q", *TWO).exit_code == 0

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from weathergen.datasets import open_dataset
+from weathergen.datasets import DATASETS, open_dataset
 from weathergen.engine import load_preset, sample_field_particles
 from weathergen.errors import ConfigError, ShapeError
 from weathergen.framepair import _TENSOR_FIELDS
@@ -190,7 +190,8 @@ def test_field_presets_render_in_both_paths_as_the_field_samples_them(samples):
         assert int(changed.sum()) > 50
         if out.weather.source == "snow-light":
             # the record is the field's, drawn from the draw's seed, with per-frame looks
-            expected = sample_field_particles(s.pair, field.preset, out.weather.seed)
+            expected = sample_field_particles(s.pair, field.preset, out.weather.seed,
+                                              frame_rate=DATASETS[s.pair.id.dataset].frame_rate)
             assert out.particles.optics is not None and out.particles.count > 100
             assert torch.equal(out.particles.position, expected.position)
         else:

@@ -23,7 +23,7 @@ from .compat import COMPAT_MODES
 from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
 from .evaluate import (EvalRow, default_evaluation_path, evaluate_frames, mean_rows,
                        run_evaluation, write_evaluation)
-from .job import AttackJob, PairReport, attack_refs, prepare_attack_folder, run_attack
+from .job import AttackJob, PairReport, attack_refs, run_attack
 from .lp import (LP_DEFAULTS, LP_METHODS, LpOptimisation, LpResult, LpSettings, l2_normalised,
                  l2_normalised_per_pair, lp_attack_batch, lp_attack_pair, lp_pass_name,
                  lp_settings, plan_lp, random_perturbation)
@@ -47,6 +47,6 @@ __all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpRes
            "attack_loss", "attack_batch", "attack_pair", "attack_refs", "BatchOptimisation",
            "default_evaluation_path", "default_lr", "evaluate_frames",
            "mean_rows", "mean_summary", "offset_penalty", "parse_optimize", "parse_target",
-           "particle_depths", "prepare_attack_folder", "read_target_flow", "run_attack",
+           "particle_depths", "read_target_flow", "run_attack",
            "run_evaluation", "summarize_pair", "target_flow", "transparency_bound",
            "write_evaluation"]

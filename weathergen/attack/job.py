@@ -28,12 +28,9 @@ from ..errors import ConfigError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
-from ..io.lock import FolderLock
 from ..models import get_model
-from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pair_metadata,
-                       prepare_folder, read_attack_manifest, read_pair_summary,
-                       write_attack_manifest, write_attack_pair)
-from ..outputs.folder import lock_folder, released_on_failure
+from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
+                       pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
 from ..render.particles import pair_particles, pair_seed, weather_seed
 from .lp import LpSettings, lp_attack_batch
@@ -152,7 +149,7 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
             pair = job.dataset.load(ref)
             particles = None if job.lp is not None else pair_particles(
                 pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
-                particles_from=job.particles_from)
+                frame_rate=job.dataset.frame_rate, particles_from=job.particles_from)
         except WeatherGenError as exc:
             reports[ref.id.key] = PairReport(str(ref.id), "failed", message=str(exc),
                                              key=ref.id.key)
@@ -214,7 +211,7 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
                          job.preset_name)
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
-    out = AttackPairOutput.of(job.out, pair.id, job.pass_name)
+    out = pair_output(job, pair.id)
     write_attack_pair(out, pair.to("cpu"), frames, opacity, meta, flows, result.history,
                       asdict(summary))
     return summary
@@ -223,13 +220,15 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
 def lp_pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
     """Where an Lp-attacked pair goes: the attack layout, with float EXR frames besides the PNGs
     (an Lp perturbation is finer than the 8-bit steps of a PNG)."""
-    return AttackPairOutput(PairOutput.of(job.out, pair_id, job.pass_name, "both", geometry=True))
+    return AttackPairOutput(PairOutput.of(job.out, pair_id, job.pass_name, "both", geometry=True,
+                                          native=job.dataset.native_flow))
 
 
 def pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
     """Where the job writes a pair."""
     return (lp_pair_output(job, pair_id) if job.lp is not None
-            else AttackPairOutput.of(job.out, pair_id, job.pass_name))
+            else AttackPairOutput.of(job.out, pair_id, job.pass_name,
+                                     native=job.dataset.native_flow))
 
 
 def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
@@ -263,41 +262,24 @@ def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
 
 
 #: The lock file of an attack folder: one run at a time writes it.
-ATTACK_LOCK = ".weathergen-lock"
-
-
-def prepare_attack_folder(job: AttackJob) -> tuple[Optional[dict], FolderLock]:
-    """Create or reuse the job's folder (see :func:`~weathergen.outputs.prepare_folder`), locked.
-
-    Returns the manifest of the run it resumes (if any) and the folder's lock, held: the caller
-    releases it when the run ends. A second run in the same folder is refused while this one holds
-    it (:class:`~weathergen.io.lock.FolderBusy`).
-    """
-    out = Path(job.out)
-    lock = lock_folder(out, ATTACK_FOLDER, ATTACK_LOCK, job.config(), resume=job.resume,
-                       overwrite=job.overwrite)
-    with released_on_failure(lock, out):
-        # Read under the lock: what the run before us recorded is final.
-        previous = None
-        if not job.overwrite and (out / MANIFEST).exists():
-            previous = read_attack_manifest(out) if (out / ATTACK_FOLDER.marker).exists() else None
-        prepare_folder(out, ATTACK_FOLDER, job.config(), previous=None if previous is None
-                       else previous.get("config", {}), resume=job.resume,
-                       overwrite=job.overwrite, ignore=(ATTACK_LOCK,))
-    return previous, lock
+ATTACK_LOCK = lock_file()
 
 
 def run_attack(job: AttackJob,
                on_start: Callable[[int], None] = lambda n: None,
                on_step: Callable[[str, StepRecord], None] = lambda name, r: None,
-               on_pair_done: Callable[[PairReport], None] = lambda r: None) -> dict:
+               on_pair_done: Callable[[PairReport], None] = lambda r: None,
+               on_note: Callable[[str], None] = lambda text: None) -> dict:
     """Attack every selected pair; return the manifest's summary (mean figures).
 
     Pairs complete on disk are skipped when resuming. Pairs go in work units of
     ``job.batch_size`` (each optimised together where they share a size), run here or as Ray
     tasks (``job.executor``). The manifest is rewritten after every unit, so an interrupted run
     (Ctrl-C, or a killed driver) keeps what it finished. ``on_step`` receives the pair's name and
-    each step (local executor only: Ray tasks report whole pairs).
+    each step (local executor only: Ray tasks report whole pairs); ``on_note`` warnings worth a
+    line (a stale lock taken over). The output folder is claimed for the run
+    (:func:`~weathergen.outputs.claim_folder`): a second run in it raises
+    :class:`~weathergen.errors.FolderBusy`.
     """
     check_executor(job.executor)
     if job.batch_size < 1:
@@ -313,12 +295,10 @@ def run_attack(job: AttackJob,
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
     if not local:
         model = None
-    previous, lock = prepare_attack_folder(job)
-    try:
-        return _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_step,
-                              on_pair_done)
-    finally:
-        lock.release()
+    with claim_folder(job.out, ATTACK_FOLDER, job.config(), resume=job.resume,
+                      overwrite=job.overwrite, on_note=on_note) as claim:
+        return _attack_locked(job, refs, model, target_file_flow, claim.previous, on_start,
+                              on_step, on_pair_done)
 
 
 def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_step,

@@ -43,6 +43,7 @@ from typing import Optional, Sequence
 from .. import __version__
 from ..attack.figures import FIGURE_KEYS
 from ..io.atomic import atomic_write_bytes
+from ..outputs import read_summary
 from .grid import BenchmarkSpec, checkpoint_record, label_config, network_name
 from .plot import draw_aee
 
@@ -87,7 +88,7 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
     records = {net: checkpoint_record(net, spec.checkpoints.get(net)) for net in spec.networks}
     for cell in spec.cells():
         folder = cell.folder(spec.out)
-        summary = _read_summary(folder)
+        summary = read_summary(folder)
         row = {"network": cell.network, "kind": cell.kind, "label": cell.label,
                "pairs": summary.get("pairs") if summary else None}
         for key in FIGURES:
@@ -98,13 +99,6 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
                    folder=str(folder.relative_to(spec.out)))
         rows.append(row)
     return rows
-
-
-def _read_summary(folder: Path) -> Optional[dict]:
-    path = folder / "summary.json"
-    if not path.is_file():
-        return None
-    return json.loads(path.read_text())
 
 
 # -- the tables as data --------------------------------------------------------------------------

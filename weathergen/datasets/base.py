@@ -152,6 +152,16 @@ class Problem:
 
 
 @dataclass(frozen=True)
+class NativeFlow:
+    """How a dataset stores its ground-truth flow, so that outputs can write the flow in the same
+    form beside Sintel's ``.flo``: the folder name (``flow_occ``) and the file format (``"kitti-png"``:
+    KITTI's 16-bit PNG of u, v and valid; ``"flo5"``: Spring's HDF5, NaN where not valid)."""
+
+    folder: str
+    format: str
+
+
+@dataclass(frozen=True)
 class PairRef:
     """A frame pair as listed: its identity and the files it is read from (None when missing)."""
 
@@ -169,6 +179,21 @@ class Dataset(ABC):
     #: How flow networks pad this dataset's frames in its benchmark protocol: "even" (top and
     #: bottom alike, as on Sintel) or "bottom" (KITTI); see :mod:`weathergen.models.padding`.
     padding: str = "even"
+    #: Frames per second of the dataset's sequences: a weather field's particles move
+    #: ``velocity / frame_rate`` per frame (unless the preset sets its own ``frame_rate``). Data
+    #: without a recorded rate gets 30.
+    frame_rate: float = 30.0
+    #: True where the dataset has one rendering of its frames (no ``pass_`` to choose).
+    single_pass: bool = True
+    #: True where every pixel has a depth; False where the reader gives pixels without a
+    #: measurement (sky) its ``far_depth``.
+    dense_depth: bool = True
+    #: The form of the dataset's own ground-truth flow that outputs also write, None for none
+    #: beyond Sintel's ``.flo``.
+    native_flow: Optional[NativeFlow] = None
+    #: The reader's own keyword options (beyond the selection and the depth options every reader
+    #: with depth takes), which the command line offers only for the readers that list them.
+    options: tuple[str, ...] = ()
 
     def __init__(self, root: str | Path, selection: Selection = Selection()):
         self.root = Path(root)

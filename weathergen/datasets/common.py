@@ -116,6 +116,8 @@ class FarDepthDataset(ScaledDataset):
 
     #: Names the ``--split`` option accepts, mapped to the folder below the root.
     split_folders: dict[str, str] = {}
+    dense_depth = False
+    options = ("far_depth",)
 
     def __init__(self, root, selection: Selection = Selection(), *, far_depth: Optional[float] = None,
                  **scaling):

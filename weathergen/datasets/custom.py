@@ -63,6 +63,7 @@ class CustomDataset(FarDepthDataset):
     name = "custom"
     split_folders = {"training": "."}
     required_files = ("image1", "image2", "cameras", "depth1", "depth2")
+    options = FarDepthDataset.options + ("frame_pattern", "min_valid_depth", "max_gap_px")
 
     def __init__(self, root, selection: Selection = Selection(), *, frame_pattern: Optional[str] = None,
                  min_valid_depth: float = DEFAULT_MIN_VALID_DEPTH,

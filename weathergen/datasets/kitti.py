@@ -64,7 +64,7 @@ import torch
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.kitti_formats import read_disparity_png, read_flow_png, read_object_map, stereo_camera
-from .base import PairRef, Selection
+from .base import NativeFlow, PairRef, Selection
 from .camera_motion import (FitSettings, MotionFit, backproject_pixels, check_fit, fit_motion_pnp,
                             match_features)
 from .common import FarDepthDataset, check_size, chw, read_frames, require_files, scaled_motion
@@ -92,6 +92,11 @@ class KittiDataset(FarDepthDataset):
     split_folders = {"training": "training", "train": "training", "testing": "testing", "test": "testing"}
     #: Flow networks are evaluated on KITTI with the padding at the bottom (and split left/right).
     padding = "bottom"
+    frame_rate = 10.0                # its cameras record at 10 Hz
+    native_flow = NativeFlow("flow_occ", "kitti-png")
+    options = FarDepthDataset.options + (
+        "max_gap_px", "fit", "fit_threshold_px", "fit_min_points", "fit_min_inlier_fraction",
+        "fit_max_rms_px", "use_object_map")
 
     def __init__(self, root, selection: Selection = Selection(), *, max_gap_px: float = 24.0,
                  fit: Optional[FitSettings] = None, fit_threshold_px: Optional[float] = None,

@@ -80,6 +80,8 @@ class SintelDataset(ScaledDataset):
 
     name = "sintel"
     required_files = ("image1", "image2", "depth1", "depth2", "cam1", "cam2")
+    frame_rate = 24.0                # cut from Blender open movies made at 24 fps
+    single_pass = False              # clean and final (and whichever other passes a tree holds)
 
     def __init__(self, root, selection: Selection = Selection(), **scaling):
         super().__init__(root, selection, **scaling)

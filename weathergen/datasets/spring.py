@@ -39,7 +39,7 @@ import numpy as np
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
-from .base import PairRef, Selection, frame_numbers
+from .base import NativeFlow, PairRef, Selection, frame_numbers
 from .common import FarDepthDataset, check_size, read_frames, require_files
 
 _FRAME_RE = re.compile(r"^frame_left_(\d{4,})\.png$")
@@ -53,6 +53,9 @@ class SpringDataset(FarDepthDataset):
 
     name = "spring"
     split_folders = {"train": "train", "training": "train", "test": "test", "testing": "test"}
+    frame_rate = 24.0                # cut from a Blender open movie made at 24 fps
+    native_flow = NativeFlow("flow_FW_left", "flo5")
+    options = FarDepthDataset.options + ("extrinsics", "baseline")
 
     def __init__(self, root, selection: Selection = Selection(), *, extrinsics: str = "world-to-camera",
                  baseline: float = SPRING_BASELINE, **options):

@@ -20,8 +20,8 @@ from .layers import LayeredParticles, layer_seed, load_particles
 from .particles import Particles, empty_particles, from_atanh, to_atanh
 from .perframe import View, render_view
 from .optics import FieldOptics
-from .presets import (DATASET_FRAME_RATES, EXAMPLE_COMBINATIONS, CombinedPreset, FieldPreset, Preset,
-                      list_presets, load_preset, parse_override, parse_set_options, preset_keys)
+from .presets import (EXAMPLE_COMBINATIONS, CombinedPreset, FieldPreset, Preset, list_presets,
+                      load_preset, parse_override, parse_set_options, preset_keys)
 from .renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps, render,
                        render_pair)
 from .sampling import (reference_transforms, resolve_device, sample_particles, visible_counts,
@@ -30,7 +30,7 @@ from .settings import APPEARANCE_KEYS, RenderSettings
 from .templates import (TemplateLibrary, generate_templates, load_templates,
                         write_builtin_templates)
 
-__all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset", "DATASET_FRAME_RATES",
+__all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset",
            "EXAMPLE_COMBINATIONS", "Field", "FieldOptics", "FieldPreset", "LayeredParticles",
            "ParticleTruth", "Particles", "Preset", "RenderOutput",
            "RenderSettings", "StampSet", "TemplateLibrary", "View", "build_stamps",

@@ -93,6 +93,30 @@ def _key(default, check=None, doc: str = "", main: bool = False):
     return field(default=default, metadata={"check": check, "doc": doc, "main": main})
 
 
+#: The keys of both weather models (the paper's :class:`Preset` and :class:`FieldPreset`), declared
+#: here once: name -> (default, check, description, main). ``transparency`` and ``blur_samples``
+#: mean something model-specific, which each model's description says.
+SHARED_KEYS = {
+    "description": ("", None, "free text shown by `weathergen presets`", False),
+    "templates": ("flakes", _templates,
+                  "template library: flakes, dust, or a folder of grey-scale PNGs", True),
+    "color": ((255, 255, 255), _rgb, "base colour, 8-bit RGB", True),
+    "hue_jitter": (0.0, _number(0, 180), "random hue change, +- degrees", False),
+    "lightness_jitter": (0.0, _number(0, 1), "random HLS lightness change, +-", False),
+    "saturation_jitter": (0.0, _number(0, 1), "random HLS saturation change, +-", False),
+    "blend": ("additive", _choice(BLEND_MODES),
+              "additive (glow) or alpha (order-independent alpha blending)", True),
+    "transparency": (0.75, _number(0, 2), "", True),
+    "blur_samples": (1, _number(1, 1000), "", True),
+}
+
+
+def _shared(name: str, doc: str = ""):
+    """A key of :data:`SHARED_KEYS` (``doc``: the model's own description, where it has one)."""
+    default, check, text, main = SHARED_KEYS[name]
+    return _key(default, check, doc or text, main)
+
+
 @dataclass(frozen=True)
 class Preset:
     """One weather configuration, fully resolved and validated. Every field is a preset key.
@@ -101,26 +125,23 @@ class Preset:
     angles in degrees, colours as 8-bit RGB.
     """
 
-    description: str = _key("", doc="free text shown by `weathergen presets`")
+    description: str = _shared("description")
     # -- particle base properties
     count: int = _key(3000, _count, "number of particles per frame pair", main=True)
     size: int = _key(71, _odd_size, "template side in pixels at depth <= 1/depth_decay (odd)",
                      main=True)
     depth_decay: float = _key(9.0, _number(0, 1e6, lo_open=True),
                               "size scales by min(1, 1/(depth * depth_decay))", main=True)
-    templates: str = _key("flakes", _templates,
-                          "template library: flakes, dust, or a folder of grey-scale PNGs",
-                          main=True)
+    templates: str = _shared("templates")
     # -- colour
-    color: tuple = _key((255, 255, 255), _rgb, "base colour, 8-bit RGB", main=True)
-    hue_jitter: float = _key(0.0, _number(0, 180), "random hue change, +- degrees")
-    lightness_jitter: float = _key(0.0, _number(0, 1), "random HLS lightness change, +-")
-    saturation_jitter: float = _key(0.0, _number(0, 1), "random HLS saturation change, +-")
-    blend: str = _key("additive", _choice(BLEND_MODES),
-                      "additive (glow) or alpha (order-independent alpha blending)", main=True)
-    transparency: float = _key(0.75, _number(0, 2),
-                               "theta = this x depth hat (the hat peaks at 0.73), or this value "
-                               "itself when transparency_mode is constant", main=True)
+    color: tuple = _shared("color")
+    hue_jitter: float = _shared("hue_jitter")
+    lightness_jitter: float = _shared("lightness_jitter")
+    saturation_jitter: float = _shared("saturation_jitter")
+    blend: str = _shared("blend")
+    transparency: float = _shared("transparency",
+                                  "theta = this x depth hat (the hat peaks at 0.73), or this value "
+                                  "itself when transparency_mode is constant")
     transparency_mode: str = _key("depth", _choice(TRANSPARENCY_MODES),
                                   "depth: hat over depth; constant: theta for every particle")
     # -- motion
@@ -134,7 +155,7 @@ class Preset:
     motion_blur: bool = _key(False, None, "render K samples along the 3D motion", main=True)
     blur_length: float = _key(0.0, _number(0, 10),
                               "blur streak as a fraction of the frame-to-frame motion", main=True)
-    blur_samples: int = _key(1, _number(1, 1000), "samples K per blurred particle", main=True)
+    blur_samples: int = _shared("blur_samples", "samples K per blurred particle")
     # -- out-of-focus blur
     defocus: bool = _key(True, None, "disc blur for particles near the focal distance")
     defocus_brighten: bool = _key(True, None,
@@ -402,14 +423,10 @@ def parse_set_options(items: list[str] | tuple[str, ...]) -> dict[str, str]:
 # key and the value.
 #
 # Frame rates: particles move ``velocity / frame_rate`` scene units per frame. ``frame_rate = 0``
-# (the default) takes the dataset's rate from :data:`DATASET_FRAME_RATES`; any other value overrides
-# it (``--set frame_rate=30``).
+# (the default) takes the dataset's rate, which its reader declares
+# (:attr:`weathergen.datasets.Dataset.frame_rate`) and the caller passes in; any other value
+# overrides it (``--set frame_rate=30``).
 
-#: Frames per second of each dataset's sequences. Sintel and Spring come from Blender open movies
-#: made at 24 fps; KITTI's cameras record at 10 Hz; the bundled demo scene is defined at 24 fps.
-#: Custom data has no recorded rate: 30 fps is assumed unless the preset's frame_rate says otherwise.
-DATASET_FRAME_RATES = {"sintel": 24.0, "spring": 24.0, "kitti": 10.0, "demo": 24.0, "custom": 30.0}
-DEFAULT_FRAME_RATE = 30.0
 #: At most this many particles in one tile of the field (memory of the tile and of a frame's cull).
 MAX_TILE_PARTICLES = 2_000_000
 
@@ -428,23 +445,21 @@ class FieldPreset:
     times in seconds, angles in degrees, colours 8-bit RGB.
     """
 
-    description: str = _key("", doc="free text shown by `weathergen presets`")
+    description: str = _shared("description")
     # -- how many and how large
     density: float = _key(100.0, _number(0, 1e7, lo_open=True),
                           "particles per cubic scene unit", main=True)
     diameter: float = _key(0.005, _number(0, 1e3, lo_open=True),
                            "particle diameter, scene units", main=True)
     diameter_jitter: float = _key(0.3, _number(0, 0.9), "diameter x (1 + U[-f, f])")
-    templates: str = _key("flakes", _templates,
-                          "template library: flakes, dust, or a folder of grey-scale PNGs", main=True)
+    templates: str = _shared("templates")
     # -- colour and opacity
-    color: tuple = _key((255, 255, 255), _rgb, "base colour, 8-bit RGB", main=True)
-    hue_jitter: float = _key(0.0, _number(0, 180), "random hue change, +- degrees")
-    lightness_jitter: float = _key(0.0, _number(0, 1), "random HLS lightness change, +-")
-    saturation_jitter: float = _key(0.0, _number(0, 1), "random HLS saturation change, +-")
-    blend: str = _key("additive", _choice(BLEND_MODES),
-                      "additive (glow) or alpha (order-independent alpha blending)", main=True)
-    transparency: float = _key(0.75, _number(0, 2), "base theta before the depth fade", main=True)
+    color: tuple = _shared("color")
+    hue_jitter: float = _shared("hue_jitter")
+    lightness_jitter: float = _shared("lightness_jitter")
+    saturation_jitter: float = _shared("saturation_jitter")
+    blend: str = _shared("blend")
+    transparency: float = _shared("transparency", "base theta before the depth fade")
     # -- motion, per second
     fall_speed: float = _key(1.0, _number(-1e3, 1e3),
                              "speed along the world's down axis, scene units/s (< 0 rises)",
@@ -460,7 +475,7 @@ class FieldPreset:
     exposure: float = _key(0.0, _number(0, 10),
                            "exposure time, s: streak length = velocity x exposure "
                            "(at most one frame interval); 0: no streak", main=True)
-    blur_samples: int = _key(1, _number(1, 1000), "samples along a streak", main=True)
+    blur_samples: int = _shared("blur_samples", "samples along a streak")
     # -- where particles are drawn and how the lens sees them
     near: float = _key(0.1, _number(0, 1e6, lo_open=True),
                        "nearest camera depth drawn, scene units (fade-in up to 2 x near)")
@@ -490,11 +505,16 @@ class FieldPreset:
         """Particles per tile: ``round(density x tile^3)``."""
         return int(round(self.density * self.tile ** 3))
 
-    def frame_rate_for(self, dataset: str) -> float:
-        """The frame rate used for ``dataset``: the preset's when set, else the dataset's."""
+    def frame_rate_for(self, dataset_rate: Optional[float]) -> float:
+        """The frame rate used on a dataset recorded at ``dataset_rate`` frames per second: the
+        preset's when set, else the dataset's (ConfigError when neither is known)."""
         if self.frame_rate > 0:
             return self.frame_rate
-        return DATASET_FRAME_RATES.get(dataset, DEFAULT_FRAME_RATE)
+        if dataset_rate is None:
+            raise ConfigError(f"{self.source}: a weather field needs a frame rate: pass the "
+                              "dataset's ${frame_rate} (its reader's frame_rate), or set the "
+                              "preset's frame_rate")
+        return float(dataset_rate)
 
     def streak_fraction(self, frame_rate: float) -> float:
         """The streak as a fraction of one frame's displacement: ``exposure x frame_rate``, at

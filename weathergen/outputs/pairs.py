@@ -18,8 +18,9 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/camdata_left/PAIR/frame_FFFF.cam   formats (depth and cameras after the depth scale),
     OUT/SPLIT/flow/PAIR/frame_FFFF.flo        and ground-truth flow where the input has it
     OUT/SPLIT/invalid/PAIR/frame_FFFF.png     non-zero where that flow is not valid (sparse flow)
-    OUT/SPLIT/flow_occ/PAIR/frame_FFFF.png    the same flow in KITTI's 16-bit PNG format (KITTI input)
-    OUT/SPLIT/flow_FW_left/PAIR/frame_FFFF.flo5   ... in Spring's HDF5 format (Spring input)
+    OUT/SPLIT/flow_occ/PAIR/frame_FFFF.png    the same flow in the input's own form, where its reader
+    OUT/SPLIT/flow_FW_left/PAIR/frame_FFFF.flo5   declares one (``Dataset.native_flow``): KITTI's
+                                              16-bit PNG, Spring's HDF5
 
 With particle ground truth (``--particle-truth``; see :mod:`weathergen.engine.groundtruth`)::
 
@@ -43,9 +44,11 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
+from ..datasets import NativeFlow
 from ..engine.groundtruth import seen_flow
 from ..errors import FormatError
 from ..framepair import FramePair, PairId
@@ -59,8 +62,9 @@ from .metadata import read_metadata, write_metadata
 FORMATS = ("png", "exr", "both")
 #: The largest flow magnitude (per component, pixels) a KITTI flow PNG can hold, exclusive.
 KITTI_FLOW_LIMIT = 511.98
-#: Datasets whose ground-truth flow is also written in their own format: folder and extension.
-NATIVE_FLOW = {"kitti": ("flow_occ", "png"), "spring": ("flow_FW_left", "flo5")}
+#: The file extension of each form of flow a dataset may store natively
+#: (:attr:`~weathergen.datasets.Dataset.native_flow`): KITTI's 16-bit PNG, Spring's HDF5.
+NATIVE_FLOW = {"kitti-png": "png", "flo5": "flo5"}
 #: Outputs are Sintel trees, so input splits named otherwise (Spring's ``train``, KITTI's
 #: ``testing``) get Sintel's folder name; the metadata keeps the input's own split.
 SINTEL_SPLIT_FOLDER = {"train": "training", "testing": "test"}
@@ -101,13 +105,15 @@ class PairOutput:
     geometry: bool = True
     truth: bool = False
     sequence: bool = False
+    #: the input's own form of flow, written beside Sintel's (its reader's ``native_flow``)
+    native: Optional[NativeFlow] = None
 
     @classmethod
     def of(cls, root, pair_id: PairId, pass_name: str, fmt: str = "png", geometry: bool = True,
-           truth: bool = False, sequence: bool = False):
+           truth: bool = False, sequence: bool = False, native: Optional[NativeFlow] = None):
         split = SINTEL_SPLIT_FOLDER.get(pair_id.split, pair_id.split)
         return cls(Path(root), split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry,
-                   truth, sequence)
+                   truth, sequence, native)
 
     @property
     def pair_dir(self) -> str:
@@ -160,12 +166,12 @@ class PairOutput:
             files.append(self._file("flow", self.frame, "flo"))
         return files
 
-    def native_flow(self, dataset: str) -> Path | None:
-        """Where the flow goes in the input dataset's own format (KITTI, Spring), else None."""
-        if dataset not in NATIVE_FLOW:
+    @property
+    def native_flow(self) -> Path | None:
+        """Where the flow goes in the input's own form (KITTI, Spring), else None."""
+        if self.native is None:
             return None
-        folder, ext = NATIVE_FLOW[dataset]
-        return self._file(folder, self.frame, ext)
+        return self._file(self.native.folder, self.frame, NATIVE_FLOW[self.native.format])
 
     @property
     def invalid_mask(self) -> Path:
@@ -179,12 +185,11 @@ class PairOutput:
                 "seen_flow": self._file("seen_flow", self.frame, "flo"),
                 "seen_invalid": self._file("seen_invalid", self.frame, "png")}
 
-    def native_truth(self, dataset: str, kind: str) -> Path | None:
-        """``kind`` (particle or seen) flow in the input dataset's own format, else None."""
-        if dataset not in NATIVE_FLOW:
+    def native_truth(self, kind: str) -> Path | None:
+        """``kind`` (particle or seen) flow in the input's own form, else None."""
+        if self.native is None:
             return None
-        folder, ext = NATIVE_FLOW[dataset]
-        return self._file(f"{kind}_{folder}", self.frame, ext)
+        return self._file(f"{kind}_{self.native.folder}", self.frame, NATIVE_FLOW[self.native.format])
 
     def files(self, with_flow: bool = False) -> list[Path]:
         """Every file of this pair, the metadata file last (it marks completion)."""
@@ -248,9 +253,8 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
             if pair.flow_valid is not None and not bool(pair.flow_valid.all()):
                 mask = np.where(pair.flow_valid[0].numpy(), 0, 255).astype(np.uint8)
                 written.append(write_png(out.invalid_mask, mask))
-            native = out.native_flow(pair.id.dataset)
-            if native is not None:
-                written.append(_write_native_flow(pair.id.dataset, native, pair))
+            if out.native is not None:
+                written.append(_write_native_flow(out.native.format, out.native_flow, pair))
     if out.truth and truth is not None:
         written += _write_truth(out, pair, truth)
     rel = [str(p.relative_to(out.root)) for p in written]
@@ -281,12 +285,12 @@ def _write_right(out: PairOutput, right: RightView, n: int) -> list[Path]:
     return written
 
 
-def _write_native_flow(dataset: str, path: Path, pair: FramePair) -> Path:
+def _write_native_flow(fmt: str, path: Path, pair: FramePair) -> Path:
     """KITTI's 16-bit flow PNG (u, v, valid) or Spring's HDF5 ``.flo5`` (NaN where invalid)."""
     flow = pair.flow.numpy().transpose(1, 2, 0)
     valid = (np.ones(flow.shape[:2], bool) if pair.flow_valid is None
              else pair.flow_valid[0].numpy())
-    if dataset == "kitti":
+    if fmt == "kitti-png":
         return write_flow_png(path, flow, valid)
     return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))
 
@@ -303,20 +307,20 @@ def _write_truth(out: PairOutput, pair: FramePair, truth) -> list[Path]:
                                  np.where(valid[0].numpy(), 0, 255).astype(np.uint8)))
     covered = truth.weight[0].numpy() > 0
     for kind, flow, ok in (("particle", truth.flow, covered), ("seen", seen, valid[0].numpy())):
-        native = out.native_truth(pair.id.dataset, kind)
+        native = out.native_truth(kind)
         if native is not None:
-            written.append(_write_native(pair.id.dataset, native,
+            written.append(_write_native(out.native.format, native,
                                          flow.numpy().transpose(1, 2, 0), ok))
     return written
 
 
-def _write_native(dataset: str, path: Path, flow: np.ndarray, valid: np.ndarray) -> Path:
+def _write_native(fmt: str, path: Path, flow: np.ndarray, valid: np.ndarray) -> Path:
     """A flow (H, W, 2) with its valid mask (H, W) in KITTI's PNG or Spring's ``.flo5``.
 
     KITTI's PNG holds flows within +-512 px; a nearer particle's larger flow is written as not
     valid there (the ``.flo`` beside it keeps the value).
     """
-    if dataset == "kitti":
+    if fmt == "kitti-png":
         fits = (np.abs(flow) < KITTI_FLOW_LIMIT).all(-1)
         return write_flow_png(path, np.where(fits[..., None], flow, 0.0), valid & fits)
     return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))

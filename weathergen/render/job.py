@@ -32,12 +32,10 @@ from ..engine.stereo import render_right, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
-from ..outputs import (RENDER_FOLDER, PairOutput, RightView, merge_manifest, pair_metadata, prepare_folder,
-                       read_run_config, write_manifest_part, write_pair_outputs, write_run_config)
+from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
+                       pair_metadata, write_manifest_part, write_pair_outputs)
 from ..io.atomic import write_error
-from ..io.lock import FolderLock
-from ..outputs.folder import lock_folder, released_on_failure
-from ..outputs.manifest import MANIFEST, MANIFEST_PARTS, RUN_CONFIG, jsonable, shard_part
+from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
 from .particles import pair_particles, weather_seed
 from .plan import auto_workers
@@ -127,6 +125,7 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
             pair = job.dataset.load(ref)
             particles = pair_particles(pair, job.preset, job.seed,
                                        world_up=getattr(job.dataset, "world_up", "auto"),
+                                       frame_rate=job.dataset.frame_rate,
                                        particles_from=job.particles_from, appearance=job.appearance,
                                        preset_name=job.preset_name, sequence=job.sequence)
             ready.append((ref, seed, pair, particles, time.perf_counter() - start))
@@ -203,7 +202,7 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name)
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                        job.sequence)
+                        job.sequence, job.dataset.native_flow)
     right = None
     if job.stereo:
         try:
@@ -255,55 +254,26 @@ def sequence_ends(ids: list[PairId]) -> frozenset:
 
 
 # -- the output folder ---------------------------------------------------------------------------
-def lock_name(shard: tuple[int, int]) -> str:
-    """The lock file of a shard (the shards of one run write one folder at the same time)."""
-    i, n = shard
-    return ".weathergen-lock" if n == 1 else f".weathergen-lock-shard-{i}-of-{n}"
-
-
-def prepare_output(job: RenderJob, refs: list[PairRef] = ()) -> FolderLock:
-    """Create or reuse the output folder, refusing folders that are not ours or hold another run.
-
-    Returns the folder's lock, held: the caller releases it when the run ends. A second run in the
-    same folder (and shard) is refused while this one holds it (:class:`FolderBusy`). ``refs``
-    are the pairs of the job's shard, whose leftover temporary files a resumed run deletes.
-    """
-    name = lock_name(job.shard)
-    lock = lock_folder(job.out, RENDER_FOLDER, name, job.config(), resume=job.resume,
-                       overwrite=job.overwrite)
-    with released_on_failure(lock, job.out):
-        # Read under the lock: what the run before us recorded is final.
-        # A new shard of a sharded run may start in a folder that other shards have written.
-        other_shard = job.shard[1] > 1 and not shard_part(job.out, job.shard).exists()
-        prepare_folder(job.out, RENDER_FOLDER, job.config(), read_run_config(job.out),
-                       resume=job.resume, overwrite=job.overwrite, shared=other_shard,
-                       ignore=(name,), temporary=_temporary_places(job, refs))
-        write_run_config(job.out, job.config())
-    return lock
-
 
 def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
-    """Where a killed run of this shard may have left temporary files (atomic writes that never
-    reached their rename), as ``(folder, name prefix)``: the folders of this shard's pairs, and
-    this shard's manifest part. Other shards may be running; their files are left alone."""
-    i, n = job.shard
-    places = [(job.out / MANIFEST_PARTS, f".{shard_part(job.out, job.shard).name}.")]
-    if n == 1:
-        places += [(job.out / MANIFEST_PARTS, f".{RUN_CONFIG}."), (job.out, f".{MANIFEST}.")]
+    """Where a killed run of this shard may have left temporary files of its pairs (atomic writes
+    that never reached their rename), as ``(folder, name prefix)``: the folders of this shard's
+    pairs (:func:`~weathergen.outputs.claim_folder` adds the shard's bookkeeping). Other shards may
+    be running; their files are left alone."""
     folders = set()
     for ref in refs:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                            job.sequence)
-        native = out.native_flow(ref.id.dataset)
+                            job.sequence, job.dataset.native_flow)
+        native = out.native_flow
         extra = out.right_files() if job.stereo else []
         if job.truth:
             extra += list(out.truth_files().values())
-            extra += [p for p in (out.native_truth(ref.id.dataset, kind)
-                                  for kind in ("particle", "seen")) if p is not None]
+            extra += [p for p in (out.native_truth(kind) for kind in ("particle", "seen"))
+                      if p is not None]
         for path in (out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else [])
                      + extra):
             folders.add(path.parent)
-    return places + [(folder, ".") for folder in sorted(folders)]
+    return [(folder, ".") for folder in sorted(folders)]
 
 
 def record_run(job: RenderJob, results: list[PairResult], started: float, seconds: float) -> Path:
@@ -358,24 +328,18 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
                               f"e.g. snow-moderate); '{job.preset_name}' is a paper preset, "
                               "whose particles belong to one pair")
         job.scene_ends = sequence_ends([r.id for r in every])
-    created = not job.out.exists()
-    lock = prepare_output(job, refs)
-    try:
-        if lock.stale is not None:
-            on_note(f"{job.out}: took over the stale lock of {lock.stale} (that run ended without "
-                    f"releasing it, e.g. killed)")
+    with claim_folder(job.out, RENDER_FOLDER, job.config(), resume=job.resume,
+                      overwrite=job.overwrite, shard=job.shard,
+                      temporary=_temporary_places(job, refs), on_note=on_note) as claim:
         results = _render_locked(job, refs, on_result, on_start)
         if results and all(r.status == "failed" for r in results):
             first = results[0]
-            if created:
-                _remove_created_folder(job)
+            # the claim removes a folder it created again
             raise NothingRendered(f"every selected pair failed ({len(results)}; the first: "
                                   f"{first.pair}: {first.message}); "
-                                  + ("nothing was written" if created else
+                                  + ("nothing was written" if claim.created else
                                      f"the failures are recorded in {job.out / MANIFEST}"))
         return results
-    finally:
-        lock.release()
 
 
 def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> list[PairResult]:
@@ -385,7 +349,7 @@ def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> 
     todo: list[PairRef] = []
     for ref in refs:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                            job.sequence)
+                            job.sequence, job.dataset.native_flow)
         if not job.overwrite and out.is_complete():
             results.append(PairResult(ref.id.key, str(ref.id), "skipped",
                                       weather_seed(job.preset, job.seed, ref.id)))
@@ -433,29 +397,6 @@ def _record(job: RenderJob, results, started: float, seconds: float, stopped_by)
         if stopped_by is not None:
             return                  # an interruption or a bug: let it through as it is
         raise write_error(exc, job.out / MANIFEST, "then rerun with ${resume}") from None
-
-
-def _remove_created_folder(job: RenderJob) -> None:
-    """Undo the folder this run created and wrote nothing into but its bookkeeping.
-
-    Only known files and empty folders are removed, never a tree: whatever else is there stays.
-    """
-    for path in (job.out / MANIFEST, job.out / RENDER_FOLDER.marker,
-                 job.out / MANIFEST_PARTS / RUN_CONFIG, shard_part(job.out, job.shard),
-                 job.out / lock_name(job.shard)):
-        try:
-            path.unlink()
-        except OSError:
-            pass
-    for folder in sorted((p for p in job.out.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts)):
-        try:
-            folder.rmdir()
-        except OSError:
-            pass
-    try:
-        job.out.rmdir()
-    except OSError:
-        pass
 
 
 def _chunks(items: list, size: int) -> list[list]:
@@ -509,4 +450,4 @@ def _run_pool(job, todo, results, on_result):
 POLL_SECONDS = 0.1
 
 
-__all__ = ["RenderJob", "PairResult", "render_batch", "run_render", "prepare_output", "record_run"]
+__all__ = ["RenderJob", "PairResult", "render_batch", "run_render", "record_run"]

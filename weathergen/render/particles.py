@@ -40,19 +40,20 @@ def layer_seeds(preset: CombinedPreset, run_seed: int, pair_id: PairId) -> tuple
 
 
 def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: str = "auto",
-                   particles_from: Optional[Path] = None,
+                   frame_rate: Optional[float] = None, particles_from: Optional[Path] = None,
                    appearance: Optional[dict] = None, preset_name: Optional[str] = None,
                    sequence: bool = False) -> Particles | LayeredParticles:
     """The particles of ``pair``: sampled from ``preset`` with the pair's seed (the scene's for a
     weather field, see :func:`weather_seed`; a combined preset's layers with :func:`layer_seeds`,
-    as :class:`~weathergen.engine.LayeredParticles`), or, with ``particles_from``, the ones stored there for
+    as :class:`~weathergen.engine.LayeredParticles`; ``world_up`` and ``frame_rate`` are the
+    dataset's, as its reader declares them), or, with ``particles_from``, the ones stored there for
     the pair (``sequence``: a ``render --sequence`` folder), with the ``appearance`` settings
     replaced (see :func:`weathergen.render.resolve_preset`); they must have been sampled from
     ``preset`` (up to its appearance keys) and, when given, be labelled ``preset_name``."""
     if particles_from is None:
         seed = (layer_seeds(preset, run_seed, pair.id) if isinstance(preset, CombinedPreset)
                 else weather_seed(preset, run_seed, pair.id))
-        return sample_weather(pair, preset, seed, world_up=world_up)
+        return sample_weather(pair, preset, seed, world_up=world_up, frame_rate=frame_rate)
     # stored particles must be of the preset the output is labelled with (the stored manifest's)
     particles = load_pair_particles(particles_from, pair.id, preset_name, preset.to_dict(),
                                     sequence=sequence)

@@ -4,8 +4,8 @@ A ``--sequence`` output plays each scene's frames in order, scene after scene; a
 plays each pair's frame 1 and frame 2 alternating (``cycles`` times), pair after pair, so that the
 particles' frame-to-frame motion is seen as a flow network sees it. Beside each weather frame the
 clean input frame and the particles' opacity may be shown (input | weather | opacity, as on the
-contact sheet). The frame rate is the dataset's (:data:`~weathergen.engine.DATASET_FRAME_RATES`,
-read from the input the manifest records), or a field preset's own ``frame_rate`` when it sets one.
+contact sheet). The frame rate is the dataset's (its reader's ``frame_rate``, for the input the
+manifest records), or a field preset's own ``frame_rate`` when it sets one.
 
 :func:`video_preview` plans the video (which frames, how large, how fast) without reading any
 image; :meth:`VideoPreview.frames` reads, composes and yields them one at a time, so memory does
@@ -23,9 +23,8 @@ import cv2
 import numpy as np
 import torch
 
-from ..datasets import Dataset, reopen_dataset
-from ..engine import DATASET_FRAME_RATES, Particles, render_pair
-from ..engine.presets import DEFAULT_FRAME_RATE
+from ..datasets import Dataset, frame_rate_of, reopen_dataset
+from ..engine import Particles, render_pair
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.exr import read_exr
@@ -36,11 +35,11 @@ from .preview import caption_tile
 
 def output_frame_rate(manifest: OutputManifest) -> float:
     """Frames per second of an output's input: a field preset's ``frame_rate`` when it sets one,
-    else the dataset's (:data:`~weathergen.engine.DATASET_FRAME_RATES`; 30 for an unknown one)."""
+    else the dataset's (:func:`~weathergen.datasets.frame_rate_of`; 30 for an unknown one)."""
     preset = manifest.preset
     if preset.get("model") == "field" and float(preset.get("frame_rate") or 0) > 0:
         return float(preset["frame_rate"])
-    return DATASET_FRAME_RATES.get(manifest.input.get("dataset", ""), DEFAULT_FRAME_RATE)
+    return frame_rate_of(manifest.input.get("dataset", ""))
 
 
 @dataclass(frozen=True)

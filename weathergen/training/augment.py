@@ -46,6 +46,7 @@ from typing import Mapping, Optional, Protocol, Sequence, Union, runtime_checkab
 
 import torch
 
+from ..datasets import frame_rate_of
 from ..engine import (CombinedPreset, FieldPreset, Preset, load_preset, load_templates, render_pair,
                       sample_weather)
 from ..errors import ConfigError, ShapeError
@@ -159,7 +160,10 @@ class PresetSource:
         return "field" if isinstance(self.preset, FieldPreset) else "paper"
 
     def sample(self, pair: FramePair, seed: int, world_up: str):
+        """The particles of ``pair`` from ``seed``; a field moves at the frame rate of the pair's
+        dataset (its reader's, looked up by the name the pair carries)."""
         return sample_weather(pair, self.preset, seed, world_up=world_up,
+                              frame_rate=frame_rate_of(pair.id.dataset),
                               templates=load_templates(self.templates))
 
     def __repr__(self) -> str:
