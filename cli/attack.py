@@ -11,8 +11,8 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, LP_METHODS, AttackJob, lp_pass_name,
-                               parse_target, plan_lp, run_attack)
+from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, LP_METHODS, PCFA_OPTIMIZERS, AttackJob,
+                               lp_pass_name, parse_target, plan_lp, run_attack)
 from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
@@ -69,6 +69,10 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 @click.option("--epsilon", type=float, default=None,
               help="Bound of an Lp attack: pcfa the normalised L2 norm over both frames, ifgsm "
                    "the L-infinity norm. Default 5e-3 (the paper's).")
+@click.option("--optimizer", type=click.Choice(PCFA_OPTIMIZERS), default=None,
+              help="PCFA's optimiser: lbfgs (default; the PCFA paper's, which the paper ran: 20 "
+                   "steps of up to 10 L-BFGS iterations) or adam (one network pass per step, "
+                   "every step projected into the bound).")
 @click.option("--config", "config_name", default=None, metavar="NAME",
               help=f"An attack configuration of the paper's supplement ({', '.join(ATTACK_CONFIGS)}): "
                    "sets preset, --optimize, --lr and the occlusion gradient; explicit options win.")
@@ -88,7 +92,8 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
                    "Default: the --config's, else all (fog: all but offset2).")
 @click.option("--lr", type=float, default=None,
               help="Adam learning rate. Default: 1e-5 when an offset is optimised, else 1e-3; "
-                   "pcfa 1e-3; for ifgsm the step size, default epsilon / steps.")
+                   "pcfa: L-BFGS step size 1, Adam 1e-3; for ifgsm the step size, default "
+                   "epsilon / steps.")
 @click.option("--alpha1", type=float, default=1000.0, show_default=True,
               help="Weight of the frame-1 offset penalty.")
 @click.option("--alpha2", type=float, default=1000.0, show_default=True,
@@ -113,7 +118,8 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 @resume_option("Finish an interrupted run: skip finished pairs.")
 @overwrite_option("Redo every pair, even in a folder that holds one.")
 @quiet_option
-def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_name, preset, set_items,
+def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, optimizer, config_name,
+           preset, set_items,
            particles_dir, steps,
            optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, compat,
            gradient_checkpointing, out, seed, device, batch_size, executor, ray_address, resume,
@@ -131,7 +137,7 @@ def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_
     execution = dict(batch_size=batch_size, executor=executor, ray_address=ray_address,
                      threads=torch.get_num_threads())
     if method != "weather":
-        lp = plan_lp(method, epsilon, steps, lr, config_name=config_name, preset=preset,
+        lp = plan_lp(method, epsilon, steps, lr, optimizer, config_name=config_name, preset=preset,
                      overrides=tuple(set_items), particles_from=particles_dir, optimize=optimize,
                      occlusion_gradient=occlusion_gradient,
                      compat=None if compat in (None, "paper") else compat)
@@ -141,25 +147,28 @@ def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_
                         iters=iters, seed=seed, device=device,
                         pass_name=lp_pass_name(method, dataset.selection.pass_),
                         gradient_checkpointing=gradient_checkpointing, download=download,
-                        resume=resume, overwrite=overwrite,
+                        amp=amp, resume=resume, overwrite=overwrite,
                         command=["weathergen", *sys.argv[1:]], lp=lp, **execution)
         label, steps = method, lp.steps
     else:
         if epsilon is not None:
             raise ConfigError("${epsilon} applies to --method pcfa or ifgsm only")
+        if optimizer is not None:
+            raise ConfigError("${optimizer} applies to --method pcfa only")
         steps = DEFAULT_STEPS if steps is None else steps
         job, label = _weather_job(dataset, model, checkpoint, iters, download, config_name,
                                   preset, set_items, particles_dir, steps, optimize, lr, alpha1,
                                   alpha2, target, occlusion_gradient, compat or "paper",
                                   gradient_checkpointing, out, seed, device, resume, overwrite,
-                                  execution)
+                                  execution, amp)
         out = job.out
     _run(job, model, label, target, steps, out, quiet)
 
 
 def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
                  particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
-                 compat, gradient_checkpointing, out, seed, device, resume, overwrite, execution):
+                 compat, gradient_checkpointing, out, seed, device, resume, overwrite, execution,
+                 amp):
     plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
                        optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
                        steps=steps, alpha1=alpha1, alpha2=alpha2, compat=compat)
@@ -170,7 +179,7 @@ def _weather_job(dataset, model, checkpoint, iters, download, config_name, prese
                     target=target, iters=iters, seed=seed, device=device,
                     particles_from=particles_dir, config_name=config_name,
                     pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
-                    gradient_checkpointing=gradient_checkpointing, download=download,
+                    gradient_checkpointing=gradient_checkpointing, download=download, amp=amp,
                     resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]],
                     **execution)
     return job, label

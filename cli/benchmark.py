@@ -14,8 +14,8 @@ from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.render.shards import parse_shard
 
-from .options import (attack_steps, compat_option, dataset_options, device_option, quiet_option,
-                      seed_option)
+from .options import (amp_option, attack_steps, compat_option, dataset_options, device_option,
+                      quiet_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 
@@ -63,9 +63,10 @@ def _checkpoints(items) -> dict:
 @compat_option
 @seed_option("Run seed of every run (weather as `weathergen render --seed`).")
 @device_option
+@amp_option
 @quiet_option
 def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_steps, iters,
-              set_items, shard_text, download, out, compat, seed, device, quiet):
+              set_items, shard_text, download, out, compat, seed, device, amp, quiet):
     """Run networks x {random weather, adversarial weather, Lp attacks} x presets and write
     the paper's tables (CSV, JSON, Markdown, LaTeX; one file per table in OUT/tables) and a plot
     of AEE per network and preset (OUT/aee.png) into OUT.
@@ -80,7 +81,7 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_s
         presets=_names(presets), lp_methods=_names(lp_text),
         checkpoints=_checkpoints(checkpoint_items), steps=steps, lp_steps=lp_steps, iters=iters,
         overrides=parse_set_options(set_items), seed=seed, device=device, download=download,
-        command=["weathergen", *sys.argv[1:]], compat=compat or "paper")
+        amp=amp, command=["weathergen", *sys.argv[1:]], compat=compat or "paper")
     shard = parse_shard(shard_text) if shard_text else None
     console = Console()
 

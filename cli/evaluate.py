@@ -10,7 +10,7 @@ from rich.table import Table
 
 from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
 from weathergen.engine import resolve_device
-from weathergen.models import get_model
+from weathergen.models import get_model, resolve_amp
 from weathergen.outputs import WeatherFolder
 
 from .attack import region_rows
@@ -36,9 +36,8 @@ def _fmt(value) -> str:
               default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json.")
 @device_option
 @quiet_option
-def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root, pass_,
-             json_path, device,
-             quiet):
+def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name, root, pass_,
+             json_path, device, quiet):
     """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
 
     Also reports the end-point error against ground truth, for the clean and the weather frames,
@@ -47,9 +46,10 @@ def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root
     weather flow. All figures are in pixels, rates in percent.
     """
     resolve_device(device)
+    amp = resolve_amp(model, amp, device)
     folder = WeatherFolder.open(weather_dir)
     dataset = folder.clean_dataset(dataset_name, root, pass_)
-    network = get_model(model, checkpoint, device=device, iters=iters, download=download)
+    network = get_model(model, checkpoint, device=device, iters=iters, download=download, amp=amp)
     console = Console()
 
     def on_pair(row):
@@ -58,7 +58,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root
                           soft_wrap=True)
 
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
-    info = {"model": model, "checkpoint": checkpoint, "iters": iters,
+    info = {"model": model, "checkpoint": checkpoint, "iters": iters, "amp": amp,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
     json_path = json_path or default_evaluation_path(weather_dir, model)
     write_evaluation(json_path, info, rows, summary)

@@ -11,13 +11,14 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from weathergen.engine import FrameScaling
 from weathergen.engine.layers import layer_arrays
 from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
 from weathergen.errors import ConfigError
 from weathergen.io.atomic import write_error
 from weathergen.io.images import write_png
 from weathergen.io.video import check_video_path, write_video
-from weathergen.outputs import read_metadata
+from weathergen.outputs import read_metadata, stored_frame_scaling
 from weathergen.render import contact_sheet, video_preview
 
 
@@ -41,6 +42,8 @@ def inspect(file: Path):
     else:
         names, layers = [""], [arrays]
     counts = [int(a["position"].shape[0]) if "position" in a else 0 for a in layers]
+    scaling = stored_frame_scaling(arrays, file)
+    scalings = (scaling or {}).get("layers", [None] * len(layers)) if layered else [scaling]
     head = Table(title=str(file), show_header=False)
     head.add_column("key")
     head.add_column("value")
@@ -50,6 +53,7 @@ def inspect(file: Path):
         ("seed", str(int(arrays["seed"]))),
         ("preset", _preset_origin(str(arrays["preset_name"]), preset.get("source", ""))),
         ("particles", str(sum(counts))),
+        ("for the frame", _scaling_text(scalings[0]) if not layered else "per layer, below"),
         ("visible in frame 1 / 2", f"{int(arrays.get('visible1', -1))} / {int(arrays.get('visible2', -1))}"),
     ]
     if layered:
@@ -57,6 +61,7 @@ def inspect(file: Path):
         for k, (name, a, n) in enumerate(zip(names, layers, counts)):
             seed = f", seed {int(seeds[k])}" if k < len(seeds) else ""
             rows.append((f"layer {k}", f"{name}: {n} particles, {_looks(a)}{seed}"))
+            rows.append((f"layer {k} for the frame", _scaling_text(scalings[k])))
         rows.append(("reference frame", str(layers[0].get("frame", "?"))))
     else:
         rows += [
@@ -79,6 +84,14 @@ def inspect(file: Path):
     for name, a in zip(names, layers):
         title = f"per-particle values{f' of layer {name}' if name else ''} (as Particles.load reads them)"
         console.print(_ranges(a, title, file))
+
+
+def _scaling_text(scaling) -> str:
+    """How a paper preset's count and size were set for the pair's frame (the metadata's
+    ``frame_scaling`` entry), in one line."""
+    if not scaling:
+        return "not recorded (a weather field, or written before frame scaling: the preset's count)"
+    return FrameScaling.from_dict(scaling).describe()
 
 
 def _looks(arrays: dict) -> str:

@@ -215,8 +215,16 @@ def reader_options(func):
     return func
 
 
+#: ``--amp/--no-amp``: mixed precision of the network (CUDA only); shared with ``benchmark``.
+amp_option = click.option(
+    "--amp/--no-amp", default=None,
+    help="Run the network in its authors' mixed precision (CUDA autocast; RAFT, RAFT-small, "
+         "GMA). Default: as the paper's configuration, on for GMA and off for the others; on "
+         "the CPU always off (--amp there is an error).")
+
+
 def model_options(func):
-    """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``."""
+    """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``, ``amp``."""
     for option in reversed((
         click.option("--model", default="raft", show_default=True,
                      help="Flow network or checkpoint name (raft, raft-small, gma, flowformer, "
@@ -228,6 +236,7 @@ def model_options(func):
                           "own (RAFT 12, GMA 6, FlowFormer 32)."),
         click.option("--download", is_flag=True,
                      help="Fetch a named checkpoint that is missing from the cache (needs a network)."),
+        amp_option,
     )):
         func = option(func)
     return func

@@ -24,8 +24,8 @@ def presets_command(name, overrides):
     sets = parse_set_options(overrides)
     if name is None:
         for model, keys, title in (
-                ("paper", preset_keys(), "paper model: a fixed count of visible particles per "
-                                         "pair, sizes in pixels"),
+                ("paper", preset_keys(), "paper model: visible particles per 1024x436 pair "
+                                         "(scaled by frame area), sizes in pixels"),
                 ("field", field_preset_keys(), "field model: a weather field in scene units "
                                                "(metres on metric data), density per m³")):
             columns = [f.name for f in keys if f.metadata.get("main")]

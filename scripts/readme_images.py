@@ -31,14 +31,10 @@ def render_sheet() -> np.ndarray:
     ds = open_dataset("demo", scenes=["street"], frames_per_scene=1)
     pair = ds.load(ds.pairs()[0])
     tiles = []
-    h, w = pair.size
     for name in ("snow", "rain", "sparks", "fog"):
-        preset = load_preset(name)
-        if name == "fog":
-            # fog's 60 clouds are sized in pixels for Sintel's 1024x436 frames; on the smaller demo
-            # frames the same count stacks them into a white-out, so keep the coverage per pixel
-            preset = load_preset(name, {"count": max(1, round(preset.count * h * w / (1024 * 436)))})
-        particles = sample_particles(pair, preset, seed=0)
+        # each preset as sampling gives it the demo's 384x176 frames (its count scaled by area,
+        # sizes in pixels), as `weathergen render` does
+        particles = sample_particles(pair, load_preset(name), seed=0)
         with torch.no_grad():
             img = render_pair(pair, particles).image1[0].permute(1, 2, 0).numpy()
         tiles.append(img)

@@ -119,6 +119,15 @@ def test_attack_log_and_summary(attack_out):
     assert attack["transparency_max"] == 1.0
     (entry,) = manifest["pairs"].values()
     assert entry["status"] == "written" and entry["steps"] == 2
+    # Mixed precision: RAFT-small's paper setting is off, and on the CPU it is off anyway.
+    assert manifest["config"]["model"]["amp"] is False and summary["amp"] is False
+    # the explicit count is used on the demo frame as given, and recorded with its rule
+    assert entry["particles"] == 150 and manifest["preset"]["scale_count"] is False
+    from weathergen.outputs import read_metadata, stored_frame_scaling
+
+    (npz,) = (out / "training" / "particles").rglob("*.npz")
+    recorded = stored_frame_scaling(read_metadata(npz))
+    assert (recorded["count"], recorded["count_rule"], recorded["width"]) == (150, "fixed", 384)
 
 
 def test_attack_output_rerenders_through_render_particles(attack_out, tmp_path):
@@ -146,6 +155,29 @@ def test_evaluate_on_the_attack_output_reproduces_its_figures(attack_out, tmp_pa
     assert row["aee_weather"] == pytest.approx(summary["aee_adversarial"], rel=1e-4, abs=1e-5)
     assert row["epe_weather"] == pytest.approx(summary["epe_adversarial"], rel=1e-4, abs=1e-5)
     assert row["epe_clean"] == pytest.approx(summary["epe_benign"], rel=1e-4, abs=1e-5)
+    assert json.loads((tmp_path / "eval.json").read_text())["amp"] is False
+
+
+@pytest.mark.parametrize("command", ["attack", "evaluate"])
+def test_mixed_precision_on_the_cpu_is_refused_before_anything_is_written(command, tmp_path,
+                                                                          raft_small_weights):
+    from weathergen.cli.main import _register, cli
+
+    _register()
+    place = (["--out", tmp_path / "x", *ONE_PAIR] if command == "attack"
+             else ["--weather", tmp_path / "x", "--json", tmp_path / "x.json"])
+    result = CliRunner().invoke(cli, [str(a) for a in [
+        command, "--model", "raft-small", "--checkpoint", raft_small_weights, "--amp", *place]])
+    assert result.exit_code == 2
+    (line,) = result.output.strip().splitlines()
+    assert line.startswith("Error: --amp needs a CUDA device")
+    assert not (tmp_path / "x").exists() and not (tmp_path / "x.json").exists()
+    # --no-amp is what the CPU does anyway
+    if command == "attack":
+        ok = invoke(tiny_attack(raft_small_weights, tmp_path / "y", "--no-amp", "--steps", "1",
+                                "--quiet"))
+        assert ok.exit_code == 0, ok.output
+        assert json.loads((tmp_path / "y" / "summary.json").read_text())["amp"] is False
 
 
 def test_resume_skips_finished_pairs_and_plain_rerun_refuses(attack_out, raft_small_weights):

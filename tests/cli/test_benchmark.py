@@ -195,7 +195,40 @@ def test_bad_options_fail_before_writing(tmp_path):
     assert result.exit_code == 2 and "fgsm" in result.output
     result = invoke(["benchmark", "--checkpoint", "raft", "--out", out])
     assert result.exit_code == 2 and "NETWORK=FILE_OR_NAME" in result.output
+    result = invoke(["benchmark", "--networks", "raft-small", "--amp", "--out", out])
+    assert result.exit_code == 2 and "--amp needs a CUDA device" in result.output
     assert not out.exists()
+
+
+@pytest.mark.parametrize("amp, expected", [(None, {"gma": True, "raft": False}),
+                                           (False, {"gma": False, "raft": False})])
+def test_amp_is_passed_on_to_every_run(demo_root, tmp_path, amp, expected):
+    """Each run gets the request (default: each network's paper setting on CUDA) and records the
+    resolved value in its manifest; nothing runs here, so no CUDA device is needed."""
+    from weathergen.benchmark import BenchmarkSpec, run_grid
+    from weathergen.datasets import open_dataset
+
+    spec = BenchmarkSpec(dataset=open_dataset("demo", frames_per_scene=1), out=tmp_path,
+                         networks=["gma", "raft"], presets=["snow"], lp_methods=["pcfa"],
+                         device="cuda", amp=amp)
+    jobs = []
+    run_grid(spec, execute=jobs.append)
+    assert [(j.model, j.amp) for j in jobs] == [(n, amp) for n in ("gma", "gma", "raft", "raft")]
+    assert {j.model: j.config()["model"]["amp"] for j in jobs} == expected
+
+
+def test_amp_for_a_network_without_the_mode_fails_before_any_run(demo_root, tmp_path):
+    from weathergen.benchmark import BenchmarkSpec, run_grid
+    from weathergen.datasets import open_dataset
+    from weathergen.errors import ConfigError
+
+    spec = BenchmarkSpec(dataset=open_dataset("demo", frames_per_scene=1), out=tmp_path,
+                         networks=["gma", "spynet"], presets=["snow"], lp_methods=[],
+                         device="cuda", amp=True)
+    jobs = []
+    with pytest.raises(ConfigError, match="'spynet' has no mixed-precision mode"):
+        run_grid(spec, execute=jobs.append)
+    assert jobs == []
 
 
 def test_default_selection_is_five_pairs_per_scene(demo_root):

@@ -46,16 +46,25 @@ def test_every_particle_is_visible_in_one_frame():
     assert bool(seen.all())
 
 
-def test_appearance_follows_the_model():
+# Sizes are the paper's pixels unless scale_size: then on a 40x56 frame, whose diagonal is
+# sqrt(40^2 + 56^2) / sqrt(436^2 + 1024^2) = 0.06183 of Sintel's, snow's 71 px become 4.39 px,
+# the nearest odd size 5, and the defocus radii shrink by the same ratio.
+@pytest.mark.parametrize("overrides, size, scale", [
+    ({"count": 300}, 71, 1.0),
+    ({"count": 300, "scale_size": True}, 5, math.hypot(40, 56) / math.hypot(436, 1024))])
+def test_appearance_follows_the_model(overrides, size, scale):
     pair = plane_pair(40, 56)
-    preset = load_preset("snow", {"count": 300})
+    preset = load_preset("snow", overrides)
     parts = sample_particles(pair, preset, seed=2)
     d = transform_points(pair.cam1_from_world, parts.position.double())[:, 2]
-    footprint = (71 * torch.clamp(1 / (d * 9), max=1)).clamp(min=1)
+    footprint = (size * torch.clamp(1 / (d * 9), max=1)).clamp(min=1)
     torch.testing.assert_close(parts.scale.double() * 80, footprint, rtol=1e-3, atol=0)  # float16
     torch.testing.assert_close(parts.transparency.double(), 0.75 * transparency_hat(d),
                                atol=1e-3, rtol=0)
-    assert torch.equal(parts.defocus, defocus_radius(d))
+    a, b = 5 * (0.75 - 0.563), 0.563
+    radius = torch.where(d > b, a / (d - b), torch.zeros_like(d)).clamp(0, 20) * scale
+    assert torch.equal(parts.defocus, torch.floor(radius + 0.5).long())
+    assert torch.equal(parts.defocus, defocus_radius(d, scale))
     assert torch.equal(parts.color, torch.ones_like(parts.color))
     fog = sample_particles(pair, load_preset("fog"), seed=2)
     # depth-constant 0.3 (float16 storage)

@@ -18,7 +18,7 @@ from weathergen.training import (Compose, PairDataset, PresetSource, RandomCrop,
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
-#: Few particles keep the tests fast; the demo frames are a ninth of Sintel's area anyway.
+#: Few particles keep the tests fast (the presets' own count on the demo's 384x176 frames: 454).
 LIGHT = {"count": 200}
 
 
@@ -43,6 +43,19 @@ def test_p0_returns_the_input_bit_for_bit(samples):
     for name in _TENSOR_FIELDS:
         a, b = getattr(out.pairs, name), getattr(batch.pairs, name)
         assert (a is None and b is None) or torch.equal(a, b), name
+
+
+def test_paper_presets_follow_the_frame_size(samples):
+    """As in `render`: the preset's count per 1024x436 frame scaled to the demo's 384x176 frames
+    (3000 x 0.15138 -> 454), an explicit count exactly, in both places the transform runs."""
+    sample = samples[0]
+    assert sample.pair.size == (176, 384)
+    scaled = WeatherAugment(["snow"], p=1.0, seed=3, keep_particles=True)
+    assert scaled(sample).particles.count == 454
+    assert scaled.prepare(sample).particles.count == 454
+    exact = WeatherAugment(["snow"], p=1.0, seed=3, overrides={"count": 100}, keep_particles=True)
+    assert exact(sample).particles.count == 100
+    assert exact.prepare(sample).particles.count == 100
 
 
 def test_p1_changes_every_pair_and_only_its_frames(samples):

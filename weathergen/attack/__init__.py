@@ -24,7 +24,7 @@ from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
 from .evaluate import (EvalRow, default_evaluation_path, evaluate_frames, mean_rows,
                        run_evaluation, write_evaluation)
 from .job import AttackJob, PairReport, attack_refs, run_attack
-from .lp import (LP_DEFAULTS, LP_METHODS, LpOptimisation, LpResult, LpSettings, l2_normalised,
+from .lp import (LP_DEFAULTS, LP_METHODS, PCFA_OPTIMIZERS, LpOptimisation, LpResult, LpSettings, l2_normalised,
                  l2_normalised_per_pair, lp_attack_batch, lp_attack_pair, lp_pass_name,
                  lp_settings, plan_lp, random_perturbation)
 from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisation, PairSummary,
@@ -36,7 +36,8 @@ from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE, LR_POSITIONS
                        transparency_bound)
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
-__all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpResult", "LpSettings",
+__all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOptimisation", "LpResult",
+           "LpSettings",
            "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_attack_pair", "lp_pass_name",
            "lp_settings", "plan_lp",
            "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",

@@ -28,11 +28,11 @@ from ..errors import ConfigError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
-from ..models import get_model
+from ..models import get_model, resolve_amp
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
-from ..render.particles import pair_particles, pair_seed, weather_seed
+from ..render.particles import pair_particles, pair_seed, weather_scaling, weather_seed
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -59,6 +59,9 @@ class AttackJob:
     pass_name: str = ""
     gradient_checkpointing: bool = False
     download: bool = False
+    #: mixed precision as asked (``--amp``/``--no-amp``); None: the network's paper setting
+    #: on CUDA, off elsewhere (see :meth:`amp_setting`)
+    amp: Optional[bool] = None
     resume: bool = False
     overwrite: bool = False
     command: list = field(default_factory=list)
@@ -68,6 +71,22 @@ class AttackJob:
     executor: str = "local"             # "local" or "ray" (weathergen.execution)
     ray_address: Optional[str] = "auto"
     threads: Optional[int] = None       # torch threads of each unit (None: leave as is)
+
+    def amp_setting(self) -> bool:
+        """Whether the network runs in mixed precision (:func:`~weathergen.models.resolve_amp`
+        of the job's network, request and device).
+
+        Raises:
+            ConfigError: ``amp`` asked for on a device other than CUDA, or for a network
+                without a mixed-precision mode.
+        """
+        return resolve_amp(self.model, self.amp, self.device)
+
+    def model_config(self) -> dict:
+        """The network as recorded in the manifest: name, checkpoint, iterations, precision."""
+        return {"name": self.model, "checkpoint": str(self.checkpoint)
+                if self.checkpoint is not None else None, "iters": self.iters,
+                "amp": self.amp_setting()}
 
     def config(self) -> dict:
         """What must agree between an interrupted run and its resumption."""
@@ -79,8 +98,7 @@ class AttackJob:
                 "particles_from": None,
                 "attack": {"method": self.lp.method, **self.lp.to_dict(),
                            "target": self.target.describe(), "configuration": None},
-                "model": {"name": self.model, "checkpoint": str(self.checkpoint)
-                          if self.checkpoint is not None else None, "iters": self.iters},
+                "model": self.model_config(),
             }
         return {
             "preset_name": self.preset_name, "preset": self.preset.to_dict(), "seed": self.seed,
@@ -89,8 +107,7 @@ class AttackJob:
             "particles_from": str(self.particles_from) if self.particles_from else None,
             "attack": {**self.settings.to_dict(), "target": self.target.describe(),
                        "configuration": self.config_name},
-            "model": {"name": self.model, "checkpoint": str(self.checkpoint)
-                      if self.checkpoint is not None else None, "iters": self.iters},
+            "model": self.model_config(),
         }
 
 
@@ -114,12 +131,13 @@ _MODELS: dict = {}
 def job_model(job: AttackJob, device: Optional[str] = None):
     """The job's network on ``device`` (default the job's), loaded once per process."""
     device = device or job.device
-    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing)
+    amp = resolve_amp(job.model, job.amp, device)
+    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, amp)
     if key not in _MODELS:
         _MODELS.clear()                     # one network per process at a time
         _MODELS[key] = get_model(job.model, job.checkpoint, device=device, iters=job.iters,
                                  download=job.download,
-                                 gradient_checkpointing=job.gradient_checkpointing)
+                                 gradient_checkpointing=job.gradient_checkpointing, amp=amp)
         _MODELS[key].padding = getattr(job.dataset, "padding", "even")  # the benchmark's protocol
     return _MODELS[key]
 
@@ -206,9 +224,10 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
     covered = weather_mask(rendered.opacity1, rendered.opacity2)[0, 0].cpu()
     summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
                              compat=job.settings.compat, covered=covered)
+    summary.particles = best.count
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
     meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
-                         job.preset_name)
+                         job.preset_name, scaling=weather_scaling(job.preset, pair))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
     out = pair_output(job, pair.id)
@@ -251,9 +270,11 @@ def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
 
 
 def run_summary(job: AttackJob, rows: list[PairSummary]) -> dict:
-    """The run's summary (``summary.json``): the means over pairs (:func:`mean_summary`) and the
-    attack's ``compat`` mode (None for an Lp attack)."""
-    return {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None}
+    """The run's summary (``summary.json``): the means over pairs (:func:`mean_summary`), the
+    attack's ``compat`` mode (None for an Lp attack) and the precision the network ran in
+    (``amp``: mixed precision on CUDA)."""
+    return {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None,
+            "amp": job.amp_setting()}
 
 
 def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
@@ -284,6 +305,7 @@ def run_attack(job: AttackJob,
     check_executor(job.executor)
     if job.batch_size < 1:
         raise ConfigError(f"${{batch_size}} must be >= 1 (got {job.batch_size})")
+    job.amp_setting()                      # a request the device or network cannot meet
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
     if not refs:

@@ -539,6 +539,7 @@ class PairSummary:
     gt_valid_px: Optional[int] = None
     seconds: float = 0.0
     nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
+    particles: Optional[int] = None   # particles in the record (the count the frame size gave)
 
     @classmethod
     def from_dict(cls, data: dict) -> "PairSummary":

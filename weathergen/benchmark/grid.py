@@ -79,6 +79,7 @@ class BenchmarkSpec:
     seed: int = 0
     device: str = "cpu"
     download: bool = False
+    amp: Optional[bool] = None           # mixed precision; None: each network's paper setting
     command: list = field(default_factory=list)
     compat: str = "paper"                # the weather attacks' terms (paper or reference)
 
@@ -112,8 +113,8 @@ def cell_job(spec: BenchmarkSpec, cell: Cell) -> AttackJob:
     """The attack run of one cell (resuming whatever its folder holds)."""
     common = dict(dataset=spec.dataset, out=cell.folder(spec.out), model=cell.network,
                   checkpoint=spec.checkpoints.get(cell.network), iters=spec.iters,
-                  seed=spec.seed, device=spec.device, download=spec.download, resume=True,
-                  command=list(spec.command))
+                  seed=spec.seed, device=spec.device, download=spec.download, amp=spec.amp,
+                  resume=True, command=list(spec.command))
     input_pass = spec.dataset.selection.pass_
     if cell.kind == "lp":
         return AttackJob(preset=None, preset_name=cell.label, settings=None,
@@ -155,6 +156,8 @@ def run_grid(spec: BenchmarkSpec, shard: Optional[tuple[int, int]] = None,
     """
     cells = shard_cells(spec.cells(), shard)
     jobs = [cell_job(spec, c) for c in cells]
+    for job in jobs:
+        job.amp_setting()                   # --amp for a network or device without it
     for i, (cell, job) in enumerate(zip(cells, jobs)):
         on_cell(i, len(cells), cell)
         execute(job)

@@ -20,8 +20,9 @@ from .layers import LayeredParticles, layer_seed, load_particles
 from .particles import Particles, empty_particles, from_atanh, to_atanh
 from .perframe import View, render_view
 from .optics import FieldOptics
-from .presets import (EXAMPLE_COMBINATIONS, CombinedPreset, FieldPreset, Preset, list_presets,
-                      load_preset, parse_override, parse_set_options, preset_keys)
+from .presets import (EXAMPLE_COMBINATIONS, REFERENCE_FRAME, CombinedPreset, FieldPreset,
+                      FrameScaling, Preset, frame_scaling, list_presets, load_preset, parse_override,
+                      parse_set_options, preset_keys)
 from .renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps, render,
                        render_pair)
 from .sampling import (reference_transforms, resolve_device, sample_particles, visible_counts,
@@ -31,11 +32,12 @@ from .templates import (TemplateLibrary, generate_templates, load_templates,
                         write_builtin_templates)
 
 __all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset",
-           "EXAMPLE_COMBINATIONS", "Field", "FieldOptics", "FieldPreset", "LayeredParticles",
-           "ParticleTruth", "Particles", "Preset", "RenderOutput",
+           "EXAMPLE_COMBINATIONS", "Field", "FieldOptics", "FieldPreset", "FrameScaling",
+           "LayeredParticles", "ParticleTruth", "Particles", "Preset", "REFERENCE_FRAME", "RenderOutput",
            "RenderSettings", "StampSet", "TemplateLibrary", "View", "build_stamps",
-           "empty_particles", "frame_particles", "from_atanh", "generate_templates", "layer_seed",
-           "list_presets", "load_particles", "load_preset", "load_templates", "make_field", "pair_particles",
+           "empty_particles", "frame_particles", "frame_scaling", "from_atanh", "generate_templates",
+           "layer_seed", "list_presets", "load_particles", "load_preset", "load_templates", "make_field",
+           "pair_particles",
            "parse_override", "parse_set_options", "particle_truth", "preset_keys",
            "reference_transforms", "render", "render_pair", "render_view", "resolve_device",
            "sample_field_particles", "sample_layers", "sample_particles", "sample_weather", "scene_seed",

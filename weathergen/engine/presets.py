@@ -7,7 +7,10 @@ Values are resolved in this order, later ones winning:
 2. the preset file (a bundled one, by name, or a user's ``.toml`` file, by path);
 3. overrides (the parameter ``overrides``), ``{"key": "value"}`` strings as typed on the
    command line (``--set count=500``),
-   parsed as TOML values and then validated like the file.
+   parsed as TOML values and then validated like the file. A paper preset's count is given for
+   Sintel's 1024x436 frames and scaled to each frame's area at sampling (:func:`frame_scaling`);
+   an override of ``count`` (or ``size``) means exactly that value on every frame size (it turns
+   ``scale_count``, or ``scale_size``, off unless the overrides set those too).
 
 Every problem (unknown key, wrong type, out-of-range value, unknown preset name) raises
 :class:`~weathergen.errors.ConfigError` naming the file, the key and the offending value.
@@ -127,9 +130,17 @@ class Preset:
 
     description: str = _shared("description")
     # -- particle base properties
-    count: int = _key(3000, _count, "number of particles per frame pair", main=True)
+    count: int = _key(3000, _count, "particles per frame pair of 1024x436 pixels; other frame "
+                                    "sizes scale it by their area (see scale_count)", main=True)
     size: int = _key(71, _odd_size, "template side in pixels at depth <= 1/depth_decay (odd)",
                      main=True)
+    scale_count: bool = _key(True, None, "scale count with the frame's area relative to 1024x436, "
+                                         "keeping particles per pixel area (false: count on every "
+                                         "frame; --set count=N sets it false)")
+    scale_size: bool = _key(False, None, "scale size and the defocus radius with the frame's "
+                                         "diagonal relative to 1024x436 (with scale_count false: "
+                                         "the frame as a resized 1024x436 one; --set size=N sets "
+                                         "it false)")
     depth_decay: float = _key(9.0, _number(0, 1e6, lo_open=True),
                               "size scales by min(1, 1/(depth * depth_decay))", main=True)
     templates: str = _shared("templates")
@@ -342,6 +353,9 @@ def load_preset(name_or_path: str | Path = "snow",
     if model != "paper":
         raise ConfigError(f"{where}: key 'model' = {model!r}: must be paper or field")
     values, templates_from = _preset_values(where, data, overrides, base_dir, _KEYS)
+    for key, switch in EXACT_WHEN_GIVEN.items():   # --set count=N: exactly N on every frame
+        if key in overrides and switch not in overrides:
+            values[switch] = False
     preset = Preset(name=name, source=where, **values)
     _check_consistency(preset, where)
     _check_template_folder(preset.templates, templates_from)
@@ -398,6 +412,111 @@ def _check_consistency(p: Preset, where: str) -> None:
     if p.motion_blur and p.blur_length <= 0:
         raise ConfigError(f"{where}: key 'blur_length' = {p.blur_length!r}: must be > 0 "
                           "when motion_blur is true")
+
+
+# ---------------------------------------------------------------------------------------------
+# Frame sizes
+# The paper's table gives a number of particles per pair and sizes in pixels, made for Sintel's
+# 1024x436 frames. On another frame size a preset keeps the paper's density per pixel area: the
+# count scales with the frame's area, sizes stay in pixels, so that the fraction of the frame the
+# particles cover stays the paper's too. Scaling the sizes with the frame's diagonal as well would
+# change that fraction by the square of the diagonal ratio (1/7 on the 384x176 demo, 4 times on a
+# 1920x1080 frame); ``scale_size`` does it for frames that are a resized 1024x436 view (with
+# ``scale_count`` off). docs/engine.md, "Frame sizes", says which keys scale and why.
+
+#: The frame size the paper's presets were made for, (height, width): Sintel's.
+REFERENCE_FRAME = (436, 1024)
+#: The keys given for a :data:`REFERENCE_FRAME` frame, and the switch that scales each of them. An
+#: override of the key (``--set count=500``) turns its switch off unless the switch is set too.
+EXACT_WHEN_GIVEN = {"count": "scale_count", "size": "scale_size"}
+#: What a recorded paper preset without these switches (an output written before they existed)
+#: meant: its count and size were used as given on every frame.
+UNSCALED = {"scale_count": False, "scale_size": False}
+
+
+@dataclass(frozen=True)
+class FrameScaling:
+    """A paper preset's count and pixel sizes on one frame size (see :func:`frame_scaling`).
+
+    ``count`` and ``size`` are the values sampling uses; ``pixel_scale`` multiplies the other
+    lengths in pixels fixed at sampling (the defocus radius); ``count_rule`` is ``"area"`` (scaled
+    with the frame's area) or ``"fixed"`` (the preset's count on every frame), ``size_rule``
+    ``"diagonal"`` or ``"fixed"``; ``preset_count`` and ``preset_size`` are the preset's values.
+    """
+
+    height: int
+    width: int
+    count: int
+    size: int
+    pixel_scale: float
+    count_rule: str
+    size_rule: str
+    preset_count: int
+    preset_size: int
+
+    def to_dict(self) -> dict:
+        """Every field, plus the reference frame (as the particle metadata stores it)."""
+        return {**dataclasses.asdict(self), "reference": list(REFERENCE_FRAME)}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "FrameScaling":
+        """The record :meth:`to_dict` wrote (its ``reference`` entry is the constant)."""
+        return cls(**{f.name: data[f.name] for f in dataclasses.fields(cls)})
+
+    def describe(self) -> str:
+        """One line: the count and size used and where they come from."""
+        ref_h, ref_w = REFERENCE_FRAME
+        frame = f"{self.width}x{self.height}"
+        count = (f"{self.count} particles = {self.preset_count} x area {frame} / {ref_w}x{ref_h}"
+                 if self.count_rule == "area" else f"{self.count} particles (fixed)")
+        size = (f"size {self.size} px = {self.preset_size} x diagonal ratio {self.pixel_scale:.4g}"
+                if self.size_rule == "diagonal" else f"size {self.size} px (fixed)")
+        return f"{count}; {size}"
+
+
+def scaled_count(count: int, height: int, width: int) -> int:
+    """``count`` scaled by the frame's area relative to :data:`REFERENCE_FRAME`, rounded to the
+    nearest integer (halves up) in integer arithmetic, and at least one particle when ``count`` is
+    not zero: ``count`` itself on a 1024x436 frame (and on a 436x1024 one)."""
+    ref = REFERENCE_FRAME[0] * REFERENCE_FRAME[1]
+    n = (2 * count * height * width + ref) // (2 * ref)
+    return max(n, 1) if count > 0 else 0
+
+
+def scaled_size(size: int, height: int, width: int) -> int:
+    """The odd size nearest to ``size`` times the ratio of the frame's diagonal to that of
+    :data:`REFERENCE_FRAME` (at an even number, the odd one above), at most 2047, in integer
+    arithmetic: ``size`` itself on a 1024x436 frame (and on a 436x1024 one)."""
+    ref = REFERENCE_FRAME[0] ** 2 + REFERENCE_FRAME[1] ** 2
+    # the nearest odd integer to x is 2 floor(x / 2) + 1; floor(x / 2) = isqrt(size^2 N // (4 ref))
+    half = math.isqrt(size * size * (height * height + width * width) // (4 * ref))
+    return min(2 * half + 1, 2047)
+
+
+def pixel_scale(height: int, width: int) -> float:
+    """The ratio of the frame's diagonal to that of :data:`REFERENCE_FRAME` (1.0 there)."""
+    ref = REFERENCE_FRAME[0] ** 2 + REFERENCE_FRAME[1] ** 2
+    return math.sqrt((height * height + width * width) / ref)
+
+
+def frame_scaling(preset: Preset, height: int, width: int) -> FrameScaling:
+    """The count and pixel sizes ``preset`` gives a frame of ``height`` x ``width`` pixels.
+
+    With ``scale_count`` (the default) the count scales with the frame's area relative to
+    1024x436 (:func:`scaled_count`), else it is ``count``; with ``scale_size`` (off by default) the
+    template size scales with the frame's diagonal (:func:`scaled_size`) and so does the defocus
+    radius (``pixel_scale``), else both are the paper's pixels. On a 1024x436 frame nothing
+    changes.
+    """
+    if height < 1 or width < 1:
+        raise ConfigError(f"frame of {width}x{height} pixels: needs at least one pixel")
+    count = scaled_count(preset.count, height, width) if preset.scale_count else preset.count
+    size = scaled_size(preset.size, height, width) if preset.scale_size else preset.size
+    return FrameScaling(height=int(height), width=int(width), count=count, size=size,
+                        pixel_scale=pixel_scale(height, width) if preset.scale_size else 1.0,
+                        count_rule="area" if preset.scale_count else "fixed",
+                        size_rule="diagonal" if preset.scale_size else "fixed",
+                        preset_count=preset.count, preset_size=preset.size)
 
 
 def parse_set_options(items: list[str] | tuple[str, ...]) -> dict[str, str]:

@@ -10,16 +10,22 @@ motion is computed only when camera 1 sees it or when its motionless position li
 longest motion of camera 2's view cone (the particles are those of testing every candidate). The
 record is then moved to the requested device.
 
+The count is the one the preset gives the pair's frame size (:func:`~weathergen.engine.presets.
+frame_scaling`: the preset's count on a 1024x436 frame, scaled by the frame's area elsewhere;
+``size`` and the defocus radius scaled by its diagonal too where ``scale_size`` asks for it).
+
 Depth-dependent properties use the particle's camera depth ``d`` (camera 1 where the particle is in
 front of camera 1, else camera 2), fixed at sampling:
 
-- footprint (pixels) ``size * min(1, 1 / (d * depth_decay))``, at least 1;
+- footprint (pixels) ``size * min(1, 1 / (d * depth_decay))``, at least 1 (``size`` for the
+  frame);
   ``scale = footprint / template resolution``;
 - transparency (``transparency_mode = "depth"``): a hat in the tanh domain,
   ``t = 4/3 d - 1.5`` for ``d < 1.5`` else ``-4/3 d + 2.5``, ``θ = θ_scale (tanh t + 1) / 2``;
   (``"constant"``): ``θ = θ_scale``;
-- defocus radius ``floor(clip(a / (d - b), 0, 20) + 0.5)`` with ``b = 0.563``,
-  ``a = 5 (0.75 - b)``; radii 0 and 1 mean no blur.
+- defocus radius ``floor(s clip(a / (d - b), 0, 20) + 0.5)`` with ``b = 0.563``,
+  ``a = 5 (0.75 - b)`` and ``s`` the frame's pixel scale (1 unless ``scale_size``); radii 0 and 1
+  mean no blur.
 """
 
 from __future__ import annotations
@@ -33,7 +39,7 @@ from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
 from ..geometry import WORLD_UP_AXES, invert_rigid, project, transform_points, up_direction
 from .particles import Particles, _quantize_field, empty_particles
-from .presets import Preset
+from .presets import Preset, frame_scaling
 from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
 
@@ -177,11 +183,12 @@ def transparency_hat(d: torch.Tensor) -> torch.Tensor:
     return (torch.tanh(t) + 1) / 2
 
 
-def defocus_radius(d: torch.Tensor) -> torch.Tensor:
-    """Disc-blur radius in pixels for camera depth ``d``. Shape: any -> same, int64."""
+def defocus_radius(d: torch.Tensor, scale: float = 1.0) -> torch.Tensor:
+    """Disc-blur radius in pixels for camera depth ``d`` on a frame whose lengths in pixels are
+    ``scale`` times a 1024x436 frame's. Shape: any -> same, int64."""
     safe = torch.where(d > DEFOCUS_B, d - DEFOCUS_B, torch.ones_like(d))
     r = torch.where(d > DEFOCUS_B, DEFOCUS_A / safe, torch.zeros_like(d))
-    return torch.floor(r.clamp(0, DEFOCUS_MAX) + 0.5).long()
+    return torch.floor(r.clamp(0, DEFOCUS_MAX) * scale + 0.5).long()
 
 
 # -- colour --------------------------------------------------------------------------------
@@ -248,7 +255,8 @@ def check_pair_for_engine(pair: FramePair) -> None:
 def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Generator] = 0, *,
                      world_up: str = "auto", templates: Optional[TemplateLibrary] = None,
                      device=None, max_candidates_factor: int = 500) -> Particles:
-    """Sample ``preset.count`` particles for one frame pair.
+    """Sample the preset's count of particles for one frame pair (``preset.count`` on a 1024x436
+    frame; on other frame sizes as :func:`~weathergen.engine.presets.frame_scaling` says).
 
     Shape: uses pair.depth1/depth2 (1, H, W), intrinsics (3, 3), the pair's poses (4, 4).
     Returns a quantized :class:`Particles` record on ``device`` (default CPU).
@@ -266,7 +274,8 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     k = pair.intrinsics.double().cpu()
     depth1, depth2 = pair.depth1.cpu(), pair.depth2.cpu()
     settings = RenderSettings.from_preset(preset, lib)
-    n = preset.count
+    scaling = frame_scaling(preset, depth1.shape[-2], depth1.shape[-1])
+    n = scaling.count
     if n == 0:
         return empty_particles(frame, settings).to(dev)
 
@@ -326,13 +335,13 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     z1 = transform_points(cam1_from_ref, position)[:, 2]
     z2 = transform_points(cam2_from_ref, position + motion)[:, 2]
     d = torch.where(z1 > NEAR, z1, z2)
-    footprint = (preset.size * torch.clamp(1.0 / (d * preset.depth_decay), max=1.0)).clamp(min=1.0)
+    footprint = (scaling.size * torch.clamp(1.0 / (d * preset.depth_decay), max=1.0)).clamp(min=1.0)
     scale = footprint / lib.resolution
     if preset.transparency_mode == "constant":
         theta = torch.full_like(d, preset.transparency)
     else:
         theta = preset.transparency * transparency_hat(d)
-    defocus = defocus_radius(d) if preset.defocus else torch.zeros(n, dtype=torch.int64)
+    defocus = defocus_radius(d, scaling.pixel_scale) if preset.defocus else torch.zeros(n, dtype=torch.int64)
 
     hls = rgb_to_hls(torch.tensor(preset.color, dtype=torch.float64) / 255.0).expand(n, 3)
     jitter = (2 * u[:, 1:4] - 1) * torch.tensor(

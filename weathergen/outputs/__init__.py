@@ -19,18 +19,20 @@ from .folder import (ATTACK_FOLDER, RENDER_FOLDER, Claim, FolderKind, claim_fold
 from .manifest import (MANIFEST, MANIFEST_PARTS, SUMMARY, OutputManifest, jsonable, merge_manifest,
                        read_attack_manifest, read_manifest, read_run_config, read_summary,
                        shard_part, write_attack_manifest, write_manifest_part, write_run_config)
-from .metadata import (METADATA_KEYS, METADATA_VERSION, identity_arrays, pair_identity,
-                       pair_metadata, read_metadata, write_metadata)
+from .metadata import (FRAME_SCALING, METADATA_KEYS, METADATA_VERSION, identity_arrays,
+                       pair_identity, pair_metadata, read_metadata, stored_frame_scaling,
+                       write_metadata)
 from .pairs import (FORMATS, NATIVE_FLOW, SINTEL_SPLIT_FOLDER, PairOutput, RightView,  # noqa: F401
                     write_pair_outputs)
 from .reading import WeatherFolder, load_pair_particles
 
-__all__ = ["ATTACK_FOLDER", "AttackPairOutput", "Claim", "FLOW_KINDS", "FORMATS", "FolderKind",
+__all__ = ["ATTACK_FOLDER", "AttackPairOutput", "Claim", "FLOW_KINDS", "FORMATS", "FRAME_SCALING",
+           "FolderKind",
            "MANIFEST", "MANIFEST_PARTS", "METADATA_KEYS", "METADATA_VERSION", "NATIVE_FLOW",
            "OutputManifest", "RENDER_FOLDER", "RightView", "SINTEL_SPLIT_FOLDER", "SUMMARY", "WeatherFolder",
            "claim_folder", "encode_log", "folder_size", "identity_arrays", "jsonable",
            "load_pair_particles", "lock_file", "merge_manifest", "pair_identity", "pair_metadata",
            "prepare_folder", "read_attack_manifest", "read_log", "read_manifest", "read_metadata",
-           "read_pair_summary", "read_run_config", "read_summary", "shard_part",
+           "read_pair_summary", "read_run_config", "read_summary", "shard_part", "stored_frame_scaling",
            "write_attack_manifest", "write_attack_pair", "write_manifest_part", "write_metadata",
            "write_pair_outputs", "write_run_config"]

@@ -3,7 +3,11 @@
 The file is the particle record of :meth:`weathergen.engine.Particles.to_numpy` (a combined
 preset's: :meth:`weathergen.engine.LayeredParticles.to_numpy`, with ``layer_seeds``) plus the
 entries of :data:`METADATA_KEYS` (which pair, seed and preset the particles belong to, which files
-the pair wrote). It is written last, so a pair whose metadata loads is complete.
+the pair wrote). It is written last, so a pair whose metadata loads is complete. Particles of a
+paper preset also carry ``frame_scaling`` (JSON: the count and size used on the pair's frame size
+and the rule that gave them, :meth:`weathergen.engine.FrameScaling.to_dict`; a combined preset's
+``{"layers": [...]}``, one per layer); files written before it existed lack it and still read
+(:func:`stored_frame_scaling` returns None for them).
 
 Metadata version 2 (written now) gathers the 0-d entries in one ``scalars`` entry
 (:mod:`weathergen.io.npz`; ``metadata_version`` and ``format_version`` stay entries of their
@@ -30,6 +34,8 @@ METADATA_VERSION = 2
 #: Entries every particle-metadata file holds besides the particle record itself.
 METADATA_KEYS = ("metadata_version", "pair_dataset", "pair_split", "pair_scene", "pair_frame", "seed",
                  "preset_name", "preset", "weathergen_version", "files")
+#: The optional entry saying how a paper preset's count and size were set for the pair's frame.
+FRAME_SCALING = "frame_scaling"
 
 
 def write_metadata(path: Path, arrays: dict[str, np.ndarray]) -> Path:
@@ -84,14 +90,30 @@ def identity_arrays(pair_id: PairId, seed: int, preset: dict, preset_name: str) 
 
 
 def pair_metadata(particles, pair_id: PairId, seed: int, preset: dict, preset_name: str,
-                  layer_seeds: Optional[Sequence[int]] = None) -> dict[str, np.ndarray]:
+                  layer_seeds: Optional[Sequence[int]] = None, *,
+                  scaling: Optional[dict] = None) -> dict[str, np.ndarray]:
     """The metadata of one pair: the particle record at storage precision and its identity.
 
     A combined preset's :class:`~weathergen.engine.LayeredParticles` are stored in their layered
     format (every particle's layer index included); ``layer_seeds``, one per layer, are recorded
-    as ``layer_seeds`` beside the pair's ``seed``."""
+    as ``layer_seeds`` beside the pair's ``seed``. ``scaling`` (paper presets) says how the
+    preset's count and size were set for the pair's frame; it is stored as ``frame_scaling``."""
     arrays = particles.to_numpy()
     arrays.update(identity_arrays(pair_id, seed, preset, preset_name))
     if layer_seeds is not None:
         arrays["layer_seeds"] = np.array(list(layer_seeds), np.uint64)
+    if scaling is not None:
+        arrays[FRAME_SCALING] = np.array(json.dumps(scaling, sort_keys=True))
     return arrays
+
+
+def stored_frame_scaling(arrays: dict[str, np.ndarray], path: str | Path = "") -> Optional[dict]:
+    """The ``frame_scaling`` entry of a metadata file's arrays, None when the file has none (a
+    weather field's, or written before the entry existed: its count was the preset's as given).
+    FormatError names ``path`` when the entry is not JSON."""
+    if FRAME_SCALING not in arrays:
+        return None
+    try:
+        return json.loads(str(arrays[FRAME_SCALING]))
+    except ValueError:
+        raise FormatError(path, f"its {FRAME_SCALING} entry is not valid JSON") from None

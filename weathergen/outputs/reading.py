@@ -15,6 +15,7 @@ import torch
 
 from ..datasets import Dataset, reopen_dataset
 from ..engine import APPEARANCE_KEYS, Particles
+from ..engine.presets import UNSCALED
 from ..errors import DatasetError, FormatError
 from ..framepair import PairId
 from ..io.exr import read_exr
@@ -65,6 +66,8 @@ def check_stored_particles(path: str | Path, arrays: dict, pair_id: PairId,
             stored = json.loads(str(arrays["preset"]))
         except ValueError:
             raise FormatError(path, "its preset entry is not valid JSON") from None
+        if "model" not in stored:     # a paper preset recorded before frame scaling existed
+            stored = {**UNSCALED, **stored}
         ignored = {"name", "source", *APPEARANCE_KEYS}
         differ = sorted(k for k in set(stored) | set(preset)
                         if k not in ignored and stored.get(k) != preset.get(k))

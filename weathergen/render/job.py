@@ -37,7 +37,7 @@ from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge
 from ..io.atomic import write_error
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
-from .particles import pair_particles, weather_seed
+from .particles import pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
 
@@ -102,6 +102,8 @@ class PairResult:
     bytes: int = 0
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
+    particles: Optional[int] = None   # written: particles in the pair's record (the count its
+                                      # frame size gave, see the metadata's frame_scaling)
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
     warnings: list = field(default_factory=list)  # what the reader found odd ("FILE: what" lines)
     ran: Optional[dict] = None  # where it was computed (weathergen.execution.where_ran) and batch
@@ -199,7 +201,8 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     opacity = tuple(a[index, 0].cpu().numpy()
                     for a in (rendered.opacity1, rendered.opacity2) if a is not None)
     visible = visible_counts(pair, particles)
-    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name)
+    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name,
+                         scaling=weather_scaling(job.preset, pair))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                         job.sequence, job.dataset.native_flow)
@@ -219,7 +222,7 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     warnings = list(facts.pop("warnings", []))
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
-                      input=jsonable(facts), warnings=warnings)
+                      particles=particles.count, input=jsonable(facts), warnings=warnings)
 
 
 def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:

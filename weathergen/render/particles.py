@@ -10,8 +10,8 @@ import hashlib
 from pathlib import Path
 from typing import Optional
 
-from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, Particles, Preset, layer_seed,
-                      sample_weather, scene_seed)
+from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, Particles, Preset, frame_scaling,
+                      layer_seed, sample_weather, scene_seed)
 from ..framepair import FramePair, PairId
 from ..outputs.reading import load_pair_particles
 
@@ -37,6 +37,17 @@ def layer_seeds(preset: CombinedPreset, run_seed: int, pair_id: PairId) -> tuple
     its scene and a paper layer is the pair's own, and the layers never share random numbers."""
     return tuple(layer_seed(weather_seed(layer, run_seed, pair_id), layer.name)
                  for layer in preset.layers)
+
+
+def weather_scaling(preset, pair: FramePair) -> Optional[dict]:
+    """How a paper preset's count and size are set for the pair's frame size (the particle
+    metadata's ``frame_scaling`` entry); None for a weather field (world units: nothing scales);
+    for a combined preset ``{"layers": [...]}``, one entry (or None) per layer."""
+    if isinstance(preset, CombinedPreset):
+        return {"layers": [weather_scaling(layer, pair) for layer in preset.layers]}
+    if isinstance(preset, FieldPreset):
+        return None
+    return frame_scaling(preset, *pair.size).to_dict()
 
 
 def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: str = "auto",

@@ -22,7 +22,7 @@ import torch
 
 from ..engine import (APPEARANCE_KEYS, CombinedPreset, FieldPreset, Preset, RenderSettings,
                       list_presets, load_preset)
-from ..engine.presets import LAYER_JOIN
+from ..engine.presets import LAYER_JOIN, UNSCALED
 from ..errors import ConfigError
 from ..outputs import read_manifest
 
@@ -61,6 +61,8 @@ def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = Non
         raise ConfigError(f"${{overrides}} {', '.join(fixed)}: fixed by the stored particles; only "
                           f"{', '.join(APPEARANCE_KEYS)} can change when re-rendering")
     values = {k: v for k, v in stored.preset.items() if k not in ("name", "source")}
+    if "model" not in values:    # a paper preset: one recorded before frame scaling used it as given
+        values = {**UNSCALED, **values}
     name = stored.preset_name
     base = name if name in list_presets() else "snow"  # every key is set anyway
     resolved = load_preset(base, {**values, **overrides})

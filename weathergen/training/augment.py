@@ -20,12 +20,12 @@ It runs in one of two places:
   renderer :func:`~weathergen.engine.flat.render_flat`: a few hundred kernel launches per batch),
   equal up to float rounding, and CUDA's frames agree with the CPU's within one grey level.
 
-**Order: weather first, geometric augmentation after.** The presets place a number of *visible*
-particles in the whole frame, with pixel sizes meant for the full frame; rendering into the full
-frame and then cropping keeps that density, while rendering into a crop would pack all particles
-into it. :class:`RandomCrop` and :class:`RandomFlip` (which update the intrinsics and poses, so
-the pair stays a consistent record) therefore come after the weather, on samples or on batches,
-with their own ``(seed, epoch, index)`` draws.
+**Order: weather first, geometric augmentation after.** The weather is drawn for the whole frame
+(a paper preset's count follows the frame's area) and a crop shows part of it, particles just
+outside the crop whose footprints reach in included; an explicit count is per frame, and rendering
+into a crop would pack all of it into the crop. :class:`RandomCrop` and :class:`RandomFlip` (which
+update the intrinsics and poses, so the pair stays a consistent record) therefore come after the
+weather, on samples or on batches, with their own ``(seed, epoch, index)`` draws.
 
 Other weather models plug in as a :class:`WeatherSource`: anything with a ``name``, the name of
 its template library and ``sample(pair, seed, world_up) -> Particles``. Presets of either model
@@ -205,7 +205,8 @@ class WeatherAugment:
         p: probability that a sample gets weather (the paper's best training used 0.5 with snow).
         seed: seed of every draw; draws are keyed by ``(seed, epoch, index)``.
         overrides: preset keys changed for every preset given by name or path (for example
-            ``{"count": 1000}`` for frames much smaller than Sintel's).
+            ``{"count": 1000}``: exactly 1000 particles, where a paper preset's own count scales
+            with each frame's area).
         world_up: which world axis points up; ``None`` takes each sample's (its dataset's) setting.
         keep_particles: keep the rendered particle record in :attr:`PairSample.particles`.
         exact_batches: how :meth:`apply_batch` renders (:mod:`weathergen.training.batchrender`):
