@@ -446,3 +446,21 @@ def test_strong_forward_motion_is_recorded_and_noted_once(tmp_path):
     res = run("render", "--root", root, "--out", tmp_path / "field", "--preset", "snow-light",
               "--quiet")
     assert res.exit_code == 0 and "frame 2" not in res.output, res.output
+
+
+@pytest.mark.cuda
+def test_render_on_cuda_writes_what_the_cpu_writes(snow_run, tmp_path):
+    """`render --device cuda` (batches of 8 by default there): the same particles, frames within
+    one grey level of the CPU run's."""
+    out = tmp_path / "cuda"
+    res = run("render", "--out", out, "--device", "cuda", *FAST)
+    assert res.exit_code == 0, res.output
+    for meta in sorted(snow_run.rglob("particles/*/*.npz")):
+        gpu, cpu = read_metadata(out / meta.relative_to(snow_run)), read_metadata(meta)
+        for key in ("position", "motion", "color", "transparency", "scale"):
+            np.testing.assert_array_equal(gpu[key], cpu[key], err_msg=key)
+    frames = sorted(p.relative_to(snow_run) for p in snow_run.rglob("snow_clean/*/*.png"))
+    assert frames
+    for rel in frames:
+        diff = np.abs(read_image(out / rel) - read_image(snow_run / rel))
+        assert diff.max() <= 1 / 255 + 1e-6, rel

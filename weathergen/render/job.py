@@ -33,8 +33,8 @@ from ..engine.stereo import render_right, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
-from ..outputs import (RENDER_FOLDER, PairOutput, claim_folder, merge_manifest, pair_metadata,
-                       write_manifest_part, write_pair_outputs)
+from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
+                       pair_metadata, write_manifest_part, write_pair_outputs)
 from ..io.atomic import write_error
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
@@ -112,6 +112,7 @@ class PairResult:
     particles: Optional[int] = None   # written: particles in the pair's record (the count its
                                       # frame size gave, see the metadata's frame_scaling)
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
+    warnings: list = field(default_factory=list)  # what the reader found odd ("FILE: what" lines)
     ran: Optional[dict] = None  # where it was computed (weathergen.execution.where_ran) and batch
 
 
@@ -224,11 +225,12 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
                                    right=right)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
         raise write_error(exc, job.out, "then rerun with ${resume}") from None
+    facts = dict(getattr(pair, "meta", None) or {})
+    warnings = list(facts.pop("warnings", []))
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
                       few_in_frame2=particles.optics is None and few_in_frame2(*visible),
-                      particles=particles.count,
-                      input=jsonable(getattr(pair, "meta", None) or {}))
+                      particles=particles.count, input=jsonable(facts), warnings=warnings)
 
 
 def few_in_frame2(visible1: int, visible2: int) -> bool:
@@ -258,24 +260,29 @@ def frame2_note(results: list[PairResult], preset_name: str) -> Optional[str]:
             f"particles fill the world that both cameras see")
 
 
-def _render_right(job: RenderJob, pair, particles, second: bool) -> tuple:
-    """The right camera's weather frames (the first, and the second when ``second``): the same
-    particles seen from the dataset's second camera, occluded by its forward-warped depth.
-    Shape: returns (H, W, 3) float arrays."""
+def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
+    """The right camera's outputs (the first frame, and the second when ``second``): the same
+    particles seen from the dataset's second camera, occluded by its forward-warped depth, with
+    that depth, its opacity and its cameras (in the left camera files' world)."""
     rc = right_camera(job.dataset, pair)
     _, c1, c2 = reference_transforms(pair)
     lib = load_templates(particles.settings.templates)
     start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
-    frames = []
+    k_right = pair.intrinsics if rc.intrinsics is None else rc.intrinsics
+    frames, opacity, depths, cams = [], [], [], []
     for image, depth, cam, start in ((rc.image1, pair.depth1, c1, start1),
                                      (rc.image2, pair.depth2, c2, start2))[:2 if second else 1]:
         left = View(pair.intrinsics, cam, depth)
         right_depth = warp_depth(depth, pair.intrinsics, rc.right_from_left, rc.intrinsics)
         view = stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics)
         with torch.no_grad():
-            out, _ = render_right(image, view, particles, start, disp, lib)
+            out, alpha = render_right(image, view, particles, start, disp, lib)
         frames.append(out.permute(1, 2, 0).numpy())
-    return tuple(frames)
+        opacity.append(alpha[0].numpy())
+        depths.append(right_depth[0].numpy())
+        cams.append(view.cam_from_ref.numpy())
+    return RightView(tuple(frames), tuple(opacity), tuple(depths), k_right.double().numpy(),
+                     tuple(cams), rc.right_from_left.double().numpy())
 
 
 def sequence_ends(ids: list[PairId]) -> frozenset:
@@ -296,7 +303,7 @@ def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                             job.sequence, job.dataset.native_flow)
         native = out.native_flow
-        extra = list(out.frames_right_png) if job.stereo else []
+        extra = out.right_files() if job.stereo else []
         if job.truth:
             extra += list(out.truth_files().values())
             extra += [p for p in (out.native_truth(kind) for kind in ("particle", "seen"))
@@ -331,9 +338,10 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
 
     Pairs already complete on disk are skipped when resuming (or when another shard's folder is
     reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives,
-    ``on_note`` warnings worth a line (a stale lock taken over). Interruptions (Ctrl-C, SIGTERM)
-    record what was finished in the manifest and re-raise. The output folder is locked for the
-    run: a second run in it (same shard) raises :class:`~weathergen.errors.FolderBusy`.
+    ``on_note`` warnings worth a line (a stale lock taken over, a gap in a scene's frame
+    numbering, a scene whose frames cannot be paired). Interruptions (Ctrl-C, SIGTERM) record
+    what was finished in the manifest and re-raise. The output folder is locked for the run: a
+    second run in it (same shard) raises :class:`~weathergen.errors.FolderBusy`.
 
     Raises :class:`~weathergen.errors.OutputError` when the outputs cannot be written (the pairs
     finished before are recorded), and :class:`~weathergen.errors.NothingRendered` when every
@@ -342,9 +350,16 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     check_executor(job.executor)
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     every = job.dataset.pairs()
+    for problems in job.dataset.scene_problems().values():
+        for problem in problems:        # e.g. a gap in a scene's frame numbering
+            on_note(f"{problem.where}: {problem.kind}" if problem.where else problem.kind)
     refs = shard_refs(every, job.shard)
+    if not every:
+        raise ConfigError(job.dataset.no_pairs_message())
     if not refs:
-        raise ConfigError("the selection holds no frame pairs")
+        raise ConfigError(f"${{shard}} {job.shard[0]}/{job.shard[1]} holds no frame pairs: the "
+                          f"selection holds {len(every)}, one for each of the first {len(every)} "
+                          f"shards")
     if job.sequence:
         if not isinstance(job.preset, FieldPreset):
             raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "
