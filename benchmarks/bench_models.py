@@ -26,8 +26,8 @@ import time
 
 
 #: Every registered network, in the order of the tables.
-ALL_MODELS = ["raft-small", "raft", "spynet", "flownetc", "flownetcrobust", "flownet2", "gma",
-              "flowformer"]
+ALL_MODELS = ["raft-small", "raft", "spynet", "spynet-sniklaus", "flownetc", "flownetcrobust",
+              "flownet2", "gma", "flowformer"]
 
 
 def measure(model_name: str, width: int, height: int, iters: int, backward: bool,

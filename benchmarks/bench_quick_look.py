@@ -23,7 +23,7 @@ from pathlib import Path
 
 #: The README's quick look, less the checkpoint and the output folder.
 QUICK_LOOK = ["attack", "--model", "raft-small", "--scenes", "street", "--frames-per-scene", "1",
-              "--steps", "20", "--lr", "1e-2", "--set", "count=500"]
+              "--steps", "20", "--lr", "1e-2"]
 
 
 def main() -> None:

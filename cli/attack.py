@@ -11,15 +11,17 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, LP_METHODS, AttackJob, lp_pass_name,
-                               parse_target, plan_lp, run_attack)
+from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, LP_METHODS, PCFA_OPTIMIZERS, AttackJob,
+                               lp_pass_name, parse_target, plan_lp, run_attack)
 from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.execution import RunClock, check_executor
 
-from .options import (dataset_options, device_option, executor_options, model_options, out_option,
-                      overwrite_option, quiet_option, resume_option, seed_option)
+from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
+                      model_options, out_option, overwrite_option, quiet_option, resume_option,
+                      seed_option)
+from .stopping import exit_interrupted, terminate_as_interrupt
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -38,7 +40,23 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
                   _fmt(summary["target_adversarial"]))
     table.add_row("EPE vs ground truth", _fmt(summary["epe_benign"]), _fmt(summary["epe_random"]),
                   _fmt(summary["epe_adversarial"]))
+    for row in region_rows(summary):
+        table.add_row(row[0], "", "", row[1])
     return table
+
+
+def region_rows(summary: dict) -> list[tuple[str, str]]:
+    """The figures by region and the outlier rates of a summary as (label, value) rows."""
+    def pair(a, b):
+        return f"{_fmt(summary[a])} / {_fmt(summary[b])}"
+
+    coverage = summary.get("weather_coverage")
+    covers = "" if coverage is None else f" ({coverage:.1f} % of pixels)"
+    return [(f"AEE(f, f̌) weather{covers} / clear pixels", pair("aee_weather_px", "aee_clear_px")),
+            ("EPE weather / clear pixels", pair("epe_weather_px", "epe_clear_px")),
+            ("Fl-all; outliers > 1, 3, 5 px (%)",
+             f"{_fmt(summary['fl_all'], 2)}; " + ", ".join(
+                 _fmt(summary[f"outliers_{n}px"], 2) for n in (1, 3, 5)))]
 
 
 @click.command()
@@ -51,6 +69,10 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
 @click.option("--epsilon", type=float, default=None,
               help="Bound of an Lp attack: pcfa the normalised L2 norm over both frames, ifgsm "
                    "the L-infinity norm. Default 5e-3 (the paper's).")
+@click.option("--optimizer", type=click.Choice(PCFA_OPTIMIZERS), default=None,
+              help="PCFA's optimiser: lbfgs (default; the PCFA paper's, which the paper ran: 20 "
+                   "steps of up to 10 L-BFGS iterations) or adam (one network pass per step, "
+                   "every step projected into the bound).")
 @click.option("--config", "config_name", default=None, metavar="NAME",
               help=f"An attack configuration of the paper's supplement ({', '.join(ATTACK_CONFIGS)}): "
                    "sets preset, --optimize, --lr and the occlusion gradient; explicit options win.")
@@ -62,15 +84,16 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
 @click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
               default=None, help="Start from the particles of an earlier render (or attack) "
                                  "output instead of sampling.")
-@click.option("--steps", type=click.IntRange(min=0), default=None,
-              help=f"Optimisation steps per pair. Default: {DEFAULT_STEPS} (weather), 20 (pcfa), "
+@click.option("--steps", type=int, default=None, callback=attack_steps,
+              help=f"Optimisation steps per pair (at least 1). Default: {DEFAULT_STEPS} (weather), 20 (pcfa), "
                    "25 (ifgsm).")
 @click.option("--optimize", default=None, metavar="A,B,...",
               help="Variables to optimise: offset1, offset2, color, transparency (or 'all'). "
                    "Default: the --config's, else all (fog: all but offset2).")
 @click.option("--lr", type=float, default=None,
               help="Adam learning rate. Default: 1e-5 when an offset is optimised, else 1e-3; "
-                   "pcfa 1e-3; for ifgsm the step size, default epsilon / steps.")
+                   "pcfa: L-BFGS step size 1, Adam 1e-3; for ifgsm the step size, default "
+                   "epsilon / steps.")
 @click.option("--alpha1", type=float, default=1000.0, show_default=True,
               help="Weight of the frame-1 offset penalty.")
 @click.option("--alpha2", type=float, default=1000.0, show_default=True,
@@ -81,6 +104,7 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
 @click.option("--occlusion-gradient/--no-occlusion-gradient", default=None,
               help="Soften occlusion (beta 30 instead of 250) so gradients pass through it. "
                    "Default: on for fog, off otherwise.")
+@compat_option
 @click.option("--gradient-checkpointing", is_flag=True,
               help="Recompute the network's refinement steps in the backward pass (less memory, "
                    "more time).")
@@ -94,10 +118,12 @@ def summary_table(title: str, summary: dict, what: str = "weather") -> Table:
 @resume_option("Finish an interrupted run: skip finished pairs.")
 @overwrite_option("Redo every pair, even in a folder that holds one.")
 @quiet_option
-def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_name, preset, set_items,
+def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, optimizer, config_name,
+           preset, set_items,
            particles_dir, steps,
-           optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, gradient_checkpointing,
-           out, seed, device, batch_size, executor, ray_address, resume, overwrite, quiet):
+           optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, compat,
+           gradient_checkpointing, out, seed, device, batch_size, executor, ray_address, resume,
+           overwrite, quiet):
     """Optimise weather particles so that a flow network's output moves towards a target.
 
     With no option it attacks RAFT with snow on the bundled demo scene into out/attack-snow.
@@ -111,36 +137,41 @@ def attack(dataset, model, checkpoint, iters, download, method, epsilon, config_
     execution = dict(batch_size=batch_size, executor=executor, ray_address=ray_address,
                      threads=torch.get_num_threads())
     if method != "weather":
-        lp = plan_lp(method, epsilon, steps, lr, config_name=config_name, preset=preset,
+        lp = plan_lp(method, epsilon, steps, lr, optimizer, config_name=config_name, preset=preset,
                      overrides=tuple(set_items), particles_from=particles_dir, optimize=optimize,
-                     occlusion_gradient=occlusion_gradient)
+                     occlusion_gradient=occlusion_gradient,
+                     compat=None if compat in (None, "paper") else compat)
         out = out or default_attack_out(method)
         job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
                         preset=None, preset_name=method, settings=None, target=target,
                         iters=iters, seed=seed, device=device,
                         pass_name=lp_pass_name(method, dataset.selection.pass_),
                         gradient_checkpointing=gradient_checkpointing, download=download,
-                        resume=resume, overwrite=overwrite,
+                        amp=amp, resume=resume, overwrite=overwrite,
                         command=["weathergen", *sys.argv[1:]], lp=lp, **execution)
         label, steps = method, lp.steps
     else:
         if epsilon is not None:
             raise ConfigError("${epsilon} applies to --method pcfa or ifgsm only")
+        if optimizer is not None:
+            raise ConfigError("${optimizer} applies to --method pcfa only")
         steps = DEFAULT_STEPS if steps is None else steps
         job, label = _weather_job(dataset, model, checkpoint, iters, download, config_name,
                                   preset, set_items, particles_dir, steps, optimize, lr, alpha1,
-                                  alpha2, target, occlusion_gradient, gradient_checkpointing, out,
-                                  seed, device, resume, overwrite, execution)
+                                  alpha2, target, occlusion_gradient, compat or "paper",
+                                  gradient_checkpointing, out, seed, device, resume, overwrite,
+                                  execution, amp)
         out = job.out
     _run(job, model, label, target, steps, out, quiet)
 
 
 def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
                  particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
-                 gradient_checkpointing, out, seed, device, resume, overwrite, execution):
+                 compat, gradient_checkpointing, out, seed, device, resume, overwrite, execution,
+                 amp):
     plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
                        optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
-                       steps=steps, alpha1=alpha1, alpha2=alpha2)
+                       steps=steps, alpha1=alpha1, alpha2=alpha2, compat=compat)
     label = plan.label
     out = out or default_attack_out(label)
     job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
@@ -148,7 +179,7 @@ def _weather_job(dataset, model, checkpoint, iters, download, config_name, prese
                     target=target, iters=iters, seed=seed, device=device,
                     particles_from=particles_dir, config_name=config_name,
                     pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
-                    gradient_checkpointing=gradient_checkpointing, download=download,
+                    gradient_checkpointing=gradient_checkpointing, download=download, amp=amp,
                     resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]],
                     **execution)
     return job, label
@@ -158,7 +189,7 @@ def _run(job, model, label, target, steps, out, quiet):
     console = Console()
     err = Console(stderr=True)
     interactive = console.is_terminal and not quiet
-    state = {"n": 0}
+    state = {"n": 0, "written": 0}
     clock = None
     rows = []
     failed = []
@@ -182,8 +213,12 @@ def _run(job, model, label, target, steps, out, quiet):
         elif not quiet and (rec.step % 50 == 0 or rec.step == total_steps):
             console.print(text, highlight=False, soft_wrap=True)
 
+    def on_note(text):
+        click.echo(f"Note: {text}", err=True)
+
     def on_pair_done(report):
-        clock.add(computed=report.status != "skipped")
+        clock.add(computed=report.status == "written")
+        state["written"] += report.status == "written"
         if report.summary is not None:
             rows.append(report.summary)
             if report.summary.nothing_visible and report.status == "written":
@@ -209,19 +244,21 @@ def _run(job, model, label, target, steps, out, quiet):
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
                             MofNCompleteColumn(), TimeElapsedColumn(),
                             TextColumn("{task.fields[status]}"), console=console)
+    stopped_by = None
     try:
-        if progress is not None:
-            with progress:
-                summary = run_attack(job, on_start, on_step, on_pair_done)
-        else:
-            summary = run_attack(job, on_start, on_step, on_pair_done)
+        with terminate_as_interrupt() as stopped_by:
+            if progress is not None:
+                with progress:
+                    summary = run_attack(job, on_start, on_step, on_pair_done, on_note)
+            else:
+                summary = run_attack(job, on_start, on_step, on_pair_done, on_note)
     except KeyboardInterrupt:
-        err.print(f"Interrupted with {len(rows)} of {state['n']} pair(s) finished; rerun with "
-                  f"--resume to continue at the next unfinished pair.")
-        sys.exit(130)
+        exit_interrupted(state["written"], stopped_by)
     if not quiet:
+        mode = "" if job.lp is not None or job.settings.compat == "paper" else \
+            f", compat {job.settings.compat}"
         console.print(summary_table(f"weathergen attack: {model}, {label}, target "
-                                    f"{target.describe()} (pixels)", summary,
+                                    f"{target.describe()}{mode} (pixels)", summary,
                                     "weather" if job.lp is None else "perturbation"))
         console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
                       soft_wrap=True)

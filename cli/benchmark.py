@@ -8,12 +8,15 @@ from pathlib import Path
 import click
 from rich.console import Console
 
+from weathergen.attack import run_attack
 from weathergen.benchmark import (DEFAULT_LP, DEFAULT_PRESETS, BenchmarkSpec, run_grid, tr115_default, write_tables)
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.render.shards import parse_shard
 
-from .options import dataset_options, device_option, quiet_option, seed_option
+from .options import (amp_option, attack_steps, compat_option, dataset_options, device_option,
+                      quiet_option, seed_option)
+from .stopping import exit_interrupted, terminate_as_interrupt
 
 
 def _names(text: str) -> list[str]:
@@ -37,13 +40,15 @@ def _checkpoints(items) -> dict:
 @click.option("--checkpoint", "checkpoint_items", multiple=True, metavar="NETWORK=CKPT",
               help="Checkpoint file or name of one network (repeatable). Default: its own.")
 @click.option("--presets", default=",".join(DEFAULT_PRESETS), show_default=True,
-              metavar="A,B,...", help="Weather presets (random and adversarial); '' for none.")
+              metavar="A,B,...",
+              help="Weather presets (random and adversarial) or attack configurations of the "
+                   "supplement (grey-offset1 ... grey-all: the paper's Table 2); '' for none.")
 @click.option("--lp", "lp_text", default=",".join(DEFAULT_LP), show_default=True,
               metavar="A,B,...", help="Lp attacks (pcfa, ifgsm); '' for none.")
-@click.option("--steps", type=click.IntRange(min=0), default=None,
-              help="Weather attack steps per pair. Default: the attack's (750).")
-@click.option("--lp-steps", type=click.IntRange(min=0), default=None,
-              help="Lp attack steps per pair. Default: each method's (pcfa 20, ifgsm 25).")
+@click.option("--steps", type=int, default=None, callback=attack_steps,
+              help="Weather attack steps per pair (at least 1). Default: the attack's (750).")
+@click.option("--lp-steps", type=int, default=None, callback=attack_steps,
+              help="Lp attack steps per pair (at least 1). Default: each method's (pcfa 20, ifgsm 25).")
 @click.option("--iters", type=click.IntRange(min=1), default=None,
               help="Refinement iterations of recurrent networks. Default: each network's.")
 @click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
@@ -55,13 +60,16 @@ def _checkpoints(items) -> dict:
               help="Fetch named checkpoints that are missing from the cache (needs a network).")
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path),
               default=Path("out/benchmark"), show_default=True, help="Benchmark folder.")
+@compat_option
 @seed_option("Run seed of every run (weather as `weathergen render --seed`).")
 @device_option
+@amp_option
 @quiet_option
 def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_steps, iters,
-              set_items, shard_text, download, out, seed, device, quiet):
+              set_items, shard_text, download, out, compat, seed, device, amp, quiet):
     """Run networks x {random weather, adversarial weather, Lp attacks} x presets and write
-    the paper's tables (CSV, JSON, Markdown, LaTeX) into OUT.
+    the paper's tables (CSV, JSON, Markdown, LaTeX; one file per table in OUT/tables) and a plot
+    of AEE per network and preset (OUT/aee.png) into OUT.
 
     Without --frames-per-scene at most 5 pairs per scene are used (the
     paper's Sintel-tr115 on Sintel training). Every run is an `attack` output under OUT/runs;
@@ -73,21 +81,36 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_s
         presets=_names(presets), lp_methods=_names(lp_text),
         checkpoints=_checkpoints(checkpoint_items), steps=steps, lp_steps=lp_steps, iters=iters,
         overrides=parse_set_options(set_items), seed=seed, device=device, download=download,
-        command=["weathergen", *sys.argv[1:]])
+        amp=amp, command=["weathergen", *sys.argv[1:]], compat=compat or "paper")
     shard = parse_shard(shard_text) if shard_text else None
     console = Console()
+
+    written = []
 
     def on_cell(i, n, cell):
         if not quiet:
             console.print(f"[{i + 1}/{n}] {cell.network} {cell.label}", highlight=False)
 
+    def on_pair_done(report):
+        if report.status == "written":
+            written.append(report.pair)
+
+    def on_note(text):
+        click.echo(f"Note: {text}", err=True)
+
+    def execute(job):
+        return run_attack(job, on_pair_done=on_pair_done, on_note=on_note)
+
+    stopped_by = None
     try:
-        run_grid(spec, shard, on_cell=on_cell)
+        with terminate_as_interrupt() as stopped_by:
+            run_grid(spec, shard, execute=execute, on_cell=on_cell)
     except KeyboardInterrupt:
-        Console(stderr=True).print("Interrupted; run the same command again to resume.")
-        sys.exit(130)
+        # every run of the grid resumes by itself: the same command finishes it
+        exit_interrupted(len(written), stopped_by, again="rerun the same command")
     paths = write_tables(spec)
     if not quiet:
         console.print(paths["markdown"].read_text(), highlight=False, markup=False)
-        console.print(f"Tables: {paths['markdown']}, {paths['latex']}; results: {paths['csv']}, "
+        console.print(f"Tables: {paths['markdown']}, {paths['latex']} (one file per table in "
+                      f"{Path(out) / 'tables'}); plot: {paths['plot']}; results: {paths['csv']}, "
                       f"{paths['json']}", highlight=False, soft_wrap=True)

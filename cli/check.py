@@ -33,10 +33,10 @@ def check(dataset, geometry, geometry_pairs, verbose):
     console = Console()
     scenes = check_dataset(dataset, geometry=geometry, geometry_pairs=geometry_pairs)
     if not scenes:
-        raise DatasetError(f"{dataset.root}: the selection holds no frame pairs")
+        raise DatasetError(dataset.no_pairs_message())
 
-    single_pass = dataset.name in ("kitti", "spring", "custom")   # one rendering, no pass to name
-    where = dataset.selection.split if single_pass else f"{dataset.selection.split}/{dataset.selection.pass_}"
+    where = (dataset.selection.split if dataset.single_pass      # one rendering, no pass to name
+             else f"{dataset.selection.split}/{dataset.selection.pass_}")
     table = Table(title=f"{dataset.name} {where} at {dataset.root}")
     columns = [("scene", {}), ("pairs", {"justify": "right"}), ("readable", {"justify": "right"}),
                ("depth scale", {"justify": "right"}), ("status", {})]

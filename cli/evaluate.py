@@ -10,9 +10,10 @@ from rich.table import Table
 
 from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
 from weathergen.engine import resolve_device
-from weathergen.models import get_model
+from weathergen.models import get_model, resolve_amp
 from weathergen.outputs import WeatherFolder
 
+from .attack import region_rows
 from .options import device_option, model_options, quiet_option
 
 
@@ -35,18 +36,20 @@ def _fmt(value) -> str:
               default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json.")
 @device_option
 @quiet_option
-def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root, pass_,
-             json_path, device,
-             quiet):
+def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name, root, pass_,
+             json_path, device, quiet):
     """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
 
     Also reports the end-point error against ground truth, for the clean and the weather frames,
-    where the dataset has it. All figures are in pixels.
+    where the dataset has it, both figures on the pixels the weather covers (its opacity above
+    1/255 in either frame) and on the rest, and KITTI's Fl-all and 1/3/5 px outlier rates of the
+    weather flow. All figures are in pixels, rates in percent.
     """
     resolve_device(device)
+    amp = resolve_amp(model, amp, device)
     folder = WeatherFolder.open(weather_dir)
     dataset = folder.clean_dataset(dataset_name, root, pass_)
-    network = get_model(model, checkpoint, device=device, iters=iters, download=download)
+    network = get_model(model, checkpoint, device=device, iters=iters, download=download, amp=amp)
     console = Console()
 
     def on_pair(row):
@@ -55,7 +58,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root
                           soft_wrap=True)
 
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
-    info = {"model": model, "checkpoint": checkpoint, "iters": iters,
+    info = {"model": model, "checkpoint": checkpoint, "iters": iters, "amp": amp,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
     json_path = json_path or default_evaluation_path(weather_dir, model)
     write_evaluation(json_path, info, rows, summary)
@@ -70,4 +73,6 @@ def evaluate(weather_dir, model, checkpoint, iters, download, dataset_name, root
     table.add_row(f"mean of {summary['pairs']}", _fmt(summary["aee_weather"]),
                   _fmt(summary["epe_clean"]), _fmt(summary["epe_weather"]))
     console.print(table)
+    for label, value in region_rows(summary):
+        console.print(f"{label}: {value}", highlight=False, soft_wrap=True)
     console.print(f"Figures: {json_path}", highlight=False, soft_wrap=True)

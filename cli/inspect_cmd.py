@@ -1,4 +1,5 @@
-"""``weathergen inspect FILE`` and ``weathergen preview DIR``: look at what a render wrote."""
+"""``weathergen inspect FILE`` and ``weathergen preview DIR`` (a contact sheet, or ``--video``):
+look at what a render wrote."""
 
 from __future__ import annotations
 
@@ -6,14 +7,19 @@ import json
 from pathlib import Path
 
 import click
+import numpy as np
 from rich.console import Console
 from rich.table import Table
 
-from weathergen.engine.particles import stored_values
+from weathergen.engine import FrameScaling
+from weathergen.engine.layers import layer_arrays
+from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
+from weathergen.errors import ConfigError
 from weathergen.io.atomic import write_error
 from weathergen.io.images import write_png
-from weathergen.outputs import read_metadata
-from weathergen.render import contact_sheet
+from weathergen.io.video import check_video_path, write_video
+from weathergen.outputs import read_metadata, stored_frame_scaling
+from weathergen.render import contact_sheet, video_preview
 
 
 def _preset_origin(name: str, source: str) -> str:
@@ -24,11 +30,20 @@ def _preset_origin(name: str, source: str) -> str:
 @click.command()
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 def inspect(file: Path):
-    """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges."""
+    """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges
+    (per layer for a combined preset)."""
     arrays = read_metadata(file)
     console = Console()
-    n = int(arrays["position"].shape[0]) if "position" in arrays else 0
     preset = json.loads(str(arrays["preset"])) if "preset" in arrays else {}
+    layered = int(arrays.get("format_version", 0)) == LAYERED_FORMAT_VERSION
+    if layered:
+        names = [str(n) for n in np.atleast_1d(arrays["layer_names"])]
+        layers = [layer_arrays(arrays, k) for k in range(len(names))]
+    else:
+        names, layers = [""], [arrays]
+    counts = [int(a["position"].shape[0]) if "position" in a else 0 for a in layers]
+    scaling = stored_frame_scaling(arrays, file)
+    scalings = (scaling or {}).get("layers", [None] * len(layers)) if layered else [scaling]
     head = Table(title=str(file), show_header=False)
     head.add_column("key")
     head.add_column("value")
@@ -37,48 +52,117 @@ def inspect(file: Path):
                  f"frame {int(arrays['pair_frame'])}"),
         ("seed", str(int(arrays["seed"]))),
         ("preset", _preset_origin(str(arrays["preset_name"]), preset.get("source", ""))),
-        ("particles", str(n)),
+        ("particles", str(sum(counts))),
+        ("for the frame", _scaling_text(scalings[0]) if not layered else "per layer, below"),
         ("visible in frame 1 / 2", f"{int(arrays.get('visible1', -1))} / {int(arrays.get('visible2', -1))}"),
-        ("reference frame", str(arrays.get("frame", "?"))),
-        ("blend", str(arrays.get("blend", "?"))),
-        ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, "
-                        f"{int(arrays.get('blur_samples', 1))} samples"),
-        ("templates", str(arrays.get("templates", "?"))),
-        ("format", f"metadata v{int(arrays['metadata_version'])}, particles v{int(arrays.get('format_version', 0))}, "
+    ]
+    if layered:
+        seeds = np.atleast_1d(arrays.get("layer_seeds", np.zeros(0, np.uint64)))
+        for k, (name, a, n) in enumerate(zip(names, layers, counts)):
+            seed = f", seed {int(seeds[k])}" if k < len(seeds) else ""
+            rows.append((f"layer {k}", f"{name}: {n} particles, {_looks(a)}{seed}"))
+            rows.append((f"layer {k} for the frame", _scaling_text(scalings[k])))
+        rows.append(("reference frame", str(layers[0].get("frame", "?"))))
+    else:
+        rows += [
+            ("reference frame", str(arrays.get("frame", "?"))),
+            ("blend", str(arrays.get("blend", "?"))),
+            ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, "
+                            f"{int(arrays.get('blur_samples', 1))} samples"),
+            ("templates", str(arrays.get("templates", "?"))),
+        ]
+    version = int(layers[0].get("format_version", 0))
+    rows += [
+        ("format", f"metadata v{int(arrays['metadata_version'])}, particles v{version}"
+                   f"{f' in layers (v{LAYERED_FORMAT_VERSION})' if layered else ''}, "
                    f"written by weathergen {arrays.get('weathergen_version', '?')}"),
         ("file size", f"{file.stat().st_size:,} bytes"),
     ]
     for k, v in rows:
         head.add_row(k, v)
     console.print(head)
-    ranges = Table(title="per-particle values")
-    for col in ("field", "dtype", "shape", "min", "max", "mean"):
-        ranges.add_column(col, justify="right" if col in ("min", "max", "mean") else "left")
-    for name in ("position", "motion", "offset1", "offset2", "color", "transparency", "template",
-                 "rotation", "scale", "defocus"):
-        if name not in arrays:
-            continue
-        a = arrays[name]
-        if a.size:
-            f = stored_values(arrays, name)       # grid and 8-bit codes decoded
-            stats = (f"{f.min():.4g}", f"{f.max():.4g}", f"{f.mean():.4g}")
+    for name, a in zip(names, layers):
+        title = f"per-particle values{f' of layer {name}' if name else ''} (as Particles.load reads them)"
+        console.print(_ranges(a, title, file))
+
+
+def _scaling_text(scaling) -> str:
+    """How a paper preset's count and size were set for the pair's frame (the metadata's
+    ``frame_scaling`` entry), in one line."""
+    if not scaling:
+        return "not recorded (a weather field, or written before frame scaling: the preset's count)"
+    return FrameScaling.from_dict(scaling).describe()
+
+
+def _looks(arrays: dict) -> str:
+    """Blend, motion blur and templates of a record's file entries, in one line."""
+    return (f"{arrays.get('blend', '?')} blend, motion blur length "
+            f"{float(arrays.get('blur_length', 0)):g} in {int(arrays.get('blur_samples', 1))} "
+            f"samples, templates {arrays.get('templates', '?')}")
+
+
+def _ranges(arrays: dict, title: str, path: Path) -> Table:
+    """Every per-particle field of one record's file entries as a user reads it (the dtype, shape
+    and values :meth:`Particles.from_arrays` gives, codes decoded), and how the file stores it."""
+    record = Particles.from_arrays(arrays, path)
+    ranges = Table(title=title)
+    for col in ("field", "dtype", "shape", "min", "max", "mean", "stored as"):
+        ranges.add_column(col, justify="right" if col in ("min", "max", "mean") else "left",
+                          no_wrap=True)
+    for name in TENSOR_FIELDS:
+        t = getattr(record, name)
+        if t.numel():
+            f = t.double()
+            stats = (f"{f.min().item():.4g}", f"{f.max().item():.4g}", f"{f.mean().item():.4g}")
         else:
             stats = ("-", "-", "-")
-        ranges.add_row(name, str(a.dtype), str(tuple(a.shape)), *stats)
-    console.print(ranges)
+        ranges.add_row(name, str(t.dtype).removeprefix("torch."), "×".join(map(str, t.shape)),
+                       *stats, stored_as(arrays, name))
+    return ranges
 
 
 @click.command()
 @click.argument("render_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
-              help="PNG to write. Default: RENDER_DIR/preview.png.")
-@click.option("--pairs", type=click.IntRange(min=1), default=4, show_default=True,
-              help="Pairs to show (the first ones); the sheet says when there are more.")
-@click.option("--width", type=click.IntRange(min=64), default=480, show_default=True,
-              help="Width of each tile.")
-def preview(render_dir: Path, out, pairs, width):
-    """Write a contact sheet of a render output: original, weather frame and particle opacity."""
-    sheet = contact_sheet(render_dir, pairs=pairs, width=width)
+              help="Contact sheet (PNG) to write. Default: RENDER_DIR/preview.png.")
+@click.option("--video", type=click.Path(dir_okay=False, path_type=Path), default=None,
+              metavar="FILE.mp4|FILE.gif",
+              help="Write a video instead of the contact sheet: a --sequence output's frames in "
+                   "order, an output of pairs as frame 1 / frame 2 alternating, at the dataset's "
+                   "frame rate.")
+@click.option("--pairs", type=click.IntRange(min=1), default=None,
+              help="Pairs to show (the first ones). Default: 4 on the contact sheet (it says when "
+                   "there are more), all in a video.")
+@click.option("--width", type=click.IntRange(min=64), default=None,
+              help="Width of each tile. Default: 480 on the contact sheet, the frames' own in a "
+                   "video.")
+@click.option("--with-input", is_flag=True,
+              help="--video: show the clean input frame left of the weather frame.")
+@click.option("--with-opacity", is_flag=True,
+              help="--video: show the particles' opacity right of the weather frame.")
+@click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=None,
+              help="--video: frames per second. Default: the dataset's (sintel, spring, demo 24; "
+                   "kitti 10; custom 30) or a field preset's frame_rate.")
+@click.option("--cycles", type=click.IntRange(min=1), default=None,
+              help="--video of pairs: how often each pair shows frame 1 and frame 2. "
+                   "Default: for one second.")
+@click.option("--captions/--no-captions", default=True, show_default=True,
+              help="--video: scene, frame and preset written on the tiles.")
+def preview(render_dir: Path, out, video, pairs, width, with_input, with_opacity, fps, cycles,
+            captions):
+    """Write a contact sheet of a render output (original, weather frame and particle opacity),
+    or with --video a video of it (MP4 or GIF)."""
+    if video is not None:
+        _preview_video(render_dir, out, video, pairs, width, with_input, with_opacity, fps, cycles,
+                       captions)
+        return
+    for flag, given in (("with_input", with_input), ("with_opacity", with_opacity),
+                        ("fps", fps is not None), ("cycles", cycles is not None),
+                        ("captions", not captions)):
+        if given:
+            raise ConfigError(f"${{{flag}}} applies to ${{video}} only (the contact sheet always "
+                              "shows the input, the weather and the opacity)")
+    sheet = contact_sheet(render_dir, pairs=pairs or 4, width=width or 480)
     out = out or render_dir / "preview.png"
     try:
         write_png(out, sheet.image)
@@ -89,3 +173,21 @@ def preview(render_dir: Path, out, pairs, width):
                    f"(--pairs {sheet.total} shows all)")
     else:
         click.echo(f"Preview of {sheet.total} pair{'s' if sheet.total != 1 else ''} written to {out}")
+
+
+def _preview_video(render_dir: Path, out, video: Path, pairs, width, with_input, with_opacity,
+                   fps, cycles, captions):
+    if out is not None:
+        raise ConfigError("${out} names the contact sheet; with ${video} give only the video file")
+    check_video_path(video)          # before any work
+    plan = video_preview(render_dir, pairs=pairs, cycles=cycles, fps=fps, with_input=with_input,
+                         with_opacity=with_opacity, width=width, captions=captions)
+    try:
+        count = write_video(video, plan.frames(), plan.fps)
+    except OSError as exc:
+        raise write_error(exc, video, "pass --video PATH to write it elsewhere") from None
+    w, h = plan.size
+    shown = (f"{plan.pairs} of {plan.total} pairs" if plan.pairs < plan.total
+             else f"{plan.total} pair{'s' if plan.total != 1 else ''}")
+    click.echo(f"Video of {shown} written to {video}: {count} frames of {w}x{h} at "
+               f"{plan.fps:g} fps ({count / plan.fps:.1f} s)")

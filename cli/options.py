@@ -55,12 +55,37 @@ def resume_option(help: str):
     return click.option("--resume", is_flag=True, help=help)
 
 
+def compat_option(func):
+    """``--compat``: the paper's attack terms (default) or the research code's."""
+    return click.option(
+        "--compat", type=click.Choice(("paper", "reference")), default=None,
+        help="paper (default): the attack of the paper's equations and tables; reference: the "
+             "authors' research code where it departs from them (gradients accumulated over the "
+             "steps, occlusion detached, penalty over the squared frame-1 depth, homogeneous "
+             "offsets, transparency capped at the preset's, its figures), to reproduce its "
+             "published tables. See docs/attack.md.")(func)
+
+
 def overwrite_option(help: str):
     """``--overwrite``: redo or replace what a folder holds; ``help`` says what."""
     return click.option("--overwrite", is_flag=True, help=help)
 
 
 # -- option groups --------------------------------------------------------------------------
+
+def attack_steps(ctx, param, value):
+    """Callback of ``--steps`` (and ``--lp-steps``): an attack takes at least one step.
+
+    With none, the "adversarial" result would be the starting point itself (the random weather,
+    or the clean frames of an Lp attack), written under the attack's name.
+    """
+    if value is not None and value < 1:
+        raise click.BadParameter(
+            f"{value}: an attack takes at least one step; with none its 'adversarial' result "
+            f"would be the unoptimised start (random weather: measure that with `weathergen render` "
+            f"and `weathergen evaluate`)")
+    return value
+
 
 def _world_up_option(ctx, param, value):
     """Validate --world-up (an axis name or a direction X,Y,Z); keep the text as given."""
@@ -118,18 +143,20 @@ def dataset_options(func):
                 first_frame, depth_scale, scene_scales, camera_translation, far_depth, world_up,
                 **kwargs):
         name = dataset_name or default_dataset(root)
+        reader = DATASETS[name]
         options = dict(depth_scale=depth_scale, camera_translation=camera_translation,
                        scene_scales=load_scene_scales(scene_scales) if scene_scales else None,
                        world_up=world_up)
-        for flag, (keyword, names) in READER_OPTIONS.items():
+        for flag, keyword in READER_OPTIONS.items():
             value = kwargs.pop(flag)
             if value is not None:
-                if name not in names:
+                if keyword not in reader.options:
+                    names = [n for n, cls in DATASETS.items() if keyword in cls.options]
                     raise click.UsageError(f"--{flag.replace('_', '-')} applies to "
                                            f"{', '.join(names)} only, not to {name}")
                 options[keyword] = value
         if far_depth is not None:
-            if name in ("sintel", "demo"):
+            if reader.dense_depth:
                 raise click.UsageError(f"--far-depth does not apply to {name}: its depth is dense")
             options["far_depth"] = far_depth
         kwargs["dataset"] = open_dataset(
@@ -142,16 +169,17 @@ def dataset_options(func):
     return wrapper
 
 
-#: Options of one reader or two: option name -> (the reader's keyword, the datasets it applies to).
+#: Options of one reader or two: option name -> the reader's keyword. Which readers take it is
+#: theirs to say (:attr:`~weathergen.datasets.Dataset.options`).
 READER_OPTIONS = {
-    "fit_threshold": ("fit_threshold_px", ("kitti",)),
-    "fit_min_inliers": ("fit_min_inlier_fraction", ("kitti",)),
-    "fit_min_points": ("fit_min_points", ("kitti",)),
-    "fit_max_rms": ("fit_max_rms_px", ("kitti",)),
-    "object_map": ("use_object_map", ("kitti",)),
-    "frame_pattern": ("frame_pattern", ("custom",)),
-    "min_valid_depth": ("min_valid_depth", ("custom",)),
-    "fill_gaps": ("max_gap_px", ("kitti", "custom")),
+    "fit_threshold": "fit_threshold_px",
+    "fit_min_inliers": "fit_min_inlier_fraction",
+    "fit_min_points": "fit_min_points",
+    "fit_max_rms": "fit_max_rms_px",
+    "object_map": "use_object_map",
+    "frame_pattern": "frame_pattern",
+    "min_valid_depth": "min_valid_depth",
+    "fill_gaps": "max_gap_px",
 }
 
 
@@ -187,8 +215,16 @@ def reader_options(func):
     return func
 
 
+#: ``--amp/--no-amp``: mixed precision of the network (CUDA only); shared with ``benchmark``.
+amp_option = click.option(
+    "--amp/--no-amp", default=None,
+    help="Run the network in its authors' mixed precision (CUDA autocast; RAFT, RAFT-small, "
+         "GMA). Default: as the paper's configuration, on for GMA and off for the others; on "
+         "the CPU always off (--amp there is an error).")
+
+
 def model_options(func):
-    """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``."""
+    """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``, ``amp``."""
     for option in reversed((
         click.option("--model", default="raft", show_default=True,
                      help="Flow network or checkpoint name (raft, raft-small, gma, flowformer, "
@@ -200,6 +236,7 @@ def model_options(func):
                           "own (RAFT 12, GMA 6, FlowFormer 32)."),
         click.option("--download", is_flag=True,
                      help="Fetch a named checkpoint that is missing from the cache (needs a network)."),
+        amp_option,
     )):
         func = option(func)
     return func

@@ -6,22 +6,26 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from weathergen.engine.presets import (FieldPreset, field_preset_keys, list_presets, load_preset,
+from weathergen.engine.presets import (EXAMPLE_COMBINATIONS, LAYER_JOIN, CombinedPreset, FieldPreset,
+                                       field_preset_keys, list_presets, load_preset,
                                        parse_set_options, preset_keys)
 
 
 @click.command("presets")
 @click.argument("name", required=False)
-@click.option("--set", "overrides", multiple=True, metavar="KEY=VALUE",
-              help="Override one preset key (repeatable), e.g. --set count=500.")
+@click.option("--set", "overrides", multiple=True, metavar="[LAYER.]KEY=VALUE",
+              help="Override one preset key (repeatable), e.g. --set count=500; in a combined "
+                   "preset name the layer by name or position: --set fog-light.density=0.05, "
+                   "--set 2.density=0.05.")
 def presets_command(name, overrides):
-    """List the weather presets, or show preset NAME (a name or a .toml file) fully resolved."""
+    """List the weather presets, or show preset NAME (a name, a .toml file, or presets joined by +
+    such as rain-heavy+fog-light) fully resolved."""
     console = Console(width=160)
     sets = parse_set_options(overrides)
     if name is None:
         for model, keys, title in (
-                ("paper", preset_keys(), "paper model: a fixed count of visible particles per "
-                                         "pair, sizes in pixels"),
+                ("paper", preset_keys(), "paper model: visible particles per 1024x436 pair "
+                                         "(scaled by frame area), sizes in pixels"),
                 ("field", field_preset_keys(), "field model: a weather field in scene units "
                                                "(metres on metric data), density per m³")):
             columns = [f.name for f in keys if f.metadata.get("main")]
@@ -35,10 +39,26 @@ def presets_command(name, overrides):
                 p = load_preset(preset_name, overrides=sets if model == "paper" else {})
                 table.add_row(preset_name, model, *(_main_value(p, c) for c in columns))
             console.print(table)
+        table = Table(title=f"combined presets, examples: any presets of either model joined by "
+                            f"{LAYER_JOIN}, one layer each", header_style="bold")
+        for col in ("name", "layers", "description"):
+            table.add_column(col, no_wrap=col != "description")
+        for combined_name, description in EXAMPLE_COMBINATIONS.items():
+            c = load_preset(combined_name)
+            layers = f" {LAYER_JOIN} ".join(f"{n} ({m})" for n, m in zip(c.layer_names, c.layer_models))
+            table.add_row(combined_name, layers, description)
+        console.print(table)
         return
     p = load_preset(name, overrides=sets)
+    layers = p.layers if isinstance(p, CombinedPreset) else (p,)
+    for i, layer in enumerate(layers, 1):
+        _show(console, layer, f"layer {i} of {p.name}: " if len(layers) > 1 else "")
+
+
+def _show(console: Console, p, title: str) -> None:
+    """One preset's every key, its value and its meaning, and where it came from."""
     field_model = isinstance(p, FieldPreset)
-    table = Table(title=f"preset {p.name} ({'field' if field_model else 'paper'} model)",
+    table = Table(title=f"{title}preset {p.name} ({'field' if field_model else 'paper'} model)",
                   header_style="bold")
     table.add_column("key")
     table.add_column("value")

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import contextlib
-import signal
 import sys
 import time
 from pathlib import Path
@@ -12,7 +10,7 @@ import click
 import torch
 from rich.console import Console
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TaskProgressColumn,
-                           TextColumn, TimeElapsedColumn, TimeRemainingColumn)
+                           TextColumn, TimeElapsedColumn)
 from rich.text import Text
 from rich.table import Table
 
@@ -25,15 +23,14 @@ from weathergen.render.plan import default_batch_size, default_out, default_pass
 from .options import (ARGV_KEY, dataset_options, device_option, executor_options, out_option,
                       overwrite_option,
                       quiet_option, resume_option, seed_option)
+from .stopping import exit_interrupted, terminate_as_interrupt
 
 class _RateColumn(ProgressColumn):
-    """Pairs per second (or seconds per pair when slower than one a second)."""
+    """Pairs per second (or seconds per pair when slower than one a second), of the pairs computed
+    (the run's :class:`RunClock`; skipped and failed pairs are not its pace)."""
 
     def render(self, task):
-        if not task.speed:
-            return Text("")
-        rate = task.speed
-        return Text(f"{rate:.2f} pairs/s" if rate >= 1 else f"{1 / rate:.1f} s/pair")
+        return Text(task.fields.get("rate", ""))
 
 
 def _human_bytes(n: float) -> str:
@@ -42,31 +39,6 @@ def _human_bytes(n: float) -> str:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1000
     return f"{n:.1f} TB"
-
-
-@contextlib.contextmanager
-def _terminate_as_interrupt():
-    """Treat SIGTERM (``kill``, a cluster's time limit) like Ctrl-C while rendering.
-
-    Either way the run stops cleanly: the pairs in progress finish or leave no file, the manifest
-    records what was written, and ``--resume`` finishes the job. Yields a list that receives the
-    number of the signal that stopped the run.
-    """
-    stopped_by = []
-
-    def handler(signum, frame):
-        stopped_by.append(signum)
-        raise KeyboardInterrupt
-
-    try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:          # not the main thread: leave signals alone
-        yield stopped_by
-        return
-    try:
-        yield stopped_by
-    finally:
-        signal.signal(signal.SIGTERM, previous)
 
 
 def _parse_workers(ctx, param, value):
@@ -166,43 +138,47 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
         nonlocal task, clock
         clock = RunClock(n)
         if progress is not None:
-            task = progress.add_task("render", total=n, pair="")
+            task = progress.add_task("render", total=n, pair="", rate="", left="")
 
     def on_note(text):
         click.echo(f"Note: {text}", err=True)
 
     def on_result(r):
         results.append(r)
-        clock.add(computed=r.status != "skipped")
+        clock.add(computed=r.status == "written")
         if r.status == "failed":   # one unwrapped line, so paths stay whole
             if progress is not None:
                 progress.console.print(f"[red]failed[/red] {r.pair}: {r.message}", highlight=False,
                                        soft_wrap=True)
             else:
                 click.echo(f"failed {r.pair}: {r.message}", err=True)
+        for text in r.warnings:    # written, but the input looks wrong
+            if progress is not None:
+                progress.console.print(f"[yellow]warning[/yellow] {r.pair}: {text}", highlight=False,
+                                       soft_wrap=True)
+            else:
+                click.echo(f"warning {r.pair}: {text}", err=True)
         if progress is not None:
-            progress.update(task, advance=1, pair=r.pair)
+            progress.update(task, advance=1, pair=r.pair, rate=clock.pace(), left=clock.time_left())
         elif not quiet:
             console.print(f"[{clock.describe()}] {r.pair} {r.status} ({r.seconds:.2f} s)",
                           highlight=False, soft_wrap=True)
 
     if interactive:
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                            TaskProgressColumn(), _RateColumn(),
-                            TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[pair]}"),
+                            TaskProgressColumn(), _RateColumn(), TimeElapsedColumn(),
+                            TextColumn("{task.fields[left]}"), TextColumn("{task.fields[pair]}"),
                             console=console)
     stopped_by = None
     try:
-        with _terminate_as_interrupt() as stopped_by:
+        with terminate_as_interrupt() as stopped_by:
             if progress is not None:
                 with progress:
                     run_render(job, on_result, on_start, on_note)
             else:
                 run_render(job, on_result, on_start, on_note)
     except KeyboardInterrupt:
-        click.echo(f"Interrupted after {sum(r.status == 'written' for r in results)} pairs; rerun with "
-                   f"--resume to finish (finished pairs are kept).", err=True)
-        sys.exit(128 + (stopped_by[0] if stopped_by else signal.SIGINT))
+        exit_interrupted(sum(r.status == "written" for r in results), stopped_by)
     elapsed = time.perf_counter() - t0
     written = [r for r in results if r.status == "written"]
     failed = [r for r in results if r.status == "failed"]

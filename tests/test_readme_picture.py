@@ -1,4 +1,4 @@
-"""The README's picture: regenerating it leaves the tracked file alone unless it really changed."""
+"""The README's pictures: regenerating them leaves the tracked files alone unless they really changed."""
 
 from __future__ import annotations
 
@@ -35,3 +35,18 @@ def test_regenerating_the_readme_picture_changes_no_byte(tmp_path):
     write_png(copy, np.zeros_like(fresh))
     assert script.main(copy) is True
     np.testing.assert_array_equal(read_raw(copy)[..., ::-1], fresh)
+
+
+def test_the_video_still_is_a_frame_of_the_video_the_code_makes_today(tmp_path):
+    from weathergen.io.images import read_raw
+
+    script = _script()
+    tracked = PROJECT_ROOT / "docs" / "images" / "video-still.png"
+    fresh = script.render_video_still()
+    assert fresh.shape == (176, 3 * 384, 3)            # input | weather | opacity
+    diff = np.abs(fresh.astype(int) - read_raw(tracked)[..., ::-1].astype(int))
+    assert diff.max() <= 1 and (diff > 0).mean() < 1e-3
+    copy = tmp_path / "still.png"
+    shutil.copy(tracked, copy)
+    assert script.main_video_still(copy) is False
+    assert copy.read_bytes() == tracked.read_bytes()

@@ -177,3 +177,57 @@ def _mask(valid: Optional[torch.Tensor], flow: torch.Tensor) -> Optional[torch.T
         raise ShapeError(f"expected a valid mask of shape {with_channel} or {tuple(spatial)}, "
                          f"got {tuple(valid.shape)}")
     return valid
+
+
+# ---------------------------------------------------------------------------------------------
+# Figures by region and outlier rates
+# ---------------------------------------------------------------------------------------------
+
+#: Opacity above which a pixel counts as covered by weather: one 8-bit level (a white particle
+#: with additive blending brightens such a pixel by at least one step of an 8-bit frame).
+WEATHER_OPACITY_THRESHOLD = 1.0 / 255.0
+
+
+def weather_mask(opacity1: torch.Tensor, opacity2: Optional[torch.Tensor] = None,
+                 threshold: float = WEATHER_OPACITY_THRESHOLD) -> torch.Tensor:
+    """The pixels the weather covers: opacity above ``threshold`` in frame 1 or in frame 2 (the
+    flow at a pixel of frame 1 looks at both frames).
+
+    Shape: opacities ``(B, 1, H, W)``, ``(1, H, W)`` or ``(H, W)``, both alike; returns ``bool``
+    of the same shape.
+    """
+    covered = opacity1 > threshold
+    if opacity2 is not None:
+        if opacity2.shape != opacity1.shape:
+            raise ShapeError(f"expected opacity2 of opacity1's shape {tuple(opacity1.shape)}, "
+                             f"got {tuple(opacity2.shape)}")
+        covered = covered | (opacity2 > threshold)
+    return covered
+
+
+def outlier_rate(flow: torch.Tensor, target: torch.Tensor, threshold_px: float,
+                 valid: Optional[torch.Tensor] = None,
+                 relative: Optional[float] = None) -> torch.Tensor:
+    """Percentage of the (valid) pixels whose end-point error exceeds ``threshold_px`` pixels
+    (and, with ``relative``, also ``relative`` times the length of the target vector).
+
+    Shape: as :func:`aee`; returns ``(B,)`` for batches, 0-d for one field, in percent; NaN for a
+    field without valid pixels.
+    """
+    errors = epe(flow, target, valid)
+    bad = errors > threshold_px
+    if relative is not None:
+        bad = bad & (errors > relative * torch.linalg.vector_norm(target, dim=-3))
+    mask = _mask(valid, flow)
+    if mask is None:
+        return 100.0 * bad.to(errors.dtype).mean(dim=(-2, -1))
+    bad = bad & mask
+    count = mask.sum(dim=(-2, -1)).to(errors.dtype)
+    return 100.0 * bad.sum(dim=(-2, -1)).to(errors.dtype) / count
+
+
+def fl_all(flow: torch.Tensor, target: torch.Tensor,
+           valid: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """KITTI's Fl-all: the percentage of valid pixels whose end-point error exceeds both 3 px and
+    5 % of the ground-truth vector's length. Shape: as :func:`outlier_rate`."""
+    return outlier_rate(flow, target, 3.0, valid, relative=0.05)

@@ -105,8 +105,29 @@ def test_attack_log_and_summary(attack_out):
     attack = manifest["config"]["attack"]
     assert attack["optimize"] == ["offset1", "offset2", "color", "transparency"]
     assert attack["lr"] == 1e-5 and attack["alpha1"] == attack["alpha2"] == 1000.0
+    assert attack["compat"] == summary["compat"] == "paper"          # the default
+    # Figures by region: the two regions split the pixels, so their AEEs, weighted by the
+    # weather's coverage, make up AEE(f, f̌) (one pair); the demo scene has ground truth.
+    share = summary["weather_coverage"] / 100
+    assert 0 < share < 1
+    assert (share * summary["aee_weather_px"] + (1 - share) * summary["aee_clear_px"]
+            == pytest.approx(summary["aee_adversarial"], rel=1e-4))
+    for key in ("epe_weather_px", "epe_clear_px", "fl_all", "outliers_1px", "outliers_3px",
+                "outliers_5px"):
+        assert summary[key] is not None and summary[key] >= 0, key
+    assert summary["outliers_1px"] >= summary["outliers_3px"] >= summary["outliers_5px"]
+    assert attack["transparency_max"] == 1.0
     (entry,) = manifest["pairs"].values()
     assert entry["status"] == "written" and entry["steps"] == 2
+    # Mixed precision: RAFT-small's paper setting is off, and on the CPU it is off anyway.
+    assert manifest["config"]["model"]["amp"] is False and summary["amp"] is False
+    # the explicit count is used on the demo frame as given, and recorded with its rule
+    assert entry["particles"] == 150 and manifest["preset"]["scale_count"] is False
+    from weathergen.outputs import read_metadata, stored_frame_scaling
+
+    (npz,) = (out / "training" / "particles").rglob("*.npz")
+    recorded = stored_frame_scaling(read_metadata(npz))
+    assert (recorded["count"], recorded["count_rule"], recorded["width"]) == (150, "fixed", 384)
 
 
 def test_attack_output_rerenders_through_render_particles(attack_out, tmp_path):
@@ -134,6 +155,29 @@ def test_evaluate_on_the_attack_output_reproduces_its_figures(attack_out, tmp_pa
     assert row["aee_weather"] == pytest.approx(summary["aee_adversarial"], rel=1e-4, abs=1e-5)
     assert row["epe_weather"] == pytest.approx(summary["epe_adversarial"], rel=1e-4, abs=1e-5)
     assert row["epe_clean"] == pytest.approx(summary["epe_benign"], rel=1e-4, abs=1e-5)
+    assert json.loads((tmp_path / "eval.json").read_text())["amp"] is False
+
+
+@pytest.mark.parametrize("command", ["attack", "evaluate"])
+def test_mixed_precision_on_the_cpu_is_refused_before_anything_is_written(command, tmp_path,
+                                                                          raft_small_weights):
+    from weathergen.cli.main import _register, cli
+
+    _register()
+    place = (["--out", tmp_path / "x", *ONE_PAIR] if command == "attack"
+             else ["--weather", tmp_path / "x", "--json", tmp_path / "x.json"])
+    result = CliRunner().invoke(cli, [str(a) for a in [
+        command, "--model", "raft-small", "--checkpoint", raft_small_weights, "--amp", *place]])
+    assert result.exit_code == 2
+    (line,) = result.output.strip().splitlines()
+    assert line.startswith("Error: --amp needs a CUDA device")
+    assert not (tmp_path / "x").exists() and not (tmp_path / "x.json").exists()
+    # --no-amp is what the CPU does anyway
+    if command == "attack":
+        ok = invoke(tiny_attack(raft_small_weights, tmp_path / "y", "--no-amp", "--steps", "1",
+                                "--quiet"))
+        assert ok.exit_code == 0, ok.output
+        assert json.loads((tmp_path / "y" / "summary.json").read_text())["amp"] is False
 
 
 def test_resume_skips_finished_pairs_and_plain_rerun_refuses(attack_out, raft_small_weights):
@@ -153,7 +197,7 @@ def test_resume_skips_finished_pairs_and_plain_rerun_refuses(attack_out, raft_sm
 def test_fog_configuration_freezes_the_second_offset(tmp_path, raft_small_weights):
     out = tmp_path / "fog"
     result = invoke(["attack", "--config", "fog", "--model", "raft-small", "--checkpoint",
-                     raft_small_weights, "--iters", "2", *ONE_PAIR, "--steps", "0", "--set", "count=2",
+                     raft_small_weights, "--iters", "2", *ONE_PAIR, "--steps", "1", "--set", "count=2",
                      "--out", out, "--target", "1.5,-2"])
     assert result.exit_code == 0, result.output
     config = json.loads((out / "manifest.json").read_text())["config"]
@@ -169,7 +213,7 @@ def test_stored_fog_particles_keep_the_second_offset_fixed(tmp_path, raft_small_
     assert rendered.exit_code == 0, rendered.output
     out = tmp_path / "attack"
     result = invoke(["attack", "--particles", fog, "--model", "raft-small", "--checkpoint",
-                     raft_small_weights, "--iters", "1", *ONE_PAIR, "--steps", "0", "--out", out])
+                     raft_small_weights, "--iters", "1", *ONE_PAIR, "--steps", "1", "--out", out])
     assert result.exit_code == 0, result.output
     config = json.loads((out / "manifest.json").read_text())["config"]
     assert config["preset_name"] == "fog"
@@ -235,6 +279,11 @@ def test_a_folder_another_run_is_writing_is_refused(attack_out, raft_small_weigh
     assert invoke(tiny_attack(raft_small_weights, out, "--resume")).exit_code == 0
 
 
+def test_a_finished_attack_leaves_no_lock_file(attack_out):
+    out, _ = attack_out
+    assert (out / "manifest.json").is_file() and not list(out.rglob(".weathergen-lock*"))
+
+
 def test_unknown_model_lists_the_known_ones(tmp_path):
     result = invoke(["attack", "--model", "flownet9", *ONE_PAIR, "--out", tmp_path / "x"])
     assert result.exit_code == 2
@@ -273,3 +322,24 @@ def test_missing_target_file(tmp_path, raft_small_weights):
     result = invoke(["attack", "--model", "raft-small", "--checkpoint", raft_small_weights, *ONE_PAIR,
                      "--target", tmp_path / "goal.flo", "--out", tmp_path / "x"])
     assert result.exit_code == 2 and "goal.flo" in result.output
+
+
+def test_compat_reference_is_recorded_in_manifest_and_summary(tmp_path, raft_small_weights):
+    out = tmp_path / "reference"
+    result = invoke(tiny_attack(raft_small_weights, out, "--compat", "reference"))
+    assert result.exit_code == 0, result.output
+    assert "compat reference" in result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["compat"] == "reference" and summary["aee_adversarial"] >= 0
+    attack = json.loads((out / "manifest.json").read_text())["config"]["attack"]
+    assert attack["compat"] == "reference" and attack["transparency_max"] == 0.75   # snow
+    # Resuming under the other mode is refused: the settings differ.
+    again = invoke(tiny_attack(raft_small_weights, out, "--resume"))
+    assert again.exit_code == 2 and "different settings" in again.output
+
+
+def test_compat_reference_is_refused_for_lp_attacks(tmp_path):
+    result = invoke(["attack", "--method", "ifgsm", "--compat", "reference", *ONE_PAIR,
+                     "--out", tmp_path / "x"])
+    assert result.exit_code == 2 and "--compat" in result.output and "weather" in result.output
+    assert not (tmp_path / "x").exists()

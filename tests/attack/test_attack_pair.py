@@ -256,7 +256,8 @@ def test_attack_runs_on_pairs_sampled_from_a_weather_field(small_pair, raft_smal
     """Field records (per-frame looks) go through the same loop: offsets and loss unchanged."""
     from weathergen.engine import load_preset, render_pair, sample_weather
 
-    particles = sample_weather(small_pair, load_preset("snow-moderate", {"far": "6"}), 4)
+    particles = sample_weather(small_pair, load_preset("snow-moderate", {"far": "6"}), 4,
+                               frame_rate=24.0)      # the demo scene's rate
     assert particles.optics is not None and particles.count > 100
     settings = AttackSettings(optimize=OPTIMIZABLE, steps=2, lr=2e-3)
     result = attack_pair(raft_small, small_pair, particles, settings, TargetSpec("zero"))
@@ -268,3 +269,70 @@ def test_attack_runs_on_pairs_sampled_from_a_weather_field(small_pair, raft_smal
         out = render_pair(small_pair, result.best_particles)
         again = raft_small(out.image1, out.image2)
     assert torch.allclose(again, result.best_flow, atol=1e-3)
+
+
+# -- the paper's bounds and axes ------------------------------------------------------------------
+
+def _record(theta, position=None):
+    from weathergen.engine import empty_particles
+
+    n = len(theta)
+    return empty_particles("camera1").replace(
+        position=torch.zeros(n, 3) if position is None else position, motion=torch.zeros(n, 3),
+        offset1=torch.zeros(n, 3), offset2=torch.zeros(n, 3), color=torch.full((n, 3), 0.5),
+        transparency=torch.tensor(theta), template=torch.zeros(n, dtype=torch.long),
+        rotation=torch.zeros(n), scale=torch.ones(n), defocus=torch.zeros(n, dtype=torch.long))
+
+
+def test_transparency_bound_is_the_presets_not_the_samples():
+    """θ ≤ max(1, the preset's θ): sparks (θ 1.5) may reach 1.5 even where its sampled particles
+    stop at 1.1; snow (0.75) stays below 1 as in the paper's atanh box."""
+    from weathergen.attack import plan_attack
+
+    sparks = plan_attack(None, "sparks").settings
+    assert sparks.transparency_max == 1.5
+    assert plan_attack(None, "snow").settings.transparency_max == 1.0
+    assert plan_attack("grey-all").settings.transparency_max == 1.0
+    v = WeatherVariables(_record([0.2, 1.1]), ("transparency",),
+                         transparency_max=sparks.transparency_max)
+    assert v.theta_max == 1.5
+    assert torch.allclose(v.particles().transparency, torch.tensor([0.2, 1.1]), atol=1e-5)
+    with torch.no_grad():
+        v.delta["transparency"].fill_(20.0)         # saturate: θ goes to the bound
+    assert torch.allclose(v.particles().transparency, torch.full((2,), 1.5), atol=1e-4)
+    # A record above the bound keeps its own largest θ as the bound (its start stays exact).
+    above = WeatherVariables(_record([0.2, 1.8]), ("transparency",), transparency_max=1.5)
+    assert above.theta_max == pytest.approx(1.8)
+
+
+def test_offsets_move_along_the_cameras_axes():
+    """Δ1 = (1, 0, 0) moves the particle one unit along camera 1's x axis, Δ2 = (0, 0, 1) one
+    unit along camera 2's z axis (the paper's equations), whatever the reference frame."""
+    import math
+
+    from weathergen.geometry import transform_points
+
+    def pose(angle, axis, t):
+        c, s = math.cos(angle), math.sin(angle)
+        r = {"z": [[c, -s, 0], [s, c, 0], [0, 0, 1]], "y": [[c, 0, s], [0, 1, 0], [-s, 0, c]]}[axis]
+        m = torch.eye(4, dtype=torch.float64)
+        m[:3, :3] = torch.tensor(r, dtype=torch.float64)
+        m[:3, 3] = torch.tensor(t, dtype=torch.float64)
+        return m
+
+    c1, c2 = pose(0.7, "z", [0.1, -0.2, 0.3]), pose(-0.4, "y", [1.0, 0.5, -0.2])
+    record = _record([0.5, 0.5], position=torch.tensor([[0.3, 0.1, 2.0], [-0.5, 0.2, 4.0]]))
+    v = WeatherVariables(record, ("offset1", "offset2"), cam1_from_ref=c1, cam2_from_ref=c2)
+    with torch.no_grad():
+        v.delta["offset1"][:, 0] = 1.0
+        v.delta["offset2"][:, 2] = 1.0
+    moved = v.particles()
+    p, m = record.position.double(), record.motion.double()
+    x1_before = transform_points(c1, p)
+    x1_after = transform_points(c1, p + moved.offset1.double())
+    assert torch.allclose(x1_after - x1_before, torch.tensor([[1.0, 0, 0]] * 2, dtype=torch.float64),
+                          atol=1e-6)
+    x2_before = transform_points(c2, p + moved.offset1.double() + m)
+    x2_after = transform_points(c2, p + moved.offset1.double() + m + moved.offset2.double())
+    assert torch.allclose(x2_after - x2_before, torch.tensor([[0, 0, 1.0]] * 2, dtype=torch.float64),
+                          atol=1e-6)

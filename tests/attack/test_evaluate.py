@@ -65,6 +65,17 @@ def test_evaluate_a_render_output_from_the_cli(model, weather, tmp_path, raft_sm
     assert row["aee_weather"] > 0.0             # 800 snowflakes change the flow
     assert row["epe_clean"] is not None and row["epe_weather"] is not None
     assert data["summary"]["aee_weather"] == pytest.approx(row["aee_weather"])
+    # Figures by region: the weather's pixels and the rest make up the whole AEE; rates from
+    # the demo's ground truth.
+    share = row["weather_coverage"] / 100
+    assert 0 < share < 1
+    assert (share * row["aee_weather_px"] + (1 - share) * row["aee_clear_px"]
+            == pytest.approx(row["aee_weather"], rel=1e-4))
+    assert row["aee_weather_px"] > row["aee_clear_px"]      # the flakes disturb their own pixels most
+    for key in ("epe_weather_px", "epe_clear_px", "fl_all", "outliers_1px", "outliers_3px",
+                "outliers_5px"):
+        assert row[key] is not None and data["summary"][key] == pytest.approx(row[key]), key
+    assert "Fl-all" in result.output
 
     # Cross-check against the flow computed here on the frames the render wrote.
     from weathergen.datasets import demo_pairs

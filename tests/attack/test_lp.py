@@ -44,10 +44,10 @@ def test_l2_normalised_is_the_rms_over_both_frames():
     assert float(l2_normalised(d1, d2)) == pytest.approx(0.125 ** 0.5)
 
 
-def test_pcfa_respects_its_l2_bound_and_the_box_after_every_step():
+def test_pcfa_with_adam_respects_its_l2_bound_and_the_box_after_every_step():
     x1, x2 = frames()
     eps = 2e-3
-    s = lp_settings("pcfa", epsilon=eps, steps=15, lr=0.05)   # large steps: the bound binds
+    s = lp_settings("pcfa", epsilon=eps, steps=15, lr=0.05, optimizer="adam")   # the bound binds
     run = LpOptimisation(ToyFlow(), x1, x2, s)
     norms = []
     for _ in range(s.steps):
@@ -108,15 +108,16 @@ def test_random_perturbation_has_the_budget():
 @pytest.mark.parametrize("method", ["pcfa", "ifgsm"])
 def test_a_batch_equals_pairs_attacked_one_by_one(method):
     """Two pairs in one batch: each pair's steps, best step and frames as when attacked alone.
-    PCFA's projection acts per pair: the second pair's pixels sit near the box faces, where
-    tanh barely moves, so it stays inside the ball while the first is projected onto it."""
+    PCFA's projection (with Adam) acts per pair: the second pair's pixels sit near the box faces,
+    where tanh barely moves, so it stays inside the ball while the first is projected onto it."""
     saturated = tuple(torch.where(x > 0.5, 0.998, 0.002) for x in frames(3))
     pairs = [frames(2), saturated]
     eps = 2e-3
     # I-FGSM steps short of the bound: its distances keep falling, so the best step is no
     # rounding tie between equal steps on the bound
     lr = 0.02 if method == "pcfa" else eps / 6
-    s = lp_settings(method, epsilon=eps, steps=5, lr=lr)
+    s = lp_settings(method, epsilon=eps, steps=5, lr=lr,
+                    optimizer="adam" if method == "pcfa" else None)
     model = ToyFlow()
     seen = []
     batch = lp_attack_batch(model, torch.cat([p[0] for p in pairs]),
@@ -152,14 +153,87 @@ def test_l2_normalised_per_pair_is_each_pairs_norm():
 
 def test_settings_defaults_and_bad_values():
     assert lp_settings("pcfa").epsilon == 5e-3 and lp_settings("ifgsm").steps == 25
+    # PCFA as published: L-BFGS with PyTorch's step size 1; Adam with its learning rate
+    assert (lp_settings("pcfa").optimizer, lp_settings("pcfa").lr) == ("lbfgs", 1.0)
+    assert lp_settings("pcfa", optimizer="adam").lr == 1e-3
+    assert lp_settings("pcfa").to_dict()["optimizer"] == "lbfgs"
+    assert "optimizer" not in lp_settings("ifgsm").to_dict()
     with pytest.raises(ConfigError, match="epsilon"):
         lp_settings("pcfa", epsilon=-1)
     with pytest.raises(ConfigError, match="method"):
         lp_settings("fgsm")
+    with pytest.raises(ConfigError, match="lbfgs or adam"):
+        lp_settings("pcfa", optimizer="sgd")
+    with pytest.raises(ConfigError, match="applies to"):
+        lp_settings("ifgsm", optimizer="adam")
 
 
-@pytest.mark.parametrize("method", ["pcfa", "ifgsm"])
-def test_loss_to_target_decreases_with_raft_small(method, raft_small_weights, demo_root):
+class SmoothFlow(torch.nn.Module):
+    """A small smooth 'flow network' (conv, tanh, conv): L-BFGS needs curvature, which the
+    linear :class:`ToyFlow` lacks (its quasi-Newton steps leave the ball for good there)."""
+
+    calls = 0
+
+    def __init__(self):
+        super().__init__()
+        g = torch.Generator().manual_seed(0)
+        self.a = torch.nn.Conv2d(6, 8, 3, padding=1)
+        self.b = torch.nn.Conv2d(8, 2, 3, padding=1)
+        with torch.no_grad():
+            self.a.weight.copy_(torch.randn(self.a.weight.shape, generator=g) * 2)
+            self.a.bias.zero_()
+            self.b.weight.copy_(torch.randn(self.b.weight.shape, generator=g))
+            self.b.bias.fill_(1.0)
+
+    def forward(self, a, b):
+        self.calls += 1
+        return 3 * self.b(torch.tanh(self.a(torch.cat([a, b], 1))))
+
+
+def test_lbfgs_pcfa_keeps_its_bound_and_reduces_the_loss():
+    """PCFA as published on a tiny case: L-BFGS steps of several iterations each (one network
+    pass each) with only the penalty holding the perturbation near the ball, so a step may leave
+    it; the best step is the closest to the target among the steps within the bound."""
+    x1, x2 = frames(5)
+    eps = 5e-3
+    s = lp_settings("pcfa", epsilon=eps, steps=6)
+    model = SmoothFlow()
+    assert isinstance(LpOptimisation(model, x1, x2, s).optimizer, torch.optim.LBFGS)
+    model.calls = 0
+    result = lp_attack_pair(model, x1, x2, s, TargetSpec("zero"), seed=1)
+    # benign flow and random perturbation: 2 passes; then 7 measured steps and the L-BFGS
+    # iterations after the first of each step
+    assert model.calls > 2 + 7 + 6
+    history = result.history
+    assert any(r.penalty > 0 for r in history)              # a step outside the ball ...
+    best = history[result.best_step]
+    assert result.best_step > 0 and best.penalty == 0       # ... is never the best one
+    assert best.distance == min(r.distance for r in history if r.penalty == 0)
+    assert best.loss < 0.97 * history[0].loss               # the loss went down
+    d = [f - x for f, x in zip(result.best_frames, (x1, x2))]
+    assert 0.5 * eps < float(l2_normalised(*d)) <= eps
+    for frame in result.best_frames:
+        assert float(frame.min()) >= 0 and float(frame.max()) <= 1
+
+
+def test_lbfgs_pcfa_attacks_the_pairs_of_a_batch_one_by_one():
+    pairs = [frames(5), frames(6)]
+    s = lp_settings("pcfa", epsilon=2e-3, steps=3)
+    seen = []
+    batch = lp_attack_batch(SmoothFlow(), torch.cat([p[0] for p in pairs]),
+                            torch.cat([p[1] for p in pairs]), s, seeds=[1, 2],
+                            on_step=lambda i, r: seen.append((i, r.step)))
+    assert seen == [(0, k) for k in range(4)] + [(1, k) for k in range(4)]
+    for (x1, x2), seed, got in zip(pairs, (1, 2), batch):
+        alone = lp_attack_pair(SmoothFlow(), x1, x2, s, seed=seed)
+        assert [r.distance for r in got.history] == [r.distance for r in alone.history]
+        assert all(torch.equal(a, b) for a, b in zip(got.best_frames, alone.best_frames))
+
+
+@pytest.mark.parametrize("method, optimizer", [("pcfa", "adam"), ("pcfa", "lbfgs"),
+                                               ("ifgsm", None)])
+def test_loss_to_target_decreases_with_raft_small(method, optimizer, raft_small_weights,
+                                                  demo_root):
     from weathergen.datasets import open_dataset
     from weathergen.models import get_model
 
@@ -171,7 +245,8 @@ def test_loss_to_target_decreases_with_raft_small(method, raft_small_weights, de
                                              align_corners=False).clamp(0, 1)
              for im in (pair.image1, pair.image2)]
     eps = 2e-2 if method == "pcfa" else 5e-3
-    settings = lp_settings(method, epsilon=eps, steps=4, lr=5e-3 if method == "pcfa" else 1e-3)
+    lr = {"adam": 5e-3, "lbfgs": None, None: 1e-3}[optimizer]
+    settings = lp_settings(method, epsilon=eps, steps=4, lr=lr, optimizer=optimizer)
     result = lp_attack_pair(model, *small, settings, TargetSpec("zero"), seed=0)
     distances = [r.distance for r in result.history]
     assert distances[0] > 0.1
@@ -223,6 +298,7 @@ def test_cli_pcfa_writes_the_outputs_of_a_weather_attack(tmp_path, raft_small_we
         assert summary[key] == pytest.approx(pair_entry[key])
     assert manifest["config"]["attack"]["method"] == "pcfa"
     assert manifest["config"]["attack"]["epsilon"] == 5e-3
+    assert manifest["config"]["attack"]["optimizer"] == "lbfgs"       # as published
     # the float frames on disk keep the L2 bound against the clean frames and the box
     ds = open_dataset("demo", scenes=["courtyard"], frames_per_scene=1)
     pair = ds.load(ds.pairs()[0])
@@ -246,6 +322,10 @@ def test_cli_ifgsm_end_to_end(tmp_path, raft_small_weights):
     assert result.exit_code == 0, result.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["target_adversarial"] < summary["target_initial"]
+    # No weather covers any pixel: every pixel is "clear", and the summary has no mode.
+    assert summary["weather_coverage"] == 0.0 and summary["aee_weather_px"] is None
+    assert summary["aee_clear_px"] == pytest.approx(summary["aee_adversarial"], rel=1e-5)
+    assert summary["fl_all"] is not None and summary["compat"] is None
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["config"]["attack"]["norm"] == "Linf"
 
@@ -257,3 +337,8 @@ def test_cli_refuses_weather_options_with_an_lp_method(tmp_path):
     assert not (tmp_path / "x").exists()
     result = invoke(["attack", "--epsilon", "0.1", "--out", tmp_path / "y"])
     assert result.exit_code == 2 and "--epsilon" in result.output
+    result = invoke(["attack", "--optimizer", "adam", "--out", tmp_path / "y"])
+    assert result.exit_code == 2 and "--optimizer applies to --method pcfa only" in result.output
+    result = invoke(["attack", "--method", "ifgsm", "--optimizer", "lbfgs", "--out", tmp_path / "y"])
+    assert result.exit_code == 2 and "--optimizer applies to --method pcfa only" in result.output
+    assert not (tmp_path / "y").exists()

@@ -7,6 +7,7 @@ import math
 import pytest
 import torch
 
+from weathergen.errors import ShapeError
 from weathergen.flow import aee, color_wheel, epe, flow_to_color
 
 
@@ -135,3 +136,46 @@ def test_epe_errors():
     with pytest.raises(ValueError, match="valid mask of shape"):
         epe(torch.zeros(1, 2, 3, 4), torch.zeros(1, 2, 3, 4),
             torch.ones(1, 1, 4, 3, dtype=torch.bool))
+
+
+# -- regions and outlier rates ----------------------------------------------------------------------
+
+def _hand_made():
+    """Ground truth u = [[10, 0, 0], [0, 100, 2]] (v = 0) and a flow off by errors of
+    [[0.5, 2, 4], [6, 4, 3.5]] px along u."""
+    gt = torch.zeros(2, 2, 3)
+    gt[0] = torch.tensor([[10.0, 0, 0], [0, 100, 2]])
+    flow = gt.clone()
+    flow[0] += torch.tensor([[0.5, 2, 4], [6, 4, 3.5]])
+    return flow, gt
+
+
+def test_outlier_rates_by_hand():
+    from weathergen.flow import fl_all, outlier_rate
+
+    flow, gt = _hand_made()
+    assert outlier_rate(flow, gt, 1.0).item() == pytest.approx(100 * 5 / 6)
+    assert outlier_rate(flow, gt, 3.0).item() == pytest.approx(100 * 4 / 6)
+    assert outlier_rate(flow, gt, 5.0).item() == pytest.approx(100 * 1 / 6)
+    # Fl-all: above 3 px and above 5 % of |gt|; the 4 px error on the 100 px vector is no outlier.
+    assert fl_all(flow, gt).item() == pytest.approx(100 * 3 / 6)
+    valid = torch.tensor([[True, True, True], [False, True, True]])
+    assert outlier_rate(flow, gt, 3.0, valid).item() == pytest.approx(100 * 3 / 5)
+    assert fl_all(flow, gt, valid).item() == pytest.approx(100 * 2 / 5)
+    batch = fl_all(torch.stack((flow, gt)), torch.stack((gt, gt)))
+    assert batch.tolist() == pytest.approx([50.0, 0.0])
+    assert math.isnan(fl_all(flow, gt, torch.zeros(2, 3, dtype=torch.bool)).item())
+
+
+def test_weather_mask_takes_either_frame_above_one_level():
+    from weathergen.flow import WEATHER_OPACITY_THRESHOLD, weather_mask
+
+    assert WEATHER_OPACITY_THRESHOLD == pytest.approx(1 / 255)
+    o1 = torch.tensor([[0.5, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    o2 = torch.tensor([[0.0, 0.01, 0.003], [0.0, 0.0, 1.0]])
+    assert weather_mask(o1, o2).tolist() == [[True, True, False], [False, False, True]]
+    assert weather_mask(o1).tolist() == [[True, False, False], [False, False, False]]
+    assert weather_mask(o1, o2, threshold=0.002).tolist() == [[True, True, True],
+                                                             [False, False, True]]
+    with pytest.raises(ShapeError):
+        weather_mask(o1, o2[None])

@@ -22,3 +22,40 @@ def test_a_reader_without_its_root_names_the_parameter():
     assert missing.value.render(option_of) == "dataset 'kitti' needs --root, the folder it is stored in"
     with pytest.raises(ConfigError, match="unknown dataset 'hd1k'; known: custom, demo"):
         open_dataset("hd1k")
+
+
+def test_readers_declare_their_traits():
+    """Frame rate, passes, depth, native flow: each reader says them of itself (the documented
+    values: Sintel, Spring and the demo 24 fps, KITTI 10 Hz, custom data unrecorded, 30)."""
+    rates = {name: cls.frame_rate for name, cls in DATASETS.items()}
+    assert rates == {"custom": 30.0, "demo": 24.0, "kitti": 10.0, "sintel": 24.0, "spring": 24.0}
+    assert {n for n, cls in DATASETS.items() if not cls.single_pass} == {"demo", "sintel"}
+    assert {n for n, cls in DATASETS.items() if cls.dense_depth} == {"demo", "sintel"}
+    native = {n: (cls.native_flow.folder, cls.native_flow.format)
+              for n, cls in DATASETS.items() if cls.native_flow is not None}
+    assert native == {"kitti": ("flow_occ", "kitti-png"), "spring": ("flow_FW_left", "flo5")}
+
+
+@pytest.mark.parametrize("name", sorted(DATASETS))
+def test_the_options_a_reader_lists_are_keywords_it_takes(name):
+    import inspect
+
+    cls = DATASETS[name]
+    taken = {p for klass in cls.__mro__ if "__init__" in vars(klass)
+             for p, param in inspect.signature(klass.__init__).parameters.items()
+             if param.kind is inspect.Parameter.KEYWORD_ONLY}
+    assert set(cls.options) <= taken, set(cls.options) - taken
+    # a sparse-depth reader takes the far depth; a dense one has none to take
+    assert ("far_depth" in cls.options) == (not cls.dense_depth)
+
+
+def test_a_reader_option_is_refused_for_readers_that_do_not_list_it(tmp_path):
+    from click.testing import CliRunner
+
+    from weathergen.cli.main import _register, cli
+
+    _register()
+    res = CliRunner().invoke(cli, ["check", "--fit-threshold", "2"])
+    takers = ", ".join(n for n, cls in DATASETS.items() if "fit_threshold_px" in cls.options)
+    assert res.exit_code == 2 and takers == "kitti"
+    assert f"--fit-threshold applies to {takers} only, not to demo" in res.output

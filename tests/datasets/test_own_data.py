@@ -210,4 +210,4 @@ def test_fill_gaps_option_reaches_the_reader(tmp_path, street, monkeypatch):
     assert run_cli("check", "--dataset", "custom", "--root", str(root)).exit_code == 0
     assert seen == [0.0, 24.0]
     res = run_cli("check", "--fill-gaps", "3")
-    assert res.exit_code == 2 and "--fill-gaps applies to kitti, custom only, not to demo" in res.output
+    assert res.exit_code == 2 and "--fill-gaps applies to custom, kitti only, not to demo" in res.output

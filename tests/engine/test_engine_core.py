@@ -9,6 +9,7 @@ import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 from engine_scenes import plane_pair, pose, rotation
+from weathergen.datasets import frame_rate_of
 from weathergen.engine import splat
 from weathergen.engine import (build_stamps, empty_particles, load_preset, load_templates,
                                render, render_view, sample_field_particles, sample_particles)
@@ -32,7 +33,7 @@ def records_for(pairs, presets, count=120):
 
 def field_records(pairs, presets, density=8.0, **overrides):
     return [sample_field_particles(p, load_preset(name, {"density": density, **overrides}),
-                                   seed=20 + i)
+                                   seed=20 + i, frame_rate=frame_rate_of(p.id.dataset))
             for i, (p, name) in enumerate(zip(pairs, presets))]
 
 

@@ -4,6 +4,7 @@ particle ground truth, presets and storage."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -15,7 +16,8 @@ from weathergen.engine import (Particles, TemplateLibrary, load_preset, load_tem
                                render_pair, sample_particles, sample_weather)
 from weathergen.engine.field import (field_for_pair, frame_particles, make_field, pair_views,
                                      sample_field_particles, scene_seed)
-from weathergen.engine.presets import DATASET_FRAME_RATES, FieldPreset
+from weathergen.datasets import DATASETS, DemoDataset
+from weathergen.engine.presets import FieldPreset
 from weathergen.engine.groundtruth import particle_truth, seen_flow
 from weathergen.engine.optics import FieldOptics
 from weathergen.engine.settings import RenderSettings
@@ -28,6 +30,8 @@ from weathergen.geometry import project, transform_points
 H, W = 40, 56
 F = 50.0
 K = torch.tensor([[F, 0, (W - 1) / 2], [0, F, (H - 1) / 2], [0, 0, 1]], dtype=torch.float64)
+#: The pairs here are the demo dataset's: its reader's frame rate.
+RATE = DemoDataset.frame_rate
 
 
 def disc_library(res: int = 16) -> TemplateLibrary:
@@ -180,15 +184,15 @@ def test_frame_is_bit_identical_in_the_two_pairs_that_share_it():
     seed = scene_seed(0, "demo", "training", "seq")
     a, b = seq_pair(cams, depths, 1), seq_pair(cams, depths, 2)
     b = dataclasses.replace(b, image1=a.image2.clone())       # the same frame 2 image on disk
-    rec_a = sample_field_particles(a, preset, seed, world_up="-y")
-    rec_b = sample_field_particles(b, preset, seed, world_up="-y")
+    rec_a = sample_field_particles(a, preset, seed, world_up="-y", frame_rate=RATE)
+    rec_b = sample_field_particles(b, preset, seed, world_up="-y", frame_rate=RATE)
     assert rec_a.count > 50 and rec_b.count > 50
     out_a, out_b = render_pair(a, rec_a), render_pair(b, rec_b)
     assert torch.equal(out_a.image2, out_b.image1)
     assert torch.equal(out_a.opacity2, out_b.opacity1)
     assert float(out_a.opacity2.sum()) > 0
     # and a sequence frame rendered alone (one view) is the same image
-    fld = field_for_pair(b, preset, seed, world_up="-y")
+    fld = field_for_pair(b, preset, seed, world_up="-y", frame_rate=RATE)
     view = pair_views(b)[0]
     alone = frame_particles(fld, view, 2)
     image, _ = render_view(b.image1, view, alone, alone.position, alone.motion,
@@ -227,7 +231,7 @@ def test_near_wall_hides_the_weather_instead_of_concentrating_it():
     wall = [wall_depth(c, 0.8) for c in cams]          # a wall 0.8 ahead of camera 1
     pair = seq_pair(cams, wall, 0)
     preset = field_preset(density=200.0, near=0.2, far=5.0)
-    rec = sample_field_particles(pair, preset, 1, world_up="-y")
+    rec = sample_field_particles(pair, preset, 1, world_up="-y", frame_rate=RATE)
     z = transform_points(cams[0], rec.position.double())[:, 2]
     # only the strip of space in front of the wall holds particles, at the field's density
     assert float(z.max()) <= 0.8 + 3 * preset.depth_softness + 0.05
@@ -283,29 +287,30 @@ def test_field_record_round_trips_and_rerenders_bit_identically(tmp_path):
     cams, depths = sequence(2)
     pair = seq_pair(cams, depths, 0)
     preset = field_preset(density=30.0, exposure=0.05, blur_samples=3, fall_speed=1.0)
-    rec = sample_weather(pair, preset, 5, world_up="-y")
+    rec = sample_weather(pair, preset, 5, world_up="-y", frame_rate=RATE)
     path = rec.save(tmp_path / "p.npz")
-    with np.load(path) as data:
-        assert int(data["format_version"]) == 2 and "optics" in data.files
+    with np.load(path) as data:         # version 5: the optics among the gathered 0-d entries
+        assert int(data["format_version"]) == 5 and "optics" in json.loads(str(data["scalars"]))
+        assert data["position"].dtype == np.float32
     again = Particles.load(path)
     assert again.optics == rec.optics
     a, b = render_pair(pair, rec), render_pair(pair, again)
     assert torch.equal(a.image1, b.image1) and torch.equal(a.image2, b.image2)
 
 
-def test_paper_records_are_compact_version_3_without_optics(tmp_path):
+def test_paper_records_are_compact_and_without_optics(tmp_path):
     cams, depths = sequence(2)
     pair = seq_pair(cams, depths, 0)
     rec = sample_particles(pair, load_preset("snow", {"count": "20"}), 0)
     with np.load(rec.save(tmp_path / "p.npz")) as data:
-        assert int(data["format_version"]) == 3 and "optics" not in data.files
+        assert int(data["format_version"]) == 5 and "optics" not in json.loads(str(data["scalars"]))
         assert data["position"].dtype == np.uint16
 
 
 def test_gradients_reach_the_offsets_of_field_records():
     cams, depths = sequence(2)
     pair = seq_pair(cams, depths, 0)
-    rec = sample_weather(pair, field_preset(density=30.0), 2, world_up="-y")
+    rec = sample_weather(pair, field_preset(density=30.0), 2, world_up="-y", frame_rate=RATE)
     d1 = rec.offset1.clone().requires_grad_()
     d2 = rec.offset2.clone().requires_grad_()
     colour = rec.color.clone().requires_grad_()
@@ -318,9 +323,11 @@ def test_gradients_reach_the_offsets_of_field_records():
 def test_field_preset_validation_and_frame_rates():
     p = field_preset()
     assert isinstance(p, FieldPreset) and p.model == "field"
-    assert p.frame_rate_for("kitti") == 10.0 and p.frame_rate_for("sintel") == 24.0
-    assert field_preset(frame_rate=60.0).frame_rate_for("kitti") == 60.0
-    assert set(DATASET_FRAME_RATES) >= {"sintel", "kitti", "spring", "demo", "custom"}
+    assert p.frame_rate_for(10.0) == 10.0 and p.frame_rate_for(24.0) == 24.0   # the dataset's
+    assert field_preset(frame_rate=60.0).frame_rate_for(10.0) == 60.0          # the preset's wins
+    assert field_preset(frame_rate=60.0).frame_rate_for(None) == 60.0
+    with pytest.raises(ConfigError, match="needs a frame rate"):
+        p.frame_rate_for(None)
     assert field_preset(exposure=1.0).streak_fraction(24.0) == 1.0
     with pytest.raises(ConfigError, match="far"):
         field_preset(near=2.0, far=1.0)
@@ -360,7 +367,7 @@ def test_severity_ladder_is_bundled_and_ordered():
 
 
 @pytest.mark.parametrize("name", [n for n in LADDER if not n.startswith(("snow", "fog"))])
-@pytest.mark.parametrize("frame_rate", sorted(set(DATASET_FRAME_RATES.values())))
+@pytest.mark.parametrize("frame_rate", sorted({cls.frame_rate for cls in DATASETS.values()}))
 def test_streaks_of_the_ladder_are_continuous(name, frame_rate):
     """A streak is drawn as blur samples along it; samples further apart than the particle is wide
     draw a dotted line (rain close to the camera, as in indoor RGB-D scenes, showed it)."""

@@ -10,6 +10,7 @@ import torch
 
 from engine_scenes import plane_pair, pose, rotation
 from oracle import oracle_render
+from weathergen.datasets import frame_rate_of
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, list_presets, load_preset,
                                load_templates, render, sample_field_particles, sample_particles)
 from weathergen.framepair import FramePairBatch
@@ -31,7 +32,8 @@ def paper(pair, name, seed, count=8, **overrides):
 
 
 def field(pair, name, seed, **overrides):
-    return sample_field_particles(pair, load_preset(name, overrides), seed=seed)
+    return sample_field_particles(pair, load_preset(name, overrides), seed=seed,
+                                  frame_rate=frame_rate_of(pair.id.dataset))
 
 
 def arguments(pairs, records):

@@ -106,11 +106,9 @@ def test_preset_matches_its_row_of_the_paper_table(name):
         assert (p.blur_length, p.blur_samples, p.blur_sample_count) == (length, samples, samples)
     else:
         assert (p.effective_blur_length, p.blur_sample_count) == (0.0, 1)
-    if name in ("fog", "size-fog"):
-        # the caption: "fog has a depth-constant transparency of 0.3"
-        assert (p.transparency_mode, p.transparency) == ("constant", 0.3)
-    else:
-        assert (p.transparency_mode, p.transparency) == ("depth", theta)
+    # every row, fog too, scales the depth hat by the table's column (fog: 0.25; the caption's
+    # "depth-constant 0.3" was never what the research code rendered, see docs/engine.md)
+    assert (p.transparency_mode, p.transparency) == ("depth", theta)
 
 
 def test_overrides_are_parsed_per_type_and_win_over_the_file():
@@ -170,6 +168,26 @@ def test_invalid_override_and_unknown_preset():
     assert "unknown preset 'hail'" in str(err.value) and "snow" in str(err.value)
 
 
+def test_keys_of_both_models_are_declared_once():
+    """The keys the paper's presets and the weather fields share have one declaration: the same
+    default, the same check and the same place in `weathergen presets`."""
+    from weathergen.engine.presets import SHARED_KEYS, field_preset_keys, preset_keys
+
+    paper = {f.name: f for f in preset_keys()}
+    field = {f.name: f for f in field_preset_keys()}
+    assert set(paper) & set(field) == set(SHARED_KEYS)
+    for name in SHARED_KEYS:
+        a, b = paper[name], field[name]
+        assert a.default == b.default == SHARED_KEYS[name][0]
+        assert a.metadata["check"] is b.metadata["check"] is SHARED_KEYS[name][1]
+        assert a.metadata["main"] == b.metadata["main"]
+        assert a.metadata["doc"] and b.metadata["doc"]
+    # a shared check is the one both models run: an out-of-range value fails alike
+    for model in ("snow", "snow-light"):
+        with pytest.raises(ConfigError, match="hue_jitter"):
+            load_preset(model, {"hue_jitter": "181"})
+
+
 def test_template_folder_problems_name_the_key_at_load_time(tmp_path):
     (tmp_path / "empty").mkdir()
     f = tmp_path / "mine.toml"
@@ -214,7 +232,7 @@ def test_cli_lists_presets(cli):
     assert result.exit_code == 0, result.output
     for name in TABLE_ROWS:  # every name in full, none cut short by the table layout
         assert f" {name} " in result.output, name
-    assert "0.3 const" in result.output  # fog's transparency is not scaled by depth
+    assert "const" not in result.output  # every paper preset scales θ by the depth hat
 
 
 def test_cli_shows_one_preset_resolved(cli):

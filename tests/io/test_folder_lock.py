@@ -47,3 +47,39 @@ def test_lock_of_a_killed_process_is_free_and_reported_as_stale(tmp_path):
 
 def test_holder_text():
     assert str(Holder(12, "node7", "2026-01-01T00:00:00+0000")) == "pid 12 on node7, since 2026-01-01T00:00:00+0000"
+
+
+def test_release_removes_the_lock_file(tmp_path):
+    path = tmp_path / ".lock"
+    with FolderLock(path):
+        assert path.is_file()
+    assert not path.exists()                        # a finished run leaves no lock file
+    with FolderLock(path) as again:                 # and the next one starts clean
+        assert again.stale is None
+
+
+def test_a_run_that_opened_the_file_as_its_holder_removed_it_takes_a_new_one(tmp_path, monkeypatch):
+    """The race that removing lock files opens: B opens the file, A (holding it) removes it and lets
+    go, B locks the removed file. B must notice and lock the file at the path instead, or a third run
+    would create a new file, lock it too, and two runs would write one folder."""
+    import weathergen.io.lock as lock_module
+
+    path = tmp_path / ".lock"
+    holder = FolderLock(path).acquire()
+    real_open, opened = os.open, []
+
+    def open_then_holder_finishes(name, flags, mode=0o777):
+        fd = real_open(name, flags, mode)
+        if not opened:
+            holder.release()                        # right after B opened the holder's file
+        opened.append(fd)
+        return fd
+
+    monkeypatch.setattr(lock_module.os, "open", open_then_holder_finishes)
+    late = FolderLock(path).acquire()
+    monkeypatch.undo()
+    assert len(opened) == 2                          # it opened the file again
+    assert os.fstat(late._fd).st_ino == os.stat(path).st_ino
+    with pytest.raises(FolderBusy, match=f"pid {os.getpid()}"):
+        FolderLock(path).acquire()                   # one lock, not two
+    late.release()

@@ -110,9 +110,10 @@ def batch_and_alone(model, size: tuple[int, int], index: int = 0):
 
 # -- a served download ---------------------------------------------------------------------------
 
-def serve(monkeypatch, payload: bytes) -> list:
-    """Make ``urllib.request.urlopen`` answer every address with ``payload`` (no network);
-    returns the list the requested addresses are appended to."""
+def serve(monkeypatch, payload) -> list:
+    """Make ``urllib.request.urlopen`` answer every address with ``payload`` (no network), or,
+    for a dict, each address with ``payload[address]`` (others fail as unreachable); returns the
+    list the requested addresses are appended to."""
     import urllib.request
 
     requested = []
@@ -126,6 +127,10 @@ def serve(monkeypatch, payload: bytes) -> list:
 
     def urlopen(url, timeout):
         requested.append(url)
+        if isinstance(payload, dict):
+            if url not in payload:
+                raise OSError(f"no such address: {url}")
+            return Response(payload[url])
         return Response(payload)
 
     monkeypatch.setattr(urllib.request, "urlopen", urlopen)

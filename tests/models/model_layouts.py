@@ -106,3 +106,11 @@ def seeded_images(seed: int, height: int, width: int):
     g = torch.Generator().manual_seed(seed)
     return (torch.rand(1, 3, height, width, generator=g, dtype=torch.float64),
             torch.rand(1, 3, height, width, generator=g, dtype=torch.float64))
+
+
+def spynet_weights(state: dict, seed: int, gain: float = 0.1) -> dict:
+    """:func:`seeded_weights` for a SpyNet state dict, with each level's last convolution
+    scaled by ``gain``: the flow stays within a few pixels (unscaled, random levels add up to
+    hundreds of pixels, and every sample would fall outside the frame)."""
+    out = seeded_weights(state, seed)
+    return {k: v * gain if ".moduleBasic.8." in k else v for k, v in out.items()}

@@ -1,5 +1,5 @@
 """`weathergen attack --model NAME` and `weathergen evaluate --model NAME` for the networks whose
-own test modules run no such command (RAFT, SpyNet and the FlowNets), on a tiny Sintel-format pair with
+own test modules run no such command (RAFT, both SpyNets and the FlowNets), on a tiny Sintel-format pair with
 random-weight checkpoints written here (plumbing and agreement between the two commands, not
 accuracy); and a check that every registered network is run by some command-line test."""
 
@@ -13,7 +13,7 @@ from conftest import PROJECT_ROOT
 from weathergen.models import available_models, build_model
 
 #: Networks whose attack and evaluate commands are run here.
-HERE = ["raft", "spynet", "flownetc", "flownetcrobust", "flownet2"]
+HERE = ["raft", "spynet", "spynet-sniklaus", "flownetc", "flownetcrobust", "flownet2"]
 #: Networks whose commands other modules run.
 ELSEWHERE = {"raft-small": "tests/attack/test_attack_cli.py",
              "gma": "tests/models/test_models_gma.py",

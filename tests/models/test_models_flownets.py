@@ -1,6 +1,7 @@
-"""SpyNet, FlowNetC, FlowNetCRobust and FlowNet2: the released checkpoints' layouts, strict
-loading, the contract (sizes, gradients), and their parts (correlation, warping, channel norm)
-against direct implementations."""
+"""SpyNet (both forms), FlowNetC, FlowNetCRobust and FlowNet2: the released checkpoints' layouts,
+strict loading, the contract (sizes, gradients), and their parts (correlation, warping, channel
+norm) against direct implementations. SpyNet's per-level files and its own parts:
+test_models_spynet.py."""
 
 from __future__ import annotations
 
@@ -15,7 +16,7 @@ from weathergen.errors import ConfigError, FormatError
 from weathergen.models import build_model, get_model
 from weathergen.models.flownet_parts import channel_norm, correlation, warp
 
-ARCHS = ["spynet", "flownetc", "flownetcrobust", "flownet2"]
+ARCHS = ["spynet", "spynet-sniklaus", "flownetc", "flownetcrobust", "flownet2"]
 
 
 # -- the released checkpoints' key names and shapes, written from the architectures -----------
@@ -138,7 +139,8 @@ def flownet2_keys():
 
 
 def spynet_keys():
-    """network-sintel-final.pytorch (the PyTorch port): six levels of five 7x7 convolutions."""
+    """The authors' PyTorch module and network-sintel-final.pytorch (the PyTorch port): six
+    levels of five 7x7 convolutions."""
     keys = {}
     for level in range(6):
         for index, (cout, cin) in zip((0, 2, 4, 6, 8),
@@ -147,7 +149,7 @@ def spynet_keys():
     return keys
 
 
-EXPECTED = {"spynet": spynet_keys, "flownetc": flownetc_keys,
+EXPECTED = {"spynet": spynet_keys, "spynet-sniklaus": spynet_keys, "flownetc": flownetc_keys,
             "flownetcrobust": flownetcrobust_keys, "flownet2": flownet2_keys}
 PARAMETERS = {"flownetc": 39_175_298, "flownet2": 162_518_834}  # as the release states
 
@@ -222,16 +224,20 @@ def test_training_checkpoint_file_loads_through_get_model(tmp_path):
 
 
 def test_spynet_file_of_the_ports_current_naming_loads(tmp_path):
-    state = _state("spynet")
+    state = _state("spynet-sniklaus")
     path = tmp_path / "spynet.pth"
     torch.save({k.replace("moduleBasic", "netBasic"): v for k, v in state.items()}, path)
-    loaded = get_model("spynet", checkpoint=path)
+    loaded = get_model("spynet-sniklaus", checkpoint=path)
     assert all(torch.equal(loaded.network.state_dict()[k], v) for k, v in state.items())
 
 
 @pytest.mark.parametrize("name, where", [
-    ("spynet-sintel-final", "http://content.sniklaus.com/github/pytorch-spynet/"
-                            "network-sintel-final.pytorch"),
+    ("spynet-sintel-final", "modelL1_F.t7 ... modelL6_F.t7 at "
+                            "https://raw.githubusercontent.com/anuragranj/spynet/"
+                            "7c4a3f7d1a5879a50361fff3e1b8fa35ec397fcd/models/"),
+    ("spynet-chairs-clean", "modelL1_4.t7 ... modelL5_4.t7 at "),
+    ("spynet-sniklaus-sintel-final", "http://content.sniklaus.com/github/pytorch-spynet/"
+                                     "network-sintel-final.pytorch"),
     ("flownetcrobust", "cvpr22_adv_flow/RobustFlowNetC.pth"),
     ("flownet2", "FlowNet2_checkpoint.pth.tar at https://drive.google.com/"),
     ("flownetc", "FlowNet2-C_checkpoint.pth.tar at https://drive.google.com/"),
@@ -247,18 +253,19 @@ def test_missing_named_checkpoint_says_which_file_to_put_where(name, where, tmp_
     assert "\n" not in message
 
 
-def test_spynet_checkpoint_downloads_as_a_plain_file(tmp_path, monkeypatch):
+def test_spynet_sniklaus_checkpoint_downloads_as_a_plain_file(tmp_path, monkeypatch):
     import io
 
     buf = io.BytesIO()
-    torch.save(_state("spynet"), buf)
+    torch.save(_state("spynet-sniklaus"), buf)
     asked = serve(monkeypatch, buf.getvalue())
     monkeypatch.setenv("WEATHERGEN_CACHE", str(tmp_path))
-    loaded = get_model("spynet-sintel-final", download=True)
+    loaded = get_model("spynet-sniklaus-sintel-final", download=True)
     assert asked == ["http://content.sniklaus.com/github/pytorch-spynet/"
                      "network-sintel-final.pytorch"]
-    assert sorted(p.name for p in (tmp_path / "models").iterdir()) == ["spynet-sintel-final.pth"]
-    assert loaded.architecture == "spynet"
+    assert sorted(p.name for p in (tmp_path / "models").iterdir()) == [
+        "spynet-sniklaus-sintel-final.pth"]
+    assert loaded.architecture == "spynet-sniklaus"
 
 
 # -- the contract ---------------------------------------------------------------------------------
@@ -277,12 +284,12 @@ def test_batch_elements_are_independent():
     assert torch.allclose(in_batch, alone, atol=1e-4 * (1 + alone.abs().max().item()))
 
 
-@pytest.mark.parametrize("arch", ["spynet", "flownetc"])
+@pytest.mark.parametrize("arch", ["spynet", "spynet-sniklaus", "flownetc"])
 def test_gradient_checkpointing_gives_the_same_gradient(arch):
     plain = model(arch)
     recomputing = build_model(arch, gradient_checkpointing=True)
     recomputing.load_state_dict(plain.state_dict())
-    x1, x2 = torch.rand(2, 1, 3, 32, 64).unbind(0)  # SpyNet: two pyramid levels
+    x1, x2 = torch.rand(2, 1, 3, 32, 64).unbind(0)  # port's SpyNet: two levels; paper's: six
     grads = [input_gradient(m, x1, x2) for m in (plain, recomputing)]
     assert torch.allclose(grads[0], grads[1], rtol=1e-4, atol=1e-10)
 
@@ -303,8 +310,9 @@ def test_flownet2_family_ignores_a_common_brightness_offset(arch):
 def test_spynet_pyramid_doubles_and_accumulates_the_flow():
     """Each level's network adds its output to the doubled, upsampled flow of the coarser
     level. With every weight zero and the last biases (1, -0.5), each level adds (1, -0.5);
-    a 64 x 96 frame has three levels, so the flow is (1 + 2 + 4) x (1, -0.5)."""
-    spynet = build_model("spynet")
+    in the port's pyramid a 64 x 96 frame has three levels, so the flow is (1 + 2 + 4) x
+    (1, -0.5) (the paper's: test_models_spynet.py)."""
+    spynet = build_model("spynet-sniklaus")
     with torch.no_grad():
         for p in spynet.network.parameters():
             p.zero_()

@@ -1,9 +1,11 @@
-"""GMA and FlowFormer compute the same function as the authors' implementations.
+"""GMA, FlowFormer and both SpyNets compute the same function as their reference implementations.
 
-tests/models/reference_flows.npz holds flows that the authors' code computed (made by
+tests/models/reference_flows.npz holds flows that the reference code computed (made by
 scripts/make_reference_flows.py) with reproducible random weights on reproducible random frames;
-our networks get the same weights and frames here. FlowFormer is compared in float64 (agreement
-to rounding), GMA in float32 as its correlation is computed in float32 by design.
+our networks get the same weights and frames here. FlowFormer and the SpyNets are compared in
+float64 (agreement to rounding), GMA in float32 as its correlation is computed in float32 by
+design. The paper's SpyNet is compared with the research code's (its padding included), the
+port's SpyNet with the port's network.
 """
 
 from __future__ import annotations
@@ -14,13 +16,15 @@ import numpy as np
 import pytest
 import torch
 
-from model_layouts import seeded_images, seeded_weights
+from model_layouts import seeded_images, seeded_weights, spynet_weights
 from weathergen.models import build_model
 
 GOLDEN = Path(__file__).resolve().parent / "reference_flows.npz"
 # Settings of scripts/make_reference_flows.py.
 GMA_SEED, GMA_SIZE, GMA_ITERS = 1, (128, 144), 3
 FF_SEED, FF_SIZE, FF_ITERS = 2, (64, 80), 3
+SPYNET_SEED, SPYNET_SIZE = 3, (72, 100)
+SNIKLAUS_SEED, SNIKLAUS_SIZE = 4, (64, 96)
 
 
 @pytest.fixture(scope="module")
@@ -48,3 +52,29 @@ def test_flowformer_matches_the_authors_implementation(reference):
     expected = reference["flowformer"]
     assert np.abs(expected).max() > 1.0
     np.testing.assert_allclose(flow, expected, atol=1e-9 * np.abs(expected).max())
+
+
+@pytest.mark.parametrize("arch, key, seed, size", [
+    ("spynet", "spynet", SPYNET_SEED, SPYNET_SIZE),
+    ("spynet-sniklaus", "spynet_sniklaus", SNIKLAUS_SEED, SNIKLAUS_SIZE),
+])
+def test_spynets_match_their_reference_implementations(reference, arch, key, seed, size):
+    model = build_model(arch).double()
+    model.network.load_state_dict(spynet_weights(model.network.state_dict(), seed))
+    x1, x2 = seeded_images(seed, *size)
+    with torch.no_grad():
+        flow = model(x1, x2)[0].numpy()
+    expected = reference[key]
+    assert np.abs(expected).max() > 1.0
+    np.testing.assert_allclose(flow, expected, atol=1e-9 * np.abs(expected).max())
+
+
+def test_the_two_spynets_differ_on_the_same_weights(reference):
+    """The paper's and the port's SpyNet are different functions of the same weights (pyramid
+    depth, upsampling, warping): the port's network misses the research code's flow."""
+    model = build_model("spynet-sniklaus").double()
+    model.network.load_state_dict(spynet_weights(model.network.state_dict(), SPYNET_SEED))
+    x1, x2 = seeded_images(SPYNET_SEED, *SPYNET_SIZE)
+    with torch.no_grad():
+        flow = model(x1, x2)[0].numpy()
+    assert np.abs(flow - reference["spynet"]).max() > 0.1

@@ -9,11 +9,14 @@ import pytest
 
 from weathergen.cli.options import option_of
 from weathergen.engine import empty_particles
-from weathergen.errors import ConfigError, FormatError
+from weathergen.errors import ConfigError, FolderBusy, FormatError, NothingRendered
 from weathergen.framepair import PairId
-from weathergen.outputs import (ATTACK_FOLDER, RENDER_FOLDER, PairOutput, load_pair_particles,
-                                merge_manifest, pair_metadata, prepare_folder, read_manifest,
-                                write_manifest_part, write_metadata, write_run_config)
+from weathergen.io.lock import FolderLock
+from weathergen.outputs import (ATTACK_FOLDER, RENDER_FOLDER, PairOutput, claim_folder,
+                                load_pair_particles, lock_file, merge_manifest, pair_metadata,
+                                prepare_folder, read_manifest, read_run_config, read_summary,
+                                write_attack_manifest, write_manifest_part, write_metadata,
+                                write_run_config)
 
 RENDER = {"preset_name": "snow", "preset": {"count": 3}, "input": {"dataset": "demo"},
           "outputs": {"pass": "snow_clean", "format": "exr", "geometry": False}}
@@ -81,6 +84,72 @@ def test_a_folder_that_holds_a_run_needs_resume_with_the_same_settings(tmp_path)
         prepare_folder(out, RENDER_FOLDER, {"seed": 2, "preset": "rain"}, previous, resume=True,
                        overwrite=False)
     prepare_folder(out, RENDER_FOLDER, {"seed": 2}, previous, resume=False, overwrite=True)
+
+
+def test_claim_folder_holds_the_folder_for_its_block_and_leaves_no_lock(tmp_path):
+    out, config = tmp_path / "run", {"seed": 1}
+    with claim_folder(out, RENDER_FOLDER, config, resume=False, overwrite=False) as claim:
+        assert claim.created and claim.previous is None and claim.stale is None
+        assert (out / RENDER_FOLDER.marker).is_file() and read_run_config(out) == config
+        with pytest.raises(FolderBusy):             # one run at a time
+            with claim_folder(out, RENDER_FOLDER, config, resume=True, overwrite=False):
+                pass
+        (out / "x.png").write_bytes(b"")
+    assert not (out / lock_file()).exists()
+    with pytest.raises(ConfigError, match="already holds a render"):
+        with claim_folder(out, RENDER_FOLDER, config, resume=False, overwrite=False):
+            pass
+    stale = out / ".x.png.tmp1"
+    stale.write_bytes(b"half")
+    with claim_folder(out, RENDER_FOLDER, config, resume=True, overwrite=False) as again:
+        assert not again.created and again.previous == config
+    assert not stale.exists()                       # a killed run's temporary file is gone
+
+
+def test_claim_folder_undoes_a_folder_it_created_when_nothing_was_rendered(tmp_path):
+    out = tmp_path / "new"
+    with pytest.raises(NothingRendered):
+        with claim_folder(out, RENDER_FOLDER, {}, resume=False, overwrite=False, shard=(1, 2)):
+            write_manifest_part(out, (1, 2), {}, {"a": {"status": "failed"}})
+            merge_manifest(out)
+            raise NothingRendered("every selected pair failed")
+    assert not out.exists()
+    # a folder that was there before stays, with its record
+    kept = tmp_path / "kept"
+    kept.mkdir()
+    with pytest.raises(NothingRendered):
+        with claim_folder(kept, RENDER_FOLDER, {}, resume=False, overwrite=False):
+            raise NothingRendered("every selected pair failed")
+    assert (kept / RENDER_FOLDER.marker).is_file() and not (kept / lock_file()).exists()
+
+
+def test_claim_folder_gives_an_attack_its_earlier_manifest_and_notes_a_stale_lock(tmp_path):
+    import subprocess
+    import sys
+
+    out, config = tmp_path / "attack", {"preset_name": "snow", "preset": {}, "seed": 0,
+                                        "input": {}, "outputs": {"pass": "p"}}
+    with claim_folder(out, ATTACK_FOLDER, config, resume=False, overwrite=False):
+        write_attack_manifest(out, config, {"k": {"status": "written"}}, {"pairs": 1}, [{"run": 1}])
+    assert read_summary(out) == {"pairs": 1} and read_summary(tmp_path) is None
+    # a killed holder's record stays in the lock file
+    code = (f"from weathergen.io.lock import FolderLock; FolderLock({str(out / lock_file())!r})"
+            ".acquire(); import os; os._exit(0)")
+    dead = subprocess.Popen([sys.executable, "-c", code])
+    assert dead.wait() == 0 and (out / lock_file()).is_file()
+    notes = []
+    with claim_folder(out, ATTACK_FOLDER, config, resume=True, overwrite=False,
+                      on_note=notes.append) as claim:
+        assert claim.previous["pairs"] == {"k": {"status": "written"}}
+        assert claim.previous["runs"] == [{"run": 1}]
+    assert len(notes) == 1 and f"took over the stale lock of pid {dead.pid} on" in notes[0]
+    with pytest.raises(ConfigError, match=r"attacked with different settings \(seed\)"):
+        with claim_folder(out, ATTACK_FOLDER, {**config, "seed": 1}, resume=True, overwrite=False):
+            pass
+    with FolderLock(out / lock_file()):              # the lock another run holds
+        with pytest.raises(FolderBusy):
+            with claim_folder(out, ATTACK_FOLDER, config, resume=True, overwrite=False):
+                pass
 
 
 def test_manifest_parts_merge_and_skipped_pairs_keep_their_entry(tmp_path):

@@ -8,7 +8,7 @@ import pytest
 import torch
 from torch.utils.data import DataLoader
 
-from weathergen.datasets import open_dataset
+from weathergen.datasets import DATASETS, open_dataset
 from weathergen.engine import load_preset, sample_field_particles
 from weathergen.errors import ConfigError, ShapeError
 from weathergen.framepair import _TENSOR_FIELDS
@@ -18,7 +18,7 @@ from weathergen.training import (Compose, PairDataset, PresetSource, RandomCrop,
 
 pytestmark = pytest.mark.filterwarnings("ignore::UserWarning")
 
-#: Few particles keep the tests fast; the demo frames are a ninth of Sintel's area anyway.
+#: Few particles keep the tests fast (the presets' own count on the demo's 384x176 frames: 454).
 LIGHT = {"count": 200}
 
 
@@ -43,6 +43,19 @@ def test_p0_returns_the_input_bit_for_bit(samples):
     for name in _TENSOR_FIELDS:
         a, b = getattr(out.pairs, name), getattr(batch.pairs, name)
         assert (a is None and b is None) or torch.equal(a, b), name
+
+
+def test_paper_presets_follow_the_frame_size(samples):
+    """As in `render`: the preset's count per 1024x436 frame scaled to the demo's 384x176 frames
+    (3000 x 0.15138 -> 454), an explicit count exactly, in both places the transform runs."""
+    sample = samples[0]
+    assert sample.pair.size == (176, 384)
+    scaled = WeatherAugment(["snow"], p=1.0, seed=3, keep_particles=True)
+    assert scaled(sample).particles.count == 454
+    assert scaled.prepare(sample).particles.count == 454
+    exact = WeatherAugment(["snow"], p=1.0, seed=3, overrides={"count": 100}, keep_particles=True)
+    assert exact(sample).particles.count == 100
+    assert exact.prepare(sample).particles.count == 100
 
 
 def test_p1_changes_every_pair_and_only_its_frames(samples):
@@ -147,7 +160,7 @@ def test_batches_equal_per_sample_frames_in_either_precision(samples, dtype):
             assert (changed > 100) == w.applied, (name, k)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.cuda
 def test_batched_path_on_cuda_matches_the_cpu(samples):
     """What docs/training.md promises for CUDA: the same draws and particles, and frames within
     one grey level of the CPU's, the 8-bit frames differing in under 0.1 % of their values
@@ -185,7 +198,8 @@ def test_field_presets_render_in_both_paths_as_the_field_samples_them(samples):
         assert int(changed.sum()) > 50
         if out.weather.source == "snow-light":
             # the record is the field's, drawn from the draw's seed, with per-frame looks
-            expected = sample_field_particles(s.pair, field.preset, out.weather.seed)
+            expected = sample_field_particles(s.pair, field.preset, out.weather.seed,
+                                              frame_rate=DATASETS[s.pair.id.dataset].frame_rate)
             assert out.particles.optics is not None and out.particles.count > 100
             assert torch.equal(out.particles.position, expected.position)
         else:

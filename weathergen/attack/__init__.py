@@ -4,6 +4,8 @@
 - :mod:`.configs`: the named attack configurations of the paper's supplement;
 - :mod:`.targets`: the flow an attack pushes the network towards;
 - :mod:`.plan`: the precedence rules that turn a request into settings;
+- :mod:`.compat`: the terms in which the research code departs from the paper
+  (``compat="reference"``);
 - :mod:`.lp`: the Lp baselines PCFA (L2) and I-FGSM (L∞), perturbing the frames themselves;
 - :mod:`.pair`: the optimisation of one pair (tensors in, tensors out, no file I/O);
 - :mod:`.job`: the attack over a dataset, writing through :mod:`weathergen.outputs`;
@@ -17,11 +19,12 @@ Typical use::
 
 from __future__ import annotations
 
+from .compat import COMPAT_MODES
 from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
 from .evaluate import (EvalRow, default_evaluation_path, evaluate_frames, mean_rows,
                        run_evaluation, write_evaluation)
-from .job import AttackJob, PairReport, attack_refs, prepare_attack_folder, run_attack
-from .lp import (LP_DEFAULTS, LP_METHODS, LpOptimisation, LpResult, LpSettings, l2_normalised,
+from .job import AttackJob, PairReport, attack_refs, run_attack
+from .lp import (LP_DEFAULTS, LP_METHODS, PCFA_OPTIMIZERS, LpOptimisation, LpResult, LpSettings, l2_normalised,
                  l2_normalised_per_pair, lp_attack_batch, lp_attack_pair, lp_pass_name,
                  lp_settings, plan_lp, random_perturbation)
 from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisation, PairSummary,
@@ -29,10 +32,12 @@ from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisat
                    mean_summary, offset_penalty, particle_depths, summarize_pair)
 from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack
 from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE,
-                       POSITION_VARIABLES, AttackSettings, default_lr, parse_optimize)
+                       POSITION_VARIABLES, AttackSettings, default_lr, parse_optimize,
+                       transparency_bound)
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
-__all__ = ["LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpResult", "LpSettings",
+__all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOptimisation", "LpResult",
+           "LpSettings",
            "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_attack_pair", "lp_pass_name",
            "lp_settings", "plan_lp",
            "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
@@ -43,5 +48,6 @@ __all__ = ["LP_DEFAULTS", "LP_METHODS", "LpOptimisation", "LpResult", "LpSetting
            "attack_loss", "attack_batch", "attack_pair", "attack_refs", "BatchOptimisation",
            "default_evaluation_path", "default_lr", "evaluate_frames",
            "mean_rows", "mean_summary", "offset_penalty", "parse_optimize", "parse_target",
-           "particle_depths", "prepare_attack_folder", "read_target_flow", "run_attack",
-           "run_evaluation", "summarize_pair", "target_flow", "write_evaluation"]
+           "particle_depths", "read_target_flow", "run_attack",
+           "run_evaluation", "summarize_pair", "target_flow", "transparency_bound",
+           "write_evaluation"]

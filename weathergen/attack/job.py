@@ -25,16 +25,14 @@ import torch
 from ..datasets import Dataset
 from ..engine import render_pair
 from ..errors import ConfigError, WeatherGenError
+from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
-from ..io.lock import FolderLock
-from ..models import get_model
-from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, pair_metadata,
-                       prepare_folder, read_attack_manifest, read_pair_summary,
-                       write_attack_manifest, write_attack_pair)
-from ..outputs.folder import lock_folder, released_on_failure
+from ..models import get_model, resolve_amp
+from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
+                       pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
-from ..render.particles import pair_particles, pair_seed, weather_seed
+from ..render.particles import pair_particles, pair_seed, weather_scaling, weather_seed
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -61,6 +59,9 @@ class AttackJob:
     pass_name: str = ""
     gradient_checkpointing: bool = False
     download: bool = False
+    #: mixed precision as asked (``--amp``/``--no-amp``); None: the network's paper setting
+    #: on CUDA, off elsewhere (see :meth:`amp_setting`)
+    amp: Optional[bool] = None
     resume: bool = False
     overwrite: bool = False
     command: list = field(default_factory=list)
@@ -70,6 +71,22 @@ class AttackJob:
     executor: str = "local"             # "local" or "ray" (weathergen.execution)
     ray_address: Optional[str] = "auto"
     threads: Optional[int] = None       # torch threads of each unit (None: leave as is)
+
+    def amp_setting(self) -> bool:
+        """Whether the network runs in mixed precision (:func:`~weathergen.models.resolve_amp`
+        of the job's network, request and device).
+
+        Raises:
+            ConfigError: ``amp`` asked for on a device other than CUDA, or for a network
+                without a mixed-precision mode.
+        """
+        return resolve_amp(self.model, self.amp, self.device)
+
+    def model_config(self) -> dict:
+        """The network as recorded in the manifest: name, checkpoint, iterations, precision."""
+        return {"name": self.model, "checkpoint": str(self.checkpoint)
+                if self.checkpoint is not None else None, "iters": self.iters,
+                "amp": self.amp_setting()}
 
     def config(self) -> dict:
         """What must agree between an interrupted run and its resumption."""
@@ -81,8 +98,7 @@ class AttackJob:
                 "particles_from": None,
                 "attack": {"method": self.lp.method, **self.lp.to_dict(),
                            "target": self.target.describe(), "configuration": None},
-                "model": {"name": self.model, "checkpoint": str(self.checkpoint)
-                          if self.checkpoint is not None else None, "iters": self.iters},
+                "model": self.model_config(),
             }
         return {
             "preset_name": self.preset_name, "preset": self.preset.to_dict(), "seed": self.seed,
@@ -91,8 +107,7 @@ class AttackJob:
             "particles_from": str(self.particles_from) if self.particles_from else None,
             "attack": {**self.settings.to_dict(), "target": self.target.describe(),
                        "configuration": self.config_name},
-            "model": {"name": self.model, "checkpoint": str(self.checkpoint)
-                      if self.checkpoint is not None else None, "iters": self.iters},
+            "model": self.model_config(),
         }
 
 
@@ -116,12 +131,13 @@ _MODELS: dict = {}
 def job_model(job: AttackJob, device: Optional[str] = None):
     """The job's network on ``device`` (default the job's), loaded once per process."""
     device = device or job.device
-    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing)
+    amp = resolve_amp(job.model, job.amp, device)
+    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, amp)
     if key not in _MODELS:
         _MODELS.clear()                     # one network per process at a time
         _MODELS[key] = get_model(job.model, job.checkpoint, device=device, iters=job.iters,
                                  download=job.download,
-                                 gradient_checkpointing=job.gradient_checkpointing)
+                                 gradient_checkpointing=job.gradient_checkpointing, amp=amp)
         _MODELS[key].padding = getattr(job.dataset, "padding", "even")  # the benchmark's protocol
     return _MODELS[key]
 
@@ -151,7 +167,7 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
             pair = job.dataset.load(ref)
             particles = None if job.lp is not None else pair_particles(
                 pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
-                particles_from=job.particles_from)
+                frame_rate=job.dataset.frame_rate, particles_from=job.particles_from)
         except WeatherGenError as exc:
             reports[ref.id.key] = PairReport(str(ref.id), "failed", message=str(exc),
                                              key=ref.id.key)
@@ -205,13 +221,16 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
               for f in frames]
     with torch.no_grad():
         adversarial = model(*stored).cpu()
-    summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid)
+    covered = weather_mask(rendered.opacity1, rendered.opacity2)[0, 0].cpu()
+    summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
+                             compat=job.settings.compat, covered=covered)
+    summary.particles = best.count
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
     meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
-                         job.preset_name)
+                         job.preset_name, scaling=weather_scaling(job.preset, pair))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
-    out = AttackPairOutput.of(job.out, pair.id, job.pass_name)
+    out = pair_output(job, pair.id)
     write_attack_pair(out, pair.to("cpu"), frames, opacity, meta, flows, result.history,
                       asdict(summary))
     return summary
@@ -220,13 +239,15 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
 def lp_pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
     """Where an Lp-attacked pair goes: the attack layout, with float EXR frames besides the PNGs
     (an Lp perturbation is finer than the 8-bit steps of a PNG)."""
-    return AttackPairOutput(PairOutput.of(job.out, pair_id, job.pass_name, "both", geometry=True))
+    return AttackPairOutput(PairOutput.of(job.out, pair_id, job.pass_name, "both", geometry=True,
+                                          native=job.dataset.native_flow))
 
 
 def pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
     """Where the job writes a pair."""
     return (lp_pair_output(job, pair_id) if job.lp is not None
-            else AttackPairOutput.of(job.out, pair_id, job.pass_name))
+            else AttackPairOutput.of(job.out, pair_id, job.pass_name,
+                                     native=job.dataset.native_flow))
 
 
 def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
@@ -248,55 +269,47 @@ def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
     return summary
 
 
+def run_summary(job: AttackJob, rows: list[PairSummary]) -> dict:
+    """The run's summary (``summary.json``): the means over pairs (:func:`mean_summary`), the
+    attack's ``compat`` mode (None for an Lp attack) and the precision the network ran in
+    (``amp``: mixed precision on CUDA)."""
+    return {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None,
+            "amp": job.amp_setting()}
+
+
 def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
     """A Ray task: attack some pairs on the device this task was given."""
     return attack_refs(job, refs, device=worker_device(job.device, "ray"))
 
 
 #: The lock file of an attack folder: one run at a time writes it.
-ATTACK_LOCK = ".weathergen-lock"
-
-
-def prepare_attack_folder(job: AttackJob) -> tuple[Optional[dict], FolderLock]:
-    """Create or reuse the job's folder (see :func:`~weathergen.outputs.prepare_folder`), locked.
-
-    Returns the manifest of the run it resumes (if any) and the folder's lock, held: the caller
-    releases it when the run ends. A second run in the same folder is refused while this one holds
-    it (:class:`~weathergen.io.lock.FolderBusy`).
-    """
-    out = Path(job.out)
-    lock = lock_folder(out, ATTACK_FOLDER, ATTACK_LOCK, job.config(), resume=job.resume,
-                       overwrite=job.overwrite)
-    with released_on_failure(lock, out):
-        # Read under the lock: what the run before us recorded is final.
-        previous = None
-        if not job.overwrite and (out / MANIFEST).exists():
-            previous = read_attack_manifest(out) if (out / ATTACK_FOLDER.marker).exists() else None
-        prepare_folder(out, ATTACK_FOLDER, job.config(), previous=None if previous is None
-                       else previous.get("config", {}), resume=job.resume,
-                       overwrite=job.overwrite, ignore=(ATTACK_LOCK,))
-    return previous, lock
+ATTACK_LOCK = lock_file()
 
 
 def run_attack(job: AttackJob,
                on_start: Callable[[int], None] = lambda n: None,
                on_step: Callable[[str, StepRecord], None] = lambda name, r: None,
-               on_pair_done: Callable[[PairReport], None] = lambda r: None) -> dict:
+               on_pair_done: Callable[[PairReport], None] = lambda r: None,
+               on_note: Callable[[str], None] = lambda text: None) -> dict:
     """Attack every selected pair; return the manifest's summary (mean figures).
 
     Pairs complete on disk are skipped when resuming. Pairs go in work units of
     ``job.batch_size`` (each optimised together where they share a size), run here or as Ray
     tasks (``job.executor``). The manifest is rewritten after every unit, so an interrupted run
     (Ctrl-C, or a killed driver) keeps what it finished. ``on_step`` receives the pair's name and
-    each step (local executor only: Ray tasks report whole pairs).
+    each step (local executor only: Ray tasks report whole pairs); ``on_note`` warnings worth a
+    line (a stale lock taken over). The output folder is claimed for the run
+    (:func:`~weathergen.outputs.claim_folder`): a second run in it raises
+    :class:`~weathergen.errors.FolderBusy`.
     """
     check_executor(job.executor)
     if job.batch_size < 1:
         raise ConfigError(f"${{batch_size}} must be >= 1 (got {job.batch_size})")
+    job.amp_setting()                      # a request the device or network cannot meet
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
     if not refs:
-        raise ConfigError("the selection holds no frame pairs")
+        raise ConfigError(job.dataset.no_pairs_message())
     local = job.executor == "local"
     # The driver of a Ray run checks the network and its checkpoint on the CPU.
     model = job_model(job) if local else get_model(
@@ -304,12 +317,10 @@ def run_attack(job: AttackJob,
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
     if not local:
         model = None
-    previous, lock = prepare_attack_folder(job)
-    try:
-        return _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_step,
-                              on_pair_done)
-    finally:
-        lock.release()
+    with claim_folder(job.out, ATTACK_FOLDER, job.config(), resume=job.resume,
+                      overwrite=job.overwrite, on_note=on_note) as claim:
+        return _attack_locked(job, refs, model, target_file_flow, claim.previous, on_start,
+                              on_step, on_pair_done)
 
 
 def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_step,
@@ -331,7 +342,8 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
         ordered = {k: pairs_entry[k] for k in order if k in pairs_entry}
         ordered.update({k: v for k, v in pairs_entry.items() if k not in ordered})
         write_attack_manifest(job.out, config, ordered,
-                              mean_summary([summaries[k] for k in order if k in summaries]), runs)
+                              run_summary(job, [summaries[k] for k in order if k in summaries]),
+                              runs)
 
     def record(report: PairReport):
         if report.status == "failed":
@@ -372,4 +384,4 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
     finally:
         run["seconds"] = round(time.perf_counter() - t0, 3)
         save()
-    return mean_summary([summaries[k] for k in order if k in summaries])
+    return run_summary(job, [summaries[k] for k in order if k in summaries])

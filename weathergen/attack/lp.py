@@ -15,12 +15,18 @@ i.e. the root mean square over every pixel and channel of both frames. The box `
 by construction: the frames are ``x = from_atanh(w)`` (change of variables, the paper's "COV"
 box constraint) and ``w`` is optimised. Loss, as the reference implementation's:
 ``AEE(f̌, f_target) + μ · max(0, ‖δ‖² − ε_2²)`` with ``μ = 2500 / ε_2`` for the zero-flow target
-and 1.5 times that for any other target. The reference implementation minimises it with L-BFGS
-(20 steps of up to 10 iterations each) and keeps the best step within the bound; here the
-optimiser is Adam (``lr``, default 1e-3 on ``w``, 20 steps: one network pass per step instead
-of up to ten) and, after every step, a ``δ`` outside the ball is scaled back onto it (scaling
-towards the clean frames keeps the box), so *every* step respects the bound — the run's best
-step is always a valid perturbation.
+and 1.5 times that for any other target. Two optimisers (``optimizer``):
+
+- ``lbfgs`` (the default): as published and as the paper ran it, L-BFGS over both frames'
+  variables (PyTorch's, step size ``lr`` = 1, no line search), 20 steps of up to 10 iterations
+  (each iteration one network pass with its backward pass). The penalty alone keeps ``δ`` near
+  the ball, so a step may lie outside it; only steps within the bound count as the best step.
+- ``adam``: Adam (``lr``, default 1e-3 on ``w``, 20 steps: one network pass per step instead of
+  up to ten) and, after every step, a ``δ`` outside the ball is scaled back onto it (scaling
+  towards the clean frames keeps the box), so *every* step respects the bound.
+
+Either way the written best step is the one closest to the target among the steps within the
+bound (step 0, the clean frames, always is).
 
 **I-FGSM** (iterative fast gradient sign method, Kurakin et al.; for optical flow Schrodi et al.,
 CVPR 2022; the DistractingDownpour paper's comparison used ``ε_∞ = 5e-3`` and 25 steps)::
@@ -56,10 +62,17 @@ from .pair import AttackResult, StepLog, StepRecord
 from .targets import TargetSpec, target_flow
 
 LP_METHODS = ("pcfa", "ifgsm")
-#: Defaults per method: ε (PCFA: normalised L2; I-FGSM: L∞), steps, lr (PCFA: Adam on the tanh
-#: variables; I-FGSM: None = ε / steps).
-LP_DEFAULTS = {"pcfa": {"epsilon": 5e-3, "steps": 20, "lr": 1e-3},
+#: Defaults per method: ε (PCFA: normalised L2; I-FGSM: L∞), steps, lr (PCFA: that of its
+#: optimiser, :data:`PCFA_LR`; I-FGSM: None = ε / steps).
+LP_DEFAULTS = {"pcfa": {"epsilon": 5e-3, "steps": 20, "lr": None},
                "ifgsm": {"epsilon": 5e-3, "steps": 25, "lr": None}}
+#: PCFA's optimisers, the published one (L-BFGS) first: the default.
+PCFA_OPTIMIZERS = ("lbfgs", "adam")
+#: PCFA's default step size per optimiser: L-BFGS's 1 (PyTorch's, which the reference keeps),
+#: Adam's learning rate on the tanh variables.
+PCFA_LR = {"lbfgs": 1.0, "adam": 1e-3}
+#: L-BFGS iterations per PCFA step (the reference implementation's ``max_iter``).
+PCFA_LBFGS_ITERATIONS = 10
 #: PCFA's penalty weight is this over ε_2 (zero-flow target), times
 #: :data:`PCFA_MU_OTHER_TARGETS` for any other target (the reference implementation's rule).
 PCFA_MU_NUMERATOR = 2500.0
@@ -71,23 +84,36 @@ class LpSettings:
     """How one pair is attacked by an Lp baseline.
 
     method: ``pcfa`` or ``ifgsm``; epsilon: the bound (PCFA: normalised L2 over both frames;
-    I-FGSM: L∞ per pixel); steps; lr: PCFA's Adam learning rate, I-FGSM's step size α.
+    I-FGSM: L∞ per pixel); steps; lr: PCFA's optimiser's step size (L-BFGS) or learning rate
+    (Adam), I-FGSM's step size α; optimizer: PCFA's (``lbfgs`` or ``adam``), None for I-FGSM.
     """
 
     method: str
     epsilon: float
     steps: int
     lr: float
+    optimizer: Optional[str] = None
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "norm": "L2 (normalised)" if self.method == "pcfa" else "Linf"}
+        out = asdict(self)
+        if out["optimizer"] is None:
+            del out["optimizer"]
+        return {**out, "norm": "L2 (normalised)" if self.method == "pcfa" else "Linf"}
 
 
 def lp_settings(method: str, epsilon: Optional[float] = None, steps: Optional[int] = None,
-                lr: Optional[float] = None) -> LpSettings:
-    """Settings for ``method`` with its defaults where a value is None; ConfigError on bad values."""
+                lr: Optional[float] = None, optimizer: Optional[str] = None) -> LpSettings:
+    """Settings for ``method`` with its defaults where a value is None (PCFA's optimiser:
+    ``lbfgs``); ConfigError on bad values."""
     if method not in LP_METHODS:
         raise ConfigError(f"${{method}} {method!r}: expected weather, {', '.join(LP_METHODS)}")
+    if method != "pcfa" and optimizer is not None:
+        raise ConfigError(f"${{optimizer}} applies to ${{method}} pcfa only, not to {method}")
+    if method == "pcfa":
+        optimizer = PCFA_OPTIMIZERS[0] if optimizer is None else optimizer
+        if optimizer not in PCFA_OPTIMIZERS:
+            raise ConfigError(f"${{optimizer}} {optimizer!r}: expected "
+                              f"{' or '.join(PCFA_OPTIMIZERS)}")
     d = LP_DEFAULTS[method]
     eps = float(d["epsilon"] if epsilon is None else epsilon)
     if not (math.isfinite(eps) and eps > 0):
@@ -97,11 +123,11 @@ def lp_settings(method: str, epsilon: Optional[float] = None, steps: Optional[in
         raise ConfigError("${steps} must be >= 0")
     rate = lr if lr is not None else d["lr"]
     if rate is None:
-        rate = eps / max(n, 1)
+        rate = PCFA_LR[optimizer] if method == "pcfa" else eps / max(n, 1)
     rate = float(rate)
     if not (math.isfinite(rate) and rate > 0):
         raise ConfigError(f"${{lr}} must be a positive number, not {lr!r}")
-    return LpSettings(method, eps, n, rate)
+    return LpSettings(method, eps, n, rate, optimizer)
 
 
 def pcfa_mu(epsilon: float, target: TargetSpec) -> float:
@@ -147,7 +173,9 @@ class LpOptimisation:
     The loss that is differentiated is the *sum* of the pairs' losses; a network in eval mode
     treats batch elements independently, so each pair's gradient is that of its own loss, and
     both updates (Adam, elementwise; the sign step of I-FGSM) and both projections act per pair:
-    a batch gives the results of B single-pair runs up to floating-point rounding.
+    a batch gives the results of B single-pair runs up to floating-point rounding. L-BFGS is
+    not elementwise (its curvature estimate couples everything it optimises), so
+    :func:`lp_attack_batch` gives it one pair at a time.
 
     Args: model (the package contract), image1/image2 (B, 3, H, W) in [0, 1] on the device,
     :class:`LpSettings`, :class:`TargetSpec`, target_file_flow (2, H, W) for a file target.
@@ -167,7 +195,11 @@ class LpOptimisation:
         self.goal = target_flow(target, self.benign, target_file_flow)
         if settings.method == "pcfa":
             self.w = [to_atanh(x).requires_grad_(True) for x in self.x0]
-            self.optimizer = torch.optim.Adam(self.w, lr=settings.lr)
+            if settings.optimizer == "adam":
+                self.optimizer = torch.optim.Adam(self.w, lr=settings.lr)
+            else:
+                self.optimizer = torch.optim.LBFGS(self.w, lr=settings.lr,
+                                                   max_iter=PCFA_LBFGS_ITERATIONS)
             self.mu = pcfa_mu(settings.epsilon, target)
         else:
             self.x = [x.clone().requires_grad_(True) for x in self.x0]
@@ -193,10 +225,21 @@ class LpOptimisation:
         return (x1, x2), flow, distances + penalties, distances, penalties
 
     def update(self, loss: torch.Tensor) -> None:
-        """One step on ``loss`` (the pairs' losses, summed here), then the projection onto the
-        constraint set."""
+        """One step on ``loss`` (the pairs' losses at the current frames, summed here), then the
+        projection onto the constraint set (Adam, I-FGSM). An L-BFGS step re-evaluates the loss
+        at each of its iterations, the first at the current frames: ``loss`` itself."""
         loss = loss.sum()
-        if self.settings.method == "pcfa":
+        if self.settings.method == "pcfa" and self.settings.optimizer == "lbfgs":
+            first = [loss]
+
+            def closure():
+                self.optimizer.zero_grad(set_to_none=True)
+                value = first.pop() if first else self.evaluate()[2].sum()
+                value.backward()
+                return value
+
+            self.optimizer.step(closure)
+        elif self.settings.method == "pcfa":
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             self.optimizer.step()
@@ -250,13 +293,21 @@ def lp_attack_batch(model, images1: torch.Tensor, images2: torch.Tensor, setting
     Shape: images1, images2 (B, 3, H, W) in [0, 1] on the model's device; ``seeds`` (B) draw
     each pair's random-perturbation frames. Every step (0 = clean frames) is measured like the
     weather attack's (``penalty`` is PCFA's bound penalty, 0 for I-FGSM); ``on_step`` gets the
-    pair's index and its record. Returns one :class:`LpResult` per pair, as
-    :func:`lp_attack_pair` gives it for that pair alone (up to floating-point rounding).
+    pair's index and its record. Only steps within the bound (zero penalty) can be the best.
+    Returns one :class:`LpResult` per pair, as :func:`lp_attack_pair` gives it for that pair
+    alone (up to floating-point rounding; PCFA with L-BFGS runs the pairs one after the other).
     """
+    if len(seeds) != images1.shape[0]:
+        raise ConfigError(f"{len(seeds)} seeds for {images1.shape[0]} frame pairs")
+    if settings.optimizer == "lbfgs" and images1.shape[0] > 1:
+        results = []
+        for i, seed in enumerate(seeds):
+            results += lp_attack_batch(model, images1[i:i + 1], images2[i:i + 1], settings,
+                                       target, seeds=[seed], target_file_flow=target_file_flow,
+                                       on_step=lambda _, record, i=i: on_step(i, record))
+        return results
     run = LpOptimisation(model, images1, images2, settings, target, target_file_flow)
     size = run.size
-    if len(seeds) != size:
-        raise ConfigError(f"{len(seeds)} seeds for {size} frame pairs")
     rand = [random_perturbation(settings.method, run.x0[0][i:i + 1], run.x0[1][i:i + 1],
                                 settings.epsilon, seed) for i, seed in enumerate(seeds)]
     rand1, rand2 = torch.cat([r[0] for r in rand]), torch.cat([r[1] for r in rand])
@@ -269,8 +320,9 @@ def lp_attack_batch(model, images1: torch.Tensor, images2: torch.Tensor, setting
         t0 = time.perf_counter()
         frames, flow, losses, distances, penalties = run.evaluate()
         dists = distances.detach().cpu().tolist()
+        within = (penalties <= 0).tolist()
         for i in range(size):
-            if log.improves(i, step, dists[i], flow):
+            if within[i] and log.improves(i, step, dists[i], flow):
                 best_frames[i] = tuple(f[i:i + 1].detach().cpu().clone() for f in frames)
         if step < steps:
             run.update(losses)
@@ -300,7 +352,8 @@ def lp_attack_pair(model, image1: torch.Tensor, image2: torch.Tensor, settings: 
 
 
 def plan_lp(method: str, epsilon: Optional[float] = None, steps: Optional[int] = None,
-            lr: Optional[float] = None, **weather_options) -> LpSettings:
+            lr: Optional[float] = None, optimizer: Optional[str] = None,
+            **weather_options) -> LpSettings:
     """The settings of an Lp attack request; a weather option given with it (any of
     ``weather_options`` not None, e.g. ``preset``, ``optimize``) is refused: an Lp attack has no
     particles."""
@@ -308,7 +361,7 @@ def plan_lp(method: str, epsilon: Optional[float] = None, steps: Optional[int] =
     if given:
         raise ConfigError(f"${{{given[0]}}} applies to weather attacks only, not to "
                           f"${{method}} {method}")
-    return lp_settings(method, epsilon, steps, lr)
+    return lp_settings(method, epsilon, steps, lr, optimizer)
 
 
 def lp_pass_name(method: str, input_pass: str) -> str:

@@ -6,11 +6,16 @@ tensors out, no file I/O (the job runner in :mod:`weathergen.attack.job` reads a
 The free variables (all start at zero, so step 0 is the random, unoptimised weather):
 
 - ``offset1`` Δ1 (N, 3) and ``offset2`` Δ2 (N, 3), added to the record's offsets δ1, δ2 (scene
-  units, the record's reference-frame axes; δ1 moves the particle before its motion, δ2 after it);
+  units; δ1 moves the particle before its motion, δ2 after it). As in the paper's equations
+  ``p1 = P (X1 + δ1)`` and ``p2 = P (T_rel (X1 + δ1) + (m + δ2))``, Δ1 is expressed in camera-1
+  axes and Δ2 in camera-2 axes; the record's offsets live in its reference frame's axes, so the
+  record gets ``R_ref←cam1 Δ1`` and ``R_ref←cam2 Δ2`` (norms, and so the penalty, are the same
+  in both; Adam, being elementwise, is not indifferent to the axes);
 - ``color`` (N, 3) and ``transparency`` (N,), offsets in the unbounded atanh domain
   ``η = atanh(2ξ − 1)``: the particle gets ``ξ = from_atanh(η0 + Δ)``, which can never leave
-  (0, 1) (Carlini–Wagner box trick). Transparencies may exceed 1 (glowing sparks), so θ is
-  divided by ``θ_max = max(1, max θ)`` before the transform and multiplied back after it.
+  (0, 1) (Carlini–Wagner box trick). Transparency is ``θ = θ_max ξ`` with the preset's bound
+  ``θ_max`` (:func:`~weathergen.attack.settings.transparency_bound`: 1, or more for presets such
+  as sparks whose θ exceeds 1), never below the record's own largest θ.
 
 Loss (pixels)::
 
@@ -21,6 +26,11 @@ camera depth in frame ``t`` before the attack (fixed, and clamped to at least
 :data:`MIN_REG_DEPTH` for particles behind one of the cameras, which would otherwise flip the
 sign of the penalty). Optimiser: Adam. Every step is measured; the step with the lowest
 ``AEE(f̌, f_target)`` (the *distance to the target*) is kept.
+
+``AttackSettings.compat = "reference"`` swaps several of these terms for what the authors' research
+code does (gradients accumulated over the steps, the occlusion detached, the penalty divided by the
+squared frame-1 depth, a homogeneous component of δ1, the transparency bound, the figures); see
+:mod:`weathergen.attack.compat`.
 
 The gradient is the network's own: for RAFT that is the graph of the original implementation,
 which detaches the flow estimate between refinement steps (``RAFTModel.detach_flow``, on by
@@ -46,6 +56,9 @@ from ..errors import ConfigError
 from ..flow import aee
 from ..framepair import FramePair
 from ..geometry import transform_points
+from .figures import FIGURE_KEYS, mean_figures, region_figures
+from .compat import (camera_translation_in_reference, detaches_occlusion, reference_figure_flows,
+                     reference_offset_penalty, resets_gradients)
 from .settings import DEFAULT_ALPHA, AttackSettings
 from .targets import TargetSpec, target_flow
 
@@ -60,20 +73,42 @@ class WeatherVariables:
     Args:
         particles: the starting record (N particles); any device, float fields float32.
         optimize: which of :data:`OPTIMIZABLE` to free.
+        cam1_from_ref, cam2_from_ref: (4, 4) the cameras' transforms from the record's reference
+            frame; the offset variables live in these cameras' axes (None: the reference axes).
+        transparency_max: the largest θ the attack may reach (None: 1); never below the
+            record's largest θ.
+        homogeneous: also free ``offset1_w`` (N,), the research code's homogeneous component of
+            δ1: it moves the frame-2 position by ``offset1_w`` times the camera translation
+            (folded into the record's ``offset2``, which only frame 2 sees). Needs ``offset1``
+            freed and both cameras.
     The record's other fields (positions, motions, templates, ...) stay fixed.
     """
 
-    def __init__(self, particles, optimize: tuple[str, ...]):
+    def __init__(self, particles, optimize: tuple[str, ...], *,
+                 cam1_from_ref: Optional[torch.Tensor] = None,
+                 cam2_from_ref: Optional[torch.Tensor] = None,
+                 transparency_max: Optional[float] = None, homogeneous: bool = False):
         self.base = particles
         self.optimize = tuple(optimize)
         dev, dtype = particles.position.device, particles.position.dtype
         n = particles.count
-        self.theta_max = max(1.0, float(particles.transparency.max())) if n else 1.0
+        largest = float(particles.transparency.max()) if n else 0.0
+        self.theta_max = max(1.0 if transparency_max is None else float(transparency_max), largest)
         self.eta_color = to_atanh(particles.color.detach())
         self.eta_theta = to_atanh(particles.transparency.detach() / self.theta_max)
+        # Rows Δ (N, 3) in camera axes -> rows in reference axes: Δ R with R = cam_from_ref[:3, :3]
+        # (a reference vector is Rᵀ Δ).
+        eye = torch.eye(4, dtype=torch.float64)
+        c1 = eye if cam1_from_ref is None else cam1_from_ref.detach().double().cpu()
+        c2 = eye if cam2_from_ref is None else cam2_from_ref.detach().double().cpu()
+        self.axes1 = c1[:3, :3].to(device=dev, dtype=dtype)
+        self.axes2 = c2[:3, :3].to(device=dev, dtype=dtype)
         shapes = {"offset1": (n, 3), "offset2": (n, 3), "color": (n, 3), "transparency": (n,)}
         self.delta = {name: torch.zeros(shapes[name], dtype=dtype, device=dev, requires_grad=True)
                       for name in self.optimize}
+        if homogeneous and "offset1" in self.optimize:
+            self.translation = camera_translation_in_reference(c1, c2).to(device=dev, dtype=dtype)
+            self.delta["offset1_w"] = torch.zeros(n, dtype=dtype, device=dev, requires_grad=True)
 
     def parameters(self) -> list[torch.Tensor]:
         return list(self.delta.values())
@@ -84,9 +119,12 @@ class WeatherVariables:
         b, d = self.base, self.delta
         changes = {}
         if "offset1" in d:
-            changes["offset1"] = b.offset1 + d["offset1"]
+            changes["offset1"] = b.offset1 + d["offset1"] @ self.axes1
         if "offset2" in d:
-            changes["offset2"] = b.offset2 + d["offset2"]
+            changes["offset2"] = b.offset2 + d["offset2"] @ self.axes2
+        if "offset1_w" in d:
+            changes["offset2"] = changes.get("offset2", b.offset2) \
+                + d["offset1_w"][:, None] * self.translation
         if "color" in d:
             changes["color"] = from_atanh(self.eta_color + d["color"])
         if "transparency" in d:
@@ -109,6 +147,15 @@ def particle_depths(particles, cam1_from_ref: torch.Tensor, cam2_from_ref: torch
         z2 = transform_points(cam2_from_ref.double().to(p.device), q)[:, 2]
     dtype = particles.position.dtype
     return z1.clamp(min=MIN_REG_DEPTH).to(dtype), z2.clamp(min=MIN_REG_DEPTH).to(dtype)
+
+
+def start_depth(particles, cam1_from_ref: torch.Tensor) -> torch.Tensor:
+    """Frame-1 camera depth of every particle's starting position ``P + δ1``, unclamped and
+    without gradient. Shape: cam1_from_ref (4, 4); returns (N,) in scene units."""
+    with torch.no_grad():
+        p = particles.position.double() + particles.offset1.double()
+        z1 = transform_points(cam1_from_ref.double().to(p.device), p)[:, 2]
+    return z1.to(particles.position.dtype)
 
 
 def offset_penalty(offset1: torch.Tensor, offset2: torch.Tensor, depth1: torch.Tensor,
@@ -271,15 +318,24 @@ class BatchOptimisation:
         # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
         self.stamps = (build_stamps(moved, self.templates, device=device)
                        if any(r.count for r in moved) else None)
-        self.variables = [WeatherVariables(r, settings.optimize) for r in moved]
+        reference = settings.compat == "reference"
+        self.variables = [WeatherVariables(r, settings.optimize, cam1_from_ref=c1, cam2_from_ref=c2,
+                                           transparency_max=settings.transparency_max,
+                                           homogeneous=reference)
+                          for r, (c1, c2) in zip(moved, transforms)]
         self.reg_depths = [particle_depths(r, c1, c2) for r, (c1, c2) in zip(moved, transforms)]
+        # The research code's penalty divides by the squared, unclamped frame-1 depth of the
+        # starting positions.
+        self.start_depth1 = [start_depth(r, c1) for r, (c1, _) in zip(moved, transforms)]
+        self.detach_occlusion = detaches_occlusion(settings)
         self.optimizer = torch.optim.Adam([p for v in self.variables for p in v.parameters()],
                                           lr=settings.learning_rate)
 
     def render(self, particles: Sequence):
         """The weather frames of B records (a :class:`~weathergen.engine.RenderOutput`)."""
         return render(**self.frames, particles=list(particles), templates=self.templates,
-                      beta=self.settings.beta, stamps=self.stamps)
+                      beta=self.settings.beta, stamps=self.stamps,
+                      detach_occlusion=self.detach_occlusion)
 
     def evaluate(self):
         """Render the current variables and run the network.
@@ -294,18 +350,31 @@ class BatchOptimisation:
         out = BatchOptimisation.render(self, current)   # B records, also in a PairOptimisation
         flow = self.model(out.image1, out.image2)
         distances = aee(flow, self.goal)
-        penalties = [offset_penalty(r.offset1, r.offset2, d1, d2, self.settings.alpha1,
-                                    self.settings.alpha2)
-                     for r, (d1, d2) in zip(current, self.reg_depths)]
+        penalties = [self.penalty(i, r) for i, r in enumerate(current)]
         reached = out.reached.tolist() if out.reached is not None else [True] * self.size
         self.depends = [bool(r) and out.image1.requires_grad or p.requires_grad
                         for r, p in zip(reached, penalties)]
         return current, flow, distances + torch.stack(penalties), distances, torch.stack(penalties)
 
+    def penalty(self, i: int, record) -> torch.Tensor:
+        """Pair ``i``'s offset penalty (0-d) for its current ``record``: the paper's
+        :func:`offset_penalty` of the record's offsets, or under ``compat="reference"`` the
+        research code's (:func:`~weathergen.attack.compat.reference_offset_penalty` of the
+        offsets this attack adds)."""
+        s = self.settings
+        if s.compat == "reference":
+            delta = self.variables[i].delta
+            return reference_offset_penalty(delta.get("offset1"), delta.get("offset2"),
+                                            self.start_depth1[i], s.alpha1, s.alpha2)
+        d1, d2 = self.reg_depths[i]
+        return offset_penalty(record.offset1, record.offset2, d1, d2, s.alpha1, s.alpha2)
+
     def update(self, loss: torch.Tensor, active: Optional[Sequence[bool]] = None) -> None:
         """One Adam step on the free variables of the ``active`` pairs (default: all), with
-        ``loss`` the sum of the pairs' losses."""
-        self.optimizer.zero_grad(set_to_none=True)
+        ``loss`` the sum of the pairs' losses. The gradients are cleared first, except under
+        ``compat="reference"``, where they add up over the steps as in the research code."""
+        if resets_gradients(self.settings):
+            self.optimizer.zero_grad(set_to_none=True)
         loss.backward()
         if active is not None:
             for v, keep in zip(self.variables, active):
@@ -444,7 +513,8 @@ class PairSummary:
 
     aee_random: AEE(f, f̌) for the unoptimised weather (step 0, float frames); aee_adversarial:
     for the best step as written (particles at storage precision, 8-bit frames);
-    target_initial / target_adversarial: AEE(f̌, target) for the same two flows.
+    target_initial / target_adversarial: AEE(f̌, target) for the same two flows. The figures by
+    region and the outlier rates (:mod:`weathergen.attack.figures`) describe the adversarial flow.
     """
 
     pair: str
@@ -457,8 +527,19 @@ class PairSummary:
     epe_benign: Optional[float] = None
     epe_random: Optional[float] = None
     epe_adversarial: Optional[float] = None
+    aee_weather_px: Optional[float] = None
+    aee_clear_px: Optional[float] = None
+    epe_weather_px: Optional[float] = None
+    epe_clear_px: Optional[float] = None
+    weather_coverage: Optional[float] = None
+    fl_all: Optional[float] = None
+    outliers_1px: Optional[float] = None
+    outliers_3px: Optional[float] = None
+    outliers_5px: Optional[float] = None
+    gt_valid_px: Optional[int] = None
     seconds: float = 0.0
     nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
+    particles: Optional[int] = None   # particles in the record (the count the frame size gave)
 
     @classmethod
     def from_dict(cls, data: dict) -> "PairSummary":
@@ -469,21 +550,36 @@ class PairSummary:
 
 def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch.Tensor,
                    gt_flow: Optional[torch.Tensor] = None,
-                   gt_valid: Optional[torch.Tensor] = None, seconds: float = 0.0) -> PairSummary:
+                   gt_valid: Optional[torch.Tensor] = None, seconds: float = 0.0,
+                   compat: str = "paper", covered: Optional[torch.Tensor] = None) -> PairSummary:
     """Figures of one attacked pair. ``adversarial_flow`` is the flow on the frames as written
-    (best particles at storage precision, 8-bit frames).
+    (best particles at storage precision, 8-bit frames); ``covered`` (H, W) bool the pixels its
+    weather covers (:func:`~weathergen.flow.weather_mask`; None: none, as for an Lp attack), for
+    the figures by region, which compare the adversarial flow with the clean one.
+
+    ``compat="reference"`` measures the adversarial figures as the research code does: on the
+    best step's float frames (``result.best_flow``), and ``aee_adversarial`` against the random
+    weather's flow when a step beat step 0
+    (:func:`~weathergen.attack.compat.reference_figure_flows`).
     Shape: flows (1, 2, H, W); gt (2, H, W), valid (1, H, W).
     """
-    benign, initial, adv, goal = (t.detach().cpu().float() for t in
-                                  (result.benign_flow, result.initial_flow, adversarial_flow,
-                                   result.target))
+    benign, initial, adv, goal, best = (t.detach().cpu().float() for t in
+                                        (result.benign_flow, result.initial_flow,
+                                         adversarial_flow, result.target, result.best_flow))
+    if compat == "reference":
+        adv = best
+        measured, against = reference_figure_flows(result.best_step, benign, initial, best)
+    else:
+        measured, against = adv, benign
     summary = PairSummary(
         pair=pair_name, best_step=result.best_step, steps=len(result.history) - 1,
         aee_random=float(aee(initial, benign).mean()),
-        aee_adversarial=float(aee(adv, benign).mean()),
+        aee_adversarial=float(aee(measured, against).mean()),
         target_initial=float(aee(initial, goal).mean()),
         target_adversarial=float(aee(adv, goal).mean()), seconds=seconds,
         nothing_visible=bool(result.frozen))
+    for key, value in region_figures(benign, adv, covered, gt_flow, gt_valid).items():
+        setattr(summary, key, value)
     if gt_flow is not None:
         gt = gt_flow.detach().cpu().float()[None]
         valid = None if gt_valid is None else gt_valid.detach().cpu()[None]
@@ -494,10 +590,13 @@ def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch
 
 
 def mean_summary(rows: list[PairSummary]) -> dict:
-    """Means over pairs of every figure (EPE means over the pairs that have ground truth)."""
+    """Means over pairs of every figure (EPE means over the pairs that have ground truth; the
+    figures by region and outlier rates as :func:`~weathergen.attack.figures.mean_figures`)."""
     out: dict = {"pairs": len(rows)}
     for key in ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
                 "epe_benign", "epe_random", "epe_adversarial"):
         values = [getattr(r, key) for r in rows if getattr(r, key) is not None]
         out[key] = sum(values) / len(values) if values else None
+    out.update(mean_figures([{k: getattr(r, k) for k in (*FIGURE_KEYS, "gt_valid_px")}
+                             for r in rows]))
     return out

@@ -23,6 +23,7 @@ from typing import Mapping, Optional, Sequence
 from ..engine import BETA_ATTACK, BETA_RENDER, Preset
 from ..errors import ConfigError
 from ..render.plan import resolve_preset
+from .compat import transparency_bound_for
 from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
 from .settings import DEFAULT_ALPHA, DEFAULT_STEPS, OPTIMIZABLE, AttackSettings, parse_optimize
 
@@ -47,8 +48,12 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
                 particles_from: Optional[str | Path] = None, *,
                 optimize: Optional[str | Sequence[str]] = None, lr: Optional[float] = None,
                 occlusion_gradient: Optional[bool] = None, steps: int = DEFAULT_STEPS,
-                alpha1: float = DEFAULT_ALPHA, alpha2: float = DEFAULT_ALPHA) -> AttackPlan:
+                alpha1: float = DEFAULT_ALPHA, alpha2: float = DEFAULT_ALPHA,
+                compat: str = "paper") -> AttackPlan:
     """Resolve an attack request by the rules of this module; None means "not given".
+
+    ``compat``: ``paper`` or ``reference`` (:mod:`weathergen.attack.compat`); it also picks the
+    transparency bound of the preset.
 
     ``optimize`` is ``"offset1,color"`` (or ``"all"``) or a sequence of variable names.
     Raises ConfigError for an unknown configuration, preset or variable, and for the refused
@@ -74,7 +79,9 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
     if occlusion_gradient is None:
         occlusion_gradient = bool(config and config.occlusion_gradient)
     settings = AttackSettings(optimize=variables, steps=steps, lr=lr, alpha1=alpha1,
-                              alpha2=alpha2, beta=BETA_ATTACK if occlusion_gradient else BETA_RENDER)
+                              alpha2=alpha2, beta=BETA_ATTACK if occlusion_gradient else BETA_RENDER,
+                              transparency_max=transparency_bound_for(resolved.preset, compat),
+                              compat=compat)
     return AttackPlan(resolved.preset, name, config, settings, config_name or name)
 
 

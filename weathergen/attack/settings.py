@@ -17,6 +17,9 @@ DEFAULT_STEPS = 750
 DEFAULT_ALPHA = 1000.0
 LR_POSITIONS = 1e-5
 LR_APPEARANCE = 1e-3
+#: ``paper``: the paper's equations and tables; ``reference``: the research code's behaviour
+#: where it departs from them (see :mod:`weathergen.attack.compat`).
+COMPAT_MODES = ("paper", "reference")
 
 
 def parse_optimize(text: str) -> tuple[str, ...]:
@@ -41,6 +44,17 @@ def default_lr(optimize: tuple[str, ...]) -> float:
     return LR_POSITIONS if any(v in POSITION_VARIABLES for v in optimize) else LR_APPEARANCE
 
 
+def transparency_bound(preset) -> float:
+    """The largest transparency θ the attack may reach for particles of ``preset``.
+
+    The paper maps θ to the unbounded domain by ``η = atanh(2θ − 1)`` (Section 3.2), so θ stays
+    in (0, 1); a preset whose own θ (the "θ" column of the supplement's particle table: the
+    ceiling of its depth hat, or the constant value) exceeds 1, as sparks' 1.5 does, keeps its
+    own ceiling. So the bound is ``max(1, θ_preset)``: 1 for snow, rain, fog and grey, 1.5 for
+    sparks, whatever the sampled particles happen to reach.
+    """
+    return max(1.0, float(preset.transparency))
+
 
 @dataclass(frozen=True)
 class AttackSettings:
@@ -49,7 +63,10 @@ class AttackSettings:
     optimize: the freed variables; steps: Adam updates (``steps + 1`` evaluations: step 0 is the
     unoptimised weather); lr: ``None`` for :func:`default_lr`; alpha1/alpha2: penalty weights;
     beta: occlusion sharpness of the renderer during the attack (``BETA_ATTACK`` = 30 to
-    differentiate through occlusion, ``BETA_RENDER`` = 250 otherwise).
+    differentiate through occlusion, ``BETA_RENDER`` = 250 otherwise); transparency_max: the
+    largest θ the attack may reach (:func:`transparency_bound` of the preset; ``None``: 1, or the
+    record's largest θ where that is more); compat: ``paper`` (default) or ``reference``, the
+    research code's terms (:mod:`weathergen.attack.compat`).
     """
 
     optimize: tuple[str, ...] = OPTIMIZABLE
@@ -58,6 +75,8 @@ class AttackSettings:
     alpha1: float = DEFAULT_ALPHA
     alpha2: float = DEFAULT_ALPHA
     beta: float = 250.0
+    transparency_max: Optional[float] = None
+    compat: str = "paper"
 
     def __post_init__(self):
         parse_optimize(",".join(self.optimize))  # validates names and non-emptiness
@@ -71,6 +90,13 @@ class AttackSettings:
                 raise ConfigError(f"${{{name}}} must be a finite number >= 0, got {v}")
         if not (self.beta > 0 and math.isfinite(self.beta)):
             raise ConfigError(f"occlusion beta must be positive, got {self.beta}")
+        if self.transparency_max is not None and not (self.transparency_max > 0
+                                                      and math.isfinite(self.transparency_max)):
+            raise ConfigError(f"${{transparency_max}} must be a positive number, "
+                              f"got {self.transparency_max}")
+        if self.compat not in COMPAT_MODES:
+            raise ConfigError(f"${{compat}} must be one of {', '.join(COMPAT_MODES)}, "
+                              f"got {self.compat!r}")
 
     @property
     def learning_rate(self) -> float:
@@ -79,4 +105,5 @@ class AttackSettings:
     def to_dict(self) -> dict:
         return {"optimize": list(self.optimize), "steps": int(self.steps),
                 "lr": self.learning_rate, "alpha1": self.alpha1, "alpha2": self.alpha2,
-                "beta": self.beta}
+                "beta": self.beta, "transparency_max": self.transparency_max,
+                "compat": self.compat}

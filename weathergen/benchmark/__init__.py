@@ -3,15 +3,18 @@
 - :mod:`.grid`: the cells (networks × presets × Lp methods), their attack jobs, shards, and
   :func:`run_grid` (the place an executor plugs in);
 - :mod:`.tables`: the results read back from every run's ``summary.json``, written as CSV, JSON,
-  Markdown and LaTeX in the layout of the paper's tables.
+  Markdown and LaTeX in the layout of the paper's tables;
+- :mod:`.plot`: a bar chart of AEE(f, f̌) per network and preset (PNG).
 """
 
 from __future__ import annotations
 
 from .grid import (DEFAULT_LP, DEFAULT_PRESETS, TR115_FRAMES_PER_SCENE, BenchmarkSpec, Cell,
-                   cell_job, checkpoint_record, run_grid, shard_cells, tr115_default)
-from .tables import collect_results, write_tables
+                   cell_job, checkpoint_record, label_config, run_grid, shard_cells, tr115_default)
+from .plot import draw_aee, draw_chart
+from .tables import build_tables, collect_results, latex_table, markdown_table, write_tables
 
 __all__ = ["DEFAULT_LP", "DEFAULT_PRESETS", "TR115_FRAMES_PER_SCENE", "BenchmarkSpec", "Cell",
-           "cell_job", "checkpoint_record", "collect_results", "run_grid", "shard_cells",
+           "build_tables", "cell_job", "checkpoint_record", "collect_results", "draw_aee",
+           "draw_chart", "label_config", "latex_table", "markdown_table", "run_grid", "shard_cells",
            "tr115_default", "write_tables"]

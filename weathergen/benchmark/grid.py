@@ -6,8 +6,10 @@ own folder ``OUT/runs/<network>/<label>``, so each is resumable and readable lik
 output:
 
 - one *weather* cell per network and preset: its ``aee_random`` (step 0: the random weather that
-  ``render --seed S`` writes for the preset) fills the "augmentations" table and its
-  ``aee_adversarial`` the "weatherattacks" table;
+  ``render --seed S`` writes for the preset) fills the "augmentations" table and, with its
+  ``aee_adversarial``, the "weatherattacks" table; a label that names an attack configuration of
+  the supplement rather than a preset (``grey-offset1`` ...) is attacked with that configuration
+  and fills the "optimvariables" table;
 - one *Lp* cell per network and Lp method (``pcfa``, ``ifgsm``): its ``aee_adversarial`` fills
   the "of_attacks" table, next to the adversarial snow of the same network.
 
@@ -24,9 +26,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Mapping, Optional, Sequence
 
-from ..attack import AttackJob, lp_pass_name, lp_settings, run_attack
+from ..attack import ATTACK_CONFIGS, AttackConfig, AttackJob, lp_pass_name, lp_settings, run_attack
 from ..attack.plan import attack_pass_name, plan_attack
 from ..datasets import Dataset, reopen_dataset
+from ..engine import list_presets
 from ..errors import ConfigError
 from ..models.checkpoints import sha256_of
 
@@ -35,6 +38,14 @@ DEFAULT_PRESETS = ("snow", "rain", "sparks", "fog")
 DEFAULT_LP = ("pcfa", "ifgsm")
 #: Pairs per scene of the paper's Sintel-tr115 selection, the benchmark's default.
 TR115_FRAMES_PER_SCENE = 5
+#: The paper's names for its six networks (table columns, the plot's legend); others keep theirs.
+PAPER_NAMES = {"flownet2": "FN2", "flownetcrobust": "FNCR", "spynet": "SpyNet", "raft": "RAFT",
+               "gma": "GMA", "flowformer": "FF"}
+
+
+def network_name(name: str) -> str:
+    """A network as the paper's tables name it."""
+    return PAPER_NAMES.get(name, name)
 
 
 @dataclass(frozen=True)
@@ -52,7 +63,8 @@ class Cell:
 @dataclass
 class BenchmarkSpec:
     """What a benchmark runs. ``checkpoints`` maps a network to its checkpoint (None: its own);
-    ``overrides`` are preset keys applied to every weather cell (``--set``)."""
+    ``overrides`` are preset keys applied to every weather cell (``--set``); ``compat`` the
+    weather attacks' terms (``paper`` or ``reference``, see :mod:`weathergen.attack.compat`)."""
 
     dataset: Dataset
     out: Path
@@ -67,7 +79,9 @@ class BenchmarkSpec:
     seed: int = 0
     device: str = "cpu"
     download: bool = False
+    amp: Optional[bool] = None           # mixed precision; None: each network's paper setting
     command: list = field(default_factory=list)
+    compat: str = "paper"                # the weather attacks' terms (paper or reference)
 
     def cells(self) -> list[Cell]:
         if not self.networks:
@@ -77,6 +91,14 @@ class BenchmarkSpec:
             cells += [Cell(net, "weather", p) for p in self.presets]
             cells += [Cell(net, "lp", m) for m in self.lp_methods]
         return cells
+
+
+def label_config(label: str) -> Optional[AttackConfig]:
+    """The attack configuration a weather cell's label names, or None where it names a preset
+    (a preset attacked under its own name still takes its configuration, e.g. fog's)."""
+    if label in ATTACK_CONFIGS and label not in list_presets():
+        return ATTACK_CONFIGS[label]
+    return None
 
 
 def tr115_default(dataset: Dataset) -> Dataset:
@@ -91,17 +113,19 @@ def cell_job(spec: BenchmarkSpec, cell: Cell) -> AttackJob:
     """The attack run of one cell (resuming whatever its folder holds)."""
     common = dict(dataset=spec.dataset, out=cell.folder(spec.out), model=cell.network,
                   checkpoint=spec.checkpoints.get(cell.network), iters=spec.iters,
-                  seed=spec.seed, device=spec.device, download=spec.download, resume=True,
-                  command=list(spec.command))
+                  seed=spec.seed, device=spec.device, download=spec.download, amp=spec.amp,
+                  resume=True, command=list(spec.command))
     input_pass = spec.dataset.selection.pass_
     if cell.kind == "lp":
         return AttackJob(preset=None, preset_name=cell.label, settings=None,
                          pass_name=lp_pass_name(cell.label, input_pass),
                          lp=lp_settings(cell.label, steps=spec.lp_steps), **common)
     kwargs = {} if spec.steps is None else {"steps": spec.steps}
-    plan = plan_attack(None, cell.label, dict(spec.overrides), **kwargs)
+    config = cell.label if label_config(cell.label) is not None else None
+    plan = plan_attack(config, None if config else cell.label, dict(spec.overrides),
+                       compat=spec.compat, **kwargs)
     return AttackJob(preset=plan.preset, preset_name=plan.preset_name, settings=plan.settings,
-                     config_name=None, pass_name=attack_pass_name(plan.preset_name, input_pass),
+                     config_name=config, pass_name=attack_pass_name(plan.preset_name, input_pass),
                      **common)
 
 
@@ -132,6 +156,8 @@ def run_grid(spec: BenchmarkSpec, shard: Optional[tuple[int, int]] = None,
     """
     cells = shard_cells(spec.cells(), shard)
     jobs = [cell_job(spec, c) for c in cells]
+    for job in jobs:
+        job.amp_setting()                   # --amp for a network or device without it
     for i, (cell, job) in enumerate(zip(cells, jobs)):
         on_cell(i, len(cells), cell)
         execute(job)

@@ -2,20 +2,32 @@
 
 Files written into the benchmark folder (all atomically)::
 
-    OUT/results.csv     one row per cell: network, kind, label, pairs, the mean figures, checkpoint
-    OUT/results.json    the same rows, plus the networks (checkpoint and sha256), the input
-                        selection and the weathergen version
-    OUT/tables.md       the three tables in Markdown
-    OUT/tables.tex      the same in LaTeX (booktabs), in the layout of the paper's tables
+    OUT/results.csv         one row per cell: network, kind, label, pairs, the mean figures, checkpoint
+    OUT/results.json        the same rows, plus the networks (checkpoint and sha256), the input
+                            selection, the settings and the weathergen version
+    OUT/tables.md           every table in Markdown
+    OUT/tables.tex          every table in LaTeX, a document that compiles on its own (graphicx;
+                            booktabs where installed, plain rules otherwise)
+    OUT/tables/NAME.md      one table per file, Markdown
+    OUT/tables/NAME.tex     one table per file, a LaTeX ``table`` float to ``\\input``
+    OUT/aee.png             AEE(f, f̌) per network and preset, random and adversarial (:mod:`.plot`)
 
-Tables (AEE(f, f̌) in pixels, mean over the pairs; rows × one column per network; the largest
-value of each column — the worst robustness — in bold, as in the paper):
+One table per table of the paper that the grid's cells fill, laid out as the paper's (AEE(f, f̌)
+in pixels, mean over the pairs; networks as columns, named as the paper names them: FN2, FNCR,
+SpyNet, RAFT, GMA, FF; the worst, i.e. largest, value of each column bold):
 
-- ``augmentations``: random weather per preset (``aee_random`` of the weather cell);
-- ``weatherattacks``: adversarial weather per preset (``aee_adversarial``);
-- ``of_attacks``: PCFA, I-FGSM and adversarial snow (``aee_adversarial``).
+- ``augmentations`` (the paper's Table 1; on KITTI its supplement's KITTI table): the random
+  weather of every preset cell (``aee_random``), the paper's families (particles, motion blur,
+  colour, size) grouped under their headings;
+- ``optimvariables`` (Table 2): the attack-configuration cells (e.g. ``grey-offset1``), one row
+  per set of freed variables, under an ``Initial`` row (the random weather, not ranked); the
+  second worst underlined;
+- ``weatherattacks`` (Table 3): every preset cell, the random and the adversarial figure next to
+  each other under each network;
+- ``of_attacks`` (Table 4): the Lp baselines (PCFA, I-FGSM) beside the adversarial snow.
 
-A cell not finished (yet) shows ``–`` and counts for no bold mark.
+A table whose cells the grid does not have is left out; a cell not finished (yet) shows ``–`` and
+counts for no mark.
 """
 
 from __future__ import annotations
@@ -23,29 +35,51 @@ from __future__ import annotations
 import csv
 import io
 import json
+import unicodedata
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional, Sequence
 
 from .. import __version__
+from ..attack.figures import FIGURE_KEYS
 from ..io.atomic import atomic_write_bytes
-from .grid import BenchmarkSpec, checkpoint_record
+from ..outputs import read_summary
+from .grid import BenchmarkSpec, checkpoint_record, label_config, network_name
+from .plot import draw_aee
 
 FIGURES = ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
-           "epe_benign", "epe_random", "epe_adversarial")
-COLUMNS = ("network", "kind", "label", "pairs") + FIGURES + ("checkpoint", "sha256", "folder")
+           "epe_benign", "epe_random", "epe_adversarial") + FIGURE_KEYS
+COLUMNS = ("network", "kind", "label", "pairs") + FIGURES + ("compat", "checkpoint", "sha256",
+                                                               "folder")
 LP_NAMES = {"pcfa": "PCFA", "ifgsm": "I-FGSM"}
+#: The families of the paper's Table 1: preset-name prefix, heading (Markdown, LaTeX).
+FAMILIES = (("particles-", "Particles", "Particles"),
+            ("motion-blur-", "Motion blur", "Motion blur"),
+            ("additive-", "Color additive", "Color additive"),
+            ("alpha-", "Color α-blending", r"Color $\alpha$-blending"),
+            ("size-", "Size", "Size"))
+#: The freed variables as the paper writes them (Markdown, LaTeX).
+SYMBOLS = {"offset1": ("1", "1"), "offset2": ("2", "2"), "color": ("c", "c"),
+           "transparency": ("θ", r"\theta")}
+#: The tables, in the paper's order: (Markdown title, LaTeX caption).
 TABLES = {
-    "augmentations": "Robustness AEE(f, f̌) of random weather (augmentations)",
-    "weatherattacks": "Robustness AEE(f, f̌) of adversarial weather",
-    "of_attacks": "Robustness AEE(f, f̌) under different attacks",
+    "augmentations": ("Robustness AEE(f, f̌) ↓ of random weather (augmentations)",
+                      r"Robustness AEE$(f,\check{f})$ $\downarrow$ of random particle-based "
+                      r"weather (augmentations)"),
+    "optimvariables": ("Adversarial robustness AEE(f, f̌) ↓ of particles optimised in "
+                       "different variables",
+                       r"Adversarial robustness AEE$(f,\check{f})$ $\downarrow$ of particles "
+                       r"optimised in different variables"),
+    "weatherattacks": ("Robustness AEE(f, f̌) ↓ of random (rand.) and adversarial (adv.) weather",
+                       r"Robustness AEE$(f,\check{f})$ $\downarrow$ of random (rand.) and "
+                       r"adversarial (adv.) weather"),
+    "of_attacks": ("Adversarial robustness AEE(f, f̌) ↓ for different attacks",
+                   r"Adversarial robustness AEE$(f,\check{f})$ $\downarrow$ for different "
+                   r"attacks"),
 }
 
-LATEX_CAPTIONS = {
-    "augmentations": r"Robustness AEE$(f,\check{f})$ of random weather (augmentations).",
-    "weatherattacks": r"Robustness AEE$(f,\check{f})$ of adversarial weather.",
-    "of_attacks": r"Robustness AEE$(f,\check{f})$ under different attacks.",
-}
 
+# -- reading the results -------------------------------------------------------------------------
 
 def collect_results(spec: BenchmarkSpec) -> list[dict]:
     """One row per cell of the whole grid, its figures read from the cell's ``summary.json``
@@ -54,91 +88,242 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
     records = {net: checkpoint_record(net, spec.checkpoints.get(net)) for net in spec.networks}
     for cell in spec.cells():
         folder = cell.folder(spec.out)
-        summary = _read_summary(folder)
+        summary = read_summary(folder)
         row = {"network": cell.network, "kind": cell.kind, "label": cell.label,
                "pairs": summary.get("pairs") if summary else None}
         for key in FIGURES:
             row[key] = summary.get(key) if summary else None
-        row.update(checkpoint=records[cell.network]["checkpoint"],
+        row.update(compat=summary.get("compat") if summary else None,
+                   checkpoint=records[cell.network]["checkpoint"],
                    sha256=records[cell.network]["sha256"],
                    folder=str(folder.relative_to(spec.out)))
         rows.append(row)
     return rows
 
 
-def _read_summary(folder: Path) -> Optional[dict]:
-    path = folder / "summary.json"
-    if not path.is_file():
-        return None
-    return json.loads(path.read_text())
+# -- the tables as data --------------------------------------------------------------------------
+
+@dataclass
+class Row:
+    """One row: its label (Markdown, LaTeX) and one value per column; ``ranked`` rows take part
+    in the bold (worst) and underline (second worst) marks."""
+
+    label: str
+    label_tex: str
+    values: list
+    ranked: bool = True
 
 
-def table_rows(rows: list[dict], networks: Sequence[str], name: str) -> list[tuple[str, list]]:
-    """``[(row label, [value per network])]`` of one of :data:`TABLES`."""
-    def value(kind, label, net, key):
-        for r in rows:
-            if (r["network"], r["kind"], r["label"]) == (net, kind, label):
-                return r[key]
-        return None
+@dataclass
+class Table:
+    """A table: ``columns`` (one per value; Markdown headers), grouped under ``groups`` (header,
+    span) when each network has several columns; ``sections`` of rows, each under an optional
+    heading (Markdown, LaTeX)."""
 
-    weather = [r["label"] for r in rows if r["kind"] == "weather" and r["network"] == networks[0]]
-    lp = [r["label"] for r in rows if r["kind"] == "lp" and r["network"] == networks[0]]
-    if name == "augmentations":
-        return [(p, [value("weather", p, n, "aee_random") for n in networks]) for p in weather]
-    if name == "weatherattacks":
-        return [(p, [value("weather", p, n, "aee_adversarial") for n in networks])
-                for p in weather]
-    out = [(LP_NAMES.get(m, m), [value("lp", m, n, "aee_adversarial") for n in networks])
-           for m in lp]
-    if "snow" in weather:
-        out.append(("Snow (ours)", [value("weather", "snow", n, "aee_adversarial")
-                                    for n in networks]))
+    name: str
+    head: str
+    columns: list
+    sections: list = field(default_factory=list)
+    groups: Optional[list] = None
+    underline_second: bool = False
+    note: str = ""
+
+    def rows(self) -> list[Row]:
+        return [row for _, rows in self.sections for row in rows]
+
+    def marks(self) -> dict:
+        """``{(row id, column): "bold" | "underline"}`` over the ranked rows of each column."""
+        out = {}
+        ranked = [r for r in self.rows() if r.ranked]
+        for c in range(len(self.columns)):
+            values = sorted({r.values[c] for r in ranked if r.values[c] is not None},
+                            reverse=True)
+            for r in ranked:
+                v = r.values[c]
+                if values and v == values[0]:
+                    out[(id(r), c)] = "bold"
+                elif self.underline_second and len(values) > 1 and v == values[1]:
+                    out[(id(r), c)] = "underline"
+        return out
+
+
+def _lookup(rows: list[dict]):
+    index = {(r["network"], r["kind"], r["label"]): r for r in rows}
+    return lambda net, kind, label, key: (index.get((net, kind, label)) or {}).get(key)
+
+
+def _family(label: str):
+    for prefix, heading, heading_tex in FAMILIES:
+        if label.startswith(prefix) and len(label) > len(prefix):
+            return (heading, heading_tex), label[len(prefix):]
+    return None, label
+
+
+def variables_label(optimize: Sequence[str]) -> tuple[str, str]:
+    """The paper's name of a set of freed variables: δ1, δ2, δc, δθ, δ1,2, δc,θ, δall."""
+    if len(optimize) == len(SYMBOLS):
+        return "δall", r"$\delta_{\mathrm{all}}$"
+    md = ",".join(SYMBOLS[v][0] for v in optimize)
+    tex = ",".join(SYMBOLS[v][1] for v in optimize)
+    return f"δ{md}", f"$\\delta_{{{tex}}}$"
+
+
+def build_tables(rows: list[dict], networks: Sequence[str]) -> list[Table]:
+    """The tables the grid's cells fill, in the paper's order."""
+    value = _lookup(rows)
+    first = networks[0]
+    weather = [r["label"] for r in rows if r["kind"] == "weather" and r["network"] == first]
+    configs = [label for label in weather if label_config(label) is not None]
+    presets = [label for label in weather if label_config(label) is None]
+    lp = [r["label"] for r in rows if r["kind"] == "lp" and r["network"] == first]
+    names = [network_name(n) for n in networks]
+    tables = []
+    if presets:
+        sections: dict = {}
+        for label in presets:
+            heading, short = _family(label)
+            sections.setdefault(heading, []).append(
+                Row(short, latex_text(short),
+                    [value(n, "weather", label, "aee_random") for n in networks]))
+        table = Table("augmentations", "Weather", names,
+                      sections=[(h, r) for h, r in sections.items() if h is None]
+                      + [(h, r) for h, r in sections.items() if h is not None])
+        tables.append(table)
+    if configs:
+        initial = [next((v for v in (value(n, "weather", c, "aee_random") for c in configs)
+                         if v is not None), None) for n in networks]
+        body = []
+        for label in configs:
+            md, tex = variables_label(label_config(label).optimize)
+            body.append(Row(f"{md} ({label})", f"{tex} ({latex_text(label)})",
+                            [value(n, "weather", label, "aee_adversarial") for n in networks]))
+        tables.append(Table("optimvariables", "Parameters", names, underline_second=True,
+                            sections=[(None, [Row("Initial", "Initial", initial, ranked=False)]),
+                                      (None, body)]))
+    if presets:
+        body = [Row(label, latex_text(label),
+                    [v for n in networks for v in (value(n, "weather", label, "aee_random"),
+                                                    value(n, "weather", label, "aee_adversarial"))])
+                for label in presets]
+        columns = [f"{name} {kind}" for name in names for kind in ("rand.", "adv.")]
+        tables.append(Table("weatherattacks", "Weather", columns, sections=[(None, body)],
+                            groups=[(name, 2) for name in names]))
+    if lp:
+        body = [Row(LP_NAMES.get(m, m), latex_text(LP_NAMES.get(m, m)),
+                    [value(n, "lp", m, "aee_adversarial") for n in networks]) for m in lp]
+        if "snow" in presets:
+            body.append(Row("Snow (ours)", "Snow (ours)",
+                            [value(n, "weather", "snow", "aee_adversarial") for n in networks]))
+        tables.append(Table("of_attacks", "Attack", names, sections=[(None, body)]))
+    return tables
+
+
+# -- Markdown and LaTeX --------------------------------------------------------------------------
+
+_LATEX_SPECIALS = {"\\": r"\textbackslash{}", "&": r"\&", "%": r"\%", "$": r"\$", "#": r"\#",
+                   "_": r"\_", "{": r"\{", "}": r"\}", "~": r"\textasciitilde{}",
+                   "^": r"\textasciicircum{}"}
+
+
+def latex_text(text: str) -> str:
+    """``text`` as LaTeX text: special characters escaped, accents dropped and any other
+    non-ASCII character replaced by ``?`` (so that plain pdflatex compiles it)."""
+    plain = unicodedata.normalize("NFKD", str(text))
+    plain = "".join(c for c in plain if not unicodedata.combining(c))
+    return "".join(_LATEX_SPECIALS.get(c, c if ord(c) < 128 else "?") for c in plain)
+
+
+def _markdown_text(text: str) -> str:
+    return str(text).replace("|", r"\|")
+
+
+def _fmt(v) -> str:
+    return "–" if v is None else f"{v:.2f}"
+
+
+def markdown_table(table: Table, caption: str) -> str:
+    marks = table.marks()
+    wrap = {"bold": lambda t: f"**{t}**", "underline": lambda t: f"<u>{t}</u>"}
+    width = len(table.columns) + 1
+    lines = [f"### {table.name}: {caption}", "",
+             "| " + " | ".join([table.head, *map(_markdown_text, table.columns)]) + " |",
+             "| " + " | ".join(["---"] + ["---:"] * len(table.columns)) + " |"]
+    for heading, rows in table.sections:
+        if heading is not None:
+            lines.append("| " + " | ".join([f"**{heading[0]}**"] + [""] * (width - 1)) + " |")
+        for row in rows:
+            cells = [_fmt(v) for v in row.values]
+            cells = [wrap[marks[(id(row), c)]](t) if (id(row), c) in marks else t
+                     for c, t in enumerate(cells)]
+            lines.append("| " + " | ".join([_markdown_text(row.label), *cells]) + " |")
+    if table.note:
+        lines += ["", table.note]
+    return "\n".join(lines) + "\n"
+
+
+def latex_table(table: Table, caption: str) -> str:
+    marks = table.marks()
+    wrap = {"bold": lambda t: r"\textbf{" + t + "}", "underline": lambda t: r"\underline{" + t + "}"}
+    width = len(table.columns) + 1
+    lines = [r"\begin{table}", r"\small", r"\begin{center}",
+             r"\begin{tabular}{l" + "r" * len(table.columns) + "}", r"\toprule"]
+    if table.groups:
+        heads, rules, start = [], [], 2
+        for name, span in table.groups:
+            heads.append(r"\multicolumn{" + str(span) + "}{c}{" + latex_text(name) + "}")
+            rules.append(r"\cmidrule(lr){" + f"{start}-{start + span - 1}" + "}")
+            start += span
+        lines.append(" & ".join([latex_text(table.head), *heads]) + r" \\")
+        lines.append(" ".join(rules))
+        subs = [c.rsplit(" ", 1)[-1] for c in table.columns]
+        lines.append(" & ".join(["", *map(latex_text, subs)]) + r" \\")
+    else:
+        heads = [r"\multicolumn{1}{c}{\rotatebox{45}{" + latex_text(c) + "}}" for c in table.columns]
+        lines.append(" & ".join([latex_text(table.head), *heads]) + r" \\")
+    for heading, rows in table.sections:
+        lines.append(r"\midrule")
+        if heading is not None:
+            lines.append(r"\multicolumn{" + str(width) + r"}{l}{\emph{" + heading[1] + r"}} \\")
+        for row in rows:
+            cells = [_fmt(v).replace("–", "--") for v in row.values]
+            cells = [wrap[marks[(id(row), c)]](t) if (id(row), c) in marks else t
+                     for c, t in enumerate(cells)]
+            lines.append(" & ".join([row.label_tex, *cells]) + r" \\")
+    lines += [r"\bottomrule", r"\end{tabular}", r"\caption{" + caption + "}",
+              r"\label{table:" + table.name + "}", r"\end{center}", r"\end{table}"]
+    return "\n".join(lines) + "\n"
+
+
+#: The document around the tables in ``tables.tex``: booktabs rules where the package is
+#: installed, plain ``\hline``/``\cline`` otherwise, so that a bare LaTeX compiles it too.
+LATEX_PREAMBLE = "\n".join([
+    r"\documentclass{article}",
+    r"\usepackage{graphicx}",
+    r"\IfFileExists{booktabs.sty}{\usepackage{booktabs}}{%",
+    r"  \newcommand{\toprule}{\hline}\newcommand{\midrule}{\hline}%",
+    r"  \newcommand{\bottomrule}{\hline}\def\cmidrule(##1)##2{\cline{##2}}}",
+    r"\begin{document}", ""])
+
+
+def captions(spec: BenchmarkSpec) -> dict[str, tuple[str, str]]:
+    """Each table's caption (Markdown, LaTeX), naming the input and the attack mode."""
+    where = spec.dataset.describe()
+    name = f"{where.get('dataset', 'dataset')} {where.get('split', '')}".strip()
+    mode = "" if spec.compat == "paper" else f" Research code's attack terms (--compat {spec.compat})."
+    mode_tex = "" if spec.compat == "paper" else \
+        f" Research code's attack terms (\\texttt{{--compat {latex_text(spec.compat)}}})."
+    out = {key: (f"{md} on {name}, worst robustness bold.{mode}",
+                 f"{tex} on {latex_text(name)}, worst robustness bold.{mode_tex}")
+           for key, (md, tex) in TABLES.items()}
+    md, tex = out["optimvariables"]
+    out["optimvariables"] = (md + " Initial: the random particles; second worst underlined.",
+                             tex + r" \emph{Initial}: the random particles; second worst underlined.")
     return out
 
 
-def _worst(body: list[tuple[str, list]]) -> list[Optional[float]]:
-    cols = list(zip(*[values for _, values in body])) if body else []
-    return [max((v for v in col if v is not None), default=None) for col in cols]
-
-
-def _fmt(v, worst, bold) -> str:
-    if v is None:
-        return "–"
-    text = f"{v:.2f}"
-    return bold(text) if worst is not None and v == worst else text
-
-
-def markdown_table(name: str, body, networks: Sequence[str]) -> str:
-    worst = _worst(body)
-    head = "Attack" if name == "of_attacks" else "Weather"
-    lines = [f"### {name}: {TABLES[name]}", "",
-             "| " + " | ".join([head, *networks]) + " |",
-             "| " + " | ".join(["---"] + ["---:"] * len(networks)) + " |"]
-    for label, values in body:
-        cells = [_fmt(v, w, lambda t: f"**{t}**") for v, w in zip(values, worst)]
-        lines.append("| " + " | ".join([label, *cells]) + " |")
-    return "\n".join(lines) + "\n"
-
-
-def latex_table(name: str, body, networks: Sequence[str]) -> str:
-    worst = _worst(body)
-    head = "Attack" if name == "of_attacks" else "Weather"
-    esc = lambda s: str(s).replace("_", r"\_").replace("%", r"\%")   # noqa: E731
-    cols = " & ".join(r"\multicolumn{1}{c}{\rotatebox{45}{" + esc(n) + "}}" for n in networks)
-    lines = [r"\begin{table}", r"\small", r"\begin{center}",
-             r"\begin{tabular}{l" + "r" * len(networks) + "}", r"\toprule",
-             f"{head} & {cols} \\\\", r"\midrule"]
-    for label, values in body:
-        cells = [_fmt(v, w, lambda t: r"\textbf{" + t + "}") for v, w in zip(values, worst)]
-        lines.append(" & ".join([esc(label), *cells]) + r" \\")
-    lines += [r"\bottomrule", r"\end{tabular}",
-              r"\caption{" + LATEX_CAPTIONS[name] + r" Worst robustness bold.}",
-              r"\label{table:" + name + "}", r"\end{center}", r"\end{table}"]
-    return "\n".join(lines) + "\n"
-
-
 def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
-    """Collect every cell's figures and write results.csv/json and tables.md/tex; return paths."""
+    """Collect every cell's figures and write results.csv/json, the tables (Markdown, LaTeX, one
+    file per table and all together) and the plot; return the paths."""
     rows = collect_results(spec)
     networks = list(spec.networks)
     out = Path(spec.out)
@@ -151,15 +336,22 @@ def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
                 "seed": spec.seed,
                 "networks": [checkpoint_record(n, spec.checkpoints.get(n)) for n in networks],
                 "settings": {"weather_steps": spec.steps, "lp_steps": spec.lp_steps,
-                             "iters": spec.iters, "overrides": dict(spec.overrides)},
+                             "iters": spec.iters, "overrides": dict(spec.overrides),
+                             "compat": spec.compat},
                 "rows": rows}
-    bodies = {name: table_rows(rows, networks, name) for name in TABLES}
-    md = "\n".join(markdown_table(n, b, networks) for n, b in bodies.items())
-    tex = "\n".join(latex_table(n, b, networks) for n, b in bodies.items())
+    tables = build_tables(rows, networks)
+    caption = captions(spec)
+    md = {t.name: markdown_table(t, caption[t.name][0]) for t in tables}
+    tex = {t.name: latex_table(t, caption[t.name][1]) for t in tables}
     paths = {"csv": out / "results.csv", "json": out / "results.json",
-             "markdown": out / "tables.md", "latex": out / "tables.tex"}
+             "markdown": out / "tables.md", "latex": out / "tables.tex", "plot": out / "aee.png"}
     atomic_write_bytes(paths["csv"], buf.getvalue().encode())
     atomic_write_bytes(paths["json"], (json.dumps(document, indent=2, sort_keys=True) + "\n").encode())
-    atomic_write_bytes(paths["markdown"], md.encode())
-    atomic_write_bytes(paths["latex"], tex.encode())
+    for t in tables:
+        atomic_write_bytes(out / "tables" / f"{t.name}.md", md[t.name].encode())
+        atomic_write_bytes(out / "tables" / f"{t.name}.tex", tex[t.name].encode())
+    atomic_write_bytes(paths["markdown"], "\n".join(md.values()).encode())
+    atomic_write_bytes(paths["latex"], (LATEX_PREAMBLE + "\n".join(tex.values())
+                                        + "\n\\end{document}\n").encode())
+    draw_aee(paths["plot"], rows, networks)
     return paths

@@ -10,7 +10,7 @@ from pathlib import Path
 from typing import Optional
 
 from ..errors import ConfigError
-from .base import Dataset, PairRef, Selection
+from .base import Dataset, NativeFlow, PairRef, Selection
 from .custom import CustomDataset
 from .demo import demo_root
 from .kitti import KittiDataset
@@ -36,6 +36,12 @@ DATASETS: dict[str, type[Dataset]] = {
     "sintel": SintelDataset,
     "spring": SpringDataset,
 }
+
+
+def frame_rate_of(name: str) -> float:
+    """The frame rate of the reader registered as ``name`` (a pair's ``id.dataset``); a name not
+    registered gets :attr:`Dataset.frame_rate`'s default."""
+    return DATASETS.get(name, Dataset).frame_rate
 
 
 def default_dataset(root: Optional[str | Path]) -> str:
@@ -96,6 +102,6 @@ def demo_pairs(**selection) -> list:
     return [ds.load(ref) for ref in ds.pairs()]
 
 
-__all__ = ["DATASETS", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset",
+__all__ = ["DATASETS", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset", "NativeFlow",
            "PairRef", "Selection", "SintelDataset", "SpringDataset", "default_dataset", "demo_pairs",
-           "load_scene_scales", "open_dataset", "reopen_dataset"]
+           "frame_rate_of", "load_scene_scales", "open_dataset", "reopen_dataset"]

@@ -14,12 +14,14 @@ function.
 from __future__ import annotations
 
 from .field import (Field, frame_particles, make_field, pair_particles, sample_field_particles,
-                    sample_weather, scene_seed)
+                    sample_layers, sample_weather, scene_seed)
 from .groundtruth import ParticleTruth, particle_truth, seen_flow
+from .layers import LayeredParticles, layer_seed, load_particles
 from .particles import Particles, empty_particles, from_atanh, to_atanh
 from .optics import FieldOptics
-from .presets import (DATASET_FRAME_RATES, FieldPreset, Preset, list_presets, load_preset,
-                      parse_override, parse_set_options, preset_keys)
+from .presets import (EXAMPLE_COMBINATIONS, REFERENCE_FRAME, CombinedPreset, FieldPreset,
+                      FrameScaling, Preset, frame_scaling, list_presets, load_preset, parse_override,
+                      parse_set_options, preset_keys)
 from .renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps, render,
                        render_pair, render_view)
 from .sampling import (reference_transforms, resolve_device, sample_particles, visible_counts,
@@ -29,12 +31,14 @@ from .templates import (TemplateLibrary, generate_templates, load_templates,
                         write_builtin_templates)
 from .tracks import View
 
-__all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "DATASET_FRAME_RATES", "Field",
-           "FieldOptics", "FieldPreset", "ParticleTruth", "Particles", "Preset", "RenderOutput",
+__all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset",
+           "EXAMPLE_COMBINATIONS", "Field", "FieldOptics", "FieldPreset", "FrameScaling",
+           "LayeredParticles", "ParticleTruth", "Particles", "Preset", "REFERENCE_FRAME", "RenderOutput",
            "RenderSettings", "StampSet", "TemplateLibrary", "View", "build_stamps",
-           "empty_particles", "frame_particles", "from_atanh", "generate_templates",
-           "list_presets", "load_preset", "load_templates", "make_field", "pair_particles",
+           "empty_particles", "frame_particles", "frame_scaling", "from_atanh", "generate_templates",
+           "layer_seed", "list_presets", "load_particles", "load_preset", "load_templates", "make_field",
+           "pair_particles",
            "parse_override", "parse_set_options", "particle_truth", "preset_keys",
            "reference_transforms", "render", "render_pair", "render_view", "resolve_device",
-           "sample_field_particles", "sample_particles", "sample_weather", "scene_seed",
+           "sample_field_particles", "sample_layers", "sample_particles", "sample_weather", "scene_seed",
            "seen_flow", "to_atanh", "visible_counts", "world_down", "write_builtin_templates"]

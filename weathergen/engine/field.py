@@ -42,14 +42,15 @@ from __future__ import annotations
 import hashlib
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Union
 
 import torch
 
 from ..errors import ConfigError
 from ..framepair import FramePair
 from ..geometry import invert_rigid, transform_points
-from .presets import FieldPreset
+from .layers import LayeredParticles, layer_seed
+from .presets import CombinedPreset, FieldPreset
 from .particles import Particles, empty_particles
 from .sampling import (check_pair_for_engine, cpu_generator, euler_rotations, hls_to_rgb,
                        reference_transforms, resolve_device, rgb_to_hls, sample_particles,
@@ -340,12 +341,14 @@ def pair_particles(fld: Field, views: Sequence[View], frames: tuple[int, int]) -
 
 
 def field_for_pair(pair: FramePair, preset: FieldPreset, seed, *, world_up: str = "auto",
+                   frame_rate: Optional[float] = None,
                    templates: Optional[TemplateLibrary] = None) -> Field:
     """The field of the pair's scene: reference frame and down axis from the pair's cameras,
-    the frame rate from the preset or the pair's dataset."""
+    the frame rate from the preset or, where it sets none, ``frame_rate`` (the dataset's: its
+    reader's :attr:`~weathergen.datasets.Dataset.frame_rate`)."""
     frame, c1, c2 = reference_transforms(pair)
     down = world_down(c1.cpu(), c2.cpu(), world_up)
-    rate = preset.frame_rate_for(pair.id.dataset)
+    rate = preset.frame_rate_for(frame_rate)
     return make_field(preset, seed, down=down, frame_rate=rate, frame=frame, templates=templates)
 
 
@@ -357,28 +360,67 @@ def pair_views(pair: FramePair) -> tuple[View, View]:
 
 
 def sample_field_particles(pair: FramePair, preset: FieldPreset, seed=0, *,
-                           world_up: str = "auto", templates: Optional[TemplateLibrary] = None,
+                           world_up: str = "auto", frame_rate: Optional[float] = None,
+                           templates: Optional[TemplateLibrary] = None,
                            device=None) -> Particles:
     """The record of one pair sampled from the field of seed ``seed`` (the *scene's* seed: pairs of
     one scene sampled with the same seed share their frames, see :func:`scene_seed`).
 
     Frame numbers are the pair's (``pair.id.frame`` and the next one), so that the field's time
-    is the dataset's. Returns a quantized record on ``device`` (default CPU).
+    is the dataset's; ``frame_rate`` is the dataset's frames per second (see
+    :func:`field_for_pair`). Returns a quantized record on ``device`` (default CPU).
     """
     check_pair_for_engine(pair)
     dev = resolve_device(device)
-    fld = field_for_pair(pair, preset, seed, world_up=world_up, templates=templates)
+    fld = field_for_pair(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
+                         templates=templates)
     n = int(pair.id.frame)
     return pair_particles(fld, pair_views(pair), (n, n + 1)).to(dev)
 
 
 def sample_weather(pair: FramePair, preset, seed=0, *, world_up: str = "auto",
-                   templates: Optional[TemplateLibrary] = None, device=None) -> Particles:
+                   frame_rate: Optional[float] = None,
+                   templates: Optional[TemplateLibrary] = None, device=None
+                   ) -> Union[Particles, LayeredParticles]:
     """Sample a pair's particles with the preset's model: a field preset draws from the field of
-    ``seed`` (:func:`sample_field_particles`), a paper preset samples the pair
-    (:func:`~weathergen.engine.sampling.sample_particles`)."""
+    ``seed`` (:func:`sample_field_particles`; ``frame_rate``: the dataset's, needed unless the
+    preset sets one), a paper preset samples the pair
+    (:func:`~weathergen.engine.sampling.sample_particles`), a combined preset samples each layer
+    (:func:`sample_layers`; ``seed`` may then be one seed per layer, ``templates`` is not taken)."""
+    if isinstance(preset, CombinedPreset):
+        if templates is not None:
+            raise ConfigError("a combined preset's layers each load their own templates")
+        return sample_layers(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
+                             device=device)
     if isinstance(preset, FieldPreset):
-        return sample_field_particles(pair, preset, seed, world_up=world_up, templates=templates,
-                                      device=device)
+        return sample_field_particles(pair, preset, seed, world_up=world_up,
+                                      frame_rate=frame_rate, templates=templates, device=device)
     return sample_particles(pair, preset, seed, world_up=world_up, templates=templates,
                             device=device)
+
+
+def sample_layers(pair: FramePair, preset: CombinedPreset, seed: Union[int, Sequence[int]] = 0, *,
+                  world_up: str = "auto", frame_rate: Optional[float] = None,
+                  device=None) -> LayeredParticles:
+    """The particles of every layer of a combined preset for one pair.
+
+    ``seed`` is one seed per layer, or one seed from which each layer's is derived
+    (:func:`~weathergen.engine.layers.layer_seed`, by the layer's name). Each layer is sampled as
+    :func:`sample_weather` samples its preset alone with that seed, so a layer's particles depend
+    neither on the other layers nor on their order. For a field layer the seed is its field's:
+    pass each field layer a seed derived from its scene's (as ``weathergen render`` will) for the
+    pairs of a scene to share their frames.
+    """
+    if isinstance(seed, torch.Generator):
+        raise ConfigError("a combined preset takes an integer seed (or one per layer)")
+    if isinstance(seed, int):
+        seeds = tuple(layer_seed(seed, name) for name in preset.layer_names)
+    else:
+        seeds = tuple(int(s) for s in seed)
+        if len(seeds) != len(preset.layers):
+            raise ConfigError(f"{len(seeds)} seeds for the {len(preset.layers)} layers of "
+                              f"{preset.name}")
+    records = tuple(sample_weather(pair, layer, s, world_up=world_up, frame_rate=frame_rate,
+                                   device=device)
+                    for layer, s in zip(preset.layers, seeds))
+    return LayeredParticles(records, preset.layer_names)

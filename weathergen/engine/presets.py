@@ -7,10 +7,18 @@ Values are resolved in this order, later ones winning:
 2. the preset file (a bundled one, by name, or a user's ``.toml`` file, by path);
 3. overrides (the parameter ``overrides``), ``{"key": "value"}`` strings as typed on the
    command line (``--set count=500``),
-   parsed as TOML values and then validated like the file.
+   parsed as TOML values and then validated like the file. A paper preset's count is given for
+   Sintel's 1024x436 frames and scaled to each frame's area at sampling (:func:`frame_scaling`);
+   an override of ``count`` (or ``size``) means exactly that value on every frame size (it turns
+   ``scale_count``, or ``scale_size``, off unless the overrides set those too).
 
 Every problem (unknown key, wrong type, out-of-range value, unknown preset name) raises
 :class:`~weathergen.errors.ConfigError` naming the file, the key and the offending value.
+
+Presets of either model joined by ``+`` (``rain-heavy+fog-light``) form a
+:class:`CombinedPreset`: one layer per preset, each resolved as above, overrides addressed to a
+layer by its name or position (``fog-light.density=0.05``, ``2.density=0.05``; see
+:func:`load_combined`).
 """
 
 from __future__ import annotations
@@ -88,6 +96,30 @@ def _key(default, check=None, doc: str = "", main: bool = False):
     return field(default=default, metadata={"check": check, "doc": doc, "main": main})
 
 
+#: The keys of both weather models (the paper's :class:`Preset` and :class:`FieldPreset`), declared
+#: here once: name -> (default, check, description, main). ``transparency`` and ``blur_samples``
+#: mean something model-specific, which each model's description says.
+SHARED_KEYS = {
+    "description": ("", None, "free text shown by `weathergen presets`", False),
+    "templates": ("flakes", _templates,
+                  "template library: flakes, dust, or a folder of grey-scale PNGs", True),
+    "color": ((255, 255, 255), _rgb, "base colour, 8-bit RGB", True),
+    "hue_jitter": (0.0, _number(0, 180), "random hue change, +- degrees", False),
+    "lightness_jitter": (0.0, _number(0, 1), "random HLS lightness change, +-", False),
+    "saturation_jitter": (0.0, _number(0, 1), "random HLS saturation change, +-", False),
+    "blend": ("additive", _choice(BLEND_MODES),
+              "additive (glow) or alpha (order-independent alpha blending)", True),
+    "transparency": (0.75, _number(0, 2), "", True),
+    "blur_samples": (1, _number(1, 1000), "", True),
+}
+
+
+def _shared(name: str, doc: str = ""):
+    """A key of :data:`SHARED_KEYS` (``doc``: the model's own description, where it has one)."""
+    default, check, text, main = SHARED_KEYS[name]
+    return _key(default, check, doc or text, main)
+
+
 @dataclass(frozen=True)
 class Preset:
     """One weather configuration, fully resolved and validated. Every field is a preset key.
@@ -96,26 +128,31 @@ class Preset:
     angles in degrees, colours as 8-bit RGB.
     """
 
-    description: str = _key("", doc="free text shown by `weathergen presets`")
+    description: str = _shared("description")
     # -- particle base properties
-    count: int = _key(3000, _count, "number of particles per frame pair", main=True)
+    count: int = _key(3000, _count, "particles per frame pair of 1024x436 pixels; other frame "
+                                    "sizes scale it by their area (see scale_count)", main=True)
     size: int = _key(71, _odd_size, "template side in pixels at depth <= 1/depth_decay (odd)",
                      main=True)
+    scale_count: bool = _key(True, None, "scale count with the frame's area relative to 1024x436, "
+                                         "keeping particles per pixel area (false: count on every "
+                                         "frame; --set count=N sets it false)")
+    scale_size: bool = _key(False, None, "scale size and the defocus radius with the frame's "
+                                         "diagonal relative to 1024x436 (with scale_count false: "
+                                         "the frame as a resized 1024x436 one; --set size=N sets "
+                                         "it false)")
     depth_decay: float = _key(9.0, _number(0, 1e6, lo_open=True),
                               "size scales by min(1, 1/(depth * depth_decay))", main=True)
-    templates: str = _key("flakes", _templates,
-                          "template library: flakes, dust, or a folder of grey-scale PNGs",
-                          main=True)
+    templates: str = _shared("templates")
     # -- colour
-    color: tuple = _key((255, 255, 255), _rgb, "base colour, 8-bit RGB", main=True)
-    hue_jitter: float = _key(0.0, _number(0, 180), "random hue change, +- degrees")
-    lightness_jitter: float = _key(0.0, _number(0, 1), "random HLS lightness change, +-")
-    saturation_jitter: float = _key(0.0, _number(0, 1), "random HLS saturation change, +-")
-    blend: str = _key("additive", _choice(BLEND_MODES),
-                      "additive (glow) or alpha (order-independent alpha blending)", main=True)
-    transparency: float = _key(0.75, _number(0, 2),
-                               "theta = this x depth hat (the hat peaks at 0.73), or this value "
-                               "itself when transparency_mode is constant", main=True)
+    color: tuple = _shared("color")
+    hue_jitter: float = _shared("hue_jitter")
+    lightness_jitter: float = _shared("lightness_jitter")
+    saturation_jitter: float = _shared("saturation_jitter")
+    blend: str = _shared("blend")
+    transparency: float = _shared("transparency",
+                                  "theta = this x depth hat (the hat peaks at 0.73), or this value "
+                                  "itself when transparency_mode is constant")
     transparency_mode: str = _key("depth", _choice(TRANSPARENCY_MODES),
                                   "depth: hat over depth; constant: theta for every particle")
     # -- motion
@@ -129,7 +166,7 @@ class Preset:
     motion_blur: bool = _key(False, None, "render K samples along the 3D motion", main=True)
     blur_length: float = _key(0.0, _number(0, 10),
                               "blur streak as a fraction of the frame-to-frame motion", main=True)
-    blur_samples: int = _key(1, _number(1, 1000), "samples K per blurred particle", main=True)
+    blur_samples: int = _shared("blur_samples", "samples K per blurred particle")
     # -- out-of-focus blur
     defocus: bool = _key(True, None, "disc blur for particles near the focal distance")
     defocus_brighten: bool = _key(True, None,
@@ -282,11 +319,14 @@ def load_preset(name_or_path: str | Path = "snow",
     ``overrides`` maps keys to values; strings are parsed per the key's type (as for ``--set``),
     other values are type-checked as given. A relative ``templates`` folder in a user file is
     resolved against the file's folder. A file with ``model = "field"`` is a weather-field preset
-    and loads as :class:`FieldPreset`; others are the paper's
-    model, :class:`Preset`.
+    and loads as :class:`FieldPreset`; others are the paper's model, :class:`Preset`. Presets
+    joined by ``+`` (``"rain-heavy+fog-light"``) load as a :class:`CombinedPreset`, one layer
+    each (see :func:`load_combined` for its overrides).
     """
     text_name = str(name_or_path)
     path = Path(text_name)
+    if not isinstance(name_or_path, Path) and LAYER_JOIN in text_name and not path.is_file():
+        return load_combined(text_name, overrides)
     if isinstance(name_or_path, Path) or text_name.endswith(".toml") or path.is_file():
         if not path.is_file():
             raise ConfigError(f"{path}: preset file does not exist")
@@ -313,6 +353,9 @@ def load_preset(name_or_path: str | Path = "snow",
     if model != "paper":
         raise ConfigError(f"{where}: key 'model' = {model!r}: must be paper or field")
     values, templates_from = _preset_values(where, data, overrides, base_dir, _KEYS)
+    for key, switch in EXACT_WHEN_GIVEN.items():   # --set count=N: exactly N on every frame
+        if key in overrides and switch not in overrides:
+            values[switch] = False
     preset = Preset(name=name, source=where, **values)
     _check_consistency(preset, where)
     _check_template_folder(preset.templates, templates_from)
@@ -371,6 +414,111 @@ def _check_consistency(p: Preset, where: str) -> None:
                           "when motion_blur is true")
 
 
+# ---------------------------------------------------------------------------------------------
+# Frame sizes
+# The paper's table gives a number of particles per pair and sizes in pixels, made for Sintel's
+# 1024x436 frames. On another frame size a preset keeps the paper's density per pixel area: the
+# count scales with the frame's area, sizes stay in pixels, so that the fraction of the frame the
+# particles cover stays the paper's too. Scaling the sizes with the frame's diagonal as well would
+# change that fraction by the square of the diagonal ratio (1/7 on the 384x176 demo, 4 times on a
+# 1920x1080 frame); ``scale_size`` does it for frames that are a resized 1024x436 view (with
+# ``scale_count`` off). docs/engine.md, "Frame sizes", says which keys scale and why.
+
+#: The frame size the paper's presets were made for, (height, width): Sintel's.
+REFERENCE_FRAME = (436, 1024)
+#: The keys given for a :data:`REFERENCE_FRAME` frame, and the switch that scales each of them. An
+#: override of the key (``--set count=500``) turns its switch off unless the switch is set too.
+EXACT_WHEN_GIVEN = {"count": "scale_count", "size": "scale_size"}
+#: What a recorded paper preset without these switches (an output written before they existed)
+#: meant: its count and size were used as given on every frame.
+UNSCALED = {"scale_count": False, "scale_size": False}
+
+
+@dataclass(frozen=True)
+class FrameScaling:
+    """A paper preset's count and pixel sizes on one frame size (see :func:`frame_scaling`).
+
+    ``count`` and ``size`` are the values sampling uses; ``pixel_scale`` multiplies the other
+    lengths in pixels fixed at sampling (the defocus radius); ``count_rule`` is ``"area"`` (scaled
+    with the frame's area) or ``"fixed"`` (the preset's count on every frame), ``size_rule``
+    ``"diagonal"`` or ``"fixed"``; ``preset_count`` and ``preset_size`` are the preset's values.
+    """
+
+    height: int
+    width: int
+    count: int
+    size: int
+    pixel_scale: float
+    count_rule: str
+    size_rule: str
+    preset_count: int
+    preset_size: int
+
+    def to_dict(self) -> dict:
+        """Every field, plus the reference frame (as the particle metadata stores it)."""
+        return {**dataclasses.asdict(self), "reference": list(REFERENCE_FRAME)}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "FrameScaling":
+        """The record :meth:`to_dict` wrote (its ``reference`` entry is the constant)."""
+        return cls(**{f.name: data[f.name] for f in dataclasses.fields(cls)})
+
+    def describe(self) -> str:
+        """One line: the count and size used and where they come from."""
+        ref_h, ref_w = REFERENCE_FRAME
+        frame = f"{self.width}x{self.height}"
+        count = (f"{self.count} particles = {self.preset_count} x area {frame} / {ref_w}x{ref_h}"
+                 if self.count_rule == "area" else f"{self.count} particles (fixed)")
+        size = (f"size {self.size} px = {self.preset_size} x diagonal ratio {self.pixel_scale:.4g}"
+                if self.size_rule == "diagonal" else f"size {self.size} px (fixed)")
+        return f"{count}; {size}"
+
+
+def scaled_count(count: int, height: int, width: int) -> int:
+    """``count`` scaled by the frame's area relative to :data:`REFERENCE_FRAME`, rounded to the
+    nearest integer (halves up) in integer arithmetic, and at least one particle when ``count`` is
+    not zero: ``count`` itself on a 1024x436 frame (and on a 436x1024 one)."""
+    ref = REFERENCE_FRAME[0] * REFERENCE_FRAME[1]
+    n = (2 * count * height * width + ref) // (2 * ref)
+    return max(n, 1) if count > 0 else 0
+
+
+def scaled_size(size: int, height: int, width: int) -> int:
+    """The odd size nearest to ``size`` times the ratio of the frame's diagonal to that of
+    :data:`REFERENCE_FRAME` (at an even number, the odd one above), at most 2047, in integer
+    arithmetic: ``size`` itself on a 1024x436 frame (and on a 436x1024 one)."""
+    ref = REFERENCE_FRAME[0] ** 2 + REFERENCE_FRAME[1] ** 2
+    # the nearest odd integer to x is 2 floor(x / 2) + 1; floor(x / 2) = isqrt(size^2 N // (4 ref))
+    half = math.isqrt(size * size * (height * height + width * width) // (4 * ref))
+    return min(2 * half + 1, 2047)
+
+
+def pixel_scale(height: int, width: int) -> float:
+    """The ratio of the frame's diagonal to that of :data:`REFERENCE_FRAME` (1.0 there)."""
+    ref = REFERENCE_FRAME[0] ** 2 + REFERENCE_FRAME[1] ** 2
+    return math.sqrt((height * height + width * width) / ref)
+
+
+def frame_scaling(preset: Preset, height: int, width: int) -> FrameScaling:
+    """The count and pixel sizes ``preset`` gives a frame of ``height`` x ``width`` pixels.
+
+    With ``scale_count`` (the default) the count scales with the frame's area relative to
+    1024x436 (:func:`scaled_count`), else it is ``count``; with ``scale_size`` (off by default) the
+    template size scales with the frame's diagonal (:func:`scaled_size`) and so does the defocus
+    radius (``pixel_scale``), else both are the paper's pixels. On a 1024x436 frame nothing
+    changes.
+    """
+    if height < 1 or width < 1:
+        raise ConfigError(f"frame of {width}x{height} pixels: needs at least one pixel")
+    count = scaled_count(preset.count, height, width) if preset.scale_count else preset.count
+    size = scaled_size(preset.size, height, width) if preset.scale_size else preset.size
+    return FrameScaling(height=int(height), width=int(width), count=count, size=size,
+                        pixel_scale=pixel_scale(height, width) if preset.scale_size else 1.0,
+                        count_rule="area" if preset.scale_count else "fixed",
+                        size_rule="diagonal" if preset.scale_size else "fixed",
+                        preset_count=preset.count, preset_size=preset.size)
+
+
 def parse_set_options(items: list[str] | tuple[str, ...]) -> dict[str, str]:
     """Turn ``["count=500", "blend=alpha"]`` into ``{"count": "500", "blend": "alpha"}``."""
     out = {}
@@ -394,14 +542,10 @@ def parse_set_options(items: list[str] | tuple[str, ...]) -> dict[str, str]:
 # key and the value.
 #
 # Frame rates: particles move ``velocity / frame_rate`` scene units per frame. ``frame_rate = 0``
-# (the default) takes the dataset's rate from :data:`DATASET_FRAME_RATES`; any other value overrides
-# it (``--set frame_rate=30``).
+# (the default) takes the dataset's rate, which its reader declares
+# (:attr:`weathergen.datasets.Dataset.frame_rate`) and the caller passes in; any other value
+# overrides it (``--set frame_rate=30``).
 
-#: Frames per second of each dataset's sequences. Sintel and Spring come from Blender open movies
-#: made at 24 fps; KITTI's cameras record at 10 Hz; the bundled demo scene is defined at 24 fps.
-#: Custom data has no recorded rate: 30 fps is assumed unless the preset's frame_rate says otherwise.
-DATASET_FRAME_RATES = {"sintel": 24.0, "spring": 24.0, "kitti": 10.0, "demo": 24.0, "custom": 30.0}
-DEFAULT_FRAME_RATE = 30.0
 #: At most this many particles in one tile of the field (memory of the tile and of a frame's cull).
 MAX_TILE_PARTICLES = 2_000_000
 
@@ -420,23 +564,21 @@ class FieldPreset:
     times in seconds, angles in degrees, colours 8-bit RGB.
     """
 
-    description: str = _key("", doc="free text shown by `weathergen presets`")
+    description: str = _shared("description")
     # -- how many and how large
     density: float = _key(100.0, _number(0, 1e7, lo_open=True),
                           "particles per cubic scene unit", main=True)
     diameter: float = _key(0.005, _number(0, 1e3, lo_open=True),
                            "particle diameter, scene units", main=True)
     diameter_jitter: float = _key(0.3, _number(0, 0.9), "diameter x (1 + U[-f, f])")
-    templates: str = _key("flakes", _templates,
-                          "template library: flakes, dust, or a folder of grey-scale PNGs", main=True)
+    templates: str = _shared("templates")
     # -- colour and opacity
-    color: tuple = _key((255, 255, 255), _rgb, "base colour, 8-bit RGB", main=True)
-    hue_jitter: float = _key(0.0, _number(0, 180), "random hue change, +- degrees")
-    lightness_jitter: float = _key(0.0, _number(0, 1), "random HLS lightness change, +-")
-    saturation_jitter: float = _key(0.0, _number(0, 1), "random HLS saturation change, +-")
-    blend: str = _key("additive", _choice(BLEND_MODES),
-                      "additive (glow) or alpha (order-independent alpha blending)", main=True)
-    transparency: float = _key(0.75, _number(0, 2), "base theta before the depth fade", main=True)
+    color: tuple = _shared("color")
+    hue_jitter: float = _shared("hue_jitter")
+    lightness_jitter: float = _shared("lightness_jitter")
+    saturation_jitter: float = _shared("saturation_jitter")
+    blend: str = _shared("blend")
+    transparency: float = _shared("transparency", "base theta before the depth fade")
     # -- motion, per second
     fall_speed: float = _key(1.0, _number(-1e3, 1e3),
                              "speed along the world's down axis, scene units/s (< 0 rises)",
@@ -452,7 +594,7 @@ class FieldPreset:
     exposure: float = _key(0.0, _number(0, 10),
                            "exposure time, s: streak length = velocity x exposure "
                            "(at most one frame interval); 0: no streak", main=True)
-    blur_samples: int = _key(1, _number(1, 1000), "samples along a streak", main=True)
+    blur_samples: int = _shared("blur_samples", "samples along a streak")
     # -- where particles are drawn and how the lens sees them
     near: float = _key(0.1, _number(0, 1e6, lo_open=True),
                        "nearest camera depth drawn, scene units (fade-in up to 2 x near)")
@@ -482,11 +624,16 @@ class FieldPreset:
         """Particles per tile: ``round(density x tile^3)``."""
         return int(round(self.density * self.tile ** 3))
 
-    def frame_rate_for(self, dataset: str) -> float:
-        """The frame rate used for ``dataset``: the preset's when set, else the dataset's."""
+    def frame_rate_for(self, dataset_rate: Optional[float]) -> float:
+        """The frame rate used on a dataset recorded at ``dataset_rate`` frames per second: the
+        preset's when set, else the dataset's (ConfigError when neither is known)."""
         if self.frame_rate > 0:
             return self.frame_rate
-        return DATASET_FRAME_RATES.get(dataset, DEFAULT_FRAME_RATE)
+        if dataset_rate is None:
+            raise ConfigError(f"{self.source}: a weather field needs a frame rate: pass the "
+                              "dataset's ${frame_rate} (its reader's frame_rate), or set the "
+                              "preset's frame_rate")
+        return float(dataset_rate)
 
     def streak_fraction(self, frame_rate: float) -> float:
         """The streak as a fraction of one frame's displacement: ``exposure x frame_rate``, at
@@ -524,3 +671,186 @@ def build_field_preset(name: str, where: str, data: Mapping[str, Any],
                           "particle; use a larger tile")
     _check_template_folder(preset.templates, templates_from)
     return preset
+
+
+# ---------------------------------------------------------------------------------------------
+# Combined presets: several presets in one scene, one layer each.
+
+#: The character that joins presets into a combined preset: ``rain-heavy+fog-light``.
+LAYER_JOIN = "+"
+#: Combinations ``weathergen presets`` lists as examples (any presets of either model combine).
+EXAMPLE_COMBINATIONS = {
+    "rain-heavy+fog-light": "a downpour in light fog",
+    "snow-moderate+fog-light": "snowfall in light fog",
+    "snow-light+fog-moderate": "light snow in moderate fog",
+    "rain-moderate+snow-light": "sleet: rain and a little snow",
+    "sparks-moderate+fog-moderate": "sparks in smoke",
+    "snow+fog": "the paper's snow and fog presets in one pair",
+}
+
+
+@dataclass(frozen=True)
+class CombinedPreset:
+    """Several presets of either model rendered into one scene, one *layer* each.
+
+    ``layers`` holds each layer's preset (:class:`Preset` or :class:`FieldPreset`), fully resolved
+    with its own overrides, in the order written; a layer is named by its preset's ``name`` (a
+    bundled preset's name or a preset file's stem), unique within the combination. Every layer
+    keeps its own values: a combination never rescales a layer, so ``snow-light+fog-moderate``
+    has the density of ``snow-light`` and of ``fog-moderate``, and a severity ladder keeps its
+    ratios in combination.
+    """
+
+    layers: tuple
+    name: str = field(default="", compare=False)
+    source: str = field(default="", compare=False)
+
+    model = "combined"
+
+    def __post_init__(self):
+        if len(self.layers) < 2:
+            raise ConfigError(f"a combined preset needs two layers or more, got {len(self.layers)}")
+        names = self.layer_names
+        if len(set(names)) != len(names):
+            raise ConfigError(f"combined preset {self.name or LAYER_JOIN.join(names)}: layer names "
+                              f"must differ, got {', '.join(names)}")
+
+    @property
+    def layer_names(self) -> tuple[str, ...]:
+        return tuple(p.name for p in self.layers)
+
+    @property
+    def layer_models(self) -> tuple[str, ...]:
+        """``"paper"`` or ``"field"`` per layer."""
+        return tuple(preset_model(p) for p in self.layers)
+
+    def layer(self, which: int | str):
+        """A layer's preset, by position (0-based) or name."""
+        if isinstance(which, str):
+            if which not in self.layer_names:
+                raise ConfigError(f"combined preset {self.name}: no layer {which!r} "
+                                  f"(layers: {', '.join(self.layer_names)})")
+            return self.layers[self.layer_names.index(which)]
+        return self.layers[which]
+
+    def to_dict(self) -> dict:
+        """``name``, ``source``, ``model`` (``"combined"``) and ``layers``: every layer's
+        ``to_dict()`` (for manifests and metadata; :meth:`from_dict` reads it back)."""
+        return {"name": self.name, "source": self.source, "model": self.model,
+                "layers": [p.to_dict() for p in self.layers]}
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> "CombinedPreset":
+        """The combined preset a :meth:`to_dict` dictionary records, every value validated again.
+        Raises ConfigError naming the layer on a missing or invalid entry."""
+        layers = data.get("layers")
+        if not isinstance(layers, list) or not all(isinstance(d, Mapping) for d in layers):
+            raise ConfigError(f"stored combined preset {data.get('name', '?')!r}: no list of layers")
+        out = []
+        for i, layer in enumerate(layers, 1):
+            values = {k: v for k, v in layer.items() if k not in ("name", "source")}
+            name = str(layer.get("name", f"layer{i}"))
+            out.append(preset_from_values(name, str(layer.get("source", f"stored layer {i}")),
+                                          values))
+        return cls(tuple(out), str(data.get("name", LAYER_JOIN.join(p.name for p in out))),
+                   str(data.get("source", "")))
+
+
+def preset_model(preset) -> str:
+    """``"paper"``, ``"field"`` or ``"combined"``: the model a loaded preset belongs to."""
+    return getattr(preset, "model", "paper")
+
+
+def preset_from_values(name: str, where: str, values: Mapping[str, Any]):
+    """A preset of either model from every key's value (a ``to_dict()`` without ``name`` and
+    ``source``; ``model`` picks the schema, default paper), validated as a preset file is."""
+    values = dict(values)
+    model = values.pop("model", "paper")
+    if model == "field":
+        return build_field_preset(name, where, values, {}, None)
+    if model != "paper":
+        raise ConfigError(f"{where}: key 'model' = {model!r}: must be paper or field")
+    checked, templates_from = _preset_values(where, values, {}, None, _KEYS)
+    preset = Preset(name=name, source=where, **checked)
+    _check_consistency(preset, where)
+    _check_template_folder(preset.templates, templates_from)
+    return preset
+
+
+def _layer_label(part: str) -> str:
+    """The name a layer written as ``part`` will have: a bundled name, or a file's stem."""
+    path = Path(part)
+    return path.stem if part.endswith(".toml") or path.is_file() else part
+
+
+def _keys_of(preset) -> Mapping[str, dataclasses.Field]:
+    return _FIELD_KEYS if isinstance(preset, FieldPreset) else _KEYS
+
+
+def load_combined(text: str, overrides: Optional[Mapping[str, Any]] = None) -> CombinedPreset:
+    """Load presets joined by ``+`` (``"rain-heavy+fog-light"``) as a :class:`CombinedPreset`.
+
+    Each part is a bundled preset's name or a preset file's path, of either model. An override
+    key names the layer it is for by name or by 1-based position (``"fog-light.density"``,
+    ``"2.density"``); a key without a layer applies to every layer and must be a key of each
+    (``"color"``, or ``"frame_rate"`` when every layer is a field preset).
+
+    Raises ConfigError naming ``${preset}`` for an empty layer (``"snow+"``), an unknown preset, a
+    layer given twice (its overrides and its particles would be ambiguous: raise its count or
+    density instead), and field layers of different frame rates (their motions would not share
+    one clock); naming ``${overrides}`` for an override of no layer.
+    """
+    parts = [p.strip() for p in text.split(LAYER_JOIN)]
+    for i, part in enumerate(parts, 1):
+        if not part:
+            raise ConfigError(f"${{preset}} {text}: layer {i} of {len(parts)} is empty; join "
+                              f"preset names with {LAYER_JOIN}, e.g. rain-heavy+fog-light")
+    labels = [_layer_label(p) for p in parts]
+    for label in labels:
+        if labels.count(label) > 1:
+            raise ConfigError(f"${{preset}} {text}: layer {label!r} is given twice; a preset is one "
+                              "layer (raise its count or density instead)")
+    name = LAYER_JOIN.join(labels)
+
+    def load(i: int, sets: Mapping[str, Any]):
+        try:
+            return load_preset(parts[i], sets)
+        except ConfigError as exc:
+            # args[0] keeps the ${parameter} marks for the command line to spell
+            raise ConfigError(f"${{preset}} {name}: layer {i + 1} ({labels[i]}): {exc.args[0]}"
+                              ) from None
+
+    plain = [load(i, {}) for i in range(len(parts))]      # each layer's model and schema
+    per_layer: list[dict] = [{} for _ in parts]
+    for key, value in (overrides or {}).items():
+        prefix, dot, bare = str(key).rpartition(".")
+        if dot:
+            if prefix.isdigit() and 1 <= int(prefix) <= len(parts):
+                per_layer[int(prefix) - 1][bare] = value
+            elif prefix in labels:
+                per_layer[labels.index(prefix)][bare] = value
+            else:
+                listed = ", ".join(f"{i} {label}" for i, label in enumerate(labels, 1))
+                raise ConfigError(f"${{overrides}} {key}: {name} has no layer {prefix!r} "
+                                  f"(layers: {listed}; name one or give its position)")
+            continue
+        lacking = [i for i, p in enumerate(plain) if key not in _keys_of(p)]
+        if len(lacking) == len(parts):
+            raise ConfigError(f"${{overrides}} {key}: no layer of {name} has this key "
+                              f"(`weathergen presets {name}` lists their keys)")
+        if lacking:
+            i = lacking[0]
+            having = next(label for j, label in enumerate(labels) if j not in lacking)
+            raise ConfigError(f"${{overrides}} {key}: not a key of layer {i + 1} ({labels[i]}, a "
+                              f"{preset_model(plain[i])} preset); name the layer it is for, e.g. "
+                              f"{having}.{key}=...")
+        for sets in per_layer:
+            sets[key] = value
+    layers = tuple(load(i, sets) if sets else plain[i] for i, sets in enumerate(per_layer))
+    rates = {p.name: p.frame_rate for p in layers if isinstance(p, FieldPreset)}
+    if len(set(rates.values())) > 1:
+        listed = ", ".join(f"{n} {r:g}" for n, r in rates.items())
+        raise ConfigError(f"${{preset}} {name}: its field layers have different frame rates "
+                          f"(frame_rate: {listed}; 0 is the dataset's), so their motions would "
+                          "not share one clock; give them one (${overrides} LAYER.frame_rate=...)")
+    return CombinedPreset(layers, name, "; ".join(p.source for p in layers))

@@ -215,7 +215,8 @@ def pair_starts(record: Particles, dtype, device) -> tuple[torch.Tensor, torch.T
 
 def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement: torch.Tensor,
                templates: TemplateLibrary, *, beta: float, dtype, device,
-               chunk_elements: Optional[int], values: Optional[torch.Tensor] = None):
+               chunk_elements: Optional[int], values: Optional[torch.Tensor] = None,
+               detach_occlusion: bool = False):
     views = Views.of(view.intrinsics[None], view.cam_from_ref[None],
                      view.depth[None].to(device), device=device)
     looks, tracks = view_tracks(record.to(device), views, start, displacement,
@@ -223,21 +224,24 @@ def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement:
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(torch.device(device))
     stamps = build(looks, templates, dtype=dtype, chunk_elements=chunk_elements)
-    return splat(blur_samples(tracks, dtype), stamps, views.depth, chunk_elements=chunk_elements)
+    return splat(blur_samples(tracks, dtype), stamps, views.depth, chunk_elements=chunk_elements,
+                 detach_occlusion=detach_occlusion)
 
 
 def render_view(image: torch.Tensor, view: View, record: Particles, start: torch.Tensor,
                 displacement: torch.Tensor, templates: TemplateLibrary, *,
-                beta: float = BETA_RENDER, chunk_elements: Optional[int] = None
-                ) -> tuple[torch.Tensor, torch.Tensor]:
+                beta: float = BETA_RENDER, chunk_elements: Optional[int] = None,
+                detach_occlusion: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """One weather frame seen by ``view``: every particle from ``start`` (N, 3) along
     ``displacement`` (N, 3), reference frame (a field record with the view's looks). The same
-    bytes as the frame of a pair that holds this view.
+    bytes as the frame of a pair that holds this view. ``detach_occlusion`` as for
+    :func:`render`.
 
     Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W)).
     """
     sums = _view_sums(view, record, start, displacement, templates, beta=beta,
-                      dtype=image.dtype, device=image.device, chunk_elements=chunk_elements)
+                      dtype=image.dtype, device=image.device, chunk_elements=chunk_elements,
+                      detach_occlusion=detach_occlusion)
     alpha_mode = torch.tensor([record.settings.blend == "alpha"], device=image.device)
     (out,), (opacity,) = composite(sums, [image[None]], alpha_mode)
     return out[0], opacity[0]

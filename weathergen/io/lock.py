@@ -6,8 +6,10 @@ The file also records who holds it (process id, host, start time), for two messa
 writer is told which process holds the folder, and a run that finds the record of a holder that
 did not release it (a killed run) reports that stale lock as it takes it over.
 
-The file is never deleted (deleting a lock file that another process has just opened would let two
-processes hold "the" lock); releasing empties it.
+Releasing removes the file, while still holding it, so that a finished run leaves no lock file
+behind. Deleting a lock file that another process has just opened could let two processes hold
+"the" lock (one on the deleted file, one on a new one), so taking the lock checks, once held, that
+the file it holds is still the one at the path, and starts again otherwise.
 """
 
 from __future__ import annotations
@@ -54,17 +56,25 @@ class FolderLock:
         self._fd: Optional[int] = None
 
     def acquire(self) -> "FolderLock":
-        fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o666)
+            try:
+                if fcntl is not None:
+                    try:
+                        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    except BlockingIOError:
+                        holder = _parse(_read(fd))
+                        who = str(holder) if holder else "a process that has not recorded itself yet"
+                        raise FolderBusy(f"{self.what} is being written by another weathergen run "
+                                         f"({who}); wait for it to finish, or choose another "
+                                         f"${{out}}") from None
+            except BaseException:
+                os.close(fd)
+                raise
+            if _is_at(fd, self.path):
+                break
+            os.close(fd)            # its holder removed it as we opened it: take the one there now
         try:
-            if fcntl is not None:
-                try:
-                    fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-                except BlockingIOError:
-                    holder = _parse(_read(fd))
-                    who = str(holder) if holder else "a process that has not recorded itself yet"
-                    raise FolderBusy(f"{self.what} is being written by another weathergen run "
-                                     f"({who}); wait for it to finish, or choose another "
-                                     f"${{out}}") from None
             self.stale = _parse(_read(fd))
             record = json.dumps({"pid": os.getpid(), "host": socket.gethostname(),
                                  "since": time.strftime("%Y-%m-%dT%H:%M:%S%z")})
@@ -77,12 +87,18 @@ class FolderLock:
         return self
 
     def release(self) -> None:
+        """Remove the lock file (still held, so that no one else holds it) and let go of it. Where
+        it cannot be removed, it is emptied: the next run then finds no holder's record in it."""
         if self._fd is None:
             return
         try:
-            os.ftruncate(self._fd, 0)        # no record left: the next run sees a clean release
+            if _is_at(self._fd, self.path):
+                self.path.unlink()
         except OSError:
-            pass                              # a full disk cannot stop the release
+            try:
+                os.ftruncate(self._fd, 0)
+            except OSError:
+                pass                          # a full disk cannot stop the release
         finally:
             os.close(self._fd)                # closing drops the flock
             self._fd = None
@@ -92,6 +108,16 @@ class FolderLock:
 
     def __exit__(self, *exc) -> None:
         self.release()
+
+
+def _is_at(fd: int, path: Path) -> bool:
+    """True when the open file ``fd`` is the file at ``path`` (not one removed from there)."""
+    try:
+        here = os.stat(path)
+    except OSError:
+        return False
+    held = os.fstat(fd)
+    return (held.st_dev, held.st_ino) == (here.st_dev, here.st_ino)
 
 
 def _read(fd: int) -> str:

@@ -14,7 +14,7 @@ from .checkpoints import CheckpointSpec, cache_dir, download_checkpoint, read_st
 from .padding import InputPadder
 from .registry import (ModelSpec, available_checkpoints, available_models, build_model,
                        checkpoint_spec, get_model, model_spec, register_checkpoint,
-                       register_model)
+                       register_model, resolve_amp)
 
 # Network modules register themselves; import each one here.
 from . import raft  # noqa: E402,F401  (registration side effect)
@@ -22,7 +22,7 @@ from . import gma  # noqa: E402,F401
 from . import flowformer  # noqa: E402,F401
 from .raft import RAFT, RAFTModel  # noqa: E402
 from . import spynet, flownetc, flownetcrobust, flownet2  # noqa: E402,F401
-from .spynet import SpyNet, SpyNetModel  # noqa: E402
+from .spynet import SpyNet, SpyNetModel, SpyNetSniklaus, SpyNetSniklausModel  # noqa: E402
 from .flownetc import FlowNetC, FlowNetCModel  # noqa: E402
 from .flownetcrobust import FlowNetCRobust, FlowNetCRobustModel  # noqa: E402
 from .flownet2 import FlowNet2, FlowNet2Model  # noqa: E402
@@ -33,8 +33,8 @@ __all__ = [
     "FlowModel", "InputPadder", "ModelSpec", "CheckpointSpec", "RAFT", "RAFTModel", "GMA",
     "GMAModel", "FlowFormer", "FlowFormerModel",
     "get_model", "build_model", "available_models", "available_checkpoints", "model_spec",
-    "checkpoint_spec", "register_model", "register_checkpoint", "cache_dir",
+    "checkpoint_spec", "register_model", "register_checkpoint", "resolve_amp", "cache_dir",
     "download_checkpoint", "read_state_dict",
-    "SpyNet", "SpyNetModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
+    "SpyNet", "SpyNetModel", "SpyNetSniklaus", "SpyNetSniklausModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
     "FlowNetCRobustModel", "FlowNet2", "FlowNet2Model",
 ]

@@ -13,11 +13,13 @@ backpropagates a loss on the flow into the weather particles that were rendered 
 
 from __future__ import annotations
 
+import contextlib
+
 import torch
 from torch import nn
 
 from ..errors import ShapeError
-from .checkpoints import load_strict
+from .checkpoints import load_strict, read_state_dict
 from .padding import InputPadder
 
 
@@ -41,6 +43,11 @@ class FlowModel(nn.Module):
     min_size: int = 0
     #: Where padding rows go: "even" or "bottom" (KITTI's protocol); set from ``Dataset.padding``.
     padding: str = "even"
+    #: Whether the network has its authors' mixed-precision mode (see :attr:`amp`).
+    supports_amp: bool = False
+    #: Run the parts its authors' code runs under CUDA autocast in float16 (``mixed_precision``
+    #: of RAFT's and GMA's code). Only CUDA tensors are affected; elsewhere it changes nothing.
+    amp: bool = False
 
     def normalize(self, image: torch.Tensor) -> torch.Tensor:
         """Turn ``(B, 3, H, W)`` RGB in ``[0, 1]`` into what the network was trained on."""
@@ -49,6 +56,17 @@ class FlowModel(nn.Module):
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
         """Flow ``(B, 2, H, W)`` in pixels for normalised, padded frames ``(B, 3, H, W)``."""
         raise NotImplementedError
+
+    def read_checkpoint(self, path) -> dict:
+        """The state dict a checkpoint path holds (a file saved with ``torch.save``).
+
+        Adapters whose authors published weights in other forms (several files, another
+        framework's format) override this.
+
+        Raises:
+            FormatError: naming the file that cannot be read.
+        """
+        return read_state_dict(path)
 
     def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
         """Load a published ``state_dict`` strictly (names and shapes must match).
@@ -75,6 +93,13 @@ class FlowModel(nn.Module):
         x1 = self.normalize(padder.pad(image1.to(dtype)))
         x2 = self.normalize(padder.pad(image2.to(dtype)))
         return padder.unpad(self.predict(x1, x2)).to(image1.dtype)
+
+
+def mixed_precision(enabled: bool):
+    """CUDA autocast (float16) where ``enabled``, else nothing: the regions of the networks that
+    their authors' code runs under ``torch.cuda.amp.autocast(enabled=mixed_precision)``. As
+    there, tensors on other devices are not affected."""
+    return torch.autocast("cuda", dtype=torch.float16) if enabled else contextlib.nullcontext()
 
 
 def _check_images(image1: torch.Tensor, image2: torch.Tensor) -> None:

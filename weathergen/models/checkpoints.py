@@ -20,7 +20,7 @@ import urllib.request
 import zipfile
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Optional
+from typing import Callable, Mapping, Optional, Sequence
 
 import torch
 from torch import nn
@@ -45,6 +45,13 @@ class CheckpointSpec:
         sha256: the file's checksum where known; a downloaded file that differs is rejected.
         page: where the authors publish the file for manual download when there is no ``url``
             (a shared folder, for instance).
+        parts: for weights published as several files (one per pyramid level, say): their
+            names, each fetched from ``url`` + name; ``pack`` turns the downloaded files (in
+            this order) into one state dict, which is saved as the cached file.
+        pack: see ``parts``.
+        part_sha256: ``(name, sha256)`` of the parts whose checksums are known; a downloaded
+            part that differs is rejected.
+        licence: the terms of the weights, in a few words (for listings and messages).
     """
 
     name: str
@@ -54,6 +61,10 @@ class CheckpointSpec:
     member: Optional[str] = None
     sha256: Optional[str] = None
     page: Optional[str] = None
+    parts: tuple[str, ...] = ()
+    pack: Optional[Callable[[Sequence[Path]], dict]] = None
+    part_sha256: tuple[tuple[str, str], ...] = ()
+    licence: Optional[str] = None
 
     @property
     def filename(self) -> str:
@@ -95,6 +106,9 @@ def resolve_named(spec: CheckpointSpec, download: bool = False, timeout: float =
 
 def _origin(spec: CheckpointSpec) -> str:
     """`` (it is X in URL)``: where the file comes from, for messages; empty if unknown."""
+    if spec.url and spec.parts:
+        return (f" (packed from {spec.parts[0]} ... {spec.parts[-1]} at {spec.url}, or give "
+                f"those files as the checkpoint)")
     if spec.url and spec.member:
         return f" (it is {spec.member} in {spec.url})"
     if spec.url:
@@ -119,6 +133,8 @@ def download_checkpoint(spec: CheckpointSpec, timeout: float = 60.0) -> Path:
                           f"{spec.filename}{_origin(spec)} at {cached_path(spec)}")
     target = cached_path(spec)
     target.parent.mkdir(parents=True, exist_ok=True)
+    if spec.parts:
+        return _download_parts(spec, target, timeout)
     with tempfile.TemporaryDirectory(dir=target.parent, prefix=".download-") as tmp:
         archive = Path(tmp) / ("archive.zip" if spec.member else spec.filename)
         try:
@@ -146,6 +162,32 @@ def download_checkpoint(spec: CheckpointSpec, timeout: float = 60.0) -> Path:
     return target
 
 
+def _download_parts(spec: CheckpointSpec, target: Path, timeout: float) -> Path:
+    """Fetch every file of ``spec.parts``, pack them into one state dict, save it at ``target``
+    (atomically: nothing is left behind when a part is missing or does not read)."""
+    with tempfile.TemporaryDirectory(dir=target.parent, prefix=".download-") as tmp:
+        paths = []
+        for part in spec.parts:
+            path = Path(tmp) / part
+            url = spec.url + part
+            try:
+                with urllib.request.urlopen(url, timeout=timeout) as response, \
+                        open(path, "wb") as out:
+                    shutil.copyfileobj(response, out, length=1 << 20)
+            except (urllib.error.URLError, OSError) as exc:  # includes timeouts
+                raise ConfigError(f"could not download {url} ({exc}); put {spec.filename}"
+                                  f"{_origin(spec)} at {target}") from exc
+            expected = dict(spec.part_sha256).get(part)
+            if expected is not None and sha256_of(path) != expected:
+                raise ConfigError(f"downloaded {url} has sha256 {sha256_of(path)}, expected "
+                                  f"{expected}; put {spec.filename}{_origin(spec)} at {target}")
+            paths.append(path)
+        packed = Path(tmp) / spec.filename
+        torch.save(spec.pack(paths), packed)
+        os.replace(packed, target)
+    return target
+
+
 def sha256_of(path: Path) -> str:
     """Hex sha256 of a file, read in chunks."""
     h = hashlib.sha256()
@@ -168,6 +210,8 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         FormatError: the file cannot be read, or holds something other than a state dict.
     """
     path = Path(path)
+    if path.is_dir():
+        raise FormatError(path, "is a folder; expected a checkpoint file")
     if not path.is_file():
         raise ConfigError(f"checkpoint file {path} does not exist")
     _check_checkpoint_header(path)
@@ -193,6 +237,28 @@ def read_state_dict(path: str | Path) -> dict[str, torch.Tensor]:
         raise FormatError(path, f"expected a state dict (parameter name -> tensor); entries "
                                 f"that are not tensors: {_short_list(map(str, bad))}")
     return dict(obj)
+
+
+def read_tensor_file(path: str | Path) -> torch.Tensor:
+    """Read a file that holds one tensor (saved with ``torch.save(tensor, path)``), on the CPU.
+
+    Raises:
+        ConfigError: the file does not exist.
+        FormatError: the file cannot be read, or holds something other than one tensor.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise ConfigError(f"weight file {path} does not exist")
+    _check_checkpoint_header(path)
+    try:
+        obj = torch.load(path, map_location="cpu", weights_only=True)
+    except Exception as exc:  # as in read_state_dict: every failure means a bad file
+        text = str(exc).strip().splitlines()
+        raise FormatError(path, f"cannot be read as a PyTorch file "
+                                f"({text[0] if text else type(exc).__name__})") from exc
+    if not isinstance(obj, torch.Tensor):
+        raise FormatError(path, f"expected one tensor, got {type(obj).__name__}")
+    return obj
 
 
 def _check_checkpoint_header(path: Path) -> None:

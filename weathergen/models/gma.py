@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel
+from .base import FlowModel, mixed_precision
 from .checkpoints import CheckpointSpec, load_strict, strip_prefix
 from .raft import (RAFT_FULL, CorrelationPyramid, Encoder, FlowHead, MotionEncoder, SepConvGRU,
                    coords_grid, convex_upsample)
@@ -159,31 +159,39 @@ class GMA(nn.Module):
         self.att = ContextAttention(cfg.context_dim, dim_head=cfg.context_dim, max_pos=160)
 
     def forward(self, image1: torch.Tensor, image2: torch.Tensor, iters: int = DEFAULT_ITERS,
-                detach_flow: bool = True, gradient_checkpointing: bool = False) -> torch.Tensor:
+                detach_flow: bool = True, gradient_checkpointing: bool = False,
+                amp: bool = False) -> torch.Tensor:
         """Flow from ``image1`` to ``image2``.
 
         Args:
             image1, image2: ``(B, 3, H, W)`` RGB in ``[-1, 1]``, ``H`` and ``W`` multiples of 8.
             iters, detach_flow, gradient_checkpointing: as for
                 :meth:`weathergen.models.raft.RAFT.forward`.
+            amp: on CUDA, run the encoders, the context attention and the update operator under
+                autocast (float16), as the authors' code with ``mixed_precision`` (the paper's
+                configuration); correlation, lookup and flow stay in float32.
 
         Returns:
             ``(B, 2, H, W)`` flow in pixels.
         """
         cfg = self.config
         b = image1.shape[0]
-        fmaps = self.fnet(torch.cat([image1, image2], dim=0)).float()
+        amp = amp and image1.is_cuda
+        with mixed_precision(amp):
+            fmaps = self.fnet(torch.cat([image1, image2], dim=0))
+        fmaps = fmaps.float()
         corr = CorrelationPyramid(fmaps[:b], fmaps[b:], cfg.corr_levels, cfg.corr_radius)
 
-        hidden, context = self.cnet(image1).split([cfg.hidden_dim, cfg.context_dim], dim=1)
-        hidden, context = torch.tanh(hidden), F.relu(context)
-        attention = self.att(context)
+        with mixed_precision(amp):
+            hidden, context = self.cnet(image1).split([cfg.hidden_dim, cfg.context_dim], dim=1)
+            hidden, context = torch.tanh(hidden), F.relu(context)
+            attention = self.att(context)
 
         h, w = fmaps.shape[-2:]
         coords0 = coords_grid(b, h, w, fmaps.device, fmaps.dtype)
         coords1 = coords0
 
-        step = partial(self._refine, corr)
+        step = partial(self._refine, corr, amp=amp)
         use_recompute = gradient_checkpointing and torch.is_grad_enabled()
         for _ in range(iters):
             if detach_flow:
@@ -194,11 +202,15 @@ class GMA(nn.Module):
             else:
                 hidden, delta = step(hidden, context, attention, coords0, coords1)
             coords1 = coords1 + delta
-        return convex_upsample(coords1 - coords0, self.update_block.upsampling_weights(hidden))
+        with mixed_precision(amp):      # the authors' update operator computes the mask
+            logits = self.update_block.upsampling_weights(hidden)
+        return convex_upsample(coords1 - coords0, logits)
 
-    def _refine(self, corr: CorrelationPyramid, hidden, context, attention, coords0, coords1):
-        return self.update_block(hidden, context, corr.lookup(coords1), coords1 - coords0,
-                                 attention)
+    def _refine(self, corr: CorrelationPyramid, hidden, context, attention, coords0, coords1,
+                amp: bool = False):
+        lookup = corr.lookup(coords1)
+        with mixed_precision(amp):
+            return self.update_block(hidden, context, lookup, coords1 - coords0, attention)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -223,8 +235,9 @@ class IteratedFlowModel(FlowModel):
         return 2.0 * image - 1.0
 
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
+        kwargs = {"amp": self.amp} if self.supports_amp else {}
         return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
-                            gradient_checkpointing=self.gradient_checkpointing)
+                            gradient_checkpointing=self.gradient_checkpointing, **kwargs)
 
     def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
         """Load a file of the authors' release, with or without the ``module.`` prefix."""
@@ -248,6 +261,7 @@ class GMAModel(IteratedFlowModel):
 
     architecture = "gma"
     multiple = 8
+    supports_amp = True
 
     def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False,
                  detach_flow: bool = True):
@@ -260,10 +274,12 @@ class GMAModel(IteratedFlowModel):
 #: The authors keep their four checkpoints in their repository, one file each.
 GMA_RELEASE_URL = "https://github.com/zacjiang/GMA/raw/2f1fd29468a86a354d44dd25d107930b3f175043/checkpoints/{}.pth"
 
+# The paper's configuration runs GMA in mixed precision (its gma_config.json:
+# "mixed_precision": true), which takes effect on CUDA.
 register_model(ModelSpec(
     name="gma", build=GMAModel, default_checkpoint="gma-sintel",
     description="GMA (Jiang et al., ICCV 2021), RAFT with global motion aggregation, 5.9M "
-                "parameters"))
+                "parameters", mixed_precision=True, amp=True))
 
 for _name, _description in [
         ("gma-chairs", "GMA trained on FlyingChairs"),

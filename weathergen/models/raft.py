@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel
+from .base import FlowModel, mixed_precision
 from .checkpoints import CheckpointSpec, load_strict, strip_prefix
 from .registry import ModelSpec, register_checkpoint, register_model
 
@@ -421,7 +421,7 @@ class RAFT(nn.Module):
 
     def forward(self, image1: torch.Tensor, image2: torch.Tensor, iters: int = DEFAULT_ITERS,
                 flow_init: Optional[torch.Tensor] = None, detach_flow: bool = True,
-                gradient_checkpointing: bool = False) -> torch.Tensor:
+                gradient_checkpointing: bool = False, amp: bool = False) -> torch.Tensor:
         """Flow from ``image1`` to ``image2`` after ``iters`` refinement steps.
 
         Args:
@@ -433,41 +433,48 @@ class RAFT(nn.Module):
                 volume and the context features.
             gradient_checkpointing: recompute each step in the backward pass instead of keeping
                 its activations.
+            amp: on CUDA, run the encoders and the update operator under autocast (float16),
+                as the authors' code does with ``mixed_precision``; the correlation volume, its
+                lookup and the flow stay in float32.
 
         Returns:
             ``(B, 2, H, W)`` flow in pixels.
         """
         return self._run(image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
-                         every_step=False)[-1]
+                         every_step=False, amp=amp)[-1]
 
     def flow_sequence(self, image1: torch.Tensor, image2: torch.Tensor,
                       iters: int = DEFAULT_ITERS, flow_init: Optional[torch.Tensor] = None,
-                      detach_flow: bool = True, gradient_checkpointing: bool = False
-                      ) -> list[torch.Tensor]:
+                      detach_flow: bool = True, gradient_checkpointing: bool = False,
+                      amp: bool = False) -> list[torch.Tensor]:
         """The upsampled flow after every refinement step, as RAFT's sequence loss needs.
 
         Arguments as :meth:`forward`. Returns ``iters`` tensors ``(B, 2, H, W)`` in pixels; the
         last one is what :meth:`forward` returns.
         """
         return self._run(image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
-                         every_step=True)
+                         every_step=True, amp=amp)
 
     def _run(self, image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
-             every_step: bool) -> list[torch.Tensor]:
+             every_step: bool, amp: bool = False) -> list[torch.Tensor]:
         cfg = self.config
         b = image1.shape[0]
-        fmaps = self.fnet(torch.cat([image1, image2], dim=0)).float()
+        amp = amp and image1.is_cuda
+        with mixed_precision(amp):
+            fmaps = self.fnet(torch.cat([image1, image2], dim=0))
+        fmaps = fmaps.float()
         corr = CorrelationPyramid(fmaps[:b], fmaps[b:], cfg.corr_levels, cfg.corr_radius)
 
-        hidden, context = self.cnet(image1).split([cfg.hidden_dim, cfg.context_dim], dim=1)
-        hidden, context = torch.tanh(hidden), F.relu(context)
+        with mixed_precision(amp):
+            hidden, context = self.cnet(image1).split([cfg.hidden_dim, cfg.context_dim], dim=1)
+            hidden, context = torch.tanh(hidden), F.relu(context)
 
         # coords0: every working-resolution pixel; coords1: where it is estimated to be in frame 2.
         h, w = fmaps.shape[-2:]
         coords0 = coords_grid(b, h, w, fmaps.device, fmaps.dtype)
         coords1 = coords0 if flow_init is None else coords0 + flow_init
 
-        step = partial(self._refine, corr)
+        step = partial(self._refine, corr, amp=amp)
         use_recompute = gradient_checkpointing and torch.is_grad_enabled()
         flows = []
         for i in range(iters):
@@ -480,18 +487,23 @@ class RAFT(nn.Module):
                 hidden, delta = step(hidden, context, coords0, coords1)
             coords1 = coords1 + delta
             if every_step or i == iters - 1:
-                flows.append(self._upsample(coords1 - coords0, hidden))
+                flows.append(self._upsample(coords1 - coords0, hidden, amp))
         if not flows:   # no refinement step: the starting flow
-            flows.append(self._upsample(coords1 - coords0, hidden))
+            flows.append(self._upsample(coords1 - coords0, hidden, amp))
         return flows
 
-    def _upsample(self, flow: torch.Tensor, hidden: torch.Tensor) -> torch.Tensor:
+    def _upsample(self, flow: torch.Tensor, hidden: torch.Tensor, amp: bool) -> torch.Tensor:
         if self.config.small:
             return bilinear_upsample(flow)
-        return convex_upsample(flow, self.update_block.upsampling_weights(hidden))
+        with mixed_precision(amp):      # the authors' update operator computes the mask
+            logits = self.update_block.upsampling_weights(hidden)
+        return convex_upsample(flow, logits)
 
-    def _refine(self, corr: CorrelationPyramid, hidden, context, coords0, coords1):
-        return self.update_block(hidden, context, corr.lookup(coords1), coords1 - coords0)
+    def _refine(self, corr: CorrelationPyramid, hidden, context, coords0, coords1,
+                amp: bool = False):
+        lookup = corr.lookup(coords1)
+        with mixed_precision(amp):
+            return self.update_block(hidden, context, lookup, coords1 - coords0)
 
 
 def coords_grid(b: int, h: int, w: int, device, dtype) -> torch.Tensor:
@@ -519,6 +531,7 @@ class RAFTModel(FlowModel):
     """
 
     multiple = 8
+    supports_amp = True
 
     def __init__(self, small: bool = False, iters: Optional[int] = None,
                  gradient_checkpointing: bool = False, detach_flow: bool = True):
@@ -538,7 +551,7 @@ class RAFTModel(FlowModel):
 
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
         return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
-                            gradient_checkpointing=self.gradient_checkpointing)
+                            gradient_checkpointing=self.gradient_checkpointing, amp=self.amp)
 
     def flow_sequence(self, image1: torch.Tensor, image2: torch.Tensor) -> list[torch.Tensor]:
         """The flow after every refinement step (for RAFT's sequence loss in training).
@@ -550,7 +563,8 @@ class RAFTModel(FlowModel):
         x1 = self.normalize(padder.pad(image1))
         x2 = self.normalize(padder.pad(image2))
         flows = self.network.flow_sequence(x1, x2, iters=self.iters, detach_flow=self.detach_flow,
-                                           gradient_checkpointing=self.gradient_checkpointing)
+                                           gradient_checkpointing=self.gradient_checkpointing,
+                                           amp=self.amp)
         return [padder.unpad(f) for f in flows]
 
     def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
@@ -565,12 +579,13 @@ class RAFTModel(FlowModel):
 #: The authors' archive of all five released checkpoints (``models/<name>.pth`` inside).
 RAFT_RELEASE_URL = "https://dl.dropboxusercontent.com/s/4j4z58wuv8o0mfz/models.zip"
 
+# The paper's configuration runs RAFT without mixed precision (its raft_config.json).
 register_model(ModelSpec(
     name="raft", build=partial(RAFTModel, small=False), default_checkpoint="raft-sintel",
-    description="RAFT (Teed and Deng, ECCV 2020), 5.3M parameters"))
+    description="RAFT (Teed and Deng, ECCV 2020), 5.3M parameters", mixed_precision=True))
 register_model(ModelSpec(
     name="raft-small", build=partial(RAFTModel, small=True), default_checkpoint="raft-small",
-    description="RAFT-small (Teed and Deng, ECCV 2020), 1.0M parameters"))
+    description="RAFT-small (Teed and Deng, ECCV 2020), 1.0M parameters", mixed_precision=True))
 
 for _name, _description in [
         ("raft-chairs", "RAFT trained on FlyingChairs"),

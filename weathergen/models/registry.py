@@ -25,7 +25,7 @@ import torch
 
 from ..errors import ConfigError
 from .base import FlowModel
-from .checkpoints import CheckpointSpec, read_state_dict, resolve_named
+from .checkpoints import CheckpointSpec, resolve_named
 
 #: Builds an untrained adapter: ``build(iters=..., gradient_checkpointing=...)``.
 Builder = Callable[..., FlowModel]
@@ -41,12 +41,22 @@ class ModelSpec:
             for the network's default) and ``gradient_checkpointing``.
         default_checkpoint: the checkpoint name used when none is given.
         description: one line for listings.
+        mixed_precision: the network has its authors' mixed-precision mode (CUDA autocast over
+            the parts their code runs under it), which ``amp`` switches on.
+        amp: the paper's configuration runs the network in mixed precision on CUDA: the
+            default of ``--amp`` there (on the CPU mixed precision is always off).
     """
 
     name: str
     build: Builder
     default_checkpoint: Optional[str]
     description: str = ""
+    mixed_precision: bool = False
+    amp: bool = False
+
+    def __post_init__(self):
+        if self.amp and not self.mixed_precision:
+            raise ValueError(f"flow model {self.name!r}: amp by default needs mixed_precision")
 
 
 _MODELS: dict[str, ModelSpec] = {}
@@ -101,6 +111,44 @@ def checkpoint_spec(name: str) -> CheckpointSpec:
                           f"{', '.join(available_checkpoints())}") from None
 
 
+def resolve_amp(name: str, requested: Optional[bool],
+                device: Union[str, torch.device, None]) -> bool:
+    """Whether network ``name`` (an architecture or a checkpoint name) runs in mixed precision.
+
+    ``requested``: ``True``/``False`` as asked (``--amp``/``--no-amp``), ``None`` for the paper's
+    configuration of the network (:attr:`ModelSpec.amp`). Mixed precision is CUDA autocast, so on
+    any other device the answer is ``False``.
+
+    Raises:
+        ConfigError: ``requested`` is ``True`` on a device other than CUDA, or for a network
+            without a mixed-precision mode; an unknown name.
+    """
+    spec = model_spec(_architecture_of(name))
+    try:
+        kind = torch.device(device).type if device is not None else "cpu"
+    except (RuntimeError, TypeError):
+        raise ConfigError(f"invalid device {device!r}") from None
+    if kind != "cuda":
+        if requested:
+            raise ConfigError(f"${{amp}} needs a CUDA device: mixed precision is CUDA autocast "
+                              f"(device {device or 'cpu'}; leave it out, mixed precision is off "
+                              f"there)")
+        return False
+    if requested and not spec.mixed_precision:
+        raise ConfigError(f"${{amp}}: {spec.name!r} has no mixed-precision mode (the paper ran it "
+                          f"in float32); networks with one: "
+                          f"{', '.join(n for n in available_models() if _MODELS[n].mixed_precision)}")
+    return spec.amp if requested is None else bool(requested)
+
+
+def _architecture_of(name: str) -> str:
+    if name in _MODELS:
+        return name
+    if name in _CHECKPOINTS:
+        return _CHECKPOINTS[name].architecture
+    raise ConfigError(_unknown_message(name))
+
+
 def build_model(name: str, iters: Optional[int] = None,
                 gradient_checkpointing: bool = False) -> FlowModel:
     """An untrained (randomly initialised) adapter of architecture ``name``, in eval mode."""
@@ -113,18 +161,21 @@ def build_model(name: str, iters: Optional[int] = None,
 def get_model(name: str, checkpoint: Union[str, Path, None] = None,
               device: Union[str, torch.device] = "cpu", iters: Optional[int] = None, *,
               download: bool = False, gradient_checkpointing: bool = False,
-              timeout: float = 60.0) -> FlowModel:
+              timeout: float = 60.0, amp: bool = False) -> FlowModel:
     """A flow network with trained weights, ready to call as ``model(image1, image2)``.
 
     Args:
         name: an architecture (``raft``, ``raft-small``) or a checkpoint name (``raft-kitti``).
-        checkpoint: a checkpoint name, a file path, or ``None`` for the default of ``name``.
+        checkpoint: a checkpoint name, a file path (an adapter may take a folder: SpyNet's
+            per-level files), or ``None`` for the default of ``name``.
         device: where the model runs (``"cpu"``, ``"cuda"``, ``"cuda:1"``...).
         iters: refinement iterations for recurrent networks; ``None`` for the default.
         download: fetch a named checkpoint missing from the cache (needs a network).
         gradient_checkpointing: recompute activations in the backward pass instead of
             keeping them (less memory for attacks, more time).
         timeout: seconds a download may stall before it is given up.
+        amp: run the network in its authors' mixed precision on CUDA (see :func:`resolve_amp`
+            for the paper's setting per network); has no effect on other devices.
 
     The returned model is in evaluation mode and its parameters do not require gradients;
     gradients still flow to the input images.
@@ -147,10 +198,13 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
     if checkpoint is None:
         raise ConfigError(f"flow model {arch!r} has no default checkpoint; give one by path")
 
+    if amp and not _MODELS[arch].mixed_precision:
+        raise ConfigError(f"${{amp}}: {arch!r} has no mixed-precision mode")
     path, what = _resolve_checkpoint(arch, checkpoint, download, timeout)
     device = _device(device)
     model = build_model(arch, iters=iters, gradient_checkpointing=gradient_checkpointing)
-    model.load_checkpoint(read_state_dict(path), source=path, what=what)
+    model.amp = bool(amp)
+    model.load_checkpoint(model.read_checkpoint(path), source=path, what=what)
     model.requires_grad_(False)
     return model.to(device).eval()
 
@@ -165,7 +219,7 @@ def _resolve_checkpoint(arch: str, checkpoint: Union[str, Path], download: bool,
                               f"{', '.join(available_checkpoints(arch)) or 'none'}")
         return resolve_named(spec, download=download, timeout=timeout), arch
     path = Path(checkpoint).expanduser()
-    if not path.is_file():
+    if not path.exists():   # a folder is for the adapter to judge (SpyNet's per-level files)
         raise ConfigError(f"checkpoint {str(checkpoint)!r} is neither a file nor a known "
                           f"checkpoint name ({', '.join(available_checkpoints(arch))})")
     return path, arch

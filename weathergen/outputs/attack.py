@@ -34,6 +34,7 @@ from typing import Optional
 import numpy as np
 import torch
 
+from ..datasets import NativeFlow
 from ..errors import FormatError
 from ..flow import flow_to_color
 from ..framepair import FramePair, PairId
@@ -54,8 +55,10 @@ class AttackPairOutput:
     base: PairOutput
 
     @classmethod
-    def of(cls, root, pair_id: PairId, pass_name: str) -> "AttackPairOutput":
-        return cls(PairOutput.of(root, pair_id, pass_name, "png", geometry=True))
+    def of(cls, root, pair_id: PairId, pass_name: str,
+           native: Optional[NativeFlow] = None) -> "AttackPairOutput":
+        """``native``: the input's own form of flow (its reader's ``native_flow``)."""
+        return cls(PairOutput.of(root, pair_id, pass_name, "png", geometry=True, native=native))
 
     @property
     def root(self) -> Path:

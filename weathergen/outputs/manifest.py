@@ -200,6 +200,18 @@ def read_attack_manifest(out: Path) -> dict:
         raise FormatError(path, "not a readable attack manifest") from None
 
 
+def read_summary(out: Path) -> Optional[dict]:
+    """The mean figures of an attack folder (``summary.json``), None where the run has written
+    none yet; an unreadable file raises FormatError naming it."""
+    path = Path(out) / SUMMARY
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except (OSError, ValueError):
+        raise FormatError(path, "not a readable attack summary") from None
+
+
 def write_attack_manifest(out: Path, config: dict, pairs: dict, summary: dict, runs: list) -> Path:
     """Write ``manifest.json`` (and ``summary.json``) atomically.
 

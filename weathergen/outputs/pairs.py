@@ -9,14 +9,18 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/PASS/PAIR/frame_FFFF.png        augmented first frame (8-bit PNG)
     OUT/SPLIT/PASS/PAIR/frame_GGGG.png        augmented second frame, G = F + 1
     OUT/SPLIT/PASS_exr/PAIR/frame_FFFF.exr    float frames with an 'opacity' channel (--format exr/both)
-    OUT/SPLIT/PASS_right/PAIR/frame_FFFF.png  the right camera's frames (--stereo: KITTI, Spring)
+    OUT/SPLIT/PASS_right/PAIR/frame_FFFF.png  the right camera's frames (--stereo: KITTI, Spring,
+    OUT/SPLIT/PASS_right_exr/PAIR/...exr         custom), as the left's: PNG and/or EXR with opacity,
+    OUT/SPLIT/depth_right/PAIR/frame_FFFF.dpt    its depth (warped from the left) and cameras;
+    OUT/SPLIT/camdata_right/PAIR/frame_FFFF.cam  right_from_left and its intrinsics in the metadata
     OUT/SPLIT/particles/PAIR/frame_FFFF.npz   particle metadata of the pair (numpy-readable)
     OUT/SPLIT/depth/PAIR/frame_FFFF.dpt       geometry the particles were placed in, in Sintel
     OUT/SPLIT/camdata_left/PAIR/frame_FFFF.cam   formats (depth and cameras after the depth scale),
     OUT/SPLIT/flow/PAIR/frame_FFFF.flo        and ground-truth flow where the input has it
     OUT/SPLIT/invalid/PAIR/frame_FFFF.png     non-zero where that flow is not valid (sparse flow)
-    OUT/SPLIT/flow_occ/PAIR/frame_FFFF.png    the same flow in KITTI's 16-bit PNG format (KITTI input)
-    OUT/SPLIT/flow_FW_left/PAIR/frame_FFFF.flo5   ... in Spring's HDF5 format (Spring input)
+    OUT/SPLIT/flow_occ/PAIR/frame_FFFF.png    the same flow in the input's own form, where its reader
+    OUT/SPLIT/flow_FW_left/PAIR/frame_FFFF.flo5   declares one (``Dataset.native_flow``): KITTI's
+                                              16-bit PNG, Spring's HDF5
 
 With particle ground truth (``--particle-truth``; see :mod:`weathergen.engine.groundtruth`)::
 
@@ -40,9 +44,11 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 
+from ..datasets import NativeFlow
 from ..engine.groundtruth import seen_flow
 from ..errors import FormatError
 from ..framepair import FramePair, PairId
@@ -56,11 +62,34 @@ from .metadata import read_metadata, write_metadata
 FORMATS = ("png", "exr", "both")
 #: The largest flow magnitude (per component, pixels) a KITTI flow PNG can hold, exclusive.
 KITTI_FLOW_LIMIT = 511.98
-#: Datasets whose ground-truth flow is also written in their own format: folder and extension.
-NATIVE_FLOW = {"kitti": ("flow_occ", "png"), "spring": ("flow_FW_left", "flo5")}
+#: The file extension of each form of flow a dataset may store natively
+#: (:attr:`~weathergen.datasets.Dataset.native_flow`): KITTI's 16-bit PNG, Spring's HDF5.
+NATIVE_FLOW = {"kitti-png": "png", "flo5": "flo5"}
 #: Outputs are Sintel trees, so input splits named otherwise (Spring's ``train``, KITTI's
 #: ``testing``) get Sintel's folder name; the metadata keeps the input's own split.
 SINTEL_SPLIT_FOLDER = {"train": "training", "testing": "test"}
+
+
+@dataclass(frozen=True)
+class RightView:
+    """What a stereo render writes of the second camera, as the first camera's outputs.
+
+    Shape: frames, opacity, depth one entry per frame written (H, W, 3) float in [0, 1], (H, W)
+    float, (H, W) camera-z; intrinsics (3, 3); cam_from_world one (4, 4) per frame (the world of
+    the left camera files: camera 1 where the dataset has no poses); right_from_left (4, 4).
+    """
+
+    frames: tuple
+    opacity: tuple
+    depth: tuple
+    intrinsics: np.ndarray
+    cam_from_world: tuple
+    right_from_left: np.ndarray
+
+    def metadata(self) -> dict[str, np.ndarray]:
+        """Entries of the pair's particle metadata that place the right camera."""
+        return {"right_from_left": np.asarray(self.right_from_left, np.float64),
+                "right_intrinsics": np.asarray(self.intrinsics, np.float64)}
 
 
 @dataclass(frozen=True)
@@ -76,13 +105,15 @@ class PairOutput:
     geometry: bool = True
     truth: bool = False
     sequence: bool = False
+    #: the input's own form of flow, written beside Sintel's (its reader's ``native_flow``)
+    native: Optional[NativeFlow] = None
 
     @classmethod
     def of(cls, root, pair_id: PairId, pass_name: str, fmt: str = "png", geometry: bool = True,
-           truth: bool = False, sequence: bool = False):
+           truth: bool = False, sequence: bool = False, native: Optional[NativeFlow] = None):
         split = SINTEL_SPLIT_FOLDER.get(pair_id.split, pair_id.split)
         return cls(Path(root), split, pass_name, pair_id.scene, pair_id.frame, fmt, geometry,
-                   truth, sequence)
+                   truth, sequence, native)
 
     @property
     def pair_dir(self) -> str:
@@ -104,6 +135,22 @@ class PairOutput:
         return self._file(folder, self.frame, "png"), self._file(folder, self.frame + 1, "png")
 
     @property
+    def frames_right_exr(self) -> tuple[Path, Path]:
+        folder = f"{self.pass_name}_right_exr"
+        return self._file(folder, self.frame, "exr"), self._file(folder, self.frame + 1, "exr")
+
+    def right_geometry_files(self) -> list[Path]:
+        """The right camera's depth (frames 1, 2) and camera files (frames 1, 2)."""
+        return [self._file("depth_right", self.frame, "dpt"),
+                self._file("depth_right", self.frame + 1, "dpt"),
+                self._file("camdata_right", self.frame, "cam"),
+                self._file("camdata_right", self.frame + 1, "cam")]
+
+    def right_files(self) -> list[Path]:
+        """Every file a stereo render may write of the right camera (for temporary-file cleanup)."""
+        return list(self.frames_right_png) + list(self.frames_right_exr) + self.right_geometry_files()
+
+    @property
     def frames_exr(self) -> tuple[Path, Path]:
         folder = f"{self.pass_name}_exr"
         return self._file(folder, self.frame, "exr"), self._file(folder, self.frame + 1, "exr")
@@ -119,12 +166,12 @@ class PairOutput:
             files.append(self._file("flow", self.frame, "flo"))
         return files
 
-    def native_flow(self, dataset: str) -> Path | None:
-        """Where the flow goes in the input dataset's own format (KITTI, Spring), else None."""
-        if dataset not in NATIVE_FLOW:
+    @property
+    def native_flow(self) -> Path | None:
+        """Where the flow goes in the input's own form (KITTI, Spring), else None."""
+        if self.native is None:
             return None
-        folder, ext = NATIVE_FLOW[dataset]
-        return self._file(folder, self.frame, ext)
+        return self._file(self.native.folder, self.frame, NATIVE_FLOW[self.native.format])
 
     @property
     def invalid_mask(self) -> Path:
@@ -138,12 +185,11 @@ class PairOutput:
                 "seen_flow": self._file("seen_flow", self.frame, "flo"),
                 "seen_invalid": self._file("seen_invalid", self.frame, "png")}
 
-    def native_truth(self, dataset: str, kind: str) -> Path | None:
-        """``kind`` (particle or seen) flow in the input dataset's own format, else None."""
-        if dataset not in NATIVE_FLOW:
+    def native_truth(self, kind: str) -> Path | None:
+        """``kind`` (particle or seen) flow in the input's own form, else None."""
+        if self.native is None:
             return None
-        folder, ext = NATIVE_FLOW[dataset]
-        return self._file(f"{kind}_{folder}", self.frame, ext)
+        return self._file(f"{kind}_{self.native.folder}", self.frame, NATIVE_FLOW[self.native.format])
 
     def files(self, with_flow: bool = False) -> list[Path]:
         """Every file of this pair, the metadata file last (it marks completion)."""
@@ -174,7 +220,8 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
     """Write one pair: frames, optional EXR, geometry and particle ground truth (``truth``, a
     :class:`~weathergen.engine.groundtruth.ParticleTruth`), then the metadata (last).
     ``second=False`` (a sequence's pair whose second frame the next pair writes) leaves out the
-    second frame's image, EXR, depth and camera.
+    second frame's image, EXR, depth and camera. ``right`` (a :class:`RightView`, ``--stereo``)
+    adds the second camera's frames, EXR, depth and cameras, and its placement to the metadata.
 
     Shape: frames (H, W, 3) float in [0, 1]; opacity (H, W) float.
     """
@@ -186,9 +233,8 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
     if out.fmt in ("exr", "both"):
         for path, img, alpha in list(zip(out.frames_exr, frames, opacity))[:n]:
             written.append(write_exr(path, img, {"opacity": alpha}))
-    if right is not None:       # the second camera's frames, beside the first's
-        for path, img in list(zip(out.frames_right_png, right))[:n]:
-            written.append(write_png(path, img))
+    if right is not None:       # the second camera: the same outputs as the first's
+        written += _write_right(out, right, n)
     if out.geometry:
         depth_files = out.geometry_files(with_flow=pair.flow is not None)
         written.append(write_dpt(depth_files[0], pair.depth1[0].numpy()))
@@ -207,24 +253,44 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
             if pair.flow_valid is not None and not bool(pair.flow_valid.all()):
                 mask = np.where(pair.flow_valid[0].numpy(), 0, 255).astype(np.uint8)
                 written.append(write_png(out.invalid_mask, mask))
-            native = out.native_flow(pair.id.dataset)
-            if native is not None:
-                written.append(_write_native_flow(pair.id.dataset, native, pair))
+            if out.native is not None:
+                written.append(_write_native_flow(out.native.format, out.native_flow, pair))
     if out.truth and truth is not None:
         written += _write_truth(out, pair, truth)
     rel = [str(p.relative_to(out.root)) for p in written]
     metadata = dict(metadata)
+    if right is not None:
+        metadata.update(right.metadata())
     metadata["files"] = np.array(json.dumps(rel))
     write_metadata(out.metadata, metadata)
     return written + [out.metadata]
 
 
-def _write_native_flow(dataset: str, path: Path, pair: FramePair) -> Path:
+def _write_right(out: PairOutput, right: RightView, n: int) -> list[Path]:
+    """The right camera's frames (PNG and/or EXR with opacity) and, with geometry, its depth and
+    camera files, for the first ``n`` frames."""
+    written = []
+    if out.fmt in ("png", "both"):
+        for path, img in list(zip(out.frames_right_png, right.frames))[:n]:
+            written.append(write_png(path, img))
+    if out.fmt in ("exr", "both"):
+        for path, img, alpha in list(zip(out.frames_right_exr, right.frames, right.opacity))[:n]:
+            written.append(write_exr(path, img, {"opacity": alpha}))
+    if out.geometry:
+        files = out.right_geometry_files()
+        for path, depth in list(zip(files[:2], right.depth))[:n]:
+            written.append(write_dpt(path, np.asarray(depth, np.float32)))
+        for path, cam in list(zip(files[2:], right.cam_from_world))[:n]:
+            written.append(write_cam(path, np.asarray(right.intrinsics), np.asarray(cam)))
+    return written
+
+
+def _write_native_flow(fmt: str, path: Path, pair: FramePair) -> Path:
     """KITTI's 16-bit flow PNG (u, v, valid) or Spring's HDF5 ``.flo5`` (NaN where invalid)."""
     flow = pair.flow.numpy().transpose(1, 2, 0)
     valid = (np.ones(flow.shape[:2], bool) if pair.flow_valid is None
              else pair.flow_valid[0].numpy())
-    if dataset == "kitti":
+    if fmt == "kitti-png":
         return write_flow_png(path, flow, valid)
     return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))
 
@@ -241,20 +307,20 @@ def _write_truth(out: PairOutput, pair: FramePair, truth) -> list[Path]:
                                  np.where(valid[0].numpy(), 0, 255).astype(np.uint8)))
     covered = truth.weight[0].numpy() > 0
     for kind, flow, ok in (("particle", truth.flow, covered), ("seen", seen, valid[0].numpy())):
-        native = out.native_truth(pair.id.dataset, kind)
+        native = out.native_truth(kind)
         if native is not None:
-            written.append(_write_native(pair.id.dataset, native,
+            written.append(_write_native(out.native.format, native,
                                          flow.numpy().transpose(1, 2, 0), ok))
     return written
 
 
-def _write_native(dataset: str, path: Path, flow: np.ndarray, valid: np.ndarray) -> Path:
+def _write_native(fmt: str, path: Path, flow: np.ndarray, valid: np.ndarray) -> Path:
     """A flow (H, W, 2) with its valid mask (H, W) in KITTI's PNG or Spring's ``.flo5``.
 
     KITTI's PNG holds flows within +-512 px; a nearer particle's larger flow is written as not
     valid there (the ``.flo`` beside it keeps the value).
     """
-    if dataset == "kitti":
+    if fmt == "kitti-png":
         fits = (np.abs(flow) < KITTI_FLOW_LIMIT).all(-1)
         return write_flow_png(path, np.where(fits[..., None], flow, 0.0), valid & fits)
     return write_flo5(path, np.where(valid[..., None], flow, np.nan).astype(np.float32))

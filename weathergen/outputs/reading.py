@@ -15,6 +15,7 @@ import torch
 
 from ..datasets import Dataset, reopen_dataset
 from ..engine import APPEARANCE_KEYS, Particles
+from ..engine.presets import UNSCALED
 from ..errors import DatasetError, FormatError
 from ..framepair import PairId
 from ..io.exr import read_exr
@@ -65,6 +66,8 @@ def check_stored_particles(path: str | Path, arrays: dict, pair_id: PairId,
             stored = json.loads(str(arrays["preset"]))
         except ValueError:
             raise FormatError(path, "its preset entry is not valid JSON") from None
+        if "model" not in stored:     # a paper preset recorded before frame scaling existed
+            stored = {**UNSCALED, **stored}
         ignored = {"name", "source", *APPEARANCE_KEYS}
         differ = sorted(k for k in set(stored) | set(preset)
                         if k not in ignored and stored.get(k) != preset.get(k))
@@ -110,6 +113,14 @@ class WeatherFolder:
         else:
             images = [read_image(p) for p in out.frames_png]
         return tuple(torch.from_numpy(img.copy()).permute(2, 0, 1).contiguous() for img in images)
+
+    def particles(self, pair_id: PairId) -> Optional[Particles]:
+        """The particles stored for a pair, or None where the folder holds none (an Lp attack's
+        metadata names the pair and the perturbation only)."""
+        path = PairOutput.of(self.root, pair_id, "", sequence=self.sequence).metadata
+        if "position" not in read_metadata(path):
+            return None
+        return load_pair_particles(self.root, pair_id, sequence=self.sequence)
 
     def clean_dataset(self, dataset: Optional[str] = None, root: Optional[str] = None,
                       pass_: Optional[str] = None) -> Dataset:

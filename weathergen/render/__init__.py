@@ -5,21 +5,21 @@
 - :mod:`.job`: the run itself (workers, batches, resumption, the manifest), writing through
   :mod:`weathergen.outputs`;
 - :mod:`.plan`: the rules that turn a request into a job (which preset, which settings win);
-- :mod:`.preview`: contact sheets of a finished render.
+- :mod:`.preview`: contact sheets of a finished render; :mod:`.video`: videos of one.
 """
 
 from __future__ import annotations
 
-from .job import (RENDER_THREADS, PairResult, RenderJob, prepare_output, record_run, render_batch,
-                  run_render)
+from .job import RENDER_THREADS, PairResult, RenderJob, record_run, render_batch, run_render
 from .particles import pair_particles, pair_seed
 from .plan import (APPEARANCE_KEYS, ResolvedPreset, default_batch_size, default_out,
                    default_pass_name, resolve_preset)
 from .preview import contact_sheet
 from .shards import parse_shard, shard_refs
+from .video import VideoPreview, output_frame_rate, video_preview
 
 __all__ = ["APPEARANCE_KEYS", "RENDER_THREADS", "ResolvedPreset", "default_batch_size",
            "default_out", "default_pass_name", "resolve_preset", "PairResult", "RenderJob",
            "contact_sheet", "pair_particles",
-           "pair_seed", "parse_shard", "prepare_output", "record_run", "render_batch",
-           "run_render", "shard_refs"]
+           "pair_seed", "parse_shard", "record_run", "render_batch",
+           "run_render", "shard_refs", "VideoPreview", "output_frame_rate", "video_preview"]

@@ -27,21 +27,25 @@ from ..datasets import Dataset, PairRef
 from ..datasets.stereo import right_camera
 from ..engine import (FieldPreset, View, load_templates, particle_truth, reference_transforms,
                       render_pair, visible_counts)
+from ..engine.presets import list_presets
 from ..engine.renderer import pair_starts, render_first_frame
 from ..engine.stereo import render_right, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
-from ..outputs import (RENDER_FOLDER, PairOutput, merge_manifest, pair_metadata, prepare_folder,
-                       read_run_config, write_manifest_part, write_pair_outputs, write_run_config)
+from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
+                       pair_metadata, write_manifest_part, write_pair_outputs)
 from ..io.atomic import write_error
-from ..io.lock import FolderLock
-from ..outputs.folder import lock_folder, released_on_failure
-from ..outputs.manifest import MANIFEST, MANIFEST_PARTS, RUN_CONFIG, jsonable, shard_part
+from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
-from .particles import pair_particles, weather_seed
+from .particles import pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
+
+#: A pair of a paper preset whose frame 2 shows fewer than this fraction of the particle centres
+#: frame 1 shows (strong camera motion, e.g. driving forward) is marked ``few_in_frame2`` in the
+#: manifest, and the run says once that weather fields are the model for such motion.
+FRAME2_KEPT_MIN = 0.5
 
 #: Every pair renders with this many intra-op threads, whatever the worker count: thread count can
 #: change the order of floating-point reductions, and with it the output bytes.
@@ -104,7 +108,11 @@ class PairResult:
     bytes: int = 0
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
+    few_in_frame2: bool = False # a paper preset's pair that keeps < FRAME2_KEPT_MIN of them
+    particles: Optional[int] = None   # written: particles in the pair's record (the count its
+                                      # frame size gave, see the metadata's frame_scaling)
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
+    warnings: list = field(default_factory=list)  # what the reader found odd ("FILE: what" lines)
     ran: Optional[dict] = None  # where it was computed (weathergen.execution.where_ran) and batch
 
 
@@ -126,6 +134,7 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
             pair = job.dataset.load(ref)
             particles = pair_particles(pair, job.preset, job.seed,
                                        world_up=getattr(job.dataset, "world_up", "auto"),
+                                       frame_rate=job.dataset.frame_rate,
                                        particles_from=job.particles_from, appearance=job.appearance,
                                        preset_name=job.preset_name, sequence=job.sequence)
             ready.append((ref, seed, pair, particles, time.perf_counter() - start))
@@ -199,10 +208,11 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     opacity = tuple(a[index, 0].cpu().numpy()
                     for a in (rendered.opacity1, rendered.opacity2) if a is not None)
     visible = visible_counts(pair, particles)
-    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name)
+    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name,
+                         scaling=weather_scaling(job.preset, pair))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                        job.sequence)
+                        job.sequence, job.dataset.native_flow)
     right = None
     if job.stereo:
         try:
@@ -215,29 +225,64 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
                                    right=right)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
         raise write_error(exc, job.out, "then rerun with ${resume}") from None
+    facts = dict(getattr(pair, "meta", None) or {})
+    warnings = list(facts.pop("warnings", []))
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
-                      input=jsonable(getattr(pair, "meta", None) or {}))
+                      few_in_frame2=particles.optics is None and few_in_frame2(*visible),
+                      particles=particles.count, input=jsonable(facts), warnings=warnings)
 
 
-def _render_right(job: RenderJob, pair, particles, second: bool) -> tuple:
-    """The right camera's weather frames (the first, and the second when ``second``): the same
-    particles seen from the dataset's second camera, occluded by its forward-warped depth.
-    Shape: returns (H, W, 3) float arrays."""
+def few_in_frame2(visible1: int, visible2: int) -> bool:
+    """Whether frame 2 shows fewer than :data:`FRAME2_KEPT_MIN` of the particle centres frame 1
+    shows. The paper's model samples a pair's particles among the points visible in frame 1 or
+    frame 2, in a box in front of camera 1: a camera that moves far into that box leaves most of
+    them behind it or outside its view."""
+    return visible2 < FRAME2_KEPT_MIN * visible1
+
+
+def frame2_note(results: list[PairResult], preset_name: str) -> Optional[str]:
+    """The run's one line about pairs marked ``few_in_frame2``, or None when there are none."""
+    few = [r for r in results if r.status == "written" and r.few_in_frame2]
+    if not few:
+        return None
+    order = ("snow", "rain", "sparks", "fog")
+    fields = sorted((name for name in list_presets("field") if name.endswith("-moderate")),
+                    key=lambda name: (order.index(name.split("-")[0])
+                                      if name.split("-")[0] in order else len(order), name))
+    worst = min(few, key=lambda r: r.visible[1] / max(r.visible[0], 1))
+    share = worst.visible[1] / max(worst.visible[0], 1)
+    return (f"in {len(few)} pair(s) frame 2 shows fewer than half of the particles frame 1 "
+            f"shows (strong camera motion; e.g. {worst.pair}: {worst.visible[1]} of "
+            f"{worst.visible[0]}, {share:.0%}), marked few_in_frame2 in the manifest. The paper's preset "
+            f"'{preset_name}' places its particles in a box in front of camera 1; for strong "
+            f"camera motion use a weather-field preset ({', '.join(fields)}, ...), whose "
+            f"particles fill the world that both cameras see")
+
+
+def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
+    """The right camera's outputs (the first frame, and the second when ``second``): the same
+    particles seen from the dataset's second camera, occluded by its forward-warped depth, with
+    that depth, its opacity and its cameras (in the left camera files' world)."""
     rc = right_camera(job.dataset, pair)
     _, c1, c2 = reference_transforms(pair)
     lib = load_templates(particles.settings.templates)
     start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
-    frames = []
+    k_right = pair.intrinsics if rc.intrinsics is None else rc.intrinsics
+    frames, opacity, depths, cams = [], [], [], []
     for image, depth, cam, start in ((rc.image1, pair.depth1, c1, start1),
                                      (rc.image2, pair.depth2, c2, start2))[:2 if second else 1]:
         left = View(pair.intrinsics, cam, depth)
         right_depth = warp_depth(depth, pair.intrinsics, rc.right_from_left, rc.intrinsics)
         view = stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics)
         with torch.no_grad():
-            out, _ = render_right(image, view, particles, start, disp, lib)
+            out, alpha = render_right(image, view, particles, start, disp, lib)
         frames.append(out.permute(1, 2, 0).numpy())
-    return tuple(frames)
+        opacity.append(alpha[0].numpy())
+        depths.append(right_depth[0].numpy())
+        cams.append(view.cam_from_ref.numpy())
+    return RightView(tuple(frames), tuple(opacity), tuple(depths), k_right.double().numpy(),
+                     tuple(cams), rc.right_from_left.double().numpy())
 
 
 def sequence_ends(ids: list[PairId]) -> frozenset:
@@ -247,55 +292,26 @@ def sequence_ends(ids: list[PairId]) -> frozenset:
 
 
 # -- the output folder ---------------------------------------------------------------------------
-def lock_name(shard: tuple[int, int]) -> str:
-    """The lock file of a shard (the shards of one run write one folder at the same time)."""
-    i, n = shard
-    return ".weathergen-lock" if n == 1 else f".weathergen-lock-shard-{i}-of-{n}"
-
-
-def prepare_output(job: RenderJob, refs: list[PairRef] = ()) -> FolderLock:
-    """Create or reuse the output folder, refusing folders that are not ours or hold another run.
-
-    Returns the folder's lock, held: the caller releases it when the run ends. A second run in the
-    same folder (and shard) is refused while this one holds it (:class:`FolderBusy`). ``refs``
-    are the pairs of the job's shard, whose leftover temporary files a resumed run deletes.
-    """
-    name = lock_name(job.shard)
-    lock = lock_folder(job.out, RENDER_FOLDER, name, job.config(), resume=job.resume,
-                       overwrite=job.overwrite)
-    with released_on_failure(lock, job.out):
-        # Read under the lock: what the run before us recorded is final.
-        # A new shard of a sharded run may start in a folder that other shards have written.
-        other_shard = job.shard[1] > 1 and not shard_part(job.out, job.shard).exists()
-        prepare_folder(job.out, RENDER_FOLDER, job.config(), read_run_config(job.out),
-                       resume=job.resume, overwrite=job.overwrite, shared=other_shard,
-                       ignore=(name,), temporary=_temporary_places(job, refs))
-        write_run_config(job.out, job.config())
-    return lock
-
 
 def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
-    """Where a killed run of this shard may have left temporary files (atomic writes that never
-    reached their rename), as ``(folder, name prefix)``: the folders of this shard's pairs, and
-    this shard's manifest part. Other shards may be running; their files are left alone."""
-    i, n = job.shard
-    places = [(job.out / MANIFEST_PARTS, f".{shard_part(job.out, job.shard).name}.")]
-    if n == 1:
-        places += [(job.out / MANIFEST_PARTS, f".{RUN_CONFIG}."), (job.out, f".{MANIFEST}.")]
+    """Where a killed run of this shard may have left temporary files of its pairs (atomic writes
+    that never reached their rename), as ``(folder, name prefix)``: the folders of this shard's
+    pairs (:func:`~weathergen.outputs.claim_folder` adds the shard's bookkeeping). Other shards may
+    be running; their files are left alone."""
     folders = set()
     for ref in refs:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                            job.sequence)
-        native = out.native_flow(ref.id.dataset)
-        extra = list(out.frames_right_png) if job.stereo else []
+                            job.sequence, job.dataset.native_flow)
+        native = out.native_flow
+        extra = out.right_files() if job.stereo else []
         if job.truth:
             extra += list(out.truth_files().values())
-            extra += [p for p in (out.native_truth(ref.id.dataset, kind)
-                                  for kind in ("particle", "seen")) if p is not None]
+            extra += [p for p in (out.native_truth(kind) for kind in ("particle", "seen"))
+                      if p is not None]
         for path in (out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else [])
                      + extra):
             folders.add(path.parent)
-    return places + [(folder, ".") for folder in sorted(folders)]
+    return [(folder, ".") for folder in sorted(folders)]
 
 
 def record_run(job: RenderJob, results: list[PairResult], started: float, seconds: float) -> Path:
@@ -322,9 +338,10 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
 
     Pairs already complete on disk are skipped when resuming (or when another shard's folder is
     reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives,
-    ``on_note`` warnings worth a line (a stale lock taken over). Interruptions (Ctrl-C, SIGTERM)
-    record what was finished in the manifest and re-raise. The output folder is locked for the
-    run: a second run in it (same shard) raises :class:`~weathergen.errors.FolderBusy`.
+    ``on_note`` warnings worth a line (a stale lock taken over, a gap in a scene's frame
+    numbering, a scene whose frames cannot be paired). Interruptions (Ctrl-C, SIGTERM) record
+    what was finished in the manifest and re-raise. The output folder is locked for the run: a
+    second run in it (same shard) raises :class:`~weathergen.errors.FolderBusy`.
 
     Raises :class:`~weathergen.errors.OutputError` when the outputs cannot be written (the pairs
     finished before are recorded), and :class:`~weathergen.errors.NothingRendered` when every
@@ -333,33 +350,37 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     check_executor(job.executor)
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     every = job.dataset.pairs()
+    for problems in job.dataset.scene_problems().values():
+        for problem in problems:        # e.g. a gap in a scene's frame numbering
+            on_note(f"{problem.where}: {problem.kind}" if problem.where else problem.kind)
     refs = shard_refs(every, job.shard)
+    if not every:
+        raise ConfigError(job.dataset.no_pairs_message())
     if not refs:
-        raise ConfigError("the selection holds no frame pairs")
+        raise ConfigError(f"${{shard}} {job.shard[0]}/{job.shard[1]} holds no frame pairs: the "
+                          f"selection holds {len(every)}, one for each of the first {len(every)} "
+                          f"shards")
     if job.sequence:
         if not isinstance(job.preset, FieldPreset):
             raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "
                               f"e.g. snow-moderate); '{job.preset_name}' is a paper preset, "
                               "whose particles belong to one pair")
         job.scene_ends = sequence_ends([r.id for r in every])
-    created = not job.out.exists()
-    lock = prepare_output(job, refs)
-    try:
-        if lock.stale is not None:
-            on_note(f"{job.out}: took over the stale lock of {lock.stale} (that run ended without "
-                    f"releasing it, e.g. killed)")
+    with claim_folder(job.out, RENDER_FOLDER, job.config(), resume=job.resume,
+                      overwrite=job.overwrite, shard=job.shard,
+                      temporary=_temporary_places(job, refs), on_note=on_note) as claim:
         results = _render_locked(job, refs, on_result, on_start)
+        note = frame2_note(results, job.preset_name)
+        if note is not None:
+            on_note(note)
         if results and all(r.status == "failed" for r in results):
             first = results[0]
-            if created:
-                _remove_created_folder(job)
+            # the claim removes a folder it created again
             raise NothingRendered(f"every selected pair failed ({len(results)}; the first: "
                                   f"{first.pair}: {first.message}); "
-                                  + ("nothing was written" if created else
+                                  + ("nothing was written" if claim.created else
                                      f"the failures are recorded in {job.out / MANIFEST}"))
         return results
-    finally:
-        lock.release()
 
 
 def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> list[PairResult]:
@@ -369,7 +390,7 @@ def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> 
     todo: list[PairRef] = []
     for ref in refs:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                            job.sequence)
+                            job.sequence, job.dataset.native_flow)
         if not job.overwrite and out.is_complete():
             results.append(PairResult(ref.id.key, str(ref.id), "skipped",
                                       weather_seed(job.preset, job.seed, ref.id)))
@@ -417,29 +438,6 @@ def _record(job: RenderJob, results, started: float, seconds: float, stopped_by)
         if stopped_by is not None:
             return                  # an interruption or a bug: let it through as it is
         raise write_error(exc, job.out / MANIFEST, "then rerun with ${resume}") from None
-
-
-def _remove_created_folder(job: RenderJob) -> None:
-    """Undo the folder this run created and wrote nothing into but its bookkeeping.
-
-    Only known files and empty folders are removed, never a tree: whatever else is there stays.
-    """
-    for path in (job.out / MANIFEST, job.out / RENDER_FOLDER.marker,
-                 job.out / MANIFEST_PARTS / RUN_CONFIG, shard_part(job.out, job.shard),
-                 job.out / lock_name(job.shard)):
-        try:
-            path.unlink()
-        except OSError:
-            pass
-    for folder in sorted((p for p in job.out.rglob("*") if p.is_dir()), key=lambda p: -len(p.parts)):
-        try:
-            folder.rmdir()
-        except OSError:
-            pass
-    try:
-        job.out.rmdir()
-    except OSError:
-        pass
 
 
 def _chunks(items: list, size: int) -> list[list]:
@@ -493,4 +491,4 @@ def _run_pool(job, todo, results, on_result):
 POLL_SECONDS = 0.1
 
 
-__all__ = ["RenderJob", "PairResult", "render_batch", "run_render", "prepare_output", "record_run"]
+__all__ = ["RenderJob", "PairResult", "render_batch", "run_render", "record_run"]

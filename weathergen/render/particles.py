@@ -10,7 +10,8 @@ import hashlib
 from pathlib import Path
 from typing import Optional
 
-from ..engine import FieldPreset, Particles, Preset, sample_weather, scene_seed
+from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, Particles, Preset, frame_scaling,
+                      layer_seed, sample_weather, scene_seed)
 from ..framepair import FramePair, PairId
 from ..outputs.reading import load_pair_particles
 
@@ -23,24 +24,47 @@ def pair_seed(run_seed: int, pair_id: PairId) -> int:
 
 def weather_seed(preset, run_seed: int, pair_id: PairId) -> int:
     """The seed a pair's weather is drawn from: the pair's own for the paper's model, the scene's
-    for a weather field (so that the pairs of a scene share one field and their common frames)."""
+    for a weather field (so that the pairs of a scene share one field and their common frames).
+    A combined preset's is the pair's own; each layer has its own (:func:`layer_seeds`)."""
     if isinstance(preset, FieldPreset):
         return scene_seed(run_seed, pair_id.dataset, pair_id.split, pair_id.scene)
     return pair_seed(run_seed, pair_id)
 
 
+def layer_seeds(preset: CombinedPreset, run_seed: int, pair_id: PairId) -> tuple[int, ...]:
+    """The seed of each layer of a combined preset for one pair: derived by the layer's name from
+    the seed its preset alone would get (:func:`weather_seed`), so a field layer is one field over
+    its scene and a paper layer is the pair's own, and the layers never share random numbers."""
+    return tuple(layer_seed(weather_seed(layer, run_seed, pair_id), layer.name)
+                 for layer in preset.layers)
+
+
+def weather_scaling(preset, pair: FramePair) -> Optional[dict]:
+    """How a paper preset's count and size are set for the pair's frame size (the particle
+    metadata's ``frame_scaling`` entry); None for a weather field (world units: nothing scales);
+    for a combined preset ``{"layers": [...]}``, one entry (or None) per layer."""
+    if isinstance(preset, CombinedPreset):
+        return {"layers": [weather_scaling(layer, pair) for layer in preset.layers]}
+    if isinstance(preset, FieldPreset):
+        return None
+    return frame_scaling(preset, *pair.size).to_dict()
+
+
 def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: str = "auto",
-                   particles_from: Optional[Path] = None,
+                   frame_rate: Optional[float] = None, particles_from: Optional[Path] = None,
                    appearance: Optional[dict] = None, preset_name: Optional[str] = None,
-                   sequence: bool = False) -> Particles:
+                   sequence: bool = False) -> Particles | LayeredParticles:
     """The particles of ``pair``: sampled from ``preset`` with the pair's seed (the scene's for a
-    weather field, see :func:`weather_seed`), or, with ``particles_from``, the ones stored there for
+    weather field, see :func:`weather_seed`; a combined preset's layers with :func:`layer_seeds`,
+    as :class:`~weathergen.engine.LayeredParticles`; ``world_up`` and ``frame_rate`` are the
+    dataset's, as its reader declares them), or, with ``particles_from``, the ones stored there for
     the pair (``sequence``: a ``render --sequence`` folder), with the ``appearance`` settings
     replaced (see :func:`weathergen.render.resolve_preset`); they must have been sampled from
     ``preset`` (up to its appearance keys) and, when given, be labelled ``preset_name``."""
     if particles_from is None:
-        return sample_weather(pair, preset, weather_seed(preset, run_seed, pair.id),
-                              world_up=world_up)
+        seed = (layer_seeds(preset, run_seed, pair.id) if isinstance(preset, CombinedPreset)
+                else weather_seed(preset, run_seed, pair.id))
+        return sample_weather(pair, preset, seed, world_up=world_up, frame_rate=frame_rate)
     # stored particles must be of the preset the output is labelled with (the stored manifest's)
     particles = load_pair_particles(particles_from, pair.id, preset_name, preset.to_dict(),
                                     sequence=sequence)

@@ -20,8 +20,9 @@ from typing import Mapping, NamedTuple, Optional
 
 import torch
 
-from ..engine import (APPEARANCE_KEYS, FieldPreset, Preset, RenderSettings, list_presets,
-                      load_preset)
+from ..engine import (APPEARANCE_KEYS, CombinedPreset, FieldPreset, Preset, RenderSettings,
+                      list_presets, load_preset)
+from ..engine.presets import LAYER_JOIN, UNSCALED
 from ..errors import ConfigError
 from ..outputs import read_manifest
 
@@ -47,6 +48,11 @@ def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = Non
     overrides = dict(overrides or {})
     if particles_from is None:
         resolved = load_preset(preset_file or preset, overrides)
+        if isinstance(resolved, CombinedPreset):
+            # sampled and stored by the engine (sample_layers, LayeredParticles), not drawn yet
+            raise ConfigError(f"${{preset}} {resolved.name}: combined presets (layers joined by "
+                              f"{LAYER_JOIN}) are not yet supported by render and attack; "
+                              f"`weathergen presets {resolved.name}` shows how they resolve")
         return ResolvedPreset(resolved, Path(preset_file).stem if preset_file else preset, {})
     # Re-rendering: the sampled particles fix everything but their appearance settings.
     stored = read_manifest(particles_from, "particles_from")
@@ -55,6 +61,8 @@ def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = Non
         raise ConfigError(f"${{overrides}} {', '.join(fixed)}: fixed by the stored particles; only "
                           f"{', '.join(APPEARANCE_KEYS)} can change when re-rendering")
     values = {k: v for k, v in stored.preset.items() if k not in ("name", "source")}
+    if "model" not in values:    # a paper preset: one recorded before frame scaling used it as given
+        values = {**UNSCALED, **values}
     name = stored.preset_name
     base = name if name in list_presets() else "snow"  # every key is set anyway
     resolved = load_preset(base, {**values, **overrides})

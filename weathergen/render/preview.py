@@ -17,9 +17,11 @@ from ..io.images import read_image, to_uint8
 from ..outputs import PairOutput, read_manifest
 
 
-def _tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
-    """Resize a float [0, 1] image to ``size`` (w, h), as uint8 with a caption."""
+def caption_tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
+    """Resize a float [0, 1] image to ``size`` (w, h), as uint8 with a caption (none for "")."""
     out = to_uint8(cv2.resize(img, size, interpolation=cv2.INTER_AREA))
+    if not text:
+        return out
     # A dark outline: the caption itself shifted by one pixel each way (a thicker stroke would
     # advance wider per character and drift away from the white text).
     for dx in (-1, 0, 1):
@@ -74,9 +76,9 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
         original = pair.image1.permute(1, 2, 0).numpy()
         h, w = original.shape[:2]
         size = (width, max(1, round(h * width / w)))
-        tiles = [_tile(original, size, f"{ref.id.scene} {ref.id.frame}"),
-                 _tile(weather, size, manifest.data.get("preset_name", "")),
-                 _tile(np.repeat(opacity[..., None], 3, 2), size, "opacity")]
+        tiles = [caption_tile(original, size, f"{ref.id.scene} {ref.id.frame}"),
+                 caption_tile(weather, size, manifest.data.get("preset_name", "")),
+                 caption_tile(np.repeat(opacity[..., None], 3, 2), size, "opacity")]
         rows.append(np.hstack(tiles))
     if not rows:
         raise WeatherGenError(f"{render_dir}: no complete pair to preview")

@@ -20,12 +20,12 @@ It runs in one of two places:
   number and sizes, and on the CPU each pair's frames are bit for bit those of rendering it alone,
   so both paths give the same frames; CUDA's agree with the CPU's within one grey level.
 
-**Order: weather first, geometric augmentation after.** The presets place a number of *visible*
-particles in the whole frame, with pixel sizes meant for the full frame; rendering into the full
-frame and then cropping keeps that density, while rendering into a crop would pack all particles
-into it. :class:`RandomCrop` and :class:`RandomFlip` (which update the intrinsics and poses, so
-the pair stays a consistent record) therefore come after the weather, on samples or on batches,
-with their own ``(seed, epoch, index)`` draws.
+**Order: weather first, geometric augmentation after.** The weather is drawn for the whole frame
+(a paper preset's count follows the frame's area) and a crop shows part of it, particles just
+outside the crop whose footprints reach in included; an explicit count is per frame, and rendering
+into a crop would pack all of it into the crop. :class:`RandomCrop` and :class:`RandomFlip` (which
+update the intrinsics and poses, so the pair stays a consistent record) therefore come after the
+weather, on samples or on batches, with their own ``(seed, epoch, index)`` draws.
 
 Other weather models plug in as a :class:`WeatherSource`: anything with a ``name``, the name of
 its template library and ``sample(pair, seed, world_up) -> Particles``. Presets of either model
@@ -46,7 +46,9 @@ from typing import Mapping, Optional, Protocol, Sequence, Union, runtime_checkab
 
 import torch
 
-from ..engine import FieldPreset, Preset, load_preset, load_templates, render_pair, sample_weather
+from ..datasets import frame_rate_of
+from ..engine import (CombinedPreset, FieldPreset, Preset, load_preset, load_templates, render_pair,
+                      sample_weather)
 from ..errors import ConfigError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from .datasets import (PairSample, PairSampleBatch, batch_to, collate_pairs, pair_of,
@@ -104,6 +106,10 @@ class WeatherSource(Protocol):
         ...
 
 
+#: Loaded presets of every kind (a combined preset is refused, see :class:`PresetSource`).
+_PRESET_TYPES = (Preset, FieldPreset, CombinedPreset)
+
+
 def preset_digest(preset: Preset) -> str:
     """Eight hex digits that identify a preset's resolved values."""
     text = repr(sorted(preset.to_dict().items()))
@@ -127,7 +133,7 @@ class PresetSource:
 
     def __init__(self, preset: Union[str, Path, Preset, FieldPreset],
                  overrides: Optional[Mapping] = None, name: Optional[str] = None):
-        if isinstance(preset, (Preset, FieldPreset)):
+        if isinstance(preset, _PRESET_TYPES):
             if overrides:
                 raise ConfigError("overrides apply to presets given by name or path, "
                                   "not to a loaded Preset")
@@ -142,6 +148,9 @@ class PresetSource:
                 raise ConfigError(f"preset {preset}: {exc}") from None
             self.name = name or (Path(str(preset)).stem if str(preset).endswith(".toml")
                                  else str(preset))
+        if isinstance(self.preset, CombinedPreset):
+            raise ConfigError(f"preset {self.preset.name}: combined presets (layers joined by +) "
+                              "are not yet supported by WeatherAugment")
         self.templates = self.preset.templates
 
     @property
@@ -150,7 +159,10 @@ class PresetSource:
         return "field" if isinstance(self.preset, FieldPreset) else "paper"
 
     def sample(self, pair: FramePair, seed: int, world_up: str):
+        """The particles of ``pair`` from ``seed``; a field moves at the frame rate of the pair's
+        dataset (its reader's, looked up by the name the pair carries)."""
         return sample_weather(pair, self.preset, seed, world_up=world_up,
+                              frame_rate=frame_rate_of(pair.id.dataset),
                               templates=load_templates(self.templates))
 
     def __repr__(self) -> str:
@@ -158,7 +170,7 @@ class PresetSource:
 
 
 def _is_source(obj) -> bool:
-    return not isinstance(obj, (str, Path, Preset, FieldPreset)) and isinstance(obj, WeatherSource)
+    return not isinstance(obj, (str, Path, *_PRESET_TYPES)) and isinstance(obj, WeatherSource)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -192,7 +204,8 @@ class WeatherAugment:
         p: probability that a sample gets weather (the paper's best training used 0.5 with snow).
         seed: seed of every draw; draws are keyed by ``(seed, epoch, index)``.
         overrides: preset keys changed for every preset given by name or path (for example
-            ``{"count": 1000}`` for frames much smaller than Sintel's).
+            ``{"count": 1000}``: exactly 1000 particles, where a paper preset's own count scales
+            with each frame's area).
         world_up: which world axis points up; ``None`` takes each sample's (its dataset's) setting.
         keep_particles: keep the rendered particle record in :attr:`PairSample.particles`.
 
@@ -203,12 +216,12 @@ class WeatherAugment:
     def __init__(self, presets: Union[str, Preset, WeatherSource, Sequence] = ("snow",),
                  p: float = 0.5, seed: int = 0, *, overrides: Optional[Mapping] = None,
                  world_up: Optional[str] = None, keep_particles: bool = False):
-        single = isinstance(presets, (str, Path, Preset, FieldPreset)) or _is_source(presets)
+        single = isinstance(presets, (str, Path, *_PRESET_TYPES)) or _is_source(presets)
         items = [presets] if single else list(presets)
         if not items:
             raise ConfigError("WeatherAugment needs at least one preset")
         self.sources = [s if _is_source(s) else
-                        PresetSource(s, None if isinstance(s, (Preset, FieldPreset)) else overrides)
+                        PresetSource(s, None if isinstance(s, _PRESET_TYPES) else overrides)
                         for s in items]
         names = [s.name for s in self.sources]
         if len(set(names)) != len(names):

@@ -1,0 +1,199 @@
+"""`weathergen preview OUT --video`: a sequence output played in order, an output of pairs
+alternating frame 1 / frame 2, side by side with the input and the opacity, read back with OpenCV;
+bad inputs as one line, exit 2 and no file."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import cv2
+import numpy as np
+import pytest
+from click.testing import CliRunner
+
+from weathergen.cli.main import _register, cli
+from weathergen.io.gif import read_gif
+from weathergen.io.images import read_image, read_raw, to_uint8
+from weathergen.outputs import read_manifest
+from weathergen.render import output_frame_rate, video_preview
+
+pytestmark = pytest.mark.slow
+
+SEQUENCE = ("--scenes", "street", "--preset", "snow-light", "--set", "far=5", "--sequence")
+PAIRS = ("--scenes", "street", "--frames-per-scene", "2", "--set", "count=300")
+
+
+def run(*args):
+    _register()
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+def one_line_error(res) -> str:
+    assert res.exit_code == 2, res.output
+    assert "Traceback" not in res.output
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), res.output
+    return lines[0]
+
+
+def cv2_frames(path) -> tuple[list[np.ndarray], float]:
+    """Every frame OpenCV decodes (RGB) and the frame rate it reads."""
+    cap = cv2.VideoCapture(str(path))
+    fps = cap.get(cv2.CAP_PROP_FPS)
+    frames = []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(frame[..., ::-1])
+    cap.release()
+    return frames, fps
+
+
+def nearest(frame: np.ndarray, candidates: list[np.ndarray]) -> int:
+    return int(np.argmin([np.abs(frame.astype(int) - c.astype(int)).mean() for c in candidates]))
+
+
+@pytest.fixture(scope="module")
+def sequence_run(tmp_path_factory, demo_root):
+    out = tmp_path_factory.mktemp("video") / "sequence"
+    res = run("render", "--out", out, "-q", "--particle-truth", *SEQUENCE)
+    assert res.exit_code == 0, res.output
+    return out
+
+
+@pytest.fixture(scope="module")
+def pairs_run(tmp_path_factory, demo_root):
+    out = tmp_path_factory.mktemp("video") / "pairs"
+    res = run("render", "--out", out, "-q", *PAIRS)
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def sequence_frames(root) -> list[np.ndarray]:
+    folder = root / "training" / "snow-light_clean" / "street"
+    return [read_raw(folder / f"frame_{n:04d}.png")[..., ::-1] for n in (1, 2, 3, 4)]
+
+
+@pytest.mark.parametrize("suffix", [".mp4", ".gif"])
+def test_a_four_frame_sequence_plays_in_order(sequence_run, tmp_path, suffix):
+    video = tmp_path / f"street{suffix}"
+    res = run("preview", sequence_run, "--video", video, "--no-captions")
+    assert res.exit_code == 0, res.output
+    assert "4 frames of 384x176 at 24 fps" in res.output
+    frames, fps = cv2_frames(video)
+    assert len(frames) == 4 and all(f.shape == (176, 384, 3) for f in frames)
+    assert fps == pytest.approx(24 if suffix == ".mp4" else 25)     # GIF: whole 1/100 s
+    want = sequence_frames(sequence_run)
+    assert [nearest(f, want) for f in frames] == [0, 1, 2, 3]
+    if suffix == ".gif":
+        ours, delays = read_gif(video)
+        assert delays == [4] * 4
+        for a, b, w in zip(ours, frames, want):
+            np.testing.assert_array_equal(a, b)          # our decoder and OpenCV's agree
+            assert np.abs(a.astype(int) - w).mean() < 3    # 256 colours of each frame
+    assert sorted(p.name for p in tmp_path.iterdir()) == [video.name]
+
+
+def test_pairs_alternate_frame_1_and_frame_2(pairs_run, tmp_path):
+    video = tmp_path / "pairs.gif"
+    res = run("preview", pairs_run, "--video", video, "--cycles", "2", "--no-captions")
+    assert res.exit_code == 0, res.output
+    frames, _ = cv2_frames(video)
+    assert len(frames) == 2 * 2 * 2                     # pairs x cycles x (frame 1, frame 2)
+    folder = pairs_run / "training" / "snow_clean"
+    want = [read_raw(folder / f"street_{p:04d}" / f"frame_{p + i:04d}.png")[..., ::-1]
+            for p in (1, 2) for i in (0, 1)]
+    assert [nearest(f, want) for f in frames] == [0, 1, 0, 1, 2, 3, 2, 3]
+    # by default each pair plays for about a second
+    plan = video_preview(pairs_run)
+    assert len(plan.shots) == 2 * 2 * 12 and plan.fps == 24
+
+
+def test_side_by_side_with_the_input_and_the_opacity(sequence_run, tmp_path):
+    from weathergen.datasets import open_dataset
+
+    plan = video_preview(sequence_run, with_input=True, with_opacity=True, captions=False)
+    frames = list(plan.frames())
+    assert plan.size == (3 * 384, 176) and len(frames) == 4
+    ds = open_dataset("demo", scenes=["street"])
+    pairs = [ds.load(ref) for ref in ds.pairs()]
+    clean = [to_uint8(p.image1.permute(1, 2, 0).numpy()) for p in pairs]
+    clean.append(to_uint8(pairs[-1].image2.permute(1, 2, 0).numpy()))
+    for n, (frame, weather) in enumerate(zip(frames, sequence_frames(sequence_run)), 1):
+        np.testing.assert_array_equal(frame[:, :384], clean[n - 1])
+        np.testing.assert_array_equal(frame[:, 384:768], weather)
+        if n < 4:   # the particle opacity of each pair's frame 1, as --particle-truth wrote it
+            truth = read_raw(sequence_run / "training" / "particle_opacity" / "street"
+                             / f"frame_{n:04d}.png") / 65535.0
+            assert np.abs(frame[:, 768:, 0].astype(int) - to_uint8(truth)).max() <= 1
+            assert frame[:, 768:, 0].max() > 100          # there is snow to see
+    # written, it is three tiles wide
+    video = tmp_path / "side.mp4"
+    res = run("preview", sequence_run, "--video", video, "--with-input", "--with-opacity",
+              "--width", "128")
+    assert res.exit_code == 0, res.output
+    back, _ = cv2_frames(video)
+    # tiles 128 x round(176 * 128 / 384) = 128 x 59; MP4 pads the height to 60
+    assert len(back) == 4 and back[0].shape == (60, 384, 3)
+
+
+def test_frame_rate_comes_from_the_dataset_or_the_preset(sequence_run, pairs_run, tmp_path):
+    assert output_frame_rate(read_manifest(sequence_run, "preview")) == 24
+    copy = tmp_path / "kitti-like"
+    shutil.copytree(pairs_run, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["input"]["dataset"] = "kitti"
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    assert output_frame_rate(read_manifest(copy, "preview")) == 10
+    manifest["preset"].update(model="field", frame_rate=30.0)
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    assert output_frame_rate(read_manifest(copy, "preview")) == 30
+    video = tmp_path / "slow.mp4"
+    res = run("preview", sequence_run, "--video", video, "--fps", "5")
+    assert res.exit_code == 0 and "at 5 fps (0.8 s)" in res.output
+    assert cv2_frames(video)[1] == pytest.approx(5)
+
+
+def test_the_contact_sheet_stays_the_default(pairs_run):
+    res = run("preview", pairs_run)
+    assert res.exit_code == 0, res.output
+    assert read_image(pairs_run / "preview.png").shape[1] == 3 * 480
+
+
+@pytest.mark.parametrize("args,message", [
+    (("--video", "{tmp}/v.avi"), "--video {tmp}/v.avi: unknown video format '.avi'; use .mp4 or .gif"),
+    (("--video", "{tmp}/v"), "unknown video format '(no extension)'"),
+    (("--video", "{tmp}/file/v.mp4"), "{tmp}/file: cannot write"),
+    (("--video", "{tmp}/v.mp4", "--out", "{tmp}/s.png"), "--out names the contact sheet"),
+    (("--with-opacity",), "--with-opacity applies to --video only"),
+    (("--video", "{tmp}/v.gif", "--cycles", "2"), "--cycles applies to outputs of pairs"),
+], ids=["extension", "no-extension", "parent-is-a-file", "out-and-video", "flag-without-video",
+        "cycles-of-a-sequence"])
+def test_bad_options_are_one_line_and_write_nothing(sequence_run, tmp_path, args, message):
+    (tmp_path / "file").write_text("a file, not a folder")
+    line = one_line_error(run("preview", sequence_run,
+                              *[a.format(tmp=tmp_path) for a in args]))
+    assert message.format(tmp=tmp_path) in line
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["file"]
+
+
+def test_a_folder_that_is_not_a_render_output(tmp_path):
+    (tmp_path / "photos").mkdir()
+    line = one_line_error(run("preview", tmp_path / "photos", "--video", tmp_path / "v.mp4"))
+    assert "preview takes the folder of a render output" in line
+    assert not (tmp_path / "v.mp4").exists()
+
+
+def test_an_input_that_changed_mid_video_leaves_no_file(sequence_run, tmp_path):
+    # the recorded input now holds the scene's first pair only: the video fails at its second frame
+    copy = tmp_path / "changed"
+    shutil.copytree(sequence_run, copy)
+    manifest = json.loads((copy / "manifest.json").read_text())
+    manifest["input"]["frames_per_scene"] = 1
+    (copy / "manifest.json").write_text(json.dumps(manifest))
+    video = tmp_path / "out" / "v.mp4"
+    line = one_line_error(run("preview", copy, "--video", video, "--with-input"))
+    assert "the recorded input has no pair demo/training/street/0002" in line
+    assert not video.parent.exists() or list(video.parent.iterdir()) == []

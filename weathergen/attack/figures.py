@@ -1,0 +1,84 @@
+"""Figures by region and KITTI's outlier rates of one weather flow, and their means over pairs.
+
+For a pair with clean-frame flow ``f``, weather-frame flow ``f̌``, the weather's opacity in both
+frames and (where the dataset has it) ground truth ``gt``:
+
+- ``aee_weather_px`` / ``aee_clear_px``: AEE(f, f̌) over the pixels the weather covers (opacity
+  above :data:`~weathergen.flow.WEATHER_OPACITY_THRESHOLD` in frame 1 or 2) / over the rest;
+- ``epe_weather_px`` / ``epe_clear_px``: EPE(f̌, gt) over the same regions (valid pixels only);
+- ``fl_all``: KITTI's Fl-all of f̌ (percent of valid pixels with an error above 3 px and 5 % of
+  the ground truth's length); ``outliers_1px``, ``outliers_3px``, ``outliers_5px``: percent of
+  valid pixels with an error above 1, 3, 5 px;
+- ``weather_coverage``: the percentage of pixels the weather covers.
+
+A figure over an empty region, or needing ground truth that the pair lacks, is None. Means over
+pairs: region figures are means over the pairs that have them; outlier rates pool the valid
+pixels of all pairs (``gt_valid_px`` per pair), as KITTI's evaluation counts them.
+"""
+
+from __future__ import annotations
+
+from typing import Mapping, Optional, Sequence
+
+import torch
+
+from ..flow import aee, fl_all, outlier_rate
+
+#: Per-pair figures averaged over pairs.
+REGION_KEYS = ("aee_weather_px", "aee_clear_px", "epe_weather_px", "epe_clear_px",
+               "weather_coverage")
+#: Per-pair outlier rates, pooled over the pairs' valid pixels.
+OUTLIER_KEYS = ("fl_all", "outliers_1px", "outliers_3px", "outliers_5px")
+FIGURE_KEYS = REGION_KEYS + OUTLIER_KEYS
+
+
+def _masked(flow, target, mask) -> Optional[float]:
+    if not bool(mask.any()):
+        return None
+    return float(aee(flow, target, mask)[0])
+
+
+def region_figures(clean: torch.Tensor, weather: torch.Tensor,
+                   covered: Optional[torch.Tensor] = None, gt: Optional[torch.Tensor] = None,
+                   valid: Optional[torch.Tensor] = None) -> dict:
+    """The figures of :data:`FIGURE_KEYS` for one pair, plus ``gt_valid_px`` (None without gt).
+
+    Shape: clean, weather (1, 2, H, W) pixels; covered (H, W) bool, the weather's pixels (None:
+    no weather, e.g. an Lp perturbation); gt (2, H, W); valid (1, H, W) bool (None: all valid).
+    """
+    clean, weather = clean.detach().cpu().float(), weather.detach().cpu().float()
+    h, w = clean.shape[-2:]
+    covered = (torch.zeros(h, w, dtype=torch.bool) if covered is None
+               else covered.detach().cpu().reshape(h, w).bool())[None]          # (1, H, W)
+    out: dict = {key: None for key in FIGURE_KEYS}
+    out["gt_valid_px"] = None
+    out["aee_weather_px"] = _masked(weather, clean, covered)
+    out["aee_clear_px"] = _masked(weather, clean, ~covered)
+    out["weather_coverage"] = 100.0 * float(covered.float().mean())
+    if gt is None:
+        return out
+    gt = gt.detach().cpu().float()[None]
+    ok = (torch.ones(1, h, w, dtype=torch.bool) if valid is None
+          else valid.detach().cpu().reshape(1, h, w).bool())
+    out["gt_valid_px"] = int(ok.sum())
+    out["epe_weather_px"] = _masked(weather, gt, ok & covered)
+    out["epe_clear_px"] = _masked(weather, gt, ok & ~covered)
+    if out["gt_valid_px"]:
+        out["fl_all"] = float(fl_all(weather, gt, ok)[0])
+        for px in (1, 3, 5):
+            out[f"outliers_{px}px"] = float(outlier_rate(weather, gt, float(px), ok)[0])
+    return out
+
+
+def mean_figures(rows: Sequence[Mapping]) -> dict:
+    """Means over pairs of :data:`FIGURE_KEYS` (see the module doc); None where no pair has one."""
+    out: dict = {}
+    for key in REGION_KEYS:
+        values = [r[key] for r in rows if r.get(key) is not None]
+        out[key] = sum(values) / len(values) if values else None
+    for key in OUTLIER_KEYS:
+        pairs = [(r[key], r["gt_valid_px"]) for r in rows
+                 if r.get(key) is not None and r.get("gt_valid_px")]
+        total = sum(n for _, n in pairs)
+        out[key] = sum(v * n for v, n in pairs) / total if total else None
+    return out

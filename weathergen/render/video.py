@@ -1,0 +1,216 @@
+"""Video previews of a render output: its weather frames played at the dataset's frame rate.
+
+A ``--sequence`` output plays each scene's frames in order, scene after scene; an output of pairs
+plays each pair's frame 1 and frame 2 alternating (``cycles`` times), pair after pair, so that the
+particles' frame-to-frame motion is seen as a flow network sees it. Beside each weather frame the
+clean input frame and the particles' opacity may be shown (input | weather | opacity, as on the
+contact sheet). The frame rate is the dataset's (its reader's ``frame_rate``, for the input the
+manifest records), or a field preset's own ``frame_rate`` when it sets one.
+
+:func:`video_preview` plans the video (which frames, how large, how fast) without reading any
+image; :meth:`VideoPreview.frames` reads, composes and yields them one at a time, so memory does
+not grow with the output's length; :func:`weathergen.io.video.write_video` writes them.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Iterator, Optional
+
+import cv2
+import numpy as np
+import torch
+
+from ..datasets import Dataset, frame_rate_of, reopen_dataset
+from ..engine import Particles, render_pair
+from ..errors import ConfigError, DatasetError
+from ..framepair import FramePair, PairId
+from ..io.exr import read_exr
+from ..io.images import read_image
+from ..outputs import OutputManifest, PairOutput, WeatherFolder, read_manifest, read_metadata
+from .preview import caption_tile
+
+
+def output_frame_rate(manifest: OutputManifest) -> float:
+    """Frames per second of an output's input: a field preset's ``frame_rate`` when it sets one,
+    else the dataset's (:func:`~weathergen.datasets.frame_rate_of`; 30 for an unknown one)."""
+    preset = manifest.preset
+    if preset.get("model") == "field" and float(preset.get("frame_rate") or 0) > 0:
+        return float(preset["frame_rate"])
+    return frame_rate_of(manifest.input.get("dataset", ""))
+
+
+@dataclass(frozen=True)
+class Shot:
+    """One frame of the video: frame 1 (``second`` False) or frame 2 of a pair."""
+
+    pair: PairId
+    second: bool = False
+
+    @property
+    def frame(self) -> int:
+        """The frame's number in its scene (as in the file names)."""
+        return self.pair.frame + int(self.second)
+
+
+@dataclass
+class VideoPreview:
+    """A planned video of a render output (see the module doc).
+
+    ``shots`` lists the video's frames in order; every frame is ``size`` (width, height) pixels:
+    one tile per shown column (input, weather, opacity) of ``tile`` (width, height).
+    """
+
+    folder: Path
+    manifest: OutputManifest
+    shots: list[Shot]
+    fps: float
+    tile: tuple[int, int]
+    with_input: bool = False
+    with_opacity: bool = False
+    captions: bool = True
+    sequence: bool = False
+    pairs: int = 0                                 # pairs shown
+    total: int = 0                                 # complete pairs in the output
+    _input: Optional[tuple[Dataset, dict]] = field(default=None, repr=False)   # opened on first use
+
+    @property
+    def columns(self) -> int:
+        return 1 + int(self.with_input) + int(self.with_opacity)
+
+    @property
+    def size(self) -> tuple[int, int]:
+        """(width, height) of a video frame."""
+        return self.tile[0] * self.columns, self.tile[1]
+
+    @property
+    def seconds(self) -> float:
+        return len(self.shots) / self.fps
+
+    def frames(self) -> Iterator[np.ndarray]:
+        """The video's frames in order. Shape: each (H, W, 3) uint8 RGB, ``size`` pixels."""
+        cached: Optional[tuple[PairId, dict]] = None
+        for shot in self.shots:
+            if cached is None or cached[0] != shot.pair:
+                cached = (shot.pair, self._pair_tiles(shot.pair))
+            yield cached[1][shot.second]
+
+    def _pair_tiles(self, pair_id: PairId) -> dict[bool, np.ndarray]:
+        """The composed video frames of one pair that the video shows (frame 1 under False,
+        frame 2 under True)."""
+        m = self.manifest
+        out = PairOutput.of(self.folder, pair_id, m.pass_name, m.fmt, sequence=self.sequence)
+        shown = sorted({s.second for s in self.shots if s.pair == pair_id})
+        exr = m.fmt == "exr"
+        pair = None
+        if self.with_input or (self.with_opacity and not exr):
+            pair = self._dataset_pair(pair_id)
+        opacity = {}
+        if self.with_opacity and exr:         # stored beside the colour
+            opacity = {s: read_exr(out.frames_exr[int(s)])["opacity"] for s in shown}
+        elif self.with_opacity:               # re-rendered from the stored particles (exact)
+            with torch.no_grad():
+                rendered = render_pair(pair, Particles.load(out.metadata))
+            opacity = {False: rendered.opacity1[0, 0].numpy(), True: rendered.opacity2[0, 0].numpy()}
+        preset = str(m.preset_name)
+        tiles = {}
+        for second in shown:
+            label = f"{pair_id.scene} {pair_id.frame + int(second)}" if self.captions else ""
+            row = []
+            if self.with_input:
+                clean = (pair.image2 if second else pair.image1).permute(1, 2, 0).numpy()
+                row.append(caption_tile(clean, self.tile, label))
+            weather = (np.clip(read_exr(out.frames_exr[int(second)])["RGB"], 0, 1) if exr
+                       else read_image(out.frames_png[int(second)]))
+            text = (preset if self.with_input else f"{label}  {preset}") if self.captions else ""
+            row.append(caption_tile(weather, self.tile, text))
+            if self.with_opacity:
+                alpha = np.clip(opacity[second], 0, 1)
+                row.append(caption_tile(np.repeat(alpha[..., None], 3, 2), self.tile,
+                                        "opacity" if self.captions else ""))
+            tiles[second] = np.hstack(row)
+        return tiles
+
+    def _dataset_pair(self, pair_id: PairId) -> FramePair:
+        """The clean pair from the input the manifest records (opened on first use)."""
+        if self._input is None:
+            ds = reopen_dataset(self.manifest.input)
+            self._input = (ds, {ref.id: ref for ref in ds.pairs()})
+        ds, refs = self._input
+        if pair_id not in refs:
+            raise DatasetError(f"{self.manifest.input.get('root')}: the recorded input has no pair "
+                               f"{pair_id} (moved or changed since the render?)")
+        return ds.load(refs[pair_id])
+
+
+def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
+                  cycles: Optional[int] = None, fps: Optional[float] = None,
+                  with_input: bool = False, with_opacity: bool = False,
+                  width: Optional[int] = None, captions: bool = True) -> VideoPreview:
+    """Plan the video of a render output (see the module doc).
+
+    ``pairs``: only the first complete pairs (default all); ``cycles``: how often an output of
+    pairs shows frame 1 and frame 2 of each pair (default: for one second, ``round(fps / 2)``;
+    a ``--sequence`` output plays each frame once and refuses it); ``fps``: the frame rate
+    (default the dataset's, :func:`output_frame_rate`); ``width``: of each tile, in pixels (default
+    the frames' own); ``with_input`` / ``with_opacity``: show the clean input frame and the
+    particles' opacity beside the weather frame; ``captions``: scene, frame and preset on the tiles.
+
+    Raises ConfigError for a folder that is not a render output or a bad option (named), and
+    DatasetError when it holds no complete pair.
+    """
+    render_dir = Path(render_dir)
+    manifest = read_manifest(render_dir, "preview")
+    if pairs is not None and pairs < 1:
+        raise ConfigError(f"${{pairs}} {pairs}: must be >= 1")
+    if width is not None and width < 16:
+        raise ConfigError(f"${{width}} {width}: must be >= 16 pixels")
+    if fps is not None and not fps > 0:
+        raise ConfigError(f"${{fps}} {fps!r}: must be > 0")
+    rate = float(fps) if fps is not None else output_frame_rate(manifest)
+    sequence = manifest.sequence
+    if sequence and cycles is not None:
+        raise ConfigError("${cycles} applies to outputs of pairs; a --sequence output plays its "
+                          "frames in order")
+    if cycles is not None and cycles < 1:
+        raise ConfigError(f"${{cycles}} {cycles}: must be >= 1")
+    folder = WeatherFolder.open(render_dir)
+    complete = folder.pairs
+    chosen = complete if pairs is None else complete[:pairs]
+    shots: list[Shot] = []
+    if sequence:
+        starts = {(p.scene, p.frame) for p in chosen}
+        for p in chosen:
+            shots.append(Shot(p))
+            if (p.scene, p.frame + 1) not in starts and _wrote_second_frame(render_dir, manifest, p):
+                shots.append(Shot(p, True))
+    else:
+        repeat = cycles if cycles is not None else max(1, round(rate / 2))
+        for p in chosen:
+            shots += [Shot(p), Shot(p, True)] * repeat
+    first = PairOutput.of(render_dir, chosen[0], manifest.pass_name, manifest.fmt,
+                          sequence=sequence)
+    h, w = _frame_size(first, manifest.fmt)
+    tile = (w, h) if width is None else (int(width), max(1, round(h * width / w)))
+    return VideoPreview(render_dir, manifest, shots, rate, tile, with_input, with_opacity,
+                        captions, sequence, len(chosen), len(complete))
+
+
+def _wrote_second_frame(root: Path, manifest: OutputManifest, pair_id: PairId) -> bool:
+    """Whether a sequence output's pair wrote its second frame (the last pair of a scene does)."""
+    out = PairOutput.of(root, pair_id, manifest.pass_name, manifest.fmt, sequence=True)
+    listed = set(json.loads(str(read_metadata(out.metadata)["files"])))
+    second = out.frames_png[1] if manifest.fmt in ("png", "both") else out.frames_exr[1]
+    return str(second.relative_to(root)) in listed
+
+
+def _frame_size(out: PairOutput, fmt: str) -> tuple[int, int]:
+    """(height, width) of a pair's weather frames, read from the first frame's header."""
+    if fmt in ("png", "both"):
+        img = cv2.imread(str(out.frames_png[0]), cv2.IMREAD_UNCHANGED)
+        if img is None:
+            return read_image(out.frames_png[0]).shape[:2]    # names the file in its error
+        return img.shape[:2]
+    return read_exr(out.frames_exr[0])["RGB"].shape[:2]
