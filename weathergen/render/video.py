@@ -36,7 +36,7 @@ from .preview import caption_tile
 def output_frame_rate(manifest: OutputManifest) -> float:
     """Frames per second of an output's input: a field preset's ``frame_rate`` when it sets one,
     else the dataset's (:func:`~weathergen.datasets.frame_rate_of`; 30 for an unknown one)."""
-    preset = manifest.preset
+    preset = manifest.preset or {}          # an Lp attack has none
     if preset.get("model") == "field" and float(preset.get("frame_rate") or 0) > 0:
         return float(preset["frame_rate"])
     return frame_rate_of(manifest.input.get("dataset", ""))
@@ -169,6 +169,9 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
         raise ConfigError(f"${{width}} {width}: must be >= 16 pixels")
     if fps is not None and not fps > 0:
         raise ConfigError(f"${{fps}} {fps!r}: must be > 0")
+    if with_opacity and not manifest.holds_particles:
+        raise ConfigError(f"${{with_opacity}}: {render_dir} holds no particles to show (an Lp "
+                          f"attack, {manifest.preset_name}, perturbs the frames themselves)")
     rate = float(fps) if fps is not None else output_frame_rate(manifest)
     sequence = manifest.sequence
     if sequence and cycles is not None:
