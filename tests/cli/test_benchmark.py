@@ -54,15 +54,19 @@ def test_tables_equal_the_per_run_summaries(bench, raft_small_weights):
     rows = {r["label"]: r for r in doc["rows"]}
     for label, s in (("snow", snow), ("grey-color", grey), ("ifgsm", ifgsm)):
         for key in ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
-                    "aee_weather_px", "aee_clear_px", "fl_all", "outliers_3px", "compat"):
+                    "aee_weather_px", "aee_clear_px", "fl_all", "outliers_3px", "compat", "amp"):
             assert rows[label][key] == s[key], (label, key)
         assert rows[label]["pairs"] == 1
     assert rows["snow"]["fl_all"] is not None and rows["snow"]["compat"] == "paper"
     assert doc["settings"]["compat"] == "paper"
+    # mixed precision as each run resolved it (off on the CPU), and as it was asked for
+    assert rows["snow"]["amp"] is False and rows["ifgsm"]["amp"] is False
+    assert doc["settings"]["amp"] is None
     with open(out / "results.csv", newline="") as fh:
         csv_rows = {r["label"]: r for r in csv.DictReader(fh)}
     assert float(csv_rows["ifgsm"]["aee_adversarial"]) == pytest.approx(ifgsm["aee_adversarial"])
     assert float(csv_rows["snow"]["aee_weather_px"]) == pytest.approx(snow["aee_weather_px"])
+    assert csv_rows["snow"]["amp"] == "False"
     # network and checkpoint recorded
     (net,) = doc["networks"]
     assert net["network"] == "raft-small" and net["checkpoint"] == str(raft_small_weights)

@@ -2,7 +2,8 @@
 
 Files written into the benchmark folder (all atomically)::
 
-    OUT/results.csv         one row per cell: network, kind, label, pairs, the mean figures, checkpoint
+    OUT/results.csv         one row per cell: network, kind, label, pairs, the mean figures, the
+                            attack mode and mixed precision it ran with, checkpoint
     OUT/results.json        the same rows, plus the networks (checkpoint and sha256), the input
                             selection, the settings and the weathergen version
     OUT/tables.md           every table in Markdown
@@ -49,8 +50,8 @@ from .plot import draw_aee
 
 FIGURES = ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
            "epe_benign", "epe_random", "epe_adversarial") + FIGURE_KEYS
-COLUMNS = ("network", "kind", "label", "pairs") + FIGURES + ("compat", "checkpoint", "sha256",
-                                                               "folder")
+COLUMNS = ("network", "kind", "label", "pairs") + FIGURES + ("compat", "amp", "checkpoint",
+                                                               "sha256", "folder")
 LP_NAMES = {"pcfa": "PCFA", "ifgsm": "I-FGSM"}
 #: The families of the paper's Table 1: preset-name prefix, heading (Markdown, LaTeX).
 FAMILIES = (("particles-", "Particles", "Particles"),
@@ -94,6 +95,7 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
         for key in FIGURES:
             row[key] = summary.get(key) if summary else None
         row.update(compat=summary.get("compat") if summary else None,
+                   amp=summary.get("amp") if summary else None,
                    checkpoint=records[cell.network]["checkpoint"],
                    sha256=records[cell.network]["sha256"],
                    folder=str(folder.relative_to(spec.out)))
@@ -337,7 +339,7 @@ def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
                 "networks": [checkpoint_record(n, spec.checkpoints.get(n)) for n in networks],
                 "settings": {"weather_steps": spec.steps, "lp_steps": spec.lp_steps,
                              "iters": spec.iters, "overrides": dict(spec.overrides),
-                             "compat": spec.compat},
+                             "compat": spec.compat, "amp": spec.amp},
                 "rows": rows}
     tables = build_tables(rows, networks)
     caption = captions(spec)
