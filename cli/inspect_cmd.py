@@ -11,6 +11,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from weathergen.datasets import frame_rates_text
 from weathergen.engine import FrameScaling
 from weathergen.engine.layers import layer_arrays
 from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, stored_values
@@ -138,8 +139,8 @@ def _ranges(arrays: dict, title: str) -> Table:
 @click.option("--with-opacity", is_flag=True,
               help="--video: show the particles' opacity right of the weather frame.")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="--video: frames per second. Default: the dataset's (sintel, spring, demo 24; "
-                   "kitti 10; custom 30) or a field preset's frame_rate.")
+              help=f"--video: frames per second. Default: the dataset's ({frame_rates_text()}) "
+                   "or a field preset's frame_rate.")
 @click.option("--cycles", type=click.IntRange(min=1), default=None,
               help="--video of pairs: how often each pair shows frame 1 and frame 2. "
                    "Default: for one second.")
