@@ -14,7 +14,6 @@ not grow with the output's length; :func:`weathergen.io.video.write_video` write
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional
@@ -29,7 +28,7 @@ from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.exr import read_exr
 from ..io.images import read_image
-from ..outputs import OutputManifest, PairOutput, WeatherFolder, read_manifest, read_metadata
+from ..outputs import OutputManifest, PairOutput, WeatherFolder, read_manifest
 from .preview import caption_tile
 
 
@@ -204,9 +203,8 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
 def _wrote_second_frame(root: Path, manifest: OutputManifest, pair_id: PairId) -> bool:
     """Whether a sequence output's pair wrote its second frame (the last pair of a scene does)."""
     out = PairOutput.of(root, pair_id, manifest.pass_name, manifest.fmt, sequence=True)
-    listed = set(json.loads(str(read_metadata(out.metadata)["files"])))
     second = out.frames_png[1] if manifest.fmt in ("png", "both") else out.frames_exr[1]
-    return str(second.relative_to(root)) in listed
+    return second in out.listed_files()
 
 
 def _frame_size(out: PairOutput, fmt: str) -> tuple[int, int]:
