@@ -197,6 +197,13 @@ def test_bad_options_fail_before_writing(tmp_path):
     assert not out.exists()
     result = invoke(["benchmark", "--lp", "fgsm", "--presets", "", "--out", out])
     assert result.exit_code == 2 and "fgsm" in result.output
+    # the benchmark's own options are named, not the attack's (--method, --preset)
+    assert result.output.strip() == "Error: --lp 'fgsm': expected pcfa, ifgsm"
+    result = invoke(["benchmark", "--presets", "snow,rain-heavy+fog-light", "--lp", "",
+                     "--out", out])
+    assert result.exit_code == 2
+    assert result.output.strip() == ("Error: --presets 'rain-heavy+fog-light': combined presets "
+                                     "(layers joined by +) are not yet supported by benchmark")
     result = invoke(["benchmark", "--checkpoint", "raft", "--out", out])
     assert result.exit_code == 2 and "NETWORK=FILE_OR_NAME" in result.output
     result = invoke(["benchmark", "--networks", "raft-small", "--amp", "--out", out])
