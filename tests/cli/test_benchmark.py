@@ -175,6 +175,27 @@ def test_latex_escapes_and_markdown_pipes():
     assert "| alpha-blue | **3.00** | – |" in md
 
 
+def test_optimvariables_marks_the_worst_bold_and_the_second_worst_underlined():
+    """Table 2 as the paper marks it, per column: the worst configuration bold, the second worst
+    underlined; the Initial row (random particles) takes part in neither, however large."""
+    from weathergen.benchmark import build_tables, latex_table, markdown_table
+
+    figures = {"grey-offset1": (9.0, 5.0, 7.0), "grey-offset2": (9.0, 6.0, 6.0),
+               "grey-color": (9.0, 4.0, 8.0)}      # (random, adversarial net a, net b)
+    rows = [{"network": net, "kind": "weather", "label": label, "aee_random": v[0],
+             "aee_adversarial": v[1 + i]}
+            for i, net in enumerate(("a", "b")) for label, v in figures.items()]
+    (table,) = [t for t in build_tables(rows, ["a", "b"]) if t.name == "optimvariables"]
+    md = markdown_table(table, "c")
+    assert "| Initial | 9.00 | 9.00 |" in md
+    assert "| δ1 (grey-offset1) | <u>5.00</u> | <u>7.00</u> |" in md
+    assert "| δ2 (grey-offset2) | **6.00** | 6.00 |" in md
+    assert "| δc (grey-color) | 4.00 | **8.00** |" in md
+    tex = latex_table(table, "c")
+    assert r"$\delta_{2}$ (grey-offset2) & \textbf{6.00} & 6.00 \\" in tex
+    assert r"$\delta_{1}$ (grey-offset1) & \underline{5.00} & \underline{7.00} \\" in tex
+
+
 def test_rerun_resumes_without_redoing(bench, raft_small_weights):
     out, _ = bench
     before = {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*.png")}
