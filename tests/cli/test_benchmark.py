@@ -82,8 +82,9 @@ def test_tables_equal_the_per_run_summaries(bench, raft_small_weights):
         assert f"| {name} | {shown} |" in md
         shown = r"\textbf{" + f(value) + "}" if value == worst else f(value)
         assert f"{name} & {shown} \\\\" in tex
-    # Table 1: the random weather of each preset (one row: the worst).
-    assert f"| snow | **{f(snow['aee_random'])}** |" in md
+    # Table 1: the random weather of each preset; snow is the paper's Particles row 3000.
+    augmentations = (out / "tables" / "augmentations.md").read_text()
+    assert f"| **Particles** |  |\n| 3000 (snow) | **{f(snow['aee_random'])}** |" in augmentations
     # Table 2: Initial (not ranked) above the configuration's adversarial figure.
     assert f"| Initial | {f(grey['aee_random'])} |" in md
     assert f"| δc (grey-color) | **{f(grey['aee_adversarial'])}** |" in md
@@ -173,6 +174,35 @@ def test_latex_escapes_and_markdown_pipes():
     md = markdown_table(tables["weatherattacks"], "c")
     assert r"| my_preset%#\| | 1.00 | **2.00** |" in md
     assert "| alpha-blue | **3.00** | – |" in md
+
+
+def test_augmentations_are_the_papers_families_each_with_its_worst_bold():
+    """Table 1 as the paper lays it out: families in the paper's order under their headings, the
+    main augmentations in their families' rows, the worst of each family bold (rows alone in their
+    family are ranked with one another)."""
+    from weathergen.benchmark import build_tables, latex_table, markdown_table
+
+    figures = {"fog": 1.0, "snow": 2.0, "rain": 3.0, "sparks": 4.0, "particles-1000": 1.5,
+               "particles-5000": 7.0, "motion-blur-0.0375": 2.5, "own-preset": 0.5}
+    rows = [{"network": "a", "kind": "weather", "label": label, "aee_random": v,
+             "aee_adversarial": None} for label, v in figures.items()]
+    (table,) = [t for t in build_tables(rows, ["a"]) if t.name == "augmentations"]
+    md = markdown_table(table, "c").split("\n")
+    body = [line for line in md[md.index("| --- | ---: |") + 1:] if line]
+    assert body == ["| own-preset | 0.50 |",
+                    "| **Particles** |  |", "| 3000 (snow) | 2.00 |", "| 1000 | 1.50 |",
+                    "| 5000 | **7.00** |",
+                    "| **Motion blur** |  |", "| 0.15 (rain) | **3.00** |", "| 0.0375 | 2.50 |",
+                    "| **Color additive** |  |", "| red (sparks) | **4.00** |",
+                    "| **Size** |  |", "| fog | 1.00 |"]
+    tex = latex_table(table, "c")
+    assert "\\emph{Particles}} \\\\\n3000 (snow) & 2.00 \\\\\n1000 & 1.50" in tex
+    from weathergen.engine import load_preset
+
+    for main, member in (("snow", "particles-3000"), ("rain", "motion-blur-0.15"),
+                         ("sparks", "additive-red"), ("fog", "size-fog")):
+        a, b = load_preset(main).to_dict(), load_preset(member).to_dict()
+        assert {k for k in a if a[k] != b[k]} <= {"name", "source", "description"}, main
 
 
 def test_optimvariables_marks_the_worst_bold_and_the_second_worst_underlined():
