@@ -9,6 +9,9 @@
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 #   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
 #                              in a separate environment (.venv-oldest)
+#   make gpu-check             on a machine with CUDA (with TORCH=torch, a CUDA build): every CUDA
+#                              test and GPU benchmark, one table (figures in out/gpu-check.json);
+#                              without CUDA it says so in one line and stops
 
 PYTHON ?= python3
 VENV   ?= .venv
@@ -22,7 +25,7 @@ TORCH_STAMP := $(VENV)/.weathergen-torch
 
 OLDEST ?= .venv-oldest
 
-.PHONY: venv install test test-oldest demo bench clean FORCE
+.PHONY: venv install test test-oldest demo bench gpu-check clean FORCE
 
 venv: $(STAMP)
 
@@ -79,6 +82,12 @@ bench: install
 	$(BIN)/python benchmarks/bench_batch.py
 	if $(BIN)/python -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then \
 	  $(BIN)/python benchmarks/bench_batch.py --device cuda --models raft --batch-sizes 1 4 8 --steps 5; fi
+
+# The probe needs torch alone, so that a machine without CUDA is told at once, before any install.
+gpu-check: $(TORCH_STAMP)
+	@$(BIN)/python benchmarks/gpu_check.py --probe
+	$(MAKE) --no-print-directory install
+	$(BIN)/python benchmarks/gpu_check.py --json out/gpu-check.json
 
 clean:
 	rm -rf $(VENV) $(OLDEST) build *.egg-info out

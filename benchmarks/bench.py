@@ -2,7 +2,8 @@
 
 Prints, per main preset: sampling time, render time (forward, no gradient), forward + backward
 time (gradients for both offsets, colour and transparency, beta = 30), peak resident memory
-during the forward + backward, and the metadata bytes of one pair; then how the render time grows
+during the forward + backward, and the bytes of the pair's metadata file as a render writes it
+(the particle record, the pair's identity and file list); then how the render time grows
 with the particle count and with the number of motion-blur samples. Times are medians of a few
 runs. A benchmark, not a test: nothing here fails on slow machines.
 
@@ -16,6 +17,7 @@ for large billboards.
 
 from __future__ import annotations
 
+import json
 import os
 import statistics
 import sys
@@ -23,6 +25,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
@@ -30,6 +33,8 @@ from engine_scenes import plane_pair, pose, rotation  # noqa: E402
 
 from weathergen.engine import (BETA_ATTACK, load_preset, render_pair,  # noqa: E402
                                sample_particles)
+from weathergen.framepair import PairId  # noqa: E402
+from weathergen.outputs import PairOutput, pair_metadata, write_metadata  # noqa: E402
 
 HEIGHT, WIDTH = 436, 1024
 REPEATS = int(os.environ.get("BENCH_REPEATS", "5"))
@@ -86,6 +91,18 @@ def forward_backward(pair, parts, **kw):
     (out.image1.sum() + out.image2.sum()).backward()
 
 
+def metadata_bytes(parts, preset, name: str) -> int:
+    """Size of the metadata file a render writes for a Sintel pair with these particles."""
+    pair_id = PairId("sintel", "training", "ambush_2", 1)
+    with tempfile.TemporaryDirectory() as tmp:
+        out = PairOutput.of(tmp, pair_id, f"{name}_clean", "png", geometry=True)
+        meta = pair_metadata(parts, pair_id, 1234567890123, preset.to_dict(), name)
+        meta["visible1"] = meta["visible2"] = np.array(parts.count, np.int64)
+        meta["files"] = np.array(json.dumps([str(p.relative_to(tmp))
+                                             for p in out.files(with_flow=True)]))
+        return write_metadata(out.metadata, meta).stat().st_size
+
+
 def main():
     torch.set_num_threads(int(os.environ.get("BENCH_THREADS", "1")))
     pair = scene()
@@ -106,8 +123,7 @@ def main():
         reset_peak_rss()
         forward_backward(pair, parts)
         peak = peak_rss_mib()
-        with tempfile.TemporaryDirectory() as tmp:
-            size = parts.save(Path(tmp) / "p.npz").stat().st_size
+        size = metadata_bytes(parts, preset, name)
         figures[name] = (sample_s, render_s, fb_s, size)
         print(f"{name:8} {parts.count:6d} {sample_s:9.3f} {render_s:9.3f} {fb_s:10.3f} "
               f"{fb_s / render_s:8.2f} {peak:9.0f} {size / 1000:8.1f}   "

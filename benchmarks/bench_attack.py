@@ -24,14 +24,16 @@ import bench_options
 
 def synthetic_pair(width: int, height: int):
     """A frame pair with depth 2..12 scene units (top to bottom: far to near), camera 1 as the
-    reference, camera 2 moved 0.05 units to the right."""
+    reference, camera 2 moved 0.05 units to the right; the focal length (1120 px at 1024 wide)
+    scales with the width, so that every size sees the same field of view."""
     import torch
 
     from weathergen.framepair import FramePair, PairId
 
     g = torch.Generator().manual_seed(0)
     rows = torch.linspace(12.0, 2.0, height).view(1, height, 1).expand(1, height, width)
-    k = torch.tensor([[1120.0, 0, (width - 1) / 2], [0, 1120.0, (height - 1) / 2], [0, 0, 1]],
+    f = 1120.0 * width / 1024
+    k = torch.tensor([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]],
                      dtype=torch.float64)
     move = torch.eye(4, dtype=torch.float64)
     move[0, 3] = -0.05

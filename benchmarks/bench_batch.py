@@ -24,8 +24,9 @@ from bench_attack import synthetic_pair  # noqa: E402
 
 
 def measure(model_name: str, preset: str, width: int, height: int, iters: int, steps: int,
-            batch: int, device: str) -> dict:
-    """Measure in this process (call in a fresh one)."""
+            batch: int, device: str, count: int | None = None) -> dict:
+    """Measure in this process (call in a fresh one); ``count`` particles per pair (None: the
+    preset's)."""
     import torch
 
     from weathergen.attack import AttackSettings, BatchOptimisation
@@ -34,7 +35,8 @@ def measure(model_name: str, preset: str, width: int, height: int, iters: int, s
 
     torch.manual_seed(0)
     pair = synthetic_pair(width, height)
-    records = [sample_particles(pair, load_preset(preset), seed=i) for i in range(batch)]
+    overrides = {"count": count} if count else None
+    records = [sample_particles(pair, load_preset(preset, overrides), seed=i) for i in range(batch)]
     model = build_model(model_name, iters=iters).to(device)
     model.requires_grad_(False)
     run = BatchOptimisation(model, [pair] * batch, records, AttackSettings(), device=device)

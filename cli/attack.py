@@ -18,8 +18,9 @@ from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.execution import RunClock, check_executor
 
-from .options import (compat_option, dataset_options, device_option, executor_options, model_options,
-                      out_option, overwrite_option, quiet_option, resume_option, seed_option)
+from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
+                      model_options, out_option, overwrite_option, quiet_option, resume_option,
+                      seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 
@@ -90,8 +91,8 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 @click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
               default=None, help="Start from the particles of an earlier render (or attack) "
                                  "output instead of sampling.")
-@click.option("--steps", type=click.IntRange(min=0), default=None,
-              help=f"Optimisation steps per pair. Default: {DEFAULT_STEPS} (weather), 20 (pcfa), "
+@click.option("--steps", type=int, default=None, callback=attack_steps,
+              help=f"Optimisation steps per pair (at least 1). Default: {DEFAULT_STEPS} (weather), 20 (pcfa), "
                    "25 (ifgsm).")
 @click.option("--optimize", default=None, metavar="A,B,...",
               help="Variables to optimise: offset1, offset2, color, transparency (or 'all'). "
@@ -225,7 +226,7 @@ def _run(job, model, label, target, steps, out, quiet):
         click.echo(f"Note: {text}", err=True)
 
     def on_pair_done(report):
-        clock.add(computed=report.status != "skipped")
+        clock.add(computed=report.status == "written")
         state["written"] += report.status == "written"
         if report.summary is not None:
             rows.append(report.summary)

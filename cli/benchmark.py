@@ -14,7 +14,8 @@ from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.render.shards import parse_shard
 
-from .options import amp_option, compat_option, dataset_options, device_option, quiet_option, seed_option
+from .options import (amp_option, attack_steps, compat_option, dataset_options, device_option,
+                      quiet_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 
@@ -44,10 +45,10 @@ def _checkpoints(items) -> dict:
                    "supplement (grey-offset1 ... grey-all: the paper's Table 2); '' for none.")
 @click.option("--lp", "lp_text", default=",".join(DEFAULT_LP), show_default=True,
               metavar="A,B,...", help="Lp attacks (pcfa, ifgsm); '' for none.")
-@click.option("--steps", type=click.IntRange(min=0), default=None,
-              help="Weather attack steps per pair. Default: the attack's (750).")
-@click.option("--lp-steps", type=click.IntRange(min=0), default=None,
-              help="Lp attack steps per pair. Default: each method's (pcfa 20, ifgsm 25).")
+@click.option("--steps", type=int, default=None, callback=attack_steps,
+              help="Weather attack steps per pair (at least 1). Default: the attack's (750).")
+@click.option("--lp-steps", type=int, default=None, callback=attack_steps,
+              help="Lp attack steps per pair (at least 1). Default: each method's (pcfa 20, ifgsm 25).")
 @click.option("--iters", type=click.IntRange(min=1), default=None,
               help="Refinement iterations of recurrent networks. Default: each network's.")
 @click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",

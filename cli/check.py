@@ -33,7 +33,7 @@ def check(dataset, geometry, geometry_pairs, verbose):
     console = Console()
     scenes = check_dataset(dataset, geometry=geometry, geometry_pairs=geometry_pairs)
     if not scenes:
-        raise DatasetError(f"{dataset.root}: the selection holds no frame pairs")
+        raise DatasetError(dataset.no_pairs_message())
 
     where = (dataset.selection.split if dataset.single_pass      # one rendering, no pass to name
              else f"{dataset.selection.split}/{dataset.selection.pass_}")

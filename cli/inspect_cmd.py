@@ -14,7 +14,7 @@ from rich.table import Table
 from weathergen.datasets import frame_rates_text
 from weathergen.engine import FrameScaling
 from weathergen.engine.layers import layer_arrays
-from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, stored_values
+from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
 from weathergen.errors import ConfigError
 from weathergen.io.atomic import write_error
 from weathergen.io.images import write_png
@@ -83,7 +83,8 @@ def inspect(file: Path):
         head.add_row(k, v)
     console.print(head)
     for name, a in zip(names, layers):
-        console.print(_ranges(a, f"per-particle values{f' of layer {name}' if name else ''}"))
+        title = f"per-particle values{f' of layer {name}' if name else ''} (as Particles.load reads them)"
+        console.print(_ranges(a, title, file))
 
 
 def _scaling_text(scaling) -> str:
@@ -101,21 +102,23 @@ def _looks(arrays: dict) -> str:
             f"samples, templates {arrays.get('templates', '?')}")
 
 
-def _ranges(arrays: dict, title: str) -> Table:
-    """dtype, shape and value range of every per-particle array of one record's entries."""
+def _ranges(arrays: dict, title: str, path: Path) -> Table:
+    """Every per-particle field of one record's file entries as a user reads it (the dtype, shape
+    and values :meth:`Particles.from_arrays` gives, codes decoded), and how the file stores it."""
+    record = Particles.from_arrays(arrays, path)
     ranges = Table(title=title)
-    for col in ("field", "dtype", "shape", "min", "max", "mean"):
-        ranges.add_column(col, justify="right" if col in ("min", "max", "mean") else "left")
+    for col in ("field", "dtype", "shape", "min", "max", "mean", "stored as"):
+        ranges.add_column(col, justify="right" if col in ("min", "max", "mean") else "left",
+                          no_wrap=True)
     for name in TENSOR_FIELDS:
-        if name not in arrays:
-            continue
-        a = arrays[name]
-        if a.size:
-            f = stored_values(arrays, name)       # grid and 8-bit codes decoded
-            stats = (f"{f.min():.4g}", f"{f.max():.4g}", f"{f.mean():.4g}")
+        t = getattr(record, name)
+        if t.numel():
+            f = t.double()
+            stats = (f"{f.min().item():.4g}", f"{f.max().item():.4g}", f"{f.mean().item():.4g}")
         else:
             stats = ("-", "-", "-")
-        ranges.add_row(name, str(a.dtype), str(tuple(a.shape)), *stats)
+        ranges.add_row(name, str(t.dtype).removeprefix("torch."), "×".join(map(str, t.shape)),
+                       *stats, stored_as(arrays, name))
     return ranges
 
 

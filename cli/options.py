@@ -73,6 +73,20 @@ def overwrite_option(help: str):
 
 # -- option groups --------------------------------------------------------------------------
 
+def attack_steps(ctx, param, value):
+    """Callback of ``--steps`` (and ``--lp-steps``): an attack takes at least one step.
+
+    With none, the "adversarial" result would be the starting point itself (the random weather,
+    or the clean frames of an Lp attack), written under the attack's name.
+    """
+    if value is not None and value < 1:
+        raise click.BadParameter(
+            f"{value}: an attack takes at least one step; with none its 'adversarial' result "
+            f"would be the unoptimised start (random weather: measure that with `weathergen render` "
+            f"and `weathergen evaluate`)")
+    return value
+
+
 def _world_up_option(ctx, param, value):
     """Validate --world-up (an axis name or a direction X,Y,Z); keep the text as given."""
     if value is None:

@@ -10,7 +10,7 @@ import click
 import torch
 from rich.console import Console
 from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColumn, TaskProgressColumn,
-                           TextColumn, TimeElapsedColumn, TimeRemainingColumn)
+                           TextColumn, TimeElapsedColumn)
 from rich.text import Text
 from rich.table import Table
 
@@ -26,13 +26,11 @@ from .options import (ARGV_KEY, dataset_options, device_option, executor_options
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 class _RateColumn(ProgressColumn):
-    """Pairs per second (or seconds per pair when slower than one a second)."""
+    """Pairs per second (or seconds per pair when slower than one a second), of the pairs computed
+    (the run's :class:`RunClock`; skipped and failed pairs are not its pace)."""
 
     def render(self, task):
-        if not task.speed:
-            return Text("")
-        rate = task.speed
-        return Text(f"{rate:.2f} pairs/s" if rate >= 1 else f"{1 / rate:.1f} s/pair")
+        return Text(task.fields.get("rate", ""))
 
 
 def _human_bytes(n: float) -> str:
@@ -140,30 +138,36 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
         nonlocal task, clock
         clock = RunClock(n)
         if progress is not None:
-            task = progress.add_task("render", total=n, pair="")
+            task = progress.add_task("render", total=n, pair="", rate="", left="")
 
     def on_note(text):
         click.echo(f"Note: {text}", err=True)
 
     def on_result(r):
         results.append(r)
-        clock.add(computed=r.status != "skipped")
+        clock.add(computed=r.status == "written")
         if r.status == "failed":   # one unwrapped line, so paths stay whole
             if progress is not None:
                 progress.console.print(f"[red]failed[/red] {r.pair}: {r.message}", highlight=False,
                                        soft_wrap=True)
             else:
                 click.echo(f"failed {r.pair}: {r.message}", err=True)
+        for text in r.warnings:    # written, but the input looks wrong
+            if progress is not None:
+                progress.console.print(f"[yellow]warning[/yellow] {r.pair}: {text}", highlight=False,
+                                       soft_wrap=True)
+            else:
+                click.echo(f"warning {r.pair}: {text}", err=True)
         if progress is not None:
-            progress.update(task, advance=1, pair=r.pair)
+            progress.update(task, advance=1, pair=r.pair, rate=clock.pace(), left=clock.time_left())
         elif not quiet:
             console.print(f"[{clock.describe()}] {r.pair} {r.status} ({r.seconds:.2f} s)",
                           highlight=False, soft_wrap=True)
 
     if interactive:
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                            TaskProgressColumn(), _RateColumn(),
-                            TimeElapsedColumn(), TimeRemainingColumn(), TextColumn("{task.fields[pair]}"),
+                            TaskProgressColumn(), _RateColumn(), TimeElapsedColumn(),
+                            TextColumn("{task.fields[left]}"), TextColumn("{task.fields[pair]}"),
                             console=console)
     stopped_by = None
     try:

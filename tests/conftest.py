@@ -19,6 +19,18 @@ def pytest_configure(config):
     os.environ["WEATHERGEN_CACHE"] = _CACHE
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``cuda`` skip where there is no CUDA device (``make gpu-check`` runs them)."""
+    import torch
+
+    if torch.cuda.is_available():
+        return
+    skip = pytest.mark.skip(reason="needs a CUDA device (make gpu-check runs it on one)")
+    for item in items:
+        if item.get_closest_marker("cuda"):
+            item.add_marker(skip)
+
+
 def pytest_unconfigure(config):
     if _CACHE:
         shutil.rmtree(_CACHE, ignore_errors=True)

@@ -139,7 +139,8 @@ def _ray_if_loaded():
 class RunClock:
     """Progress of a run: pairs done (of ``total``), pairs per hour and the estimated finish.
 
-    Pairs skipped because an earlier run finished them count as done but not in the rate.
+    Only pairs computed here count in the rate: those an earlier run finished (skipped) and those
+    that failed (an unreadable pair fails in moments) count as done, not as the pace of the run.
     """
 
     def __init__(self, total: int, now: Callable[[], float] = time.monotonic):
@@ -149,8 +150,18 @@ class RunClock:
         self.computed = 0
 
     def add(self, computed: bool = True) -> None:
+        """One more pair done; ``computed``: written by this run (not skipped, not failed)."""
         self.done += 1
         self.computed += int(computed)
+
+    def pace(self) -> str:
+        """The rate for a progress bar: ``"2.50 pairs/s"``, ``"12.0 s/pair"``, or ``""`` before
+        the first computed pair."""
+        rate = self.per_hour()
+        if rate is None:
+            return ""
+        per_second = rate / 3600.0
+        return f"{per_second:.2f} pairs/s" if per_second >= 1 else f"{1 / per_second:.1f} s/pair"
 
     def per_hour(self) -> Optional[float]:
         elapsed = self.now() - self.start
@@ -163,6 +174,11 @@ class RunClock:
         if rate is None:
             return None
         return (self.total - self.done) * 3600.0 / rate
+
+    def time_left(self) -> str:
+        """The estimated time to finish, ``"56 min"``, or ``""`` before the first computed pair."""
+        left = self.remaining_seconds()
+        return "" if left is None else _duration(left)
 
     def describe(self) -> str:
         """E.g. ``12/40 pairs, 30.0 pairs/h, finish ~ 21:56 UTC (56 min)``."""

@@ -1,15 +1,25 @@
-"""Set-up of worker processes (``render --workers``): signals and a watchdog on the main process.
+"""Set-up of worker processes (``render --workers``): signals, death with the main process.
 
-Kept free of heavy imports (no torch), so that a worker runs it within moments of starting: a
-worker whose main process dies while the worker is still starting must notice and leave, not
-import torch for seconds first and then wait for work forever.
+A worker must not outlive its main process, even one killed with ``kill -9`` while the worker is
+still starting (importing torch takes seconds, a minute on a loaded machine). On Linux the kernel
+sees to it: each worker is started with the parent-death signal set (``prctl(PR_SET_PDEATHSIG,
+SIGKILL)``, between fork and exec, before the worker runs any Python), so it is killed the moment
+the main process dies. multiprocessing's resource tracker then reads end-of-file on its pipe (the
+main process and the workers held its other end), removes the semaphores the run left behind and
+leaves. Elsewhere a watchdog thread that :func:`init_worker` starts polls the main process.
+
+Kept free of heavy imports (no torch), so that a worker runs its initializer within moments.
 """
 
 from __future__ import annotations
 
 import contextlib
+import ctypes
+import multiprocessing.util
 import os
 import signal
+import subprocess
+import sys
 import threading
 import time
 
@@ -20,23 +30,96 @@ WATCH_INTERVAL = 0.2
 #: The signals a scheduler or a user sends to stop a run.
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
+#: ``PR_SET_PDEATHSIG`` of ``<linux/prctl.h>``.
+_PR_SET_PDEATHSIG = 1
+
+
+def _load_prctl():
+    """libc's ``prctl`` on Linux, else None."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):
+        return None
+    prctl.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
+    prctl.restype = ctypes.c_int
+    return prctl
+
+
+_PRCTL = _load_prctl()
+
+#: Whether the kernel kills the workers with the main process (else the watchdog does).
+PARENT_DEATH_SIGNAL = _PRCTL is not None
+
+
+class _Unwaited(subprocess.Popen):
+    """A child whose exit multiprocessing waits for, by pid: never waited for here (the default
+    ``__del__`` would queue it for :mod:`subprocess`'s own reaping, which could take its exit
+    status from multiprocessing)."""
+
+    def __del__(self):
+        pass
+
+
+def _spawn_dying_with_parent(path, args, passfds):
+    """What ``multiprocessing.util.spawnv_passfds`` does (exec ``path`` with ``args``, passing the
+    file descriptors ``passfds``, return the pid), with the parent-death signal set in the child
+    before the exec."""
+    parent = os.getpid()
+
+    def die_with_parent():
+        _PRCTL(_PR_SET_PDEATHSIG, signal.SIGKILL, 0, 0, 0)
+        if os.getppid() != parent:          # the parent died before the signal was set
+            os._exit(1)
+
+    child = _Unwaited(list(args), executable=path, pass_fds=tuple(passfds), close_fds=True,
+                      restore_signals=False, preexec_fn=die_with_parent)
+    return child.pid
+
+
+_spawn_lock = threading.RLock()
+
+
+@contextlib.contextmanager
+def _dying_with_this_process():
+    """Processes that multiprocessing starts in this block die with this process (Linux only).
+
+    The kernel sends the signal when the *thread* that started the child ends: start workers from
+    a thread that outlives them (the pool is shut down before the thread ends).
+    """
+    if _PRCTL is None:
+        yield
+        return
+    with _spawn_lock:
+        before = multiprocessing.util.spawnv_passfds
+        multiprocessing.util.spawnv_passfds = _spawn_dying_with_parent
+        try:
+            yield
+        finally:
+            multiprocessing.util.spawnv_passfds = before
+
 
 @contextlib.contextmanager
 def spawning():
-    """Block Ctrl-C and SIGTERM in the calling thread while it starts worker processes.
+    """Start worker processes inside this block: they die with this process, and they are born
+    with Ctrl-C and SIGTERM blocked.
 
-    A new process inherits the blocked set, so a group-wide signal that comes while a worker is
+    Death: see the module's description (the kernel's parent-death signal on Linux). Signals: a
+    new process inherits the blocked set, so a group-wide signal that comes while a worker is
     still importing (before :func:`init_worker` ignores it) cannot kill it and break the pool; in
-    the main process the signal is only delayed until the block ends.
+    the main process the signal is only delayed until the block ends (blocking needs the main
+    thread; elsewhere only the first part applies).
     """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    before = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, before)
+    with _dying_with_this_process():
+        if threading.current_thread() is not threading.main_thread():
+            yield
+            return
+        before = signal.pthread_sigmask(signal.SIG_BLOCK, STOP_SIGNALS)
+        try:
+            yield
+        finally:
+            signal.pthread_sigmask(signal.SIG_SETMASK, before)
 
 
 def init_worker(parent: int) -> None:
@@ -55,6 +138,8 @@ def init_worker(parent: int) -> None:
     signal.pthread_sigmask(signal.SIG_UNBLOCK, STOP_SIGNALS)
     if os.getppid() != parent:
         os._exit(1)
+    # On Linux the parent-death signal (see :func:`spawning`) has this in hand already; the
+    # watchdog is the fallback on other systems and for workers started outside spawning().
 
     def watch():
         while os.getppid() == parent:

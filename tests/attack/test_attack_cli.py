@@ -175,7 +175,7 @@ def test_mixed_precision_on_the_cpu_is_refused_before_anything_is_written(comman
     assert not (tmp_path / "x").exists() and not (tmp_path / "x.json").exists()
     # --no-amp is what the CPU does anyway
     if command == "attack":
-        ok = invoke(tiny_attack(raft_small_weights, tmp_path / "y", "--no-amp", "--steps", "0",
+        ok = invoke(tiny_attack(raft_small_weights, tmp_path / "y", "--no-amp", "--steps", "1",
                                 "--quiet"))
         assert ok.exit_code == 0, ok.output
         assert json.loads((tmp_path / "y" / "summary.json").read_text())["amp"] is False
@@ -198,7 +198,7 @@ def test_resume_skips_finished_pairs_and_plain_rerun_refuses(attack_out, raft_sm
 def test_fog_configuration_freezes_the_second_offset(tmp_path, raft_small_weights):
     out = tmp_path / "fog"
     result = invoke(["attack", "--config", "fog", "--model", "raft-small", "--checkpoint",
-                     raft_small_weights, "--iters", "2", *ONE_PAIR, "--steps", "0", "--set", "count=2",
+                     raft_small_weights, "--iters", "2", *ONE_PAIR, "--steps", "1", "--set", "count=2",
                      "--out", out, "--target", "1.5,-2"])
     assert result.exit_code == 0, result.output
     config = json.loads((out / "manifest.json").read_text())["config"]
@@ -214,7 +214,7 @@ def test_stored_fog_particles_keep_the_second_offset_fixed(tmp_path, raft_small_
     assert rendered.exit_code == 0, rendered.output
     out = tmp_path / "attack"
     result = invoke(["attack", "--particles", fog, "--model", "raft-small", "--checkpoint",
-                     raft_small_weights, "--iters", "1", *ONE_PAIR, "--steps", "0", "--out", out])
+                     raft_small_weights, "--iters", "1", *ONE_PAIR, "--steps", "1", "--out", out])
     assert result.exit_code == 0, result.output
     config = json.loads((out / "manifest.json").read_text())["config"]
     assert config["preset_name"] == "fog"

@@ -13,6 +13,7 @@ import pytest
 from click.testing import CliRunner
 
 from weathergen.cli.main import _register, cli
+from weathergen.outputs import read_metadata, write_metadata
 
 FAST = ("--scenes", "street", "--frames-per-scene", "2", "--set", "count=300")
 NOT_UTF8 = b"count = 3\n\xff\xfe\x00binary\x89PNG\n"
@@ -150,10 +151,9 @@ def test_text_file_as_checkpoint_says_what_it_is(snow_run, tmp_path):
 # -- re-rendering stored particles --------------------------------------------------------------
 
 def _edit_metadata(path, **changes):
-    with np.load(path) as data:
-        arrays = {k: data[k] for k in data.files}
+    arrays = read_metadata(path)
     arrays.update({k: np.array(v) for k, v in changes.items()})
-    np.savez_compressed(path, **arrays)
+    write_metadata(path, arrays)
 
 
 @pytest.mark.parametrize("change,message", [
@@ -167,8 +167,7 @@ def test_particles_of_another_preset_or_dataset_are_refused(snow_run, tmp_path, 
     shutil.copytree(snow_run, src)
     meta = src / "training/particles/street_0002/frame_0002.npz"
     if change == "count":
-        with np.load(meta) as data:
-            preset = json.loads(str(data["preset"]))
+        preset = json.loads(str(read_metadata(meta)["preset"]))
         change = {"preset": json.dumps({**preset, "count": 999}, sort_keys=True)}
     _edit_metadata(meta, **change)
     out = tmp_path / "o"

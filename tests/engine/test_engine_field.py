@@ -4,6 +4,7 @@ particle ground truth, presets and storage."""
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 
 import numpy as np
@@ -288,20 +289,21 @@ def test_field_record_round_trips_and_rerenders_bit_identically(tmp_path):
     preset = field_preset(density=30.0, exposure=0.05, blur_samples=3, fall_speed=1.0)
     rec = sample_weather(pair, preset, 5, world_up="-y", frame_rate=RATE)
     path = rec.save(tmp_path / "p.npz")
-    with np.load(path) as data:
-        assert int(data["format_version"]) == 2 and "optics" in data.files
+    with np.load(path) as data:         # version 5: the optics among the gathered 0-d entries
+        assert int(data["format_version"]) == 5 and "optics" in json.loads(str(data["scalars"]))
+        assert data["position"].dtype == np.float32
     again = Particles.load(path)
     assert again.optics == rec.optics
     a, b = render_pair(pair, rec), render_pair(pair, again)
     assert torch.equal(a.image1, b.image1) and torch.equal(a.image2, b.image2)
 
 
-def test_paper_records_are_compact_version_3_without_optics(tmp_path):
+def test_paper_records_are_compact_and_without_optics(tmp_path):
     cams, depths = sequence(2)
     pair = seq_pair(cams, depths, 0)
     rec = sample_particles(pair, load_preset("snow", {"count": "20"}), 0)
     with np.load(rec.save(tmp_path / "p.npz")) as data:
-        assert int(data["format_version"]) == 3 and "optics" not in data.files
+        assert int(data["format_version"]) == 5 and "optics" not in json.loads(str(data["scalars"]))
         assert data["position"].dtype == np.uint16
 
 

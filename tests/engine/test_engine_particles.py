@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -42,10 +44,19 @@ def test_storage_is_small_and_plain_numpy(tmp_path, snow_pair_and_particles):
         path = rec.save(tmp_path / name)
         assert path.stat().st_size < 200_000, path.stat().st_size
     with np.load(tmp_path / "sampled.npz", allow_pickle=False) as data:
-        assert int(data["format_version"]) == 3
+        assert int(data["format_version"]) == 5
         assert data["position"].dtype == np.uint16 and data["position"].shape == (3000, 3)
         assert data["position_grid"].dtype == np.float64 and data["position_grid"].shape == (2, 3)
-        assert str(data["frame"]) == "world" and int(data["blur_samples"]) == 20
+        # three 10-bit motion codes per particle in one uint32, decoded by shifts
+        words = data["motion"]
+        assert words.dtype == np.uint32 and words.shape == (3000,)
+        codes = np.stack([(words >> 20) & 1023, (words >> 10) & 1023, words & 1023], -1)
+        grid = data["motion_grid"]
+        np.testing.assert_array_equal((grid[0] + codes * grid[1]).astype(np.float32),
+                                      parts.motion.numpy())
+        # the 0-d entries: one JSON entry, name -> [value, dtype]
+        scalars = json.loads(str(data["scalars"]))
+        assert scalars["frame"] == ["world", "<U5"] and scalars["blur_samples"][0] == 20
 
 
 @pytest.mark.parametrize("name", ["snow", "rain", "sparks"])
@@ -78,6 +89,26 @@ def test_version_1_files_are_still_read(tmp_path, snow_pair_and_particles):
     again = Particles.load(tmp_path / "v1.npz")
     assert torch.equal(again.position, parts.position) and torch.equal(again.motion, parts.motion)
     torch.testing.assert_close(again.color, parts.color, atol=1e-3, rtol=0)
+
+
+def _as_version_3(arrays: dict) -> dict:
+    """A version 5 record's entries in version 3's layout (motion codes (N, 3) uint16; numpy's
+    own .npz, one entry per 0-d value), as earlier releases wrote it."""
+    old = dict(arrays, format_version=np.array(3, np.int32))
+    w = arrays["motion"].astype(np.int64)
+    old["motion"] = np.stack([(w >> 20) & 1023, (w >> 10) & 1023, w & 1023], -1).astype(np.uint16)
+    return old
+
+
+def test_version_3_files_are_still_read(tmp_path, snow_pair_and_particles):
+    pair, parts = snow_pair_and_particles
+    np.savez_compressed(tmp_path / "v3.npz", **_as_version_3(parts.to_numpy()))
+    again = Particles.load(tmp_path / "v3.npz")
+    for name in ("position", "motion", "offset1", "color", "transparency", "template", "rotation",
+                 "scale", "defocus"):
+        assert torch.equal(getattr(again, name), getattr(parts, name)), name
+    assert again.metadata() == parts.metadata()
+    assert torch.equal(render_pair(pair, again).image1, render_pair(pair, parts).image1)
 
 
 def test_saving_quantizes_and_quantized_records_render_like_the_file(tmp_path):

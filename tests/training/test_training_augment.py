@@ -164,7 +164,7 @@ def test_fast_batches_equal_exact_batches_up_to_rounding(samples, dtype):
             assert (changed > 100) == w.applied, (name, k)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.cuda
 @pytest.mark.parametrize("exact", [True, False], ids=["exact", "fast"])
 def test_batched_path_on_cuda_matches_the_cpu(samples, exact):
     """What docs/training.md promises for CUDA: the same draws and particles, and frames within

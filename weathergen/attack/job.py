@@ -309,7 +309,7 @@ def run_attack(job: AttackJob,
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
     if not refs:
-        raise ConfigError("the selection holds no frame pairs")
+        raise ConfigError(job.dataset.no_pairs_message())
     local = job.executor == "local"
     # The driver of a Ray run checks the network and its checkpoint on the CPU.
     model = job_model(job) if local else get_model(

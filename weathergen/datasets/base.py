@@ -7,8 +7,9 @@ never write files.
 
 from __future__ import annotations
 
+import copy
 from abc import ABC, abstractmethod
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Optional
 
@@ -37,6 +38,19 @@ class Selection:
         if self.first_frame is not None and self.first_frame < 0:
             raise ConfigError(f"first frame must not be negative, got {self.first_frame}")
 
+    def narrowing(self) -> list[str]:
+        """The options that narrow this selection, as ``"${option} value"`` for messages."""
+        out = []
+        if self.scenes:
+            out.append(f"${{scenes}} {','.join(self.scenes)}")
+        if self.from_scene is not None:
+            out.append(f"${{from_scene}} {self.from_scene}")
+        if self.first_frame is not None:
+            out.append(f"${{first_frame}} {self.first_frame}")
+        if self.frames_per_scene is not None:
+            out.append(f"${{frames_per_scene}} {self.frames_per_scene}")
+        return out
+
     def pick_scenes(self, available: list[str], where: Path) -> list[str]:
         """Apply ``scenes`` and ``from_scene`` to the sorted list of scenes found at ``where``."""
         chosen = list(available)
@@ -62,6 +76,44 @@ class Selection:
         if self.frames_per_scene is not None:
             starts = starts[: self.frames_per_scene]
         return starts
+
+
+def numbering_gap(selection: Selection, frames: list[int]) -> Optional[str]:
+    """What missing frame numbers of a scene change in the selection, or None when nothing.
+
+    Pairs are consecutive numbers, so a missing frame removes the two pairs it belongs to, and
+    ``frames_per_scene`` then counts from the pairs that are left (it takes others than with the
+    frame present): the warning names the missing frames, the pairs lost and those taken instead.
+    """
+    if not frames:
+        return None
+    present = set(frames)
+    missing = [f for f in range(frames[0], frames[-1] + 1) if f not in present]
+    if not missing:
+        return None
+    complete = selection.pick_frames(list(range(frames[0], frames[-1] + 1)))
+    chosen = selection.pick_frames(frames)
+    lost = [f for f in complete if f not in chosen]
+    if not lost:
+        return None
+    extra = [f for f in chosen if f not in complete]
+    text = (f"gap in the frame numbering: no frame {_numbers(missing)}, so pair{'s' * (len(lost) > 1)} "
+            f"{_numbers(lost)} cannot be formed")
+    if extra:
+        text += (f" and the selection takes pair{'s' * (len(extra) > 1)} {_numbers(extra)} "
+                 f"instead")
+    return text
+
+
+def _numbers(values: list[int]) -> str:
+    """``1, 4-6, 9``: sorted integers with runs joined."""
+    runs: list[list[int]] = []
+    for v in values:
+        if runs and v == runs[-1][-1] + 1:
+            runs[-1].append(v)
+        else:
+            runs.append([v])
+    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in runs)
 
 
 def frame_numbers(folder: Path, pattern) -> list[int]:
@@ -146,6 +198,8 @@ class Dataset(ABC):
     def __init__(self, root: str | Path, selection: Selection = Selection()):
         self.root = Path(root)
         self.selection = selection
+        #: problems of whole scenes found by the last :meth:`pairs` (see :meth:`scene_problems`)
+        self._listing_problems: dict[str, list[Problem]] = {}
         if not self.root.exists():
             raise DatasetError(f"{self.root}: dataset root does not exist")
         if not self.root.is_dir():
@@ -154,6 +208,27 @@ class Dataset(ABC):
     @abstractmethod
     def pairs(self) -> list[PairRef]:
         """The selected pairs, sorted by scene then frame. Lists files only; reads nothing."""
+
+    def no_pairs_message(self) -> str:
+        """The one line for a selection that holds no frame pair: the options that emptied it and,
+        when ``first_frame`` did, where the pairs start without it."""
+        sel = self.selection
+        message = f"{self.root}: the selection holds no frame pairs"
+        narrowing = sel.narrowing()
+        if not narrowing:
+            return f"{message} (split {sel.split!r})"
+        message += f" ({', '.join(narrowing)})"
+        if sel.first_frame is not None:
+            wider = copy.copy(self)
+            wider.selection = replace(sel, first_frame=None)
+            try:
+                starts = sorted({ref.id.frame for ref in wider.pairs()})
+            except WeatherGenError:
+                starts = []
+            if starts:
+                message += "; without ${first_frame} the pairs start at " + (
+                    f"frames {starts[0]} to {starts[-1]}" if len(starts) > 1 else f"frame {starts[0]}")
+        return message
 
     def all_scenes(self) -> Optional[list[str]]:
         """Every scene of the split, before the selection; None for a reader without scenes."""
@@ -214,12 +289,26 @@ class Dataset(ABC):
         return out
 
     def scene_problems(self) -> dict[str, list[Problem]]:
-        """Problems of whole scenes found while listing (scene -> problems); none by default."""
-        return {}
+        """Problems of whole scenes found by the last :meth:`pairs` (scene -> problems), such as
+        gaps in the frame numbering (warnings)."""
+        return dict(self._listing_problems)
+
+    def _note_gaps(self, scene: str, frames: list[int], folder: Path) -> None:
+        """Record a warning when missing frame numbers change the selection (see
+        :func:`numbering_gap`)."""
+        gap = numbering_gap(self.selection, frames)
+        if gap:
+            self._listing_problems[scene] = [Problem(gap, str(folder), WARNING)]
 
     def pair_warnings(self, ref: PairRef, pair: FramePair) -> list[Problem]:
-        """Warnings about a pair that loaded (for example little valid depth); none by default."""
-        return []
+        """Warnings about a pair that loaded: those the reader put in ``pair.meta["warnings"]``
+        (``"FILE: what"`` lines; frames of which one is grey, the other colour), and whatever a
+        reader adds (little valid depth)."""
+        out = []
+        for line in pair.meta.get("warnings", []):
+            where, _, kind = line.partition(": ")
+            out.append(Problem(kind, where, WARNING) if kind else Problem(line, "", WARNING))
+        return out
 
     def pair_notes(self, pair: FramePair) -> list[str]:
         """Figures worth showing for a loaded pair (KITTI: the camera motion); none by default."""

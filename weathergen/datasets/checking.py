@@ -135,8 +135,16 @@ def check_dataset(dataset: Dataset, *, geometry: bool = False, geometry_pairs: i
                                      if pc.geometry_errors is not None])
             photo = [pc.photometric for pc in sc.pairs if pc.photometric is not None]
             sc.photometric = summarize_photometric([r for r, _ in photo], sum(n for _, n in photo))
-            if sc.photometric is not None and sc.photometric.judged and not sc.photometric.explained:
+            photo = sc.photometric
+            if photo is not None and photo.judged and not photo.explained:
                 sc.problems.append(Problem(NOT_EXPLAINED, severity=WARNING))
+            elif photo is not None and photo.still_cameras_moving_frames:
+                sc.problems.append(Problem(
+                    f"the cameras say the camera hardly moves (median predicted motion "
+                    f"{photo.motion_px:.2f} px) while the frames differ (mean grey-level "
+                    f"difference {photo.unmoved_error:.3f} with nothing moved): check that the "
+                    f"camera file gives each frame its own pose (not the same one for every frame)",
+                    severity=WARNING))
     for scene, sc in scenes.items():
         sc.depth_scale = getattr(dataset, "scale_of", lambda s: 1.0)(scene)
     return [scenes[s] for s in sorted(scenes)]

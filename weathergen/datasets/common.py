@@ -3,6 +3,7 @@
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Optional
 
@@ -12,6 +13,7 @@ import torch
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
 from ..geometry import WORLD_UP_AXES, invert_rigid, to_homogeneous, up_direction
+from ..io.images import read_image_kind
 from .base import FILE_ROLES, Dataset, Selection
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
@@ -42,8 +44,9 @@ class ScaledDataset(Dataset):
                  scene_scales: Optional[dict[str, float]] = None, camera_translation: bool = True,
                  world_up: Optional[str] = None):
         super().__init__(root, selection)
-        if not depth_scale > 0:
-            raise ConfigError(f"depth scale must be positive, got {depth_scale}")
+        if not (math.isfinite(depth_scale) and depth_scale > 0):
+            # an infinite or NaN scale would make every depth map look corrupt instead
+            raise ConfigError(f"${{depth_scale}} must be a positive finite number, got {depth_scale}")
         world_up = self.default_world_up if world_up is None else world_up
         up_direction(world_up)          # raises ConfigError for a setting it cannot read
         self.depth_scale = float(depth_scale)
@@ -127,7 +130,7 @@ class FarDepthDataset(ScaledDataset):
                               f"does not apply (leave it at 'clean')")
         far = DEFAULT_FAR_DEPTH if far_depth is None else far_depth
         if not (np.isfinite(far) and far > 0):
-            raise ConfigError(f"far depth must be a positive number, got {far_depth}")
+            raise ConfigError(f"${{far_depth}} must be a positive finite number, got {far_depth}")
         self.far_depth = float(far)
 
     @property
@@ -150,6 +153,21 @@ class FarDepthDataset(ScaledDataset):
         out = super().describe()
         out.update(far_depth=self.far_depth)
         return out
+
+
+def read_frames(files: dict) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Both frames of a pair (``files["image1"]``, ``files["image2"]``) as RGB, and facts for the
+    record's ``meta``: ``{"warnings": [...]}`` when one frame is grey and the other colour (both
+    are read as RGB, a grey frame replicated, so the pair reads, but no camera gives such a pair:
+    a frame from another folder or pass, or a converted file). Shape: (H, W, 3) float32 each.
+    """
+    (img1, kind1), (img2, kind2) = read_image_kind(files["image1"]), read_image_kind(files["image2"])
+    meta = {}
+    if kind1 != kind2:
+        meta["warnings"] = [f"{files['image2']}: the second frame is {kind2} but the first "
+                            f"({Path(files['image1']).name}) is {kind1}; both are read as RGB "
+                            f"(grey replicated to three channels)"]
+    return img1, img2, meta
 
 
 def require_files(files: dict, keys: tuple[str, ...], hint: str = "") -> None:

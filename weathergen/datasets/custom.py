@@ -41,11 +41,10 @@ from ..errors import ConfigError, DatasetError, FormatError
 from ..framepair import FramePair, PairId
 from ..geometry import backproject, invert_rigid
 from ..io.custom_formats import DEPTH_SUFFIXES, CameraFile, read_camera_file, read_depth
-from ..io.images import read_image
 from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
 from .base import WARNING, Problem
-from .common import FarDepthDataset, check_size, require_files
+from .common import FarDepthDataset, check_size, read_frames, require_files
 from .densify import fill_sparse
 from .framenames import order_frames
 
@@ -78,7 +77,6 @@ class CustomDataset(FarDepthDataset):
         self.frame_pattern = frame_pattern
         self.min_valid_depth = float(min_valid_depth)
         self._cameras = lru_cache(maxsize=8)(read_camera_file)
-        self._scene_problems: dict[str, list[Problem]] = {}
         self._numbers: dict[str, int] = {}      # second frame of each listed pair -> its number
         self._numbering = "name"                # how the frames of the scene last listed are numbered
 
@@ -127,14 +125,14 @@ class CustomDataset(FarDepthDataset):
         dirs = self.scene_dirs()
         sel = self.selection
         refs = []
-        self._scene_problems = {}
+        self._listing_problems = {}
         for scene in sel.pick_scenes(list(dirs), self.root):
             try:
                 frames = self.frames(dirs[scene])
             except DatasetError as exc:
                 # one scene that cannot be paired does not hide the others; check reports it
                 folder = str(dirs[scene] / "frames")
-                self._scene_problems[scene] = [
+                self._listing_problems[scene] = [
                     Problem("frames cannot be paired: " + str(exc)[len(folder) + 2:], folder)]
                 continue
             numbers = list(frames)
@@ -148,16 +146,13 @@ class CustomDataset(FarDepthDataset):
                 self._numbers[str(frames[b])] = b
                 refs.append(PairRef(PairId(self.name, sel.split, scene, a),
                                     self._files(dirs[scene], frames[a], frames[b], (a, b), by_number)))
-        if not refs and self._scene_problems:
-            first = next(iter(self._scene_problems.values()))[0]
+        if not refs and self._listing_problems:
+            first = next(iter(self._listing_problems.values()))[0]
             raise DatasetError(f"{first.where}: {first.kind}")
         return refs
 
-    def scene_problems(self) -> dict[str, list[Problem]]:
-        return dict(self._scene_problems)
-
     def pair_warnings(self, ref: PairRef, pair: FramePair) -> list[Problem]:
-        out = []
+        out = super().pair_warnings(ref, pair)
         for i, key in enumerate(("depth1", "depth2")):
             stats = pair.meta.get("depth_values", [{}, {}])[i]
             valid = stats.get("valid", 1.0)
@@ -204,7 +199,7 @@ class CustomDataset(FarDepthDataset):
         files = ref.files
         require_files(files, ("image1", "image2", "cameras"))
         require_files(files, ("depth1", "depth2"), self.missing_hint("depth1"))
-        img1, img2 = read_image(files["image1"]), read_image(files["image2"])
+        img1, img2, meta = read_frames(files)
         size = img1.shape[:2]
         check_size(files["image2"], "frame", img2.shape, size)
 
@@ -248,7 +243,7 @@ class CustomDataset(FarDepthDataset):
                                flow_valid=flow_valid, measured=measured,
                                meta={"far_depth": self.far_depth, "pose": cams.pose,
                                      "axes": cams.axes, "depth": cams.depth,
-                                     "depth_values": values})
+                                     "depth_values": values, **meta})
 
     def describe(self) -> dict:
         out = super().describe()

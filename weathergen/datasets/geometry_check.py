@@ -39,6 +39,9 @@ from ..io.kitti_formats import read_object_map
 VISIBILITY_TOLERANCE = 0.05
 #: Median predicted motion (px) below which the photometric check cannot judge the geometry.
 MIN_PHOTOMETRIC_MOTION_PX = 1.0
+#: Mean grey-level difference (in [0, 1]) of frames left in place above which they clearly differ
+#: (about 5 of 255 levels on average: more than sensor noise and compression of a still view).
+FRAMES_DIFFER = 0.02
 
 
 @dataclass(frozen=True)
@@ -166,6 +169,12 @@ class PhotometricStats:
     def explained(self) -> bool:
         """Whether depth and cameras explain frame 2 better than no motion at all does."""
         return self.error < self.unmoved_error
+
+    @property
+    def still_cameras_moving_frames(self) -> bool:
+        """Whether the cameras predict (almost) no motion while the frames clearly differ: poses
+        that do not follow the camera (the same pose for every frame, say)."""
+        return self.pixels > 0 and not self.judged and self.unmoved_error >= FRAMES_DIFFER
 
     def summary(self) -> dict:
         return {"error": round(self.error, 5), "unmoved_error": round(self.unmoved_error, 5),

@@ -44,9 +44,10 @@ error exceeds ``fit.max_rms_px`` (:class:`~weathergen.datasets.camera_motion.Fit
 There is no world frame: ``cam1_from_world`` and ``cam2_from_world`` are None.
 
 Testing split. It ships only frames and calibration: no disparity, flow or object map, so there is
-no depth and loading a testing pair fails with a message saying so (listing and ``check`` work).
-Put disparities of your own (a stereo network's) as ``disp_occ_0/NNNNNN_10.png`` and
-``disp_occ_0/NNNNNN_11.png`` to render weather into it.
+no depth and loading a testing pair fails with a message saying so, naming the two files that
+would make it readable (listing and ``check`` work). Put disparities of your own (a stereo
+network's) as ``disp_occ_0/NNNNNN_10.png`` and ``disp_occ_0/NNNNNN_11.png`` to render weather
+into it; the same frame-11 file stands in for a training pair's missing ``disp_occ_1`` and flow.
 """
 
 from __future__ import annotations
@@ -62,12 +63,11 @@ import torch
 
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
-from ..io.images import read_image
 from ..io.kitti_formats import read_disparity_png, read_flow_png, read_object_map, stereo_camera
 from .base import NativeFlow, PairRef, Selection
 from .camera_motion import (FitSettings, MotionFit, backproject_pixels, check_fit, fit_motion_pnp,
                             match_features)
-from .common import FarDepthDataset, check_size, chw, require_files, scaled_motion
+from .common import FarDepthDataset, check_size, chw, read_frames, require_files, scaled_motion
 from .densify import fill_sparse
 
 _IMAGE_RE = re.compile(r"^(\d{6})_(\d{2})\.png$")
@@ -163,18 +163,26 @@ class KittiDataset(FarDepthDataset):
         }
 
     def needed_files(self, ref: PairRef) -> tuple[str, ...]:
-        """Keys of the files this pair cannot do without (the optional ones depend on the others)."""
-        files = ref.files
-        keys = ["image1", "image2", "calib", "disp1"]
-        if not Path(files["disp2_own"]).exists():
-            keys += ["disp2", "flow"]
-        return tuple(keys)
+        """Keys of the files this pair cannot do without (the optional ones depend on the others).
 
-    def missing_hint(self, key: str) -> str:
-        if self.testing and key in ("disp1", "disp2", "flow"):
-            return (" (the KITTI testing split ships no disparity or flow, so it has no depth; use "
-                    "the training split, or put disparities of your own as "
-                    "disp_occ_0/NNNNNN_10.png and disp_occ_0/NNNNNN_11.png)")
+        Frame 11's own disparity (``disp2_own``) replaces ``disp_occ_1`` and the flow; on the
+        testing split, which ships neither, it is what the pair needs (with frame 10's)."""
+        return ("image1", "image2", "calib") + self._depth_files(ref.files)
+
+    def _depth_files(self, files: dict) -> tuple[str, ...]:
+        if Path(files["disp2_own"]).exists():
+            return ("disp1",)
+        return ("disp1", "disp2_own") if self.testing else ("disp1", "disp2", "flow")
+
+    def missing_hint(self, key: str, scene: str = "NNNNNN") -> str:
+        if self.testing and key in ("disp1", "disp2", "disp2_own", "flow"):
+            return (f" (the KITTI testing split ships no disparity or flow, so it has no depth; use "
+                    f"the training split, or put disparities of your own as "
+                    f"disp_occ_0/{scene}_10.png and disp_occ_0/{scene}_11.png)")
+        if key in ("disp2", "flow"):
+            return (f" (without disp_occ_1 and flow_occ, frame 11's own disparity as "
+                    f"disp_occ_0/{scene}_11.png lets the pair be read: frame-2 depth from it, the "
+                    f"camera motion from feature matching)")
         return ""
 
     def pair_notes(self, pair: FramePair) -> list[str]:
@@ -190,11 +198,11 @@ class KittiDataset(FarDepthDataset):
     def load(self, ref: PairRef) -> FramePair:
         files = ref.files
         require_files(files, ("image1", "image2", "calib"))
-        hint = self.missing_hint("disp1")
+        for key in self._depth_files(files):
+            require_files(files, (key,), self.missing_hint(key, ref.id.scene))
         own2 = Path(files["disp2_own"]).exists()
-        require_files(files, ("disp1",) if own2 else ("disp1", "disp2", "flow"), hint)
 
-        img1, img2 = read_image(files["image1"]), read_image(files["image2"])
+        img1, img2, meta = read_frames(files)
         size = img1.shape[:2]
         check_size(files["image2"], "frame", img2.shape, size)
         k, baseline = stereo_camera(files["calib"])
@@ -236,7 +244,8 @@ class KittiDataset(FarDepthDataset):
             depth_measured1=chw(valid1), depth_measured2=chw(valid2),
             sources={key: Path(v) for key, v in files.items() if Path(v).exists()},
             depth_scale=scale,
-            meta={"camera_motion": fit.summary(), "baseline_m": baseline, "far_depth": self.far_depth},
+            meta={"camera_motion": fit.summary(), "baseline_m": baseline, "far_depth": self.far_depth,
+                  **meta},
         ).validate()
 
     def _dense_depth(self, disparity, valid, image, focal_baseline) -> tuple[np.ndarray, np.ndarray]:

@@ -21,6 +21,7 @@ translation between the two cameras (also what that research code did), keeping 
 from __future__ import annotations
 
 import json
+import math
 import re
 import tomllib
 from collections import Counter
@@ -30,11 +31,11 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
-from ..io.images import read_image, read_raw
+from ..io.images import read_raw
 from ..io.sintel_formats import read_cam, read_dpt, read_flo
 from ..io.text import read_text_file
 from .base import PairRef, Selection, frame_numbers
-from .common import ScaledDataset
+from .common import ScaledDataset, read_frames
 
 _FRAME_RE = re.compile(r"^frame_(\d{4,})\.png$")
 SPLITS = ("training", "test")
@@ -66,8 +67,10 @@ def load_scene_scales(path: str | Path) -> dict[str, float]:
     out = SceneScales()
     out.source = str(path)
     for scene, value in table.items():
-        if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
-            raise ConfigError(f"{path}: scale of scene {scene!r} must be a positive number, got {value!r}")
+        if (isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0
+                or not math.isfinite(value)):
+            raise ConfigError(f"{path}: scale of scene {scene!r} must be a positive finite number, "
+                              f"got {value!r}")
         out[str(scene)] = float(value)
     return out
 
@@ -115,8 +118,10 @@ class SintelDataset(ScaledDataset):
 
     def pairs(self) -> list[PairRef]:
         refs = []
+        self._listing_problems = {}
         for scene in self.selection.pick_scenes(self.scenes(), self.image_dir):
             frames = self.frames(scene)
+            self._note_gaps(scene, frames, self.image_dir / scene)
             present = set(frames)
             if not any(f + 1 in present for f in frames):
                 # a scene folder the selection names but that holds no pair would otherwise vanish
@@ -156,7 +161,7 @@ class SintelDataset(ScaledDataset):
                 hint = self.missing_hint(key)
                 raise DatasetError(f"{files[key]}: {'depth' if 'depth' in key else 'camera'} "
                                    f"file is missing{hint}")
-        img1, img2 = read_image(files["image1"]), read_image(files["image2"])
+        img1, img2, meta = read_frames(files)
         raw_depths = [read_dpt(files["depth1"]), read_dpt(files["depth2"])]
         h, w = _common_size(files, {"image1": img1.shape[:2], "image2": img2.shape[:2],
                                     "depth1": raw_depths[0].shape, "depth2": raw_depths[1].shape})
@@ -187,7 +192,7 @@ class SintelDataset(ScaledDataset):
                 valid = inv == 0
 
         return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
-                               flow_valid=valid)
+                               flow_valid=valid, meta=meta)
 
 
 def _common_size(files: dict, sizes: dict) -> tuple[int, int]:

@@ -38,10 +38,9 @@ import numpy as np
 
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
-from ..io.images import read_image
 from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
 from .base import NativeFlow, PairRef, Selection, frame_numbers
-from .common import FarDepthDataset, check_size, require_files
+from .common import FarDepthDataset, check_size, read_frames, require_files
 
 _FRAME_RE = re.compile(r"^frame_left_(\d{4,})\.png$")
 #: Distance between Spring's left and right cameras, metres.
@@ -84,8 +83,11 @@ class SpringDataset(FarDepthDataset):
 
     def pairs(self) -> list[PairRef]:
         refs = []
+        self._listing_problems = {}
         for scene in self.selection.pick_scenes(self.scenes(), self.split_dir):
-            for f in self.selection.pick_frames(self.frames(scene)):
+            frames = self.frames(scene)
+            self._note_gaps(scene, frames, self.split_dir / scene / "frame_left")
+            for f in self.selection.pick_frames(frames):
                 refs.append(PairRef(PairId(self.name, self.split_dir.name, scene, f), self._files(scene, f)))
         return refs
 
@@ -117,7 +119,7 @@ class SpringDataset(FarDepthDataset):
         require_files(files, ("intrinsics", "extrinsics"))
         f = ref.id.frame
 
-        img1, img2 = read_image(files["image1"]), read_image(files["image2"])
+        img1, img2, meta = read_frames(files)
         size = img1.shape[:2]
         check_size(files["image2"], "frame", img2.shape, size)
 
@@ -153,7 +155,7 @@ class SpringDataset(FarDepthDataset):
         return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
                                flow_valid=flow_valid, measured=measured,
                                meta={"baseline_m": self.baseline, "far_depth": self.far_depth,
-                                     "extrinsics": self.extrinsics})
+                                     "extrinsics": self.extrinsics, **meta})
 
     def describe(self) -> dict:
         out = super().describe()

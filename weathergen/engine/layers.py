@@ -21,10 +21,14 @@ Storage (particle format version 4): one ``.npz`` per pair holding
 - ``format_version`` (4), ``layer_names`` ``(L,)`` str, ``layer_counts`` ``(L,)`` int64, and
   ``layer`` ``(N,)`` uint8: the layer of every particle, in that numbering;
 - for layer ``k``, every entry of that layer's own record file (:meth:`Particles.to_numpy`:
-  version 3 for the paper's model, 2 for a field) under the name ``layer<k>.<entry>``, so each
-  layer keeps its own precision and a re-rendered layer equals the sampled one bit for bit.
+  version 5, the paper's codes or a field's float layout; files written before it hold
+  versions 3 and 2) under the name ``layer<k>.<entry>``, so each layer keeps its own precision
+  and a re-rendered layer equals the sampled one bit for bit. As in a single record's file, the
+  0-d entries (``layer<k>.frame``, ...) are gathered in one ``scalars`` entry
+  (:mod:`weathergen.io.npz`), ``format_version`` excepted.
 
-A single preset's record keeps its own format (versions 1 to 3): one layer costs no byte more.
+A single preset's record keeps its own format (version 5; 1 to 3 are still read): one layer
+costs no byte more.
 :func:`load_particles` reads either.
 """
 
@@ -40,7 +44,10 @@ import numpy as np
 import torch
 
 from ..errors import FormatError
-from .particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, read_particle_arrays
+from ..io.atomic import atomic_write_bytes
+from ..io.npz import npz_bytes
+from .particles import (LAYERED_FORMAT_VERSION, TENSOR_FIELDS, VERSION_ENTRIES, Particles,
+                        read_particle_arrays)
 
 #: The most layers one record holds (the per-particle layer index is stored as uint8).
 MAX_LAYERS = 255
@@ -159,11 +166,8 @@ class LayeredParticles:
         return arrays
 
     def save(self, path: str | Path) -> Path:
-        """Write a compressed ``.npz`` (readable with ``numpy.load``, no pickles)."""
-        path = Path(path)
-        with open(path, "wb") as fh:
-            np.savez_compressed(fh, **self.to_numpy())
-        return path
+        """Write a compressed ``.npz`` (readable with ``numpy.load``, no pickles), atomically."""
+        return atomic_write_bytes(path, npz_bytes(self.to_numpy(), keep=VERSION_ENTRIES))
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], path: str | Path = "<arrays>",

@@ -24,17 +24,29 @@ particle's diameter in scene units and ``transparency`` its base θ, and footpri
 depth fade are computed for every frame from that frame's own depth of the particle
 (:mod:`weathergen.engine.perframe`).
 
-Storage precision of the paper's records (format version 3): positions and motions as codes on a
-per-record linear grid (``lo + code * step`` per axis, the grid spanning the record's values; 15
-bits for positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for motions);
-colours as 8-bit codes; rotations in 256 steps of a turn; scales, offsets and transparencies
-float16; template indices uint16; defocus radii uint8.
-Field records (format version 2) keep float32 positions, motions and scales (a field's positions
-are exact multiples of its grid quantum, so that a frame is the same image in every pair that
-holds it) and float16 offsets, colours, transparencies and rotations, plus the ``optics`` entry.
-Sampling returns a record already rounded to these precisions (:meth:`Particles.quantized`,
-idempotent), so rendering the in-memory record and rendering the reloaded file give identical
-bytes. Version 1 files (the float32 layout of version 2 without optics) are still read.
+Storage precision of the paper's records: positions and motions as codes on a per-record linear
+grid (``lo + code * step`` per axis, the grid spanning the record's values; 15 bits for
+positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for motions); colours as
+8-bit codes; rotations in 256 steps of a turn; scales, offsets and transparencies float16;
+template indices uint16; defocus radii uint8. Field records keep float32 positions, motions and
+scales (a field's positions are exact multiples of its grid quantum, so that a frame is the same
+image in every pair that holds it) and float16 offsets, colours, transparencies and rotations,
+plus the ``optics`` entry. Sampling returns a record already rounded to these precisions
+(:meth:`Particles.quantized`, idempotent), so rendering the in-memory record and rendering the
+reloaded file give identical bytes.
+
+File format versions (every one is still read):
+
+- 5 (written now for a single record): the 0-d entries (reference frame, render settings, ...)
+  gathered in one ``scalars`` entry (:mod:`weathergen.io.npz`; ``format_version`` stays an entry
+  of its own). Paper records: the codes above, the three 10-bit motion codes of a particle packed
+  into one uint32 (``x << 20 | y << 10 | z``, shape (N,)). Field records (with ``optics``): the
+  float layout of version 2.
+- 4: the layers of a combined preset, each a single record's entries under ``layer<k>.``
+  (:mod:`weathergen.engine.layers`; read with ``LayeredParticles.load`` or ``load_particles``).
+- 3: paper records, the codes above with motion codes as uint16 (N, 3); one entry per 0-d value.
+- 2: field records, the float layout plus ``optics``.
+- 1: the float layout of version 2 without optics.
 """
 
 from __future__ import annotations
@@ -49,16 +61,20 @@ import numpy as np
 import torch
 
 from ..errors import FormatError
+from ..io.atomic import atomic_write_bytes
+from ..io.npz import npz_bytes, read_npz
 from .optics import FieldOptics
 from .settings import RenderSettings
 
-#: Records of the paper's model are written as version 3 (compact codes, see the module doc).
-FORMAT_VERSION = 3
-#: Records with field optics are written as version 2 (float layout plus the optics).
-FIELD_FORMAT_VERSION = 2
-READABLE_VERSIONS = (1, 2, 3)
+#: Single records are written as version 5 (see the module doc).
+FORMAT_VERSION = 5
 #: Files of a combined preset's layers (:mod:`weathergen.engine.layers`) are version 4.
 LAYERED_FORMAT_VERSION = 4
+READABLE_VERSIONS = (1, 2, 3, 5)
+#: Versions whose paper records store codes (grids, 8-bit colours and rotations).
+_CODED_VERSIONS = (3, 5)
+#: Entries a particle file keeps out of the gathered ``scalars`` (a reader must find them).
+VERSION_ENTRIES = ("format_version", "metadata_version")
 REFERENCE_FRAMES = ("world", "camera1")
 
 # Per-particle tensor fields: storage dtype and trailing shape.
@@ -77,7 +93,7 @@ _TENSOR_FIELDS = {
 _INTEGER_FIELDS = ("template", "defocus")
 # Format version 3 stores some fields as codes (see the module doc); the rest as in version 1.
 _GRID_FIELDS = ("position", "motion")                     # uint16 codes + "<name>_grid" (2, 3)
-_V3_DTYPES = {"color": np.uint8, "rotation": np.uint8, "scale": np.float16,
+_CODED_DTYPES = {"color": np.uint8, "rotation": np.uint8, "scale": np.float16,
               **{name: np.uint16 for name in _GRID_FIELDS}}
 # Grid levels: 15 bits for positions; 10 bits for motions (frame-to-frame displacements
 # spread over a much smaller range: rain's ±10 % of 0.2 units gives steps of 4e-5 units).
@@ -103,6 +119,18 @@ def _grid(values: torch.Tensor, levels: int) -> tuple[torch.Tensor, torch.Tensor
 def _ungrid(codes: torch.Tensor, lo: torch.Tensor, step: torch.Tensor) -> torch.Tensor:
     """float32 values of grid codes. Shape: (N, 3), (3,), (3,) -> (N, 3)."""
     return (lo + codes.to(torch.float64) * step).to(torch.float32)
+
+
+def _pack_motion(codes: np.ndarray) -> np.ndarray:
+    """Three 10-bit motion codes per particle in one uint32. Shape: (N, 3) -> (N,)."""
+    c = codes.astype(np.uint32)
+    return (c[:, 0] << 20) | (c[:, 1] << 10) | c[:, 2]
+
+
+def _unpack_motion(words: np.ndarray) -> np.ndarray:
+    """The codes :func:`_pack_motion` packed. Shape: (N,) -> (N, 3) int64."""
+    w = words.astype(np.int64)
+    return np.stack([(w >> 20) & 1023, (w >> 10) & 1023, w & 1023], axis=-1)
 
 
 def _quantize_field(name: str, t: torch.Tensor) -> torch.Tensor:
@@ -216,8 +244,7 @@ class Particles:
     # -- storage -----------------------------------------------------------------------------
 
     def to_numpy(self) -> dict[str, np.ndarray]:
-        """The ``.npz`` content (format version 3, or 2 for field records): storage arrays plus
-        0-d metadata arrays."""
+        """The ``.npz`` content (format version 5): storage arrays plus 0-d metadata arrays."""
         if self.optics is not None:
             return self._to_numpy_field()
         arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
@@ -225,7 +252,8 @@ class Particles:
             t = getattr(self, name).detach().cpu()
             if name in _GRID_FIELDS:
                 codes, lo, step = _grid(t, _GRID_LEVELS[name])
-                arrays[name] = codes.numpy().astype(np.uint16)
+                codes = codes.numpy()
+                arrays[name] = _pack_motion(codes) if name == "motion" else codes.astype(np.uint16)
                 arrays[f"{name}_grid"] = torch.stack((lo, step)).numpy()
             elif name == "color":
                 arrays[name] = np.round(t.double().clamp(0, 1).numpy() * 255).astype(np.uint8)
@@ -234,16 +262,15 @@ class Particles:
                 arrays[name] = np.remainder(turn, _ROTATION_STEPS).astype(np.uint8)
             else:
                 arrays[name] = _quantize_field(name, t).numpy().astype(
-                    _V3_DTYPES.get(name, np_dtype))
+                    _CODED_DTYPES.get(name, np_dtype))
         arrays["frame"] = np.array(self.frame)
         arrays.update(self.settings.to_arrays())
         return arrays
 
     def _to_numpy_field(self) -> dict[str, np.ndarray]:
-        """Format version 2: float storage arrays plus the metadata and the ``optics`` entry."""
+        """Field records: float storage arrays plus the metadata and the ``optics`` entry."""
         q = self.quantized()
-        arrays: dict[str, np.ndarray] = {
-            "format_version": np.array(FIELD_FORMAT_VERSION, np.int32)}
+        arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
             arrays[name] = getattr(q, name).cpu().numpy().astype(np_dtype)
         arrays["frame"] = np.array(self.frame)
@@ -252,33 +279,33 @@ class Particles:
         return arrays
 
     def save(self, path: str | Path) -> Path:
-        """Write a compressed ``.npz`` (readable with ``numpy.load``, no pickles)."""
-        path = Path(path)
-        with open(path, "wb") as fh:
-            np.savez_compressed(fh, **self.to_numpy())
-        return path
+        """Write a compressed ``.npz`` (readable with ``numpy.load``, no pickles), atomically."""
+        return atomic_write_bytes(path, npz_bytes(self.to_numpy(), keep=VERSION_ENTRIES))
 
     @classmethod
     def load(cls, path: str | Path, device=None) -> "Particles":
-        """Read a record written by :meth:`save`; FormatError names the file on any problem."""
+        """Read a record written by :meth:`save` (any readable version); FormatError names the
+        file on any problem."""
         return cls.from_arrays(read_particle_arrays(path), path, device)
 
     @classmethod
     def from_arrays(cls, arrays: dict[str, np.ndarray], path: str | Path = "<arrays>",
                     device=None) -> "Particles":
-        """The record stored as ``arrays`` (what :meth:`to_numpy` gives, or a file's entries);
-        FormatError names ``path`` on any problem."""
+        """The record stored as ``arrays`` (what :meth:`to_numpy` gives, or a file's entries as
+        :func:`read_particle_arrays` gives them); FormatError names ``path`` on any problem."""
         path = Path(path)
         version = arrays.get("format_version")
         if version is None:
             raise FormatError(path, "no format_version: not a weathergen particle file")
-        if int(version) == LAYERED_FORMAT_VERSION:
+        version = int(version)
+        if version == LAYERED_FORMAT_VERSION:
             raise FormatError(path, "holds the layers of a combined preset; read it with "
                                     "LayeredParticles.load (or load_particles)")
-        if int(version) not in READABLE_VERSIONS:
-            raise FormatError(path, f"particle format version {int(version)}; this weathergen "
+        if version not in READABLE_VERSIONS:
+            raise FormatError(path, f"particle format version {version}; this weathergen "
                                     f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
-        v3 = int(version) == FORMAT_VERSION
+        field_record = "optics" in arrays if version == FORMAT_VERSION else version in (1, 2)
+        coded = version in _CODED_VERSIONS and not field_record
         n = None
         fields = {}
         for name, (np_dtype, tail) in _TENSOR_FIELDS.items():
@@ -287,23 +314,16 @@ class Particles:
             a = arrays[name]
             if n is None:
                 n = a.shape[0] if a.ndim else -1
-            want = _V3_DTYPES.get(name, np_dtype) if v3 else np_dtype
-            if a.dtype != want or a.shape != (n, *tail):
+            want, shape = np_dtype, (n, *tail)
+            if coded:
+                want = _CODED_DTYPES.get(name, np_dtype)
+                if name == "motion" and version == FORMAT_VERSION:
+                    want, shape = np.uint32, (n,)
+            if a.dtype != want or a.shape != shape:
                 raise FormatError(path, f"array '{name}' is {a.dtype} {a.shape}, expected "
-                                        f"{np.dtype(want)} {(n, *tail)}")
-            if v3 and name in _GRID_FIELDS:
-                grid = arrays.get(f"{name}_grid")
-                if grid is None or grid.dtype != np.float64 or grid.shape != (2, 3):
-                    raise FormatError(path, f"array '{name}_grid' must be float64 (2, 3)")
-                g = torch.from_numpy(grid)
-                t = _ungrid(torch.from_numpy(a.astype(np.int64)), g[0], g[1])
-            elif v3 and name == "color":
-                t = torch.from_numpy((a.astype(np.float64) / 255).astype(np.float32))
-            elif v3 and name == "rotation":
-                t = torch.from_numpy((a.astype(np.float64) * (2 * np.pi / _ROTATION_STEPS))
-                                     .astype(np.float32))
-            else:
-                t = torch.from_numpy(a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32))
+                                        f"{np.dtype(want)} {shape}")
+            t = torch.from_numpy(_decoded(arrays, name, version, path)) if coded else \
+                torch.from_numpy(a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32))
             fields[name] = t.to(device) if device is not None else t
         if "frame" not in arrays:
             raise FormatError(path, "missing field 'frame'")
@@ -311,9 +331,9 @@ class Particles:
         if frame not in REFERENCE_FRAMES:
             raise FormatError(path, f"unknown reference frame {frame!r}")
         optics = None
-        if int(version) == FIELD_FORMAT_VERSION:
+        if version == 2 or (version == FORMAT_VERSION and field_record):
             if "optics" not in arrays:
-                raise FormatError(path, "version 2 particle file without 'optics'")
+                raise FormatError(path, f"version {version} field record without 'optics'")
             try:
                 optics = FieldOptics.from_dict(json.loads(str(arrays["optics"])))
             except (ValueError, TypeError) as exc:
@@ -322,12 +342,49 @@ class Particles:
                    optics=optics)
 
 
+def _decoded(arrays: dict, name: str, version: int, path) -> np.ndarray:
+    """The values of a coded record's array ``name`` (versions 3 and 5), float32 (int64 for
+    integer fields)."""
+    a = arrays[name]
+    if name in _GRID_FIELDS:
+        grid = arrays.get(f"{name}_grid")
+        if grid is None or grid.dtype != np.float64 or grid.shape != (2, 3):
+            raise FormatError(path, f"array '{name}_grid' must be float64 (2, 3)")
+        codes = (_unpack_motion(a) if name == "motion" and version == FORMAT_VERSION
+                 else a.astype(np.int64))
+        return _ungrid(torch.from_numpy(codes), torch.from_numpy(grid[0]),
+                       torch.from_numpy(grid[1])).numpy()
+    if name == "color":
+        return (a.astype(np.float64) / 255).astype(np.float32)
+    if name == "rotation":
+        return (a.astype(np.float64) * (2 * np.pi / _ROTATION_STEPS)).astype(np.float32)
+    return a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32)
+
+
+def _coded(arrays: dict) -> bool:
+    version = int(arrays.get("format_version", FORMAT_VERSION))
+    return version in _CODED_VERSIONS and not (version == FORMAT_VERSION and "optics" in arrays)
+
+
+def stored_as(arrays: dict, name: str) -> str:
+    """How a particle file stores the array ``name``, for display: its numpy dtype, and how its
+    codes decode (``"uint16 grid"``: codes on ``NAME_grid``; ``"uint8 /255"``)."""
+    a = arrays[name]
+    if _coded(arrays):
+        if name in _GRID_FIELDS and f"{name}_grid" in arrays:
+            return f"{a.dtype} grid"
+        if name == "color":
+            return f"{a.dtype} /255"
+        if name == "rotation":
+            return f"{a.dtype} 2π/{_ROTATION_STEPS}"
+    return str(a.dtype)
+
+
 def read_particle_arrays(path: str | Path) -> dict[str, np.ndarray]:
     """Every entry of a particle ``.npz`` file; FormatError names the file when it cannot be read."""
     path = Path(path)
     try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files}
+        return read_npz(path)           # the gathered 0-d entries as their own arrays again
     except FileNotFoundError:
         raise FormatError(path, "particle file does not exist") from None
     except Exception as exc:  # numpy raises several types for corrupt archives
@@ -336,17 +393,11 @@ def read_particle_arrays(path: str | Path) -> dict[str, np.ndarray]:
 
 def stored_values(arrays: dict, name: str) -> np.ndarray:
     """The values a particle file's array ``name`` stands for (codes decoded), for display.
-    Shape: as stored."""
-    a = arrays[name]
-    if int(arrays.get("format_version", FORMAT_VERSION)) == FORMAT_VERSION:
-        if name in _GRID_FIELDS and f"{name}_grid" in arrays:
-            grid = np.asarray(arrays[f"{name}_grid"], np.float64)
-            return grid[0] + a.astype(np.float64) * grid[1]
-        if name == "color":
-            return a.astype(np.float64) / 255
-        if name == "rotation":
-            return a.astype(np.float64) * (2 * np.pi / _ROTATION_STEPS)
-    return a.astype(np.float64)
+    Shape: as the record holds it ((N, 3) for motion whatever the storage)."""
+    if _coded(arrays):
+        return _decoded(arrays, name, int(arrays.get("format_version", FORMAT_VERSION)),
+                        "<arrays>").astype(np.float64)
+    return arrays[name].astype(np.float64)
 
 
 def empty_particles(frame: str = "world", settings: RenderSettings = RenderSettings(),

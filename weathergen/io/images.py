@@ -37,8 +37,19 @@ def read_image(path: str | Path) -> np.ndarray:
 
     Grey-scale files are replicated to three channels; an alpha channel is dropped.
     """
-    path = Path(path)
+    return rgb_from_raw(read_raw(path), path)
+
+
+def read_image_kind(path: str | Path) -> tuple[np.ndarray, str]:
+    """:func:`read_image`, and what the file stores: ``"grey"`` or ``"colour"`` (alpha aside)."""
     raw = read_raw(path)
+    return rgb_from_raw(raw, path), ("grey" if raw.ndim == 2 else "colour")
+
+
+def rgb_from_raw(raw: np.ndarray, path: str | Path) -> np.ndarray:
+    """An image as :func:`read_raw` returns it, as :func:`read_image` returns it; ``path`` names
+    the file in errors."""
+    path = Path(path)
     if raw.dtype == np.uint8:
         scale = 255.0
     elif raw.dtype == np.uint16:

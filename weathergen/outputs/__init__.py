@@ -22,13 +22,14 @@ from .manifest import (MANIFEST, MANIFEST_PARTS, SUMMARY, OutputManifest, jsonab
 from .metadata import (FRAME_SCALING, METADATA_KEYS, METADATA_VERSION, identity_arrays,
                        pair_identity, pair_metadata, read_metadata, stored_frame_scaling,
                        write_metadata)
-from .pairs import FORMATS, NATIVE_FLOW, SINTEL_SPLIT_FOLDER, PairOutput, write_pair_outputs  # noqa: F401  (documented above)
+from .pairs import (FORMATS, NATIVE_FLOW, SINTEL_SPLIT_FOLDER, PairOutput, RightView,  # noqa: F401
+                    write_pair_outputs)
 from .reading import WeatherFolder, load_pair_particles
 
 __all__ = ["ATTACK_FOLDER", "AttackPairOutput", "Claim", "FLOW_KINDS", "FORMATS", "FRAME_SCALING",
            "FolderKind",
            "MANIFEST", "MANIFEST_PARTS", "METADATA_KEYS", "METADATA_VERSION", "NATIVE_FLOW",
-           "OutputManifest", "RENDER_FOLDER", "SINTEL_SPLIT_FOLDER", "SUMMARY", "WeatherFolder",
+           "OutputManifest", "RENDER_FOLDER", "RightView", "SINTEL_SPLIT_FOLDER", "SUMMARY", "WeatherFolder",
            "claim_folder", "encode_log", "folder_size", "identity_arrays", "jsonable",
            "load_pair_particles", "lock_file", "merge_manifest", "pair_identity", "pair_metadata",
            "prepare_folder", "read_attack_manifest", "read_log", "read_manifest", "read_metadata",

@@ -9,7 +9,10 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/PASS/PAIR/frame_FFFF.png        augmented first frame (8-bit PNG)
     OUT/SPLIT/PASS/PAIR/frame_GGGG.png        augmented second frame, G = F + 1
     OUT/SPLIT/PASS_exr/PAIR/frame_FFFF.exr    float frames with an 'opacity' channel (--format exr/both)
-    OUT/SPLIT/PASS_right/PAIR/frame_FFFF.png  the right camera's frames (--stereo: KITTI, Spring)
+    OUT/SPLIT/PASS_right/PAIR/frame_FFFF.png  the right camera's frames (--stereo: KITTI, Spring,
+    OUT/SPLIT/PASS_right_exr/PAIR/...exr         custom), as the left's: PNG and/or EXR with opacity,
+    OUT/SPLIT/depth_right/PAIR/frame_FFFF.dpt    its depth (warped from the left) and cameras;
+    OUT/SPLIT/camdata_right/PAIR/frame_FFFF.cam  right_from_left and its intrinsics in the metadata
     OUT/SPLIT/particles/PAIR/frame_FFFF.npz   particle metadata of the pair (numpy-readable)
     OUT/SPLIT/depth/PAIR/frame_FFFF.dpt       geometry the particles were placed in, in Sintel
     OUT/SPLIT/camdata_left/PAIR/frame_FFFF.cam   formats (depth and cameras after the depth scale),
@@ -68,6 +71,28 @@ SINTEL_SPLIT_FOLDER = {"train": "training", "testing": "test"}
 
 
 @dataclass(frozen=True)
+class RightView:
+    """What a stereo render writes of the second camera, as the first camera's outputs.
+
+    Shape: frames, opacity, depth one entry per frame written (H, W, 3) float in [0, 1], (H, W)
+    float, (H, W) camera-z; intrinsics (3, 3); cam_from_world one (4, 4) per frame (the world of
+    the left camera files: camera 1 where the dataset has no poses); right_from_left (4, 4).
+    """
+
+    frames: tuple
+    opacity: tuple
+    depth: tuple
+    intrinsics: np.ndarray
+    cam_from_world: tuple
+    right_from_left: np.ndarray
+
+    def metadata(self) -> dict[str, np.ndarray]:
+        """Entries of the pair's particle metadata that place the right camera."""
+        return {"right_from_left": np.asarray(self.right_from_left, np.float64),
+                "right_intrinsics": np.asarray(self.intrinsics, np.float64)}
+
+
+@dataclass(frozen=True)
 class PairOutput:
     """Where one pair's outputs go."""
 
@@ -108,6 +133,22 @@ class PairOutput:
         """The right camera's frames (``--stereo``), in the pass folder suffixed ``_right``."""
         folder = f"{self.pass_name}_right"
         return self._file(folder, self.frame, "png"), self._file(folder, self.frame + 1, "png")
+
+    @property
+    def frames_right_exr(self) -> tuple[Path, Path]:
+        folder = f"{self.pass_name}_right_exr"
+        return self._file(folder, self.frame, "exr"), self._file(folder, self.frame + 1, "exr")
+
+    def right_geometry_files(self) -> list[Path]:
+        """The right camera's depth (frames 1, 2) and camera files (frames 1, 2)."""
+        return [self._file("depth_right", self.frame, "dpt"),
+                self._file("depth_right", self.frame + 1, "dpt"),
+                self._file("camdata_right", self.frame, "cam"),
+                self._file("camdata_right", self.frame + 1, "cam")]
+
+    def right_files(self) -> list[Path]:
+        """Every file a stereo render may write of the right camera (for temporary-file cleanup)."""
+        return list(self.frames_right_png) + list(self.frames_right_exr) + self.right_geometry_files()
 
     @property
     def frames_exr(self) -> tuple[Path, Path]:
@@ -183,7 +224,8 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
     """Write one pair: frames, optional EXR, geometry and particle ground truth (``truth``, a
     :class:`~weathergen.engine.groundtruth.ParticleTruth`), then the metadata (last).
     ``second=False`` (a sequence's pair whose second frame the next pair writes) leaves out the
-    second frame's image, EXR, depth and camera.
+    second frame's image, EXR, depth and camera. ``right`` (a :class:`RightView`, ``--stereo``)
+    adds the second camera's frames, EXR, depth and cameras, and its placement to the metadata.
 
     Shape: frames (H, W, 3) float in [0, 1]; opacity (H, W) float.
     """
@@ -195,9 +237,8 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
     if out.fmt in ("exr", "both"):
         for path, img, alpha in list(zip(out.frames_exr, frames, opacity))[:n]:
             written.append(write_exr(path, img, {"opacity": alpha}))
-    if right is not None:       # the second camera's frames, beside the first's
-        for path, img in list(zip(out.frames_right_png, right))[:n]:
-            written.append(write_png(path, img))
+    if right is not None:       # the second camera: the same outputs as the first's
+        written += _write_right(out, right, n)
     if out.geometry:
         depth_files = out.geometry_files(with_flow=pair.flow is not None)
         written.append(write_dpt(depth_files[0], pair.depth1[0].numpy()))
@@ -222,9 +263,30 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
         written += _write_truth(out, pair, truth)
     rel = [str(p.relative_to(out.root)) for p in written]
     metadata = dict(metadata)
+    if right is not None:
+        metadata.update(right.metadata())
     metadata["files"] = np.array(json.dumps(rel))
     write_metadata(out.metadata, metadata)
     return written + [out.metadata]
+
+
+def _write_right(out: PairOutput, right: RightView, n: int) -> list[Path]:
+    """The right camera's frames (PNG and/or EXR with opacity) and, with geometry, its depth and
+    camera files, for the first ``n`` frames."""
+    written = []
+    if out.fmt in ("png", "both"):
+        for path, img in list(zip(out.frames_right_png, right.frames))[:n]:
+            written.append(write_png(path, img))
+    if out.fmt in ("exr", "both"):
+        for path, img, alpha in list(zip(out.frames_right_exr, right.frames, right.opacity))[:n]:
+            written.append(write_exr(path, img, {"opacity": alpha}))
+    if out.geometry:
+        files = out.right_geometry_files()
+        for path, depth in list(zip(files[:2], right.depth))[:n]:
+            written.append(write_dpt(path, np.asarray(depth, np.float32)))
+        for path, cam in list(zip(files[2:], right.cam_from_world))[:n]:
+            written.append(write_cam(path, np.asarray(right.intrinsics), np.asarray(cam)))
+    return written
 
 
 def _write_native_flow(fmt: str, path: Path, pair: FramePair) -> Path:

@@ -28,18 +28,24 @@ from ..datasets.stereo import right_camera
 from ..engine import (FieldPreset, View, load_templates, particle_truth, reference_transforms,
                       render_pair, visible_counts)
 from ..engine.perframe import pair_starts, render_first_frame
+from ..engine.presets import list_presets
 from ..engine.stereo import render_right, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
-from ..outputs import (RENDER_FOLDER, PairOutput, claim_folder, merge_manifest, pair_metadata,
-                       write_manifest_part, write_pair_outputs)
+from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
+                       pair_metadata, write_manifest_part, write_pair_outputs)
 from ..io.atomic import write_error
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
 from .particles import pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
+
+#: A pair of a paper preset whose frame 2 shows fewer than this fraction of the particle centres
+#: frame 1 shows (strong camera motion, e.g. driving forward) is marked ``few_in_frame2`` in the
+#: manifest, and the run says once that weather fields are the model for such motion.
+FRAME2_KEPT_MIN = 0.5
 
 #: Every pair renders with this many intra-op threads, whatever the worker count: thread count can
 #: change the order of floating-point reductions, and with it the output bytes.
@@ -102,9 +108,11 @@ class PairResult:
     bytes: int = 0
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
+    few_in_frame2: bool = False # a paper preset's pair that keeps < FRAME2_KEPT_MIN of them
     particles: Optional[int] = None   # written: particles in the pair's record (the count its
                                       # frame size gave, see the metadata's frame_scaling)
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
+    warnings: list = field(default_factory=list)  # what the reader found odd ("FILE: what" lines)
     ran: Optional[dict] = None  # where it was computed (weathergen.execution.where_ran) and batch
 
 
@@ -217,30 +225,64 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
                                    right=right)
     except OSError as exc:   # a full or unwritable disk stops the run: every pair would fail
         raise write_error(exc, job.out, "then rerun with ${resume}") from None
+    facts = dict(getattr(pair, "meta", None) or {})
+    warnings = list(facts.pop("warnings", []))
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
-                      particles=particles.count,
-                      input=jsonable(getattr(pair, "meta", None) or {}))
+                      few_in_frame2=particles.optics is None and few_in_frame2(*visible),
+                      particles=particles.count, input=jsonable(facts), warnings=warnings)
 
 
-def _render_right(job: RenderJob, pair, particles, second: bool) -> tuple:
-    """The right camera's weather frames (the first, and the second when ``second``): the same
-    particles seen from the dataset's second camera, occluded by its forward-warped depth.
-    Shape: returns (H, W, 3) float arrays."""
+def few_in_frame2(visible1: int, visible2: int) -> bool:
+    """Whether frame 2 shows fewer than :data:`FRAME2_KEPT_MIN` of the particle centres frame 1
+    shows. The paper's model samples a pair's particles among the points visible in frame 1 or
+    frame 2, in a box in front of camera 1: a camera that moves far into that box leaves most of
+    them behind it or outside its view."""
+    return visible2 < FRAME2_KEPT_MIN * visible1
+
+
+def frame2_note(results: list[PairResult], preset_name: str) -> Optional[str]:
+    """The run's one line about pairs marked ``few_in_frame2``, or None when there are none."""
+    few = [r for r in results if r.status == "written" and r.few_in_frame2]
+    if not few:
+        return None
+    order = ("snow", "rain", "sparks", "fog")
+    fields = sorted((name for name in list_presets("field") if name.endswith("-moderate")),
+                    key=lambda name: (order.index(name.split("-")[0])
+                                      if name.split("-")[0] in order else len(order), name))
+    worst = min(few, key=lambda r: r.visible[1] / max(r.visible[0], 1))
+    share = worst.visible[1] / max(worst.visible[0], 1)
+    return (f"in {len(few)} pair(s) frame 2 shows fewer than half of the particles frame 1 "
+            f"shows (strong camera motion; e.g. {worst.pair}: {worst.visible[1]} of "
+            f"{worst.visible[0]}, {share:.0%}), marked few_in_frame2 in the manifest. The paper's preset "
+            f"'{preset_name}' places its particles in a box in front of camera 1; for strong "
+            f"camera motion use a weather-field preset ({', '.join(fields)}, ...), whose "
+            f"particles fill the world that both cameras see")
+
+
+def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
+    """The right camera's outputs (the first frame, and the second when ``second``): the same
+    particles seen from the dataset's second camera, occluded by its forward-warped depth, with
+    that depth, its opacity and its cameras (in the left camera files' world)."""
     rc = right_camera(job.dataset, pair)
     _, c1, c2 = reference_transforms(pair)
     lib = load_templates(particles.settings.templates)
     start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
-    frames = []
+    k_right = pair.intrinsics if rc.intrinsics is None else rc.intrinsics
+    frames, opacity, depths, cams = [], [], [], []
     for image, depth, cam, start in ((rc.image1, pair.depth1, c1, start1),
                                      (rc.image2, pair.depth2, c2, start2))[:2 if second else 1]:
         left = View(pair.intrinsics, cam, depth)
         right_depth = warp_depth(depth, pair.intrinsics, rc.right_from_left, rc.intrinsics)
         view = stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics)
         with torch.no_grad():
-            out, _ = render_right(image, view, particles, start, disp, lib)
+            out, alpha = render_right(image, view, particles, start, disp, lib)
         frames.append(out.permute(1, 2, 0).numpy())
-    return tuple(frames)
+        opacity.append(alpha[0].numpy())
+        depths.append(right_depth[0].numpy())
+        cams.append(view.cam_from_ref.numpy())
+    return RightView(tuple(frames), tuple(opacity), tuple(depths), k_right.double().numpy(),
+                     tuple(cams), rc.right_from_left.double().numpy())
 
 
 def sequence_ends(ids: list[PairId]) -> frozenset:
@@ -261,7 +303,7 @@ def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                             job.sequence, job.dataset.native_flow)
         native = out.native_flow
-        extra = list(out.frames_right_png) if job.stereo else []
+        extra = out.right_files() if job.stereo else []
         if job.truth:
             extra += list(out.truth_files().values())
             extra += [p for p in (out.native_truth(kind) for kind in ("particle", "seen"))
@@ -296,9 +338,10 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
 
     Pairs already complete on disk are skipped when resuming (or when another shard's folder is
     reused). ``on_start`` receives the number of pairs, ``on_result`` each result as it arrives,
-    ``on_note`` warnings worth a line (a stale lock taken over). Interruptions (Ctrl-C, SIGTERM)
-    record what was finished in the manifest and re-raise. The output folder is locked for the
-    run: a second run in it (same shard) raises :class:`~weathergen.errors.FolderBusy`.
+    ``on_note`` warnings worth a line (a stale lock taken over, a gap in a scene's frame
+    numbering, a scene whose frames cannot be paired). Interruptions (Ctrl-C, SIGTERM) record
+    what was finished in the manifest and re-raise. The output folder is locked for the run: a
+    second run in it (same shard) raises :class:`~weathergen.errors.FolderBusy`.
 
     Raises :class:`~weathergen.errors.OutputError` when the outputs cannot be written (the pairs
     finished before are recorded), and :class:`~weathergen.errors.NothingRendered` when every
@@ -307,9 +350,16 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     check_executor(job.executor)
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     every = job.dataset.pairs()
+    for problems in job.dataset.scene_problems().values():
+        for problem in problems:        # e.g. a gap in a scene's frame numbering
+            on_note(f"{problem.where}: {problem.kind}" if problem.where else problem.kind)
     refs = shard_refs(every, job.shard)
+    if not every:
+        raise ConfigError(job.dataset.no_pairs_message())
     if not refs:
-        raise ConfigError("the selection holds no frame pairs")
+        raise ConfigError(f"${{shard}} {job.shard[0]}/{job.shard[1]} holds no frame pairs: the "
+                          f"selection holds {len(every)}, one for each of the first {len(every)} "
+                          f"shards")
     if job.sequence:
         if not isinstance(job.preset, FieldPreset):
             raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "
@@ -320,6 +370,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
                       overwrite=job.overwrite, shard=job.shard,
                       temporary=_temporary_places(job, refs), on_note=on_note) as claim:
         results = _render_locked(job, refs, on_result, on_start)
+        note = frame2_note(results, job.preset_name)
+        if note is not None:
+            on_note(note)
         if results and all(r.status == "failed" for r in results):
             first = results[0]
             # the claim removes a folder it created again
