@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
 import subprocess
 import sys
 
@@ -46,6 +47,15 @@ def test_without_cuda_it_stops_at_once_with_one_line():
         assert "make gpu-check TORCH=torch" in lines[0]
     res = run_script("--device", "cpu")
     assert res.returncode == 2 and "needs --quick" in res.stderr
+
+
+def test_every_test_that_needs_cuda_carries_the_marker_gpu_check_selects():
+    """A test skipped by its own CUDA condition would be left out of `pytest -m cuda`."""
+    own_skips = [f"{path.relative_to(PROJECT_ROOT)}:{n}"
+                 for path in sorted((PROJECT_ROOT / "tests").rglob("*.py"))
+                 for n, line in enumerate(path.read_text().splitlines(), 1)
+                 if re.search(r"skipif\(\s*not\s+torch\.cuda\.is_available\(\)", line)]
+    assert own_skips == [], "use @pytest.mark.cuda instead of skipif on CUDA"
 
 
 def test_the_makefile_target_probes_before_it_installs_anything():
