@@ -32,17 +32,34 @@ def test_check_and_render_report_a_gap_in_a_scenes_frame_numbering(sintel_with_a
     root = sintel_with_a_gap
     res = run("check", "--root", root, "--scenes", "alley")
     assert res.exit_code == 0, res.output
-    assert "alley: warning: gap in the frame numbering: no frame 2, so pairs 1-2 cannot be formed" \
-        in res.output, res.output
+    assert ("alley: warning: gap in the frame numbering: no frame 2, so the pairs of frames 1-2, 2-3 "
+            "cannot be formed") in res.output, res.output
     # --frames-per-scene 1 takes pair 3 in place of pair 1: said, with where
     res = run("render", "--root", root, "--scenes", "alley", "--frames-per-scene", "1", "--set",
               "count=20", "--out", tmp_path / "o", "-q")
     assert res.exit_code == 0, res.output
     assert (f"Note: {root / 'training' / 'clean' / 'alley'}: gap in the frame numbering: no frame 2, "
-            f"so pair 1 cannot be formed and the selection takes pair 3 instead") in res.output
+            f"so the pair of frames 1-2 cannot be formed and the selection takes the pair of frames "
+            f"3-4 instead") in res.output
     # a selection the gap does not touch says nothing
     res = run("check", "--root", root, "--scenes", "alley", "--first-frame", "3")
     assert res.exit_code == 0 and "gap" not in res.output, res.output
+
+
+def test_a_gap_names_the_pairs_it_removes_by_their_frames():
+    from weathergen.datasets.base import Selection, numbering_gap
+
+    frames = [1, 2, 3, 8, 9, 10]                         # 4 to 7 missing: pairs 3-4 ... 7-8 lost
+    assert numbering_gap(Selection(), frames) == (
+        "gap in the frame numbering: no frames 4-7, so the pairs of frames 3-4 to 7-8 cannot be "
+        "formed")
+    assert numbering_gap(Selection(frames_per_scene=3), frames) == (
+        "gap in the frame numbering: no frames 4-7, so the pair of frames 3-4 cannot be formed and "
+        "the selection takes the pair of frames 8-9 instead")
+    assert numbering_gap(Selection(), [1, 2, 4, 6, 7]) == (
+        "gap in the frame numbering: no frames 3, 5, so the pairs of frames 2-3 to 5-6 cannot be "
+        "formed")
+    assert numbering_gap(Selection(), [1, 2, 3]) is None
 
 
 # -- frames of a pair that differ in channels ------------------------------------------------------
