@@ -46,6 +46,26 @@ def test_check_and_render_report_a_gap_in_a_scenes_frame_numbering(sintel_with_a
     assert res.exit_code == 0 and "gap" not in res.output, res.output
 
 
+@pytest.mark.slow
+def test_attack_and_benchmark_report_a_gap_too(sintel_with_a_gap, tmp_path, raft_small_weights):
+    """The paper's selections are --frames-per-scene 5 attacks: a gap changes theirs as well."""
+    root = sintel_with_a_gap
+    note = (f"Note: {root / 'training' / 'clean' / 'alley'}: gap in the frame numbering: no frame 2, "
+            f"so the pair of frames 1-2 cannot be formed and the selection takes the pair of frames "
+            f"3-4 instead")
+    common = ("--root", root, "--scenes", "alley", "--frames-per-scene", "1", "--steps", "1",
+              "--set", "count=20", "-q")
+    res = run("attack", *common, "--model", "raft-small", "--checkpoint", raft_small_weights,
+              "--iters", "2", "--out", tmp_path / "a")
+    assert res.exit_code == 0, res.output
+    assert res.output.count(note) == 1, res.output
+    res = run("benchmark", *common, "--networks", "raft-small", "--checkpoint",
+              f"raft-small={raft_small_weights}", "--presets", "snow,rain", "--lp", "",
+              "--iters", "2", "--out", tmp_path / "b")
+    assert res.exit_code == 0, res.output
+    assert res.output.count(note) == 1, res.output          # once, not once per run of the grid
+
+
 def test_a_gap_names_the_pairs_it_removes_by_their_frames():
     from weathergen.datasets.base import Selection, numbering_gap
 

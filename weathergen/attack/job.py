@@ -298,7 +298,7 @@ def run_attack(job: AttackJob,
     tasks (``job.executor``). The manifest is rewritten after every unit, so an interrupted run
     (Ctrl-C, or a killed driver) keeps what it finished. ``on_step`` receives the pair's name and
     each step (local executor only: Ray tasks report whole pairs); ``on_note`` warnings worth a
-    line (a stale lock taken over). The output folder is claimed for the run
+    line (a stale lock taken over, a gap in a scene's frame numbering). The output folder is claimed for the run
     (:func:`~weathergen.outputs.claim_folder`): a second run in it raises
     :class:`~weathergen.errors.FolderBusy`.
     """
@@ -308,6 +308,8 @@ def run_attack(job: AttackJob,
     job.amp_setting()                      # a request the device or network cannot meet
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
+    for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
+        on_note(note)
     if not refs:
         raise ConfigError(job.dataset.no_pairs_message())
     local = job.executor == "local"

@@ -308,6 +308,11 @@ class Dataset(ABC):
         gaps in the frame numbering (warnings)."""
         return dict(self._listing_problems)
 
+    def scene_notes(self) -> list[str]:
+        """:meth:`scene_problems` as lines for a run's notes (``"FOLDER: what"``)."""
+        return [f"{p.where}: {p.kind}" if p.where else p.kind
+                for problems in self.scene_problems().values() for p in problems]
+
     def _note_gaps(self, scene: str, frames: list[int], folder: Path) -> None:
         """Record a warning when missing frame numbers change the selection (see
         :func:`numbering_gap`)."""
