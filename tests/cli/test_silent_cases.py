@@ -103,6 +103,31 @@ def test_a_pair_of_a_grey_and_a_colour_frame_is_warned_about(fake_sintel, tmp_pa
     assert res.exit_code == 0 and "warning" not in res.output, res.output
 
 
+@pytest.mark.slow
+def test_an_attack_on_a_grey_and_a_colour_frame_warns_too(fake_sintel, tmp_path, raft_small_weights):
+    from weathergen.io.images import read_image, write_png
+
+    grey = fake_sintel / "training" / "clean" / "alley" / "frame_0002.png"
+    write_png(grey, read_image(grey).mean(axis=2))
+    out = tmp_path / "a"
+    res = run("attack", "--root", fake_sintel, "--scenes", "alley", "--frames-per-scene", "1",
+              "--steps", "1", "--set", "count=20", "--model", "raft-small", "--checkpoint",
+              raft_small_weights, "--iters", "2", "--out", out, "-q")
+    assert res.exit_code == 0, res.output
+    said = (f"{grey}: the second frame is grey but the first (frame_0001.png) is colour; both are "
+            f"read as RGB (grey replicated to three channels)")
+    assert f"warning sintel/training/alley/0001: {said}" in res.output, res.output
+    entry = json.loads((out / "manifest.json").read_text())["pairs"]["sintel:training:alley:1"]
+    assert entry["status"] == "written" and entry["warnings"] == [said]
+    # a resumed run keeps the warning in the manifest
+    res = run("attack", "--root", fake_sintel, "--scenes", "alley", "--frames-per-scene", "1",
+              "--steps", "1", "--set", "count=20", "--model", "raft-small", "--checkpoint",
+              raft_small_weights, "--iters", "2", "--out", out, "-q", "--resume")
+    assert res.exit_code == 0, res.output
+    entry = json.loads((out / "manifest.json").read_text())["pairs"]["sintel:training:alley:1"]
+    assert entry["warnings"] == [said]
+
+
 # -- an attack without steps ---------------------------------------------------------------------
 
 @pytest.mark.parametrize("command", [
