@@ -132,14 +132,16 @@ def test_an_attack_on_a_grey_and_a_colour_frame_warns_too(fake_sintel, tmp_path,
 
 @pytest.mark.parametrize("command", [
     ("attack", "--steps", "0"), ("attack", "--method", "pcfa", "--steps", "0"),
-    ("benchmark", "--steps", "0"), ("benchmark", "--lp-steps", "0")])
-def test_an_attack_of_zero_steps_is_refused_naming_random_weather(tmp_path, command):
+    ("attack", "--steps", "0", "--method", "pcfa"), ("benchmark", "--steps", "0"),
+    ("benchmark", "--lp-steps", "0")])
+def test_an_attack_of_zero_steps_is_refused_naming_its_start(tmp_path, command):
     out = tmp_path / "o"
     res = run(*command, "--model", "raft-small", "--out", out) if command[0] == "attack" else \
         run(*command, "--networks", "raft-small", "--out", out)
     assert res.exit_code == 2, res.output
     line = res.output.strip().splitlines()[-1]
-    assert "at least one step" in line and "random weather" in line, res.output
+    start = "the clean frames" if "--lp-steps" in command or "pcfa" in command else "random weather"
+    assert "at least one step" in line and start in line, res.output
     assert not out.exists()
 
 
