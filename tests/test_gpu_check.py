@@ -81,6 +81,16 @@ def test_table_and_summary_parsing(gpu_check):
         "| tests | pytest -m cuda | 9.000 | – | FAILED: 3 passed |"]
 
 
+def test_the_networks_measured_by_default_are_every_registered_one(gpu_check, monkeypatch):
+    from weathergen.models import available_models, registry
+
+    assert sorted(gpu_check.every_network()) == sorted(available_models())
+    assert gpu_check.every_network()[:2] == ["raft-small", "raft"]          # the tables' order
+    # a network registered later is measured too, after the others
+    monkeypatch.setattr(registry, "_MODELS", {**registry._MODELS, "a-new-net": None})
+    assert gpu_check.every_network()[-1] == "a-new-net"
+
+
 def test_an_area_that_fails_is_one_failed_row_and_the_others_still_run(gpu_check, monkeypatch):
     def broken(device, sizes):
         raise RuntimeError("CUDA out of memory")
