@@ -7,6 +7,7 @@ demo scene.
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 from click.testing import CliRunner
@@ -323,6 +324,7 @@ def test_inspect_shows_the_types_a_user_reads_beside_how_they_are_stored(tmp_pat
     import torch
 
     from weathergen.engine import Particles
+    from weathergen.outputs import read_metadata, write_metadata
 
     out = tmp_path / "o"
     res = run("render", "--scenes", "street", "--frames-per-scene", "1", "--set", "count=200",
@@ -344,4 +346,12 @@ def test_inspect_shows_the_types_a_user_reads_beside_how_they_are_stored(tmp_pat
         assert float(high) == pytest.approx(t.double().max().item(), rel=1e-3, abs=1e-6)
     assert rows["position"][0] == "float32" and rows["position"][-1] == "uint16 grid"
     assert rows["color"][-1] == "uint8 /255" and rows["template"][0] == "int64"
+    # visibility counts are stored by a render; a file without them says so, not "-1"
+    assert re.search(r"visible in frame 1 / 2 +│ \d+ / \d+ ", res.output), res.output
+    arrays = read_metadata(meta)
+    del arrays["visible1"], arrays["visible2"]
+    write_metadata(tmp_path / "unseen.npz", arrays)
+    res = run("inspect", tmp_path / "unseen.npz")
+    assert res.exit_code == 0, res.output
+    assert "not recorded" in res.output and "-1 / -1" not in res.output
     assert particles.template.dtype == torch.int64
