@@ -47,3 +47,82 @@ def plane_pair(height: int = 48, width: int = 64, depth: float = 4.0, *, world: 
     return FramePair(id=PairId("synthetic", "test", "plane", 1), image1=img1, image2=img2,
                      depth1=d, depth2=d.clone(), intrinsics=k, cam2_from_cam1=rel,
                      cam1_from_world=c1 if world else None, cam2_from_world=c2 if world else None)
+
+
+#: Sintel's frame size and focal length (pixels).
+SINTEL_SIZE = (436, 1024)
+SINTEL_FOCAL = 1120.0
+
+
+def _texture(a: torch.Tensor, b: torch.Tensor, seed: int) -> torch.Tensor:
+    """A smooth texture in [0.15, 0.65] over surface coordinates a (W,) along the columns and
+    b (H,) along the rows (scene units): a checker of quarter-unit squares under a few random
+    sinusoids. Shape: -> (H, W)."""
+    g = torch.Generator().manual_seed(seed)
+    out = torch.full((b.numel(), a.numel()), 0.4, dtype=torch.float64)
+    for _ in range(6):
+        fa, fb = (2 + 12 * torch.rand(2, generator=g, dtype=torch.float64)).tolist()
+        pa, pb = (2 * math.pi * torch.rand(2, generator=g, dtype=torch.float64)).tolist()
+        out += 0.035 * torch.sin(fb * b + pb)[:, None] * torch.sin(fa * a + pa)[None, :]
+    checker = torch.remainder(torch.floor(4 * b)[:, None] + torch.floor(4 * a)[None, :], 2)
+    return (out + 0.06 * (checker - 0.5)).clamp(0.15, 0.65)
+
+
+def wall_scene(*, forward: float = 0.0, plane_depth: float = 6.0, wall_depth: float = 1.2,
+               wall_columns: int = 300, size: tuple = SINTEL_SIZE, focal: float = SINTEL_FOCAL,
+               dtype=torch.float32) -> FramePair:
+    """A Sintel-size pair: a textured fronto-parallel plane at ``plane_depth`` and a textured
+    near wall at ``wall_depth`` covering the image columns left of ``wall_columns`` in frame 1
+    (the wall ends at world x = (wall_columns - cx) / f * wall_depth).
+
+    Camera 1 is the world (identity pose, y down); camera 2 moved ``forward`` scene units along
+    the view axis (0: a static camera). Both frames are ray-cast from their own camera, so the
+    texture, the wall's edge and the depth move as the camera does.
+    """
+    height, width = size
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    k = torch.tensor([[focal, 0, cx], [0, focal, cy], [0, 0, 1]], dtype=torch.float64)
+    wall_x = (wall_columns - cx) / focal * wall_depth
+    # ray directions with z = 1: x along the columns, y along the rows
+    rx = (torch.arange(width, dtype=torch.float64) - cx) / focal
+    ry = (torch.arange(height, dtype=torch.float64) - cy) / focal
+
+    def cast(z0: float):
+        t_wall, t_plane = wall_depth - z0, plane_depth - z0
+        on_wall = ((t_wall > 0) & (t_wall * rx < wall_x))[None, :].expand(height, width)
+        t = torch.where(on_wall, t_wall, t_plane)
+        img = torch.stack([torch.where(on_wall, 0.8 * _texture(3 * t_wall * rx, 3 * t_wall * ry, 4 + c),
+                                       _texture(t_plane * rx, t_plane * ry, 1 + c))
+                           for c in range(3)])
+        return img.to(dtype), t[None].to(dtype)
+
+    img1, d1 = cast(0.0)
+    img2, d2 = cast(forward)
+    c1 = torch.eye(4, dtype=torch.float64)
+    c2 = pose(torch.eye(3, dtype=torch.float64), (0.0, 0.0, forward))
+    return FramePair(id=PairId("synthetic", "test", "wall", 1), image1=img1, image2=img2,
+                     depth1=d1, depth2=d2, intrinsics=k, cam2_from_cam1=c2 @ torch.linalg.inv(c1),
+                     cam1_from_world=c1, cam2_from_world=c2)
+
+
+def forward_scene(forward: float = 0.5, **kwargs) -> FramePair:
+    """:func:`wall_scene` with camera 2 moved ``forward`` scene units along the view axis."""
+    return wall_scene(forward=forward, **kwargs)
+
+
+def write_sintel_scene(root, scene: str, pair: FramePair) -> None:
+    """Write ``pair`` as frames 1 and 2 of a Sintel training scene below ``root`` (clean pass,
+    depth, cameras: world-to-camera extrinsics from the pair's poses)."""
+    from pathlib import Path
+
+    from weathergen.io.images import write_png
+    from weathergen.io.sintel_formats import write_cam, write_dpt
+
+    root = Path(root) / "training"
+    k = pair.intrinsics.double().numpy()
+    for i, (img, depth, cam) in enumerate(((pair.image1, pair.depth1, pair.cam1_from_world),
+                                           (pair.image2, pair.depth2, pair.cam2_from_world)), 1):
+        name = f"frame_{i:04d}"
+        write_png(root / "clean" / scene / f"{name}.png", img.permute(1, 2, 0).double().numpy())
+        write_dpt(root / "depth" / scene / f"{name}.dpt", depth[0].float().numpy())
+        write_cam(root / "camdata_left" / scene / f"{name}.cam", k, cam.double().numpy()[:3])

@@ -50,10 +50,11 @@ def detaches_occlusion(settings: AttackSettings) -> bool:
 
 def reference_transparency_bound(preset) -> float:
     """The research code's θ bound: its rendering multiplies ``(tanh η + 1) / 2`` by the preset's
-    transparency scale (the supplement's θ column), so snow never exceeds 0.75. A preset with
-    constant transparency (weathergen's fog) has no counterpart there (its ``--constant_transparency``
-    is never read); it keeps :func:`~weathergen.attack.settings.transparency_bound`, so that its
-    particles do not start on the bound."""
+    transparency scale (the supplement's θ column), so snow never exceeds 0.75 and fog 0.25. A
+    preset with constant transparency (e.g. fog as the paper's caption reads it) has no counterpart
+    there (its ``--constant_transparency`` is never read); it keeps
+    :func:`~weathergen.attack.settings.transparency_bound`, so that its particles do not start on
+    the bound."""
     if getattr(preset, "transparency_mode", "depth") == "constant":
         return transparency_bound(preset)
     return float(preset.transparency)

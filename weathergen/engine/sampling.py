@@ -7,15 +7,18 @@ in vectorised batches whose size depends only on the requested count, on the CPU
 one explicitly seeded ``torch.Generator``: the same seed gives the same bytes on any machine and
 with any number of workers. Most candidates usually lie outside both views, so a candidate's
 motion is computed only when camera 1 sees it or when its motionless position lies within the
-longest motion of camera 2's view cone (the particles are those of testing every candidate). The
-record is then moved to the requested device.
+longest motion of camera 2's view cone (the particles are those of testing every candidate).
+Positions and motions are rounded to their stored precision; a candidate the rounding moves out of
+both views gives its place to the next kept one, so every stored particle is visible in frame 1 or
+frame 2 (:func:`visibility`). The record is then moved to the requested device.
 
 The count is the one the preset gives the pair's frame size (:func:`~weathergen.engine.presets.
 frame_scaling`: the preset's count on a 1024x436 frame, scaled by the frame's area elsewhere;
 ``size`` and the defocus radius scaled by its diagonal too where ``scale_size`` asks for it).
 
-Depth-dependent properties use the particle's camera depth ``d`` (camera 1 where the particle is in
-front of camera 1, else camera 2), fixed at sampling:
+Depth-dependent properties use the particle's camera depth ``d`` in the frame that accepted it
+(camera 1 where frame 1 sees it, else camera 2, as the paper's research code does: a particle that
+only frame 2 shows is drawn at the size its frame-2 depth gives), fixed at sampling:
 
 - footprint (pixels) ``size * min(1, 1 / (d * depth_decay))``, at least 1 (``size`` for the
   frame);
@@ -293,12 +296,19 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     reach = abs(preset.motion_y) * (1 + preset.motion_scale_jitter) \
         * float(torch.linalg.matrix_norm(cam2_from_ref[:3, :3], ord=2))
     batch = min(max(4096, 4 * n), 1 << 18)  # depends on the count only: reproducible anywhere
-    kept_pos, kept_motion, kept = [], [], 0
     tried = 0
-    while kept < n:
+
+    def visible_either(pos_ref: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+        return _visible(transform_points(cam1_from_ref, pos_ref), k, depth1) \
+            | _visible(transform_points(cam2_from_ref, pos_ref + motion), k, depth2)
+
+    def draw(have: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """One batch of candidates: the positions (reference frame) and motions of those
+        visible in frame 1 or, after the camera motion and their own, in frame 2."""
+        nonlocal tried
         if tried >= max_candidates_factor * n:
             raise ConfigError(
-                f"could place only {kept} of {n} particles: the sampling box "
+                f"could place only {have} of {n} particles: the sampling box "
                 f"x{list(preset.volume_x)} y{list(preset.volume_y)} z{list(preset.volume_z)} "
                 "is mostly hidden behind the scene or outside the view (check the depth scale "
                 "or the preset's volume_* keys)")
@@ -319,22 +329,37 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
         motion = motion_vertical @ ref_from_vertical.T
         pos_ref = pos_ref[cand]
         vis = vis1[cand] | _visible(transform_points(cam2_from_ref, pos_ref + motion), k, depth2)
-        kept_pos.append(pos_ref[vis])
-        kept_motion.append(motion[vis])
-        kept += int(vis.sum())
-    # Round to the stored precision first, so that the depth-dependent properties below
-    # follow from exactly the positions a saved record holds.
-    position = _quantize_field("position", torch.cat(kept_pos)[:n]).double()
-    motion = _quantize_field("motion", torch.cat(kept_motion)[:n]).double()
+        return pos_ref[vis], motion[vis]
+
+    accepted_pos, accepted_motion = torch.zeros(0, 3, dtype=torch.float64), \
+        torch.zeros(0, 3, dtype=torch.float64)
+    while True:
+        while accepted_pos.shape[0] < n:
+            pos_b, motion_b = draw(accepted_pos.shape[0])
+            accepted_pos = torch.cat((accepted_pos, pos_b))
+            accepted_motion = torch.cat((accepted_motion, motion_b))
+        # Round to the stored precision first, so that the depth-dependent properties below
+        # follow from exactly the positions a saved record holds. A candidate that the rounding
+        # moves out of both views (it lay on the image border or the scene surface) gives its
+        # place to the next accepted one, so that every stored particle is visible in frame 1
+        # or frame 2 (rare: about one in several thousand particles).
+        position = _quantize_field("position", accepted_pos[:n]).double()
+        motion = _quantize_field("motion", accepted_motion[:n]).double()
+        ok = visible_either(position, motion)
+        if bool(ok.all()):
+            break
+        keep = torch.cat((ok, torch.ones(accepted_pos.shape[0] - n, dtype=torch.bool)))
+        accepted_pos, accepted_motion = accepted_pos[keep], accepted_motion[keep]
 
     # Per-particle appearance, drawn for exactly n particles after the positions.
     u = torch.rand(n, 4, generator=gen, dtype=torch.float64)
     template = torch.randint(0, lib.count, (n,), generator=gen)
     rotation = u[:, 0] * 2 * math.pi
 
-    z1 = transform_points(cam1_from_ref, position)[:, 2]
+    x1 = transform_points(cam1_from_ref, position)
     z2 = transform_points(cam2_from_ref, position + motion)[:, 2]
-    d = torch.where(z1 > NEAR, z1, z2)
+    # the depth in the frame that accepted the particle: frame 1 where it sees it, else frame 2
+    d = torch.where(_visible(x1, k, depth1), x1[:, 2], z2)
     footprint = (scaling.size * torch.clamp(1.0 / (d * preset.depth_decay), max=1.0)).clamp(min=1.0)
     scale = footprint / lib.resolution
     if preset.transparency_mode == "constant":
@@ -359,18 +384,26 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     return record.quantized().to(dev)
 
 
-def visible_counts(pair: FramePair, particles: Particles) -> tuple[int, int]:
-    """How many particle centres each frame shows in front of the scene surface.
+def visibility(pair: FramePair, particles: Particles) -> tuple[torch.Tensor, torch.Tensor]:
+    """Which particle centres each frame shows in front of the scene surface: the test sampling
+    keeps a candidate by (:func:`_visible`; frame 1 sees ``P + δ1``, frame 2 ``P + δ1 + M + δ2``).
 
-    The test of sampling (:func:`_visible`): frame 1 sees ``P + δ1``, frame 2 ``P + δ1 + M + δ2``.
+    Every sampled particle is visible in frame 1 or in frame 2 (or both). Shape: -> two (N,) bool.
     """
     _, cam1_from_ref, cam2_from_ref = reference_transforms(pair)
     start = (particles.position + particles.offset1).double().cpu()
     end = start + (particles.motion + particles.offset2).double().cpu()
     k = pair.intrinsics.double().cpu()
-    counts = []
+    masks = []
     for cam_from_ref, points, depth in ((cam1_from_ref, start, pair.depth1),
                                         (cam2_from_ref, end, pair.depth2)):
         camera = transform_points(cam_from_ref.double().cpu(), points)
-        counts.append(int(_visible(camera, k, depth.cpu()).sum()))
-    return counts[0], counts[1]
+        masks.append(_visible(camera, k, depth.cpu()))
+    return masks[0], masks[1]
+
+
+def visible_counts(pair: FramePair, particles: Particles) -> tuple[int, int]:
+    """How many particle centres each frame shows in front of the scene surface
+    (see :func:`visibility`)."""
+    vis1, vis2 = visibility(pair, particles)
+    return int(vis1.sum()), int(vis2.sum())

@@ -28,6 +28,7 @@ from ..datasets.stereo import right_camera
 from ..engine import (FieldPreset, View, load_templates, particle_truth, reference_transforms,
                       render_pair, visible_counts)
 from ..engine.perframe import pair_starts, render_first_frame
+from ..engine.presets import list_presets
 from ..engine.stereo import render_right, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
@@ -40,6 +41,11 @@ from ..workers import StopRequests, init_worker, spawning
 from .particles import pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
+
+#: A pair of a paper preset whose frame 2 shows fewer than this fraction of the particle centres
+#: frame 1 shows (strong camera motion, e.g. driving forward) is marked ``few_in_frame2`` in the
+#: manifest, and the run says once that weather fields are the model for such motion.
+FRAME2_KEPT_MIN = 0.5
 
 #: Every pair renders with this many intra-op threads, whatever the worker count: thread count can
 #: change the order of floating-point reductions, and with it the output bytes.
@@ -102,6 +108,7 @@ class PairResult:
     bytes: int = 0
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
+    few_in_frame2: bool = False # a paper preset's pair that keeps < FRAME2_KEPT_MIN of them
     particles: Optional[int] = None   # written: particles in the pair's record (the count its
                                       # frame size gave, see the metadata's frame_scaling)
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
@@ -222,7 +229,35 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     warnings = list(facts.pop("warnings", []))
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
+                      few_in_frame2=particles.optics is None and few_in_frame2(*visible),
                       particles=particles.count, input=jsonable(facts), warnings=warnings)
+
+
+def few_in_frame2(visible1: int, visible2: int) -> bool:
+    """Whether frame 2 shows fewer than :data:`FRAME2_KEPT_MIN` of the particle centres frame 1
+    shows. The paper's model samples a pair's particles among the points visible in frame 1 or
+    frame 2, in a box in front of camera 1: a camera that moves far into that box leaves most of
+    them behind it or outside its view."""
+    return visible2 < FRAME2_KEPT_MIN * visible1
+
+
+def frame2_note(results: list[PairResult], preset_name: str) -> Optional[str]:
+    """The run's one line about pairs marked ``few_in_frame2``, or None when there are none."""
+    few = [r for r in results if r.status == "written" and r.few_in_frame2]
+    if not few:
+        return None
+    order = ("snow", "rain", "sparks", "fog")
+    fields = sorted((name for name in list_presets("field") if name.endswith("-moderate")),
+                    key=lambda name: (order.index(name.split("-")[0])
+                                      if name.split("-")[0] in order else len(order), name))
+    worst = min(few, key=lambda r: r.visible[1] / max(r.visible[0], 1))
+    share = worst.visible[1] / max(worst.visible[0], 1)
+    return (f"in {len(few)} pair(s) frame 2 shows fewer than half of the particles frame 1 "
+            f"shows (strong camera motion; e.g. {worst.pair}: {worst.visible[1]} of "
+            f"{worst.visible[0]}, {share:.0%}), marked few_in_frame2 in the manifest. The paper's preset "
+            f"'{preset_name}' places its particles in a box in front of camera 1; for strong "
+            f"camera motion use a weather-field preset ({', '.join(fields)}, ...), whose "
+            f"particles fill the world that both cameras see")
 
 
 def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
@@ -334,6 +369,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
                       overwrite=job.overwrite, shard=job.shard,
                       temporary=_temporary_places(job, refs), on_note=on_note) as claim:
         results = _render_locked(job, refs, on_result, on_start)
+        note = frame2_note(results, job.preset_name)
+        if note is not None:
+            on_note(note)
         if results and all(r.status == "failed" for r in results):
             first = results[0]
             # the claim removes a folder it created again
