@@ -234,6 +234,9 @@ def _run(job, model, label, target, steps, out, quiet):
                 (progress.console if progress else err).print(
                     f"[yellow]warning[/yellow] {report.pair}: no particle is visible, so nothing "
                     f"could be optimised; the random weather was kept", highlight=False, soft_wrap=True)
+        for text in report.warnings:       # attacked, but the input looks wrong
+            (progress.console if progress else err).print(
+                f"[yellow]warning[/yellow] {report.pair}: {text}", highlight=False, soft_wrap=True)
         if report.status == "failed":
             failed.append(report)
             (progress.console if progress else err).print(

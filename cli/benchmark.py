@@ -95,8 +95,12 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_s
         if report.status == "written":
             written.append(report.pair)
 
-    def on_note(text):
-        click.echo(f"Note: {text}", err=True)
+    noted: set = set()
+
+    def on_note(text):               # each cell's run lists the same dataset: say a note once
+        if text not in noted:
+            noted.add(text)
+            click.echo(f"Note: {text}", err=True)
 
     def execute(job):
         return run_attack(job, on_pair_done=on_pair_done, on_note=on_note)
