@@ -25,9 +25,17 @@ import sys
 import time
 
 
-#: Every registered network, in the order of the tables.
+#: The order of the tables (networks registered later follow, see :func:`every_network`).
 ALL_MODELS = ["raft-small", "raft", "spynet", "spynet-sniklaus", "flownetc", "flownetcrobust",
               "flownet2", "gma", "flowformer"]
+
+
+def every_network() -> list[str]:
+    """Every registered network: those of :data:`ALL_MODELS` in its order, then any other."""
+    from weathergen.models import available_models
+
+    registered = available_models()
+    return [m for m in ALL_MODELS if m in registered] + [m for m in registered if m not in ALL_MODELS]
 
 
 def measure(model_name: str, width: int, height: int, iters: int, backward: bool,
@@ -105,9 +113,7 @@ def main(argv=None) -> int:
         return 0
 
     if args.models is None:
-        from weathergen.models import available_models
-
-        args.models = [m for m in ALL_MODELS if m in available_models()]
+        args.models = every_network()
     devices = [args.device]
     if args.device == "auto":
         import torch

@@ -42,11 +42,6 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 sys.path.insert(0, str(ROOT / "tests"))
 
-#: Every registered network, in table order (bench_models.ALL_MODELS).
-NETWORKS = ("raft-small", "raft", "spynet", "flownetc", "flownetcrobust", "flownet2", "gma",
-            "flowformer")
-
-
 @dataclass
 class Row:
     """One line of the table: ``area`` (tests, render, ...), what was measured, its figures."""
@@ -299,6 +294,13 @@ def attack_rows(device: str, sizes: Sizes) -> list[Row]:
     return rows
 
 
+def every_network() -> list[str]:
+    """Every registered network, in the tables' order (:func:`bench_models.every_network`)."""
+    import bench_models
+
+    return bench_models.every_network()
+
+
 def network_rows(device: str, sizes: Sizes, models) -> list[Row]:
     import bench_models
 
@@ -382,7 +384,7 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cuda", help="cuda or cuda:N (cpu: the dry run)")
     parser.add_argument("--quick", action="store_true",
                         help="tiny inputs, no tests: a dry run of the table (with --device cpu)")
-    parser.add_argument("--models", nargs="+", default=list(NETWORKS),
+    parser.add_argument("--models", nargs="+", default=None,
                         help="networks to measure (default: every registered one)")
     parser.add_argument("--no-tests", action="store_true", help="skip the CUDA tests")
     parser.add_argument("--json", type=Path, default=None, help="also write the figures here")
@@ -400,7 +402,8 @@ def main(argv=None) -> int:
         return 2
     sizes = QUICK if args.quick else Sizes()
     torch.manual_seed(0)
-    rows = run(args.device, sizes, args.models, tests=not (args.quick or args.no_tests))
+    models = args.models or every_network()
+    rows = run(args.device, sizes, models, tests=not (args.quick or args.no_tests))
     title = (f"gpu-check on {device_name(args.device)}, torch {torch.__version__}, "
              f"{sizes.width}x{sizes.height}" + (" (dry run: tiny inputs)" if args.quick else ""))
     print(table(rows, title))

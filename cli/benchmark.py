@@ -95,8 +95,12 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_s
         if report.status == "written":
             written.append(report.pair)
 
-    def on_note(text):
-        click.echo(f"Note: {text}", err=True)
+    noted: set = set()
+
+    def on_note(text):               # each cell's run lists the same dataset: say a note once
+        if text not in noted:
+            noted.add(text)
+            click.echo(f"Note: {text}", err=True)
 
     def execute(job):
         return run_attack(job, on_pair_done=on_pair_done, on_note=on_note)
@@ -105,10 +109,10 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_s
     try:
         with terminate_as_interrupt() as stopped_by:
             run_grid(spec, shard, execute=execute, on_cell=on_cell)
+            paths = write_tables(spec)      # atomic files: a stop leaves the earlier ones
     except KeyboardInterrupt:
         # every run of the grid resumes by itself: the same command finishes it
         exit_interrupted(len(written), stopped_by, again="rerun the same command")
-    paths = write_tables(spec)
     if not quiet:
         console.print(paths["markdown"].read_text(), highlight=False, markup=False)
         console.print(f"Tables: {paths['markdown']}, {paths['latex']} (one file per table in "

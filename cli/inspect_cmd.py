@@ -11,6 +11,7 @@ import numpy as np
 from rich.console import Console
 from rich.table import Table
 
+from weathergen.datasets import frame_rates_text
 from weathergen.engine import FrameScaling
 from weathergen.engine.layers import layer_arrays
 from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
@@ -34,6 +35,9 @@ def inspect(file: Path):
     (per layer for a combined preset)."""
     arrays = read_metadata(file)
     console = Console()
+    if "format_version" not in arrays and "lp_attack" in arrays:
+        console.print(_lp_head(arrays, file))     # an Lp attack perturbs the frames: no particles
+        return
     preset = json.loads(str(arrays["preset"])) if "preset" in arrays else {}
     layered = int(arrays.get("format_version", 0)) == LAYERED_FORMAT_VERSION
     if layered:
@@ -54,7 +58,8 @@ def inspect(file: Path):
         ("preset", _preset_origin(str(arrays["preset_name"]), preset.get("source", ""))),
         ("particles", str(sum(counts))),
         ("for the frame", _scaling_text(scalings[0]) if not layered else "per layer, below"),
-        ("visible in frame 1 / 2", f"{int(arrays.get('visible1', -1))} / {int(arrays.get('visible2', -1))}"),
+        ("visible in frame 1 / 2", f"{int(arrays['visible1'])} / {int(arrays['visible2'])}"
+                                   if "visible1" in arrays else "not recorded"),
     ]
     if layered:
         seeds = np.atleast_1d(arrays.get("layer_seeds", np.zeros(0, np.uint64)))
@@ -84,6 +89,27 @@ def inspect(file: Path):
     for name, a in zip(names, layers):
         title = f"per-particle values{f' of layer {name}' if name else ''} (as Particles.load reads them)"
         console.print(_ranges(a, title, file))
+
+
+def _lp_head(arrays: dict, file: Path) -> Table:
+    """The table of an Lp attack's metadata file: the pair, the seed, the attack's settings."""
+    head = Table(title=str(file), show_header=False)
+    head.add_column("key")
+    head.add_column("value")
+    settings = json.loads(str(arrays["lp_attack"]))
+    rows = [
+        ("pair", f"{arrays['pair_dataset']}/{arrays['pair_split']}/{arrays['pair_scene']} "
+                 f"frame {int(arrays['pair_frame'])}"),
+        ("seed", str(int(arrays["seed"]))),
+        ("Lp attack", ", ".join(f"{k} {v}" for k, v in settings.items())),
+        ("particles", "none (the attack perturbs the frames themselves)"),
+        ("format", f"metadata v{int(arrays['metadata_version'])}, written by weathergen "
+                   f"{arrays.get('weathergen_version', '?')}"),
+        ("file size", f"{file.stat().st_size:,} bytes"),
+    ]
+    for k, v in rows:
+        head.add_row(k, v)
+    return head
 
 
 def _scaling_text(scaling) -> str:
@@ -141,8 +167,8 @@ def _ranges(arrays: dict, title: str, path: Path) -> Table:
 @click.option("--with-opacity", is_flag=True,
               help="--video: show the particles' opacity right of the weather frame.")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=None,
-              help="--video: frames per second. Default: the dataset's (sintel, spring, demo 24; "
-                   "kitti 10; custom 30) or a field preset's frame_rate.")
+              help=f"--video: frames per second. Default: the dataset's ({frame_rates_text()}) "
+                   "or a field preset's frame_rate.")
 @click.option("--cycles", type=click.IntRange(min=1), default=None,
               help="--video of pairs: how often each pair shows frame 1 and frame 2. "
                    "Default: for one second.")

@@ -80,10 +80,19 @@ def attack_steps(ctx, param, value):
     or the clean frames of an Lp attack), written under the attack's name.
     """
     if value is not None and value < 1:
+        clean = "the clean frames, from which an Lp attack starts"
+        weather = "random weather: measure that with `weathergen render` and `weathergen evaluate`"
+        method = ctx.params.get("method")      # attack --method, when click has read it already
+        if param.name == "lp_steps" or method not in (None, "weather"):
+            start = clean
+        elif method is None and any(p.name == "method" for p in ctx.command.params):
+            start = ("random weather, or the clean frames for an Lp attack; measure random weather "
+                     "with `weathergen render` and `weathergen evaluate`")
+        else:
+            start = weather
         raise click.BadParameter(
             f"{value}: an attack takes at least one step; with none its 'adversarial' result "
-            f"would be the unoptimised start (random weather: measure that with `weathergen render` "
-            f"and `weathergen evaluate`)")
+            f"would be the unoptimised start ({start})")
     return value
 
 

@@ -11,10 +11,10 @@ batch-norm statistics frozen. On the bundled demo scene and a CPU, a few dozen s
 With these defaults the snow is the paper's preset at its density per pixel area (3000 flakes per
 1024x436 frame scaled to the demo's 384x176: 454 per pair), and RAFT-small learns from it. Measured
 with the released weights (``tests/data/raft-small.pth``) and exactly the command above, on one
-CPU thread (55 s of CPU time): EPE on the four fixed pairs before training 0.884 px clean and
-1.878 px with weather; after the 40 steps 0.474 px clean and 1.119 px with weather. (The paper's
-3000 flakes unscaled, ``--set count=3000``, take the weather EPE to 59.6 px before training and
-6.6 px after.)
+CPU thread (51 s of CPU time): EPE on the four fixed pairs before training 0.884 px clean and
+2.319 px with weather; after the 40 steps 0.475 px clean and 1.176 px with weather. (The paper's
+3000 flakes unscaled, ``--set count=3000``, take the weather EPE to 40.4 px before training and
+6.3 px after.)
 
 and on Sintel, at the scale of the authors' Sintel stage (on a GPU)::
 

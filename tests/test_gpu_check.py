@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import re
 import subprocess
 import sys
 
@@ -48,6 +49,15 @@ def test_without_cuda_it_stops_at_once_with_one_line():
     assert res.returncode == 2 and "needs --quick" in res.stderr
 
 
+def test_every_test_that_needs_cuda_carries_the_marker_gpu_check_selects():
+    """A test skipped by its own CUDA condition would be left out of `pytest -m cuda`."""
+    own_skips = [f"{path.relative_to(PROJECT_ROOT)}:{n}"
+                 for path in sorted((PROJECT_ROOT / "tests").rglob("*.py"))
+                 for n, line in enumerate(path.read_text().splitlines(), 1)
+                 if re.search(r"skipif\(\s*not\s+torch\.cuda\.is_available\(\)", line)]
+    assert own_skips == [], "use @pytest.mark.cuda instead of skipif on CUDA"
+
+
 def test_the_makefile_target_probes_before_it_installs_anything():
     makefile = (PROJECT_ROOT / "Makefile").read_text()
     recipe = makefile.split("\ngpu-check:", 1)[1].split("\n\n", 1)[0]
@@ -69,6 +79,16 @@ def test_table_and_summary_parsing(gpu_check):
         "title", "", "| area | what | seconds | GPU memory (GiB) | note |", "|---|---|---:|---:|---|",
         "| render | snow, forward | 0.012 | 1.50 |  |",
         "| tests | pytest -m cuda | 9.000 | – | FAILED: 3 passed |"]
+
+
+def test_the_networks_measured_by_default_are_every_registered_one(gpu_check, monkeypatch):
+    from weathergen.models import available_models, registry
+
+    assert sorted(gpu_check.every_network()) == sorted(available_models())
+    assert gpu_check.every_network()[:2] == ["raft-small", "raft"]          # the tables' order
+    # a network registered later is measured too, after the others
+    monkeypatch.setattr(registry, "_MODELS", {**registry._MODELS, "a-new-net": None})
+    assert gpu_check.every_network()[-1] == "a-new-net"
 
 
 def test_an_area_that_fails_is_one_failed_row_and_the_others_still_run(gpu_check, monkeypatch):

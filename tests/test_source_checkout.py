@@ -57,6 +57,39 @@ def test_the_command_line_runs_from_the_repository_root_as_a_module():
     assert "count" in res.stdout and "3000" in res.stdout
 
 
+# setuptools' editable finder, as `pip install -e` of another checkout installs it: appended to
+# sys.meta_path at start-up, mapping the package and its two relocated subpackages by name.
+OTHER_EDITABLE = """
+import sys
+from importlib.util import spec_from_file_location
+from pathlib import Path
+OTHER = Path(sys.argv[1])
+class Editable:
+    @classmethod
+    def find_spec(cls, fullname, path=None, target=None):
+        if fullname in ("weathergen", "weathergen.cli", "weathergen.presets"):
+            folder = OTHER / {"weathergen": "weathergen", "weathergen.cli": "cli",
+                              "weathergen.presets": "presets"}[fullname]
+            return spec_from_file_location(fullname, folder / "__init__.py",
+                                           submodule_search_locations=[str(folder)])
+        return None
+sys.meta_path.append(Editable)
+"""
+
+
+def test_an_editable_install_of_another_checkout_does_not_mix_into_this_one(tmp_path):
+    """Python in this root with another checkout installed editable: all three come from here."""
+    other = tmp_path / "other"
+    for name in ("weathergen", "cli", "presets"):
+        (other / name).mkdir(parents=True)
+        (other / name / "__init__.py").write_text("raise ImportError('the other checkout')\n")
+    res = _bare(["-c", OTHER_EDITABLE + PROBE, str(other)], PROJECT_ROOT, _dependencies())
+    assert res.returncode == 0, res.stderr
+    files = [Path(line) for line in res.stdout.split()]
+    assert files == [PROJECT_ROOT / "weathergen" / "__init__.py", PROJECT_ROOT / "cli" / "main.py",
+                     PROJECT_ROOT / "presets" / "__init__.py"]
+
+
 def test_an_installed_wheel_carries_presets_cli_and_templates(tmp_path):
     """The non-editable install (what `make install` does) still finds everything inside itself."""
     source = tmp_path / "source"

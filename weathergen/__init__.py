@@ -41,5 +41,7 @@ def _checkout_folders() -> dict[str, Path]:
             if not (package / name).exists() and (root / name / "__init__.py").is_file()}
 
 
+# First in line: an editable install of another checkout (its finder maps the same two names to
+# its own folders) must not mix its command line or presets into this checkout's package.
 if _checkout_folders():
-    sys.meta_path.append(_CheckoutFolders(_checkout_folders()))
+    sys.meta_path.insert(0, _CheckoutFolders(_checkout_folders()))

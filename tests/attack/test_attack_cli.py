@@ -79,7 +79,8 @@ def test_flow_pictures_share_one_scale(attack_out):
 
 
 def test_attack_log_and_summary(attack_out):
-    out, _ = attack_out
+    out, output = attack_out
+    assert "research code's figure" not in output and "(vs the random" not in output
     from weathergen.outputs import read_log
 
     rows = read_log(out / "training" / "attack_log" / f"{PAIR}.csv")
@@ -331,6 +332,13 @@ def test_compat_reference_is_recorded_in_manifest_and_summary(tmp_path, raft_sma
     assert "compat reference" in result.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["compat"] == "reference" and summary["aee_adversarial"] >= 0
+    # The printed adversarial AEE is the research code's figure, and says so.
+    words = " ".join(result.output.split())
+    assert (f"adversarial (vs the random weather's flow) {summary['aee_adversarial']:.3f}"
+            in words)
+    assert f"{summary['aee_adversarial']:.3f} *" in words
+    assert ("* --compat reference: the research code's figure, the best step's flow against the "
+            "random weather's flow" in words)
     attack = json.loads((out / "manifest.json").read_text())["config"]["attack"]
     assert attack["compat"] == "reference" and attack["transparency_max"] == 0.75   # snow
     # Resuming under the other mode is refused: the settings differ.

@@ -328,6 +328,12 @@ def test_cli_ifgsm_end_to_end(tmp_path, raft_small_weights):
     assert summary["fl_all"] is not None and summary["compat"] is None
     manifest = json.loads((out / "manifest.json").read_text())
     assert manifest["config"]["attack"]["norm"] == "Linf"
+    # inspect shows its metadata file (the pair, the attack's settings, no particles)
+    meta = next((out / "training" / "particles").rglob("*.npz"))
+    res = invoke(["inspect", meta])
+    assert res.exit_code == 0, res.output
+    assert "method ifgsm, epsilon 0.01, steps 2" in res.output, res.output
+    assert "none (the attack perturbs the frames themselves)" in res.output
 
 
 def test_cli_refuses_weather_options_with_an_lp_method(tmp_path):

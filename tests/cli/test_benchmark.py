@@ -54,15 +54,19 @@ def test_tables_equal_the_per_run_summaries(bench, raft_small_weights):
     rows = {r["label"]: r for r in doc["rows"]}
     for label, s in (("snow", snow), ("grey-color", grey), ("ifgsm", ifgsm)):
         for key in ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
-                    "aee_weather_px", "aee_clear_px", "fl_all", "outliers_3px", "compat"):
+                    "aee_weather_px", "aee_clear_px", "fl_all", "outliers_3px", "compat", "amp"):
             assert rows[label][key] == s[key], (label, key)
         assert rows[label]["pairs"] == 1
     assert rows["snow"]["fl_all"] is not None and rows["snow"]["compat"] == "paper"
     assert doc["settings"]["compat"] == "paper"
+    # mixed precision as each run resolved it (off on the CPU), and as it was asked for
+    assert rows["snow"]["amp"] is False and rows["ifgsm"]["amp"] is False
+    assert doc["settings"]["amp"] is None
     with open(out / "results.csv", newline="") as fh:
         csv_rows = {r["label"]: r for r in csv.DictReader(fh)}
     assert float(csv_rows["ifgsm"]["aee_adversarial"]) == pytest.approx(ifgsm["aee_adversarial"])
     assert float(csv_rows["snow"]["aee_weather_px"]) == pytest.approx(snow["aee_weather_px"])
+    assert csv_rows["snow"]["amp"] == "False"
     # network and checkpoint recorded
     (net,) = doc["networks"]
     assert net["network"] == "raft-small" and net["checkpoint"] == str(raft_small_weights)
@@ -78,8 +82,9 @@ def test_tables_equal_the_per_run_summaries(bench, raft_small_weights):
         assert f"| {name} | {shown} |" in md
         shown = r"\textbf{" + f(value) + "}" if value == worst else f(value)
         assert f"{name} & {shown} \\\\" in tex
-    # Table 1: the random weather of each preset (one row: the worst).
-    assert f"| snow | **{f(snow['aee_random'])}** |" in md
+    # Table 1: the random weather of each preset; snow is the paper's Particles row 3000.
+    augmentations = (out / "tables" / "augmentations.md").read_text()
+    assert f"| **Particles** |  |\n| 3000 (snow) | **{f(snow['aee_random'])}** |" in augmentations
     # Table 2: Initial (not ranked) above the configuration's adversarial figure.
     assert f"| Initial | {f(grey['aee_random'])} |" in md
     assert f"| δc (grey-color) | **{f(grey['aee_adversarial'])}** |" in md
@@ -171,6 +176,56 @@ def test_latex_escapes_and_markdown_pipes():
     assert "| alpha-blue | **3.00** | – |" in md
 
 
+def test_augmentations_are_the_papers_families_each_with_its_worst_bold():
+    """Table 1 as the paper lays it out: families in the paper's order under their headings, the
+    main augmentations in their families' rows, the worst of each family bold (rows alone in their
+    family are ranked with one another)."""
+    from weathergen.benchmark import build_tables, latex_table, markdown_table
+
+    figures = {"fog": 1.0, "snow": 2.0, "rain": 3.0, "sparks": 4.0, "particles-1000": 1.5,
+               "particles-5000": 7.0, "motion-blur-0.0375": 2.5, "own-preset": 0.5}
+    rows = [{"network": "a", "kind": "weather", "label": label, "aee_random": v,
+             "aee_adversarial": None} for label, v in figures.items()]
+    (table,) = [t for t in build_tables(rows, ["a"]) if t.name == "augmentations"]
+    md = markdown_table(table, "c").split("\n")
+    body = [line for line in md[md.index("| --- | ---: |") + 1:] if line]
+    assert body == ["| own-preset | 0.50 |",
+                    "| **Particles** |  |", "| 3000 (snow) | 2.00 |", "| 1000 | 1.50 |",
+                    "| 5000 | **7.00** |",
+                    "| **Motion blur** |  |", "| 0.15 (rain) | **3.00** |", "| 0.0375 | 2.50 |",
+                    "| **Color additive** |  |", "| red (sparks) | **4.00** |",
+                    "| **Size** |  |", "| fog | 1.00 |"]
+    tex = latex_table(table, "c")
+    assert "\\emph{Particles}} \\\\\n3000 (snow) & 2.00 \\\\\n1000 & 1.50" in tex
+    from weathergen.engine import load_preset
+
+    for main, member in (("snow", "particles-3000"), ("rain", "motion-blur-0.15"),
+                         ("sparks", "additive-red"), ("fog", "size-fog")):
+        a, b = load_preset(main).to_dict(), load_preset(member).to_dict()
+        assert {k for k in a if a[k] != b[k]} <= {"name", "source", "description"}, main
+
+
+def test_optimvariables_marks_the_worst_bold_and_the_second_worst_underlined():
+    """Table 2 as the paper marks it, per column: the worst configuration bold, the second worst
+    underlined; the Initial row (random particles) takes part in neither, however large."""
+    from weathergen.benchmark import build_tables, latex_table, markdown_table
+
+    figures = {"grey-offset1": (9.0, 5.0, 7.0), "grey-offset2": (9.0, 6.0, 6.0),
+               "grey-color": (9.0, 4.0, 8.0)}      # (random, adversarial net a, net b)
+    rows = [{"network": net, "kind": "weather", "label": label, "aee_random": v[0],
+             "aee_adversarial": v[1 + i]}
+            for i, net in enumerate(("a", "b")) for label, v in figures.items()]
+    (table,) = [t for t in build_tables(rows, ["a", "b"]) if t.name == "optimvariables"]
+    md = markdown_table(table, "c")
+    assert "| Initial | 9.00 | 9.00 |" in md
+    assert "| δ1 (grey-offset1) | <u>5.00</u> | <u>7.00</u> |" in md
+    assert "| δ2 (grey-offset2) | **6.00** | 6.00 |" in md
+    assert "| δc (grey-color) | 4.00 | **8.00** |" in md
+    tex = latex_table(table, "c")
+    assert r"$\delta_{2}$ (grey-offset2) & \textbf{6.00} & 6.00 \\" in tex
+    assert r"$\delta_{1}$ (grey-offset1) & \underline{5.00} & \underline{7.00} \\" in tex
+
+
 def test_rerun_resumes_without_redoing(bench, raft_small_weights):
     out, _ = bench
     before = {p: p.stat().st_mtime_ns for p in (out / "runs").rglob("*.png")}
@@ -193,6 +248,13 @@ def test_bad_options_fail_before_writing(tmp_path):
     assert not out.exists()
     result = invoke(["benchmark", "--lp", "fgsm", "--presets", "", "--out", out])
     assert result.exit_code == 2 and "fgsm" in result.output
+    # the benchmark's own options are named, not the attack's (--method, --preset)
+    assert result.output.strip() == "Error: --lp 'fgsm': expected pcfa, ifgsm"
+    result = invoke(["benchmark", "--presets", "snow,rain-heavy+fog-light", "--lp", "",
+                     "--out", out])
+    assert result.exit_code == 2
+    assert result.output.strip() == ("Error: --presets 'rain-heavy+fog-light': combined presets "
+                                     "(layers joined by +) are not yet supported by benchmark")
     result = invoke(["benchmark", "--checkpoint", "raft", "--out", out])
     assert result.exit_code == 2 and "NETWORK=FILE_OR_NAME" in result.output
     result = invoke(["benchmark", "--networks", "raft-small", "--amp", "--out", out])

@@ -7,6 +7,7 @@ demo scene.
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 from click.testing import CliRunner
@@ -32,17 +33,54 @@ def test_check_and_render_report_a_gap_in_a_scenes_frame_numbering(sintel_with_a
     root = sintel_with_a_gap
     res = run("check", "--root", root, "--scenes", "alley")
     assert res.exit_code == 0, res.output
-    assert "alley: warning: gap in the frame numbering: no frame 2, so pairs 1-2 cannot be formed" \
-        in res.output, res.output
+    assert ("alley: warning: gap in the frame numbering: no frame 2, so the pairs of frames 1-2, 2-3 "
+            "cannot be formed") in res.output, res.output
     # --frames-per-scene 1 takes pair 3 in place of pair 1: said, with where
     res = run("render", "--root", root, "--scenes", "alley", "--frames-per-scene", "1", "--set",
               "count=20", "--out", tmp_path / "o", "-q")
     assert res.exit_code == 0, res.output
     assert (f"Note: {root / 'training' / 'clean' / 'alley'}: gap in the frame numbering: no frame 2, "
-            f"so pair 1 cannot be formed and the selection takes pair 3 instead") in res.output
+            f"so the pair of frames 1-2 cannot be formed and the selection takes the pair of frames "
+            f"3-4 instead") in res.output
     # a selection the gap does not touch says nothing
     res = run("check", "--root", root, "--scenes", "alley", "--first-frame", "3")
     assert res.exit_code == 0 and "gap" not in res.output, res.output
+
+
+@pytest.mark.slow
+def test_attack_and_benchmark_report_a_gap_too(sintel_with_a_gap, tmp_path, raft_small_weights):
+    """The paper's selections are --frames-per-scene 5 attacks: a gap changes theirs as well."""
+    root = sintel_with_a_gap
+    note = (f"Note: {root / 'training' / 'clean' / 'alley'}: gap in the frame numbering: no frame 2, "
+            f"so the pair of frames 1-2 cannot be formed and the selection takes the pair of frames "
+            f"3-4 instead")
+    common = ("--root", root, "--scenes", "alley", "--frames-per-scene", "1", "--steps", "1",
+              "--set", "count=20", "-q")
+    res = run("attack", *common, "--model", "raft-small", "--checkpoint", raft_small_weights,
+              "--iters", "2", "--out", tmp_path / "a")
+    assert res.exit_code == 0, res.output
+    assert res.output.count(note) == 1, res.output
+    res = run("benchmark", *common, "--networks", "raft-small", "--checkpoint",
+              f"raft-small={raft_small_weights}", "--presets", "snow,rain", "--lp", "",
+              "--iters", "2", "--out", tmp_path / "b")
+    assert res.exit_code == 0, res.output
+    assert res.output.count(note) == 1, res.output          # once, not once per run of the grid
+
+
+def test_a_gap_names_the_pairs_it_removes_by_their_frames():
+    from weathergen.datasets.base import Selection, numbering_gap
+
+    frames = [1, 2, 3, 8, 9, 10]                         # 4 to 7 missing: pairs 3-4 ... 7-8 lost
+    assert numbering_gap(Selection(), frames) == (
+        "gap in the frame numbering: no frames 4-7, so the pairs of frames 3-4 to 7-8 cannot be "
+        "formed")
+    assert numbering_gap(Selection(frames_per_scene=3), frames) == (
+        "gap in the frame numbering: no frames 4-7, so the pair of frames 3-4 cannot be formed and "
+        "the selection takes the pair of frames 8-9 instead")
+    assert numbering_gap(Selection(), [1, 2, 4, 6, 7]) == (
+        "gap in the frame numbering: no frames 3, 5, so the pairs of frames 2-3 to 5-6 cannot be "
+        "formed")
+    assert numbering_gap(Selection(), [1, 2, 3]) is None
 
 
 # -- frames of a pair that differ in channels ------------------------------------------------------
@@ -66,18 +104,45 @@ def test_a_pair_of_a_grey_and_a_colour_frame_is_warned_about(fake_sintel, tmp_pa
     assert res.exit_code == 0 and "warning" not in res.output, res.output
 
 
+@pytest.mark.slow
+def test_an_attack_on_a_grey_and_a_colour_frame_warns_too(fake_sintel, tmp_path, raft_small_weights):
+    from weathergen.io.images import read_image, write_png
+
+    grey = fake_sintel / "training" / "clean" / "alley" / "frame_0002.png"
+    write_png(grey, read_image(grey).mean(axis=2))
+    out = tmp_path / "a"
+    res = run("attack", "--root", fake_sintel, "--scenes", "alley", "--frames-per-scene", "1",
+              "--steps", "1", "--set", "count=20", "--model", "raft-small", "--checkpoint",
+              raft_small_weights, "--iters", "2", "--out", out, "-q")
+    assert res.exit_code == 0, res.output
+    said = (f"{grey}: the second frame is grey but the first (frame_0001.png) is colour; both are "
+            f"read as RGB (grey replicated to three channels)")
+    assert f"warning sintel/training/alley/0001: {said}" in res.output, res.output
+    entry = json.loads((out / "manifest.json").read_text())["pairs"]["sintel:training:alley:1"]
+    assert entry["status"] == "written" and entry["warnings"] == [said]
+    # a resumed run keeps the warning in the manifest
+    res = run("attack", "--root", fake_sintel, "--scenes", "alley", "--frames-per-scene", "1",
+              "--steps", "1", "--set", "count=20", "--model", "raft-small", "--checkpoint",
+              raft_small_weights, "--iters", "2", "--out", out, "-q", "--resume")
+    assert res.exit_code == 0, res.output
+    entry = json.loads((out / "manifest.json").read_text())["pairs"]["sintel:training:alley:1"]
+    assert entry["warnings"] == [said]
+
+
 # -- an attack without steps ---------------------------------------------------------------------
 
 @pytest.mark.parametrize("command", [
     ("attack", "--steps", "0"), ("attack", "--method", "pcfa", "--steps", "0"),
-    ("benchmark", "--steps", "0"), ("benchmark", "--lp-steps", "0")])
-def test_an_attack_of_zero_steps_is_refused_naming_random_weather(tmp_path, command):
+    ("attack", "--steps", "0", "--method", "pcfa"), ("benchmark", "--steps", "0"),
+    ("benchmark", "--lp-steps", "0")])
+def test_an_attack_of_zero_steps_is_refused_naming_its_start(tmp_path, command):
     out = tmp_path / "o"
     res = run(*command, "--model", "raft-small", "--out", out) if command[0] == "attack" else \
         run(*command, "--networks", "raft-small", "--out", out)
     assert res.exit_code == 2, res.output
     line = res.output.strip().splitlines()[-1]
-    assert "at least one step" in line and "random weather" in line, res.output
+    start = "the clean frames" if "--lp-steps" in command or "pcfa" in command else "random weather"
+    assert "at least one step" in line and start in line, res.output
     assert not out.exists()
 
 
@@ -259,6 +324,7 @@ def test_inspect_shows_the_types_a_user_reads_beside_how_they_are_stored(tmp_pat
     import torch
 
     from weathergen.engine import Particles
+    from weathergen.outputs import read_metadata, write_metadata
 
     out = tmp_path / "o"
     res = run("render", "--scenes", "street", "--frames-per-scene", "1", "--set", "count=200",
@@ -280,4 +346,12 @@ def test_inspect_shows_the_types_a_user_reads_beside_how_they_are_stored(tmp_pat
         assert float(high) == pytest.approx(t.double().max().item(), rel=1e-3, abs=1e-6)
     assert rows["position"][0] == "float32" and rows["position"][-1] == "uint16 grid"
     assert rows["color"][-1] == "uint8 /255" and rows["template"][0] == "int64"
+    # visibility counts are stored by a render; a file without them says so, not "-1"
+    assert re.search(r"visible in frame 1 / 2 +│ \d+ / \d+ ", res.output), res.output
+    arrays = read_metadata(meta)
+    del arrays["visible1"], arrays["visible2"]
+    write_metadata(tmp_path / "unseen.npz", arrays)
+    res = run("inspect", tmp_path / "unseen.npz")
+    assert res.exit_code == 0, res.output
+    assert "not recorded" in res.output and "-1 / -1" not in res.output
     assert particles.template.dtype == torch.int64

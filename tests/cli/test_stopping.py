@@ -168,3 +168,19 @@ def test_stale_lock_of_a_killed_benchmark_is_reported_and_taken_over(tmp_path, d
     assert len(notes) == 1, again.output
     assert f"took over the stale lock of pid {proc.pid} on {socket.gethostname()}" in notes[0]
     assert not lock_files(out)
+
+
+def test_a_benchmark_stopped_while_writing_its_tables_stops_the_same_way(tmp_path, monkeypatch):
+    """The tables are the last part of a benchmark run: Ctrl-C there is the same one line and
+    exit 130, not a traceback (the table files are written atomically, so none is half-written)."""
+    import weathergen.cli.benchmark as command
+
+    def interrupted(spec):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(command, "run_grid", lambda *args, **kwargs: [])
+    monkeypatch.setattr(command, "write_tables", interrupted)
+    result = CliRunner().invoke(cli, ["benchmark", "--networks", "raft-small", "--presets", "snow",
+                                      "--lp", "", "--out", str(tmp_path / "b"), "-q"])
+    assert result.exit_code == 130, result.output
+    assert stopped_line(result.output) == 0

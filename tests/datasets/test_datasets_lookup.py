@@ -59,3 +59,26 @@ def test_a_reader_option_is_refused_for_readers_that_do_not_list_it(tmp_path):
     takers = ", ".join(n for n, cls in DATASETS.items() if "fit_threshold_px" in cls.options)
     assert res.exit_code == 2 and takers == "kitti"
     assert f"--fit-threshold applies to {takers} only, not to demo" in res.output
+
+
+def test_help_texts_take_the_frame_rates_from_the_readers(monkeypatch):
+    """The frame rates a help text lists come from the reader classes, not a copy of them."""
+    from click.testing import CliRunner
+
+    from weathergen.cli.main import cli
+    from weathergen.datasets import frame_rates_text
+
+    expected = {name: f"{cls.frame_rate:g}" for name, cls in DATASETS.items()}
+    listed = {}
+    for group in frame_rates_text().split("; "):
+        names, rate = group.rsplit(" ", 1)
+        listed.update({name: rate for name in names.split(", ")})
+    assert listed == expected
+    help_text = " ".join(CliRunner().invoke(cli, ["preview", "--help"]).output.split())
+    assert f"Default: the dataset's ({frame_rates_text()})" in help_text
+
+    class Slow(DATASETS["demo"]):
+        frame_rate = 12.5
+
+    monkeypatch.setitem(DATASETS, "demo", Slow)
+    assert "demo 12.5" in frame_rates_text()

@@ -87,9 +87,16 @@ def test_a_photograph_keeps_its_colours_closely(demo_root):
     np.testing.assert_array_equal(back[0], palette[indices])
 
 
-def test_frame_delay_is_the_nearest_hundredth():
-    assert frame_delay(24) == 4 and frame_delay(10) == 10 and frame_delay(25) == 4
-    assert frame_delay(1000) == 1                   # never 0 (viewers would pick their own)
+def test_frame_delays_keep_the_frame_rate():
+    """Each frame starts at the hundredth nearest to its time: 24 fps alternates 4 and 5
+    hundredths, 24 frames last one second (a constant 4 would play at 25 fps)."""
+    delays = [frame_delay(24, i) for i in range(48)]
+    assert delays[:6] == [4, 4, 5, 4, 4, 4] and sum(delays) == 200
+    assert all(abs(sum(delays[:k]) - 100 * k / 24) <= 0.5 for k in range(49))
+    assert {frame_delay(10, i) for i in range(30)} == {10} and frame_delay(25, 7) == 4
+    assert frame_delay(1000, 3) == 1                # never 0 (viewers would pick their own)
+    frames = [np.full((2, 2, 3), i, np.uint8) for i in range(24)]
+    assert sum(decode_gif(encode_gif(frames, 24))[1]) == 100
 
 
 def test_encoder_and_decoder_refuse_what_they_cannot_do(tmp_path):

@@ -72,7 +72,7 @@ def test_on_cpu_tensors_the_mode_changes_nothing(name):
     assert torch.equal(plain, mixed)
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.cuda
 @pytest.mark.parametrize("name", ["raft", "raft-small", "gma"])
 def test_on_cuda_the_authors_regions_run_in_float16(name):
     torch.manual_seed(0)

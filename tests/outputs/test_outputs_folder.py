@@ -183,3 +183,21 @@ def test_stored_particles_load_for_their_own_pair_only(tmp_path):
     write_metadata(path, meta)                      # the first pair's metadata, in the wrong place
     with pytest.raises(FormatError, match="metadata belongs to street frame 1, not to street frame 2"):
         load_pair_particles(tmp_path, other)
+
+
+def test_a_pair_lists_its_files_and_is_complete_when_they_exist(tmp_path):
+    """The metadata's list of written files, read in one place (completion, sequence videos)."""
+    pid = PairId("demo", "training", "street", 1)
+    out = PairOutput.of(tmp_path, pid, "snow_clean")
+    with pytest.raises(FormatError):
+        out.listed_files()
+    assert not out.is_complete()
+    meta = pair_metadata(empty_particles(), pid, 7, {"count": 0}, "snow")
+    meta["files"] = np.array(json.dumps([str(p.relative_to(tmp_path)) for p in out.frames_png]))
+    write_metadata(out.metadata, meta)
+    assert out.listed_files() == list(out.frames_png)
+    assert not out.is_complete()
+    for p in out.frames_png:
+        p.parent.mkdir(parents=True, exist_ok=True)
+        p.write_bytes(b"")
+    assert out.is_complete()

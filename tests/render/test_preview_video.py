@@ -84,12 +84,12 @@ def test_a_four_frame_sequence_plays_in_order(sequence_run, tmp_path, suffix):
     assert "4 frames of 384x176 at 24 fps" in res.output
     frames, fps = cv2_frames(video)
     assert len(frames) == 4 and all(f.shape == (176, 384, 3) for f in frames)
-    assert fps == pytest.approx(24 if suffix == ".mp4" else 25)     # GIF: whole 1/100 s
+    assert fps == pytest.approx(24 if suffix == ".mp4" else 25)     # OpenCV: the first GIF delay
     want = sequence_frames(sequence_run)
     assert [nearest(f, want) for f in frames] == [0, 1, 2, 3]
     if suffix == ".gif":
         ours, delays = read_gif(video)
-        assert delays == [4] * 4
+        assert delays == [4, 4, 5, 4]       # whole 1/100 s, 24 fps on average
         for a, b, w in zip(ours, frames, want):
             np.testing.assert_array_equal(a, b)          # our decoder and OpenCV's agree
             assert np.abs(a.astype(int) - w).mean() < 3    # 256 colours of each frame
@@ -197,3 +197,33 @@ def test_an_input_that_changed_mid_video_leaves_no_file(sequence_run, tmp_path):
     line = one_line_error(run("preview", copy, "--video", video, "--with-input"))
     assert "the recorded input has no pair demo/training/street/0002" in line
     assert not video.parent.exists() or list(video.parent.iterdir()) == []
+
+
+@pytest.fixture(scope="module")
+def lp_run(tmp_path_factory, demo_root, raft_small_weights):
+    """An Lp attack's output: a render folder whose pairs store no particles."""
+    out = tmp_path_factory.mktemp("video") / "ifgsm"
+    res = run("attack", "--method", "ifgsm", "--model", "raft-small", "--checkpoint",
+              raft_small_weights, "--iters", "1", "--steps", "1", "--scenes", "street",
+              "--frames-per-scene", "1", "--out", out, "-q")
+    assert res.exit_code == 0, res.output
+    return out
+
+
+def test_an_lp_attack_output_plays_and_has_no_opacity_to_show(lp_run, tmp_path):
+    """An Lp attack perturbs the frames and stores no particles: its video and contact sheet show
+    the frames; asking for the particles' opacity is one line, not a traceback."""
+    video = tmp_path / "lp.gif"
+    res = run("preview", lp_run, "--video", video, "--with-input", "--cycles", "1")
+    assert res.exit_code == 0, res.output
+    frames, _ = read_gif(video)
+    assert len(frames) == 2 and frames[0].shape == (176, 2 * 384, 3)
+    perturbed = read_raw(lp_run / "training" / "ifgsm_clean" / "street_0001" / "frame_0001.png")
+    assert np.abs(frames[0][:, 384:].astype(int) - perturbed[..., ::-1].astype(int)).mean() < 3
+    line = one_line_error(run("preview", lp_run, "--video", tmp_path / "o.mp4", "--with-opacity"))
+    assert f"--with-opacity: {lp_run} holds no particles to show" in line
+    assert not (tmp_path / "o.mp4").exists()
+    sheet = run("preview", lp_run, "--out", tmp_path / "sheet.png")
+    assert sheet.exit_code == 0, sheet.output
+    image = read_image(tmp_path / "sheet.png")
+    assert image.shape[1] == 3 * 480 and image[40:, 2 * 480:].max() == 0   # no opacity anywhere

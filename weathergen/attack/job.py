@@ -123,6 +123,9 @@ class PairReport:
     message: str = ""
     key: str = ""
     ran: Optional[dict] = None
+    #: what the reader found odd about the input (``"FILE: what"`` lines, e.g. a grey frame beside
+    #: a colour one): the pair is attacked all the same
+    warnings: list = field(default_factory=list)
 
 
 _MODELS: dict = {}
@@ -203,7 +206,7 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
             summary = write(job, model, pair, result, device)
             summary.seconds = spent + share + time.perf_counter() - begin
             reports[ref.id.key] = PairReport(str(ref.id), "written", summary, key=ref.id.key,
-                                             ran=ran)
+                                             ran=ran, warnings=list(pair.meta.get("warnings", [])))
     return [reports[ref.id.key] for ref in refs]
 
 
@@ -298,7 +301,7 @@ def run_attack(job: AttackJob,
     tasks (``job.executor``). The manifest is rewritten after every unit, so an interrupted run
     (Ctrl-C, or a killed driver) keeps what it finished. ``on_step`` receives the pair's name and
     each step (local executor only: Ray tasks report whole pairs); ``on_note`` warnings worth a
-    line (a stale lock taken over). The output folder is claimed for the run
+    line (a stale lock taken over, a gap in a scene's frame numbering). The output folder is claimed for the run
     (:func:`~weathergen.outputs.claim_folder`): a second run in it raises
     :class:`~weathergen.errors.FolderBusy`.
     """
@@ -308,6 +311,8 @@ def run_attack(job: AttackJob,
     job.amp_setting()                      # a request the device or network cannot meet
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
+    for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
+        on_note(note)
     if not refs:
         raise ConfigError(job.dataset.no_pairs_message())
     local = job.executor == "local"
@@ -353,8 +358,10 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
             summaries[report.key] = report.summary
             old = pairs_entry.get(report.key, {})
             ran = report.ran if report.ran is not None else old.get("ran")
+            warnings = report.warnings if report.status == "written" else old.get("warnings", [])
             pairs_entry[report.key] = {"status": "written", **asdict(report.summary),
-                                       **({"ran": ran} if ran else {})}
+                                       **({"ran": ran} if ran else {}),
+                                       **({"warnings": warnings} if warnings else {})}
         run[report.status] += 1
         on_pair_done(report)
 

@@ -26,10 +26,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Mapping, Optional, Sequence
 
-from ..attack import ATTACK_CONFIGS, AttackConfig, AttackJob, lp_pass_name, lp_settings, run_attack
+from ..attack import (ATTACK_CONFIGS, LP_METHODS, AttackConfig, AttackJob, lp_pass_name, lp_settings,
+                      run_attack)
 from ..attack.plan import attack_pass_name, plan_attack
 from ..datasets import Dataset, reopen_dataset
 from ..engine import list_presets
+from ..engine.presets import LAYER_JOIN
 from ..errors import ConfigError
 from ..models.checkpoints import sha256_of
 
@@ -84,8 +86,18 @@ class BenchmarkSpec:
     compat: str = "paper"                # the weather attacks' terms (paper or reference)
 
     def cells(self) -> list[Cell]:
+        """Every run of the grid, in order. ConfigError names the benchmark's option of a
+        method or preset it cannot run (before the attack's own checks would name the attack's
+        options)."""
         if not self.networks:
             raise ConfigError("${networks} names no network")
+        for method in self.lp_methods:
+            if method not in LP_METHODS:
+                raise ConfigError(f"${{lp}} {method!r}: expected {', '.join(LP_METHODS)}")
+        for label in self.presets:
+            if LAYER_JOIN in label and not Path(label).is_file():
+                raise ConfigError(f"${{presets}} {label!r}: combined presets (layers joined by "
+                                  f"{LAYER_JOIN}) are not yet supported by benchmark")
         cells = []
         for net in self.networks:
             cells += [Cell(net, "weather", p) for p in self.presets]

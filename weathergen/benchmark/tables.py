@@ -2,7 +2,8 @@
 
 Files written into the benchmark folder (all atomically)::
 
-    OUT/results.csv         one row per cell: network, kind, label, pairs, the mean figures, checkpoint
+    OUT/results.csv         one row per cell: network, kind, label, pairs, the mean figures, the
+                            attack mode and mixed precision it ran with, checkpoint
     OUT/results.json        the same rows, plus the networks (checkpoint and sha256), the input
                             selection, the settings and the weathergen version
     OUT/tables.md           every table in Markdown
@@ -14,11 +15,16 @@ Files written into the benchmark folder (all atomically)::
 
 One table per table of the paper that the grid's cells fill, laid out as the paper's (AEE(f, f̌)
 in pixels, mean over the pairs; networks as columns, named as the paper names them: FN2, FNCR,
-SpyNet, RAFT, GMA, FF; the worst, i.e. largest, value of each column bold):
+SpyNet, RAFT, GMA, FF; the worst, i.e. largest, value of each column bold, of each family in
+Table 1):
 
 - ``augmentations`` (the paper's Table 1; on KITTI its supplement's KITTI table): the random
   weather of every preset cell (``aee_random``), the paper's families (particles, motion blur,
-  colour, size) grouped under their headings;
+  colour, size) grouped under their headings in the paper's order, the main augmentations in
+  their families' rows as the paper highlights them (snow is ``3000 (snow)`` of Particles, rain
+  ``0.15 (rain)`` of Motion blur, sparks ``red (sparks)`` of Color additive, fog ``fog`` of Size),
+  the worst of each family bold, as the paper marks it (rows alone in their section are ranked
+  with one another);
 - ``optimvariables`` (Table 2): the attack-configuration cells (e.g. ``grey-offset1``), one row
   per set of freed variables, under an ``Initial`` row (the random weather, not ranked); the
   second worst underlined;
@@ -49,8 +55,8 @@ from .plot import draw_aee
 
 FIGURES = ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
            "epe_benign", "epe_random", "epe_adversarial") + FIGURE_KEYS
-COLUMNS = ("network", "kind", "label", "pairs") + FIGURES + ("compat", "checkpoint", "sha256",
-                                                               "folder")
+COLUMNS = ("network", "kind", "label", "pairs") + FIGURES + ("compat", "amp", "checkpoint",
+                                                               "sha256", "folder")
 LP_NAMES = {"pcfa": "PCFA", "ifgsm": "I-FGSM"}
 #: The families of the paper's Table 1: preset-name prefix, heading (Markdown, LaTeX).
 FAMILIES = (("particles-", "Particles", "Particles"),
@@ -58,6 +64,10 @@ FAMILIES = (("particles-", "Particles", "Particles"),
             ("additive-", "Color additive", "Color additive"),
             ("alpha-", "Color α-blending", r"Color $\alpha$-blending"),
             ("size-", "Size", "Size"))
+#: The paper's main augmentations are rows of its Table 1's families (highlighted there): each is
+#: the family member of the same settings (tested), so it is shown in that family's row.
+MAIN_ROWS = {"snow": "particles-3000", "rain": "motion-blur-0.15", "sparks": "additive-red",
+             "fog": "size-fog"}
 #: The freed variables as the paper writes them (Markdown, LaTeX).
 SYMBOLS = {"offset1": ("1", "1"), "offset2": ("2", "2"), "color": ("c", "c"),
            "transparency": ("θ", r"\theta")}
@@ -94,6 +104,7 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
         for key in FIGURES:
             row[key] = summary.get(key) if summary else None
         row.update(compat=summary.get("compat") if summary else None,
+                   amp=summary.get("amp") if summary else None,
                    checkpoint=records[cell.network]["checkpoint"],
                    sha256=records[cell.network]["sha256"],
                    folder=str(folder.relative_to(spec.out)))
@@ -126,24 +137,34 @@ class Table:
     sections: list = field(default_factory=list)
     groups: Optional[list] = None
     underline_second: bool = False
+    #: rank within each section of several rows (the paper's Table 1 marks the worst of each
+    #: family), the rows of one-row sections with one another, rather than over the whole table
+    rank_by_section: bool = False
     note: str = ""
 
     def rows(self) -> list[Row]:
         return [row for _, rows in self.sections for row in rows]
 
     def marks(self) -> dict:
-        """``{(row id, column): "bold" | "underline"}`` over the ranked rows of each column."""
+        """``{(row id, column): "bold" | "underline"}`` over the ranked rows of each column (of
+        each section, with ``rank_by_section``)."""
         out = {}
-        ranked = [r for r in self.rows() if r.ranked]
-        for c in range(len(self.columns)):
-            values = sorted({r.values[c] for r in ranked if r.values[c] is not None},
-                            reverse=True)
-            for r in ranked:
-                v = r.values[c]
-                if values and v == values[0]:
-                    out[(id(r), c)] = "bold"
-                elif self.underline_second and len(values) > 1 and v == values[1]:
-                    out[(id(r), c)] = "underline"
+        if self.rank_by_section:
+            groups = [rows for _, rows in self.sections if len(rows) > 1]
+            groups.append([row for _, rows in self.sections if len(rows) == 1 for row in rows])
+        else:
+            groups = [self.rows()]
+        for group in groups:
+            ranked = [r for r in group if r.ranked]
+            for c in range(len(self.columns)):
+                values = sorted({r.values[c] for r in ranked if r.values[c] is not None},
+                                reverse=True)
+                for r in ranked:
+                    v = r.values[c]
+                    if values and v == values[0]:
+                        out[(id(r), c)] = "bold"
+                    elif self.underline_second and len(values) > 1 and v == values[1]:
+                        out[(id(r), c)] = "underline"
         return out
 
 
@@ -153,9 +174,15 @@ def _lookup(rows: list[dict]):
 
 
 def _family(label: str):
+    """``((heading, heading_tex), row label)`` of a preset in the paper's Table 1, or ``(None,
+    label)`` for a preset outside its families; a main augmentation (snow, rain, sparks, fog)
+    is its family's row, named as both (``3000 (snow)``)."""
+    member = MAIN_ROWS.get(label, label)
     for prefix, heading, heading_tex in FAMILIES:
-        if label.startswith(prefix) and len(label) > len(prefix):
-            return (heading, heading_tex), label[len(prefix):]
+        if member.startswith(prefix) and len(member) > len(prefix):
+            short = member[len(prefix):]
+            return (heading, heading_tex), short if short == label or member == label \
+                else f"{short} ({label})"
     return None, label
 
 
@@ -185,9 +212,9 @@ def build_tables(rows: list[dict], networks: Sequence[str]) -> list[Table]:
             sections.setdefault(heading, []).append(
                 Row(short, latex_text(short),
                     [value(n, "weather", label, "aee_random") for n in networks]))
-        table = Table("augmentations", "Weather", names,
-                      sections=[(h, r) for h, r in sections.items() if h is None]
-                      + [(h, r) for h, r in sections.items() if h is not None])
+        order = [None] + [(h, tex) for _, h, tex in FAMILIES]       # the paper's order
+        table = Table("augmentations", "Weather", names, rank_by_section=True,
+                      sections=[(h, sections[h]) for h in order if h in sections])
         tables.append(table)
     if configs:
         initial = [next((v for v in (value(n, "weather", c, "aee_random") for c in configs)
@@ -337,7 +364,7 @@ def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
                 "networks": [checkpoint_record(n, spec.checkpoints.get(n)) for n in networks],
                 "settings": {"weather_steps": spec.steps, "lp_steps": spec.lp_steps,
                              "iters": spec.iters, "overrides": dict(spec.overrides),
-                             "compat": spec.compat},
+                             "compat": spec.compat, "amp": spec.amp},
                 "rows": rows}
     tables = build_tables(rows, networks)
     caption = captions(spec)

@@ -44,6 +44,15 @@ def frame_rate_of(name: str) -> float:
     return DATASETS.get(name, Dataset).frame_rate
 
 
+def frame_rates_text() -> str:
+    """The readers' frame rates in words, readers of one rate together, e.g. ``"sintel, spring,
+    demo 24; kitti 10; custom 30"`` (for help texts: the rates live on the reader classes)."""
+    by_rate: dict[float, list[str]] = {}
+    for name, cls in DATASETS.items():
+        by_rate.setdefault(cls.frame_rate, []).append(name)
+    return "; ".join(f"{', '.join(names)} {rate:g}" for rate, names in by_rate.items())
+
+
 def default_dataset(root: Optional[str | Path]) -> str:
     """The reader used when none is named: the bundled ``demo`` without a root, ``sintel`` with one."""
     return "sintel" if root else "demo"
@@ -102,6 +111,6 @@ def demo_pairs(**selection) -> list:
     return [ds.load(ref) for ref in ds.pairs()]
 
 
-__all__ = ["DATASETS", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset", "NativeFlow",
+__all__ = ["DATASETS", "frame_rates_text", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset", "NativeFlow",
            "PairRef", "Selection", "SintelDataset", "SpringDataset", "default_dataset", "demo_pairs",
            "frame_rate_of", "load_scene_scales", "open_dataset", "reopen_dataset"]

@@ -97,23 +97,38 @@ def numbering_gap(selection: Selection, frames: list[int]) -> Optional[str]:
     if not lost:
         return None
     extra = [f for f in chosen if f not in complete]
-    text = (f"gap in the frame numbering: no frame {_numbers(missing)}, so pair{'s' * (len(lost) > 1)} "
-            f"{_numbers(lost)} cannot be formed")
+    text = (f"gap in the frame numbering: no frame{'s' * (len(missing) > 1)} {_numbers(missing)}, "
+            f"so the pair{'s' * (len(lost) > 1)} of frames {_pairs(lost)} cannot be formed")
     if extra:
-        text += (f" and the selection takes pair{'s' * (len(extra) > 1)} {_numbers(extra)} "
-                 f"instead")
+        text += (f" and the selection takes the pair{'s' * (len(extra) > 1)} of frames "
+                 f"{_pairs(extra)} instead")
     return text
 
 
-def _numbers(values: list[int]) -> str:
-    """``1, 4-6, 9``: sorted integers with runs joined."""
+def _runs(values: list[int]) -> list[list[int]]:
+    """Sorted integers split into runs of consecutive ones."""
     runs: list[list[int]] = []
     for v in values:
         if runs and v == runs[-1][-1] + 1:
             runs[-1].append(v)
         else:
             runs.append([v])
-    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in runs)
+    return runs
+
+
+def _numbers(values: list[int]) -> str:
+    """``1, 4-6, 9``: sorted integers with runs joined."""
+    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in _runs(values))
+
+
+def _pairs(firsts: list[int]) -> str:
+    """Pairs named by their frames, from their first frames: ``1-2, 2-3`` for [1, 2], ``4-5 to
+    9-10`` for [4, ..., 9] (a pair's first frame alone, or a range of them, reads as one pair)."""
+    out = []
+    for r in _runs(firsts):
+        named = [f"{f}-{f + 1}" for f in r]
+        out.append(", ".join(named) if len(named) <= 2 else f"{named[0]} to {named[-1]}")
+    return ", ".join(out)
 
 
 def frame_numbers(folder: Path, pattern) -> list[int]:
@@ -292,6 +307,11 @@ class Dataset(ABC):
         """Problems of whole scenes found by the last :meth:`pairs` (scene -> problems), such as
         gaps in the frame numbering (warnings)."""
         return dict(self._listing_problems)
+
+    def scene_notes(self) -> list[str]:
+        """:meth:`scene_problems` as lines for a run's notes (``"FOLDER: what"``)."""
+        return [f"{p.where}: {p.kind}" if p.where else p.kind
+                for problems in self.scene_problems().values() for p in problems]
 
     def _note_gaps(self, scene: str, frames: list[int], folder: Path) -> None:
         """Record a warning when missing frame numbers change the selection (see

@@ -589,8 +589,7 @@ class FieldPreset:
     wind: tuple = _key((0.0, 0.0), _pair,
                        "wind along the world's two horizontal axes, scene units/s", main=True)
     frame_rate: float = _key(0.0, _number(0, 1e4),
-                             "frames per second; 0: the dataset's (sintel 24, spring 24, "
-                             "kitti 10, demo 24, custom 30)")
+                             "frames per second; 0: the dataset's (its reader's frame_rate)")
     exposure: float = _key(0.0, _number(0, 10),
                            "exposure time, s: streak length = velocity x exposure "
                            "(at most one frame interval); 0: no streak", main=True)

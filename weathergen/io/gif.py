@@ -9,12 +9,14 @@ the file loops forever. The decoder reads what the encoder writes, and any GIF w
 the whole screen with a global or a local palette (interlaced frames and partial frames are not
 supported: :class:`~weathergen.errors.FormatError` says so).
 
-A GIF's frame delay is a whole number of hundredths of a second, so a frame rate is kept to the
-nearest: 24 fps plays at 25 fps (4/100 s a frame), 10 fps exactly.
+A GIF's frame delay is a whole number of hundredths of a second, so each frame starts at the
+hundredth nearest to its time at the frame rate: 24 fps alternates delays of 4 and 5 hundredths
+(4, 4, 4, 5, ...; 24 frames take exactly one second), 10 fps is 10 each.
 """
 
 from __future__ import annotations
 
+import math
 import struct
 from pathlib import Path
 from typing import Iterable
@@ -33,9 +35,16 @@ _END = _CLEAR + 1
 _MAX_CODES = 4096              # 12-bit codes
 
 
-def frame_delay(fps: float) -> int:
-    """The delay between frames, in hundredths of a second, nearest to ``1 / fps`` (at least 1)."""
-    return max(1, round(100.0 / fps))
+def _hundredths(index: int, fps: float) -> int:
+    """The hundredth of a second nearest to ``index / fps`` (halves up)."""
+    return math.floor(100.0 * index / fps + 0.5)
+
+
+def frame_delay(fps: float, index: int = 0) -> int:
+    """The delay after frame ``index``, in hundredths of a second (at least 1): from the hundredth
+    nearest to the frame's time ``index / fps`` to that nearest to the next frame's, so that the
+    frames keep the frame rate on average and never drift from it by half a hundredth."""
+    return max(1, _hundredths(index + 1, fps) - _hundredths(index, fps))
 
 
 # -- palettes ---------------------------------------------------------------------------------
@@ -158,15 +167,15 @@ def _sub_blocks(data: bytes) -> bytes:
 # -- writing ----------------------------------------------------------------------------------
 
 def encode_gif(frames: Iterable[np.ndarray], fps: float) -> bytes:
-    """An animated, endlessly looping GIF of ``frames``, played at ``fps`` (to 1/100 s).
+    """An animated, endlessly looping GIF of ``frames``, played at ``fps`` (each frame to the
+    nearest 1/100 s, :func:`frame_delay`).
 
     Shape: frames (H, W, 3) uint8 RGB, all of one size. Raises ValueError for no frame or frames
     of different sizes.
     """
-    delay = frame_delay(fps)
     out = bytearray()
     size = None
-    for rgb in frames:
+    for index, rgb in enumerate(frames):
         rgb = np.asarray(rgb)
         if rgb.dtype != np.uint8 or rgb.ndim != 3 or rgb.shape[2] != 3:
             raise ValueError(f"GIF frames must be (H, W, 3) uint8, got {rgb.dtype} {rgb.shape}")
@@ -182,7 +191,8 @@ def encode_gif(frames: Iterable[np.ndarray], fps: float) -> bytes:
             raise ValueError(f"GIF frames must share one size: {size[1]}x{size[0]}, then {w}x{h}")
         palette, indices = palette_indices(rgb)
         # graphic control: no disposal, the delay, no transparency
-        out += bytes([_EXTENSION, 0xF9, 4, 0x04]) + struct.pack("<H", delay) + bytes([0, 0])
+        out += (bytes([_EXTENSION, 0xF9, 4, 0x04]) + struct.pack("<H", frame_delay(fps, index))
+                + bytes([0, 0]))
         # image descriptor: the whole screen, a local palette of 256 colours, not interlaced
         out += bytes([_IMAGE]) + struct.pack("<HHHHB", 0, 0, w, h, 0x87) + palette.tobytes()
         out.append(_CODE_BITS)

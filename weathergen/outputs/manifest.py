@@ -68,9 +68,16 @@ class OutputManifest:
         return self.data["preset_name"]
 
     @property
-    def preset(self) -> dict:
-        """The resolved preset (every key, plus ``name`` and ``source``)."""
+    def preset(self) -> Optional[dict]:
+        """The resolved preset (every key, plus ``name`` and ``source``); None for an Lp attack,
+        which has no particles."""
         return self.data["preset"]
+
+    @property
+    def holds_particles(self) -> bool:
+        """Whether the output's pairs store weather particles (an Lp attack's perturb the frames
+        themselves and store none)."""
+        return self.data.get("preset") is not None
 
     @property
     def input(self) -> dict:

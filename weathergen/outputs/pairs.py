@@ -202,15 +202,19 @@ class PairOutput:
             out += self.geometry_files(with_flow)
         return out + [self.metadata]
 
+    def listed_files(self) -> list[Path]:
+        """The files the pair's metadata says were written with it (the metadata file aside).
+        Raises FormatError naming the metadata file when it is missing or unreadable."""
+        return [self.root / f for f in json.loads(str(read_metadata(self.metadata)["files"]))]
+
     def is_complete(self) -> bool:
         """True when the pair's metadata loads and every other file it lists exists."""
         if not self.metadata.exists():
             return False
         try:
-            meta = read_metadata(self.metadata)
+            listed = self.listed_files()
         except FormatError:
             return False
-        listed = [self.root / f for f in json.loads(str(meta["files"]))]
         return all(p.exists() for p in listed)
 
 

@@ -350,9 +350,8 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     check_executor(job.executor)
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     every = job.dataset.pairs()
-    for problems in job.dataset.scene_problems().values():
-        for problem in problems:        # e.g. a gap in a scene's frame numbering
-            on_note(f"{problem.where}: {problem.kind}" if problem.where else problem.kind)
+    for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
+        on_note(note)
     refs = shard_refs(every, job.shard)
     if not every:
         raise ConfigError(job.dataset.no_pairs_message())

@@ -52,7 +52,8 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
     The first ``pairs`` complete pairs are shown; when the output holds more, a footer below the
     rows says how many of how many the sheet shows. The input frames are read through the dataset
     recorded in the manifest; the opacity is re-rendered from the stored particle metadata (exact,
-    whatever the output format).
+    whatever the output format), and is empty for an Lp attack's output, which stores no
+    particles.
     """
     render_dir = Path(render_dir)
     manifest = read_manifest(render_dir, "preview")
@@ -68,9 +69,12 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
         if len(rows) == pairs:
             continue            # only counted
         pair = ds.load(ref)
-        particles = Particles.load(out.metadata)
-        with torch.no_grad():
-            opacity = render_pair(pair, particles).opacity1[0, 0].clamp(0, 1).numpy()
+        if manifest.holds_particles:
+            with torch.no_grad():
+                opacity = render_pair(pair, Particles.load(out.metadata)).opacity1[0, 0]
+            opacity = opacity.clamp(0, 1).numpy()
+        else:                   # an Lp attack: the frames themselves are perturbed
+            opacity = np.zeros(pair.image1.shape[-2:], np.float32)
         weather = (read_image(out.frames_png[0]) if manifest.fmt in ("png", "both")
                    else np.clip(read_exr(out.frames_exr[0])["RGB"], 0, 1))
         original = pair.image1.permute(1, 2, 0).numpy()
@@ -78,7 +82,8 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
         size = (width, max(1, round(h * width / w)))
         tiles = [caption_tile(original, size, f"{ref.id.scene} {ref.id.frame}"),
                  caption_tile(weather, size, manifest.data.get("preset_name", "")),
-                 caption_tile(np.repeat(opacity[..., None], 3, 2), size, "opacity")]
+                 caption_tile(np.repeat(opacity[..., None], 3, 2), size,
+                              "opacity" if manifest.holds_particles else "no particles")]
         rows.append(np.hstack(tiles))
     if not rows:
         raise WeatherGenError(f"{render_dir}: no complete pair to preview")

@@ -14,7 +14,6 @@ not grow with the output's length; :func:`weathergen.io.video.write_video` write
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Iterator, Optional
@@ -29,14 +28,14 @@ from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.exr import read_exr
 from ..io.images import read_image
-from ..outputs import OutputManifest, PairOutput, WeatherFolder, read_manifest, read_metadata
+from ..outputs import OutputManifest, PairOutput, WeatherFolder, read_manifest
 from .preview import caption_tile
 
 
 def output_frame_rate(manifest: OutputManifest) -> float:
     """Frames per second of an output's input: a field preset's ``frame_rate`` when it sets one,
     else the dataset's (:func:`~weathergen.datasets.frame_rate_of`; 30 for an unknown one)."""
-    preset = manifest.preset
+    preset = manifest.preset or {}          # an Lp attack has none
     if preset.get("model") == "field" and float(preset.get("frame_rate") or 0) > 0:
         return float(preset["frame_rate"])
     return frame_rate_of(manifest.input.get("dataset", ""))
@@ -169,6 +168,9 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
         raise ConfigError(f"${{width}} {width}: must be >= 16 pixels")
     if fps is not None and not fps > 0:
         raise ConfigError(f"${{fps}} {fps!r}: must be > 0")
+    if with_opacity and not manifest.holds_particles:
+        raise ConfigError(f"${{with_opacity}}: {render_dir} holds no particles to show (an Lp "
+                          f"attack, {manifest.preset_name}, perturbs the frames themselves)")
     rate = float(fps) if fps is not None else output_frame_rate(manifest)
     sequence = manifest.sequence
     if sequence and cycles is not None:
@@ -201,9 +203,8 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
 def _wrote_second_frame(root: Path, manifest: OutputManifest, pair_id: PairId) -> bool:
     """Whether a sequence output's pair wrote its second frame (the last pair of a scene does)."""
     out = PairOutput.of(root, pair_id, manifest.pass_name, manifest.fmt, sequence=True)
-    listed = set(json.loads(str(read_metadata(out.metadata)["files"])))
     second = out.frames_png[1] if manifest.fmt in ("png", "both") else out.frames_exr[1]
-    return str(second.relative_to(root)) in listed
+    return second in out.listed_files()
 
 
 def _frame_size(out: PairOutput, fmt: str) -> tuple[int, int]:
