@@ -146,8 +146,8 @@ def operation_counts() -> None:
                          ("snow-light", ["snow-light"] * 8),
                          ("snow, rain, snow-light, rain-light", ["snow", "rain", "snow-light",
                                                                  "rain-light"] * 2)):
-        records = [sample_weather(p, load_preset(n), i) for i, (p, n) in enumerate(zip(pairs,
-                                                                                      names))]
+        records = [sample_weather(p, load_preset(n), i, frame_rate=24.0)
+                   for i, (p, n) in enumerate(zip(pairs, names))]
         cpu = count(lambda: render_pair(batch, records))
         gpu = count(lambda: _gpu_chunks(batch, records))
         print(f"  training batch of 8 Sintel-size pairs, {label}: {cpu} (CPU chunks), "

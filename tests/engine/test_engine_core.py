@@ -186,7 +186,7 @@ def test_operation_count_does_not_grow_with_particles_or_pairs(monkeypatch):
     assert max(field) - min(field) <= 80 and max(field) < 1000, field
 
 
-@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+@pytest.mark.cuda
 def test_cuda_matches_the_cpu_forward_and_backward():
     """The same core on CUDA: frames within 1e-9 of the CPU's in float64 (atomic additions
     change only the last bits) and gradients within 1e-7 relative."""
