@@ -5,7 +5,8 @@
 #   make demo                  render the default preset on the bundled demo scene
 #   make bench                 print speed and memory figures (renderer, weather field, networks,
 #                              attack step, batched attacks, training); FOG_BEFORE=DIR also times
-#                              fog with the weathergen source tree DIR (e.g. an older commit's)
+#                              fog with the weathergen source tree DIR (e.g. an older commit's),
+#                              CORE_BEFORE=DIR the render core against the renderer of tree DIR
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 #   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
 #                              in a separate environment (.venv-oldest)
@@ -18,6 +19,7 @@ VENV   ?= .venv
 TORCH  ?= torch==2.13.0
 PYTEST_ARGS ?=
 FOG_BEFORE ?=
+CORE_BEFORE ?=
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.weathergen-deps
 # The torch requirement the venv was last set up with; a different TORCH reinstalls torch.
@@ -75,6 +77,7 @@ demo: install
 bench: install
 	$(BIN)/python benchmarks/bench.py
 	$(BIN)/python benchmarks/bench_fog.py $(if $(FOG_BEFORE),--before $(FOG_BEFORE))
+	$(BIN)/python benchmarks/bench_core.py $(if $(CORE_BEFORE),--before $(CORE_BEFORE))
 	$(BIN)/python benchmarks/bench_field.py
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
