@@ -110,21 +110,33 @@ class RenderOutput:
 
 
 class _Crop(torch.autograd.Function):
-    """One level's planes without margins (a view of the sums); the backward pass writes the
-    gradient into one zero tensor of the sums' shape (autograd's slices would allocate one
-    per slice). Shape: values (4, N) -> (4, V, h, w)."""
+    """Every level's planes without margins (views of the sums); the backward pass writes the
+    gradients into one tensor of the sums' shape, zeroing only the margins (autograd's slices
+    would allocate and zero-fill one full-size tensor per slice). Shape: values (4, N) -> one
+    (4, V, h, w) per level."""
 
     @staticmethod
-    def forward(ctx, values, grids, index):
-        ctx.grids, ctx.index, ctx.shape = grids, index, values.shape
-        return grids.planes(values, index)
+    def forward(ctx, values, grids):
+        ctx.grids, ctx.shape = grids, values.shape
+        return tuple(grids.planes(values, index) for index in range(len(grids.levels)))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad):
-        out = grad.new_zeros(ctx.shape)
-        ctx.grids.planes(out, ctx.index).copy_(grad)
-        return out, None, None
+    def backward(ctx, *grads):
+        grids = ctx.grids
+        out = grads[0].new_empty(ctx.shape)
+        for index, grad in enumerate(grads):
+            _, offset, h, w, m = grids.levels[index]
+            size = grids.views * (h + 1) * (w + 2 * m)
+            full = out[:, offset:offset + size].view(out.shape[0], grids.views, h + 1, w + 2 * m)
+            full[..., h, :].zero_()
+            full[..., :h, :m].zero_()
+            full[..., :h, m + w:].zero_()
+            if grad is None:
+                full[..., :h, m:m + w].zero_()
+            else:
+                full[..., :h, m:m + w].copy_(grad)
+        return out, None
 
 
 def planes(sums: Sums) -> torch.Tensor:
@@ -135,8 +147,7 @@ def planes(sums: Sums) -> torch.Tensor:
     grid is drawn)."""
     grids = sums.grids
     total = None
-    for index, (level, _, h, w, _) in enumerate(grids.levels):
-        grid = _Crop.apply(sums.values, grids, index)
+    for (level, _, h, w, _), grid in zip(grids.levels, _Crop.apply(sums.values, grids)):
         if level:   # one plane per image: the kernel treats every plane alike, whatever V
             grid = upsample(grid.reshape(4 * grids.views, 1, h, w), 2 ** level,
                             (grids.height, grids.width)).view(4, grids.views, grids.height,

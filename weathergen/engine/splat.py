@@ -104,8 +104,10 @@ class Sums:
 
 
 def grids_for(stamps: StampSet, views: int, height: int, width: int) -> Grids:
-    """The grid levels the stamps need (the image grid always), each with a margin as wide as
-    its widest patch. One host synchronisation."""
+    """The grid levels the stamps need (the image grid only when a stamp is drawn on it or none
+    is coarse), each with a margin as wide as its widest patch. A level left out would add exact
+    zeros to every view (sums are never −0), so leaving it out changes no bit and saves a
+    full-size plane per view (fog draws on a coarse grid alone). One host synchronisation."""
     top = COARSE_MAX_LEVEL + 1
     if stamps.count:
         widest = torch.zeros(top, dtype=torch.long, device=stamps.side.device) \
@@ -114,7 +116,8 @@ def grids_for(stamps: StampSet, views: int, height: int, width: int) -> Grids:
     else:
         used = [[0] * top, [0] * top]
     levels, offset = [], 0
-    for c in sorted({0} | {c for c, n in enumerate(used[0]) if n}, reverse=True):
+    drawn = {c for c, n in enumerate(used[0]) if n}
+    for c in sorted(drawn if drawn - {0} else {0}, reverse=True):
         f = 2 ** c
         h, w = -(-height // f), -(-width // f)
         m = used[1][c]
@@ -188,7 +191,7 @@ class _Plan:
         for c, offset, h, w, m in grids.levels:
             rows[c] = [offset, h, w, m, 2 ** c]
         table = torch.tensor(rows, device=device)
-        self.coarse = len(grids.levels) > 1
+        self.coarse = grids.levels[0][0] > 0       # (coarsest first)
         with torch.no_grad():
             # per sample: its stamp's side, level and start, and its level's grid
             side, level, first = torch.stack((stamps.side, stamps.coarse, stamps.first), 1) \
