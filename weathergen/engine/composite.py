@@ -51,14 +51,33 @@ def _fold(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor, dim: int) -> torch.
     return out
 
 
-def upsample_adjoint(grad: torch.Tensor, factor: int) -> torch.Tensor:
-    """The adjoint of :func:`upsample` (without cropping). Shape: (C, 1, f h, f w) -> (C, 1, h, w).
+def upsample_adjoint(grad: torch.Tensor, factor: int,
+                     coarse: Optional[Sequence[int]] = None) -> torch.Tensor:
+    """The adjoint of :func:`upsample`. Shape: (C, 1, H, W) -> (C, 1, h, w), ``coarse`` = (h, w)
+    (default: H / f, W / f), H <= f h and W <= f w (the rows and columns beyond a cropped
+    gradient are zero).
+
+    One axis at a time, an axis that needs no padding first: its pass reads the full-size
+    gradient as it lies (one matrix product of the phase weights), and the other axis, then
+    padded if cropped, works on an f times smaller tensor (no full-size copy).
     """
+    height, width = grad.shape[-2:]
+    h, w = (-(-height // factor), -(-width // factor)) if coarse is None else coarse
     w3 = _phase_weights(factor, grad.dtype, grad.device)
-    rows = w3 @ grad.unflatten(-2, (-1, factor))                  # (C, 1, h, 3, f w)
-    g = _fold(*rows.unbind(-2), dim=-2)                           # (C, 1, h, f w)
-    cols = g.unflatten(-1, (-1, factor)) @ w3.T                   # (C, 1, h, w, 3)
-    return _fold(*cols.unbind(-1), dim=-1)
+
+    def rows(g):        # (C, 1, f h, X) -> (C, 1, h, X)
+        if g.shape[-2] < factor * h:
+            g = F.pad(g, (0, 0, 0, factor * h - g.shape[-2]))
+        return _fold(*(w3 @ g.unflatten(-2, (h, factor))).unbind(-2), dim=-2)
+
+    def cols(g):        # (C, 1, X, f w) -> (C, 1, X, w)
+        if g.shape[-1] < factor * w:
+            g = F.pad(g, (0, factor * w - g.shape[-1]))
+        return _fold(*(g.unflatten(-1, (w, factor)) @ w3.T).unbind(-1), dim=-1)
+
+    if width == factor * w or height != factor * h:
+        return rows(cols(grad))
+    return cols(rows(grad))
 
 
 class _Upsample(torch.autograd.Function):
@@ -83,11 +102,8 @@ class _Upsample(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
-        if tuple(ctx.size) != ctx.full:
-            full = grad.new_zeros(*grad.shape[:-2], *ctx.full)
-            full[..., :ctx.size[0], :ctx.size[1]] = grad
-            grad = full
-        return upsample_adjoint(grad.contiguous(), ctx.factor), None, None
+        coarse = (ctx.full[0] // ctx.factor, ctx.full[1] // ctx.factor)
+        return upsample_adjoint(grad.contiguous(), ctx.factor, coarse), None, None
 
 
 def upsample(grid: torch.Tensor, factor: int, size: Sequence[int]) -> torch.Tensor:

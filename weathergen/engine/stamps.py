@@ -363,11 +363,11 @@ def _blur(prefix, members, side, radius, brighten, rows_first, width, first, ful
     # bordered output pixel (Y + 1, X + 1) of row Y = y + r + a from column X = r − w on
     at = at0 + (y + rr + a + 1) * (ff + 2) + rr - w + 1
     # element x of a segment: the box over the row's columns x − 2 w .. x
-    consts = torch.stack((base + 1, base - 2 * w, at))
+    # (rows of a stacked table: gathering them is several times faster than along a second axis)
+    consts = torch.stack((base + 1, base - 2 * w, at), 1)
     for seg, x in runs(ss + 2 * w, chunk):
-        c_hi, c_lo, c_out = consts.index_select(1, seg)
-        work.index_add_(0, x + c_out, prefix.index_select(0, x + c_hi)
-                        - prefix.index_select(0, x + c_lo))
+        c_hi, c_lo, c_out = consts.index_select(0, seg).add_(x[:, None]).t()
+        work.index_add_(0, c_out, prefix.index_select(0, c_hi) - prefix.index_select(0, c_lo))
     flags = brighten.index_select(0, members)
     if bool(flags.any()):
         bright = members.index_select(0, torch.nonzero(flags).squeeze(1))
