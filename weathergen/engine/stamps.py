@@ -315,30 +315,35 @@ def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch
         if members.numel() == 0:
             continue
         s = side.index_select(0, members)
-        frac = [(k + 0.5) / factor - 0.5 for k in range(factor)]
-        # sample offsets in a pixel, row-major: (sub², 1)
-        ox = _constant(f"ox{factor}", [[frac[k % factor]] for k in range(factor * factor)],
-                       dtype, device)
-        oy = _constant(f"oy{factor}", [[frac[k // factor]] for k in range(factor * factor)],
-                       dtype, device)
+        # sample offsets in a pixel along one axis: (sub, 1); a pixel's sub² samples are
+        # row-major, (sub rows, sub columns), so a sample's x depends on its column alone and its
+        # y on its row: the coordinates are computed per axis (sub, n) and broadcast
+        offsets = _constant(f"offsets{factor}", [[(k + 0.5) / factor - 0.5]
+                                                 for k in range(factor)], dtype, device)
+        row_offsets = _constant(f"row_offsets{factor}", [[[(k + 0.5) / factor - 0.5]]
+                                                         for k in range(factor)], dtype, device)
         for item, local in runs(s * s, max(1, chunk // (factor * factor))):
             e = members.index_select(0, item)
             width_e = s.index_select(0, item)
             row = torch.floor((local + 0.5) / width_e).long()   # exact: local < side² < 2**40
             col = local - row * width_e
             bx, ax, cx, by, ay, cy, rho2, centre = coef.index_select(0, e).t()
-            gx = (col.to(dtype) + centre) + ox                  # (sub², n)
-            gy = (row.to(dtype) + centre) + oy
-            grid = torch.empty(*gx.shape, 2, dtype=dtype, device=device)
+            gx = (col.to(dtype) + centre) + offsets             # (sub columns, n)
+            gy = (row.to(dtype) + centre) + row_offsets         # (sub rows, 1, n)
+            n = gx.shape[-1]
+            grid = torch.empty(factor, factor, n, 2, dtype=dtype, device=device)
             grid_x, grid_y = grid.unbind(-1)
             torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
             torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
             inside = torch.addcmul(gx * gx, gy, gy) <= rho2
-            value = F.grid_sample(book.image, grid[None], mode="bilinear", padding_mode="zeros",
-                                  align_corners=False).view(gx.shape) * inside
-            while value.shape[0] > 1:        # pairwise, in a fixed order: the same bits anywhere
-                value = value.view(2, -1, value.shape[-1]).sum(0)
-            value = value.view(-1) / (factor * factor)
+            value = F.grid_sample(book.image, grid.view(1, factor * factor, n, 2),
+                                  mode="bilinear", padding_mode="zeros",
+                                  align_corners=False).view(inside.shape) * inside
+            while value.numel() > n:         # pairwise, in a fixed order: the same bits anywhere
+                value = value.view(2, -1, n).sum(0)
+            value = value.view(-1)
+            if factor > 1:
+                value = value / (factor * factor)
             if bright is not None:
                 value = torch.where(bright.index_select(0, e), defocus_brighten(value), value)
             at = torch.addcmul(place.index_select(0, e) + col, row, pitch.index_select(0, e))
