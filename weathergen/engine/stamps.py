@@ -30,6 +30,7 @@ kernels round differently), so a stamp is the same whatever other stamps the cal
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
@@ -310,11 +311,23 @@ def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch
                         -2 * scale * sin / height, 2 * scale * cos / height,
                         (footprint / 2) ** 2 * (1.0 + RIM_MARGIN),
                         -((side - 1) // 2).to(torch.float64)), 1).to(dtype)
-    for factor in (4, 2, 1):
-        members = torch.nonzero(sub == factor).squeeze(1)
-        if members.numel() == 0:
-            continue
-        s = side.index_select(0, members)
+    # entries by supersampling factor (4, 2, 1), then one item per stamp row, the groups' rows one
+    # after the other: its entry, its row y and where its pixel 0 goes in ``work`` (a pixel's
+    # column is then its index in the item)
+    groups = [(f, torch.nonzero(sub == f).squeeze(1)) for f in (4, 2, 1)]
+    groups = [(f, m) for f, m in groups if m.numel()]
+    order = torch.cat([m for _, m in groups]) if len(groups) > 1 else groups[0][1]
+    s = side.index_select(0, order)
+    ends = torch.cumsum(s, 0)
+    last = list(itertools.accumulate(int(m.numel()) for _, m in groups))
+    cuts = [0] + ends.index_select(0, torch.tensor(last, device=device) - 1).tolist()
+    rows = cuts[-1]
+    row_entry = torch.repeat_interleave(order, s, output_size=rows)
+    row_y = torch.arange(rows, device=device) \
+        - torch.repeat_interleave(ends - s, s, output_size=rows)
+    row_size, row_place, row_pitch = torch.stack((side, place, pitch)).index_select(1, row_entry)
+    row_at = torch.addcmul(row_place, row_y, row_pitch)
+    for g, (factor, _) in enumerate(groups):
         # sample offsets in a pixel along one axis: (sub, 1); a pixel's sub² samples are
         # row-major, (sub rows, sub columns), so a sample's x depends on its column alone and its
         # y on its row: the coordinates are computed per axis (sub, n) and broadcast
@@ -322,11 +335,12 @@ def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch
                                                  for k in range(factor)], dtype, device)
         row_offsets = _constant(f"row_offsets{factor}", [[[(k + 0.5) / factor - 0.5]]
                                                          for k in range(factor)], dtype, device)
-        for item, local in runs(s * s, max(1, chunk // (factor * factor))):
-            e = members.index_select(0, item)
-            width_e = s.index_select(0, item)
-            row = torch.floor((local + 0.5) / width_e).long()   # exact: local < side² < 2**40
-            col = local - row * width_e
+        lo, hi = cuts[g], cuts[g + 1]
+        for item, col in runs(row_size[lo:hi], max(1, chunk // (factor * factor))):
+            if lo:
+                item = item + lo
+            e = row_entry.index_select(0, item)
+            row = row_y.index_select(0, item)
             bx, ax, cx, by, ay, cy, rho2, centre = coef.index_select(0, e).t()
             gx = (col.to(dtype) + centre) + offsets             # (sub columns, n)
             gy = (row.to(dtype) + centre) + row_offsets         # (sub rows, 1, n)
@@ -344,10 +358,10 @@ def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch
             value = value.view(-1)
             if factor > 1:
                 value = value / (factor * factor)
-            if bright is not None:
-                value = torch.where(bright.index_select(0, e), defocus_brighten(value), value)
-            at = torch.addcmul(place.index_select(0, e) + col, row, pitch.index_select(0, e))
-            work.index_copy_(0, at, value.to(torch.float64))
+            if bright is not None:      # (only the pixels of the stamps it brightens)
+                which = torch.nonzero(bright.index_select(0, e)).squeeze(1)
+                value.index_copy_(0, which, defocus_brighten(value.index_select(0, which)))
+            work.index_copy_(0, row_at.index_select(0, item) + col, value.to(torch.float64))
 
 
 def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, work,
