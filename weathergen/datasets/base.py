@@ -209,6 +209,9 @@ class Dataset(ABC):
     #: The reader's own keyword options (beyond the selection and the depth options every reader
     #: with depth takes), which the command line offers only for the readers that list them.
     options: tuple[str, ...] = ()
+    #: True where the dataset has a second (right) camera that stereo rendering reads through
+    #: :meth:`right_camera` (see :mod:`weathergen.datasets.stereo`).
+    stereo: bool = False
 
     def __init__(self, root: str | Path, selection: Selection = Selection()):
         self.root = Path(root)
@@ -329,6 +332,12 @@ class Dataset(ABC):
             where, _, kind = line.partition(": ")
             out.append(Problem(kind, where, WARNING) if kind else Problem(line, "", WARNING))
         return out
+
+    def right_camera(self, pair: FramePair):
+        """The second camera of ``pair`` (a :class:`~weathergen.datasets.stereo.RightCamera`), for
+        readers whose :attr:`stereo` is True; call it through
+        :func:`weathergen.datasets.stereo.right_camera`, which refuses the others."""
+        raise ConfigError(f"dataset {self.name!r} has no second camera")
 
     def pair_notes(self, pair: FramePair) -> list[str]:
         """Figures worth showing for a loaded pair (KITTI: the camera motion); none by default."""
