@@ -307,6 +307,10 @@ def test_progress_rate_counts_computed_pairs_only(fake_sintel, tmp_path):
     progress = [line for line in res.output.splitlines() if line.startswith("[")]
     assert progress[0].startswith("[1/2 pairs] sintel/training/alley/0001 failed"), progress
     assert progress[1].startswith("[2/2 pairs, ") and " pairs/h" in progress[1], progress
+    # counts read in the right number: one pair, not "1 pair(s)" or "1 pairs"
+    assert "1 pair failed" in res.output and "pair(s)" not in res.output, res.output
+    res = run("check", "--root", fake_sintel, "--scenes", "alley", "--frames-per-scene", "1")
+    assert res.exit_code == 1 and "1 of 1 pair cannot be read." in res.output, res.output
     now = [0.0]
     clock = RunClock(3, now=lambda: now[0])
     now[0] = 1.0

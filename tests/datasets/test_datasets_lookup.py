@@ -43,8 +43,7 @@ def test_a_reader_with_a_second_camera_reads_it_itself_under_any_name(tmp_path, 
     import shutil
 
     from fake_datasets import demo_sequence, write_fake_kitti
-    from weathergen.datasets import KittiDataset
-    from weathergen.datasets.stereo import right_camera
+    from weathergen.datasets import KittiDataset, right_camera
 
     _, pairs = demo_sequence("street")
     split = write_fake_kitti(tmp_path / "kitti", pairs[0], scene="000004")

@@ -15,6 +15,7 @@ from typing import Optional
 
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair, PairId
+from ..words import plural
 
 
 @dataclass(frozen=True)
@@ -97,10 +98,10 @@ def numbering_gap(selection: Selection, frames: list[int]) -> Optional[str]:
     if not lost:
         return None
     extra = [f for f in chosen if f not in complete]
-    text = (f"gap in the frame numbering: no frame{'s' * (len(missing) > 1)} {_numbers(missing)}, "
-            f"so the pair{'s' * (len(lost) > 1)} of frames {_pairs(lost)} cannot be formed")
+    text = (f"gap in the frame numbering: no {plural('frame', len(missing))} {_numbers(missing)}, "
+            f"so the {plural('pair', len(lost))} of frames {_pairs(lost)} cannot be formed")
     if extra:
-        text += (f" and the selection takes the pair{'s' * (len(extra) > 1)} of frames "
+        text += (f" and the selection takes the {plural('pair', len(extra))} of frames "
                  f"{_pairs(extra)} instead")
     return text
 
@@ -336,7 +337,7 @@ class Dataset(ABC):
     def right_camera(self, pair: FramePair):
         """The second camera of ``pair`` (a :class:`~weathergen.datasets.stereo.RightCamera`), for
         readers whose :attr:`stereo` is True; call it through
-        :func:`weathergen.datasets.stereo.right_camera`, which refuses the others."""
+        :func:`weathergen.datasets.right_camera`, which refuses the others."""
         raise ConfigError(f"dataset {self.name!r} has no second camera")
 
     def pair_notes(self, pair: FramePair) -> list[str]:

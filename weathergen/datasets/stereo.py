@@ -14,7 +14,8 @@ right camera sits at +x). Where the datasets keep them:
 
 Baselines and translations are multiplied by the pair's depth scale, like every other length.
 Each reader says whether it has a second camera (its class attribute ``stereo``) and reads it
-(its method ``right_camera``); other datasets raise :class:`~weathergen.errors.ConfigError`.
+(its method ``right_camera``); :func:`weathergen.datasets.right_camera` refuses the others with a
+:class:`~weathergen.errors.ConfigError`.
 """
 
 from __future__ import annotations
@@ -26,7 +27,7 @@ from typing import Optional
 
 import torch
 
-from ..errors import ConfigError, DatasetError
+from ..errors import DatasetError
 from ..framepair import FramePair
 from ..io.images import read_image
 
@@ -40,20 +41,6 @@ class RightCamera:
     baseline: float
     sources: tuple
     intrinsics: Optional[torch.Tensor] = None     # None: the left camera's
-
-
-def right_camera(dataset, pair: FramePair) -> RightCamera:
-    """The right camera of ``pair`` (see the module doc), read by the reader's own
-    :meth:`~weathergen.datasets.Dataset.right_camera`; ConfigError for a reader without a second
-    camera (its :attr:`~weathergen.datasets.Dataset.stereo` is False), DatasetError naming a
-    missing file."""
-    if not dataset.stereo:
-        from . import DATASETS          # the registry imports this module's readers
-        readers = [name for name, cls in DATASETS.items() if cls.stereo]
-        raise ConfigError(f"dataset {dataset.name!r} has no second camera; stereo rendering reads "
-                          f"{', '.join(readers)} (KITTI image_3, Spring's right view, the custom "
-                          "layout's right/ folder)")
-    return dataset.right_camera(pair)
 
 
 def rectified_right(files: tuple[Path, Path], baseline: float, pair: FramePair) -> RightCamera:

@@ -23,8 +23,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from ..datasets import Dataset, PairRef
-from ..datasets.stereo import right_camera
+from ..datasets import Dataset, PairRef, right_camera
 from ..engine import (FieldPreset, View, load_templates, particle_truth, reference_transforms,
                       render_pair, visible_counts)
 from ..engine.presets import list_presets
@@ -38,6 +37,7 @@ from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge
 from ..io.atomic import write_error
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
+from ..words import counted
 from .particles import pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
@@ -252,7 +252,7 @@ def frame2_note(results: list[PairResult], preset_name: str) -> Optional[str]:
                                       if name.split("-")[0] in order else len(order), name))
     worst = min(few, key=lambda r: r.visible[1] / max(r.visible[0], 1))
     share = worst.visible[1] / max(worst.visible[0], 1)
-    return (f"in {len(few)} pair(s) frame 2 shows fewer than half of the particles frame 1 "
+    return (f"in {counted(len(few), 'pair')} frame 2 shows fewer than half of the particles frame 1 "
             f"shows (strong camera motion; e.g. {worst.pair}: {worst.visible[1]} of "
             f"{worst.visible[0]}, {share:.0%}), marked few_in_frame2 in the manifest. The paper's preset "
             f"'{preset_name}' places its particles in a box in front of camera 1; for strong "
@@ -431,7 +431,7 @@ def _record(job: RenderJob, results, started: float, seconds: float, stopped_by)
     except OSError as exc:
         done = sum(r.status == "written" for r in results)
         note = (f"the manifest could not be updated either ({exc.strerror or exc}); ${{resume}} "
-                f"finds the {done} pair(s) finished in this run on disk")
+                f"finds the {counted(done, 'pair')} finished in this run on disk")
         if isinstance(stopped_by, OutputError):
             raise OutputError(f"{stopped_by.args[0]}; {note}") from None
         if stopped_by is not None:
