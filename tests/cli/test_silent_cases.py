@@ -42,6 +42,11 @@ def test_check_and_render_report_a_gap_in_a_scenes_frame_numbering(sintel_with_a
     assert (f"Note: {root / 'training' / 'clean' / 'alley'}: gap in the frame numbering: no frame 2, "
             f"so the pair of frames 1-2 cannot be formed and the selection takes the pair of frames "
             f"3-4 instead") in res.output
+    # and records it in the manifest, under the run (as a pair's warnings are under the pair)
+    runs = json.loads((tmp_path / "o" / "manifest.json").read_text())["runs"]
+    assert runs[-1]["notes"] == [f"{root / 'training' / 'clean' / 'alley'}: gap in the frame "
+                                 "numbering: no frame 2, so the pair of frames 1-2 cannot be formed "
+                                 "and the selection takes the pair of frames 3-4 instead"]
     # a selection the gap does not touch says nothing
     res = run("check", "--root", root, "--scenes", "alley", "--first-frame", "3")
     assert res.exit_code == 0 and "gap" not in res.output, res.output
@@ -60,6 +65,8 @@ def test_attack_and_benchmark_report_a_gap_too(sintel_with_a_gap, tmp_path, raft
               "--iters", "2", "--out", tmp_path / "a")
     assert res.exit_code == 0, res.output
     assert res.output.count(note) == 1, res.output
+    runs = json.loads((tmp_path / "a" / "manifest.json").read_text())["runs"]
+    assert [note.removeprefix("Note: ")] == runs[-1]["notes"]
     res = run("benchmark", *common, "--networks", "raft-small", "--checkpoint",
               f"raft-small={raft_small_weights}", "--presets", "snow,rain", "--lp", "",
               "--iters", "2", "--out", tmp_path / "b")
