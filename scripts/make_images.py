@@ -43,7 +43,7 @@ from weathergen.engine import load_preset, render_pair, sample_particles
 from weathergen.engine.presets import list_presets
 from weathergen.errors import WeatherGenError
 from weathergen.io.atomic import atomic_write_bytes
-from weathergen.io.images import read_raw, to_uint8, write_png
+from weathergen.io.images import read_raw, to_uint8
 from weathergen.render import pair_particles, video_preview
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -230,9 +230,19 @@ def save(out: Path, picture: np.ndarray, force: bool = False) -> bool:
         if old.shape == picture.shape and np.abs(old.astype(int) - picture.astype(int)).max() <= 1:
             print(f"{out}: unchanged (within one grey level of a fresh rendering; --force rewrites it)")
             return False
-    write_png(out, picture)
+    write_small_png(out, picture)
     print(f"wrote {out}")
     return True
+
+
+def write_small_png(out: Path, picture: np.ndarray) -> Path:
+    """``picture`` (H, W, 3) uint8 RGB as a PNG at zlib's strongest compression (lossless)."""
+    ok, buf = cv2.imencode(".png", np.ascontiguousarray(picture[..., ::-1]),
+                           [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    if not ok:
+        raise RuntimeError(f"{out}: PNG encoding failed")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return atomic_write_bytes(out, buf.tobytes())
 
 
 def save_palette(out: Path, picture: np.ndarray) -> bool:
@@ -271,8 +281,7 @@ def main_real(root: Path, out: Path = REAL_SHEET, dataset: str = "kitti",
     pair = ds.load(ds.pairs()[0])
     shrink = max(1, pair.size[1] // 480)
     sheet = every_preset_sheet(pair, ds, both_frames=True, shrink=shrink, columns=4)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    write_png(out, sheet)
+    write_small_png(out, sheet)
     print(f"wrote {out} ({pair.id}, {pair.size[1]}x{pair.size[0]}, tiles 1/{shrink})")
     return out
 
