@@ -14,7 +14,7 @@ from typing import Optional
 import torch
 
 from ..datasets import Dataset, reopen_dataset
-from ..engine import APPEARANCE_KEYS, Particles
+from ..engine import APPEARANCE_KEYS, LayeredParticles, Particles, load_particles
 from ..engine.presets import UNSCALED
 from ..errors import DatasetError, FormatError
 from ..framepair import PairId
@@ -26,9 +26,12 @@ from .pairs import PairOutput
 
 
 def load_pair_particles(folder: str | Path, pair_id: PairId, preset_name: Optional[str] = None,
-                        preset: Optional[dict] = None, sequence: bool = False) -> Particles:
+                        preset: Optional[dict] = None, sequence: bool = False
+                        ) -> Particles | LayeredParticles:
     """The particles an earlier render (or attack) stored in ``folder`` for ``pair_id``
-    (``sequence``: a ``render --sequence`` folder, whose scenes hold every frame).
+    (``sequence``: a ``render --sequence`` folder, whose scenes hold every frame): a
+    :class:`~weathergen.engine.Particles` record, or a combined preset's
+    :class:`~weathergen.engine.LayeredParticles` (every layer).
 
     With ``preset_name`` and ``preset`` (a ``Preset.to_dict()``: what the new output will be
     labelled with), the stored particles must have been sampled from that preset (up to the
@@ -41,7 +44,7 @@ def load_pair_particles(folder: str | Path, pair_id: PairId, preset_name: Option
     if not path.exists():
         raise FormatError(path, f"no particle metadata for pair {pair_id}")
     check_stored_particles(path, read_metadata(path), pair_id, preset_name, preset)
-    return Particles.load(path)
+    return load_particles(path)
 
 
 def check_stored_particles(path: str | Path, arrays: dict, pair_id: PairId,
