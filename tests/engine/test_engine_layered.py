@@ -108,12 +108,15 @@ def test_gradcheck_of_a_layered_render(pair):
                                                                  dtype=torch.float64))
     layered = LayeredParticles((flake, cloud), ("snow", "fog"))
     stamps = build_stamps(layered, None, dtype=torch.float64)
+    weights = torch.rand(4, 2, 3, 20, 24, generator=torch.Generator().manual_seed(0),
+                         dtype=torch.float64)
 
-    def run(colour, theta, offset):
+    def run(colour, theta, offset):     # four random projections of both frames
         layers = (flake.replace(color=colour, offset1=offset), cloud.replace(transparency=theta))
         out = render_pair(small, LayeredParticles(layers, ("snow", "fog")), beta=BETA_ATTACK,
                           stamps=stamps, coarse_side=None)
-        return out.image1, out.image2
+        frames = torch.stack((out.image1[0], out.image2[0]))
+        return (weights * frames).sum((1, 2, 3, 4))
 
     inputs = (flake.color.clone().double().mul(0.8).requires_grad_(),
               (cloud.transparency.double() * 0.7).requires_grad_(),
