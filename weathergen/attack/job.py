@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..datasets import Dataset
-from ..engine import render_pair
+from ..engine import CombinedPreset, render_pair
 from ..errors import ConfigError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
@@ -32,7 +32,8 @@ from ..models import get_model, resolve_amp
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
-from ..render.particles import pair_particles, pair_seed, weather_scaling, weather_seed
+from ..render.particles import (layer_seeds, pair_particles, pair_seed, weather_scaling,
+                                weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -229,8 +230,11 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
                              compat=job.settings.compat, covered=covered)
     summary.particles = best.count
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
-    meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
-                         job.preset_name, scaling=weather_scaling(job.preset, pair))
+    seeds = (layer_seeds(job.preset, job.seed, pair.id)
+             if isinstance(job.preset, CombinedPreset) else None)
+    meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id),
+                         job.preset.to_dict(), job.preset_name, seeds,
+                         scaling=weather_scaling(job.preset, pair))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
     out = pair_output(job, pair.id)
