@@ -33,7 +33,7 @@ from typing import Optional, Sequence, Union
 import torch
 
 from ..errors import ConfigError
-from .composite import RenderOutput, planes
+from .composite import RenderOutput, _Crop, upsample
 from .layers import LayeredParticles
 from .particles import Particles
 from .splat import chunk_elements_for, splat
@@ -170,14 +170,43 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
     inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]), 1))
     sums = splat(inst, stamp_set, views.depth, chunk_elements=chunk_elements,
                  detach_occlusion=detach_occlusion)
-    grid = planes(sums).view(5, 2, bsz, nl, 1, height, width)
+    grid = _planes(sums, stamp_set, inst).view(5, 2, bsz, nl, 1, height, width)
     alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in p.layers] for p in layered],
                               device=device)
-    outs = [composite_layers(grid[0, t], grid[1:4, t, :, :, 0].permute(1, 2, 0, 3, 4),
-                             grid[4, t], image, alpha_mode)
-            for t, image in enumerate((image1, image2))]
-    return RenderOutput(image1=outs[0][0], image2=outs[1][0], opacity1=outs[0][1],
-                        opacity2=outs[1][1], reached=sums.reached.view(2, bsz, nl).any(2).any(0))
+    out1, out2, opacity1, opacity2 = _LayeredBlend.apply(grid, alpha_mode, image1, image2)
+    return RenderOutput(image1=out1, image2=out2, opacity1=opacity1, opacity2=opacity2,
+                        reached=sums.reached.view(2, bsz, nl).any(2).any(0))
+
+
+def _planes(sums, stamps: StampSet, inst) -> torch.Tensor:
+    """The sums of every view on the image grid (as :func:`~weathergen.engine.composite.planes`),
+    a coarse grid upsampled only for the views that draw on it (a layer of small particles
+    needs none of fog's coarse grid). Shape: -> (5, V, 1, H, W)."""
+    grids = sums.grids
+    views, height, width = grids.views, grids.height, grids.width
+    top = grids.levels[-1]
+    total = _Crop.apply(sums.values, grids, len(grids.levels) - 1)      # the image grid
+    if top[0] != 0:
+        raise AssertionError("the image grid is the last level")
+    if len(grids.levels) == 1:
+        return total.unsqueeze(2)
+    with torch.no_grad():
+        key = stamps.coarse.index_select(0, inst.entry) * views + inst.view
+        used = torch.zeros(int(stamps.coarse.max()) + 1 if stamps.count else 1, views,
+                           dtype=torch.bool, device=key.device)
+        used.view(-1)[key] = True
+        used = used.tolist()
+    channels = sums.values.shape[0]
+    for index, (level, _, h, w, _) in enumerate(grids.levels[:-1]):
+        chosen = [v for v in range(views) if level < len(used) and used[level][v]]
+        if not chosen:
+            continue
+        at = torch.tensor(chosen, device=total.device)
+        grid = _Crop.apply(sums.values, grids, index).index_select(1, at)   # (C, U, h, w)
+        up = upsample(grid.reshape(channels * len(chosen), 1, h, w), 2 ** level,
+                      (height, width)).view(channels, len(chosen), height, width)
+        total = total.index_add(1, at, up)
+    return total.unsqueeze(2)
 
 
 def composite_layers(alpha: torch.Tensor, colour: torch.Tensor, depth: torch.Tensor,
@@ -190,18 +219,98 @@ def composite_layers(alpha: torch.Tensor, colour: torch.Tensor, depth: torch.Ten
     ``Z = Σ θ B V z``; image (B, 3, H, W); alpha_mode (B, L) bool -> (image (B, 3, H, W),
     opacity (B, 1, H, W)). Differentiable in alpha, colour and image (not in the order).
     """
-    nl = alpha.shape[1]
-    with torch.no_grad():
-        covered = alpha > 0
-        mean = torch.where(covered, depth / torch.where(covered, alpha, torch.ones_like(alpha)),
-                           torch.zeros_like(alpha))
-        order = torch.sort(mean, dim=1, descending=True, stable=True).indices   # far first
-        mode = alpha_mode.to(alpha.dtype)[:, :, None, None, None].expand_as(alpha)
-        mode = mode.gather(1, order)
-    a = alpha.gather(1, order)
-    c = colour.gather(1, order.expand_as(colour))
-    out = image
-    for k in range(nl):
-        out = torch.addcmul(c[:, k], out, 1 - a[:, k] * mode[:, k])
-    clear = (1 - alpha.clamp(0, 1)).prod(1)
-    return out.clamp(0, 1), (1 - clear).clamp(0, 1)
+    grid = torch.cat((alpha, colour, depth), 2).permute(2, 0, 1, 3, 4)[:, None, :, :, None]
+    out, opacity = _LayeredBlend.apply(grid, alpha_mode, image)
+    return out, opacity
+
+
+def _mean_depths(grid: torch.Tensor, t: int) -> list:
+    """Each layer's mean depth ``Z / A`` in frame ``t`` (0 where it covers nothing)."""
+    out = []
+    for k in range(grid.shape[3]):
+        a, z = grid[0, t, :, k], grid[4, t, :, k]
+        covered = a > 0
+        out.append(torch.where(covered, z, torch.zeros_like(z))
+                   .div_(torch.where(covered, a, torch.ones_like(a))))
+    return out
+
+
+class _LayeredBlend(torch.autograd.Function):
+    """T frames of a batch of B pairs with L layers each, composited per pixel far to near.
+
+    The order is a sorting network of compare-and-swap steps on whole frames (``L (L − 1) / 2``
+    of them: one for two layers), each a few elementwise selections whose masks the backward
+    pass replays; a layer that covers no pixel there has mean depth 0 and sorts last, where it
+    blends nothing. An additive layer blends as one of zero opacity: ``I (1 − 0) + C``.
+
+    Shape: grid (5, T, B, L, 1, H, W) (A, C_r, C_g, C_b, Z per frame and layer), alpha_mode
+    (B, L) bool, images T tensors (B, 3, H, W) -> T images (B, 3, H, W), then T opacities
+    (B, 1, H, W). Gradients flow to the A and C planes and the images (one allocation for the
+    planes' gradient, instead of one per slice).
+    """
+
+    @staticmethod
+    def forward(ctx, grid, alpha_mode, *images):
+        nl = grid.shape[3]
+        mode = alpha_mode.to(grid.dtype)[:, :, None, None, None]            # (B, L, 1, 1, 1)
+        outs, opacities, saved = [], [], []
+        for t, image in enumerate(images):
+            key = _mean_depths(grid, t)
+            cover = [grid[0, t, :, k] * mode[:, k] for k in range(nl)]
+            paint = [grid[1:4, t, :, k, 0].transpose(0, 1) for k in range(nl)]
+            swaps = []
+            for top in range(nl - 1, 0, -1):     # bubble the nearest layer to the end
+                for k in range(top):
+                    swap = key[k] < key[k + 1]  # layer k nearer: it goes after
+                    swaps.append((k, swap))
+                    for x in (key, cover, paint):
+                        x[k], x[k + 1] = (torch.where(swap, x[k + 1], x[k]),
+                                          torch.where(swap, x[k], x[k + 1]))
+            under = [image]
+            for k in range(nl):
+                under.append(torch.addcmul(paint[k], under[-1], 1 - cover[k]))
+            pre = under.pop()
+            out = pre.clamp(0, 1)
+            clear = [1 - grid[0, t, :, k].clamp(0, 1) for k in range(nl)]
+            total = clear[0]
+            for c in clear[1:]:
+                total = total * c
+            outs.append(out)
+            opacities.append((1 - total).clamp_(0, 1))
+            saved.append((swaps, cover, under, out == pre, clear))
+        ctx.saved = saved
+        ctx.shape, ctx.mode = grid.shape, mode
+        return (*outs, *opacities)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        frames = len(ctx.saved)
+        g_grid = torch.zeros(ctx.shape, dtype=ctx.mode.dtype, device=ctx.mode.device)
+        g_images = []
+        for t, (swaps, cover, under, passed, clear) in enumerate(ctx.saved):
+            g_out, g_op = grads[t], grads[frames + t]
+            nl = len(cover)
+            g = (torch.zeros_like(under[0]) if g_out is None else g_out * passed)
+            g_cover, g_paint = [None] * nl, [None] * nl
+            for k in range(nl - 1, -1, -1):
+                g_paint[k] = g
+                g_cover[k] = -(g * under[k]).sum(1, keepdim=True)
+                g = g * (1 - cover[k])
+            g_images.append(g)
+            for k, swap in reversed(swaps):
+                for x in (g_cover, g_paint):
+                    x[k], x[k + 1] = (torch.where(swap, x[k + 1], x[k]),
+                                      torch.where(swap, x[k], x[k + 1]))
+            for k in range(nl):
+                g_alpha = g_cover[k] * ctx.mode[:, k]
+                if g_op is not None:      # d(1 − Π clear)/dA_k = Π_{j≠k} clear_j where 0 < A_k < 1
+                    others = torch.ones_like(clear[k])
+                    for j in range(nl):
+                        if j != k:
+                            others = others * clear[j]
+                    inside = (clear[k] > 0) & (clear[k] < 1)
+                    g_alpha = g_alpha + g_op * others * inside
+                g_grid[0, t, :, k] = g_alpha
+                g_grid[1:4, t, :, k, 0] = g_paint[k].transpose(0, 1)
+        return (g_grid, None, *g_images)
