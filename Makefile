@@ -3,7 +3,8 @@
 #   make test                  create .venv, install the pinned CPU torch, the package, run the
 #                              linter (ruff, configured in pyproject.toml) and the tests
 #   make demo                  render the default preset on the bundled demo scene
-#   make bench                 print speed and memory figures (renderer, weather field, networks,
+#   make bench                 print speed and memory figures (renderer, weather field, combined
+#                              weather, networks,
 #                              attack step, batched attacks, training); FOG_BEFORE=DIR also times
 #                              fog with the weathergen source tree DIR (e.g. an older commit's)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
@@ -76,6 +77,7 @@ bench: install
 	$(BIN)/python benchmarks/bench.py
 	$(BIN)/python benchmarks/bench_fog.py $(if $(FOG_BEFORE),--before $(FOG_BEFORE))
 	$(BIN)/python benchmarks/bench_field.py
+	$(BIN)/python benchmarks/bench_combined.py
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
 	$(BIN)/python benchmarks/bench_training.py

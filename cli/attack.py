@@ -84,8 +84,9 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
               help=f"An attack configuration of the paper's supplement ({', '.join(ATTACK_CONFIGS)}): "
                    "sets preset, --optimize, --lr and the occlusion gradient; explicit options win.")
 @click.option("--preset", default=None,
-              help="Weather preset the particles are sampled from. Default: the --config's "
-                   "preset, else snow.")
+              help="Weather preset the particles are sampled from; presets joined by + "
+                   "(e.g. snow+fog-light) are attacked together, see --optimize-layer. "
+                   "Default: the --config's preset, else snow.")
 @click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
               help="Override one preset key (repeatable), e.g. --set count=500.")
 @click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
