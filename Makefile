@@ -4,9 +4,9 @@
 #                              linter (ruff, configured in pyproject.toml) and the tests
 #   make demo                  render the default preset on the bundled demo scene
 #   make bench                 print speed and memory figures (renderer, weather field, combined
-#                              weather, networks,
-#                              attack step, batched attacks, training); FOG_BEFORE=DIR also times
-#                              fog with the weathergen source tree DIR (e.g. an older commit's)
+#                              weather, networks, attack step, batched attacks, training);
+#                              FOG_BEFORE=DIR also times fog with the weathergen source tree
+#                              DIR (e.g. an older commit's)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 #   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
 #                              in a separate environment (.venv-oldest)
