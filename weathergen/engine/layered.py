@@ -33,7 +33,7 @@ from typing import Optional, Sequence, Union
 import torch
 
 from ..errors import ConfigError
-from .composite import RenderOutput, _Crop, upsample
+from .composite import RenderOutput, upsample, upsample_adjoint
 from .layers import LayeredParticles
 from .particles import Particles
 from .splat import chunk_elements_for, splat
@@ -170,43 +170,78 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
     inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]), 1))
     sums = splat(inst, stamp_set, views.depth, chunk_elements=chunk_elements,
                  detach_occlusion=detach_occlusion)
-    grid = _planes(sums, stamp_set, inst).view(5, 2, bsz, nl, 1, height, width)
     alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in p.layers] for p in layered],
                               device=device)
-    out1, out2, opacity1, opacity2 = _LayeredBlend.apply(grid, alpha_mode, image1, image2)
+    layout = _SumsLayout(sums.grids, _coarse_use(stamp_set, inst, bsz, nl), bsz, nl)
+    out1, out2, opacity1, opacity2 = _LayeredBlend.apply(sums.values, alpha_mode, layout,
+                                                         image1, image2)
     return RenderOutput(image1=out1, image2=out2, opacity1=opacity1, opacity2=opacity2,
                         reached=sums.reached.view(2, bsz, nl).any(2).any(0))
 
 
-def _planes(sums, stamps: StampSet, inst) -> torch.Tensor:
-    """The sums of every view on the image grid (as :func:`~weathergen.engine.composite.planes`),
-    a coarse grid upsampled only for the views that draw on it (a layer of small particles
-    needs none of fog's coarse grid). Shape: -> (5, V, 1, H, W)."""
-    grids = sums.grids
-    views, height, width = grids.views, grids.height, grids.width
-    top = grids.levels[-1]
-    total = _Crop.apply(sums.values, grids, len(grids.levels) - 1)      # the image grid
-    if top[0] != 0:
-        raise AssertionError("the image grid is the last level")
-    if len(grids.levels) == 1:
-        return total.unsqueeze(2)
+def _coarse_use(stamps: StampSet, inst, bsz: int, nl: int) -> set:
+    """``(level, t, k)`` for every coarse grid level that frame ``t`` of layer ``k`` draws on
+    (in some pair of the batch). One host synchronisation."""
+    if not stamps.count or not inst.count or int(stamps.coarse.max()) == 0:
+        return set()
     with torch.no_grad():
-        key = stamps.coarse.index_select(0, inst.entry) * views + inst.view
-        used = torch.zeros(int(stamps.coarse.max()) + 1 if stamps.count else 1, views,
-                           dtype=torch.bool, device=key.device)
-        used.view(-1)[key] = True
-        used = used.tolist()
-    channels = sums.values.shape[0]
-    for index, (level, _, h, w, _) in enumerate(grids.levels[:-1]):
-        chosen = [v for v in range(views) if level < len(used) and used[level][v]]
-        if not chosen:
-            continue
-        at = torch.tensor(chosen, device=total.device)
-        grid = _Crop.apply(sums.values, grids, index).index_select(1, at)   # (C, U, h, w)
-        up = upsample(grid.reshape(channels * len(chosen), 1, h, w), 2 ** level,
-                      (height, width)).view(channels, len(chosen), height, width)
-        total = total.index_add(1, at, up)
-    return total.unsqueeze(2)
+        level = stamps.coarse.index_select(0, inst.entry)
+        t, k = torch.div(inst.view, bsz * nl, rounding_mode="floor"), inst.view % nl
+        key = torch.unique((level * 2 + t) * nl + k).tolist()
+    return {(q // (2 * nl), q // nl % 2, q % nl) for q in key if q // (2 * nl)}
+
+
+class _SumsLayout:
+    """Where the planes of frame ``t``, layer ``k`` of every pair lie in the splat's flat sums
+    (views ``t B L + b L + k``), and how a coarse grid reaches the image grid (bilinear
+    upsampling, coarsest first, then the image grid's own sums, as
+    :func:`~weathergen.engine.composite.planes` adds them); a coarse level is upsampled only for
+    the frames and layers that draw on it (``used``: ``(level, t, k)``)."""
+
+    def __init__(self, grids, used: set, bsz: int, nl: int):
+        self.grids, self.used, self.bsz, self.nl = grids, used, bsz, nl
+
+    def _views(self, t: int, k: int) -> slice:
+        n = self.bsz * self.nl
+        return slice(t * n + k, (t + 1) * n, self.nl)
+
+    def _levels(self, t: int, k: int):
+        for index, (level, _, h, w, _) in enumerate(self.grids.levels):
+            if level and (level, t, k) in self.used:
+                yield index, level, h, w
+
+    def read(self, values: torch.Tensor, t: int, k: int) -> torch.Tensor:
+        """Shape: -> (5, B, H, W) (a view of the sums where no coarse level is used)."""
+        grids, at = self.grids, self._views(t, k)
+        total = None
+        for index, level, h, w in self._levels(t, k):
+            coarse = grids.planes(values, index)[:, at]                   # (5, B, h, w)
+            up = upsample(coarse.reshape(-1, 1, h, w), 2 ** level, (grids.height, grids.width))
+            up = up.view(coarse.shape[0], coarse.shape[1], grids.height, grids.width)
+            total = up if total is None else total + up
+        fine = grids.planes(values, len(grids.levels) - 1)[:, at]
+        return fine if total is None else total + fine
+
+    def write(self, g_values: torch.Tensor, grad: torch.Tensor, t: int, k: int) -> None:
+        """Add the gradient ``grad`` (5, B, H, W) of :meth:`read`'s planes into ``g_values``."""
+        grids, at = self.grids, self._views(t, k)
+        grids.planes(g_values, len(grids.levels) - 1)[:, at].add_(grad)
+        for index, level, h, w in self._levels(t, k):
+            f = 2 ** level
+            full = grad.new_zeros(*grad.shape[:2], h * f, w * f)
+            full[..., :grids.height, :grids.width] = grad
+            back = upsample_adjoint(full.view(-1, 1, h * f, w * f), f)
+            grids.planes(g_values, index)[:, at].add_(back.view(*grad.shape[:2], h, w))
+
+
+class _GridLayout:
+    """Planes given whole, ``(5, T, B, L, 1, H, W)`` (:func:`composite_layers`)."""
+
+    def read(self, values: torch.Tensor, t: int, k: int) -> torch.Tensor:
+        return values[:, t, :, k, 0]
+
+    def write(self, g_values: torch.Tensor, grad: torch.Tensor, t: int, k: int) -> None:
+        g_values[:, t, :, k, 0].add_(grad)
 
 
 def composite_layers(alpha: torch.Tensor, colour: torch.Tensor, depth: torch.Tensor,
@@ -220,19 +255,8 @@ def composite_layers(alpha: torch.Tensor, colour: torch.Tensor, depth: torch.Ten
     opacity (B, 1, H, W)). Differentiable in alpha, colour and image (not in the order).
     """
     grid = torch.cat((alpha, colour, depth), 2).permute(2, 0, 1, 3, 4)[:, None, :, :, None]
-    out, opacity = _LayeredBlend.apply(grid, alpha_mode, image)
+    out, opacity = _LayeredBlend.apply(grid, alpha_mode, _GridLayout(), image)
     return out, opacity
-
-
-def _mean_depths(grid: torch.Tensor, t: int) -> list:
-    """Each layer's mean depth ``Z / A`` in frame ``t`` (0 where it covers nothing)."""
-    out = []
-    for k in range(grid.shape[3]):
-        a, z = grid[0, t, :, k], grid[4, t, :, k]
-        covered = a > 0
-        out.append(torch.where(covered, z, torch.zeros_like(z))
-                   .div_(torch.where(covered, a, torch.ones_like(a))))
-    return out
 
 
 class _LayeredBlend(torch.autograd.Function):
@@ -240,30 +264,36 @@ class _LayeredBlend(torch.autograd.Function):
 
     The order is a sorting network of compare-and-swap steps on whole frames (``L (L − 1) / 2``
     of them: one for two layers), each a few elementwise selections whose masks the backward
-    pass replays; a layer that covers no pixel there has mean depth 0 and sorts last, where it
-    blends nothing. An additive layer blends as one of zero opacity: ``I (1 − 0) + C``.
+    pass replays (a layer that covers a pixel not at all blends nothing there, wherever it
+    sorts). An additive layer blends as one of zero opacity: ``I (1 − 0) + C``. Layer
+    ``k`` is nearer than layer ``j`` where ``Z_k A_j < Z_j A_k`` (mean depths compared without
+    a division).
 
-    Shape: grid (5, T, B, L, 1, H, W) (A, C_r, C_g, C_b, Z per frame and layer), alpha_mode
-    (B, L) bool, images T tensors (B, 3, H, W) -> T images (B, 3, H, W), then T opacities
-    (B, 1, H, W). Gradients flow to the A and C planes and the images (one allocation for the
-    planes' gradient, instead of one per slice).
+    Shape: values as ``layout`` reads them (the splat's flat sums, or whole planes), each frame
+    and layer's planes (5, B, H, W) (A, C_r, C_g, C_b, Z); alpha_mode (B, L) bool; images T
+    tensors (B, 3, H, W) -> T images (B, 3, H, W), then T opacities (B, 1, H, W). Gradients flow
+    to the A and C planes (one allocation of the values' shape) and the images.
     """
 
     @staticmethod
-    def forward(ctx, grid, alpha_mode, *images):
-        nl = grid.shape[3]
-        mode = alpha_mode.to(grid.dtype)[:, :, None, None, None]            # (B, L, 1, 1, 1)
+    def forward(ctx, values, alpha_mode, layout, *images):
+        nl = alpha_mode.shape[1]
+        mode = alpha_mode.to(values.dtype)[:, :, None, None]                # (B, L, 1, 1)
+        grad = any(ctx.needs_input_grad)
         outs, opacities, saved = [], [], []
         for t, image in enumerate(images):
-            key = _mean_depths(grid, t)
-            cover = [grid[0, t, :, k] * mode[:, k] for k in range(nl)]
-            paint = [grid[1:4, t, :, k, 0].transpose(0, 1) for k in range(nl)]
+            planes = [layout.read(values, t, k) for k in range(nl)]         # (5, B, H, W) each
+            alpha = [p[0].unsqueeze(1) for p in planes]                     # (B, 1, H, W)
+            depth = [p[4].unsqueeze(1) for p in planes]
+            cover = [alpha[k] * mode[:, k, None] for k in range(nl)]
+            paint = [p[1:4].transpose(0, 1) for p in planes]                # (B, 3, H, W)
             swaps = []
             for top in range(nl - 1, 0, -1):     # bubble the nearest layer to the end
                 for k in range(top):
-                    swap = key[k] < key[k + 1]  # layer k nearer: it goes after
+                    swap = depth[k] * alpha[k + 1] < depth[k + 1] * alpha[k]   # k nearer
                     swaps.append((k, swap))
-                    for x in (key, cover, paint):
+                    moved = (cover, paint) if top == 1 else (alpha, depth, cover, paint)
+                    for x in moved:
                         x[k], x[k + 1] = (torch.where(swap, x[k + 1], x[k]),
                                           torch.where(swap, x[k], x[k + 1]))
             under = [image]
@@ -271,22 +301,23 @@ class _LayeredBlend(torch.autograd.Function):
                 under.append(torch.addcmul(paint[k], under[-1], 1 - cover[k]))
             pre = under.pop()
             out = pre.clamp(0, 1)
-            clear = [1 - grid[0, t, :, k].clamp(0, 1) for k in range(nl)]
+            clear = [1 - p[0].unsqueeze(1).clamp(0, 1) for p in planes]
             total = clear[0]
             for c in clear[1:]:
                 total = total * c
             outs.append(out)
             opacities.append((1 - total).clamp_(0, 1))
-            saved.append((swaps, cover, under, out == pre, clear))
-        ctx.saved = saved
-        ctx.shape, ctx.mode = grid.shape, mode
+            if grad:
+                saved.append((swaps, cover, under, out == pre, clear))
+        ctx.saved, ctx.layout = saved, layout
+        ctx.shape, ctx.mode = values.shape, mode
         return (*outs, *opacities)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grads):
         frames = len(ctx.saved)
-        g_grid = torch.zeros(ctx.shape, dtype=ctx.mode.dtype, device=ctx.mode.device)
+        g_values = torch.zeros(ctx.shape, dtype=ctx.mode.dtype, device=ctx.mode.device)
         g_images = []
         for t, (swaps, cover, under, passed, clear) in enumerate(ctx.saved):
             g_out, g_op = grads[t], grads[frames + t]
@@ -303,7 +334,7 @@ class _LayeredBlend(torch.autograd.Function):
                     x[k], x[k + 1] = (torch.where(swap, x[k + 1], x[k]),
                                       torch.where(swap, x[k], x[k + 1]))
             for k in range(nl):
-                g_alpha = g_cover[k] * ctx.mode[:, k]
+                g_alpha = g_cover[k] * ctx.mode[:, k, None]
                 if g_op is not None:      # d(1 − Π clear)/dA_k = Π_{j≠k} clear_j where 0 < A_k < 1
                     others = torch.ones_like(clear[k])
                     for j in range(nl):
@@ -311,6 +342,7 @@ class _LayeredBlend(torch.autograd.Function):
                             others = others * clear[j]
                     inside = (clear[k] > 0) & (clear[k] < 1)
                     g_alpha = g_alpha + g_op * others * inside
-                g_grid[0, t, :, k] = g_alpha
-                g_grid[1:4, t, :, k, 0] = g_paint[k].transpose(0, 1)
-        return (g_grid, None, *g_images)
+                plane = torch.cat((g_alpha.transpose(0, 1), g_paint[k].transpose(0, 1),
+                                   torch.zeros_like(g_alpha).transpose(0, 1)))   # (5, B, H, W)
+                ctx.layout.write(g_values, plane, t, k)
+        return (g_values, None, None, *g_images)
