@@ -57,7 +57,8 @@ def test_combined_weather_on_cuda_matches_the_cpu():
     pair = plane_pair(48, 64, depth=2.5, near_block=True)
     preset = load_preset("snow+fog+snow-light", {"snow.count": 150, "fog.count": 4,
                                                  "snow-light.far": 5.0})
-    layers = sample_weather(pair, preset, seed=3)
+    layers = sample_weather(pair, preset, seed=3, frame_rate=24.0)
+    assert all(r.count for r in layers.layers)
     results = {}
     for device in ("cpu", "cuda"):
         leaves = [r.to(device).replace(color=r.color.clone().to(device).requires_grad_(True))
