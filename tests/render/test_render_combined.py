@@ -216,3 +216,33 @@ def test_inspect_shows_the_layers_of_a_metadata_file(tmp_path):
     assert "snow: 50 particles" in res.output and "fog: 3 particles" in res.output
     assert "per-particle values of layer snow" in res.output
     assert "per-particle values of layer fog" in res.output
+
+
+def test_preview_and_the_weather_region_read_a_combined_output(combined_out, tmp_path):
+    """`preview` re-renders the opacity from every stored layer, and `evaluate`'s weather
+    region covers the pixels of both layers."""
+    from weathergen.attack.evaluate import weather_region
+    from weathergen.datasets import open_dataset
+    from weathergen.outputs import WeatherFolder
+
+    res = run("preview", combined_out, "--out", tmp_path / "sheet.png")
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "sheet.png").stat().st_size > 1000
+    folder = WeatherFolder.open(combined_out)
+    pair_id = folder.pairs[0]
+    stored = folder.particles(pair_id)
+    assert isinstance(stored, LayeredParticles) and len(stored.layers) == 2
+    demo = open_dataset("demo", scenes=["courtyard"], frames_per_scene=1)
+    pair = demo.load(demo.pairs()[0])
+    covered = weather_region(folder, pair_id, pair)
+    alone = [weather_region_of(pair, layer) for layer in stored.layers]
+    assert bool((covered >= (alone[0] | alone[1])).all()) and int(covered.sum()) > 0
+
+
+def weather_region_of(pair, record):
+    from weathergen.engine import render_pair
+    from weathergen.flow import weather_mask
+
+    with torch.no_grad():
+        out = render_pair(pair, record)
+    return weather_mask(out.opacity1, out.opacity2)[0, 0]

@@ -117,11 +117,12 @@ class WeatherFolder:
             images = [read_image(p) for p in out.frames_png]
         return tuple(torch.from_numpy(img.copy()).permute(2, 0, 1).contiguous() for img in images)
 
-    def particles(self, pair_id: PairId) -> Optional[Particles]:
-        """The particles stored for a pair, or None where the folder holds none (an Lp attack's
-        metadata names the pair and the perturbation only)."""
+    def particles(self, pair_id: PairId) -> Optional[Particles | LayeredParticles]:
+        """The particles stored for a pair (every layer of a combined preset), or None where the
+        folder holds none (an Lp attack's metadata names the pair and the perturbation only)."""
         path = PairOutput.of(self.root, pair_id, "", sequence=self.sequence).metadata
-        if "position" not in read_metadata(path):
+        arrays = read_metadata(path)
+        if "position" not in arrays and "layer_names" not in arrays:
             return None
         return load_pair_particles(self.root, pair_id, sequence=self.sequence)
 
