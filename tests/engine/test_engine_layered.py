@@ -139,3 +139,29 @@ def test_one_layer_renders_its_record_bytes_and_batches_render_each_pair_alone()
         assert bool((alone.image1 != p.image1).any())
     with pytest.raises(ConfigError, match="same number of weather layers"):
         render_pair(FramePairBatch.stack(pairs), [layered[0], layered[1].layers[0]])
+
+
+def test_gradcheck_of_a_layered_render_with_a_coarse_grid(pair):
+    """A fog billboard wide enough for a coarse grid (upsampled in the composite) under a snow
+    flake: float64 gradcheck of both layers' colours and the fog's transparency."""
+    flake = one_particle(pair, "snow", 1.5, RED, size=9)
+    cloud = one_particle(pair, "fog", 3.0, BLUE, size=141)
+    layered = LayeredParticles((flake, cloud), ("snow", "fog"))
+    stamps = build_stamps(layered, None, dtype=torch.float64)
+    assert int(stamps.coarse.max()) > 0                     # the billboard is drawn coarse
+    weights = torch.rand(3, 2, 3, 48, 64, generator=torch.Generator().manual_seed(1),
+                         dtype=torch.float64)
+
+    def run(snow_colour, fog_colour, theta):
+        layers = (flake.replace(color=snow_colour),
+                  cloud.replace(color=fog_colour, transparency=theta))
+        out = render_pair(pair, LayeredParticles(layers, ("snow", "fog")), beta=BETA_ATTACK,
+                          stamps=stamps)
+        frames = torch.stack((out.image1[0], out.image2[0]))
+        return torch.cat(((weights * frames).sum((1, 2, 3, 4)),
+                          (out.opacity1 * weights[0, 0, :1]).sum()[None]))
+
+    inputs = (torch.tensor([[0.7, 0.2, 0.1]], dtype=torch.float64, requires_grad=True),
+              torch.tensor([[0.1, 0.3, 0.6]], dtype=torch.float64, requires_grad=True),
+              torch.tensor([0.4], dtype=torch.float64, requires_grad=True))
+    assert torch.autograd.gradcheck(run, inputs, atol=1e-6)

@@ -222,16 +222,24 @@ class _SumsLayout:
         fine = grids.planes(values, len(grids.levels) - 1)[:, at]
         return fine if total is None else total + fine
 
-    def write(self, g_values: torch.Tensor, grad: torch.Tensor, t: int, k: int) -> None:
-        """Add the gradient ``grad`` (5, B, H, W) of :meth:`read`'s planes into ``g_values``."""
+    def write(self, g_values: torch.Tensor, g_alpha: torch.Tensor, g_colour: torch.Tensor,
+              t: int, k: int) -> None:
+        """Add the gradients of :meth:`read`'s A (B, 1, H, W) and C (B, 3, H, W) planes into
+        ``g_values`` (the depth sum Z passes none)."""
         grids, at = self.grids, self._views(t, k)
-        grids.planes(g_values, len(grids.levels) - 1)[:, at].add_(grad)
-        for index, level, h, w in self._levels(t, k):
+        fine = grids.planes(g_values, len(grids.levels) - 1)[:, at]
+        fine[0].add_(g_alpha[:, 0])
+        fine[1:4].add_(g_colour.transpose(0, 1))
+        levels = list(self._levels(t, k))
+        if not levels:
+            return
+        grad = torch.cat((g_alpha, g_colour), 1).transpose(0, 1)            # (4, B, H, W)
+        for index, level, h, w in levels:
             f = 2 ** level
             full = grad.new_zeros(*grad.shape[:2], h * f, w * f)
             full[..., :grids.height, :grids.width] = grad
             back = upsample_adjoint(full.view(-1, 1, h * f, w * f), f)
-            grids.planes(g_values, index)[:, at].add_(back.view(*grad.shape[:2], h, w))
+            grids.planes(g_values, index)[:4, at].add_(back.view(*grad.shape[:2], h, w))
 
 
 class _GridLayout:
@@ -240,8 +248,10 @@ class _GridLayout:
     def read(self, values: torch.Tensor, t: int, k: int) -> torch.Tensor:
         return values[:, t, :, k, 0]
 
-    def write(self, g_values: torch.Tensor, grad: torch.Tensor, t: int, k: int) -> None:
-        g_values[:, t, :, k, 0].add_(grad)
+    def write(self, g_values: torch.Tensor, g_alpha: torch.Tensor, g_colour: torch.Tensor,
+              t: int, k: int) -> None:
+        g_values[0, t, :, k].add_(g_alpha)
+        g_values[1:4, t, :, k, 0].add_(g_colour.transpose(0, 1))
 
 
 def composite_layers(alpha: torch.Tensor, colour: torch.Tensor, depth: torch.Tensor,
@@ -342,7 +352,5 @@ class _LayeredBlend(torch.autograd.Function):
                             others = others * clear[j]
                     inside = (clear[k] > 0) & (clear[k] < 1)
                     g_alpha = g_alpha + g_op * others * inside
-                plane = torch.cat((g_alpha.transpose(0, 1), g_paint[k].transpose(0, 1),
-                                   torch.zeros_like(g_alpha).transpose(0, 1)))   # (5, B, H, W)
-                ctx.layout.write(g_values, plane, t, k)
+                ctx.layout.write(g_values, g_alpha, g_paint[k], t, k)
         return (g_values, None, None, *g_images)
