@@ -17,6 +17,7 @@ from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_at
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.execution import RunClock, check_executor
+from weathergen.words import counted
 
 from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
                       model_options, out_option, overwrite_option, quiet_option, resume_option,
@@ -38,7 +39,7 @@ def summary_table(title: str, summary: dict, what: str = "weather", compat: str 
     Under ``compat="reference"`` the adversarial AEE is marked and explained in a caption."""
     reference = compat == "reference"
     table = Table(title=title, caption=REFERENCE_FIGURE if reference else None)
-    table.add_column(f"mean over {summary['pairs']} pair(s)")
+    table.add_column(f"mean over {counted(summary['pairs'], 'pair')}")
     for col in ("clean", f"random {what}", f"adversarial {what}"):
         table.add_column(col, justify="right")
     table.add_row("AEE(f, f̌)", "0", _fmt(summary["aee_random"]),
@@ -281,5 +282,5 @@ def _run(job, model, label, target, steps, out, quiet):
         console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
                       soft_wrap=True)
     if failed:
-        err.print(f"[red]{len(failed)} pair(s) failed[/red]; see the messages above.")
+        err.print(f"[red]{counted(len(failed), 'pair')} failed[/red]; see the messages above.")
         sys.exit(1)

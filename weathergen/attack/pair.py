@@ -57,7 +57,7 @@ from ..errors import ConfigError
 from ..flow import aee
 from ..framepair import FramePair
 from ..geometry import transform_points
-from .figures import FIGURE_KEYS, mean_figures, region_figures
+from .figures import FIGURE_KEYS, RegionFigures, mean_figures, region_figures
 from .compat import (camera_translation_in_reference, detaches_occlusion, reference_figure_flows,
                      reference_offset_penalty, resets_gradients)
 from .settings import DEFAULT_ALPHA, AttackSettings
@@ -576,13 +576,14 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
 
 
 @dataclass
-class PairSummary:
+class PairSummary(RegionFigures):
     """Per-pair figures of an attack (pixels). ``epe_*`` are None without ground truth.
 
     aee_random: AEE(f, f̌) for the unoptimised weather (step 0, float frames); aee_adversarial:
     for the best step as written (particles at storage precision, 8-bit frames);
     target_initial / target_adversarial: AEE(f̌, target) for the same two flows. The figures by
-    region and the outlier rates (:mod:`weathergen.attack.figures`) describe the adversarial flow.
+    region and the outlier rates (:class:`~weathergen.attack.figures.RegionFigures`) describe the
+    adversarial flow.
     """
 
     pair: str
@@ -595,16 +596,6 @@ class PairSummary:
     epe_benign: Optional[float] = None
     epe_random: Optional[float] = None
     epe_adversarial: Optional[float] = None
-    aee_weather_px: Optional[float] = None
-    aee_clear_px: Optional[float] = None
-    epe_weather_px: Optional[float] = None
-    epe_clear_px: Optional[float] = None
-    weather_coverage: Optional[float] = None
-    fl_all: Optional[float] = None
-    outliers_1px: Optional[float] = None
-    outliers_3px: Optional[float] = None
-    outliers_5px: Optional[float] = None
-    gt_valid_px: Optional[int] = None
     seconds: float = 0.0
     nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
     particles: Optional[int] = None   # particles in the record (the count the frame size gave)
