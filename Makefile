@@ -3,10 +3,11 @@
 #   make test                  create .venv, install the pinned CPU torch, the package, run the
 #                              linter (ruff, configured in pyproject.toml) and the tests
 #   make demo                  render the default preset on the bundled demo scene
-#   make bench                 print speed and memory figures (renderer, weather field, networks,
-#                              attack step, batched attacks, training); FOG_BEFORE=DIR also times
-#                              fog with the weathergen source tree DIR (e.g. an older commit's),
-#                              CORE_BEFORE=DIR the render core against the renderer of tree DIR
+#   make bench                 print speed and memory figures (renderer, weather field, combined
+#                              weather, networks, attack step, batched attacks, training);
+#                              FOG_BEFORE=DIR also times fog with the weathergen source tree
+#                              DIR (e.g. an older commit's), CORE_BEFORE=DIR the render core
+#                              against the renderer of tree DIR
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 #   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
 #                              in a separate environment (.venv-oldest)
@@ -85,6 +86,7 @@ bench: install
 	$(BIN)/python benchmarks/bench_fog.py $(if $(FOG_BEFORE),--before $(FOG_BEFORE))
 	$(BIN)/python benchmarks/bench_core.py $(if $(CORE_BEFORE),--before $(CORE_BEFORE))
 	$(BIN)/python benchmarks/bench_field.py
+	$(BIN)/python benchmarks/bench_combined.py
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
 	$(BIN)/python benchmarks/bench_training.py

@@ -57,7 +57,8 @@ def _parse_workers(ctx, param, value):
 @click.command()
 @dataset_options
 @click.option("--preset", default="snow", show_default=True,
-              help="Weather preset by name (see `weathergen presets`).")
+              help="Weather preset by name (see `weathergen presets`); presets joined by + "
+                   "render together in one pass, e.g. rain-heavy+fog-light.")
 @click.option("--preset-file", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="Your own preset file (TOML); replaces --preset. Default: none.")
 @click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..datasets import Dataset
-from ..engine import render_pair, visible_counts
+from ..engine import CombinedPreset, render_pair
 from ..errors import ConfigError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
@@ -32,8 +32,9 @@ from ..models import get_model, resolve_amp
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
-from ..render.job import few_in_frame2, frame2_note
-from ..render.particles import pair_particles, pair_seed, weather_scaling, weather_seed
+from ..render.job import frame2_note, visibility_of
+from ..render.particles import (layer_seeds, pair_particles, pair_seed, weather_scaling,
+                                weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -186,8 +187,7 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
         groups.setdefault(pair.size, []).append((ref, pair, particles,
                                                  time.perf_counter() - start))
         if particles is not None:
-            seen[ref.id.key] = visible_counts(pair, particles)
-            few[ref.id.key] = particles.optics is None and few_in_frame2(*seen[ref.id.key])
+            seen[ref.id.key], few[ref.id.key] = visibility_of(pair, particles)
     for group in groups.values():
         start = time.perf_counter()
         names = [str(ref.id) for ref, _, _, _ in group]
@@ -242,8 +242,11 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
                              compat=job.settings.compat, covered=covered)
     summary.particles = best.count
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
-    meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
-                         job.preset_name, scaling=weather_scaling(job.preset, pair))
+    seeds = (layer_seeds(job.preset, job.seed, pair.id)
+             if isinstance(job.preset, CombinedPreset) else None)
+    meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id),
+                         job.preset.to_dict(), job.preset_name, seeds,
+                         scaling=weather_scaling(job.preset, pair))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
     out = pair_output(job, pair.id)

@@ -94,7 +94,8 @@ class Grids:
 
 @dataclass
 class Sums:
-    """The splat's output. Shape: values (4, N), the sums A, C_r, C_g, C_b laid out as
+    """The splat's output. Shape: values (1 + C, N), the sums A, C_r, C_g, C_b (and, for a
+    layered render, the depth sum ``Σ θ B V z``: the instances' fourth colour channel) laid out as
     :class:`Grids` says; reached (V,) bool, which views any blur sample was splatted into (a
     view none reached does not depend on the particles)."""
 
@@ -103,11 +104,13 @@ class Sums:
     reached: torch.Tensor
 
 
-def grids_for(stamps: StampSet, views: int, height: int, width: int) -> Grids:
-    """The grid levels the stamps need (the image grid only when a stamp is drawn on it or none
-    is coarse), each with a margin as wide as its widest patch. A level left out would add exact
-    zeros to every view (sums are never −0), so leaving it out changes no bit and saves a
-    full-size plane per view (fog draws on a coarse grid alone). One host synchronisation."""
+def grids_for(stamps: StampSet, views: int, height: int, width: int, *,
+              image_grid: bool = False) -> Grids:
+    """The grid levels the stamps need (the image grid only when a stamp is drawn on it, none
+    is coarse or ``image_grid`` asks for it), each with a margin as wide as its widest patch. A
+    level left out would add exact zeros to every view (sums are never −0), so leaving it out
+    changes no bit and saves a full-size plane per view (fog draws on a coarse grid alone). One
+    host synchronisation."""
     top = COARSE_MAX_LEVEL + 1
     if stamps.count:
         widest = torch.zeros(top, dtype=torch.long, device=stamps.side.device) \
@@ -117,7 +120,7 @@ def grids_for(stamps: StampSet, views: int, height: int, width: int) -> Grids:
         used = [[0] * top, [0] * top]
     levels, offset = [], 0
     drawn = {c for c, n in enumerate(used[0]) if n}
-    for c in sorted(drawn if drawn - {0} else {0}, reverse=True):
+    for c in sorted(drawn | {0} if image_grid or not drawn - {0} else drawn, reverse=True):
         f = 2 ** c
         h, w = -(-height // f), -(-width // f)
         m = used[1][c]
@@ -143,16 +146,18 @@ def scene_depths(depth: torch.Tensor, grids: Grids, dtype) -> torch.Tensor:
 
 
 def splat(inst: Instances, stamps: StampSet, depth: torch.Tensor, *,
-          chunk_elements: Optional[int] = None, detach_occlusion: bool = False) -> Sums:
+          chunk_elements: Optional[int] = None, detach_occlusion: bool = False,
+          image_grid: bool = False) -> Sums:
     """The per-pixel sums of every blur sample's stamp (see the module doc).
 
     Shape: depth (V, 1, H, W) the scene depth of the V views; returns :class:`Sums`.
     Differentiable in ``inst.u``, ``inst.v``, ``inst.theta``, ``inst.color`` and, unless
-    ``detach_occlusion``, ``inst.z`` (through the visibility ``V``).
+    ``detach_occlusion``, ``inst.z`` (through the visibility ``V``). ``image_grid``: the sums
+    hold the image grid's level even when every stamp is coarse (see :func:`grids_for`).
     """
     views, _, height, width = depth.shape
     dtype = inst.u.dtype
-    grids = grids_for(stamps, views, height, width)
+    grids = grids_for(stamps, views, height, width, image_grid=image_grid)
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(depth.device)
     plan = _Plan(inst, stamps, scene_depths(depth, grids, dtype), grids, chunk_elements)
@@ -308,12 +313,14 @@ class _Splat(torch.autograd.Function):
     ``C_c = Σ γ_c θ B V``.
 
     The forward pass keeps nothing per patch pixel; the backward pass recomputes each chunk and
-    applies the chain rule by hand. Shape: u, v, z, theta (I,), color (I, 3) -> (4, N).
+    applies the chain rule by hand. Shape: u, v, z, theta (I,), color (I, C) -> (1 + C, N)
+    (C = 3 colours, or 4 with the depth of a layered render).
     """
 
     @staticmethod
     def forward(ctx, u, v, z, theta, color, plan: _Plan):
-        acc = torch.zeros(4, plan.grids.size, dtype=plan.dtype, device=plan.scene.device)
+        channels = 1 + color.shape[1]
+        acc = torch.zeros(channels, plan.grids.size, dtype=plan.dtype, device=plan.scene.device)
         ctx.plan = plan
         ctx.save_for_backward(u, v, z, theta, color)
         if plan.count == 0:
@@ -323,7 +330,7 @@ class _Splat(torch.autograd.Function):
             b = _Blocks(plan, row, column, per)
             weight = b.patch.mul_(b.vis)
             flat = b.pix.view(-1)
-            for c in range(4):
+            for c in range(channels):
                 acc[c].scatter_add_(0, flat, (weight * b.per[5 + c]).view(-1))
         return acc
 
@@ -338,17 +345,19 @@ class _Splat(torch.autograd.Function):
             return (*grads, None)
         per = _per_sample(plan, u, v, z, theta, color)
         g_acc = g_acc.contiguous()
-        sums = torch.zeros(7, plan.count, dtype=u.dtype, device=u.device)
+        nc = color.shape[1]
+        sums = torch.zeros(4 + nc, plan.count, dtype=u.dtype, device=u.device)
         for row, column in plan.chunks():
             b = _Blocks(plan, row, column, per)
-            fv, beta, gamma = b.per[1], b.per[3], b.per[9:12]
+            fv, beta, gamma = b.per[1], b.per[3], b.per[6 + nc:6 + 2 * nc]
             flat = b.pix.view(-1)
-            g = [g_acc[c].index_select(0, flat).view(b.pix.shape) for c in range(4)]
+            g = [g_acc[c].index_select(0, flat).view(b.pix.shape) for c in range(1 + nc)]
             # dL/d(θ B V) per pixel: the opacity sum's and the colour sums' gradients
             g_w = torch.addcmul(g[0], g[1], gamma[0])
-            g_w.addcmul_(g[2], gamma[1]).addcmul_(g[3], gamma[2])
+            for c in range(1, nc):
+                g_w.addcmul_(g[1 + c], gamma[c])
             g_bv = g_w.mul_(b.vis)                               # dL/d(θ B) per pixel
-            out = [None] * 7
+            out = [None] * (4 + nc)
             if need[0]:   # dB/dfu: the column difference of the stamp, interpolated in fv
                 d_fu = torch.empty_like(b.patch)
                 for j in range(2):
@@ -365,7 +374,7 @@ class _Splat(torch.autograd.Function):
                 out[3] = _block_sum(g_bvp)
             if need[4]:
                 bv = b.patch.mul_(b.vis)
-                for c in range(3):
+                for c in range(nc):
                     out[4 + c] = _block_sum(g[1 + c].mul_(bv))
             for k, value in enumerate(out):
                 if value is not None:
@@ -387,8 +396,8 @@ class _Splat(torch.autograd.Function):
 
 
 def _per_sample(plan: _Plan, u, v, z, theta, color) -> torch.Tensor:
-    """Per kept sample, packed (12, K): fu, fv (the sub-pixel shift on its grid), β d, β, θ / K,
-    the weights of the four sums θ, θ γ_r, θ γ_g, θ γ_b, and the colour γ (3)."""
+    """Per kept sample, packed (6 + 2 C, K): fu, fv (the sub-pixel shift on its grid), β d, β,
+    θ / K, the weights of the 1 + C sums θ, θ γ_1 .. θ γ_C, and the colour γ (C)."""
     kept = plan.kept
     uu, vv = u.detach().index_select(0, kept), v.detach().index_select(0, kept)
     if plan.coarse:

@@ -24,8 +24,8 @@ import numpy as np
 import torch
 
 from ..datasets import Dataset, PairRef, right_camera
-from ..engine import (FieldPreset, View, load_templates, particle_truth, reference_transforms,
-                      render_pair, visible_counts)
+from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, load_templates,
+                      particle_truth, reference_transforms, render_pair, visible_counts)
 from ..engine.presets import list_presets
 from ..engine.renderer import pair_starts, render_first_frame
 from ..engine.stereo import render_right, stereo_view, warp_depth
@@ -38,7 +38,7 @@ from ..io.atomic import write_error
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
 from ..words import counted
-from .particles import pair_particles, weather_scaling, weather_seed
+from .particles import layer_seeds, pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
 
@@ -207,8 +207,10 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
                    for img in (rendered.image1, rendered.image2) if img is not None)
     opacity = tuple(a[index, 0].cpu().numpy()
                     for a in (rendered.opacity1, rendered.opacity2) if a is not None)
-    visible = visible_counts(pair, particles)
-    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name,
+    visible, few = visibility_of(pair, particles)
+    seeds = (layer_seeds(job.preset, job.seed, ref.id)
+             if isinstance(particles, LayeredParticles) else None)
+    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name, seeds,
                          scaling=weather_scaling(job.preset, pair))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
@@ -229,8 +231,18 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     warnings = list(facts.pop("warnings", []))
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
-                      few_in_frame2=particles.optics is None and few_in_frame2(*visible),
+                      few_in_frame2=few,
                       particles=particles.count, input=jsonable(facts), warnings=warnings)
+
+
+def visibility_of(pair, particles) -> tuple[tuple[int, int], bool]:
+    """The particle centres frames 1 and 2 show in front of the scene (over every layer of
+    combined weather), and whether a paper preset's particles (a paper layer's) are
+    :func:`few_in_frame2`."""
+    layers = particles.layers if isinstance(particles, LayeredParticles) else (particles,)
+    per_layer = [visible_counts(pair, r) for r in layers]
+    visible = (sum(v[0] for v in per_layer), sum(v[1] for v in per_layer))
+    return visible, any(r.optics is None and few_in_frame2(*v) for r, v in zip(layers, per_layer))
 
 
 def few_in_frame2(visible1: int, visible2: int) -> bool:
@@ -362,6 +374,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
         raise ConfigError(f"${{shard}} {job.shard[0]}/{job.shard[1]} holds no frame pairs: the "
                           f"selection holds {len(every)}, one for each of the first {len(every)} "
                           f"shards")
+    if isinstance(job.preset, CombinedPreset) and (job.sequence or job.stereo):
+        raise ConfigError(f"${{{'sequence' if job.sequence else 'stereo'}}} does not take combined "
+                          f"presets yet ('{job.preset_name}'); render its layers one by one")
     if job.sequence:
         if not isinstance(job.preset, FieldPreset):
             raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "

@@ -10,7 +10,7 @@ import numpy as np
 import torch
 
 from ..datasets import reopen_dataset
-from ..engine import Particles, render_pair
+from ..engine import load_particles, render_pair
 from ..errors import WeatherGenError
 from ..io.exr import read_exr
 from ..io.images import read_image, to_uint8
@@ -72,7 +72,7 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
         pair = ds.load(ref)
         if manifest.holds_particles:
             with torch.no_grad():
-                opacity = render_pair(pair, Particles.load(out.metadata)).opacity1[0, 0]
+                opacity = render_pair(pair, load_particles(out.metadata)).opacity1[0, 0]
             opacity = opacity.clamp(0, 1).numpy()
         else:                   # an Lp attack: the frames themselves are perturbed
             opacity = np.zeros(pair.image1.shape[-2:], np.float32)
