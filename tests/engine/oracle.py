@@ -17,7 +17,7 @@ import torch
 
 from weathergen.engine.sampling import NEAR
 from weathergen.engine.stamps import COARSE_MAX_LEVEL, COARSE_MIN_SIDE, COARSE_SIDE, RIM_MARGIN
-from weathergen.engine.tracks import MAX_DEFOCUS
+from weathergen.engine.tracks import MAX_BLUR_SAMPLES, MAX_DEFOCUS
 
 
 # -- number helpers: floats or 0-d tensors ---------------------------------------------------
@@ -130,6 +130,27 @@ def _project(k, x):
     return ((k[0][0] * x[0] + k[0][1] * x[1]) / x[2] + k[0][2], k[1][1] * x[1] / x[2] + k[1][2])
 
 
+def blur_count(k, x, d, reach: float, preset: int) -> int:
+    """How many blur samples the streak ``x + s d`` (camera coordinates, s in [0, reach]) gets:
+    one more than its length in pixels at the pixel speed of its nearer end (so consecutive
+    samples lie at most a pixel apart), at least the preset's, at most MAX_BLUR_SAMPLES."""
+    if preset <= 1:
+        return preset
+    h = [sum(k[i][j] * _value(x[j]) for j in range(3)) for i in range(3)]     # K x
+    g = [sum(k[i][j] * _value(d[j]) for j in range(3)) for i in range(3)]     # K d
+    z_near = max(min(h[2], h[2] + reach * g[2]), NEAR)
+    # d/ds of (h + s g)_u / (h + s g)_z = (g_u h_z − h_u g_z) / z², largest where z is least
+    speed = math.hypot(g[0] * h[2] - h[0] * g[2], g[1] * h[2] - h[1] * g[2]) / z_near ** 2
+    length = reach * speed
+    if not math.isfinite(length):
+        return MAX_BLUR_SAMPLES
+    return min(max(math.ceil(length) + 1, preset), MAX_BLUR_SAMPLES)
+
+
+def _steps(reach: float, count: int) -> list:
+    return [reach * i / (count - 1) if count > 1 else 0.0 for i in range(count)]
+
+
 def _smoothstep(x: float) -> float:
     x = min(max(x, 0.0), 1.0)
     return x * x * (3 - 2 * x)
@@ -142,8 +163,7 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number):
     ``number`` turns a record value into a float or a differentiable 0-d tensor.
     """
     s = record.settings
-    samples = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
-    steps = [s.blur_length * i / (samples - 1) if samples > 1 else 0.0 for i in range(samples)]
+    preset_samples = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
     height, width = len(depth), len(depth[0])
     f = math.sqrt(k[0][0] * k[1][1])
     out = []
@@ -158,7 +178,10 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number):
             # the paper's model: looks fixed at sampling; the streak along X2 − X1
             x1, x2 = _apply(cams[0], p1), _apply(cams[1], p2)
             xt = x1 if t == 0 else x2
-            points = [[xt[a] + q * (x2[a] - x1[a]) for a in range(3)] for q in steps]
+            along = [x2[a] - x1[a] for a in range(3)]
+            samples = blur_count(k, xt, along, s.blur_length, preset_samples)
+            points = [[xt[a] + q * along[a] for a in range(3)]
+                      for q in _steps(s.blur_length, samples)]
             looks = (template, max(float(record.scale[j]) * resolution, 1.0),
                      int(record.defocus[j]), rotation,
                      bool(s.defocus_brighten) and int(record.defocus[j]) > 1)
@@ -195,7 +218,11 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number):
             factor = fade * min(footprint, 1.0) ** 2
             if not seen or factor * _value(theta) == 0:
                 continue
-            points = [_apply(cams[t], [start[a] + q * d[a] for a in range(3)]) for q in steps]
+            along = [sum(cams[t][i][a] * d[a] for a in range(3)) for i in range(3)]  # R d
+            samples = blur_count(k, _apply(cams[t], start), along, s.blur_length,
+                                 preset_samples)
+            points = [_apply(cams[t], [start[a] + q * d[a] for a in range(3)])
+                      for q in _steps(s.blur_length, samples)]
             looks = (template, max(footprint, 1.0), radius, rotation,
                      bool(s.defocus_brighten) and radius > 1)
             weight, b = theta * factor, min(beta, 1 / o.depth_softness)
