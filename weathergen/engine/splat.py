@@ -191,7 +191,8 @@ class _Plan:
         self.coarse = len(grids.levels) > 1
         with torch.no_grad():
             # per sample: its stamp's side, level and start, and its level's grid
-            side, level, first = torch.stack((stamps.side, stamps.coarse, stamps.first), 1) \
+            side, level, first, phases = torch.stack((stamps.side, stamps.coarse, stamps.first,
+                                                      stamps.phases), 1) \
                 .index_select(0, inst.entry).unbind(1)
             offset, h, w, m, f = table.index_select(0, level).t()
             u, v = inst.u.detach(), inst.v.detach()
@@ -216,23 +217,32 @@ class _Plan:
                 return
             # (gathering whole rows of a stacked table is several times faster than gathering
             # along its second axis)
+            # the phase stamp's grid point at the patch's top-left pixel (see _Blocks): the
+            # phase φ = floor(P f) of the sub-pixel shift f, per axis
+            fine = phases * (side + 1) + 1
+            phase_u = torch.floor((u - u0) * phases).long()
+            phase_v = torch.floor((v - v0) * phases).long()
+            first = first + (phases - 1 - phase_v) * fine + (phases - 1 - phase_u)
             ints = torch.stack((side, col0, row0, h, w + 2 * m, offset + m, inst.view, first,
-                                level, plane_key), 1).index_select(0, kept)
-            side, col0, row0, h, row_len, offset, view, first, level, groups = ints.unbind(1)
+                                level, plane_key, phases), 1).index_select(0, kept)
+            side, col0, row0, h, row_len, offset, view, first, level, groups, phases = \
+                ints.unbind(1)
             self.reached[view] = True
             self.kept, self.level = kept, level
+            self.phases = phases.to(self.dtype)
             q = (side + 1) // 2
             plane = offset + view * (h + 1) * row_len + col0           # + the patch's column
             rows = int(q.sum())
             sample = torch.repeat_interleave(torch.arange(self.count, device=device), q,
                                              output_size=rows)
-            per_row = torch.stack((side + 2, first, row0, h, plane, row_len, q, groups), 1) \
-                .index_select(0, sample)
-            stride, first, row0, h, plane, row_len, sizes, groups = per_row.unbind(1)
+            per_row = torch.stack((phases * (side + 1) + 1, first, row0, h, plane, row_len, q,
+                                   groups, phases), 1).index_select(0, sample)
+            stride, first, row0, h, plane, row_len, sizes, groups, row_phases = per_row.unbind(1)
             self.sizes, self.groups = sizes.contiguous(), groups.contiguous()
             br = torch.arange(rows, device=device) - starts(q).index_select(0, sample)
             self.row_sample, self.row_stride = sample, stride.contiguous()
-            self.row_at = first + 2 * br * stride
+            self.row_phases = row_phases.contiguous()
+            self.row_at = first + 2 * br * row_phases * stride
             y = (row0 + 2 * br) + torch.arange(2, device=device)[:, None]
             y = torch.where((y >= 0) & (y < h), y, h)                  # outside: the extra row
             self.row_pix = torch.addcmul(plane, y, row_len)
@@ -250,9 +260,6 @@ def _on_grid(x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
     """Image pixel coordinates on a grid ``f`` times coarser: ``(x + 0.5) / f − 0.5``."""
     f = f.to(x.dtype)
     return torch.where(f > 1, (x + 0.5) / f - 0.5, x)
-
-
-_THREE = (0, 1, 2)
 
 
 class _Blocks:
@@ -273,17 +280,23 @@ class _Blocks:
         fu, fv, beta_z, beta = self.per[:4]
         n = row.numel()
         two_columns = 2 * column
-        at = plan.row_at.index_select(0, row) + two_columns   # the block's top-left stamp pixel
-        index = torch.addcmul(at, plan.row_stride.index_select(0, row),
-                              torch.arange(3, device=at.device)[:, None]).view(-1)
+        phases = plan.row_phases.index_select(0, row)
+        # the block's top-left grid point: patch pixel j of a row mixes the stamp's grid points
+        # j P and j P + 1 (from the block's), rows likewise: a 4 x 4 neighbourhood, rows and
+        # columns at 0, 1, P, P + 1 (with P = 1 the three of a pixel-sampled stamp)
+        at = torch.addcmul(plan.row_at.index_select(0, row), two_columns, phases)
+        stride = plan.row_stride.index_select(0, row)
+        steps = torch.stack((torch.zeros_like(phases), torch.ones_like(phases), phases,
+                             phases + 1))                                     # (4, n)
+        index = torch.addcmul(at, stride, steps).view(-1)
         pixels = plan.stamps.pixels
-        self.near = [pixels[c:].index_select(0, index).view(3, n) for c in _THREE]
-        # stamp pixel (y, x) sits at bordered (y + 1, x + 1); patch pixel (py, px) mixes
-        # stamp[py − a, px − b] for a, b in {0, 1}: columns first (weight fu), then rows (fv)
-        self.rows = [torch.lerp(self.near[j + 1], self.near[j], fu) for j in range(2)]
+        self.near = [pixels.index_select(0, (index.view(4, n) + c).view(-1)).view(4, n)
+                     for c in steps]
+        # columns first (weight fu: the shift's fraction of a grid step), then rows (fv)
+        self.rows = [torch.lerp(self.near[2 * j + 1], self.near[2 * j], fu) for j in range(2)]
         self.patch = torch.empty(2, 2, n, dtype=pixels.dtype, device=pixels.device)
         for j in range(2):
-            torch.lerp(self.rows[j][1:], self.rows[j][:2], fv, out=self.patch[j])
+            torch.lerp(self.rows[j][1::2], self.rows[j][0::2], fv, out=self.patch[j])
         start = plan.row_pix.index_select(1, row) + two_columns       # (2 i, n)
         self.pix = start[None] + torch.arange(2, device=at.device)[:, None, None]
         depth = plan.scene.index_select(0, self.pix.view(-1)).view(2, 2, n)
@@ -349,11 +362,11 @@ class _Splat(torch.autograd.Function):
             if need[0]:   # dB/dfu: the column difference of the stamp, interpolated in fv
                 d_fu = torch.empty_like(b.patch)
                 for j in range(2):
-                    diff = b.near[j] - b.near[j + 1]
-                    torch.lerp(diff[1:], diff[:2], fv, out=d_fu[j])
+                    diff = b.near[2 * j] - b.near[2 * j + 1]
+                    torch.lerp(diff[1::2], diff[0::2], fv, out=d_fu[j])
                 out[0] = _block_sum(d_fu.mul_(g_bv))
             if need[1]:   # dB/dfv: the row difference of the interpolated rows
-                d_fv = torch.stack([r[:2] - r[1:] for r in b.rows])
+                d_fv = torch.stack([r[0::2] - r[1::2] for r in b.rows])
                 out[1] = _block_sum(d_fv.mul_(g_bv))
             g_bvp = g_bv * b.patch                               # dL/dθ per pixel
             if need[2]:   # dV/dd = −β V (1 − V)
@@ -369,7 +382,10 @@ class _Splat(torch.autograd.Function):
                     sums[k].index_add_(0, b.sample, value)
         th = per[4]
         index = plan.kept
-        scale = th / (2.0 ** plan.level).to(u.dtype) if plan.coarse else th    # du' / du = 1 / f
+        # d(fraction of a grid step) / du = P / f (P phases, a grid f times coarser)
+        scale = th * plan.phases
+        if plan.coarse:
+            scale = scale / (2.0 ** plan.level).to(u.dtype)
         if need[0]:
             grads[0].index_add_(0, index, scale * sums[0])
         if need[1]:
@@ -384,16 +400,19 @@ class _Splat(torch.autograd.Function):
 
 
 def _per_sample(plan: _Plan, u, v, z, theta, color) -> torch.Tensor:
-    """Per kept sample, packed (12, K): fu, fv (the sub-pixel shift on its grid), β d, β, θ / K,
-    the weights of the four sums θ, θ γ_r, θ γ_g, θ γ_b, and the colour γ (3)."""
+    """Per kept sample, packed (12, K): fu, fv (the sub-pixel shift on its grid, as a fraction
+    of the stamp's grid step 1 / P: ``P f − floor(P f)``), β d, β, θ / K, the weights of the four
+    sums θ, θ γ_r, θ γ_g, θ γ_b, and the colour γ (3)."""
     kept = plan.kept
     uu, vv = u.detach().index_select(0, kept), v.detach().index_select(0, kept)
     if plan.coarse:
         f = (2.0 ** plan.level).to(u.dtype)
         uu, vv = _on_grid(uu, f), _on_grid(vv, f)
+    # P f is exact (P a power of two), so floor(P f) is the plan's phase
+    pu, pv = (uu - torch.floor(uu)) * plan.phases, (vv - torch.floor(vv)) * plan.phases
     beta = plan.beta.index_select(0, kept).to(u.dtype)
     th = theta.detach().index_select(0, kept)
     col = color.detach().index_select(0, kept)
-    return torch.cat((torch.stack((uu - torch.floor(uu), vv - torch.floor(vv),
+    return torch.cat((torch.stack((pu - torch.floor(pu), pv - torch.floor(pv),
                                    beta * z.detach().index_select(0, kept), beta, th, th)),
                       th * col.t(), col.t()))
