@@ -278,10 +278,10 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
         pitch = torch.where(blurred, torch.full_like(side, width), full + 2)
         # stamps brightened without a blur (a defocus radius that rounds to 0 on a coarse grid)
         bright = looks.brighten & ~blurred
-        _sample(looks, book, footprint, side, sub, level, place, pitch, work, dtype,
-                bright if bool(bright.any()) else None, chunk_elements, phases == 1)
-        _sample_phases(looks, book, footprint, side, level, phases, first, work, dtype, bright,
-                       chunk_elements)
+        coef = _coefficients(looks, book, footprint, side, level, dtype)
+        _sample(coef, book, side, sub, place, pitch, work, bright if bool(bright.any()) else None,
+                chunk_elements, phases == 1)
+        _sample_phases(coef, book, side, phases, first, work, chunk_elements)
         if bool(blurred.any()):
             members = torch.nonzero(blurred).squeeze(1)
             # each row divided by its disc's taps (the blur's normalisation, linear), then
@@ -317,18 +317,16 @@ def _coefficients(looks: Looks, book: Atlas, footprint, side, level, dtype) -> t
     return coef
 
 
-def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch,
-            work: torch.Tensor, dtype, bright: Optional[torch.Tensor], chunk: int,
-            whole: torch.Tensor) -> None:
+def _sample(coef: torch.Tensor, book: Atlas, side, sub, place, pitch, work: torch.Tensor,
+            bright: Optional[torch.Tensor], chunk: int, whole: torch.Tensor) -> None:
     """The stamps sampled at whole pixels (``whole`` (E,): one phase), before their blur,
     written to ``work`` (pixel (y, x) of entry e at ``place[e] + y pitch[e] + x``): each pixel
     the mean of its ``sub x sub`` bilinear samples of the template's mip level at the rotated and
     scaled position, zero outside the footprint's disc; brightened where ``bright`` (E,) says
     so."""
-    if looks.count == 0 or not bool(whole.any()):
+    if side.numel() == 0 or not bool(whole.any()):
         return
-    device = looks.template.device
-    coef = _coefficients(looks, book, footprint, side, level, dtype)
+    device, dtype = coef.device, coef.dtype
     for factor in (4, 2, 1):
         members = torch.nonzero((sub == factor) & whole).squeeze(1)
         if members.numel() == 0:
@@ -364,8 +362,8 @@ def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch
             work.index_copy_(0, at, value.to(torch.float64))
 
 
-def _sample_phases(looks: Looks, book: Atlas, footprint, side, level, phases, first,
-                   work: torch.Tensor, dtype, bright: torch.Tensor, chunk: int) -> None:
+def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: torch.Tensor,
+                   chunk: int) -> None:
     """The phase stamps (``phases`` P > 1), written to their bordered places in ``work``: the
     value at ``(y, x) / P`` pixels on the grid around the centre is the mean of the template over
     the pixel square centred there (``P x P`` bilinear samples of the mip level at every 1 / P
@@ -376,28 +374,29 @@ def _sample_phases(looks: Looks, book: Atlas, footprint, side, level, phases, fi
     side (``m = P (side + 2)`` samples per axis, centred on the particle), averaged over every
     ``P x P`` window (``n = P (side + 1) + 1`` values per axis), and each entry's centred
     ``n_e x n_e`` part is copied to its place."""
-    if looks.count == 0:
+    if side.numel() == 0:
         return
-    device = looks.template.device
+    dtype = coef.dtype
     for factor in (4, 2):
         members = torch.nonzero(phases == factor).squeeze(1)
         if members.numel() == 0:
             continue
-        coef = _coefficients(looks.select(members), book, footprint.index_select(0, members),
-                             side.index_select(0, members), level.index_select(0, members),
-                             dtype)
+        c = coef.index_select(0, members)[:, :, None, None]
         s = side.index_select(0, members)
         largest = int(s.max())
         m = factor * (largest + 2)
         n = m - factor + 1
-        # sample offsets from the centre, pixels: (b − (m − 1) / 2) / P
-        offsets = (torch.arange(m, dtype=dtype, device=device) - (m - 1) / 2) / factor
-        gx, gy = offsets[None, None, :], offsets[None, :, None]
+        # sample offsets from the centre, pixels: (b − (m − 1) / 2) / P, along x and along y
+        gx = _constant(f"gx{factor},{m}", [[[(b - (m - 1) / 2) / factor for b in range(m)]]],
+                       dtype, coef.device)
+        gy = _constant(f"gy{factor},{m}", [[[(b - (m - 1) / 2) / factor] for b in range(m)]],
+                       dtype, coef.device)
         per = max(1, chunk // (m * m))
         for lo in range(0, int(members.numel()), per):
-            bx, ax, cx, by, ay, cy, rho2, _ = coef[lo:lo + per].t()[..., None, None]
-            grid = torch.stack((bx + ax * gx + cx * gy, by + ay * gx + cy * gy), -1)
-            inside = (gx * gx + gy * gy) <= rho2
+            bx, ax, cx, by, ay, cy, rho2, _ = c[lo:lo + per].unbind(1)
+            grid = torch.stack((torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy),
+                                torch.addcmul(torch.addcmul(by, ay, gx), cy, gy)), -1)
+            inside = torch.addcmul(gx * gx, gy, gy) <= rho2
             count = grid.shape[0]
             value = F.grid_sample(book.image, grid.view(1, count * m, m, 2), mode="bilinear",
                                   padding_mode="zeros", align_corners=False).view(count, m, m)
@@ -411,11 +410,8 @@ def _sample_phases(looks: Looks, book: Atlas, footprint, side, level, phases, fi
             row = torch.div(local, size, rounding_mode="floor")
             skip = torch.div(n - size, 2, rounding_mode="floor")
             at = item * (n * n) + (row + skip) * n + (local - row * size) + skip
-            picked = value.index_select(0, at)
-            flags = bright.index_select(0, e.index_select(0, item))
-            picked = torch.where(flags, defocus_brighten(picked), picked)
             work.index_copy_(0, first.index_select(0, e).index_select(0, item) + local,
-                             picked.to(torch.float64))
+                             value.index_select(0, at).to(torch.float64))
 
 
 def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, work,
