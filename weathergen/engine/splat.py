@@ -1,8 +1,10 @@
 """Stage 3 of the render core: blur samples and stamps -> per-pixel sums, differentiably.
 
 Every blur sample (:class:`~weathergen.engine.tracks.Instances`) leaves its entry's stamp
-(:class:`~weathergen.engine.stamps.StampSet`), shifted by its sub-pixel position with bilinear
-weights (an ``(s + 1) x (s + 1)`` patch ``B``: differentiable in the position), times the
+(:class:`~weathergen.engine.stamps.StampSet`) placed at its sub-pixel position: each pixel of an
+``(s + 1) x (s + 1)`` patch ``B`` reads the stamp at its offset from the sample, interpolated
+bilinearly between the stamp's values (a pixel apart; 1 / P pixel for phase stamps, whose P
+phases per axis are read at stride P: differentiable in the position), times the
 visibility ``V = 1 / (1 + exp(β (d − D)))`` of its depth ``d`` against the scene depth ``D``
 under each patch pixel, times its ``θ / K``; the products are added into per-pixel sums
 ``A = Σ θ B V`` and ``C_c = Σ γ_c θ B V`` (:class:`Sums`), one plane per view. Entries drawn on
@@ -12,8 +14,9 @@ brings them to the image grid.
 
 Layout: a patch has an even side (stamp sides are odd), so it is cut into 2 x 2 blocks: a
 sample's blocks are rows of blocks, and the rows of every sample of the call are one ragged run
-(what a block needs is computed once per row of blocks). Per block the stamp's 3 x 3
-neighbourhood is read once and the four pixels are computed side by side (element arrays are
+(what a block needs is computed once per row of blocks). Per block the stamp's 4 x 4
+neighbourhood (rows and columns 0, 1, P, P + 1 from the block's first grid point) is read once
+and the four pixels are computed side by side (element arrays are
 (2, 2, blocks): a block's numbers broadcast along the last, contiguous axis). A grid plane has a
 margin left and right as wide as the call's widest patch and one extra row below, where patch
 pixels outside the image land (their scene depth is −∞: V = 0, they add nothing; rows outside
@@ -268,9 +271,10 @@ class _Blocks:
     Element arrays are (2, 2, n) for n blocks, indexed (patch column j, patch row i, block), so
     that a block's numbers (n,) broadcast along the last, contiguous axis. ``sample`` (n,) the
     block's kept sample; ``per`` (P, n) the per-sample numbers of :func:`_per_sample` for each
-    block; ``near`` (3 arrays (3, n)): the block's 3 x 3 neighbourhood of the bordered stamp,
-    column c; ``rows`` (2 arrays (3, n)): the stamp rows interpolated at the sub-pixel column
-    shift, for patch columns j = 0, 1; ``patch`` B; ``pix`` int64 indices into the sums;
+    block; ``near`` (4 arrays (4, n)): the block's 4 x 4 neighbourhood of the bordered stamp
+    (columns, then rows, at 0, 1, P, P + 1 grid points from the block's first); ``rows``
+    (2 arrays (4, n)): those rows interpolated at the sub-pixel column shift, for patch columns
+    j = 0, 1; ``patch`` B; ``pix`` int64 indices into the sums;
     ``vis`` V.
     """
 

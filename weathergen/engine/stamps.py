@@ -2,8 +2,11 @@
 
 Each stamp entry's template (:class:`~weathergen.engine.tracks.Looks`) is rotated and scaled to
 its own footprint on a pixel-centred grid, sampled from a mip level no finer than twice the
-footprint (no aliasing for far, tiny particles), tiny stamps box-filtered (each pixel averages
-4 x 4 samples up to 5 pixels wide, 2 x 2 up to 9), zero outside the footprint's disc; then
+footprint (no aliasing for far, tiny particles), zero outside the footprint's disc. Small stamps
+without a defocus blur are *phase stamps* (:data:`PHASE_SIDE`): sampled every 1 / P pixel
+(P = 4 up to 5 pixels wide, 2 up to 9), each value the template averaged over the pixel square
+centred there, so that the splat can place them at a particle's exact sub-pixel position; the
+others are sampled once per pixel (small blurred ones box-filtered: 4 x 4 or 2 x 2 samples); then
 disc-blurred by the defocus radius (a normalised disc, the stamp growing by 2 r) and brightened
 where asked (:func:`defocus_brighten`). Stamps at least :data:`COARSE_SIDE` pixels wide (fog,
 large dust) are drawn for a grid ``2**L`` times coarser than the image (see
