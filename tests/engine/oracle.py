@@ -294,9 +294,10 @@ def render_frame(image, depth, frame_draws, levels, resolution, blend, coarse_si
             for py in range(max(cv - reach, 0), min(cv + reach + 2, h)):
                 for px in range(max(cu - reach, 0), min(cu + reach + 2, w)):
                     # the stamp at this pixel's offset from the centre, interpolated
-                    # bilinearly between its values 1 / P pixel apart
+                    # bilinearly between its values 1 / P pixel apart (on a grid point: the
+                    # interval that a larger u, v moves into, the core's one-sided derivative)
                     gx, gy = (px - uc) * phases, (py - vc) * phases
-                    x0, y0 = math.floor(_value(gx)), math.floor(_value(gy))
+                    x0, y0 = math.ceil(_value(gx)) - 1, math.ceil(_value(gy)) - 1
                     corners = [pixels.get((y0 + dy, x0 + dx), 0.0)
                                for dy in (0, 1) for dx in (0, 1)]
                     if not any(corners):

@@ -212,7 +212,10 @@ class _Plan:
             plane_key = level * grids.views + inst.view
             tile = torch.div(torch.stack((v0, u0)), TILE, rounding_mode="floor") \
                 .clamp_(-1, 1 << 12).add_(1)
-            key = (plane_key * (1 << 28) + tile[0] * (1 << 14) + tile[1]).index_select(0, kept)
+            # (phase stamps after the others: most chunks then hold one kind, see _Blocks)
+            kind = (phases > 1).long()
+            key = ((plane_key * 2 + kind) * (1 << 28) + tile[0] * (1 << 14) + tile[1]) \
+                .index_select(0, kept)
             order = torch.sort(key, stable=True).indices
             kept = kept.index_select(0, order)
             self.count = int(kept.numel())
@@ -288,19 +291,32 @@ class _Blocks:
         # the block's top-left grid point: patch pixel j of a row mixes the stamp's grid points
         # j P and j P + 1 (from the block's), rows likewise: a 4 x 4 neighbourhood, rows and
         # columns at 0, 1, P, P + 1 (with P = 1 the three of a pixel-sampled stamp)
-        at = torch.addcmul(plan.row_at.index_select(0, row), two_columns, phases)
         stride = plan.row_stride.index_select(0, row)
-        steps = torch.stack((torch.zeros_like(phases), torch.ones_like(phases), phases,
-                             phases + 1))                                     # (4, n)
-        index = torch.addcmul(at, stride, steps).view(-1)
         pixels = plan.stamps.pixels
-        self.near = [pixels.index_select(0, (index.view(4, n) + c).view(-1)).view(4, n)
-                     for c in steps]
+        if bool((phases == 1).all()):
+            # stamps sampled at whole pixels: the neighbourhood is 3 x 3 (rows and columns
+            # 0, 1, 2), read once; near[1] serves as both columns 1 and P
+            at = plan.row_at.index_select(0, row) + two_columns
+            index = torch.addcmul(at, stride, _constant_steps(at.device)).view(-1)
+            near = [pixels[c:].index_select(0, index).view(3, n) for c in (0, 1, 2)]
+            self.near = [near[0], near[1], near[1], near[2]]
+            self.lo, self.hi = slice(0, 2), slice(1, 3)
+        else:
+            at = torch.addcmul(plan.row_at.index_select(0, row), two_columns, phases)
+            index = torch.empty(2, 2, n, dtype=at.dtype, device=at.device)  # rows 0, 1, P, P + 1
+            index[0, 0] = at
+            torch.addcmul(at, stride, phases, out=index[1, 0])
+            torch.add(index[:, 0], stride, out=index[:, 1])
+            index = index.view(-1)
+            shifted = index + phases.repeat(4)                              # columns P, P + 1
+            self.near = [source.index_select(0, i).view(4, n)
+                         for i in (index, shifted) for source in (pixels, pixels[1:])]
+            self.lo, self.hi = slice(0, None, 2), slice(1, None, 2)
         # columns first (weight fu: the shift's fraction of a grid step), then rows (fv)
         self.rows = [torch.lerp(self.near[2 * j + 1], self.near[2 * j], fu) for j in range(2)]
         self.patch = torch.empty(2, 2, n, dtype=pixels.dtype, device=pixels.device)
         for j in range(2):
-            torch.lerp(self.rows[j][1::2], self.rows[j][0::2], fv, out=self.patch[j])
+            torch.lerp(self.rows[j][self.hi], self.rows[j][self.lo], fv, out=self.patch[j])
         start = plan.row_pix.index_select(1, row) + two_columns       # (2 i, n)
         self.pix = start[None] + torch.arange(2, device=at.device)[:, None, None]
         depth = plan.scene.index_select(0, self.pix.view(-1)).view(2, 2, n)
@@ -310,6 +326,17 @@ class _Blocks:
         # float32's exp stays on its fast path (and products stay clear of denormals).
         self.vis = torch.addcmul(beta_z, depth, beta, value=-1) \
             .clamp_(-VISIBILITY_CLAMP, VISIBILITY_CLAMP).exp_().add_(1).reciprocal_()
+
+
+_STEPS: dict = {}
+
+
+def _constant_steps(device) -> torch.Tensor:
+    """The rows 0, 1, 2 of a block's neighbourhood, as a (3, 1) column (made once per device)."""
+    key = str(device)
+    if key not in _STEPS:
+        _STEPS[key] = torch.arange(3, device=device)[:, None]
+    return _STEPS[key]
 
 
 def _block_sum(x: torch.Tensor) -> torch.Tensor:
@@ -367,10 +394,10 @@ class _Splat(torch.autograd.Function):
                 d_fu = torch.empty_like(b.patch)
                 for j in range(2):
                     diff = b.near[2 * j] - b.near[2 * j + 1]
-                    torch.lerp(diff[1::2], diff[0::2], fv, out=d_fu[j])
+                    torch.lerp(diff[b.hi], diff[b.lo], fv, out=d_fu[j])
                 out[0] = _block_sum(d_fu.mul_(g_bv))
             if need[1]:   # dB/dfv: the row difference of the interpolated rows
-                d_fv = torch.stack([r[0::2] - r[1::2] for r in b.rows])
+                d_fv = torch.stack([r[b.lo] - r[b.hi] for r in b.rows])
                 out[1] = _block_sum(d_fv.mul_(g_bv))
             g_bvp = g_bv * b.patch                               # dL/dθ per pixel
             if need[2]:   # dV/dd = −β V (1 − V)

@@ -397,13 +397,14 @@ def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: t
         per = max(1, chunk // (m * m))
         for lo in range(0, int(members.numel()), per):
             bx, ax, cx, by, ay, cy, rho2, _ = c[lo:lo + per].unbind(1)
-            grid = torch.stack((torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy),
-                                torch.addcmul(torch.addcmul(by, ay, gx), cy, gy)), -1)
-            inside = torch.addcmul(gx * gx, gy, gy) <= rho2
-            count = grid.shape[0]
+            count = bx.shape[0]
+            grid = torch.empty(count, m, m, 2, dtype=dtype, device=coef.device)
+            grid_x, grid_y = grid.unbind(-1)
+            torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
+            torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
             value = F.grid_sample(book.image, grid.view(1, count * m, m, 2), mode="bilinear",
                                   padding_mode="zeros", align_corners=False).view(count, m, m)
-            value = value * inside
+            value.mul_(torch.addcmul(gx * gx, gy, gy) <= rho2)
             value = F.avg_pool2d(value[:, None], factor, stride=1)[:, 0].reshape(-1)
             # entry e's n_e x n_e values: the centre of the n x n window
             e = members[lo:lo + per]
