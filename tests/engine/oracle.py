@@ -1,10 +1,11 @@
 """A naive renderer: the render core's model written loop by loop, for clarity, not speed.
 
 For every frame pair, every frame, every particle that frame draws, every blur sample and every
-stamp pixel, it adds the stamp pixel's share to the (at most four) grid pixels its bilinear tent
-reaches, times the visibility and θ / K; then it brings coarse grids to the image grid and
-blends. Nothing is shared with the engine's code but the model's constants (pytorch3d tests its
-rasterizer the same way). Two number types run through the same loops: Python floats (fast
+grid pixel near it, it reads the stamp at that pixel's offset from the sample's exact position
+(interpolated bilinearly between the stamp's values, which lie a pixel apart or, for small stamps,
+1 / P pixel apart) and adds it times the visibility and θ / K; then it brings coarse grids to the
+image grid and blends. Nothing is shared with the engine's code but the model's constants
+(pytorch3d tests its rasterizer the same way). Two number types run through the same loops: Python floats (fast
 enough for forward comparisons on small scenes) and 0-d float64 tensors that require grad (for
 gradient comparisons on tiny ones).
 """
@@ -17,7 +18,7 @@ import torch
 
 from weathergen.engine.sampling import NEAR
 from weathergen.engine.stamps import COARSE_MAX_LEVEL, COARSE_MIN_SIDE, COARSE_SIDE, RIM_MARGIN
-from weathergen.engine.tracks import MAX_DEFOCUS
+from weathergen.engine.tracks import MAX_BLUR_SAMPLES, MAX_DEFOCUS
 
 
 # -- number helpers: floats or 0-d tensors ---------------------------------------------------
@@ -77,26 +78,30 @@ def geometry(footprint: float, defocus: int, resolution: int, level_count: int, 
     side = next(s for s in SIDES if s >= raw)
     sub = 4 if side <= 5 else (2 if side <= 9 else 1)
     mip = min(max(math.floor(math.log2(resolution / (footprint * sub))), 0), level_count - 1)
-    return level, footprint, radius, side, sub, mip
+    phases = sub if radius == 0 else 1
+    return level, footprint, radius, side, sub, mip, phases
 
 
 def stamp(levels, template: int, footprint: float, defocus: int, rotation: float,
           brighten: bool, resolution: int, coarse_side):
-    """A stamp entry's grid level and its pixels ``{(dy, dx): alpha}`` around the centre."""
-    level, footprint, radius, side, sub, mip = geometry(footprint, defocus, resolution,
-                                                        len(levels), coarse_side)
+    """A stamp entry's grid level, its phases P and its values ``{(iy, ix): alpha}`` at
+    ``(iy, ix) / P`` pixels from the centre (P = 1: its pixels; P > 1: small stamps sampled
+    every 1 / P pixel, each value the template averaged over the pixel square centred there)."""
+    level, footprint, radius, side, sub, mip, phases = geometry(footprint, defocus, resolution,
+                                                                len(levels), coarse_side)
     tmpl = levels[mip][template]
     res = len(tmpl)
     half = (side - 1) // 2
     c, s = math.cos(rotation), math.sin(rotation)
     pixels = {}
-    for i in range(side):
-        for j in range(side):
+    reach = half if phases == 1 else phases * (half + 1)
+    for i in range(-reach, reach + 1):
+        for j in range(-reach, reach + 1):
             total = 0.0
             for si in range(sub):
                 for sj in range(sub):
-                    gx = j - half + (sj + 0.5) / sub - 0.5
-                    gy = i - half + (si + 0.5) / sub - 0.5
+                    gx = j / phases + (sj + 0.5) / sub - 0.5
+                    gy = i / phases + (si + 0.5) / sub - 0.5
                     # the template at Rot(−rotation) (gx, gy), in half-footprints
                     xn = (c * gx + s * gy) / (footprint / 2)
                     yn = (-s * gx + c * gy) / (footprint / 2)
@@ -108,7 +113,7 @@ def stamp(levels, template: int, footprint: float, defocus: int, rotation: float
                         for xx, wx in ((x0, 1 - (px - x0)), (x0 + 1, px - x0)):
                             if 0 <= yy < res and 0 <= xx < res:
                                 total += wy * wx * tmpl[yy][xx]
-            pixels[(i - half, j - half)] = total / (sub * sub)
+            pixels[(i, j)] = total / (sub * sub)
     if radius > 0:
         disc = [(a, b) for a in range(-radius, radius + 1) for b in range(-radius, radius + 1)
                 if a * a + b * b <= radius * radius]
@@ -117,7 +122,7 @@ def stamp(levels, template: int, footprint: float, defocus: int, rotation: float
                   for y in range(-full, full + 1) for x in range(-full, full + 1)}
     if brighten:
         pixels = {k: min((2 * max(v, 0.0)) ** (1 / 3), 1.0) for k, v in pixels.items()}
-    return level, pixels
+    return level, phases, pixels
 
 
 # -- what each frame draws ----------------------------------------------------------------
@@ -128,6 +133,27 @@ def _apply(cam, p):
 
 def _project(k, x):
     return ((k[0][0] * x[0] + k[0][1] * x[1]) / x[2] + k[0][2], k[1][1] * x[1] / x[2] + k[1][2])
+
+
+def blur_count(k, x, d, reach: float, preset: int) -> int:
+    """How many blur samples the streak ``x + s d`` (camera coordinates, s in [0, reach]) gets:
+    one more than its length in pixels at the pixel speed of its nearer end (so consecutive
+    samples lie at most a pixel apart), at least the preset's, at most MAX_BLUR_SAMPLES."""
+    if preset <= 1:
+        return preset
+    h = [sum(k[i][j] * _value(x[j]) for j in range(3)) for i in range(3)]     # K x
+    g = [sum(k[i][j] * _value(d[j]) for j in range(3)) for i in range(3)]     # K d
+    z_near = max(min(h[2], h[2] + reach * g[2]), NEAR)
+    # d/ds of (h + s g)_u / (h + s g)_z = (g_u h_z − h_u g_z) / z², largest where z is least
+    speed = math.hypot(g[0] * h[2] - h[0] * g[2], g[1] * h[2] - h[1] * g[2]) / z_near ** 2
+    length = reach * speed
+    if not math.isfinite(length):
+        return MAX_BLUR_SAMPLES
+    return min(max(math.ceil(length) + 1, preset), MAX_BLUR_SAMPLES)
+
+
+def _steps(reach: float, count: int) -> list:
+    return [reach * i / (count - 1) if count > 1 else 0.0 for i in range(count)]
 
 
 def _smoothstep(x: float) -> float:
@@ -142,8 +168,7 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number):
     ``number`` turns a record value into a float or a differentiable 0-d tensor.
     """
     s = record.settings
-    samples = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
-    steps = [s.blur_length * i / (samples - 1) if samples > 1 else 0.0 for i in range(samples)]
+    preset_samples = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
     height, width = len(depth), len(depth[0])
     f = math.sqrt(k[0][0] * k[1][1])
     out = []
@@ -158,7 +183,10 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number):
             # the paper's model: looks fixed at sampling; the streak along X2 − X1
             x1, x2 = _apply(cams[0], p1), _apply(cams[1], p2)
             xt = x1 if t == 0 else x2
-            points = [[xt[a] + q * (x2[a] - x1[a]) for a in range(3)] for q in steps]
+            along = [x2[a] - x1[a] for a in range(3)]
+            samples = blur_count(k, xt, along, s.blur_length, preset_samples)
+            points = [[xt[a] + q * along[a] for a in range(3)]
+                      for q in _steps(s.blur_length, samples)]
             looks = (template, max(float(record.scale[j]) * resolution, 1.0),
                      int(record.defocus[j]), rotation,
                      bool(s.defocus_brighten) and int(record.defocus[j]) > 1)
@@ -195,7 +223,11 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number):
             factor = fade * min(footprint, 1.0) ** 2
             if not seen or factor * _value(theta) == 0:
                 continue
-            points = [_apply(cams[t], [start[a] + q * d[a] for a in range(3)]) for q in steps]
+            along = [sum(cams[t][i][a] * d[a] for a in range(3)) for i in range(3)]  # R d
+            samples = blur_count(k, _apply(cams[t], start), along, s.blur_length,
+                                 preset_samples)
+            points = [_apply(cams[t], [start[a] + q * d[a] for a in range(3)])
+                      for q in _steps(s.blur_length, samples)]
             looks = (template, max(footprint, 1.0), radius, rotation,
                      bool(s.defocus_brighten) and radius > 1)
             weight, b = theta * factor, min(beta, 1 / o.depth_softness)
@@ -245,7 +277,8 @@ def frame_sums(depth, frame_draws, levels, resolution, coarse_side, detach_occlu
     height, width = len(depth), len(depth[0])
     grids = {}                       # level -> [A, C_r, C_g, C_b, Z] lists of rows
     for looks, samples, theta, colour, b in frame_draws:
-        level, pixels = stamp(levels, *looks, resolution, coarse_side)
+        level, phases, pixels = stamp(levels, *looks, resolution, coarse_side)
+        reach = max(abs(dx) for _, dx in pixels) // phases + 1     # pixels from the centre
         f = 2 ** level
         if level not in grids:
             h, w = -(-height // f), -(-width // f)
@@ -257,24 +290,28 @@ def frame_sums(depth, frame_draws, levels, resolution, coarse_side, detach_occlu
             if _value(z) <= NEAR:
                 continue
             uc, vc = (u + 0.5) / f - 0.5, (v + 0.5) / f - 0.5       # on the level's grid
-            for (dy, dx), alpha in pixels.items():
-                if alpha == 0:
-                    continue
-                cu, cv = uc + dx, vc + dy
-                for px in (math.floor(_value(cu)), math.floor(_value(cu)) + 1):
-                    for py in (math.floor(_value(cv)), math.floor(_value(cv)) + 1):
-                        if not (0 <= px < w and 0 <= py < h):
-                            continue
-                        tent = (1 - abs(px - cu)) * (1 - abs(py - cv))
-                        if _value(tent) <= 0:
-                            continue
-                        d = _value(z) if detach_occlusion else z
-                        vis = 1 / (1 + _exp(b * (d - scene[py][px])))
-                        a = alpha * tent * vis * theta
-                        sums[0][py][px] = sums[0][py][px] + a
-                        for c in range(3):
-                            sums[1 + c][py][px] = sums[1 + c][py][px] + a * colour[c]
-                        sums[4][py][px] = sums[4][py][px] + a * _value(z)
+            cu, cv = math.floor(_value(uc)), math.floor(_value(vc))
+            for py in range(max(cv - reach, 0), min(cv + reach + 2, h)):
+                for px in range(max(cu - reach, 0), min(cu + reach + 2, w)):
+                    # the stamp at this pixel's offset from the centre, interpolated
+                    # bilinearly between its values 1 / P pixel apart (on a grid point: the
+                    # interval that a larger u, v moves into, the core's one-sided derivative)
+                    gx, gy = (px - uc) * phases, (py - vc) * phases
+                    x0, y0 = math.ceil(_value(gx)) - 1, math.ceil(_value(gy)) - 1
+                    corners = [pixels.get((y0 + dy, x0 + dx), 0.0)
+                               for dy in (0, 1) for dx in (0, 1)]
+                    if not any(corners):
+                        continue
+                    wx, wy = gx - x0, gy - y0
+                    alpha = (1 - wy) * ((1 - wx) * corners[0] + wx * corners[1]) \
+                        + wy * ((1 - wx) * corners[2] + wx * corners[3])
+                    d = _value(z) if detach_occlusion else z
+                    vis = 1 / (1 + _exp(b * (d - scene[py][px])))
+                    a = alpha * vis * theta
+                    sums[0][py][px] = sums[0][py][px] + a
+                    for c in range(3):
+                        sums[1 + c][py][px] = sums[1 + c][py][px] + a * colour[c]
+                    sums[4][py][px] = sums[4][py][px] + a * _value(z)
     total = torch.zeros(5, height, width, dtype=torch.float64)
     for level in sorted(grids, reverse=True):
         sums = grids[level][0]

@@ -13,6 +13,7 @@ from oracle import oracle_render
 from weathergen.datasets import frame_rate_of
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, list_presets, load_preset,
                                load_templates, render, sample_field_particles, sample_particles)
+from weathergen.engine.tracks import Views, pair_tracks, streak_samples
 from weathergen.framepair import FramePairBatch
 
 
@@ -92,6 +93,22 @@ def test_exact_large_billboards_equal_the_oracle():
 
 
 FIELD = [n for n in list_presets("field")]
+def test_long_streaks_get_more_blur_samples_and_equal_the_oracle():
+    """Streaks longer than the preset's samples cover one pixel apart get more samples (up to
+    the cap), θ / K_t each: the oracle counts them its own way (the pixel speed at the nearer
+    end)."""
+    pairs = [scene(0), scene(1)]
+    records = [paper(p, "rain", 10 + i, 6, size=9, blur_samples=3, blur_length=1.5)
+               for i, p in enumerate(pairs)]
+    args = arguments(pairs, records)
+    views = Views.of(torch.cat((args[4], args[4])), torch.cat((args[5], args[6])),
+                     torch.cat((args[2], args[3])))
+    _, tracks = pair_tracks(records, views, 80, beta=BETA_RENDER, dtype=torch.float64)
+    samples, _ = streak_samples(tracks)
+    assert int(samples.max()) > 6 and int(samples.min()) >= 3
+    assert_equal_to_oracle(pairs, records)
+
+
 #: Densities (and blur samples) that keep the oracle quick on a 24 x 32 frame: a dozen or two
 #: particles.
 THIN = {"snow": {"density": 10.0}, "rain": {"density": 10.0, "blur_samples": 4},

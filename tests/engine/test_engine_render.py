@@ -14,6 +14,8 @@ from engine_scenes import plane_pair
 from weathergen.engine import (BETA_ATTACK, Particles, RenderSettings, TemplateLibrary, from_atanh,
                                load_preset, render, render_pair, sample_particles, to_atanh)
 from weathergen.engine.particles import empty_particles
+from weathergen.engine.sampling import NEAR
+from weathergen.engine.tracks import MAX_BLUR_SAMPLES
 from weathergen.errors import ConfigError, DatasetError, WeatherGenError
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -78,9 +80,12 @@ def _naive_level(alphas: np.ndarray, level: int) -> np.ndarray:
 
 
 def _naive_stamp(lib, tid, rotation, scale, radius, brighten):
-    """The particle's alpha stamp around its centre pixel, as a dict {(dy, dx): value}: the
-    template rotated and scaled to the footprint, each pixel the mean of sub x sub samples
-    (box filter; 4 x 4 for stamps up to 5 pixels wide, 2 x 2 up to 9)."""
+    """The particle's alpha stamp around its centre, as its phases P and a dict
+    {(dy, dx): value} of its values at (dy, dx) / P pixels from the centre: the template
+    rotated and scaled to the footprint, each value the mean of sub x sub samples over the pixel
+    square centred there (4 x 4 for stamps up to 5 pixels wide, 2 x 2 up to 9). Stamps up to 9
+    pixels without a disc blur are sampled every 1 / sub pixel (P = sub), others at whole
+    pixels (P = 1)."""
     res = lib.resolution
     footprint = max(scale * res, 1.0)
     side = 2 * max(math.floor(footprint / 2 + 0.5), 1) + 1
@@ -92,14 +97,15 @@ def _naive_stamp(lib, tid, rotation, scale, radius, brighten):
     tmpl = _naive_level(lib.alphas.double().numpy(), level)[tid]
     rl = tmpl.shape[0]
     half = int(math.ceil(footprint / 2)) + 2
+    phases = sub if radius <= 1 else 1
     stamp = {}
-    for dy in range(-half, half + 1):
-        for dx in range(-half, half + 1):
+    for dy in range(-half * phases, half * phases + 1):
+        for dx in range(-half * phases, half * phases + 1):
             total = 0.0
             for iy in range(sub):
                 for ix in range(sub):
-                    sy = dy + (iy + 0.5) / sub - 0.5
-                    sx = dx + (ix + 0.5) / sub - 0.5
+                    sy = dy / phases + (iy + 0.5) / sub - 0.5
+                    sx = dx / phases + (ix + 0.5) / sub - 0.5
                     # template offset = Rot(-rotation) * image offset, in half-footprints
                     xn = (math.cos(rotation) * sx + math.sin(rotation) * sy) / (footprint / 2)
                     yn = (-math.sin(rotation) * sx + math.cos(rotation) * sy) / (footprint / 2)
@@ -122,7 +128,20 @@ def _naive_stamp(lib, tid, rotation, scale, radius, brighten):
                 v = sum(stamp.get((dy - a, dx - b), 0.0) for a, b in disc) / len(disc)
                 blurred[(dy, dx)] = min(max(2 * v, 0.0) ** (1 / 3), 1.0) if brighten else v
         stamp = blurred
-    return stamp
+    return phases, stamp
+
+
+def _naive_samples(k, x, along, length: float, preset: int) -> int:
+    """Blur samples of the streak x + s along, s in [0, length] (camera coordinates): one more
+    than its length in pixels at its nearer end's pixel speed, at least the preset's, at most
+    MAX_BLUR_SAMPLES. (The numerator of d(X/Z)/ds is constant along a line.)"""
+    if preset <= 1:
+        return preset
+    x, a = [float(t) for t in x], [float(t) for t in along]
+    z_near = max(min(x[2], x[2] + length * a[2]), NEAR)
+    speed = math.hypot(float(k[0, 0]) * (a[0] * x[2] - x[0] * a[2]),
+                       float(k[1, 1]) * (a[1] * x[2] - x[1] * a[2])) / z_near ** 2
+    return min(max(math.ceil(length * speed) + 1, preset), MAX_BLUR_SAMPLES)
 
 
 def naive_render(pair, parts: Particles, lib, beta):
@@ -135,32 +154,38 @@ def naive_render(pair, parts: Particles, lib, beta):
         alpha = [[0.0] * w for _ in range(h)]
         colour = [[[0.0] * w for _ in range(h)] for _ in range(3)]
         for j in range(parts.count):
-            stamp = _naive_stamp(lib, int(parts.template[j]), float(parts.rotation[j]),
-                                 float(parts.scale[j]), int(parts.defocus[j]),
-                                 parts.settings.defocus_brighten)
-            kk = parts.settings.blur_samples if parts.settings.blur_length > 0 else 1
+            phases, stamp = _naive_stamp(lib, int(parts.template[j]), float(parts.rotation[j]),
+                                         float(parts.scale[j]), int(parts.defocus[j]),
+                                         parts.settings.defocus_brighten)
+            # the streak runs along the camera-space motion X2 - X1 (own + camera motion)
+            p1 = parts.position[j] + parts.offset1[j]
+            p2 = p1 + parts.motion[j] + parts.offset2[j]
+            c2 = pair.cam2_from_cam1.to(p1.dtype)
+            x1, x2 = p1, c2[:3, :3] @ p2 + c2[:3, 3]
+            preset = parts.settings.blur_samples if parts.settings.blur_length > 0 else 1
+            kk = _naive_samples(k, (x1 if t == 0 else x2).detach(), (x2 - x1).detach(),
+                                parts.settings.blur_length, preset)
             for s in range(kk):
                 frac = parts.settings.blur_length * s / (kk - 1) if kk > 1 else 0.0
-                # the streak runs along the camera-space motion X2 - X1 (own + camera motion)
-                p1 = parts.position[j] + parts.offset1[j]
-                p2 = p1 + parts.motion[j] + parts.offset2[j]
-                c2 = pair.cam2_from_cam1.to(p1.dtype)
-                x1, x2 = p1, c2[:3, :3] @ p2 + c2[:3, 3]
                 x = (x1 if t == 0 else x2) + frac * (x2 - x1)
                 u = k[0, 0] * x[0] / x[2] + k[0, 2]
                 v = k[1, 1] * x[1] / x[2] + k[1, 2]
                 theta = parts.transparency[j] / kk
                 for py in range(h):
                     for px in range(w):
-                        # bilinear splat: each stamp cell sits at (u + dx, v + dy)
-                        acc = 0.0
-                        for (dy, dx), val in stamp.items():
-                            wx = 1 - abs(px - (u + dx))
-                            wy = 1 - abs(py - (v + dy))
-                            if val and float(wx.detach()) > 0 and float(wy.detach()) > 0:
-                                acc = acc + val * wx * wy
-                        if isinstance(acc, float) and acc == 0.0:
+                        # the stamp at the pixel's offset from (u, v), bilinear between its
+                        # values 1 / P pixel apart (on a grid point: the interval that a larger
+                        # u, v moves into, the core's one-sided derivative)
+                        gx, gy = (px - u) * phases, (py - v) * phases
+                        x0 = math.ceil(float(gx.detach())) - 1
+                        y0 = math.ceil(float(gy.detach())) - 1
+                        corners = [stamp.get((y0 + a, x0 + b), 0.0) for a in (0, 1)
+                                   for b in (0, 1)]
+                        if not any(corners):
                             continue
+                        wx, wy = gx - x0, gy - y0
+                        acc = (1 - wy) * ((1 - wx) * corners[0] + wx * corners[1]) \
+                            + wy * ((1 - wx) * corners[2] + wx * corners[3])
                         vis = 1 / (1 + torch.exp(beta * (x[2] - depths[t][py, px])))
                         a = acc * vis * theta
                         alpha[py][px] = alpha[py][px] + a

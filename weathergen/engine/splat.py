@@ -1,8 +1,10 @@
 """Stage 3 of the render core: blur samples and stamps -> per-pixel sums, differentiably.
 
 Every blur sample (:class:`~weathergen.engine.tracks.Instances`) leaves its entry's stamp
-(:class:`~weathergen.engine.stamps.StampSet`), shifted by its sub-pixel position with bilinear
-weights (an ``(s + 1) x (s + 1)`` patch ``B``: differentiable in the position), times the
+(:class:`~weathergen.engine.stamps.StampSet`) placed at its sub-pixel position: each pixel of an
+``(s + 1) x (s + 1)`` patch ``B`` reads the stamp at its offset from the sample, interpolated
+bilinearly between the stamp's values (a pixel apart; 1 / P pixel for phase stamps, whose P
+phases per axis are read at stride P: differentiable in the position), times the
 visibility ``V = 1 / (1 + exp(β (d − D)))`` of its depth ``d`` against the scene depth ``D``
 under each patch pixel, times its ``θ / K``; the products are added into per-pixel sums
 ``A = Σ θ B V`` and ``C_c = Σ γ_c θ B V`` (:class:`Sums`), one plane per view. Entries drawn on
@@ -12,8 +14,9 @@ brings them to the image grid.
 
 Layout: a patch has an even side (stamp sides are odd), so it is cut into 2 x 2 blocks: a
 sample's blocks are rows of blocks, and the rows of every sample of the call are one ragged run
-(what a block needs is computed once per row of blocks). Per block the stamp's 3 x 3
-neighbourhood is read once and the four pixels are computed side by side (element arrays are
+(what a block needs is computed once per row of blocks). Per block the stamp's 4 x 4
+neighbourhood (rows and columns 0, 1, P, P + 1 from the block's first grid point) is read once
+and the four pixels are computed side by side (element arrays are
 (2, 2, blocks): a block's numbers broadcast along the last, contiguous axis). A grid plane has a
 margin left and right as wide as the call's widest patch and one extra row below, where patch
 pixels outside the image land (their scene depth is −∞: V = 0, they add nothing; rows outside
@@ -199,7 +202,8 @@ class _Plan:
         self.coarse = grids.levels[0][0] > 0       # (coarsest first)
         with torch.no_grad():
             # per sample: its stamp's side, level and start, and its level's grid
-            side, level, first = torch.stack((stamps.side, stamps.coarse, stamps.first), 1) \
+            side, level, first, phases = torch.stack((stamps.side, stamps.coarse, stamps.first,
+                                                      stamps.phases), 1) \
                 .index_select(0, inst.entry).unbind(1)
             offset, h, w, m, f = table.index_select(0, level).t()
             u, v = inst.u.detach(), inst.v.detach()
@@ -216,7 +220,10 @@ class _Plan:
             plane_key = level * grids.views + inst.view
             tile = torch.div(torch.stack((v0, u0)), TILE, rounding_mode="floor") \
                 .clamp_(-1, 1 << 12).add_(1)
-            key = (plane_key * (1 << 28) + tile[0] * (1 << 14) + tile[1]).index_select(0, kept)
+            # (phase stamps after the others: most chunks then hold one kind, see _Blocks)
+            kind = (phases > 1).long()
+            key = ((plane_key * 2 + kind) * (1 << 28) + tile[0] * (1 << 14) + tile[1]) \
+                .index_select(0, kept)
             order = torch.sort(key, stable=True).indices
             kept = kept.index_select(0, order)
             self.count = int(kept.numel())
@@ -224,23 +231,32 @@ class _Plan:
                 return
             # (gathering whole rows of a stacked table is several times faster than gathering
             # along its second axis)
+            # the phase stamp's grid point at the patch's top-left pixel (see _Blocks): the
+            # phase φ = floor(P f) of the sub-pixel shift f, per axis
+            fine = phases * (side + 1) + 1
+            phase_u = torch.floor((u - u0) * phases).long()
+            phase_v = torch.floor((v - v0) * phases).long()
+            first = first + (phases - 1 - phase_v) * fine + (phases - 1 - phase_u)
             ints = torch.stack((side, col0, row0, h, w + 2 * m, offset + m, inst.view, first,
-                                level, plane_key), 1).index_select(0, kept)
-            side, col0, row0, h, row_len, offset, view, first, level, groups = ints.unbind(1)
+                                level, plane_key, phases), 1).index_select(0, kept)
+            side, col0, row0, h, row_len, offset, view, first, level, groups, phases = \
+                ints.unbind(1)
             self.reached[view] = True
             self.kept, self.level = kept, level
+            self.phases = phases.to(self.dtype)
             q = (side + 1) // 2
             plane = offset + view * (h + 1) * row_len + col0           # + the patch's column
             rows = int(q.sum())
             sample = torch.repeat_interleave(torch.arange(self.count, device=device), q,
                                              output_size=rows)
-            per_row = torch.stack((side + 2, first, row0, h, plane, row_len, q, groups), 1) \
-                .index_select(0, sample)
-            stride, first, row0, h, plane, row_len, sizes, groups = per_row.unbind(1)
+            per_row = torch.stack((phases * (side + 1) + 1, first, row0, h, plane, row_len, q,
+                                   groups, phases), 1).index_select(0, sample)
+            stride, first, row0, h, plane, row_len, sizes, groups, row_phases = per_row.unbind(1)
             self.sizes, self.groups = sizes.contiguous(), groups.contiguous()
             br = torch.arange(rows, device=device) - starts(q).index_select(0, sample)
             self.row_sample, self.row_stride = sample, stride.contiguous()
-            self.row_at = first + 2 * br * stride
+            self.row_phases = row_phases.contiguous()
+            self.row_at = first + 2 * br * row_phases * stride
             y = (row0 + 2 * br) + torch.arange(2, device=device)[:, None]
             y = torch.where((y >= 0) & (y < h), y, h)                  # outside: the extra row
             self.row_pix = torch.addcmul(plane, y, row_len)
@@ -260,18 +276,16 @@ def _on_grid(x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
     return torch.where(f > 1, (x + 0.5) / f - 0.5, x)
 
 
-_THREE = (0, 1, 2)
-
-
 class _Blocks:
     """One chunk of 2 x 2 pixel blocks: their patches, pixels and visibilities.
 
     Element arrays are (2, 2, n) for n blocks, indexed (patch column j, patch row i, block), so
     that a block's numbers (n,) broadcast along the last, contiguous axis. ``sample`` (n,) the
     block's kept sample; ``per`` (P, n) the per-sample numbers of :func:`_per_sample` for each
-    block; ``near`` (3 arrays (3, n)): the block's 3 x 3 neighbourhood of the bordered stamp,
-    column c; ``rows`` (2 arrays (3, n)): the stamp rows interpolated at the sub-pixel column
-    shift, for patch columns j = 0, 1; ``patch`` B; ``pix`` int64 indices into the sums;
+    block; ``near`` (4 arrays (4, n)): the block's 4 x 4 neighbourhood of the bordered stamp
+    (columns, then rows, at 0, 1, P, P + 1 grid points from the block's first); ``rows``
+    (2 arrays (4, n)): those rows interpolated at the sub-pixel column shift, for patch columns
+    j = 0, 1; ``patch`` B; ``pix`` int64 indices into the sums;
     ``vis`` V.
     """
 
@@ -281,17 +295,36 @@ class _Blocks:
         fu, fv, beta_z, beta = self.per[:4]
         n = row.numel()
         two_columns = 2 * column
-        at = plan.row_at.index_select(0, row) + two_columns   # the block's top-left stamp pixel
-        index = torch.addcmul(at, plan.row_stride.index_select(0, row),
-                              torch.arange(3, device=at.device)[:, None]).view(-1)
+        phases = plan.row_phases.index_select(0, row)
+        # the block's top-left grid point: patch pixel j of a row mixes the stamp's grid points
+        # j P and j P + 1 (from the block's), rows likewise: a 4 x 4 neighbourhood, rows and
+        # columns at 0, 1, P, P + 1 (with P = 1 the three of a pixel-sampled stamp)
+        stride = plan.row_stride.index_select(0, row)
         pixels = plan.stamps.pixels
-        self.near = [pixels[c:].index_select(0, index).view(3, n) for c in _THREE]
-        # stamp pixel (y, x) sits at bordered (y + 1, x + 1); patch pixel (py, px) mixes
-        # stamp[py − a, px − b] for a, b in {0, 1}: columns first (weight fu), then rows (fv)
-        self.rows = [torch.lerp(self.near[j + 1], self.near[j], fu) for j in range(2)]
+        if bool((phases == 1).all()):
+            # stamps sampled at whole pixels: the neighbourhood is 3 x 3 (rows and columns
+            # 0, 1, 2), read once; near[1] serves as both columns 1 and P
+            at = plan.row_at.index_select(0, row) + two_columns
+            index = torch.addcmul(at, stride, _constant_steps(at.device)).view(-1)
+            near = [pixels[c:].index_select(0, index).view(3, n) for c in (0, 1, 2)]
+            self.near = [near[0], near[1], near[1], near[2]]
+            self.lo, self.hi = slice(0, 2), slice(1, 3)
+        else:
+            at = torch.addcmul(plan.row_at.index_select(0, row), two_columns, phases)
+            index = torch.empty(2, 2, n, dtype=at.dtype, device=at.device)  # rows 0, 1, P, P + 1
+            index[0, 0] = at
+            torch.addcmul(at, stride, phases, out=index[1, 0])
+            torch.add(index[:, 0], stride, out=index[:, 1])
+            index = index.view(-1)
+            shifted = index + phases.repeat(4)                              # columns P, P + 1
+            self.near = [source.index_select(0, i).view(4, n)
+                         for i in (index, shifted) for source in (pixels, pixels[1:])]
+            self.lo, self.hi = slice(0, None, 2), slice(1, None, 2)
+        # columns first (weight fu: the shift's fraction of a grid step), then rows (fv)
+        self.rows = [torch.lerp(self.near[2 * j + 1], self.near[2 * j], fu) for j in range(2)]
         self.patch = torch.empty(2, 2, n, dtype=pixels.dtype, device=pixels.device)
         for j in range(2):
-            torch.lerp(self.rows[j][1:], self.rows[j][:2], fv, out=self.patch[j])
+            torch.lerp(self.rows[j][self.hi], self.rows[j][self.lo], fv, out=self.patch[j])
         start = plan.row_pix.index_select(1, row) + two_columns       # (2 i, n)
         self.pix = start[None] + torch.arange(2, device=at.device)[:, None, None]
         depth = plan.scene.index_select(0, self.pix.view(-1)).view(2, 2, n)
@@ -301,6 +334,17 @@ class _Blocks:
         # float32's exp stays on its fast path (and products stay clear of denormals).
         self.vis = torch.addcmul(beta_z, depth, beta, value=-1) \
             .clamp_(-VISIBILITY_CLAMP, VISIBILITY_CLAMP).exp_().add_(1).reciprocal_()
+
+
+_STEPS: dict = {}
+
+
+def _constant_steps(device) -> torch.Tensor:
+    """The rows 0, 1, 2 of a block's neighbourhood, as a (3, 1) column (made once per device)."""
+    key = str(device)
+    if key not in _STEPS:
+        _STEPS[key] = torch.arange(3, device=device)[:, None]
+    return _STEPS[key]
 
 
 def _block_sum(x: torch.Tensor) -> torch.Tensor:
@@ -361,11 +405,11 @@ class _Splat(torch.autograd.Function):
             if need[0]:   # dB/dfu: the column difference of the stamp, interpolated in fv
                 d_fu = torch.empty_like(b.patch)
                 for j in range(2):
-                    diff = b.near[j] - b.near[j + 1]
-                    torch.lerp(diff[1:], diff[:2], fv, out=d_fu[j])
+                    diff = b.near[2 * j] - b.near[2 * j + 1]
+                    torch.lerp(diff[b.hi], diff[b.lo], fv, out=d_fu[j])
                 out[0] = _block_sum(d_fu.mul_(g_bv))
             if need[1]:   # dB/dfv: the row difference of the interpolated rows
-                d_fv = torch.stack([r[:2] - r[1:] for r in b.rows])
+                d_fv = torch.stack([r[b.lo] - r[b.hi] for r in b.rows])
                 out[1] = _block_sum(d_fv.mul_(g_bv))
             g_bvp = g_bv * b.patch                               # dL/dθ per pixel
             if need[2]:   # dV/dd = −β V (1 − V)
@@ -381,7 +425,10 @@ class _Splat(torch.autograd.Function):
                     sums[k].index_add_(0, b.sample, value)
         th = per[4]
         index = plan.kept
-        scale = th / (2.0 ** plan.level).to(u.dtype) if plan.coarse else th    # du' / du = 1 / f
+        # d(fraction of a grid step) / du = P / f (P phases, a grid f times coarser)
+        scale = th * plan.phases
+        if plan.coarse:
+            scale = scale / (2.0 ** plan.level).to(u.dtype)
         if need[0]:
             grads[0].index_add_(0, index, scale * sums[0])
         if need[1]:
@@ -396,16 +443,19 @@ class _Splat(torch.autograd.Function):
 
 
 def _per_sample(plan: _Plan, u, v, z, theta, color) -> torch.Tensor:
-    """Per kept sample, packed (6 + 2 C, K): fu, fv (the sub-pixel shift on its grid), β d, β,
-    θ / K, the weights of the 1 + C sums θ, θ γ_1 .. θ γ_C, and the colour γ (C)."""
+    """Per kept sample, packed (6 + 2 C, K): fu, fv (the sub-pixel shift on its grid, as a
+    fraction of the stamp's grid step 1 / P: ``P f − floor(P f)``), β d, β, θ / K, the weights
+    of the 1 + C sums θ, θ γ_1 .. θ γ_C, and the colour γ (C)."""
     kept = plan.kept
     uu, vv = u.detach().index_select(0, kept), v.detach().index_select(0, kept)
     if plan.coarse:
         f = (2.0 ** plan.level).to(u.dtype)
         uu, vv = _on_grid(uu, f), _on_grid(vv, f)
+    # P f is exact (P a power of two), so floor(P f) is the plan's phase
+    pu, pv = (uu - torch.floor(uu)) * plan.phases, (vv - torch.floor(vv)) * plan.phases
     beta = plan.beta.index_select(0, kept).to(u.dtype)
     th = theta.detach().index_select(0, kept)
     col = color.detach().index_select(0, kept)
-    return torch.cat((torch.stack((uu - torch.floor(uu), vv - torch.floor(vv),
+    return torch.cat((torch.stack((pu - torch.floor(pu), pv - torch.floor(pv),
                                    beta * z.detach().index_select(0, kept), beta, th, th)),
                       th * col.t(), col.t()))

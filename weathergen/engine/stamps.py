@@ -2,8 +2,11 @@
 
 Each stamp entry's template (:class:`~weathergen.engine.tracks.Looks`) is rotated and scaled to
 its own footprint on a pixel-centred grid, sampled from a mip level no finer than twice the
-footprint (no aliasing for far, tiny particles), tiny stamps box-filtered (each pixel averages
-4 x 4 samples up to 5 pixels wide, 2 x 2 up to 9), zero outside the footprint's disc; then
+footprint (no aliasing for far, tiny particles), zero outside the footprint's disc. Small stamps
+without a defocus blur are *phase stamps* (:data:`PHASE_SIDE`): sampled every 1 / P pixel
+(P = 4 up to 5 pixels wide, 2 up to 9), each value the template averaged over the pixel square
+centred there, so that the splat can place them at a particle's exact sub-pixel position; the
+others are sampled once per pixel (small blurred ones box-filtered: 4 x 4 or 2 x 2 samples); then
 disc-blurred by the defocus radius (a normalised disc, the stamp growing by 2 r) and brightened
 where asked (:func:`defocus_brighten`). Stamps at least :data:`COARSE_SIDE` pixels wide (fog,
 large dust) are drawn for a grid ``2**L`` times coarser than the image (see
@@ -55,6 +58,11 @@ COARSE_MAX_LEVEL = 3
 RIM_MARGIN = 1e-5
 #: Stamp samples (or blur elements) handled per chunk.
 STAMP_CHUNK_ELEMENTS = 1 << 16
+#: Stamps up to this side (without a defocus blur) are *phase stamps*: sampled on a grid P times
+#: finer than the pixels (P = 4 up to 5 pixels, 2 up to 9), so that the splat places them at
+#: the particle's sub-pixel position to within 1 / P pixel instead of shifting a pixel-centred
+#: stamp by a one-pixel bilinear tent (which widened far particles by up to half their size).
+PHASE_SIDE = 9
 
 
 def _allowed_sides(limit: int = 8193) -> torch.Tensor:
@@ -147,10 +155,12 @@ def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: i
     Stamps at least ``coarse_side`` pixels wide (template plus defocus) go to a grid ``f = 2**L``
     times coarser (f the largest power of two up to ``2**COARSE_MAX_LEVEL`` keeping them >=
     COARSE_MIN_SIDE coarse pixels wide), footprint and radius divided by f. Returns
-    ``(footprint, radius, coarse, side, sub, level)``, all (E,): the footprint on its grid, the
-    disc-blur radius (0: none; radii <= 1 do not blur on the image grid), the grid level L, the
-    stamp side before the blur (an allowed side covering every pixel the footprint's disc
-    reaches), the supersampling per axis and the mip level (no finer than twice the footprint).
+    ``(footprint, radius, coarse, side, sub, level, phases)``, all (E,): the footprint on its
+    grid, the disc-blur radius (0: none; radii <= 1 do not blur on the image grid), the grid
+    level L, the stamp side before the blur (an allowed side covering every pixel the
+    footprint's disc reaches), the supersampling per axis, the mip level (no finer than twice
+    the footprint) and the phases P per axis (``sub`` for small stamps without a blur: they are
+    sampled at every 1 / P pixel; 1 otherwise).
     """
     radius = torch.where(defocus > 1, defocus, torch.zeros_like(defocus))
     coarse = torch.zeros_like(radius)
@@ -167,10 +177,11 @@ def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: i
     raw_side = 2 * torch.floor(footprint / 2 + 0.5).clamp(min=1).long() + 1
     sides = SIDES.to(footprint.device)
     side = sides[torch.searchsorted(sides, raw_side)]
-    sub = torch.where(side <= 5, 4, torch.where(side <= 9, 2, 1))
+    sub = torch.where(side <= 5, 4, torch.where(side <= PHASE_SIDE, 2, 1))
     level = floor_log2(resolution / (footprint * sub)) \
         .clamp(0, level_count - 1).long()
-    return footprint, radius, coarse, side, sub, level
+    phases = torch.where(radius == 0, sub, torch.ones_like(sub))
+    return footprint, radius, coarse, side, sub, level, phases
 
 
 def defocus_brighten(blurred: torch.Tensor) -> torch.Tensor:
@@ -206,17 +217,22 @@ def disc_counts(radius: torch.Tensor) -> torch.Tensor:
 @dataclass
 class StampSet:
     """The stamps of E entries, ragged: entry e's stamp, ``side x side`` pixels with a one-pixel
-    zero border around it, row-major at ``pixels[first[e]:first[e] + (side + 2)**2]``.
+    zero border around it, sampled every ``1 / P`` pixel (P = ``phases[e]``): the stamp's
+    value at ``(y, x) / P − (side + 1) / 2`` pixels from the particle's centre (row, column of
+    the ``n x n`` grid, ``n = P (side + 1) + 1``; its outer rows and columns are the zero
+    border) is at ``pixels[first[e] + y n + x]``. With P = 1 that is the stamp's pixels with
+    their border.
 
     Reusable while the looks stay fixed (e.g. the paper's particles across attack steps).
-    Shape: pixels (L,) in the images' dtype; first, side (odd), coarse (the grid level) (E,)
-    int64.
+    Shape: pixels (L,) in the images' dtype; first, side (odd), coarse (the grid level),
+    phases (E,) int64.
     """
 
     pixels: torch.Tensor
     first: torch.Tensor
     side: torch.Tensor
     coarse: torch.Tensor
+    phases: torch.Tensor
 
     @property
     def count(self) -> int:
@@ -226,7 +242,7 @@ class StampSet:
         device = self.pixels.device if device is None else device
         return StampSet(pixels=self.pixels.to(device=device, dtype=dtype),
                         first=self.first.to(device), side=self.side.to(device),
-                        coarse=self.coarse.to(device))
+                        coarse=self.coarse.to(device), phases=self.phases.to(device))
 
     @staticmethod
     def cat(parts: Sequence["StampSet"]) -> "StampSet":
@@ -236,7 +252,8 @@ class StampSet:
         return StampSet(pixels=torch.cat([p.pixels for p in parts]),
                         first=torch.cat([p.first + o for p, o in zip(parts, offsets)]),
                         side=torch.cat([p.side for p in parts]),
-                        coarse=torch.cat([p.coarse for p in parts]))
+                        coarse=torch.cat([p.coarse for p in parts]),
+                        phases=torch.cat([p.phases for p in parts]))
 
 
 def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.float32,
@@ -249,11 +266,12 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
                           f"templates of '{lib.name}'")
     with torch.no_grad():
         book = atlas(lib, dtype, device)
-        footprint, radius, coarse, side, sub, level = stamp_geometry(
+        footprint, radius, coarse, side, sub, level, phases = stamp_geometry(
             looks.footprint.to(torch.float64), looks.defocus, lib.resolution,
             int(book.res.numel()), coarse_side)
         full = side + 2 * radius
-        block = (full + 2) * (full + 2)
+        fine = phases * (full + 1) + 1                           # grid side with the border
+        block = fine * fine
         first = starts(block)
         size = int(block.sum()) if looks.count else 0
         # One float64 buffer: every stamp in its bordered place, then, for the stamps to blur,
@@ -272,8 +290,10 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
         pitch = torch.where(blurred, torch.full_like(side, width), full + 2)
         # stamps brightened without a blur (a defocus radius that rounds to 0 on a coarse grid)
         bright = looks.brighten & ~blurred
-        _sample(looks, book, footprint, side, sub, level, place, pitch, work, dtype,
-                bright if bool(bright.any()) else None, chunk_elements)
+        coef = _coefficients(looks, book, footprint, side, level, dtype)
+        _sample(coef, book, side, sub, place, pitch, work, bright if bool(bright.any()) else None,
+                chunk_elements, phases == 1)
+        _sample_phases(coef, book, side, phases, first, work, chunk_elements)
         if bool(blurred.any()):
             members = torch.nonzero(blurred).squeeze(1)
             # each row divided by its disc's taps (the blur's normalisation, linear), then
@@ -283,19 +303,14 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
             prefix = work[size:].view(-1, width).div_(rows_of[:, None]).cumsum_(1).view(-1)
             _blur(prefix, members, side, radius, looks.brighten, rows_first, width, first,
                   full, work, chunk_elements)
-    return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse)
+    return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse,
+                    phases=phases)
 
 
-def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch,
-            work: torch.Tensor, dtype, bright: Optional[torch.Tensor], chunk: int) -> None:
-    """Every entry's stamp before its blur, written to ``work`` (pixel (y, x) of entry e at
-    ``place[e] + y pitch[e] + x``): each pixel the mean of its ``sub x sub`` bilinear samples of
-    the template's mip level at the rotated and scaled position, zero outside the footprint's
-    disc; brightened where ``bright`` (E,) says so."""
-    if looks.count == 0:
-        return
-    device = looks.template.device
-    # Per entry, a sample at (gx, gy) pixels from the stamp's centre reads the atlas at the
+def _coefficients(looks: Looks, book: Atlas, footprint, side, level, dtype) -> torch.Tensor:
+    """Per entry, how a sample at (gx, gy) pixels from the stamp's centre reads the atlas.
+    Shape: (E, 8), see :func:`_sample`."""
+    # A sample at (gx, gy) pixels from the stamp's centre reads the atlas at the
     # normalised position (bx + ax gx + cx gy, by + ay gx + cy gy): the template at
     # Rot(−rotation) (gx, gy) in units of half the footprint (so image offset = Rot(rotation) ·
     # template offset), grid_sample's pixel convention (align_corners=False). It is inside the
@@ -311,10 +326,23 @@ def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch
                         -2 * scale * sin / height, 2 * scale * cos / height,
                         (footprint / 2) ** 2 * (1.0 + RIM_MARGIN),
                         -((side - 1) // 2).to(torch.float64)), 1).to(dtype)
+    return coef
+
+
+def _sample(coef: torch.Tensor, book: Atlas, side, sub, place, pitch, work: torch.Tensor,
+            bright: Optional[torch.Tensor], chunk: int, whole: torch.Tensor) -> None:
+    """The stamps sampled at whole pixels (``whole`` (E,): one phase), before their blur,
+    written to ``work`` (pixel (y, x) of entry e at ``place[e] + y pitch[e] + x``): each pixel
+    the mean of its ``sub x sub`` bilinear samples of the template's mip level at the rotated and
+    scaled position, zero outside the footprint's disc; brightened where ``bright`` (E,) says
+    so."""
+    if side.numel() == 0 or not bool(whole.any()):
+        return
+    device, dtype = coef.device, coef.dtype
     # entries by supersampling factor (4, 2, 1), then one item per stamp row, the groups' rows one
     # after the other: its entry, its row y and where its pixel 0 goes in ``work`` (a pixel's
     # column is then its index in the item)
-    groups = [(f, torch.nonzero(sub == f).squeeze(1)) for f in (4, 2, 1)]
+    groups = [(f, torch.nonzero((sub == f) & whole).squeeze(1)) for f in (4, 2, 1)]
     groups = [(f, m) for f, m in groups if m.numel()]
     order = torch.cat([m for _, m in groups]) if len(groups) > 1 else groups[0][1]
     s = side.index_select(0, order)
@@ -362,6 +390,59 @@ def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch
                 which = torch.nonzero(bright.index_select(0, e)).squeeze(1)
                 value.index_copy_(0, which, defocus_brighten(value.index_select(0, which)))
             work.index_copy_(0, row_at.index_select(0, item) + col, value.to(torch.float64))
+
+
+def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: torch.Tensor,
+                   chunk: int) -> None:
+    """The phase stamps (``phases`` P > 1), written to their bordered places in ``work``: the
+    value at ``(y, x) / P`` pixels on the grid around the centre is the mean of the template over
+    the pixel square centred there (``P x P`` bilinear samples of the mip level at every 1 / P
+    pixel, zero outside the footprint's disc), i.e. the pixel-integrated template at every
+    1 / P of a pixel.
+
+    Per value of P, the entries' samples are one dense batch on the grid of the group's largest
+    side (``m = P (side + 2)`` samples per axis, centred on the particle), averaged over every
+    ``P x P`` window (``n = P (side + 1) + 1`` values per axis), and each entry's centred
+    ``n_e x n_e`` part is copied to its place."""
+    if side.numel() == 0:
+        return
+    dtype = coef.dtype
+    for factor in (4, 2):
+        members = torch.nonzero(phases == factor).squeeze(1)
+        if members.numel() == 0:
+            continue
+        c = coef.index_select(0, members)[:, :, None, None]
+        s = side.index_select(0, members)
+        largest = int(s.max())
+        m = factor * (largest + 2)
+        n = m - factor + 1
+        # sample offsets from the centre, pixels: (b − (m − 1) / 2) / P, along x and along y
+        gx = _constant(f"gx{factor},{m}", [[[(b - (m - 1) / 2) / factor for b in range(m)]]],
+                       dtype, coef.device)
+        gy = _constant(f"gy{factor},{m}", [[[(b - (m - 1) / 2) / factor] for b in range(m)]],
+                       dtype, coef.device)
+        per = max(1, chunk // (m * m))
+        for lo in range(0, int(members.numel()), per):
+            bx, ax, cx, by, ay, cy, rho2, _ = c[lo:lo + per].unbind(1)
+            count = bx.shape[0]
+            grid = torch.empty(count, m, m, 2, dtype=dtype, device=coef.device)
+            grid_x, grid_y = grid.unbind(-1)
+            torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
+            torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
+            value = F.grid_sample(book.image, grid.view(1, count * m, m, 2), mode="bilinear",
+                                  padding_mode="zeros", align_corners=False).view(count, m, m)
+            value.mul_(torch.addcmul(gx * gx, gy, gy) <= rho2)
+            value = F.avg_pool2d(value[:, None], factor, stride=1)[:, 0].reshape(-1)
+            # entry e's n_e x n_e values: the centre of the n x n window
+            e = members[lo:lo + per]
+            ne = factor * (s[lo:lo + per] + 1) + 1
+            item, local = next(runs(ne * ne, 1 << 62))
+            size = ne.index_select(0, item)
+            row = torch.div(local, size, rounding_mode="floor")
+            skip = torch.div(n - size, 2, rounding_mode="floor")
+            at = item * (n * n) + (row + skip) * n + (local - row * size) + skip
+            work.index_copy_(0, first.index_select(0, e).index_select(0, item) + local,
+                             value.index_select(0, at).to(torch.float64))
 
 
 def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, work,

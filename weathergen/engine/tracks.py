@@ -14,8 +14,9 @@ particle's drawing come from. This stage computes those numbers and nothing else
   samples, θ, colour and the occlusion sharpness β. The paper's streaks follow ``X2 − X1`` (both
   cameras of the pair); a field's (and a single view's) follow the particle's own displacement.
 - :class:`Instances` (:func:`blur_samples`): every track's blur samples, projected: the input of
-  the splat. The number of samples is a per-track column, so a rule that adapts it to the
-  streak's length in pixels changes this file alone.
+  the splat. The number of samples is a per-track column, adapted to the streak's length in
+  pixels in each view (:func:`streak_samples`: consecutive samples at most one pixel apart, up
+  to :data:`MAX_BLUR_SAMPLES`).
 
 Every geometric product is an elementwise product and a sum over the last axis (no matrix
 products), so that a track's numbers do not depend on how many other tracks the call holds
@@ -554,10 +555,50 @@ class Instances:
         return int(self.entry.numel())
 
 
+#: Most blur samples of one track and view: a streak whose length (see :func:`streak_samples`)
+#: exceeds ``MAX_BLUR_SAMPLES − 1`` pixels gets gaps of ``L / (MAX_BLUR_SAMPLES − 1)`` pixels.
+MAX_BLUR_SAMPLES = 256
+
+
+def streak_samples(tracks: Tracks) -> tuple[torch.Tensor, torch.Tensor]:
+    """The number of blur samples of every track and their spacing, adapted to the streak's
+    length in pixels so that consecutive samples lie at most one pixel apart:
+    ``K_t = clamp(ceil(L_t) + 1, K, MAX_BLUR_SAMPLES)`` samples spread over the same streak
+    (``spacing_t = (K − 1) spacing / (K_t − 1)``), K the record's ``blur_samples``.
+
+    ``L_t`` is the streak's length in pixels measured at the slope of its nearer end: the
+    streak ``p(s) = (a + s b) / (c + s e)`` (``h0 = (a, c)``, ``hd = (b, e)``) has
+    ``|dp/ds| = |b c − a e| / z(s)²``, largest where the depth z is smallest, so
+    ``L_t = s_max |b c − a e| / z_min²`` bounds every gap by ``L_t / (K_t − 1)`` (it is the
+    projected length when the depth does not change, ``z_far / z_near`` times it otherwise).
+    Tracks without blur (K = 1) and short streaks (``L_t <= K − 1``) keep K and their spacing
+    bit for bit. Shape: T tracks -> (samples (T,) int64, spacing (T,) float64)."""
+    k = tracks.samples
+    if tracks.count == 0 or bool((k <= 1).all()):
+        return k, tracks.spacing
+    with torch.no_grad():
+        reach = (k - 1) * tracks.spacing                                  # s_max
+        h0, hd = tracks.h0, tracks.hd
+        # the first two components of h0 x hd are (−(b_v c − a_v e), b_u c − a_u e)
+        cross = torch.linalg.cross(h0, hd)[:, :2]
+        z0 = h0[:, 2]
+        near = torch.minimum(z0, torch.addcmul(z0, reach, hd[:, 2])).clamp_(min=NEAR)
+        length = reach * torch.sqrt((cross * cross).sum(1)) / (near * near)
+        length = torch.nan_to_num(length, nan=0.0).clamp_(max=MAX_BLUR_SAMPLES - 1)
+        samples = torch.maximum(torch.ceil(length).long() + 1, k)
+        spacing = torch.where(samples == k, tracks.spacing, reach / (samples - 1))
+    return samples, spacing
+
+
 def blur_samples(tracks: Tracks, dtype: torch.dtype) -> Instances:
-    """Every track's K blur samples at ``h0 + k · spacing · hd`` (k = 0 .. K − 1), projected,
-    each with θ / K. Shape: T tracks -> I = Σ K instances, a track's samples consecutive."""
+    """Every track's K_t blur samples at ``h0 + k · spacing_t · hd`` (k = 0 .. K_t − 1,
+    :func:`streak_samples`), projected, each with θ / K_t.
+    Shape: T tracks -> I = Σ K_t instances, a track's samples consecutive."""
     device = tracks.h0.device
+    samples, spacing = streak_samples(tracks)
+    tracks = Tracks(entry=tracks.entry, view=tracks.view, h0=tracks.h0, hd=tracks.hd,
+                    samples=samples, spacing=spacing, theta=tracks.theta, color=tracks.color,
+                    beta=tracks.beta)
     total = int(tracks.samples.sum()) if tracks.count else 0
     track = torch.repeat_interleave(torch.arange(tracks.count, device=device), tracks.samples,
                                     output_size=total)
