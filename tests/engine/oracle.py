@@ -117,7 +117,22 @@ def stamp(levels, template: int, footprint: float, defocus: int, rotation: float
                   for y in range(-full, full + 1) for x in range(-full, full + 1)}
     if brighten:
         pixels = {k: min((2 * max(v, 0.0)) ** (1 / 3), 1.0) for k, v in pixels.items()}
+        if radius > 0:
+            pixels = soften(pixels, radius)
     return level, pixels
+
+
+def soften(pixels: dict, radius: int) -> dict:
+    """A brightened stamp convolved with the Gaussian of σ = 1.25 + r / 4, cut at ceil(3 σ)
+    and normalised (the stamp grows by that reach), as a 2-D sum over every tap."""
+    sigma = 1.25 + radius / 4
+    reach = math.ceil(3 * sigma)
+    one = [math.exp(-k * k / (2 * sigma * sigma)) for k in range(-reach, reach + 1)]
+    one = [w / sum(one) for w in one]
+    full = max(abs(y) for y, _ in pixels) + reach
+    return {(y, x): sum(one[a + reach] * one[b + reach] * pixels.get((y - a, x - b), 0.0)
+                        for a in range(-reach, reach + 1) for b in range(-reach, reach + 1))
+            for y in range(-full, full + 1) for x in range(-full, full + 1)}
 
 
 # -- what each frame draws ----------------------------------------------------------------

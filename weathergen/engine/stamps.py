@@ -5,7 +5,9 @@ its own footprint on a pixel-centred grid, sampled from a mip level no finer tha
 footprint (no aliasing for far, tiny particles), tiny stamps box-filtered (each pixel averages
 4 x 4 samples up to 5 pixels wide, 2 x 2 up to 9), zero outside the footprint's disc; then
 disc-blurred by the defocus radius (a normalised disc, the stamp growing by 2 r) and brightened
-where asked (:func:`defocus_brighten`). Stamps at least :data:`COARSE_SIDE` pixels wide (fog,
+where asked (:func:`defocus_brighten`); a brightened stamp is then softened by a normalised
+Gaussian of :func:`soft_sigma` (it keeps the rule's light and turns the rim the brightening
+lifts into a ramp; the stamp grows by :func:`soft_reach` on each side). Stamps at least :data:`COARSE_SIDE` pixels wide (fog,
 large dust) are drawn for a grid ``2**L`` times coarser than the image (see
 :func:`stamp_geometry`). A stamp's looks are this file's alone: how a template is sampled, the
 disc that cuts it, the defocus kernel.
@@ -21,7 +23,9 @@ other in one flat tensor; ragged, so a call costs a bounded number of tensor ope
   disc's rows, box sums of the stamp's rows, each the difference of two prefix sums. Prefix sums
   are taken per stamp row (never across stamps, so a stamp does not depend on the others), in
   float64 (where a row is all zeros the difference is exactly zero: blurred stamps stay exactly
-  zero outside their support).
+  zero outside their support);
+- softening: two 1-D passes (rows, then columns) of the radius's Gaussian taps, each an
+  ``index_add_`` of (pixel, tap) elements in a fixed order.
 
 Elementwise operations are those whose result does not depend on an element's position in its
 tensor (``exp``/``log`` rather than ``pow`` and ``sigmoid``, whose vectorised and scalar CPU
@@ -194,6 +198,35 @@ def disc_counts(radius: torch.Tensor) -> torch.Tensor:
     return _constant("taps", DISC_TAPS, torch.float64, radius.device).index_select(0, radius)
 
 
+def soft_sigma(radius: int) -> float:
+    """Width (pixels) of the Gaussian that softens a brightened stamp of defocus radius r:
+    ``1.25 + r / 4``. The cube root of the brightening has an infinite slope at b = 0, so the
+    faint outer ring of the disc blur becomes a rim one or two pixels wide; this spreads it over
+    a ramp (steepest 1-pixel drop of a snowflake's radial profile at most ~0.14 of its peak
+    for r >= 4) while keeping the rule's total light (the kernel is normalised)."""
+    return 1.25 + radius / 4
+
+
+def soft_reach(radius: int) -> int:
+    """Half-width of the softening kernel, ``ceil(3 σ)`` pixels (the stamp grows by it)."""
+    return math.ceil(3 * soft_sigma(radius))
+
+
+def soft_taps(radius: int) -> list:
+    """The softening kernel of radius r: ``2 g + 1`` weights ``exp(−k² / (2 σ²))`` for
+    k = −g .. g, normalised to sum 1 (Python floats, the same on every machine)."""
+    sigma, g = soft_sigma(radius), soft_reach(radius)
+    w = [math.exp(-k * k / (2 * sigma * sigma)) for k in range(-g, g + 1)]
+    total = math.fsum(w)
+    return [x / total for x in w]
+
+
+#: Softening kernels for r = 0 .. 255, concatenated: radius r's taps start at SOFT_FIRST[r].
+SOFT_TAPS = [x for r in range(256) for x in soft_taps(r)]
+SOFT_REACH = [soft_reach(r) for r in range(256)]
+SOFT_FIRST = [sum(2 * g + 1 for g in SOFT_REACH[:r]) for r in range(256)]
+
+
 @dataclass
 class StampSet:
     """The stamps of E entries, ragged: entry e's stamp, ``side x side`` pixels with a one-pixel
@@ -243,7 +276,12 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
         footprint, radius, coarse, side, sub, level = stamp_geometry(
             looks.footprint.to(torch.float64), looks.defocus, lib.resolution,
             int(book.res.numel()), coarse_side)
-        full = side + 2 * radius
+        # brightened blurred stamps are softened afterwards and grow by the kernel's reach
+        soft = looks.brighten & (radius > 0)
+        grow = torch.where(soft, _constant("reach", SOFT_REACH, torch.int64, device)
+                           .index_select(0, radius), torch.zeros_like(radius))
+        inner = side + 2 * radius
+        full = inner + 2 * grow
         block = (full + 2) * (full + 2)
         first = starts(block)
         size = int(block.sum()) if looks.count else 0
@@ -259,7 +297,7 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
                            dtype=torch.float64, device=device)
         # pixel (y, x) of entry e goes to ``place[e] + y * pitch[e] + x``
         place = torch.where(blurred, size + rows_first * width + 2 * radius + 1,
-                            first + full + 3)
+                            first + full + 3)      # (unblurred stamps do not grow)
         pitch = torch.where(blurred, torch.full_like(side, width), full + 2)
         # stamps brightened without a blur (a defocus radius that rounds to 0 on a coarse grid)
         bright = looks.brighten & ~blurred
@@ -272,8 +310,11 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
             rows_of = torch.repeat_interleave(disc_counts(radius.index_select(0, members)),
                                               side.index_select(0, members))
             prefix = work[size:].view(-1, width).div_(rows_of[:, None]).cumsum_(1).view(-1)
-            _blur(prefix, members, side, radius, looks.brighten, rows_first, width, first,
-                  full, work, chunk_elements)
+            _blur(prefix, members, side, radius, looks.brighten, rows_first, width,
+                  first + grow * (full + 2) + grow, full, inner, work, chunk_elements)
+        if bool(soft.any()):
+            _soften(work, torch.nonzero(soft).squeeze(1), first, inner, grow, radius,
+                    chunk_elements)
     return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse)
 
 
@@ -337,10 +378,12 @@ def _sample(looks: Looks, book: Atlas, footprint, side, sub, level, place, pitch
             work.index_copy_(0, at, value.to(torch.float64))
 
 
-def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, work,
-          chunk: int) -> None:
+def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, inner,
+          work, chunk: int) -> None:
     """Disc-blurred (and brightened where flagged) stamps ``members`` from their rows' prefix
-    sums (already divided by the disc's taps) into their bordered places in ``work``.
+    sums (already divided by the disc's taps) into their bordered places in ``work``: the
+    ``inner x inner`` blurred stamp with its top-left pixel at ``first + full + 3`` (``first``
+    is shifted where a stamp grows for its softening; ``full + 2`` is the row pitch).
 
     The blurred pixel (Y, X) of a stamp of side s and radius r sums, over the disc's rows
     ``a`` in [−r, r] of half-width ``w = floor(sqrt(r² − a²))``, the stamp's row
@@ -371,10 +414,66 @@ def _blur(prefix, members, side, radius, brighten, rows_first, width, first, ful
     flags = brighten.index_select(0, members)
     if bool(flags.any()):
         bright = members.index_select(0, torch.nonzero(flags).squeeze(1))
-        fb = full.index_select(0, bright)
-        for e, local in runs(fb * fb, chunk):
-            fe = fb.index_select(0, e)
-            row = torch.div(local, fe, rounding_mode="floor")
-            at = first.index_select(0, bright.index_select(0, e)) + (row + 1) * (fe + 2) \
-                + local - row * fe + 1
+        nb = inner.index_select(0, bright)
+        for e, local in runs(nb * nb, chunk):
+            ne = nb.index_select(0, e)
+            row = torch.div(local, ne, rounding_mode="floor")
+            at = first.index_select(0, bright.index_select(0, e)) \
+                + (row + 1) * (full.index_select(0, bright.index_select(0, e)) + 2) \
+                + local - row * ne + 1
             work.index_copy_(0, at, defocus_brighten(work.index_select(0, at)))
+
+
+def _soften(work, members, first, inner, grow, radius, chunk: int) -> None:
+    """Soften the brightened stamps ``members`` in place with their radius's Gaussian
+    (:func:`soft_taps`, separable): each holds its ``n x n`` stamp (n = ``inner``) at offset
+    ``g`` (its ``grow``) inside its bordered ``(n + 2 g + 2)²`` block; afterwards the whole
+    ``(n + 2 g)²`` is the softened stamp.
+
+    Rows: every (stamp pixel (y, x), tap t) element adds ``w_t`` times the pixel to column
+    ``x + t`` of row y of a temporary ``n x (n + 2 g)`` image; the stamp is cleared; columns:
+    every (temporary pixel (y, x), tap t) adds ``w_t`` times it to pixel (y + t, x) of the
+    block. Elements run pixel by pixel, taps in order, so a stamp's bits do not depend on the
+    other stamps of the call.
+    """
+    device = work.device
+    n, g = inner.index_select(0, members), grow.index_select(0, members)
+    pitch = n + 2 * g + 2
+    top = first.index_select(0, members) + pitch + 1          # bordered pixel (1, 1)
+    taps = 2 * g + 1
+    kernel = _constant("soft", SOFT_TAPS, torch.float64, device)
+    k0 = _constant("soft_first", SOFT_FIRST, torch.int64, device) \
+        .index_select(0, radius.index_select(0, members))
+    wide = n + 2 * g
+    tmp = torch.zeros(int((n * wide).sum()), dtype=torch.float64, device=device)
+    tmp_first = starts(n * wide)
+    # the stamp's pixel (y, x) in the block: top + (y + g) * pitch + x + g
+    for e, local in runs(n * n * taps, chunk):
+        te = taps.index_select(0, e)
+        pixel = torch.div(local, te, rounding_mode="floor")
+        t = local - pixel * te
+        ne = n.index_select(0, e)
+        y = torch.div(pixel, ne, rounding_mode="floor")
+        x = pixel - y * ne
+        ge = g.index_select(0, e)
+        src = top.index_select(0, e) + (y + ge) * pitch.index_select(0, e) + x + ge
+        dst = tmp_first.index_select(0, e) + y * wide.index_select(0, e) + x + t
+        w = kernel.index_select(0, k0.index_select(0, e) + t)
+        tmp.index_add_(0, dst, w * work.index_select(0, src))
+    for e, local in runs(n * n, chunk):                       # clear the stamp
+        ne = n.index_select(0, e)
+        y = torch.div(local, ne, rounding_mode="floor")
+        ge = g.index_select(0, e)
+        work.index_fill_(0, top.index_select(0, e) + (y + ge) * pitch.index_select(0, e)
+                         + local - y * ne + ge, 0.0)
+    for e, local in runs(n * wide * taps, chunk):
+        te = taps.index_select(0, e)
+        pixel = torch.div(local, te, rounding_mode="floor")
+        t = local - pixel * te
+        we = wide.index_select(0, e)
+        y = torch.div(pixel, we, rounding_mode="floor")
+        x = pixel - y * we
+        src = tmp_first.index_select(0, e) + pixel
+        dst = top.index_select(0, e) + (y + t) * pitch.index_select(0, e) + x
+        w = kernel.index_select(0, k0.index_select(0, e) + t)
+        work.index_add_(0, dst, w * tmp.index_select(0, src))
