@@ -123,15 +123,14 @@ def stamp(levels, template: int, footprint: float, defocus: int, rotation: float
 
 
 def soften(pixels: dict, radius: int) -> dict:
-    """A brightened stamp convolved with the Gaussian of σ = 1.25 + r / 4, cut at ceil(3 σ)
-    and normalised (the stamp grows by that reach), as a 2-D sum over every tap."""
-    sigma = 1.25 + radius / 4
-    reach = math.ceil(3 * sigma)
-    one = [math.exp(-k * k / (2 * sigma * sigma)) for k in range(-reach, reach + 1)]
-    one = [w / sum(one) for w in one]
-    full = max(abs(y) for y, _ in pixels) + reach
-    return {(y, x): sum(one[a + reach] * one[b + reach] * pixels.get((y - a, x - b), 0.0)
-                        for a in range(-reach, reach + 1) for b in range(-reach, reach + 1))
+    """A brightened stamp convolved with a normalised b x b box twice, b = 2 (r // 4 + 2) + 1:
+    the separable tent ``t(k) = (b − |k|) / b²`` per axis for |k| < b (the stamp grows by
+    b − 1), as a 2-D sum over every tap."""
+    b = 2 * (radius // 4 + 2) + 1
+    tent = {k: (b - abs(k)) / (b * b) for k in range(-(b - 1), b)}
+    full = max(abs(y) for y, _ in pixels) + b - 1
+    return {(y, x): sum(tent[a] * tent[c] * pixels.get((y - a, x - c), 0.0)
+                        for a in tent for c in tent)
             for y in range(-full, full + 1) for x in range(-full, full + 1)}
 
 

@@ -5,10 +5,10 @@ its own footprint on a pixel-centred grid, sampled from a mip level no finer tha
 footprint (no aliasing for far, tiny particles), tiny stamps box-filtered (each pixel averages
 4 x 4 samples up to 5 pixels wide, 2 x 2 up to 9), zero outside the footprint's disc; then
 disc-blurred by the defocus radius (a normalised disc, the stamp growing by 2 r) and brightened
-where asked (:func:`defocus_brighten`); a brightened stamp is then softened by a normalised
-Gaussian of :func:`soft_sigma` (it keeps the rule's light and turns the rim the brightening
-lifts into a ramp; the stamp grows by :func:`soft_reach` on each side). Stamps at least :data:`COARSE_SIDE` pixels wide (fog,
-large dust) are drawn for a grid ``2**L`` times coarser than the image (see
+where asked (:func:`defocus_brighten`); a brightened stamp is then softened by a normalised box
+of :func:`soft_box` applied twice (a tent per axis: it keeps the rule's light and turns the rim
+the brightening lifts into a ramp; the stamp grows by ``b − 1`` on each side). Stamps at least
+:data:`COARSE_SIDE` pixels wide (fog, large dust) are drawn for a grid ``2**L`` times coarser than the image (see
 :func:`stamp_geometry`). A stamp's looks are this file's alone: how a template is sampled, the
 disc that cuts it, the defocus kernel.
 
@@ -24,8 +24,8 @@ other in one flat tensor; ragged, so a call costs a bounded number of tensor ope
   are taken per stamp row (never across stamps, so a stamp does not depend on the others), in
   float64 (where a row is all zeros the difference is exactly zero: blurred stamps stay exactly
   zero outside their support);
-- softening: two 1-D passes (rows, then columns) of the radius's Gaussian taps, each an
-  ``index_add_`` of (pixel, tap) elements in a fixed order.
+- softening: four box passes, each along the rows of every stamp at once (differences of
+  per-row prefix sums in float64, as the disc blur), writing its result transposed.
 
 Elementwise operations are those whose result does not depend on an element's position in its
 tensor (``exp``/``log`` rather than ``pow`` and ``sigmoid``, whose vectorised and scalar CPU
@@ -198,33 +198,19 @@ def disc_counts(radius: torch.Tensor) -> torch.Tensor:
     return _constant("taps", DISC_TAPS, torch.float64, radius.device).index_select(0, radius)
 
 
-def soft_sigma(radius: int) -> float:
-    """Width (pixels) of the Gaussian that softens a brightened stamp of defocus radius r:
-    ``1.25 + r / 4``. The cube root of the brightening has an infinite slope at b = 0, so the
-    faint outer ring of the disc blur becomes a rim one or two pixels wide; this spreads it over
-    a ramp (steepest 1-pixel drop of a snowflake's radial profile at most ~0.14 of its peak
-    for r >= 4) while keeping the rule's total light (the kernel is normalised)."""
-    return 1.25 + radius / 4
+def soft_box(radius: int) -> int:
+    """Width ``b`` (odd, pixels) of the boxes whose square ``b x b`` applied twice softens a
+    brightened stamp of defocus radius r: ``2 (floor(r / 4) + 2) + 1`` (5 for r = 2, 3; 7 for
+    r = 4 .. 7; 15 for r = 20). Twice a box is a tent per axis, of standard deviation
+    ``sqrt((b² − 1) / 6)`` (2.0, 2.8, 6.1 pixels). The cube root of the brightening has an
+    infinite slope at b = 0, so the faint outer ring of the disc blur becomes a rim one or two
+    pixels wide; the tent spreads it over a ramp while keeping the rule's total light (the boxes
+    are normalised, the stamp grows by ``b − 1`` on each side)."""
+    return 2 * (radius // 4 + 2) + 1
 
 
-def soft_reach(radius: int) -> int:
-    """Half-width of the softening kernel, ``ceil(3 σ)`` pixels (the stamp grows by it)."""
-    return math.ceil(3 * soft_sigma(radius))
-
-
-def soft_taps(radius: int) -> list:
-    """The softening kernel of radius r: ``2 g + 1`` weights ``exp(−k² / (2 σ²))`` for
-    k = −g .. g, normalised to sum 1 (Python floats, the same on every machine)."""
-    sigma, g = soft_sigma(radius), soft_reach(radius)
-    w = [math.exp(-k * k / (2 * sigma * sigma)) for k in range(-g, g + 1)]
-    total = math.fsum(w)
-    return [x / total for x in w]
-
-
-#: Softening kernels for r = 0 .. 255, concatenated: radius r's taps start at SOFT_FIRST[r].
-SOFT_TAPS = [x for r in range(256) for x in soft_taps(r)]
-SOFT_REACH = [soft_reach(r) for r in range(256)]
-SOFT_FIRST = [sum(2 * g + 1 for g in SOFT_REACH[:r]) for r in range(256)]
+#: Box widths for r = 0 .. 255 (the defocus radii a record can store).
+SOFT_BOX = [soft_box(r) for r in range(256)]
 
 
 @dataclass
@@ -278,8 +264,8 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
             int(book.res.numel()), coarse_side)
         # brightened blurred stamps are softened afterwards and grow by the kernel's reach
         soft = looks.brighten & (radius > 0)
-        grow = torch.where(soft, _constant("reach", SOFT_REACH, torch.int64, device)
-                           .index_select(0, radius), torch.zeros_like(radius))
+        box = _constant("box", SOFT_BOX, torch.int64, device).index_select(0, radius)
+        grow = torch.where(soft, box - 1, torch.zeros_like(radius))
         inner = side + 2 * radius
         full = inner + 2 * grow
         block = (full + 2) * (full + 2)
@@ -313,7 +299,7 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
             _blur(prefix, members, side, radius, looks.brighten, rows_first, width,
                   first + grow * (full + 2) + grow, full, inner, work, chunk_elements)
         if bool(soft.any()):
-            _soften(work, torch.nonzero(soft).squeeze(1), first, inner, grow, radius,
+            _soften(work, torch.nonzero(soft).squeeze(1), first, inner, box, full,
                     chunk_elements)
     return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse)
 
@@ -424,56 +410,51 @@ def _blur(prefix, members, side, radius, brighten, rows_first, width, first, ful
             work.index_copy_(0, at, defocus_brighten(work.index_select(0, at)))
 
 
-def _soften(work, members, first, inner, grow, radius, chunk: int) -> None:
-    """Soften the brightened stamps ``members`` in place with their radius's Gaussian
-    (:func:`soft_taps`, separable): each holds its ``n x n`` stamp (n = ``inner``) at offset
-    ``g`` (its ``grow``) inside its bordered ``(n + 2 g + 2)²`` block; afterwards the whole
-    ``(n + 2 g)²`` is the softened stamp.
+def _soften(work, members, first, inner, box, full, chunk: int) -> None:
+    """Soften the brightened stamps ``members`` in place: each holds its ``n x n`` stamp
+    (n = ``inner``) at offset ``b − 1`` inside its bordered ``(full + 2)²`` block (``full =
+    n + 2 (b − 1)``, b = ``box``); afterwards the whole ``full x full`` is the stamp convolved
+    with a normalised, centred ``b x b`` box twice (:func:`soft_box`).
 
-    Rows: every (stamp pixel (y, x), tap t) element adds ``w_t`` times the pixel to column
-    ``x + t`` of row y of a temporary ``n x (n + 2 g)`` image; the stamp is cleared; columns:
-    every (temporary pixel (y, x), tap t) adds ``w_t`` times it to pixel (y + t, x) of the
-    block. Elements run pixel by pixel, taps in order, so a stamp's bits do not depend on the
-    other stamps of the call.
+    The stamps are copied, each on its own canvas at the top left, into one zero-filled dense
+    float64 array ``(M, F, F)`` (F the largest ``full``); each of the four box passes (rows,
+    rows, columns, columns) takes cumulative sums along its axis (per row or column: its sums
+    do not depend on the other stamps) and differences them at the stamp's own half-width h:
+    ``out[x] = S[x + h] − S[x − h − 1]`` (divided by ``b⁴`` at the end). The boxes reach at
+    most ``b − 1`` beyond the stamp, so they stay inside its canvas; where a span is all zeros
+    the difference is exactly zero.
     """
     device = work.device
-    n, g = inner.index_select(0, members), grow.index_select(0, members)
-    pitch = n + 2 * g + 2
-    top = first.index_select(0, members) + pitch + 1          # bordered pixel (1, 1)
-    taps = 2 * g + 1
-    kernel = _constant("soft", SOFT_TAPS, torch.float64, device)
-    k0 = _constant("soft_first", SOFT_FIRST, torch.int64, device) \
-        .index_select(0, radius.index_select(0, members))
-    wide = n + 2 * g
-    tmp = torch.zeros(int((n * wide).sum()), dtype=torch.float64, device=device)
-    tmp_first = starts(n * wide)
-    # the stamp's pixel (y, x) in the block: top + (y + g) * pitch + x + g
-    for e, local in runs(n * n * taps, chunk):
-        te = taps.index_select(0, e)
-        pixel = torch.div(local, te, rounding_mode="floor")
-        t = local - pixel * te
-        ne = n.index_select(0, e)
-        y = torch.div(pixel, ne, rounding_mode="floor")
-        x = pixel - y * ne
-        ge = g.index_select(0, e)
-        src = top.index_select(0, e) + (y + ge) * pitch.index_select(0, e) + x + ge
-        dst = tmp_first.index_select(0, e) + y * wide.index_select(0, e) + x + t
-        w = kernel.index_select(0, k0.index_select(0, e) + t)
-        tmp.index_add_(0, dst, w * work.index_select(0, src))
-    for e, local in runs(n * n, chunk):                       # clear the stamp
-        ne = n.index_select(0, e)
+    m = int(members.numel())
+    n, b = inner.index_select(0, members), box.index_select(0, members)
+    f = full.index_select(0, members)
+    top = first.index_select(0, members) + f + 3                       # bordered pixel (1, 1)
+    side = int(f.max())
+    dense = torch.zeros(m, side, side, dtype=torch.float64, device=device)
+    flat = dense.view(-1)
+    for e, local in runs(n * n, chunk):
+        ne, off = n.index_select(0, e), b.index_select(0, e) - 1
         y = torch.div(local, ne, rounding_mode="floor")
-        ge = g.index_select(0, e)
-        work.index_fill_(0, top.index_select(0, e) + (y + ge) * pitch.index_select(0, e)
-                         + local - y * ne + ge, 0.0)
-    for e, local in runs(n * wide * taps, chunk):
-        te = taps.index_select(0, e)
-        pixel = torch.div(local, te, rounding_mode="floor")
-        t = local - pixel * te
-        we = wide.index_select(0, e)
-        y = torch.div(pixel, we, rounding_mode="floor")
-        x = pixel - y * we
-        src = tmp_first.index_select(0, e) + pixel
-        dst = top.index_select(0, e) + (y + t) * pitch.index_select(0, e) + x
-        w = kernel.index_select(0, k0.index_select(0, e) + t)
-        work.index_add_(0, dst, w * tmp.index_select(0, src))
+        x = local - y * ne
+        flat.index_copy_(0, (e * side + y + off) * side + x + off,
+                         work.index_select(0, top.index_select(0, e) + (y + off)
+                                           * (f.index_select(0, e) + 2) + x + off))
+    half = (b - 1) // 2
+    pad = int(half.max()) + 1
+    # out[x] = S[hi] − S[lo] in the padded sums: hi = x + pad + h, lo = hi − b
+    hi = torch.arange(side, device=device)[None] + (pad + half)[:, None]
+    lo = hi - b[:, None]
+    ends = {2: (hi[:, None], lo[:, None]), 1: (hi[:, :, None], lo[:, :, None])}
+    for axis in (2, 2, 1, 1):
+        sums = F.pad(dense, (pad, pad, 0, 0) if axis == 2 else (0, 0, pad, pad)).cumsum_(axis)
+        hi_a, lo_a = ends[axis]
+        dense = sums.gather(axis, hi_a.expand(dense.shape)) \
+            - sums.gather(axis, lo_a.expand(dense.shape))
+    dense = dense / (b.to(torch.float64) ** 4)[:, None, None]      # the four boxes' 1 / b
+    flat = dense.reshape(-1)
+    for e, local in runs(f * f, chunk):
+        fe = f.index_select(0, e)
+        y = torch.div(local, fe, rounding_mode="floor")
+        x = local - y * fe
+        work.index_copy_(0, top.index_select(0, e) + y * (fe + 2) + x,
+                         flat.index_select(0, (e * side + y) * side + x))
