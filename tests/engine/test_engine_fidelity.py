@@ -4,11 +4,12 @@ A reference written here from Section 3 of the paper (independently of the rende
 levels, no buckets, no chunks, no scatter) rasterises each particle directly: the template
 rotated and scaled by the particle's inverse depth (4 x 4 samples per pixel of the full-size
 template), disc-blurred by the defocus radius, brightened (``min(1, cbrt(2 b))``) and softened
-(:func:`soft_kernel`), weighted by θ, and splatted bilinearly at the projected sub-pixel position; motion blur as K samples
-along the camera-space motion ``X2 − X1``. On a synthetic Sintel-size scene (1024 x 436) the
-renderer must agree with it within 10 % on: the fraction of changed pixels, the mean absolute
-change, the median particle peak, the blob area by depth, the visible fraction by depth, and the
-rain streaks' angle and length with a moving camera (predicted from the projection alone).
+(:func:`soft_kernel`), weighted by θ, and splatted bilinearly at the projected sub-pixel
+position; motion blur as K samples along the camera-space motion ``X2 − X1``. On a synthetic
+Sintel-size scene (1024 x 436) the renderer must agree with it within 10 % on: the fraction of
+changed pixels, the mean absolute change, the median particle peak, the blob area by depth, the
+visible fraction by depth, and the rain streaks' angle and length with a moving camera
+(predicted from the projection alone).
 """
 
 from __future__ import annotations

@@ -19,6 +19,7 @@ from engine_scenes import plane_pair, wall_scene
 from weathergen.engine import (Particles, RenderSettings, build_stamps, load_preset,
                                load_templates, render_pair, sample_weather)
 from weathergen.engine.sampling import defocus_radius
+from weathergen.engine.templates import HAZE_ALPHA_RANGE, HAZE_MAX_SLOPE, _disc_mask
 
 KITTI = dict(size=(375, 1242), focal=721.0, plane_depth=30.0, wall_depth=5.0, wall_columns=620)
 EDGE = slice(600, 640)            # the wall's edge: a depth step, where fog may stop abruptly
@@ -62,6 +63,26 @@ def clouds_at(pair, record, u, v, z, index):
 def cloud_at(pair, record, u: float, v: float, z: float, index: int = 0):
     """One cloud of ``record`` moved so that its centre projects to (u, v) at depth z."""
     return clouds_at(pair, record, [u], [v], [z], [index])
+
+
+def test_haze_templates_fall_to_zero_at_the_rim_without_an_outline():
+    """Each ``haze`` template: mean alpha about a third inside its disc, its alpha changing by at
+    most HAZE_MAX_SLOPE per unit of radius anywhere, and its outer ring (the last 2 % of the
+    radius) below 0.005: no body, no rim."""
+    lib = load_templates("haze")
+    res = lib.resolution
+    inside = _disc_mask(res)
+    c = (res - 1) / 2
+    yy, xx = torch.meshgrid(torch.arange(res, dtype=torch.float64),
+                            torch.arange(res, dtype=torch.float64), indexing="ij")
+    r = torch.hypot(xx - c, yy - c) / (res / 2)
+    lo, hi = HAZE_ALPHA_RANGE
+    for a in lib.alphas.double():
+        assert lo <= float(a[torch.from_numpy(inside)].mean()) <= hi
+        slope = max(float((a[:, 1:] - a[:, :-1]).abs().max()),
+                    float((a[1:] - a[:-1]).abs().max())) * res / 2
+        assert slope <= HAZE_MAX_SLOPE, slope
+        assert float(a[r >= 0.98].max()) < 0.005
 
 
 @pytest.mark.parametrize("name", FOG)
