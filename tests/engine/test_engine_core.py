@@ -164,7 +164,7 @@ def count(fn) -> int:
 def test_operation_count_does_not_grow_with_particles_or_pairs(monkeypatch):
     """The number of tensor operations (kernel launches on a GPU) does not grow with the
     particles or the pairs, for both weather models and their mix: chunked as on a GPU (2**25
-    elements, views not cut into the CPU's fixed pieces) it stays under a thousand and within
+    elements, views not cut into the CPU's fixed pieces) it stays under 1200 and within
     the operations of one supersampling group (about 65) that more particles may bring (tiny,
     small and large stamps are sampled in three groups). On the CPU's small chunks, each chunk
     adds a fixed number."""
@@ -176,14 +176,14 @@ def test_operation_count_does_not_grow_with_particles_or_pairs(monkeypatch):
         records = records_for(scenes, ["snow", "rain"] * (size // 2), count=n)
         counts.append(count(lambda: render(*arguments(scenes, records), chunk_elements=chunk)))
     assert max(counts) - min(counts) <= 80, counts
-    assert max(counts) < 1000, counts                     # "under a thousand" (README)
+    assert max(counts) < 1200, counts                     # "under 1200" (README)
     field = []
     for density in (4.0, 16.0):
         scenes = [scene(i) for i in range(3)]
         records = field_records(scenes[:2], ["snow-light", "rain-light"], density=density) \
             + records_for(scenes[2:], ["snow"])
         field.append(count(lambda: render(*arguments(scenes, records), chunk_elements=chunk)))
-    assert max(field) - min(field) <= 80 and max(field) < 1000, field
+    assert max(field) - min(field) <= 80 and max(field) < 1200, field
 
 
 @pytest.mark.cuda
