@@ -206,3 +206,17 @@ def test_cuda_matches_the_cpu_forward_and_backward():
         assert float((getattr(outs[0], name) - getattr(outs[1], name).cpu()).abs().max()) <= 1e-9
     for a, b in zip(*grads):
         torch.testing.assert_close(a, b, rtol=1e-7, atol=1e-9)
+
+
+def test_mip_and_grid_levels_come_from_the_binary_exponent_not_a_logarithm():
+    """floor(log2 x) exactly at and next to powers of two (a logarithm's last bit differs between
+    the CPU's and CUDA's libraries, which gave one flake another mip level on CUDA)."""
+    from weathergen.engine.stamps import floor_log2
+
+    powers = torch.tensor([2.0 ** k for k in range(-3, 12)], dtype=torch.float64)
+    below = torch.nextafter(powers, torch.zeros_like(powers))
+    above = torch.nextafter(powers, torch.full_like(powers, float("inf")))
+    k = torch.arange(-3, 12)
+    assert torch.equal(floor_log2(powers), k)
+    assert torch.equal(floor_log2(below), k - 1)
+    assert torch.equal(floor_log2(above), k)

@@ -18,7 +18,7 @@ VARIABLES = ("offset1", "offset2", "color", "transparency")
 
 def _record(name: str, pair):
     if name == "snow-light":          # the weather-field model, far limited to the small scene
-        return sample_weather(pair, load_preset(name, {"far": 5.0}), seed=3)
+        return sample_weather(pair, load_preset(name, {"far": 5.0}), seed=3, frame_rate=24.0)
     return sample_particles(pair, load_preset(name, {"count": 6 if name == "fog" else 200}), seed=3)
 
 

@@ -78,9 +78,14 @@ def test_on_cuda_the_authors_regions_run_in_float16(name):
     torch.manual_seed(0)
     model = build_model(name, iters=3).cuda()
     seen = {}
-    model.network.fnet.register_forward_hook(lambda m, i, o: seen.setdefault("fnet", o.dtype))
-    model.network.update_block.register_forward_hook(
-        lambda m, i, o: seen.setdefault("update", o[1].dtype))
+
+    def record(key, output_dtype):
+        def hook(module, inputs, output):      # returns None: the output stays as it is
+            seen.setdefault(key, output_dtype(output))
+        return hook
+
+    model.network.fnet.register_forward_hook(record("fnet", lambda o: o.dtype))
+    model.network.update_block.register_forward_hook(record("update", lambda o: o[1].dtype))
     x1 = torch.rand(1, 3, 96, 128, device="cuda", requires_grad=True)
     x2 = torch.rand(1, 3, 96, 128, device="cuda", requires_grad=True)
     with torch.no_grad():

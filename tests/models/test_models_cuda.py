@@ -31,7 +31,7 @@ def test_network_on_cuda_matches_the_cpu(arch, full_float32):
     results = {}
     for device in ("cpu", "cuda"):
         model.to(device)
-        a, b = x1.to(device).requires_grad_(True), x2.to(device).requires_grad_(True)
+        a, b = (x.to(device).detach().requires_grad_(True) for x in (x1, x2))   # leaves on each device
         flow = model(a, b)
         flow.square().mean().backward()
         results[device] = (flow.detach().cpu(), a.grad.cpu())

@@ -135,6 +135,14 @@ def atlas(lib: TemplateLibrary, dtype: torch.dtype, device) -> Atlas:
     return _ATLAS_CACHE[key]
 
 
+def floor_log2(x: torch.Tensor) -> torch.Tensor:
+    """``floor(log2(x))`` for x > 0, exactly: from the binary exponent (``x = m 2^e``, m in
+    [0.5, 1)), not from a logarithm, whose last bit differs between the CPU's and CUDA's
+    libraries (a footprint whose ratio to the template is a power of two then took another mip
+    level on CUDA). Shape: (E,) float -> (E,) int64."""
+    return (torch.frexp(x)[1] - 1).long()
+
+
 def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: int,
                    level_count: int, coarse_side: Optional[int] = COARSE_SIDE) -> tuple:
     """Each entry's stamp layout from its footprint (pixels, float64, >= 1) and defocus radius.
@@ -152,7 +160,7 @@ def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: i
     full = footprint + 2 * radius
     if coarse_side is not None and bool((full >= coarse_side).any()):
         coarse = torch.where(full >= coarse_side,
-                             torch.floor(torch.log2(full / COARSE_MIN_SIDE))
+                             floor_log2(full / COARSE_MIN_SIDE)
                              .clamp(1, COARSE_MAX_LEVEL),
                              torch.zeros_like(full)).long()
         factor = (2.0 ** coarse).to(torch.float64)
@@ -163,7 +171,7 @@ def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: i
     sides = SIDES.to(footprint.device)
     side = sides[torch.searchsorted(sides, raw_side)]
     sub = torch.where(side <= 5, 4, torch.where(side <= 9, 2, 1))
-    level = torch.floor(torch.log2(resolution / (footprint * sub))) \
+    level = floor_log2(resolution / (footprint * sub)) \
         .clamp(0, level_count - 1).long()
     return footprint, radius, coarse, side, sub, level
 
