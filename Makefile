@@ -3,12 +3,16 @@
 #   make test                  create .venv, install the pinned CPU torch, the package, run the
 #                              linter (ruff, configured in pyproject.toml) and the tests
 #   make demo                  render the default preset on the bundled demo scene
-#   make bench                 print speed and memory figures (renderer, weather field, networks,
-#                              attack step, batched attacks, training); FOG_BEFORE=DIR also times
-#                              fog with the weathergen source tree DIR (e.g. an older commit's)
+#   make bench                 print speed and memory figures (renderer, weather field, combined
+#                              weather, networks, attack step, batched attacks, training);
+#                              FOG_BEFORE=DIR also times fog with the weathergen source tree
+#                              DIR (e.g. an older commit's)
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 #   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
 #                              in a separate environment (.venv-oldest)
+#   make images                regenerate the pictures of README.md and docs/ (docs/images/) from the
+#                              demo scene; REAL=DIR also draws every preset into the first pair of
+#                              DIR (REAL_DATASET=kitti, DEPTH_SCALE=...) into out/images/
 #   make gpu-check             on a machine with CUDA (with TORCH=torch, a CUDA build): every CUDA
 #                              test and GPU benchmark, one table (figures in out/gpu-check.json);
 #                              without CUDA it says so in one line and stops
@@ -18,6 +22,9 @@ VENV   ?= .venv
 TORCH  ?= torch==2.13.0
 PYTEST_ARGS ?=
 FOG_BEFORE ?=
+REAL ?=
+REAL_DATASET ?= kitti
+DEPTH_SCALE ?=
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.weathergen-deps
 # The torch requirement the venv was last set up with; a different TORCH reinstalls torch.
@@ -25,7 +32,7 @@ TORCH_STAMP := $(VENV)/.weathergen-torch
 
 OLDEST ?= .venv-oldest
 
-.PHONY: venv install test test-oldest demo bench gpu-check clean FORCE
+.PHONY: venv install test test-oldest demo bench images gpu-check clean FORCE
 
 venv: $(STAMP)
 
@@ -76,12 +83,17 @@ bench: install
 	$(BIN)/python benchmarks/bench.py
 	$(BIN)/python benchmarks/bench_fog.py $(if $(FOG_BEFORE),--before $(FOG_BEFORE))
 	$(BIN)/python benchmarks/bench_field.py
+	$(BIN)/python benchmarks/bench_combined.py
 	$(BIN)/python benchmarks/bench_models.py
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
 	$(BIN)/python benchmarks/bench_training.py
 	$(BIN)/python benchmarks/bench_batch.py
 	if $(BIN)/python -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then \
 	  $(BIN)/python benchmarks/bench_batch.py --device cuda --models raft --batch-sizes 1 4 8 --steps 5; fi
+
+images: install
+	$(BIN)/python scripts/make_images.py $(if $(REAL),--real $(REAL) --real-dataset $(REAL_DATASET)) \
+	    $(if $(DEPTH_SCALE),--depth-scale $(DEPTH_SCALE))
 
 # The probe needs torch alone, so that a machine without CUDA is told at once, before any install.
 gpu-check: $(TORCH_STAMP)

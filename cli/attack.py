@@ -17,6 +17,7 @@ from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_at
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.execution import RunClock, check_executor
+from weathergen.words import counted
 
 from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
                       model_options, out_option, overwrite_option, quiet_option, resume_option,
@@ -38,7 +39,7 @@ def summary_table(title: str, summary: dict, what: str = "weather", compat: str 
     Under ``compat="reference"`` the adversarial AEE is marked and explained in a caption."""
     reference = compat == "reference"
     table = Table(title=title, caption=REFERENCE_FIGURE if reference else None)
-    table.add_column(f"mean over {summary['pairs']} pair(s)")
+    table.add_column(f"mean over {counted(summary['pairs'], 'pair')}")
     for col in ("clean", f"random {what}", f"adversarial {what}"):
         table.add_column(col, justify="right")
     table.add_row("AEE(f, f̌)", "0", _fmt(summary["aee_random"]),
@@ -84,8 +85,9 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
               help=f"An attack configuration of the paper's supplement ({', '.join(ATTACK_CONFIGS)}): "
                    "sets preset, --optimize, --lr and the occlusion gradient; explicit options win.")
 @click.option("--preset", default=None,
-              help="Weather preset the particles are sampled from. Default: the --config's "
-                   "preset, else snow.")
+              help="Weather preset the particles are sampled from; presets joined by + "
+                   "(e.g. snow+fog-light) are attacked together, see --optimize-layer. "
+                   "Default: the --config's preset, else snow.")
 @click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
               help="Override one preset key (repeatable), e.g. --set count=500.")
 @click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
@@ -97,6 +99,10 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 @click.option("--optimize", default=None, metavar="A,B,...",
               help="Variables to optimise: offset1, offset2, color, transparency (or 'all'). "
                    "Default: the --config's, else all (fog: all but offset2).")
+@click.option("--optimize-layer", "optimize_layer", default=None, metavar="NAME[,NAME]|all",
+              help="Combined presets (layers joined by +): the layers whose particles are "
+                   "optimised, by name (e.g. fog-light); the others stay as sampled. "
+                   "Default: all.")
 @click.option("--lr", type=float, default=None,
               help="Adam learning rate. Default: 1e-5 when an offset is optimised, else 1e-3; "
                    "pcfa: L-BFGS step size 1, Adam 1e-3; for ifgsm the step size, default "
@@ -128,8 +134,8 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, optimizer, config_name,
            preset, set_items,
            particles_dir, steps,
-           optimize, lr, alpha1, alpha2, target_text, occlusion_gradient, compat,
-           gradient_checkpointing, out, seed, device, batch_size, executor, ray_address, resume,
+           optimize, optimize_layer, lr, alpha1, alpha2, target_text, occlusion_gradient,
+           compat, gradient_checkpointing, out, seed, device, batch_size, executor, ray_address, resume,
            overwrite, quiet):
     """Optimise weather particles so that a flow network's output moves towards a target.
 
@@ -146,7 +152,7 @@ def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, op
     if method != "weather":
         lp = plan_lp(method, epsilon, steps, lr, optimizer, config_name=config_name, preset=preset,
                      overrides=tuple(set_items), particles_from=particles_dir, optimize=optimize,
-                     occlusion_gradient=occlusion_gradient,
+                     optimize_layer=optimize_layer, occlusion_gradient=occlusion_gradient,
                      compat=None if compat in (None, "paper") else compat)
         out = out or default_attack_out(method)
         job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
@@ -167,7 +173,7 @@ def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, op
                                   preset, set_items, particles_dir, steps, optimize, lr, alpha1,
                                   alpha2, target, occlusion_gradient, compat or "paper",
                                   gradient_checkpointing, out, seed, device, resume, overwrite,
-                                  execution, amp)
+                                  execution, amp, optimize_layer)
         out = job.out
     _run(job, model, label, target, steps, out, quiet)
 
@@ -175,10 +181,11 @@ def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, op
 def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
                  particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
                  compat, gradient_checkpointing, out, seed, device, resume, overwrite, execution,
-                 amp):
+                 amp, optimize_layer=None):
     plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
                        optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
-                       steps=steps, alpha1=alpha1, alpha2=alpha2, compat=compat)
+                       steps=steps, alpha1=alpha1, alpha2=alpha2, compat=compat,
+                       layers=optimize_layer)
     label = plan.label
     out = out or default_attack_out(label)
     job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
@@ -275,5 +282,5 @@ def _run(job, model, label, target, steps, out, quiet):
         console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
                       soft_wrap=True)
     if failed:
-        err.print(f"[red]{len(failed)} pair(s) failed[/red]; see the messages above.")
+        err.print(f"[red]{counted(len(failed), 'pair')} failed[/red]; see the messages above.")
         sys.exit(1)

@@ -10,6 +10,7 @@ from rich.table import Table
 
 from weathergen.datasets.checking import check_dataset, relative
 from weathergen.errors import DatasetError
+from weathergen.words import counted
 
 from .options import dataset_options
 
@@ -53,7 +54,7 @@ def check(dataset, geometry, geometry_pairs, verbose):
         errors = sum(1 for sev, _, _ in groups if sev == "error")
         warnings = len(groups) - errors
         if sc.ok:
-            status = "[green]ok[/green]" + (f" [yellow]({warnings} warning{'s' * (warnings != 1)})[/yellow]"
+            status = "[green]ok[/green]" + (f" [yellow]({counted(warnings, 'warning')})[/yellow]"
                                             if warnings else "")
         else:
             status = f"[red]{sc.faulty} faulty[/red]" if sc.pairs else "[red]no pairs[/red]"
@@ -70,7 +71,7 @@ def check(dataset, geometry, geometry_pairs, verbose):
                 _photometric_line(sc.photometric) if g is None else
                 "no pixel to compare (none static, measured and seen in both frames)" if not g.pixels
                 else f"flow error median {g.median_px:.3f} px, p90 {g.p90_px:.3f} px, "
-                     f"{100 * g.within_1px:.1f}% within 1 px ({g.pairs} pair{'s' * (g.pairs != 1)}, "
+                     f"{100 * g.within_1px:.1f}% within 1 px ({counted(g.pairs, 'pair')}, "
                      f"{g.pixels} pixels)"))
         for sev, kind, places in groups:
             places = [relative(p, dataset.root) for p in places]
@@ -85,14 +86,13 @@ def check(dataset, geometry, geometry_pairs, verbose):
     bad_total = sum(sc.faulty for sc in scenes)
     if bad_total or not all(sc.ok for sc in scenes):
         unpaired = [sc.scene for sc in scenes if not sc.pairs]
-        msg = f"{bad_total} of {total} pairs cannot be read."
+        msg = f"{bad_total} of {counted(total, 'pair')} cannot be read."
         if unpaired:
-            msg += f" {len(unpaired)} scene{'s' * (len(unpaired) != 1)} without pairs: {', '.join(unpaired)}."
+            msg += f" {counted(len(unpaired), 'scene')} without pairs: {', '.join(unpaired)}."
         console.print(f"[red]{msg}[/red]")
         sys.exit(1)
-    pairs = f"{total} pair{'s' if total != 1 else ''}"
-    n = len(scenes)
-    console.print(f"[green]{'All ' if total > 1 else ''}{pairs} in {n} scene{'s' if n != 1 else ''} "
+    console.print(f"[green]{'All ' if total > 1 else ''}{counted(total, 'pair')} in "
+                  f"{counted(len(scenes), 'scene')} "
                   f"{'are' if total != 1 else 'is'} readable.[/green]")
 
 
@@ -104,7 +104,7 @@ def _photometric_line(p) -> str:
         return "no ground-truth flow, and no pixel to compare the frames on (none measured and seen in both)"
     figures = (f"frame 2 moved by depth and cameras differs from frame 1 by {p.error:.4f} (mean grey "
                f"level), left in place by {p.unmoved_error:.4f}; median motion {p.motion_px:.2f} px "
-               f"({p.pairs} pair{'s' * (p.pairs != 1)}, {100 * p.coverage:.0f}% of the pixels)")
+               f"({counted(p.pairs, 'pair')}, {100 * p.coverage:.0f}% of the pixels)")
     if not p.judged:
         verdict = "too little motion to judge"
     elif p.explained:

@@ -21,6 +21,7 @@ from weathergen.io.images import write_png
 from weathergen.io.video import check_video_path, write_video
 from weathergen.outputs import read_metadata, stored_frame_scaling
 from weathergen.render import contact_sheet, video_preview
+from weathergen.words import counted
 
 
 def _preset_origin(name: str, source: str) -> str:
@@ -65,7 +66,7 @@ def inspect(file: Path):
         seeds = np.atleast_1d(arrays.get("layer_seeds", np.zeros(0, np.uint64)))
         for k, (name, a, n) in enumerate(zip(names, layers, counts)):
             seed = f", seed {int(seeds[k])}" if k < len(seeds) else ""
-            rows.append((f"layer {k}", f"{name}: {n} particles, {_looks(a)}{seed}"))
+            rows.append((f"layer {k}", f"{name}: {counted(n, 'particle')}, {_looks(a)}{seed}"))
             rows.append((f"layer {k} for the frame", _scaling_text(scalings[k])))
         rows.append(("reference frame", str(layers[0].get("frame", "?"))))
     else:
@@ -195,10 +196,10 @@ def preview(render_dir: Path, out, video, pairs, width, with_input, with_opacity
     except OSError as exc:
         raise write_error(exc, out, "pass --out PATH.png to write it elsewhere") from None
     if sheet.partial:
-        click.echo(f"Preview of {sheet.shown} of {sheet.total} pairs written to {out} "
+        click.echo(f"Preview of {sheet.shown} of {counted(sheet.total, 'pair')} written to {out} "
                    f"(--pairs {sheet.total} shows all)")
     else:
-        click.echo(f"Preview of {sheet.total} pair{'s' if sheet.total != 1 else ''} written to {out}")
+        click.echo(f"Preview of {counted(sheet.total, 'pair')} written to {out}")
 
 
 def _preview_video(render_dir: Path, out, video: Path, pairs, width, with_input, with_opacity,
@@ -213,7 +214,7 @@ def _preview_video(render_dir: Path, out, video: Path, pairs, width, with_input,
     except OSError as exc:
         raise write_error(exc, video, "pass --video PATH to write it elsewhere") from None
     w, h = plan.size
-    shown = (f"{plan.pairs} of {plan.total} pairs" if plan.pairs < plan.total
-             else f"{plan.total} pair{'s' if plan.total != 1 else ''}")
-    click.echo(f"Video of {shown} written to {video}: {count} frames of {w}x{h} at "
+    shown = (f"{plan.pairs} of {counted(plan.total, 'pair')}" if plan.pairs < plan.total
+             else counted(plan.total, "pair"))
+    click.echo(f"Video of {shown} written to {video}: {counted(count, 'frame')} of {w}x{h} at "
                f"{plan.fps:g} fps ({count / plan.fps:.1f} s)")

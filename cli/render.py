@@ -19,6 +19,7 @@ from weathergen.execution import RunClock, check_executor
 from weathergen.outputs import FORMATS, folder_size
 from weathergen.render import RenderJob, parse_shard, run_render
 from weathergen.render.plan import default_batch_size, default_out, default_pass_name, resolve_preset
+from weathergen.words import counted
 
 from .options import (ARGV_KEY, dataset_options, device_option, executor_options, out_option,
                       overwrite_option,
@@ -56,7 +57,8 @@ def _parse_workers(ctx, param, value):
 @click.command()
 @dataset_options
 @click.option("--preset", default="snow", show_default=True,
-              help="Weather preset by name (see `weathergen presets`).")
+              help="Weather preset by name (see `weathergen presets`); presets joined by + "
+                   "render together in one pass, e.g. rain-heavy+fog-light.")
 @click.option("--preset-file", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="Your own preset file (TOML); replaces --preset. Default: none.")
 @click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
@@ -194,5 +196,5 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
         console.print(f"Output: {out} (pass '{job.pass_name}', {_human_bytes(folder_size(out))} in all; "
                       f"manifest: {out / 'manifest.json'})", highlight=False, soft_wrap=True)
     if failed:
-        err.print(f"[red]{len(failed)} pair(s) failed[/red]; see the messages above and the manifest.")
+        err.print(f"[red]{counted(len(failed), 'pair')} failed[/red]; see the messages above and the manifest.")
         sys.exit(1)

@@ -15,6 +15,8 @@ from typing import Iterator, NoReturn
 
 import click
 
+from weathergen.words import counted
+
 
 @contextlib.contextmanager
 def terminate_as_interrupt() -> Iterator[list]:
@@ -44,6 +46,6 @@ def terminate_as_interrupt() -> Iterator[list]:
 def exit_interrupted(written: int, stopped_by: list, again: str = "rerun with --resume") -> NoReturn:
     """Say how many pairs this run finished and how to go on; exit with 128 + the signal's number
     (130 for Ctrl-C, 143 for SIGTERM)."""
-    click.echo(f"Interrupted after {written} pairs; {again} to finish (finished pairs are kept).",
+    click.echo(f"Interrupted after {counted(written, 'pair')}; {again} to finish (finished pairs are kept).",
                err=True)
     sys.exit(128 + (stopped_by[0] if stopped_by else signal.SIGINT))

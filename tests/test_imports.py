@@ -115,7 +115,7 @@ def test_packages_resolve_their_names_at_import(module):
 
 
 #: The layers of docs/architecture.md, lowest first; a package imports only lower layers.
-LAYERS = [("weathergen", "weathergen.errors", "weathergen.workers"),
+LAYERS = [("weathergen", "weathergen.errors", "weathergen.workers", "weathergen.words"),
           ("weathergen.framepair", "weathergen.geometry", "weathergen.flow", "weathergen.io",
            "weathergen.execution"),
           ("weathergen.datasets", "weathergen.models", "weathergen.engine"),

@@ -26,6 +26,7 @@ from datetime import datetime, timedelta, timezone
 from typing import Callable, Iterator, Optional, Sequence
 
 from .errors import ConfigError
+from .words import counted
 
 EXECUTORS = ("local", "ray")
 
@@ -182,7 +183,7 @@ class RunClock:
 
     def describe(self) -> str:
         """E.g. ``12/40 pairs, 30.0 pairs/h, finish ~ 21:56 UTC (56 min)``."""
-        text = f"{self.done}/{self.total} pairs"
+        text = f"{self.done}/{counted(self.total, 'pair')}"
         rate, left = self.per_hour(), self.remaining_seconds()
         if rate is not None:
             text += f", {rate:.1f} pairs/h"

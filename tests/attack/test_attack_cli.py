@@ -351,3 +351,38 @@ def test_compat_reference_is_refused_for_lp_attacks(tmp_path):
                      "--out", tmp_path / "x"])
     assert result.exit_code == 2 and "--compat" in result.output and "weather" in result.output
     assert not (tmp_path / "x").exists()
+
+
+def test_strong_forward_motion_is_recorded_and_noted_once_by_the_attack(tmp_path, raft_small_weights):
+    """The attack samples a paper preset's particles as render does, and says the same of pairs
+    whose frame 2 keeps fewer than half of the particles frame 1 shows: marked ``few_in_frame2``
+    beside ``visible`` in the manifest, one note for the run; a still camera is not marked."""
+    from engine_scenes import wall_scene, write_sintel_scene
+
+    small = dict(size=(64, 96), focal=80.0, wall_columns=30)
+    root = tmp_path / "sintel"
+    write_sintel_scene(root, "ahead_a", wall_scene(forward=1.0, **small))
+    write_sintel_scene(root, "ahead_b", wall_scene(forward=1.0, plane_depth=8.0, **small))
+    write_sintel_scene(root, "still", wall_scene(**small))
+    out = tmp_path / "out"
+    res = invoke(["attack", "--root", root, "--model", "raft-small", "--checkpoint",
+                  raft_small_weights, "--iters", "1", "--steps", "1", "--set", "count=300",
+                  "--set", "scale_count=false", "--out", out, "-q"])
+    assert res.exit_code == 0, res.output
+    notes = [line for line in res.output.splitlines() if "frame 2 shows" in line]
+    assert len(notes) == 1, res.output
+    assert notes[0].startswith("Note: in 2 pairs") and "snow-moderate" in notes[0]
+    pairs = json.loads((out / "manifest.json").read_text())["pairs"]
+    marked = {key.split(":")[2]: entry["few_in_frame2"] for key, entry in pairs.items()}
+    assert marked == {"ahead_a": True, "ahead_b": True, "still": False}, pairs
+    for entry in pairs.values():
+        v1, v2 = entry["visible"]
+        assert entry["few_in_frame2"] == (v2 < 0.5 * v1)
+    # a resumed run keeps the marks and says nothing again (it sampled nothing)
+    res = invoke(["attack", "--root", root, "--model", "raft-small", "--checkpoint",
+                  raft_small_weights, "--iters", "1", "--steps", "1", "--set", "count=300",
+                  "--set", "scale_count=false", "--out", out, "-q", "--resume"])
+    assert res.exit_code == 0 and "frame 2 shows" not in res.output, res.output
+    again = json.loads((out / "manifest.json").read_text())["pairs"]
+    assert {k: (e["visible"], e["few_in_frame2"]) for k, e in again.items()} == \
+        {k: (e["visible"], e["few_in_frame2"]) for k, e in pairs.items()}

@@ -64,3 +64,25 @@ def test_means_pool_the_outlier_rates_over_valid_pixels():
     assert got["fl_all"] == pytest.approx((50 * 6 + 10 * 2) / 8)   # pooled, as KITTI counts
     assert got["outliers_1px"] == pytest.approx((10 * 6 + 70 * 2) / 8)
     assert got["outliers_5px"] is None and set(got) == set(FIGURE_KEYS)
+
+
+def test_the_records_of_a_pair_take_the_figures_from_one_declaration():
+    """An evaluation's rows and an attack's pair summaries carry the figures of
+    :func:`region_figures` through the one :class:`RegionFigures` they share: each field declared
+    there once, filled from region_figures' keys, and written back by both."""
+    from dataclasses import asdict, fields
+
+    from weathergen.attack import EvalRow
+    from weathergen.attack.figures import RegionFigures
+    from weathergen.attack.pair import PairSummary
+
+    clean, weather, covered, gt = hand_made()
+    got = region_figures(clean, weather, covered, gt)
+    assert set(got) == {f.name for f in fields(RegionFigures)}
+    for record in (EvalRow("p", 1.0, **got),
+                   PairSummary("p", 0, 1, 1.0, 1.0, 1.0, 1.0, **got)):
+        assert isinstance(record, RegionFigures)
+        assert {k: asdict(record)[k] for k in got} == got
+    for cls in (EvalRow, PairSummary):
+        own = [f.name for f in fields(cls) if f.name in cls.__dict__.get("__annotations__", {})]
+        assert not set(own) & set(got), f"{cls.__name__} declares {set(own) & set(got)} again"

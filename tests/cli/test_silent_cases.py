@@ -42,6 +42,11 @@ def test_check_and_render_report_a_gap_in_a_scenes_frame_numbering(sintel_with_a
     assert (f"Note: {root / 'training' / 'clean' / 'alley'}: gap in the frame numbering: no frame 2, "
             f"so the pair of frames 1-2 cannot be formed and the selection takes the pair of frames "
             f"3-4 instead") in res.output
+    # and records it in the manifest, under the run (as a pair's warnings are under the pair)
+    runs = json.loads((tmp_path / "o" / "manifest.json").read_text())["runs"]
+    assert runs[-1]["notes"] == [f"{root / 'training' / 'clean' / 'alley'}: gap in the frame "
+                                 "numbering: no frame 2, so the pair of frames 1-2 cannot be formed "
+                                 "and the selection takes the pair of frames 3-4 instead"]
     # a selection the gap does not touch says nothing
     res = run("check", "--root", root, "--scenes", "alley", "--first-frame", "3")
     assert res.exit_code == 0 and "gap" not in res.output, res.output
@@ -60,6 +65,8 @@ def test_attack_and_benchmark_report_a_gap_too(sintel_with_a_gap, tmp_path, raft
               "--iters", "2", "--out", tmp_path / "a")
     assert res.exit_code == 0, res.output
     assert res.output.count(note) == 1, res.output
+    runs = json.loads((tmp_path / "a" / "manifest.json").read_text())["runs"]
+    assert [note.removeprefix("Note: ")] == runs[-1]["notes"]
     res = run("benchmark", *common, "--networks", "raft-small", "--checkpoint",
               f"raft-small={raft_small_weights}", "--presets", "snow,rain", "--lp", "",
               "--iters", "2", "--out", tmp_path / "b")
@@ -307,6 +314,10 @@ def test_progress_rate_counts_computed_pairs_only(fake_sintel, tmp_path):
     progress = [line for line in res.output.splitlines() if line.startswith("[")]
     assert progress[0].startswith("[1/2 pairs] sintel/training/alley/0001 failed"), progress
     assert progress[1].startswith("[2/2 pairs, ") and " pairs/h" in progress[1], progress
+    # counts read in the right number: one pair, not "1 pair(s)" or "1 pairs"
+    assert "1 pair failed" in res.output and "pair(s)" not in res.output, res.output
+    res = run("check", "--root", fake_sintel, "--scenes", "alley", "--frames-per-scene", "1")
+    assert res.exit_code == 1 and "1 of 1 pair cannot be read." in res.output, res.output
     now = [0.0]
     clock = RunClock(3, now=lambda: now[0])
     now[0] = 1.0

@@ -83,7 +83,7 @@ def stopped_line(output: str) -> int:
     """N of the "Interrupted after N pairs; ..." line (the only line of the output)."""
     lines = output.strip().splitlines()
     assert len(lines) == 1, output
-    match = re.fullmatch(r"Interrupted after (\d+) pairs; (rerun with --resume|rerun the same "
+    match = re.fullmatch(r"Interrupted after (\d+) pairs?; (rerun with --resume|rerun the same "
                          r"command) to finish \(finished pairs are kept\)\.", lines[0])
     assert match, output
     return int(match.group(1))

@@ -34,6 +34,36 @@ def test_readers_declare_their_traits():
     native = {n: (cls.native_flow.folder, cls.native_flow.format)
               for n, cls in DATASETS.items() if cls.native_flow is not None}
     assert native == {"kitti": ("flow_occ", "kitti-png"), "spring": ("flow_FW_left", "flo5")}
+    assert {n for n, cls in DATASETS.items() if cls.stereo} == {"custom", "kitti", "spring"}
+
+
+def test_a_reader_with_a_second_camera_reads_it_itself_under_any_name(tmp_path, demo_root):
+    """Stereo is the reader class's trait: a KITTI reader registered under another name reads
+    image_3 as KITTI does; a reader without a second camera is refused, naming those with one."""
+    import shutil
+
+    from fake_datasets import demo_sequence, write_fake_kitti
+    from weathergen.datasets import KittiDataset, right_camera
+
+    _, pairs = demo_sequence("street")
+    split = write_fake_kitti(tmp_path / "kitti", pairs[0], scene="000004")
+    (split / "image_3").mkdir()
+    for n in (10, 11):
+        shutil.copy(split / "image_2" / f"000004_{n}.png", split / "image_3" / f"000004_{n}.png")
+
+    class Mirror(KittiDataset):
+        name = "kitti-mirror"
+
+    reader = Mirror(tmp_path / "kitti")
+    pair = reader.load(reader.pairs()[0])
+    assert pair.id.dataset == "kitti-mirror"
+    right = right_camera(reader, pair)
+    assert right.sources[0] == split / "image_3" / "000004_10.png"
+    assert float(right.right_from_left[0, 3]) == pytest.approx(-pair.meta["baseline_m"] * pair.depth_scale)
+    demo = open_dataset("demo", scenes=["street"], frames_per_scene=1)
+    with pytest.raises(ConfigError, match="'demo' has no second camera; stereo rendering reads "
+                                          "custom, kitti, spring"):
+        right_camera(demo, demo.load(demo.pairs()[0]))
 
 
 @pytest.mark.parametrize("name", sorted(DATASETS))

@@ -253,17 +253,17 @@ def upsample(grid, f: int, height: int, width: int):
     return out
 
 
-def render_frame(image, depth, frame_draws, levels, resolution, blend, coarse_side,
-                 detach_occlusion=False):
-    """One weather frame and its opacity from what it draws. Shape: image (3, H, W) tensor."""
+def frame_sums(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion=False):
+    """The sums A, C_r, C_g, C_b and the depth sum Z = Σ θ B V z of what a frame draws, on the
+    image grid. Shape: -> (5, H, W) float64."""
     height, width = len(depth), len(depth[0])
-    grids = {}                       # level -> [A, C_r, C_g, C_b] lists of rows
+    grids = {}                       # level -> [A, C_r, C_g, C_b, Z] lists of rows
     for looks, samples, theta, colour, b in frame_draws:
         level, pixels = stamp(levels, *looks, resolution, coarse_side)
         f = 2 ** level
         if level not in grids:
             h, w = -(-height // f), -(-width // f)
-            grids[level] = ([[[0.0] * w for _ in range(h)] for _ in range(4)],
+            grids[level] = ([[[0.0] * w for _ in range(h)] for _ in range(5)],
                             depth if level == 0 else block_depth(depth, f))
         sums, scene = grids[level]
         h, w = len(scene), len(scene[0])
@@ -288,13 +288,21 @@ def render_frame(image, depth, frame_draws, levels, resolution, blend, coarse_si
                         sums[0][py][px] = sums[0][py][px] + a
                         for c in range(3):
                             sums[1 + c][py][px] = sums[1 + c][py][px] + a * colour[c]
-    total = torch.zeros(4, height, width, dtype=torch.float64)
+                        sums[4][py][px] = sums[4][py][px] + a * _value(z)
+    total = torch.zeros(5, height, width, dtype=torch.float64)
     for level in sorted(grids, reverse=True):
         sums = grids[level][0]
         if level:
             sums = [upsample(s, 2 ** level, height, width) for s in sums]
         total = total + _stack(sums)
-    alpha, colour = total[:1], total[1:]
+    return total
+
+
+def render_frame(image, depth, frame_draws, levels, resolution, blend, coarse_side,
+                 detach_occlusion=False):
+    """One weather frame and its opacity from what it draws. Shape: image (3, H, W) tensor."""
+    total = frame_sums(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion)
+    alpha, colour = total[:1], total[1:4]
     image = image.double()
     out = image * (1 - alpha) + colour if blend == "alpha" else image + colour
     return out.clamp(0, 1), alpha.clamp(0, 1)
@@ -324,4 +332,58 @@ def oracle_render(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam
                                         record.settings.blend, coarse_side, detach_occlusion)
             outs[t].append(out)
             outs[2 + t].append(opacity)
+    return tuple(torch.stack(o) for o in outs)
+
+
+def oracle_layered(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam2_from_ref,
+                   layered, *, beta: float, coarse_side=COARSE_SIDE, grad: bool = False):
+    """Combined weather, pixel by pixel: every layer's sums (its own templates) and mean depth
+    ``Z / A``; at each pixel the layers sorted far to near and blended one over the other with
+    their own modes, clamped at the end; opacity ``1 − Π (1 − clamp(A_l))``. One
+    :class:`~weathergen.engine.LayeredParticles` per pair. Returns (image1, image2, opacity1,
+    opacity2), float64."""
+    from weathergen.engine import load_templates
+    outs = [[], [], [], []]
+    for b, stack in enumerate(layered):
+        k = intrinsics[b].double().tolist()
+        cams = [cam1_from_ref[b].double().tolist(), cam2_from_ref[b].double().tolist()]
+
+        def number(x):
+            return x.double() if grad else float(x)
+
+        for t, (image, depth) in enumerate(((image1[b], depth1[b]), (image2[b], depth2[b]))):
+            scene = depth[0].double().tolist()
+            layers = []
+            for record in stack.layers:
+                lib = load_templates(record.settings.templates)
+                frame = draws(record, t, k, cams, scene, beta, lib.resolution, number)
+                sums = frame_sums(scene, frame, mip_levels(lib.alphas), lib.resolution,
+                                  coarse_side)
+                layers.append((sums, record.settings.blend == "alpha"))
+            height, width = len(scene), len(scene[0])
+            out = image.double().clone()
+            rows, clear_rows = [], []
+            for y in range(height):
+                row, clear_row = [], []
+                for x in range(width):
+                    def mean_depth(layer):
+                        a = _value(layer[0][0, y, x])
+                        return _value(layer[0][4, y, x]) / a if a > 0 else 0.0
+                    # stable: equal depths keep the layers' order
+                    order = sorted(range(len(layers)), key=lambda i: -mean_depth(layers[i]))
+                    pixel = out[:, y, x]
+                    clear = 1.0
+                    for i in order:
+                        sums, alpha_mode = layers[i]
+                        a = sums[0, y, x]
+                        pixel = pixel * (1 - a) + sums[1:4, y, x] if alpha_mode \
+                            else pixel + sums[1:4, y, x]
+                    for sums, _ in layers:
+                        clear = clear * (1 - sums[0, y, x].clamp(0, 1))
+                    row.append(pixel)
+                    clear_row.append(1 - clear)
+                rows.append(torch.stack(row, 1))
+                clear_rows.append(torch.stack(clear_row))
+            outs[t].append(torch.stack(rows, 1).clamp(0, 1))
+            outs[2 + t].append(torch.stack(clear_rows)[None].clamp(0, 1))
     return tuple(torch.stack(o) for o in outs)

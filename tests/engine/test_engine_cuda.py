@@ -50,3 +50,27 @@ def test_gradients_on_cuda_match_the_cpu(name):
         assert torch.isfinite(gpu).all(), k
         scale = float(cpu.abs().max()) or 1.0
         assert float((gpu - cpu).abs().max()) <= 1e-3 * scale, k
+
+
+def test_combined_weather_on_cuda_matches_the_cpu():
+    """Snow, fog and a weather field in one pass: frames and the gradient of every layer."""
+    pair = plane_pair(48, 64, depth=2.5, near_block=True)
+    preset = load_preset("snow+fog+snow-light", {"snow.count": 150, "fog.count": 4,
+                                                 "snow-light.far": 5.0})
+    layers = sample_weather(pair, preset, seed=3, frame_rate=24.0)
+    assert all(r.count for r in layers.layers)
+    results = {}
+    for device in ("cpu", "cuda"):
+        leaves = [r.to(device).replace(color=r.color.clone().to(device).requires_grad_(True))
+                  for r in layers.layers]
+        out = render_pair(pair, type(layers)(tuple(leaves), layers.names), beta=BETA_ATTACK,
+                          device=device)
+        (out.image1.square().sum() + out.image2.sum()).backward()
+        results[device] = (out, [r.color.grad.cpu() for r in leaves])
+    (cpu, cpu_grads), (gpu, gpu_grads) = results["cpu"], results["cuda"]
+    for key in ("image1", "image2", "opacity1", "opacity2"):
+        assert float((getattr(gpu, key).detach().cpu() - getattr(cpu, key).detach()).abs().max()) \
+            <= 1 / 255, key
+    for a, b in zip(cpu_grads, gpu_grads):
+        assert torch.allclose(a, b, rtol=1e-3, atol=1e-3)
+        assert float(a.abs().max()) > 0

@@ -201,3 +201,23 @@ def test_gradcheck_of_a_field_record():
     leaves = [getattr(record, n).double().clone().requires_grad_(True)
               for n in ("color", "transparency")]
     assert torch.autograd.gradcheck(f, leaves, eps=1e-6, atol=1e-6)
+
+
+def test_combined_weather_equals_the_layered_oracle():
+    """Snow and fog of the paper's model and a weather field in one pass: each layer's sums
+    with its own templates, composited per pixel far to near by the layers' mean depths."""
+    from oracle import oracle_layered
+    from weathergen.engine import LayeredParticles
+
+    pairs = [scene(0), scene(1)]
+    layered = [LayeredParticles((paper(p, "snow", 20 + i, 6, size=15, blend="alpha"),
+                                 paper(p, "fog", 30 + i, 2),
+                                 field(p, "rain-light", 40 + i)), ("snow", "fog", "rain-light"))
+               for i, p in enumerate(pairs)]
+    args = arguments(pairs, layered)
+    core = render(*args, beta=BETA_RENDER)
+    want = oracle_layered(*args, beta=BETA_RENDER)
+    for name, w in zip(("image1", "image2", "opacity1", "opacity2"), want):
+        got = getattr(core, name)
+        assert float((got - w).abs().max()) <= 1e-9, (name, float((got - w).abs().max()))
+    assert bool((core.image1 != args[0]).any())

@@ -434,7 +434,7 @@ def test_strong_forward_motion_is_recorded_and_noted_once(tmp_path):
     assert res.exit_code == 0, res.output
     notes = [line for line in res.output.splitlines() if "frame 2" in line]
     assert len(notes) == 1, res.output
-    assert notes[0].startswith("Note: in 2 pair(s)") and "snow-moderate" in notes[0]
+    assert notes[0].startswith("Note: in 2 pairs") and "snow-moderate" in notes[0]
     pairs = json.loads((out / "manifest.json").read_text())["pairs"]
     marked = {key.split(":")[2]: entry["few_in_frame2"] for key, entry in pairs.items()}
     assert marked == {"ahead_a": True, "ahead_b": True, "still": False}, pairs

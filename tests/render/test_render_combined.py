@@ -14,7 +14,6 @@ from engine_scenes import plane_pair
 from weathergen.cli.main import _register, cli
 from weathergen.engine import (EXAMPLE_COMBINATIONS, LayeredParticles, layer_seed, load_preset,
                                sample_layers, scene_seed)
-from weathergen.errors import ConfigError
 from weathergen.framepair import PairId
 from weathergen.render.particles import layer_seeds, pair_particles, pair_seed, weather_seed
 
@@ -55,26 +54,136 @@ def test_a_runs_pair_samples_every_layer_with_its_seed():
 
 
 @pytest.mark.parametrize("command", ["render", "attack"])
-def test_render_and_attack_refuse_a_combination_in_one_line(tmp_path, command):
+def test_bad_combinations_are_refused_in_one_line(tmp_path, command):
     out = tmp_path / "out"
-    line = one_line_error(run(command, "--preset", "rain-heavy+fog-light", "--out", out))
-    assert line == ("Error: --preset rain-heavy+fog-light: combined presets (layers joined by +) "
-                    "are not yet supported by render and attack; `weathergen presets "
-                    "rain-heavy+fog-light` shows how they resolve")
-    assert not out.exists()
-    # a bad combination is named as such first
     line = one_line_error(run(command, "--preset", "snow+", "--out", out))
     assert "--preset snow+: layer 2 of 2 is empty" in line and not out.exists()
+    line = one_line_error(run(command, "--preset", "snow+nothing-like-it", "--out", out))
+    assert "--preset snow+nothing-like-it: layer 2 (nothing-like-it)" in line
+    assert not out.exists()
     line = one_line_error(run(command, "--preset", "snow+fog-light", "--set", "density=3", "--out", out))
     assert "--set density: not a key of layer 1 (snow, a paper preset)" in line
+    line = one_line_error(run(command, "--preset", "snow-light+rain-light", "--set",
+                              "snow-light.frame_rate=24", "--out", out))
+    assert "field layers have different frame rates" in line and not out.exists()
 
 
-def test_weather_augment_refuses_a_combination():
-    from weathergen.training import WeatherAugment
+@pytest.mark.parametrize("flag", ["--sequence", "--stereo"])
+def test_sequences_and_stereo_refuse_a_combination_in_one_line(tmp_path, flag):
+    out = tmp_path / "out"
+    line = one_line_error(run("render", "--preset", "snow-light+fog-light", flag, "--out", out))
+    assert line == (f"Error: {flag} does not take combined presets yet ('snow-light+fog-light'); "
+                    "render its layers one by one")
+    assert not out.exists()
 
-    for given in ("snow+fog", load_preset("snow+fog")):
-        with pytest.raises(ConfigError, match="not yet supported by WeatherAugment"):
-            WeatherAugment(given)
+
+ONE_PAIR = ("--scenes", "courtyard", "--frames-per-scene", "1")
+
+
+@pytest.fixture(scope="module")
+def combined_out(tmp_path_factory):
+    out = tmp_path_factory.mktemp("combined") / "snow+fog-light"
+    res = run("render", "--preset", "snow+fog-light", *ONE_PAIR, "--particle-truth", "--out", out)
+    assert res.exit_code == 0, res.output
+    return out
+
+
+PAIR = "courtyard_0001"
+
+
+def test_render_draws_every_layer_into_one_pair(combined_out, demo_root):
+    """The demo scene with snow and light fog: one metadata file holding both layers with a
+    layer index per particle and each layer's seed, the particles those seeds sample, frames
+    that differ from the clean ones, particle ground truth over both layers."""
+    from weathergen.datasets import open_dataset
+    from weathergen.engine import load_particles, particle_truth, render_pair
+    from weathergen.io.images import read_image
+    from weathergen.outputs import read_metadata
+
+    split = combined_out / "training"
+    npz = split / "particles" / PAIR / "frame_0001.npz"
+    arrays = read_metadata(npz)
+    stored = load_particles(npz)
+    assert isinstance(stored, LayeredParticles) and stored.names == ("snow", "fog-light")
+    assert stored.counts[0] == 454 and stored.counts[1] > 0
+    assert np.array_equal(arrays["layer"], np.repeat([0, 1], stored.counts))
+    demo = open_dataset("demo", scenes=["courtyard"], frames_per_scene=1)
+    pair = demo.load(demo.pairs()[0])
+    preset = load_preset("snow+fog-light")
+    seeds = layer_seeds(preset, 0, pair.id)
+    assert arrays["layer_seeds"].tolist() == list(seeds)
+    sampled = pair_particles(pair, preset, 0, frame_rate=demo.frame_rate)
+    for a, b in zip(stored.layers, sampled.layers):
+        assert torch.equal(a.position, b.position) and a.settings == b.settings
+    manifest = json.loads((combined_out / "manifest.json").read_text())
+    assert manifest["preset"]["model"] == "combined"
+    clean = pair.image1.permute(1, 2, 0).numpy()
+    frame = read_image(split / "snow+fog-light_clean" / PAIR / "frame_0001.png")
+    assert np.abs(frame - clean).mean() > 0.05
+    # the written frame is the engine's layered render of the stored layers
+    out = render_pair(pair, stored)
+    assert np.abs(out.image1[0].permute(1, 2, 0).numpy() - frame).max() <= 0.5 / 255 + 1e-6
+    truth = particle_truth(pair, stored)
+    alone = [particle_truth(pair, layer) for layer in stored.layers]
+    assert torch.allclose(truth.weight, alone[0].weight + alone[1].weight, atol=1e-5)
+    opacity = read_image(split / "particle_opacity" / PAIR / "frame_0001.png")
+    assert abs(float(np.mean(opacity)) - float(truth.opacity.mean())) < 0.01
+
+
+def test_rerendering_a_combination_gives_the_same_bytes(combined_out, tmp_path):
+    import hashlib
+
+    again = tmp_path / "again"
+    res = run("render", "--particles", combined_out, *ONE_PAIR, "--out", again)
+    assert res.exit_code == 0, res.output
+    for name in ("frame_0001.png", "frame_0002.png"):
+        a, b = (root / "training" / "snow+fog-light_clean" / PAIR / name
+                for root in (combined_out, again))
+        assert hashlib.sha256(a.read_bytes()).digest() == hashlib.sha256(b.read_bytes()).digest()
+    line = one_line_error(run("render", "--particles", combined_out, *ONE_PAIR, "--set",
+                              "blend=alpha", "--out", tmp_path / "x"))
+    assert "--set blend: the stored particles are of the combined preset" in line
+
+
+def test_a_severity_ladder_keeps_its_counts_when_rendered_in_combination(tmp_path):
+    """snow-light+fog-moderate: each layer holds the particles its preset alone samples with
+    the layer's seed, so the ladders' ratios (light vs moderate) hold in combination."""
+    from weathergen.datasets import open_dataset
+    from weathergen.engine import load_particles, sample_weather
+
+    out = tmp_path / "ladder"
+    res = run("render", "--preset", "snow-light+fog-moderate", *ONE_PAIR, "--out", out)
+    assert res.exit_code == 0, res.output
+    stored = load_particles(out / "training" / "particles" / PAIR / "frame_0001.npz")
+    demo = open_dataset("demo", scenes=["courtyard"], frames_per_scene=1)
+    pair = demo.load(demo.pairs()[0])
+    preset = load_preset("snow-light+fog-moderate")
+    for layer, seed, record in zip(preset.layers, layer_seeds(preset, 0, pair.id), stored.layers):
+        alone = sample_weather(pair, load_preset(layer.name), seed, frame_rate=demo.frame_rate)
+        assert record.count == alone.count > 0, layer.name
+
+
+def test_weather_augment_renders_a_combination():
+    """Per sample and per batch, the same frames; every layer is in them."""
+    from weathergen.datasets import open_dataset
+    from weathergen.training import PairDataset, WeatherAugment, collate_pairs
+
+    data = PairDataset(open_dataset("demo", scenes=["courtyard"], frames_per_scene=2))
+    samples = [data[i] for i in range(len(data))]
+    aug = WeatherAugment("snow+fog", p=1.0, seed=3, overrides={"snow.count": 150},
+                         keep_particles=True)
+    one = [aug(s) for s in samples]
+    assert all(isinstance(s.particles, LayeredParticles) for s in one)
+    assert one[0].particles.names == ("snow", "fog")
+    batched = aug.apply_batch(collate_pairs(samples))
+    for k, s in enumerate(one):
+        assert torch.equal(batched.pairs.image1[k], s.pair.image1)
+        assert torch.equal(batched.pairs.image2[k], s.pair.image2)
+        assert not torch.equal(s.pair.image1, samples[k].pair.image1)
+    assert aug.sources[0].model == "combined"
+    mixed = WeatherAugment(["snow", "snow+fog"], p=1.0, seed=4, overrides={"count": 100})
+    batch = mixed.apply_batch(collate_pairs(samples))
+    assert all(w.rendered for w in batch.weather)
 
 
 def test_presets_lists_example_combinations_and_shows_each_layer():
@@ -107,3 +216,33 @@ def test_inspect_shows_the_layers_of_a_metadata_file(tmp_path):
     assert "snow: 50 particles" in res.output and "fog: 3 particles" in res.output
     assert "per-particle values of layer snow" in res.output
     assert "per-particle values of layer fog" in res.output
+
+
+def test_preview_and_the_weather_region_read_a_combined_output(combined_out, tmp_path):
+    """`preview` re-renders the opacity from every stored layer, and `evaluate`'s weather
+    region covers the pixels of both layers."""
+    from weathergen.attack.evaluate import weather_region
+    from weathergen.datasets import open_dataset
+    from weathergen.outputs import WeatherFolder
+
+    res = run("preview", combined_out, "--out", tmp_path / "sheet.png")
+    assert res.exit_code == 0, res.output
+    assert (tmp_path / "sheet.png").stat().st_size > 1000
+    folder = WeatherFolder.open(combined_out)
+    pair_id = folder.pairs[0]
+    stored = folder.particles(pair_id)
+    assert isinstance(stored, LayeredParticles) and len(stored.layers) == 2
+    demo = open_dataset("demo", scenes=["courtyard"], frames_per_scene=1)
+    pair = demo.load(demo.pairs()[0])
+    covered = weather_region(folder, pair_id, pair)
+    alone = [weather_region_of(pair, layer) for layer in stored.layers]
+    assert bool((covered >= (alone[0] | alone[1])).all()) and int(covered.sum()) > 0
+
+
+def weather_region_of(pair, record):
+    from weathergen.engine import render_pair
+    from weathergen.flow import weather_mask
+
+    with torch.no_grad():
+        out = render_pair(pair, record)
+    return weather_mask(out.opacity1, out.opacity2)[0, 0]

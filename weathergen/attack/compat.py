@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import torch
 
-from ..engine import BETA_ATTACK
+from ..engine import BETA_ATTACK, CombinedPreset
 from .settings import COMPAT_MODES, AttackSettings, transparency_bound
 
 #: Added to the squared depth in the research code's offset penalty.
@@ -61,7 +61,10 @@ def reference_transparency_bound(preset) -> float:
 
 
 def transparency_bound_for(preset, compat: str) -> float:
-    """The θ bound of ``preset`` under ``compat``."""
+    """The θ bound of ``preset`` under ``compat`` (combined weather: the largest of its
+    layers')."""
+    if isinstance(preset, CombinedPreset):
+        return max(transparency_bound_for(layer, compat) for layer in preset.layers)
     return reference_transparency_bound(preset) if compat == "reference" else transparency_bound(preset)
 
 

@@ -28,28 +28,18 @@ from ..errors import DatasetError
 from ..flow import aee, weather_mask
 from ..io.atomic import atomic_write_bytes
 from ..outputs.reading import WeatherFolder
-from .figures import FIGURE_KEYS, mean_figures, region_figures
+from .figures import FIGURE_KEYS, RegionFigures, mean_figures, region_figures
 
 
 @dataclass
-class EvalRow:
+class EvalRow(RegionFigures):
     """One pair (pixels): AEE(f, f̌); EPE of f and f̌ against ground truth (None without it);
-    the figures by region and outlier rates of f̌ (:mod:`weathergen.attack.figures`)."""
+    the figures by region and outlier rates of f̌ (:class:`~weathergen.attack.figures.RegionFigures`)."""
 
     pair: str
     aee_weather: float
     epe_clean: Optional[float] = None
     epe_weather: Optional[float] = None
-    aee_weather_px: Optional[float] = None
-    aee_clear_px: Optional[float] = None
-    epe_weather_px: Optional[float] = None
-    epe_clear_px: Optional[float] = None
-    weather_coverage: Optional[float] = None
-    fl_all: Optional[float] = None
-    outliers_1px: Optional[float] = None
-    outliers_3px: Optional[float] = None
-    outliers_5px: Optional[float] = None
-    gt_valid_px: Optional[int] = None
 
 
 def frame_flows(model, clean1: torch.Tensor, clean2: torch.Tensor, weather1: torch.Tensor,

@@ -18,17 +18,40 @@ pixels of all pairs (``gt_valid_px`` per pair), as KITTI's evaluation counts the
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field, fields
 from typing import Mapping, Optional, Sequence
 
 import torch
 
 from ..flow import aee, fl_all, outlier_rate
 
+_PER_PAIR, _POOLED = {"mean": "pairs"}, {"mean": "pooled"}
+
+
+@dataclass(kw_only=True)
+class RegionFigures:
+    """The figures by region and outlier rates of one pair (see the module doc), declared once for
+    every per-pair record that carries them (an evaluation's rows, an attack's pair summaries).
+    ``mean`` in a field's metadata says how means over pairs take it: over the pairs that have it
+    (``"pairs"``) or pooled over their valid pixels (``"pooled"``)."""
+
+    aee_weather_px: Optional[float] = field(default=None, metadata=_PER_PAIR)
+    aee_clear_px: Optional[float] = field(default=None, metadata=_PER_PAIR)
+    epe_weather_px: Optional[float] = field(default=None, metadata=_PER_PAIR)
+    epe_clear_px: Optional[float] = field(default=None, metadata=_PER_PAIR)
+    weather_coverage: Optional[float] = field(default=None, metadata=_PER_PAIR)
+    fl_all: Optional[float] = field(default=None, metadata=_POOLED)
+    outliers_1px: Optional[float] = field(default=None, metadata=_POOLED)
+    outliers_3px: Optional[float] = field(default=None, metadata=_POOLED)
+    outliers_5px: Optional[float] = field(default=None, metadata=_POOLED)
+    #: the valid ground-truth pixels the outlier rates count (None without ground truth)
+    gt_valid_px: Optional[int] = None
+
+
 #: Per-pair figures averaged over pairs.
-REGION_KEYS = ("aee_weather_px", "aee_clear_px", "epe_weather_px", "epe_clear_px",
-               "weather_coverage")
+REGION_KEYS = tuple(f.name for f in fields(RegionFigures) if f.metadata.get("mean") == "pairs")
 #: Per-pair outlier rates, pooled over the pairs' valid pixels.
-OUTLIER_KEYS = ("fl_all", "outliers_1px", "outliers_3px", "outliers_5px")
+OUTLIER_KEYS = tuple(f.name for f in fields(RegionFigures) if f.metadata.get("mean") == "pooled")
 FIGURE_KEYS = REGION_KEYS + OUTLIER_KEYS
 
 

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..datasets import Dataset
-from ..engine import render_pair
+from ..engine import CombinedPreset, render_pair
 from ..errors import ConfigError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
@@ -32,7 +32,9 @@ from ..models import get_model, resolve_amp
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
-from ..render.particles import pair_particles, pair_seed, weather_scaling, weather_seed
+from ..render.job import frame2_note, visibility_of
+from ..render.particles import (layer_seeds, pair_particles, pair_seed, weather_scaling,
+                                weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -126,6 +128,11 @@ class PairReport:
     #: what the reader found odd about the input (``"FILE: what"`` lines, e.g. a grey frame beside
     #: a colour one): the pair is attacked all the same
     warnings: list = field(default_factory=list)
+    #: particle centres frame 1 and frame 2 show before the optimisation (None for an Lp attack)
+    visible: Optional[tuple] = None
+    #: a paper preset's pair whose frame 2 shows fewer than half of them (strong camera motion;
+    #: see :func:`weathergen.render.job.few_in_frame2`)
+    few_in_frame2: bool = False
 
 
 _MODELS: dict = {}
@@ -164,6 +171,8 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
         torch.set_num_threads(job.threads)
     reports: dict[str, PairReport] = {}
     groups: dict[tuple, list] = {}
+    seen: dict[str, tuple] = {}          # particle centres each frame shows, before optimising
+    few: dict[str, bool] = {}
     for ref in refs:
         start = time.perf_counter()
         try:
@@ -177,6 +186,8 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
             continue
         groups.setdefault(pair.size, []).append((ref, pair, particles,
                                                  time.perf_counter() - start))
+        if particles is not None:
+            seen[ref.id.key], few[ref.id.key] = visibility_of(pair, particles)
     for group in groups.values():
         start = time.perf_counter()
         names = [str(ref.id) for ref, _, _, _ in group]
@@ -206,7 +217,9 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
             summary = write(job, model, pair, result, device)
             summary.seconds = spent + share + time.perf_counter() - begin
             reports[ref.id.key] = PairReport(str(ref.id), "written", summary, key=ref.id.key,
-                                             ran=ran, warnings=list(pair.meta.get("warnings", [])))
+                                             ran=ran, warnings=list(pair.meta.get("warnings", [])),
+                                             visible=seen.get(ref.id.key),
+                                             few_in_frame2=few.get(ref.id.key, False))
     return [reports[ref.id.key] for ref in refs]
 
 
@@ -229,8 +242,11 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
                              compat=job.settings.compat, covered=covered)
     summary.particles = best.count
     opacity = tuple(a[0, 0].cpu().numpy() for a in (rendered.opacity1, rendered.opacity2))
-    meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id), job.preset.to_dict(),
-                         job.preset_name, scaling=weather_scaling(job.preset, pair))
+    seeds = (layer_seeds(job.preset, job.seed, pair.id)
+             if isinstance(job.preset, CombinedPreset) else None)
+    meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id),
+                         job.preset.to_dict(), job.preset_name, seeds,
+                         scaling=weather_scaling(job.preset, pair))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
     out = pair_output(job, pair.id)
@@ -301,7 +317,8 @@ def run_attack(job: AttackJob,
     tasks (``job.executor``). The manifest is rewritten after every unit, so an interrupted run
     (Ctrl-C, or a killed driver) keeps what it finished. ``on_step`` receives the pair's name and
     each step (local executor only: Ray tasks report whole pairs); ``on_note`` warnings worth a
-    line (a stale lock taken over, a gap in a scene's frame numbering). The output folder is claimed for the run
+    line (a stale lock taken over, a gap in a scene's frame numbering, the pairs marked
+    ``few_in_frame2``, once per run). The output folder is claimed for the run
     (:func:`~weathergen.outputs.claim_folder`): a second run in it raises
     :class:`~weathergen.errors.FolderBusy`.
     """
@@ -325,11 +342,11 @@ def run_attack(job: AttackJob,
     with claim_folder(job.out, ATTACK_FOLDER, job.config(), resume=job.resume,
                       overwrite=job.overwrite, on_note=on_note) as claim:
         return _attack_locked(job, refs, model, target_file_flow, claim.previous, on_start,
-                              on_step, on_pair_done)
+                              on_step, on_pair_done, on_note)
 
 
 def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_step,
-                   on_pair_done) -> dict:
+                   on_pair_done, on_note) -> dict:
     config = job.config()
     local = job.executor == "local"
 
@@ -340,8 +357,12 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
            "batch_size": job.batch_size,
            "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
            "written": 0, "skipped": 0, "failed": 0}
+    notes = job.dataset.scene_notes()          # e.g. a gap in a scene's frame numbering
+    if notes:
+        run["notes"] = notes
     runs.append(run)
     summaries: dict[str, PairSummary] = {}
+    written: list[PairReport] = []
 
     def save():
         ordered = {k: pairs_entry[k] for k in order if k in pairs_entry}
@@ -359,10 +380,15 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
             old = pairs_entry.get(report.key, {})
             ran = report.ran if report.ran is not None else old.get("ran")
             warnings = report.warnings if report.status == "written" else old.get("warnings", [])
+            sampled = ({"visible": list(report.visible), "few_in_frame2": report.few_in_frame2}
+                       if report.visible is not None else
+                       {k: old[k] for k in ("visible", "few_in_frame2") if k in old})
             pairs_entry[report.key] = {"status": "written", **asdict(report.summary),
                                        **({"ran": ran} if ran else {}),
-                                       **({"warnings": warnings} if warnings else {})}
+                                       **({"warnings": warnings} if warnings else {}), **sampled}
         run[report.status] += 1
+        if report.status == "written":
+            written.append(report)
         on_pair_done(report)
 
     on_start(len(refs))
@@ -391,4 +417,7 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
     finally:
         run["seconds"] = round(time.perf_counter() - t0, 3)
         save()
+    note = frame2_note([(r.pair, r.visible) for r in written if r.few_in_frame2], job.preset_name)
+    if note is not None:
+        on_note(note)
     return run_summary(job, [summaries[k] for k in order if k in summaries])

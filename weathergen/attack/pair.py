@@ -49,14 +49,15 @@ from typing import Callable, Optional, Sequence
 
 import torch
 
-from ..engine import build_stamps, from_atanh, load_templates, reference_transforms, render, to_atanh
+from ..engine import (LayeredParticles, build_stamps, from_atanh, load_templates,
+                      reference_transforms, render, to_atanh)
 from ..engine.particles import TENSOR_FIELDS
 from ..engine.sampling import check_pair_for_engine
 from ..errors import ConfigError
 from ..flow import aee
 from ..framepair import FramePair
 from ..geometry import transform_points
-from .figures import FIGURE_KEYS, mean_figures, region_figures
+from .figures import FIGURE_KEYS, RegionFigures, mean_figures, region_figures
 from .compat import (camera_translation_in_reference, detaches_occlusion, reference_figure_flows,
                      reference_offset_penalty, resets_gradients)
 from .settings import DEFAULT_ALPHA, AttackSettings
@@ -131,6 +132,45 @@ class WeatherVariables:
             changes["transparency"] = self.theta_max * from_atanh(self.eta_theta
                                                                   + d["transparency"])
         return b.replace(**changes)
+
+
+class LayeredVariables:
+    """The free variables of combined weather (:class:`~weathergen.engine.LayeredParticles`):
+    a :class:`WeatherVariables` per freed layer (``layers`` by name, None: every layer), each
+    with the keyword arguments of :class:`WeatherVariables`; the other layers stay as they are.
+    """
+
+    def __init__(self, particles: LayeredParticles, optimize: tuple[str, ...], *,
+                 layers: Optional[Sequence[str]] = None, **options):
+        self.base = particles
+        chosen = particles.names if layers is None else tuple(layers)
+        unknown = [n for n in chosen if n not in particles.names]
+        if unknown:
+            raise ConfigError(f"${{optimize_layer}} {', '.join(unknown)}: no such layer (layers: "
+                              f"{', '.join(particles.names)})")
+        indices = sorted({particles.index_of(n) for n in chosen})      # in the layers' order
+        self.freed = {k: WeatherVariables(particles.layers[k], optimize, **options)
+                      for k in indices}
+
+    def parameters(self) -> list[torch.Tensor]:
+        return [p for v in self.freed.values() for p in v.parameters()]
+
+    def particles(self) -> LayeredParticles:
+        out = self.base
+        for k, v in self.freed.items():
+            out = out.replace_layer(k, v.particles())
+        return out
+
+    @property
+    def delta(self) -> dict:
+        """The freed layers' added offsets, joined (as :attr:`WeatherVariables.delta`)."""
+        names = {n for v in self.freed.values() for n in v.delta}
+        return {n: torch.cat([v.delta[n] for v in self.freed.values()]) for n in names}
+
+
+def _joined(depths: list) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-record (frame-1, frame-2) depths joined into one pair of (N,) tensors."""
+    return torch.cat([d[0] for d in depths]), torch.cat([d[1] for d in depths])
 
 
 def particle_depths(particles, cam1_from_ref: torch.Tensor, cam2_from_ref: torch.Tensor
@@ -255,7 +295,9 @@ class StepLog:
 
 
 def _snapshot(particles):
-    """A detached CPU copy of a record."""
+    """A detached CPU copy of a record (of every layer of combined weather)."""
+    if isinstance(particles, LayeredParticles):
+        return LayeredParticles(tuple(_snapshot(r) for r in particles.layers), particles.names)
     return particles.replace(**{n: getattr(particles, n).detach().cpu().clone()
                                 for n in TENSOR_FIELDS})
 
@@ -311,22 +353,39 @@ class BatchOptimisation:
         with torch.no_grad():
             self.benign = model(self.frames["image1"], self.frames["image2"])
         self.goal = target_flow(target, self.benign, target_file_flow)
-        names = {r.settings.templates for r in moved}
-        if len(names) != 1:
-            raise ConfigError(f"pairs optimised together must share templates; got {sorted(names)}")
-        self.templates = load_templates(names.pop())
+        layered = [isinstance(r, LayeredParticles) for r in moved]
+        if any(layered):     # combined weather: every layer is drawn with its own templates
+            if not all(layered) or len({r.names for r in moved}) != 1:
+                raise ConfigError("pairs optimised together must have the same weather layers")
+            self.templates = None
+        else:
+            names = {r.settings.templates for r in moved}
+            if len(names) != 1:
+                raise ConfigError(f"pairs optimised together must share templates; got "
+                                  f"{sorted(names)}")
+            self.templates = load_templates(names.pop())
+        if settings.layers is not None and not all(layered):
+            raise ConfigError("${optimize_layer} applies to combined presets (layers joined by +)")
         # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
         self.stamps = (build_stamps(moved, self.templates, device=device)
                        if any(r.count for r in moved) else None)
         reference = settings.compat == "reference"
-        self.variables = [WeatherVariables(r, settings.optimize, cam1_from_ref=c1, cam2_from_ref=c2,
-                                           transparency_max=settings.transparency_max,
-                                           homogeneous=reference)
+        options = dict(transparency_max=settings.transparency_max, homogeneous=reference)
+        self.variables = [LayeredVariables(r, settings.optimize, layers=settings.layers,
+                                           cam1_from_ref=c1, cam2_from_ref=c2, **options)
+                          if isinstance(r, LayeredParticles) else
+                          WeatherVariables(r, settings.optimize, cam1_from_ref=c1,
+                                           cam2_from_ref=c2, **options)
                           for r, (c1, c2) in zip(moved, transforms)]
-        self.reg_depths = [particle_depths(r, c1, c2) for r, (c1, c2) in zip(moved, transforms)]
+        # The penalty weighs the freed particles' offsets (combined weather: the freed layers').
+        self.penalised = [sorted(v.freed) if isinstance(v, LayeredVariables) else None
+                          for v in self.variables]
+        self.reg_depths = [_joined([particle_depths(x, c1, c2) for x in self._freed(i, r)])
+                           for i, (r, (c1, c2)) in enumerate(zip(moved, transforms))]
         # The research code's penalty divides by the squared, unclamped frame-1 depth of the
         # starting positions.
-        self.start_depth1 = [start_depth(r, c1) for r, (c1, _) in zip(moved, transforms)]
+        self.start_depth1 = [torch.cat([start_depth(x, c1) for x in self._freed(i, r)])
+                             for i, (r, (c1, _)) in enumerate(zip(moved, transforms))]
         self.detach_occlusion = detaches_occlusion(settings)
         self.optimizer = torch.optim.Adam([p for v in self.variables for p in v.parameters()],
                                           lr=settings.learning_rate)
@@ -367,7 +426,16 @@ class BatchOptimisation:
             return reference_offset_penalty(delta.get("offset1"), delta.get("offset2"),
                                             self.start_depth1[i], s.alpha1, s.alpha2)
         d1, d2 = self.reg_depths[i]
-        return offset_penalty(record.offset1, record.offset2, d1, d2, s.alpha1, s.alpha2)
+        freed = self._freed(i, record)
+        return offset_penalty(torch.cat([r.offset1 for r in freed]),
+                              torch.cat([r.offset2 for r in freed]), d1, d2, s.alpha1, s.alpha2)
+
+    def _freed(self, i: int, record) -> list:
+        """Pair ``i``'s records whose offsets the penalty weighs: its record, or the freed
+        layers of combined weather."""
+        if self.penalised[i] is None:
+            return [record]
+        return [record.layers[k] for k in self.penalised[i]]
 
     def update(self, loss: torch.Tensor, active: Optional[Sequence[bool]] = None) -> None:
         """One Adam step on the free variables of the ``active`` pairs (default: all), with
@@ -508,13 +576,14 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
 
 
 @dataclass
-class PairSummary:
+class PairSummary(RegionFigures):
     """Per-pair figures of an attack (pixels). ``epe_*`` are None without ground truth.
 
     aee_random: AEE(f, f̌) for the unoptimised weather (step 0, float frames); aee_adversarial:
     for the best step as written (particles at storage precision, 8-bit frames);
     target_initial / target_adversarial: AEE(f̌, target) for the same two flows. The figures by
-    region and the outlier rates (:mod:`weathergen.attack.figures`) describe the adversarial flow.
+    region and the outlier rates (:class:`~weathergen.attack.figures.RegionFigures`) describe the
+    adversarial flow.
     """
 
     pair: str
@@ -527,16 +596,6 @@ class PairSummary:
     epe_benign: Optional[float] = None
     epe_random: Optional[float] = None
     epe_adversarial: Optional[float] = None
-    aee_weather_px: Optional[float] = None
-    aee_clear_px: Optional[float] = None
-    epe_weather_px: Optional[float] = None
-    epe_clear_px: Optional[float] = None
-    weather_coverage: Optional[float] = None
-    fl_all: Optional[float] = None
-    outliers_1px: Optional[float] = None
-    outliers_3px: Optional[float] = None
-    outliers_5px: Optional[float] = None
-    gt_valid_px: Optional[int] = None
     seconds: float = 0.0
     nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
     particles: Optional[int] = None   # particles in the record (the count the frame size gave)

@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
-from ..engine import BETA_ATTACK, BETA_RENDER, Preset
+from ..engine import BETA_ATTACK, BETA_RENDER, CombinedPreset, Preset
 from ..errors import ConfigError
 from ..render.plan import resolve_preset
 from .compat import transparency_bound_for
@@ -49,13 +49,16 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
                 optimize: Optional[str | Sequence[str]] = None, lr: Optional[float] = None,
                 occlusion_gradient: Optional[bool] = None, steps: int = DEFAULT_STEPS,
                 alpha1: float = DEFAULT_ALPHA, alpha2: float = DEFAULT_ALPHA,
-                compat: str = "paper") -> AttackPlan:
+                compat: str = "paper",
+                layers: Optional[str | Sequence[str]] = None) -> AttackPlan:
     """Resolve an attack request by the rules of this module; None means "not given".
 
     ``compat``: ``paper`` or ``reference`` (:mod:`weathergen.attack.compat`); it also picks the
     transparency bound of the preset.
 
     ``optimize`` is ``"offset1,color"`` (or ``"all"``) or a sequence of variable names.
+    ``layers``: for a combined preset, the layers whose variables are freed (``"fog-light"``,
+    ``"snow,fog"``, a sequence of names, or ``"all"``/None: every layer).
     Raises ConfigError for an unknown configuration, preset or variable, and for the refused
     combinations with ``particles_from``.
     """
@@ -81,8 +84,30 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
     settings = AttackSettings(optimize=variables, steps=steps, lr=lr, alpha1=alpha1,
                               alpha2=alpha2, beta=BETA_ATTACK if occlusion_gradient else BETA_RENDER,
                               transparency_max=transparency_bound_for(resolved.preset, compat),
-                              compat=compat)
+                              compat=compat, layers=parse_layers(layers, resolved.preset))
     return AttackPlan(resolved.preset, name, config, settings, config_name or name)
+
+
+def parse_layers(layers: Optional[str | Sequence[str]], preset) -> Optional[tuple[str, ...]]:
+    """The layers an attack frees (None: every layer), checked against ``preset``'s layers.
+    Raises ConfigError for a preset that is not combined or a name that is not one of its
+    layers."""
+    if layers is None:
+        return None
+    names = [n.strip() for n in (layers.split(",") if isinstance(layers, str) else layers)
+             if n.strip()]
+    if not isinstance(preset, CombinedPreset):
+        raise ConfigError(f"${{optimize_layer}} {','.join(names)}: applies to combined presets "
+                          f"(layers joined by +); {getattr(preset, 'name', 'this preset')} has one")
+    if names == ["all"]:
+        return None
+    if not names:
+        raise ConfigError("${optimize_layer}: name at least one layer, or 'all'")
+    unknown = [n for n in names if n not in preset.layer_names]
+    if unknown:
+        raise ConfigError(f"${{optimize_layer}} {', '.join(unknown)}: no such layer of "
+                          f"{preset.name} (layers: {', '.join(preset.layer_names)}, or all)")
+    return tuple(n for n in preset.layer_names if n in names)
 
 
 def default_attack_out(label: str) -> Path:

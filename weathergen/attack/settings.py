@@ -66,7 +66,8 @@ class AttackSettings:
     differentiate through occlusion, ``BETA_RENDER`` = 250 otherwise); transparency_max: the
     largest θ the attack may reach (:func:`transparency_bound` of the preset; ``None``: 1, or the
     record's largest θ where that is more); compat: ``paper`` (default) or ``reference``, the
-    research code's terms (:mod:`weathergen.attack.compat`).
+    research code's terms (:mod:`weathergen.attack.compat`); layers: combined weather's layers
+    whose variables are freed, by name (``None``: every layer; the others stay as sampled).
     """
 
     optimize: tuple[str, ...] = OPTIMIZABLE
@@ -77,6 +78,7 @@ class AttackSettings:
     beta: float = 250.0
     transparency_max: Optional[float] = None
     compat: str = "paper"
+    layers: Optional[tuple[str, ...]] = None
 
     def __post_init__(self):
         parse_optimize(",".join(self.optimize))  # validates names and non-emptiness
@@ -94,6 +96,8 @@ class AttackSettings:
                                                       and math.isfinite(self.transparency_max)):
             raise ConfigError(f"${{transparency_max}} must be a positive number, "
                               f"got {self.transparency_max}")
+        if self.layers is not None and not self.layers:
+            raise ConfigError("${optimize_layer}: name at least one layer, or 'all'")
         if self.compat not in COMPAT_MODES:
             raise ConfigError(f"${{compat}} must be one of {', '.join(COMPAT_MODES)}, "
                               f"got {self.compat!r}")
@@ -106,4 +110,4 @@ class AttackSettings:
         return {"optimize": list(self.optimize), "steps": int(self.steps),
                 "lr": self.learning_rate, "alpha1": self.alpha1, "alpha2": self.alpha2,
                 "beta": self.beta, "transparency_max": self.transparency_max,
-                "compat": self.compat}
+                "compat": self.compat, **({"layers": list(self.layers)} if self.layers else {})}

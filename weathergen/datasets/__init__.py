@@ -16,6 +16,7 @@ from .demo import demo_root
 from .kitti import KittiDataset
 from .sintel import SintelDataset, load_scene_scales
 from .spring import SpringDataset
+from .stereo import RightCamera
 
 
 class DemoDataset(SintelDataset):
@@ -51,6 +52,19 @@ def frame_rates_text() -> str:
     for name, cls in DATASETS.items():
         by_rate.setdefault(cls.frame_rate, []).append(name)
     return "; ".join(f"{', '.join(names)} {rate:g}" for rate, names in by_rate.items())
+
+
+def right_camera(dataset: Dataset, pair) -> RightCamera:
+    """The right camera of ``pair`` (:mod:`weathergen.datasets.stereo`), read by the reader's own
+    :meth:`~Dataset.right_camera`; ConfigError for a reader without a second camera (its
+    :attr:`~Dataset.stereo` is False), naming the readers with one; DatasetError naming a
+    missing file."""
+    if not dataset.stereo:
+        readers = [name for name, cls in DATASETS.items() if cls.stereo]
+        raise ConfigError(f"dataset {dataset.name!r} has no second camera; stereo rendering reads "
+                          f"{', '.join(readers)} (KITTI image_3, Spring's right view, the custom "
+                          "layout's right/ folder)")
+    return dataset.right_camera(pair)
 
 
 def default_dataset(root: Optional[str | Path]) -> str:
@@ -112,5 +126,5 @@ def demo_pairs(**selection) -> list:
 
 
 __all__ = ["DATASETS", "frame_rates_text", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset", "NativeFlow",
-           "PairRef", "Selection", "SintelDataset", "SpringDataset", "default_dataset", "demo_pairs",
-           "frame_rate_of", "load_scene_scales", "open_dataset", "reopen_dataset"]
+           "PairRef", "RightCamera", "Selection", "SintelDataset", "SpringDataset", "default_dataset", "demo_pairs",
+           "frame_rate_of", "load_scene_scales", "open_dataset", "reopen_dataset", "right_camera"]

@@ -15,6 +15,7 @@ from typing import Optional
 
 from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair, PairId
+from ..words import plural
 
 
 @dataclass(frozen=True)
@@ -97,10 +98,10 @@ def numbering_gap(selection: Selection, frames: list[int]) -> Optional[str]:
     if not lost:
         return None
     extra = [f for f in chosen if f not in complete]
-    text = (f"gap in the frame numbering: no frame{'s' * (len(missing) > 1)} {_numbers(missing)}, "
-            f"so the pair{'s' * (len(lost) > 1)} of frames {_pairs(lost)} cannot be formed")
+    text = (f"gap in the frame numbering: no {plural('frame', len(missing))} {_numbers(missing)}, "
+            f"so the {plural('pair', len(lost))} of frames {_pairs(lost)} cannot be formed")
     if extra:
-        text += (f" and the selection takes the pair{'s' * (len(extra) > 1)} of frames "
+        text += (f" and the selection takes the {plural('pair', len(extra))} of frames "
                  f"{_pairs(extra)} instead")
     return text
 
@@ -209,6 +210,9 @@ class Dataset(ABC):
     #: The reader's own keyword options (beyond the selection and the depth options every reader
     #: with depth takes), which the command line offers only for the readers that list them.
     options: tuple[str, ...] = ()
+    #: True where the dataset has a second (right) camera that stereo rendering reads through
+    #: :meth:`right_camera` (see :mod:`weathergen.datasets.stereo`).
+    stereo: bool = False
 
     def __init__(self, root: str | Path, selection: Selection = Selection()):
         self.root = Path(root)
@@ -329,6 +333,12 @@ class Dataset(ABC):
             where, _, kind = line.partition(": ")
             out.append(Problem(kind, where, WARNING) if kind else Problem(line, "", WARNING))
         return out
+
+    def right_camera(self, pair: FramePair):
+        """The second camera of ``pair`` (a :class:`~weathergen.datasets.stereo.RightCamera`), for
+        readers whose :attr:`stereo` is True; call it through
+        :func:`weathergen.datasets.right_camera`, which refuses the others."""
+        raise ConfigError(f"dataset {self.name!r} has no second camera")
 
     def pair_notes(self, pair: FramePair) -> list[str]:
         """Figures worth showing for a loaded pair (KITTI: the camera motion); none by default."""

@@ -47,6 +47,7 @@ from .base import WARNING, Problem
 from .common import FarDepthDataset, check_size, read_frames, require_files
 from .densify import fill_sparse
 from .framenames import order_frames
+from .stereo import RightCamera, custom_right
 
 #: Below this fraction of valid depth in a frame, ``check`` warns.
 DEFAULT_MIN_VALID_DEPTH = 0.5
@@ -64,6 +65,7 @@ class CustomDataset(FarDepthDataset):
     split_folders = {"training": "."}
     required_files = ("image1", "image2", "cameras", "depth1", "depth2")
     options = FarDepthDataset.options + ("frame_pattern", "min_valid_depth", "max_gap_px")
+    stereo = True                    # where a scene holds right/ (frames and camera.json)
 
     def __init__(self, root, selection: Selection = Selection(), *, frame_pattern: Optional[str] = None,
                  min_valid_depth: float = DEFAULT_MIN_VALID_DEPTH,
@@ -81,6 +83,10 @@ class CustomDataset(FarDepthDataset):
         self._numbering = "name"                # how the frames of the scene last listed are numbered
 
     # -- listing ---------------------------------------------------------------------------------
+    def right_camera(self, pair: FramePair) -> RightCamera:
+        """``SCENE/right/``: its frames and ``camera.json`` (see :mod:`weathergen.datasets.stereo`)."""
+        return custom_right(pair)
+
     def scene_dirs(self) -> dict[str, Path]:
         """Scene name -> folder. The root is the single scene when it holds ``frames/`` itself."""
         if (self.root / "frames").is_dir():

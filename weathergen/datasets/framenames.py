@@ -26,6 +26,8 @@ from collections import Counter
 from dataclasses import dataclass
 from typing import Optional
 
+from ..words import counted
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 _DIGITS = re.compile(r"\d+")
 
@@ -61,7 +63,7 @@ def order_frames(names: list[str], pattern: Optional[str] = None) -> FrameOrder:
         frames = sorted(n for n in names if fnmatch.fnmatchcase(n, pattern))
         if not frames:
             return FrameOrder(problem=f"no file matches the frame pattern {pattern!r} "
-                                      f"({len(names)} file{'s' * (len(names) != 1)} there"
+                                      f"({counted(len(names), 'file')} there"
                                       f"{': ' + _examples(sorted(names)) if names else ''})")
     else:
         frames = sorted(n for n in names if n.lower().endswith(IMAGE_SUFFIXES))
@@ -78,7 +80,7 @@ def order_frames(names: list[str], pattern: Optional[str] = None) -> FrameOrder:
     for n in frames:
         kinds.setdefault(kind_of(n), []).append(n)
     if len(kinds) > 1 and any(_DIGITS.search(n) for n in frames):
-        listed = "; ".join(f"{k!r}: {len(v)} file{'s' * (len(v) != 1)} ({_examples(v)})"
+        listed = "; ".join(f"{k!r}: {counted(len(v), 'file')} ({_examples(v)})"
                            for k, v in sorted(kinds.items(), key=lambda kv: -len(kv[1]))[:4])
         biggest = max(kinds.items(), key=lambda kv: len(kv[1]))[0]
         suggestion = biggest.replace("#", "*")

@@ -69,6 +69,7 @@ from .camera_motion import (FitSettings, MotionFit, backproject_pixels, check_fi
                             match_features)
 from .common import FarDepthDataset, check_size, chw, read_frames, require_files, scaled_motion
 from .densify import fill_sparse
+from .stereo import RightCamera, rectified_right
 
 _IMAGE_RE = re.compile(r"^(\d{6})_(\d{2})\.png$")
 #: KITTI 2015 gives ground truth for the pair (10, 11) only.
@@ -92,6 +93,7 @@ class KittiDataset(FarDepthDataset):
     split_folders = {"training": "training", "train": "training", "testing": "testing", "test": "testing"}
     #: Flow networks are evaluated on KITTI with the padding at the bottom (and split left/right).
     padding = "bottom"
+    stereo = True                    # image_3, the rig's right camera
     frame_rate = 10.0                # its cameras record at 10 Hz
     native_flow = NativeFlow("flow_occ", "kitti-png")
     options = FarDepthDataset.options + (
@@ -184,6 +186,13 @@ class KittiDataset(FarDepthDataset):
                     f"disp_occ_0/{scene}_11.png lets the pair be read: frame-2 depth from it, the "
                     f"camera motion from feature matching)")
         return ""
+
+    def right_camera(self, pair: FramePair) -> RightCamera:
+        """``image_3``'s two frames, at the baseline of the calibration (``baseline_m``)."""
+        root = self.split_dir / "image_3"
+        files = (root / f"{pair.id.scene}_{pair.id.frame}.png",
+                 root / f"{pair.id.scene}_{pair.id.frame + 1}.png")
+        return rectified_right(files, float(pair.meta["baseline_m"]), pair)
 
     def pair_notes(self, pair: FramePair) -> list[str]:
         fit = pair.meta.get("camera_motion")

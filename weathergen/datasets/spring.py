@@ -41,6 +41,7 @@ from ..framepair import FramePair, PairId
 from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
 from .base import NativeFlow, PairRef, Selection, frame_numbers
 from .common import FarDepthDataset, check_size, read_frames, require_files
+from .stereo import RightCamera, rectified_right
 
 _FRAME_RE = re.compile(r"^frame_left_(\d{4,})\.png$")
 #: Distance between Spring's left and right cameras, metres.
@@ -55,6 +56,7 @@ class SpringDataset(FarDepthDataset):
     split_folders = {"train": "train", "training": "train", "test": "test", "testing": "test"}
     frame_rate = 24.0                # cut from a Blender open movie made at 24 fps
     native_flow = NativeFlow("flow_FW_left", "flo5")
+    stereo = True                    # frame_right, at the baseline
     options = FarDepthDataset.options + ("extrinsics", "baseline")
 
     def __init__(self, root, selection: Selection = Selection(), *, extrinsics: str = "world-to-camera",
@@ -156,6 +158,12 @@ class SpringDataset(FarDepthDataset):
                                flow_valid=flow_valid, measured=measured,
                                meta={"baseline_m": self.baseline, "far_depth": self.far_depth,
                                      "extrinsics": self.extrinsics, **meta})
+
+    def right_camera(self, pair: FramePair) -> RightCamera:
+        """``frame_right``'s two frames, at the reader's ``baseline``."""
+        root = self.split_dir / pair.id.scene / "frame_right"
+        files = tuple(root / f"frame_right_{n:04d}.png" for n in (pair.id.frame, pair.id.frame + 1))
+        return rectified_right(files, float(self.baseline), pair)
 
     def describe(self) -> dict:
         out = super().describe()

@@ -13,7 +13,9 @@ right camera sits at +x). Where the datasets keep them:
   one's intrinsics unless the file gives ``"intrinsics"`` as a 3x3 matrix).
 
 Baselines and translations are multiplied by the pair's depth scale, like every other length.
-Other datasets have no second camera and raise :class:`~weathergen.errors.ConfigError`.
+Each reader says whether it has a second camera (its class attribute ``stereo``) and reads it
+(its method ``right_camera``); :func:`weathergen.datasets.right_camera` refuses the others with a
+:class:`~weathergen.errors.ConfigError`.
 """
 
 from __future__ import annotations
@@ -25,12 +27,9 @@ from typing import Optional
 
 import torch
 
-from ..errors import ConfigError, DatasetError
+from ..errors import DatasetError
 from ..framepair import FramePair
 from ..io.images import read_image
-
-STEREO_DATASETS = ("kitti", "spring", "custom")
-
 
 @dataclass
 class RightCamera:
@@ -44,31 +43,18 @@ class RightCamera:
     intrinsics: Optional[torch.Tensor] = None     # None: the left camera's
 
 
-def right_camera(dataset, pair: FramePair) -> RightCamera:
-    """The right camera of ``pair`` (see the module doc); DatasetError names a missing file."""
-    name = pair.id.dataset
-    if name == "kitti":
-        root = Path(dataset.split_dir) / "image_3"
-        files = (root / f"{pair.id.scene}_{pair.id.frame}.png",
-                 root / f"{pair.id.scene}_{pair.id.frame + 1}.png")
-        baseline = float(pair.meta["baseline_m"])
-    elif name == "spring":
-        root = Path(dataset.split_dir) / pair.id.scene / "frame_right"
-        files = tuple(root / f"frame_right_{n:04d}.png" for n in (pair.id.frame, pair.id.frame + 1))
-        baseline = float(dataset.baseline)
-    elif name == "custom":
-        return _custom_right(pair)
-    else:
-        raise ConfigError(f"dataset {name!r} has no second camera; stereo rendering reads "
-                          f"{' and '.join(STEREO_DATASETS)} (KITTI image_3, Spring's right view)")
+def rectified_right(files: tuple[Path, Path], baseline: float, pair: FramePair) -> RightCamera:
+    """The right camera of a rectified rig: its two frame ``files`` and the ``baseline`` in scene
+    units (before the pair's depth scale); the right camera sits at +x, sharing the intrinsics."""
     images = _read_right(files, pair)
     baseline *= pair.depth_scale
     right_from_left = torch.eye(4, dtype=torch.float64)
     right_from_left[0, 3] = -baseline
-    return RightCamera(images[0], images[1], right_from_left, baseline, files)
+    return RightCamera(images[0], images[1], right_from_left, baseline, tuple(files))
 
 
-def _custom_right(pair: FramePair) -> RightCamera:
+def custom_right(pair: FramePair) -> RightCamera:
+    """The right camera of the custom layout: ``SCENE/right/camera.json`` and ``SCENE/right/frames/``."""
     frame1 = Path(pair.sources["image1"])
     scene = frame1.parent.parent
     camera = scene / "right" / "camera.json"

@@ -131,18 +131,19 @@ def planes(sums: Sums) -> torch.Tensor:
     """The sums of every view on the image grid: each coarse grid cropped and upsampled to the
     image grid, added coarsest first, then the image grid's own sums. A level that holds
     nothing of a view adds exact zeros to it, so a view's sums do not depend on which levels the
-    other views of the call need. Shape: -> (4, V, 1, H, W) (a view of the sums where no coarse
+    other views of the call need. Shape: -> (1 + C, V, 1, H, W) (a view of the sums where no coarse
     grid is drawn)."""
     grids = sums.grids
+    channels = sums.values.shape[0]
     total = None
     for index, (level, _, h, w, _) in enumerate(grids.levels):
         grid = _Crop.apply(sums.values, grids, index)
         if level:   # one plane per image: the kernel treats every plane alike, whatever V
-            grid = upsample(grid.reshape(4 * grids.views, 1, h, w), 2 ** level,
-                            (grids.height, grids.width)).view(4, grids.views, grids.height,
-                                                              grids.width)
+            grid = upsample(grid.reshape(channels * grids.views, 1, h, w), 2 ** level,
+                            (grids.height, grids.width)).view(channels, grids.views,
+                                                              grids.height, grids.width)
         total = grid if total is None else total + grid
-    return total.view(4, grids.views, 1, grids.height, grids.width)
+    return total.view(channels, grids.views, 1, grids.height, grids.width)
 
 
 class _Blend(torch.autograd.Function):

@@ -6,6 +6,10 @@
   displacement of its centre's projection; zero where no particle is. Computed by the render
   core's splat with the displacements in place of the colour (:func:`~weathergen.engine.renderer.view_sums`).
 - **Opacity** ``(1, H, W)``: ``clamp(Σ_i w_i, 0, 1)``, the renderer's opacity of frame 1.
+
+Combined weather (:class:`~weathergen.engine.LayeredParticles`): the particles of every layer
+(each layer's sums with its own templates); the particle flow is the weighted mean over all of
+them, the opacity that of the layered render, ``1 − Π_l (1 − clamp(Σ_{i in l} w_i, 0, 1))``.
 - **Seen flow** ``(2, H, W)``: the particle flow where the particles dominate a pixel
   (opacity >= ``threshold``, 0.5 by default) and the scene's flow elsewhere; valid where the
   particles dominate or the scene's flow is valid.
@@ -20,12 +24,13 @@ trains or evaluates layered models that estimate both motions.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Union
 
 import torch
 
 from ..framepair import FramePair
 from ..geometry import project, transform_points
+from .layers import LayeredParticles
 from .particles import Particles
 from .renderer import BETA_RENDER, pair_starts, view_sums
 from .sampling import check_pair_for_engine, reference_transforms
@@ -44,11 +49,30 @@ class ParticleTruth:
     weight: torch.Tensor
 
 
-def particle_truth(pair: FramePair, particles: Particles,
+def particle_truth(pair: FramePair, particles: Union[Particles, LayeredParticles],
                    templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
                    chunk_elements: Optional[int] = None) -> ParticleTruth:
-    """Particle flow and opacity of frame 1 of ``pair`` (float64 accumulation on the CPU)."""
+    """Particle flow and opacity of frame 1 of ``pair`` (float64 accumulation on the CPU);
+    over every layer of combined weather (``templates`` then unused: each layer's own)."""
     check_pair_for_engine(pair)
+    if isinstance(particles, LayeredParticles):
+        sums = [_layer_sums(pair, r, None, beta, chunk_elements) for r in particles.layers]
+        weight = sum(w for w, _ in sums)
+        colour = sum(c for _, c in sums)
+        clear = torch.stack([1 - w.clamp(0, 1) for w, _ in sums]).prod(0)
+        opacity = (1 - clear).clamp(0, 1)
+    else:
+        weight, colour = _layer_sums(pair, particles, templates, beta, chunk_elements)
+        opacity = weight.clamp(0, 1)
+    covered = weight > 0
+    safe = torch.where(covered, weight, torch.ones_like(weight))
+    flow = torch.where(covered, colour[:2] / safe, torch.zeros_like(colour[:2]))
+    return ParticleTruth(flow=flow.float(), opacity=opacity.float(), weight=weight.float())
+
+
+def _layer_sums(pair: FramePair, particles: Particles, templates: Optional[TemplateLibrary],
+                beta: float, chunk_elements: Optional[int]) -> tuple[torch.Tensor, torch.Tensor]:
+    """One record's ``Σ w`` (1, H, W) and ``Σ w f`` (3, H, W, the third zero) in frame 1."""
     lib = templates if templates is not None else load_templates(particles.settings.templates)
     _, c1, c2 = reference_transforms(pair)
     dtype, device = torch.float64, torch.device("cpu")
@@ -59,13 +83,8 @@ def particle_truth(pair: FramePair, particles: Particles,
     p2, _ = project(transform_points(c2.double().cpu(), start2), k)
     values = torch.cat((p2 - p1, torch.zeros(rec.count, 1, dtype=dtype)), 1)
     view = View(k, c1.double().cpu(), pair.depth1.cpu())
-    weight, colour = view_sums(view, rec, start1, disp, lib, beta=beta, values=values,
-                               dtype=dtype, device=device, chunk_elements=chunk_elements)
-    covered = weight > 0
-    safe = torch.where(covered, weight, torch.ones_like(weight))
-    flow = torch.where(covered, colour[:2] / safe, torch.zeros_like(colour[:2]))
-    return ParticleTruth(flow=flow.float(), opacity=weight.clamp(0, 1).float(),
-                         weight=weight.float())
+    return view_sums(view, rec, start1, disp, lib, beta=beta, values=values, dtype=dtype,
+                     device=device, chunk_elements=chunk_elements)
 
 
 def seen_flow(truth: ParticleTruth, scene_flow: Optional[torch.Tensor],

@@ -30,6 +30,8 @@ import torch
 from ..errors import ConfigError, DatasetError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from .composite import RenderOutput, composite, planes
+from .layered import as_layers, build_layer_stamps, render_layers
+from .layers import LayeredParticles
 from .particles import Particles
 from .presets import BLEND_MODES
 from .sampling import check_pair_for_engine, reference_transforms, resolve_device
@@ -76,7 +78,15 @@ def build_stamps(records: Sequence[Particles], templates: TemplateLibrary, *,
     record order (weather-field records have none: their looks change with every view). Reusable
     by :func:`render` while scale, rotation, template and defocus stay fixed (e.g. across attack
     steps). ``coarse_side``: stamps at least this wide are drawn for a coarser grid (``None``:
-    every stamp at full resolution)."""
+    every stamp at full resolution). Combined weather (:class:`LayeredParticles` of several
+    layers): the layers' stamps, each from its own library (``templates`` is not used)."""
+    if isinstance(records, LayeredParticles) or any(isinstance(r, LayeredParticles)
+                                                    for r in records):
+        layered = as_layers(records)
+        if len(layered[0].layers) > 1:
+            return build_layer_stamps(layered, dtype=dtype, device=device,
+                                      coarse_side=coarse_side)
+        records = [p.layers[0] for p in layered]
     device = torch.device(device) if device is not None else records[0].device
     paper = [r for r in records if r.optics is None and r.count]
     with torch.no_grad():
@@ -90,7 +100,8 @@ def build_stamps(records: Sequence[Particles], templates: TemplateLibrary, *,
 
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
            depth2: torch.Tensor, intrinsics: torch.Tensor, cam1_from_ref: torch.Tensor,
-           cam2_from_ref: torch.Tensor, particles: Union[Particles, Sequence[Particles]],
+           cam2_from_ref: torch.Tensor,
+           particles: Union[Particles, LayeredParticles, Sequence[Particles | LayeredParticles]],
            templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
            stamps: Optional[StampSet] = None, chunk_elements: Optional[int] = None,
            coarse_side: Optional[int] = COARSE_SIDE,
@@ -101,7 +112,10 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         image1, image2: (B, 3, H, W) float in [0, 1]; depth1, depth2: (B, 1, H, W) camera-z.
         intrinsics: (B, 3, 3); cam1_from_ref, cam2_from_ref: (B, 4, 4), the cameras' transforms
             from each record's reference frame (see :func:`reference_transforms`).
-        particles: one record per pair (a single record for B = 1), of either weather model.
+        particles: one record per pair (a single record for B = 1), of either weather model, or
+            one :class:`LayeredParticles` per pair (combined weather, the same number of layers
+            each): drawn in one pass and composited per pixel in depth order
+            (:mod:`~weathergen.engine.layered`; ``templates`` must then be None).
     Computes in the images' dtype and device. Returns :class:`RenderOutput`.
     ``stamps``: from :func:`build_stamps` of the same records (their paper-model particles).
     ``coarse_side``: stamps at least this wide are splatted on a coarser grid and upsampled;
@@ -110,7 +124,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     splat (default: by device, :func:`~weathergen.engine.splat.chunk_elements_for`).
     ``detach_occlusion``: no gradient through the visibility term (the particle depth in V).
     """
-    records = [particles] if isinstance(particles, Particles) else list(particles)
+    records = [particles] if isinstance(particles, (Particles, LayeredParticles)) \
+        else list(particles)
     if image1.dim() != 4 or image1.shape[1] != 3 or image2.shape != image1.shape:
         raise ShapeError(f"images must be (B, 3, H, W) and equal; got {tuple(image1.shape)} "
                          f"and {tuple(image2.shape)}")
@@ -124,6 +139,17 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     if len(records) != bsz:
         raise ConfigError(f"{len(records)} particle records for a batch of {bsz} frame pairs")
     dtype, device = image1.dtype, image1.device
+    if any(isinstance(r, LayeredParticles) for r in records):
+        layered = as_layers(records)
+        if len(layered[0].layers) > 1:
+            if templates is not None:
+                raise ConfigError("combined weather is drawn with each layer's own templates; "
+                                  "pass templates=None")
+            return render_layers(image1, image2, depth1, depth2, intrinsics, cam1_from_ref,
+                                 cam2_from_ref, layered, beta=beta, stamps=stamps,
+                                 chunk_elements=chunk_elements, coarse_side=coarse_side,
+                                 detach_occlusion=detach_occlusion)
+        records = [p.layers[0] for p in layered]    # one layer: the record's own bytes
     templates = check_records(records, templates)
     views = Views.of(torch.cat((intrinsics, intrinsics)).to(device),
                      torch.cat((cam1_from_ref, cam2_from_ref)).to(device),
@@ -153,7 +179,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
 
 
 def render_pair(pair: Union[FramePair, FramePairBatch],
-                particles: Union[Particles, Sequence[Particles]],
+                particles: Union[Particles, LayeredParticles,
+                                 Sequence[Particles | LayeredParticles]],
                 templates: Optional[TemplateLibrary] = None, *, beta: float = BETA_RENDER,
                 device=None, stamps: Optional[StampSet] = None,
                 coarse_side: Optional[int] = COARSE_SIDE,
@@ -170,7 +197,8 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
         if dev is not None:
             pair = pair.to(dev)
         frame, c1, c2 = reference_transforms(pair)
-        records = [particles] if isinstance(particles, Particles) else list(particles)
+        records = [particles] if isinstance(particles, (Particles, LayeredParticles)) \
+            else list(particles)
         fields = dict(image1=pair.image1[None], image2=pair.image2[None],
                       depth1=pair.depth1[None], depth2=pair.depth2[None],
                       intrinsics=pair.intrinsics[None])
@@ -185,7 +213,8 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
         else:
             c1 = torch.eye(4, dtype=torch.float64).expand(bsz, 4, 4)
             c2, frames = pair.cam2_from_cam1, ["camera1"] * bsz
-        records = list(particles) if not isinstance(particles, Particles) else [particles]
+        records = [particles] if isinstance(particles, (Particles, LayeredParticles)) \
+            else list(particles)
         fields = dict(image1=pair.image1, image2=pair.image2, depth1=pair.depth1,
                       depth2=pair.depth2, intrinsics=pair.intrinsics)
         if dev is not None:

@@ -94,7 +94,8 @@ class Grids:
 
 @dataclass
 class Sums:
-    """The splat's output. Shape: values (4, N), the sums A, C_r, C_g, C_b laid out as
+    """The splat's output. Shape: values (1 + C, N), the sums A, C_r, C_g, C_b (and, for a
+    layered render, the depth sum ``Σ θ B V z``: the instances' fourth colour channel) laid out as
     :class:`Grids` says; reached (V,) bool, which views any blur sample was splatted into (a
     view none reached does not depend on the particles)."""
 
@@ -305,12 +306,14 @@ class _Splat(torch.autograd.Function):
     ``C_c = Σ γ_c θ B V``.
 
     The forward pass keeps nothing per patch pixel; the backward pass recomputes each chunk and
-    applies the chain rule by hand. Shape: u, v, z, theta (I,), color (I, 3) -> (4, N).
+    applies the chain rule by hand. Shape: u, v, z, theta (I,), color (I, C) -> (1 + C, N)
+    (C = 3 colours, or 4 with the depth of a layered render).
     """
 
     @staticmethod
     def forward(ctx, u, v, z, theta, color, plan: _Plan):
-        acc = torch.zeros(4, plan.grids.size, dtype=plan.dtype, device=plan.scene.device)
+        channels = 1 + color.shape[1]
+        acc = torch.zeros(channels, plan.grids.size, dtype=plan.dtype, device=plan.scene.device)
         ctx.plan = plan
         ctx.save_for_backward(u, v, z, theta, color)
         if plan.count == 0:
@@ -320,7 +323,7 @@ class _Splat(torch.autograd.Function):
             b = _Blocks(plan, row, column, per)
             weight = b.patch.mul_(b.vis)
             flat = b.pix.view(-1)
-            for c in range(4):
+            for c in range(channels):
                 acc[c].scatter_add_(0, flat, (weight * b.per[5 + c]).view(-1))
         return acc
 
@@ -335,17 +338,19 @@ class _Splat(torch.autograd.Function):
             return (*grads, None)
         per = _per_sample(plan, u, v, z, theta, color)
         g_acc = g_acc.contiguous()
-        sums = torch.zeros(7, plan.count, dtype=u.dtype, device=u.device)
+        nc = color.shape[1]
+        sums = torch.zeros(4 + nc, plan.count, dtype=u.dtype, device=u.device)
         for row, column in plan.chunks():
             b = _Blocks(plan, row, column, per)
-            fv, beta, gamma = b.per[1], b.per[3], b.per[9:12]
+            fv, beta, gamma = b.per[1], b.per[3], b.per[6 + nc:6 + 2 * nc]
             flat = b.pix.view(-1)
-            g = [g_acc[c].index_select(0, flat).view(b.pix.shape) for c in range(4)]
+            g = [g_acc[c].index_select(0, flat).view(b.pix.shape) for c in range(1 + nc)]
             # dL/d(θ B V) per pixel: the opacity sum's and the colour sums' gradients
             g_w = torch.addcmul(g[0], g[1], gamma[0])
-            g_w.addcmul_(g[2], gamma[1]).addcmul_(g[3], gamma[2])
+            for c in range(1, nc):
+                g_w.addcmul_(g[1 + c], gamma[c])
             g_bv = g_w.mul_(b.vis)                               # dL/d(θ B) per pixel
-            out = [None] * 7
+            out = [None] * (4 + nc)
             if need[0]:   # dB/dfu: the column difference of the stamp, interpolated in fv
                 d_fu = torch.empty_like(b.patch)
                 for j in range(2):
@@ -362,7 +367,7 @@ class _Splat(torch.autograd.Function):
                 out[3] = _block_sum(g_bvp)
             if need[4]:
                 bv = b.patch.mul_(b.vis)
-                for c in range(3):
+                for c in range(nc):
                     out[4 + c] = _block_sum(g[1 + c].mul_(bv))
             for k, value in enumerate(out):
                 if value is not None:
@@ -384,8 +389,8 @@ class _Splat(torch.autograd.Function):
 
 
 def _per_sample(plan: _Plan, u, v, z, theta, color) -> torch.Tensor:
-    """Per kept sample, packed (12, K): fu, fv (the sub-pixel shift on its grid), β d, β, θ / K,
-    the weights of the four sums θ, θ γ_r, θ γ_g, θ γ_b, and the colour γ (3)."""
+    """Per kept sample, packed (6 + 2 C, K): fu, fv (the sub-pixel shift on its grid), β d, β,
+    θ / K, the weights of the 1 + C sums θ, θ γ_1 .. θ γ_C, and the colour γ (C)."""
     kept = plan.kept
     uu, vv = u.detach().index_select(0, kept), v.detach().index_select(0, kept)
     if plan.coarse:

@@ -14,7 +14,7 @@ from typing import Optional
 import torch
 
 from ..datasets import Dataset, reopen_dataset
-from ..engine import APPEARANCE_KEYS, Particles
+from ..engine import APPEARANCE_KEYS, LayeredParticles, Particles, load_particles
 from ..engine.presets import UNSCALED
 from ..errors import DatasetError, FormatError
 from ..framepair import PairId
@@ -26,9 +26,12 @@ from .pairs import PairOutput
 
 
 def load_pair_particles(folder: str | Path, pair_id: PairId, preset_name: Optional[str] = None,
-                        preset: Optional[dict] = None, sequence: bool = False) -> Particles:
+                        preset: Optional[dict] = None, sequence: bool = False
+                        ) -> Particles | LayeredParticles:
     """The particles an earlier render (or attack) stored in ``folder`` for ``pair_id``
-    (``sequence``: a ``render --sequence`` folder, whose scenes hold every frame).
+    (``sequence``: a ``render --sequence`` folder, whose scenes hold every frame): a
+    :class:`~weathergen.engine.Particles` record, or a combined preset's
+    :class:`~weathergen.engine.LayeredParticles` (every layer).
 
     With ``preset_name`` and ``preset`` (a ``Preset.to_dict()``: what the new output will be
     labelled with), the stored particles must have been sampled from that preset (up to the
@@ -41,7 +44,7 @@ def load_pair_particles(folder: str | Path, pair_id: PairId, preset_name: Option
     if not path.exists():
         raise FormatError(path, f"no particle metadata for pair {pair_id}")
     check_stored_particles(path, read_metadata(path), pair_id, preset_name, preset)
-    return Particles.load(path)
+    return load_particles(path)
 
 
 def check_stored_particles(path: str | Path, arrays: dict, pair_id: PairId,
@@ -114,11 +117,12 @@ class WeatherFolder:
             images = [read_image(p) for p in out.frames_png]
         return tuple(torch.from_numpy(img.copy()).permute(2, 0, 1).contiguous() for img in images)
 
-    def particles(self, pair_id: PairId) -> Optional[Particles]:
-        """The particles stored for a pair, or None where the folder holds none (an Lp attack's
-        metadata names the pair and the perturbation only)."""
+    def particles(self, pair_id: PairId) -> Optional[Particles | LayeredParticles]:
+        """The particles stored for a pair (every layer of a combined preset), or None where the
+        folder holds none (an Lp attack's metadata names the pair and the perturbation only)."""
         path = PairOutput.of(self.root, pair_id, "", sequence=self.sequence).metadata
-        if "position" not in read_metadata(path):
+        arrays = read_metadata(path)
+        if "position" not in arrays and "layer_names" not in arrays:
             return None
         return load_pair_particles(self.root, pair_id, sequence=self.sequence)
 

@@ -23,10 +23,9 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from ..datasets import Dataset, PairRef
-from ..datasets.stereo import right_camera
-from ..engine import (FieldPreset, View, load_templates, particle_truth, reference_transforms,
-                      render_pair, visible_counts)
+from ..datasets import Dataset, PairRef, right_camera
+from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, load_templates,
+                      particle_truth, reference_transforms, render_pair, visible_counts)
 from ..engine.presets import list_presets
 from ..engine.renderer import pair_starts, render_first_frame
 from ..engine.stereo import render_right, stereo_view, warp_depth
@@ -38,7 +37,8 @@ from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge
 from ..io.atomic import write_error
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
-from .particles import pair_particles, weather_scaling, weather_seed
+from ..words import counted
+from .particles import layer_seeds, pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
 
@@ -207,8 +207,10 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
                    for img in (rendered.image1, rendered.image2) if img is not None)
     opacity = tuple(a[index, 0].cpu().numpy()
                     for a in (rendered.opacity1, rendered.opacity2) if a is not None)
-    visible = visible_counts(pair, particles)
-    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name,
+    visible, few = visibility_of(pair, particles)
+    seeds = (layer_seeds(job.preset, job.seed, ref.id)
+             if isinstance(particles, LayeredParticles) else None)
+    meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name, seeds,
                          scaling=weather_scaling(job.preset, pair))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
@@ -229,8 +231,18 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     warnings = list(facts.pop("warnings", []))
     return PairResult(ref.id.key, str(ref.id), "written", seed,
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
-                      few_in_frame2=particles.optics is None and few_in_frame2(*visible),
+                      few_in_frame2=few,
                       particles=particles.count, input=jsonable(facts), warnings=warnings)
+
+
+def visibility_of(pair, particles) -> tuple[tuple[int, int], bool]:
+    """The particle centres frames 1 and 2 show in front of the scene (over every layer of
+    combined weather), and whether a paper preset's particles (a paper layer's) are
+    :func:`few_in_frame2`."""
+    layers = particles.layers if isinstance(particles, LayeredParticles) else (particles,)
+    per_layer = [visible_counts(pair, r) for r in layers]
+    visible = (sum(v[0] for v in per_layer), sum(v[1] for v in per_layer))
+    return visible, any(r.optics is None and few_in_frame2(*v) for r, v in zip(layers, per_layer))
 
 
 def few_in_frame2(visible1: int, visible2: int) -> bool:
@@ -241,20 +253,20 @@ def few_in_frame2(visible1: int, visible2: int) -> bool:
     return visible2 < FRAME2_KEPT_MIN * visible1
 
 
-def frame2_note(results: list[PairResult], preset_name: str) -> Optional[str]:
-    """The run's one line about pairs marked ``few_in_frame2``, or None when there are none."""
-    few = [r for r in results if r.status == "written" and r.few_in_frame2]
+def frame2_note(few: list[tuple[str, tuple[int, int]]], preset_name: str) -> Optional[str]:
+    """The run's one line about the pairs it marked ``few_in_frame2`` (``few``: each one's name and
+    visible counts in frames 1 and 2), or None when there are none. Render and attack print it."""
     if not few:
         return None
     order = ("snow", "rain", "sparks", "fog")
     fields = sorted((name for name in list_presets("field") if name.endswith("-moderate")),
                     key=lambda name: (order.index(name.split("-")[0])
                                       if name.split("-")[0] in order else len(order), name))
-    worst = min(few, key=lambda r: r.visible[1] / max(r.visible[0], 1))
-    share = worst.visible[1] / max(worst.visible[0], 1)
-    return (f"in {len(few)} pair(s) frame 2 shows fewer than half of the particles frame 1 "
-            f"shows (strong camera motion; e.g. {worst.pair}: {worst.visible[1]} of "
-            f"{worst.visible[0]}, {share:.0%}), marked few_in_frame2 in the manifest. The paper's preset "
+    worst, (v1, v2) = min(few, key=lambda f: f[1][1] / max(f[1][0], 1))
+    share = v2 / max(v1, 1)
+    return (f"in {counted(len(few), 'pair')} frame 2 shows fewer than half of the particles frame 1 "
+            f"shows (strong camera motion; e.g. {worst}: {v2} of {v1}, {share:.0%}), marked "
+            f"few_in_frame2 in the manifest. The paper's preset "
             f"'{preset_name}' places its particles in a box in front of camera 1; for strong "
             f"camera motion use a weather-field preset ({', '.join(fields)}, ...), whose "
             f"particles fill the world that both cameras see")
@@ -315,13 +327,16 @@ def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
 
 
 def record_run(job: RenderJob, results: list[PairResult], started: float, seconds: float) -> Path:
-    """Record this run's pairs in the shard's manifest part (merging with its earlier runs)."""
+    """Record this run's pairs in the shard's manifest part (merging with its earlier runs), and
+    under the run the notes about whole scenes that the run printed (``notes``: a gap in a scene's
+    frame numbering)."""
     i, n = job.shard
     counts = {s: sum(r.status == s for r in results) for s in ("written", "skipped", "failed")}
+    notes = job.dataset.scene_notes()          # e.g. a gap in a scene's frame numbering
     run = {
         "shard": f"{i}/{n}", "command": job.command, "workers": job.workers, "device": job.device,
         "started": datetime.fromtimestamp(started, timezone.utc).isoformat(timespec="seconds"),
-        "seconds": round(seconds, 3), **counts,
+        "seconds": round(seconds, 3), **counts, **({"notes": notes} if notes else {}),
     }
     pairs = {}
     for r in results:
@@ -359,6 +374,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
         raise ConfigError(f"${{shard}} {job.shard[0]}/{job.shard[1]} holds no frame pairs: the "
                           f"selection holds {len(every)}, one for each of the first {len(every)} "
                           f"shards")
+    if isinstance(job.preset, CombinedPreset) and (job.sequence or job.stereo):
+        raise ConfigError(f"${{{'sequence' if job.sequence else 'stereo'}}} does not take combined "
+                          f"presets yet ('{job.preset_name}'); render its layers one by one")
     if job.sequence:
         if not isinstance(job.preset, FieldPreset):
             raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "
@@ -369,7 +387,8 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
                       overwrite=job.overwrite, shard=job.shard,
                       temporary=_temporary_places(job, refs), on_note=on_note) as claim:
         results = _render_locked(job, refs, on_result, on_start)
-        note = frame2_note(results, job.preset_name)
+        note = frame2_note([(r.pair, r.visible) for r in results
+                            if r.status == "written" and r.few_in_frame2], job.preset_name)
         if note is not None:
             on_note(note)
         if results and all(r.status == "failed" for r in results):
@@ -431,7 +450,7 @@ def _record(job: RenderJob, results, started: float, seconds: float, stopped_by)
     except OSError as exc:
         done = sum(r.status == "written" for r in results)
         note = (f"the manifest could not be updated either ({exc.strerror or exc}); ${{resume}} "
-                f"finds the {done} pair(s) finished in this run on disk")
+                f"finds the {counted(done, 'pair')} finished in this run on disk")
         if isinstance(stopped_by, OutputError):
             raise OutputError(f"{stopped_by.args[0]}; {note}") from None
         if stopped_by is not None:

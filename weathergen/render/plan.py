@@ -22,7 +22,7 @@ import torch
 
 from ..engine import (APPEARANCE_KEYS, CombinedPreset, FieldPreset, Preset, RenderSettings,
                       list_presets, load_preset)
-from ..engine.presets import LAYER_JOIN, UNSCALED
+from ..engine.presets import UNSCALED
 from ..errors import ConfigError
 from ..outputs import read_manifest
 
@@ -43,16 +43,14 @@ def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = Non
     map preset keys to values (as :func:`~weathergen.engine.load_preset` takes them). With
     ``particles_from`` (the folder of an earlier render or attack) the stored preset is used and
     ``preset``/``preset_file`` are ignored; overrides of keys other than :data:`APPEARANCE_KEYS`
-    raise ConfigError.
+    raise ConfigError. A combined preset (``rain-heavy+fog-light``, layer overrides as
+    ``LAYER.KEY``) is named by its layers; its stored particles re-render without overrides.
     """
     overrides = dict(overrides or {})
     if particles_from is None:
         resolved = load_preset(preset_file or preset, overrides)
         if isinstance(resolved, CombinedPreset):
-            # sampled and stored by the engine (sample_layers, LayeredParticles), not drawn yet
-            raise ConfigError(f"${{preset}} {resolved.name}: combined presets (layers joined by "
-                              f"{LAYER_JOIN}) are not yet supported by render and attack; "
-                              f"`weathergen presets {resolved.name}` shows how they resolve")
+            return ResolvedPreset(resolved, resolved.name, {})
         return ResolvedPreset(resolved, Path(preset_file).stem if preset_file else preset, {})
     # Re-rendering: the sampled particles fix everything but their appearance settings.
     stored = read_manifest(particles_from, "particles_from")
@@ -60,6 +58,12 @@ def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = Non
     if fixed:
         raise ConfigError(f"${{overrides}} {', '.join(fixed)}: fixed by the stored particles; only "
                           f"{', '.join(APPEARANCE_KEYS)} can change when re-rendering")
+    if stored.preset.get("model") == CombinedPreset.model:
+        if overrides:    # a layer's settings are its own; re-render it alone to change them
+            raise ConfigError(f"${{overrides}} {', '.join(sorted(overrides))}: the stored "
+                              f"particles are of the combined preset {stored.preset_name}, "
+                              f"whose layers re-render as stored (no overrides)")
+        return ResolvedPreset(CombinedPreset.from_dict(stored.preset), stored.preset_name, {})
     values = {k: v for k, v in stored.preset.items() if k not in ("name", "source")}
     if "model" not in values:    # a paper preset: one recorded before frame scaling used it as given
         values = {**UNSCALED, **values}

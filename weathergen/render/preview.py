@@ -10,11 +10,12 @@ import numpy as np
 import torch
 
 from ..datasets import reopen_dataset
-from ..engine import Particles, render_pair
+from ..engine import load_particles, render_pair
 from ..errors import WeatherGenError
 from ..io.exr import read_exr
 from ..io.images import read_image, to_uint8
 from ..outputs import PairOutput, read_manifest
+from ..words import counted
 
 
 def caption_tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
@@ -71,7 +72,7 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
         pair = ds.load(ref)
         if manifest.holds_particles:
             with torch.no_grad():
-                opacity = render_pair(pair, Particles.load(out.metadata)).opacity1[0, 0]
+                opacity = render_pair(pair, load_particles(out.metadata)).opacity1[0, 0]
             opacity = opacity.clamp(0, 1).numpy()
         else:                   # an Lp attack: the frames themselves are perturbed
             opacity = np.zeros(pair.image1.shape[-2:], np.float32)
@@ -89,7 +90,7 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
         raise WeatherGenError(f"{render_dir}: no complete pair to preview")
     if len(rows) < total:
         footer = np.full((28, rows[0].shape[1], 3), 32, np.uint8)
-        cv2.putText(footer, f"{len(rows)} of {total} pairs shown (--pairs {total} shows all)", (6, 19),
+        cv2.putText(footer, f"{len(rows)} of {counted(total, 'pair')} shown (--pairs {total} shows all)", (6, 19),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
         rows.append(footer)
     return ContactSheet(np.vstack(rows), min(pairs, total), total)

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 
 from ..datasets import Dataset, frame_rate_of, reopen_dataset
-from ..engine import Particles, render_pair
+from ..engine import load_particles, render_pair
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.exr import read_exr
@@ -111,7 +111,7 @@ class VideoPreview:
             opacity = {s: read_exr(out.frames_exr[int(s)])["opacity"] for s in shown}
         elif self.with_opacity:               # re-rendered from the stored particles (exact)
             with torch.no_grad():
-                rendered = render_pair(pair, Particles.load(out.metadata))
+                rendered = render_pair(pair, load_particles(out.metadata))
             opacity = {False: rendered.opacity1[0, 0].numpy(), True: rendered.opacity2[0, 0].numpy()}
         preset = str(m.preset_name)
         tiles = {}

@@ -47,7 +47,7 @@ from typing import Mapping, Optional, Protocol, Sequence, Union, runtime_checkab
 import torch
 
 from ..datasets import frame_rate_of
-from ..engine import (CombinedPreset, FieldPreset, Preset, load_preset, load_templates, render_pair,
+from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, Preset, load_preset, load_templates, render_pair,
                       sample_weather)
 from ..errors import ConfigError, ShapeError
 from ..framepair import FramePair, FramePairBatch
@@ -106,7 +106,7 @@ class WeatherSource(Protocol):
         ...
 
 
-#: Loaded presets of every kind (a combined preset is refused, see :class:`PresetSource`).
+#: Loaded presets of every kind.
 _PRESET_TYPES = (Preset, FieldPreset, CombinedPreset)
 
 
@@ -122,16 +122,18 @@ class PresetSource:
     particles in the pair (:func:`~weathergen.engine.sample_particles`); a weather-field preset
     (``model = "field"``, world units: ``snow-light``, ``rain-heavy``, ...) draws the pair's
     particles from the field of the draw's seed (:func:`~weathergen.engine.sample_field_particles`),
-    so every sample gets a field of its own and the same density in scene units.
+    so every sample gets a field of its own and the same density in scene units. A combined
+    preset (``"rain-heavy+fog-light"``) samples every layer and renders them in one pass, in
+    depth order (see ``docs/engine.md``, "Combined presets").
 
     Args:
-        preset: a bundled preset name, a path to a ``.toml`` file, or a loaded :class:`Preset`
-            or :class:`FieldPreset`.
+        preset: a bundled preset name, a path to a ``.toml`` file, presets joined by ``+``, or
+            a loaded :class:`Preset`, :class:`FieldPreset` or :class:`CombinedPreset`.
         overrides: preset keys to change, as for ``--set`` (``{"count": 1500}``,
             ``{"density": 60}``).
     """
 
-    def __init__(self, preset: Union[str, Path, Preset, FieldPreset],
+    def __init__(self, preset: Union[str, Path, Preset, FieldPreset, CombinedPreset],
                  overrides: Optional[Mapping] = None, name: Optional[str] = None):
         if isinstance(preset, _PRESET_TYPES):
             if overrides:
@@ -148,25 +150,39 @@ class PresetSource:
                 raise ConfigError(f"preset {preset}: {exc}") from None
             self.name = name or (Path(str(preset)).stem if str(preset).endswith(".toml")
                                  else str(preset))
-        if isinstance(self.preset, CombinedPreset):
-            raise ConfigError(f"preset {self.preset.name}: combined presets (layers joined by +) "
-                              "are not yet supported by WeatherAugment")
-        self.templates = self.preset.templates
+        if isinstance(self.preset, CombinedPreset):    # each layer is drawn with its own
+            self.templates = "+".join(layer.templates for layer in self.preset.layers)
+        else:
+            self.templates = self.preset.templates
 
     @property
     def model(self) -> str:
-        """``"field"`` for a weather-field preset, ``"paper"`` for the paper's model."""
+        """``"field"`` for a weather-field preset, ``"paper"`` for the paper's model,
+        ``"combined"`` for layers of either."""
+        if isinstance(self.preset, CombinedPreset):
+            return "combined"
         return "field" if isinstance(self.preset, FieldPreset) else "paper"
 
     def sample(self, pair: FramePair, seed: int, world_up: str):
         """The particles of ``pair`` from ``seed``; a field moves at the frame rate of the pair's
-        dataset (its reader's, looked up by the name the pair carries)."""
+        dataset (its reader's, looked up by the name the pair carries). A combined preset gives
+        :class:`~weathergen.engine.LayeredParticles`, every layer from its own seed derived from
+        ``seed`` (:func:`~weathergen.engine.layer_seed`)."""
+        combined = isinstance(self.preset, CombinedPreset)
         return sample_weather(pair, self.preset, seed, world_up=world_up,
                               frame_rate=frame_rate_of(pair.id.dataset),
-                              templates=load_templates(self.templates))
+                              templates=None if combined else load_templates(self.templates))
 
     def __repr__(self) -> str:
         return f"PresetSource({self.name!r})"
+
+
+def _render_group(record) -> tuple:
+    """Records one render call takes together: those of one template library, or combined
+    weather of the same layers' libraries."""
+    if isinstance(record, LayeredParticles):
+        return tuple(r.settings.templates for r in record.layers)
+    return (record.settings.templates,)
 
 
 def _is_source(obj) -> bool:
@@ -323,8 +339,8 @@ class WeatherAugment:
                 records[k] = particles
 
         groups = defaultdict(list)
-        for k in todo:                    # one render call per template library
-            groups[records[k].settings.templates].append(k)
+        for k in todo:                    # one render call per template library (or layers')
+            groups[_render_group(records[k])].append(k)
         image1, image2 = pairs.image1, pairs.image2
         whole = len(groups) == 1 and len(todo) == len(batch)
         if not whole:                     # filled in place, group by group

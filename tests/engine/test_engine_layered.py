@@ -1,0 +1,167 @@
+"""Combined weather rendered in one pass (weathergen/engine/layered.py): depth order between the
+layers on a hand-made scene, the layered composite's gradient, a single layer's bytes, batches."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from engine_scenes import plane_pair
+from weathergen.engine import (BETA_ATTACK, LayeredParticles, build_stamps, load_preset,
+                               render_pair, sample_particles, sample_weather)
+from weathergen.engine.layered import composite_layers
+from weathergen.framepair import FramePairBatch
+from weathergen.errors import ConfigError
+
+RED, BLUE = (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)
+
+
+@pytest.fixture(scope="module")
+def pair():
+    return plane_pair(48, 64, depth=6.0, dtype=torch.float64)
+
+
+def one_particle(pair, name: str, depth: float, colour, *, size: int = 31) -> object:
+    """A single opaque-ish particle of preset ``name`` (alpha blend) on the optical axis at
+    ``depth``, not moving, of the given colour, footprint ``size`` pixels whatever its depth."""
+    record = sample_particles(pair, load_preset(name, {"count": 1, "blend": "alpha",
+                                                       "motion_blur": False}), seed=1)
+    z = torch.zeros_like(record.position)
+    position = torch.tensor([[0.0, 0.0, depth]], dtype=record.position.dtype)
+    resolution = 80 if record.settings.templates == "flakes" else 128
+    return record.replace(position=position, motion=z, offset1=z, offset2=z.clone(),
+                          color=torch.tensor([colour], dtype=record.color.dtype),
+                          transparency=torch.ones_like(record.transparency),
+                          scale=torch.full_like(record.scale, size / resolution),
+                          defocus=torch.zeros_like(record.defocus))
+
+
+def centre(out, name="image1"):
+    image = getattr(out, name)[0]
+    return image[:, image.shape[1] // 2, image.shape[2] // 2]
+
+
+@pytest.mark.parametrize("near", ["snow", "fog"])
+def test_the_nearer_layer_hides_the_farther_one(pair, near):
+    """A near red snow flake in front of a far blue fog billboard shows red at the centre, and
+    with the depths swapped the fog shows blue; the order the layers are listed in does not
+    matter (bit for bit)."""
+    depth = {"snow": 1.5, "fog": 4.0} if near == "snow" else {"snow": 4.0, "fog": 1.5}
+    flake = one_particle(pair, "snow", depth["snow"], RED)
+    cloud = one_particle(pair, "fog", depth["fog"], BLUE)
+    out = render_pair(pair, LayeredParticles((flake, cloud), ("snow", "fog")))
+    swapped = render_pair(pair, LayeredParticles((cloud, flake), ("fog", "snow")))
+    r, _, b = centre(out).tolist()
+    if near == "snow":
+        assert r > b + 0.3, (r, b)
+    else:
+        assert b > r + 0.3, (r, b)
+    for name in ("image1", "image2", "opacity1", "opacity2"):
+        assert torch.equal(getattr(out, name), getattr(swapped, name)), name
+    # each layer alone: the near one alone looks like the pair's centre up to what shows through
+    alone = render_pair(pair, flake if near == "snow" else cloud)
+    assert float((centre(alone) - centre(out)).abs().max()) < 0.25
+
+
+def test_the_far_to_near_composite_is_the_over_operator(pair):
+    """Where both layers cover a pixel, the image is the far layer's blend under the near
+    layer's: ``(I (1 − A_f) + C_f)(1 − A_n) + C_n``, computed here by hand from two pixels."""
+    a = torch.tensor([[[[[0.6]]], [[[0.5]]]]], dtype=torch.float64)            # (1, 2, 1, 1, 1)
+    c = torch.tensor([[[[[0.3]], [[0.0]], [[0.0]]], [[[0.0]], [[0.0]], [[0.4]]]]],
+                     dtype=torch.float64)                                        # (1, 2, 3, 1, 1)
+    image = torch.full((1, 3, 1, 1), 0.5, dtype=torch.float64)
+    mode = torch.tensor([[True, True]])
+    for z0, z1 in ((1.0, 3.0), (3.0, 1.0)):
+        z = torch.tensor([[[[[z0 * 0.6]]], [[[z1 * 0.5]]]]], dtype=torch.float64)   # Z = A d
+        out, opacity = composite_layers(a, c, z, image, mode)
+        far, near = (1, 0) if z0 < z1 else (0, 1)
+        under = image[0, :, 0, 0] * (1 - a[0, far, 0, 0, 0]) + c[0, far, :, 0, 0]
+        want = under * (1 - a[0, near, 0, 0, 0]) + c[0, near, :, 0, 0]
+        assert torch.allclose(out[0, :, 0, 0], want, atol=1e-15)
+        assert float(opacity) == pytest.approx(1 - 0.4 * 0.5)
+    # an additive layer adds its colour wherever it lies
+    out, _ = composite_layers(a, c, torch.tensor([[[[[0.6]]], [[[1.5]]]]], dtype=torch.float64),
+                              image, torch.tensor([[False, True]]))
+    want = (image[0, :, 0, 0] * 0.5 + c[0, 1, :, 0, 0]) + c[0, 0, :, 0, 0]
+    assert torch.allclose(out[0, :, 0, 0], want, atol=1e-15)
+
+
+def test_gradcheck_of_the_layered_composite():
+    """float64 gradcheck on a tiny case (3 layers, distinct depths, no clamping)."""
+    g = torch.Generator().manual_seed(0)
+    a = (0.2 + 0.3 * torch.rand(2, 3, 1, 2, 3, generator=g, dtype=torch.float64)).requires_grad_()
+    c = (0.1 * torch.rand(2, 3, 3, 2, 3, generator=g, dtype=torch.float64)).requires_grad_()
+    depth = (a.detach() * torch.rand(2, 3, 1, 2, 3, generator=g, dtype=torch.float64) * 5)
+    image = (0.2 + 0.3 * torch.rand(2, 3, 2, 3, generator=g, dtype=torch.float64)).requires_grad_()
+    mode = torch.tensor([[True, False, True], [False, True, True]])
+    assert torch.autograd.gradcheck(lambda a, c, i: composite_layers(a, c, depth, i, mode),
+                                    (a, c, image))
+
+
+def test_gradcheck_of_a_layered_render(pair):
+    """Gradients reach every layer's colours, transparencies and offsets (float64 gradcheck on
+    a small scene: a snow flake and a fog billboard, overlapping)."""
+    small = plane_pair(20, 24, depth=6.0, dtype=torch.float64)
+    flake = one_particle(small, "snow", 1.5, RED, size=7)
+    cloud = one_particle(small, "fog", 3.0, BLUE, size=11)
+    cloud = cloud.replace(position=cloud.position + torch.tensor([[0.1, 0.05, 0.0]],
+                                                                 dtype=torch.float64))
+    layered = LayeredParticles((flake, cloud), ("snow", "fog"))
+    stamps = build_stamps(layered, None, dtype=torch.float64)
+    weights = torch.rand(4, 2, 3, 20, 24, generator=torch.Generator().manual_seed(0),
+                         dtype=torch.float64)
+
+    def run(colour, theta, offset):     # four random projections of both frames
+        layers = (flake.replace(color=colour, offset1=offset), cloud.replace(transparency=theta))
+        out = render_pair(small, LayeredParticles(layers, ("snow", "fog")), beta=BETA_ATTACK,
+                          stamps=stamps, coarse_side=None)
+        frames = torch.stack((out.image1[0], out.image2[0]))
+        return (weights * frames).sum((1, 2, 3, 4))
+
+    inputs = (flake.color.clone().double().mul(0.8).requires_grad_(),
+              (cloud.transparency.double() * 0.7).requires_grad_(),
+              torch.zeros(1, 3, dtype=torch.float64).requires_grad_())
+    assert torch.autograd.gradcheck(run, inputs, atol=1e-6)
+
+
+def test_one_layer_renders_its_record_bytes_and_batches_render_each_pair_alone():
+    pairs = [plane_pair(40, 56, depth=5.0, seed=s) for s in (0, 1)]
+    preset = load_preset("snow+fog", {"snow.count": 40, "fog.count": 3})
+    layered = [sample_weather(p, preset, seed=s) for s, p in enumerate(pairs)]
+    single = LayeredParticles((layered[0].layers[0],), ("snow",))
+    assert torch.equal(render_pair(pairs[0], single).image1,
+                       render_pair(pairs[0], layered[0].layers[0]).image1)
+    batch = render_pair(FramePairBatch.stack(pairs), layered)
+    for k, (p, record) in enumerate(zip(pairs, layered)):
+        alone = render_pair(p, record)
+        for name in ("image1", "image2", "opacity1", "opacity2"):
+            assert torch.equal(getattr(batch, name)[k], getattr(alone, name)[0]), (k, name)
+        assert bool((alone.image1 != p.image1).any())
+    with pytest.raises(ConfigError, match="same number of weather layers"):
+        render_pair(FramePairBatch.stack(pairs), [layered[0], layered[1].layers[0]])
+
+
+def test_gradcheck_of_a_layered_render_with_a_coarse_grid(pair):
+    """A fog billboard wide enough for a coarse grid (upsampled in the composite) under a snow
+    flake: float64 gradcheck of both layers' colours and the fog's transparency."""
+    flake = one_particle(pair, "snow", 1.5, RED, size=9)
+    cloud = one_particle(pair, "fog", 3.0, BLUE, size=141)
+    layered = LayeredParticles((flake, cloud), ("snow", "fog"))
+    stamps = build_stamps(layered, None, dtype=torch.float64)
+    assert int(stamps.coarse.max()) > 0                     # the billboard is drawn coarse
+    weights = torch.rand(3, 2, 3, 48, 64, generator=torch.Generator().manual_seed(1),
+                         dtype=torch.float64)
+
+    def run(snow_colour, fog_colour, theta):
+        layers = (flake.replace(color=snow_colour),
+                  cloud.replace(color=fog_colour, transparency=theta))
+        out = render_pair(pair, LayeredParticles(layers, ("snow", "fog")), beta=BETA_ATTACK,
+                          stamps=stamps)
+        frames = torch.stack((out.image1[0], out.image2[0]))
+        return torch.cat(((weights * frames).sum((1, 2, 3, 4)),
+                          (out.opacity1 * weights[0, 0, :1]).sum()[None]))
+
+    inputs = (torch.tensor([[0.7, 0.2, 0.1]], dtype=torch.float64, requires_grad=True),
+              torch.tensor([[0.1, 0.3, 0.6]], dtype=torch.float64, requires_grad=True),
+              torch.tensor([0.4], dtype=torch.float64, requires_grad=True))
+    assert torch.autograd.gradcheck(run, inputs, atol=1e-6)
