@@ -122,7 +122,21 @@ def stamp(levels, template: int, footprint: float, defocus: int, rotation: float
                   for y in range(-full, full + 1) for x in range(-full, full + 1)}
     if brighten:
         pixels = {k: min((2 * max(v, 0.0)) ** (1 / 3), 1.0) for k, v in pixels.items()}
+        if radius > 0:
+            pixels = soften(pixels, radius)
     return level, phases, pixels
+
+
+def soften(pixels: dict, radius: int) -> dict:
+    """A brightened stamp convolved with a normalised b x b box twice, b = 2 (r // 4 + 2) + 1:
+    the separable tent ``t(k) = (b − |k|) / b²`` per axis for |k| < b (the stamp grows by
+    b − 1), as a 2-D sum over every tap."""
+    b = 2 * (radius // 4 + 2) + 1
+    tent = {k: (b - abs(k)) / (b * b) for k in range(-(b - 1), b)}
+    full = max(abs(y) for y, _ in pixels) + b - 1
+    return {(y, x): sum(tent[a] * tent[c] * pixels.get((y - a, x - c), 0.0)
+                        for a in tent for c in tent)
+            for y in range(-full, full + 1) for x in range(-full, full + 1)}
 
 
 # -- what each frame draws ----------------------------------------------------------------

@@ -144,7 +144,9 @@ def core_and_oracle_gradients(pairs, records, beta=BETA_ATTACK, **options):
     """Gradients of both renderers' outputs, under one random upstream gradient, with respect
     to every record's offsets, colour and transparency."""
     gen = torch.Generator().manual_seed(5)
-    leaves = [{n: getattr(r, n).detach().clone().requires_grad_(True) for n in FREE}
+    # float64 leaves: a leaf's gradient sums its uses (frame 1 and frame 2) in the leaf's type,
+    # and in float32 that sum's rounding (a few 1e-8 where terms cancel) is not the renderers'
+    leaves = [{n: getattr(r, n).detach().double().clone().requires_grad_(True) for n in FREE}
               for r in records]
     moved = [r.replace(**leaf) for r, leaf in zip(records, leaves)]
     args = arguments(pairs, moved)

@@ -143,7 +143,7 @@ def test_load_errors(tmp_path, snow_pair_and_particles):
 
 # -- templates -----------------------------------------------------------------------------
 
-@pytest.mark.parametrize("kind,count,res", [("flakes", 8, 80), ("dust", 6, 128)])
+@pytest.mark.parametrize("kind,count,res", [("flakes", 8, 80), ("dust", 6, 128), ("haze", 6, 128)])
 def test_builtin_templates_are_shipped_and_regenerable(kind, count, res):
     lib = load_templates(kind)
     assert (lib.count, lib.resolution) == (count, res)

@@ -128,6 +128,13 @@ def _naive_stamp(lib, tid, rotation, scale, radius, brighten):
                 v = sum(stamp.get((dy - a, dx - b), 0.0) for a, b in disc) / len(disc)
                 blurred[(dy, dx)] = min(max(2 * v, 0.0) ** (1 / 3), 1.0) if brighten else v
         stamp = blurred
+        if brighten:          # softened: a b x b box twice (a tent (b − |k|) / b² per axis)
+            b = 2 * (radius // 4 + 2) + 1
+            reach = half + radius + b - 1
+            tent = {k: (b - abs(k)) / b ** 2 for k in range(1 - b, b)}
+            stamp = {(dy, dx): sum(tent[a] * tent[c] * blurred.get((dy - a, dx - c), 0.0)
+                                   for a in tent for c in tent)
+                     for dy in range(-reach, reach + 1) for dx in range(-reach, reach + 1)}
     return phases, stamp
 
 
@@ -399,7 +406,9 @@ def test_memory_kept_for_backward_does_not_grow_with_the_footprints():
         out = fast(pair, base.replace(**leaves), lib, BETA_ATTACK)
     # Keeping the patches costs tens of bytes per patch pixel; the frames and the per-sample
     # numbers the backward pass needs fit in well under one byte per patch pixel here.
-    patch_pixels = 2 * 3 * 20 * 62 * 62                               # frames x particles x K
+    from weathergen.engine import build_stamps
+    sides = build_stamps([base], lib).side                 # 61 px, the defocused one softened
+    patch_pixels = 2 * 20 * int(((sides + 1) ** 2).sum())            # frames x K x patches
     assert sum(seen.values()) < patch_pixels, sum(seen.values())
     (out.image1.sum() + out.image2.sum()).backward()
     assert all(float(leaf.grad.abs().sum()) > 0 for leaf in leaves.values())

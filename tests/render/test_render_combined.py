@@ -119,7 +119,7 @@ def test_render_draws_every_layer_into_one_pair(combined_out, demo_root):
     assert manifest["preset"]["model"] == "combined"
     clean = pair.image1.permute(1, 2, 0).numpy()
     frame = read_image(split / "snow+fog-light_clean" / PAIR / "frame_0001.png")
-    assert np.abs(frame - clean).mean() > 0.05
+    assert np.abs(frame - clean).mean() > 0.03           # snow alone: about 0.025
     # the written frame is the engine's layered render of the stored layers
     out = render_pair(pair, stored)
     assert np.abs(out.image1[0].permute(1, 2, 0).numpy() - frame).max() <= 0.5 / 255 + 1e-6

@@ -102,7 +102,7 @@ def _key(default, check=None, doc: str = "", main: bool = False):
 SHARED_KEYS = {
     "description": ("", None, "free text shown by `weathergen presets`", False),
     "templates": ("flakes", _templates,
-                  "template library: flakes, dust, or a folder of grey-scale PNGs", True),
+                  "template library: flakes, dust, haze, or a folder of grey-scale PNGs", True),
     "color": ((255, 255, 255), _rgb, "base colour, 8-bit RGB", True),
     "hue_jitter": (0.0, _number(0, 180), "random hue change, +- degrees", False),
     "lightness_jitter": (0.0, _number(0, 1), "random HLS lightness change, +-", False),

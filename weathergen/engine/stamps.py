@@ -8,8 +8,10 @@ without a defocus blur are *phase stamps* (:data:`PHASE_SIDE`): sampled every 1 
 centred there, so that the splat can place them at a particle's exact sub-pixel position; the
 others are sampled once per pixel (small blurred ones box-filtered: 4 x 4 or 2 x 2 samples); then
 disc-blurred by the defocus radius (a normalised disc, the stamp growing by 2 r) and brightened
-where asked (:func:`defocus_brighten`). Stamps at least :data:`COARSE_SIDE` pixels wide (fog,
-large dust) are drawn for a grid ``2**L`` times coarser than the image (see
+where asked (:func:`defocus_brighten`); a brightened stamp is then softened by a normalised box
+of :func:`soft_box` applied twice (a tent per axis: it keeps the rule's light and turns the rim
+the brightening lifts into a ramp; the stamp grows by ``b − 1`` on each side). Stamps at least
+:data:`COARSE_SIDE` pixels wide (fog, large dust) are drawn for a grid ``2**L`` times coarser than the image (see
 :func:`stamp_geometry`). A stamp's looks are this file's alone: how a template is sampled, the
 disc that cuts it, the defocus kernel.
 
@@ -24,7 +26,9 @@ other in one flat tensor; ragged, so a call costs a bounded number of tensor ope
   disc's rows, box sums of the stamp's rows, each the difference of two prefix sums. Prefix sums
   are taken per stamp row (never across stamps, so a stamp does not depend on the others), in
   float64 (where a row is all zeros the difference is exactly zero: blurred stamps stay exactly
-  zero outside their support).
+  zero outside their support);
+- softening: four box passes, each along the rows of every stamp at once (differences of
+  per-row prefix sums in float64, as the disc blur), writing its result transposed.
 
 Elementwise operations are those whose result does not depend on an element's position in its
 tensor (``exp``/``log`` rather than ``pow`` and ``sigmoid``, whose vectorised and scalar CPU
@@ -214,6 +218,21 @@ def disc_counts(radius: torch.Tensor) -> torch.Tensor:
     return _constant("taps", DISC_TAPS, torch.float64, radius.device).index_select(0, radius)
 
 
+def soft_box(radius: int) -> int:
+    """Width ``b`` (odd, pixels) of the boxes whose square ``b x b`` applied twice softens a
+    brightened stamp of defocus radius r: ``2 (floor(r / 4) + 2) + 1`` (5 for r = 2, 3; 7 for
+    r = 4 .. 7; 15 for r = 20). Twice a box is a tent per axis, of standard deviation
+    ``sqrt((b² − 1) / 6)`` (2.0, 2.8, 6.1 pixels). The cube root of the brightening has an
+    infinite slope at b = 0, so the faint outer ring of the disc blur becomes a rim one or two
+    pixels wide; the tent spreads it over a ramp while keeping the rule's total light (the boxes
+    are normalised, the stamp grows by ``b − 1`` on each side)."""
+    return 2 * (radius // 4 + 2) + 1
+
+
+#: Box widths for r = 0 .. 255 (the defocus radii a record can store).
+SOFT_BOX = [soft_box(r) for r in range(256)]
+
+
 @dataclass
 class StampSet:
     """The stamps of E entries, ragged: entry e's stamp, ``side x side`` pixels with a one-pixel
@@ -269,8 +288,13 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
         footprint, radius, coarse, side, sub, level, phases = stamp_geometry(
             looks.footprint.to(torch.float64), looks.defocus, lib.resolution,
             int(book.res.numel()), coarse_side)
-        full = side + 2 * radius
-        fine = phases * (full + 1) + 1                           # grid side with the border
+        # brightened blurred stamps are softened afterwards and grow by the kernel's reach
+        soft = looks.brighten & (radius > 0)
+        box = _constant("box", SOFT_BOX, torch.int64, device).index_select(0, radius)
+        grow = torch.where(soft, box - 1, torch.zeros_like(radius))
+        inner = side + 2 * radius
+        full = inner + 2 * grow
+        fine = phases * (full + 1) + 1     # grid side with the border (phases > 1: no blur)
         block = fine * fine
         first = starts(block)
         size = int(block.sum()) if looks.count else 0
@@ -286,7 +310,7 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
                            dtype=torch.float64, device=device)
         # pixel (y, x) of entry e goes to ``place[e] + y * pitch[e] + x``
         place = torch.where(blurred, size + rows_first * width + 2 * radius + 1,
-                            first + full + 3)
+                            first + full + 3)      # (unblurred stamps do not grow)
         pitch = torch.where(blurred, torch.full_like(side, width), full + 2)
         # stamps brightened without a blur (a defocus radius that rounds to 0 on a coarse grid)
         bright = looks.brighten & ~blurred
@@ -301,8 +325,11 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
             rows_of = torch.repeat_interleave(disc_counts(radius.index_select(0, members)),
                                               side.index_select(0, members))
             prefix = work[size:].view(-1, width).div_(rows_of[:, None]).cumsum_(1).view(-1)
-            _blur(prefix, members, side, radius, looks.brighten, rows_first, width, first,
-                  full, work, chunk_elements)
+            _blur(prefix, members, side, radius, looks.brighten, rows_first, width,
+                  first + grow * (full + 2) + grow, full, inner, work, chunk_elements)
+        if bool(soft.any()):
+            _soften(work, torch.nonzero(soft).squeeze(1), first, inner, box, full,
+                    chunk_elements)
     return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse,
                     phases=phases)
 
@@ -445,10 +472,12 @@ def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: t
                              value.index_select(0, at).to(torch.float64))
 
 
-def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, work,
-          chunk: int) -> None:
+def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, inner,
+          work, chunk: int) -> None:
     """Disc-blurred (and brightened where flagged) stamps ``members`` from their rows' prefix
-    sums (already divided by the disc's taps) into their bordered places in ``work``.
+    sums (already divided by the disc's taps) into their bordered places in ``work``: the
+    ``inner x inner`` blurred stamp with its top-left pixel at ``first + full + 3`` (``first``
+    is shifted where a stamp grows for its softening; ``full + 2`` is the row pitch).
 
     The blurred pixel (Y, X) of a stamp of side s and radius r sums, over the disc's rows
     ``a`` in [−r, r] of half-width ``w = floor(sqrt(r² − a²))``, the stamp's row
@@ -479,10 +508,61 @@ def _blur(prefix, members, side, radius, brighten, rows_first, width, first, ful
     flags = brighten.index_select(0, members)
     if bool(flags.any()):
         bright = members.index_select(0, torch.nonzero(flags).squeeze(1))
-        fb = full.index_select(0, bright)
-        for e, local in runs(fb * fb, chunk):
-            fe = fb.index_select(0, e)
-            row = torch.div(local, fe, rounding_mode="floor")
-            at = first.index_select(0, bright.index_select(0, e)) + (row + 1) * (fe + 2) \
-                + local - row * fe + 1
+        nb = inner.index_select(0, bright)
+        for e, local in runs(nb * nb, chunk):
+            ne = nb.index_select(0, e)
+            row = torch.div(local, ne, rounding_mode="floor")
+            at = first.index_select(0, bright.index_select(0, e)) \
+                + (row + 1) * (full.index_select(0, bright.index_select(0, e)) + 2) \
+                + local - row * ne + 1
             work.index_copy_(0, at, defocus_brighten(work.index_select(0, at)))
+
+
+def _soften(work, members, first, inner, box, full, chunk: int) -> None:
+    """Soften the brightened stamps ``members`` in place: each holds its ``n x n`` stamp
+    (n = ``inner``) at offset ``b − 1`` inside its bordered ``(full + 2)²`` block (``full =
+    n + 2 (b − 1)``, b = ``box``); afterwards the whole ``full x full`` is the stamp convolved
+    with a normalised, centred ``b x b`` box twice (:func:`soft_box`).
+
+    The stamps are copied, each on its own canvas at the top left, into one zero-filled dense
+    float64 array ``(M, F, F)`` (F the largest ``full``); each of the four box passes (rows,
+    rows, columns, columns) takes cumulative sums along its axis (per row or column: its sums
+    do not depend on the other stamps) and differences them at the stamp's own half-width h:
+    ``out[x] = S[x + h] − S[x − h − 1]`` (divided by ``b⁴`` at the end). The boxes reach at
+    most ``b − 1`` beyond the stamp, so they stay inside its canvas; where a span is all zeros
+    the difference is exactly zero.
+    """
+    device = work.device
+    m = int(members.numel())
+    n, b = inner.index_select(0, members), box.index_select(0, members)
+    f = full.index_select(0, members)
+    top = first.index_select(0, members) + f + 3                       # bordered pixel (1, 1)
+    side = int(f.max())
+    dense = torch.zeros(m, side, side, dtype=torch.float64, device=device)
+    flat = dense.view(-1)
+    for e, local in runs(n * n, chunk):
+        ne, off = n.index_select(0, e), b.index_select(0, e) - 1
+        y = torch.div(local, ne, rounding_mode="floor")
+        x = local - y * ne
+        flat.index_copy_(0, (e * side + y + off) * side + x + off,
+                         work.index_select(0, top.index_select(0, e) + (y + off)
+                                           * (f.index_select(0, e) + 2) + x + off))
+    half = (b - 1) // 2
+    pad = int(half.max()) + 1
+    # out[x] = S[hi] − S[lo] in the padded sums: hi = x + pad + h, lo = hi − b
+    hi = torch.arange(side, device=device)[None] + (pad + half)[:, None]
+    lo = hi - b[:, None]
+    ends = {2: (hi[:, None], lo[:, None]), 1: (hi[:, :, None], lo[:, :, None])}
+    for axis in (2, 2, 1, 1):
+        sums = F.pad(dense, (pad, pad, 0, 0) if axis == 2 else (0, 0, pad, pad)).cumsum_(axis)
+        hi_a, lo_a = ends[axis]
+        dense = sums.gather(axis, hi_a.expand(dense.shape)) \
+            - sums.gather(axis, lo_a.expand(dense.shape))
+    dense = dense / (b.to(torch.float64) ** 4)[:, None, None]      # the four boxes' 1 / b
+    flat = dense.reshape(-1)
+    for e, local in runs(f * f, chunk):
+        fe = f.index_select(0, e)
+        y = torch.div(local, fe, rounding_mode="floor")
+        x = local - y * fe
+        work.index_copy_(0, top.index_select(0, e) + y * (fe + 2) + x,
+                         flat.index_select(0, (e * side + y) * side + x))

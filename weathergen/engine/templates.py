@@ -6,10 +6,14 @@ seeded, deterministic generators) and stored as PNGs under ``weathergen/engine/t
 - ``flakes``: nearly opaque round blobs with the inner structure of a dendrite (six brighter
   arms), a hexagonal plate or a soft grain (snow, rain and sparks);
 - ``dust``: nearly opaque cloud blobs with a soft texture (fog and the dust rows of the size
-  sweep).
+  sweep);
+- ``haze``: wisps of haze whose alpha falls over the whole radius and reaches zero with zero
+  slope, ``(1 − r²)²`` times a light texture (the weather fields' fog: overlapping clouds add
+  up to haze without disc outlines).
 
-Like the paper's billboards, each carries a mean alpha of 0.7-0.85 inside its disc
-(:data:`TEMPLATE_ALPHA_RANGE`); how transparent a particle looks comes from its θ.
+Like the paper's billboards, ``flakes`` and ``dust`` carry a mean alpha of 0.7-0.85 inside their
+disc (:data:`TEMPLATE_ALPHA_RANGE`); how transparent a particle looks comes from its θ. ``haze``
+has no body: its mean alpha inside the disc is about a third (:data:`HAZE_ALPHA_RANGE`).
 
 A preset may instead name a folder of grey-scale PNGs. Every template is treated as round: content
 outside its inscribed circle is dropped, so that a rotated template never needs a larger canvas.
@@ -31,15 +35,22 @@ import torch
 from ..errors import ConfigError, FormatError
 
 #: The template libraries that ship with weathergen (a preset may also name a folder of PNGs).
-BUILTIN_TEMPLATE_KINDS = ("flakes", "dust")
+BUILTIN_TEMPLATE_KINDS = ("flakes", "dust", "haze")
 
 FLAKE_RESOLUTION = 80
 DUST_RESOLUTION = 128
 FLAKE_COUNT = 8
 DUST_COUNT = 6
+HAZE_RESOLUTION = 128
+HAZE_COUNT = 6
 # Mean alpha inside each built-in template's disc: the paper's flakes and smoke blobs are
 # nearly opaque (about 0.7-0.85 inside the disc); the depth hat and θ make them transparent.
 TEMPLATE_ALPHA_RANGE = (0.7, 0.85)
+#: Mean alpha inside a ``haze`` template's disc: ``(1 − r²)²`` averages 1/3 over the disc.
+HAZE_ALPHA_RANGE = (0.25, 0.4)
+#: Largest change of a ``haze`` template's alpha per unit of radius (its template pixels times
+#: the footprint's half-width in template pixels): ``(1 − r²)²`` alone has 1.54.
+HAZE_MAX_SLOPE = 2.0
 
 
 @dataclass(frozen=True)
@@ -212,6 +223,20 @@ def _dust(rng: np.random.Generator, res: int) -> np.ndarray:
     return (alpha / alpha.max()).astype(np.float32)
 
 
+def _haze(rng: np.random.Generator, res: int) -> np.ndarray:
+    """A wisp of haze: alpha ``(1 − r²)² (0.85 + 0.15 texture)``, falling over the whole radius
+    to zero with zero slope at the rim (no outline however large it is drawn), its texture
+    band-limited to a few cells across (so it adds little slope: at most
+    :data:`HAZE_MAX_SLOPE` per unit of radius in all)."""
+    c = (res - 1) / 2
+    yy, xx = np.mgrid[0:res, 0:res].astype(np.float64)
+    r2 = ((xx - c) ** 2 + (yy - c) ** 2) / (res / 2) ** 2
+    texture = 0.7 * _smooth_noise(rng, res, 2) + 0.3 * _smooth_noise(rng, res, 4)
+    texture = (texture - texture.min()) / max(np.ptp(texture), 1e-12)
+    alpha = np.clip(1 - r2, 0, 1) ** 2 * (0.85 + 0.15 * texture)
+    return (alpha / alpha.max()).astype(np.float32)
+
+
 def generate_templates(kind: str, seed: int = 0) -> list[np.ndarray]:
     """The built-in templates of ``kind`` as (R, R) float32 arrays in [0, 1], deterministic."""
     rng = np.random.default_rng(seed)
@@ -220,6 +245,8 @@ def generate_templates(kind: str, seed: int = 0) -> list[np.ndarray]:
         return [_flake(rng, FLAKE_RESOLUTION, s) for s in styles[:FLAKE_COUNT]]
     if kind == "dust":
         return [_dust(rng, DUST_RESOLUTION) for _ in range(DUST_COUNT)]
+    if kind == "haze":
+        return [_haze(rng, HAZE_RESOLUTION) for _ in range(HAZE_COUNT)]
     raise ConfigError(f"unknown template kind '{kind}' (known: {', '.join(BUILTIN_TEMPLATE_KINDS)})")
 
 
