@@ -6,7 +6,8 @@
 #   make bench                 print speed and memory figures (renderer, weather field, combined
 #                              weather, networks, attack step, batched attacks, training);
 #                              FOG_BEFORE=DIR also times fog with the weathergen source tree
-#                              DIR (e.g. an older commit's)
+#                              DIR (e.g. an older commit's), CORE_BEFORE=DIR the render core
+#                              against the renderer of tree DIR
 #   make test TORCH=torch      use another torch (e.g. a CUDA build) instead of the pinned CPU one
 #   make test-oldest           the tests against the lowest allowed versions (constraints/oldest.txt),
 #                              in a separate environment (.venv-oldest)
@@ -22,6 +23,7 @@ VENV   ?= .venv
 TORCH  ?= torch==2.13.0
 PYTEST_ARGS ?=
 FOG_BEFORE ?=
+CORE_BEFORE ?=
 REAL ?=
 REAL_DATASET ?= kitti
 DEPTH_SCALE ?=
@@ -82,6 +84,7 @@ demo: install
 bench: install
 	$(BIN)/python benchmarks/bench.py
 	$(BIN)/python benchmarks/bench_fog.py $(if $(FOG_BEFORE),--before $(FOG_BEFORE))
+	$(BIN)/python benchmarks/bench_core.py $(if $(CORE_BEFORE),--before $(CORE_BEFORE))
 	$(BIN)/python benchmarks/bench_field.py
 	$(BIN)/python benchmarks/bench_combined.py
 	$(BIN)/python benchmarks/bench_models.py

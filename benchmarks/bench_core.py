@@ -12,10 +12,13 @@ backward for snow and sparks).
 
 Then the counts of tensor operations (kernel launches on a GPU; counted here on the CPU, every
 dispatched operation, views and host-side bookkeeping included) of the render part of one attack
-step (forward + backward of snow on one Sintel-size pair, stamps reused as the attack does) and of
-the weather of a training batch of 8 Sintel-size pairs (snow and rain, a weather field, and a mix
-of both models), with the CPU's chunk size and with a GPU's. The CUDA table is still to be
-measured (no GPU was lent when these figures were taken).
+step (forward + backward of snow on one Sintel-size pair, stamps reused as the attack does, at
+3000 and 12000 particles) and of the weather of a training batch of 8 Sintel-size pairs (snow and
+rain, a weather field, and a mix of both models), with the CPU's chunk size and with a GPU's
+(2**25 elements, views not cut), and the CPU time of the batch both ways: the CPU's small chunks
+cost operations in proportion to the work but run faster than one large chunk (their temporaries
+stay in the caches), so the count bounded by the work's chunks is the GPU's. The CUDA table is
+still to be measured (no GPU was lent when these figures were taken).
 
     python benchmarks/bench_core.py [--before SRC] [--rounds 3] [--repeats 5]
 """
@@ -23,6 +26,7 @@ measured (no GPU was lent when these figures were taken).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import os
 import statistics
@@ -116,6 +120,14 @@ def operation_counts() -> None:
             fn()
         return counter.ops
 
+    def seconds(fn) -> float:
+        times = []
+        for _ in range(3):
+            start = time.process_time()
+            fn()
+            times.append(time.process_time() - start)
+        return statistics.median(times)
+
     torch.set_num_threads(1)
 
     def sintel(i):
@@ -129,17 +141,26 @@ def operation_counts() -> None:
 
     print("\ntensor operations (every dispatched operation, counted on the CPU)")
     pair = sintel(0)
-    parts = sample_weather(pair, load_preset("snow"), 0)
-    stamps = build_stamps([parts], load_templates("flakes"))
-    leaves = {k: getattr(parts, k).clone().requires_grad_(True)
-              for k in ("offset1", "offset2", "color", "transparency")}
+    for particles in (3000, 12000):
+        parts = sample_weather(pair, load_preset("snow", {"count": particles}), 0)
+        stamps = build_stamps([parts], load_templates("flakes"))
+        leaves = {k: getattr(parts, k).clone().requires_grad_(True)
+                  for k in ("offset1", "offset2", "color", "transparency")}
+        moved = parts.replace(**leaves)
 
-    def attack_render():
-        out = render_pair(pair, parts.replace(**leaves), beta=BETA_ATTACK, stamps=stamps)
-        (out.image1.sum() + out.image2.sum()).backward()
+        def attack_render():
+            out = render_pair(pair, moved, beta=BETA_ATTACK, stamps=stamps)
+            (out.image1.sum() + out.image2.sum()).backward()
 
-    print(f"  attack step's render (snow, 3000 particles, forward + backward): "
-          f"{count(attack_render)}")
+        def attack_render_gpu_chunks():
+            with _gpu_split():      # the backward pass chunks as the forward did
+                out = _gpu_chunks(FramePairBatch.stack([pair]), [moved], beta=BETA_ATTACK,
+                                  stamps=stamps)
+                (out.image1.sum() + out.image2.sum()).backward()
+
+        print(f"  attack step's render (snow, {particles} particles, forward + backward): "
+              f"{count(attack_render)} (CPU chunks), {count(attack_render_gpu_chunks)} "
+              f"(a GPU's chunks)")
     pairs = [sintel(i) for i in range(8)]
     batch = FramePairBatch.stack(pairs)
     for label, names in (("snow and rain", ["snow", "rain"] * 4),
@@ -150,22 +171,47 @@ def operation_counts() -> None:
                    for i, (p, n) in enumerate(zip(pairs, names))]
         cpu = count(lambda: render_pair(batch, records))
         gpu = count(lambda: _gpu_chunks(batch, records))
-        print(f"  training batch of 8 Sintel-size pairs, {label}: {cpu} (CPU chunks), "
-              f"{gpu} (a GPU's chunks)")
+        cpu_s = seconds(lambda: render_pair(batch, records))
+        gpu_s = seconds(lambda: _gpu_chunks(batch, records))
+        print(f"  training batch of 8 Sintel-size pairs, {label}: {cpu} (CPU chunks, "
+              f"{cpu_s:.2f} s CPU time), {gpu} (a GPU's chunks, {gpu_s:.2f} s on this CPU)")
+    print(f"  one dispatched operation on a tiny tensor: {_dispatch_cost() * 1e6:.1f} us CPU time")
 
 
-def _gpu_chunks(batch, records):
-    """Render chunked as on a GPU with free memory: 2**25 elements per chunk, and views not cut
-    into the CPU's fixed pieces (which keep a view's additions in one order)."""
-    from weathergen.engine import render, splat
+def _dispatch_cost() -> float:
+    """CPU seconds of one tensor operation whose arithmetic is negligible (what each operation
+    of the counts above costs beyond its elements)."""
+    import torch
+
+    x = torch.zeros(8)
+    start = time.process_time()
+    for _ in range(20000):
+        x.add_(1.0)
+    return (time.process_time() - start) / 20000
+
+
+@contextlib.contextmanager
+def _gpu_split():
+    """Views not cut into the CPU's fixed pieces (which keep a view's additions in one order),
+    as on a GPU."""
+    from weathergen.engine import splat
 
     split, splat.PLANE_SPLIT = splat.PLANE_SPLIT, 1 << 40
     try:
-        return render(batch.image1, batch.image2, batch.depth1, batch.depth2, batch.intrinsics,
-                      batch.cam1_from_world, batch.cam2_from_world, records,
-                      chunk_elements=1 << 25)
+        yield
     finally:
         splat.PLANE_SPLIT = split
+
+
+def _gpu_chunks(batch, records, **options):
+    """Render chunked as on a GPU with free memory: 2**25 elements per chunk, views not cut
+    (see :func:`_gpu_split`)."""
+    from weathergen.engine import render
+
+    with _gpu_split():
+        return render(batch.image1, batch.image2, batch.depth1, batch.depth2, batch.intrinsics,
+                      batch.cam1_from_world, batch.cam2_from_world, records,
+                      chunk_elements=1 << 25, **options)
 
 
 def main():

@@ -31,6 +31,15 @@ def test_upsampling_adjoint_is_the_transpose(factor):
     assert torch.allclose(upsample_adjoint(y, factor), ref, atol=1e-12)
     assert torch.autograd.gradcheck(lambda t: upsample(t, factor, (4 * factor - 1, 6 * factor - 3)),
                                      (x,), eps=1e-6, atol=1e-8)
+    # a gradient cropped along either axis, both or neither (each order of the two passes)
+    for size in ((4 * factor, 6 * factor), (4 * factor - 1, 6 * factor),
+                 (4 * factor, 6 * factor - 3), (4 * factor - 1, 6 * factor - 3)):
+        crop = y[..., :size[0], :size[1]]
+        ref, = torch.autograd.grad(F.interpolate(x, scale_factor=factor, mode="bilinear",
+                                                 align_corners=False)[..., :size[0], :size[1]],
+                                   x, crop)
+        got, = torch.autograd.grad(upsample(x, factor, size), x, crop)
+        assert torch.allclose(got, ref, atol=1e-12), size
 
 
 def _reference_blend(sums, image1, image2, alpha_mode):

@@ -165,3 +165,16 @@ def test_gradcheck_of_a_layered_render_with_a_coarse_grid(pair):
               torch.tensor([[0.1, 0.3, 0.6]], dtype=torch.float64, requires_grad=True),
               torch.tensor([0.4], dtype=torch.float64, requires_grad=True))
     assert torch.autograd.gradcheck(run, inputs, atol=1e-6)
+
+
+def test_layers_drawn_on_coarse_grids_alone(pair):
+    """Every stamp on a coarse grid (two wide fog billboards; a plain render then splats no
+    image-grid plane): one such layer renders its record's bytes, and the nearer of two hides
+    the farther one."""
+    near = one_particle(pair, "fog", 2.0, RED, size=141)
+    far = one_particle(pair, "fog", 4.0, BLUE, size=141)
+    assert torch.equal(render_pair(pair, LayeredParticles((near,), ("fog",))).image1,
+                       render_pair(pair, near).image1)
+    out = render_pair(pair, LayeredParticles((far, near), ("far", "near")))
+    red, _, blue = centre(out).tolist()
+    assert red > 0.5 and red > 4 * blue

@@ -51,14 +51,33 @@ def _fold(s: torch.Tensor, a: torch.Tensor, b: torch.Tensor, dim: int) -> torch.
     return out
 
 
-def upsample_adjoint(grad: torch.Tensor, factor: int) -> torch.Tensor:
-    """The adjoint of :func:`upsample` (without cropping). Shape: (C, 1, f h, f w) -> (C, 1, h, w).
+def upsample_adjoint(grad: torch.Tensor, factor: int,
+                     coarse: Optional[Sequence[int]] = None) -> torch.Tensor:
+    """The adjoint of :func:`upsample`. Shape: (C, 1, H, W) -> (C, 1, h, w), ``coarse`` = (h, w)
+    (default: H / f, W / f), H <= f h and W <= f w (the rows and columns beyond a cropped
+    gradient are zero).
+
+    One axis at a time, an axis that needs no padding first: its pass reads the full-size
+    gradient as it lies (one matrix product of the phase weights), and the other axis, then
+    padded if cropped, works on an f times smaller tensor (no full-size copy).
     """
+    height, width = grad.shape[-2:]
+    h, w = (-(-height // factor), -(-width // factor)) if coarse is None else coarse
     w3 = _phase_weights(factor, grad.dtype, grad.device)
-    rows = w3 @ grad.unflatten(-2, (-1, factor))                  # (C, 1, h, 3, f w)
-    g = _fold(*rows.unbind(-2), dim=-2)                           # (C, 1, h, f w)
-    cols = g.unflatten(-1, (-1, factor)) @ w3.T                   # (C, 1, h, w, 3)
-    return _fold(*cols.unbind(-1), dim=-1)
+
+    def rows(g):        # (C, 1, f h, X) -> (C, 1, h, X)
+        if g.shape[-2] < factor * h:
+            g = F.pad(g, (0, 0, 0, factor * h - g.shape[-2]))
+        return _fold(*(w3 @ g.unflatten(-2, (h, factor))).unbind(-2), dim=-2)
+
+    def cols(g):        # (C, 1, X, f w) -> (C, 1, X, w)
+        if g.shape[-1] < factor * w:
+            g = F.pad(g, (0, factor * w - g.shape[-1]))
+        return _fold(*(g.unflatten(-1, (w, factor)) @ w3.T).unbind(-1), dim=-1)
+
+    if width == factor * w or height != factor * h:
+        return rows(cols(grad))
+    return cols(rows(grad))
 
 
 class _Upsample(torch.autograd.Function):
@@ -83,11 +102,8 @@ class _Upsample(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, grad):
-        if tuple(ctx.size) != ctx.full:
-            full = grad.new_zeros(*grad.shape[:-2], *ctx.full)
-            full[..., :ctx.size[0], :ctx.size[1]] = grad
-            grad = full
-        return upsample_adjoint(grad.contiguous(), ctx.factor), None, None
+        coarse = (ctx.full[0] // ctx.factor, ctx.full[1] // ctx.factor)
+        return upsample_adjoint(grad.contiguous(), ctx.factor, coarse), None, None
 
 
 def upsample(grid: torch.Tensor, factor: int, size: Sequence[int]) -> torch.Tensor:
@@ -110,21 +126,33 @@ class RenderOutput:
 
 
 class _Crop(torch.autograd.Function):
-    """One level's planes without margins (a view of the sums); the backward pass writes the
-    gradient into one zero tensor of the sums' shape (autograd's slices would allocate one
-    per slice). Shape: values (4, N) -> (4, V, h, w)."""
+    """Every level's planes without margins (views of the sums); the backward pass writes the
+    gradients into one tensor of the sums' shape, zeroing only the margins (autograd's slices
+    would allocate and zero-fill one full-size tensor per slice). Shape: values (4, N) -> one
+    (4, V, h, w) per level."""
 
     @staticmethod
-    def forward(ctx, values, grids, index):
-        ctx.grids, ctx.index, ctx.shape = grids, index, values.shape
-        return grids.planes(values, index)
+    def forward(ctx, values, grids):
+        ctx.grids, ctx.shape = grids, values.shape
+        return tuple(grids.planes(values, index) for index in range(len(grids.levels)))
 
     @staticmethod
     @torch.autograd.function.once_differentiable
-    def backward(ctx, grad):
-        out = grad.new_zeros(ctx.shape)
-        ctx.grids.planes(out, ctx.index).copy_(grad)
-        return out, None, None
+    def backward(ctx, *grads):
+        grids = ctx.grids
+        out = grads[0].new_empty(ctx.shape)
+        for index, grad in enumerate(grads):
+            _, offset, h, w, m = grids.levels[index]
+            size = grids.views * (h + 1) * (w + 2 * m)
+            full = out[:, offset:offset + size].view(out.shape[0], grids.views, h + 1, w + 2 * m)
+            full[..., h, :].zero_()
+            full[..., :h, :m].zero_()
+            full[..., :h, m + w:].zero_()
+            if grad is None:
+                full[..., :h, m:m + w].zero_()
+            else:
+                full[..., :h, m:m + w].copy_(grad)
+        return out, None
 
 
 def planes(sums: Sums) -> torch.Tensor:
@@ -136,8 +164,7 @@ def planes(sums: Sums) -> torch.Tensor:
     grids = sums.grids
     channels = sums.values.shape[0]
     total = None
-    for index, (level, _, h, w, _) in enumerate(grids.levels):
-        grid = _Crop.apply(sums.values, grids, index)
+    for (level, _, h, w, _), grid in zip(grids.levels, _Crop.apply(sums.values, grids)):
         if level:   # one plane per image: the kernel treats every plane alike, whatever V
             grid = upsample(grid.reshape(channels * grids.views, 1, h, w), 2 ** level,
                             (grids.height, grids.width)).view(channels, grids.views,

@@ -169,7 +169,7 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
     inst = blur_samples(tracks, dtype)
     inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]), 1))
     sums = splat(inst, stamp_set, views.depth, chunk_elements=chunk_elements,
-                 detach_occlusion=detach_occlusion)
+                 detach_occlusion=detach_occlusion, image_grid=True)   # (read by _SumsLayout)
     alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in p.layers] for p in layered],
                               device=device)
     layout = _SumsLayout(sums.grids, _coarse_use(stamp_set, inst, bsz, nl), bsz, nl)

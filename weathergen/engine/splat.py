@@ -107,9 +107,13 @@ class Sums:
     reached: torch.Tensor
 
 
-def grids_for(stamps: StampSet, views: int, height: int, width: int) -> Grids:
-    """The grid levels the stamps need (the image grid always), each with a margin as wide as
-    its widest patch. One host synchronisation."""
+def grids_for(stamps: StampSet, views: int, height: int, width: int, *,
+              image_grid: bool = False) -> Grids:
+    """The grid levels the stamps need (the image grid only when a stamp is drawn on it, none
+    is coarse or ``image_grid`` asks for it), each with a margin as wide as its widest patch. A
+    level left out would add exact zeros to every view (sums are never −0), so leaving it out
+    changes no bit and saves a full-size plane per view (fog draws on a coarse grid alone). One
+    host synchronisation."""
     top = COARSE_MAX_LEVEL + 1
     if stamps.count:
         widest = torch.zeros(top, dtype=torch.long, device=stamps.side.device) \
@@ -118,7 +122,8 @@ def grids_for(stamps: StampSet, views: int, height: int, width: int) -> Grids:
     else:
         used = [[0] * top, [0] * top]
     levels, offset = [], 0
-    for c in sorted({0} | {c for c, n in enumerate(used[0]) if n}, reverse=True):
+    drawn = {c for c, n in enumerate(used[0]) if n}
+    for c in sorted(drawn | {0} if image_grid or not drawn - {0} else drawn, reverse=True):
         f = 2 ** c
         h, w = -(-height // f), -(-width // f)
         m = used[1][c]
@@ -144,16 +149,18 @@ def scene_depths(depth: torch.Tensor, grids: Grids, dtype) -> torch.Tensor:
 
 
 def splat(inst: Instances, stamps: StampSet, depth: torch.Tensor, *,
-          chunk_elements: Optional[int] = None, detach_occlusion: bool = False) -> Sums:
+          chunk_elements: Optional[int] = None, detach_occlusion: bool = False,
+          image_grid: bool = False) -> Sums:
     """The per-pixel sums of every blur sample's stamp (see the module doc).
 
     Shape: depth (V, 1, H, W) the scene depth of the V views; returns :class:`Sums`.
     Differentiable in ``inst.u``, ``inst.v``, ``inst.theta``, ``inst.color`` and, unless
-    ``detach_occlusion``, ``inst.z`` (through the visibility ``V``).
+    ``detach_occlusion``, ``inst.z`` (through the visibility ``V``). ``image_grid``: the sums
+    hold the image grid's level even when every stamp is coarse (see :func:`grids_for`).
     """
     views, _, height, width = depth.shape
     dtype = inst.u.dtype
-    grids = grids_for(stamps, views, height, width)
+    grids = grids_for(stamps, views, height, width, image_grid=image_grid)
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(depth.device)
     plan = _Plan(inst, stamps, scene_depths(depth, grids, dtype), grids, chunk_elements)
@@ -192,7 +199,7 @@ class _Plan:
         for c, offset, h, w, m in grids.levels:
             rows[c] = [offset, h, w, m, 2 ** c]
         table = torch.tensor(rows, device=device)
-        self.coarse = len(grids.levels) > 1
+        self.coarse = grids.levels[0][0] > 0       # (coarsest first)
         with torch.no_grad():
             # per sample: its stamp's side, level and start, and its level's grid
             side, level, first, phases = torch.stack((stamps.side, stamps.coarse, stamps.first,

@@ -33,6 +33,7 @@ kernels round differently), so a stamp is the same whatever other stamps the cal
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
@@ -338,39 +339,57 @@ def _sample(coef: torch.Tensor, book: Atlas, side, sub, place, pitch, work: torc
     if side.numel() == 0 or not bool(whole.any()):
         return
     device, dtype = coef.device, coef.dtype
-    for factor in (4, 2, 1):
-        members = torch.nonzero((sub == factor) & whole).squeeze(1)
-        if members.numel() == 0:
-            continue
-        s = side.index_select(0, members)
-        frac = [(k + 0.5) / factor - 0.5 for k in range(factor)]
-        # sample offsets in a pixel, row-major: (sub², 1)
-        ox = _constant(f"ox{factor}", [[frac[k % factor]] for k in range(factor * factor)],
-                       dtype, device)
-        oy = _constant(f"oy{factor}", [[frac[k // factor]] for k in range(factor * factor)],
-                       dtype, device)
-        for item, local in runs(s * s, max(1, chunk // (factor * factor))):
-            e = members.index_select(0, item)
-            width_e = s.index_select(0, item)
-            row = torch.floor((local + 0.5) / width_e).long()   # exact: local < side² < 2**40
-            col = local - row * width_e
+    # entries by supersampling factor (4, 2, 1), then one item per stamp row, the groups' rows one
+    # after the other: its entry, its row y and where its pixel 0 goes in ``work`` (a pixel's
+    # column is then its index in the item)
+    groups = [(f, torch.nonzero((sub == f) & whole).squeeze(1)) for f in (4, 2, 1)]
+    groups = [(f, m) for f, m in groups if m.numel()]
+    order = torch.cat([m for _, m in groups]) if len(groups) > 1 else groups[0][1]
+    s = side.index_select(0, order)
+    ends = torch.cumsum(s, 0)
+    last = list(itertools.accumulate(int(m.numel()) for _, m in groups))
+    cuts = [0] + ends.index_select(0, torch.tensor(last, device=device) - 1).tolist()
+    rows = cuts[-1]
+    row_entry = torch.repeat_interleave(order, s, output_size=rows)
+    row_y = torch.arange(rows, device=device) \
+        - torch.repeat_interleave(ends - s, s, output_size=rows)
+    row_size, row_place, row_pitch = torch.stack((side, place, pitch)).index_select(1, row_entry)
+    row_at = torch.addcmul(row_place, row_y, row_pitch)
+    for g, (factor, _) in enumerate(groups):
+        # sample offsets in a pixel along one axis: (sub, 1); a pixel's sub² samples are
+        # row-major, (sub rows, sub columns), so a sample's x depends on its column alone and its
+        # y on its row: the coordinates are computed per axis (sub, n) and broadcast
+        offsets = _constant(f"offsets{factor}", [[(k + 0.5) / factor - 0.5]
+                                                 for k in range(factor)], dtype, device)
+        row_offsets = _constant(f"row_offsets{factor}", [[[(k + 0.5) / factor - 0.5]]
+                                                         for k in range(factor)], dtype, device)
+        lo, hi = cuts[g], cuts[g + 1]
+        for item, col in runs(row_size[lo:hi], max(1, chunk // (factor * factor))):
+            if lo:
+                item = item + lo
+            e = row_entry.index_select(0, item)
+            row = row_y.index_select(0, item)
             bx, ax, cx, by, ay, cy, rho2, centre = coef.index_select(0, e).t()
-            gx = (col.to(dtype) + centre) + ox                  # (sub², n)
-            gy = (row.to(dtype) + centre) + oy
-            grid = torch.empty(*gx.shape, 2, dtype=dtype, device=device)
+            gx = (col.to(dtype) + centre) + offsets             # (sub columns, n)
+            gy = (row.to(dtype) + centre) + row_offsets         # (sub rows, 1, n)
+            n = gx.shape[-1]
+            grid = torch.empty(factor, factor, n, 2, dtype=dtype, device=device)
             grid_x, grid_y = grid.unbind(-1)
             torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
             torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
             inside = torch.addcmul(gx * gx, gy, gy) <= rho2
-            value = F.grid_sample(book.image, grid[None], mode="bilinear", padding_mode="zeros",
-                                  align_corners=False).view(gx.shape) * inside
-            while value.shape[0] > 1:        # pairwise, in a fixed order: the same bits anywhere
-                value = value.view(2, -1, value.shape[-1]).sum(0)
-            value = value.view(-1) / (factor * factor)
-            if bright is not None:
-                value = torch.where(bright.index_select(0, e), defocus_brighten(value), value)
-            at = torch.addcmul(place.index_select(0, e) + col, row, pitch.index_select(0, e))
-            work.index_copy_(0, at, value.to(torch.float64))
+            value = F.grid_sample(book.image, grid.view(1, factor * factor, n, 2),
+                                  mode="bilinear", padding_mode="zeros",
+                                  align_corners=False).view(inside.shape) * inside
+            while value.numel() > n:         # pairwise, in a fixed order: the same bits anywhere
+                value = value.view(2, -1, n).sum(0)
+            value = value.view(-1)
+            if factor > 1:
+                value = value / (factor * factor)
+            if bright is not None:      # (only the pixels of the stamps it brightens)
+                which = torch.nonzero(bright.index_select(0, e)).squeeze(1)
+                value.index_copy_(0, which, defocus_brighten(value.index_select(0, which)))
+            work.index_copy_(0, row_at.index_select(0, item) + col, value.to(torch.float64))
 
 
 def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: torch.Tensor,
@@ -452,11 +471,11 @@ def _blur(prefix, members, side, radius, brighten, rows_first, width, first, ful
     # bordered output pixel (Y + 1, X + 1) of row Y = y + r + a from column X = r − w on
     at = at0 + (y + rr + a + 1) * (ff + 2) + rr - w + 1
     # element x of a segment: the box over the row's columns x − 2 w .. x
-    consts = torch.stack((base + 1, base - 2 * w, at))
+    # (rows of a stacked table: gathering them is several times faster than along a second axis)
+    consts = torch.stack((base + 1, base - 2 * w, at), 1)
     for seg, x in runs(ss + 2 * w, chunk):
-        c_hi, c_lo, c_out = consts.index_select(1, seg)
-        work.index_add_(0, x + c_out, prefix.index_select(0, x + c_hi)
-                        - prefix.index_select(0, x + c_lo))
+        c_hi, c_lo, c_out = consts.index_select(0, seg).add_(x[:, None]).t()
+        work.index_add_(0, c_out, prefix.index_select(0, c_hi) - prefix.index_select(0, c_lo))
     flags = brighten.index_select(0, members)
     if bool(flags.any()):
         bright = members.index_select(0, torch.nonzero(flags).squeeze(1))
