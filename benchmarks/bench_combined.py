@@ -29,14 +29,9 @@ FRAME_RATE = 24.0
 
 def scene():
     sys.path.insert(0, str(REPO / "tests"))
-    from engine_scenes import plane_pair, pose, rotation
+    from engine_scenes import bench_scene
 
-    cam1 = pose(rotation(roll_deg=3, pitch_deg=-5))
-    cam2 = pose(rotation(roll_deg=3, pitch_deg=-4, yaw_deg=1), centre=(0.05, 0.0, 0.1))
-    pair = plane_pair(436, 1024, depth=6.0, near_block=True, cam1_from_world=cam1,
-                      cam2_from_world=cam2)
-    pair.depth1[..., :, 600:] = 2.0     # the scene of bench.py
-    pair.depth2[..., :, 600:] = 2.0
+    pair = bench_scene()
     return pair
 
 

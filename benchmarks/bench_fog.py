@@ -32,17 +32,12 @@ def measure(repeats: int) -> dict:
     import torch
 
     sys.path.insert(0, str(REPO / "tests"))
-    from engine_scenes import plane_pair, pose, rotation
+    from engine_scenes import bench_scene
 
     from weathergen.engine import BETA_ATTACK, load_preset, render_pair, sample_particles
 
     torch.set_num_threads(1)
-    cam1 = pose(rotation(roll_deg=3, pitch_deg=-5))
-    cam2 = pose(rotation(roll_deg=3, pitch_deg=-4, yaw_deg=1), centre=(0.05, 0.0, 0.1))
-    pair = plane_pair(436, 1024, depth=6.0, near_block=True, cam1_from_world=cam1,
-                      cam2_from_world=cam2)
-    pair.depth1[..., :, 600:] = 2.0     # the scene of bench.py
-    pair.depth2[..., :, 600:] = 2.0
+    pair = bench_scene()
     parts = sample_particles(pair, load_preset("fog"), seed=0)
 
     def forward():

@@ -54,6 +54,18 @@ SINTEL_SIZE = (436, 1024)
 SINTEL_FOCAL = 1120.0
 
 
+def bench_scene() -> FramePair:
+    """The benchmarks' Sintel-size scene (1024 x 436): a tilted plane at 6 with a near block, its
+    right part (columns from 600) at depth 2, and a camera that turns and moves a little."""
+    cam1 = pose(rotation(roll_deg=3, pitch_deg=-5))
+    cam2 = pose(rotation(roll_deg=3, pitch_deg=-4, yaw_deg=1), centre=(0.05, 0.0, 0.1))
+    pair = plane_pair(436, 1024, depth=6.0, near_block=True, cam1_from_world=cam1,
+                      cam2_from_world=cam2)
+    pair.depth1[..., :, 600:] = 2.0
+    pair.depth2[..., :, 600:] = 2.0
+    return pair
+
+
 def _texture(a: torch.Tensor, b: torch.Tensor, seed: int) -> torch.Tensor:
     """A smooth texture in [0.15, 0.65] over surface coordinates a (W,) along the columns and
     b (H,) along the rows (scene units): a checker of quarter-unit squares under a few random
