@@ -373,9 +373,11 @@ class _Splat(torch.autograd.Function):
         for row, column in plan.chunks():
             b = _Blocks(plan, row, column, per)
             weight = b.patch.mul_(b.vis)
-            flat = b.pix.view(-1)
-            for c in range(channels):
-                acc[c].scatter_add_(0, flat, (weight * b.per[5 + c]).view(-1))
+            # all channels in one product and one scatter along the rows of acc: each sum
+            # still receives its additions one by one in the blocks' order
+            terms = weight * b.per[5:5 + channels, None, None]          # (1 + C, 2, 2, n)
+            acc.scatter_add_(1, b.pix.view(1, -1).expand(channels, -1),
+                             terms.view(channels, -1))
         return acc
 
     @staticmethod
