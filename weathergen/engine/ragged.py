@@ -66,8 +66,13 @@ def runs(sizes: torch.Tensor, limit: int, groups: Optional[torch.Tensor] = None,
     for a, b, lo, hi in pieces:
         if hi == lo:
             continue
-        item = torch.repeat_interleave(torch.arange(a, b, device=device), sizes[a:b],
-                                       output_size=hi - lo)
+        # (repeats alone: each item's index, one operation; the items a..b then shifted by a)
+        if a == 0 and b == count:
+            item = torch.repeat_interleave(sizes, output_size=hi - lo)
+        else:
+            item = torch.repeat_interleave(sizes[a:b], output_size=hi - lo)
+            if a:
+                item.add_(a)
         local = torch.arange(lo, hi, device=device) - begins[item]
         yield item, local
 
