@@ -326,7 +326,7 @@ class _Blocks:
         for j in range(2):
             torch.lerp(self.rows[j][self.hi], self.rows[j][self.lo], fv, out=self.patch[j])
         start = plan.row_pix.index_select(1, row) + two_columns       # (2 i, n)
-        self.pix = start[None] + torch.arange(2, device=at.device)[:, None, None]
+        self.pix = start + _constant_steps(at.device, 2)               # (2 j, 2 i, n)
         depth = plan.scene.index_select(0, self.pix.view(-1)).view(2, 2, n)
         # V = 1 / (1 + exp(β d − β D)): exp and a reciprocal, whose bits do not depend on an
         # element's place in the tensor (the CPU's sigmoid kernel rounds its tail differently).
@@ -339,11 +339,13 @@ class _Blocks:
 _STEPS: dict = {}
 
 
-def _constant_steps(device) -> torch.Tensor:
-    """The rows 0, 1, 2 of a block's neighbourhood, as a (3, 1) column (made once per device)."""
-    key = str(device)
+def _constant_steps(device, count: int = 3) -> torch.Tensor:
+    """The rows 0, 1, 2 of a block's neighbourhood, as a (3, 1) column; with ``count`` 2 the
+    patch columns 0, 1 as a (2, 1, 1) array (each made once per device)."""
+    key = (str(device), count)
     if key not in _STEPS:
-        _STEPS[key] = torch.arange(3, device=device)[:, None]
+        steps = torch.arange(count, device=device)
+        _STEPS[key] = steps[:, None] if count == 3 else steps[:, None, None]
     return _STEPS[key]
 
 
@@ -397,7 +399,7 @@ class _Splat(torch.autograd.Function):
             b = _Blocks(plan, row, column, per)
             fv, beta, gamma = b.per[1], b.per[3], b.per[6 + nc:6 + 2 * nc]
             flat = b.pix.view(-1)
-            g = [g_acc[c].index_select(0, flat).view(b.pix.shape) for c in range(1 + nc)]
+            g = g_acc.index_select(1, flat).view(1 + nc, *b.pix.shape).unbind(0)
             # dL/d(θ B V) per pixel: the opacity sum's and the colour sums' gradients
             g_w = torch.addcmul(g[0], g[1], gamma[0])
             for c in range(1, nc):
