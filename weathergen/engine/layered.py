@@ -180,15 +180,16 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
 
 
 def _coarse_use(stamps: StampSet, inst, bsz: int, nl: int) -> set:
-    """``(level, t, k)`` for every coarse grid level that frame ``t`` of layer ``k`` draws on
-    (in some pair of the batch). One host synchronisation."""
+    """``(level, t, k)`` for every grid level (the image grid's 0 included) that frame ``t`` of
+    layer ``k`` draws on (in some pair of the batch); empty where no stamp is coarse (every
+    layer reads the image grid alone). One host synchronisation."""
     if not stamps.count or not inst.count or int(stamps.coarse.max()) == 0:
         return set()
     with torch.no_grad():
         level = stamps.coarse.index_select(0, inst.entry)
         t, k = torch.div(inst.view, bsz * nl, rounding_mode="floor"), inst.view % nl
         key = torch.unique((level * 2 + t) * nl + k).tolist()
-    return {(q // (2 * nl), q // nl % 2, q % nl) for q in key if q // (2 * nl)}
+    return {(q // (2 * nl), q // nl % 2, q % nl) for q in key}
 
 
 class _SumsLayout:
@@ -196,7 +197,13 @@ class _SumsLayout:
     (views ``t B L + b L + k``), and how a coarse grid reaches the image grid (bilinear
     upsampling, coarsest first, then the image grid's own sums, as
     :func:`~weathergen.engine.composite.planes` adds them); a coarse level is upsampled only for
-    the frames and layers that draw on it (``used``: ``(level, t, k)``)."""
+    the frames and layers that draw on it (``used``: ``(level, t, k)``), and the image grid's
+    sums, exact zeros where a frame and layer draws on coarse grids alone (fog), are then not
+    added (adding +0 changes no bit: sums are never −0).
+
+    The gradient (:meth:`gradient`, then :meth:`write` once per frame and layer) is allocated
+    uninitialised: the image grid's A and C planes are written whole by :meth:`write`, and only
+    its margins, its Z plane and the (small) coarse grids are zero-filled."""
 
     def __init__(self, grids, used: set, bsz: int, nl: int):
         self.grids, self.used, self.bsz, self.nl = grids, used, bsz, nl
@@ -220,7 +227,26 @@ class _SumsLayout:
             up = up.view(coarse.shape[0], coarse.shape[1], grids.height, grids.width)
             total = up if total is None else total + up
         fine = grids.planes(values, len(grids.levels) - 1)[:, at]
-        return fine if total is None else total + fine
+        if total is None:
+            return fine
+        return total + fine if (0, t, k) in self.used else total
+
+    def gradient(self, shape, dtype, device) -> torch.Tensor:
+        """The sums' gradient before :meth:`write`: zeros but where every frame and layer's
+        :meth:`write` copies its image-grid A and C planes."""
+        out = torch.empty(shape, dtype=dtype, device=device)
+        grids = self.grids
+        for index, (_, offset, h, w, m) in enumerate(grids.levels):
+            size = grids.views * (h + 1) * (w + 2 * m)
+            if index < len(grids.levels) - 1:
+                out[:, offset:offset + size].zero_()
+                continue
+            full = out[:, offset:offset + size].view(out.shape[0], grids.views, h + 1, w + 2 * m)
+            full[..., h, :].zero_()
+            full[..., :h, :m].zero_()
+            full[..., :h, m + w:].zero_()
+            full[4:, :, :h, m:m + w].zero_()
+        return out
 
     def write(self, g_values: torch.Tensor, g_alpha: torch.Tensor, g_colour: torch.Tensor,
               t: int, k: int) -> None:
@@ -228,8 +254,8 @@ class _SumsLayout:
         ``g_values`` (the depth sum Z passes none)."""
         grids, at = self.grids, self._views(t, k)
         fine = grids.planes(g_values, len(grids.levels) - 1)[:, at]
-        fine[0].add_(g_alpha[:, 0])
-        fine[1:4].add_(g_colour.transpose(0, 1))
+        fine[0].copy_(g_alpha[:, 0])
+        fine[1:4].copy_(g_colour.transpose(0, 1))
         levels = list(self._levels(t, k))
         if not levels:
             return
@@ -244,6 +270,9 @@ class _SumsLayout:
 
 class _GridLayout:
     """Planes given whole, ``(5, T, B, L, 1, H, W)`` (:func:`composite_layers`)."""
+
+    def gradient(self, shape, dtype, device) -> torch.Tensor:
+        return torch.zeros(shape, dtype=dtype, device=device)
 
     def read(self, values: torch.Tensor, t: int, k: int) -> torch.Tensor:
         return values[:, t, :, k, 0]
@@ -327,7 +356,7 @@ class _LayeredBlend(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grads):
         frames = len(ctx.saved)
-        g_values = torch.zeros(ctx.shape, dtype=ctx.mode.dtype, device=ctx.mode.device)
+        g_values = ctx.layout.gradient(ctx.shape, ctx.mode.dtype, ctx.mode.device)
         g_images = []
         for t, (swaps, cover, under, passed, clear) in enumerate(ctx.saved):
             g_out, g_op = grads[t], grads[frames + t]
@@ -346,10 +375,10 @@ class _LayeredBlend(torch.autograd.Function):
             for k in range(nl):
                 g_alpha = g_cover[k] * ctx.mode[:, k, None]
                 if g_op is not None:      # d(1 − Π clear)/dA_k = Π_{j≠k} clear_j where 0 < A_k < 1
-                    others = torch.ones_like(clear[k])
+                    others = None
                     for j in range(nl):
                         if j != k:
-                            others = others * clear[j]
+                            others = clear[j] if others is None else others * clear[j]
                     inside = (clear[k] > 0) & (clear[k] < 1)
                     g_alpha = g_alpha + g_op * others * inside
                 ctx.layout.write(g_values, g_alpha, g_paint[k], t, k)
