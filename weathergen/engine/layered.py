@@ -259,12 +259,10 @@ class _SumsLayout:
         levels = list(self._levels(t, k))
         if not levels:
             return
-        grad = torch.cat((g_alpha, g_colour), 1).transpose(0, 1)            # (4, B, H, W)
+        grad = torch.cat((g_alpha.transpose(0, 1), g_colour.transpose(0, 1)))  # (4, B, H, W)
         for index, level, h, w in levels:
-            f = 2 ** level
-            full = grad.new_zeros(*grad.shape[:2], h * f, w * f)
-            full[..., :grids.height, :grids.width] = grad
-            back = upsample_adjoint(full.view(-1, 1, h * f, w * f), f)
+            back = upsample_adjoint(grad.view(-1, 1, grids.height, grids.width), 2 ** level,
+                                    (h, w))
             grids.planes(g_values, index)[:4, at].add_(back.view(*grad.shape[:2], h, w))
 
 
@@ -318,13 +316,14 @@ class _LayeredBlend(torch.autograd.Function):
     def forward(ctx, values, alpha_mode, layout, *images):
         nl = alpha_mode.shape[1]
         mode = alpha_mode.to(values.dtype)[:, :, None, None]                # (B, L, 1, 1)
+        every = alpha_mode.all(0).tolist()      # layers alpha-blended in every pair: A as is
         grad = any(ctx.needs_input_grad)
         outs, opacities, saved = [], [], []
         for t, image in enumerate(images):
             planes = [layout.read(values, t, k) for k in range(nl)]         # (5, B, H, W) each
             alpha = [p[0].unsqueeze(1) for p in planes]                     # (B, 1, H, W)
             depth = [p[4].unsqueeze(1) for p in planes]
-            cover = [alpha[k] * mode[:, k, None] for k in range(nl)]
+            cover = [alpha[k] if every[k] else alpha[k] * mode[:, k, None] for k in range(nl)]
             paint = [p[1:4].transpose(0, 1) for p in planes]                # (B, 3, H, W)
             swaps = []
             for top in range(nl - 1, 0, -1):     # bubble the nearest layer to the end
@@ -335,11 +334,11 @@ class _LayeredBlend(torch.autograd.Function):
                     for x in moved:
                         x[k], x[k + 1] = (torch.where(swap, x[k + 1], x[k]),
                                           torch.where(swap, x[k], x[k + 1]))
-            under = [image]
+            under, keep = [image], [1 - c for c in cover]
             for k in range(nl):
-                under.append(torch.addcmul(paint[k], under[-1], 1 - cover[k]))
+                under.append(torch.addcmul(paint[k], under[-1], keep[k]))
             pre = under.pop()
-            out = pre.clamp(0, 1)
+            out = pre.clamp(0, 1) if grad or not nl else pre.clamp_(0, 1)
             clear = [1 - p[0].unsqueeze(1).clamp(0, 1) for p in planes]
             total = clear[0]
             for c in clear[1:]:
@@ -347,7 +346,7 @@ class _LayeredBlend(torch.autograd.Function):
             outs.append(out)
             opacities.append((1 - total).clamp_(0, 1))
             if grad:
-                saved.append((swaps, cover, under, out == pre, clear))
+                saved.append((swaps, keep, under, out == pre, clear))
         ctx.saved, ctx.layout = saved, layout
         ctx.shape, ctx.mode = values.shape, mode
         return (*outs, *opacities)
@@ -358,22 +357,22 @@ class _LayeredBlend(torch.autograd.Function):
         frames = len(ctx.saved)
         g_values = ctx.layout.gradient(ctx.shape, ctx.mode.dtype, ctx.mode.device)
         g_images = []
-        for t, (swaps, cover, under, passed, clear) in enumerate(ctx.saved):
+        for t, (swaps, keep, under, passed, clear) in enumerate(ctx.saved):
             g_out, g_op = grads[t], grads[frames + t]
-            nl = len(cover)
+            nl = len(keep)
             g = (torch.zeros_like(under[0]) if g_out is None else g_out * passed)
             g_cover, g_paint = [None] * nl, [None] * nl
             for k in range(nl - 1, -1, -1):
                 g_paint[k] = g
-                g_cover[k] = -(g * under[k]).sum(1, keepdim=True)
-                g = g * (1 - cover[k])
+                g_cover[k] = (g * under[k]).sum(1, keepdim=True)      # negated below
+                g = g * keep[k]
             g_images.append(g)
             for k, swap in reversed(swaps):
                 for x in (g_cover, g_paint):
                     x[k], x[k + 1] = (torch.where(swap, x[k + 1], x[k]),
                                       torch.where(swap, x[k], x[k + 1]))
             for k in range(nl):
-                g_alpha = g_cover[k] * ctx.mode[:, k, None]
+                g_alpha = g_cover[k] * -ctx.mode[:, k, None]
                 if g_op is not None:      # d(1 − Π clear)/dA_k = Π_{j≠k} clear_j where 0 < A_k < 1
                     others = None
                     for j in range(nl):
