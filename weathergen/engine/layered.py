@@ -180,15 +180,16 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
 
 
 def _coarse_use(stamps: StampSet, inst, bsz: int, nl: int) -> set:
-    """``(level, t, k)`` for every coarse grid level that frame ``t`` of layer ``k`` draws on
-    (in some pair of the batch). One host synchronisation."""
+    """``(level, t, k)`` for every grid level (the image grid's 0 included) that frame ``t`` of
+    layer ``k`` draws on (in some pair of the batch); empty where no stamp is coarse (every
+    layer reads the image grid alone). One host synchronisation."""
     if not stamps.count or not inst.count or int(stamps.coarse.max()) == 0:
         return set()
     with torch.no_grad():
         level = stamps.coarse.index_select(0, inst.entry)
         t, k = torch.div(inst.view, bsz * nl, rounding_mode="floor"), inst.view % nl
         key = torch.unique((level * 2 + t) * nl + k).tolist()
-    return {(q // (2 * nl), q // nl % 2, q % nl) for q in key if q // (2 * nl)}
+    return {(q // (2 * nl), q // nl % 2, q % nl) for q in key}
 
 
 class _SumsLayout:
@@ -196,7 +197,13 @@ class _SumsLayout:
     (views ``t B L + b L + k``), and how a coarse grid reaches the image grid (bilinear
     upsampling, coarsest first, then the image grid's own sums, as
     :func:`~weathergen.engine.composite.planes` adds them); a coarse level is upsampled only for
-    the frames and layers that draw on it (``used``: ``(level, t, k)``)."""
+    the frames and layers that draw on it (``used``: ``(level, t, k)``), and the image grid's
+    sums, exact zeros where a frame and layer draws on coarse grids alone (fog), are then not
+    added (adding +0 changes no bit: sums are never −0).
+
+    The gradient (:meth:`gradient`, then :meth:`write` once per frame and layer) is allocated
+    uninitialised: the image grid's A and C planes are written whole by :meth:`write`, and only
+    its margins, its Z plane and the (small) coarse grids are zero-filled."""
 
     def __init__(self, grids, used: set, bsz: int, nl: int):
         self.grids, self.used, self.bsz, self.nl = grids, used, bsz, nl
@@ -220,7 +227,26 @@ class _SumsLayout:
             up = up.view(coarse.shape[0], coarse.shape[1], grids.height, grids.width)
             total = up if total is None else total + up
         fine = grids.planes(values, len(grids.levels) - 1)[:, at]
-        return fine if total is None else total + fine
+        if total is None:
+            return fine
+        return total + fine if (0, t, k) in self.used else total
+
+    def gradient(self, shape, dtype, device) -> torch.Tensor:
+        """The sums' gradient before :meth:`write`: zeros but where every frame and layer's
+        :meth:`write` copies its image-grid A and C planes."""
+        out = torch.empty(shape, dtype=dtype, device=device)
+        grids = self.grids
+        for index, (_, offset, h, w, m) in enumerate(grids.levels):
+            size = grids.views * (h + 1) * (w + 2 * m)
+            if index < len(grids.levels) - 1:
+                out[:, offset:offset + size].zero_()
+                continue
+            full = out[:, offset:offset + size].view(out.shape[0], grids.views, h + 1, w + 2 * m)
+            full[..., h, :].zero_()
+            full[..., :h, :m].zero_()
+            full[..., :h, m + w:].zero_()
+            full[4:, :, :h, m:m + w].zero_()
+        return out
 
     def write(self, g_values: torch.Tensor, g_alpha: torch.Tensor, g_colour: torch.Tensor,
               t: int, k: int) -> None:
@@ -228,22 +254,23 @@ class _SumsLayout:
         ``g_values`` (the depth sum Z passes none)."""
         grids, at = self.grids, self._views(t, k)
         fine = grids.planes(g_values, len(grids.levels) - 1)[:, at]
-        fine[0].add_(g_alpha[:, 0])
-        fine[1:4].add_(g_colour.transpose(0, 1))
+        fine[0].copy_(g_alpha[:, 0])
+        fine[1:4].copy_(g_colour.transpose(0, 1))
         levels = list(self._levels(t, k))
         if not levels:
             return
-        grad = torch.cat((g_alpha, g_colour), 1).transpose(0, 1)            # (4, B, H, W)
+        grad = torch.cat((g_alpha.transpose(0, 1), g_colour.transpose(0, 1)))  # (4, B, H, W)
         for index, level, h, w in levels:
-            f = 2 ** level
-            full = grad.new_zeros(*grad.shape[:2], h * f, w * f)
-            full[..., :grids.height, :grids.width] = grad
-            back = upsample_adjoint(full.view(-1, 1, h * f, w * f), f)
+            back = upsample_adjoint(grad.view(-1, 1, grids.height, grids.width), 2 ** level,
+                                    (h, w))
             grids.planes(g_values, index)[:4, at].add_(back.view(*grad.shape[:2], h, w))
 
 
 class _GridLayout:
     """Planes given whole, ``(5, T, B, L, 1, H, W)`` (:func:`composite_layers`)."""
+
+    def gradient(self, shape, dtype, device) -> torch.Tensor:
+        return torch.zeros(shape, dtype=dtype, device=device)
 
     def read(self, values: torch.Tensor, t: int, k: int) -> torch.Tensor:
         return values[:, t, :, k, 0]
@@ -289,13 +316,14 @@ class _LayeredBlend(torch.autograd.Function):
     def forward(ctx, values, alpha_mode, layout, *images):
         nl = alpha_mode.shape[1]
         mode = alpha_mode.to(values.dtype)[:, :, None, None]                # (B, L, 1, 1)
+        every = alpha_mode.all(0).tolist()      # layers alpha-blended in every pair: A as is
         grad = any(ctx.needs_input_grad)
         outs, opacities, saved = [], [], []
         for t, image in enumerate(images):
             planes = [layout.read(values, t, k) for k in range(nl)]         # (5, B, H, W) each
             alpha = [p[0].unsqueeze(1) for p in planes]                     # (B, 1, H, W)
             depth = [p[4].unsqueeze(1) for p in planes]
-            cover = [alpha[k] * mode[:, k, None] for k in range(nl)]
+            cover = [alpha[k] if every[k] else alpha[k] * mode[:, k, None] for k in range(nl)]
             paint = [p[1:4].transpose(0, 1) for p in planes]                # (B, 3, H, W)
             swaps = []
             for top in range(nl - 1, 0, -1):     # bubble the nearest layer to the end
@@ -306,11 +334,11 @@ class _LayeredBlend(torch.autograd.Function):
                     for x in moved:
                         x[k], x[k + 1] = (torch.where(swap, x[k + 1], x[k]),
                                           torch.where(swap, x[k], x[k + 1]))
-            under = [image]
+            under, keep = [image], [1 - c for c in cover]
             for k in range(nl):
-                under.append(torch.addcmul(paint[k], under[-1], 1 - cover[k]))
+                under.append(torch.addcmul(paint[k], under[-1], keep[k]))
             pre = under.pop()
-            out = pre.clamp(0, 1)
+            out = pre.clamp(0, 1) if grad or not nl else pre.clamp_(0, 1)
             clear = [1 - p[0].unsqueeze(1).clamp(0, 1) for p in planes]
             total = clear[0]
             for c in clear[1:]:
@@ -318,7 +346,7 @@ class _LayeredBlend(torch.autograd.Function):
             outs.append(out)
             opacities.append((1 - total).clamp_(0, 1))
             if grad:
-                saved.append((swaps, cover, under, out == pre, clear))
+                saved.append((swaps, keep, under, out == pre, clear))
         ctx.saved, ctx.layout = saved, layout
         ctx.shape, ctx.mode = values.shape, mode
         return (*outs, *opacities)
@@ -327,29 +355,29 @@ class _LayeredBlend(torch.autograd.Function):
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grads):
         frames = len(ctx.saved)
-        g_values = torch.zeros(ctx.shape, dtype=ctx.mode.dtype, device=ctx.mode.device)
+        g_values = ctx.layout.gradient(ctx.shape, ctx.mode.dtype, ctx.mode.device)
         g_images = []
-        for t, (swaps, cover, under, passed, clear) in enumerate(ctx.saved):
+        for t, (swaps, keep, under, passed, clear) in enumerate(ctx.saved):
             g_out, g_op = grads[t], grads[frames + t]
-            nl = len(cover)
+            nl = len(keep)
             g = (torch.zeros_like(under[0]) if g_out is None else g_out * passed)
             g_cover, g_paint = [None] * nl, [None] * nl
             for k in range(nl - 1, -1, -1):
                 g_paint[k] = g
-                g_cover[k] = -(g * under[k]).sum(1, keepdim=True)
-                g = g * (1 - cover[k])
+                g_cover[k] = (g * under[k]).sum(1, keepdim=True)      # negated below
+                g = g * keep[k]
             g_images.append(g)
             for k, swap in reversed(swaps):
                 for x in (g_cover, g_paint):
                     x[k], x[k + 1] = (torch.where(swap, x[k + 1], x[k]),
                                       torch.where(swap, x[k], x[k + 1]))
             for k in range(nl):
-                g_alpha = g_cover[k] * ctx.mode[:, k, None]
+                g_alpha = g_cover[k] * -ctx.mode[:, k, None]
                 if g_op is not None:      # d(1 − Π clear)/dA_k = Π_{j≠k} clear_j where 0 < A_k < 1
-                    others = torch.ones_like(clear[k])
+                    others = None
                     for j in range(nl):
                         if j != k:
-                            others = others * clear[j]
+                            others = clear[j] if others is None else others * clear[j]
                     inside = (clear[k] > 0) & (clear[k] < 1)
                     g_alpha = g_alpha + g_op * others * inside
                 ctx.layout.write(g_values, g_alpha, g_paint[k], t, k)
