@@ -28,15 +28,15 @@ from __future__ import annotations
 import argparse
 import contextlib
 import json
-import os
 import statistics
-import subprocess
 import sys
 import tempfile
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+import bench_fog  # noqa: E402  (the worker and tree-staging helpers)
 PRESETS = ("snow", "rain", "sparks", "fog")
 
 
@@ -78,13 +78,7 @@ def measure(repeats: int) -> dict:
 
 
 def run_worker(repeats: int, pythonpath: str | None = None) -> dict:
-    env = dict(os.environ, OMP_NUM_THREADS="1")
-    if pythonpath is not None:
-        env["PYTHONPATH"] = pythonpath
-    out = subprocess.run([sys.executable, __file__, "--worker", "--repeats", str(repeats)],
-                         env=env, check=True, capture_output=True, text=True,
-                         cwd=tempfile.gettempdir())
-    return json.loads(out.stdout.strip().splitlines()[-1])
+    return bench_fog.run_worker(repeats, pythonpath, script=__file__)
 
 
 def operation_counts() -> None:
@@ -229,11 +223,8 @@ def main():
         if not (args.before / "weathergen").is_dir():
             sys.exit(f"--before {args.before}: not a weathergen source tree "
                      f"(no weathergen/ folder)")
-        sys.path.insert(0, str(Path(__file__).resolve().parent))
-        from bench_fog import staged_copy
-
         with tempfile.TemporaryDirectory() as tmp:
-            old_path = str(staged_copy(args.before.resolve(), Path(tmp)))
+            old_path = str(bench_fog.staged_copy(args.before.resolve(), Path(tmp)))
             before, after = [], []
             for _ in range(args.rounds):
                 before.append(run_worker(args.repeats, old_path))

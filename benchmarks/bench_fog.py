@@ -62,11 +62,13 @@ def measure(repeats: int) -> dict:
     return result
 
 
-def run_worker(repeats: int, pythonpath: str | None = None) -> dict:
+def run_worker(repeats: int, pythonpath: str | None = None, script: str = __file__) -> dict:
+    """Run ``script --worker`` in a fresh process (one thread; ``pythonpath``: the weathergen to
+    import) and return the JSON it prints last."""
     env = dict(os.environ, OMP_NUM_THREADS="1")
     if pythonpath is not None:
         env["PYTHONPATH"] = pythonpath
-    out = subprocess.run([sys.executable, __file__, "--worker", "--repeats", str(repeats)],
+    out = subprocess.run([sys.executable, script, "--worker", "--repeats", str(repeats)],
                          env=env, check=True, capture_output=True, text=True,
                          cwd=tempfile.gettempdir())
     return json.loads(out.stdout.strip().splitlines()[-1])
