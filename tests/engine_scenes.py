@@ -138,3 +138,25 @@ def write_sintel_scene(root, scene: str, pair: FramePair) -> None:
         write_png(root / "clean" / scene / f"{name}.png", img.permute(1, 2, 0).double().numpy())
         write_dpt(root / "depth" / scene / f"{name}.dpt", depth[0].float().numpy())
         write_cam(root / "camdata_left" / scene / f"{name}.cam", k, cam.double().numpy()[:3])
+
+
+def write_motion_scenes(root, **small) -> None:
+    """A Sintel tree of three scenes for the frame-2 note: two whose camera drives one unit into
+    the sampling box (``ahead_a``, ``ahead_b``) and a still one (``still``)."""
+    write_sintel_scene(root, "ahead_a", wall_scene(forward=1.0, **small))
+    write_sintel_scene(root, "ahead_b", wall_scene(forward=1.0, plane_depth=8.0, **small))
+    write_sintel_scene(root, "still", wall_scene(**small))
+
+
+def assert_few_in_frame2_marked(out) -> None:
+    """The manifest of a run over :func:`write_motion_scenes` marks the two driving scenes'
+    pairs ``few_in_frame2`` and not the still one, consistently with their visible counts."""
+    import json
+    from pathlib import Path
+
+    pairs = json.loads((Path(out) / "manifest.json").read_text())["pairs"]
+    marked = {key.split(":")[2]: entry["few_in_frame2"] for key, entry in pairs.items()}
+    assert marked == {"ahead_a": True, "ahead_b": True, "still": False}, pairs
+    for entry in pairs.values():
+        v1, v2 = entry["visible"]
+        assert entry["few_in_frame2"] == (v2 < 0.5 * v1)
