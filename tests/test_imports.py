@@ -35,6 +35,16 @@ def _is_package(name: str) -> bool:
     return MODULES[name].name == "__init__.py"
 
 
+def _import_stem(node: ast.ImportFrom, base: str) -> str:
+    """The absolute module a ``from ... import`` statement reads from (``base``: the package the
+    importing module sits in)."""
+    if not node.level:
+        return node.module or ""
+    anchor = base.split(".")
+    anchor = anchor[:len(anchor) - (node.level - 1)]
+    return ".".join(anchor + ([node.module] if node.module else []))
+
+
 def _imports(name: str) -> list[tuple[str, int, bool]]:
     """(imported module, line, at module level) for every import of weathergen in ``name``."""
     tree = ast.parse(MODULES[name].read_text())
@@ -45,12 +55,7 @@ def _imports(name: str) -> list[tuple[str, int, bool]]:
         if isinstance(node, ast.Import):
             targets = [a.name for a in node.names]
         elif isinstance(node, ast.ImportFrom):
-            if node.level:
-                anchor = base.split(".")
-                anchor = anchor[:len(anchor) - (node.level - 1)]
-                stem = ".".join(anchor + ([node.module] if node.module else []))
-            else:
-                stem = node.module or ""
+            stem = _import_stem(node, base)
             targets = [stem]
             # "from .pkg import module" imports a module, not only a name
             targets += [f"{stem}.{a.name}" for a in node.names if f"{stem}.{a.name}" in MODULES]
@@ -149,12 +154,7 @@ def _private_uses(name: str) -> list[str]:
     found, modules = [], {}
     for node in ast.walk(tree):
         if isinstance(node, ast.ImportFrom):
-            if node.level:
-                anchor = base.split(".")
-                anchor = anchor[:len(anchor) - (node.level - 1)]
-                stem = ".".join(anchor + ([node.module] if node.module else []))
-            else:
-                stem = node.module or ""
+            stem = _import_stem(node, base)
             if not stem.startswith("weathergen"):
                 continue
             for alias in node.names:
