@@ -84,30 +84,15 @@ def run_worker(repeats: int, pythonpath: str | None = None) -> dict:
 def operation_counts() -> None:
     """Tensor operations of an attack step's render and of a training batch's weather."""
     import torch
-    from torch.utils._python_dispatch import TorchDispatchMode
 
     sys.path.insert(0, str(REPO / "tests"))
-    from engine_scenes import plane_pair, pose, rotation
+    from engine_scenes import count_operations, plane_pair, pose, rotation
 
     from weathergen.engine import (BETA_ATTACK, build_stamps, load_preset, load_templates,
                                    render_pair, sample_weather)
     from weathergen.framepair import FramePairBatch
 
-    class Counter(TorchDispatchMode):
-        def __init__(self):
-            super().__init__()
-            self.ops = 0
-
-        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-            self.ops += 1
-            return func(*args, **(kwargs or {}))
-
-    def count(fn) -> int:
-        fn()
-        counter = Counter()
-        with counter:
-            fn()
-        return counter.ops
+    count = count_operations
 
     def seconds(fn) -> float:
         times = []

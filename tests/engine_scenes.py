@@ -160,3 +160,24 @@ def assert_few_in_frame2_marked(out) -> None:
     for entry in pairs.values():
         v1, v2 = entry["visible"]
         assert entry["few_in_frame2"] == (v2 < 0.5 * v1)
+
+
+def count_operations(fn) -> int:
+    """The tensor operations ``fn()`` dispatches (every one: kernel launches, views, host-side
+    bookkeeping), counted on its second call (the first builds cached template atlases)."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    class Counter(TorchDispatchMode):
+        def __init__(self):
+            super().__init__()
+            self.ops = 0
+
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            self.ops += 1
+            return func(*args, **(kwargs or {}))
+
+    fn()
+    counter = Counter()
+    with counter:
+        fn()
+    return counter.ops

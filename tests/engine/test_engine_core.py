@@ -6,9 +6,8 @@ from __future__ import annotations
 
 import pytest
 import torch
-from torch.utils._python_dispatch import TorchDispatchMode
 
-from engine_scenes import plane_pair, pose, rotation
+from engine_scenes import count_operations, plane_pair, pose, rotation
 from weathergen.datasets import frame_rate_of
 from weathergen.engine import splat
 from weathergen.engine import (build_stamps, empty_particles, load_preset, load_templates,
@@ -143,22 +142,7 @@ def test_a_single_view_is_the_frame_of_a_pair():
         image, render(*arguments([pair], [paper])).image1[0])     # no blur: the same streak
 
 
-class Counter(TorchDispatchMode):
-    def __init__(self):
-        super().__init__()
-        self.ops = 0
-
-    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
-        self.ops += 1
-        return func(*args, **(kwargs or {}))
-
-
-def count(fn) -> int:
-    fn()                                    # the first call builds the template atlas (cached)
-    counter = Counter()
-    with counter:
-        fn()
-    return counter.ops
+count = count_operations
 
 
 def test_operation_count_does_not_grow_with_particles_or_pairs(monkeypatch):
