@@ -1,19 +1,23 @@
 """Combined weather in one pass: every layer of a :class:`~weathergen.engine.LayeredParticles`
-drawn by the one render core, then composited per pixel in depth order.
+drawn by the render core, then composited once, per pixel in depth order.
 
-The layers of a pair are laid out as more records of the same call: layer ``l`` of pair ``b``
-is pseudo-pair ``q = b L + l`` whose two views carry pair ``b``'s cameras and scene depth. So
-the tracks, stamps and splat stages run once over the particles of every layer (each layer's
-stamps from its own template library, each layer's looks and settings its own), and the splat
-leaves one set of planes per layer and view. Each blur sample carries its camera depth ``z`` as
-a fourth colour channel, so the planes hold a fifth sum ``Z = Σ θ B V z`` beside
-``A = Σ θ B V`` and ``C = Σ γ θ B V``.
+Each layer is drawn as a single render draws its record (:func:`_layer_sums`): the layer's
+records of every pair of the batch, the pairs' two views, its own tracks, stamps (from its own
+template library) and splat, with its own grid levels, so a layer's sums ``A = Σ θ B V`` and
+``C = Σ γ θ B V`` are the bytes of its records rendered alone (a fog layer drawn on a coarse grid
+alone gets no image-grid planes). Each blur sample carries its camera depth ``z`` as a fourth
+colour channel, so the planes hold a fifth sum ``Z = Σ θ B V z`` (a passive sum: no gradient
+flows back to it); where every layer blends additively the order changes nothing and no layer
+carries it.
 
 Composite (:func:`composite_layers`): at every pixel the layers are ordered by their
 opacity-weighted mean depth ``Z / A``, far to near, and blended one over the other, each with its
 own blend mode (additive ``I + C``, alpha ``I (1 − A) + C``), clamped to [0, 1] once at the end;
 the opacity is ``1 − Π (1 − clamp(A_l, 0, 1))``. Within a layer the particles keep the
-order-independent sums of a single preset.
+order-independent sums of a single preset. Two layers, one additive and one alpha-blended (snow,
+rain or sparks with fog), and two additive layers have closed forms with a few full-frame passes
+(:class:`_AdditiveOverAlpha`, :class:`_AdditivePair`); other combinations go through a sorting
+network (:class:`_LayeredBlend`).
 
 The approximation and its limits: a layer is ordered as one surface per pixel, at its mean
 depth there. Where the particles of two layers covering a pixel lie on the same side of each
@@ -28,6 +32,7 @@ with one layer gives the bytes of its record rendered alone.
 from __future__ import annotations
 
 import dataclasses
+import itertools
 from typing import Optional, Sequence, Union
 
 import torch
@@ -36,7 +41,7 @@ from ..errors import ConfigError
 from .composite import RenderOutput, upsample, upsample_adjoint
 from .layers import LayeredParticles
 from .particles import Particles
-from .splat import chunk_elements_for, splat
+from .splat import Grids, Sums, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build
 from .templates import TemplateLibrary, load_templates
 from .tracks import (Looks, ParticleTable, RecordRows, Tracks, Views, blur_samples, empty_looks,
@@ -75,8 +80,8 @@ def _libraries(records: Sequence[Particles]) -> dict[str, TemplateLibrary]:
 def _parts(records: Sequence[Particles], views: Views, libs: dict, *, beta: float, dtype,
            paper: bool) -> list[tuple[Looks, Tracks, TemplateLibrary]]:
     """Looks and tracks of the records of one model (``paper``: the paper's, else fields), one
-    part per template library, in the order the libraries are first named; record ``q`` is
-    pseudo-pair ``q``."""
+    part per template library, in the order the libraries are first named; record ``b`` is
+    drawn into pair ``b``."""
     out = []
     for name, lib in libs.items():
         chosen = [q for q, r in enumerate(records) if r.settings.templates == name and r.count
@@ -92,28 +97,86 @@ def _flat(layered: Sequence[LayeredParticles]) -> list[Particles]:
     return [r for p in layered for r in p.layers]
 
 
+def _stacks(layered: Sequence[LayeredParticles]) -> list[list[Particles]]:
+    """Per layer, its record in every pair."""
+    return [[p.layers[k] for p in layered] for k in range(len(layered[0].layers))]
+
+
+def _paper_count(records: Sequence[Particles]) -> int:
+    return sum(r.count for r in records if r.optics is None)
+
+
 def build_layer_stamps(particles: Union[LayeredParticles, Sequence[LayeredParticles]], *,
                        dtype: torch.dtype = torch.float32, device=None,
                        coarse_side: Optional[int] = COARSE_SIDE) -> StampSet:
     """The stamps of the layers' particles of the paper's model, in the order
-    :func:`render_layers` draws them (reusable across attack steps, as
-    :func:`~weathergen.engine.build_stamps` for a single record)."""
+    :func:`render_layers` draws them: layer after layer, each layer's in the order of its
+    records (reusable across attack steps, as :func:`~weathergen.engine.build_stamps` for a
+    single record)."""
     layered = as_layers(particles)
     records = _flat(layered)
     device = torch.device(device) if device is not None else records[0].device
-    libs = _libraries(records)
     with torch.no_grad():
         parts = []
-        for name, lib in libs.items():
-            chosen = [r.to(device) for r in records if r.settings.templates == name and r.count
-                      and r.optics is None]
-            if chosen:
-                looks = fixed_looks(ParticleTable.of(chosen, device),
-                                    RecordRows.of(chosen, device), lib.resolution)
-                parts.append(build(looks, lib, dtype=dtype, coarse_side=coarse_side))
+        for stack in _stacks(layered):
+            for name, lib in _libraries(stack).items():
+                chosen = [r.to(device) for r in stack if r.settings.templates == name and r.count
+                          and r.optics is None]
+                if chosen:
+                    looks = fixed_looks(ParticleTable.of(chosen, device),
+                                        RecordRows.of(chosen, device), lib.resolution)
+                    parts.append(build(looks, lib, dtype=dtype, coarse_side=coarse_side))
         if not parts:
-            return build(empty_looks(device), next(iter(libs.values())), dtype=dtype)
+            return build(empty_looks(device), next(iter(_libraries(records).values())),
+                         dtype=dtype)
         return StampSet.cat(parts)
+
+
+def _cut(stamps: StampSet, counts: Sequence[int]) -> list[StampSet]:
+    """``stamps`` cut into consecutive sets of ``counts`` entries (each stamp's pixels follow
+    the previous one's). One host synchronisation."""
+    ends = [0, *itertools.accumulate(counts)]
+    bounds = torch.cat((stamps.first, stamps.first.new_tensor([stamps.pixels.numel()])))
+    at = bounds.index_select(0, torch.tensor(ends, device=bounds.device)).tolist()
+    return [StampSet(pixels=stamps.pixels[at[k]:at[k + 1]], first=stamps.first[lo:hi] - at[k],
+                     side=stamps.side[lo:hi], coarse=stamps.coarse[lo:hi],
+                     phases=stamps.phases[lo:hi])
+            for k, (lo, hi) in enumerate(zip(ends[:-1], ends[1:]))]
+
+
+def _layer_sums(records: Sequence[Particles], views: Views, *, beta: float, dtype,
+                stamps: Optional[StampSet], coarse_side: Optional[int], chunk_elements: int,
+                detach_occlusion: bool, depth: bool) -> Sums:
+    """One layer's sums on the pairs' views, drawn as a single render draws its records (the
+    same tracks, stamps, grid levels and splat); ``depth``: with the depth sum ``Z`` as a fifth
+    (passive) plane. ``stamps``: the layer's paper-model stamps, or None to build them."""
+    device = views.project.device
+    libs = _libraries(records)
+    paper = _parts(records, views, libs, beta=beta, dtype=dtype, paper=True)
+    field = _parts(records, views, libs, beta=beta, dtype=dtype, paper=False)
+    if stamps is None:
+        stamp_parts = [build(looks, lib, dtype=dtype, coarse_side=coarse_side,
+                             chunk_elements=chunk_elements) for looks, _, lib in paper]
+    else:
+        stamp_parts = [stamps.to(dtype, device)] if stamps.count else []
+    stamp_parts += [build(looks, lib, dtype=dtype, coarse_side=coarse_side,
+                          chunk_elements=chunk_elements) for looks, _, lib in field]
+    parts = paper + field
+    if parts:
+        offsets = [0]
+        for looks, _, _ in parts[:-1]:
+            offsets.append(offsets[-1] + looks.count)
+        tracks = Tracks.cat([t for _, t, _ in parts], offsets)
+        stamp_set = StampSet.cat(stamp_parts)
+    else:
+        tracks = pair_tracks([], views, 1, beta=beta, dtype=dtype)[1]
+        stamp_set = build(empty_looks(device), next(iter(libs.values())), dtype=dtype)
+    inst = blur_samples(tracks, dtype)
+    if depth:
+        inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]),
+                                                         1))
+    return splat(inst, stamp_set, views.depth, chunk_elements=chunk_elements,
+                 detach_occlusion=detach_occlusion, passive=int(depth))
 
 
 def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
@@ -129,156 +192,133 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
     :func:`build_layer_stamps` of the same layers.
     """
     layered = as_layers(particles)
-    bsz, _, height, width = image1.shape
-    nl = len(layered[0].layers)
-    dtype, device = image1.dtype, image1.device
-    records = _flat(layered)                               # record q = b L + l
-    libs = _libraries(records)
-    for r in records:
+    bsz = image1.shape[0]
+    device = image1.device
+    for r in _flat(layered):
         if r.settings.blend not in ("additive", "alpha"):
             raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
-    rep = lambda t: t.to(device).repeat_interleave(nl, 0)  # noqa: E731  (pair b -> its L layers)
-    views = Views.of(torch.cat((rep(intrinsics), rep(intrinsics))),
-                     torch.cat((rep(cam1_from_ref), rep(cam2_from_ref))),
-                     torch.cat((rep(depth1), rep(depth2))), device=device)
-    paper = _parts(records, views, libs, beta=float(beta), dtype=dtype, paper=True)
-    field = _parts(records, views, libs, beta=float(beta), dtype=dtype, paper=False)
-    if chunk_elements is None:
-        chunk_elements = chunk_elements_for(device)
-    if stamps is None:
-        stamp_parts = [build(looks, lib, dtype=dtype, coarse_side=coarse_side,
-                             chunk_elements=chunk_elements) for looks, _, lib in paper]
-    else:
-        count = sum(looks.count for looks, _, _ in paper)
-        if stamps.count != count:
-            raise ConfigError(f"stamps hold {stamps.count} entries but the layers hold {count} "
-                              f"particles of the paper's model (build them from these layers)")
-        stamp_parts = [stamps.to(dtype, device)]
-    stamp_parts += [build(looks, lib, dtype=dtype, coarse_side=coarse_side,
-                          chunk_elements=chunk_elements) for looks, _, lib in field]
-    parts = paper + field
-    if parts:
-        offsets = [0]
-        for looks, _, _ in parts[:-1]:
-            offsets.append(offsets[-1] + looks.count)
-        tracks = Tracks.cat([t for _, t, _ in parts], offsets)
-        stamp_set = StampSet.cat(stamp_parts)
-    else:
-        tracks = pair_tracks([], views, 1, beta=float(beta), dtype=dtype)[1]
-        stamp_set = build(empty_looks(device), next(iter(libs.values())), dtype=dtype)
-    inst = blur_samples(tracks, dtype)
-    inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]), 1))
-    sums = splat(inst, stamp_set, views.depth, chunk_elements=chunk_elements,
-                 detach_occlusion=detach_occlusion, image_grid=True)   # (read by _SumsLayout)
+    stacks = _stacks(layered)
     alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in p.layers] for p in layered],
                               device=device)
-    layout = _SumsLayout(sums.grids, _coarse_use(stamp_set, inst, bsz, nl), bsz, nl)
-    out1, out2, opacity1, opacity2 = _LayeredBlend.apply(sums.values, alpha_mode, layout,
-                                                         image1, image2)
-    return RenderOutput(image1=out1, image2=out2, opacity1=opacity1, opacity2=opacity2,
-                        reached=sums.reached.view(2, bsz, nl).any(2).any(0))
+    modes = [{r.settings.blend for r in stack} for stack in stacks]
+    additive_pair = modes == [{"additive"}, {"additive"}]   # their order changes nothing
+    views = Views.of(torch.cat((intrinsics, intrinsics)).to(device),
+                     torch.cat((cam1_from_ref, cam2_from_ref)).to(device),
+                     torch.cat((depth1, depth2)), device=device)
+    if chunk_elements is None:
+        chunk_elements = chunk_elements_for(device)
+    counts = [_paper_count(stack) for stack in stacks]
+    if stamps is not None and stamps.count != sum(counts):
+        raise ConfigError(f"stamps hold {stamps.count} entries but the layers hold {sum(counts)} "
+                          f"particles of the paper's model (build them from these layers)")
+    cut = _cut(stamps, counts) if stamps is not None else [None] * len(stacks)
+    sums = [_layer_sums(stack, views, beta=float(beta), dtype=image1.dtype, stamps=part,
+                        coarse_side=coarse_side, chunk_elements=chunk_elements,
+                        detach_occlusion=detach_occlusion, depth=not additive_pair)
+            for stack, part in zip(stacks, cut)]
+    layout = _LayerPlanes([s.grids for s in sums], bsz)
+    values = [s.values for s in sums]
+    if additive_pair:
+        outs = _AdditivePair.apply(layout, *values, image1, image2)
+    elif len(stacks) == 2 and sorted(modes, key=sorted) == [{"additive"}, {"alpha"}]:
+        order = (0, 1) if modes[0] == {"additive"} else (1, 0)
+        outs = _AdditiveOverAlpha.apply(layout.select(order), *(values[k] for k in order),
+                                        image1, image2)
+    else:
+        outs = _LayeredBlend.apply(alpha_mode, layout, len(values), *values, image1, image2)
+    reached = torch.stack([s.reached.view(2, bsz).any(0) for s in sums]).any(0)
+    return RenderOutput(image1=outs[0], image2=outs[1], opacity1=outs[2], opacity2=outs[3],
+                        reached=reached)
 
 
-def _coarse_use(stamps: StampSet, inst, bsz: int, nl: int) -> set:
-    """``(level, t, k)`` for every grid level (the image grid's 0 included) that frame ``t`` of
-    layer ``k`` draws on (in some pair of the batch); empty where no stamp is coarse (every
-    layer reads the image grid alone). One host synchronisation."""
-    if not stamps.count or not inst.count or int(stamps.coarse.max()) == 0:
-        return set()
-    with torch.no_grad():
-        level = stamps.coarse.index_select(0, inst.entry)
-        t, k = torch.div(inst.view, bsz * nl, rounding_mode="floor"), inst.view % nl
-        key = torch.unique((level * 2 + t) * nl + k).tolist()
-    return {(q // (2 * nl), q // nl % 2, q % nl) for q in key}
+class _LayerPlanes:
+    """Every layer's sums on the image grid, frame by frame (layer ``k``'s values laid out as
+    ``grids[k]`` says, views ``t B + b``), and their gradients.
 
+    :meth:`read` brings a layer's coarse grids to the image grid (bilinear upsampling, coarsest
+    first, then the image grid's own sums, as :func:`~weathergen.engine.composite.planes` adds
+    them: a pixel covered by one layer sees that layer's sums of its record rendered alone).
+    The gradient (:meth:`gradients`, then per frame and layer :meth:`buffer`, filled by the
+    caller, and :meth:`finish`) is allocated uninitialised: the image grid's A and C planes are
+    written whole through :meth:`buffer`, and only their margins, the depth plane and the
+    (small) coarse grids are zero-filled; a layer drawn on coarse grids alone gets a
+    full-size buffer whose adjoint upsampling :meth:`finish` adds to its grids."""
 
-class _SumsLayout:
-    """Where the planes of frame ``t``, layer ``k`` of every pair lie in the splat's flat sums
-    (views ``t B L + b L + k``), and how a coarse grid reaches the image grid (bilinear
-    upsampling, coarsest first, then the image grid's own sums, as
-    :func:`~weathergen.engine.composite.planes` adds them); a coarse level is upsampled only for
-    the frames and layers that draw on it (``used``: ``(level, t, k)``), and the image grid's
-    sums, exact zeros where a frame and layer draws on coarse grids alone (fog), are then not
-    added (adding +0 changes no bit: sums are never −0).
+    def __init__(self, grids: Sequence[Grids], bsz: int):
+        self.grids, self.bsz = list(grids), bsz
 
-    The gradient (:meth:`gradient`, then :meth:`write` once per frame and layer) is allocated
-    uninitialised: the image grid's A and C planes are written whole by :meth:`write`, and only
-    its margins, its Z plane and the (small) coarse grids are zero-filled."""
+    def select(self, order: Sequence[int]) -> "_LayerPlanes":
+        return _LayerPlanes([self.grids[k] for k in order], self.bsz)
 
-    def __init__(self, grids, used: set, bsz: int, nl: int):
-        self.grids, self.used, self.bsz, self.nl = grids, used, bsz, nl
+    def _frame(self, t: int) -> slice:
+        return slice(t * self.bsz, (t + 1) * self.bsz)
 
-    def _views(self, t: int, k: int) -> slice:
-        n = self.bsz * self.nl
-        return slice(t * n + k, (t + 1) * n, self.nl)
-
-    def _levels(self, t: int, k: int):
-        for index, (level, _, h, w, _) in enumerate(self.grids.levels):
-            if level and (level, t, k) in self.used:
-                yield index, level, h, w
-
-    def read(self, values: torch.Tensor, t: int, k: int) -> torch.Tensor:
-        """Shape: -> (5, B, H, W) (a view of the sums where no coarse level is used)."""
-        grids, at = self.grids, self._views(t, k)
+    def read(self, values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
+        """Shape: -> (C, B, H, W) (a view of the sums where the layer has no coarse grid)."""
+        grids, at = self.grids[k], self._frame(t)
         total = None
-        for index, level, h, w in self._levels(t, k):
-            coarse = grids.planes(values, index)[:, at]                   # (5, B, h, w)
-            up = upsample(coarse.reshape(-1, 1, h, w), 2 ** level, (grids.height, grids.width))
-            up = up.view(coarse.shape[0], coarse.shape[1], grids.height, grids.width)
-            total = up if total is None else total + up
-        fine = grids.planes(values, len(grids.levels) - 1)[:, at]
-        if total is None:
-            return fine
-        return total + fine if (0, t, k) in self.used else total
+        for index, (level, _, h, w, _) in enumerate(grids.levels):
+            grid = grids.planes(values[k], index)[:, at]                   # (C, B, h, w)
+            if level:
+                up = upsample(grid.reshape(-1, 1, h, w), 2 ** level, (grids.height, grids.width))
+                grid = up.view(grid.shape[0], grid.shape[1], grids.height, grids.width)
+            total = grid if total is None else total + grid
+        return total
 
-    def gradient(self, shape, dtype, device) -> torch.Tensor:
-        """The sums' gradient before :meth:`write`: zeros but where every frame and layer's
-        :meth:`write` copies its image-grid A and C planes."""
-        out = torch.empty(shape, dtype=dtype, device=device)
-        grids = self.grids
-        for index, (_, offset, h, w, m) in enumerate(grids.levels):
-            size = grids.views * (h + 1) * (w + 2 * m)
-            if index < len(grids.levels) - 1:
-                out[:, offset:offset + size].zero_()
-                continue
-            full = out[:, offset:offset + size].view(out.shape[0], grids.views, h + 1, w + 2 * m)
-            full[..., h, :].zero_()
-            full[..., :h, :m].zero_()
-            full[..., :h, m + w:].zero_()
-            full[4:, :, :h, m:m + w].zero_()
+    def gradients(self, values: Sequence[torch.Tensor]) -> list:
+        out = []
+        for grids, v in zip(self.grids, values):
+            g = torch.empty_like(v)
+            for level, offset, h, w, m in grids.levels:
+                size = grids.views * (h + 1) * (w + 2 * m)
+                if level:
+                    g[:, offset:offset + size].zero_()
+                    continue
+                full = g[:, offset:offset + size].view(g.shape[0], grids.views, h + 1, w + 2 * m)
+                full[..., h, :].zero_()
+                full[..., :h, :m].zero_()
+                full[..., :h, m + w:].zero_()
+                full[4:, :, :h, m:m + w].zero_()
+            out.append(g)
         return out
 
-    def write(self, g_values: torch.Tensor, g_alpha: torch.Tensor, g_colour: torch.Tensor,
-              t: int, k: int) -> None:
-        """Add the gradients of :meth:`read`'s A (B, 1, H, W) and C (B, 3, H, W) planes into
-        ``g_values`` (the depth sum Z passes none)."""
-        grids, at = self.grids, self._views(t, k)
-        fine = grids.planes(g_values, len(grids.levels) - 1)[:, at]
-        fine[0].copy_(g_alpha[:, 0])
-        fine[1:4].copy_(g_colour.transpose(0, 1))
-        levels = list(self._levels(t, k))
-        if not levels:
+    def buffer(self, g_values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
+        """Where the gradient of frame ``t``'s A and C planes of layer ``k`` goes, (4, B, H, W):
+        the image grid's planes, or a new tensor for a layer without one."""
+        grids = self.grids[k]
+        level = grids.levels[-1][0]
+        if level == 0:
+            return grids.planes(g_values[k], len(grids.levels) - 1)[:4, self._frame(t)]
+        g = g_values[k]
+        return g.new_empty((4, self.bsz, grids.height, grids.width))
+
+    def finish(self, g_values: Sequence[torch.Tensor], buffer: torch.Tensor, t: int,
+               k: int) -> None:
+        """Add the adjoint upsampling of ``buffer`` (filled) to layer ``k``'s coarse grids."""
+        grids, at = self.grids[k], self._frame(t)
+        coarse = [(i, level, h, w) for i, (level, _, h, w, _) in enumerate(grids.levels) if level]
+        if not coarse:
             return
-        grad = torch.cat((g_alpha.transpose(0, 1), g_colour.transpose(0, 1)))  # (4, B, H, W)
-        for index, level, h, w in levels:
-            back = upsample_adjoint(grad.view(-1, 1, grids.height, grids.width), 2 ** level,
-                                    (h, w))
-            grids.planes(g_values, index)[:4, at].add_(back.view(*grad.shape[:2], h, w))
+        flat = buffer.reshape(-1, 1, grids.height, grids.width)
+        for index, level, h, w in coarse:
+            back = upsample_adjoint(flat, 2 ** level, (h, w))
+            grids.planes(g_values[k], index)[:4, at].add_(back.view(4, self.bsz, h, w))
 
 
 class _GridLayout:
     """Planes given whole, ``(5, T, B, L, 1, H, W)`` (:func:`composite_layers`)."""
 
-    def gradient(self, shape, dtype, device) -> torch.Tensor:
-        return torch.zeros(shape, dtype=dtype, device=device)
+    def read(self, values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
+        return values[0][:, t, :, k, 0]
 
-    def read(self, values: torch.Tensor, t: int, k: int) -> torch.Tensor:
-        return values[:, t, :, k, 0]
+    def gradients(self, values: Sequence[torch.Tensor]) -> list:
+        return [torch.zeros_like(values[0])]
 
-    def write(self, g_values: torch.Tensor, g_alpha: torch.Tensor, g_colour: torch.Tensor,
-              t: int, k: int) -> None:
-        g_values[0, t, :, k].add_(g_alpha)
-        g_values[1:4, t, :, k, 0].add_(g_colour.transpose(0, 1))
+    def buffer(self, g_values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
+        return g_values[0][:4, t, :, k, 0]
+
+    def finish(self, g_values, buffer, t: int, k: int) -> None:
+        pass
 
 
 def composite_layers(alpha: torch.Tensor, colour: torch.Tensor, depth: torch.Tensor,
@@ -292,8 +332,153 @@ def composite_layers(alpha: torch.Tensor, colour: torch.Tensor, depth: torch.Ten
     opacity (B, 1, H, W)). Differentiable in alpha, colour and image (not in the order).
     """
     grid = torch.cat((alpha, colour, depth), 2).permute(2, 0, 1, 3, 4)[:, None, :, :, None]
-    out, opacity = _LayeredBlend.apply(grid, alpha_mode, _GridLayout(), image)
+    out, opacity = _LayeredBlend.apply(alpha_mode, _GridLayout(), 1, grid, image)
     return out, opacity
+
+
+def _split(planes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """A layer's planes (C, B, H, W) -> A (B, 1, H, W), C (B, 3, H, W) (views)."""
+    return planes[0].unsqueeze(1), planes[1:4].transpose(0, 1)
+
+
+def _clamp_passed(pre: torch.Tensor, grad: bool) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+    """``clamp(pre, 0, 1)`` and, with gradients, where the clamp passes them."""
+    if not grad:
+        return pre.clamp_(0, 1), None
+    out = pre.clamp(0, 1)
+    return out, out == pre
+
+
+def _inside(clear: torch.Tensor) -> torch.Tensor:
+    """Where ``clear = 1 − clamp(A, 0, 1)`` passes a gradient to A."""
+    return (clear > 0) & (clear < 1)
+
+
+class _AdditiveOverAlpha(torch.autograd.Function):
+    """Two layers, the first additive and the second alpha-blended in every pair (snow, rain or
+    sparks with fog), composited per pixel far to near in closed form.
+
+    With ``k = 1 − A_a`` (the alpha layer's transmission) and ``s`` where the additive layer is
+    nearer (``Z_s A_a < Z_a A_s``: mean depths compared without a division; never where a
+    layer is absent), the far-to-near blend is ``C_a + I k + C_s w`` with ``w = 1`` where ``s``,
+    else ``k`` (the additive layer's light is dimmed by the alpha layer in front of it), which is
+    ``(I + C_s) k + C_a`` or ``(I k + C_a) + C_s``; the opacity ``1 − (1 − clamp(A_s)) clamp(k)``.
+    About ten full-frame passes per frame (the sorting network takes some thirty).
+
+    Shape: layout a :class:`_LayerPlanes` (additive layer first); values its two layers' sums;
+    images T tensors (B, 3, H, W) -> T images (B, 3, H, W), then T opacities (B, 1, H, W).
+    """
+
+    @staticmethod
+    def forward(ctx, layout, values_s, values_a, *images):
+        values = (values_s, values_a)
+        grad = any(ctx.needs_input_grad)
+        one = images[0].new_ones(())
+        outs, opacities, saved = [], [], []
+        for t, image in enumerate(images):
+            planes_s, planes_a = layout.read(values, t, 0), layout.read(values, t, 1)
+            alpha_s, colour_s = _split(planes_s)
+            alpha_a, colour_a = _split(planes_a)
+            keep = 1 - alpha_a
+            near = planes_s[4].unsqueeze(1) * alpha_a < planes_a[4].unsqueeze(1) * alpha_s
+            w = torch.where(near, one, keep)
+            pre = torch.addcmul(torch.addcmul(colour_a, image, keep), colour_s, w)
+            out, passed = _clamp_passed(pre, grad)
+            clear_s, clear_a = 1 - alpha_s.clamp(0, 1), keep.clamp(0, 1)
+            outs.append(out)
+            opacities.append(torch.addcmul(one, clear_s, clear_a, value=-1))
+            if grad:
+                saved.append((near, keep, w, passed, image, colour_s, clear_s, clear_a))
+        ctx.saved, ctx.layout, ctx.shapes = saved, layout, values
+        return (*outs, *opacities)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        layout, frames = ctx.layout, len(ctx.saved)
+        g_values = layout.gradients(ctx.shapes)
+        g_images = []
+        for t, (near, keep, w, passed, image, colour_s, clear_s, clear_a) in enumerate(ctx.saved):
+            g_out, g_op = grads[t], grads[frames + t]
+            buffer_s, buffer_a = layout.buffer(g_values, t, 0), layout.buffer(g_values, t, 1)
+            g_alpha_s, g_colour_s = _split(buffer_s)
+            g_alpha_a, g = _split(buffer_a)
+            if g_out is None:                       # dL/dC_a: what passes the clamp
+                g.zero_()
+            else:
+                torch.mul(g_out, passed, out=g)
+            torch.mul(g, w, out=g_colour_s)
+            # dL/dA_a = −Σ_c g_c (I_c + C_s,c where the additive layer lies behind)
+            behind = g[:, :1] * colour_s[:, :1]
+            for c in (1, 2):
+                behind.addcmul_(g[:, c:c + 1], colour_s[:, c:c + 1])
+            torch.addcmul(behind.masked_fill_(near, 0), g[:, :1], image[:, :1], out=g_alpha_a)
+            for c in (1, 2):
+                g_alpha_a.addcmul_(g[:, c:c + 1], image[:, c:c + 1])
+            g_alpha_a.neg_()
+            if g_op is None:
+                g_alpha_s.zero_()
+            else:       # d(1 − clear_s clear_a)/dA: the other layer's clear, inside the clamp
+                torch.mul(g_op * clear_a, _inside(clear_s), out=g_alpha_s)
+                g_alpha_a.addcmul_(g_op * clear_s, _inside(clear_a))
+            g_images.append(g * keep if ctx.needs_input_grad[3 + t] else None)
+            layout.finish(g_values, buffer_s, t, 0)
+            layout.finish(g_values, buffer_a, t, 1)
+        return (None, *g_values, *g_images)
+
+
+class _AdditivePair(torch.autograd.Function):
+    """Two additive layers: their order changes nothing (``I + C_1 + C_2``), so they carry no
+    depth sum; ``I + (C_1 + C_2)`` whichever layer is listed first. The opacity
+    ``1 − (1 − clamp(A_1)) (1 − clamp(A_2))``.
+
+    Shape: layout a :class:`_LayerPlanes`; values the two layers' sums; images T tensors
+    (B, 3, H, W) -> T images (B, 3, H, W), then T opacities (B, 1, H, W).
+    """
+
+    @staticmethod
+    def forward(ctx, layout, values_1, values_2, *images):
+        values = (values_1, values_2)
+        grad = any(ctx.needs_input_grad)
+        one = images[0].new_ones(())
+        outs, opacities, saved = [], [], []
+        for t, image in enumerate(images):
+            (alpha_1, colour_1), (alpha_2, colour_2) = (_split(layout.read(values, t, k))
+                                                        for k in (0, 1))
+            out, passed = _clamp_passed(image + (colour_1 + colour_2), grad)
+            clear_1, clear_2 = 1 - alpha_1.clamp(0, 1), 1 - alpha_2.clamp(0, 1)
+            outs.append(out)
+            opacities.append(torch.addcmul(one, clear_1, clear_2, value=-1))
+            if grad:
+                saved.append((passed, clear_1, clear_2))
+        ctx.saved, ctx.layout, ctx.shapes = saved, layout, values
+        return (*outs, *opacities)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        layout, frames = ctx.layout, len(ctx.saved)
+        g_values = layout.gradients(ctx.shapes)
+        g_images = []
+        for t, (passed, clear_1, clear_2) in enumerate(ctx.saved):
+            g_out, g_op = grads[t], grads[frames + t]
+            buffers = [layout.buffer(g_values, t, k) for k in (0, 1)]
+            (g_alpha_1, g_colour_1), (g_alpha_2, g_colour_2) = (_split(b) for b in buffers)
+            if g_out is None:
+                g_colour_1.zero_()
+            else:
+                torch.mul(g_out, passed, out=g_colour_1)
+            g_colour_2.copy_(g_colour_1)
+            if g_op is None:
+                g_alpha_1.zero_()
+                g_alpha_2.zero_()
+            else:
+                torch.mul(g_op * clear_2, _inside(clear_1), out=g_alpha_1)
+                torch.mul(g_op * clear_1, _inside(clear_2), out=g_alpha_2)
+            g_images.append(g_colour_1.clone() if ctx.needs_input_grad[3 + t] else None)
+            for k, b in enumerate(buffers):
+                layout.finish(g_values, b, t, k)
+        return (None, *g_values, *g_images)
 
 
 class _LayeredBlend(torch.autograd.Function):
@@ -306,16 +491,17 @@ class _LayeredBlend(torch.autograd.Function):
     ``k`` is nearer than layer ``j`` where ``Z_k A_j < Z_j A_k`` (mean depths compared without
     a division).
 
-    Shape: values as ``layout`` reads them (the splat's flat sums, or whole planes), each frame
+    Shape: values as ``layout`` reads them (each layer's sums, or whole planes), each frame
     and layer's planes (5, B, H, W) (A, C_r, C_g, C_b, Z); alpha_mode (B, L) bool; images T
     tensors (B, 3, H, W) -> T images (B, 3, H, W), then T opacities (B, 1, H, W). Gradients flow
-    to the A and C planes (one allocation of the values' shape) and the images.
+    to the A and C planes and the images.
     """
 
     @staticmethod
-    def forward(ctx, values, alpha_mode, layout, *images):
+    def forward(ctx, alpha_mode, layout, count, *tensors):
+        values, images = tensors[:count], tensors[count:]
         nl = alpha_mode.shape[1]
-        mode = alpha_mode.to(values.dtype)[:, :, None, None]                # (B, L, 1, 1)
+        mode = alpha_mode.to(values[0].dtype)[:, :, None, None]             # (B, L, 1, 1)
         every = alpha_mode.all(0).tolist()      # layers alpha-blended in every pair: A as is
         grad = any(ctx.needs_input_grad)
         outs, opacities, saved = [], [], []
@@ -348,14 +534,15 @@ class _LayeredBlend(torch.autograd.Function):
             if grad:
                 saved.append((swaps, keep, under, out == pre, clear))
         ctx.saved, ctx.layout = saved, layout
-        ctx.shape, ctx.mode = values.shape, mode
+        ctx.values, ctx.mode = values, mode
         return (*outs, *opacities)
 
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, *grads):
         frames = len(ctx.saved)
-        g_values = ctx.layout.gradient(ctx.shape, ctx.mode.dtype, ctx.mode.device)
+        layout = ctx.layout
+        g_values = layout.gradients(ctx.values)
         g_images = []
         for t, (swaps, keep, under, passed, clear) in enumerate(ctx.saved):
             g_out, g_op = grads[t], grads[frames + t]
@@ -378,7 +565,11 @@ class _LayeredBlend(torch.autograd.Function):
                     for j in range(nl):
                         if j != k:
                             others = clear[j] if others is None else others * clear[j]
-                    inside = (clear[k] > 0) & (clear[k] < 1)
+                    inside = _inside(clear[k])
                     g_alpha = g_alpha + g_op * others * inside
-                ctx.layout.write(g_values, g_alpha, g_paint[k], t, k)
-        return (g_values, None, None, *g_images)
+                buffer = layout.buffer(g_values, t, k)
+                g_a, g_c = _split(buffer)
+                g_a.copy_(g_alpha)
+                g_c.copy_(g_paint[k])
+                layout.finish(g_values, buffer, t, k)
+        return (None, None, None, *g_values, *g_images)

@@ -150,13 +150,15 @@ def scene_depths(depth: torch.Tensor, grids: Grids, dtype) -> torch.Tensor:
 
 def splat(inst: Instances, stamps: StampSet, depth: torch.Tensor, *,
           chunk_elements: Optional[int] = None, detach_occlusion: bool = False,
-          image_grid: bool = False) -> Sums:
+          image_grid: bool = False, passive: int = 0) -> Sums:
     """The per-pixel sums of every blur sample's stamp (see the module doc).
 
     Shape: depth (V, 1, H, W) the scene depth of the V views; returns :class:`Sums`.
     Differentiable in ``inst.u``, ``inst.v``, ``inst.theta``, ``inst.color`` and, unless
     ``detach_occlusion``, ``inst.z`` (through the visibility ``V``). ``image_grid``: the sums
     hold the image grid's level even when every stamp is coarse (see :func:`grids_for`).
+    ``passive``: how many of the last colour channels are sums no gradient comes back to (the
+    depth of a layered render, which only orders the layers): the backward pass skips them.
     """
     views, _, height, width = depth.shape
     dtype = inst.u.dtype
@@ -164,6 +166,7 @@ def splat(inst: Instances, stamps: StampSet, depth: torch.Tensor, *,
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(depth.device)
     plan = _Plan(inst, stamps, scene_depths(depth, grids, dtype), grids, chunk_elements)
+    plan.passive = passive
     z = inst.z.detach() if detach_occlusion else inst.z
     values = _Splat.apply(inst.u, inst.v, z, inst.theta, inst.color, plan)
     return Sums(values=values, grids=grids, reached=plan.reached)
@@ -191,7 +194,7 @@ class _Plan:
         self.blocks_per_chunk = max(1, chunk_elements // 4)
         self.cpu = device.type == "cpu"
         self.reached = torch.zeros(grids.views, dtype=torch.bool, device=device)
-        self.count = 0
+        self.count, self.passive = 0, 0
         if inst.count == 0 or stamps.count == 0:
             return
         top = COARSE_MAX_LEVEL + 1
@@ -391,9 +394,9 @@ class _Splat(torch.autograd.Function):
         grads = [torch.zeros_like(t) if n else None for t, n in zip((u, v, z, theta, color), need)]
         if plan.count == 0 or not any(need):
             return (*grads, None)
-        per = _per_sample(plan, u, v, z, theta, color)
-        g_acc = g_acc.contiguous()
-        nc = color.shape[1]
+        nc = color.shape[1] - plan.passive           # (the passive sums pass no gradient)
+        per = _per_sample(plan, u, v, z, theta, color[:, :nc])
+        g_acc = g_acc[:1 + nc].contiguous()
         sums = torch.zeros(4 + nc, plan.count, dtype=u.dtype, device=u.device)
         for row, column in plan.chunks():
             b = _Blocks(plan, row, column, per)
@@ -442,7 +445,7 @@ class _Splat(torch.autograd.Function):
         if need[3]:
             grads[3].index_add_(0, index, sums[3])
         if need[4]:
-            grads[4].index_add_(0, index, (th[:, None] * sums[4:].t()))
+            grads[4][:, :nc].index_add_(0, index, (th[:, None] * sums[4:].t()))
         return (*grads, None)
 
 
