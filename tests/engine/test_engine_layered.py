@@ -7,8 +7,9 @@ import pytest
 import torch
 
 from engine_scenes import plane_pair
-from weathergen.engine import (BETA_ATTACK, LayeredParticles, build_stamps, load_preset,
-                               render_pair, sample_particles, sample_weather)
+from weathergen.engine import (BETA_ATTACK, BETA_RENDER, LayeredParticles, build_stamps,
+                               load_preset, render, render_pair, sample_particles,
+                               sample_weather)
 from weathergen.engine.layered import composite_layers
 from weathergen.framepair import FramePairBatch
 from weathergen.errors import ConfigError
@@ -21,10 +22,12 @@ def pair():
     return plane_pair(48, 64, depth=6.0, dtype=torch.float64)
 
 
-def one_particle(pair, name: str, depth: float, colour, *, size: int = 31) -> object:
-    """A single opaque-ish particle of preset ``name`` (alpha blend) on the optical axis at
-    ``depth``, not moving, of the given colour, footprint ``size`` pixels whatever its depth."""
-    record = sample_particles(pair, load_preset(name, {"count": 1, "blend": "alpha",
+def one_particle(pair, name: str, depth: float, colour, *, size: int = 31,
+                 blend: str = "alpha") -> object:
+    """A single opaque-ish particle of preset ``name`` (alpha blend unless ``blend``) on the
+    optical axis at ``depth``, not moving, of the given colour, footprint ``size`` pixels
+    whatever its depth."""
+    record = sample_particles(pair, load_preset(name, {"count": 1, "blend": blend,
                                                        "motion_blur": False}), seed=1)
     z = torch.zeros_like(record.position)
     position = torch.tensor([[0.0, 0.0, depth]], dtype=record.position.dtype)
@@ -98,12 +101,17 @@ def test_gradcheck_of_the_layered_composite():
                                     (a, c, image))
 
 
-def test_gradcheck_of_a_layered_render(pair):
-    """Gradients reach every layer's colours, transparencies and offsets (float64 gradcheck on
-    a small scene: a snow flake and a fog billboard, overlapping)."""
+@pytest.mark.parametrize("blends", [("alpha", "alpha"), ("additive", "alpha"),
+                                    ("additive", "additive")],
+                         ids=["sorting-network", "additive-over-alpha", "additive-pair"])
+def test_gradcheck_of_a_layered_render(pair, blends):
+    """Gradients reach every layer's colours, transparencies and offsets, and the opacity's
+    (float64 gradcheck on a small scene: a snow flake and a fog billboard, overlapping), for
+    each form of the composite: two alpha layers (the sorting network), an additive flake over
+    alpha fog, two additive layers."""
     small = plane_pair(20, 24, depth=6.0, dtype=torch.float64)
-    flake = one_particle(small, "snow", 1.5, RED, size=7)
-    cloud = one_particle(small, "fog", 3.0, BLUE, size=11)
+    flake = one_particle(small, "snow", 1.5, RED, size=7, blend=blends[0])
+    cloud = one_particle(small, "fog", 3.0, BLUE, size=11, blend=blends[1])
     cloud = cloud.replace(position=cloud.position + torch.tensor([[0.1, 0.05, 0.0]],
                                                                  dtype=torch.float64))
     layered = LayeredParticles((flake, cloud), ("snow", "fog"))
@@ -116,7 +124,8 @@ def test_gradcheck_of_a_layered_render(pair):
         out = render_pair(small, LayeredParticles(layers, ("snow", "fog")), beta=BETA_ATTACK,
                           stamps=stamps, coarse_side=None)
         frames = torch.stack((out.image1[0], out.image2[0]))
-        return (weights * frames).sum((1, 2, 3, 4))
+        opacity = (out.opacity1[0] * weights[0, 0, :1] + out.opacity2[0] * weights[1, 1, :1])
+        return torch.cat(((weights * frames).sum((1, 2, 3, 4)), opacity.sum()[None]))
 
     inputs = (flake.color.clone().double().mul(0.8).requires_grad_(),
               (cloud.transparency.double() * 0.7).requires_grad_(),
@@ -180,3 +189,35 @@ def test_layers_drawn_on_coarse_grids_alone(pair):
     out = render_pair(pair, LayeredParticles((far, near), ("far", "near")))
     red, _, blue = centre(out).tolist()
     assert red > 0.5 and red > 4 * blue
+
+
+@pytest.mark.parametrize("names", [("snow", "fog"), ("fog", "snow"), ("snow", "sparks")],
+                         ids=["additive-over-alpha", "listed-the-other-way", "additive-pair"])
+def test_two_layer_forms_equal_the_layered_oracle(names):
+    """The closed forms of two layers (an additive layer and an alpha one in either listing
+    order, two additive layers) against the layered oracle within 1e-9 (float64, a batch of two
+    pairs, fog drawn on a coarse grid), and the same bytes whichever layer is listed first."""
+    from oracle import oracle_layered
+    from test_engine_oracle import arguments, paper, scene
+
+    pairs = [scene(0, size=(20, 28)), scene(1, size=(20, 28))]
+    options = {"snow": {"size": 15}, "sparks": {"size": 11, "blur_samples": 3},
+               "fog": {"count": 2}}
+
+    layered = [LayeredParticles(tuple(paper(p, n, 10 * i + len(n), **({"count": 6} | options[n]))
+                                      for n in names), names) for i, p in enumerate(pairs)]
+    modes = {r.settings.blend for r in layered[0].layers}
+    assert modes == ({"additive"} if "sparks" in names else {"additive", "alpha"})
+    if "fog" in names:                                      # its billboards drawn coarse
+        assert int(build_stamps(layered, None, coarse_side=16).coarse.max()) > 0
+    args = arguments(pairs, layered)
+    core = render(*args, beta=BETA_RENDER, coarse_side=16)
+    want = oracle_layered(*args, beta=BETA_RENDER, coarse_side=16)
+    for name, w in zip(("image1", "image2", "opacity1", "opacity2"), want):
+        got = getattr(core, name)
+        assert float((got - w).abs().max()) <= 1e-9, (name, float((got - w).abs().max()))
+    assert bool((core.image1 != args[0]).any())
+    swapped = [LayeredParticles(p.layers[::-1], p.names[::-1]) for p in layered]
+    other = render(*arguments(pairs, swapped), beta=BETA_RENDER, coarse_side=16)
+    for name in ("image1", "image2", "opacity1", "opacity2"):
+        assert torch.equal(getattr(core, name), getattr(other, name)), name
