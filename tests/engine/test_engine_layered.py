@@ -221,3 +221,38 @@ def test_two_layer_forms_equal_the_layered_oracle(names):
     other = render(*arguments(pairs, swapped), beta=BETA_RENDER, coarse_side=16)
     for name in ("image1", "image2", "opacity1", "opacity2"):
         assert torch.equal(getattr(core, name), getattr(other, name)), name
+
+
+def test_gradcheck_of_a_layer_on_both_grids(pair):
+    """A fog layer with a wide billboard (drawn on a coarse grid) and a small one (on the image
+    grid) under an additive flake: the layer's gradient reaches both grids (float64 gradcheck of
+    the fog's colours and transparencies and the flake's colour, the opacity included)."""
+    wide = one_particle(pair, "fog", 3.0, BLUE, size=141)
+    small = one_particle(pair, "fog", 2.5, RED, size=15)
+    small = small.replace(position=small.position + torch.tensor([[0.2, 0.1, 0.0]],
+                                                                 dtype=small.position.dtype))
+    cloud = wide.replace(**{name: torch.cat((getattr(wide, name), getattr(small, name)))
+                            for name in ("position", "motion", "offset1", "offset2", "color",
+                                         "transparency", "scale", "defocus", "rotation",
+                                         "template")})
+    flake = one_particle(pair, "snow", 1.5, RED, size=9, blend="additive")
+    layered = LayeredParticles((flake, cloud), ("snow", "fog"))
+    stamps = build_stamps(layered, None, dtype=torch.float64)
+    assert sorted(stamps.coarse.tolist()) == [0, 0, 3]      # the flake, the small, the wide
+    weights = torch.rand(3, 2, 3, 48, 64, generator=torch.Generator().manual_seed(2),
+                         dtype=torch.float64)
+
+    def run(snow_colour, fog_colour, theta):
+        layers = (flake.replace(color=snow_colour),
+                  cloud.replace(color=fog_colour, transparency=theta))
+        out = render_pair(pair, LayeredParticles(layers, ("snow", "fog")), beta=BETA_ATTACK,
+                          stamps=stamps)
+        frames = torch.stack((out.image1[0], out.image2[0]))
+        return torch.cat(((weights * frames).sum((1, 2, 3, 4)),
+                          (out.opacity2 * weights[0, 0, :1]).sum()[None]))
+
+    inputs = (torch.tensor([[0.7, 0.2, 0.1]], dtype=torch.float64, requires_grad=True),
+              torch.tensor([[0.1, 0.3, 0.6], [0.5, 0.4, 0.2]], dtype=torch.float64,
+                           requires_grad=True),
+              torch.tensor([0.4, 0.6], dtype=torch.float64, requires_grad=True))
+    assert torch.autograd.gradcheck(run, inputs, atol=1e-6)
