@@ -431,7 +431,7 @@ def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: t
 
     Per stamp side s (and so per P), the entries' samples are one dense batch of ``m x m``
     samples (``m = P (s + 2)`` per axis, centred on the particle), averaged over every ``P x P``
-    window: ``n = P (s + 1) + 1`` values per axis, exactly the entry's bordered grid, copied
+    window (:func:`_window_mean`): ``n = P (s + 1) + 1`` values per axis, exactly the entry's bordered grid, copied
     whole to its place."""
     if side.numel() == 0:
         return
@@ -464,9 +464,26 @@ def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: t
             value = F.grid_sample(book.image, grid.view(1, count * m, m, 2), mode="bilinear",
                                   padding_mode="zeros", align_corners=False).view(count, m, m)
             value.mul_(torch.addcmul(gx * gx, gy, gy) <= rho2)
-            value = F.avg_pool2d(value[:, None], factor, stride=1)      # (count, 1, n, n)
+            value = _window_mean(value, factor)                           # (count, n, n)
             at = first.index_select(0, members[lo:lo + per])[:, None] + steps
             work.index_copy_(0, at.view(-1), value.reshape(-1).to(torch.float64))
+
+
+def _window_mean(value: torch.Tensor, factor: int) -> torch.Tensor:
+    """The mean of every ``factor x factor`` window (stride 1) of each ``m x m`` array, summed
+    separably and pairwise (columns, then rows: windows of 2, then of 4 as two adjacent windows
+    of 2), divided by ``factor²`` (a power of two: exact). Each output is the same arithmetic
+    on its own 16 (or 4) inputs wherever it lies. Shape: (E, m, m) -> (E, m − P + 1, m − P + 1).
+    """
+    width = 1
+    while width < factor:
+        value = value[..., :-width] + value[..., width:]
+        width *= 2
+    width = 1
+    while width < factor:
+        value = value[:, :-width] + value[:, width:]
+        width *= 2
+    return value / (factor * factor)
 
 
 def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, inner,
