@@ -27,8 +27,11 @@ other in one flat tensor; ragged, so a call costs a bounded number of tensor ope
   are taken per stamp row (never across stamps, so a stamp does not depend on the others), in
   float64 (where a row is all zeros the difference is exactly zero: blurred stamps stay exactly
   zero outside their support);
-- softening: four box passes, each along the rows of every stamp at once (differences of
-  per-row prefix sums in float64, as the disc blur), writing its result transposed.
+- phase stamps: per stamp side, one dense batch of samples at every 1 / P pixel, averaged over
+  P x P windows (separable pairwise sums) and copied whole to the stamps' places;
+- softening: stamps grouped by similar sides (work proportional to their pixels, not to the
+  count times the largest), four box passes per group, each along one axis of every stamp at
+  once (differences of per-row or per-column prefix sums in float64, as the disc blur).
 
 Elementwise operations are those whose result does not depend on an element's position in its
 tensor (``exp``/``log`` rather than ``pow`` and ``sigmoid``, whose vectorised and scalar CPU
