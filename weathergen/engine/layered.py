@@ -384,7 +384,7 @@ class _AdditiveOverAlpha(torch.autograd.Function):
             w = torch.where(near, one, keep)
             pre = torch.addcmul(colour_a, image, keep).addcmul_(colour_s, w)
             out, passed = _clamp_passed(pre, grad)
-            clear_s, clear_a = alpha_s.clamp(0, 1).neg_().add_(1), keep.clamp(0, 1)
+            clear_s, clear_a = 1 - alpha_s.clamp(0, 1), keep.clamp(0, 1)
             outs.append(out)
             opacities.append(torch.addcmul(one, clear_s, clear_a, value=-1))
             if grad:
@@ -446,7 +446,7 @@ class _AdditivePair(torch.autograd.Function):
             (alpha_1, colour_1), (alpha_2, colour_2) = (_split(layout.read(values, t, k))
                                                         for k in (0, 1))
             out, passed = _clamp_passed((colour_1 + colour_2).add_(image), grad)
-            clear_1, clear_2 = (a.clamp(0, 1).neg_().add_(1) for a in (alpha_1, alpha_2))
+            clear_1, clear_2 = 1 - alpha_1.clamp(0, 1), 1 - alpha_2.clamp(0, 1)
             outs.append(out)
             opacities.append(torch.addcmul(one, clear_1, clear_2, value=-1))
             if grad:
