@@ -220,8 +220,8 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
     values = [s.values for s in sums]
     if additive_pair:
         outs = _AdditivePair.apply(layout, *values, image1, image2)
-    elif len(stacks) == 2 and sorted(modes, key=sorted) == [{"additive"}, {"alpha"}]:
-        order = (0, 1) if modes[0] == {"additive"} else (1, 0)
+    elif len(stacks) == 2 and {"additive"} in modes and {"alpha"} in modes:
+        order = (0, 1) if modes[0] == {"additive"} else (1, 0)      # the additive layer first
         outs = _AdditiveOverAlpha.apply(layout.select(order), *(values[k] for k in order),
                                         image1, image2)
     else:
