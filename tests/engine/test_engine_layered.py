@@ -256,3 +256,27 @@ def test_gradcheck_of_a_layer_on_both_grids(pair):
                            requires_grad=True),
               torch.tensor([0.4, 0.6], dtype=torch.float64, requires_grad=True))
     assert torch.autograd.gradcheck(run, inputs, atol=1e-6)
+
+
+def test_where_one_layer_covers_a_pixel_it_is_that_layer_rendered_alone():
+    """Each layer is drawn as its record alone: where one layer alone covers a pixel, the
+    combined frame there is that record's frame rendered alone, bit for bit (an additive snow
+    layer and an alpha one of small white particles, float32); where none does, the pair's own
+    image."""
+    pair = plane_pair(40, 56, depth=5.0, seed=3)
+    layered = sample_weather(pair, load_preset("snow+alpha-white", {"1.count": 40,
+                                                                    "2.count": 20}), seed=0)
+    assert [r.settings.blend for r in layered.layers] == ["additive", "alpha"]
+    out = render_pair(pair, layered)
+    alone = [render_pair(pair, record) for record in layered.layers]
+    for frame in ("1", "2"):
+        image = getattr(out, "image" + frame)[0]
+        covered = [getattr(a, "opacity" + frame)[0, 0] > 0 for a in alone]
+        kinds = {"snow": covered[0] & ~covered[1], "white": covered[1] & ~covered[0],
+                 "none": ~covered[0] & ~covered[1]}
+        wants = {"snow": getattr(alone[0], "image" + frame)[0],
+                 "white": getattr(alone[1], "image" + frame)[0],
+                 "none": getattr(pair, "image" + frame)}
+        for kind, where in kinds.items():
+            assert int(where.sum()) > 0, (frame, kind)
+            assert torch.equal(image[:, where], wants[kind][:, where]), (frame, kind)
