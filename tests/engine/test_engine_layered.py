@@ -280,3 +280,18 @@ def test_where_one_layer_covers_a_pixel_it_is_that_layer_rendered_alone():
         for kind, where in kinds.items():
             assert int(where.sum()) > 0, (frame, kind)
             assert torch.equal(image[:, where], wants[kind][:, where]), (frame, kind)
+
+
+def test_a_layer_absent_from_a_pixel_does_not_stop_the_others_sorting():
+    """Three alpha layers at one pixel, the middle one absent there: the near red layer still
+    lies over the far blue one (as with the absent layer left out)."""
+    a = torch.tensor([0.5, 0.0, 0.5], dtype=torch.float64).view(1, 3, 1, 1, 1)
+    c = torch.zeros(1, 3, 3, 1, 1, dtype=torch.float64)
+    c[0, 0, 0], c[0, 2, 2] = 0.5, 0.5                     # layer 0 red at depth 1, 2 blue at 3
+    z = a * torch.tensor([1.0, 0.0, 3.0], dtype=torch.float64).view(1, 3, 1, 1, 1)
+    image = torch.zeros(1, 3, 1, 1, dtype=torch.float64)
+    out, _ = composite_layers(a, c, z, image, torch.tensor([[True, True, True]]))
+    assert out.flatten().tolist() == [0.5, 0.0, 0.25]     # blue under red: (0 + 0.5 b) 0.5 + r
+    two, _ = composite_layers(a[:, [0, 2]], c[:, [0, 2]], z[:, [0, 2]], image,
+                              torch.tensor([[True, True]]))
+    assert torch.equal(out, two)

@@ -487,9 +487,10 @@ class _LayeredBlend(torch.autograd.Function):
     The order is a sorting network of compare-and-swap steps on whole frames (``L (L − 1) / 2``
     of them: one for two layers), each a few elementwise selections whose masks the backward
     pass replays (a layer that covers a pixel not at all blends nothing there, wherever it
-    sorts). An additive layer blends as one of zero opacity: ``I (1 − 0) + C``. Layer
-    ``k`` is nearer than layer ``j`` where ``Z_k A_j < Z_j A_k`` (mean depths compared without
-    a division).
+    sorts; with three layers or more it sorts as the nearest, mean depth 0, so that it never
+    stands between two others unordered). An additive layer blends as one of zero opacity:
+    ``I (1 − 0) + C``. Layer ``k`` is nearer than layer ``j`` where ``Z_k A_j < Z_j A_k`` (mean
+    depths compared without a division).
 
     Shape: values as ``layout`` reads them (each layer's sums, or whole planes), each frame
     and layer's planes (5, B, H, W) (A, C_r, C_g, C_b, Z); alpha_mode (B, L) bool; images T
@@ -504,6 +505,7 @@ class _LayeredBlend(torch.autograd.Function):
         mode = alpha_mode.to(values[0].dtype)[:, :, None, None]             # (B, L, 1, 1)
         every = alpha_mode.all(0).tolist()      # layers alpha-blended in every pair: A as is
         grad = any(ctx.needs_input_grad)
+        one, zero = values[0].new_ones(()), values[0].new_zeros(())
         outs, opacities, saved = [], [], []
         for t, image in enumerate(images):
             planes = [layout.read(values, t, k) for k in range(nl)]         # (5, B, H, W) each
@@ -511,6 +513,9 @@ class _LayeredBlend(torch.autograd.Function):
             depth = [p[4].unsqueeze(1) for p in planes]
             cover = [alpha[k] if every[k] else alpha[k] * mode[:, k, None] for k in range(nl)]
             paint = [p[1:4].transpose(0, 1) for p in planes]                # (B, 3, H, W)
+            if nl > 2:      # a layer absent from a pixel sorts as the nearest (mean depth 0)
+                alpha, depth = ([torch.where(a > 0, x, fill) for a, x in zip(alpha, xs)]
+                                for xs, fill in ((alpha, one), (depth, zero)))
             swaps = []
             for top in range(nl - 1, 0, -1):     # bubble the nearest layer to the end
                 for k in range(top):
