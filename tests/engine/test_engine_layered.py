@@ -160,7 +160,15 @@ def test_gradcheck_of_a_layered_render_with_a_coarse_grid(pair):
     layered = LayeredParticles((flake, cloud), ("snow", "fog"))
     stamps = build_stamps(layered, None, dtype=torch.float64)
     assert int(stamps.coarse.max()) > 0                     # the billboard is drawn coarse
-    weights = torch.rand(3, 2, 3, 48, 64, generator=torch.Generator().manual_seed(1),
+    assert_layered_gradcheck(pair, flake, cloud, stamps, seed=1, opacity="opacity1",
+                             fog_colours=[[0.1, 0.3, 0.6]], thetas=[0.4])
+
+
+def assert_layered_gradcheck(pair, flake, cloud, stamps, *, seed: int, opacity: str,
+                             fog_colours, thetas) -> None:
+    """float64 gradcheck of a snow-over-fog render in the snow colour, the fog colours and
+    transparencies: a few random projections of both frames and one opacity."""
+    weights = torch.rand(3, 2, 3, 48, 64, generator=torch.Generator().manual_seed(seed),
                          dtype=torch.float64)
 
     def run(snow_colour, fog_colour, theta):
@@ -170,11 +178,11 @@ def test_gradcheck_of_a_layered_render_with_a_coarse_grid(pair):
                           stamps=stamps)
         frames = torch.stack((out.image1[0], out.image2[0]))
         return torch.cat(((weights * frames).sum((1, 2, 3, 4)),
-                          (out.opacity1 * weights[0, 0, :1]).sum()[None]))
+                          (getattr(out, opacity) * weights[0, 0, :1]).sum()[None]))
 
     inputs = (torch.tensor([[0.7, 0.2, 0.1]], dtype=torch.float64, requires_grad=True),
-              torch.tensor([[0.1, 0.3, 0.6]], dtype=torch.float64, requires_grad=True),
-              torch.tensor([0.4], dtype=torch.float64, requires_grad=True))
+              torch.tensor(fog_colours, dtype=torch.float64, requires_grad=True),
+              torch.tensor(thetas, dtype=torch.float64, requires_grad=True))
     assert torch.autograd.gradcheck(run, inputs, atol=1e-6)
 
 
@@ -239,23 +247,8 @@ def test_gradcheck_of_a_layer_on_both_grids(pair):
     layered = LayeredParticles((flake, cloud), ("snow", "fog"))
     stamps = build_stamps(layered, None, dtype=torch.float64)
     assert sorted(stamps.coarse.tolist()) == [0, 0, 3]      # the flake, the small, the wide
-    weights = torch.rand(3, 2, 3, 48, 64, generator=torch.Generator().manual_seed(2),
-                         dtype=torch.float64)
-
-    def run(snow_colour, fog_colour, theta):
-        layers = (flake.replace(color=snow_colour),
-                  cloud.replace(color=fog_colour, transparency=theta))
-        out = render_pair(pair, LayeredParticles(layers, ("snow", "fog")), beta=BETA_ATTACK,
-                          stamps=stamps)
-        frames = torch.stack((out.image1[0], out.image2[0]))
-        return torch.cat(((weights * frames).sum((1, 2, 3, 4)),
-                          (out.opacity2 * weights[0, 0, :1]).sum()[None]))
-
-    inputs = (torch.tensor([[0.7, 0.2, 0.1]], dtype=torch.float64, requires_grad=True),
-              torch.tensor([[0.1, 0.3, 0.6], [0.5, 0.4, 0.2]], dtype=torch.float64,
-                           requires_grad=True),
-              torch.tensor([0.4, 0.6], dtype=torch.float64, requires_grad=True))
-    assert torch.autograd.gradcheck(run, inputs, atol=1e-6)
+    assert_layered_gradcheck(pair, flake, cloud, stamps, seed=2, opacity="opacity2",
+                             fog_colours=[[0.1, 0.3, 0.6], [0.5, 0.4, 0.2]], thetas=[0.4, 0.6])
 
 
 def test_where_one_layer_covers_a_pixel_it_is_that_layer_rendered_alone():
