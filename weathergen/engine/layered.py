@@ -16,8 +16,8 @@ own blend mode (additive ``I + C``, alpha ``I (1 − A) + C``), clamped to [0, 1
 the opacity is ``1 − Π (1 − clamp(A_l, 0, 1))``. Within a layer the particles keep the
 order-independent sums of a single preset. Two layers, one additive and one alpha-blended (snow,
 rain or sparks with fog), and two additive layers have closed forms with a few full-frame passes
-(:class:`_AdditiveOverAlpha`, :class:`_AdditivePair`); other combinations go through a sorting
-network (:class:`_LayeredBlend`).
+(:class:`_AdditiveOverAlpha`, :class:`_AdditivePair`, through :class:`_TwoLayers`); other
+combinations go through a sorting network (:class:`_LayeredBlend`).
 
 The approximation and its limits: a layer is ordered as one surface per pixel, at its mean
 depth there. Where the particles of two layers covering a pixel lie on the same side of each
@@ -219,11 +219,11 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
     layout = _LayerPlanes([s.grids for s in sums], bsz)
     values = [s.values for s in sums]
     if additive_pair:
-        outs = _AdditivePair.apply(layout, *values, image1, image2)
+        outs = _TwoLayers.apply(_AdditivePair, layout, *values, image1, image2)
     elif len(stacks) == 2 and {"additive"} in modes and {"alpha"} in modes:
         order = (0, 1) if modes[0] == {"additive"} else (1, 0)      # the additive layer first
-        outs = _AdditiveOverAlpha.apply(layout.select(order), *(values[k] for k in order),
-                                        image1, image2)
+        outs = _TwoLayers.apply(_AdditiveOverAlpha, layout.select(order),
+                                *(values[k] for k in order), image1, image2)
     else:
         outs = _LayeredBlend.apply(alpha_mode, layout, len(values), *values, image1, image2)
     reached = torch.stack([s.reached.view(2, bsz).any(0) for s in sums]).any(0)
@@ -354,9 +354,52 @@ def _inside(clear: torch.Tensor) -> torch.Tensor:
     return (clear > 0) & (clear < 1)
 
 
-class _AdditiveOverAlpha(torch.autograd.Function):
+class _TwoLayers(torch.autograd.Function):
+    """Two layers composited per pixel in closed form (:class:`_AdditiveOverAlpha`,
+    :class:`_AdditivePair`): the frames' loops and the gradient buffers here, the arithmetic of
+    one frame in the form.
+
+    Shape: form the closed form; layout a :class:`_LayerPlanes` (the layers in the form's
+    order); values the two layers' sums; images T tensors (B, 3, H, W) -> T images
+    (B, 3, H, W), then T opacities (B, 1, H, W).
+    """
+
+    @staticmethod
+    def forward(ctx, form, layout, values_0, values_1, *images):
+        values = (values_0, values_1)
+        grad = any(ctx.needs_input_grad)
+        one = images[0].new_ones(())
+        outs, opacities, saved = [], [], []
+        for t, image in enumerate(images):
+            out, opacity, kept = form.frame(layout.read(values, t, 0), layout.read(values, t, 1),
+                                            image, one, grad)
+            outs.append(out)
+            opacities.append(opacity)
+            if grad:
+                saved.append(kept)
+        ctx.form, ctx.saved, ctx.layout, ctx.shapes = form, saved, layout, values
+        return (*outs, *opacities)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, *grads):
+        layout, frames = ctx.layout, len(ctx.saved)
+        g_values = layout.gradients(ctx.shapes)
+        g_images = []
+        for t, kept in enumerate(ctx.saved):
+            buffers = [layout.buffer(g_values, t, k) for k in (0, 1)]
+            g_images.append(ctx.form.frame_backward(kept, grads[t], grads[frames + t],
+                                                    *(_split(b) for b in buffers),
+                                                    ctx.needs_input_grad[4 + t]))
+            for k, b in enumerate(buffers):
+                layout.finish(g_values, b, t, k)
+        return (None, None, *g_values, *g_images)
+
+
+class _AdditiveOverAlpha:
     """Two layers, the first additive and the second alpha-blended in every pair (snow, rain or
-    sparks with fog), composited per pixel far to near in closed form.
+    sparks with fog), composited per pixel far to near in closed form (through
+    :class:`_TwoLayers`).
 
     With ``k = 1 − A_a`` (the alpha layer's transmission) and ``s`` where the additive layer is
     nearer (``Z_s A_a < Z_a A_s``: mean depths compared without a division; never where a
@@ -364,121 +407,75 @@ class _AdditiveOverAlpha(torch.autograd.Function):
     else ``k`` (the additive layer's light is dimmed by the alpha layer in front of it), which is
     ``(I + C_s) k + C_a`` or ``(I k + C_a) + C_s``; the opacity ``1 − (1 − clamp(A_s)) clamp(k)``.
     About ten full-frame passes per frame (the sorting network takes some thirty).
-
-    Shape: layout a :class:`_LayerPlanes` (additive layer first); values its two layers' sums;
-    images T tensors (B, 3, H, W) -> T images (B, 3, H, W), then T opacities (B, 1, H, W).
     """
 
     @staticmethod
-    def forward(ctx, layout, values_s, values_a, *images):
-        values = (values_s, values_a)
-        grad = any(ctx.needs_input_grad)
-        one = images[0].new_ones(())
-        outs, opacities, saved = [], [], []
-        for t, image in enumerate(images):
-            planes_s, planes_a = layout.read(values, t, 0), layout.read(values, t, 1)
-            alpha_s, colour_s = _split(planes_s)
-            alpha_a, colour_a = _split(planes_a)
-            keep = 1 - alpha_a
-            near = planes_s[4].unsqueeze(1) * alpha_a < planes_a[4].unsqueeze(1) * alpha_s
-            w = torch.where(near, one, keep)
-            pre = torch.addcmul(colour_a, image, keep).addcmul_(colour_s, w)
-            out, passed = _clamp_passed(pre, grad)
-            clear_s, clear_a = 1 - alpha_s.clamp(0, 1), keep.clamp(0, 1)
-            outs.append(out)
-            opacities.append(torch.addcmul(one, clear_s, clear_a, value=-1))
-            if grad:
-                saved.append((near, keep, w, passed, image, colour_s, clear_s, clear_a))
-        ctx.saved, ctx.layout, ctx.shapes = saved, layout, values
-        return (*outs, *opacities)
+    def frame(planes_s, planes_a, image, one, grad: bool):
+        alpha_s, colour_s = _split(planes_s)
+        alpha_a, colour_a = _split(planes_a)
+        keep = 1 - alpha_a
+        near = planes_s[4].unsqueeze(1) * alpha_a < planes_a[4].unsqueeze(1) * alpha_s
+        w = torch.where(near, one, keep)
+        pre = torch.addcmul(colour_a, image, keep).addcmul_(colour_s, w)
+        out, passed = _clamp_passed(pre, grad)
+        clear_s, clear_a = 1 - alpha_s.clamp(0, 1), keep.clamp(0, 1)
+        opacity = torch.addcmul(one, clear_s, clear_a, value=-1)
+        return out, opacity, (near, keep, w, passed, image, colour_s, clear_s, clear_a)
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, *grads):
-        layout, frames = ctx.layout, len(ctx.saved)
-        g_values = layout.gradients(ctx.shapes)
-        g_images = []
-        for t, (near, keep, w, passed, image, colour_s, clear_s, clear_a) in enumerate(ctx.saved):
-            g_out, g_op = grads[t], grads[frames + t]
-            buffer_s, buffer_a = layout.buffer(g_values, t, 0), layout.buffer(g_values, t, 1)
-            g_alpha_s, g_colour_s = _split(buffer_s)
-            g_alpha_a, g = _split(buffer_a)
-            if g_out is None:                       # dL/dC_a: what passes the clamp
-                g.zero_()
-            else:
-                torch.mul(g_out, passed, out=g)
-            torch.mul(g, w, out=g_colour_s)
-            # dL/dA_a = −Σ_c g_c (I_c + C_s,c where the additive layer lies behind)
-            behind = g[:, :1] * colour_s[:, :1]
-            for c in (1, 2):
-                behind.addcmul_(g[:, c:c + 1], colour_s[:, c:c + 1])
-            torch.addcmul(behind.masked_fill_(near, 0), g[:, :1], image[:, :1], out=g_alpha_a)
-            for c in (1, 2):
-                g_alpha_a.addcmul_(g[:, c:c + 1], image[:, c:c + 1])
-            g_alpha_a.neg_()
-            if g_op is None:
-                g_alpha_s.zero_()
-            else:       # d(1 − clear_s clear_a)/dA: the other layer's clear, inside the clamp
-                torch.mul(g_op * clear_a, _inside(clear_s), out=g_alpha_s)
-                g_alpha_a.addcmul_(g_op * clear_s, _inside(clear_a))
-            g_images.append(g * keep if ctx.needs_input_grad[3 + t] else None)
-            layout.finish(g_values, buffer_s, t, 0)
-            layout.finish(g_values, buffer_a, t, 1)
-        return (None, *g_values, *g_images)
+    def frame_backward(kept, g_out, g_op, grads_s, grads_a, need_image: bool):
+        near, keep, w, passed, image, colour_s, clear_s, clear_a = kept
+        (g_alpha_s, g_colour_s), (g_alpha_a, g) = grads_s, grads_a
+        if g_out is None:                       # dL/dC_a: what passes the clamp
+            g.zero_()
+        else:
+            torch.mul(g_out, passed, out=g)
+        torch.mul(g, w, out=g_colour_s)
+        # dL/dA_a = −Σ_c g_c (I_c + C_s,c where the additive layer lies behind)
+        behind = g[:, :1] * colour_s[:, :1]
+        for c in (1, 2):
+            behind.addcmul_(g[:, c:c + 1], colour_s[:, c:c + 1])
+        torch.addcmul(behind.masked_fill_(near, 0), g[:, :1], image[:, :1], out=g_alpha_a)
+        for c in (1, 2):
+            g_alpha_a.addcmul_(g[:, c:c + 1], image[:, c:c + 1])
+        g_alpha_a.neg_()
+        if g_op is None:
+            g_alpha_s.zero_()
+        else:       # d(1 − clear_s clear_a)/dA: the other layer's clear, inside the clamp
+            torch.mul(g_op * clear_a, _inside(clear_s), out=g_alpha_s)
+            g_alpha_a.addcmul_(g_op * clear_s, _inside(clear_a))
+        return g * keep if need_image else None
 
 
-class _AdditivePair(torch.autograd.Function):
-    """Two additive layers: their order changes nothing (``I + C_1 + C_2``), so they carry no
-    depth sum; ``I + (C_1 + C_2)`` whichever layer is listed first. The opacity
-    ``1 − (1 − clamp(A_1)) (1 − clamp(A_2))``.
-
-    Shape: layout a :class:`_LayerPlanes`; values the two layers' sums; images T tensors
-    (B, 3, H, W) -> T images (B, 3, H, W), then T opacities (B, 1, H, W).
+class _AdditivePair:
+    """Two additive layers (through :class:`_TwoLayers`): their order changes nothing
+    (``I + C_1 + C_2``), so they carry no depth sum; ``I + (C_1 + C_2)`` whichever layer is
+    listed first. The opacity ``1 − (1 − clamp(A_1)) (1 − clamp(A_2))``.
     """
 
     @staticmethod
-    def forward(ctx, layout, values_1, values_2, *images):
-        values = (values_1, values_2)
-        grad = any(ctx.needs_input_grad)
-        one = images[0].new_ones(())
-        outs, opacities, saved = [], [], []
-        for t, image in enumerate(images):
-            (alpha_1, colour_1), (alpha_2, colour_2) = (_split(layout.read(values, t, k))
-                                                        for k in (0, 1))
-            out, passed = _clamp_passed((colour_1 + colour_2).add_(image), grad)
-            clear_1, clear_2 = 1 - alpha_1.clamp(0, 1), 1 - alpha_2.clamp(0, 1)
-            outs.append(out)
-            opacities.append(torch.addcmul(one, clear_1, clear_2, value=-1))
-            if grad:
-                saved.append((passed, clear_1, clear_2))
-        ctx.saved, ctx.layout, ctx.shapes = saved, layout, values
-        return (*outs, *opacities)
+    def frame(planes_1, planes_2, image, one, grad: bool):
+        (alpha_1, colour_1), (alpha_2, colour_2) = _split(planes_1), _split(planes_2)
+        out, passed = _clamp_passed((colour_1 + colour_2).add_(image), grad)
+        clear_1, clear_2 = 1 - alpha_1.clamp(0, 1), 1 - alpha_2.clamp(0, 1)
+        return out, torch.addcmul(one, clear_1, clear_2, value=-1), (passed, clear_1, clear_2)
 
     @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, *grads):
-        layout, frames = ctx.layout, len(ctx.saved)
-        g_values = layout.gradients(ctx.shapes)
-        g_images = []
-        for t, (passed, clear_1, clear_2) in enumerate(ctx.saved):
-            g_out, g_op = grads[t], grads[frames + t]
-            buffers = [layout.buffer(g_values, t, k) for k in (0, 1)]
-            (g_alpha_1, g_colour_1), (g_alpha_2, g_colour_2) = (_split(b) for b in buffers)
-            if g_out is None:
-                g_colour_1.zero_()
-            else:
-                torch.mul(g_out, passed, out=g_colour_1)
-            g_colour_2.copy_(g_colour_1)
-            if g_op is None:
-                g_alpha_1.zero_()
-                g_alpha_2.zero_()
-            else:
-                torch.mul(g_op * clear_2, _inside(clear_1), out=g_alpha_1)
-                torch.mul(g_op * clear_1, _inside(clear_2), out=g_alpha_2)
-            g_images.append(g_colour_1.clone() if ctx.needs_input_grad[3 + t] else None)
-            for k, b in enumerate(buffers):
-                layout.finish(g_values, b, t, k)
-        return (None, *g_values, *g_images)
+    def frame_backward(kept, g_out, g_op, grads_1, grads_2, need_image: bool):
+        passed, clear_1, clear_2 = kept
+        (g_alpha_1, g_colour_1), (g_alpha_2, g_colour_2) = grads_1, grads_2
+        if g_out is None:
+            g_colour_1.zero_()
+        else:
+            torch.mul(g_out, passed, out=g_colour_1)
+        g_colour_2.copy_(g_colour_1)
+        if g_op is None:
+            g_alpha_1.zero_()
+            g_alpha_2.zero_()
+        else:
+            torch.mul(g_op * clear_2, _inside(clear_1), out=g_alpha_1)
+            torch.mul(g_op * clear_1, _inside(clear_2), out=g_alpha_2)
+        return g_colour_1.clone() if need_image else None
 
 
 class _LayeredBlend(torch.autograd.Function):
