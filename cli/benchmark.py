@@ -41,8 +41,9 @@ def _checkpoints(items) -> dict:
               help="Checkpoint file or name of one network (repeatable). Default: its own.")
 @click.option("--presets", default=",".join(DEFAULT_PRESETS), show_default=True,
               metavar="A,B,...",
-              help="Weather presets (random and adversarial) or attack configurations of the "
-                   "supplement (grey-offset1 ... grey-all: the paper's Table 2); '' for none.")
+              help="Weather presets (random and adversarial; combinations such as "
+                   "snow-light+fog-light too) or attack configurations of the supplement "
+                   "(grey-offset1 ... grey-all: the paper's Table 2); '' for none.")
 @click.option("--lp", "lp_text", default=",".join(DEFAULT_LP), show_default=True,
               metavar="A,B,...", help="Lp attacks (pcfa, ifgsm); '' for none.")
 @click.option("--steps", type=int, default=None, callback=attack_steps,

@@ -85,7 +85,8 @@ def _parse_workers(ctx, param, value):
 @click.option("--geometry/--no-geometry", default=True, show_default=True,
               help="Also write depth, cameras and flow per pair, so the output reads as a Sintel tree.")
 @click.option("--sequence", is_flag=True,
-              help="Render whole scenes with one weather field (field presets): each frame once, "
+              help="Render whole scenes with one weather field (field presets, or combinations "
+                   "of them such as snow-light+fog-light): each frame once, "
                    "written into its scene as in the input, so consecutive frames make pairs. "
                    "Default: each pair its own two-frame scene.")
 @click.option("--stereo", is_flag=True,

@@ -250,11 +250,6 @@ def test_bad_options_fail_before_writing(tmp_path):
     assert result.exit_code == 2 and "fgsm" in result.output
     # the benchmark's own options are named, not the attack's (--method, --preset)
     assert result.output.strip() == "Error: --lp 'fgsm': expected pcfa, ifgsm"
-    result = invoke(["benchmark", "--presets", "snow,rain-heavy+fog-light", "--lp", "",
-                     "--out", out])
-    assert result.exit_code == 2
-    assert result.output.strip() == ("Error: --presets 'rain-heavy+fog-light': combined presets "
-                                     "(layers joined by +) are not yet supported by benchmark")
     result = invoke(["benchmark", "--checkpoint", "raft", "--out", out])
     assert result.exit_code == 2 and "NETWORK=FILE_OR_NAME" in result.output
     result = invoke(["benchmark", "--networks", "raft-small", "--amp", "--out", out])
@@ -316,3 +311,22 @@ def test_compat_reaches_every_weather_run(demo_root):
         assert jobs["snow"].settings.compat == jobs["fog"].settings.compat == compat
         assert jobs["snow"].config()["attack"]["compat"] == compat
         assert jobs["pcfa"].settings is None
+
+
+def test_a_combined_preset_is_one_weather_cell(tmp_path, raft_small_weights):
+    """`--presets snow-light+fog-light`: one attack run of the combination, its row in the
+    results the run's own summary, its label in the tables."""
+    out = tmp_path / "b"
+    result = invoke(["benchmark", "--networks", "raft-small", "--checkpoint",
+                     f"raft-small={raft_small_weights}", "--presets", "snow-light+fog-light",
+                     "--lp", "", "--steps", "1", "--iters", "2", "--scenes", "courtyard",
+                     "--frames-per-scene", "1", "--out", out, "--quiet"])
+    assert result.exit_code == 0, result.output
+    run = summary(out, "snow-light+fog-light")
+    row, = json.loads((out / "results.json").read_text())["rows"]
+    assert row["label"] == "snow-light+fog-light" and row["kind"] == "weather"
+    assert row["aee_adversarial"] == run["aee_adversarial"] and run["pairs"] == 1
+    manifest = json.loads((out / "runs" / "raft-small" / "snow-light+fog-light"
+                           / "manifest.json").read_text())
+    assert manifest["preset_name"] == "snow-light+fog-light"
+    assert "| snow-light+fog-light |" in (out / "tables.md").read_text()

@@ -1,5 +1,5 @@
 """Combined presets above the engine: each layer's seed in a run, what `presets` and `inspect` show,
-and the one-line refusal of the commands that cannot draw them yet."""
+sequences of combined weather fields, and the one-line refusal of what cannot draw them yet."""
 
 from __future__ import annotations
 
@@ -68,13 +68,61 @@ def test_bad_combinations_are_refused_in_one_line(tmp_path, command):
     assert "field layers have different frame rates" in line and not out.exists()
 
 
-@pytest.mark.parametrize("flag", ["--sequence", "--stereo"])
-def test_sequences_and_stereo_refuse_a_combination_in_one_line(tmp_path, flag):
+def test_stereo_refuses_a_combination_in_one_line(tmp_path):
     out = tmp_path / "out"
-    line = one_line_error(run("render", "--preset", "snow-light+fog-light", flag, "--out", out))
-    assert line == (f"Error: {flag} does not take combined presets yet ('snow-light+fog-light'); "
+    line = one_line_error(run("render", "--preset", "snow-light+fog-light", "--stereo", "--out",
+                              out))
+    assert line == ("Error: --stereo does not take combined presets yet ('snow-light+fog-light'); "
                     "render its layers one by one")
     assert not out.exists()
+
+
+def test_a_sequence_refuses_a_combination_with_a_paper_layer_in_one_line(tmp_path):
+    out = tmp_path / "out"
+    line = one_line_error(run("render", "--preset", "snow-light+snow", "--sequence", "--out",
+                              out))
+    assert "needs weather-field presets in every layer" in line
+    assert "layer 'snow' of 'snow-light+snow' is a paper preset" in line
+    assert not out.exists()
+
+
+SEQUENCE = ("--scenes", "street", "--frames-per-scene", "2", "--preset", "snow-light+fog-light",
+            "--set", "far=5")
+
+
+def test_a_combined_field_sequence_holds_the_pair_frames_and_rerenders_bit_identically(tmp_path):
+    """Every layer a weather field: `--sequence` writes each frame once, the bytes of the same
+    frame in the pair outputs (frame 2 of pair 1 is frame 1 of pair 2 there), with one
+    metadata file per pair holding both layers; re-rendering from those particles gives the
+    same bytes, and the preview plays it as a video."""
+    import cv2
+
+    from weathergen.engine import load_particles
+
+    seq, pairs, again = tmp_path / "seq", tmp_path / "pairs", tmp_path / "again"
+    for out, extra in ((seq, ("--sequence",)), (pairs, ())):
+        res = run("render", "--out", out, *extra, *SEQUENCE)
+        assert res.exit_code == 0, res.output
+    name = "snow-light+fog-light_clean"
+    frames = seq / "training" / name / "street"
+    assert sorted(p.name for p in frames.iterdir()) == [f"frame_{n:04d}.png" for n in (1, 2, 3)]
+    for n, pair_dir in ((1, "street_0001"), (2, "street_0001"), (2, "street_0002"),
+                        (3, "street_0002")):
+        same = (pairs / "training" / name / pair_dir / f"frame_{n:04d}.png").read_bytes()
+        assert (frames / f"frame_{n:04d}.png").read_bytes() == same, (n, pair_dir)
+    stored = load_particles(seq / "training" / "particles" / "street" / "frame_0001.npz")
+    assert isinstance(stored, LayeredParticles) and stored.names == ("snow-light", "fog-light")
+    res = run("render", "--particles", seq, "--sequence", "--scenes", "street",
+              "--frames-per-scene", "2", "--out", again)
+    assert res.exit_code == 0, res.output
+    for n in (1, 2, 3):
+        assert (again / "training" / name / "street" / f"frame_{n:04d}.png").read_bytes() == \
+            (frames / f"frame_{n:04d}.png").read_bytes()
+    video = tmp_path / "seq.mp4"
+    assert run("preview", seq, "--video", video).exit_code == 0
+    capture = cv2.VideoCapture(str(video))
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 3
+    capture.release()
 
 
 ONE_PAIR = ("--scenes", "courtyard", "--frames-per-scene", "1")

@@ -31,7 +31,6 @@ from ..attack import (ATTACK_CONFIGS, LP_METHODS, AttackConfig, AttackJob, lp_pa
 from ..attack.plan import attack_pass_name, plan_attack
 from ..datasets import Dataset, reopen_dataset
 from ..engine import list_presets
-from ..engine.presets import LAYER_JOIN
 from ..errors import ConfigError
 from ..models.checkpoints import sha256_of
 
@@ -94,10 +93,6 @@ class BenchmarkSpec:
         for method in self.lp_methods:
             if method not in LP_METHODS:
                 raise ConfigError(f"${{lp}} {method!r}: expected {', '.join(LP_METHODS)}")
-        for label in self.presets:
-            if LAYER_JOIN in label and not Path(label).is_file():
-                raise ConfigError(f"${{presets}} {label!r}: combined presets (layers joined by "
-                                  f"{LAYER_JOIN}) are not yet supported by benchmark")
         cells = []
         for net in self.networks:
             cells += [Cell(net, "weather", p) for p in self.presets]

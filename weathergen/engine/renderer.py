@@ -290,16 +290,24 @@ def view_sums(view: View, record: Particles, start: torch.Tensor, displacement: 
     return grid[:1], grid[1:]
 
 
-def render_first_frame(pair: FramePair, particles: Particles,
+def render_first_frame(pair: FramePair, particles: Union[Particles, LayeredParticles],
                        templates: Optional[TemplateLibrary] = None, *,
                        beta: float = BETA_RENDER, device=None,
                        chunk_elements: Optional[int] = None):
     """Frame 1 of a pair alone (a sequence writes each frame once), the same bytes as
-    ``render_pair(pair, particles).image1`` for a field record.
+    ``render_pair(pair, particles).image1`` for a field record, or for combined weather whose
+    layers are all field records (rendered as the pair, frame 1 kept: the layers' depth order is
+    settled per pixel in the one pass over both frames).
 
     Shape: returns (image (1, 3, H, W), opacity (1, 1, H, W)).
     """
     check_pair_for_engine(pair)
+    if isinstance(particles, LayeredParticles):
+        if any(layer.optics is None for layer in particles.layers):
+            raise ValueError("render_first_frame renders field records (every layer's optics "
+                             "is set)")
+        out = render_pair(pair, particles, templates, beta=beta, device=device)
+        return out.image1, out.opacity1
     if particles.optics is None:
         raise ValueError("render_first_frame renders field records (particles.optics is set)")
     if device is not None:

@@ -27,8 +27,11 @@ other in one flat tensor; ragged, so a call costs a bounded number of tensor ope
   are taken per stamp row (never across stamps, so a stamp does not depend on the others), in
   float64 (where a row is all zeros the difference is exactly zero: blurred stamps stay exactly
   zero outside their support);
-- softening: four box passes, each along the rows of every stamp at once (differences of
-  per-row prefix sums in float64, as the disc blur), writing its result transposed.
+- phase stamps: per stamp side, one dense batch of samples at every 1 / P pixel, averaged over
+  P x P windows (separable pairwise sums) and copied whole to the stamps' places;
+- softening: stamps grouped by similar sides (work proportional to their pixels, not to the
+  count times the largest), four box passes per group, each along one axis of every stamp at
+  once (differences of per-row or per-column prefix sums in float64, as the disc blur).
 
 Elementwise operations are those whose result does not depend on an element's position in its
 tensor (``exp``/``log`` rather than ``pow`` and ``sigmoid``, whose vectorised and scalar CPU
@@ -67,6 +70,8 @@ STAMP_CHUNK_ELEMENTS = 1 << 16
 #: the particle's sub-pixel position to within 1 / P pixel instead of shifting a pixel-centred
 #: stamp by a one-pixel bilinear tent (which widened far particles by up to half their size).
 PHASE_SIDE = 9
+#: P per phase-stamp side (see :func:`stamp_geometry`).
+PHASE_FACTORS = {s: 4 if s <= 5 else 2 for s in range(3, PHASE_SIDE + 1, 2)}
 
 
 def _allowed_sides(limit: int = 8193) -> torch.Tensor:
@@ -427,49 +432,61 @@ def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: t
     pixel, zero outside the footprint's disc), i.e. the pixel-integrated template at every
     1 / P of a pixel.
 
-    Per value of P, the entries' samples are one dense batch on the grid of the group's largest
-    side (``m = P (side + 2)`` samples per axis, centred on the particle), averaged over every
-    ``P x P`` window (``n = P (side + 1) + 1`` values per axis), and each entry's centred
-    ``n_e x n_e`` part is copied to its place."""
+    Per stamp side s (and so per P), the entries' samples are one dense batch of ``m x m``
+    samples (``m = P (s + 2)`` per axis, centred on the particle), averaged over every ``P x P``
+    window (:func:`_window_mean`): ``n = P (s + 1) + 1`` values per axis, exactly the entry's bordered grid, copied
+    whole to its place."""
     if side.numel() == 0:
         return
-    dtype = coef.dtype
-    for factor in (4, 2):
-        members = torch.nonzero(phases == factor).squeeze(1)
-        if members.numel() == 0:
-            continue
+    dtype, device = coef.dtype, coef.device
+    candidates = torch.nonzero(phases > 1).squeeze(1)
+    if candidates.numel() == 0:
+        return
+    sizes = torch.unique(side.index_select(0, candidates)).tolist()
+    for s in sizes:
+        members = candidates.index_select(
+            0, torch.nonzero(side.index_select(0, candidates) == s).squeeze(1))
+        factor = PHASE_FACTORS[s]
         c = coef.index_select(0, members)[:, :, None, None]
-        s = side.index_select(0, members)
-        largest = int(s.max())
-        m = factor * (largest + 2)
+        m = factor * (s + 2)
         n = m - factor + 1
         # sample offsets from the centre, pixels: (b − (m − 1) / 2) / P, along x and along y
         gx = _constant(f"gx{factor},{m}", [[[(b - (m - 1) / 2) / factor for b in range(m)]]],
-                       dtype, coef.device)
+                       dtype, device)
         gy = _constant(f"gy{factor},{m}", [[[(b - (m - 1) / 2) / factor] for b in range(m)]],
-                       dtype, coef.device)
+                       dtype, device)
+        steps = _constant(f"steps{n}", list(range(n * n)), torch.int64, device)
         per = max(1, chunk // (m * m))
         for lo in range(0, int(members.numel()), per):
             bx, ax, cx, by, ay, cy, rho2, _ = c[lo:lo + per].unbind(1)
             count = bx.shape[0]
-            grid = torch.empty(count, m, m, 2, dtype=dtype, device=coef.device)
+            grid = torch.empty(count, m, m, 2, dtype=dtype, device=device)
             grid_x, grid_y = grid.unbind(-1)
             torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
             torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
             value = F.grid_sample(book.image, grid.view(1, count * m, m, 2), mode="bilinear",
                                   padding_mode="zeros", align_corners=False).view(count, m, m)
             value.mul_(torch.addcmul(gx * gx, gy, gy) <= rho2)
-            value = F.avg_pool2d(value[:, None], factor, stride=1)[:, 0].reshape(-1)
-            # entry e's n_e x n_e values: the centre of the n x n window
-            e = members[lo:lo + per]
-            ne = factor * (s[lo:lo + per] + 1) + 1
-            item, local = next(runs(ne * ne, 1 << 62))
-            size = ne.index_select(0, item)
-            row = torch.div(local, size, rounding_mode="floor")
-            skip = torch.div(n - size, 2, rounding_mode="floor")
-            at = item * (n * n) + (row + skip) * n + (local - row * size) + skip
-            work.index_copy_(0, first.index_select(0, e).index_select(0, item) + local,
-                             value.index_select(0, at).to(torch.float64))
+            value = _window_mean(value, factor)                           # (count, n, n)
+            at = first.index_select(0, members[lo:lo + per])[:, None] + steps
+            work.index_copy_(0, at.view(-1), value.reshape(-1).to(torch.float64))
+
+
+def _window_mean(value: torch.Tensor, factor: int) -> torch.Tensor:
+    """The mean of every ``factor x factor`` window (stride 1) of each ``m x m`` array, summed
+    separably and pairwise (columns, then rows: windows of 2, then of 4 as two adjacent windows
+    of 2), divided by ``factor²`` (a power of two: exact). Each output is the same arithmetic
+    on its own 16 (or 4) inputs wherever it lies. Shape: (E, m, m) -> (E, m − P + 1, m − P + 1).
+    """
+    width = 1
+    while width < factor:
+        value = value[..., :-width] + value[..., width:]
+        width *= 2
+    width = 1
+    while width < factor:
+        value = value[:, :-width] + value[:, width:]
+        width *= 2
+    return value / (factor * factor)
 
 
 def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, inner,
@@ -524,14 +541,49 @@ def _soften(work, members, first, inner, box, full, chunk: int) -> None:
     n + 2 (b − 1)``, b = ``box``); afterwards the whole ``full x full`` is the stamp convolved
     with a normalised, centred ``b x b`` box twice (:func:`soft_box`).
 
-    The stamps are copied, each on its own canvas at the top left, into one zero-filled dense
-    float64 array ``(M, F, F)`` (F the largest ``full``); each of the four box passes (rows,
-    rows, columns, columns) takes cumulative sums along its axis (per row or column: its sums
-    do not depend on the other stamps) and differences them at the stamp's own half-width h:
+    The stamps go in groups of similar sides (:func:`_soften_groups`: largest first, each group's
+    canvases at most ``chunk`` values or at most 1.5 times its stamps' own pixels), so that the
+    work stays proportional to the stamps' pixels, not to the count times the largest. Per group
+    the stamps are copied, each on its own canvas at the top left, into one zero-filled dense
+    float64 array ``(M, F, F)`` (F the group's largest ``full``); each of the four box passes
+    (rows, rows, columns, columns) takes cumulative sums along its axis (per row or column: its
+    sums do not depend on the other stamps, nor on F or the padding, which only add leading or
+    trailing exact zeros) and differences them at the stamp's own half-width h:
     ``out[x] = S[x + h] − S[x − h − 1]`` (divided by ``b⁴`` at the end). The boxes reach at
     most ``b − 1`` beyond the stamp, so they stay inside its canvas; where a span is all zeros
     the difference is exactly zero.
     """
+    sides = full.index_select(0, members)
+    order = torch.argsort(sides, descending=True, stable=True)
+    for lo, hi in _soften_groups(sides.index_select(0, order).tolist(), chunk):
+        _soften_group(work, members.index_select(0, order[lo:hi]), first, inner, box, full,
+                      chunk)
+
+
+#: A softening group's canvases hold at most this many times its stamps' own pixels (or at
+#: most ``chunk`` values).
+SOFTEN_WASTE = 1.5
+
+
+def _soften_groups(sides: list, chunk: int) -> list:
+    """``(lo, hi)`` index ranges of ``sides`` (descending) whose padded canvases
+    ``(hi − lo) · sides[lo]²`` stay within ``max(chunk, SOFTEN_WASTE · Σ side²)``; a single
+    stamp always forms a group."""
+    groups, lo = [], 0
+    while lo < len(sides):
+        largest, own, hi = sides[lo] ** 2, 0, lo
+        while hi < len(sides):
+            own += sides[hi] ** 2
+            if hi > lo and (hi - lo + 1) * largest > max(chunk, SOFTEN_WASTE * own):
+                break
+            hi += 1
+        groups.append((lo, hi))
+        lo = hi
+    return groups
+
+
+def _soften_group(work, members, first, inner, box, full, chunk: int) -> None:
+    """One group of :func:`_soften`."""
     device = work.device
     m = int(members.numel())
     n, b = inner.index_select(0, members), box.index_select(0, members)

@@ -374,11 +374,19 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
         raise ConfigError(f"${{shard}} {job.shard[0]}/{job.shard[1]} holds no frame pairs: the "
                           f"selection holds {len(every)}, one for each of the first {len(every)} "
                           f"shards")
-    if isinstance(job.preset, CombinedPreset) and (job.sequence or job.stereo):
-        raise ConfigError(f"${{{'sequence' if job.sequence else 'stereo'}}} does not take combined "
-                          f"presets yet ('{job.preset_name}'); render its layers one by one")
+    if isinstance(job.preset, CombinedPreset) and job.stereo:
+        raise ConfigError(f"${{stereo}} does not take combined presets yet "
+                          f"('{job.preset_name}'); render its layers one by one")
     if job.sequence:
-        if not isinstance(job.preset, FieldPreset):
+        layers = (job.preset.layers if isinstance(job.preset, CombinedPreset)
+                  else [job.preset])
+        paper = [layer for layer in layers if not isinstance(layer, FieldPreset)]
+        if paper and len(layers) > 1:
+            raise ConfigError(f"sequence rendering needs weather-field presets in every layer "
+                              f"(model = field, e.g. snow-moderate+fog-light); layer "
+                              f"'{paper[0].name}' of '{job.preset_name}' is a paper preset, "
+                              "whose particles belong to one pair")
+        if paper:
             raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "
                               f"e.g. snow-moderate); '{job.preset_name}' is a paper preset, "
                               "whose particles belong to one pair")
