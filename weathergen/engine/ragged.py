@@ -18,10 +18,11 @@ def starts(sizes: torch.Tensor) -> torch.Tensor:
 
 
 def runs(sizes: torch.Tensor, limit: int, groups: Optional[torch.Tensor] = None,
-         split: Optional[int] = None) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
+         split: Optional[int] = None, spans: bool = False) -> Iterator[tuple]:
     """Split items with ``sizes`` elements each into chunks of about ``limit`` elements (an item
     larger than that is a chunk of its own). Yields, per chunk, ``(item (m,), local (m,))``: each
-    element's item index and its index inside the item's run, in layout order.
+    element's item index and its index inside the item's run, in layout order; with ``spans``,
+    ``(item, local, (a, b))``, the chunk holding items ``a .. b − 1`` (whole or in part).
 
     ``groups`` (n,) int64, non-decreasing: a group of more than ``split`` elements (default
     ``limit``) is cut into chunks of its own where its own elements reach multiples of
@@ -74,7 +75,7 @@ def runs(sizes: torch.Tensor, limit: int, groups: Optional[torch.Tensor] = None,
             if a:
                 item.add_(a)
         local = torch.arange(lo, hi, device=device) - begins[item]
-        yield item, local
+        yield (item, local, (a, b)) if spans else (item, local)
 
 
 def _cuts(ends: torch.Tensor, a: int, b: int, offset: int, limit: int) -> list:

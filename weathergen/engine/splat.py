@@ -14,9 +14,10 @@ brings them to the image grid.
 
 Layout: a patch has an even side (stamp sides are odd), so it is cut into 2 x 2 blocks: a
 sample's blocks are rows of blocks, and the rows of every sample of the call are one ragged run
-(what a block needs is computed once per row of blocks). Per block the stamp's 4 x 4
-neighbourhood (rows and columns 0, 1, P, P + 1 from the block's first grid point) is read once
-and the four pixels are computed side by side (element arrays are
+(what a block needs is computed once per row of blocks, in one table). Per block the stamp's
+4 x 4 neighbourhood (rows and columns 0, 1, P, P + 1 from the block's first grid point) is read
+in one gather (3 x 3 where every stamp of the chunk has P = 1, which the plan knows on the
+host) and the four pixels are computed side by side (element arrays are
 (2, 2, blocks): a block's numbers broadcast along the last, contiguous axis). A grid plane has a
 margin left and right as wide as the call's widest patch and one extra row below, where patch
 pixels outside the image land (their scene depth is −∞: V = 0, they add nothing; rows outside
@@ -35,6 +36,7 @@ the additions are atomic, and their order (the last bits) may change between run
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Optional
 
@@ -176,13 +178,14 @@ class _Plan:
     """What a splat call draws, fixed before its autograd function runs.
 
     Samples kept (in front of the camera, patch touching the image), sorted by plane and image
-    tile: ``kept`` (K,) int64 indices into the instances, ``level`` (K,). Their rows of blocks
-    (R rows, a sample's q rows consecutive, q = (side + 1) / 2 blocks per side): ``row_sample``
-    (R,) the row's kept sample; ``row_at`` (R,) the bordered stamp pixel at the top left of the
-    row's first block; ``row_stride`` (R,) the bordered stamp's row length; ``row_pix`` (2, R)
-    where the row's first block's two pixel rows start in the sums (rows outside the image: the
-    extra row); ``sizes`` (R,) blocks per row (q); ``groups`` (R,) plane keys (for the chunking
-    rule on the CPU).
+    tile: ``kept`` (K,) int64 indices into the instances, ``level`` (K,), ``phases`` (K,) P.
+    Their rows of blocks (R rows, a sample's q rows consecutive, q = (side + 1) / 2 blocks per
+    side) in one table, so that a chunk reads what its blocks need with one gather:
+    ``row_table`` (R, 6) int64, per row the bordered stamp pixel at the top left of its first
+    block, the bordered stamp's row length, P, where the first block's two pixel rows start in
+    the sums (rows outside the image: the extra row) and the row's kept sample; ``sizes`` (R,)
+    blocks per row (q); ``groups`` (R,) plane keys (for the chunking rule on the CPU);
+    ``phase_spans``, on the host, the spans of rows whose stamps are phase stamps (P > 1).
     """
 
     def __init__(self, inst: Instances, stamps: StampSet, scene: torch.Tensor, grids: Grids,
@@ -198,79 +201,96 @@ class _Plan:
         if inst.count == 0 or stamps.count == 0:
             return
         top = COARSE_MAX_LEVEL + 1
-        rows = [[0] * 5 for _ in range(top)]
+        # per level: where its planes' pixel (0, 0) sits, h, w, a row's and a plane's length in
+        # the sums, the factor f
+        rows = [[0] * 6 for _ in range(top)]
         for c, offset, h, w, m in grids.levels:
-            rows[c] = [offset, h, w, m, 2 ** c]
+            rows[c] = [offset + m, h, w, w + 2 * m, (h + 1) * (w + 2 * m), 2 ** c]
         table = torch.tensor(rows, device=device)
         self.coarse = grids.levels[0][0] > 0       # (coarsest first)
         with torch.no_grad():
-            # per sample: its stamp's side, level and start, and its level's grid
-            side, level, first, phases = torch.stack((stamps.side, stamps.coarse, stamps.first,
-                                                      stamps.phases), 1) \
-                .index_select(0, inst.entry).unbind(1)
-            offset, h, w, m, f = table.index_select(0, level).t()
-            u, v = inst.u.detach(), inst.v.detach()
+            # per sample: its stamp's side, level, start and P, and its level's grid
+            per_entry = torch.cat((torch.stack((stamps.side, stamps.coarse, stamps.first,
+                                                stamps.phases), 1),
+                                   table.index_select(0, stamps.coarse)), 1)
+            side, level, first, phases, origin, h, w, row_len, plane_len, f = \
+                per_entry.index_select(0, inst.entry).unbind(1)
+            uv = torch.stack((inst.u, inst.v))                                 # (2, I)
             if self.coarse:
-                u, v = _on_grid(u, f), _on_grid(v, f)
-            u0, v0 = torch.floor(u).long(), torch.floor(v).long()
+                uv = _on_grid(uv, f)
+            uv0 = torch.floor(uv).long()
             half = (side - 1) // 2
-            col0, row0 = u0 - half, v0 - half                  # the patch's first column, row
-            keep = (inst.z.detach() > NEAR) & (col0 + side >= 0) & (col0 <= w - 1) \
-                & (row0 + side >= 0) & (row0 <= h - 1)
+            corner = uv0 - half                 # the patch's first column and row
+            col0, row0 = corner.unbind(0)
+            keep = ((corner + side >= 0) & (corner < torch.stack((w, h)))).all(0) \
+                & (inst.z > NEAR)
             kept = torch.nonzero(keep).squeeze(1)
             # by plane, then by tile of the image (samples of a chunk hit nearby pixels: fewer
             # cache misses in the scatter); the key depends on the sample alone
             plane_key = level * grids.views + inst.view
-            tile = torch.div(torch.stack((v0, u0)), TILE, rounding_mode="floor") \
-                .clamp_(-1, 1 << 12).add_(1)
+            tile = torch.div(uv0, TILE, rounding_mode="floor").clamp_(-1, 1 << 12).add_(1)
+            tile_u, tile_v = tile.unbind(0)
             # (phase stamps after the others: most chunks then hold one kind, see _Blocks)
-            kind = (phases > 1).long()
-            key = ((plane_key * 2 + kind) * (1 << 28) + tile[0] * (1 << 14) + tile[1]) \
-                .index_select(0, kept)
-            order = torch.sort(key, stable=True).indices
+            kind = phases > 1
+            key = torch.add(torch.add(tile_u, tile_v, alpha=1 << 14),
+                            torch.add(kind, plane_key, alpha=2), alpha=1 << 28)
+            order = torch.sort(key.index_select(0, kept), stable=True).indices
             kept = kept.index_select(0, order)
             self.count = int(kept.numel())
             if self.count == 0:
                 return
-            # (gathering whole rows of a stacked table is several times faster than gathering
-            # along its second axis)
             # the phase stamp's grid point at the patch's top-left pixel (see _Blocks): the
             # phase φ = floor(P f) of the sub-pixel shift f, per axis
             fine = phases * (side + 1) + 1
-            phase_u = torch.floor((u - u0) * phases).long()
-            phase_v = torch.floor((v - v0) * phases).long()
-            first = first + (phases - 1 - phase_v) * fine + (phases - 1 - phase_u)
-            ints = torch.stack((side, col0, row0, h, w + 2 * m, offset + m, inst.view, first,
-                                level, plane_key, phases), 1).index_select(0, kept)
-            side, col0, row0, h, row_len, offset, view, first, level, groups, phases = \
-                ints.unbind(1)
-            self.reached[view] = True
+            late = (phases - 1) - torch.floor((uv - uv0) * phases).long()   # P − 1 − φ
+            late_u, late_v = late.unbind(0)
+            first = torch.addcmul(first, late_v, fine).add_(late_u)
+            q = half + 1                        # blocks per side
+            plane = torch.addcmul(origin + col0, inst.view, plane_len)  # + the patch's column
+            # (gathering whole rows of a stacked table is several times faster than gathering
+            # along its second axis)
+            kept_q, view, level, kept_phases = torch.stack((q, inst.view, level, phases), 1) \
+                .index_select(0, kept).unbind(1)
+            self.reached.index_fill_(0, view, True)
             self.kept, self.level = kept, level
-            self.phases = phases.to(self.dtype)
-            q = (side + 1) // 2
-            plane = offset + view * (h + 1) * row_len + col0           # + the patch's column
-            rows = int(q.sum())
-            sample = torch.repeat_interleave(torch.arange(self.count, device=device), q,
-                                             output_size=rows)
-            per_row = torch.stack((phases * (side + 1) + 1, first, row0, h, plane, row_len, q,
-                                   groups, phases), 1).index_select(0, sample)
+            self.phases = kept_phases.to(self.dtype)
+            if self.coarse:
+                self.factor = (2.0 ** level).to(self.dtype)
+            rows = int(kept_q.sum())
+            sample = torch.repeat_interleave(kept_q, output_size=rows)
+            per_row = torch.stack((fine, first, row0, h, plane, row_len, q, plane_key, phases), 1) \
+                .index_select(0, kept.index_select(0, sample))
             stride, first, row0, h, plane, row_len, sizes, groups, row_phases = per_row.unbind(1)
             self.sizes, self.groups = sizes.contiguous(), groups.contiguous()
-            br = torch.arange(rows, device=device) - starts(q).index_select(0, sample)
-            self.row_sample, self.row_stride = sample, stride.contiguous()
-            self.row_phases = row_phases.contiguous()
-            self.row_at = first + 2 * br * row_phases * stride
-            y = (row0 + 2 * br) + torch.arange(2, device=device)[:, None]
-            y = torch.where((y >= 0) & (y < h), y, h)                  # outside: the extra row
-            self.row_pix = torch.addcmul(plane, y, row_len)
+            br2 = 2 * (torch.arange(rows, device=device) - starts(kept_q).index_select(0, sample))
+            y = (row0 + br2)[:, None] + _constant_steps(device, 0)           # (R, 2)
+            h = h[:, None]
+            y = torch.where((y >= 0) & (y < h), y, h)                      # outside: extra row
+            # per row: the bordered stamp pixel at the top left of its first block, the
+            # stamp's row length, P, where its two pixel rows start in the sums, its sample
+            y0, y1 = y.unbind(1)
+            self.row_table = torch.stack((first + br2 * row_phases * stride, stride, row_phases,
+                                          torch.addcmul(plane, y0, row_len),
+                                          torch.addcmul(plane, y1, row_len), sample), 1)
+            # the rows of phase stamps as spans [s, e) of rows (a plane's come after its
+            # others): a chunk without any reads 3 x 3 neighbourhoods (see _Blocks)
+            kinds, counts = torch.unique_consecutive(torch.add(row_phases > 1, groups, alpha=2),
+                                                     return_counts=True)
+            ends = list(itertools.accumulate(counts.tolist()))
+            self.phase_spans = [(e - c, e) for k, c, e in zip(kinds.tolist(), counts.tolist(),
+                                                              ends) if k % 2]
 
     def chunks(self):
-        """``(row (n,), column (n,))`` per chunk: each block's row of blocks and its index in
-        the row. On the CPU a plane larger than :data:`PLANE_SPLIT` blocks is cut at multiples
-        of it (whatever the chunk size), so the order its samples are added in is fixed."""
+        """``(row (n,), column (n,), whole)`` per chunk: each block's row of blocks and its
+        index in the row, and whether every block's stamp is sampled at whole pixels (P = 1).
+        On the CPU a plane larger than :data:`PLANE_SPLIT` blocks is cut at multiples of it
+        (whatever the chunk size), so the order its samples are added in is fixed."""
         if self.cpu:      # the module's constant, read at call time (benchmarks replace it)
-            return runs(self.sizes, self.blocks_per_chunk, self.groups, PLANE_SPLIT)
-        return runs(self.sizes, self.blocks_per_chunk)
+            pieces = runs(self.sizes, self.blocks_per_chunk, self.groups, PLANE_SPLIT, spans=True)
+        else:
+            pieces = runs(self.sizes, self.blocks_per_chunk, spans=True)
+        for row, column, (a, b) in pieces:
+            yield row, column, not any(s < b and a < e for s, e in self.phase_spans)
 
 
 def _on_grid(x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
@@ -285,52 +305,45 @@ class _Blocks:
     Element arrays are (2, 2, n) for n blocks, indexed (patch column j, patch row i, block), so
     that a block's numbers (n,) broadcast along the last, contiguous axis. ``sample`` (n,) the
     block's kept sample; ``per`` (P, n) the per-sample numbers of :func:`_per_sample` for each
-    block; ``near`` (4 arrays (4, n)): the block's 4 x 4 neighbourhood of the bordered stamp
-    (columns, then rows, at 0, 1, P, P + 1 grid points from the block's first); ``rows``
-    (2 arrays (4, n)): those rows interpolated at the sub-pixel column shift, for patch columns
-    j = 0, 1; ``patch`` B; ``pix`` int64 indices into the sums;
-    ``vis`` V.
+    block; ``near`` (2, 2, 2, 2, n): the block's 4 x 4 neighbourhood of the bordered stamp,
+    columns and rows 0, 1, P, P + 1 grid points from the block's first (column j P + k and row
+    i P + l at ``[j, k, i, l]``; for ``whole`` chunks, P = 1, a view of the 3 x 3 read);
+    ``rows`` (2, 2, 2, n): those rows interpolated at the sub-pixel column shift, for patch
+    columns j = 0, 1 (row i P + l at ``[j, i, l]``); ``patch`` B; ``pix`` int64 indices into
+    the sums (``flat``: flattened); ``vis`` V.
     """
 
-    def __init__(self, plan: _Plan, row: torch.Tensor, column: torch.Tensor, per: torch.Tensor):
-        self.sample = plan.row_sample.index_select(0, row)
+    def __init__(self, plan: _Plan, row: torch.Tensor, column: torch.Tensor, per: torch.Tensor,
+                 whole: bool):
+        # (gathering whole rows of the plan's row table is faster than one gather per column)
+        at, stride, phases, pix0, pix1, self.sample = \
+            plan.row_table.index_select(0, row).unbind(1)
         self.per = per.index_select(1, self.sample)
-        fu, fv, beta_z, beta = self.per[:4]
+        fu, fv, beta_z, beta = self.per.unbind(0)[:4]
         n = row.numel()
-        two_columns = 2 * column
-        phases = plan.row_phases.index_select(0, row)
+        two_columns = column + column
         # the block's top-left grid point: patch pixel j of a row mixes the stamp's grid points
         # j P and j P + 1 (from the block's), rows likewise: a 4 x 4 neighbourhood, rows and
-        # columns at 0, 1, P, P + 1 (with P = 1 the three of a pixel-sampled stamp)
-        stride = plan.row_stride.index_select(0, row)
-        pixels = plan.stamps.pixels
-        if bool((phases == 1).all()):
-            # stamps sampled at whole pixels: the neighbourhood is 3 x 3 (rows and columns
-            # 0, 1, 2), read once; near[1] serves as both columns 1 and P
-            at = plan.row_at.index_select(0, row) + two_columns
-            index = torch.addcmul(at, stride, _constant_steps(at.device)).view(-1)
-            near = [pixels[c:].index_select(0, index).view(3, n) for c in (0, 1, 2)]
-            self.near = [near[0], near[1], near[1], near[2]]
-            self.lo, self.hi = slice(0, 2), slice(1, 3)
+        # columns at 0, 1, P, P + 1, read in one gather (as a + b P: column j P + k and row
+        # i P + l at [j, k, i, l])
+        device = at.device
+        if whole:   # P = 1: the 3 x 3 of rows and columns 0, 1, 2, each read once, seen as 4 x 4
+            rows = torch.addcmul(at + two_columns, stride, _constant_steps(device, 3))
+            near = plan.stamps.pixels.index_select(0, (_constant_steps(device, 4) + rows).view(-1)).view(3, 3, n)
+            self.near = near.as_strided((2, 2, 2, 2, n), (3 * n, 3 * n, n, n, 1))
         else:
-            at = torch.addcmul(plan.row_at.index_select(0, row), two_columns, phases)
-            index = torch.empty(2, 2, n, dtype=at.dtype, device=at.device)  # rows 0, 1, P, P + 1
-            index[0, 0] = at
-            torch.addcmul(at, stride, phases, out=index[1, 0])
-            torch.add(index[:, 0], stride, out=index[:, 1])
-            index = index.view(-1)
-            shifted = index + phases.repeat(4)                              # columns P, P + 1
-            self.near = [source.index_select(0, i).view(4, n)
-                         for i in (index, shifted) for source in (pixels, pixels[1:])]
-            self.lo, self.hi = slice(0, None, 2), slice(1, None, 2)
+            ab = torch.addcmul(_constant_steps(device, 5), _constant_steps(device, 6), phases)
+            rows = torch.addcmul(torch.addcmul(at, two_columns, phases), stride, ab)
+            self.near = plan.stamps.pixels.index_select(0, (ab.view(2, 2, 1, 1, n) + rows).view(-1)).view(2, 2, 2, 2, n)
         # columns first (weight fu: the shift's fraction of a grid step), then rows (fv)
-        self.rows = [torch.lerp(self.near[2 * j + 1], self.near[2 * j], fu) for j in range(2)]
-        self.patch = torch.empty(2, 2, n, dtype=pixels.dtype, device=pixels.device)
-        for j in range(2):
-            torch.lerp(self.rows[j][self.hi], self.rows[j][self.lo], fv, out=self.patch[j])
-        start = plan.row_pix.index_select(1, row) + two_columns       # (2 i, n)
-        self.pix = start + _constant_steps(at.device, 2)               # (2 j, 2 i, n)
-        depth = plan.scene.index_select(0, self.pix.view(-1)).view(2, 2, n)
+        left, right = self.near.unbind(1)
+        self.rows = torch.lerp(right, left, fu)                         # (2 j, 2 i, 2 l, n)
+        top, bottom = self.rows.unbind(2)
+        self.patch = torch.lerp(bottom, top, fv)
+        start = torch.stack((pix0, pix1)) + two_columns                     # (2 i, n)
+        self.pix = start + _constant_steps(device, 2)                  # (2 j, 2 i, n)
+        self.flat = self.pix.view(-1)
+        depth = plan.scene.index_select(0, self.flat).view(2, 2, n)
         # V = 1 / (1 + exp(β d − β D)): exp and a reciprocal, whose bits do not depend on an
         # element's place in the tensor (the CPU's sigmoid kernel rounds its tail differently).
         # The exponent is clamped to ±VISIBILITY_CLAMP: V is then off by at most 4e-18, and
@@ -342,13 +355,17 @@ class _Blocks:
 _STEPS: dict = {}
 
 
-def _constant_steps(device, count: int = 3) -> torch.Tensor:
-    """The rows 0, 1, 2 of a block's neighbourhood, as a (3, 1) column; with ``count`` 2 the
-    patch columns 0, 1 as a (2, 1, 1) array (each made once per device)."""
-    key = (str(device), count)
+def _constant_steps(device, kind: int = 2) -> torch.Tensor:
+    """Small constant arrays, each made once per device: ``kind`` 0, the pixel rows 0, 1 of a
+    row of blocks, (2,); 2, the patch columns 0, 1, (2, 1, 1); 3 and 4, the rows and the
+    columns 0, 1, 2 of a 3 x 3 neighbourhood, (3, 1) and (3, 1, 1); 5 and 6, the rows 0, 1, P,
+    P + 1 of a block's neighbourhood as ``a + b P``: a (2, 2, 1) = ((0, 1), (0, 1)), b =
+    ((0, 0), (1, 1))."""
+    key = (str(device), kind)
     if key not in _STEPS:
-        steps = torch.arange(count, device=device)
-        _STEPS[key] = steps[:, None] if count == 3 else steps[:, None, None]
+        table = {0: [0, 1], 2: [[[0]], [[1]]], 3: [[0], [1], [2]], 4: [[[0]], [[1]], [[2]]],
+                 5: [[[0], [1]], [[0], [1]]], 6: [[[0], [0]], [[1], [1]]]}
+        _STEPS[key] = torch.tensor(table[kind], device=device)
     return _STEPS[key]
 
 
@@ -375,13 +392,13 @@ class _Splat(torch.autograd.Function):
         if plan.count == 0:
             return acc
         per = _per_sample(plan, u, v, z, theta, color)
-        for row, column in plan.chunks():
-            b = _Blocks(plan, row, column, per)
+        for row, column, whole in plan.chunks():
+            b = _Blocks(plan, row, column, per, whole)
             weight = b.patch.mul_(b.vis)
             # all channels in one product and one scatter along the rows of acc: each sum
             # still receives its additions one by one in the blocks' order
-            terms = weight * b.per[5:5 + channels, None, None]          # (1 + C, 2, 2, n)
-            acc.scatter_add_(1, b.pix.view(1, -1).expand(channels, -1),
+            terms = weight * b.per[5:5 + channels].view(channels, 1, 1, -1)  # (1 + C, 2, 2, n)
+            acc.scatter_add_(1, b.flat.expand(channels, -1),
                              terms.view(channels, -1))
         return acc
 
@@ -398,11 +415,10 @@ class _Splat(torch.autograd.Function):
         per = _per_sample(plan, u, v, z, theta, color[:, :nc])
         g_acc = g_acc[:1 + nc].contiguous()
         sums = torch.zeros(4 + nc, plan.count, dtype=u.dtype, device=u.device)
-        for row, column in plan.chunks():
-            b = _Blocks(plan, row, column, per)
+        for row, column, whole in plan.chunks():
+            b = _Blocks(plan, row, column, per, whole)
             fv, beta, gamma = b.per[1], b.per[3], b.per[6 + nc:6 + 2 * nc]
-            flat = b.pix.view(-1)
-            g = g_acc.index_select(1, flat).view(1 + nc, *b.pix.shape).unbind(0)
+            g = g_acc.index_select(1, b.flat).view(1 + nc, *b.pix.shape).unbind(0)
             # dL/d(θ B V) per pixel: the opacity sum's and the colour sums' gradients
             g_w = torch.addcmul(g[0], g[1], gamma[0])
             for c in range(1, nc):
@@ -410,13 +426,12 @@ class _Splat(torch.autograd.Function):
             g_bv = g_w.mul_(b.vis)                               # dL/d(θ B) per pixel
             out = [None] * (4 + nc)
             if need[0]:   # dB/dfu: the column difference of the stamp, interpolated in fv
-                d_fu = torch.empty_like(b.patch)
-                for j in range(2):
-                    diff = b.near[2 * j] - b.near[2 * j + 1]
-                    torch.lerp(diff[b.hi], diff[b.lo], fv, out=d_fu[j])
+                top, bottom = (b.near[:, 0] - b.near[:, 1]).unbind(2)
+                d_fu = torch.lerp(bottom, top, fv)
                 out[0] = _block_sum(d_fu.mul_(g_bv))
             if need[1]:   # dB/dfv: the row difference of the interpolated rows
-                d_fv = torch.stack([r[b.lo] - r[b.hi] for r in b.rows])
+                top, bottom = b.rows.unbind(2)
+                d_fv = top - bottom
                 out[1] = _block_sum(d_fv.mul_(g_bv))
             g_bvp = g_bv * b.patch                               # dL/dθ per pixel
             if need[2]:   # dV/dd = −β V (1 − V)
@@ -435,7 +450,7 @@ class _Splat(torch.autograd.Function):
         # d(fraction of a grid step) / du = P / f (P phases, a grid f times coarser)
         scale = th * plan.phases
         if plan.coarse:
-            scale = scale / (2.0 ** plan.level).to(u.dtype)
+            scale = scale / plan.factor
         if need[0]:
             grads[0].index_add_(0, index, scale * sums[0])
         if need[1]:
@@ -454,15 +469,14 @@ def _per_sample(plan: _Plan, u, v, z, theta, color) -> torch.Tensor:
     fraction of the stamp's grid step 1 / P: ``P f − floor(P f)``), β d, β, θ / K, the weights
     of the 1 + C sums θ, θ γ_1 .. θ γ_C, and the colour γ (C)."""
     kept = plan.kept
-    uu, vv = u.detach().index_select(0, kept), v.detach().index_select(0, kept)
+    uv = torch.stack((u, v)).index_select(1, kept)
     if plan.coarse:
-        f = (2.0 ** plan.level).to(u.dtype)
-        uu, vv = _on_grid(uu, f), _on_grid(vv, f)
+        uv = _on_grid(uv, plan.factor)
     # P f is exact (P a power of two), so floor(P f) is the plan's phase
-    pu, pv = (uu - torch.floor(uu)) * plan.phases, (vv - torch.floor(vv)) * plan.phases
+    p = (uv - torch.floor(uv)) * plan.phases
     beta = plan.beta.index_select(0, kept).to(u.dtype)
-    th = theta.detach().index_select(0, kept)
-    col = color.detach().index_select(0, kept)
-    return torch.cat((torch.stack((pu - torch.floor(pu), pv - torch.floor(pv),
-                                   beta * z.detach().index_select(0, kept), beta, th, th)),
-                      th * col.t(), col.t()))
+    th = theta.index_select(0, kept)
+    col = color.index_select(0, kept).t()
+    return torch.cat((p - torch.floor(p), torch.stack((beta * z.index_select(0, kept), beta, th,
+                                                       th)),
+                      th * col, col))

@@ -75,9 +75,11 @@ class Views:
         device = depth.device if device is None else device
         k = intrinsics.to(device=device, dtype=torch.float64)
         cam = cam_from_ref.to(device=device, dtype=torch.float64)[:, :3, :]
-        project = k[:, :, 0, None] * cam[:, None, 0, :] + k[:, :, 1, None] * cam[:, None, 1, :] \
-            + k[:, :, 2, None] * cam[:, None, 2, :]
-        return cls(project=project, focal=torch.sqrt(k[:, 0, 0] * k[:, 1, 1]),
+        # K's columns (V, 3, 1) times the camera's rows (V, 1, 4)
+        (k0, k1, k2), (c0, c1, c2) = k.unsqueeze(3).unbind(2), cam.unsqueeze(1).unbind(2)
+        project = k0 * c0 + k1 * c1 + k2 * c2
+        # (fx fy: the product of the diagonal's first two)
+        return cls(project=project, focal=torch.sqrt(k.diagonal(dim1=1, dim2=2)[:, :2].prod(1)),
                    depth=depth.detach().to(device))
 
     @property
@@ -122,10 +124,9 @@ def _smoothstep(x: torch.Tensor) -> torch.Tensor:
 def coc_radius(f, aperture, focus, z: torch.Tensor) -> torch.Tensor:
     """Thin-lens circle of confusion ``round(clip(f A |1/z − 1/focus| / 2, 0, MAX_DEFOCUS))``
     in whole pixels (0 where the aperture is 0). Arguments broadcast. Shape: -> z's, int64."""
-    r = 0.5 * f * aperture * (1.0 / z - 1.0 / focus).abs()
+    r = 0.5 * f * aperture * (torch.reciprocal(z) - _inverse(focus)).abs()
     r = torch.floor(r.clamp(0, MAX_DEFOCUS) + 0.5)
-    return torch.where(torch.as_tensor(aperture, device=z.device) > 0, r,
-                       torch.zeros_like(r)).long()
+    return torch.where(torch.as_tensor(aperture, device=z.device) > 0, r, 0.0).long()
 
 
 def defocus_radius(f: float, optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
@@ -138,8 +139,9 @@ def fade(near, far, fraction, z: torch.Tensor) -> torch.Tensor:
     ``far`` where the fraction is 0). Arguments broadcast. Shape: -> z's."""
     fade_in = _smoothstep((z - near) / near)
     fraction = torch.as_tensor(fraction, dtype=z.dtype, device=z.device)
-    safe = torch.where(fraction > 0, fraction, torch.ones_like(fraction))
-    fade_out = torch.where(fraction > 0, _smoothstep((far - z) / (safe * far)),
+    cut = fraction > 0
+    safe = torch.where(cut, fraction, 1.0)
+    fade_out = torch.where(cut, _smoothstep((far - z) / (safe * far)),
                            (z <= far).to(z.dtype))
     return fade_in * fade_out
 
@@ -155,21 +157,42 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
     not behind the scene there by more than ``tolerance`` (tested at the nearest pixel of the
     image, its border for a point just outside, where its stamp reaches in).
 
-    Shape: ends (2, M, 3) float64 homogeneous pixels of the start and the end, reach, tolerance
-    (M,), depth (V, 1, H, W), view (M,) int64 -> (M,) bool.
+    Shape: ends (2, M, 3) float64 homogeneous pixels of the start and the end, reach (M,),
+    tolerance (M,) or a number, depth (V, 1, H, W), view (M,) int64 -> (M,) bool.
     """
     height, width = depth.shape[-2:]
-    scene = depth.reshape(-1).to(torch.float64)
     zz = ends[..., 2]
-    safe = torch.where(zz.abs() > 1e-12, zz, torch.full_like(zz, 1e-12))
-    u, v = ends[..., 0] / safe, ends[..., 1] / safe
-    reaches = (zz > 1e-6) & (u >= -0.5 - reach) & (u <= width - 0.5 + reach) \
-        & (v >= -0.5 - reach) & (v <= height - 0.5 + reach)
-    col = torch.floor(u + 0.5).clamp(0, width - 1).long()
-    row = torch.floor(v + 0.5).clamp(0, height - 1).long()
-    under = scene.index_select(0, ((view * height + row) * width + col).view(-1)).view_as(zz)
-    seen = reaches & (zz <= under + tolerance)
-    return seen[0] | seen[1]
+    safe = torch.where(zz.abs() > 1e-12, zz, 1e-12)
+    uv = ends[..., :2] / safe[..., None]                                # (2, M, 2): u, v
+    reach = reach[:, None]
+    limit, last, step = _image_constants(height, width, ends.device)
+    reaches = (zz > 1e-6) & ((uv >= -0.5 - reach) & (uv <= limit + reach)).all(-1)
+    pixel = torch.minimum(torch.floor(uv + 0.5).clamp_(min=0), last).long()   # (col, row)
+    under = torch.take(depth, (pixel * step).sum(-1) + view * (height * width))
+    return (reaches & (zz <= under.to(torch.float64) + tolerance)).any(0)
+
+
+_IMAGE: dict = {}
+
+
+def _image_constants(height: int, width: int, device) -> tuple:
+    """Per axis (u, v) of an image: its edges' centres plus half a pixel ``(W − 0.5, H − 0.5)``
+    and its last pixels ``(W − 1, H − 1)`` (float64), and a pixel's index steps ``(1, W)``
+    (each made once per size and device)."""
+    key = (height, width, str(device))
+    if key not in _IMAGE:
+        _IMAGE[key] = (torch.tensor([width - 0.5, height - 0.5], dtype=torch.float64,
+                                    device=device),
+                       torch.tensor([width - 1.0, height - 1.0], dtype=torch.float64,
+                                    device=device),
+                       torch.tensor([1, width], device=device))
+    return _IMAGE[key]
+
+
+def _inverse(x):
+    """``1 / x`` of a tensor (one reciprocal: ``1.0 / x`` is a reciprocal and a product) or of a
+    number."""
+    return torch.reciprocal(x) if torch.is_tensor(x) else 1.0 / x
 
 
 @dataclass
@@ -198,16 +221,21 @@ def field_mask(project: torch.Tensor, f: torch.Tensor, start: torch.Tensor,
     ``(mask (M,) bool, z (M,) float64, radius (M,) int64)`` (z and radius where drawn, those
     at ``far`` elsewhere).
     """
-    ends = homogeneous(project, torch.stack((start, start + streak)))
-    z = ends[0, :, 2]
+    mask, z, radius, _ = _field_mask(project, f, start, streak, diameter, optics, depth, view)
+    return mask, z, radius
+
+
+def _field_mask(project, f, start, streak, diameter, optics, depth, view):
+    """:func:`field_mask`, and the homogeneous pixels of the start, differentiable in ``start``
+    (the mask and the depth are not). Shape: -> (mask, z, radius, h0 (M, 3))."""
+    ends = homogeneous(project, torch.stack((start, start.detach() + streak)))
+    z = ends[0, :, 2].detach()
     in_range = (z >= optics.near) & (z <= optics.far)
-    far = torch.as_tensor(optics.far, dtype=z.dtype, device=z.device).expand_as(z)
-    safe = torch.where(in_range, z, far)
+    safe = torch.where(in_range, z, optics.far)
     radius = coc_radius(f, optics.aperture, optics.focus, safe)
     reach = 0.5 * footprint(f, diameter, safe) + radius + 2
-    tolerance = torch.as_tensor(3 * optics.depth_softness, dtype=z.dtype, device=z.device)
-    seen = in_view(ends, reach, tolerance.expand_as(z), depth, view)
-    return in_range & seen, safe, radius
+    seen = in_view(ends.detach(), reach, 3 * optics.depth_softness, depth, view)
+    return in_range & seen, safe, radius, ends[0]
 
 
 def view_mask(view: View, points: torch.Tensor, streak: torch.Tensor, diameter: torch.Tensor,
@@ -262,9 +290,8 @@ class ParticleTable:
                    color=cat("color"), transparency=cat("transparency"),
                    rotation=cat("rotation", f64), scale=cat("scale", f64),
                    template=cat("template", torch.long), defocus=cat("defocus", torch.long),
-                   record=torch.repeat_interleave(torch.arange(len(records), device=device),
-                                                  counts, output_size=int(sum(r.count
-                                                                              for r in records))))
+                   record=torch.repeat_interleave(counts, output_size=sum(r.count
+                                                                         for r in records)))
 
     @property
     def count(self) -> int:
@@ -397,9 +424,9 @@ def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, vie
     displacement = table.displacement.index_select(0, which)
     scale = table.scale.index_select(0, which)
     streak = rows.blur_length.index_select(0, record)[:, None] * displacement.detach()
-    mask, z, radius = field_mask(project, f, start.detach(), streak, scale,
-                                 OpticsRows(near, far, fraction, aperture, focus, softness),
-                                 views.depth, view)
+    mask, z, radius, h0 = _field_mask(project, f, start, streak, scale,
+                                      OpticsRows(near, far, fraction, aperture, focus, softness),
+                                      views.depth, view)
     fp = footprint(f, scale, z)
     factor = fade(near, far, fraction, z) * fp.clamp(max=1.0) ** 2
     theta = (table.transparency.index_select(0, which).to(torch.float64) * factor).to(dtype)
@@ -412,15 +439,13 @@ def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, vie
                   template=table.template.index_select(0, drawn),
                   brighten=rows.brighten.index_select(0, record) & (radius > 1))
     colour = table.color if color is None else color
-    kept = project.index_select(0, keep)
     tracks = Tracks(entry=torch.arange(keep.numel(), device=keep.device),
-                    view=view.index_select(0, keep),
-                    h0=homogeneous(kept, start.index_select(0, keep)),
-                    hd=direction(kept, displacement.index_select(0, keep)),
+                    view=view.index_select(0, keep), h0=h0.index_select(0, keep),
+                    hd=direction(project, displacement).index_select(0, keep),
                     samples=rows.samples.index_select(0, record),
                     spacing=rows.spacing.index_select(0, record),
                     theta=theta.index_select(0, keep), color=colour.index_select(0, drawn).to(dtype),
-                    beta=torch.clamp(1.0 / softness.index_select(0, keep), max=beta))
+                    beta=torch.clamp(torch.reciprocal(softness.index_select(0, keep)), max=beta))
     return looks, tracks
 
 
@@ -451,19 +476,20 @@ def pair_tracks(records: Sequence[Particles], views: Views, resolution: int, *, 
     n = sum(records[i].count for i in paper)
     parts, entries = [], []
     if paper:
-        head = table.head(n)
+        head = table if n == table.count else table.head(n)
         looks = fixed_looks(head, rows, resolution)
         start, record, p = head.start, head.record, pair[:n]
-        h1 = homogeneous(views.project.index_select(0, p), start)
-        h2 = homogeneous(views.project.index_select(0, bsz + p), start + table.displacement[:n])
-        hd = h2 - h1
+        # both frames at once: frame 1 from X1, frame 2 from X2 (the first n rows, the last n)
+        view = torch.cat((p, bsz + p))
+        h = homogeneous(views.project.index_select(0, view),
+                        torch.cat((start, start + head.displacement)))
+        hd = h[n:] - h[:n]
         entry = torch.arange(n, device=device)
-        parts.append(Tracks(entry=entry.repeat(2), view=torch.cat((p, bsz + p)),
-                            h0=torch.cat((h1, h2)), hd=hd.repeat(2, 1),
+        parts.append(Tracks(entry=entry.repeat(2), view=view, h0=h, hd=hd.repeat(2, 1),
                             samples=rows.samples.index_select(0, record).repeat(2),
                             spacing=rows.spacing.index_select(0, record).repeat(2),
-                            theta=table.transparency[:n].to(dtype).repeat(2),
-                            color=table.color[:n].to(dtype).repeat(2, 1),
+                            theta=head.transparency.to(dtype).repeat(2),
+                            color=head.color.to(dtype).repeat(2, 1),
                             beta=torch.full((2 * n,), float(beta), dtype=torch.float64,
                                             device=device)))
         entries.append(looks)
@@ -600,14 +626,13 @@ def blur_samples(tracks: Tracks, dtype: torch.dtype) -> Instances:
                     samples=samples, spacing=spacing, theta=tracks.theta, color=tracks.color,
                     beta=tracks.beta)
     total = int(tracks.samples.sum()) if tracks.count else 0
-    track = torch.repeat_interleave(torch.arange(tracks.count, device=device), tracks.samples,
-                                    output_size=total)
+    track = torch.repeat_interleave(tracks.samples, output_size=total)
     first = torch.cumsum(tracks.samples, 0) - tracks.samples
     k = torch.arange(total, device=device) - first.index_select(0, track)
     step = (k * tracks.spacing.index_select(0, track))[:, None]
     h = tracks.h0.index_select(0, track) + step * tracks.hd.index_select(0, track)
     z = h[:, 2]
-    safe = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
+    safe = torch.where(z.abs() > 1e-12, z, 1e-12)
     per_sample = tracks.theta / tracks.samples.to(tracks.theta.dtype)
     entry, view = torch.stack((tracks.entry, tracks.view)).index_select(1, track)
     return Instances(u=(h[:, 0] / safe).to(dtype), v=(h[:, 1] / safe).to(dtype), z=z.to(dtype),
