@@ -39,6 +39,7 @@ from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from engine_scenes import plane_pair, pose, rotation  # noqa: E402
+import bench_core  # noqa: E402  (the GPU's chunking, as its operation counts use it)
 
 from weathergen.engine import render  # noqa: E402
 from weathergen.framepair import PairId  # noqa: E402
@@ -162,9 +163,10 @@ def main(argv=None):
             f"prepared, render only ({device.type})": render_only}
         op_counts[preset] = {"default chunks": count_ops(lambda: aug.apply_batch(prepared),
                                                          device)}
-        if device.type == "cpu":    # the chunks a GPU with free memory would use
-            op_counts[preset]["GPU-size chunks"] = count_ops(
-                lambda: render(*flat_arguments(prepared), chunk_elements=1 << 25), device)
+        if device.type == "cpu":    # the chunks a GPU with free memory would use, views not cut
+            with bench_core._gpu_split():
+                op_counts[preset]["GPU-size chunks"] = count_ops(
+                    lambda: render(*flat_arguments(prepared), chunk_elements=1 << 25), device)
 
     cropped = crop.apply_batch(batch_cpu).to(device)
     p = cropped.pairs
