@@ -109,10 +109,9 @@ class Sums:
     reached: torch.Tensor
 
 
-def grids_for(stamps: StampSet, views: int, height: int, width: int, *,
-              image_grid: bool = False) -> Grids:
-    """The grid levels the stamps need (the image grid only when a stamp is drawn on it, none
-    is coarse or ``image_grid`` asks for it), each with a margin as wide as its widest patch. A
+def grids_for(stamps: StampSet, views: int, height: int, width: int) -> Grids:
+    """The grid levels the stamps need (the image grid only when a stamp is drawn on it or
+    none is coarse), each with a margin as wide as its widest patch. A
     level left out would add exact zeros to every view (sums are never −0), so leaving it out
     changes no bit and saves a full-size plane per view (fog draws on a coarse grid alone). One
     host synchronisation."""
@@ -125,7 +124,7 @@ def grids_for(stamps: StampSet, views: int, height: int, width: int, *,
         used = [[0] * top, [0] * top]
     levels, offset = [], 0
     drawn = {c for c, n in enumerate(used[0]) if n}
-    for c in sorted(drawn | {0} if image_grid or not drawn - {0} else drawn, reverse=True):
+    for c in sorted(drawn | {0} if not drawn - {0} else drawn, reverse=True):
         f = 2 ** c
         h, w = -(-height // f), -(-width // f)
         m = used[1][c]
@@ -152,19 +151,18 @@ def scene_depths(depth: torch.Tensor, grids: Grids, dtype) -> torch.Tensor:
 
 def splat(inst: Instances, stamps: StampSet, depth: torch.Tensor, *,
           chunk_elements: Optional[int] = None, detach_occlusion: bool = False,
-          image_grid: bool = False, passive: int = 0) -> Sums:
+          passive: int = 0) -> Sums:
     """The per-pixel sums of every blur sample's stamp (see the module doc).
 
     Shape: depth (V, 1, H, W) the scene depth of the V views; returns :class:`Sums`.
     Differentiable in ``inst.u``, ``inst.v``, ``inst.theta``, ``inst.color`` and, unless
-    ``detach_occlusion``, ``inst.z`` (through the visibility ``V``). ``image_grid``: the sums
-    hold the image grid's level even when every stamp is coarse (see :func:`grids_for`).
+    ``detach_occlusion``, ``inst.z`` (through the visibility ``V``).
     ``passive``: how many of the last colour channels are sums no gradient comes back to (the
     depth of a layered render, which only orders the layers): the backward pass skips them.
     """
     views, _, height, width = depth.shape
     dtype = inst.u.dtype
-    grids = grids_for(stamps, views, height, width, image_grid=image_grid)
+    grids = grids_for(stamps, views, height, width)
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(depth.device)
     plan = _Plan(inst, stamps, scene_depths(depth, grids, dtype), grids, chunk_elements)
