@@ -68,13 +68,49 @@ def test_bad_combinations_are_refused_in_one_line(tmp_path, command):
     assert "field layers have different frame rates" in line and not out.exists()
 
 
-def test_stereo_refuses_a_combination_in_one_line(tmp_path):
-    out = tmp_path / "out"
-    line = one_line_error(run("render", "--preset", "snow-light+fog-light", "--stereo", "--out",
-                              out))
-    assert line == ("Error: --stereo does not take combined presets yet ('snow-light+fog-light'); "
-                    "render its layers one by one")
-    assert not out.exists()
+def test_stereo_draws_a_combination_into_the_right_camera(tmp_path):
+    """KITTI with image_3: `--stereo` with combined weather writes the right camera's frames, with
+    weather that is not the left frame's; in the library, one layer seen from the right camera
+    gives the frames of that record's own right-camera render, byte for byte."""
+    import shutil
+
+    from fake_datasets import demo_sequence, write_fake_kitti
+    from weathergen.engine import View, load_templates, reference_transforms
+    from weathergen.engine.renderer import pair_starts
+    from weathergen.engine.stereo import render_right, render_right_layers, stereo_view
+    from weathergen.io.images import read_image
+
+    _, pairs = demo_sequence("street")
+    split = write_fake_kitti(tmp_path / "kitti", pairs[0], scene="000004")
+    (split / "image_3").mkdir()
+    for n in (10, 11):
+        shutil.copy(split / "image_2" / f"000004_{n}.png", split / "image_3" / f"000004_{n}.png")
+    out = tmp_path / "stereo"
+    res = run("render", "--dataset", "kitti", "--root", tmp_path / "kitti", "--preset",
+              "snow-moderate+fog-light", "--set", "far=5", "--stereo", "--out", out)
+    assert res.exit_code == 0, res.output
+    name = "snow-moderate+fog-light_clean"
+    left, right = (read_image(out / "training" / folder / "000004_0010" / "frame_0010.png")
+                   for folder in (name, name + "_right"))
+    original = read_image(split / "image_3" / "000004_10.png")
+    assert np.abs(right - original).max() > 0.1 and np.abs(right - left).max() > 0.1
+
+    pair = pairs[0]
+    record = pair_particles(pair, load_preset("snow-moderate", {"far": "5"}), 0, frame_rate=10.0)
+    shift = torch.tensor([[1, 0, 0, -0.54], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]],
+                         dtype=torch.float64)
+    _, c1, c2 = reference_transforms(pair)
+    views = [stereo_view(View(pair.intrinsics, cam, depth), shift, depth)
+             for depth, cam in ((pair.depth1, c1), (pair.depth2, c2))]
+    images = (pair.image1, pair.image2)
+    frames, opacities = render_right_layers(images, views, LayeredParticles((record,), ("s",)))
+    start1, start2, disp = pair_starts(record, torch.float32, torch.device("cpu"))
+    lib = load_templates(record.settings.templates)
+    for t, start in enumerate((start1, start2)):
+        alone, alpha = render_right(images[t], views[t], record, start, disp, lib)
+        assert torch.equal(frames[t], alone)
+        # the layered opacity is 1 − Π (1 − clamp(A)): one layer's, up to float32's rounding
+        assert torch.allclose(opacities[t], alpha, rtol=0, atol=1e-6)
 
 
 def test_a_sequence_refuses_a_combination_with_a_paper_layer_in_one_line(tmp_path):

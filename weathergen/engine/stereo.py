@@ -17,6 +17,8 @@ from typing import Optional
 import torch
 
 from ..geometry import backproject, project, transform_points
+from .layered import render_layers
+from .layers import LayeredParticles
 from .particles import Particles
 from .renderer import BETA_RENDER, render_view
 from .tracks import View
@@ -63,3 +65,19 @@ def render_right(image: torch.Tensor, right: View, particles: Particles, start: 
     """
     return render_view(image, right, particles, start, displacement, templates, beta=beta,
                        chunk_elements=chunk_elements)
+
+
+def render_right_layers(images, views, particles: LayeredParticles, *,
+                        beta: float = BETA_RENDER) -> tuple[list, list]:
+    """Both weather frames of the right camera for combined weather: the layers drawn in one
+    pass from the right camera's two views (:func:`stereo_view` of each frame), as a pair of
+    that camera, depth-ordered per pixel as :func:`~weathergen.engine.render_layers` does.
+
+    Shape: images two (3, H, W), views two :class:`View` -> (two images (3, H, W), two opacities
+    (1, H, W)).
+    """
+    (image1, image2), (view1, view2) = images, views
+    out = render_layers(image1[None], image2[None], view1.depth[None], view2.depth[None],
+                        view1.intrinsics[None], view1.cam_from_ref[None],
+                        view2.cam_from_ref[None], [particles], beta=beta)
+    return [out.image1[0], out.image2[0]], [out.opacity1[0], out.opacity2[0]]

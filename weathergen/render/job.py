@@ -28,7 +28,7 @@ from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, load_
                       particle_truth, reference_transforms, render_pair, visible_counts)
 from ..engine.presets import list_presets
 from ..engine.renderer import pair_starts, render_first_frame
-from ..engine.stereo import render_right, stereo_view, warp_depth
+from ..engine.stereo import render_right, render_right_layers, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
@@ -278,21 +278,29 @@ def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
     that depth, its opacity and its cameras (in the left camera files' world)."""
     rc = right_camera(job.dataset, pair)
     _, c1, c2 = reference_transforms(pair)
-    lib = load_templates(particles.settings.templates)
-    start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
     k_right = pair.intrinsics if rc.intrinsics is None else rc.intrinsics
-    frames, opacity, depths, cams = [], [], [], []
-    for image, depth, cam, start in ((rc.image1, pair.depth1, c1, start1),
-                                     (rc.image2, pair.depth2, c2, start2))[:2 if second else 1]:
+    count = 2 if second else 1
+    layered = isinstance(particles, LayeredParticles)
+    views = []
+    for depth, cam in ((pair.depth1, c1), (pair.depth2, c2))[:2 if layered else count]:
         left = View(pair.intrinsics, cam, depth)
         right_depth = warp_depth(depth, pair.intrinsics, rc.right_from_left, rc.intrinsics)
-        view = stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics)
-        with torch.no_grad():
-            out, alpha = render_right(image, view, particles, start, disp, lib)
-        frames.append(out.permute(1, 2, 0).numpy())
-        opacity.append(alpha[0].numpy())
-        depths.append(right_depth[0].numpy())
-        cams.append(view.cam_from_ref.numpy())
+        views.append(stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics))
+    with torch.no_grad():
+        if layered:                                     # both frames in one layered pass
+            rendered = zip(*render_right_layers((rc.image1, rc.image2), views, particles))
+        else:
+            lib = load_templates(particles.settings.templates)
+            start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
+            rendered = (render_right(image, view, particles, start, disp, lib)
+                        for image, view, start in zip((rc.image1, rc.image2), views[:count],
+                                                      (start1, start2)))
+        frames, opacity, depths, cams = [], [], [], []
+        for (out, alpha), view in zip(rendered, views[:count]):
+            frames.append(out.permute(1, 2, 0).numpy())
+            opacity.append(alpha[0].numpy())
+            depths.append(view.depth[0].numpy())
+            cams.append(view.cam_from_ref.numpy())
     return RightView(tuple(frames), tuple(opacity), tuple(depths), k_right.double().numpy(),
                      tuple(cams), rc.right_from_left.double().numpy())
 
@@ -374,9 +382,6 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
         raise ConfigError(f"${{shard}} {job.shard[0]}/{job.shard[1]} holds no frame pairs: the "
                           f"selection holds {len(every)}, one for each of the first {len(every)} "
                           f"shards")
-    if isinstance(job.preset, CombinedPreset) and job.stereo:
-        raise ConfigError(f"${{stereo}} does not take combined presets yet "
-                          f"('{job.preset_name}'); render its layers one by one")
     if job.sequence:
         layers = (job.preset.layers if isinstance(job.preset, CombinedPreset)
                   else [job.preset])
