@@ -256,3 +256,15 @@ def write_moving_kitti(root: Path, pair, cam2_from_cam1: np.ndarray, *, moving_f
     write_flow_png(s / "flow_occ" / f"{scene}_10.png", flow, ok)
     write_object_map(s / "obj_map" / f"{scene}_10.png", moving.astype(np.uint8))
     return s, moving & measured & ok
+
+
+def write_fake_kitti_stereo(root: Path, pair, *, scene: str = "000004") -> Path:
+    """:func:`write_fake_kitti` with a right camera: ``image_3`` holds copies of ``image_2``'s
+    two frames (their content does not matter to the tests that use it). Returns the split."""
+    import shutil
+
+    split = write_fake_kitti(root, pair, scene=scene)
+    (split / "image_3").mkdir()
+    for n in (10, 11):
+        shutil.copy(split / "image_2" / f"{scene}_{n}.png", split / "image_3" / f"{scene}_{n}.png")
+    return split

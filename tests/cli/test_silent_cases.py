@@ -248,12 +248,10 @@ def test_kitti_messages_name_the_files_that_make_a_pair_readable(tmp_path):
 # -- the right view of a stereo render gets what the left gets ------------------------------------
 
 def test_stereo_with_format_both_writes_the_right_view_as_the_left(tmp_path, demo_root):
-    import shutil
-
     import numpy as np
     import torch
 
-    from fake_datasets import KITTI_BASELINE, demo_sequence, write_fake_kitti
+    from fake_datasets import KITTI_BASELINE, demo_sequence, write_fake_kitti_stereo
     from weathergen.engine.stereo import warp_depth
     from weathergen.io.exr import read_exr
     from weathergen.io.images import read_image
@@ -261,10 +259,7 @@ def test_stereo_with_format_both_writes_the_right_view_as_the_left(tmp_path, dem
     from weathergen.outputs import read_metadata
 
     _, pairs = demo_sequence("street")
-    split = write_fake_kitti(tmp_path / "kitti", pairs[0], scene="000004")
-    (split / "image_3").mkdir()
-    for n in (10, 11):
-        shutil.copy(split / "image_2" / f"000004_{n}.png", split / "image_3" / f"000004_{n}.png")
+    write_fake_kitti_stereo(tmp_path / "kitti", pairs[0])
     out = tmp_path / "stereo"
     res = run("render", "--dataset", "kitti", "--root", tmp_path / "kitti", "--preset", "snow-moderate",
               "--set", "far=5", "--stereo", "--format", "both", "--out", out, "-q")

@@ -72,19 +72,14 @@ def test_stereo_draws_a_combination_into_the_right_camera(tmp_path):
     """KITTI with image_3: `--stereo` with combined weather writes the right camera's frames, with
     weather that is not the left frame's; in the library, one layer seen from the right camera
     gives the frames of that record's own right-camera render, byte for byte."""
-    import shutil
-
-    from fake_datasets import demo_sequence, write_fake_kitti
+    from fake_datasets import demo_sequence, write_fake_kitti_stereo
     from weathergen.engine import View, load_templates, reference_transforms
     from weathergen.engine.renderer import pair_starts
     from weathergen.engine.stereo import render_right, render_right_layers, stereo_view
     from weathergen.io.images import read_image
 
     _, pairs = demo_sequence("street")
-    split = write_fake_kitti(tmp_path / "kitti", pairs[0], scene="000004")
-    (split / "image_3").mkdir()
-    for n in (10, 11):
-        shutil.copy(split / "image_2" / f"000004_{n}.png", split / "image_3" / f"000004_{n}.png")
+    split = write_fake_kitti_stereo(tmp_path / "kitti", pairs[0])
     out = tmp_path / "stereo"
     res = run("render", "--dataset", "kitti", "--root", tmp_path / "kitti", "--preset",
               "snow-moderate+fog-light", "--set", "far=5", "--stereo", "--out", out)
