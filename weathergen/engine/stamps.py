@@ -432,61 +432,66 @@ def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: t
     pixel, zero outside the footprint's disc), i.e. the pixel-integrated template at every
     1 / P of a pixel.
 
-    Per stamp side s (and so per P), the entries' samples are one dense batch of ``m x m``
-    samples (``m = P (s + 2)`` per axis, centred on the particle), averaged over every ``P x P``
-    window (:func:`_window_mean`): ``n = P (s + 1) + 1`` values per axis, exactly the entry's bordered grid, copied
-    whole to its place."""
+    Every phase stamp, whatever its side s, is a run of ``m x m`` samples (``m = P (s + 2)`` per
+    axis, centred on the particle, row-major), all read with one ``grid_sample`` per chunk of
+    runs, then averaged over every ``P x P`` window (:func:`_window_mean`): the ``n x n`` windows
+    starting in the run's first ``n = P (s + 1) + 1`` rows and columns are exactly the entry's
+    bordered grid, copied to its place."""
     if side.numel() == 0:
         return
     dtype, device = coef.dtype, coef.device
-    candidates = torch.nonzero(phases > 1).squeeze(1)
-    if candidates.numel() == 0:
+    members = torch.nonzero(phases > 1).squeeze(1)
+    if members.numel() == 0:
         return
-    sizes = torch.unique(side.index_select(0, candidates)).tolist()
-    for s in sizes:
-        members = candidates.index_select(
-            0, torch.nonzero(side.index_select(0, candidates) == s).squeeze(1))
-        factor = PHASE_FACTORS[s]
-        c = coef.index_select(0, members)[:, :, None, None]
-        m = factor * (s + 2)
-        n = m - factor + 1
-        # sample offsets from the centre, pixels: (b − (m − 1) / 2) / P, along x and along y
-        gx = _constant(f"gx{factor},{m}", [[[(b - (m - 1) / 2) / factor for b in range(m)]]],
-                       dtype, device)
-        gy = _constant(f"gy{factor},{m}", [[[(b - (m - 1) / 2) / factor] for b in range(m)]],
-                       dtype, device)
-        steps = _constant(f"steps{n}", list(range(n * n)), torch.int64, device)
-        per = max(1, chunk // (m * m))
-        for lo in range(0, int(members.numel()), per):
-            bx, ax, cx, by, ay, cy, rho2, _ = c[lo:lo + per].unbind(1)
-            count = bx.shape[0]
-            grid = torch.empty(count, m, m, 2, dtype=dtype, device=device)
-            grid_x, grid_y = grid.unbind(-1)
-            torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
-            torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
-            value = F.grid_sample(book.image, grid.view(1, count * m, m, 2), mode="bilinear",
-                                  padding_mode="zeros", align_corners=False).view(count, m, m)
-            value.mul_(torch.addcmul(gx * gx, gy, gy) <= rho2)
-            value = _window_mean(value, factor)                           # (count, n, n)
-            at = first.index_select(0, members[lo:lo + per])[:, None] + steps
-            work.index_copy_(0, at.view(-1), value.reshape(-1).to(torch.float64))
+    factor = phases.index_select(0, members)
+    m = factor * (side.index_select(0, members) + 2)
+    # per member: m, 1 − m, 2 P, P² (the sample offsets' and the mean's divisors), its first, n
+    per_member = torch.stack((m, 1 - m, 2 * factor, factor * factor,
+                              first.index_select(0, members), m - factor + 1))
+    quad = factor == 4
+    member_coef = coef.index_select(0, members)
+    for e, local in runs(m * m, chunk):
+        me, off, two_p, p2, at0, ne = per_member.index_select(1, e).unbind(0)
+        y = torch.div(local, me, rounding_mode="floor")
+        yx = torch.stack((local - y * me, y))
+        # sample offsets from the centre, pixels: (b − (m − 1) / 2) / P along x and along y
+        # (exact: halves of small integers over a power of two)
+        gx, gy = (2 * yx + off).to(dtype).div_(two_p.to(dtype)).unbind(0)
+        bx, ax, cx, by, ay, cy, rho2, _ = member_coef.index_select(0, e).unbind(1)
+        count = int(local.numel())
+        grid = torch.empty(count, 2, dtype=dtype, device=device)
+        grid_x, grid_y = grid.unbind(-1)
+        torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
+        torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
+        value = F.grid_sample(book.image, grid.view(1, 1, count, 2), mode="bilinear",
+                              padding_mode="zeros", align_corners=False).view(count)
+        value.mul_(torch.addcmul(gx * gx, gy, gy) <= rho2)
+        value = _window_mean(value, me, quad.index_select(0, e), p2.to(dtype))
+        keep = torch.nonzero((yx < ne).all(0)).squeeze(1)
+        at = at0 + yx[1] * ne + yx[0]
+        work.index_copy_(0, at.index_select(0, keep),
+                         value.index_select(0, keep).to(torch.float64))
 
 
-def _window_mean(value: torch.Tensor, factor: int) -> torch.Tensor:
-    """The mean of every ``factor x factor`` window (stride 1) of each ``m x m`` array, summed
-    separably and pairwise (columns, then rows: windows of 2, then of 4 as two adjacent windows
-    of 2), divided by ``factor²`` (a power of two: exact). Each output is the same arithmetic
-    on its own 16 (or 4) inputs wherever it lies. Shape: (E, m, m) -> (E, m − P + 1, m − P + 1).
-    """
-    width = 1
-    while width < factor:
-        value = value[..., :-width] + value[..., width:]
-        width *= 2
-    width = 1
-    while width < factor:
-        value = value[:, :-width] + value[:, width:]
-        width *= 2
-    return value / (factor * factor)
+def _window_mean(value: torch.Tensor, pitch: torch.Tensor, quad: torch.Tensor,
+                 divisor: torch.Tensor) -> torch.Tensor:
+    """The mean of every ``P x P`` window (stride 1) of runs of ``m x m`` samples laid out one
+    after the other, row-major (``pitch`` m per element, P = 4 where ``quad``, else 2), summed
+    separably and pairwise (columns, then rows: windows of 2, then, for P = 4, of 4 as two
+    adjacent windows of 2), divided by ``divisor`` P² (a power of two: exact). Each window's mean
+    is the same arithmetic on its own 16 (or 4) inputs wherever it lies; windows reaching past
+    their run's last row or column hold other values (not used).
+    Shape: value, pitch, quad (K,) -> (K,)."""
+    count = int(value.numel())
+    value = torch.cat((value, value.new_zeros(3)))
+    value = value[:-1] + value[1:]
+    value = torch.where(quad, value[:count] + value[2:count + 2], value[:count])
+    # along the columns: each window's value one and two rows down (last element where none)
+    down = torch.arange(count, device=value.device) + pitch
+    down = torch.stack((down, down + pitch)).clamp_(max=count - 1)
+    value = value + value.index_select(0, down[0])
+    value = torch.where(quad, value + value.index_select(0, down[1]), value)
+    return value / divisor
 
 
 def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, inner,
