@@ -367,61 +367,72 @@ def _sample(coef: torch.Tensor, book: Atlas, side, sub, place, pitch, work: torc
     written to ``work`` (pixel (y, x) of entry e at ``place[e] + y pitch[e] + x``): each pixel
     the mean of its ``sub x sub`` bilinear samples of the template's mip level at the rotated and
     scaled position, zero outside the footprint's disc; brightened where ``bright`` (E,) says
-    so."""
+    so.
+
+    Every stamp row is a run of its pixels' samples, each pixel's ``sub²`` samples one after
+    the other (row-major in the pixel: sample ``j`` at ``(j // sub, j % sub)``), whatever the
+    supersampling: one ``grid_sample`` per chunk of runs, then each pixel's samples summed
+    pairwise, halves first (:func:`_pixel_sums`), and divided by ``sub²``."""
     if side.numel() == 0 or not bool(whole.any()):
         return
     device, dtype = coef.device, coef.dtype
-    # entries by supersampling factor (4, 2, 1), then one item per stamp row, the groups' rows one
-    # after the other: its entry, its row y and where its pixel 0 goes in ``work`` (a pixel's
-    # column is then its index in the item)
-    groups = [(f, torch.nonzero((sub == f) & whole).squeeze(1)) for f in (4, 2, 1)]
-    groups = [(f, m) for f, m in groups if m.numel()]
-    order = torch.cat([m for _, m in groups]) if len(groups) > 1 else groups[0][1]
+    # one item per stamp row: its entry, its row y, where its pixel 0 goes in ``work`` (a
+    # pixel's column is then its index in the row) and the supersampling
+    order = torch.nonzero(whole).squeeze(1)
     s = side.index_select(0, order)
     ends = torch.cumsum(s, 0)
-    last = list(itertools.accumulate(int(m.numel()) for _, m in groups))
-    cuts = [0] + ends.index_select(0, torch.tensor(last, device=device) - 1).tolist()
-    rows = cuts[-1]
+    rows = int(ends[-1])
     row_entry = torch.repeat_interleave(order, s, output_size=rows)
     row_y = torch.arange(rows, device=device) \
         - torch.repeat_interleave(ends - s, s, output_size=rows)
-    row_size, row_place, row_pitch = torch.stack((side, place, pitch)).index_select(1, row_entry)
-    row_at = torch.addcmul(row_place, row_y, row_pitch)
-    for g, (factor, _) in enumerate(groups):
-        # sample offsets in a pixel along one axis: (sub, 1); a pixel's sub² samples are
-        # row-major, (sub rows, sub columns), so a sample's x depends on its column alone and its
-        # y on its row: the coordinates are computed per axis (sub, n) and broadcast
-        offsets = _constant(f"offsets{factor}", [[(k + 0.5) / factor - 0.5]
-                                                 for k in range(factor)], dtype, device)
-        row_offsets = _constant(f"row_offsets{factor}", [[[(k + 0.5) / factor - 0.5]]
-                                                         for k in range(factor)], dtype, device)
-        lo, hi = cuts[g], cuts[g + 1]
-        for item, col in runs(row_size[lo:hi], max(1, chunk // (factor * factor))):
-            if lo:
-                item = item + lo
-            e = row_entry.index_select(0, item)
-            row = row_y.index_select(0, item)
-            bx, ax, cx, by, ay, cy, rho2, centre = coef.index_select(0, e).t()
-            gx = (col.to(dtype) + centre) + offsets             # (sub columns, n)
-            gy = (row.to(dtype) + centre) + row_offsets         # (sub rows, 1, n)
-            n = gx.shape[-1]
-            grid = torch.empty(factor, factor, n, 2, dtype=dtype, device=device)
-            grid_x, grid_y = grid.unbind(-1)
-            torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
-            torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
-            inside = torch.addcmul(gx * gx, gy, gy) <= rho2
-            value = F.grid_sample(book.image, grid.view(1, factor * factor, n, 2),
-                                  mode="bilinear", padding_mode="zeros",
-                                  align_corners=False).view(inside.shape) * inside
-            while value.numel() > n:         # pairwise, in a fixed order: the same bits anywhere
-                value = value.view(2, -1, n).sum(0)
-            value = value.view(-1)
-            if factor > 1:
-                value = value / (factor * factor)
-            if bright is not None:      # (only the pixels of the stamps it brightens)
-                which = torch.nonzero(bright.index_select(0, e)).squeeze(1)
-                value.index_copy_(0, which, defocus_brighten(value.index_select(0, which)))
-            work.index_copy_(0, row_at.index_select(0, item) + col, value.to(torch.float64))
+    row_size, row_place, row_pitch, row_sub = \
+        torch.stack((side, place, pitch, sub)).index_select(1, row_entry)
+    row_table = torch.stack((row_entry, row_y, torch.addcmul(row_place, row_y, row_pitch),
+                             row_sub))
+    for item, local in runs(row_size * row_sub * row_sub, chunk):
+        e, row, at, factor = row_table.index_select(1, item).unbind(0)
+        count = factor * factor
+        col = torch.div(local, count, rounding_mode="floor")
+        j = local - col * count
+        a = torch.div(j, factor, rounding_mode="floor")
+        # the sample's offset in its pixel along x and y, ((b + 0.5) / sub − 0.5 for its
+        # column b and row a: exact), added to its pixel's position from the stamp's centre
+        off = (2 * torch.stack((j - a * factor, a)) + 1 - factor).to(dtype) \
+            .div_((2 * factor).to(dtype))
+        bx, ax, cx, by, ay, cy, rho2, centre = coef.index_select(0, e).unbind(1)
+        gx, gy = ((torch.stack((col, row)).to(dtype) + centre) + off).unbind(0)
+        n = int(local.numel())
+        grid = torch.empty(n, 2, dtype=dtype, device=device)
+        grid_x, grid_y = grid.unbind(-1)
+        torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
+        torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
+        inside = torch.addcmul(gx * gx, gy, gy) <= rho2
+        value = F.grid_sample(book.image, grid.view(1, 1, n, 2), mode="bilinear",
+                              padding_mode="zeros", align_corners=False).view(n) * inside
+        value = _pixel_sums(value, factor)
+        pixel = torch.nonzero(j == 0).squeeze(1)      # each pixel's first sample
+        value = value.index_select(0, pixel) / count.index_select(0, pixel).to(dtype)
+        e, target = torch.stack((e, at + col)).index_select(1, pixel)
+        if bright is not None:      # (only the pixels of the stamps it brightens)
+            which = torch.nonzero(bright.index_select(0, e)).squeeze(1)
+            value.index_copy_(0, which, defocus_brighten(value.index_select(0, which)))
+        work.index_copy_(0, target, value.to(torch.float64))
+
+
+def _pixel_sums(value: torch.Tensor, factor: torch.Tensor) -> torch.Tensor:
+    """Each pixel's ``sub²`` samples (one after the other, ``factor`` sub per sample, 4, 2 or
+    1) summed pairwise, halves first: sample j plus sample j + sub² / 2, then again, until one
+    is left, at the pixel's first sample (the order of a sum over halves: the same bits
+    anywhere). Shape: (n,) -> (n,), meaningful at each pixel's first sample."""
+    n = int(value.numel())
+    samples = value
+    value = torch.cat((value, value.new_zeros(8)))
+    quad = factor == 4
+    for shift in (8, 4, 2, 1):
+        summed = value[:n] + value[shift:n + shift]
+        value = torch.where(quad, summed, value[:n]) if shift > 2 else summed
+        value = torch.cat((value, value.new_zeros(8))) if shift > 1 else value
+    return torch.where(factor > 1, value, samples)
 
 
 def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: torch.Tensor,
