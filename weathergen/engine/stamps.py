@@ -40,7 +40,6 @@ kernels round differently), so a stamp is the same whatever other stamps the cal
 
 from __future__ import annotations
 
-import itertools
 import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
@@ -311,8 +310,13 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
         rows = torch.where(blurred, side, torch.zeros_like(side))
         rows_first = starts(rows)
         width = int((side + 4 * radius).max()) + 1 if bool(blurred.any()) else 1
-        work = torch.zeros(size + int(rows.sum()) * width if looks.count else 0,
-                           dtype=torch.float64, device=device)
+        # the brightened, blurred stamps are blurred onto canvases of similar sides (after the
+        # rows), brightened and softened there, then copied to their places
+        blur_end = size + int(rows.sum()) * width if looks.count else 0
+        canvases = _canvases(torch.nonzero(soft).squeeze(1), full, blur_end, chunk_elements) \
+            if bool(soft.any()) else None
+        work = torch.zeros(blur_end + (canvases.size if canvases else 0), dtype=torch.float64,
+                           device=device)
         # pixel (y, x) of entry e goes to ``place[e] + y * pitch[e] + x``
         place = torch.where(blurred, size + rows_first * width + 2 * radius + 1,
                             first + full + 3)      # (unblurred stamps do not grow)
@@ -329,12 +333,20 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
             # summed up
             rows_of = torch.repeat_interleave(disc_counts(radius.index_select(0, members)),
                                               side.index_select(0, members))
-            prefix = work[size:].view(-1, width).div_(rows_of[:, None]).cumsum_(1).view(-1)
-            _blur(prefix, members, side, radius, looks.brighten, rows_first, width,
-                  first + grow * (full + 2) + grow, full, inner, work, chunk_elements)
-        if bool(soft.any()):
-            _soften(work, torch.nonzero(soft).squeeze(1), first, inner, box, full,
-                    chunk_elements)
+            prefix = work[size:blur_end].view(-1, width).div_(rows_of[:, None]).cumsum_(1) \
+                .view(-1)
+            # blurred pixel (0, 0): at the bordered pixel (1, 1), or on the softening canvas at
+            # (b − 1, b − 1)
+            origin, out_pitch = first + full + 3, full + 2
+            if canvases is not None:
+                grown = grow.index_select(0, canvases.members)
+                origin = origin.index_copy(0, canvases.members, torch.addcmul(
+                    canvases.origin + grown, grown, canvases.side))
+                out_pitch = out_pitch.index_copy(0, canvases.members, canvases.side)
+            _blur(prefix, members, side, radius, rows_first, width, origin, out_pitch, work,
+                  chunk_elements)
+        if canvases is not None:
+            _soften(work, canvases, first, inner, box, full, chunk_elements)
     return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse,
                     phases=phases)
 
@@ -505,12 +517,11 @@ def _window_mean(value: torch.Tensor, pitch: torch.Tensor, quad: torch.Tensor,
     return value / divisor
 
 
-def _blur(prefix, members, side, radius, brighten, rows_first, width, first, full, inner,
-          work, chunk: int) -> None:
-    """Disc-blurred (and brightened where flagged) stamps ``members`` from their rows' prefix
-    sums (already divided by the disc's taps) into their bordered places in ``work``: the
-    ``inner x inner`` blurred stamp with its top-left pixel at ``first + full + 3`` (``first``
-    is shifted where a stamp grows for its softening; ``full + 2`` is the row pitch).
+def _blur(prefix, members, side, radius, rows_first, width, origin, pitch, work,
+          chunk: int) -> None:
+    """Disc-blurred stamps ``members`` from their rows' prefix sums (already divided by the
+    disc's taps) into ``work``: blurred pixel (Y, X) of entry e at ``origin[e] + Y pitch[e] +
+    X`` (its bordered place, or its softening canvas).
 
     The blurred pixel (Y, X) of a stamp of side s and radius r sums, over the disc's rows
     ``a`` in [−r, r] of half-width ``w = floor(sqrt(r² − a²))``, the stamp's row
@@ -520,48 +531,75 @@ def _blur(prefix, members, side, radius, brighten, rows_first, width, first, ful
     ``y + r + a`` it reaches, from column ``r − w`` on.
     """
     s, r = side.index_select(0, members), radius.index_select(0, members)
-    f = full.index_select(0, members)
     taps = 2 * r + 1
     item, local = next(runs(s * taps, 1 << 62))                 # the segments, all at once
-    per = torch.stack((r, s, taps, rows_first.index_select(0, members),
-                       first.index_select(0, members), f)).index_select(1, item)
-    rr, ss, tt, row_first, at0, ff = per
+    rr, ss, tt, row_first, at0, pp = torch.stack(
+        (r, s, taps, rows_first.index_select(0, members), origin.index_select(0, members),
+         pitch.index_select(0, members))).index_select(1, item)
     y = torch.div(local, tt, rounding_mode="floor")
     a = local - y * tt - rr
     w = torch.floor(torch.sqrt((rr * rr - a * a).to(torch.float64))).long()
     base = (row_first + y) * width + 2 * rr
-    # bordered output pixel (Y + 1, X + 1) of row Y = y + r + a from column X = r − w on
-    at = at0 + (y + rr + a + 1) * (ff + 2) + rr - w + 1
+    # output pixel (Y, X) of row Y = y + r + a from column X = r − w on
+    at = torch.addcmul(at0, y + rr + a, pp) + rr - w
     # element x of a segment: the box over the row's columns x − 2 w .. x
     # (rows of a stacked table: gathering them is several times faster than along a second axis)
     consts = torch.stack((base + 1, base - 2 * w, at), 1)
     for seg, x in runs(ss + 2 * w, chunk):
         c_hi, c_lo, c_out = consts.index_select(0, seg).add_(x[:, None]).t()
         work.index_add_(0, c_out, prefix.index_select(0, c_hi) - prefix.index_select(0, c_lo))
-    flags = brighten.index_select(0, members)
-    if bool(flags.any()):
-        bright = members.index_select(0, torch.nonzero(flags).squeeze(1))
-        nb = inner.index_select(0, bright)
-        for e, local in runs(nb * nb, chunk):
-            ne = nb.index_select(0, e)
-            row = torch.div(local, ne, rounding_mode="floor")
-            at = first.index_select(0, bright.index_select(0, e)) \
-                + (row + 1) * (full.index_select(0, bright.index_select(0, e)) + 2) \
-                + local - row * ne + 1
-            work.index_copy_(0, at, defocus_brighten(work.index_select(0, at)))
 
 
-def _soften(work, members, first, inner, box, full, chunk: int) -> None:
-    """Soften the brightened stamps ``members`` in place: each holds its ``n x n`` stamp
-    (n = ``inner``) at offset ``b − 1`` inside its bordered ``(full + 2)²`` block (``full =
-    n + 2 (b − 1)``, b = ``box``); afterwards the whole ``full x full`` is the stamp convolved
-    with a normalised, centred ``b x b`` box twice (:func:`soft_box`).
+#: A softening group's canvases hold at most this many times its stamps' own pixels (or at
+#: most ``chunk`` values).
+SOFTEN_WASTE = 1.5
+
+
+@dataclass
+class _Canvases:
+    """Where the brightened, blurred stamps are softened (:func:`_soften`): per group of
+    similar sides (:func:`_soften_groups`) its members, canvas side F and the position of its
+    ``(M, F, F)`` canvases in ``work``; per member (``members``, the groups' one after the
+    other) its canvas's pixel (0, 0) (``origin``) and side (``side``)."""
+
+    groups: list
+    members: torch.Tensor
+    origin: torch.Tensor
+    side: torch.Tensor
+    size: int
+
+
+def _canvases(members, full, base: int, chunk: int) -> _Canvases:
+    """The softening canvases of stamps ``members`` (``full`` wide when softened), in ``work``
+    from ``base`` on."""
+    sides = full.index_select(0, members)
+    order = torch.argsort(sides, descending=True, stable=True)
+    members = members.index_select(0, order)
+    sorted_sides = sides.index_select(0, order).tolist()
+    groups, origin, side, at = [], [], [], base
+    for lo, hi in _soften_groups(sorted_sides, chunk):
+        f = sorted_sides[lo]
+        groups.append((members[lo:hi], f, at))
+        origin.append(torch.arange(at, at + (hi - lo) * f * f, f * f, device=members.device))
+        side.append(members.new_full((hi - lo,), f))
+        at += (hi - lo) * f * f
+    return _Canvases(groups=groups, members=members,
+                     origin=origin[0] if len(origin) == 1 else torch.cat(origin),
+                     side=side[0] if len(side) == 1 else torch.cat(side), size=at - base)
+
+
+def _soften(work, canvases: _Canvases, first, inner, box, full, chunk: int) -> None:
+    """Brighten and soften the stamps of ``canvases``, each disc-blurred on its canvas (its
+    ``n x n`` stamp, n = ``inner``, at offset ``b − 1``, b = ``box``), into their bordered
+    ``(full + 2)²`` blocks: the whole ``full x full`` (``full = n + 2 (b − 1)``) is the
+    brightened stamp convolved with a normalised, centred ``b x b`` box twice
+    (:func:`soft_box`).
 
     The stamps go in groups of similar sides (:func:`_soften_groups`: largest first, each group's
     canvases at most ``chunk`` values or at most 1.5 times its stamps' own pixels), so that the
-    work stays proportional to the stamps' pixels, not to the count times the largest. Per group
-    the stamps are copied, each on its own canvas at the top left, into one zero-filled dense
-    float64 array ``(M, F, F)`` (F the group's largest ``full``); each of the four box passes
+    work stays proportional to the stamps' pixels, not to the count times the largest. A group's
+    canvases are one zero-filled dense float64 array ``(M, F, F)`` (F the group's largest
+    ``full``), brightened whole (zeros stay zero); each of the four box passes
     (rows, rows, columns, columns) takes cumulative sums along its axis (per row or column: its
     sums do not depend on the other stamps, nor on F or the padding, which only add leading or
     trailing exact zeros) and differences them at the stamp's own half-width h:
@@ -569,16 +607,10 @@ def _soften(work, members, first, inner, box, full, chunk: int) -> None:
     most ``b − 1`` beyond the stamp, so they stay inside its canvas; where a span is all zeros
     the difference is exactly zero.
     """
-    sides = full.index_select(0, members)
-    order = torch.argsort(sides, descending=True, stable=True)
-    for lo, hi in _soften_groups(sides.index_select(0, order).tolist(), chunk):
-        _soften_group(work, members.index_select(0, order[lo:hi]), first, inner, box, full,
-                      chunk)
-
-
-#: A softening group's canvases hold at most this many times its stamps' own pixels (or at
-#: most ``chunk`` values).
-SOFTEN_WASTE = 1.5
+    base = canvases.groups[0][2]
+    work[base:base + canvases.size] = defocus_brighten(work[base:base + canvases.size])
+    for members, side, at in canvases.groups:
+        _soften_group(work, members, side, at, first, box, full, chunk)
 
 
 def _soften_groups(sides: list, chunk: int) -> list:
@@ -598,27 +630,17 @@ def _soften_groups(sides: list, chunk: int) -> list:
     return groups
 
 
-def _soften_group(work, members, first, inner, box, full, chunk: int) -> None:
-    """One group of :func:`_soften`."""
-    device = work.device
+def _soften_group(work, members, side: int, at: int, first, box, full, chunk: int) -> None:
+    """One group of :func:`_soften`: ``members`` on canvases ``side`` wide from ``at`` on."""
     m = int(members.numel())
-    n, b = inner.index_select(0, members), box.index_select(0, members)
+    b = box.index_select(0, members)
     f = full.index_select(0, members)
     top = first.index_select(0, members) + f + 3                       # bordered pixel (1, 1)
-    side = int(f.max())
-    dense = torch.zeros(m, side, side, dtype=torch.float64, device=device)
-    flat = dense.view(-1)
-    for e, local in runs(n * n, chunk):
-        ne, off = n.index_select(0, e), b.index_select(0, e) - 1
-        y = torch.div(local, ne, rounding_mode="floor")
-        x = local - y * ne
-        flat.index_copy_(0, (e * side + y + off) * side + x + off,
-                         work.index_select(0, top.index_select(0, e) + (y + off)
-                                           * (f.index_select(0, e) + 2) + x + off))
+    dense = work[at:at + m * side * side].view(m, side, side)
     half = (b - 1) // 2
     pad = int(half.max()) + 1
     # out[x] = S[hi] − S[lo] in the padded sums: hi = x + pad + h, lo = hi − b
-    hi = torch.arange(side, device=device)[None] + (pad + half)[:, None]
+    hi = torch.arange(side, device=work.device)[None] + (pad + half)[:, None]
     lo = hi - b[:, None]
     ends = {2: (hi[:, None], lo[:, None]), 1: (hi[:, :, None], lo[:, :, None])}
     for axis in (2, 2, 1, 1):
