@@ -202,6 +202,8 @@ def defocus_brighten(blurred: torch.Tensor) -> torch.Tensor:
     return torch.exp(torch.log((2 * blurred).clamp(min=0)) / 3).clamp(max=1)
 
 
+#: ``−((s − 1) // 2)`` for every stamp side s (a stamp's pixel 0 from its centre).
+CENTRES = [float(-((s - 1) // 2)) for s in range(int(SIDES[-1]) + 1)]
 #: Taps of the disc of radius r (integer offsets with dx² + dy² <= r²) for r = 0 .. 255 (the
 #: defocus radii a record can store).
 DISC_TAPS = [sum(2 * math.isqrt(r * r - a * a) + 1 for a in range(-r, r + 1)) for r in range(256)]
@@ -365,11 +367,21 @@ def _coefficients(looks: Looks, book: Atlas, footprint, side, level, dtype) -> t
     cos, sin = torch.cos(looks.rotation), torch.sin(looks.rotation)
     x0 = book.x0.index_select(0, looks.template)
     y0 = book.y0.view(-1).index_select(0, looks.template * book.y0.shape[1] + level)
-    coef = torch.stack(((2 * x0 + res) / width - 1, 2 * scale * cos / width,
-                        2 * scale * sin / width, (2 * y0 + res) / height - 1,
-                        -2 * scale * sin / height, 2 * scale * cos / height,
-                        (footprint / 2) ** 2 * (1.0 + RIM_MARGIN),
-                        -((side - 1) // 2).to(torch.float64)), 1).to(dtype)
+    # (2 x0 + res) / width − 1 and (2 y0 + res) / height − 1; 2 scale cos / width,
+    # 2 scale sin / width, −2 scale sin / height and 2 scale cos / height (the negation exact)
+    device = x0.device
+    origin = (torch.stack((x0, y0)) * 2 + res) \
+        / _constant(f"atlas_size{width},{height}", [[width], [height]], torch.float64, device) - 1
+    two_scale = 2 * scale
+    turn = torch.stack((two_scale * cos, two_scale * sin))
+    turn = torch.cat((turn, turn.flip(0))) / _constant(
+        f"atlas_turn{width},{height}", [[width], [width], [height], [height]], torch.float64,
+        device)
+    bx, by = origin.unbind(0)
+    ax, cx, ay_neg, cy = turn.unbind(0)
+    coef = torch.stack((bx, ax, cx, by, -ay_neg, cy, (footprint / 2) ** 2 * (1.0 + RIM_MARGIN),
+                        _constant("centre", CENTRES, torch.float64, device)
+                        .index_select(0, side)), 1).to(dtype)
     return coef
 
 
@@ -406,11 +418,9 @@ def _sample(coef: torch.Tensor, book: Atlas, side, sub, place, pitch, work: torc
         count = factor * factor
         col = torch.div(local, count, rounding_mode="floor")
         j = local - col * count
-        a = torch.div(j, factor, rounding_mode="floor")
-        # the sample's offset in its pixel along x and y, ((b + 0.5) / sub − 0.5 for its
-        # column b and row a: exact), added to its pixel's position from the stamp's centre
-        off = (2 * torch.stack((j - a * factor, a)) + 1 - factor).to(dtype) \
-            .div_((2 * factor).to(dtype))
+        # the sample's offset in its pixel along x and y (:func:`_sample_offsets`), added to
+        # its pixel's position from the stamp's centre
+        off = _sample_offsets(dtype, device).index_select(1, torch.add(j, factor, alpha=16))
         bx, ax, cx, by, ay, cy, rho2, centre = coef.index_select(0, e).unbind(1)
         gx, gy = ((torch.stack((col, row)).to(dtype) + centre) + off).unbind(0)
         n = int(local.numel())
@@ -429,6 +439,18 @@ def _sample(coef: torch.Tensor, book: Atlas, side, sub, place, pitch, work: torc
             which = torch.nonzero(bright.index_select(0, e)).squeeze(1)
             value.index_copy_(0, which, defocus_brighten(value.index_select(0, which)))
         work.index_copy_(0, target, value.to(torch.float64))
+
+
+def _sample_offsets(dtype, device) -> torch.Tensor:
+    """Where sample j of a pixel supersampled ``sub x sub`` lies in the pixel, along x and y,
+    at column ``16 sub + j``: ``(b + 0.5) / sub − 0.5`` for its column ``b = j % sub`` and its
+    row ``a = j // sub``. Shape: (2, 80)."""
+    table = [[0.0] * 80, [0.0] * 80]
+    for sub in (1, 2, 4):
+        for j in range(sub * sub):
+            table[0][16 * sub + j] = (j % sub + 0.5) / sub - 0.5
+            table[1][16 * sub + j] = (j // sub + 0.5) / sub - 0.5
+    return _constant("sample_offsets", table, dtype, device)
 
 
 def _pixel_sums(value: torch.Tensor, factor: torch.Tensor) -> torch.Tensor:
@@ -469,17 +491,17 @@ def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: t
     factor = phases.index_select(0, members)
     m = factor * (side.index_select(0, members) + 2)
     # per member: m, 1 − m, 2 P, P² (the sample offsets' and the mean's divisors), its first, n
-    per_member = torch.stack((m, 1 - m, 2 * factor, factor * factor,
-                              first.index_select(0, members), m - factor + 1))
+    per_member = torch.stack((m, PHASE_M * m, factor * factor, first.index_select(0, members),
+                              m - factor + 1))
     quad = factor == 4
     member_coef = coef.index_select(0, members)
     for e, local in runs(m * m, chunk):
-        me, off, two_p, p2, at0, ne = per_member.index_select(1, e).unbind(0)
+        me, row, p2, at0, ne = per_member.index_select(1, e).unbind(0)
         y = torch.div(local, me, rounding_mode="floor")
         yx = torch.stack((local - y * me, y))
-        # sample offsets from the centre, pixels: (b − (m − 1) / 2) / P along x and along y
-        # (exact: halves of small integers over a power of two)
-        gx, gy = (2 * yx + off).to(dtype).div_(two_p.to(dtype)).unbind(0)
+        # sample offsets from the centre, pixels, along x and along y (:func:`_phase_offsets`)
+        gx, gy = _phase_offsets(dtype, device).index_select(0, (yx + row).view(-1)) \
+            .view(2, -1).unbind(0)
         bx, ax, cx, by, ay, cy, rho2, _ = member_coef.index_select(0, e).unbind(1)
         count = int(local.numel())
         grid = torch.empty(count, 2, dtype=dtype, device=device)
@@ -494,6 +516,22 @@ def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: t
         at = at0 + yx[1] * ne + yx[0]
         work.index_copy_(0, at.index_select(0, keep),
                          value.index_select(0, keep).to(torch.float64))
+
+
+#: Rows of :func:`_phase_offsets`: every m = P (s + 2) of a phase stamp is below it.
+PHASE_M = 32
+
+
+def _phase_offsets(dtype, device) -> torch.Tensor:
+    """The offset from the stamp's centre, pixels, of sample b (along x or y) of a phase stamp
+    sampled ``m x m`` times, at ``PHASE_M m + b``: ``(b − (m − 1) / 2) / P`` (P = 4 for
+    m = 4 (s + 2), s = 3, 5; 2 for s = 7, 9). Shape: (PHASE_M², )."""
+    table = [0.0] * (PHASE_M * PHASE_M)
+    for s, factor in PHASE_FACTORS.items():
+        m = factor * (s + 2)
+        for b in range(m):
+            table[PHASE_M * m + b] = (b - (m - 1) / 2) / factor
+    return _constant("phase_offsets", table, dtype, device)
 
 
 def _window_mean(value: torch.Tensor, pitch: torch.Tensor, quad: torch.Tensor,
