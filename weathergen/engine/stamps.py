@@ -84,6 +84,11 @@ def _allowed_sides(limit: int = 8193) -> torch.Tensor:
 
 
 SIDES = _allowed_sides()
+#: Per allowed side s: ``(s − 1) / 2 + 1``, and (s, its supersampling: 4 up to 5 pixels, 2 up to
+#: PHASE_SIDE, then 1).
+SIDE_STEPS = [(s - 1) / 2 + 1 for s in SIDES.tolist()]
+SIDE_TABLE = [SIDES.tolist(),
+              [4 if s <= 5 else 2 if s <= PHASE_SIDE else 1 for s in SIDES.tolist()]]
 _MIP_CACHE: dict = {}
 _ATLAS_CACHE: dict = {}
 
@@ -170,7 +175,7 @@ def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: i
     the footprint) and the phases P per axis (``sub`` for small stamps without a blur: they are
     sampled at every 1 / P pixel; 1 otherwise).
     """
-    radius = torch.where(defocus > 1, defocus, torch.zeros_like(defocus))
+    radius = defocus.masked_fill(defocus <= 1, 0)
     coarse = torch.zeros_like(radius)
     full = footprint + 2 * radius
     if coarse_side is not None and bool((full >= coarse_side).any()):
@@ -181,14 +186,16 @@ def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: i
         factor = (2.0 ** coarse).to(torch.float64)
         footprint = (footprint / factor).clamp(min=1.0)
         radius = torch.where(coarse > 0, torch.floor(radius / factor + 0.5).long(), radius)
-    # every pixel the footprint's disc reaches (partly covered ones are box-filtered)
-    raw_side = 2 * torch.floor(footprint / 2 + 0.5).clamp(min=1).long() + 1
-    sides = SIDES.to(footprint.device)
-    side = sides[torch.searchsorted(sides, raw_side)]
-    sub = torch.where(side <= 5, 4, torch.where(side <= PHASE_SIDE, 2, 1))
+    # every pixel the footprint's disc reaches (partly covered ones are box-filtered): the
+    # first allowed side s >= 2 max(1, floor(footprint / 2 + 0.5)) + 1, i.e. the first whose
+    # (s − 1) / 2 + 1 exceeds footprint / 2 + 0.5
+    steps = _constant("side_steps", SIDE_STEPS, torch.float64, footprint.device)
+    at = torch.searchsorted(steps, footprint / 2 + 0.5, right=True)
+    side, sub = _constant("sides", SIDE_TABLE, torch.int64, footprint.device) \
+        .index_select(1, at).unbind(0)
     level = floor_log2(resolution / (footprint * sub)) \
         .clamp(0, level_count - 1).long()
-    phases = torch.where(radius == 0, sub, torch.ones_like(sub))
+    phases = sub.masked_fill(radius > 0, 1)
     return footprint, radius, coarse, side, sub, level, phases
 
 
