@@ -40,9 +40,10 @@ kernels round differently), so a stamp is the same whatever other stamps the cal
 
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Union
 
 import torch
 import torch.nn.functional as F
@@ -161,8 +162,9 @@ def floor_log2(x: torch.Tensor) -> torch.Tensor:
     return (torch.frexp(x)[1] - 1).long()
 
 
-def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: int,
-                   level_count: int, coarse_side: Optional[int] = COARSE_SIDE) -> tuple:
+def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor,
+                   resolution: Union[int, torch.Tensor], level_count: Union[int, torch.Tensor],
+                   coarse_side: Optional[int] = COARSE_SIDE) -> tuple:
     """Each entry's stamp layout from its footprint (pixels, float64, >= 1) and defocus radius.
 
     Stamps at least ``coarse_side`` pixels wide (template plus defocus) go to a grid ``f = 2**L``
@@ -173,7 +175,9 @@ def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: i
     level L, the stamp side before the blur (an allowed side covering every pixel the
     footprint's disc reaches), the supersampling per axis, the mip level (no finer than twice
     the footprint) and the phases P per axis (``sub`` for small stamps without a blur: they are
-    sampled at every 1 / P pixel; 1 otherwise).
+    sampled at every 1 / P pixel; 1 otherwise). ``resolution`` and ``level_count``: the
+    template library's side and mip levels, or per entry (E,) (float64, int64) where the
+    entries come from several libraries.
     """
     radius = defocus.masked_fill(defocus <= 1, 0)
     coarse = torch.zeros_like(radius)
@@ -193,8 +197,11 @@ def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor, resolution: i
     at = torch.searchsorted(steps, footprint / 2 + 0.5, right=True)
     side, sub = _constant("sides", SIDE_TABLE, torch.int64, footprint.device) \
         .index_select(1, at).unbind(0)
-    level = floor_log2(resolution / (footprint * sub)) \
-        .clamp(0, level_count - 1).long()
+    # (the template's resolution over the footprint as ``int / tensor`` computes it: times the
+    # reciprocal)
+    level = floor_log2((footprint * sub).reciprocal() * resolution)
+    level = level.clamp(0, level_count - 1) if isinstance(level_count, int) \
+        else torch.minimum(level.clamp(min=0), level_count - 1)
     phases = sub.masked_fill(radius > 0, 1)
     return footprint, radius, coarse, side, sub, level, phases
 
@@ -292,51 +299,90 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
           coarse_side: Optional[int] = COARSE_SIDE,
           chunk_elements: int = STAMP_CHUNK_ELEMENTS) -> StampSet:
     """Every entry's stamp (see the module doc). Shape: E entries -> :class:`StampSet`."""
+    return build_many([(looks, lib)], dtype=dtype, coarse_side=coarse_side,
+                      chunk_elements=chunk_elements)
+
+
+def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
+               dtype: torch.dtype = torch.float32, coarse_side: Optional[int] = COARSE_SIDE,
+               chunk_elements: int = STAMP_CHUNK_ELEMENTS) -> StampSet:
+    """The stamps of several parts ``(looks, library)``, the parts' entries one after the other,
+    in one pass: entry for entry the bytes of ``StampSet.cat([build(looks, lib) for looks, lib
+    in parts])``, at the tensor operations of one build (only the template reads, one
+    ``grid_sample`` per chunk, go per library: each library's atlas is its own image, and a
+    read's normalised coordinates are those of its atlas)."""
+    libs: list[TemplateLibrary] = []
+    which = []
+    for _, lib in parts:
+        k = next((i for i, known in enumerate(libs)
+                  if known is lib or (known.digest, known.name) == (lib.digest, lib.name)), None)
+        if k is None:
+            libs.append(lib)
+            k = len(libs) - 1
+        which.append(k)
+    looks = parts[0][0] if len(parts) == 1 else Looks.cat([p[0] for p in parts])
     device = looks.template.device
-    if looks.count and (int(looks.template.min()) < 0 or int(looks.template.max()) >= lib.count):
-        raise ConfigError(f"particle template index out of range for the {lib.count} "
-                          f"templates of '{lib.name}'")
+    for (part, lib) in parts:
+        if part.count and not 0 <= part.template.min().tolist() <= part.template.max().tolist() \
+                < lib.count:
+            raise ConfigError(f"particle template index out of range for the {lib.count} "
+                              f"templates of '{lib.name}'")
     with torch.no_grad():
-        book = atlas(lib, dtype, device)
+        books = [atlas(lib, dtype, device) for lib in libs]
+        if len(libs) == 1:
+            lib_of, resolution, level_count = None, libs[0].resolution, int(books[0].res.numel())
+        else:
+            lib_of = torch.repeat_interleave(
+                torch.tensor(which, device=device),
+                torch.tensor([p[0].count for p in parts], device=device))
+            resolution, level_count = torch.tensor(
+                [[float(lib.resolution) for lib in libs], [b.res.numel() for b in books]],
+                dtype=torch.float64, device=device).index_select(1, lib_of).unbind(0)
+            level_count = level_count.long()
         footprint, radius, coarse, side, sub, level, phases = stamp_geometry(
-            looks.footprint.to(torch.float64), looks.defocus, lib.resolution,
-            int(book.res.numel()), coarse_side)
+            looks.footprint.to(torch.float64), looks.defocus, resolution, level_count,
+            coarse_side)
         # brightened blurred stamps are softened afterwards and grow by the kernel's reach
-        soft = looks.brighten & (radius > 0)
+        blurred = radius > 0
+        soft = looks.brighten & blurred
         box = _constant("box", SOFT_BOX, torch.int64, device).index_select(0, radius)
-        grow = torch.where(soft, box - 1, torch.zeros_like(radius))
+        grow = (box - 1) * soft
         inner = side + 2 * radius
         full = inner + 2 * grow
         fine = phases * (full + 1) + 1     # grid side with the border (phases > 1: no blur)
         block = fine * fine
         first = starts(block)
-        size = int(block.sum()) if looks.count else 0
         # One float64 buffer: every stamp in its bordered place, then, for the stamps to blur,
         # their rows before the blur, one per row of ``width`` values: 2 r zeros, the row, 2 r
         # zeros (so that every box of the blur lies inside it): the sampled pixels go straight
         # where they belong, and a row's prefix sums are the cumulative sum of its values.
-        blurred = radius > 0
-        rows = torch.where(blurred, side, torch.zeros_like(side))
+        rows = side * blurred
         rows_first = starts(rows)
-        width = int((side + 4 * radius).max()) + 1 if bool(blurred.any()) else 1
-        # the brightened, blurred stamps are blurred onto canvases of similar sides (after the
-        # rows), brightened and softened there, then copied to their places
-        blur_end = size + int(rows.sum()) * width if looks.count else 0
-        canvases = _canvases(torch.nonzero(soft).squeeze(1), full, blur_end, chunk_elements) \
-            if bool(soft.any()) else None
-        work = torch.zeros(blur_end + (canvases.size if canvases else 0), dtype=torch.float64,
-                           device=device)
-        # pixel (y, x) of entry e goes to ``place[e] + y * pitch[e] + x``
-        place = torch.where(blurred, size + rows_first * width + 2 * radius + 1,
-                            first + full + 3)      # (unblurred stamps do not grow)
-        pitch = torch.where(blurred, torch.full_like(side, width), full + 2)
         # stamps brightened without a blur (a defocus radius that rounds to 0 on a coarse grid)
         bright = looks.brighten & ~blurred
-        coef = _coefficients(looks, book, footprint, side, level, dtype)
-        _sample(coef, book, side, sub, place, pitch, work, bright if bool(bright.any()) else None,
-                chunk_elements, phases == 1)
-        _sample_phases(coef, book, side, phases, first, work, chunk_elements)
-        if bool(blurred.any()):
+        # (the sizes and flags the host needs, read at once)
+        size, row_count, width, blurs, softs, brights = torch.stack((
+            block.sum(), rows.sum(), (side + 4 * radius).max(), blurred.sum(), soft.sum(),
+            bright.sum())).tolist() if looks.count else [0] * 6
+        width = width + 1 if blurs else 1
+        # the brightened, blurred stamps are blurred onto canvases of similar sides (after the
+        # rows), brightened and softened there, then copied to their places
+        blur_end = size + row_count * width
+        canvases = _canvases(torch.nonzero(soft).squeeze(1), full, blur_end, chunk_elements) \
+            if softs else None
+        work = torch.zeros(blur_end + (canvases.size if canvases else 0), dtype=torch.float64,
+                           device=device)
+        # pixel (y, x) of entry e goes to ``place[e] + y * pitch[e] + x``; an unblurred stamp's
+        # pixel (0, 0) is at its bordered pixel (1, 1) (it does not grow)
+        top = first + full + 3
+        place = torch.where(blurred, size + rows_first * width + 2 * radius + 1, top)
+        pitch = torch.where(blurred, width, full + 2)
+        images = [b.image for b in books]
+        coef = _coefficients(looks, books, lib_of, footprint, side, level, dtype)
+        _sample(coef, images, lib_of, side, sub, place, pitch, work,
+                bright if brights else None, chunk_elements, phases == 1)
+        _sample_phases(coef, images, lib_of, side, phases, first, work, chunk_elements)
+        if blurs:
             members = torch.nonzero(blurred).squeeze(1)
             # each row divided by its disc's taps (the blur's normalisation, linear), then
             # summed up
@@ -346,7 +392,7 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
                 .view(-1)
             # blurred pixel (0, 0): at the bordered pixel (1, 1), or on the softening canvas at
             # (b − 1, b − 1)
-            origin, out_pitch = first + full + 3, full + 2
+            origin, out_pitch = top, full + 2
             if canvases is not None:
                 grown = grow.index_select(0, canvases.members)
                 origin = origin.index_copy(0, canvases.members, torch.addcmul(
@@ -355,35 +401,54 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
             _blur(prefix, members, side, radius, rows_first, width, origin, out_pitch, work,
                   chunk_elements)
         if canvases is not None:
-            _soften(work, canvases, first, inner, box, full, chunk_elements)
+            _soften(work, canvases, top, box, full, chunk_elements)
     return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse,
                     phases=phases)
 
 
-def _coefficients(looks: Looks, book: Atlas, footprint, side, level, dtype) -> torch.Tensor:
-    """Per entry, how a sample at (gx, gy) pixels from the stamp's centre reads the atlas.
+def _coefficients(looks: Looks, books: Sequence[Atlas], lib_of: Optional[torch.Tensor],
+                  footprint, side, level, dtype) -> torch.Tensor:
+    """Per entry, how a sample at (gx, gy) pixels from the stamp's centre reads its library's
+    atlas (``lib_of`` (E,): the entry's index into ``books``; None: one library).
     Shape: (E, 8), see :func:`_sample`."""
     # A sample at (gx, gy) pixels from the stamp's centre reads the atlas at the
     # normalised position (bx + ax gx + cx gy, by + ay gx + cy gy): the template at
     # Rot(−rotation) (gx, gy) in units of half the footprint (so image offset = Rot(rotation) ·
     # template offset), grid_sample's pixel convention (align_corners=False). It is inside the
     # disc when gx² + gy² <= (footprint / 2)² (1 + RIM_MARGIN).
-    height, width = book.image.shape[-2:]
-    res = book.res.index_select(0, level)
+    device = footprint.device
+    if lib_of is None:
+        book = books[0]
+        height, width = book.image.shape[-2:]
+        res = book.res.index_select(0, level)
+        x0 = book.x0.index_select(0, looks.template)
+        y0 = book.y0.view(-1).index_select(0, looks.template * book.y0.shape[1] + level)
+        size = _constant(f"atlas_size{width},{height}", [[width], [height]], torch.float64,
+                         device)
+        turn_size = _constant(f"atlas_turn{width},{height}",
+                              [[width], [width], [height], [height]], torch.float64, device)
+    else:
+        # every library's tables one after the other (levels padded to the most any has)
+        levels = max(int(b.res.numel()) for b in books)
+        offsets = list(itertools.accumulate([0] + [int(b.x0.numel()) for b in books[:-1]]))
+        template = looks.template + torch.tensor(offsets, device=device).index_select(0, lib_of)
+        x0 = torch.cat([b.x0 for b in books]).index_select(0, template)
+        y0 = torch.cat([F.pad(b.y0, (0, levels - b.y0.shape[1])) for b in books]).view(-1) \
+            .index_select(0, template * levels + level)
+        res = torch.stack([F.pad(b.res, (0, levels - b.res.numel())) for b in books]).view(-1) \
+            .index_select(0, lib_of * levels + level)
+        size = torch.tensor([[b.image.shape[-1] for b in books], [b.image.shape[-2]
+                                                                  for b in books]],
+                            dtype=torch.float64, device=device).index_select(1, lib_of)
+        turn_size = size.index_select(0, torch.tensor([0, 0, 1, 1], device=device))
     scale = res / footprint
     cos, sin = torch.cos(looks.rotation), torch.sin(looks.rotation)
-    x0 = book.x0.index_select(0, looks.template)
-    y0 = book.y0.view(-1).index_select(0, looks.template * book.y0.shape[1] + level)
     # (2 x0 + res) / width − 1 and (2 y0 + res) / height − 1; 2 scale cos / width,
     # 2 scale sin / width, −2 scale sin / height and 2 scale cos / height (the negation exact)
-    device = x0.device
-    origin = (torch.stack((x0, y0)) * 2 + res) \
-        / _constant(f"atlas_size{width},{height}", [[width], [height]], torch.float64, device) - 1
+    origin = (torch.stack((x0, y0)) * 2 + res) / size - 1
     two_scale = 2 * scale
     turn = torch.stack((two_scale * cos, two_scale * sin))
-    turn = torch.cat((turn, turn.flip(0))) / _constant(
-        f"atlas_turn{width},{height}", [[width], [width], [height], [height]], torch.float64,
-        device)
+    turn = torch.cat((turn, turn.flip(0))) / turn_size
     bx, by = origin.unbind(0)
     ax, cx, ay_neg, cy = turn.unbind(0)
     coef = torch.stack((bx, ax, cx, by, -ay_neg, cy, (footprint / 2) ** 2 * (1.0 + RIM_MARGIN),
@@ -392,8 +457,27 @@ def _coefficients(looks: Looks, book: Atlas, footprint, side, level, dtype) -> t
     return coef
 
 
-def _sample(coef: torch.Tensor, book: Atlas, side, sub, place, pitch, work: torch.Tensor,
-            bright: Optional[torch.Tensor], chunk: int, whole: torch.Tensor) -> None:
+def _read(images: Sequence[torch.Tensor], grid: torch.Tensor,
+          lib: Optional[torch.Tensor]) -> torch.Tensor:
+    """Bilinear reads of the atlases at ``grid`` (n, 2) normalised positions, each in its
+    library's atlas ``images[lib]`` (``lib`` (n,); None: the one library). Shape: -> (n,)."""
+    n = grid.shape[0]
+    if lib is None:
+        return F.grid_sample(images[0], grid.view(1, 1, n, 2), mode="bilinear",
+                             padding_mode="zeros", align_corners=False).view(n)
+    value = grid.new_zeros(n)
+    for k, image in enumerate(images):
+        at = torch.nonzero(lib == k).squeeze(1)
+        if at.numel():
+            value.index_copy_(0, at, F.grid_sample(
+                image, grid.index_select(0, at).view(1, 1, -1, 2), mode="bilinear",
+                padding_mode="zeros", align_corners=False).view(-1))
+    return value
+
+
+def _sample(coef: torch.Tensor, images: Sequence[torch.Tensor], lib_of: Optional[torch.Tensor],
+            side, sub, place, pitch, work: torch.Tensor, bright: Optional[torch.Tensor],
+            chunk: int, whole: torch.Tensor) -> None:
     """The stamps sampled at whole pixels (``whole`` (E,): one phase), before their blur,
     written to ``work`` (pixel (y, x) of entry e at ``place[e] + y pitch[e] + x``): each pixel
     the mean of its ``sub x sub`` bilinear samples of the template's mip level at the rotated and
@@ -436,8 +520,8 @@ def _sample(coef: torch.Tensor, book: Atlas, side, sub, place, pitch, work: torc
         torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
         torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
         inside = torch.addcmul(gx * gx, gy, gy) <= rho2
-        value = F.grid_sample(book.image, grid.view(1, 1, n, 2), mode="bilinear",
-                              padding_mode="zeros", align_corners=False).view(n) * inside
+        value = _read(images, grid, None if lib_of is None else lib_of.index_select(0, e)) \
+            * inside
         value = _pixel_sums(value, factor)
         pixel = torch.nonzero(j == 0).squeeze(1)      # each pixel's first sample
         value = value.index_select(0, pixel) / count.index_select(0, pixel).to(dtype)
@@ -476,7 +560,8 @@ def _pixel_sums(value: torch.Tensor, factor: torch.Tensor) -> torch.Tensor:
     return torch.where(factor > 1, value, samples)
 
 
-def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: torch.Tensor,
+def _sample_phases(coef: torch.Tensor, images: Sequence[torch.Tensor],
+                   lib_of: Optional[torch.Tensor], side, phases, first, work: torch.Tensor,
                    chunk: int) -> None:
     """The phase stamps (``phases`` P > 1), written to their bordered places in ``work``: the
     value at ``(y, x) / P`` pixels on the grid around the centre is the mean of the template over
@@ -502,6 +587,7 @@ def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: t
                               m - factor + 1))
     quad = factor == 4
     member_coef = coef.index_select(0, members)
+    member_lib = None if lib_of is None else lib_of.index_select(0, members)
     for e, local in runs(m * m, chunk):
         me, row, p2, at0, ne = per_member.index_select(1, e).unbind(0)
         y = torch.div(local, me, rounding_mode="floor")
@@ -515,8 +601,7 @@ def _sample_phases(coef: torch.Tensor, book: Atlas, side, phases, first, work: t
         grid_x, grid_y = grid.unbind(-1)
         torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
         torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
-        value = F.grid_sample(book.image, grid.view(1, 1, count, 2), mode="bilinear",
-                              padding_mode="zeros", align_corners=False).view(count)
+        value = _read(images, grid, None if member_lib is None else member_lib.index_select(0, e))
         value.mul_(torch.addcmul(gx * gx, gy, gy) <= rho2)
         value = _window_mean(value, me, quad.index_select(0, e), p2.to(dtype))
         keep = torch.nonzero((yx < ne).all(0)).squeeze(1)
@@ -633,7 +718,7 @@ def _canvases(members, full, base: int, chunk: int) -> _Canvases:
                      side=side[0] if len(side) == 1 else torch.cat(side), size=at - base)
 
 
-def _soften(work, canvases: _Canvases, first, inner, box, full, chunk: int) -> None:
+def _soften(work, canvases: _Canvases, top, box, full, chunk: int) -> None:
     """Brighten and soften the stamps of ``canvases``, each disc-blurred on its canvas (its
     ``n x n`` stamp, n = ``inner``, at offset ``b − 1``, b = ``box``), into their bordered
     ``(full + 2)²`` blocks: the whole ``full x full`` (``full = n + 2 (b − 1)``) is the
@@ -655,7 +740,7 @@ def _soften(work, canvases: _Canvases, first, inner, box, full, chunk: int) -> N
     base = canvases.groups[0][2]
     work[base:base + canvases.size] = defocus_brighten(work[base:base + canvases.size])
     for members, side, at in canvases.groups:
-        _soften_group(work, members, side, at, first, box, full, chunk)
+        _soften_group(work, members, side, at, top, box, full, chunk)
 
 
 def _soften_groups(sides: list, chunk: int) -> list:
@@ -675,12 +760,13 @@ def _soften_groups(sides: list, chunk: int) -> list:
     return groups
 
 
-def _soften_group(work, members, side: int, at: int, first, box, full, chunk: int) -> None:
-    """One group of :func:`_soften`: ``members`` on canvases ``side`` wide from ``at`` on."""
+def _soften_group(work, members, side: int, at: int, top, box, full, chunk: int) -> None:
+    """One group of :func:`_soften`: ``members`` on canvases ``side`` wide from ``at`` on, into
+    their places from their bordered pixel (1, 1) ``top`` on."""
     m = int(members.numel())
     b = box.index_select(0, members)
     f = full.index_select(0, members)
-    top = first.index_select(0, members) + f + 3                       # bordered pixel (1, 1)
+    top = top.index_select(0, members)
     dense = work[at:at + m * side * side].view(m, side, side)
     half = (b - 1) // 2
     pad = int(half.max()) + 1
