@@ -15,8 +15,8 @@ particle's drawing come from. This stage computes those numbers and nothing else
   cameras of the pair); a field's (and a single view's) follow the particle's own displacement.
 - :class:`Instances` (:func:`blur_samples`): every track's blur samples, projected: the input of
   the splat. The number of samples is a per-track column, adapted to the streak's length in
-  pixels in each view (:func:`streak_samples`: consecutive samples at most one pixel apart, up
-  to :data:`MAX_BLUR_SAMPLES`).
+  pixels in each view (:func:`streak_samples`: consecutive samples at most one pixel apart, or
+  as far apart as the stamp is smooth, up to :data:`MAX_BLUR_SAMPLES`).
 
 Every geometric product is an elementwise product and a sum over the last axis (no matrix
 products), so that a track's numbers do not depend on how many other tracks the call holds
@@ -586,11 +586,16 @@ class Instances:
 MAX_BLUR_SAMPLES = 256
 
 
-def streak_samples(tracks: Tracks) -> tuple[torch.Tensor, torch.Tensor]:
+def streak_samples(tracks: Tracks, gap: Optional[torch.Tensor] = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """The number of blur samples of every track and their spacing, adapted to the streak's
-    length in pixels so that consecutive samples lie at most one pixel apart:
-    ``K_t = clamp(ceil(L_t) + 1, K, MAX_BLUR_SAMPLES)`` samples spread over the same streak
+    length in pixels so that consecutive samples lie at most ``g`` pixels apart:
+    ``K_t = clamp(ceil(L_t / g) + 1, K, MAX_BLUR_SAMPLES)`` samples spread over the same streak
     (``spacing_t = (K − 1) spacing / (K_t − 1)``), K the record's ``blur_samples``.
+
+    ``gap``: g per stamp entry (the :class:`~weathergen.engine.stamps.StampSet`'s ``gap``, read
+    at each track's entry): a stamp that is smooth over several pixels (softened) leaves no
+    ripple between samples that far apart; None: one pixel for every track.
 
     ``L_t`` is the streak's length in pixels measured at the slope of its nearer end: the
     streak ``p(s) = (a + s b) / (c + s e)`` (``h0 = (a, c)``, ``hd = (b, e)``) has
@@ -610,18 +615,22 @@ def streak_samples(tracks: Tracks) -> tuple[torch.Tensor, torch.Tensor]:
         z0 = h0[:, 2]
         near = torch.minimum(z0, torch.addcmul(z0, reach, hd[:, 2])).clamp_(min=NEAR)
         length = reach * torch.sqrt((cross * cross).sum(1)) / (near * near)
-        length = torch.nan_to_num(length, nan=0.0).clamp_(max=MAX_BLUR_SAMPLES - 1)
+        length = torch.nan_to_num(length, nan=0.0)
+        if gap is not None:
+            length = length / gap.index_select(0, tracks.entry)
+        length = length.clamp_(max=MAX_BLUR_SAMPLES - 1)
         samples = torch.maximum(torch.ceil(length).long() + 1, k)
         spacing = torch.where(samples == k, tracks.spacing, reach / (samples - 1))
     return samples, spacing
 
 
-def blur_samples(tracks: Tracks, dtype: torch.dtype) -> Instances:
+def blur_samples(tracks: Tracks, dtype: torch.dtype, gap: Optional[torch.Tensor] = None
+                 ) -> Instances:
     """Every track's K_t blur samples at ``h0 + k · spacing_t · hd`` (k = 0 .. K_t − 1,
     :func:`streak_samples`), projected, each with θ / K_t.
     Shape: T tracks -> I = Σ K_t instances, a track's samples consecutive."""
     device = tracks.h0.device
-    samples, spacing = streak_samples(tracks)
+    samples, spacing = streak_samples(tracks, gap)
     tracks = Tracks(entry=tracks.entry, view=tracks.view, h0=tracks.h0, hd=tracks.hd,
                     samples=samples, spacing=spacing, theta=tracks.theta, color=tracks.color,
                     beta=tracks.beta)
