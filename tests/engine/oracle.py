@@ -177,6 +177,26 @@ def blur_count(k, x, d, reach: float, preset: int, gap: float = 1.0) -> int:
     return min(max(math.ceil(length) + 1, preset), MAX_BLUR_SAMPLES)
 
 
+def farthest_around(depth, u: float, v: float, reach: float) -> float:
+    """The farthest scene depth the view mask reads for a point (u, v) whose stamp reaches
+    ``reach`` pixels: over the window of image pixels within ``reach`` (n x n at most), widened
+    to the aligned s x s blocks that hold it (s the smallest power of two >= n)."""
+    height, width = len(depth), len(depth[0])
+
+    def span(x, size):
+        lo = min(max(math.floor(x - reach + 0.5), 0), size - 1)
+        hi = min(max(math.floor(x + reach + 0.5), 0), size - 1)
+        return lo, hi
+
+    (c0, c1), (r0, r1) = span(u, width), span(v, height)
+    s = 1
+    while s < max(c1 - c0, r1 - r0) + 1:
+        s *= 2
+    rows = range(r0 // s * s, min((r1 // s + 1) * s, height))
+    cols = range(c0 // s * s, min((c1 // s + 1) * s, width))
+    return max(depth[y][x] for y in rows for x in cols)
+
+
 def _steps(reach: float, count: int) -> list:
     return [reach * i / (count - 1) if count > 1 else 0.0 for i in range(count)]
 
@@ -242,9 +262,8 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
                 if not (-0.5 - reach <= u <= width - 0.5 + reach
                         and -0.5 - reach <= v <= height - 0.5 + reach):
                     continue
-                col = min(max(math.floor(u + 0.5), 0), width - 1)
-                row = min(max(math.floor(v + 0.5), 0), height - 1)
-                seen = seen or xe[2] <= depth[row][col] + 3 * o.depth_softness
+                seen = seen or xe[2] <= farthest_around(depth, u, v, reach) \
+                    + 3 * o.depth_softness
             fade = _smoothstep((z - o.near) / o.near) * (
                 _smoothstep((o.far - z) / (o.fade * o.far)) if o.fade > 0 else float(z <= o.far))
             factor = fade * min(footprint, 1.0) ** 2

@@ -25,10 +25,12 @@ products), so that a track's numbers do not depend on how many other tracks the 
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import torch
+import torch.nn.functional as F
 
 from .optics import FieldOptics
 from .particles import Particles
@@ -154,8 +156,10 @@ def depth_fade(optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
 def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
             depth: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
     """Whether a streak's start or end lands in its view's image widened by ``reach`` pixels and
-    not behind the scene there by more than ``tolerance`` (tested at the nearest pixel of the
-    image, its border for a point just outside, where its stamp reaches in).
+    not behind the scene by more than ``tolerance`` everywhere its stamp reaches: the test reads
+    the farthest scene depth over the image pixels within ``reach`` of the point (a cloud whose
+    centre lies behind a wall but whose stamp reaches past the wall's edge is drawn), taken from
+    :func:`depth_windows`' blocks (possibly a little more than the window: never less).
 
     Shape: ends (2, M, 3) float64 homogeneous pixels of the start and the end, reach (M,),
     tolerance (M,) or a number, depth (V, 1, H, W), view (M,) int64 -> (M,) bool.
@@ -165,11 +169,47 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
     safe = torch.where(zz.abs() > 1e-12, zz, 1e-12)
     uv = ends[..., :2] / safe[..., None]                                # (2, M, 2): u, v
     reach = reach[:, None]
-    limit, last, step = _image_constants(height, width, ends.device)
+    limit, last, _ = _image_constants(height, width, ends.device)
     reaches = (zz > 1e-6) & ((uv >= -0.5 - reach) & (uv <= limit + reach)).all(-1)
-    pixel = torch.minimum(torch.floor(uv + 0.5).clamp_(min=0), last).long()   # (col, row)
-    under = torch.take(depth, (pixel * step).sum(-1) + view * (height * width))
+    # the window's first and last pixels per axis (col, row), inside the image
+    window = torch.minimum(torch.stack((uv - reach, uv + reach)).add_(0.5).floor_().clamp_(min=0),
+                           last).long()
+    under = depth_windows(depth).farthest(window, view)
     return (reaches & (zz <= under.to(torch.float64) + tolerance)).any(0)
+
+
+@dataclass
+class DepthWindows:
+    """A view's scene depth and its maxima over ``2**k x 2**k`` blocks (k = 0, 1, ... up to one
+    block for the whole image), every level flat in ``values``; per level k, ``table[k]`` =
+    (where it starts, h_k, w_k): level k is ``(V, h_k, w_k)``, ``h_k = ceil(H / 2**k)``."""
+
+    values: torch.Tensor
+    table: torch.Tensor
+
+    def farthest(self, window: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+        """The largest depth over the blocks of the smallest level whose blocks are as wide as
+        the window (at most two per axis hold it). Shape: window (2, ..., M, 2) int64, its first
+        and last pixels (col, row); view (M,) -> (..., M)."""
+        # the level: 2**k >= the window's side n, k = the binary exponent of n − 1
+        k = torch.frexp((window[1] - window[0]).amax(-1).to(torch.float64))[1] \
+            .clamp_(max=self.table.shape[0] - 1)
+        start, h, w = self.table.index_select(0, k.view(-1)).view(*k.shape, 3).unbind(-1)
+        col, row = (window >> k[..., None]).unbind(-1)                     # (2, ..., M)
+        at = (start + view * h * w + row * w)[:, None] + col               # (2, 2, ..., M)
+        return self.values.take(at).amax((0, 1))
+
+
+def depth_windows(depth: torch.Tensor) -> DepthWindows:
+    """:class:`DepthWindows` of ``depth`` (V, 1, H, W): block maxima by repeated 2 x 2 max
+    pooling (a block at the image's right or bottom edge holds what lies inside)."""
+    levels = [depth]
+    while levels[-1].shape[-1] > 1 or levels[-1].shape[-2] > 1:
+        levels.append(F.max_pool2d(levels[-1], 2, ceil_mode=True))
+    starts = itertools.accumulate([lv.numel() for lv in levels[:-1]], initial=0)
+    table = torch.tensor([[s, lv.shape[-2], lv.shape[-1]] for s, lv in zip(starts, levels)],
+                         device=depth.device)
+    return DepthWindows(values=torch.cat([lv.reshape(-1) for lv in levels]), table=table)
 
 
 _IMAGE: dict = {}
