@@ -154,7 +154,8 @@ def depth_fade(optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
 
 
 def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
-            depth: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+            depth: torch.Tensor, view: torch.Tensor,
+            windows: Optional[DepthWindows] = None) -> torch.Tensor:
     """Whether a streak's start or end lands in its view's image widened by ``reach`` pixels and
     not behind the scene by more than ``tolerance`` everywhere its stamp reaches: the test reads
     the farthest scene depth over the image pixels within ``reach`` of the point (a cloud whose
@@ -163,19 +164,35 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
 
     Shape: ends (2, M, 3) float64 homogeneous pixels of the start and the end, reach (M,),
     tolerance (M,) or a number, depth (V, 1, H, W), view (M,) int64 -> (M,) bool.
+    ``windows``: :func:`depth_windows` of ``depth`` when the caller has them.
     """
     height, width = depth.shape[-2:]
     zz = ends[..., 2]
     safe = torch.where(zz.abs() > 1e-12, zz, 1e-12)
     uv = ends[..., :2] / safe[..., None]                                # (2, M, 2): u, v
     reach = reach[:, None]
-    limit, last, _ = _image_constants(height, width, ends.device)
+    limit, last, step = _image_constants(height, width, ends.device)
     reaches = (zz > 1e-6) & ((uv >= -0.5 - reach) & (uv <= limit + reach)).all(-1)
-    # the window's first and last pixels per axis (col, row), inside the image
-    window = torch.minimum(torch.stack((uv - reach, uv + reach)).add_(0.5).floor_().clamp_(min=0),
-                           last).long()
-    under = depth_windows(depth).farthest(window, view)
-    return (reaches & (zz <= under.to(torch.float64) + tolerance)).any(0)
+    # the point's own pixel first (most points in empty space pass there; the window holds it,
+    # so a point that passes there passes the window's test)
+    pixel = torch.minimum(torch.floor(uv + 0.5).clamp_(min=0), last).long()   # (col, row)
+    under = torch.take(depth, (pixel * step).sum(-1) + view * (height * width))
+    seen = reaches & (zz <= under.to(torch.float64) + tolerance)
+    # the others: the farthest depth over the window of pixels within ``reach``
+    rest = torch.nonzero((reaches & ~seen).view(-1)).squeeze(1)
+    if rest.numel():
+        m = torch.remainder(rest, zz.shape[1])
+        r = reach.view(-1).index_select(0, m)[:, None]
+        point = uv.reshape(-1, 2).index_select(0, rest)
+        window = torch.minimum(torch.stack((point - r, point + r)).add_(0.5).floor_()
+                               .clamp_(min=0), last).long()
+        farthest = (depth_windows(depth) if windows is None else windows) \
+            .farthest(window, view.index_select(0, m))
+        if torch.is_tensor(tolerance) and tolerance.dim():
+            tolerance = tolerance.index_select(0, m)
+        behind = zz.reshape(-1).index_select(0, rest) <= farthest.to(torch.float64) + tolerance
+        seen = seen.reshape(-1).index_copy(0, rest, behind).view(seen.shape)
+    return seen.any(0)
 
 
 @dataclass
@@ -250,7 +267,8 @@ class OpticsRows:
 
 def field_mask(project: torch.Tensor, f: torch.Tensor, start: torch.Tensor,
                streak: torch.Tensor, diameter: torch.Tensor, optics, depth: torch.Tensor,
-               view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+               view: torch.Tensor, windows: Optional[DepthWindows] = None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Which field particles a view draws, their camera depth there and their defocus radius:
     camera depth in ``[near, far]``, start or streak end inside the image widened by the
     stamp's reach (half the footprint, the defocus radius and 2 pixels), not behind the scene at
@@ -259,13 +277,15 @@ def field_mask(project: torch.Tensor, f: torch.Tensor, start: torch.Tensor,
     Shape: project (M, 3, 4), f (M,), start, streak (M, 3), diameter (M,) float64; ``optics`` a
     :class:`FieldOptics` or :class:`OpticsRows`; depth (V, 1, H, W); view (M,) int64 ->
     ``(mask (M,) bool, z (M,) float64, radius (M,) int64)`` (z and radius where drawn, those
-    at ``far`` elsewhere).
+    at ``far`` elsewhere). ``windows``: :func:`depth_windows` of ``depth``, when the caller
+    tests many particles against the same views.
     """
-    mask, z, radius, _ = _field_mask(project, f, start, streak, diameter, optics, depth, view)
+    mask, z, radius, _ = _field_mask(project, f, start, streak, diameter, optics, depth, view,
+                                     windows)
     return mask, z, radius
 
 
-def _field_mask(project, f, start, streak, diameter, optics, depth, view):
+def _field_mask(project, f, start, streak, diameter, optics, depth, view, windows=None):
     """:func:`field_mask`, and the homogeneous pixels of the start, differentiable in ``start``
     (the mask and the depth are not). Shape: -> (mask, z, radius, h0 (M, 3))."""
     ends = homogeneous(project, torch.stack((start, start.detach() + streak)))
@@ -274,17 +294,18 @@ def _field_mask(project, f, start, streak, diameter, optics, depth, view):
     safe = torch.where(in_range, z, optics.far)
     radius = coc_radius(f, optics.aperture, optics.focus, safe)
     reach = 0.5 * footprint(f, diameter, safe) + radius + 2
-    seen = in_view(ends.detach(), reach, 3 * optics.depth_softness, depth, view)
+    seen = in_view(ends.detach(), reach, 3 * optics.depth_softness, depth, view, windows)
     return in_range & seen, safe, radius, ends[0]
 
 
 def view_mask(view: View, points: torch.Tensor, streak: torch.Tensor, diameter: torch.Tensor,
-              optics: FieldOptics) -> torch.Tensor:
+              optics: FieldOptics, windows: Optional[DepthWindows] = None) -> torch.Tensor:
     """Which particles a view draws (see :func:`field_mask`; the render core applies the same
     test to every view it draws).
 
     Shape: points (M, 3) reference coordinates, streak (M, 3) the streak's end minus its start,
-    diameter (M,) -> (M,) bool. Computed in float64 on the CPU.
+    diameter (M,) -> (M,) bool. Computed in float64 on the CPU. ``windows``: the view's
+    :func:`view_windows`, when many calls test the same view.
     """
     views = Views.of(view.intrinsics[None], view.cam_from_ref[None], view.depth[None].cpu(),
                      device="cpu")
@@ -292,8 +313,14 @@ def view_mask(view: View, points: torch.Tensor, streak: torch.Tensor, diameter: 
     index = torch.zeros(m, dtype=torch.long)
     mask, _, _ = field_mask(views.project.expand(m, 3, 4), views.focal.expand(m),
                             points.double().cpu(), streak.double().cpu(),
-                            diameter.double().cpu(), optics, views.depth, index)
+                            diameter.double().cpu(), optics, views.depth, index, windows)
     return mask
+
+
+def view_windows(view: View) -> DepthWindows:
+    """The :class:`DepthWindows` :func:`view_mask` reads for ``view`` (build them once for many
+    calls on one view)."""
+    return depth_windows(view.depth[None].detach().cpu())
 
 
 # -- records, looks and tracks -----------------------------------------------------------------
