@@ -3,8 +3,9 @@ drawn by the render core, then composited once, per pixel in depth order.
 
 Each layer is drawn as a single render draws its record (:func:`_layer_sums`): the layer's
 records of every pair of the batch, the pairs' two views, its own tracks, stamps (from its own
-template library) and splat, with its own grid levels, so a layer's sums ``A = Σ θ B V`` and
-``C = Σ γ θ B V`` are the bytes of its records rendered alone (a fog layer drawn on a coarse grid
+template library; every layer's built in one pass, :func:`_layer_stamps`) and splat, with its
+own grid levels, so a layer's sums ``A = Σ θ B V`` and ``C = Σ γ θ B V`` are the bytes of its
+records rendered alone (a fog layer drawn on a coarse grid
 alone gets no image-grid planes). Each blur sample carries its camera depth ``z`` as a fourth
 colour channel, so the planes hold a fifth sum ``Z = Σ θ B V z`` (a passive sum: no gradient
 flows back to it); where every layer blends additively the order changes nothing and no layer
@@ -42,7 +43,7 @@ from .composite import RenderOutput, upsample, upsample_adjoint
 from .layers import LayeredParticles
 from .particles import Particles
 from .splat import Grids, Sums, chunk_elements_for, splat
-from .stamps import COARSE_SIDE, StampSet, build
+from .stamps import COARSE_SIDE, StampSet, build, build_many
 from .templates import TemplateLibrary, load_templates
 from .tracks import (Looks, ParticleTable, RecordRows, Tracks, Views, blur_samples, empty_looks,
                      fixed_looks, pair_tracks)
@@ -123,13 +124,13 @@ def build_layer_stamps(particles: Union[LayeredParticles, Sequence[LayeredPartic
                 chosen = [r.to(device) for r in stack if r.settings.templates == name and r.count
                           and r.optics is None]
                 if chosen:
-                    looks = fixed_looks(ParticleTable.of(chosen, device),
-                                        RecordRows.of(chosen, device), lib.resolution)
-                    parts.append(build(looks, lib, dtype=dtype, coarse_side=coarse_side))
+                    parts.append((fixed_looks(ParticleTable.of(chosen, device),
+                                              RecordRows.of(chosen, device), lib.resolution),
+                                  lib))
         if not parts:
             return build(empty_looks(device), next(iter(_libraries(records).values())),
                          dtype=dtype)
-        return StampSet.cat(parts)
+        return build_many(parts, dtype=dtype, coarse_side=coarse_side)
 
 
 def _cut(stamps: StampSet, counts: Sequence[int]) -> list[StampSet]:
@@ -144,33 +145,54 @@ def _cut(stamps: StampSet, counts: Sequence[int]) -> list[StampSet]:
             for k, (lo, hi) in enumerate(zip(ends[:-1], ends[1:]))]
 
 
-def _layer_sums(records: Sequence[Particles], views: Views, *, beta: float, dtype,
-                stamps: Optional[StampSet], coarse_side: Optional[int], chunk_elements: int,
-                detach_occlusion: bool, depth: bool) -> Sums:
-    """One layer's sums on the pairs' views, drawn as a single render draws its records (the
-    same tracks, stamps, grid levels and splat); ``depth``: with the depth sum ``Z`` as a fifth
-    (passive) plane. ``stamps``: the layer's paper-model stamps, or None to build them."""
-    device = views.project.device
+def _layer_parts(records: Sequence[Particles], views: Views, *, beta: float,
+                 dtype) -> tuple[dict, list, list]:
+    """One layer's template libraries and its parts (looks, tracks, library) as a single render
+    draws its records: the paper's model's, then the fields'."""
     libs = _libraries(records)
-    paper = _parts(records, views, libs, beta=beta, dtype=dtype, paper=True)
-    field = _parts(records, views, libs, beta=beta, dtype=dtype, paper=False)
-    if stamps is None:
-        stamp_parts = [build(looks, lib, dtype=dtype, coarse_side=coarse_side,
-                             chunk_elements=chunk_elements) for looks, _, lib in paper]
-    else:
-        stamp_parts = [stamps.to(dtype, device)] if stamps.count else []
-    stamp_parts += [build(looks, lib, dtype=dtype, coarse_side=coarse_side,
-                          chunk_elements=chunk_elements) for looks, _, lib in field]
+    return (libs, _parts(records, views, libs, beta=beta, dtype=dtype, paper=True),
+            _parts(records, views, libs, beta=beta, dtype=dtype, paper=False))
+
+
+def _layer_stamps(prepared: Sequence[tuple], given: Sequence[Optional[StampSet]], *, dtype,
+                  device, coarse_side: Optional[int], chunk_elements: int) -> list[StampSet]:
+    """Every layer's stamps in the order of its parts (paper, then fields), the ones to build
+    (a layer's paper-model stamps unless ``given``, and its fields') built in one pass for all
+    the layers (:func:`~weathergen.engine.stamps.build_many`: each stamp the bytes of its
+    layer's own build)."""
+    todo, counts = [], []
+    for (_, paper, field), part in zip(prepared, given):
+        mine = (paper if part is None else []) + field
+        todo += [(looks, lib) for looks, _, lib in mine]
+        counts.append(sum(looks.count for looks, _, _ in mine))
+    built = _cut(build_many(todo, dtype=dtype, coarse_side=coarse_side,
+                            chunk_elements=chunk_elements), counts) if todo \
+        else [None] * len(prepared)
+    out = []
+    for (libs, paper, field), part, new in zip(prepared, given, built):
+        pieces = ([part.to(dtype, device)] if part is not None and part.count else []) \
+            + ([new] if new is not None and new.count else [])
+        if not paper + field:
+            out.append(build(empty_looks(device), next(iter(libs.values())), dtype=dtype))
+        else:
+            out.append(pieces[0] if len(pieces) == 1 else StampSet.cat(pieces))
+    return out
+
+
+def _layer_sums(views: Views, paper: list, field: list, stamp_set: StampSet, *, beta: float,
+                dtype, chunk_elements: int, detach_occlusion: bool, depth: bool) -> Sums:
+    """One layer's sums on the pairs' views, drawn as a single render draws its records (the
+    same tracks, stamps, grid levels and splat) from its parts (:func:`_layer_parts`) and
+    stamps (:func:`_layer_stamps`); ``depth``: with the depth sum ``Z`` as a fifth (passive)
+    plane."""
     parts = paper + field
     if parts:
         offsets = [0]
         for looks, _, _ in parts[:-1]:
             offsets.append(offsets[-1] + looks.count)
         tracks = Tracks.cat([t for _, t, _ in parts], offsets)
-        stamp_set = StampSet.cat(stamp_parts)
     else:
         tracks = pair_tracks([], views, 1, beta=beta, dtype=dtype)[1]
-        stamp_set = build(empty_looks(device), next(iter(libs.values())), dtype=dtype)
     inst = blur_samples(tracks, dtype, stamp_set.gap)
     if depth:
         inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]),
@@ -212,10 +234,14 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
         raise ConfigError(f"stamps hold {stamps.count} entries but the layers hold {sum(counts)} "
                           f"particles of the paper's model (build them from these layers)")
     cut = _cut(stamps, counts) if stamps is not None else [None] * len(stacks)
-    sums = [_layer_sums(stack, views, beta=float(beta), dtype=image1.dtype, stamps=part,
-                        coarse_side=coarse_side, chunk_elements=chunk_elements,
-                        detach_occlusion=detach_occlusion, depth=not additive_pair)
-            for stack, part in zip(stacks, cut)]
+    prepared = [_layer_parts(stack, views, beta=float(beta), dtype=image1.dtype)
+                for stack in stacks]
+    stamp_sets = _layer_stamps(prepared, cut, dtype=image1.dtype, device=device,
+                               coarse_side=coarse_side, chunk_elements=chunk_elements)
+    sums = [_layer_sums(views, paper, field, stamp_set, beta=float(beta), dtype=image1.dtype,
+                        chunk_elements=chunk_elements, detach_occlusion=detach_occlusion,
+                        depth=not additive_pair)
+            for (_, paper, field), stamp_set in zip(prepared, stamp_sets)]
     layout = _LayerPlanes([s.grids for s in sums], bsz)
     values = [s.values for s in sums]
     if additive_pair:
