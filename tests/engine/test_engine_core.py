@@ -4,12 +4,15 @@ operations per call; records that reach nothing; single views; CUDA."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import pytest
 import torch
 
 from engine_scenes import count_operations, plane_pair, pose, rotation
 from weathergen.datasets import frame_rate_of
 from weathergen.engine import splat
+from weathergen.errors import ConfigError
 from weathergen.engine import (build_stamps, empty_particles, load_preset, load_templates,
                                render, render_view, sample_field_particles, sample_particles)
 from weathergen.engine.field import pair_views
@@ -204,3 +207,43 @@ def test_mip_and_grid_levels_come_from_the_binary_exponent_not_a_logarithm():
     assert torch.equal(floor_log2(powers), k)
     assert torch.equal(floor_log2(below), k - 1)
     assert torch.equal(floor_log2(above), k)
+
+
+def _looks(count: int, lib, offset: int = 0):
+    """Looks of every kind of stamp: phase stamps, stamps sampled at whole pixels (three
+    supersamplings), disc-blurred, brightened and softened, and coarse-grid ones."""
+    from weathergen.engine.tracks import Looks
+
+    k = torch.arange(count)
+    return Looks(footprint=1.0 + (k * 37 + offset * 11) % 300 * 0.73 + (k % 7) * 0.125,
+                 defocus=(k * 5 + offset) % 13 * ((k + offset) % 3 > 0),
+                 rotation=(k * 0.37 + offset).to(torch.float64),
+                 template=(k * 3 + offset) % lib.count, brighten=(k + offset) % 4 != 1)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_one_build_of_several_libraries_gives_each_stamp_its_own_builds_bytes(dtype):
+    """build_many draws parts of several template libraries in one pass; every entry's stamp
+    (pixels, layout, grid level, phases, blur-sample gap) is byte for byte the one its part's
+    own build gives, whatever the chunk size."""
+    from weathergen.engine.stamps import StampSet, build, build_many
+
+    libs = [load_templates(name) for name in ("flakes", "dust", "flakes", "haze")]
+    parts = [(_looks(60 + 7 * i, lib, offset=i), lib) for i, lib in enumerate(libs)]
+    alone = StampSet.cat([build(looks, lib, dtype=dtype) for looks, lib in parts])
+    assert bool((alone.phases > 1).any()) and bool((alone.coarse > 0).any())
+    assert bool((alone.gap > 1).any())                    # softened stamps among them
+    for chunk in (1 << 25, 3000):
+        together = build_many(parts, dtype=dtype, chunk_elements=chunk)
+        for name in ("pixels", "first", "side", "coarse", "phases", "gap"):
+            assert torch.equal(getattr(together, name), getattr(alone, name)), name
+
+
+def test_one_build_of_several_libraries_checks_each_parts_templates():
+    from weathergen.engine.stamps import build_many
+
+    flakes, haze = load_templates("flakes"), load_templates("haze")
+    looks = _looks(10, flakes)
+    with pytest.raises(ConfigError, match=f"templates of '{haze.name}'"):
+        build_many([(looks, flakes),
+                    (dataclasses.replace(looks, template=looks.template + haze.count), haze)])
