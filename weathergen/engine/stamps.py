@@ -255,6 +255,14 @@ def soft_box(radius: int) -> int:
 GAP_SHARE = 0.5
 #: Box widths for r = 0 .. 255 (the defocus radii a record can store).
 SOFT_BOX = [soft_box(r) for r in range(256)]
+#: A softened stamp's blur-sample gap per radius, ``(b − 1) · GAP_SHARE`` grid pixels, and
+#: each grid level's factor ``2**L`` (image pixels per grid pixel).
+GAPS = [(b - 1) * GAP_SHARE for b in SOFT_BOX]
+FACTORS = [2.0 ** level for level in range(COARSE_MAX_LEVEL + 1)]
+#: ``floor(sqrt(d))`` for d = 0 .. 255² (the half-widths of the disc's rows).
+ISQRT = [math.isqrt(d) for d in range(255 * 255 + 1)]
+#: Per box width b: ``b⁴`` (the four box passes' normalisation).
+BOX4 = [float(b) ** 4 for b in range(2 * (255 // 4 + 2) + 2)]
 
 
 @dataclass
@@ -416,7 +424,9 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
             _soften(work, canvases, top, box, full, chunk_elements)
         # softened stamps are smooth over the box: blur samples may lie (b - 1) / 2 of their
         # grid's pixels apart; the others one pixel (both times the grid's factor)
-        gap = torch.where(soft, (box - 1).to(torch.float64) * GAP_SHARE, 1.0) * 2.0 ** coarse
+        gap = torch.where(soft, _constant("gaps", GAPS, torch.float64, device)
+                          .index_select(0, radius), 1.0) \
+            * _constant("factors", FACTORS, torch.float64, device).index_select(0, coarse)
     return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse,
                     phases=phases, gap=gap)
 
@@ -683,7 +693,7 @@ def _blur(prefix, members, side, radius, rows_first, width, origin, pitch, work,
          pitch.index_select(0, members))).index_select(1, item)
     y = torch.div(local, tt, rounding_mode="floor")
     a = local - y * tt - rr
-    w = torch.floor(torch.sqrt((rr * rr - a * a).to(torch.float64))).long()
+    w = _constant("isqrt", ISQRT, torch.int64, local.device).index_select(0, rr * rr - a * a)
     base = (row_first + y) * width + 2 * rr
     # output pixel (Y, X) of row Y = y + r + a from column X = r − w on
     at = torch.addcmul(at0, y + rr + a, pp) + rr - w
@@ -786,15 +796,17 @@ def _soften_group(work, members, side: int, at: int, top, box, full, chunk: int)
     half = (b - 1) // 2
     pad = int(half.max()) + 1
     # out[x] = S[hi] − S[lo] in the padded sums: hi = x + pad + h, lo = hi − b
-    hi = torch.arange(side, device=work.device)[None] + (pad + half)[:, None]
-    lo = hi - b[:, None]
-    ends = {2: (hi[:, None], lo[:, None]), 1: (hi[:, :, None], lo[:, :, None])}
+    hi = torch.arange(side, device=work.device) + (pad + half).view(m, 1)
+    ends = torch.stack((hi, hi - b.view(m, 1)))                         # (2, m, side)
+    ends = {2: ends.view(2, m, 1, side).expand(2, m, side, side),
+            1: ends.view(2, m, side, 1).expand(2, m, side, side)}
     for axis in (2, 2, 1, 1):
         sums = F.pad(dense, (pad, pad, 0, 0) if axis == 2 else (0, 0, pad, pad)).cumsum_(axis)
         hi_a, lo_a = ends[axis]
-        dense = sums.gather(axis, hi_a.expand(dense.shape)) \
-            - sums.gather(axis, lo_a.expand(dense.shape))
-    dense = dense / (b.to(torch.float64) ** 4)[:, None, None]      # the four boxes' 1 / b
+        dense = sums.gather(axis, hi_a) - sums.gather(axis, lo_a)
+    # the four boxes' 1 / b
+    dense = dense / _constant("box4", BOX4, torch.float64, work.device).index_select(0, b) \
+        .view(m, 1, 1)
     flat = dense.reshape(-1)
     for e, local in runs(f * f, chunk):
         fe = f.index_select(0, e)
