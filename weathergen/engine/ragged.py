@@ -81,7 +81,7 @@ def runs(sizes: torch.Tensor, limit: int, groups: Optional[torch.Tensor] = None,
 def _cuts(ends: torch.Tensor, a: int, b: int, offset: int, limit: int) -> list:
     """Chunks ``(first item, end item, first element, end element)`` of items ``a..b`` whose
     elements start at ``offset``, cut at multiples of ``limit`` counted from ``offset``."""
-    total = int(ends[b - 1]) if b > a else offset
+    total = ends[b - 1:b].tolist()[0] if b > a else offset      # (one read of the host)
     if total - offset <= limit or b - a == 1:
         return [(a, b, offset, total)]
     marks = torch.arange(offset + limit, total, limit, device=ends.device)
