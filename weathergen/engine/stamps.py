@@ -65,6 +65,11 @@ COARSE_MAX_LEVEL = 3
 RIM_MARGIN = 1e-5
 #: Stamp samples (or blur elements) handled per chunk.
 STAMP_CHUNK_ELEMENTS = 1 << 16
+#: Chunks of at least this many elements (a GPU's) sample the stamps of every supersampling,
+#: and the phase stamps of every side, in one ragged pass each, and brighten whole softening
+#: canvases (fewer operations); smaller ones (the CPU's) go group by group, in dense arrays
+#: (less memory traffic). The same bytes either way.
+RAGGED_CHUNK = 1 << 20
 #: Stamps up to this side (without a defocus blur) are *phase stamps*: sampled on a grid P times
 #: finer than the pixels (P = 4 up to 5 pixels, 2 up to 9), so that the splat places them at
 #: the particle's sub-pixel position to within 1 / P pixel instead of shifting a pixel-centred
@@ -399,9 +404,11 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
         pitch = torch.where(blurred, width, full + 2)
         images = [b.image for b in books]
         coef = _coefficients(looks, books, lib_of, footprint, side, level, dtype)
-        _sample(coef, images, lib_of, side, sub, place, pitch, work,
-                bright if brights else None, chunk_elements, phases == 1)
-        _sample_phases(coef, images, lib_of, side, phases, first, work, chunk_elements)
+        (_sample if chunk_elements >= RAGGED_CHUNK else _sample_per_factor)(
+            coef, images, lib_of, side, sub, place, pitch, work, bright if brights else None,
+            chunk_elements, phases == 1)
+        (_sample_phases if chunk_elements >= RAGGED_CHUNK else _sample_phases_per_side)(
+            coef, images, lib_of, side, phases, first, work, chunk_elements)
         if blurs:
             members = torch.nonzero(blurred).squeeze(1)
             # each row divided by its disc's taps (the blur's normalisation, linear), then
@@ -421,7 +428,7 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
             _blur(prefix, members, side, radius, rows_first, width, origin, out_pitch, work,
                   chunk_elements)
         if canvases is not None:
-            _soften(work, canvases, top, box, full, chunk_elements)
+            _soften(work, canvases, top, inner, box, full, chunk_elements)
         # softened stamps are smooth over the box: blur samples may lie (b - 1) / 2 of their
         # grid's pixels apart; the others one pixel (both times the grid's factor)
         gap = torch.where(soft, _constant("gaps", GAPS, torch.float64, device)
@@ -557,6 +564,74 @@ def _sample(coef: torch.Tensor, images: Sequence[torch.Tensor], lib_of: Optional
         work.index_copy_(0, target, value.to(torch.float64))
 
 
+def _sample_per_factor(coef: torch.Tensor, images: Sequence[torch.Tensor],
+                       lib_of: Optional[torch.Tensor], side, sub, place, pitch,
+                       work: torch.Tensor, bright: Optional[torch.Tensor], chunk: int,
+                       whole: torch.Tensor) -> None:
+    """:func:`_sample` for small chunks (the CPU's), the same bytes: one group per
+    supersampling, each pixel's samples broadcast from its numbers rather than gathered per
+    sample (less memory traffic, more operations).
+
+    The stamps sampled at whole pixels (``whole`` (E,): one phase), before their blur,
+    written to ``work`` (pixel (y, x) of entry e at ``place[e] + y pitch[e] + x``): each pixel
+    the mean of its ``sub x sub`` bilinear samples of the template's mip level at the rotated and
+    scaled position, zero outside the footprint's disc; brightened where ``bright`` (E,) says
+    so."""
+    if side.numel() == 0 or not bool(whole.any()):
+        return
+    device, dtype = coef.device, coef.dtype
+    # entries by supersampling factor (4, 2, 1), then one item per stamp row, the groups' rows one
+    # after the other: its entry, its row y and where its pixel 0 goes in ``work`` (a pixel's
+    # column is then its index in the item)
+    groups = [(f, torch.nonzero((sub == f) & whole).squeeze(1)) for f in (4, 2, 1)]
+    groups = [(f, m) for f, m in groups if m.numel()]
+    order = torch.cat([m for _, m in groups]) if len(groups) > 1 else groups[0][1]
+    s = side.index_select(0, order)
+    ends = torch.cumsum(s, 0)
+    last = list(itertools.accumulate(int(m.numel()) for _, m in groups))
+    cuts = [0] + ends.index_select(0, torch.tensor(last, device=device) - 1).tolist()
+    rows = cuts[-1]
+    row_entry = torch.repeat_interleave(order, s, output_size=rows)
+    row_y = torch.arange(rows, device=device) \
+        - torch.repeat_interleave(ends - s, s, output_size=rows)
+    row_size, row_place, row_pitch = torch.stack((side, place, pitch)).index_select(1, row_entry)
+    row_at = torch.addcmul(row_place, row_y, row_pitch)
+    for g, (factor, _) in enumerate(groups):
+        # sample offsets in a pixel along one axis: (sub, 1); a pixel's sub² samples are
+        # row-major, (sub rows, sub columns), so a sample's x depends on its column alone and its
+        # y on its row: the coordinates are computed per axis (sub, n) and broadcast
+        offsets = _constant(f"offsets{factor}", [[(k + 0.5) / factor - 0.5]
+                                                 for k in range(factor)], dtype, device)
+        row_offsets = _constant(f"row_offsets{factor}", [[[(k + 0.5) / factor - 0.5]]
+                                                         for k in range(factor)], dtype, device)
+        lo, hi = cuts[g], cuts[g + 1]
+        for item, col in runs(row_size[lo:hi], max(1, chunk // (factor * factor))):
+            if lo:
+                item = item + lo
+            e = row_entry.index_select(0, item)
+            row = row_y.index_select(0, item)
+            bx, ax, cx, by, ay, cy, rho2, centre = coef.index_select(0, e).t()
+            gx = (col.to(dtype) + centre) + offsets             # (sub columns, n)
+            gy = (row.to(dtype) + centre) + row_offsets         # (sub rows, 1, n)
+            n = gx.shape[-1]
+            grid = torch.empty(factor, factor, n, 2, dtype=dtype, device=device)
+            grid_x, grid_y = grid.unbind(-1)
+            torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
+            torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
+            inside = torch.addcmul(gx * gx, gy, gy) <= rho2
+            lib = None if lib_of is None else lib_of.index_select(0, e).repeat(factor * factor)
+            value = _read(images, grid.view(-1, 2), lib).view(inside.shape) * inside
+            while value.numel() > n:         # pairwise, in a fixed order: the same bits anywhere
+                value = value.view(2, -1, n).sum(0)
+            value = value.view(-1)
+            if factor > 1:
+                value = value / (factor * factor)
+            if bright is not None:      # (only the pixels of the stamps it brightens)
+                which = torch.nonzero(bright.index_select(0, e)).squeeze(1)
+                value.index_copy_(0, which, defocus_brighten(value.index_select(0, which)))
+            work.index_copy_(0, row_at.index_select(0, item) + col, value.to(torch.float64))
+
+
 def _sample_offsets(dtype, device) -> torch.Tensor:
     """Where sample j of a pixel supersampled ``sub x sub`` lies in the pixel, along x and y,
     at column ``16 sub + j``: ``(b + 0.5) / sub − 0.5`` for its column ``b = j % sub`` and its
@@ -672,6 +747,77 @@ def _window_mean(value: torch.Tensor, pitch: torch.Tensor, quad: torch.Tensor,
     return value / divisor
 
 
+def _sample_phases_per_side(coef: torch.Tensor, images: Sequence[torch.Tensor],
+                            lib_of: Optional[torch.Tensor], side, phases, first,
+                            work: torch.Tensor, chunk: int) -> None:
+    """:func:`_sample_phases` for small chunks (the CPU's), the same bytes: per side rather than
+    in one ragged pass (dense arrays whose coordinates are broadcast from each stamp's numbers
+    rather than gathered per sample: less memory traffic, more operations).
+
+    The phase stamps (``phases`` P > 1), written to their bordered places in ``work``: the
+    value at ``(y, x) / P`` pixels on the grid around the centre is the mean of the template over
+    the pixel square centred there (``P x P`` bilinear samples of the mip level at every 1 / P
+    pixel, zero outside the footprint's disc), i.e. the pixel-integrated template at every
+    1 / P of a pixel.
+
+    Per stamp side s (and so per P), the entries' samples are one dense batch of ``m x m``
+    samples (``m = P (s + 2)`` per axis, centred on the particle), averaged over every ``P x P``
+    window (:func:`_window_mean`): ``n = P (s + 1) + 1`` values per axis, exactly the entry's bordered grid, copied
+    whole to its place."""
+    if side.numel() == 0:
+        return
+    dtype, device = coef.dtype, coef.device
+    candidates = torch.nonzero(phases > 1).squeeze(1)
+    if candidates.numel() == 0:
+        return
+    sizes = torch.unique(side.index_select(0, candidates)).tolist()
+    for s in sizes:
+        members = candidates.index_select(
+            0, torch.nonzero(side.index_select(0, candidates) == s).squeeze(1))
+        factor = PHASE_FACTORS[s]
+        c = coef.index_select(0, members)[:, :, None, None]
+        m = factor * (s + 2)
+        n = m - factor + 1
+        # sample offsets from the centre, pixels: (b − (m − 1) / 2) / P, along x and along y
+        gx = _constant(f"gx{factor},{m}", [[[(b - (m - 1) / 2) / factor for b in range(m)]]],
+                       dtype, device)
+        gy = _constant(f"gy{factor},{m}", [[[(b - (m - 1) / 2) / factor] for b in range(m)]],
+                       dtype, device)
+        steps = _constant(f"steps{n}", list(range(n * n)), torch.int64, device)
+        per = max(1, chunk // (m * m))
+        for lo in range(0, int(members.numel()), per):
+            bx, ax, cx, by, ay, cy, rho2, _ = c[lo:lo + per].unbind(1)
+            count = bx.shape[0]
+            grid = torch.empty(count, m, m, 2, dtype=dtype, device=device)
+            grid_x, grid_y = grid.unbind(-1)
+            torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
+            torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
+            lib = None if lib_of is None else \
+                lib_of.index_select(0, members[lo:lo + per]).repeat_interleave(m * m)
+            value = _read(images, grid.view(-1, 2), lib).view(count, m, m)
+            value.mul_(torch.addcmul(gx * gx, gy, gy) <= rho2)
+            value = _dense_window_mean(value, factor)                           # (count, n, n)
+            at = first.index_select(0, members[lo:lo + per])[:, None] + steps
+            work.index_copy_(0, at.view(-1), value.reshape(-1).to(torch.float64))
+
+
+def _dense_window_mean(value: torch.Tensor, factor: int) -> torch.Tensor:
+    """The mean of every ``factor x factor`` window (stride 1) of each ``m x m`` array, summed
+    separably and pairwise (columns, then rows: windows of 2, then of 4 as two adjacent windows
+    of 2), divided by ``factor²`` (a power of two: exact). Each output is the same arithmetic
+    on its own 16 (or 4) inputs wherever it lies. Shape: (E, m, m) -> (E, m − P + 1, m − P + 1).
+    """
+    width = 1
+    while width < factor:
+        value = value[..., :-width] + value[..., width:]
+        width *= 2
+    width = 1
+    while width < factor:
+        value = value[:, :-width] + value[:, width:]
+        width *= 2
+    return value / (factor * factor)
+
+
 def _blur(prefix, members, side, radius, rows_first, width, origin, pitch, work,
           chunk: int) -> None:
     """Disc-blurred stamps ``members`` from their rows' prefix sums (already divided by the
@@ -743,7 +889,7 @@ def _canvases(members, full, base: int, chunk: int) -> _Canvases:
                      side=side[0] if len(side) == 1 else torch.cat(side), size=at - base)
 
 
-def _soften(work, canvases: _Canvases, top, box, full, chunk: int) -> None:
+def _soften(work, canvases: _Canvases, top, inner, box, full, chunk: int) -> None:
     """Brighten and soften the stamps of ``canvases``, each disc-blurred on its canvas (its
     ``n x n`` stamp, n = ``inner``, at offset ``b − 1``, b = ``box``), into their bordered
     ``(full + 2)²`` blocks: the whole ``full x full`` (``full = n + 2 (b − 1)``) is the
@@ -754,7 +900,8 @@ def _soften(work, canvases: _Canvases, top, box, full, chunk: int) -> None:
     canvases at most ``chunk`` values or at most 1.5 times its stamps' own pixels), so that the
     work stays proportional to the stamps' pixels, not to the count times the largest. A group's
     canvases are one zero-filled dense float64 array ``(M, F, F)`` (F the group's largest
-    ``full``), brightened whole (zeros stay zero); each of the four box passes
+    ``full``), brightened (whole with a GPU's chunks: zeros stay zero; the stamps' own pixels
+    with the CPU's); each of the four box passes
     (rows, rows, columns, columns) takes cumulative sums along its axis (per row or column: its
     sums do not depend on the other stamps, nor on F or the padding, which only add leading or
     trailing exact zeros) and differences them at the stamp's own half-width h:
@@ -763,7 +910,18 @@ def _soften(work, canvases: _Canvases, top, box, full, chunk: int) -> None:
     the difference is exactly zero.
     """
     base = canvases.groups[0][2]
-    work[base:base + canvases.size] = defocus_brighten(work[base:base + canvases.size])
+    if chunk >= RAGGED_CHUNK:
+        work[base:base + canvases.size] = defocus_brighten(work[base:base + canvases.size])
+    else:       # (small chunks: only the stamps' own pixels, less arithmetic)
+        n = inner.index_select(0, canvases.members)
+        grown = box.index_select(0, canvases.members) - 1
+        at = torch.addcmul(canvases.origin + grown, grown, canvases.side)
+        for e, local in runs(n * n, chunk):
+            ne = n.index_select(0, e)
+            row = torch.div(local, ne, rounding_mode="floor")
+            pixel = torch.addcmul(at.index_select(0, e) + local - row * ne, row,
+                                  canvases.side.index_select(0, e))
+            work.index_copy_(0, pixel, defocus_brighten(work.index_select(0, pixel)))
     for members, side, at in canvases.groups:
         _soften_group(work, members, side, at, top, box, full, chunk)
 
