@@ -18,19 +18,22 @@ disc that cuts it, the defocus kernel.
 Layout (:class:`StampSet`): every stamp with a one-pixel zero border, row-major, one after the
 other in one flat tensor; ragged, so a call costs a bounded number of tensor operations:
 
-- samples: every stamp pixel's ``sub x sub`` sample positions are computed for all entries of a
-  supersampling factor at once and read with one ``grid_sample`` from an atlas holding every mip
-  level of every template (one-pixel zero borders between them, so a read never bleeds into a
-  neighbour);
+- samples: every stamp pixel's ``sub x sub`` sample positions are computed for all entries at
+  once (with a GPU's chunks; group by supersampling factor with the CPU's) and read with one
+  ``grid_sample`` from an atlas holding every mip level of every template (one-pixel zero
+  borders between them, so a read never bleeds into a neighbour); entries of several template
+  libraries (:func:`build_many`) are built together, only the reads going library by library;
 - disc blur: the disc is a stack of rows of half-width ``w(dy)``; a blurred pixel sums, over the
   disc's rows, box sums of the stamp's rows, each the difference of two prefix sums. Prefix sums
   are taken per stamp row (never across stamps, so a stamp does not depend on the others), in
   float64 (where a row is all zeros the difference is exactly zero: blurred stamps stay exactly
   zero outside their support);
-- phase stamps: per stamp side, one dense batch of samples at every 1 / P pixel, averaged over
-  P x P windows (separable pairwise sums) and copied whole to the stamps' places;
+- phase stamps: samples at every 1 / P pixel (all sides in one ragged pass with a GPU's
+  chunks, one dense batch per side with the CPU's), averaged over P x P windows (separable
+  pairwise sums) and copied to the stamps' places;
 - softening: stamps grouped by similar sides (work proportional to their pixels, not to the
-  count times the largest), four box passes per group, each along one axis of every stamp at
+  count times the largest), disc-blurred straight onto their group's canvases, four box passes
+  per group, each along one axis of every stamp at
   once (differences of per-row or per-column prefix sums in float64, as the disc blur).
 
 Elementwise operations are those whose result does not depend on an element's position in its
