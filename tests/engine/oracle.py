@@ -149,10 +149,21 @@ def _project(k, x):
     return ((k[0][0] * x[0] + k[0][1] * x[1]) / x[2] + k[0][2], k[1][1] * x[1] / x[2] + k[1][2])
 
 
-def blur_count(k, x, d, reach: float, preset: int) -> int:
+def sample_gap(looks, coarse_side) -> float:
+    """How far apart (pixels) a particle's consecutive blur samples may lie: a softened stamp
+    (brightened, with a blur on its grid) is smooth over its box b, so (b − 1) / 2 of its grid's
+    pixels; any other stamp one pixel of its grid."""
+    _, footprint, defocus, _, brighten = looks
+    level, _, radius, *_ = geometry(footprint, defocus, 1, 1, coarse_side)
+    box = 2 * (radius // 4 + 2) + 1
+    return 2 ** level * ((box - 1) / 2 if brighten and radius > 0 else 1.0)
+
+
+def blur_count(k, x, d, reach: float, preset: int, gap: float = 1.0) -> int:
     """How many blur samples the streak ``x + s d`` (camera coordinates, s in [0, reach]) gets:
-    one more than its length in pixels at the pixel speed of its nearer end (so consecutive
-    samples lie at most a pixel apart), at least the preset's, at most MAX_BLUR_SAMPLES."""
+    one more than its length in ``gap`` pixels at the pixel speed of its nearer end (so
+    consecutive samples lie at most ``gap`` pixels apart), at least the preset's, at most
+    MAX_BLUR_SAMPLES."""
     if preset <= 1:
         return preset
     h = [sum(k[i][j] * _value(x[j]) for j in range(3)) for i in range(3)]     # K x
@@ -160,10 +171,30 @@ def blur_count(k, x, d, reach: float, preset: int) -> int:
     z_near = max(min(h[2], h[2] + reach * g[2]), NEAR)
     # d/ds of (h + s g)_u / (h + s g)_z = (g_u h_z − h_u g_z) / z², largest where z is least
     speed = math.hypot(g[0] * h[2] - h[0] * g[2], g[1] * h[2] - h[1] * g[2]) / z_near ** 2
-    length = reach * speed
+    length = reach * speed / gap
     if not math.isfinite(length):
         return MAX_BLUR_SAMPLES
     return min(max(math.ceil(length) + 1, preset), MAX_BLUR_SAMPLES)
+
+
+def farthest_around(depth, u: float, v: float, reach: float) -> float:
+    """The farthest scene depth the view mask reads for a point (u, v) whose stamp reaches
+    ``reach`` pixels: over the window of image pixels within ``reach`` (n x n at most), widened
+    to the aligned s x s blocks that hold it (s the smallest power of two >= n)."""
+    height, width = len(depth), len(depth[0])
+
+    def span(x, size):
+        lo = min(max(math.floor(x - reach + 0.5), 0), size - 1)
+        hi = min(max(math.floor(x + reach + 0.5), 0), size - 1)
+        return lo, hi
+
+    (c0, c1), (r0, r1) = span(u, width), span(v, height)
+    s = 1
+    while s < max(c1 - c0, r1 - r0) + 1:
+        s *= 2
+    rows = range(r0 // s * s, min((r1 // s + 1) * s, height))
+    cols = range(c0 // s * s, min((c1 // s + 1) * s, width))
+    return max(depth[y][x] for y in rows for x in cols)
 
 
 def _steps(reach: float, count: int) -> list:
@@ -175,7 +206,8 @@ def _smoothstep(x: float) -> float:
     return x * x * (3 - 2 * x)
 
 
-def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number):
+def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
+          coarse_side=COARSE_SIDE):
     """What frame ``t`` of a pair draws of ``record``: per drawn particle, its looks (template,
     footprint, defocus, rotation, brighten), blur samples [(u, v, z)], θ / K, colour and β.
 
@@ -198,12 +230,13 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number):
             x1, x2 = _apply(cams[0], p1), _apply(cams[1], p2)
             xt = x1 if t == 0 else x2
             along = [x2[a] - x1[a] for a in range(3)]
-            samples = blur_count(k, xt, along, s.blur_length, preset_samples)
-            points = [[xt[a] + q * along[a] for a in range(3)]
-                      for q in _steps(s.blur_length, samples)]
             looks = (template, max(float(record.scale[j]) * resolution, 1.0),
                      int(record.defocus[j]), rotation,
                      bool(s.defocus_brighten) and int(record.defocus[j]) > 1)
+            samples = blur_count(k, xt, along, s.blur_length, preset_samples,
+                                 sample_gap(looks, coarse_side))
+            points = [[xt[a] + q * along[a] for a in range(3)]
+                      for q in _steps(s.blur_length, samples)]
             weight, b = theta, beta
         else:
             # a weather field: this frame's looks from this frame's depth of the particle
@@ -229,21 +262,20 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number):
                 if not (-0.5 - reach <= u <= width - 0.5 + reach
                         and -0.5 - reach <= v <= height - 0.5 + reach):
                     continue
-                col = min(max(math.floor(u + 0.5), 0), width - 1)
-                row = min(max(math.floor(v + 0.5), 0), height - 1)
-                seen = seen or xe[2] <= depth[row][col] + 3 * o.depth_softness
+                seen = seen or xe[2] <= farthest_around(depth, u, v, reach) \
+                    + 3 * o.depth_softness
             fade = _smoothstep((z - o.near) / o.near) * (
                 _smoothstep((o.far - z) / (o.fade * o.far)) if o.fade > 0 else float(z <= o.far))
             factor = fade * min(footprint, 1.0) ** 2
             if not seen or factor * _value(theta) == 0:
                 continue
             along = [sum(cams[t][i][a] * d[a] for a in range(3)) for i in range(3)]  # R d
-            samples = blur_count(k, _apply(cams[t], start), along, s.blur_length,
-                                 preset_samples)
-            points = [_apply(cams[t], [start[a] + q * d[a] for a in range(3)])
-                      for q in _steps(s.blur_length, samples)]
             looks = (template, max(footprint, 1.0), radius, rotation,
                      bool(s.defocus_brighten) and radius > 1)
+            samples = blur_count(k, _apply(cams[t], start), along, s.blur_length,
+                                 preset_samples, sample_gap(looks, coarse_side))
+            points = [_apply(cams[t], [start[a] + q * d[a] for a in range(3)])
+                      for q in _steps(s.blur_length, samples)]
             weight, b = theta * factor, min(beta, 1 / o.depth_softness)
         projected = []
         for x in points:
@@ -364,7 +396,7 @@ def oracle_render(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam
 
         for t, (image, depth) in enumerate(((image1[b], depth1[b]), (image2[b], depth2[b]))):
             scene = depth[0].double().tolist()
-            frame = draws(record, t, k, cams, scene, beta, lib.resolution, number)
+            frame = draws(record, t, k, cams, scene, beta, lib.resolution, number, coarse_side)
             out, opacity = render_frame(image, scene, frame, levels, lib.resolution,
                                         record.settings.blend, coarse_side, detach_occlusion)
             outs[t].append(out)
@@ -393,7 +425,7 @@ def oracle_layered(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, ca
             layers = []
             for record in stack.layers:
                 lib = load_templates(record.settings.templates)
-                frame = draws(record, t, k, cams, scene, beta, lib.resolution, number)
+                frame = draws(record, t, k, cams, scene, beta, lib.resolution, number, coarse_side)
                 sums = frame_sums(scene, frame, mip_levels(lib.alphas), lib.resolution,
                                   coarse_side)
                 layers.append((sums, record.settings.blend == "alpha"))

@@ -148,7 +148,7 @@ count = count_operations
 def test_operation_count_does_not_grow_with_particles_or_pairs(monkeypatch):
     """The number of tensor operations (kernel launches on a GPU) does not grow with the
     particles or the pairs, for both weather models and their mix: chunked as on a GPU (2**25
-    elements, views not cut into the CPU's fixed pieces) it stays under 1,150 and within the
+    elements, views not cut into the CPU's fixed pieces) it stays under 1,250 and within the
     operations of the sampling groups that more particles may bring (about 60 each: stamps
     sampled at whole pixels in three groups by supersampling, phase stamps in two by their
     phases). On the CPU's small chunks, each chunk adds a fixed number."""
@@ -160,14 +160,14 @@ def test_operation_count_does_not_grow_with_particles_or_pairs(monkeypatch):
         records = records_for(scenes, ["snow", "rain"] * (size // 2), count=n)
         counts.append(count(lambda: render(*arguments(scenes, records), chunk_elements=chunk)))
     assert max(counts) - min(counts) <= 200, counts
-    assert max(counts) < 1150, counts                     # "under 1,150" (README)
+    assert max(counts) < 1250, counts                     # "under 1,250" (README)
     field = []
     for density in (4.0, 16.0):
         scenes = [scene(i) for i in range(3)]
         records = field_records(scenes[:2], ["snow-light", "rain-light"], density=density) \
             + records_for(scenes[2:], ["snow"])
         field.append(count(lambda: render(*arguments(scenes, records), chunk_elements=chunk)))
-    assert max(field) - min(field) <= 200 and max(field) < 1150, field
+    assert max(field) - min(field) <= 200 and max(field) < 1250, field
 
 
 @pytest.mark.cuda

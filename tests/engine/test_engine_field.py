@@ -350,6 +350,53 @@ def test_view_mask_keeps_rim_particles_whose_stamp_reaches_the_image():
     assert keep.tolist() == [True, False]
 
 
+def test_depth_windows_read_the_farthest_depth_of_the_aligned_blocks_holding_a_window():
+    """Against a loop over the pixels: the window's side n, the smallest power of two s >= n,
+    the maximum over the s x s blocks (aligned to multiples of s) the window touches; never
+    less than the window's own maximum."""
+    from weathergen.engine.tracks import depth_windows
+
+    g = torch.Generator().manual_seed(3)
+    depth = torch.rand(2, 1, 13, 21, generator=g, dtype=torch.float64)
+    m = 300
+    first = torch.stack((torch.randint(0, 21, (m,), generator=g),
+                         torch.randint(0, 13, (m,), generator=g)), -1)
+    last = torch.minimum(first + torch.randint(0, 14, (m, 1), generator=g),
+                         torch.tensor([20, 12]))
+    view = torch.randint(0, 2, (m,), generator=g)
+    got = depth_windows(depth).farthest(torch.stack((first, last)), view)
+    for i in range(m):
+        (c0, r0), (c1, r1), d = first[i].tolist(), last[i].tolist(), depth[view[i], 0]
+        s = 1
+        while s < max(c1 - c0, r1 - r0) + 1:
+            s *= 2
+        blocks = d[r0 // s * s:(r1 // s + 1) * s, c0 // s * s:(c1 // s + 1) * s]
+        assert float(got[i]) == float(blocks.max()) >= float(d[r0:r1 + 1, c0:c1 + 1].max())
+
+
+def test_view_mask_keeps_clouds_behind_a_wall_whose_stamp_reaches_past_its_edge():
+    """A near wall covers the columns left of 28; particles at depth 5 behind it (more than three
+    depth softnesses) are drawn only if their stamp reaches past the wall's edge (the farthest
+    scene depth within the stamp's reach, not the depth under the centre, decides)."""
+    optics = FieldOptics(near=0.1, far=10.0, fade=0.0, depth_softness=0.2)
+    depth = torch.full((1, H, W), 20.0)
+    depth[:, :, :28] = 1.0
+    view = View(K, pose(rotation()), depth)
+    z = 5.0
+    # footprint 0.6 * 50 / 5 = 6 px: the stamp reaches 0.5 * 6 + 2 = 5 px from the centre
+    columns = torch.tensor([24.0, 26.0, 10.0, 4.0])
+    x = (columns - K[0, 2]) / F * z
+    pts = torch.stack((x, torch.zeros(4, dtype=torch.float64),
+                       torch.full((4,), z, dtype=torch.float64)), 1)
+    keep = view_mask(view, pts, torch.zeros(4, 3, dtype=torch.float64),
+                     torch.full((4,), 0.6, dtype=torch.float64), optics)
+    assert keep.tolist() == [True, True, False, False]
+    # the same particles ten times nearer (in front of the wall) are all drawn
+    near = view_mask(view, pts * 0.1, torch.zeros(4, 3, dtype=torch.float64),
+                     torch.full((4,), 0.06, dtype=torch.float64), optics)
+    assert near.tolist() == [True] * 4
+
+
 # -- the bundled ladder ---------------------------------------------------------------------
 
 LADDER = [f"{kind}-{level}" for kind in ("snow", "rain", "sparks", "fog")

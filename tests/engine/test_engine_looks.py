@@ -5,6 +5,7 @@ code draws them on the same scene."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -102,6 +103,43 @@ def test_short_streaks_keep_the_presets_samples_bit_for_bit():
     total = torch.zeros(tracks.count, dtype=torch.float64).index_add_(
         0, torch.repeat_interleave(torch.arange(tracks.count), got_samples), inst.theta)
     torch.testing.assert_close(total, tracks.theta, rtol=1e-12, atol=0)
+
+
+@pytest.mark.parametrize("name, grey", [("rain", 1.5), ("sparks", 4.0)])
+def test_softened_stamps_wider_sample_gaps_leave_the_frames_within_a_few_grey_levels(
+        monkeypatch, name, grey):
+    """Softened stamps (defocused glows) take blur samples (b − 1) / 2 px apart: a quarter
+    fewer patch pixels to splat, and the frames within ``grey`` levels (of 255) of the one-pixel
+    rule's everywhere."""
+    import weathergen.engine.renderer as renderer_module
+    from weathergen.engine import stamps as stamps_module
+
+    pair = wall_scene()
+    record = sample_particles(pair, load_preset(name), seed=0)
+    build = stamps_module.build
+    drawn = {}
+
+    def counting_splat(inst, stamps, depth, **options):
+        drawn[len(drawn)] = int(((stamps.side.index_select(0, inst.entry) + 1) ** 2).sum())
+        return splat(inst, stamps, depth, **options)
+
+    splat = renderer_module.splat
+    monkeypatch.setattr(renderer_module, "splat", counting_splat)
+    with torch.no_grad():
+        spaced = render_pair(pair, record)
+
+        def one_pixel_build(*args, **kwargs):
+            stamps = build(*args, **kwargs)
+            assert bool((stamps.gap > 1).any())
+            return dataclasses.replace(stamps, gap=torch.ones_like(stamps.gap))
+
+        monkeypatch.setattr(renderer_module, "build", one_pixel_build)
+        dense = render_pair(pair, record)
+    assert drawn[0] < 0.75 * drawn[1]
+    for a, b in ((spaced.image1, dense.image1), (spaced.image2, dense.image2)):
+        difference = 255 * (a - b).abs()
+        assert 0 < float(difference.max()) <= grey
+        assert float(difference.mean()) < 0.1
 
 
 # -- far particles: the projection's size and light ------------------------------------------

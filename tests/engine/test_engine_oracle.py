@@ -13,6 +13,7 @@ from oracle import oracle_render
 from weathergen.datasets import frame_rate_of
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, list_presets, load_preset,
                                load_templates, render, sample_field_particles, sample_particles)
+from weathergen.engine.stamps import build
 from weathergen.engine.tracks import Views, pair_tracks, streak_samples
 from weathergen.framepair import FramePairBatch
 
@@ -107,6 +108,30 @@ def test_long_streaks_get_more_blur_samples_and_equal_the_oracle():
     samples, _ = streak_samples(tracks)
     assert int(samples.max()) > 6 and int(samples.min()) >= 3
     assert_equal_to_oracle(pairs, records)
+
+
+def test_softened_streaks_space_their_samples_by_the_stamps_smoothness_and_equal_the_oracle():
+    """A brightened defocused stamp is softened by a b x b box twice: its blur samples lie up to
+    (b − 1) / 2 pixels apart (fewer samples than the one-pixel rule gives); the oracle derives
+    the gap from the particle's looks its own way."""
+    pairs = [scene(0)]
+    record = paper(pairs[0], "sparks", 12, 6, size=7, blur_samples=3, blur_length=6.0)
+    record = record.replace(defocus=torch.full_like(record.defocus, 4))   # box 7: gap 3 px
+    assert record.settings.defocus_brighten
+    args = arguments(pairs, [record])
+    views = Views.of(torch.cat((args[4], args[4])), torch.cat((args[5], args[6])),
+                     torch.cat((args[2], args[3])))
+    lib = load_templates(record.settings.templates)
+    looks, tracks = pair_tracks([record], views, lib.resolution, beta=BETA_RENDER,
+                                dtype=torch.float64)
+    stamps = build(looks, lib, dtype=torch.float64)
+    assert torch.equal(stamps.gap, torch.full((looks.count,), 3.0, dtype=torch.float64))
+    one_pixel, _ = streak_samples(tracks)
+    spaced, _ = streak_samples(tracks, stamps.gap)
+    longer = one_pixel > 2 * tracks.samples
+    assert int(longer.sum()) > 0
+    assert bool((spaced[longer] < one_pixel[longer]).all())
+    assert_equal_to_oracle(pairs, [record])
 
 
 #: Densities (and blur samples) that keep the oracle quick on a 24 x 32 frame: a dozen or two

@@ -57,7 +57,7 @@ from .sampling import (check_pair_for_engine, cpu_generator, euler_rotations, hl
                        world_down)
 from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
-from .tracks import MAX_DEFOCUS, View, focal, view_mask
+from .tracks import MAX_DEFOCUS, View, focal, view_mask, view_windows
 
 #: Bits of the grid below the tile side: quantum = 2^floor(log2(L) - GRID_BITS).
 GRID_BITS = 16
@@ -153,6 +153,7 @@ class Field:
         sub_xyz = sub_xyz.reshape(-1, 3).double()
         streak = self.step.double() * q * self.streak
         found_j, found_k = [], []
+        windows = view_windows(view)
         per = max(1, chunk // (sd ** 3))
         for c0 in range(0, cells.shape[0], per):
             cell = cells[c0:c0 + per]
@@ -169,7 +170,8 @@ class Field:
             j = order[offsets[si][rep] + within]
             copy = cell[ci][rep]
             pts = (base[j] + copy * lu).double() * q
-            ok = view_mask(view, pts, streak[j], self.diameter[j], self.preset.optics())
+            ok = view_mask(view, pts, streak[j], self.diameter[j], self.preset.optics(),
+                           windows)
             found_j.append(j[ok])
             found_k.append(copy[ok] - shift[j[ok]])
         if not found_j:

@@ -140,7 +140,7 @@ def _cut(stamps: StampSet, counts: Sequence[int]) -> list[StampSet]:
     at = bounds.index_select(0, torch.tensor(ends, device=bounds.device)).tolist()
     return [StampSet(pixels=stamps.pixels[at[k]:at[k + 1]], first=stamps.first[lo:hi] - at[k],
                      side=stamps.side[lo:hi], coarse=stamps.coarse[lo:hi],
-                     phases=stamps.phases[lo:hi])
+                     phases=stamps.phases[lo:hi], gap=stamps.gap[lo:hi])
             for k, (lo, hi) in enumerate(zip(ends[:-1], ends[1:]))]
 
 
@@ -171,7 +171,7 @@ def _layer_sums(records: Sequence[Particles], views: Views, *, beta: float, dtyp
     else:
         tracks = pair_tracks([], views, 1, beta=beta, dtype=dtype)[1]
         stamp_set = build(empty_looks(device), next(iter(libs.values())), dtype=dtype)
-    inst = blur_samples(tracks, dtype)
+    inst = blur_samples(tracks, dtype, stamp_set.gap)
     if depth:
         inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]),
                                                          1))

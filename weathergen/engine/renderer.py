@@ -170,7 +170,7 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         stamp_set = StampSet.cat([stamps.to(dtype, device),
                                   build(rest, templates, dtype=dtype, coarse_side=coarse_side,
                                         chunk_elements=chunk_elements)])
-    sums = splat(blur_samples(tracks, dtype), stamp_set, views.depth,
+    sums = splat(blur_samples(tracks, dtype, stamp_set.gap), stamp_set, views.depth,
                  chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
     alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
     (out1, out2), (opacity1, opacity2) = composite(sums, [image1, image2], alpha_mode)
@@ -253,7 +253,7 @@ def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement:
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(torch.device(device))
     stamps = build(looks, templates, dtype=dtype, chunk_elements=chunk_elements)
-    return splat(blur_samples(tracks, dtype), stamps, views.depth, chunk_elements=chunk_elements,
+    return splat(blur_samples(tracks, dtype, stamps.gap), stamps, views.depth, chunk_elements=chunk_elements,
                  detach_occlusion=detach_occlusion)
 
 

@@ -234,6 +234,10 @@ def soft_box(radius: int) -> int:
     return 2 * (radius // 4 + 2) + 1
 
 
+#: A softened stamp's blur samples may lie this share of ``b − 1`` apart (``StampSet.gap``):
+#: the sum of copies of the tent ``b x b`` box twice, ``(b − 1) / 2`` pixels apart, ripples by
+#: a few per mille of its light (a few grey levels at most on the bench scene's sparks).
+GAP_SHARE = 0.5
 #: Box widths for r = 0 .. 255 (the defocus radii a record can store).
 SOFT_BOX = [soft_box(r) for r in range(256)]
 
@@ -247,9 +251,14 @@ class StampSet:
     border) is at ``pixels[first[e] + y n + x]``. With P = 1 that is the stamp's pixels with
     their border.
 
+    ``gap``: how far apart (image pixels) an entry's blur samples may lie along its streak
+    without a visible ripple (:func:`~weathergen.engine.tracks.streak_samples`): ``(b − 1) / 2``
+    of its grid's pixels for a softened stamp (smooth over the box ``b``, :func:`soft_box`),
+    one of its grid's pixels otherwise.
+
     Reusable while the looks stay fixed (e.g. the paper's particles across attack steps).
     Shape: pixels (L,) in the images' dtype; first, side (odd), coarse (the grid level),
-    phases (E,) int64.
+    phases (E,) int64; gap (E,) float64.
     """
 
     pixels: torch.Tensor
@@ -257,6 +266,7 @@ class StampSet:
     side: torch.Tensor
     coarse: torch.Tensor
     phases: torch.Tensor
+    gap: torch.Tensor
 
     @property
     def count(self) -> int:
@@ -266,7 +276,8 @@ class StampSet:
         device = self.pixels.device if device is None else device
         return StampSet(pixels=self.pixels.to(device=device, dtype=dtype),
                         first=self.first.to(device), side=self.side.to(device),
-                        coarse=self.coarse.to(device), phases=self.phases.to(device))
+                        coarse=self.coarse.to(device), phases=self.phases.to(device),
+                        gap=self.gap.to(device))
 
     @staticmethod
     def cat(parts: Sequence["StampSet"]) -> "StampSet":
@@ -277,7 +288,8 @@ class StampSet:
                         first=torch.cat([p.first + o for p, o in zip(parts, offsets)]),
                         side=torch.cat([p.side for p in parts]),
                         coarse=torch.cat([p.coarse for p in parts]),
-                        phases=torch.cat([p.phases for p in parts]))
+                        phases=torch.cat([p.phases for p in parts]),
+                        gap=torch.cat([p.gap for p in parts]))
 
 
 def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.float32,
@@ -335,8 +347,11 @@ def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.floa
         if bool(soft.any()):
             _soften(work, torch.nonzero(soft).squeeze(1), first, inner, box, full,
                     chunk_elements)
+        # softened stamps are smooth over the box: blur samples may lie (b - 1) / 2 of their
+        # grid's pixels apart; the others one pixel (both times the grid's factor)
+        gap = torch.where(soft, (box - 1).to(torch.float64) * GAP_SHARE, 1.0) * 2.0 ** coarse
     return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse,
-                    phases=phases)
+                    phases=phases, gap=gap)
 
 
 def _coefficients(looks: Looks, book: Atlas, footprint, side, level, dtype) -> torch.Tensor:

@@ -15,8 +15,8 @@ particle's drawing come from. This stage computes those numbers and nothing else
   cameras of the pair); a field's (and a single view's) follow the particle's own displacement.
 - :class:`Instances` (:func:`blur_samples`): every track's blur samples, projected: the input of
   the splat. The number of samples is a per-track column, adapted to the streak's length in
-  pixels in each view (:func:`streak_samples`: consecutive samples at most one pixel apart, up
-  to :data:`MAX_BLUR_SAMPLES`).
+  pixels in each view (:func:`streak_samples`: consecutive samples at most one pixel apart, or
+  as far apart as the stamp is smooth, up to :data:`MAX_BLUR_SAMPLES`).
 
 Every geometric product is an elementwise product and a sum over the last axis (no matrix
 products), so that a track's numbers do not depend on how many other tracks the call holds
@@ -25,10 +25,12 @@ products), so that a track's numbers do not depend on how many other tracks the 
 
 from __future__ import annotations
 
+import itertools
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import torch
+import torch.nn.functional as F
 
 from .optics import FieldOptics
 from .particles import Particles
@@ -152,13 +154,17 @@ def depth_fade(optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
 
 
 def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
-            depth: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+            depth: torch.Tensor, view: torch.Tensor,
+            windows: Optional[DepthWindows] = None) -> torch.Tensor:
     """Whether a streak's start or end lands in its view's image widened by ``reach`` pixels and
-    not behind the scene there by more than ``tolerance`` (tested at the nearest pixel of the
-    image, its border for a point just outside, where its stamp reaches in).
+    not behind the scene by more than ``tolerance`` everywhere its stamp reaches: the test reads
+    the farthest scene depth over the image pixels within ``reach`` of the point (a cloud whose
+    centre lies behind a wall but whose stamp reaches past the wall's edge is drawn), taken from
+    :func:`depth_windows`' blocks (possibly a little more than the window: never less).
 
     Shape: ends (2, M, 3) float64 homogeneous pixels of the start and the end, reach (M,),
     tolerance (M,) or a number, depth (V, 1, H, W), view (M,) int64 -> (M,) bool.
+    ``windows``: :func:`depth_windows` of ``depth`` when the caller has them.
     """
     height, width = depth.shape[-2:]
     zz = ends[..., 2]
@@ -167,9 +173,60 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
     reach = reach[:, None]
     limit, last, step = _image_constants(height, width, ends.device)
     reaches = (zz > 1e-6) & ((uv >= -0.5 - reach) & (uv <= limit + reach)).all(-1)
+    # the point's own pixel first (most points in empty space pass there; the window holds it,
+    # so a point that passes there passes the window's test)
     pixel = torch.minimum(torch.floor(uv + 0.5).clamp_(min=0), last).long()   # (col, row)
     under = torch.take(depth, (pixel * step).sum(-1) + view * (height * width))
-    return (reaches & (zz <= under.to(torch.float64) + tolerance)).any(0)
+    seen = reaches & (zz <= under.to(torch.float64) + tolerance)
+    # the others: the farthest depth over the window of pixels within ``reach``
+    rest = torch.nonzero((reaches & ~seen).view(-1)).squeeze(1)
+    if rest.numel():
+        m = torch.remainder(rest, zz.shape[1])
+        r = reach.view(-1).index_select(0, m)[:, None]
+        point = uv.reshape(-1, 2).index_select(0, rest)
+        window = torch.minimum(torch.stack((point - r, point + r)).add_(0.5).floor_()
+                               .clamp_(min=0), last).long()
+        farthest = (depth_windows(depth) if windows is None else windows) \
+            .farthest(window, view.index_select(0, m))
+        if torch.is_tensor(tolerance) and tolerance.dim():
+            tolerance = tolerance.index_select(0, m)
+        behind = zz.reshape(-1).index_select(0, rest) <= farthest.to(torch.float64) + tolerance
+        seen = seen.reshape(-1).index_copy(0, rest, behind).view(seen.shape)
+    return seen.any(0)
+
+
+@dataclass
+class DepthWindows:
+    """A view's scene depth and its maxima over ``2**k x 2**k`` blocks (k = 0, 1, ... up to one
+    block for the whole image), every level flat in ``values``; per level k, ``table[k]`` =
+    (where it starts, h_k, w_k): level k is ``(V, h_k, w_k)``, ``h_k = ceil(H / 2**k)``."""
+
+    values: torch.Tensor
+    table: torch.Tensor
+
+    def farthest(self, window: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+        """The largest depth over the blocks of the smallest level whose blocks are as wide as
+        the window (at most two per axis hold it). Shape: window (2, ..., M, 2) int64, its first
+        and last pixels (col, row); view (M,) -> (..., M)."""
+        # the level: 2**k >= the window's side n, k = the binary exponent of n − 1
+        k = torch.frexp((window[1] - window[0]).amax(-1).to(torch.float64))[1] \
+            .clamp_(max=self.table.shape[0] - 1)
+        start, h, w = self.table.index_select(0, k.view(-1)).view(*k.shape, 3).unbind(-1)
+        col, row = (window >> k[..., None]).unbind(-1)                     # (2, ..., M)
+        at = (start + view * h * w + row * w)[:, None] + col               # (2, 2, ..., M)
+        return self.values.take(at).amax((0, 1))
+
+
+def depth_windows(depth: torch.Tensor) -> DepthWindows:
+    """:class:`DepthWindows` of ``depth`` (V, 1, H, W): block maxima by repeated 2 x 2 max
+    pooling (a block at the image's right or bottom edge holds what lies inside)."""
+    levels = [depth]
+    while levels[-1].shape[-1] > 1 or levels[-1].shape[-2] > 1:
+        levels.append(F.max_pool2d(levels[-1], 2, ceil_mode=True))
+    starts = itertools.accumulate([lv.numel() for lv in levels[:-1]], initial=0)
+    table = torch.tensor([[s, lv.shape[-2], lv.shape[-1]] for s, lv in zip(starts, levels)],
+                         device=depth.device)
+    return DepthWindows(values=torch.cat([lv.reshape(-1) for lv in levels]), table=table)
 
 
 _IMAGE: dict = {}
@@ -210,7 +267,8 @@ class OpticsRows:
 
 def field_mask(project: torch.Tensor, f: torch.Tensor, start: torch.Tensor,
                streak: torch.Tensor, diameter: torch.Tensor, optics, depth: torch.Tensor,
-               view: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+               view: torch.Tensor, windows: Optional[DepthWindows] = None
+               ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Which field particles a view draws, their camera depth there and their defocus radius:
     camera depth in ``[near, far]``, start or streak end inside the image widened by the
     stamp's reach (half the footprint, the defocus radius and 2 pixels), not behind the scene at
@@ -219,13 +277,15 @@ def field_mask(project: torch.Tensor, f: torch.Tensor, start: torch.Tensor,
     Shape: project (M, 3, 4), f (M,), start, streak (M, 3), diameter (M,) float64; ``optics`` a
     :class:`FieldOptics` or :class:`OpticsRows`; depth (V, 1, H, W); view (M,) int64 ->
     ``(mask (M,) bool, z (M,) float64, radius (M,) int64)`` (z and radius where drawn, those
-    at ``far`` elsewhere).
+    at ``far`` elsewhere). ``windows``: :func:`depth_windows` of ``depth``, when the caller
+    tests many particles against the same views.
     """
-    mask, z, radius, _ = _field_mask(project, f, start, streak, diameter, optics, depth, view)
+    mask, z, radius, _ = _field_mask(project, f, start, streak, diameter, optics, depth, view,
+                                     windows)
     return mask, z, radius
 
 
-def _field_mask(project, f, start, streak, diameter, optics, depth, view):
+def _field_mask(project, f, start, streak, diameter, optics, depth, view, windows=None):
     """:func:`field_mask`, and the homogeneous pixels of the start, differentiable in ``start``
     (the mask and the depth are not). Shape: -> (mask, z, radius, h0 (M, 3))."""
     ends = homogeneous(project, torch.stack((start, start.detach() + streak)))
@@ -234,17 +294,18 @@ def _field_mask(project, f, start, streak, diameter, optics, depth, view):
     safe = torch.where(in_range, z, optics.far)
     radius = coc_radius(f, optics.aperture, optics.focus, safe)
     reach = 0.5 * footprint(f, diameter, safe) + radius + 2
-    seen = in_view(ends.detach(), reach, 3 * optics.depth_softness, depth, view)
+    seen = in_view(ends.detach(), reach, 3 * optics.depth_softness, depth, view, windows)
     return in_range & seen, safe, radius, ends[0]
 
 
 def view_mask(view: View, points: torch.Tensor, streak: torch.Tensor, diameter: torch.Tensor,
-              optics: FieldOptics) -> torch.Tensor:
+              optics: FieldOptics, windows: Optional[DepthWindows] = None) -> torch.Tensor:
     """Which particles a view draws (see :func:`field_mask`; the render core applies the same
     test to every view it draws).
 
     Shape: points (M, 3) reference coordinates, streak (M, 3) the streak's end minus its start,
-    diameter (M,) -> (M,) bool. Computed in float64 on the CPU.
+    diameter (M,) -> (M,) bool. Computed in float64 on the CPU. ``windows``: the view's
+    :func:`view_windows`, when many calls test the same view.
     """
     views = Views.of(view.intrinsics[None], view.cam_from_ref[None], view.depth[None].cpu(),
                      device="cpu")
@@ -252,8 +313,14 @@ def view_mask(view: View, points: torch.Tensor, streak: torch.Tensor, diameter: 
     index = torch.zeros(m, dtype=torch.long)
     mask, _, _ = field_mask(views.project.expand(m, 3, 4), views.focal.expand(m),
                             points.double().cpu(), streak.double().cpu(),
-                            diameter.double().cpu(), optics, views.depth, index)
+                            diameter.double().cpu(), optics, views.depth, index, windows)
     return mask
+
+
+def view_windows(view: View) -> DepthWindows:
+    """The :class:`DepthWindows` :func:`view_mask` reads for ``view`` (build them once for many
+    calls on one view)."""
+    return depth_windows(view.depth[None].detach().cpu())
 
 
 # -- records, looks and tracks -----------------------------------------------------------------
@@ -586,11 +653,16 @@ class Instances:
 MAX_BLUR_SAMPLES = 256
 
 
-def streak_samples(tracks: Tracks) -> tuple[torch.Tensor, torch.Tensor]:
+def streak_samples(tracks: Tracks, gap: Optional[torch.Tensor] = None
+                   ) -> tuple[torch.Tensor, torch.Tensor]:
     """The number of blur samples of every track and their spacing, adapted to the streak's
-    length in pixels so that consecutive samples lie at most one pixel apart:
-    ``K_t = clamp(ceil(L_t) + 1, K, MAX_BLUR_SAMPLES)`` samples spread over the same streak
+    length in pixels so that consecutive samples lie at most ``g`` pixels apart:
+    ``K_t = clamp(ceil(L_t / g) + 1, K, MAX_BLUR_SAMPLES)`` samples spread over the same streak
     (``spacing_t = (K − 1) spacing / (K_t − 1)``), K the record's ``blur_samples``.
+
+    ``gap``: g per stamp entry (the :class:`~weathergen.engine.stamps.StampSet`'s ``gap``, read
+    at each track's entry): a stamp that is smooth over several pixels (softened) leaves no
+    ripple between samples that far apart; None: one pixel for every track.
 
     ``L_t`` is the streak's length in pixels measured at the slope of its nearer end: the
     streak ``p(s) = (a + s b) / (c + s e)`` (``h0 = (a, c)``, ``hd = (b, e)``) has
@@ -610,18 +682,22 @@ def streak_samples(tracks: Tracks) -> tuple[torch.Tensor, torch.Tensor]:
         z0 = h0[:, 2]
         near = torch.minimum(z0, torch.addcmul(z0, reach, hd[:, 2])).clamp_(min=NEAR)
         length = reach * torch.sqrt((cross * cross).sum(1)) / (near * near)
-        length = torch.nan_to_num(length, nan=0.0).clamp_(max=MAX_BLUR_SAMPLES - 1)
+        length = torch.nan_to_num(length, nan=0.0)
+        if gap is not None:
+            length = length / gap.index_select(0, tracks.entry)
+        length = length.clamp_(max=MAX_BLUR_SAMPLES - 1)
         samples = torch.maximum(torch.ceil(length).long() + 1, k)
         spacing = torch.where(samples == k, tracks.spacing, reach / (samples - 1))
     return samples, spacing
 
 
-def blur_samples(tracks: Tracks, dtype: torch.dtype) -> Instances:
+def blur_samples(tracks: Tracks, dtype: torch.dtype, gap: Optional[torch.Tensor] = None
+                 ) -> Instances:
     """Every track's K_t blur samples at ``h0 + k · spacing_t · hd`` (k = 0 .. K_t − 1,
     :func:`streak_samples`), projected, each with θ / K_t.
     Shape: T tracks -> I = Σ K_t instances, a track's samples consecutive."""
     device = tracks.h0.device
-    samples, spacing = streak_samples(tracks)
+    samples, spacing = streak_samples(tracks, gap)
     tracks = Tracks(entry=tracks.entry, view=tracks.view, h0=tracks.h0, hd=tracks.hd,
                     samples=samples, spacing=spacing, theta=tracks.theta, color=tracks.color,
                     beta=tracks.beta)
