@@ -389,13 +389,13 @@ class _Splat(torch.autograd.Function):
         ctx.save_for_backward(u, v, z, theta, color)
         if plan.count == 0:
             return acc
-        per = _per_sample(plan, u, v, z, theta, color)
+        per, _ = _per_sample(plan, u, v, z, theta, color, weights=True)
         for row, column, whole in plan.chunks():
             b = _Blocks(plan, row, column, per, whole)
             weight = b.patch.mul_(b.vis)
             # all channels in one product and one scatter along the rows of acc: each sum
             # still receives its additions one by one in the blocks' order
-            terms = weight * b.per[5:5 + channels].view(channels, 1, 1, -1)  # (1 + C, 2, 2, n)
+            terms = weight * b.per[4:4 + channels].view(channels, 1, 1, -1)  # (1 + C, 2, 2, n)
             acc.scatter_add_(1, b.flat.expand(channels, -1),
                              terms.view(channels, -1))
         return acc
@@ -410,12 +410,12 @@ class _Splat(torch.autograd.Function):
         if plan.count == 0 or not any(need):
             return (*grads, None)
         nc = color.shape[1] - plan.passive           # (the passive sums pass no gradient)
-        per = _per_sample(plan, u, v, z, theta, color[:, :nc])
+        per, th = _per_sample(plan, u, v, z, theta, color[:, :nc], weights=False)
         g_acc = g_acc[:1 + nc].contiguous()
         sums = torch.zeros(4 + nc, plan.count, dtype=u.dtype, device=u.device)
         for row, column, whole in plan.chunks():
             b = _Blocks(plan, row, column, per, whole)
-            fv, beta, gamma = b.per[1], b.per[3], b.per[6 + nc:6 + 2 * nc]
+            fv, beta, gamma = b.per[1], b.per[3], b.per[4:4 + nc]
             g = g_acc.index_select(1, b.flat).view(1 + nc, *b.pix.shape).unbind(0)
             # dL/d(θ B V) per pixel: the opacity sum's and the colour sums' gradients
             g_w = torch.addcmul(g[0], g[1], gamma[0])
@@ -443,7 +443,6 @@ class _Splat(torch.autograd.Function):
             for k, value in enumerate(out):
                 if value is not None:
                     sums[k].index_add_(0, b.sample, value)
-        th = per[4]
         index = plan.kept
         # d(fraction of a grid step) / du = P / f (P phases, a grid f times coarser)
         scale = th * plan.phases
@@ -462,10 +461,12 @@ class _Splat(torch.autograd.Function):
         return (*grads, None)
 
 
-def _per_sample(plan: _Plan, u, v, z, theta, color) -> torch.Tensor:
-    """Per kept sample, packed (6 + 2 C, K): fu, fv (the sub-pixel shift on its grid, as a
-    fraction of the stamp's grid step 1 / P: ``P f − floor(P f)``), β d, β, θ / K, the weights
-    of the 1 + C sums θ, θ γ_1 .. θ γ_C, and the colour γ (C)."""
+def _per_sample(plan: _Plan, u, v, z, theta, color, *,
+                weights: bool) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per kept sample, packed (4 + C + ``weights``, K), what each block gathers: fu, fv (the
+    sub-pixel shift on its grid, as a fraction of the stamp's grid step 1 / P:
+    ``P f − floor(P f)``), β d, β, then with ``weights`` (the forward pass) the weights of the
+    1 + C sums θ, θ γ_1 .. θ γ_C, else (the backward pass) the colour γ (C); and θ / K (K,)."""
     kept = plan.kept
     uv = torch.stack((u, v)).index_select(1, kept)
     if plan.coarse:
@@ -475,6 +476,7 @@ def _per_sample(plan: _Plan, u, v, z, theta, color) -> torch.Tensor:
     beta = plan.beta.index_select(0, kept).to(u.dtype)
     th = theta.index_select(0, kept)
     col = color.index_select(0, kept).t()
-    return torch.cat((p - torch.floor(p), torch.stack((beta * z.index_select(0, kept), beta, th,
-                                                       th)),
-                      th * col, col))
+    head = (p - torch.floor(p), torch.stack((beta * z.index_select(0, kept), beta)))
+    if weights:
+        return torch.cat((*head, th[None], th * col)), th
+    return torch.cat((*head, col)), th
