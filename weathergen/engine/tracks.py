@@ -164,7 +164,10 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
 
     Shape: ends (2, M, 3) float64 homogeneous pixels of the start and the end, reach (M,),
     tolerance (M,) or a number, depth (V, 1, H, W), view (M,) int64 -> (M,) bool.
-    ``windows``: :func:`depth_windows` of ``depth`` when the caller has them.
+    ``windows``: :func:`depth_windows` of ``depth``, from a caller that tests many points
+    against the same views (the sampler): each point is then tested at its own pixel first and
+    only those behind the scene there over their window (the same result, as the window holds the
+    pixel, in less time; one host synchronisation).
     """
     height, width = depth.shape[-2:]
     zz = ends[..., 2]
@@ -173,8 +176,13 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
     reach = reach[:, None]
     limit, last, step = _image_constants(height, width, ends.device)
     reaches = (zz > 1e-6) & ((uv >= -0.5 - reach) & (uv <= limit + reach)).all(-1)
-    # the point's own pixel first (most points in empty space pass there; the window holds it,
-    # so a point that passes there passes the window's test)
+    if windows is None:     # a render's points: every window at once (no host synchronisation)
+        window = torch.minimum(torch.stack((uv - reach, uv + reach)).add_(0.5).floor_()
+                               .clamp_(min=0), last).long()
+        under = depth_windows(depth).farthest(window, view)
+        return (reaches & (zz <= under.to(torch.float64) + tolerance)).any(0)
+    # the sampler's many candidates: the point's own pixel first (most points in empty space
+    # pass there; the window holds it, so a point that passes there passes the window's test)
     pixel = torch.minimum(torch.floor(uv + 0.5).clamp_(min=0), last).long()   # (col, row)
     under = torch.take(depth, (pixel * step).sum(-1) + view * (height * width))
     seen = reaches & (zz <= under.to(torch.float64) + tolerance)
@@ -186,8 +194,7 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
         point = uv.reshape(-1, 2).index_select(0, rest)
         window = torch.minimum(torch.stack((point - r, point + r)).add_(0.5).floor_()
                                .clamp_(min=0), last).long()
-        farthest = (depth_windows(depth) if windows is None else windows) \
-            .farthest(window, view.index_select(0, m))
+        farthest = windows.farthest(window, view.index_select(0, m))
         if torch.is_tensor(tolerance) and tolerance.dim():
             tolerance = tolerance.index_select(0, m)
         behind = zz.reshape(-1).index_select(0, rest) <= farthest.to(torch.float64) + tolerance
@@ -199,7 +206,7 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
 class DepthWindows:
     """A view's scene depth and its maxima over ``2**k x 2**k`` blocks (k = 0, 1, ... up to one
     block for the whole image), every level flat in ``values``; per level k, ``table[k]`` =
-    (where it starts, h_k, w_k): level k is ``(V, h_k, w_k)``, ``h_k = ceil(H / 2**k)``."""
+    (where it starts, h_k w_k, w_k): level k is ``(V, h_k, w_k)``, ``h_k = ceil(H / 2**k)``."""
 
     values: torch.Tensor
     table: torch.Tensor
@@ -211,9 +218,9 @@ class DepthWindows:
         # the level: 2**k >= the window's side n, k = the binary exponent of n − 1
         k = torch.frexp((window[1] - window[0]).amax(-1).to(torch.float64))[1] \
             .clamp_(max=self.table.shape[0] - 1)
-        start, h, w = self.table.index_select(0, k.view(-1)).view(*k.shape, 3).unbind(-1)
+        start, size, w = self.table.index_select(0, k.view(-1)).view(*k.shape, 3).unbind(-1)
         col, row = (window >> k[..., None]).unbind(-1)                     # (2, ..., M)
-        at = (start + view * h * w + row * w)[:, None] + col               # (2, 2, ..., M)
+        at = torch.addcmul(torch.addcmul(start, view, size), row, w)[:, None] + col  # (2, 2, ..., M)
         return self.values.take(at).amax((0, 1))
 
 
@@ -224,8 +231,8 @@ def depth_windows(depth: torch.Tensor) -> DepthWindows:
     while levels[-1].shape[-1] > 1 or levels[-1].shape[-2] > 1:
         levels.append(F.max_pool2d(levels[-1], 2, ceil_mode=True))
     starts = itertools.accumulate([lv.numel() for lv in levels[:-1]], initial=0)
-    table = torch.tensor([[s, lv.shape[-2], lv.shape[-1]] for s, lv in zip(starts, levels)],
-                         device=depth.device)
+    table = torch.tensor([[s, lv.shape[-2] * lv.shape[-1], lv.shape[-1]]
+                          for s, lv in zip(starts, levels)], device=depth.device)
     return DepthWindows(values=torch.cat([lv.reshape(-1) for lv in levels]), table=table)
 
 
