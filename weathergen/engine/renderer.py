@@ -253,8 +253,8 @@ def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement:
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(torch.device(device))
     stamps = build(looks, templates, dtype=dtype, chunk_elements=chunk_elements)
-    return splat(blur_samples(tracks, dtype, stamps.gap), stamps, views.depth, chunk_elements=chunk_elements,
-                 detach_occlusion=detach_occlusion)
+    return splat(blur_samples(tracks, dtype, stamps.gap), stamps, views.depth,
+                 chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
 
 
 def render_view(image: torch.Tensor, view: View, record: Particles, start: torch.Tensor,
