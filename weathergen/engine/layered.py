@@ -43,7 +43,7 @@ from .composite import RenderOutput, upsample, upsample_adjoint
 from .layers import LayeredParticles
 from .particles import Particles
 from .splat import Grids, Sums, chunk_elements_for, splat
-from .stamps import COARSE_SIDE, RAGGED_CHUNK, StampSet, build, build_many
+from .stamps import COARSE_SIDE, StampSet, build, build_many
 from .templates import TemplateLibrary, load_templates
 from .tracks import (Looks, ParticleTable, RecordRows, Tracks, Views, blur_samples, empty_looks,
                      fixed_looks, pair_tracks)
@@ -157,24 +157,17 @@ def _layer_parts(records: Sequence[Particles], views: Views, *, beta: float,
 def _layer_stamps(prepared: Sequence[tuple], given: Sequence[Optional[StampSet]], *, dtype,
                   device, coarse_side: Optional[int], chunk_elements: int) -> list[StampSet]:
     """Every layer's stamps in the order of its parts (paper, then fields), the ones to build
-    (a layer's paper-model stamps unless ``given``, and its fields') built with a GPU's chunks in
-    one pass for all the layers (:func:`~weathergen.engine.stamps.build_many`: each stamp the
-    bytes of its layer's own build), with the CPU's layer by layer (faster there: one pass pads
-    every disc-blurred row to the widest blurred stamp of all the layers)."""
+    (a layer's paper-model stamps unless ``given``, and its fields') built in one call for all
+    the layers (:func:`~weathergen.engine.stamps.build_many`: each stamp the bytes of its
+    layer's own build)."""
     todo, counts = [], []
     for (_, paper, field), part in zip(prepared, given):
         mine = (paper if part is None else []) + field
-        todo.append([(looks, lib) for looks, _, lib in mine])
+        todo += [(looks, lib) for looks, _, lib in mine]
         counts.append(sum(looks.count for looks, _, _ in mine))
-    if chunk_elements >= RAGGED_CHUNK:        # a GPU's chunks: one build, fewer launches
-        flat = [p for layer in todo for p in layer]
-        built = _cut(build_many(flat, dtype=dtype, coarse_side=coarse_side,
-                                chunk_elements=chunk_elements), counts) if flat \
-            else [None] * len(prepared)
-    else:   # the CPU's: each layer alone (a blur's rows are as wide as its widest stamp's)
-        built = [build_many(layer, dtype=dtype, coarse_side=coarse_side,
-                            chunk_elements=chunk_elements) if layer else None
-                 for layer in todo]
+    built = _cut(build_many(todo, dtype=dtype, coarse_side=coarse_side,
+                            chunk_elements=chunk_elements), counts) if todo \
+        else [None] * len(prepared)
     out = []
     for (libs, paper, field), part, new in zip(prepared, given, built):
         pieces = ([part.to(dtype, device)] if part is not None and part.count else []) \

@@ -338,7 +338,10 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
     in one pass: entry for entry the bytes of ``StampSet.cat([build(looks, lib) for looks, lib
     in parts])``, at the tensor operations of one build (only the template reads, one
     ``grid_sample`` per chunk, go per library: each library's atlas is its own image, and a
-    read's normalised coordinates are those of its atlas)."""
+    read's normalised coordinates are those of its atlas). With the CPU's small chunks (below
+    :data:`RAGGED_CHUNK`) consecutive parts of one library are built together and the others
+    one after the other (the same bytes): splitting every chunk's reads by library costs more
+    there than the operations it saves."""
     libs: list[TemplateLibrary] = []
     which = []
     for _, lib in parts:
@@ -348,6 +351,13 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
             libs.append(lib)
             k = len(libs) - 1
         which.append(k)
+    if len(libs) > 1 and chunk_elements < RAGGED_CHUNK:
+        runs_of_one = [[part for part, _ in group]
+                       for _, group in itertools.groupby(zip(parts, which), key=lambda pw: pw[1])]
+        if len(runs_of_one) > 1:
+            return StampSet.cat([build_many(run, dtype=dtype, coarse_side=coarse_side,
+                                            chunk_elements=chunk_elements)
+                                 for run in runs_of_one])
     looks = parts[0][0] if len(parts) == 1 else Looks.cat([p[0] for p in parts])
     device = looks.template.device
     for (part, lib) in parts:
