@@ -374,6 +374,30 @@ def test_depth_windows_read_the_farthest_depth_of_the_aligned_blocks_holding_a_w
         assert float(got[i]) == float(blocks.max()) >= float(d[r0:r1 + 1, c0:c1 + 1].max())
 
 
+def test_the_samplers_own_pixel_first_view_mask_keeps_what_the_renders_keeps():
+    """With the view's depth windows given (the sampler: own pixel first, the window only for
+    points behind the scene there) the mask is the render's (every window at once)."""
+    from weathergen.engine.tracks import view_windows
+
+    g = torch.Generator().manual_seed(5)
+    depth = torch.full((1, H, W), 8.0)
+    depth[:, 10:30, 5:25] = 1.5
+    depth[:, :, 40:] = 3.0
+    view = View(K, pose(rotation()), depth)
+    m = 2000
+    z = 0.5 + 9 * torch.rand(m, generator=g, dtype=torch.float64)
+    uv = torch.rand(m, 2, generator=g, dtype=torch.float64) * torch.tensor([W + 20.0, H + 20.0]) \
+        - 10
+    pts = torch.stack(((uv[:, 0] - K[0, 2]) / F * z, (uv[:, 1] - K[1, 2]) / F * z, z), 1)
+    streak = 0.05 * torch.randn(m, 3, generator=g, dtype=torch.float64)
+    diameter = 0.02 + 0.3 * torch.rand(m, generator=g, dtype=torch.float64)
+    optics = FieldOptics(near=0.1, far=10.0, fade=0.0, depth_softness=0.05)
+    direct = view_mask(view, pts, streak, diameter, optics)
+    staged = view_mask(view, pts, streak, diameter, optics, view_windows(view))
+    assert torch.equal(direct, staged)
+    assert 0.2 < float(direct.double().mean()) < 0.9
+
+
 def test_view_mask_keeps_clouds_behind_a_wall_whose_stamp_reaches_past_its_edge():
     """A near wall covers the columns left of 28; particles at depth 5 behind it (more than three
     depth softnesses) are drawn only if their stamp reaches past the wall's edge (the farthest

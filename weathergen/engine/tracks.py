@@ -177,9 +177,7 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
     limit, last, step = _image_constants(height, width, ends.device)
     reaches = (zz > 1e-6) & ((uv >= -0.5 - reach) & (uv <= limit + reach)).all(-1)
     if windows is None:     # a render's points: every window at once (no host synchronisation)
-        window = torch.minimum(torch.stack((uv - reach, uv + reach)).add_(0.5).floor_()
-                               .clamp_(min=0), last).long()
-        under = depth_windows(depth).farthest(window, view)
+        under = depth_windows(depth).farthest(_window(uv, reach, last), view)
         return (reaches & (zz <= under.to(torch.float64) + tolerance)).any(0)
     # the sampler's many candidates: the point's own pixel first (most points in empty space
     # pass there; the window holds it, so a point that passes there passes the window's test)
@@ -192,14 +190,20 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
         m = torch.remainder(rest, zz.shape[1])
         r = reach.view(-1).index_select(0, m)[:, None]
         point = uv.reshape(-1, 2).index_select(0, rest)
-        window = torch.minimum(torch.stack((point - r, point + r)).add_(0.5).floor_()
-                               .clamp_(min=0), last).long()
-        farthest = windows.farthest(window, view.index_select(0, m))
+        farthest = windows.farthest(_window(point, r, last), view.index_select(0, m))
         if torch.is_tensor(tolerance) and tolerance.dim():
             tolerance = tolerance.index_select(0, m)
         behind = zz.reshape(-1).index_select(0, rest) <= farthest.to(torch.float64) + tolerance
         seen = seen.reshape(-1).index_copy(0, rest, behind).view(seen.shape)
     return seen.any(0)
+
+
+def _window(uv: torch.Tensor, reach: torch.Tensor, last: torch.Tensor) -> torch.Tensor:
+    """The first and last image pixels (column, row) within ``reach`` of points ``uv``, clamped
+    to the image (``last``: its last column and row). Shape: uv (..., 2), reach broadcasting
+    to it -> (2, ..., 2) int64."""
+    return torch.minimum(torch.stack((uv - reach, uv + reach)).add_(0.5).floor_().clamp_(min=0),
+                         last).long()
 
 
 @dataclass
@@ -278,8 +282,8 @@ def field_mask(project: torch.Tensor, f: torch.Tensor, start: torch.Tensor,
                ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Which field particles a view draws, their camera depth there and their defocus radius:
     camera depth in ``[near, far]``, start or streak end inside the image widened by the
-    stamp's reach (half the footprint, the defocus radius and 2 pixels), not behind the scene at
-    that pixel by more than three ``depth_softness``.
+    stamp's reach (half the footprint, the defocus radius and 2 pixels), not behind the scene by
+    more than three ``depth_softness`` everywhere within that reach (:func:`in_view`).
 
     Shape: project (M, 3, 4), f (M,), start, streak (M, 3), diameter (M,) float64; ``optics`` a
     :class:`FieldOptics` or :class:`OpticsRows`; depth (V, 1, H, W); view (M,) int64 ->
