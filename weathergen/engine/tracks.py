@@ -123,12 +123,26 @@ def _smoothstep(x: torch.Tensor) -> torch.Tensor:
     return x * x * (3 - 2 * x)
 
 
+_SCALARS: dict = {}
+
+
+def _scalar(value: float, device) -> torch.Tensor:
+    """A 0-dim float64 tensor holding ``value``, made once per device (``torch.where`` with a
+    Python number makes one at every call: an operation each time). It broadcasts and promotes
+    as the number does."""
+    key = (value, str(device))
+    if key not in _SCALARS:
+        _SCALARS[key] = torch.tensor(value, dtype=torch.float64, device=device)
+    return _SCALARS[key]
+
+
 def coc_radius(f, aperture, focus, z: torch.Tensor) -> torch.Tensor:
     """Thin-lens circle of confusion ``round(clip(f A |1/z − 1/focus| / 2, 0, MAX_DEFOCUS))``
     in whole pixels (0 where the aperture is 0). Arguments broadcast. Shape: -> z's, int64."""
     r = 0.5 * f * aperture * (torch.reciprocal(z) - _inverse(focus)).abs()
     r = torch.floor(r.clamp(0, MAX_DEFOCUS) + 0.5)
-    return torch.where(torch.as_tensor(aperture, device=z.device) > 0, r, 0.0).long()
+    return torch.where(torch.as_tensor(aperture, device=z.device) > 0, r,
+                       _scalar(0.0, z.device)).long()
 
 
 def defocus_radius(f: float, optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
@@ -142,7 +156,7 @@ def fade(near, far, fraction, z: torch.Tensor) -> torch.Tensor:
     fade_in = _smoothstep((z - near) / near)
     fraction = torch.as_tensor(fraction, dtype=z.dtype, device=z.device)
     cut = fraction > 0
-    safe = torch.where(cut, fraction, 1.0)
+    safe = torch.where(cut, fraction, _scalar(1.0, z.device))
     fade_out = torch.where(cut, _smoothstep((far - z) / (safe * far)),
                            (z <= far).to(z.dtype))
     return fade_in * fade_out
@@ -171,13 +185,17 @@ def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
     """
     height, width = depth.shape[-2:]
     zz = ends[..., 2]
-    safe = torch.where(zz.abs() > 1e-12, zz, 1e-12)
+    safe = torch.where(zz.abs() > 1e-12, zz, _scalar(1e-12, zz.device))
     uv = ends[..., :2] / safe[..., None]                                # (2, M, 2): u, v
     reach = reach[:, None]
     limit, last, step = _image_constants(height, width, ends.device)
     reaches = (zz > 1e-6) & ((uv >= -0.5 - reach) & (uv <= limit + reach)).all(-1)
-    if windows is None:     # a render's points: every window at once (no host synchronisation)
-        under = depth_windows(depth).farthest(_window(uv, reach, last), view)
+    if windows is None:     # a render's points: every window at once
+        window = _window(uv, reach, last)
+        level = window_level(window)
+        # (the pyramid up to the widest window's level: one host synchronisation)
+        top = int(level.max()) if level.numel() else 0
+        under = depth_windows(depth, top).farthest(window, view, level)
         return (reaches & (zz <= under.to(torch.float64) + tolerance)).any(0)
     # the sampler's many candidates: the point's own pixel first (most points in empty space
     # pass there; the window holds it, so a point that passes there passes the window's test)
@@ -215,29 +233,46 @@ class DepthWindows:
     values: torch.Tensor
     table: torch.Tensor
 
-    def farthest(self, window: torch.Tensor, view: torch.Tensor) -> torch.Tensor:
+    def farthest(self, window: torch.Tensor, view: torch.Tensor,
+                 level: Optional[torch.Tensor] = None) -> torch.Tensor:
         """The largest depth over the blocks of the smallest level whose blocks are as wide as
         the window (at most two per axis hold it). Shape: window (2, ..., M, 2) int64, its first
-        and last pixels (col, row); view (M,) -> (..., M)."""
-        # the level: 2**k >= the window's side n, k = the binary exponent of n − 1
-        k = torch.frexp((window[1] - window[0]).amax(-1).to(torch.float64))[1] \
-            .clamp_(max=self.table.shape[0] - 1)
+        and last pixels (col, row); view (M,) -> (..., M). ``level``: :func:`window_level` of
+        ``window`` when the caller has it (it is then clamped in place)."""
+        k = (window_level(window) if level is None else level).clamp_(
+            max=self.table.shape[0] - 1)
         start, size, w = self.table.index_select(0, k.view(-1)).view(*k.shape, 3).unbind(-1)
         col, row = (window >> k[..., None]).unbind(-1)                     # (2, ..., M)
         at = torch.addcmul(torch.addcmul(start, view, size), row, w)[:, None] + col  # (2, 2, ..., M)
         return self.values.take(at).amax((0, 1))
 
 
-def depth_windows(depth: torch.Tensor) -> DepthWindows:
+def window_level(window: torch.Tensor) -> torch.Tensor:
+    """The :class:`DepthWindows` level that holds each window in at most two blocks per axis:
+    ``2**k >= n`` for its side n, k the binary exponent of ``n − 1``. Shape: window
+    (2, ..., M, 2) -> (..., M) int32."""
+    return torch.frexp((window[1] - window[0]).amax(-1).to(torch.float64))[1]
+
+
+_TABLES: dict = {}
+
+
+def depth_windows(depth: torch.Tensor, top: Optional[int] = None) -> DepthWindows:
     """:class:`DepthWindows` of ``depth`` (V, 1, H, W): block maxima by repeated 2 x 2 max
-    pooling (a block at the image's right or bottom edge holds what lies inside)."""
+    pooling (a block at the image's right or bottom edge holds what lies inside), up to level
+    ``top`` (None: up to one block for the whole image)."""
     levels = [depth]
-    while levels[-1].shape[-1] > 1 or levels[-1].shape[-2] > 1:
+    while (levels[-1].shape[-1] > 1 or levels[-1].shape[-2] > 1) \
+            and (top is None or len(levels) <= top):
         levels.append(F.max_pool2d(levels[-1], 2, ceil_mode=True))
-    starts = itertools.accumulate([lv.numel() for lv in levels[:-1]], initial=0)
-    table = torch.tensor([[s, lv.shape[-2] * lv.shape[-1], lv.shape[-1]]
-                          for s, lv in zip(starts, levels)], device=depth.device)
-    return DepthWindows(values=torch.cat([lv.reshape(-1) for lv in levels]), table=table)
+    key = (tuple(tuple(lv.shape) for lv in levels), str(depth.device))
+    if key not in _TABLES:
+        starts = itertools.accumulate([lv.numel() for lv in levels[:-1]], initial=0)
+        if len(_TABLES) > 64:
+            _TABLES.clear()
+        _TABLES[key] = torch.tensor([[s, lv.shape[-2] * lv.shape[-1], lv.shape[-1]]
+                                     for s, lv in zip(starts, levels)], device=depth.device)
+    return DepthWindows(values=torch.cat([lv.reshape(-1) for lv in levels]), table=_TABLES[key])
 
 
 _IMAGE: dict = {}
@@ -291,22 +326,25 @@ def field_mask(project: torch.Tensor, f: torch.Tensor, start: torch.Tensor,
     at ``far`` elsewhere). ``windows``: :func:`depth_windows` of ``depth``, when the caller
     tests many particles against the same views.
     """
-    mask, z, radius, _ = _field_mask(project, f, start, streak, diameter, optics, depth, view,
-                                     windows)
+    mask, z, radius, _, _ = _field_mask(project, f, start, streak, diameter, optics, depth,
+                                        view, windows)
     return mask, z, radius
 
 
 def _field_mask(project, f, start, streak, diameter, optics, depth, view, windows=None):
-    """:func:`field_mask`, and the homogeneous pixels of the start, differentiable in ``start``
-    (the mask and the depth are not). Shape: -> (mask, z, radius, h0 (M, 3))."""
+    """:func:`field_mask`, the footprint ``f d / z`` there and the homogeneous pixels of the
+    start, differentiable in ``start`` (the mask and the depth are not).
+    Shape: -> (mask, z, radius, footprint (M,), h0 (M, 3))."""
     ends = homogeneous(project, torch.stack((start, start.detach() + streak)))
-    z = ends[0, :, 2].detach()
+    fixed = ends.detach()
+    z = fixed[0, :, 2]
     in_range = (z >= optics.near) & (z <= optics.far)
     safe = torch.where(in_range, z, optics.far)
     radius = coc_radius(f, optics.aperture, optics.focus, safe)
-    reach = 0.5 * footprint(f, diameter, safe) + radius + 2
-    seen = in_view(ends.detach(), reach, 3 * optics.depth_softness, depth, view, windows)
-    return in_range & seen, safe, radius, ends[0]
+    size = footprint(f, diameter, safe)
+    reach = 0.5 * size + radius + 2
+    seen = in_view(fixed, reach, 3 * optics.depth_softness, depth, view, windows)
+    return in_range & seen, safe, radius, size, ends[0]
 
 
 def view_mask(view: View, points: torch.Tensor, streak: torch.Tensor, diameter: torch.Tensor,
@@ -486,7 +524,8 @@ def fixed_looks(table: ParticleTable, rows: RecordRows, resolution: int) -> Look
 
 def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, views: Views,
                 view: torch.Tensor, start: torch.Tensor, *, beta: float, dtype: torch.dtype,
-                color: Optional[torch.Tensor] = None) -> tuple[Looks, Tracks]:
+                color: Optional[torch.Tensor] = None, first_entry: int = 0
+                ) -> tuple[Looks, Tracks]:
     """A weather field's particles as the views ``view`` (C,) see them, candidate ``c`` being
     particle ``which[c]`` of ``table`` seen from ``start[c]`` (C, 3; its reference position in
     that view's frame): the
@@ -494,7 +533,7 @@ def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, vie
     ``f d / z`` (at least one pixel; below it θ is scaled by the footprint's area), θ faded with
     depth, a thin-lens defocus disc (light spread, not brightened) and ``β = min(beta,
     1 / depth_softness)``. Looks depend on the detached positions; the track's positions keep
-    their gradient."""
+    their gradient. The tracks' entries are numbered from ``first_entry`` on."""
     record = table.record.index_select(0, which)
     near, far, fraction, aperture, focus, softness = rows.optics.index_select(0, record).unbind(1)
     project = views.project.index_select(0, view)
@@ -502,10 +541,9 @@ def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, vie
     displacement = table.displacement.index_select(0, which)
     scale = table.scale.index_select(0, which)
     streak = rows.blur_length.index_select(0, record)[:, None] * displacement.detach()
-    mask, z, radius, h0 = _field_mask(project, f, start, streak, scale,
-                                      OpticsRows(near, far, fraction, aperture, focus, softness),
-                                      views.depth, view)
-    fp = footprint(f, scale, z)
+    mask, z, radius, fp, h0 = _field_mask(project, f, start, streak, scale,
+                                          OpticsRows(near, far, fraction, aperture, focus,
+                                                     softness), views.depth, view)
     factor = fade(near, far, fraction, z) * fp.clamp(max=1.0) ** 2
     theta = (table.transparency.index_select(0, which).to(torch.float64) * factor).to(dtype)
     keep = torch.nonzero(mask & (theta.detach() != 0)).squeeze(1)
@@ -517,7 +555,8 @@ def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, vie
                   template=table.template.index_select(0, drawn),
                   brighten=rows.brighten.index_select(0, record) & (radius > 1))
     colour = table.color if color is None else color
-    tracks = Tracks(entry=torch.arange(keep.numel(), device=keep.device),
+    tracks = Tracks(entry=torch.arange(first_entry, first_entry + keep.numel(),
+                                       device=keep.device),
                     view=view.index_select(0, keep), h0=h0.index_select(0, keep),
                     hd=direction(project, displacement).index_select(0, keep),
                     samples=rows.samples.index_select(0, record),
@@ -552,10 +591,12 @@ def pair_tracks(records: Sequence[Particles], views: Views, resolution: int, *, 
     rows = RecordRows.of(chosen, device)
     pair = torch.tensor([pairs[i] for i in order], device=device).index_select(0, table.record)
     n = sum(records[i].count for i in paper)
-    parts, entries = [], []
+    # every column's pieces, the paper's tracks (both frames) first, concatenated once
+    columns: dict = {k: [] for k in Tracks.__dataclass_fields__}
+    entries = []
     if paper:
         head = table if n == table.count else table.head(n)
-        looks = fixed_looks(head, rows, resolution)
+        entries.append(fixed_looks(head, rows, resolution))
         start, record, p = head.start, head.record, pair[:n]
         # both frames at once: frame 1 from X1, frame 2 from X2 (the first n rows, the last n)
         view = torch.cat((p, bsz + p))
@@ -563,26 +604,32 @@ def pair_tracks(records: Sequence[Particles], views: Views, resolution: int, *, 
                         torch.cat((start, start + head.displacement)))
         hd = h[n:] - h[:n]
         entry = torch.arange(n, device=device)
-        parts.append(Tracks(entry=entry.repeat(2), view=view, h0=h, hd=hd.repeat(2, 1),
-                            samples=rows.samples.index_select(0, record).repeat(2),
-                            spacing=rows.spacing.index_select(0, record).repeat(2),
-                            theta=head.transparency.to(dtype).repeat(2),
-                            color=head.color.to(dtype).repeat(2, 1),
-                            beta=torch.full((2 * n,), float(beta), dtype=torch.float64,
-                                            device=device)))
-        entries.append(looks)
+        samples = rows.samples.index_select(0, record)
+        spacing = rows.spacing.index_select(0, record)
+        theta, colour = head.transparency.to(dtype), head.color.to(dtype)
+        for key, piece in (("entry", entry), ("hd", hd), ("samples", samples),
+                           ("spacing", spacing), ("theta", theta), ("color", colour)):
+            # (a differentiable piece repeated: its gradient is then the sum of both frames' in
+            # the order of repeat's backward, to the sign of a zero)
+            columns[key] += [piece.repeat(2, *[1] * (piece.dim() - 1))] \
+                if piece.requires_grad else [piece, piece]
+        columns["view"].append(view)
+        columns["h0"].append(h)
+        columns["beta"].append(torch.full((2 * n,), float(beta), dtype=torch.float64,
+                                          device=device))
     if field:
         # every field particle is a candidate in both frames of its pair
         which = torch.arange(n, table.count, device=device).repeat(2)
         p = pair[n:]
-        start = torch.cat((table.start[n:], table.start[n:] + table.displacement[n:]))
-        looks, tracks = field_looks(table, which, rows, views, torch.cat((p, bsz + p)), start,
-                                    beta=float(beta), dtype=dtype)
-        parts.append(tracks)
+        start = table.start[n:]
+        looks, tracks = field_looks(table, which, rows, views, torch.cat((p, bsz + p)),
+                                    torch.cat((start, start + table.displacement[n:])),
+                                    beta=float(beta), dtype=dtype, first_entry=n)
         entries.append(looks)
-    if len(parts) == 1:
-        return entries[0], parts[0]
-    return Looks.cat(entries), Tracks.cat(parts, [0, entries[0].count])
+        for key in columns:
+            columns[key].append(getattr(tracks, key))
+    looks = entries[0] if len(entries) == 1 else Looks.cat(entries)
+    return looks, Tracks(**{k: v[0] if len(v) == 1 else torch.cat(v) for k, v in columns.items()})
 
 
 def view_tracks(record: Particles, views: Views, start: torch.Tensor, displacement: torch.Tensor,
@@ -719,7 +766,7 @@ def blur_samples(tracks: Tracks, dtype: torch.dtype, gap: Optional[torch.Tensor]
     step = (k * tracks.spacing.index_select(0, track))[:, None]
     h = tracks.h0.index_select(0, track) + step * tracks.hd.index_select(0, track)
     z = h[:, 2]
-    safe = torch.where(z.abs() > 1e-12, z, 1e-12)
+    safe = torch.where(z.abs() > 1e-12, z, _scalar(1e-12, z.device))
     per_sample = tracks.theta / tracks.samples.to(tracks.theta.dtype)
     entry, view = torch.stack((tracks.entry, tracks.view)).index_select(1, track)
     return Instances(u=(h[:, 0] / safe).to(dtype), v=(h[:, 1] / safe).to(dtype), z=z.to(dtype),
