@@ -361,8 +361,9 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
     looks = parts[0][0] if len(parts) == 1 else Looks.cat([p[0] for p in parts])
     device = looks.template.device
     for (part, lib) in parts:
-        if part.count and not 0 <= part.template.min().tolist() <= part.template.max().tolist() \
-                < lib.count:
+        low, high = [t.tolist() for t in torch.aminmax(part.template)] if part.count \
+            else (0, 0)
+        if not 0 <= low <= high < lib.count:
             raise ConfigError(f"particle template index out of range for the {lib.count} "
                               f"templates of '{lib.name}'")
     with torch.no_grad():
@@ -445,7 +446,7 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
         # softened stamps are smooth over the box: blur samples may lie (b - 1) / 2 of their
         # grid's pixels apart; the others one pixel (both times the grid's factor)
         gap = torch.where(soft, _constant("gaps", GAPS, torch.float64, device)
-                          .index_select(0, radius), 1.0) \
+                          .index_select(0, radius), _constant("one", 1.0, torch.float64, device)) \
             * _constant("factors", FACTORS, torch.float64, device).index_select(0, coarse)
     return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse,
                     phases=phases, gap=gap)
@@ -470,8 +471,9 @@ def _coefficients(looks: Looks, books: Sequence[Atlas], lib_of: Optional[torch.T
         y0 = book.y0.view(-1).index_select(0, looks.template * book.y0.shape[1] + level)
         size = _constant(f"atlas_size{width},{height}", [[width], [height]], torch.float64,
                          device)
+        # (the third row divided by −height: −(x / height), the negation exact)
         turn_size = _constant(f"atlas_turn{width},{height}",
-                              [[width], [width], [height], [height]], torch.float64, device)
+                              [[width], [width], [-height], [height]], torch.float64, device)
     else:
         # every library's tables one after the other (levels padded to the most any has)
         levels = max(int(b.res.numel()) for b in books)
@@ -482,21 +484,23 @@ def _coefficients(looks: Looks, books: Sequence[Atlas], lib_of: Optional[torch.T
             .index_select(0, template * levels + level)
         res = torch.stack([F.pad(b.res, (0, levels - b.res.numel())) for b in books]).view(-1) \
             .index_select(0, lib_of * levels + level)
-        size = torch.tensor([[b.image.shape[-1] for b in books], [b.image.shape[-2]
-                                                                  for b in books]],
-                            dtype=torch.float64, device=device).index_select(1, lib_of)
-        turn_size = size.index_select(0, torch.tensor([0, 0, 1, 1], device=device))
+        widths = [float(b.image.shape[-1]) for b in books]
+        heights = [float(b.image.shape[-2]) for b in books]
+        size = torch.tensor([widths, heights], dtype=torch.float64,
+                            device=device).index_select(1, lib_of)
+        turn_size = torch.tensor([widths, widths, [-h for h in heights], heights],
+                                 dtype=torch.float64, device=device).index_select(1, lib_of)
     scale = res / footprint
     cos, sin = torch.cos(looks.rotation), torch.sin(looks.rotation)
     # (2 x0 + res) / width − 1 and (2 y0 + res) / height − 1; 2 scale cos / width,
-    # 2 scale sin / width, −2 scale sin / height and 2 scale cos / height (the negation exact)
+    # 2 scale sin / width, 2 scale sin / −height and 2 scale cos / height
     origin = (torch.stack((x0, y0)) * 2 + res) / size - 1
     two_scale = 2 * scale
     turn = torch.stack((two_scale * cos, two_scale * sin))
     turn = torch.cat((turn, turn.flip(0))) / turn_size
     bx, by = origin.unbind(0)
-    ax, cx, ay_neg, cy = turn.unbind(0)
-    coef = torch.stack((bx, ax, cx, by, -ay_neg, cy, (footprint / 2) ** 2 * (1.0 + RIM_MARGIN),
+    ax, cx, ay, cy = turn.unbind(0)
+    coef = torch.stack((bx, ax, cx, by, ay, cy, (footprint / 2) ** 2 * (1.0 + RIM_MARGIN),
                         _constant("centre", CENTRES, torch.float64, device)
                         .index_select(0, side)), 1).to(dtype)
     return coef
@@ -662,14 +666,15 @@ def _pixel_sums(value: torch.Tensor, factor: torch.Tensor) -> torch.Tensor:
     1) summed pairwise, halves first: sample j plus sample j + sub² / 2, then again, until one
     is left, at the pixel's first sample (the order of a sum over halves: the same bits
     anywhere). Shape: (n,) -> (n,), meaningful at each pixel's first sample."""
-    n = int(value.numel())
     samples = value
-    value = torch.cat((value, value.new_zeros(8)))
-    quad = factor == 4
+    # zeros past the end once: each step's sums reach ``shift`` further and are one shorter by
+    # it, their tail still zeros (the same sums as cutting to n and padding again every step)
+    value = F.pad(value, (0, 15))
+    quad = F.pad(factor == 4, (0, 15))
     for shift in (8, 4, 2, 1):
-        summed = value[:n] + value[shift:n + shift]
-        value = torch.where(quad, summed, value[:n]) if shift > 2 else summed
-        value = torch.cat((value, value.new_zeros(8))) if shift > 1 else value
+        first = value[:-shift]
+        summed = first + value[shift:]
+        value = torch.where(quad[:summed.shape[0]], summed, first) if shift > 2 else summed
     return torch.where(factor > 1, value, samples)
 
 
@@ -718,7 +723,8 @@ def _sample_phases(coef: torch.Tensor, images: Sequence[torch.Tensor],
         value.mul_(torch.addcmul(gx * gx, gy, gy) <= rho2)
         value = _window_mean(value, me, quad.index_select(0, e), p2.to(dtype))
         keep = torch.nonzero((yx < ne).all(0)).squeeze(1)
-        at = at0 + yx[1] * ne + yx[0]
+        col, row = yx.unbind(0)
+        at = torch.addcmul(at0 + col, row, ne)
         work.index_copy_(0, at.index_select(0, keep),
                          value.index_select(0, keep).to(torch.float64))
 
@@ -749,14 +755,15 @@ def _window_mean(value: torch.Tensor, pitch: torch.Tensor, quad: torch.Tensor,
     their run's last row or column hold other values (not used).
     Shape: value, pitch, quad (K,) -> (K,)."""
     count = int(value.numel())
-    value = torch.cat((value, value.new_zeros(3)))
+    value = F.pad(value, (0, 3))
     value = value[:-1] + value[1:]
     value = torch.where(quad, value[:count] + value[2:count + 2], value[:count])
     # along the columns: each window's value one and two rows down (last element where none)
     down = torch.arange(count, device=value.device) + pitch
     down = torch.stack((down, down + pitch)).clamp_(max=count - 1)
-    value = value + value.index_select(0, down[0])
-    value = torch.where(quad, value + value.index_select(0, down[1]), value)
+    one, two = down.unbind(0)
+    value = value + value.index_select(0, one)
+    value = torch.where(quad, value + value.index_select(0, two), value)
     return value / divisor
 
 
@@ -969,8 +976,8 @@ def _soften_group(work, members, side: int, at: int, top, box, full, chunk: int)
     # out[x] = S[hi] − S[lo] in the padded sums: hi = x + pad + h, lo = hi − b
     hi = torch.arange(side, device=work.device) + (pad + half).view(m, 1)
     ends = torch.stack((hi, hi - b.view(m, 1)))                         # (2, m, side)
-    ends = {2: ends.view(2, m, 1, side).expand(2, m, side, side),
-            1: ends.view(2, m, side, 1).expand(2, m, side, side)}
+    ends = {2: ends.view(2, m, 1, side).expand(2, m, side, side).unbind(0),
+            1: ends.view(2, m, side, 1).expand(2, m, side, side).unbind(0)}
     for axis in (2, 2, 1, 1):
         sums = F.pad(dense, (pad, pad, 0, 0) if axis == 2 else (0, 0, pad, pad)).cumsum_(axis)
         hi_a, lo_a = ends[axis]

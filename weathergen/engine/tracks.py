@@ -401,13 +401,21 @@ class ParticleTable:
 
         f64 = torch.float64
         counts = torch.tensor([r.count for r in records], device=device)
-        start = cat("position", f64) + cat("offset1", f64)
-        return cls(start=start, displacement=cat("motion", f64) + cat("offset2", f64),
+        total = sum(r.count for r in records)
+        vectors = [getattr(r, k) for k in ("position", "offset1", "motion", "offset2")
+                   for r in records]
+        if len({v.dtype for v in vectors}) == 1:    # (the usual case: all four in one cat)
+            position, offset1, motion, offset2 = torch.cat([v.to(device) for v in vectors]) \
+                .to(f64).view(4, total, 3).unbind(0)
+            start, displacement = position + offset1, motion + offset2
+        else:
+            start = cat("position", f64) + cat("offset1", f64)
+            displacement = cat("motion", f64) + cat("offset2", f64)
+        return cls(start=start, displacement=displacement,
                    color=cat("color"), transparency=cat("transparency"),
                    rotation=cat("rotation", f64), scale=cat("scale", f64),
                    template=cat("template", torch.long), defocus=cat("defocus", torch.long),
-                   record=torch.repeat_interleave(counts, output_size=sum(r.count
-                                                                         for r in records)))
+                   record=torch.repeat_interleave(counts, output_size=total))
 
     @property
     def count(self) -> int:
