@@ -189,7 +189,7 @@ def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor,
     """
     radius = defocus.masked_fill(defocus <= 1, 0)
     coarse = torch.zeros_like(radius)
-    full = footprint + 2 * radius
+    full = torch.add(footprint, radius, alpha=2)
     if coarse_side is not None and bool((full >= coarse_side).any()):
         coarse = torch.where(full >= coarse_side,
                              floor_log2(full / COARSE_MIN_SIDE)
@@ -386,9 +386,10 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
         soft = looks.brighten & blurred
         box = _constant("box", SOFT_BOX, torch.int64, device).index_select(0, radius)
         grow = (box - 1) * soft
-        inner = side + 2 * radius
-        full = inner + 2 * grow
-        fine = phases * (full + 1) + 1     # grid side with the border (phases > 1: no blur)
+        inner = torch.add(side, radius, alpha=2)
+        full = torch.add(inner, grow, alpha=2)
+        # grid side with the border, P (full + 1) + 1 (phases P > 1: no blur)
+        fine = torch.addcmul(phases, phases, full).add_(1)
         block = fine * fine
         first = starts(block)
         # One float64 buffer: every stamp in its bordered place, then, for the stamps to blur,
@@ -400,9 +401,10 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
         # stamps brightened without a blur (a defocus radius that rounds to 0 on a coarse grid)
         bright = looks.brighten & ~blurred
         # (the sizes and flags the host needs, read at once)
-        size, row_count, width, blurs, softs, brights = torch.stack((
-            block.sum(), rows.sum(), (side + 4 * radius).max(), blurred.sum(), soft.sum(),
-            bright.sum())).tolist() if looks.count else [0] * 6
+        size, row_count, blurs, softs, brights, width = torch.cat((
+            torch.stack((block, rows, blurred, soft, bright)).sum(1),
+            torch.add(side, radius, alpha=4).max().view(1))).tolist() \
+            if looks.count else [0] * 6
         width = width + 1 if blurs else 1
         # the brightened, blurred stamps are blurred onto canvases of similar sides (after the
         # rows), brightened and softened there, then copied to their places
@@ -414,8 +416,9 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
         # pixel (y, x) of entry e goes to ``place[e] + y * pitch[e] + x``; an unblurred stamp's
         # pixel (0, 0) is at its bordered pixel (1, 1) (it does not grow)
         top = first + full + 3
-        place = torch.where(blurred, size + rows_first * width + 2 * radius + 1, top)
-        pitch = torch.where(blurred, width, full + 2)
+        place = torch.where(blurred, torch.add(rows_first * width, radius, alpha=2)
+                            .add_(size + 1), top)
+        pitch = (full + 2).masked_fill_(blurred, width)
         images = [b.image for b in books]
         coef = _coefficients(looks, books, lib_of, footprint, side, level, dtype)
         (_sample if chunk_elements >= RAGGED_CHUNK else _sample_per_factor)(
@@ -931,7 +934,9 @@ def _soften(work, canvases: _Canvases, top, inner, box, full, chunk: int) -> Non
     """
     base = canvases.groups[0][2]
     if chunk >= RAGGED_CHUNK:
-        work[base:base + canvases.size] = defocus_brighten(work[base:base + canvases.size])
+        # (:func:`defocus_brighten` in place: the same operations on the same numbers)
+        work[base:base + canvases.size].mul_(2).clamp_(min=0).log_().div_(3).exp_() \
+            .clamp_(max=1)
     else:       # (small chunks: only the stamps' own pixels, less arithmetic)
         n = inner.index_select(0, canvases.members)
         grown = box.index_select(0, canvases.members) - 1

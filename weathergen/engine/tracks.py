@@ -493,8 +493,9 @@ class Tracks:
 class RecordRows:
     """Per-record settings as tensors (R records). Shape: samples (R,) int64 (K: 1 without motion
     blur); spacing (R,) float64 (``blur_length / (K − 1)``, 0 for K = 1); blur_length (R,)
-    float64; brighten (R,) bool; optics (R, 6) float64 (near, far, fade, aperture, focus,
-    depth_softness; zeros for the paper's records)."""
+    float64; brighten (R,) bool; optics (R, 7) float64 (near, far, fade, aperture, focus,
+    depth_softness, zeros for the paper's records; then blur_length again: every number a
+    field record's candidates read, gathered at once)."""
 
     samples: torch.Tensor
     spacing: torch.Tensor
@@ -513,14 +514,15 @@ class RecordRows:
             length.append(float(s.blur_length))
             bright.append(bool(s.defocus_brighten))
             o = r.optics
-            optics.append([0.0] * 6 if o is None else
-                          [o.near, o.far, o.fade, o.aperture, o.focus, o.depth_softness])
+            optics.append([0.0] * 6 + [length[-1]] if o is None else
+                          [o.near, o.far, o.fade, o.aperture, o.focus, o.depth_softness,
+                           length[-1]])
         f64 = torch.float64
         return cls(samples=torch.tensor(samples, device=device),
                    spacing=torch.tensor(spacing, dtype=f64, device=device),
                    blur_length=torch.tensor(length, dtype=f64, device=device),
                    brighten=torch.tensor(bright, device=device),
-                   optics=torch.tensor(optics, dtype=f64, device=device).view(-1, 6))
+                   optics=torch.tensor(optics, dtype=f64, device=device).view(-1, 7))
 
 
 def fixed_looks(table: ParticleTable, rows: RecordRows, resolution: int) -> Looks:
@@ -543,21 +545,21 @@ def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, vie
     1 / depth_softness)``. Looks depend on the detached positions; the track's positions keep
     their gradient. The tracks' entries are numbered from ``first_entry`` on."""
     record = table.record.index_select(0, which)
-    near, far, fraction, aperture, focus, softness = rows.optics.index_select(0, record).unbind(1)
+    near, far, fraction, aperture, focus, softness, length = \
+        rows.optics.index_select(0, record).unbind(1)
     project = views.project.index_select(0, view)
     f = views.focal.index_select(0, view)
     displacement = table.displacement.index_select(0, which)
     scale = table.scale.index_select(0, which)
-    streak = rows.blur_length.index_select(0, record)[:, None] * displacement.detach()
+    streak = length[:, None] * displacement.detach()
     mask, z, radius, fp, h0 = _field_mask(project, f, start, streak, scale,
                                           OpticsRows(near, far, fraction, aperture, focus,
                                                      softness), views.depth, view)
     factor = fade(near, far, fraction, z) * fp.clamp(max=1.0) ** 2
     theta = (table.transparency.index_select(0, which).to(torch.float64) * factor).to(dtype)
     keep = torch.nonzero(mask & (theta.detach() != 0)).squeeze(1)
-    drawn = which.index_select(0, keep)
-    record = record.index_select(0, keep)
-    radius = radius.index_select(0, keep)
+    drawn, record, radius, view = torch.stack((which, record, radius, view)) \
+        .index_select(1, keep).unbind(0)
     looks = Looks(footprint=fp.index_select(0, keep).clamp(min=1.0), defocus=radius,
                   rotation=table.rotation.index_select(0, drawn),
                   template=table.template.index_select(0, drawn),
@@ -565,7 +567,7 @@ def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, vie
     colour = table.color if color is None else color
     tracks = Tracks(entry=torch.arange(first_entry, first_entry + keep.numel(),
                                        device=keep.device),
-                    view=view.index_select(0, keep), h0=h0.index_select(0, keep),
+                    view=view, h0=h0.index_select(0, keep),
                     hd=direction(project, displacement).index_select(0, keep),
                     samples=rows.samples.index_select(0, record),
                     spacing=rows.spacing.index_select(0, record),
