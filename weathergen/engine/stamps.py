@@ -459,7 +459,8 @@ def _coefficients(looks: Looks, books: Sequence[Atlas], lib_of: Optional[torch.T
                   footprint, side, level, dtype) -> torch.Tensor:
     """Per entry, how a sample at (gx, gy) pixels from the stamp's centre reads its library's
     atlas (``lib_of`` (E,): the entry's index into ``books``; None: one library).
-    Shape: (E, 8), see :func:`_sample`."""
+    Shape: (8, E), rows bx, by, ax, cx, ay, cy, ρ² and the stamp's pixel 0 from its centre
+    (one row per number: a chunk's entries gather them with one ``index_select``)."""
     # A sample at (gx, gy) pixels from the stamp's centre reads the atlas at the
     # normalised position (bx + ax gx + cx gy, by + ay gx + cy gy): the template at
     # Rot(−rotation) (gx, gy) in units of half the footprint (so image offset = Rot(rotation) ·
@@ -471,7 +472,8 @@ def _coefficients(looks: Looks, books: Sequence[Atlas], lib_of: Optional[torch.T
         height, width = book.image.shape[-2:]
         res = book.res.index_select(0, level)
         x0 = book.x0.index_select(0, looks.template)
-        y0 = book.y0.view(-1).index_select(0, looks.template * book.y0.shape[1] + level)
+        y0 = book.y0.view(-1).index_select(0, torch.add(level, looks.template,
+                                                        alpha=book.y0.shape[1]))
         size = _constant(f"atlas_size{width},{height}", [[width], [height]], torch.float64,
                          device)
         # (the third row divided by −height: −(x / height), the negation exact)
@@ -498,15 +500,11 @@ def _coefficients(looks: Looks, books: Sequence[Atlas], lib_of: Optional[torch.T
     # (2 x0 + res) / width − 1 and (2 y0 + res) / height − 1; 2 scale cos / width,
     # 2 scale sin / width, 2 scale sin / −height and 2 scale cos / height
     origin = (torch.stack((x0, y0)) * 2 + res) / size - 1
-    two_scale = 2 * scale
-    turn = torch.stack((two_scale * cos, two_scale * sin))
+    turn = torch.stack((cos, sin)) * (2 * scale)
     turn = torch.cat((turn, turn.flip(0))) / turn_size
-    bx, by = origin.unbind(0)
-    ax, cx, ay, cy = turn.unbind(0)
-    coef = torch.stack((bx, ax, cx, by, ay, cy, (footprint / 2) ** 2 * (1.0 + RIM_MARGIN),
-                        _constant("centre", CENTRES, torch.float64, device)
-                        .index_select(0, side)), 1).to(dtype)
-    return coef
+    rim = torch.stack(((footprint / 2) ** 2 * (1.0 + RIM_MARGIN),
+                       _constant("centre", CENTRES, torch.float64, device).index_select(0, side)))
+    return torch.cat((origin, turn, rim)).to(dtype)
 
 
 def _read(images: Sequence[torch.Tensor], grid: torch.Tensor,
@@ -560,11 +558,11 @@ def _sample(coef: torch.Tensor, images: Sequence[torch.Tensor], lib_of: Optional
         e, row, at, factor = row_table.index_select(1, item).unbind(0)
         count = factor * factor
         col = torch.div(local, count, rounding_mode="floor")
-        j = local - col * count
+        j = torch.addcmul(local, col, count, value=-1)
         # the sample's offset in its pixel along x and y (:func:`_sample_offsets`), added to
         # its pixel's position from the stamp's centre
         off = _sample_offsets(dtype, device).index_select(1, torch.add(j, factor, alpha=16))
-        bx, ax, cx, by, ay, cy, rho2, centre = coef.index_select(0, e).unbind(1)
+        bx, by, ax, cx, ay, cy, rho2, centre = coef.index_select(1, e).unbind(0)
         gx, gy = ((torch.stack((col, row)).to(dtype) + centre) + off).unbind(0)
         n = int(local.numel())
         grid = torch.empty(n, 2, dtype=dtype, device=device)
@@ -576,8 +574,8 @@ def _sample(coef: torch.Tensor, images: Sequence[torch.Tensor], lib_of: Optional
             * inside
         value = _pixel_sums(value, factor)
         pixel = torch.nonzero(j == 0).squeeze(1)      # each pixel's first sample
-        value = value.index_select(0, pixel) / count.index_select(0, pixel).to(dtype)
-        e, target = torch.stack((e, at + col)).index_select(1, pixel)
+        e, target, count = torch.stack((e, at + col, count)).index_select(1, pixel)
+        value = value.index_select(0, pixel) / count.to(dtype)
         if bright is not None:      # (only the pixels of the stamps it brightens)
             which = torch.nonzero(bright.index_select(0, e)).squeeze(1)
             value.index_copy_(0, which, defocus_brighten(value.index_select(0, which)))
@@ -630,7 +628,7 @@ def _sample_per_factor(coef: torch.Tensor, images: Sequence[torch.Tensor],
                 item = item + lo
             e = row_entry.index_select(0, item)
             row = row_y.index_select(0, item)
-            bx, ax, cx, by, ay, cy, rho2, centre = coef.index_select(0, e).t()
+            bx, by, ax, cx, ay, cy, rho2, centre = coef.index_select(1, e)
             gx = (col.to(dtype) + centre) + offsets             # (sub columns, n)
             gy = (row.to(dtype) + centre) + row_offsets         # (sub rows, 1, n)
             n = gx.shape[-1]
@@ -707,16 +705,16 @@ def _sample_phases(coef: torch.Tensor, images: Sequence[torch.Tensor],
     per_member = torch.stack((m, PHASE_M * m, factor * factor, first.index_select(0, members),
                               m - factor + 1))
     quad = factor == 4
-    member_coef = coef.index_select(0, members)
+    member_coef = coef.index_select(1, members)
     member_lib = None if lib_of is None else lib_of.index_select(0, members)
     for e, local in runs(m * m, chunk):
         me, row, p2, at0, ne = per_member.index_select(1, e).unbind(0)
         y = torch.div(local, me, rounding_mode="floor")
-        yx = torch.stack((local - y * me, y))
+        yx = torch.stack((torch.addcmul(local, y, me, value=-1), y))
         # sample offsets from the centre, pixels, along x and along y (:func:`_phase_offsets`)
         gx, gy = _phase_offsets(dtype, device).index_select(0, (yx + row).view(-1)) \
             .view(2, -1).unbind(0)
-        bx, ax, cx, by, ay, cy, rho2, _ = member_coef.index_select(0, e).unbind(1)
+        bx, by, ax, cx, ay, cy, rho2, _ = member_coef.index_select(1, e).unbind(0)
         count = int(local.numel())
         grid = torch.empty(count, 2, dtype=dtype, device=device)
         grid_x, grid_y = grid.unbind(-1)
@@ -798,7 +796,7 @@ def _sample_phases_per_side(coef: torch.Tensor, images: Sequence[torch.Tensor],
         members = candidates.index_select(
             0, torch.nonzero(side.index_select(0, candidates) == s).squeeze(1))
         factor = PHASE_FACTORS[s]
-        c = coef.index_select(0, members)[:, :, None, None]
+        c = coef.index_select(1, members)[:, :, None, None]
         m = factor * (s + 2)
         n = m - factor + 1
         # sample offsets from the centre, pixels: (b − (m − 1) / 2) / P, along x and along y
@@ -809,7 +807,7 @@ def _sample_phases_per_side(coef: torch.Tensor, images: Sequence[torch.Tensor],
         steps = _constant(f"steps{n}", list(range(n * n)), torch.int64, device)
         per = max(1, chunk // (m * m))
         for lo in range(0, int(members.numel()), per):
-            bx, ax, cx, by, ay, cy, rho2, _ = c[lo:lo + per].unbind(1)
+            bx, by, ax, cx, ay, cy, rho2, _ = c[:, lo:lo + per].unbind(0)
             count = bx.shape[0]
             grid = torch.empty(count, m, m, 2, dtype=dtype, device=device)
             grid_x, grid_y = grid.unbind(-1)
@@ -860,15 +858,18 @@ def _blur(prefix, members, side, radius, rows_first, width, origin, pitch, work,
     rr, ss, tt, row_first, at0, pp = torch.stack(
         (r, s, taps, rows_first.index_select(0, members), origin.index_select(0, members),
          pitch.index_select(0, members))).index_select(1, item)
+    # (integers: every formula below is exact, fused where one operation does it)
     y = torch.div(local, tt, rounding_mode="floor")
-    a = local - y * tt - rr
-    w = _constant("isqrt", ISQRT, torch.int64, local.device).index_select(0, rr * rr - a * a)
-    base = (row_first + y) * width + 2 * rr
+    j = torch.addcmul(local, y, tt, value=-1)                    # a + r: the disc row from 0
+    a = j - rr
+    w = _constant("isqrt", ISQRT, torch.int64, local.device).index_select(
+        0, torch.addcmul(rr * rr, a, a, value=-1))
+    base = torch.add((row_first + y) * width, rr, alpha=2)
     # output pixel (Y, X) of row Y = y + r + a from column X = r − w on
-    at = torch.addcmul(at0, y + rr + a, pp) + rr - w
+    at = torch.addcmul(at0, y + j, pp) + (rr - w)
     # element x of a segment: the box over the row's columns x − 2 w .. x
     # (rows of a stacked table: gathering them is several times faster than along a second axis)
-    consts = torch.stack((base + 1, base - 2 * w, at), 1)
+    consts = torch.stack((base + 1, torch.sub(base, w, alpha=2), at), 1)
     for seg, x in runs(ss + 2 * w, chunk):
         c_hi, c_lo, c_out = consts.index_select(0, seg).add_(x[:, None]).t()
         work.index_add_(0, c_out, prefix.index_select(0, c_hi) - prefix.index_select(0, c_lo))
@@ -994,6 +995,7 @@ def _soften_group(work, members, side: int, at: int, top, box, full, chunk: int)
     for e, local in runs(f * f, chunk):
         fe = f.index_select(0, e)
         y = torch.div(local, fe, rounding_mode="floor")
-        x = local - y * fe
-        work.index_copy_(0, top.index_select(0, e) + y * (fe + 2) + x,
-                         flat.index_select(0, (e * side + y) * side + x))
+        x = torch.addcmul(local, y, fe, value=-1)
+        work.index_copy_(0, torch.addcmul(top.index_select(0, e) + x, y, fe + 2),
+                         flat.index_select(0, torch.add(x, torch.add(y, e, alpha=side),
+                                                        alpha=side)))
