@@ -547,9 +547,9 @@ def _sample(coef: torch.Tensor, images: Sequence[torch.Tensor], lib_of: Optional
     s = side.index_select(0, order)
     ends = torch.cumsum(s, 0)
     rows = int(ends[-1])
-    row_entry = torch.repeat_interleave(order, s, output_size=rows)
-    row_y = torch.arange(rows, device=device) \
-        - torch.repeat_interleave(ends - s, s, output_size=rows)
+    row_of = torch.repeat_interleave(s, output_size=rows)          # each row's index in order
+    row_entry = order.index_select(0, row_of)
+    row_y = torch.arange(rows, device=device) - (ends - s).index_select(0, row_of)
     row_size, row_place, row_pitch, row_sub = \
         torch.stack((side, place, pitch, sub)).index_select(1, row_entry)
     row_table = torch.stack((row_entry, row_y, torch.addcmul(row_place, row_y, row_pitch),
@@ -609,9 +609,9 @@ def _sample_per_factor(coef: torch.Tensor, images: Sequence[torch.Tensor],
     last = list(itertools.accumulate(int(m.numel()) for _, m in groups))
     cuts = [0] + ends.index_select(0, torch.tensor(last, device=device) - 1).tolist()
     rows = cuts[-1]
-    row_entry = torch.repeat_interleave(order, s, output_size=rows)
-    row_y = torch.arange(rows, device=device) \
-        - torch.repeat_interleave(ends - s, s, output_size=rows)
+    row_of = torch.repeat_interleave(s, output_size=rows)          # each row's index in order
+    row_entry = order.index_select(0, row_of)
+    row_y = torch.arange(rows, device=device) - (ends - s).index_select(0, row_of)
     row_size, row_place, row_pitch = torch.stack((side, place, pitch)).index_select(1, row_entry)
     row_at = torch.addcmul(row_place, row_y, row_pitch)
     for g, (factor, _) in enumerate(groups):
@@ -980,7 +980,7 @@ def _soften_group(work, members, side: int, at: int, top, box, full, chunk: int)
     half = (b - 1) // 2
     pad = int(half.max()) + 1
     # out[x] = S[hi] − S[lo] in the padded sums: hi = x + pad + h, lo = hi − b
-    hi = torch.arange(side, device=work.device) + (pad + half).view(m, 1)
+    hi = torch.arange(pad, pad + side, device=work.device) + half.view(m, 1)
     ends = torch.stack((hi, hi - b.view(m, 1)))                         # (2, m, side)
     ends = {2: ends.view(2, m, 1, side).expand(2, m, side, side).unbind(0),
             1: ends.view(2, m, side, 1).expand(2, m, side, side).unbind(0)}
