@@ -353,12 +353,14 @@ class _LayerPlanes:
     def _frame(self, t: int) -> slice:
         return slice(t * self.bsz, (t + 1) * self.bsz)
 
-    def read(self, values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
-        """Shape: -> (C, B, H, W) (a view of the sums where the layer has no coarse grid)."""
+    def read(self, values: Sequence[torch.Tensor], t: int, k: int,
+             channels: Optional[int] = None) -> torch.Tensor:
+        """The first ``channels`` planes (default: all). Shape: -> (C, B, H, W) (a view of the
+        sums where the layer has no coarse grid)."""
         grids, at = self.grids[k], self._frame(t)
         total = None
         for index, (level, _, h, w, _) in enumerate(grids.levels):
-            grid = grids.planes(values[k], index)[:, at]                   # (C, B, h, w)
+            grid = grids.planes(values[k], index)[:channels, at]           # (C, B, h, w)
             if level:
                 up = upsample(grid.reshape(-1, 1, h, w), 2 ** level, (grids.height, grids.width))
                 grid = up.view(grid.shape[0], grid.shape[1], grids.height, grids.width)
@@ -408,8 +410,9 @@ class _LayerPlanes:
 class _GridLayout:
     """Planes given whole, ``(5, T, B, L, 1, H, W)`` (:func:`composite_layers`)."""
 
-    def read(self, values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
-        return values[0][:, t, :, k, 0]
+    def read(self, values: Sequence[torch.Tensor], t: int, k: int,
+             channels: Optional[int] = None) -> torch.Tensor:
+        return values[0][:channels, t, :, k, 0]
 
     def gradients(self, values: Sequence[torch.Tensor]) -> list:
         return [torch.zeros_like(values[0])]
@@ -471,8 +474,9 @@ class _TwoLayers(torch.autograd.Function):
         one = images[0].new_ones(())
         outs, opacities, saved = [], [], []
         for t, image in enumerate(images):
-            out, opacity, kept = form.frame(layout.read(values, t, 0), layout.read(values, t, 1),
-                                            image, one, grad)
+            # (the closed forms read no depth sum: A and C alone)
+            out, opacity, kept = form.frame(layout.read(values, t, 0, 4),
+                                            layout.read(values, t, 1, 4), image, one, grad)
             outs.append(out)
             opacities.append(opacity)
             if grad:
