@@ -114,7 +114,7 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
             from each record's reference frame (see :func:`reference_transforms`).
         particles: one record per pair (a single record for B = 1), of either weather model, or
             one :class:`LayeredParticles` per pair (combined weather, the same number of layers
-            each): drawn in one pass and composited per pixel in depth order
+            each): drawn in one pass and composited in depth order
             (:mod:`~weathergen.engine.layered`; ``templates`` must then be None).
     Computes in the images' dtype and device. Returns :class:`RenderOutput`.
     ``stamps``: from :func:`build_stamps` of the same records (their paper-model particles).

@@ -71,7 +71,7 @@ def render_right_layers(images, views, particles: LayeredParticles, *,
                         beta: float = BETA_RENDER) -> tuple[list, list]:
     """Both weather frames of the right camera for combined weather: the layers drawn in one
     pass from the right camera's two views (:func:`stereo_view` of each frame), as a pair of
-    that camera, depth-ordered per pixel as :func:`~weathergen.engine.render_layers` does.
+    that camera, depth-ordered as :func:`~weathergen.engine.render_layers` does.
 
     Shape: images two (3, H, W), views two :class:`View` -> (two images (3, H, W), two opacities
     (1, H, W)).
