@@ -341,3 +341,20 @@ def test_a_layer_absent_from_a_pixel_does_not_stop_the_others_sorting():
     two, _ = composite_layers(a[:, [0, 2]], c[:, [0, 2]], z[:, [0, 2]], image,
                               torch.tensor([[True, True]]))
     assert torch.equal(out, two)
+
+
+@pytest.mark.parametrize("names", ["snow-light+fog-light", "snow-light+rain-light",
+                                   "fog-light+snow-light+rain-light"])
+def test_a_combined_sequence_frame_is_drawn_alone_with_the_pairs_bytes(names):
+    """A sequence writes each frame once: frame 1 of combined weather fields drawn from its
+    view alone (additive particles dimmed by the fog in front of them, two additive layers,
+    three layers through the sorting network) is frame 1 of the pair's render, bit for bit."""
+    from weathergen.engine.renderer import render_first_frame
+
+    pair = plane_pair(40, 56, depth=5.0, seed=4)
+    layered = sample_weather(pair, load_preset(names), seed=2, frame_rate=24.0)
+    assert all(r.optics is not None for r in layered.layers) and min(layered.counts) > 0
+    image, opacity = render_first_frame(pair, layered)
+    out = render_pair(pair, layered)
+    assert torch.equal(image, out.image1) and torch.equal(opacity, out.opacity1)
+    assert bool((image != pair.image1).any())

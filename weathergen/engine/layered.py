@@ -53,10 +53,11 @@ from .particles import Particles
 from .splat import Grids, Sums, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, build_many
 from .templates import TemplateLibrary, load_templates
-from .tracks import (Looks, ParticleTable, RecordRows, Tracks, Views, blur_samples, empty_looks,
-                     fixed_looks, pair_tracks)
+from .tracks import (Looks, ParticleTable, RecordRows, Tracks, View, Views, blur_samples,
+                     empty_looks, fixed_looks, pair_tracks, view_tracks)
 
-__all__ = ["as_layers", "build_layer_stamps", "composite_layers", "render_layers"]
+__all__ = ["as_layers", "build_layer_stamps", "composite_layers", "render_layers",
+           "render_layers_view"]
 
 
 def as_layers(particles: Union[Particles, LayeredParticles, Sequence]) -> list[LayeredParticles]:
@@ -288,7 +289,6 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
     alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in p.layers] for p in layered],
                               device=device)
     modes = [{r.settings.blend for r in stack} for stack in stacks]
-    additive_pair = modes == [{"additive"}, {"additive"}]   # their order changes nothing
     views = Views.of(torch.cat((intrinsics, intrinsics)).to(device),
                      torch.cat((cam1_from_ref, cam2_from_ref)).to(device),
                      torch.cat((depth1, depth2)), device=device)
@@ -303,32 +303,88 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
                 for stack in stacks]
     stamp_sets = _layer_stamps(prepared, cut, dtype=image1.dtype, device=device,
                                coarse_side=coarse_side, chunk_elements=chunk_elements)
+    outs, sums = _draw(views, prepared, stamp_sets, modes, alpha_mode, (image1, image2),
+                       beta=float(beta), chunk_elements=chunk_elements,
+                       detach_occlusion=detach_occlusion)
+    reached = torch.stack([s.reached.view(2, bsz).any(0) for s in sums]).any(0)
+    return RenderOutput(image1=outs[0], image2=outs[1], opacity1=outs[2], opacity2=outs[3],
+                        reached=reached)
+
+
+def render_layers_view(image: torch.Tensor, view: View, particles: LayeredParticles, *,
+                       frame: int = 0, beta: float, chunk_elements: Optional[int] = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """One weather frame of combined weather seen by ``view``: every layer's particles from
+    their reference positions in frame ``frame`` + 1 (``P + δ1``, or ``P + δ1 + M + δ2`` for
+    frame 2; along ``M + δ2``), each layer drawn as :func:`~weathergen.engine.render_view`
+    draws its record, composited as :func:`render_layers` does. For weather fields, frame 1 is
+    the bytes of frame 1 of a pair whose first view is ``view`` (a sequence writes each frame
+    once). Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W))."""
+    layered = as_layers(particles)[0]
+    device, dtype = image.device, image.dtype
+    for r in layered.layers:
+        if r.settings.blend not in ("additive", "alpha"):
+            raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
+    views = Views.of(view.intrinsics[None], view.cam_from_ref[None],
+                     view.depth[None].to(device), device=device)
+    prepared = []
+    for record in layered.layers:
+        libs = _libraries([record])
+        lib = libs[record.settings.templates]
+        record = record.to(device)
+        displacement = record.motion.to(torch.float64) + record.offset2.to(torch.float64)
+        start = record.position.to(torch.float64) + record.offset1.to(torch.float64)
+        if frame:
+            start = start + displacement
+        looks, tracks = view_tracks(record, views, start, displacement, lib.resolution,
+                                    beta=float(beta), dtype=dtype)
+        part = [(looks, tracks, lib)] if record.count else []
+        prepared.append((libs, part if record.optics is None else [],
+                         part if record.optics is not None else []))
+    if chunk_elements is None:
+        chunk_elements = chunk_elements_for(device)
+    stamp_sets = _layer_stamps(prepared, [None] * len(prepared), dtype=dtype, device=device,
+                               coarse_side=COARSE_SIDE, chunk_elements=chunk_elements)
+    modes = [{r.settings.blend} for r in layered.layers]
+    alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
+                              device=device)
+    (out, opacity), _ = _draw(views, prepared, stamp_sets, modes, alpha_mode, (image[None],),
+                              beta=float(beta), chunk_elements=chunk_elements,
+                              detach_occlusion=False)
+    return out[0], opacity[0]
+
+
+def _draw(views: Views, prepared: list, stamp_sets: list, modes: list, alpha_mode: torch.Tensor,
+          images: tuple, *, beta: float, chunk_elements: int, detach_occlusion: bool
+          ) -> tuple[tuple, list]:
+    """Every layer's sums on ``views`` and the composite of ``images`` (T frames of B views
+    each, frame ``t``'s views ``t B .. t B + B − 1``): the frames, then their opacities, and the
+    layers' :class:`Sums`."""
+    additive_pair = modes == [{"additive"}, {"additive"}]   # their order changes nothing
     # alpha-blended layers first (with their depth sums): they dim the additive layers'
     # particles behind them, which then carry no depth sum (they blend as the nearest)
     additive = [m == {"additive"} for m in modes]
     dimming = any(additive) and not all(additive)
-    sums: list = [None] * len(stacks)
-    for k in sorted(range(len(stacks)), key=lambda k: additive[k] if dimming else 0):
+    sums: list = [None] * len(modes)
+    for k in sorted(range(len(modes)), key=lambda k: additive[k] if dimming else 0):
         (_, paper, field), stamp_set = prepared[k], stamp_sets[k]
-        under = [sums[j] for j in range(len(stacks)) if not additive[j]] \
+        under = [sums[j] for j in range(len(modes)) if not additive[j]] \
             if dimming and additive[k] else ()
-        sums[k] = _layer_sums(views, paper, field, stamp_set, beta=float(beta),
-                              dtype=image1.dtype, chunk_elements=chunk_elements,
+        sums[k] = _layer_sums(views, paper, field, stamp_set, beta=beta,
+                              dtype=images[0].dtype, chunk_elements=chunk_elements,
                               detach_occlusion=detach_occlusion,
                               depth=not additive_pair and not under, under=under)
-    layout = _LayerPlanes([s.grids for s in sums], bsz)
+    layout = _LayerPlanes([s.grids for s in sums], images[0].shape[0])
     values = [s.values for s in sums]
     if additive_pair:
-        outs = _TwoLayers.apply(_AdditivePair, layout, *values, image1, image2)
-    elif len(stacks) == 2 and {"additive"} in modes and {"alpha"} in modes:
+        outs = _TwoLayers.apply(_AdditivePair, layout, *values, *images)
+    elif len(modes) == 2 and {"additive"} in modes and {"alpha"} in modes:
         order = (0, 1) if modes[0] == {"additive"} else (1, 0)      # the additive layer first
         outs = _TwoLayers.apply(_AdditiveOverAlpha, layout.select(order),
-                                *(values[k] for k in order), image1, image2)
+                                *(values[k] for k in order), *images)
     else:
-        outs = _LayeredBlend.apply(alpha_mode, layout, len(values), *values, image1, image2)
-    reached = torch.stack([s.reached.view(2, bsz).any(0) for s in sums]).any(0)
-    return RenderOutput(image1=outs[0], image2=outs[1], opacity1=outs[2], opacity2=outs[3],
-                        reached=reached)
+        outs = _LayeredBlend.apply(alpha_mode, layout, len(values), *values, *images)
+    return outs, sums
 
 
 class _LayerPlanes:
