@@ -239,11 +239,17 @@ class _Plan:
             if self.count == 0:
                 return
             kept, view = kept.index_select(0, order), view.index_select(0, order)
+            # per entry, what its rows need: q, 2 P (fine − q) (see below), the bordered
+            # stamp's row length fine, P, its level's h and row length in the sums
+            fine = torch.addcmul(phases, phases, side).add_(1)
+            two_p = phases + phases
+            self.rows_of_entry = torch.cat((torch.stack((q, two_p * (fine - q), fine, phases),
+                                                        1), grid[:, 3::2]), 1)
             # per kept sample: its stamp's and plane's numbers
-            fine = torch.addcmul(phases, phases, side).add_(1)  # the bordered stamp's row length
-            q, level, phases, fine, first, _, _, _, h, origin, row_len, plane_len = torch.cat(
-                (torch.stack((q, level, phases, fine, stamps.first), 1), grid), 1) \
-                .index_select(0, inst.entry.index_select(0, kept)).unbind(1)
+            self.entry = inst.entry.index_select(0, kept)
+            q, phases, fine, first, f, origin, plane_len = torch.cat(
+                (torch.stack((q, phases, fine, stamps.first), 1), grid[:, 2::2]), 1) \
+                .index_select(0, self.entry).unbind(1)
             uv, uv0 = uv.index_select(1, kept), uv0.index_select(1, kept)
             col0, row0 = (uv0 - q + 1).unbind(0)       # the patch's first column and row
             # the phase stamp's grid point at the patch's top-left pixel (see _Blocks): the
@@ -255,21 +261,19 @@ class _Plan:
             self.fraction = shift.sub_(phase)
             first = torch.addcmul(first, late_v, fine).add_(late_u)
             self.reached.index_fill_(0, view, True)
-            self.kept, self.level, self.q = kept, level, q
-            self.steps, self.stride = phases, fine
-            self.phases = phases.to(self.dtype)
+            self.kept, self.q, self.phases = kept, q, phases
             if self.coarse:
-                self.factor = (2.0 ** level).to(self.dtype)
+                self.factor = f.to(self.dtype)
             # a sample's row j is row row_start + j of the call, its block c block b =
             # block_start + j q + c; that block's top-left stamp pixel is first + 2 P fine j
             # + 2 P c = first − 2 P block_start + 2 P (fine − q) j + 2 P b
             blocks = q * q
             rows_end, blocks_end = torch.cumsum(q, 0), torch.cumsum(blocks, 0)
             row_start, block_start = rows_end - q, blocks_end - blocks
-            two_p = phases + phases
-            self.coef = torch.stack((
-                row_start, first - two_p * block_start, two_p * (fine - q), block_start, q,
-                row0, h, torch.addcmul(origin + col0, view, plane_len), row_len), 1)
+            self.coef = torch.stack((row_start, torch.addcmul(first, phases, block_start,
+                                                              value=-2),
+                                     block_start, row0,
+                                     torch.addcmul(origin + col0, view, plane_len)), 1)
             if self.cpu:      # the module's constant, read at call time (benchmarks replace it)
                 pieces = chunk_spans(q, self.blocks_per_chunk, key.bitwise_right_shift_(29),
                                      PLANE_SPLIT, repeats=q, ends=(rows_end, blocks_end))
@@ -303,31 +307,33 @@ class _Plan:
 
     def _slab(self, a: int, b: int, s: int, t: int, r0: int, r1: int) -> tuple:
         """The numbers of rows a .. b − 1 (of samples s .. t − 1, whose rows are r0 .. r1 − 1):
-        each row's sample, q, the stamp pixel at the top left of its first block less 2 P b0
-        and where its two pixel rows start in the sums less 2 b0, for its first block b0 (a
-        row outside the image: at the extra row). Shape: (b − a,) each, the last (2, b − a)."""
-        device = self.q.device
+        q (blocks per row) and, for :class:`_Blocks`, each row's sample, the stamp pixel at the
+        top left of its first block less 2 P b0 and where its two pixel rows start in the sums
+        less 2 b0, for its first block b0 (a row outside the image: at the extra row), its
+        stamp's stride (bordered row length) and P. Shape: (b − a,) each."""
         every = s == 0 and t == self.count
         sample = torch.repeat_interleave(self.q if every else self.q[s:t], output_size=r1 - r0)
         if a > r0 or b < r1:
             sample = sample[a - r0:b - r0]
-        row_start, at, step, block_start, q, row0, h, plane, row_len = \
+        row_start, at, block_start, row0, plane = \
             (self.coef if every else self.coef[s:t]).index_select(0, sample).unbind(1)
-        j = torch.arange(a, b, device=device).sub_(row_start)
+        entry = (self.entry if every else self.entry[s:t]).index_select(0, sample)
+        q, step, fine, phases, h, row_len = self.rows_of_entry.index_select(0, entry).unbind(1)
+        j = torch.arange(a, b, device=self.q.device).sub_(row_start)
         # its pixel rows y = row0 + 2 j + (0, 1), the extra row h for those outside the image
         # (a negative y & _MASK is above any height)
-        y = (torch.add(row0, j, alpha=2) + _constant_steps(device, 7)).bitwise_and_(_MASK)
+        y = (torch.add(row0, j, alpha=2) + _constant_steps(j.device, 0)).bitwise_and_(_MASK)
         pix = torch.addcmul(plane, torch.minimum(y, h), row_len) \
             .sub_(torch.addcmul(block_start, q, j), alpha=2)
-        return sample.add_(s) if s else sample, q, torch.addcmul(at, step, j), pix
+        return q, (sample.add_(s) if s else sample, torch.addcmul(at, step, j), *pix.unbind(0),
+                   fine, phases)
 
     def chunks(self):
         """``(rows, row (n,), lo, hi, whole)`` per chunk: its slab's rows (:meth:`_slab`),
         each block's row of blocks in them, its blocks lo .. hi − 1, whether they are all
         sampled at whole pixels."""
         for a0, b0, s, t, r0, r1, pieces in self.slabs:
-            sample, q, at, pix = self._slab(a0, b0, s, t, r0, r1)
-            rows = (sample, at, *pix.unbind(0))
+            q, rows = self._slab(a0, b0, s, t, r0, r1)
             for a, b, lo, hi, whole in pieces:
                 row = torch.repeat_interleave(q if a == a0 and b == b0 else q[a - a0:b - a0],
                                               output_size=hi - lo)
@@ -364,9 +370,8 @@ class _Blocks:
 
     def __init__(self, plan: _Plan, rows: tuple, row: torch.Tensor, lo: int, hi: int,
                  whole: bool, per: torch.Tensor):
-        # (the row's numbers, one gather each; then its sample's)
-        self.sample, at, pix0, pix1 = (x.index_select(0, row) for x in rows)
-        stride = plan.stride.index_select(0, self.sample)
+        # (the row's numbers, one gather each)
+        self.sample, at, pix0, pix1, stride = (x.index_select(0, row) for x in rows[:5])
         self.per = per.index_select(1, self.sample)
         fu, fv, beta_z, beta = self.per.unbind(0)[:4]
         n = row.numel()
@@ -381,7 +386,7 @@ class _Blocks:
             near = plan.stamps.pixels.index_select(0, (_constant_steps(device, 4) + rows).view(-1)).view(3, 3, n)
             self.near = near.as_strided((2, 2, 2, 2, n), (3 * n, 3 * n, n, n, 1))
         else:
-            phases = plan.steps.index_select(0, self.sample)
+            phases = rows[5].index_select(0, row)
             ab = torch.addcmul(_constant_steps(device, 5), _constant_steps(device, 6), phases)
             rows = torch.addcmul(torch.addcmul(at, two_blocks, phases), stride, ab)
             self.near = plan.stamps.pixels.index_select(0, (ab.view(2, 2, 1, 1, n) + rows).view(-1)).view(2, 2, 2, 2, n)
@@ -407,14 +412,14 @@ _STEPS: dict = {}
 
 def _constant_steps(device, kind: int = 2) -> torch.Tensor:
     """Small constant arrays, each made once per device: ``kind`` 0, the pixel rows 0, 1 of a
-    row of blocks, (2,); 2, the patch columns 0, 1, (2, 1, 1); 3 and 4, the rows and the
+    row of blocks, (2, 1); 2, the patch columns 0, 1, (2, 1, 1); 3 and 4, the rows and the
     columns 0, 1, 2 of a 3 x 3 neighbourhood, (3, 1) and (3, 1, 1); 5 and 6, the rows 0, 1, P,
     P + 1 of a block's neighbourhood as ``a + b P``: a (2, 2, 1) = ((0, 1), (0, 1)), b =
-    ((0, 0), (1, 1)); 7, the pixel rows 0, 1 of a row of blocks, (2, 1)."""
+    ((0, 0), (1, 1))."""
     key = (str(device), kind)
     if key not in _STEPS:
-        table = {0: [0, 1], 2: [[[0]], [[1]]], 3: [[0], [1], [2]], 4: [[[0]], [[1]], [[2]]],
-                 5: [[[0], [1]], [[0], [1]]], 6: [[[0], [0]], [[1], [1]]], 7: [[0], [1]]}
+        table = {0: [[0], [1]], 2: [[[0]], [[1]]], 3: [[0], [1], [2]], 4: [[[0]], [[1]], [[2]]],
+                 5: [[[0], [1]], [[0], [1]]], 6: [[[0], [0]], [[1], [1]]]}
         _STEPS[key] = torch.tensor(table[kind], device=device)
     return _STEPS[key]
 
