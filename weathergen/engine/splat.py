@@ -14,7 +14,8 @@ brings them to the image grid.
 
 Layout: a patch has an even side (stamp sides are odd), so it is cut into 2 x 2 blocks: a
 sample's blocks are rows of blocks, and the rows of every sample of the call are one ragged run
-(what a block needs is computed once per row of blocks, in one table). Per block the stamp's
+(what a block needs is computed once per row of blocks, a slab of chunks at a time, from a few
+numbers per sample: a row's are its sample's plus multiples of its place in the sample). Per block the stamp's
 4 x 4 neighbourhood (rows and columns 0, 1, P, P + 1 from the block's first grid point) is read
 in one gather (3 x 3 where every stamp of the chunk has P = 1, which the plan knows on the
 host) and the four pixels are computed side by side (element arrays are
