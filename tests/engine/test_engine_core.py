@@ -179,7 +179,7 @@ def test_operation_count_does_not_grow_with_particles_or_pairs(monkeypatch):
     """The number of tensor operations (kernel launches on a GPU) does not grow with the
     particles or the pairs, for both weather models and their mix: chunked as on a GPU (2**25
     elements, views not cut into the CPU's fixed pieces) it stays under 900 for the paper's
-    model (about 790 measured) and under 1,100 with weather fields in the batch (about 1,000:
+    model (about 800 measured) and under 1,100 with weather fields in the batch (about 1,015:
     their per-view looks and view mask), and within the few operations that more particles
     may bring (a chunk of its own for a larger item). On the CPU's small chunks, each chunk
     adds a fixed number."""

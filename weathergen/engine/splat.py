@@ -176,12 +176,13 @@ class _Plan:
     """What a splat call draws, fixed before its autograd function runs.
 
     Samples kept (in front of the camera, patch touching the image), sorted by plane and image
-    tile: ``kept`` (K,) int64 indices into the instances, ``level`` (K,), ``phases`` (K,) P
-    (``steps``: as int64), ``stride`` (K,) the bordered stamp's row length. A sample's patch is
-    q x q blocks (q = (side + 1) / 2): q rows of q blocks; the rows of the kept samples follow
-    each other (R rows). ``coef`` (K, 9) int64: what the numbers of a sample's rows are
-    computed from (see :meth:`_slab`). On the host, ``slabs``: runs of chunks whose rows' numbers
-    are computed together (on the CPU, about :data:`SLAB_ROWS` rows: the arrays stay small),
+    tile: ``kept`` (K,) int64 indices into the instances, ``entry`` (K,) their entries,
+    ``phases`` (K,) P, ``fraction`` (2, K) the sub-pixel shifts of :func:`_per_sample`. A
+    sample's patch is q x q blocks (q = (side + 1) / 2, ``q`` (K,)): q rows of q blocks; the
+    rows of the kept samples follow each other. What a row's numbers are computed from (see
+    :meth:`_slab`): ``coef`` (K, 5) int64 per sample, ``rows_of_entry`` (E, 6) int64 per entry.
+    On the host, ``slabs``: runs of chunks whose rows' numbers are computed together (on the
+    CPU, about :data:`SLAB_ROWS` rows: the arrays stay small, not one per row of the call),
     ``(a, b, s, t, r0, r1, pieces)``: rows a .. b − 1, of samples s .. t − 1, whose rows are r0
     .. r1 − 1, and its chunks ``(a, b, lo, hi, whole)``: rows a .. b − 1, blocks lo .. hi − 1,
     and whether every block's stamp is sampled at whole pixels (P = 1: see :class:`_Blocks`).
