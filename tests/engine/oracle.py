@@ -209,12 +209,14 @@ def _smoothstep(x: float) -> float:
 def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
           coarse_side=COARSE_SIDE):
     """What frame ``t`` of a pair draws of ``record``: per drawn particle, its looks (template,
-    footprint, defocus, rotation, brighten), blur samples [(u, v, z)], θ / K, colour and β.
+    footprint, defocus, rotation, brighten), blur samples [(u, v, z)], θ / K, colour, β and the
+    middle of its streak (u, v, z).
 
     ``number`` turns a record value into a float or a differentiable 0-d tensor.
     """
     s = record.settings
     preset_samples = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
+    extent = s.blur_length if preset_samples > 1 else 0.0      # the streak's length
     height, width = len(depth), len(depth[0])
     f = math.sqrt(k[0][0] * k[1][1])
     out = []
@@ -237,6 +239,7 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
                                  sample_gap(looks, coarse_side))
             points = [[xt[a] + q * along[a] for a in range(3)]
                       for q in _steps(s.blur_length, samples)]
+            middle = [xt[a] + 0.5 * extent * along[a] for a in range(3)]
             weight, b = theta, beta
         else:
             # a weather field: this frame's looks from this frame's depth of the particle
@@ -276,12 +279,14 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
                                  preset_samples, sample_gap(looks, coarse_side))
             points = [_apply(cams[t], [start[a] + q * d[a] for a in range(3)])
                       for q in _steps(s.blur_length, samples)]
+            middle = _apply(cams[t], [start[a] + 0.5 * extent * d[a] for a in range(3)])
             weight, b = theta * factor, min(beta, 1 / o.depth_softness)
         projected = []
         for x in points:
             u, v = _project(k, x)
             projected.append((u, v, x[2]))
-        out.append((looks, projected, weight / samples, colour, b))
+        out.append((looks, projected, weight / samples, colour, b, (*_project(k, middle),
+                                                                     middle[2])))
     return out
 
 
@@ -321,8 +326,45 @@ def frame_sums(depth, frame_draws, levels, resolution, coarse_side, detach_occlu
     """The sums A, C_r, C_g, C_b and the depth sum Z = Σ θ B V z of what a frame draws, on the
     image grid. Shape: -> (5, H, W) float64."""
     height, width = len(depth), len(depth[0])
+    grids = frame_grids(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion)
+    total = torch.zeros(5, height, width, dtype=torch.float64)
+    for level in sorted(grids, reverse=True):
+        sums = grids[level]
+        if level:
+            sums = [upsample(s, 2 ** level, height, width) for s in sums]
+        total = total + _stack(sums)
+    return total
+
+
+def read_grids(grids, u, v):
+    """A layer's A and Z at the image point (u, v): each grid level's sums interpolated
+    bilinearly at ((u + 0.5) / f − 0.5, (v + 0.5) / f − 0.5), clamped to the grid (the edge
+    replicated), added over the levels."""
+    a_total, z_total = 0.0, 0.0
+    for level, sums in grids.items():
+        f = 2 ** level
+        h, w = len(sums[0]), len(sums[0][0])
+        x = min(max((u + 0.5) / f - 0.5, 0.0), w - 1)
+        y = min(max((v + 0.5) / f - 0.5, 0.0), h - 1)
+        x0, y0 = math.floor(_value(x)), math.floor(_value(y))
+        x1, y1 = min(x0 + 1, w - 1), min(y0 + 1, h - 1)
+        fx, fy = x - x0, y - y0
+
+        def at(plane):
+            return (1 - fy) * ((1 - fx) * plane[y0][x0] + fx * plane[y0][x1]) \
+                + fy * ((1 - fx) * plane[y1][x0] + fx * plane[y1][x1])
+
+        a_total = a_total + at(sums[0])
+        z_total = z_total + _value(at(sums[4]))
+    return a_total, z_total
+
+
+def frame_grids(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion=False):
+    """The sums A, C_r, C_g, C_b, Z of what a frame draws on each grid level it draws on
+    (level -> five lists of rows)."""
+    height, width = len(depth), len(depth[0])
     grids = {}                       # level -> [A, C_r, C_g, C_b, Z] lists of rows
-    for looks, samples, theta, colour, b in frame_draws:
+    for looks, samples, theta, colour, b, _ in frame_draws:
         level, phases, pixels = stamp(levels, *looks, resolution, coarse_side)
         reach = max(abs(dx) for _, dx in pixels) // phases + 1     # pixels from the centre
         f = 2 ** level
@@ -358,13 +400,7 @@ def frame_sums(depth, frame_draws, levels, resolution, coarse_side, detach_occlu
                     for c in range(3):
                         sums[1 + c][py][px] = sums[1 + c][py][px] + a * colour[c]
                     sums[4][py][px] = sums[4][py][px] + a * _value(z)
-    total = torch.zeros(5, height, width, dtype=torch.float64)
-    for level in sorted(grids, reverse=True):
-        sums = grids[level][0]
-        if level:
-            sums = [upsample(s, 2 ** level, height, width) for s in sums]
-        total = total + _stack(sums)
-    return total
+    return {level: sums for level, (sums, _) in grids.items()}
 
 
 def render_frame(image, depth, frame_draws, levels, resolution, blend, coarse_side,
@@ -404,6 +440,19 @@ def oracle_render(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam
     return tuple(torch.stack(o) for o in outs)
 
 
+def passed(alpha_grids, middle):
+    """The share of a particle's light that passes the alpha layers in front of it: the product
+    of ``1 − clamp(A_l, 0, 1)`` over the layers whose mean depth ``Z_l / A_l`` at the middle of
+    its streak (u, v, z) is nearer than it."""
+    u, v, z = middle
+    out = 1.0
+    for grids in alpha_grids.values():
+        a, depth = read_grids(grids, u, v)
+        if depth < _value(z) * _value(a):
+            out = out * (1 - (a.clamp(0, 1) if torch.is_tensor(a) else min(max(a, 0.0), 1.0)))
+    return out
+
+
 def oracle_layered(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam2_from_ref,
                    layered, *, beta: float, coarse_side=COARSE_SIDE, grad: bool = False):
     """Combined weather, pixel by pixel: every layer's sums (its own templates) and mean depth
@@ -422,14 +471,32 @@ def oracle_layered(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, ca
 
         for t, (image, depth) in enumerate(((image1[b], depth1[b]), (image2[b], depth2[b]))):
             scene = depth[0].double().tolist()
-            layers = []
-            for record in stack.layers:
+            height, width = len(scene), len(scene[0])
+            modes = [record.settings.blend for record in stack.layers]
+            # with alpha and additive layers both present, the additive layers' particles are
+            # dimmed by the alpha layers in front of their streak's middle, and they blend last
+            dimming = "additive" in modes and any(m != "additive" for m in modes)
+            grids, layers = {}, [None] * len(modes)
+            for i in sorted(range(len(modes)), key=lambda i: dimming and modes[i] == "additive"):
+                record = stack.layers[i]
                 lib = load_templates(record.settings.templates)
                 frame = draws(record, t, k, cams, scene, beta, lib.resolution, number, coarse_side)
-                sums = frame_sums(scene, frame, mip_levels(lib.alphas), lib.resolution,
-                                  coarse_side)
-                layers.append((sums, record.settings.blend == "alpha"))
-            height, width = len(scene), len(scene[0])
+                dimmed = dimming and modes[i] == "additive"
+                if dimmed:
+                    under = {j: g for j, g in grids.items() if modes[j] != "additive"}
+                    frame = [(looks, samples, theta * passed(under, middle), colour, b, middle)
+                             for looks, samples, theta, colour, b, middle in frame]
+                grids[i] = frame_grids(scene, frame, mip_levels(lib.alphas), lib.resolution,
+                                       coarse_side)
+                sums = torch.zeros(5, height, width, dtype=torch.float64)
+                for level in sorted(grids[i], reverse=True):
+                    planes = grids[i][level]
+                    if level:
+                        planes = [upsample(p, 2 ** level, height, width) for p in planes]
+                    sums = sums + _stack(planes)
+                if dimmed:
+                    sums[4] = 0.0                         # blends as the nearest
+                layers[i] = (sums, modes[i] == "alpha")
             out = image.double().clone()
             rows, clear_rows = [], []
             for y in range(height):

@@ -8,8 +8,8 @@ import torch
 
 from engine_scenes import plane_pair
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, LayeredParticles, build_stamps,
-                               load_preset, render, render_pair, sample_particles,
-                               sample_weather)
+                               load_preset, load_templates, render, render_pair,
+                               sample_particles, sample_weather)
 from weathergen.engine.layered import composite_layers
 from weathergen.framepair import FramePairBatch
 from weathergen.errors import ConfigError
@@ -66,6 +66,43 @@ def test_the_nearer_layer_hides_the_farther_one(pair, near):
     assert float((centre(alone) - centre(out)).abs().max()) < 0.25
 
 
+@pytest.mark.parametrize("flake_depth", [4.0, 1.5], ids=["behind", "in-front"])
+def test_an_additive_particle_behind_an_alpha_layer_is_dimmed_by_it(pair, flake_depth):
+    """An additive red flake behind a blue fog billboard (depth 4 against 3) reaches the camera
+    through the fog: its opacity and light are times ``T = 1 − A_fog`` read at the flake (the
+    fog's opacity interpolated at its projected centre), over its whole stamp, so
+    ``1 − opacity = (1 − T A_flake)(1 − A_fog)`` at every pixel; in front of the fog (depth
+    1.5) ``T = 1``."""
+    flake = one_particle(pair, "snow", flake_depth, RED, blend="additive")
+    flake = flake.replace(transparency=torch.full_like(flake.transparency, 0.5))
+    cloud = one_particle(pair, "fog", 3.0, BLUE, size=41)
+    cloud = cloud.replace(transparency=torch.full_like(cloud.transparency, 0.6))
+    out = render_pair(pair, LayeredParticles((flake, cloud), ("snow", "fog")))
+    a_flake = render_pair(pair, flake).opacity1[0, 0]
+    a_fog = render_pair(pair, cloud).opacity1[0, 0]
+    assert float(a_flake.max()) < 1 and float(a_fog.max()) < 1 and float(a_fog.min()) == 0
+    if flake_depth > 3.0:      # the fog at the flake's centre (cx, cy), bilinearly
+        k = pair.intrinsics
+        x, y = float(k[0, 2]), float(k[1, 2])
+        x0, y0 = int(x), int(y)
+        fx, fy = x - x0, y - y0
+        at = a_fog[y0:y0 + 2, x0:x0 + 2]
+        t = 1 - float((1 - fy) * ((1 - fx) * at[0, 0] + fx * at[0, 1])
+                      + fy * ((1 - fx) * at[1, 0] + fx * at[1, 1]))
+        assert 0.2 < t < 0.9
+    else:
+        t = 1.0
+    want = 1 - (1 - t * a_flake) * (1 - a_fog)
+    assert torch.allclose(out.opacity1[0, 0], want, atol=1e-12)
+    # the light: the fog's frame plus the flake's (red) light times T, where nothing clips
+    fog_frame = render_pair(pair, cloud).image1[0]
+    flake_frame = render_pair(pair, flake).image1[0]
+    want = fog_frame + t * (flake_frame - pair.image1)
+    unclipped = (flake_frame < 1).all(0) & (want < 1).all(0)
+    assert int(unclipped.sum()) > 0.9 * unclipped.numel()
+    assert torch.allclose(out.image1[0][:, unclipped], want[:, unclipped], atol=1e-12)
+
+
 def test_the_far_to_near_composite_is_the_over_operator(pair):
     """Where both layers cover a pixel, the image is the far layer's blend under the near
     layer's: ``(I (1 − A_f) + C_f)(1 − A_n) + C_n``, computed here by hand from two pixels."""
@@ -101,16 +138,21 @@ def test_gradcheck_of_the_layered_composite():
                                     (a, c, image))
 
 
-@pytest.mark.parametrize("blends", [("alpha", "alpha"), ("additive", "alpha"),
-                                    ("additive", "additive")],
-                         ids=["sorting-network", "additive-over-alpha", "additive-pair"])
-def test_gradcheck_of_a_layered_render(pair, blends):
+@pytest.mark.parametrize("blends,flake_depth", [(("alpha", "alpha"), 1.5),
+                                                (("additive", "alpha"), 1.5),
+                                                (("additive", "alpha"), 4.0),
+                                                (("additive", "additive"), 1.5)],
+                         ids=["sorting-network", "additive-over-alpha", "additive-behind-alpha",
+                              "additive-pair"])
+def test_gradcheck_of_a_layered_render(pair, blends, flake_depth):
     """Gradients reach every layer's colours, transparencies and offsets, and the opacity's
     (float64 gradcheck on a small scene: a snow flake and a fog billboard, overlapping), for
-    each form of the composite: two alpha layers (the sorting network), an additive flake over
-    alpha fog, two additive layers."""
+    each form of the composite: two alpha layers (the sorting network), an additive flake in
+    front of alpha fog and one behind it (dimmed by the fog at its centre: the gradient also
+    reaches the fog's transparency and the flake's offset through the dimming), two additive
+    layers."""
     small = plane_pair(20, 24, depth=6.0, dtype=torch.float64)
-    flake = one_particle(small, "snow", 1.5, RED, size=7, blend=blends[0])
+    flake = one_particle(small, "snow", flake_depth, RED, size=7, blend=blends[0])
     cloud = one_particle(small, "fog", 3.0, BLUE, size=11, blend=blends[1])
     cloud = cloud.replace(position=cloud.position + torch.tensor([[0.1, 0.05, 0.0]],
                                                                  dtype=torch.float64))
@@ -252,20 +294,27 @@ def test_gradcheck_of_a_layer_on_both_grids(pair):
 
 
 def test_where_one_layer_covers_a_pixel_it_is_that_layer_rendered_alone():
-    """Each layer is drawn as its record alone: where one layer alone covers a pixel, the
+    """Each layer is drawn as its record alone: where only the alpha layer covers a pixel, the
     combined frame there is that record's frame rendered alone, bit for bit (an additive snow
     layer and an alpha one of small white particles, float32); where none does, the pair's own
-    image."""
+    image; where only the snow covers it, farther from the white particles than a flake's stamp
+    reaches, the snow layer's frame alone, and nearer than that never brighter than it (a flake
+    behind a white particle is dimmed by it, over its whole stamp)."""
     pair = plane_pair(40, 56, depth=5.0, seed=3)
     layered = sample_weather(pair, load_preset("snow+alpha-white", {"1.count": 40,
-                                                                    "2.count": 20}), seed=0)
+                                                                    "2.count": 10}), seed=0)
     assert [r.settings.blend for r in layered.layers] == ["additive", "alpha"]
     out = render_pair(pair, layered)
     alone = [render_pair(pair, record) for record in layered.layers]
+    snow = layered.layers[0]
+    reach = int(build_stamps([snow], load_templates(snow.settings.templates)).side.max()) // 2 + 2
+    dimmed = 0
     for frame in ("1", "2"):
         image = getattr(out, "image" + frame)[0]
         covered = [getattr(a, "opacity" + frame)[0, 0] > 0 for a in alone]
-        kinds = {"snow": covered[0] & ~covered[1], "white": covered[1] & ~covered[0],
+        near_white = torch.nn.functional.max_pool2d(covered[1][None].double(), 2 * reach + 1,
+                                                    stride=1, padding=reach)[0] > 0
+        kinds = {"snow": covered[0] & ~near_white, "white": covered[1] & ~covered[0],
                  "none": ~covered[0] & ~covered[1]}
         wants = {"snow": getattr(alone[0], "image" + frame)[0],
                  "white": getattr(alone[1], "image" + frame)[0],
@@ -273,6 +322,10 @@ def test_where_one_layer_covers_a_pixel_it_is_that_layer_rendered_alone():
         for kind, where in kinds.items():
             assert int(where.sum()) > 0, (frame, kind)
             assert torch.equal(image[:, where], wants[kind][:, where]), (frame, kind)
+        snow_only = covered[0] & ~covered[1]
+        assert bool((image[:, snow_only] <= wants["snow"][:, snow_only]).all()), frame
+        dimmed += int((image[:, snow_only] < wants["snow"][:, snow_only]).any(0).sum())
+    assert dimmed > 0       # some flakes lie behind white particles and reach past them
 
 
 def test_a_layer_absent_from_a_pixel_does_not_stop_the_others_sorting():
@@ -288,3 +341,20 @@ def test_a_layer_absent_from_a_pixel_does_not_stop_the_others_sorting():
     two, _ = composite_layers(a[:, [0, 2]], c[:, [0, 2]], z[:, [0, 2]], image,
                               torch.tensor([[True, True]]))
     assert torch.equal(out, two)
+
+
+@pytest.mark.parametrize("names", ["snow-light+fog-light", "snow-light+rain-light",
+                                   "fog-light+snow-light+rain-light"])
+def test_a_combined_sequence_frame_is_drawn_alone_with_the_pairs_bytes(names):
+    """A sequence writes each frame once: frame 1 of combined weather fields drawn from its
+    view alone (additive particles dimmed by the fog in front of them, two additive layers,
+    three layers through the sorting network) is frame 1 of the pair's render, bit for bit."""
+    from weathergen.engine.renderer import render_first_frame
+
+    pair = plane_pair(40, 56, depth=5.0, seed=4)
+    layered = sample_weather(pair, load_preset(names), seed=2, frame_rate=24.0)
+    assert all(r.optics is not None for r in layered.layers) and min(layered.counts) > 0
+    image, opacity = render_first_frame(pair, layered)
+    out = render_pair(pair, layered)
+    assert torch.equal(image, out.image1) and torch.equal(opacity, out.opacity1)
+    assert bool((image != pair.image1).any())

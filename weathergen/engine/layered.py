@@ -1,33 +1,41 @@
 """Combined weather in one pass: every layer of a :class:`~weathergen.engine.LayeredParticles`
-drawn by the render core, then composited once, per pixel in depth order.
+drawn by the render core, then composited once, in depth order.
 
 Each layer is drawn as a single render draws its record (:func:`_layer_sums`): the layer's
 records of every pair of the batch, the pairs' two views, its own tracks, stamps (from its own
 template library; every layer's built in one pass, :func:`_layer_stamps`) and splat, with its
 own grid levels, so a layer's sums ``A = Σ θ B V`` and ``C = Σ γ θ B V`` are the bytes of its
-records rendered alone (a fog layer drawn on a coarse grid
-alone gets no image-grid planes). Each blur sample carries its camera depth ``z`` as a fourth
-colour channel, so the planes hold a fifth sum ``Z = Σ θ B V z`` (a passive sum: no gradient
-flows back to it); where every layer blends additively the order changes nothing and no layer
-carries it.
+records rendered alone (a fog layer drawn on a coarse grid alone gets no image-grid planes).
+Each blur sample of an alpha-blended layer carries its camera depth ``z`` as a fourth colour
+channel, so its planes hold a fifth sum ``Z = Σ θ B V z`` (a passive sum: no gradient flows
+back to it), and ``Z / A`` is the layer's opacity-weighted mean depth at each pixel.
 
-Composite (:func:`composite_layers`): at every pixel the layers are ordered by their
-opacity-weighted mean depth ``Z / A``, far to near, and blended one over the other, each with its
-own blend mode (additive ``I + C``, alpha ``I (1 − A) + C``), clamped to [0, 1] once at the end;
-the opacity is ``1 − Π (1 − clamp(A_l, 0, 1))``. Within a layer the particles keep the
-order-independent sums of a single preset. Two layers, one additive and one alpha-blended (snow,
-rain or sparks with fog), and two additive layers have closed forms with a few full-frame passes
+Alpha-blended layers are drawn first. An additive layer's particles (snow, rain, sparks) are
+then dimmed, each in each frame, by the alpha layers in front of it (:func:`_dimmed`): its θ is
+multiplied by ``T = Π_l (1 − clamp(A_l, 0, 1))`` over the alpha layers whose mean depth at the
+middle of the particle's streak is nearer than the particle, so its light and opacity reach the
+camera through the fog in front of it; where no alpha layer lies in front, ``T = 1`` and the
+layer's sums keep their bytes. Dimmed additive layers need no depth sum: they blend last.
+
+Composite (:func:`composite_layers`): at every pixel the alpha layers are ordered by ``Z / A``,
+far to near, and blended one over the other (``I (1 − A) + C``), then the additive layers'
+light is added (``+ C``), clamped to [0, 1] once at the end; the opacity is
+``1 − Π (1 − clamp(A_l, 0, 1))``. Within a layer the particles keep the order-independent sums
+of a single preset. Two layers, one additive and one alpha-blended (snow, rain or sparks with
+fog), and two additive layers have closed forms with a few full-frame passes
 (:class:`_AdditiveOverAlpha`, :class:`_AdditivePair`, through :class:`_TwoLayers`); other
-combinations go through a sorting network (:class:`_LayeredBlend`).
+combinations go through a sorting network (:class:`_LayeredBlend`, in which a dimmed additive
+layer sorts as the nearest). Where every layer blends additively the order changes nothing: no
+layer is dimmed and none carries a depth sum (two layers), or all are sorted as alpha layers
+of zero opacity.
 
-The approximation and its limits: a layer is ordered as one surface per pixel, at its mean
-depth there. Where the particles of two layers covering a pixel lie on the same side of each
-other (a near snow flake over far fog, or a near fog billboard over far snow) the order is
-exact; where they interleave in depth (fog in front of and behind the same flake) the pixel
-sees one layer wholly in front of the other, by their mean depths. The order is a step function
-of the depths, so gradients flow through every layer's ``A`` and ``C`` (to colours, offsets and
-transparencies, as in a single render), not through which layer is in front. A pair rendered
-with one layer gives the bytes of its record rendered alone.
+The approximation and its limits: an alpha layer is one surface per pixel, at its mean depth
+there, so two alpha layers that interleave in depth at a pixel are seen one wholly in front of
+the other; an additive particle is in front of or behind an alpha layer as a whole (at the
+middle of its streak), and dimmed by that layer's opacity there over its whole stamp. The order
+is a step function of the depths, so gradients flow through every layer's ``A`` and ``C`` and
+through each dimming factor (to colours, offsets and transparencies), not through which layer
+is in front. A pair rendered with one layer gives the bytes of its record rendered alone.
 """
 
 from __future__ import annotations
@@ -45,10 +53,11 @@ from .particles import Particles
 from .splat import Grids, Sums, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, build_many
 from .templates import TemplateLibrary, load_templates
-from .tracks import (Looks, ParticleTable, RecordRows, Tracks, Views, blur_samples, empty_looks,
-                     fixed_looks, pair_tracks)
+from .tracks import (Looks, ParticleTable, RecordRows, Tracks, View, Views, blur_samples,
+                     empty_looks, fixed_looks, pair_tracks, view_tracks)
 
-__all__ = ["as_layers", "build_layer_stamps", "composite_layers", "render_layers"]
+__all__ = ["as_layers", "build_layer_stamps", "composite_layers", "render_layers",
+           "render_layers_view"]
 
 
 def as_layers(particles: Union[Particles, LayeredParticles, Sequence]) -> list[LayeredParticles]:
@@ -180,11 +189,13 @@ def _layer_stamps(prepared: Sequence[tuple], given: Sequence[Optional[StampSet]]
 
 
 def _layer_sums(views: Views, paper: list, field: list, stamp_set: StampSet, *, beta: float,
-                dtype, chunk_elements: int, detach_occlusion: bool, depth: bool) -> Sums:
+                dtype, chunk_elements: int, detach_occlusion: bool, depth: bool,
+                under: Sequence[Sums] = ()) -> Sums:
     """One layer's sums on the pairs' views, drawn as a single render draws its records (the
     same tracks, stamps, grid levels and splat) from its parts (:func:`_layer_parts`) and
     stamps (:func:`_layer_stamps`); ``depth``: with the depth sum ``Z`` as a fifth (passive)
-    plane."""
+    plane; ``under``: the sums (with ``Z``) of the alpha-blended layers that dim this additive
+    layer's particles (:func:`_dimmed`)."""
     parts = paper + field
     if parts:
         offsets = [0]
@@ -193,12 +204,67 @@ def _layer_sums(views: Views, paper: list, field: list, stamp_set: StampSet, *, 
         tracks = Tracks.cat([t for _, t, _ in parts], offsets)
     else:
         tracks = pair_tracks([], views, 1, beta=beta, dtype=dtype)[1]
+    if under:
+        tracks = _dimmed(tracks, under)
     inst = blur_samples(tracks, dtype, stamp_set.gap)
     if depth:
         inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]),
                                                          1))
     return splat(inst, stamp_set, views.depth, chunk_elements=chunk_elements,
                  detach_occlusion=detach_occlusion, passive=int(depth))
+
+
+def _dimmed(tracks: Tracks, alpha_layers: Sequence[Sums]) -> Tracks:
+    """An additive layer's tracks, each particle's θ in each view times the share of its light
+    that passes the alpha-blended layers in front of it: ``T = Π_l (1 − clamp(A_l, 0, 1))``
+    over the alpha layers ``l`` whose mean depth ``Z_l / A_l`` is nearer than the particle,
+    both read at the middle of its streak (:func:`_read_sums`). ``T`` is exactly 1 (and θ keeps
+    its bits) where no alpha layer lies in front. Differentiable in the alpha layers' ``A`` and
+    the streak's position (not in which layer is in front: a step of the depths)."""
+    if tracks.count == 0:
+        return tracks
+    reach = (tracks.samples - 1).clamp(min=0) * tracks.spacing
+    middle = torch.addcmul(tracks.h0, (0.5 * reach)[:, None], tracks.hd)
+    z = middle[:, 2]
+    safe = torch.where(z.abs() > 1e-12, z, 1e-12)
+    dtype = tracks.theta.dtype
+    u, v = (middle[:, 0] / safe).to(dtype), (middle[:, 1] / safe).to(dtype)
+    near = z.detach().to(dtype)
+    passed = None
+    for sums in alpha_layers:
+        alpha, depth = _read_sums(sums, tracks.view, u, v)
+        dim = 1 - torch.where(depth < near * alpha, alpha.clamp(0, 1), 0)
+        passed = dim if passed is None else passed * dim
+    return dataclasses.replace(tracks, theta=tracks.theta * passed)
+
+
+def _read_sums(sums: Sums, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor
+               ) -> tuple[torch.Tensor, torch.Tensor]:
+    """A layer's opacity sum ``A`` and depth sum ``Z`` (detached) at image points ``(u, v)`` of
+    views ``view``, as its planes on the image grid hold them (each grid level interpolated
+    bilinearly at ``(u + 0.5) / f − 0.5``, edges replicated: at pixel centres the composite's
+    upsampling). Shape: view, u, v (T,) -> two (T,)."""
+    grids = sums.grids
+    a_total = z_total = None
+    for level, offset, h, w, m in grids.levels:
+        f = 2 ** level
+        x, y = ((u + 0.5) / f - 0.5, (v + 0.5) / f - 0.5) if level else (u, v)
+        x, y = x.clamp(0, w - 1), y.clamp(0, h - 1)
+        x0, y0 = torch.floor(x.detach()).long(), torch.floor(y.detach()).long()
+        fx, fy = x - x0, y - y0
+        x1, y1 = (x0 + 1).clamp_(max=w - 1), (y0 + 1).clamp_(max=h - 1)
+        row_len = w + 2 * m
+        base = offset + m + view * ((h + 1) * row_len)
+        rows = torch.stack((base + y0 * row_len, base + y1 * row_len))         # (2, T)
+        at = torch.stack((rows + x0, rows + x1), 1).view(-1)                   # (2 y, 2 x, T)
+        n = u.numel()
+        corners_a = sums.values[0].index_select(0, at).view(2, 2, n)
+        corners_z = sums.values[-1].detach().index_select(0, at).view(2, 2, n)
+        a, z = (torch.lerp(torch.lerp(c[0, 0], c[0, 1], fx), torch.lerp(c[1, 0], c[1, 1], fx),
+                           fy) for c in (corners_a, corners_z))
+        a_total = a if a_total is None else a_total + a
+        z_total = z if z_total is None else z_total + z
+    return a_total, z_total.detach()
 
 
 def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
@@ -223,7 +289,6 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
     alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in p.layers] for p in layered],
                               device=device)
     modes = [{r.settings.blend for r in stack} for stack in stacks]
-    additive_pair = modes == [{"additive"}, {"additive"}]   # their order changes nothing
     views = Views.of(torch.cat((intrinsics, intrinsics)).to(device),
                      torch.cat((cam1_from_ref, cam2_from_ref)).to(device),
                      torch.cat((depth1, depth2)), device=device)
@@ -238,23 +303,88 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
                 for stack in stacks]
     stamp_sets = _layer_stamps(prepared, cut, dtype=image1.dtype, device=device,
                                coarse_side=coarse_side, chunk_elements=chunk_elements)
-    sums = [_layer_sums(views, paper, field, stamp_set, beta=float(beta), dtype=image1.dtype,
-                        chunk_elements=chunk_elements, detach_occlusion=detach_occlusion,
-                        depth=not additive_pair)
-            for (_, paper, field), stamp_set in zip(prepared, stamp_sets)]
-    layout = _LayerPlanes([s.grids for s in sums], bsz)
-    values = [s.values for s in sums]
-    if additive_pair:
-        outs = _TwoLayers.apply(_AdditivePair, layout, *values, image1, image2)
-    elif len(stacks) == 2 and {"additive"} in modes and {"alpha"} in modes:
-        order = (0, 1) if modes[0] == {"additive"} else (1, 0)      # the additive layer first
-        outs = _TwoLayers.apply(_AdditiveOverAlpha, layout.select(order),
-                                *(values[k] for k in order), image1, image2)
-    else:
-        outs = _LayeredBlend.apply(alpha_mode, layout, len(values), *values, image1, image2)
+    outs, sums = _draw(views, prepared, stamp_sets, modes, alpha_mode, (image1, image2),
+                       beta=float(beta), chunk_elements=chunk_elements,
+                       detach_occlusion=detach_occlusion)
     reached = torch.stack([s.reached.view(2, bsz).any(0) for s in sums]).any(0)
     return RenderOutput(image1=outs[0], image2=outs[1], opacity1=outs[2], opacity2=outs[3],
                         reached=reached)
+
+
+def render_layers_view(image: torch.Tensor, view: View, particles: LayeredParticles, *,
+                       frame: int = 0, beta: float, chunk_elements: Optional[int] = None
+                       ) -> tuple[torch.Tensor, torch.Tensor]:
+    """One weather frame of combined weather seen by ``view``: every layer's particles from
+    their reference positions in frame ``frame`` + 1 (``P + δ1``, or ``P + δ1 + M + δ2`` for
+    frame 2; along ``M + δ2``), each layer drawn as :func:`~weathergen.engine.render_view`
+    draws its record, composited as :func:`render_layers` does. For weather fields, frame 1 is
+    the bytes of frame 1 of a pair whose first view is ``view`` (a sequence writes each frame
+    once). Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W))."""
+    layered = as_layers(particles)[0]
+    device, dtype = image.device, image.dtype
+    for r in layered.layers:
+        if r.settings.blend not in ("additive", "alpha"):
+            raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
+    views = Views.of(view.intrinsics[None], view.cam_from_ref[None],
+                     view.depth[None].to(device), device=device)
+    prepared = []
+    for record in layered.layers:
+        libs = _libraries([record])
+        lib = libs[record.settings.templates]
+        record = record.to(device)
+        displacement = record.motion.to(torch.float64) + record.offset2.to(torch.float64)
+        start = record.position.to(torch.float64) + record.offset1.to(torch.float64)
+        if frame:
+            start = start + displacement
+        looks, tracks = view_tracks(record, views, start, displacement, lib.resolution,
+                                    beta=float(beta), dtype=dtype)
+        part = [(looks, tracks, lib)] if record.count else []
+        prepared.append((libs, part if record.optics is None else [],
+                         part if record.optics is not None else []))
+    if chunk_elements is None:
+        chunk_elements = chunk_elements_for(device)
+    stamp_sets = _layer_stamps(prepared, [None] * len(prepared), dtype=dtype, device=device,
+                               coarse_side=COARSE_SIDE, chunk_elements=chunk_elements)
+    modes = [{r.settings.blend} for r in layered.layers]
+    alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
+                              device=device)
+    (out, opacity), _ = _draw(views, prepared, stamp_sets, modes, alpha_mode, (image[None],),
+                              beta=float(beta), chunk_elements=chunk_elements,
+                              detach_occlusion=False)
+    return out[0], opacity[0]
+
+
+def _draw(views: Views, prepared: list, stamp_sets: list, modes: list, alpha_mode: torch.Tensor,
+          images: tuple, *, beta: float, chunk_elements: int, detach_occlusion: bool
+          ) -> tuple[tuple, list]:
+    """Every layer's sums on ``views`` and the composite of ``images`` (T frames of B views
+    each, frame ``t``'s views ``t B .. t B + B − 1``): the frames, then their opacities, and the
+    layers' :class:`Sums`."""
+    additive_pair = modes == [{"additive"}, {"additive"}]   # their order changes nothing
+    # alpha-blended layers first (with their depth sums): they dim the additive layers'
+    # particles behind them, which then carry no depth sum (they blend as the nearest)
+    additive = [m == {"additive"} for m in modes]
+    dimming = any(additive) and not all(additive)
+    sums: list = [None] * len(modes)
+    for k in sorted(range(len(modes)), key=lambda k: additive[k] if dimming else 0):
+        (_, paper, field), stamp_set = prepared[k], stamp_sets[k]
+        under = [sums[j] for j in range(len(modes)) if not additive[j]] \
+            if dimming and additive[k] else ()
+        sums[k] = _layer_sums(views, paper, field, stamp_set, beta=beta,
+                              dtype=images[0].dtype, chunk_elements=chunk_elements,
+                              detach_occlusion=detach_occlusion,
+                              depth=not additive_pair and not under, under=under)
+    layout = _LayerPlanes([s.grids for s in sums], images[0].shape[0])
+    values = [s.values for s in sums]
+    if additive_pair:
+        outs = _TwoLayers.apply(_AdditivePair, layout, *values, *images)
+    elif len(modes) == 2 and {"additive"} in modes and {"alpha"} in modes:
+        order = (0, 1) if modes[0] == {"additive"} else (1, 0)      # the additive layer first
+        outs = _TwoLayers.apply(_AdditiveOverAlpha, layout.select(order),
+                                *(values[k] for k in order), *images)
+    else:
+        outs = _LayeredBlend.apply(alpha_mode, layout, len(values), *values, *images)
+    return outs, sums
 
 
 class _LayerPlanes:
@@ -279,12 +409,14 @@ class _LayerPlanes:
     def _frame(self, t: int) -> slice:
         return slice(t * self.bsz, (t + 1) * self.bsz)
 
-    def read(self, values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
-        """Shape: -> (C, B, H, W) (a view of the sums where the layer has no coarse grid)."""
+    def read(self, values: Sequence[torch.Tensor], t: int, k: int,
+             channels: Optional[int] = None) -> torch.Tensor:
+        """The first ``channels`` planes (default: all). Shape: -> (C, B, H, W) (a view of the
+        sums where the layer has no coarse grid)."""
         grids, at = self.grids[k], self._frame(t)
         total = None
         for index, (level, _, h, w, _) in enumerate(grids.levels):
-            grid = grids.planes(values[k], index)[:, at]                   # (C, B, h, w)
+            grid = grids.planes(values[k], index)[:channels, at]           # (C, B, h, w)
             if level:
                 up = upsample(grid.reshape(-1, 1, h, w), 2 ** level, (grids.height, grids.width))
                 grid = up.view(grid.shape[0], grid.shape[1], grids.height, grids.width)
@@ -334,8 +466,9 @@ class _LayerPlanes:
 class _GridLayout:
     """Planes given whole, ``(5, T, B, L, 1, H, W)`` (:func:`composite_layers`)."""
 
-    def read(self, values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
-        return values[0][:, t, :, k, 0]
+    def read(self, values: Sequence[torch.Tensor], t: int, k: int,
+             channels: Optional[int] = None) -> torch.Tensor:
+        return values[0][:channels, t, :, k, 0]
 
     def gradients(self, values: Sequence[torch.Tensor]) -> list:
         return [torch.zeros_like(values[0])]
@@ -397,8 +530,9 @@ class _TwoLayers(torch.autograd.Function):
         one = images[0].new_ones(())
         outs, opacities, saved = [], [], []
         for t, image in enumerate(images):
-            out, opacity, kept = form.frame(layout.read(values, t, 0), layout.read(values, t, 1),
-                                            image, one, grad)
+            # (the closed forms read no depth sum: A and C alone)
+            out, opacity, kept = form.frame(layout.read(values, t, 0, 4),
+                                            layout.read(values, t, 1, 4), image, one, grad)
             outs.append(out)
             opacities.append(opacity)
             if grad:
@@ -424,15 +558,11 @@ class _TwoLayers(torch.autograd.Function):
 
 class _AdditiveOverAlpha:
     """Two layers, the first additive and the second alpha-blended in every pair (snow, rain or
-    sparks with fog), composited per pixel far to near in closed form (through
-    :class:`_TwoLayers`).
-
-    With ``k = 1 − A_a`` (the alpha layer's transmission) and ``s`` where the additive layer is
-    nearer (``Z_s A_a < Z_a A_s``: mean depths compared without a division; never where a
-    layer is absent), the far-to-near blend is ``C_a + I k + C_s w`` with ``w = 1`` where ``s``,
-    else ``k`` (the additive layer's light is dimmed by the alpha layer in front of it), which is
-    ``(I + C_s) k + C_a`` or ``(I k + C_a) + C_s``; the opacity ``1 − (1 − clamp(A_s)) clamp(k)``.
-    About ten full-frame passes per frame (the sorting network takes some thirty).
+    sparks with fog), composited in closed form (through :class:`_TwoLayers`). The additive
+    layer's particles behind the alpha layer were dimmed before the splat (:func:`_dimmed`), so
+    its light goes on top: ``C_a + I k + C_s`` with ``k = 1 − A_a`` (the alpha layer's
+    transmission); the opacity ``1 − (1 − clamp(A_s)) clamp(k)``. The additive layer's planes
+    hold no depth sum.
     """
 
     @staticmethod
@@ -440,28 +570,23 @@ class _AdditiveOverAlpha:
         alpha_s, colour_s = _split(planes_s)
         alpha_a, colour_a = _split(planes_a)
         keep = 1 - alpha_a
-        near = planes_s[4].unsqueeze(1) * alpha_a < planes_a[4].unsqueeze(1) * alpha_s
-        w = torch.where(near, one, keep)
-        pre = torch.addcmul(colour_a, image, keep).addcmul_(colour_s, w)
+        pre = torch.addcmul(colour_a, image, keep).add_(colour_s)
         out, passed = _clamp_passed(pre, grad)
         clear_s, clear_a = 1 - alpha_s.clamp(0, 1), keep.clamp(0, 1)
         opacity = torch.addcmul(one, clear_s, clear_a, value=-1)
-        return out, opacity, (near, keep, w, passed, image, colour_s, clear_s, clear_a)
+        return out, opacity, (keep, passed, image, clear_s, clear_a)
 
     @staticmethod
     def frame_backward(kept, g_out, g_op, grads_s, grads_a, need_image: bool):
-        near, keep, w, passed, image, colour_s, clear_s, clear_a = kept
+        keep, passed, image, clear_s, clear_a = kept
         (g_alpha_s, g_colour_s), (g_alpha_a, g) = grads_s, grads_a
-        if g_out is None:                       # dL/dC_a: what passes the clamp
+        if g_out is None:                       # dL/dC_a = dL/dC_s: what passes the clamp
             g.zero_()
         else:
             torch.mul(g_out, passed, out=g)
-        torch.mul(g, w, out=g_colour_s)
-        # dL/dA_a = −Σ_c g_c (I_c + C_s,c where the additive layer lies behind)
-        behind = g[:, :1] * colour_s[:, :1]
-        for c in (1, 2):
-            behind.addcmul_(g[:, c:c + 1], colour_s[:, c:c + 1])
-        torch.addcmul(behind.masked_fill_(near, 0), g[:, :1], image[:, :1], out=g_alpha_a)
+        g_colour_s.copy_(g)
+        # dL/dA_a = −Σ_c g_c I_c
+        torch.mul(g[:, :1], image[:, :1], out=g_alpha_a)
         for c in (1, 2):
             g_alpha_a.addcmul_(g[:, c:c + 1], image[:, c:c + 1])
         g_alpha_a.neg_()
@@ -512,11 +637,12 @@ class _LayeredBlend(torch.autograd.Function):
     pass replays (a layer that covers a pixel not at all blends nothing there, wherever it
     sorts; with three layers or more it sorts as the nearest, mean depth 0, so that it never
     stands between two others unordered). An additive layer blends as one of zero opacity:
-    ``I (1 − 0) + C``. Layer ``k`` is nearer than layer ``j`` where ``Z_k A_j < Z_j A_k`` (mean
+    ``I (1 − 0) + C``; a dimmed one (:func:`_dimmed`) has no depth sum and sorts as the nearest
+    (mean depth 0). Layer ``k`` is nearer than layer ``j`` where ``Z_k A_j < Z_j A_k`` (mean
     depths compared without a division).
 
     Shape: values as ``layout`` reads them (each layer's sums, or whole planes), each frame
-    and layer's planes (5, B, H, W) (A, C_r, C_g, C_b, Z); alpha_mode (B, L) bool; images T
+    and layer's planes (5, B, H, W) (A, C_r, C_g, C_b, Z; 4 without Z); alpha_mode (B, L) bool; images T
     tensors (B, 3, H, W) -> T images (B, 3, H, W), then T opacities (B, 1, H, W). Gradients flow
     to the A and C planes and the images.
     """
@@ -533,7 +659,8 @@ class _LayeredBlend(torch.autograd.Function):
         for t, image in enumerate(images):
             planes = [layout.read(values, t, k) for k in range(nl)]         # (5, B, H, W) each
             alpha = [p[0].unsqueeze(1) for p in planes]                     # (B, 1, H, W)
-            depth = [p[4].unsqueeze(1) for p in planes]
+            # (a dimmed additive layer has no depth sum: it blends as the nearest)
+            depth = [p[4].unsqueeze(1) if p.shape[0] > 4 else zero for p in planes]
             cover = [alpha[k] if every[k] else alpha[k] * mode[:, k, None] for k in range(nl)]
             paint = [p[1:4].transpose(0, 1) for p in planes]                # (B, 3, H, W)
             if nl > 2:      # a layer absent from a pixel sorts as the nearest (mean depth 0)

@@ -30,7 +30,7 @@ import torch
 from ..errors import ConfigError, DatasetError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from .composite import RenderOutput, composite, planes
-from .layered import as_layers, build_layer_stamps, render_layers
+from .layered import as_layers, build_layer_stamps, render_layers, render_layers_view
 from .layers import LayeredParticles
 from .particles import Particles
 from .presets import BLEND_MODES
@@ -114,7 +114,7 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
             from each record's reference frame (see :func:`reference_transforms`).
         particles: one record per pair (a single record for B = 1), of either weather model, or
             one :class:`LayeredParticles` per pair (combined weather, the same number of layers
-            each): drawn in one pass and composited per pixel in depth order
+            each): drawn in one pass and composited in depth order
             (:mod:`~weathergen.engine.layered`; ``templates`` must then be None).
     Computes in the images' dtype and device. Returns :class:`RenderOutput`.
     ``stamps``: from :func:`build_stamps` of the same records (their paper-model particles).
@@ -296,8 +296,7 @@ def render_first_frame(pair: FramePair, particles: Union[Particles, LayeredParti
                        chunk_elements: Optional[int] = None):
     """Frame 1 of a pair alone (a sequence writes each frame once), the same bytes as
     ``render_pair(pair, particles).image1`` for a field record, or for combined weather whose
-    layers are all field records (rendered as the pair, frame 1 kept: the layers' depth order is
-    settled per pixel in the one pass over both frames).
+    layers are all field records (:func:`~weathergen.engine.layered.render_layers_view`).
 
     Shape: returns (image (1, 3, H, W), opacity (1, 1, H, W)).
     """
@@ -306,8 +305,20 @@ def render_first_frame(pair: FramePair, particles: Union[Particles, LayeredParti
         if any(layer.optics is None for layer in particles.layers):
             raise ValueError("render_first_frame renders field records (every layer's optics "
                              "is set)")
-        out = render_pair(pair, particles, templates, beta=beta, device=device)
-        return out.image1, out.opacity1
+        if len(particles.layers) > 1:
+            if templates is not None:
+                raise ConfigError("combined weather is drawn with each layer's own templates; "
+                                  "pass templates=None")
+            if device is not None:
+                dev = resolve_device(device)
+                pair, particles = pair.to(dev), particles.to(dev)
+            _, c1, _ = reference_transforms(pair)
+            image = pair.image1
+            view = View(pair.intrinsics.to(image.device), c1.to(image.device), pair.depth1)
+            out, alpha = render_layers_view(image, view, particles, beta=beta,
+                                            chunk_elements=chunk_elements)
+            return out[None], alpha[None]
+        particles = particles.layers[0]
     if particles.optics is None:
         raise ValueError("render_first_frame renders field records (particles.optics is set)")
     if device is not None:

@@ -17,7 +17,7 @@ from typing import Optional
 import torch
 
 from ..geometry import backproject, project, transform_points
-from .layered import render_layers
+from .layered import render_layers_view
 from .layers import LayeredParticles
 from .particles import Particles
 from .renderer import BETA_RENDER, render_view
@@ -69,15 +69,17 @@ def render_right(image: torch.Tensor, right: View, particles: Particles, start: 
 
 def render_right_layers(images, views, particles: LayeredParticles, *,
                         beta: float = BETA_RENDER) -> tuple[list, list]:
-    """Both weather frames of the right camera for combined weather: the layers drawn in one
-    pass from the right camera's two views (:func:`stereo_view` of each frame), as a pair of
-    that camera, depth-ordered per pixel as :func:`~weathergen.engine.render_layers` does.
+    """The weather frames of the right camera for combined weather: each frame's layers drawn
+    from its view alone (:func:`stereo_view` of the frame; frame ``t`` from the particles'
+    positions in frame ``t``), depth-ordered as :func:`~weathergen.engine.render_layers` does,
+    as :func:`render_right` draws a single record.
 
-    Shape: images two (3, H, W), views two :class:`View` -> (two images (3, H, W), two opacities
-    (1, H, W)).
+    Shape: images one or two (3, H, W), views as many :class:`View` -> (as many images
+    (3, H, W), as many opacities (1, H, W)).
     """
-    (image1, image2), (view1, view2) = images, views
-    out = render_layers(image1[None], image2[None], view1.depth[None], view2.depth[None],
-                        view1.intrinsics[None], view1.cam_from_ref[None],
-                        view2.cam_from_ref[None], [particles], beta=beta)
-    return [out.image1[0], out.image2[0]], [out.opacity1[0], out.opacity2[0]]
+    frames, opacities = [], []
+    for t, (image, view) in enumerate(zip(images, views)):
+        out, opacity = render_layers_view(image, view, particles, frame=t, beta=beta)
+        frames.append(out)
+        opacities.append(opacity)
+    return frames, opacities

@@ -282,13 +282,14 @@ def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
     count = 2 if second else 1
     layered = isinstance(particles, LayeredParticles)
     views = []
-    for depth, cam in ((pair.depth1, c1), (pair.depth2, c2))[:2 if layered else count]:
+    for depth, cam in ((pair.depth1, c1), (pair.depth2, c2))[:count]:
         left = View(pair.intrinsics, cam, depth)
         right_depth = warp_depth(depth, pair.intrinsics, rc.right_from_left, rc.intrinsics)
         views.append(stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics))
     with torch.no_grad():
-        if layered:                                     # both frames in one layered pass
-            rendered = zip(*render_right_layers((rc.image1, rc.image2), views, particles))
+        if layered:                     # both frames in one layered pass, or the first alone
+            rendered = zip(*render_right_layers((rc.image1, rc.image2)[:count], views,
+                                                particles))
         else:
             lib = load_templates(particles.settings.templates)
             start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
