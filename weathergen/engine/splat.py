@@ -14,7 +14,8 @@ brings them to the image grid.
 
 Layout: a patch has an even side (stamp sides are odd), so it is cut into 2 x 2 blocks: a
 sample's blocks are rows of blocks, and the rows of every sample of the call are one ragged run
-(what a block needs is computed once per row of blocks, in one table). Per block the stamp's
+(what a block needs is computed once per row of blocks, a slab of chunks at a time, from a few
+numbers per sample: a row's are its sample's plus multiples of its place in the sample). Per block the stamp's
 4 x 4 neighbourhood (rows and columns 0, 1, P, P + 1 from the block's first grid point) is read
 in one gather (3 x 3 where every stamp of the chunk has P = 1, which the plan knows on the
 host) and the four pixels are computed side by side (element arrays are
@@ -36,14 +37,13 @@ the additions are atomic, and their order (the last bits) may change between run
 
 from __future__ import annotations
 
-import itertools
 from dataclasses import dataclass
 from typing import Optional
 
 import torch
 import torch.nn.functional as F
 
-from .ragged import runs, starts
+from .ragged import chunk_spans
 from .sampling import NEAR
 from .stamps import COARSE_MAX_LEVEL, StampSet
 from .tracks import Instances
@@ -176,14 +176,17 @@ class _Plan:
     """What a splat call draws, fixed before its autograd function runs.
 
     Samples kept (in front of the camera, patch touching the image), sorted by plane and image
-    tile: ``kept`` (K,) int64 indices into the instances, ``level`` (K,), ``phases`` (K,) P.
-    Their rows of blocks (R rows, a sample's q rows consecutive, q = (side + 1) / 2 blocks per
-    side) in one table, so that a chunk reads what its blocks need with one gather:
-    ``row_table`` (R, 6) int64, per row the bordered stamp pixel at the top left of its first
-    block, the bordered stamp's row length, P, where the first block's two pixel rows start in
-    the sums (rows outside the image: the extra row) and the row's kept sample; ``sizes`` (R,)
-    blocks per row (q); ``groups`` (R,) plane keys (for the chunking rule on the CPU);
-    ``phase_spans``, on the host, the spans of rows whose stamps are phase stamps (P > 1).
+    tile: ``kept`` (K,) int64 indices into the instances, ``entry`` (K,) their entries,
+    ``phases`` (K,) P, ``fraction`` (2, K) the sub-pixel shifts of :func:`_per_sample`. A
+    sample's patch is q x q blocks (q = (side + 1) / 2, ``q`` (K,)): q rows of q blocks; the
+    rows of the kept samples follow each other. What a row's numbers are computed from (see
+    :meth:`_slab`): ``coef`` (K, 5) int64 per sample, ``rows_of_entry`` (E, 6) int64 per entry.
+    On the host, ``slabs``: runs of chunks whose rows' numbers are computed together (on the
+    CPU, about :data:`SLAB_ROWS` rows: the arrays stay small, not one per row of the call),
+    ``(a, b, s, t, r0, r1, pieces)``: rows a .. b − 1, of samples s .. t − 1, whose rows are r0
+    .. r1 − 1, and its chunks ``(a, b, lo, hi, whole)``: rows a .. b − 1, blocks lo .. hi − 1,
+    and whether every block's stamp is sampled at whole pixels (P = 1: see :class:`_Blocks`).
+    Both passes use the same chunks.
     """
 
     def __init__(self, inst: Instances, stamps: StampSet, scene: torch.Tensor, grids: Grids,
@@ -199,96 +202,152 @@ class _Plan:
         if inst.count == 0 or stamps.count == 0:
             return
         top = COARSE_MAX_LEVEL + 1
-        # per level: where its planes' pixel (0, 0) sits, h, w, a row's and a plane's length in
-        # the sums, the factor f
-        rows = [[0] * 6 for _ in range(top)]
+        # per level: its last column and row w − 1, h − 1, the factor f, h, where its planes'
+        # pixel (0, 0) sits, a row's and a plane's length in the sums
+        rows = [[0] * 7 for _ in range(top)]
         for c, offset, h, w, m in grids.levels:
-            rows[c] = [offset + m, h, w, w + 2 * m, (h + 1) * (w + 2 * m), 2 ** c]
-        table = torch.tensor(rows, device=device)
+            rows[c] = [w - 1, h - 1, 2 ** c, h, offset + m, w + 2 * m, (h + 1) * (w + 2 * m)]
         self.coarse = grids.levels[0][0] > 0       # (coarsest first)
         with torch.no_grad():
-            # per sample: its stamp's side, level, start and P, and its level's grid
-            per_entry = torch.cat((torch.stack((stamps.side, stamps.coarse, stamps.first,
-                                                stamps.phases), 1),
-                                   table.index_select(0, stamps.coarse)), 1)
-            side, level, first, phases, origin, h, w, row_len, plane_len, f = \
-                per_entry.index_select(0, inst.entry).unbind(1)
+            # per entry: its stamp's blocks per side q (its side is 2 q − 1), P, level, its
+            # level's grid; and its part of the sort key
+            side, level, phases = stamps.side, stamps.coarse, stamps.phases
+            q = torch.div(side, 2, rounding_mode="floor").add_(1)
+            grid = torch.tensor(rows, device=device).index_select(0, level)
+            kind = torch.add(phases > 1, level, alpha=2 * grids.views)
+            # per blur sample: whether its patch touches the image (its first column and row,
+            # uv0 − q + 1, not after w − 1 and h − 1; its last, uv0 + q, from 0 on) and its key: by
+            # plane, then by tile of the image (samples of a chunk hit nearby pixels: fewer
+            # cache misses in the scatter), phase stamps after the others (most chunks then
+            # hold one kind, see _Blocks); the key depends on the sample alone
+            per = torch.cat((torch.stack((q, kind), 1), grid[:, :3]), 1) \
+                .index_select(0, inst.entry)
             uv = torch.stack((inst.u, inst.v))                                 # (2, I)
             if self.coarse:
-                uv = _on_grid(uv, f)
+                uv = _on_grid(uv, per[:, 4])
             uv0 = torch.floor(uv).long()
-            half = (side - 1) // 2
-            corner = uv0 - half                 # the patch's first column and row
-            col0, row0 = corner.unbind(0)
-            keep = ((corner + side >= 0) & (corner < torch.stack((w, h)))).all(0) \
+            reach = per[:, 0]
+            keep = ((uv0 + reach >= 0) & (uv0 - reach < per[:, 2:4].t())).all(0) \
                 & (inst.z > NEAR)
             kept = torch.nonzero(keep).squeeze(1)
-            # by plane, then by tile of the image (samples of a chunk hit nearby pixels: fewer
-            # cache misses in the scatter); the key depends on the sample alone
-            plane_key = level * grids.views + inst.view
-            tile = torch.div(uv0, TILE, rounding_mode="floor").clamp_(-1, 1 << 12).add_(1)
+            tile = torch.div(uv0.index_select(1, kept), TILE, rounding_mode="floor") \
+                .clamp_(-1, 1 << 12).add_(1)
             tile_u, tile_v = tile.unbind(0)
-            # (phase stamps after the others: most chunks then hold one kind, see _Blocks)
-            kind = phases > 1
-            key = torch.add(torch.add(tile_u, tile_v, alpha=1 << 14),
-                            torch.add(kind, plane_key, alpha=2), alpha=1 << 28)
-            order = torch.sort(key.index_select(0, kept), stable=True).indices
-            kept = kept.index_select(0, order)
-            self.count = int(kept.numel())
+            view = inst.view.index_select(0, kept)
+            kind = torch.add(per[:, 1].index_select(0, kept), view, alpha=2)
+            key = torch.add(torch.add(tile_u, tile_v, alpha=1 << 14), kind, alpha=1 << 28)
+            key, order = torch.sort(key, stable=True)
+            self.count = int(order.numel())
             if self.count == 0:
                 return
+            kept, view = kept.index_select(0, order), view.index_select(0, order)
+            # per entry, what its rows need: q, 2 P (fine − q) (see below), the bordered
+            # stamp's row length fine, P, its level's h and row length in the sums
+            fine = torch.addcmul(phases, phases, side).add_(1)
+            two_p = phases + phases
+            self.rows_of_entry = torch.cat((torch.stack((q, two_p * (fine - q), fine, phases),
+                                                        1), grid[:, 3::2]), 1)
+            # per kept sample: its stamp's and plane's numbers
+            self.entry = inst.entry.index_select(0, kept)
+            q, phases, fine, first, f, origin, plane_len = torch.cat(
+                (torch.stack((q, phases, fine, stamps.first), 1), grid[:, 2::2]), 1) \
+                .index_select(0, self.entry).unbind(1)
+            uv, uv0 = uv.index_select(1, kept), uv0.index_select(1, kept)
+            col0, row0 = (uv0 - q + 1).unbind(0)       # the patch's first column and row
             # the phase stamp's grid point at the patch's top-left pixel (see _Blocks): the
             # phase φ = floor(P f) of the sub-pixel shift f, per axis
-            fine = phases * (side + 1) + 1
-            late = (phases - 1) - torch.floor((uv - uv0) * phases).long()   # P − 1 − φ
-            late_u, late_v = late.unbind(0)
+            shift = (uv - uv0) * phases
+            phase = torch.floor(shift)
+            late_u, late_v = ((phases - 1) - phase.long()).unbind(0)            # P − 1 − φ
+            # (what _per_sample's fu, fv are: the shift's fraction of a grid step, P f − φ)
+            self.fraction = shift.sub_(phase)
             first = torch.addcmul(first, late_v, fine).add_(late_u)
-            q = half + 1                        # blocks per side
-            plane = torch.addcmul(origin + col0, inst.view, plane_len)  # + the patch's column
-            # (gathering whole rows of a stacked table is several times faster than gathering
-            # along its second axis)
-            kept_q, view, level, kept_phases = torch.stack((q, inst.view, level, phases), 1) \
-                .index_select(0, kept).unbind(1)
             self.reached.index_fill_(0, view, True)
-            self.kept, self.level = kept, level
-            self.phases = kept_phases.to(self.dtype)
+            self.kept, self.q, self.phases = kept, q, phases
             if self.coarse:
-                self.factor = (2.0 ** level).to(self.dtype)
-            rows = int(kept_q.sum())
-            sample = torch.repeat_interleave(kept_q, output_size=rows)
-            per_row = torch.stack((fine, first, row0, h, plane, row_len, q, plane_key, phases), 1) \
-                .index_select(0, kept.index_select(0, sample))
-            stride, first, row0, h, plane, row_len, sizes, groups, row_phases = per_row.unbind(1)
-            self.sizes, self.groups = sizes.contiguous(), groups.contiguous()
-            br2 = 2 * (torch.arange(rows, device=device) - starts(kept_q).index_select(0, sample))
-            y = (row0 + br2)[:, None] + _constant_steps(device, 0)           # (R, 2)
-            h = h[:, None]
-            y = torch.where((y >= 0) & (y < h), y, h)                      # outside: extra row
-            # per row: the bordered stamp pixel at the top left of its first block, the
-            # stamp's row length, P, where its two pixel rows start in the sums, its sample
-            y0, y1 = y.unbind(1)
-            self.row_table = torch.stack((first + br2 * row_phases * stride, stride, row_phases,
-                                          torch.addcmul(plane, y0, row_len),
-                                          torch.addcmul(plane, y1, row_len), sample), 1)
-            # the rows of phase stamps as spans [s, e) of rows (a plane's come after its
-            # others): a chunk without any reads 3 x 3 neighbourhoods (see _Blocks)
-            kinds, counts = torch.unique_consecutive(torch.add(row_phases > 1, groups, alpha=2),
-                                                     return_counts=True)
-            ends = list(itertools.accumulate(counts.tolist()))
-            self.phase_spans = [(e - c, e) for k, c, e in zip(kinds.tolist(), counts.tolist(),
-                                                              ends) if k % 2]
+                self.factor = f.to(self.dtype)
+            # a sample's row j is row row_start + j of the call, its block c block b =
+            # block_start + j q + c; that block's top-left stamp pixel is first + 2 P fine j
+            # + 2 P c = first − 2 P block_start + 2 P (fine − q) j + 2 P b
+            blocks = q * q
+            rows_end, blocks_end = torch.cumsum(q, 0), torch.cumsum(blocks, 0)
+            row_start, block_start = rows_end - q, blocks_end - blocks
+            self.coef = torch.stack((row_start, torch.addcmul(first, phases, block_start,
+                                                              value=-2),
+                                     block_start, row0,
+                                     torch.addcmul(origin + col0, view, plane_len)), 1)
+            if self.cpu:      # the module's constant, read at call time (benchmarks replace it)
+                pieces = chunk_spans(q, self.blocks_per_chunk, key.bitwise_right_shift_(29),
+                                     PLANE_SPLIT, repeats=q, ends=(rows_end, blocks_end))
+            else:
+                pieces = chunk_spans(q, self.blocks_per_chunk, repeats=q,
+                                     ends=(rows_end, blocks_end))
+            self._slabs(pieces, row_start, rows_end, (phases > 1).long())
+
+    def _slabs(self, pieces: list, row_start: torch.Tensor, rows_end: torch.Tensor,
+               phase: torch.Tensor):
+        """``slabs`` from the chunks ``(a, b, lo, hi)`` (one host synchronisation): the samples
+        of each chunk's first and last row, and whether phase stamps lie between."""
+        ends = [x for a, b, _, _ in pieces for x in (a, b - 1)]
+        sample = torch.searchsorted(rows_end, torch.tensor(ends, device=rows_end.device),
+                                    right=True)
+        # the phase samples up to each, its own, where its rows start and end
+        seen, own, start, end = torch.stack((torch.cumsum(phase, 0), phase, row_start, rows_end)) \
+            .index_select(1, sample).tolist()
+        sample = sample.tolist()
+        first, last = sample[0::2], sample[1::2]
+        self.slabs = []
+        limit = SLAB_ROWS if self.cpu else 1 << 62
+        for i, (a, b, lo, hi) in enumerate(pieces):
+            piece = (a, b, lo, hi, seen[2 * i + 1] == seen[2 * i] - own[2 * i])
+            if self.slabs and b - self.slabs[-1][0] <= limit:
+                a0, _, s, _, r0, _, held = self.slabs[-1]
+                self.slabs[-1] = (a0, b, s, last[i] + 1, r0, end[2 * i + 1], held + [piece])
+            else:
+                self.slabs.append((a, b, first[i], last[i] + 1, start[2 * i], end[2 * i + 1],
+                                   [piece]))
+
+    def _slab(self, a: int, b: int, s: int, t: int, r0: int, r1: int) -> tuple:
+        """The numbers of rows a .. b − 1 (of samples s .. t − 1, whose rows are r0 .. r1 − 1):
+        q (blocks per row) and, for :class:`_Blocks`, each row's sample, the stamp pixel at the
+        top left of its first block less 2 P b0 and where its two pixel rows start in the sums
+        less 2 b0, for its first block b0 (a row outside the image: at the extra row), its
+        stamp's stride (bordered row length) and P. Shape: (b − a,) each."""
+        every = s == 0 and t == self.count
+        sample = torch.repeat_interleave(self.q if every else self.q[s:t], output_size=r1 - r0)
+        if a > r0 or b < r1:
+            sample = sample[a - r0:b - r0]
+        row_start, at, block_start, row0, plane = \
+            (self.coef if every else self.coef[s:t]).index_select(0, sample).unbind(1)
+        entry = (self.entry if every else self.entry[s:t]).index_select(0, sample)
+        q, step, fine, phases, h, row_len = self.rows_of_entry.index_select(0, entry).unbind(1)
+        j = torch.arange(a, b, device=self.q.device).sub_(row_start)
+        # its pixel rows y = row0 + 2 j + (0, 1), the extra row h for those outside the image
+        # (a negative y & _MASK is above any height)
+        y = (torch.add(row0, j, alpha=2) + _constant_steps(j.device, 0)).bitwise_and_(_MASK)
+        pix = torch.addcmul(plane, torch.minimum(y, h), row_len) \
+            .sub_(torch.addcmul(block_start, q, j), alpha=2)
+        return q, (sample.add_(s) if s else sample, torch.addcmul(at, step, j), *pix.unbind(0),
+                   fine, phases)
 
     def chunks(self):
-        """``(row (n,), column (n,), whole)`` per chunk: each block's row of blocks and its
-        index in the row, and whether every block's stamp is sampled at whole pixels (P = 1).
-        On the CPU a plane larger than :data:`PLANE_SPLIT` blocks is cut at multiples of it
-        (whatever the chunk size), so the order its samples are added in is fixed."""
-        if self.cpu:      # the module's constant, read at call time (benchmarks replace it)
-            pieces = runs(self.sizes, self.blocks_per_chunk, self.groups, PLANE_SPLIT, spans=True)
-        else:
-            pieces = runs(self.sizes, self.blocks_per_chunk, spans=True)
-        for row, column, (a, b) in pieces:
-            yield row, column, not any(s < b and a < e for s, e in self.phase_spans)
+        """``(rows, row (n,), lo, hi, whole)`` per chunk: its slab's rows (:meth:`_slab`),
+        each block's row of blocks in them, its blocks lo .. hi − 1, whether they are all
+        sampled at whole pixels."""
+        for a0, b0, s, t, r0, r1, pieces in self.slabs:
+            q, rows = self._slab(a0, b0, s, t, r0, r1)
+            for a, b, lo, hi, whole in pieces:
+                row = torch.repeat_interleave(q if a == a0 and b == b0 else q[a - a0:b - a0],
+                                              output_size=hi - lo)
+                if a > a0:
+                    row.add_(a - a0)
+                yield rows, row, lo, hi, whole
+
+
+#: Rows of blocks whose numbers the CPU computes at once (see _Plan).
+SLAB_ROWS = 1 << 15
+#: Sends negative pixel rows above any image's height (see _Plan._slab).
+_MASK = (1 << 40) - 1
 
 
 def _on_grid(x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:
@@ -311,34 +370,34 @@ class _Blocks:
     the sums (``flat``: flattened); ``vis`` V.
     """
 
-    def __init__(self, plan: _Plan, row: torch.Tensor, column: torch.Tensor, per: torch.Tensor,
-                 whole: bool):
-        # (gathering whole rows of the plan's row table is faster than one gather per column)
-        at, stride, phases, pix0, pix1, self.sample = \
-            plan.row_table.index_select(0, row).unbind(1)
+    def __init__(self, plan: _Plan, rows: tuple, row: torch.Tensor, lo: int, hi: int,
+                 whole: bool, per: torch.Tensor):
+        # (the row's numbers, one gather each)
+        self.sample, at, pix0, pix1, stride = (x.index_select(0, row) for x in rows[:5])
         self.per = per.index_select(1, self.sample)
         fu, fv, beta_z, beta = self.per.unbind(0)[:4]
         n = row.numel()
-        two_columns = column + column
+        device = at.device
+        two_blocks = torch.arange(2 * lo, 2 * hi, 2, device=device)      # 2 b for block b
         # the block's top-left grid point: patch pixel j of a row mixes the stamp's grid points
         # j P and j P + 1 (from the block's), rows likewise: a 4 x 4 neighbourhood, rows and
         # columns at 0, 1, P, P + 1, read in one gather (as a + b P: column j P + k and row
         # i P + l at [j, k, i, l])
-        device = at.device
         if whole:   # P = 1: the 3 x 3 of rows and columns 0, 1, 2, each read once, seen as 4 x 4
-            rows = torch.addcmul(at + two_columns, stride, _constant_steps(device, 3))
+            rows = torch.addcmul(at + two_blocks, stride, _constant_steps(device, 3))
             near = plan.stamps.pixels.index_select(0, (_constant_steps(device, 4) + rows).view(-1)).view(3, 3, n)
             self.near = near.as_strided((2, 2, 2, 2, n), (3 * n, 3 * n, n, n, 1))
         else:
+            phases = rows[5].index_select(0, row)
             ab = torch.addcmul(_constant_steps(device, 5), _constant_steps(device, 6), phases)
-            rows = torch.addcmul(torch.addcmul(at, two_columns, phases), stride, ab)
+            rows = torch.addcmul(torch.addcmul(at, two_blocks, phases), stride, ab)
             self.near = plan.stamps.pixels.index_select(0, (ab.view(2, 2, 1, 1, n) + rows).view(-1)).view(2, 2, 2, 2, n)
         # columns first (weight fu: the shift's fraction of a grid step), then rows (fv)
         left, right = self.near.unbind(1)
         self.rows = torch.lerp(right, left, fu)                         # (2 j, 2 i, 2 l, n)
         top, bottom = self.rows.unbind(2)
         self.patch = torch.lerp(bottom, top, fv)
-        start = torch.stack((pix0, pix1)) + two_columns                     # (2 i, n)
+        start = torch.stack((pix0, pix1)).add_(two_blocks)                  # (2 i, n)
         self.pix = start + _constant_steps(device, 2)                  # (2 j, 2 i, n)
         self.flat = self.pix.view(-1)
         depth = plan.scene.index_select(0, self.flat).view(2, 2, n)
@@ -355,13 +414,13 @@ _STEPS: dict = {}
 
 def _constant_steps(device, kind: int = 2) -> torch.Tensor:
     """Small constant arrays, each made once per device: ``kind`` 0, the pixel rows 0, 1 of a
-    row of blocks, (2,); 2, the patch columns 0, 1, (2, 1, 1); 3 and 4, the rows and the
+    row of blocks, (2, 1); 2, the patch columns 0, 1, (2, 1, 1); 3 and 4, the rows and the
     columns 0, 1, 2 of a 3 x 3 neighbourhood, (3, 1) and (3, 1, 1); 5 and 6, the rows 0, 1, P,
     P + 1 of a block's neighbourhood as ``a + b P``: a (2, 2, 1) = ((0, 1), (0, 1)), b =
     ((0, 0), (1, 1))."""
     key = (str(device), kind)
     if key not in _STEPS:
-        table = {0: [0, 1], 2: [[[0]], [[1]]], 3: [[0], [1], [2]], 4: [[[0]], [[1]], [[2]]],
+        table = {0: [[0], [1]], 2: [[[0]], [[1]]], 3: [[0], [1], [2]], 4: [[[0]], [[1]], [[2]]],
                  5: [[[0], [1]], [[0], [1]]], 6: [[[0], [0]], [[1], [1]]]}
         _STEPS[key] = torch.tensor(table[kind], device=device)
     return _STEPS[key]
@@ -390,8 +449,8 @@ class _Splat(torch.autograd.Function):
         if plan.count == 0:
             return acc
         per, _ = _per_sample(plan, u, v, z, theta, color, weights=True)
-        for row, column, whole in plan.chunks():
-            b = _Blocks(plan, row, column, per, whole)
+        for chunk in plan.chunks():
+            b = _Blocks(plan, *chunk, per)
             weight = b.patch.mul_(b.vis)
             # all channels in one product and one scatter along the rows of acc: each sum
             # still receives its additions one by one in the blocks' order
@@ -413,8 +472,8 @@ class _Splat(torch.autograd.Function):
         per, th = _per_sample(plan, u, v, z, theta, color[:, :nc], weights=False)
         g_acc = g_acc[:1 + nc].contiguous()
         sums = torch.zeros(4 + nc, plan.count, dtype=u.dtype, device=u.device)
-        for row, column, whole in plan.chunks():
-            b = _Blocks(plan, row, column, per, whole)
+        for chunk in plan.chunks():
+            b = _Blocks(plan, *chunk, per)
             fv, beta, gamma = b.per[1], b.per[3], b.per[4:4 + nc]
             g = g_acc.index_select(1, b.flat).view(1 + nc, *b.pix.shape).unbind(0)
             # dL/d(θ B V) per pixel: the opacity sum's and the colour sums' gradients
@@ -468,15 +527,10 @@ def _per_sample(plan: _Plan, u, v, z, theta, color, *,
     ``P f − floor(P f)``), β d, β, then with ``weights`` (the forward pass) the weights of the
     1 + C sums θ, θ γ_1 .. θ γ_C, else (the backward pass) the colour γ (C); and θ / K (K,)."""
     kept = plan.kept
-    uv = torch.stack((u, v)).index_select(1, kept)
-    if plan.coarse:
-        uv = _on_grid(uv, plan.factor)
-    # P f is exact (P a power of two), so floor(P f) is the plan's phase
-    p = (uv - torch.floor(uv)) * plan.phases
     beta = plan.beta.index_select(0, kept).to(u.dtype)
     th = theta.index_select(0, kept)
     col = color.index_select(0, kept).t()
-    head = (p - torch.floor(p), torch.stack((beta * z.index_select(0, kept), beta)))
+    head = (plan.fraction, torch.stack((beta * z.index_select(0, kept), beta)))
     if weights:
         return torch.cat((*head, th[None], th * col)), th
     return torch.cat((*head, col)), th
