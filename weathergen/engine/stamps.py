@@ -534,31 +534,29 @@ def _sample(coef: torch.Tensor, images: Sequence[torch.Tensor], lib_of: Optional
     scaled position, zero outside the footprint's disc; brightened where ``bright`` (E,) says
     so.
 
-    Every stamp row is a run of its pixels' samples, each pixel's ``sub²`` samples one after
-    the other (row-major in the pixel: sample ``j`` at ``(j // sub, j % sub)``), whatever the
-    supersampling: one ``grid_sample`` per chunk of runs, then each pixel's samples summed
-    pairwise, halves first (:func:`_pixel_sums`), and divided by ``sub²``."""
+    Every stamp is a run of its pixels' samples (pixels row-major), each pixel's ``sub²``
+    samples one after the other (row-major in the pixel: sample ``j`` at
+    ``(j // sub, j % sub)``), whatever the supersampling: one ``grid_sample`` per chunk of
+    runs (a stamp larger than a chunk is a chunk of its own: with a GPU's 2^25 elements, a
+    stamp over 5792 pixels wide on its grid), then each pixel's samples summed pairwise, halves
+    first (:func:`_pixel_sums`), and divided by ``sub²``."""
     if side.numel() == 0 or not bool(whole.any()):
         return
     device, dtype = coef.device, coef.dtype
-    # one item per stamp row: its entry, its row y, where its pixel 0 goes in ``work`` (a
-    # pixel's column is then its index in the row) and the supersampling
+    # one item per stamp: its entry, side, supersampling, where its pixel (0, 0) goes in
+    # ``work`` and its pitch there (a sample's pixel and row follow from its index)
     order = torch.nonzero(whole).squeeze(1)
-    s = side.index_select(0, order)
-    ends = torch.cumsum(s, 0)
-    rows = int(ends[-1])
-    row_of = torch.repeat_interleave(s, output_size=rows)          # each row's index in order
-    row_entry = order.index_select(0, row_of)
-    row_y = torch.arange(rows, device=device) - (ends - s).index_select(0, row_of)
-    row_size, row_place, row_pitch, row_sub = \
-        torch.stack((side, place, pitch, sub)).index_select(1, row_entry)
-    row_table = torch.stack((row_entry, row_y, torch.addcmul(row_place, row_y, row_pitch),
-                             row_sub))
-    for item, local in runs(row_size * row_sub * row_sub, chunk):
-        e, row, at, factor = row_table.index_select(1, item).unbind(0)
+    table = torch.stack((side, sub, place, pitch)).index_select(1, order)
+    span = (side * sub).index_select(0, order)                    # samples per stamp row
+    for item, local in runs(span * span, chunk):
+        e = order.index_select(0, item)
+        size, factor, at, step = table.index_select(1, item).unbind(0)
         count = factor * factor
-        col = torch.div(local, count, rounding_mode="floor")
-        j = torch.addcmul(local, col, count, value=-1)
+        pixel = torch.div(local, count, rounding_mode="floor")
+        j = torch.addcmul(local, pixel, count, value=-1)
+        row = torch.div(pixel, size, rounding_mode="floor")
+        col = torch.addcmul(pixel, row, size, value=-1)
+        at = torch.addcmul(at, row, step)
         # the sample's offset in its pixel along x and y (:func:`_sample_offsets`), added to
         # its pixel's position from the stamp's centre
         off = _sample_offsets(dtype, device).index_select(1, torch.add(j, factor, alpha=16))

@@ -82,7 +82,7 @@ class Views:
         project = k0 * c0 + k1 * c1 + k2 * c2
         # (fx fy: the product of the diagonal's first two)
         return cls(project=project, focal=torch.sqrt(k.diagonal(dim1=1, dim2=2)[:, :2].prod(1)),
-                   depth=depth.detach().to(device))
+                   depth=(depth.detach() if depth.requires_grad else depth).to(device))
 
     @property
     def count(self) -> int:
@@ -292,6 +292,12 @@ def _image_constants(height: int, width: int, device) -> tuple:
     return _IMAGE[key]
 
 
+def _fixed(x: torch.Tensor) -> torch.Tensor:
+    """``x.detach()`` where ``x`` carries a gradient, ``x`` itself otherwise (the same numbers
+    without an operation)."""
+    return x.detach() if x.requires_grad else x
+
+
 def _inverse(x):
     """``1 / x`` of a tensor (one reciprocal: ``1.0 / x`` is a reciprocal and a product) or of a
     number."""
@@ -335,8 +341,9 @@ def _field_mask(project, f, start, streak, diameter, optics, depth, view, window
     """:func:`field_mask`, the footprint ``f d / z`` there and the homogeneous pixels of the
     start, differentiable in ``start`` (the mask and the depth are not).
     Shape: -> (mask, z, radius, footprint (M,), h0 (M, 3))."""
-    ends = homogeneous(project, torch.stack((start, start.detach() + streak)))
-    fixed = ends.detach()
+    # (detached only where a gradient flows: a detach is an operation)
+    ends = homogeneous(project, torch.stack((start, _fixed(start) + streak)))
+    fixed = _fixed(ends)
     z = fixed[0, :, 2]
     in_range = (z >= optics.near) & (z <= optics.far)
     safe = torch.where(in_range, z, optics.far)
@@ -551,13 +558,13 @@ def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, vie
     f = views.focal.index_select(0, view)
     displacement = table.displacement.index_select(0, which)
     scale = table.scale.index_select(0, which)
-    streak = length[:, None] * displacement.detach()
+    streak = length[:, None] * _fixed(displacement)
     mask, z, radius, fp, h0 = _field_mask(project, f, start, streak, scale,
                                           OpticsRows(near, far, fraction, aperture, focus,
                                                      softness), views.depth, view)
     factor = fade(near, far, fraction, z) * fp.clamp(max=1.0) ** 2
     theta = (table.transparency.index_select(0, which).to(torch.float64) * factor).to(dtype)
-    keep = torch.nonzero(mask & (theta.detach() != 0)).squeeze(1)
+    keep = torch.nonzero(mask & (_fixed(theta) != 0)).squeeze(1)
     drawn, record, radius, view = torch.stack((which, record, radius, view)) \
         .index_select(1, keep).unbind(0)
     looks = Looks(footprint=fp.index_select(0, keep).clamp(min=1.0), defocus=radius,
