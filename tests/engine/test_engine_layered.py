@@ -358,3 +358,24 @@ def test_a_combined_sequence_frame_is_drawn_alone_with_the_pairs_bytes(names):
     out = render_pair(pair, layered)
     assert torch.equal(image, out.image1) and torch.equal(opacity, out.opacity1)
     assert bool((image != pair.image1).any())
+
+
+def test_particle_truth_of_combined_weather_dims_as_the_render_does(pair):
+    """Particle ground truth over the layers: a flake behind a fog billboard weighs what the
+    render shows of it (dimmed by the fog), so the truth's opacity is the layered render's
+    opacity of frame 1; its weight is below the two layers' own weights added."""
+    from weathergen.engine import particle_truth
+
+    flake = one_particle(pair, "snow", 4.0, RED, blend="additive")
+    flake = flake.replace(transparency=torch.full_like(flake.transparency, 0.5))
+    cloud = one_particle(pair, "fog", 3.0, BLUE, size=41)
+    cloud = cloud.replace(transparency=torch.full_like(cloud.transparency, 0.6))
+    layered = LayeredParticles((flake, cloud), ("snow", "fog"))
+    truth = particle_truth(pair, layered)
+    out = render_pair(pair, layered)
+    assert torch.allclose(truth.opacity.double(), out.opacity1[0], atol=1e-6)
+    alone = [particle_truth(pair, record) for record in layered.layers]
+    added = alone[0].weight + alone[1].weight
+    assert bool((truth.weight <= added + 1e-9).all())
+    lost = float((added - truth.weight).sum())
+    assert lost > 0.2 * float(alone[0].weight.sum())         # the flake's share behind the fog

@@ -8,8 +8,10 @@
 - **Opacity** ``(1, H, W)``: ``clamp(Σ_i w_i, 0, 1)``, the renderer's opacity of frame 1.
 
 Combined weather (:class:`~weathergen.engine.LayeredParticles`): the particles of every layer
-(each layer's sums with its own templates); the particle flow is the weighted mean over all of
-them, the opacity that of the layered render, ``1 − Π_l (1 − clamp(Σ_{i in l} w_i, 0, 1))``.
+(each layer's sums with its own templates, an additive layer's particles dimmed by the alpha
+layers in front of them as the layered render dims them); the particle flow is the weighted mean
+over all of them, the opacity that of the layered render,
+``1 − Π_l (1 − clamp(Σ_{i in l} w_i, 0, 1))``.
 - **Seen flow** ``(2, H, W)``: the particle flow where the particles dominate a pixel
   (opacity >= ``threshold``, 0.5 by default) and the scene's flow elsewhere; valid where the
   particles dominate or the scene's flow is valid.
@@ -30,6 +32,7 @@ import torch
 
 from ..framepair import FramePair
 from ..geometry import project, transform_points
+from .layered import layers_view_sums
 from .layers import LayeredParticles
 from .particles import Particles
 from .renderer import BETA_RENDER, pair_starts, view_sums
@@ -56,7 +59,11 @@ def particle_truth(pair: FramePair, particles: Union[Particles, LayeredParticles
     over every layer of combined weather (``templates`` then unused: each layer's own)."""
     check_pair_for_engine(pair)
     if isinstance(particles, LayeredParticles):
-        sums = [_layer_sums(pair, r, None, beta, chunk_elements) for r in particles.layers]
+        layers = particles.to(torch.device("cpu"))
+        view = _view(pair)
+        sums = layers_view_sums(view, layers, [_flow_values(pair, r) for r in layers.layers],
+                                beta=beta, dtype=torch.float64, device="cpu",
+                                chunk_elements=chunk_elements)
         weight = sum(w for w, _ in sums)
         colour = sum(c for _, c in sums)
         clear = torch.stack([1 - w.clamp(0, 1) for w, _ in sums]).prod(0)
@@ -74,17 +81,29 @@ def _layer_sums(pair: FramePair, particles: Particles, templates: Optional[Templ
                 beta: float, chunk_elements: Optional[int]) -> tuple[torch.Tensor, torch.Tensor]:
     """One record's ``Σ w`` (1, H, W) and ``Σ w f`` (3, H, W, the third zero) in frame 1."""
     lib = templates if templates is not None else load_templates(particles.settings.templates)
+    rec = particles.to(torch.device("cpu"))
+    start1, _, disp = pair_starts(rec, torch.float64, torch.device("cpu"))
+    return view_sums(_view(pair), rec, start1, disp, lib, beta=beta,
+                     values=_flow_values(pair, rec), dtype=torch.float64, device="cpu",
+                     chunk_elements=chunk_elements)
+
+
+def _view(pair: FramePair) -> View:
+    """Frame 1's camera, in float64 on the CPU."""
+    _, c1, _ = reference_transforms(pair)
+    return View(pair.intrinsics.double().cpu(), c1.double().cpu(), pair.depth1.cpu())
+
+
+def _flow_values(pair: FramePair, rec: Particles) -> torch.Tensor:
+    """Each particle's displacement of its centre's projection from frame 1 to frame 2, padded
+    with a zero third channel. Shape: (N, 3) float64."""
     _, c1, c2 = reference_transforms(pair)
     dtype, device = torch.float64, torch.device("cpu")
-    rec = particles.to(device)
-    start1, start2, disp = pair_starts(rec, dtype, device)
+    start1, start2, _ = pair_starts(rec.to(device), dtype, device)
     k = pair.intrinsics.double().cpu()
     p1, _ = project(transform_points(c1.double().cpu(), start1), k)
     p2, _ = project(transform_points(c2.double().cpu(), start2), k)
-    values = torch.cat((p2 - p1, torch.zeros(rec.count, 1, dtype=dtype)), 1)
-    view = View(k, c1.double().cpu(), pair.depth1.cpu())
-    return view_sums(view, rec, start1, disp, lib, beta=beta, values=values, dtype=dtype,
-                     device=device, chunk_elements=chunk_elements)
+    return torch.cat((p2 - p1, torch.zeros(rec.count, 1, dtype=dtype)), 1)
 
 
 def seen_flow(truth: ParticleTruth, scene_flow: Optional[torch.Tensor],

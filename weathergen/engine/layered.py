@@ -47,7 +47,7 @@ from typing import Optional, Sequence, Union
 import torch
 
 from ..errors import ConfigError
-from .composite import RenderOutput, upsample, upsample_adjoint
+from .composite import RenderOutput, planes, upsample, upsample_adjoint
 from .layers import LayeredParticles
 from .particles import Particles
 from .splat import Grids, Sums, chunk_elements_for, splat
@@ -56,8 +56,8 @@ from .templates import TemplateLibrary, load_templates
 from .tracks import (Looks, ParticleTable, RecordRows, Tracks, View, Views, blur_samples,
                      empty_looks, fixed_looks, pair_tracks, view_tracks)
 
-__all__ = ["as_layers", "build_layer_stamps", "composite_layers", "render_layers",
-           "render_layers_view"]
+__all__ = ["as_layers", "build_layer_stamps", "composite_layers", "layers_view_sums",
+           "render_layers", "render_layers_view"]
 
 
 def as_layers(particles: Union[Particles, LayeredParticles, Sequence]) -> list[LayeredParticles]:
@@ -320,15 +320,52 @@ def render_layers_view(image: torch.Tensor, view: View, particles: LayeredPartic
     draws its record, composited as :func:`render_layers` does. For weather fields, frame 1 is
     the bytes of frame 1 of a pair whose first view is ``view`` (a sequence writes each frame
     once). Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W))."""
+    layered, views, prepared, stamp_sets, chunk_elements = _view_parts(
+        view, particles, None, frame=frame, beta=beta, dtype=image.dtype, device=image.device,
+        chunk_elements=chunk_elements)
+    modes = [{r.settings.blend} for r in layered.layers]
+    alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
+                              device=image.device)
+    (out, opacity), _ = _draw(views, prepared, stamp_sets, modes, alpha_mode, (image[None],),
+                              beta=float(beta), chunk_elements=chunk_elements,
+                              detach_occlusion=False)
+    return out[0], opacity[0]
+
+
+def layers_view_sums(view: View, particles: LayeredParticles,
+                     values: Sequence[Optional[torch.Tensor]], *, beta: float, dtype, device,
+                     chunk_elements: Optional[int] = None) -> list[tuple[torch.Tensor,
+                                                                         torch.Tensor]]:
+    """Every layer's sums in frame 1 seen by ``view``, as :func:`render_layers_view` draws them
+    (the additive layers' particles dimmed by the alpha layers in front of them), with
+    ``values[l]`` (N_l, 3) in place of layer ``l``'s colours where given (e.g. flow vectors).
+    Shape: -> per layer (A (1, H, W), C (3, H, W))."""
+    layered, views, prepared, stamp_sets, chunk_elements = _view_parts(
+        view, particles, values, frame=0, beta=beta, dtype=dtype, device=device,
+        chunk_elements=chunk_elements)
+    modes = [{r.settings.blend} for r in layered.layers]
+    sums = _layer_sums_all(views, prepared, stamp_sets, modes, beta=float(beta), dtype=dtype,
+                           chunk_elements=chunk_elements, detach_occlusion=False)
+    out = []
+    for s in sums:
+        grid = planes(s)[:, 0, 0]
+        out.append((grid[:1], grid[1:4]))
+    return out
+
+
+def _view_parts(view: View, particles: LayeredParticles, values, *, frame: int, beta: float,
+                dtype, device, chunk_elements: Optional[int]):
+    """What one view draws of every layer: (the layers, views, prepared parts, stamps, chunk
+    size), each layer's tracks from :func:`~weathergen.engine.tracks.view_tracks`."""
     layered = as_layers(particles)[0]
-    device, dtype = image.device, image.dtype
+    device = torch.device(device)
     for r in layered.layers:
         if r.settings.blend not in ("additive", "alpha"):
             raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
-    views = Views.of(view.intrinsics[None], view.cam_from_ref[None],
+    views = Views.of(view.intrinsics[None].to(device), view.cam_from_ref[None].to(device),
                      view.depth[None].to(device), device=device)
     prepared = []
-    for record in layered.layers:
+    for k, record in enumerate(layered.layers):
         libs = _libraries([record])
         lib = libs[record.settings.templates]
         record = record.to(device)
@@ -336,8 +373,9 @@ def render_layers_view(image: torch.Tensor, view: View, particles: LayeredPartic
         start = record.position.to(torch.float64) + record.offset1.to(torch.float64)
         if frame:
             start = start + displacement
+        colour = None if values is None else values[k]
         looks, tracks = view_tracks(record, views, start, displacement, lib.resolution,
-                                    beta=float(beta), dtype=dtype)
+                                    beta=float(beta), dtype=dtype, color=colour)
         part = [(looks, tracks, lib)] if record.count else []
         prepared.append((libs, part if record.optics is None else [],
                          part if record.optics is not None else []))
@@ -345,13 +383,26 @@ def render_layers_view(image: torch.Tensor, view: View, particles: LayeredPartic
         chunk_elements = chunk_elements_for(device)
     stamp_sets = _layer_stamps(prepared, [None] * len(prepared), dtype=dtype, device=device,
                                coarse_side=COARSE_SIDE, chunk_elements=chunk_elements)
-    modes = [{r.settings.blend} for r in layered.layers]
-    alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
-                              device=device)
-    (out, opacity), _ = _draw(views, prepared, stamp_sets, modes, alpha_mode, (image[None],),
-                              beta=float(beta), chunk_elements=chunk_elements,
-                              detach_occlusion=False)
-    return out[0], opacity[0]
+    return layered, views, prepared, stamp_sets, chunk_elements
+
+
+def _layer_sums_all(views: Views, prepared: list, stamp_sets: list, modes: list, *,
+                    beta: float, dtype, chunk_elements: int, detach_occlusion: bool) -> list:
+    """Every layer's :class:`Sums`: the alpha-blended layers first (with their depth sums),
+    then the additive layers, whose particles behind them they dim (:func:`_dimmed`; those
+    carry no depth sum: they blend as the nearest). Two additive layers carry none either."""
+    additive_pair = modes == [{"additive"}, {"additive"}]
+    additive = [m == {"additive"} for m in modes]
+    dimming = any(additive) and not all(additive)
+    sums: list = [None] * len(modes)
+    for k in sorted(range(len(modes)), key=lambda k: additive[k] if dimming else 0):
+        (_, paper, field), stamp_set = prepared[k], stamp_sets[k]
+        under = [sums[j] for j in range(len(modes)) if not additive[j]] \
+            if dimming and additive[k] else ()
+        sums[k] = _layer_sums(views, paper, field, stamp_set, beta=beta, dtype=dtype,
+                              chunk_elements=chunk_elements, detach_occlusion=detach_occlusion,
+                              depth=not additive_pair and not under, under=under)
+    return sums
 
 
 def _draw(views: Views, prepared: list, stamp_sets: list, modes: list, alpha_mode: torch.Tensor,
@@ -361,19 +412,9 @@ def _draw(views: Views, prepared: list, stamp_sets: list, modes: list, alpha_mod
     each, frame ``t``'s views ``t B .. t B + B − 1``): the frames, then their opacities, and the
     layers' :class:`Sums`."""
     additive_pair = modes == [{"additive"}, {"additive"}]   # their order changes nothing
-    # alpha-blended layers first (with their depth sums): they dim the additive layers'
-    # particles behind them, which then carry no depth sum (they blend as the nearest)
-    additive = [m == {"additive"} for m in modes]
-    dimming = any(additive) and not all(additive)
-    sums: list = [None] * len(modes)
-    for k in sorted(range(len(modes)), key=lambda k: additive[k] if dimming else 0):
-        (_, paper, field), stamp_set = prepared[k], stamp_sets[k]
-        under = [sums[j] for j in range(len(modes)) if not additive[j]] \
-            if dimming and additive[k] else ()
-        sums[k] = _layer_sums(views, paper, field, stamp_set, beta=beta,
-                              dtype=images[0].dtype, chunk_elements=chunk_elements,
-                              detach_occlusion=detach_occlusion,
-                              depth=not additive_pair and not under, under=under)
+    sums = _layer_sums_all(views, prepared, stamp_sets, modes, beta=beta,
+                           dtype=images[0].dtype, chunk_elements=chunk_elements,
+                           detach_occlusion=detach_occlusion)
     layout = _LayerPlanes([s.grids for s in sums], images[0].shape[0])
     values = [s.values for s in sums]
     if additive_pair:
