@@ -60,10 +60,9 @@ def particle_truth(pair: FramePair, particles: Union[Particles, LayeredParticles
     check_pair_for_engine(pair)
     if isinstance(particles, LayeredParticles):
         layers = particles.to(torch.device("cpu"))
-        view = _view(pair)
-        sums = layers_view_sums(view, layers, [_flow_values(pair, r) for r in layers.layers],
-                                beta=beta, dtype=torch.float64, device="cpu",
-                                chunk_elements=chunk_elements)
+        values = [_flow_values(pair, *_starts(r)[:2]) for r in layers.layers]
+        sums = layers_view_sums(_view(pair), layers, values, beta=beta, dtype=torch.float64,
+                                device="cpu", chunk_elements=chunk_elements)
         weight = sum(w for w, _ in sums)
         colour = sum(c for _, c in sums)
         clear = torch.stack([1 - w.clamp(0, 1) for w, _ in sums]).prod(0)
@@ -82,10 +81,15 @@ def _layer_sums(pair: FramePair, particles: Particles, templates: Optional[Templ
     """One record's ``Σ w`` (1, H, W) and ``Σ w f`` (3, H, W, the third zero) in frame 1."""
     lib = templates if templates is not None else load_templates(particles.settings.templates)
     rec = particles.to(torch.device("cpu"))
-    start1, _, disp = pair_starts(rec, torch.float64, torch.device("cpu"))
+    start1, start2, disp = _starts(rec)
     return view_sums(_view(pair), rec, start1, disp, lib, beta=beta,
-                     values=_flow_values(pair, rec), dtype=torch.float64, device="cpu",
-                     chunk_elements=chunk_elements)
+                     values=_flow_values(pair, start1, start2), dtype=torch.float64,
+                     device="cpu", chunk_elements=chunk_elements)
+
+
+def _starts(rec: Particles) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """:func:`pair_starts` of a record on the CPU, in float64."""
+    return pair_starts(rec, torch.float64, torch.device("cpu"))
 
 
 def _view(pair: FramePair) -> View:
@@ -94,16 +98,14 @@ def _view(pair: FramePair) -> View:
     return View(pair.intrinsics.double().cpu(), c1.double().cpu(), pair.depth1.cpu())
 
 
-def _flow_values(pair: FramePair, rec: Particles) -> torch.Tensor:
-    """Each particle's displacement of its centre's projection from frame 1 to frame 2, padded
-    with a zero third channel. Shape: (N, 3) float64."""
+def _flow_values(pair: FramePair, start1: torch.Tensor, start2: torch.Tensor) -> torch.Tensor:
+    """Each particle's displacement of its centre's projection from frame 1 (``start1``) to
+    frame 2 (``start2``), padded with a zero third channel. Shape: (N, 3) float64."""
     _, c1, c2 = reference_transforms(pair)
-    dtype, device = torch.float64, torch.device("cpu")
-    start1, start2, _ = pair_starts(rec.to(device), dtype, device)
     k = pair.intrinsics.double().cpu()
     p1, _ = project(transform_points(c1.double().cpu(), start1), k)
     p2, _ = project(transform_points(c2.double().cpu(), start2), k)
-    return torch.cat((p2 - p1, torch.zeros(rec.count, 1, dtype=dtype)), 1)
+    return torch.cat((p2 - p1, torch.zeros(start1.shape[0], 1, dtype=torch.float64)), 1)
 
 
 def seen_flow(truth: ParticleTruth, scene_flow: Optional[torch.Tensor],

@@ -54,7 +54,7 @@ from .splat import Grids, Sums, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, build_many
 from .templates import TemplateLibrary, load_templates
 from .tracks import (Looks, ParticleTable, RecordRows, Tracks, View, Views, blur_samples,
-                     empty_looks, fixed_looks, pair_tracks, view_tracks)
+                     empty_looks, fixed_looks, pair_starts, pair_tracks, view_tracks)
 
 __all__ = ["as_layers", "build_layer_stamps", "composite_layers", "layers_view_sums",
            "render_layers", "render_layers_view"]
@@ -101,6 +101,12 @@ def _parts(records: Sequence[Particles], views: Views, libs: dict, *, beta: floa
                                         beta=beta, dtype=dtype, pairs=chosen)
             out.append((looks, tracks, lib))
     return out
+
+
+def _check_blends(records: Sequence[Particles]) -> None:
+    for r in records:
+        if r.settings.blend not in ("additive", "alpha"):
+            raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
 
 
 def _flat(layered: Sequence[LayeredParticles]) -> list[Particles]:
@@ -282,9 +288,7 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
     layered = as_layers(particles)
     bsz = image1.shape[0]
     device = image1.device
-    for r in _flat(layered):
-        if r.settings.blend not in ("additive", "alpha"):
-            raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
+    _check_blends(_flat(layered))
     stacks = _stacks(layered)
     alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in p.layers] for p in layered],
                               device=device)
@@ -359,9 +363,7 @@ def _view_parts(view: View, particles: LayeredParticles, values, *, frame: int, 
     size), each layer's tracks from :func:`~weathergen.engine.tracks.view_tracks`."""
     layered = as_layers(particles)[0]
     device = torch.device(device)
-    for r in layered.layers:
-        if r.settings.blend not in ("additive", "alpha"):
-            raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
+    _check_blends(layered.layers)
     views = Views.of(view.intrinsics[None].to(device), view.cam_from_ref[None].to(device),
                      view.depth[None].to(device), device=device)
     prepared = []
@@ -369,10 +371,8 @@ def _view_parts(view: View, particles: LayeredParticles, values, *, frame: int, 
         libs = _libraries([record])
         lib = libs[record.settings.templates]
         record = record.to(device)
-        displacement = record.motion.to(torch.float64) + record.offset2.to(torch.float64)
-        start = record.position.to(torch.float64) + record.offset1.to(torch.float64)
-        if frame:
-            start = start + displacement
+        start1, start2, displacement = pair_starts(record, torch.float64, device)
+        start = start2 if frame else start1
         colour = None if values is None else values[k]
         looks, tracks = view_tracks(record, views, start, displacement, lib.resolution,
                                     beta=float(beta), dtype=dtype, color=colour)

@@ -39,7 +39,7 @@ from .splat import SPLAT_CHUNK_ELEMENTS, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build
 from .templates import TemplateLibrary, load_templates
 from .tracks import (ParticleTable, RecordRows, View, Views, blur_samples, empty_looks,
-                     fixed_looks, pair_tracks, view_tracks)
+                     fixed_looks, pair_starts, pair_tracks, view_tracks)
 
 BETA_RENDER = 250.0
 BETA_ATTACK = 30.0
@@ -232,16 +232,6 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
 
 # -- single views: a frame of a sequence, a second camera, ground truth ------------------------
 
-def pair_starts(record: Particles, dtype, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
-    """Reference positions in frames 1 and 2 and the displacement of a pair's record,
-    ``P + δ1``, ``P + δ1 + M + δ2`` and ``M + δ2``. Shape: (N, 3) each."""
-    pos = record.position.to(device=device, dtype=dtype)
-    start1 = pos + record.offset1.to(device=device, dtype=dtype)
-    displacement = record.motion.to(device=device, dtype=dtype) \
-        + record.offset2.to(device=device, dtype=dtype)
-    return start1, start1 + displacement, displacement
-
-
 def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement: torch.Tensor,
                templates: TemplateLibrary, *, beta: float, dtype, device,
                chunk_elements: Optional[int], values: Optional[torch.Tensor] = None,
@@ -301,34 +291,30 @@ def render_first_frame(pair: FramePair, particles: Union[Particles, LayeredParti
     Shape: returns (image (1, 3, H, W), opacity (1, 1, H, W)).
     """
     check_pair_for_engine(pair)
-    if isinstance(particles, LayeredParticles):
+    layered = isinstance(particles, LayeredParticles)
+    if layered:
         if any(layer.optics is None for layer in particles.layers):
             raise ValueError("render_first_frame renders field records (every layer's optics "
                              "is set)")
-        if len(particles.layers) > 1:
-            if templates is not None:
-                raise ConfigError("combined weather is drawn with each layer's own templates; "
-                                  "pass templates=None")
-            if device is not None:
-                dev = resolve_device(device)
-                pair, particles = pair.to(dev), particles.to(dev)
-            _, c1, _ = reference_transforms(pair)
-            image = pair.image1
-            view = View(pair.intrinsics.to(image.device), c1.to(image.device), pair.depth1)
-            out, alpha = render_layers_view(image, view, particles, beta=beta,
-                                            chunk_elements=chunk_elements)
-            return out[None], alpha[None]
-        particles = particles.layers[0]
-    if particles.optics is None:
+        if len(particles.layers) == 1:
+            particles, layered = particles.layers[0], False
+        elif templates is not None:
+            raise ConfigError("combined weather is drawn with each layer's own templates; "
+                              "pass templates=None")
+    elif particles.optics is None:
         raise ValueError("render_first_frame renders field records (particles.optics is set)")
     if device is not None:
         dev = resolve_device(device)
         pair, particles = pair.to(dev), particles.to(dev)
-    lib = templates if templates is not None else load_templates(particles.settings.templates)
     _, c1, _ = reference_transforms(pair)
-    image = pair.image1[None]
-    start1, _, disp = pair_starts(particles, torch.float64, image.device)
+    image = pair.image1
     view = View(pair.intrinsics.to(image.device), c1.to(image.device), pair.depth1)
-    out, alpha = render_view(image[0], view, particles, start1, disp, lib, beta=beta,
-                             chunk_elements=chunk_elements)
+    if layered:
+        out, alpha = render_layers_view(image, view, particles, beta=beta,
+                                        chunk_elements=chunk_elements)
+    else:
+        lib = templates if templates is not None else load_templates(particles.settings.templates)
+        start1, _, disp = pair_starts(particles, torch.float64, image.device)
+        out, alpha = render_view(image, view, particles, start1, disp, lib, beta=beta,
+                                 chunk_elements=chunk_elements)
     return out[None], alpha[None]

@@ -649,6 +649,16 @@ def pair_tracks(records: Sequence[Particles], views: Views, resolution: int, *, 
     return looks, Tracks(**{k: v[0] if len(v) == 1 else torch.cat(v) for k, v in columns.items()})
 
 
+def pair_starts(record: Particles, dtype, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Reference positions in frames 1 and 2 and the displacement of a pair's record,
+    ``P + δ1``, ``P + δ1 + M + δ2`` and ``M + δ2``. Shape: (N, 3) each."""
+    pos = record.position.to(device=device, dtype=dtype)
+    start1 = pos + record.offset1.to(device=device, dtype=dtype)
+    displacement = record.motion.to(device=device, dtype=dtype) \
+        + record.offset2.to(device=device, dtype=dtype)
+    return start1, start1 + displacement, displacement
+
+
 def view_tracks(record: Particles, views: Views, start: torch.Tensor, displacement: torch.Tensor,
                 resolution: int, *, beta: float, dtype: torch.dtype,
                 color: Optional[torch.Tensor] = None) -> tuple[Looks, Tracks]:

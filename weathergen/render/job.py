@@ -287,7 +287,7 @@ def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
         right_depth = warp_depth(depth, pair.intrinsics, rc.right_from_left, rc.intrinsics)
         views.append(stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics))
     with torch.no_grad():
-        if layered:                     # both frames in one layered pass, or the first alone
+        if layered:                     # each frame drawn from its own view
             rendered = zip(*render_right_layers((rc.image1, rc.image2)[:count], views,
                                                 particles))
         else:
