@@ -364,9 +364,15 @@ AREAS = {"render": render_rows, "field": field_rows, "training": training_rows,
          "attack batch": attack_rows}
 
 
-def run(device: str, sizes: Sizes, models, tests: bool) -> list[Row]:
-    """Every area's rows; an area that raises becomes one failed row naming the error."""
+def run(device: str, sizes: Sizes, models, tests: bool,
+        progress: Optional[Callable[[str, list], None]] = None) -> list[Row]:
+    """Every area's rows; an area that raises becomes one failed row naming the error.
+
+    ``progress(area, rows_so_far)`` is called after each area (the CLI prints the area's rows and
+    rewrites the JSON file, so a run cut short still leaves the areas it finished)."""
     rows = test_rows(device) if tests else []
+    if progress and tests:
+        progress("tests", rows)
     areas = dict(AREAS, networks=lambda d, s: network_rows(d, s, models))
     for area, measure in areas.items():
         try:
@@ -376,6 +382,8 @@ def run(device: str, sizes: Sizes, models, tests: bool) -> list[Row]:
                             failed=True))
         if device.startswith("cuda"):
             torch.cuda.empty_cache()
+        if progress:
+            progress(area, rows)
     return rows
 
 
@@ -403,14 +411,22 @@ def main(argv=None) -> int:
     sizes = QUICK if args.quick else Sizes()
     torch.manual_seed(0)
     models = args.models or every_network()
-    rows = run(args.device, sizes, models, tests=not (args.quick or args.no_tests))
     title = (f"gpu-check on {device_name(args.device)}, torch {torch.__version__}, "
              f"{sizes.width}x{sizes.height}" + (" (dry run: tiny inputs)" if args.quick else ""))
+
+    def write_json(rows: list[Row]) -> None:
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({"title": title,
+                                             "rows": [dataclasses.asdict(r) for r in rows]}, indent=1))
+
+    def progress(area: str, rows: list[Row]) -> None:
+        print(f"gpu-check: {area} done", file=sys.stderr, flush=True)
+        write_json(rows)
+
+    rows = run(args.device, sizes, models, tests=not (args.quick or args.no_tests), progress=progress)
     print(table(rows, title))
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps({"title": title, "rows": [dataclasses.asdict(r) for r in rows]},
-                                        indent=1))
+    write_json(rows)
     failed = [r for r in rows if r.failed]
     if failed:
         print(f"\n{len(failed)} row(s) failed.", file=sys.stderr)
