@@ -5,7 +5,7 @@ the process's CPU time, and the mean AEE(f, f̌) of random and of adversarial we
 ``summary.json``. The README promises under a minute on 2 CPU cores and an adversarial AEE
 several times the random one.
 
-    python benchmarks/bench_quick_look.py --checkpoint tests/data/raft-small.pth
+    python benchmarks/bench_quick_look.py
     python benchmarks/bench_quick_look.py --checkpoint raft-small --device cuda
 """
 

@@ -6,11 +6,11 @@ script follows that protocol, scaled down by options: RAFT's sequence loss (``--
 with the one-cycle schedule, gradient clipping at 1, random crops and flips *after* the weather,
 batch-norm statistics frozen. On the bundled demo scene and a CPU, a few dozen steps take minutes::
 
-    python examples/finetune_raft_small.py --checkpoint path/to/raft-small.pth --steps 40
+    python examples/finetune_raft_small.py --checkpoint raft-small --steps 40
 
 With these defaults the snow is the paper's preset at its density per pixel area (3000 flakes per
 1024x436 frame scaled to the demo's 384x176: 454 per pair), and RAFT-small learns from it. Measured
-with the released weights (``tests/data/raft-small.pth``) and exactly the command above, on one
+with the released weights (``--checkpoint raft-small``, shipped with the package) and exactly the command above, on one
 CPU thread (51 s of CPU time): EPE on the four fixed pairs before training 0.884 px clean and
 2.319 px with weather; after the 40 steps 0.475 px clean and 1.176 px with weather. (The paper's
 3000 flakes unscaled, ``--set count=3000``, take the weather EPE to 40.4 px before training and
@@ -18,7 +18,7 @@ CPU thread (51 s of CPU time): EPE on the four fixed pairs before training 0.884
 
 and on Sintel, at the scale of the authors' Sintel stage (on a GPU)::
 
-    python examples/finetune_raft_small.py --checkpoint raft-small.pth --dataset sintel \\
+    python examples/finetune_raft_small.py --checkpoint raft-small --dataset sintel \\
         --root /data/MPI-Sintel --pass final --steps 100000 --batch-size 6 --crop 368 768 \\
         --gamma 0.85 --device cuda --weather-on device --workers 6 --out runs/snow50
 
@@ -44,7 +44,8 @@ from torch.utils.data import DataLoader
 
 from weathergen.datasets import open_dataset
 from weathergen.errors import WeatherGenError
-from weathergen.models import build_model, read_state_dict
+from weathergen.models import available_checkpoints, build_model, checkpoint_spec, read_state_dict
+from weathergen.models.checkpoints import resolve_named
 from weathergen.training import (SINTEL_STAGE, Compose, PairDataset, RandomCrop, RandomFlip,
                                   WeatherAugment, collate_pairs, crop_pair, end_point_error,
                                   freeze_batch_norm, raft_optimizer, sequence_loss, train_step)
@@ -54,7 +55,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                 formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     p.add_argument("--checkpoint", default=None,
-                   help="RAFT-small weights to start from (the released raft-small.pth); "
+                   help="RAFT-small weights to start from: a file, or the name raft-small (the "
+                        "released weights, shipped with the package); "
                         "without it the network starts from random weights")
     p.add_argument("--dataset", default="demo", help="demo, sintel, kitti, spring or custom")
     p.add_argument("--root", default=None, help="where the dataset is stored (not for demo)")
@@ -97,6 +99,8 @@ def crop_size(dataset: PairDataset, wanted) -> tuple[int, int]:
 
 def load_network(checkpoint, iters: int, device) -> torch.nn.Module:
     model = build_model("raft-small", iters=iters)
+    if checkpoint in available_checkpoints("raft-small"):     # a name: the shipped or cached file
+        checkpoint = resolve_named(checkpoint_spec(checkpoint))
     if checkpoint is not None:
         model.load_checkpoint(read_state_dict(checkpoint), source=checkpoint, what="raft-small")
     model.requires_grad_(True)

@@ -37,9 +37,9 @@ def pytest_unconfigure(config):
 
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
-#: The released RAFT-small checkpoint (sha256 c7d41b9c...), shipped with its BSD-3 licence in
-#: tests/data/ so that a fresh clone tests everything.
-RAFT_SMALL_WEIGHTS = PROJECT_ROOT / "tests" / "data" / "raft-small.pth"
+#: The released RAFT-small checkpoint (sha256 c7d41b9c...), shipped with its BSD-3 licence as
+#: package data in weathergen/models/weights/ (found by the name ``raft-small``).
+RAFT_SMALL_WEIGHTS = PROJECT_ROOT / "weathergen" / "models" / "weights" / "raft-small.pth"
 
 
 @pytest.fixture(scope="session")
@@ -47,7 +47,7 @@ def raft_small_weights() -> Path:
     """The released RAFT-small weights (part of the repository: missing means a broken checkout)."""
     if not RAFT_SMALL_WEIGHTS.is_file():
         raise FileNotFoundError(f"{RAFT_SMALL_WEIGHTS} is missing: the released RAFT-small weights "
-                                f"are part of the repository (git checkout -- tests/data)")
+                                f"are part of the repository (git checkout -- weathergen/models/weights)")
     return RAFT_SMALL_WEIGHTS
 
 

@@ -2,8 +2,8 @@
 
 The convention (docs/architecture.md, "Examples in the docs"): the blocks of one file run top to
 bottom in one namespace (a block may use what an earlier block of the same file defined), in a
-fresh temporary folder as the working directory, which also holds the released RAFT-small weights
-as ``raft-small.pth``; torch on one thread, on the CPU. Blocks work on the bundled demo scene and
+fresh temporary folder as the working directory (the released RAFT-small weights ship with the
+package: ``get_model("raft-small")`` finds them); torch on one thread, on the CPU. Blocks work on the bundled demo scene and
 on files they write themselves; a line for a real dataset goes in a comment. What is not meant to
 run (a signature, printed output, JSON, a shell session) is fenced as something other than python.
 """
@@ -11,7 +11,6 @@ run (a signature, printed output, JSON, a shell session) is fenced as something 
 from __future__ import annotations
 
 import re
-import shutil
 
 import pytest
 import torch
@@ -38,9 +37,8 @@ def test_the_blocks_are_found_as_a_reader_sees_them():
 
 
 @pytest.fixture
-def docs_folder(tmp_path, monkeypatch, raft_small_weights):
+def docs_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    shutil.copy(raft_small_weights, tmp_path / "raft-small.pth")
     threads = torch.get_num_threads()
     torch.set_num_threads(1)
     yield tmp_path

@@ -27,9 +27,20 @@ from weathergen.engine.templates import load_templates
 assert load_preset("snow").count == 3000 and load_preset("snow-light").model == "field"
 assert attack_config("snow").preset == "snow"
 assert load_templates("flakes").count == 8
+import os, tempfile
+os.environ["WEATHERGEN_CACHE"] = tempfile.mkdtemp()       # an empty cache: the name finds the shipped file
+from weathergen.models import checkpoint_spec
+from weathergen.models.checkpoints import resolve_named, sha256_of
+weights = resolve_named(checkpoint_spec("raft-small"))
+assert sha256_of(weights) == checkpoint_spec("raft-small").sha256
 for module in (weathergen, weathergen.cli.main, weathergen.presets):
     print(module.__file__)
+print(weights)
 """
+
+
+#: The released RAFT-small weights, package data found by the name ``raft-small``.
+WEIGHTS = Path("weathergen", "models", "weights", "raft-small.pth")
 
 
 def _bare(code: str, cwd: Path, path: list[str]) -> subprocess.CompletedProcess:
@@ -48,7 +59,7 @@ def test_python_in_the_repository_root_imports_the_checkout_with_presets_and_cli
     assert res.returncode == 0, res.stderr
     files = [Path(line) for line in res.stdout.split()]
     assert files == [PROJECT_ROOT / "weathergen" / "__init__.py", PROJECT_ROOT / "cli" / "main.py",
-                     PROJECT_ROOT / "presets" / "__init__.py"]
+                     PROJECT_ROOT / "presets" / "__init__.py", PROJECT_ROOT / WEIGHTS]
 
 
 def test_the_command_line_runs_from_the_repository_root_as_a_module():
@@ -87,10 +98,10 @@ def test_an_editable_install_of_another_checkout_does_not_mix_into_this_one(tmp_
     assert res.returncode == 0, res.stderr
     files = [Path(line) for line in res.stdout.split()]
     assert files == [PROJECT_ROOT / "weathergen" / "__init__.py", PROJECT_ROOT / "cli" / "main.py",
-                     PROJECT_ROOT / "presets" / "__init__.py"]
+                     PROJECT_ROOT / "presets" / "__init__.py", PROJECT_ROOT / WEIGHTS]
 
 
-def test_an_installed_wheel_carries_presets_cli_and_templates(tmp_path):
+def test_an_installed_wheel_carries_presets_cli_templates_and_weights(tmp_path):
     """The non-editable install (what `make install` does) still finds everything inside itself."""
     source = tmp_path / "source"
     source.mkdir()
@@ -110,4 +121,4 @@ def test_an_installed_wheel_carries_presets_cli_and_templates(tmp_path):
     assert res.returncode == 0, res.stderr
     files = [Path(line) for line in res.stdout.split()]
     assert files == [target / "weathergen" / "__init__.py", target / "weathergen" / "cli" / "main.py",
-                     target / "weathergen" / "presets" / "__init__.py"]
+                     target / "weathergen" / "presets" / "__init__.py", target / WEIGHTS]

@@ -4,7 +4,7 @@ how many pairs were finished and how to go on, and the folder's lock released; a
 lock is taken over with a note naming its pid; no lock file is left when a run ends.
 
 Each test runs the real command in its own process on the demo scene, with RAFT-small (the released
-weights in tests/data), one refinement iteration and one step, and drives the signal itself.
+weights shipped with the package), one refinement iteration and one step, and drives the signal itself.
 The README's "Guarantees" section names these tests.
 """
 

@@ -153,6 +153,41 @@ def test_download_with_a_wrong_checksum_leaves_nothing_behind(tmp_path, monkeypa
 
     serve(monkeypatch, buf.getvalue())
     monkeypatch.setenv("WEATHERGEN_CACHE", str(tmp_path))
+    from weathergen.models import checkpoint_spec, download_checkpoint
+
     with pytest.raises(ConfigError, match="sha256"):
-        get_model("raft-small", download=True)
+        download_checkpoint(checkpoint_spec("raft-small"))
     assert list((tmp_path / "models").iterdir()) == []
+
+
+def test_raft_small_by_name_is_the_released_file_shipped_with_the_package(tmp_path, monkeypatch):
+    """With an empty cache and no network, the name finds the weights installed with the package:
+    the released file itself (its published checksum), beside its licence."""
+    import urllib.request
+
+    from weathergen.models import checkpoint_spec
+    from weathergen.models.checkpoints import resolve_named, sha256_of
+
+    def no_network(*args, **kwargs):
+        raise AssertionError("a shipped checkpoint must not be downloaded")
+
+    monkeypatch.setattr(urllib.request, "urlopen", no_network)
+    monkeypatch.setenv("WEATHERGEN_CACHE", str(tmp_path))
+    spec = checkpoint_spec("raft-small")
+    path = resolve_named(spec, download=True)
+    assert path.parent.name == "weights" and path.parent.parent.name == "models"
+    assert sha256_of(path) == spec.sha256
+    assert (path.parent / "raft-small.LICENSE").read_text().startswith("BSD 3-Clause")
+    model = get_model("raft-small", iters=2)                  # the default checkpoint: the same file
+    assert not (tmp_path / "models").exists()                 # nothing fetched or copied
+    assert model(torch.rand(1, 3, 64, 64), torch.rand(1, 3, 64, 64)).shape == (1, 2, 64, 64)
+
+
+def test_a_cached_file_of_the_name_takes_precedence_over_the_shipped_one(tmp_path, monkeypatch):
+    from weathergen.models import checkpoint_spec
+    from weathergen.models.checkpoints import resolve_named
+
+    monkeypatch.setenv("WEATHERGEN_CACHE", str(tmp_path))
+    cache_dir().mkdir(parents=True)
+    mine = _save_random("raft-small", cache_dir() / "raft-small.pth")
+    assert resolve_named(checkpoint_spec("raft-small")) == mine

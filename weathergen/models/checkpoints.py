@@ -3,7 +3,10 @@
 A named checkpoint (``raft-sintel``, ``raft-small``, ...) is a :class:`CheckpointSpec`: plain data
 saying which architecture it fits, which file name it has in the user cache, and where its
 authors publish it. The cache folder is ``$WEATHERGEN_CACHE/models`` when that variable is set,
-else ``$XDG_CACHE_HOME/weathergen/models``, else ``~/.cache/weathergen/models``.
+else ``$XDG_CACHE_HOME/weathergen/models``, else ``~/.cache/weathergen/models``. A name is looked
+up in the cache first, then among the weights shipped with the package (``weights/`` beside this
+module: the released RAFT-small, BSD-3, with its licence), so ``raft-small`` works from any
+install without a download.
 
 Nothing is downloaded unless asked for (``download=True``, ``--download`` on the command line);
 without the file and without permission to fetch it the error says which file to put where.
@@ -81,13 +84,24 @@ def cache_dir() -> Path:
     return base / "weathergen" / "models"
 
 
+#: Released weights shipped inside the package (with their licences), found by name.
+SHIPPED_DIR = Path(__file__).resolve().parent / "weights"
+
+
+def shipped_path(spec: CheckpointSpec) -> Optional[Path]:
+    """The file of ``spec`` shipped with the package (``SHIPPED_DIR``), or None."""
+    path = SHIPPED_DIR / spec.filename
+    return path if path.is_file() else None
+
+
 def cached_path(spec: CheckpointSpec) -> Path:
     """Where the file of a named checkpoint is (or would be) in the cache."""
     return cache_dir() / spec.filename
 
 
 def resolve_named(spec: CheckpointSpec, download: bool = False, timeout: float = 60.0) -> Path:
-    """The cached file of ``spec``; fetched first if missing and ``download`` is true.
+    """The file of ``spec``: the cached one, else the one shipped with the package, else (when
+    ``download`` is true) fetched into the cache.
 
     Raises:
         ConfigError: the file is missing and may not (or cannot) be downloaded; the message
@@ -96,6 +110,9 @@ def resolve_named(spec: CheckpointSpec, download: bool = False, timeout: float =
     path = cached_path(spec)
     if path.is_file():
         return path
+    shipped = shipped_path(spec)
+    if shipped is not None:
+        return shipped
     if download and spec.url:
         return download_checkpoint(spec, timeout=timeout)
     source = _origin(spec)
