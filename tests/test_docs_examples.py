@@ -3,9 +3,10 @@
 The convention (docs/architecture.md, "Examples in the docs"): the blocks of one file run top to
 bottom in one namespace (a block may use what an earlier block of the same file defined), in a
 fresh temporary folder as the working directory (the released RAFT-small weights ship with the
-package: ``get_model("raft-small")`` finds them); torch on one thread, on the CPU. Blocks work on the bundled demo scene and
-on files they write themselves; a line for a real dataset goes in a comment. What is not meant to
-run (a signature, printed output, JSON, a shell session) is fenced as something other than python.
+package: ``get_model("raft-small")`` finds them); torch on one thread, on the CPU. Blocks work
+on the bundled demo scene and on files they write themselves; a line for a real dataset goes in a
+comment. What is not meant to run (a signature, printed output, JSON, a shell session) is fenced
+as something other than python.
 """
 
 from __future__ import annotations
