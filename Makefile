@@ -49,11 +49,13 @@ $(TORCH_STAMP): FORCE
 	        echo "installing $(TORCH) in place of $$(cat $@)"; \
 	        $(BIN)/python -m pip install -q --force-reinstall --no-deps "$(TORCH)" || exit 1; \
 	    fi; \
+	    echo "installing $(TORCH) into $(VENV) (a few minutes the first time; pip prints nothing meanwhile)"; \
 	    $(BIN)/python -m pip install -q "$(TORCH)" || exit 1; \
 	    echo '$(TORCH)' > $@; \
 	fi
 
 $(STAMP): setup.cfg pyproject.toml $(TORCH_STAMP)
+	@echo "installing weathergen's dependencies and test tools into $(VENV) (a minute or two)"
 	$(BIN)/python -m pip install -q ".[test]"
 	touch $(STAMP)
 
@@ -64,6 +66,7 @@ install: $(STAMP)
 
 test: install
 	$(BIN)/ruff check .
+	@echo "running the tests: several minutes on a 2-core CPU (pytest -m 'not slow' runs the quick ones)"
 	$(BIN)/pytest -q $(PYTEST_ARGS)
 
 # The dependency floors of setup.cfg, installed exactly; torch as for `make test`.
@@ -77,6 +80,7 @@ test-oldest:
 
 # Into out/demo, so that the README's first command (`weathergen render`, into out/snow) is free.
 demo: install
+	@echo "rendering snow into the bundled demo scene (seconds)"
 	$(BIN)/weathergen render --preset snow --out out/demo --overwrite
 	$(BIN)/weathergen preview out/demo
 	@echo "Next: activate the environment with '. $(VENV)/bin/activate' (or run $(BIN)/weathergen ...)"

@@ -60,3 +60,21 @@ def test_every_test_the_guarantees_name_exists():
     for path in (PROJECT_ROOT / "tests").rglob("test_*.py"):
         defined |= set(re.findall(r"^def (test_\w+)\(", path.read_text(), re.M))
     assert named <= defined, f"README names tests that do not exist: {sorted(named - defined)}"
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
+@pytest.mark.parametrize("target", ["demo", "test"])
+def test_make_says_what_it_installs_before_each_long_silent_step(tmp_path, target):
+    """`make demo` and `make test` on a fresh machine print a line before each quiet pip install
+    (torch takes minutes) and before the tests, so they are never silent for minutes unexplained."""
+    venv = tmp_path / "venv"
+    plan = subprocess.run(["make", "-n", "-C", str(PROJECT_ROOT), target, f"VENV={venv}"],
+                          check=True, capture_output=True, text=True).stdout.splitlines()
+    installs = [i for i, line in enumerate(plan) if "pip install -q" in line and "--no-deps" not in line]
+    assert len(installs) == 2                      # torch, then the package's dependencies
+    for i in installs:
+        assert "echo" in plan[i - 1] and "installing" in plan[i - 1], plan[i - 1]
+    assert "torch" in plan[installs[0] - 1] and "minutes" in plan[installs[0] - 1]
+    if target == "test":
+        pytest_line = next(i for i, line in enumerate(plan) if "bin/pytest -q" in line)
+        assert "echo" in plan[pytest_line - 1] and "minutes" in plan[pytest_line - 1]
