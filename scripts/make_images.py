@@ -2,7 +2,8 @@
 
 Written into docs/images/ (``--out`` elsewhere):
 
-- ``presets.png`` (README): snow, rain, sparks and fog on the demo street, frame 1;
+- ``presets.png`` (README): snow, rain, sparks and fog on the demo street, frame 1, each panel
+  labelled with its preset and particle count;
 - ``video-still.png`` (README): a frame of ``weathergen preview --video`` of a ``--sequence``
   render of the demo street with snow-moderate (input | weather | opacity);
 - ``every-preset.png`` (docs/engine.md, "Pictures"): every preset, paper and field, as
@@ -79,7 +80,8 @@ def crop(pair, top: int, left: int, height: int, width: int):
 # -- the README's pictures --------------------------------------------------------------------
 
 def render_sheet(quick: bool = False) -> np.ndarray:
-    """The README picture as (2 * H, 2 * W, 3) uint8 RGB."""
+    """The README picture: the paper's four weathers in a 2 x 2 grid, each panel below a strip
+    that names it (preset and particle count). Shape: (2 * (LABEL_PX + H), 2 * W, 3) uint8 RGB."""
     torch.set_num_threads(1)          # as `weathergen render`: reductions in one fixed order
     pair, _ = demo_pair(quick)
     tiles = []
@@ -89,8 +91,9 @@ def render_sheet(quick: bool = False) -> np.ndarray:
         particles = sample_particles(pair, load_preset(name), seed=0)
         with torch.no_grad():
             img = render_pair(pair, particles).image1[0].permute(1, 2, 0).numpy()
-        tiles.append(img)
-    return to_uint8(np.vstack([np.hstack(tiles[:2]), np.hstack(tiles[2:])]))
+        what = "clouds" if name == "fog" else "particles"
+        tiles.append(labelled(to_uint8(img), f"{name}: {len(particles)} {what}"))
+    return np.vstack([np.hstack(tiles[:2]), np.hstack(tiles[2:])])
 
 
 def render_video_still(quick: bool = False) -> np.ndarray:

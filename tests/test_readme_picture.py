@@ -68,7 +68,7 @@ def test_make_images_quick_writes_every_picture_it_promises(tmp_path, capsys):
     files = {p.name for p in out.iterdir()}
     assert files == {"presets.png", "video-still.png", "every-preset.png"}
     _, _, h, w = script.QUICK_CROP
-    assert read_png(out / "presets.png").shape == (2 * h, 2 * w, 3)
+    assert read_png(out / "presets.png").shape == (2 * (h + script.LABEL_PX), 2 * w, 3)
     still = read_png(out / "video-still.png")
     assert still.shape[1] == 3 * 96 and still.shape[2] == 3
     names = script.sheet_order()
