@@ -3,8 +3,10 @@
 #   make test                  create .venv, install the pinned CPU torch, the package, run the
 #                              linter (ruff, configured in pyproject.toml) and the tests
 #   make demo                  render the default preset on the bundled demo scene
-#   make bench                 print speed and memory figures (renderer, weather field, combined
-#                              weather, networks, attack step, batched attacks, training);
+#   make bench                 measure speed and memory (renderer, weather field, combined weather,
+#                              networks, attack step, batched attacks, training, the README's quick
+#                              look) and write the figures, with the tree and machine they were
+#                              measured on, into docs/figures/bench.md and bench.json;
 #                              FOG_BEFORE=DIR also times fog with the weathergen source tree
 #                              DIR (e.g. an older commit's), CORE_BEFORE=DIR the render core
 #                              against the renderer of tree DIR
@@ -95,6 +97,7 @@ bench: install
 	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
 	$(BIN)/python benchmarks/bench_training.py
 	$(BIN)/python benchmarks/bench_batch.py
+	$(BIN)/python benchmarks/bench_quick_look.py
 	if $(BIN)/python -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then \
 	  $(BIN)/python benchmarks/bench_batch.py --device cuda --models raft --batch-sizes 1 4 8 --steps 5; fi
 

@@ -178,4 +178,6 @@ def main():
 
 
 if __name__ == "__main__":
-    main()
+    from figures import record   # the figures file (docs/figures/bench.md)
+
+    sys.exit(record(main))

@@ -128,4 +128,6 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from figures import record   # the figures file (docs/figures/bench.md)
+
+    sys.exit(record(main))

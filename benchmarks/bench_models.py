@@ -154,4 +154,6 @@ def table(args, device: str, width: int, height: int) -> None:
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    from figures import record   # the figures file (docs/figures/bench.md)
+
+    sys.exit(record(main))

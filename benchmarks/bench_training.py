@@ -207,4 +207,6 @@ def main(argv=None):
 
 
 if __name__ == "__main__":
-    main()
+    from figures import record   # the figures file (docs/figures/bench.md)
+
+    sys.exit(record(main))
