@@ -16,6 +16,8 @@
 #   make images                regenerate the pictures of README.md and docs/ (docs/images/) from the
 #                              demo scene; REAL=DIR also draws every preset into the first pair of
 #                              DIR (REAL_DATASET=kitti, DEPTH_SCALE=...) into out/images/
+#   make cli-docs              rewrite docs/cli.md (the command-line reference) from the commands'
+#                              --help; a test fails when the two differ
 #   make gpu-check             on a machine with CUDA (with TORCH=torch, a CUDA build): every CUDA
 #                              test and GPU benchmark, one table (figures in out/gpu-check.json);
 #                              without CUDA it says so in one line and stops
@@ -36,7 +38,7 @@ TORCH_STAMP := $(VENV)/.weathergen-torch
 
 OLDEST ?= .venv-oldest
 
-.PHONY: venv install test test-oldest demo bench images gpu-check clean FORCE
+.PHONY: venv install test test-oldest demo bench images cli-docs gpu-check clean FORCE
 
 venv: $(STAMP)
 
@@ -104,6 +106,9 @@ bench: install
 images: install
 	$(BIN)/python scripts/make_images.py $(if $(REAL),--real $(REAL) --real-dataset $(REAL_DATASET)) \
 	    $(if $(DEPTH_SCALE),--depth-scale $(DEPTH_SCALE))
+
+cli-docs: install
+	$(BIN)/python scripts/make_cli_docs.py
 
 # The probe needs torch alone, so that a machine without CUDA is told at once, before any install.
 gpu-check: $(TORCH_STAMP)
