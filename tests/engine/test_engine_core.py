@@ -191,7 +191,7 @@ def test_operation_count_does_not_grow_with_particles_or_pairs(monkeypatch):
         records = records_for(scenes, ["snow", "rain"] * (size // 2), count=n)
         counts.append(count(lambda: render(*arguments(scenes, records), chunk_elements=chunk)))
     assert max(counts) - min(counts) <= 200, counts
-    assert max(counts) < 900, counts                      # "under 900" (README)
+    assert max(counts) < 900, counts                      # "under 900" (docs/training.md)
     field = []
     for density in (4.0, 16.0):
         scenes = [scene(i) for i in range(3)]

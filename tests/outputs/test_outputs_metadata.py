@@ -1,4 +1,4 @@
-"""Particle-metadata files: as small as the README says, and the earlier formats still read."""
+"""Particle-metadata files: as small as docs/render.md says, and the earlier formats still read."""
 
 from __future__ import annotations
 
@@ -20,8 +20,8 @@ from weathergen.outputs import PairOutput, pair_metadata, read_metadata, write_m
 
 @pytest.mark.parametrize("name", ["snow", "rain", "sparks"])
 def test_a_render_metadata_file_of_3000_particles_is_under_60_kB(tmp_path, name):
-    """The README's figure, for the whole file a render writes (record, identity, file list) on a
-    Sintel-size frame; sparks (motion and colour per particle) is the largest."""
+    """The bound of docs/render.md, for the whole file a render writes (record, identity, file
+    list) on a Sintel-size frame; sparks (motion and colour per particle) is the largest."""
     pair = plane_pair(436, 1024, depth=6.0, near_block=True)
     preset = load_preset(name)
     parts = sample_particles(pair, preset, seed=3)
