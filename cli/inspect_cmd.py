@@ -4,6 +4,7 @@ look at what a render wrote."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import click
@@ -21,6 +22,7 @@ from weathergen.io.images import write_png
 from weathergen.io.video import check_video_path, write_video
 from weathergen.outputs import read_metadata, stored_frame_scaling
 from weathergen.render import contact_sheet, video_preview
+from weathergen.render.video import MIN_SECONDS, PAIR_FPS, PAIR_SECONDS
 from weathergen.words import counted
 
 
@@ -155,8 +157,9 @@ def _ranges(arrays: dict, title: str, path: Path) -> Table:
 @click.option("--video", type=click.Path(dir_okay=False, path_type=Path), default=None,
               metavar="FILE.mp4|FILE.gif",
               help="Write a video instead of the contact sheet: a --sequence output's frames in "
-                   "order, an output of pairs as frame 1 / frame 2 alternating, at the dataset's "
-                   "frame rate.")
+                   "order at the dataset's frame rate, an output of pairs as frame 1 / frame 2 "
+                   f"alternating at {PAIR_FPS:g} frames per second. A video shorter than "
+                   f"{MIN_SECONDS:g} s plays again until it lasts that long.")
 @click.option("--pairs", type=click.IntRange(min=1), default=None,
               help="Pairs to show (the first ones). Default: 4 on the contact sheet (it says when "
                    "there are more), all in a video.")
@@ -168,11 +171,11 @@ def _ranges(arrays: dict, title: str, path: Path) -> Table:
 @click.option("--with-opacity", is_flag=True,
               help="--video: show the particles' opacity right of the weather frame.")
 @click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=None,
-              help=f"--video: frames per second. Default: the dataset's ({frame_rates_text()}) "
-                   "or a field preset's frame_rate.")
+              help=f"--video: frames per second. Default: for a --sequence output the dataset's "
+                   f"({frame_rates_text()}) or a field preset's frame_rate; for pairs {PAIR_FPS:g}.")
 @click.option("--cycles", type=click.IntRange(min=1), default=None,
               help="--video of pairs: how often each pair shows frame 1 and frame 2. "
-                   "Default: for one second.")
+                   f"Default: for {PAIR_SECONDS:g} s.")
 @click.option("--captions/--no-captions", default=True, show_default=True,
               help="--video: scene, frame and preset written on the tiles.")
 def preview(render_dir: Path, out, video, pairs, width, with_input, with_opacity, fps, cycles,
@@ -210,11 +213,29 @@ def _preview_video(render_dir: Path, out, video: Path, pairs, width, with_input,
     plan = video_preview(render_dir, pairs=pairs, cycles=cycles, fps=fps, with_input=with_input,
                          with_opacity=with_opacity, width=width, captions=captions)
     try:
-        count = write_video(video, plan.frames(), plan.fps)
+        count = write_video(video, plan.frames(progress=ProgressLines()), plan.fps)
     except OSError as exc:
         raise write_error(exc, video, "pass --video PATH to write it elsewhere") from None
     w, h = plan.size
     shown = (f"{plan.pairs} of {counted(plan.total, 'pair')}" if plan.pairs < plan.total
              else counted(plan.total, "pair"))
+    again = (f": its {counted(len(plan.shots), 'frame')} played {plan.loops} times to last at "
+             f"least {MIN_SECONDS:g} s" if plan.loops > 1 else "")
     click.echo(f"Video of {shown} written to {video}: {counted(count, 'frame')} of {w}x{h} at "
-               f"{plan.fps:g} fps ({count / plan.fps:.1f} s)")
+               f"{plan.fps:g} fps ({count / plan.fps:.1f} s{again})")
+
+
+class ProgressLines:
+    """``progress(done, count)`` for a long video: a line on stderr every ``every`` seconds of
+    work (none for a video made sooner), saying how many frames are composed and encoded."""
+
+    def __init__(self, every: float = 5.0, clock=time.monotonic):
+        self.every, self.clock = every, clock
+        self.start = self.last = clock()
+
+    def __call__(self, done: int, count: int) -> None:
+        now = self.clock()
+        if now - self.last >= self.every and done < count:
+            self.last = now
+            click.echo(f"  video: {done} of {counted(count, 'frame')} ({now - self.start:.0f} s)",
+                       err=True)

@@ -6,9 +6,10 @@ import click
 from rich.console import Console
 from rich.table import Table
 
+from weathergen.engine.preset_groups import preset_groups
 from weathergen.engine.presets import (EXAMPLE_COMBINATIONS, LAYER_JOIN, CombinedPreset, FieldPreset,
-                                       field_preset_keys, list_presets, load_preset,
-                                       parse_set_options, preset_keys)
+                                       field_preset_keys, load_preset, parse_set_options,
+                                       preset_keys)
 
 
 @click.command("presets")
@@ -19,25 +20,32 @@ from weathergen.engine.presets import (EXAMPLE_COMBINATIONS, LAYER_JOIN, Combine
                    "--set 2.density=0.05.")
 def presets_command(name, overrides):
     """List the weather presets, or show preset NAME (a name, a .toml file, or presets joined by +
-    such as rain-heavy+fog-light) fully resolved."""
+    such as rain-heavy+fog-light) fully resolved.
+
+    The list groups the paper's four weathers (snow, rain, sparks, fog), its ablation variants
+    (its other particle configurations, each varying one parameter), the weather fields' severity
+    ladders and example combinations."""
     console = Console(width=160)
     sets = parse_set_options(overrides)
     if name is None:
-        for model, keys, title in (
-                ("paper", preset_keys(), "paper model: visible particles per 1024x436 pair "
-                                         "(scaled by frame area), sizes in pixels"),
-                ("field", field_preset_keys(), "field model: a weather field in scene units "
-                                               "(metres on metric data), density per m³")):
+        models = {"paper": (preset_keys(), "paper model: visible particles per 1024x436 pair "
+                                           "(scaled by frame area), sizes in pixels"),
+                  "field": (field_preset_keys(), "field model: a weather field in scene units "
+                                                 "(metres on metric data), density per m³")}
+        for group in preset_groups():
+            keys, model_text = models[group.model]
             columns = [f.name for f in keys if f.metadata.get("main")]
-            table = Table(title=f"weathergen presets, {title}", header_style="bold")
+            table = Table(title=f"{group.title}; {model_text}", header_style="bold")
             table.add_column("name", no_wrap=True)  # names are what users type: never cut them
-            table.add_column("model", no_wrap=True)
+            if group.varies:
+                table.add_column("varies", no_wrap=True)
             for col in columns:
                 table.add_column(_HEADERS.get(col, col.replace("_", " ")), justify="right",
                                  no_wrap=True)
-            for preset_name in list_presets(model):
-                p = load_preset(preset_name, overrides=sets if model == "paper" else {})
-                table.add_row(preset_name, model, *(_main_value(p, c) for c in columns))
+            for i, preset_name in enumerate(group.names):
+                p = load_preset(preset_name, overrides=sets if group.model == "paper" else {})
+                varies = (group.varies[i],) if group.varies else ()
+                table.add_row(preset_name, *varies, *(_main_value(p, c) for c in columns))
             console.print(table)
         table = Table(title=f"combined presets, examples: any presets of either model joined by "
                             f"{LAYER_JOIN}, one layer each", header_style="bold")

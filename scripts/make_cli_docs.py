@@ -57,7 +57,10 @@ def help_text(command: click.Command, path: list[str], parent: click.Context | N
 
 
 def page() -> str:
-    """The whole page: the introduction, then one section per command, sorted by name."""
+    """The whole page: the introduction, then one section per command, sorted by name (the
+    commands of this checkout, whatever weathergen is installed)."""
+    if str(ROOT) not in sys.path:
+        sys.path.insert(0, str(ROOT))
     from weathergen.cli.main import cli
 
     root = click.Context(cli, info_name="weathergen", terminal_width=WIDTH, max_content_width=WIDTH,

@@ -250,3 +250,32 @@ def test_cli_errors_are_one_line(cli):
     result = CliRunner().invoke(cli, ["presets", "snow", "--set", "templates=/nonexistent/x"])
     assert result.exit_code == 2 and "'templates'" in result.output
     assert len(result.output.strip().splitlines()) == 1
+
+
+def test_presets_are_grouped_as_the_paper_presents_them(cli):
+    """The paper's four weathers, its ablation variants (every other paper preset, by the
+    parameter it varies), the field ladders (each weather light, moderate, heavy): every bundled
+    preset in exactly one group, and `weathergen presets` lists them in that order."""
+    from weathergen.engine.preset_groups import preset_groups
+    from weathergen.engine.presets import list_presets
+
+    groups = preset_groups()
+    assert [g.title for g in groups] == ["the paper's four weathers",
+                                         "the paper's ablation variants (its particle configurations)",
+                                         "weather fields: severity ladders"]
+    weathers, variants, ladders = groups
+    assert weathers.names == ("snow", "rain", "sparks", "fog")
+    named = [n for g in groups for n in g.names]
+    assert sorted(named) == sorted(list_presets()) and len(named) == len(set(named))
+    varies = dict(zip(variants.names, variants.varies))
+    assert {n for n in varies if n.startswith("motion-blur-")} == {f"motion-blur-{x}" for x in
+                                                                 ("0.0", "0.0375", "0.075", "0.1125", "0.15")}
+    assert varies["particles-1000"] == "count" and varies["size-fog"] == "size"
+    assert varies["additive-red"] == "colour, additive" and varies["alpha-red"] == "colour, alpha"
+    assert varies["grey"].startswith("grey")
+    assert ladders.names[:3] == ("snow-light", "snow-moderate", "snow-heavy")
+    assert ladders.names[-1] == "fog-heavy" and len(ladders.names) == 12
+    out = CliRunner().invoke(cli, ["presets"]).output
+    places = [out.index(g.title) for g in groups] + [out.index("combined presets")]
+    assert places == sorted(places)
+    assert out.index(" snow ") < out.index(" particles-1000 ") < out.index(" snow-light ")

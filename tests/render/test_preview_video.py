@@ -1,6 +1,7 @@
-"""`weathergen preview OUT --video`: a sequence output played in order, an output of pairs
-alternating frame 1 / frame 2, side by side with the input and the opacity, read back with OpenCV;
-bad inputs as one line, exit 2 and no file."""
+"""`weathergen preview OUT --video`: a sequence output played in order (again, until the video
+lasts two seconds), an output of pairs alternating frame 1 / frame 2 at a calm rate, side by side
+with the input and the opacity, read back with OpenCV; progress lines on a long video; bad inputs
+as one line, exit 2 and no file."""
 
 from __future__ import annotations
 
@@ -17,6 +18,7 @@ from weathergen.io.gif import read_gif
 from weathergen.io.images import read_image, read_raw, to_uint8
 from weathergen.outputs import read_manifest
 from weathergen.render import output_frame_rate, video_preview
+from weathergen.render.video import MIN_SECONDS, PAIR_FPS
 
 pytestmark = pytest.mark.slow
 
@@ -77,38 +79,50 @@ def sequence_frames(root) -> list[np.ndarray]:
 
 
 @pytest.mark.parametrize("suffix", [".mp4", ".gif"])
-def test_a_four_frame_sequence_plays_in_order(sequence_run, tmp_path, suffix):
+def test_a_four_frame_sequence_plays_in_order_until_it_lasts_two_seconds(sequence_run, tmp_path,
+                                                                         suffix):
     video = tmp_path / f"street{suffix}"
     res = run("preview", sequence_run, "--video", video, "--no-captions")
     assert res.exit_code == 0, res.output
-    assert "4 frames of 384x176 at 24 fps" in res.output
+    # 4 frames at 24 fps last a sixth of a second: played 12 times, 2 s
+    assert MIN_SECONDS == 2
+    assert ("48 frames of 384x176 at 24 fps (2.0 s: its 4 frames played 12 times to last at "
+            "least 2 s)") in res.output
     frames, fps = cv2_frames(video)
-    assert len(frames) == 4 and all(f.shape == (176, 384, 3) for f in frames)
+    assert len(frames) == 48 and all(f.shape == (176, 384, 3) for f in frames)
     assert fps == pytest.approx(24 if suffix == ".mp4" else 25)     # OpenCV: the first GIF delay
     want = sequence_frames(sequence_run)
-    assert [nearest(f, want) for f in frames] == [0, 1, 2, 3]
+    assert [nearest(f, want) for f in frames] == [0, 1, 2, 3] * 12
     if suffix == ".gif":
         ours, delays = read_gif(video)
-        assert delays == [4, 4, 5, 4]       # whole 1/100 s, 24 fps on average
+        # whole 1/100 s, 24 fps on average: 24 frames take a second, 48 two
+        assert delays[:4] == [4, 4, 5, 4] and delays[:24] == delays[24:] and sum(delays) == 200
         for a, b, w in zip(ours, frames, want):
             np.testing.assert_array_equal(a, b)          # our decoder and OpenCV's agree
             assert np.abs(a.astype(int) - w).mean() < 3    # 256 colours of each frame
     assert sorted(p.name for p in tmp_path.iterdir()) == [video.name]
 
 
-def test_pairs_alternate_frame_1_and_frame_2(pairs_run, tmp_path):
+def test_pairs_alternate_frame_1_and_frame_2_at_a_calm_rate(pairs_run, tmp_path):
     video = tmp_path / "pairs.gif"
-    res = run("preview", pairs_run, "--video", video, "--cycles", "2", "--no-captions")
+    res = run("preview", pairs_run, "--video", video, "--cycles", "3", "--no-captions")
     assert res.exit_code == 0, res.output
     frames, _ = cv2_frames(video)
-    assert len(frames) == 2 * 2 * 2                     # pairs x cycles x (frame 1, frame 2)
+    assert len(frames) == 2 * 3 * 2                     # pairs x cycles x (frame 1, frame 2)
     folder = pairs_run / "training" / "snow_clean"
     want = [read_raw(folder / f"street_{p:04d}" / f"frame_{p + i:04d}.png")[..., ::-1]
             for p in (1, 2) for i in (0, 1)]
-    assert [nearest(f, want) for f in frames] == [0, 1, 0, 1, 2, 3, 2, 3]
-    # by default each pair plays for about a second
+    assert [nearest(f, want) for f in frames] == [0, 1, 0, 1, 0, 1, 2, 3, 2, 3, 2, 3]
+    # each frame held half a second, not a 12 Hz strobe
+    assert PAIR_FPS == 2 and read_gif(video)[1] == [50] * 12
+    assert "at 2 fps (6.0 s)" in res.output
+    # by default each pair plays for two seconds: frame 1 / frame 2 twice
     plan = video_preview(pairs_run)
-    assert len(plan.shots) == 2 * 2 * 12 and plan.fps == 24
+    assert len(plan.shots) == 2 * 2 * 2 and plan.fps == 2 and plan.loops == 1
+    assert plan.seconds == 4
+    # one pair shown once lasts a second: played twice, to last two seconds
+    short = video_preview(pairs_run, pairs=1, cycles=1)
+    assert (short.count, short.loops, short.seconds) == (4, 2, 2.0)
 
 
 def test_side_by_side_with_the_input_and_the_opacity(sequence_run, tmp_path):
@@ -116,7 +130,9 @@ def test_side_by_side_with_the_input_and_the_opacity(sequence_run, tmp_path):
 
     plan = video_preview(sequence_run, with_input=True, with_opacity=True, captions=False)
     frames = list(plan.frames())
-    assert plan.size == (3 * 384, 176) and len(frames) == 4
+    assert plan.size == (3 * 384, 176) and len(frames) == 48 and plan.loops == 12
+    for i, frame in enumerate(frames[4:], 4):       # the loops repeat the first four frames
+        np.testing.assert_array_equal(frame, frames[i % 4])
     ds = open_dataset("demo", scenes=["street"])
     pairs = [ds.load(ref) for ref in ds.pairs()]
     clean = [to_uint8(p.image1.permute(1, 2, 0).numpy()) for p in pairs]
@@ -136,7 +152,7 @@ def test_side_by_side_with_the_input_and_the_opacity(sequence_run, tmp_path):
     assert res.exit_code == 0, res.output
     back, _ = cv2_frames(video)
     # tiles 128 x round(176 * 128 / 384) = 128 x 59; MP4 pads the height to 60
-    assert len(back) == 4 and back[0].shape == (60, 384, 3)
+    assert len(back) == 48 and back[0].shape == (60, 384, 3)
 
 
 def test_frame_rate_comes_from_the_dataset_or_the_preset(sequence_run, pairs_run, tmp_path):
@@ -152,7 +168,8 @@ def test_frame_rate_comes_from_the_dataset_or_the_preset(sequence_run, pairs_run
     assert output_frame_rate(read_manifest(copy, "preview")) == 30
     video = tmp_path / "slow.mp4"
     res = run("preview", sequence_run, "--video", video, "--fps", "5")
-    assert res.exit_code == 0 and "at 5 fps (0.8 s)" in res.output
+    assert res.exit_code == 0 and "12 frames of 384x176 at 5 fps (2.4 s: its 4 frames played 3 " \
+        "times" in res.output
     assert cv2_frames(video)[1] == pytest.approx(5)
 
 
@@ -217,7 +234,7 @@ def test_an_lp_attack_output_plays_and_has_no_opacity_to_show(lp_run, tmp_path):
     res = run("preview", lp_run, "--video", video, "--with-input", "--cycles", "1")
     assert res.exit_code == 0, res.output
     frames, _ = read_gif(video)
-    assert len(frames) == 2 and frames[0].shape == (176, 2 * 384, 3)
+    assert len(frames) == 4 and frames[0].shape == (176, 2 * 384, 3)      # 1 s, played twice
     perturbed = read_raw(lp_run / "training" / "ifgsm_clean" / "street_0001" / "frame_0001.png")
     assert np.abs(frames[0][:, 384:].astype(int) - perturbed[..., ::-1].astype(int)).mean() < 3
     line = one_line_error(run("preview", lp_run, "--video", tmp_path / "o.mp4", "--with-opacity"))
@@ -227,3 +244,25 @@ def test_an_lp_attack_output_plays_and_has_no_opacity_to_show(lp_run, tmp_path):
     assert sheet.exit_code == 0, sheet.output
     image = read_image(tmp_path / "sheet.png")
     assert image.shape[1] == 3 * 480 and image[40:, 2 * 480:].max() == 0   # no opacity anywhere
+
+
+def test_a_long_video_says_how_far_it_is():
+    """Progress lines: one every few seconds of work, none for a video made sooner, none at the
+    end (the summary line follows)."""
+    from weathergen.cli.inspect_cmd import ProgressLines
+
+    now = [0.0]
+    lines = []
+    progress = ProgressLines(every=5.0, clock=lambda: now[0])
+    import click
+
+    echo, click.echo = click.echo, lambda text, err=False: lines.append((text, err))
+    try:
+        for done in range(1, 145):
+            now[0] = done * 0.25                # a quarter second a frame: 36 s for 144 frames
+            progress(done, 144)
+    finally:
+        click.echo = echo
+    assert [t for t, _ in lines] == [f"  video: {n} of 144 frames ({n // 4} s)"
+                                     for n in range(20, 144, 20)]
+    assert all(err for _, err in lines)

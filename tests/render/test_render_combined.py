@@ -152,7 +152,7 @@ def test_a_combined_field_sequence_holds_the_pair_frames_and_rerenders_bit_ident
     video = tmp_path / "seq.mp4"
     assert run("preview", seq, "--video", video).exit_code == 0
     capture = cv2.VideoCapture(str(video))
-    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 3
+    assert int(capture.get(cv2.CAP_PROP_FRAME_COUNT)) == 3 * 16    # its 3 frames, played to last 2 s
     capture.release()
 
 

@@ -1,11 +1,14 @@
-"""Video previews of a render output: its weather frames played at the dataset's frame rate.
+"""Video previews of a render output, made to be watched.
 
-A ``--sequence`` output plays each scene's frames in order, scene after scene; an output of pairs
-plays each pair's frame 1 and frame 2 alternating (``cycles`` times), pair after pair, so that the
-particles' frame-to-frame motion is seen as a flow network sees it. Beside each weather frame the
-clean input frame and the particles' opacity may be shown (input | weather | opacity, as on the
-contact sheet). The frame rate is the dataset's (its reader's ``frame_rate``, for the input the
-manifest records), or a field preset's own ``frame_rate`` when it sets one.
+A ``--sequence`` output plays each scene's frames in order, scene after scene, at the dataset's
+frame rate (its reader's ``frame_rate``, for the input the manifest records), or a field preset's
+own ``frame_rate`` when it sets one. An output of pairs shows each pair's frame 1 and frame 2
+alternating at a calm :data:`PAIR_FPS` (each frame half a second), ``cycles`` times (by default
+for :data:`PAIR_SECONDS` per pair), pair after pair, so that the particles' frame-to-frame motion
+is seen as a flow network sees it, without a strobe. A video shorter than :data:`MIN_SECONDS`
+(a sequence of a few frames) is played again until it lasts that long. Beside each weather frame
+the clean input frame and the particles' opacity may be shown (input | weather | opacity, as on
+the contact sheet).
 
 :func:`video_preview` plans the video (which frames, how large, how fast) without reading any
 image; :meth:`VideoPreview.frames` reads, composes and yields them one at a time, so memory does
@@ -14,9 +17,10 @@ not grow with the output's length; :func:`weathergen.io.video.write_video` write
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Iterator, Optional
+from typing import Callable, Iterator, Optional
 
 import cv2
 import numpy as np
@@ -30,6 +34,14 @@ from ..io.exr import read_exr
 from ..io.images import read_image
 from ..outputs import OutputManifest, PairOutput, WeatherFolder, read_manifest
 from .preview import caption_tile
+
+
+#: The shortest video a preview writes, in seconds: shorter ones are played again until this long.
+MIN_SECONDS = 2.0
+#: Frames per second of an output of pairs: frame 1 and frame 2 each held half a second.
+PAIR_FPS = 2.0
+#: How long each pair plays by default (frame 1 / frame 2 alternating), in seconds.
+PAIR_SECONDS = 2.0
 
 
 def output_frame_rate(manifest: OutputManifest) -> float:
@@ -58,8 +70,9 @@ class Shot:
 class VideoPreview:
     """A planned video of a render output (see the module doc).
 
-    ``shots`` lists the video's frames in order; every frame is ``size`` (width, height) pixels:
-    one tile per shown column (input, weather, opacity) of ``tile`` (width, height).
+    ``shots`` lists the video's frames in order, played ``loops`` times; every frame is ``size``
+    (width, height) pixels: one tile per shown column (input, weather, opacity) of ``tile``
+    (width, height).
     """
 
     folder: Path
@@ -73,6 +86,7 @@ class VideoPreview:
     sequence: bool = False
     pairs: int = 0                                 # pairs shown
     total: int = 0                                 # complete pairs in the output
+    loops: int = 1                                 # how often ``shots`` play (MIN_SECONDS)
     _input: Optional[tuple[Dataset, dict]] = field(default=None, repr=False)   # opened on first use
 
     @property
@@ -85,16 +99,36 @@ class VideoPreview:
         return self.tile[0] * self.columns, self.tile[1]
 
     @property
-    def seconds(self) -> float:
-        return len(self.shots) / self.fps
+    def count(self) -> int:
+        """Frames in the video (``shots`` times ``loops``)."""
+        return len(self.shots) * self.loops
 
-    def frames(self) -> Iterator[np.ndarray]:
-        """The video's frames in order. Shape: each (H, W, 3) uint8 RGB, ``size`` pixels."""
+    @property
+    def seconds(self) -> float:
+        return self.count / self.fps
+
+    def frames(self, progress: Optional[Callable[[int, int], None]] = None) -> Iterator[np.ndarray]:
+        """The video's frames in order. Shape: each (H, W, 3) uint8 RGB, ``size`` pixels.
+
+        ``progress(done, count)`` is called after each frame is taken. A looped video (a short
+        one) composes its frames once and plays them ``loops`` times."""
+        kept: list[np.ndarray] = []
         cached: Optional[tuple[PairId, dict]] = None
-        for shot in self.shots:
-            if cached is None or cached[0] != shot.pair:
-                cached = (shot.pair, self._pair_tiles(shot.pair))
-            yield cached[1][shot.second]
+        done = 0
+        for loop in range(self.loops):
+            for i, shot in enumerate(self.shots):
+                if loop:
+                    frame = kept[i]
+                else:
+                    if cached is None or cached[0] != shot.pair:
+                        cached = (shot.pair, self._pair_tiles(shot.pair))
+                    frame = cached[1][shot.second]
+                    if self.loops > 1:
+                        kept.append(frame)
+                yield frame
+                done += 1
+                if progress is not None:
+                    progress(done, self.count)
 
     def _pair_tiles(self, pair_id: PairId) -> dict[bool, np.ndarray]:
         """The composed video frames of one pair that the video shows (frame 1 under False,
@@ -151,11 +185,13 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
     """Plan the video of a render output (see the module doc).
 
     ``pairs``: only the first complete pairs (default all); ``cycles``: how often an output of
-    pairs shows frame 1 and frame 2 of each pair (default: for one second, ``round(fps / 2)``;
-    a ``--sequence`` output plays each frame once and refuses it); ``fps``: the frame rate
-    (default the dataset's, :func:`output_frame_rate`); ``width``: of each tile, in pixels (default
-    the frames' own); ``with_input`` / ``with_opacity``: show the clean input frame and the
-    particles' opacity beside the weather frame; ``captions``: scene, frame and preset on the tiles.
+    pairs shows frame 1 and frame 2 of each pair (default: for ``PAIR_SECONDS``,
+    ``ceil(PAIR_SECONDS * fps / 2)``; a ``--sequence`` output plays each frame once and refuses
+    it); ``fps``: the frame rate (default: a sequence's dataset rate, :func:`output_frame_rate`;
+    ``PAIR_FPS`` for pairs); ``width``: of each tile, in pixels (default the frames' own);
+    ``with_input`` / ``with_opacity``: show the clean input frame and the particles' opacity
+    beside the weather frame; ``captions``: scene, frame and preset on the tiles. A video shorter
+    than ``MIN_SECONDS`` plays its frames again (``loops``) until it lasts that long.
 
     Raises ConfigError for a folder that is not a render output or a bad option (named), and
     DatasetError when it holds no complete pair.
@@ -171,8 +207,11 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
     if with_opacity and not manifest.holds_particles:
         raise ConfigError(f"${{with_opacity}}: {render_dir} holds no particles to show (an Lp "
                           f"attack, {manifest.preset_name}, perturbs the frames themselves)")
-    rate = float(fps) if fps is not None else output_frame_rate(manifest)
     sequence = manifest.sequence
+    if fps is not None:
+        rate = float(fps)
+    else:
+        rate = output_frame_rate(manifest) if sequence else PAIR_FPS
     if sequence and cycles is not None:
         raise ConfigError("${cycles} applies to outputs of pairs; a --sequence output plays its "
                           "frames in order")
@@ -189,15 +228,16 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
             if (p.scene, p.frame + 1) not in starts and _wrote_second_frame(render_dir, manifest, p):
                 shots.append(Shot(p, True))
     else:
-        repeat = cycles if cycles is not None else max(1, round(rate / 2))
+        repeat = cycles if cycles is not None else max(1, math.ceil(PAIR_SECONDS * rate / 2 - 1e-9))
         for p in chosen:
             shots += [Shot(p), Shot(p, True)] * repeat
+    loops = max(1, math.ceil(MIN_SECONDS * rate / len(shots) - 1e-9))
     first = PairOutput.of(render_dir, chosen[0], manifest.pass_name, manifest.fmt,
                           sequence=sequence)
     h, w = _frame_size(first, manifest.fmt)
     tile = (w, h) if width is None else (int(width), max(1, round(h * width / w)))
     return VideoPreview(render_dir, manifest, shots, rate, tile, with_input, with_opacity,
-                        captions, sequence, len(chosen), len(complete))
+                        captions, sequence, len(chosen), len(complete), loops=loops)
 
 
 def _wrote_second_frame(root: Path, manifest: OutputManifest, pair_id: PairId) -> bool:
