@@ -191,3 +191,35 @@ def test_private_name_check_catches_both_forms(tmp_path, monkeypatch):
     monkeypatch.setitem(MODULES, "weathergen.probe", probe)
     found = _private_uses("weathergen.probe")
     assert len(found) == 2 and "_hidden" in found[0] and "sampling._generator" in found[1], found
+
+
+#: The readers of image files, and EXR's writer: in the layers from outputs/ up, only the frame
+#: formats (weathergen/outputs/formats/) call them, so that a render's frames are written and
+#: read back through one owner per format.
+FRAME_FILE_FUNCTIONS = {"read_exr", "write_exr", "read_image", "read_image_kind", "read_raw"}
+FRAME_OWNER = "weathergen.outputs.formats"
+
+
+def _frame_file_uses(name: str) -> list[str]:
+    """Imports of :data:`FRAME_FILE_FUNCTIONS` in module ``name``."""
+    tree = ast.parse(MODULES[name].read_text())
+    base = name if _is_package(name) else name.rpartition(".")[0]
+    return [f"line {node.lineno}: {alias.name}" for node in ast.walk(tree)
+            if isinstance(node, ast.ImportFrom) and _import_stem(node, base).startswith("weathergen")
+            for alias in node.names if alias.name in FRAME_FILE_FUNCTIONS]
+
+
+def test_the_format_registry_is_the_only_reader_of_frame_files():
+    above = {p for layer in LAYERS[LAYERS.index(("weathergen.outputs",)):] for p in layer}
+    uses = [f"{MODULES[name].relative_to(ROOT)} {use}" for name in MODULES
+            if ".".join(name.split(".")[:2]) in above and not name.startswith(FRAME_OWNER)
+            for use in _frame_file_uses(name)]
+    assert not uses, ("frame files read or written outside weathergen/outputs/formats/ (add or "
+                      "use a format there):\n" + "\n".join(uses))
+
+
+def test_frame_file_check_sees_an_import(tmp_path, monkeypatch):
+    probe = tmp_path / "probe.py"
+    probe.write_text("from ..io.exr import read_exr\nfrom weathergen.io.images import to_uint8\n")
+    monkeypatch.setitem(MODULES, "weathergen.render.probe", probe)
+    assert _frame_file_uses("weathergen.render.probe") == ["line 1: read_exr"]

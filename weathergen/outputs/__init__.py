@@ -1,6 +1,8 @@
 """Output folders: the one owner of what a render or attack writes and of reading it back.
 
 - :mod:`.pairs`: where one pair's files go (:class:`PairOutput`) and their writer;
+- :mod:`.formats`: the formats of the weather frames (PNG, EXR), one module each, the only
+  writer and reader of frame files;
 - :mod:`.metadata`: the particle-metadata ``.npz`` of a pair;
 - :mod:`.attack`: the extra files of an attacked pair (flows, log, summary);
 - :mod:`.manifest`: ``manifest.json`` and ``summary.json`` (write, merge shard parts, read back

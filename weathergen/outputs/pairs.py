@@ -52,14 +52,13 @@ from ..datasets import NativeFlow
 from ..engine.groundtruth import seen_flow
 from ..errors import FormatError
 from ..framepair import FramePair, PairId
-from ..io.exr import write_exr
 from ..io.images import write_png, write_png16
 from ..io.kitti_formats import write_flow_png
 from ..io.sintel_formats import write_cam, write_dpt, write_flo
 from ..io.spring_formats import write_flo5
+from .formats import FRAME_FORMATS, FORMATS, FrameFormat, formats_of, read_format  # noqa: F401
 from .metadata import read_metadata, write_metadata
 
-FORMATS = ("png", "exr", "both")
 #: The largest flow magnitude (per component, pixels) a KITTI flow PNG can hold, exclusive.
 KITTI_FLOW_LIMIT = 511.98
 #: The file extension of each form of flow a dataset may store natively
@@ -124,20 +123,46 @@ class PairOutput:
     def _file(self, folder: str, index: int, ext: str) -> Path:
         return self.root / self.split / folder / self.pair_dir / f"frame_{index:04d}.{ext}"
 
+    def frame_files(self, fmt: FrameFormat | str, right: bool = False) -> tuple[Path, Path]:
+        """Where frames 1 and 2 go in format ``fmt`` (a :class:`FrameFormat` or its name): the
+        pass folder, suffixed ``_right`` for the right camera (``--stereo``), then the format's
+        suffix (``snow_clean_right_exr``)."""
+        f = FRAME_FORMATS[fmt] if isinstance(fmt, str) else fmt
+        folder = f"{self.pass_name}{'_right' if right else ''}{f.folder_suffix}"
+        return self._file(folder, self.frame, f.extension), self._file(folder, self.frame + 1, f.extension)
+
     @property
     def frames_png(self) -> tuple[Path, Path]:
-        return self._file(self.pass_name, self.frame, "png"), self._file(self.pass_name, self.frame + 1, "png")
+        return self.frame_files("png")
 
     @property
     def frames_right_png(self) -> tuple[Path, Path]:
         """The right camera's frames (``--stereo``), in the pass folder suffixed ``_right``."""
-        folder = f"{self.pass_name}_right"
-        return self._file(folder, self.frame, "png"), self._file(folder, self.frame + 1, "png")
+        return self.frame_files("png", right=True)
 
     @property
     def frames_right_exr(self) -> tuple[Path, Path]:
-        folder = f"{self.pass_name}_right_exr"
-        return self._file(folder, self.frame, "exr"), self._file(folder, self.frame + 1, "exr")
+        return self.frame_files("exr", right=True)
+
+    def frame_file(self, index: int) -> Path:
+        """The file a reader takes frame ``index`` (0: frame 1, 1: frame 2) from: in the output's
+        first format (PNG for ``both``)."""
+        return self.frame_files(read_format(self.fmt))[index]
+
+    def read_frame(self, index: int) -> np.ndarray:
+        """Weather frame ``index`` (0: frame 1, 1: frame 2) read back through its format.
+        Shape: (H, W, 3) float32 in [0, 1]."""
+        return read_format(self.fmt).read(self.frame_file(index))
+
+    def stored_opacity(self, index: int) -> Optional[np.ndarray]:
+        """The particles' opacity of frame ``index`` as the frame's file holds it, or None where
+        the format holds none. Shape: (H, W) float32."""
+        f = read_format(self.fmt)
+        return None if f.read_opacity is None else f.read_opacity(self.frame_file(index))
+
+    def frame_size(self) -> tuple[int, int]:
+        """(height, width) of the weather frames, read from frame 1's file."""
+        return read_format(self.fmt).size(self.frame_file(0))
 
     def right_geometry_files(self) -> list[Path]:
         """The right camera's depth (frames 1, 2) and camera files (frames 1, 2)."""
@@ -148,12 +173,12 @@ class PairOutput:
 
     def right_files(self) -> list[Path]:
         """Every file a stereo render may write of the right camera (for temporary-file cleanup)."""
-        return list(self.frames_right_png) + list(self.frames_right_exr) + self.right_geometry_files()
+        frames = [p for f in FRAME_FORMATS.values() for p in self.frame_files(f, right=True)]
+        return frames + self.right_geometry_files()
 
     @property
     def frames_exr(self) -> tuple[Path, Path]:
-        folder = f"{self.pass_name}_exr"
-        return self._file(folder, self.frame, "exr"), self._file(folder, self.frame + 1, "exr")
+        return self.frame_files("exr")
 
     @property
     def metadata(self) -> Path:
@@ -193,11 +218,7 @@ class PairOutput:
 
     def files(self, with_flow: bool = False) -> list[Path]:
         """Every file of this pair, the metadata file last (it marks completion)."""
-        out = []
-        if self.fmt in ("png", "both"):
-            out += list(self.frames_png)
-        if self.fmt in ("exr", "both"):
-            out += list(self.frames_exr)
+        out = [p for f in formats_of(self.fmt) for p in self.frame_files(f)]
         if self.geometry:
             out += self.geometry_files(with_flow)
         return out + [self.metadata]
@@ -229,14 +250,8 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
 
     Shape: frames (H, W, 3) float in [0, 1]; opacity (H, W) float.
     """
-    written = []
     n = 2 if second else 1
-    if out.fmt in ("png", "both"):
-        for path, img in list(zip(out.frames_png, frames))[:n]:
-            written.append(write_png(path, img))
-    if out.fmt in ("exr", "both"):
-        for path, img, alpha in list(zip(out.frames_exr, frames, opacity))[:n]:
-            written.append(write_exr(path, img, {"opacity": alpha}))
+    written = _write_frames(out, frames, opacity, n)
     if right is not None:       # the second camera: the same outputs as the first's
         written += _write_right(out, right, n)
     if out.geometry:
@@ -273,13 +288,7 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
 def _write_right(out: PairOutput, right: RightView, n: int) -> list[Path]:
     """The right camera's frames (PNG and/or EXR with opacity) and, with geometry, its depth and
     camera files, for the first ``n`` frames."""
-    written = []
-    if out.fmt in ("png", "both"):
-        for path, img in list(zip(out.frames_right_png, right.frames))[:n]:
-            written.append(write_png(path, img))
-    if out.fmt in ("exr", "both"):
-        for path, img, alpha in list(zip(out.frames_right_exr, right.frames, right.opacity))[:n]:
-            written.append(write_exr(path, img, {"opacity": alpha}))
+    written = _write_frames(out, right.frames, right.opacity, n, right=True)
     if out.geometry:
         files = out.right_geometry_files()
         for path, depth in list(zip(files[:2], right.depth))[:n]:
@@ -287,6 +296,12 @@ def _write_right(out: PairOutput, right: RightView, n: int) -> list[Path]:
         for path, cam in list(zip(files[2:], right.cam_from_world))[:n]:
             written.append(write_cam(path, np.asarray(right.intrinsics), np.asarray(cam)))
     return written
+
+
+def _write_frames(out: PairOutput, frames, opacity, n: int, right: bool = False) -> list[Path]:
+    """The first ``n`` frames in every format of the output, format by format."""
+    return [f.write(path, img, alpha) for f in formats_of(out.fmt)
+            for path, img, alpha in list(zip(out.frame_files(f, right), frames, opacity))[:n]]
 
 
 def _write_native_flow(fmt: str, path: Path, pair: FramePair) -> Path:

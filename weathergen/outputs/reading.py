@@ -18,8 +18,6 @@ from ..engine import APPEARANCE_KEYS, LayeredParticles, Particles, load_particle
 from ..engine.presets import UNSCALED
 from ..errors import DatasetError, FormatError
 from ..framepair import PairId
-from ..io.exr import read_exr
-from ..io.images import read_image
 from .manifest import read_manifest
 from .metadata import pair_identity, read_metadata
 from .pairs import PairOutput
@@ -111,10 +109,7 @@ class WeatherFolder:
     def frames(self, pair_id: PairId) -> tuple[torch.Tensor, torch.Tensor]:
         """The weather frames of a pair. Shape: two (3, H, W) float32 in [0, 1]."""
         out = PairOutput.of(self.root, pair_id, self.pass_name, self.fmt, sequence=self.sequence)
-        if self.fmt == "exr":
-            images = [read_exr(p)["RGB"].clip(0, 1) for p in out.frames_exr]
-        else:
-            images = [read_image(p) for p in out.frames_png]
+        images = [out.read_frame(i) for i in (0, 1)]        # through the output's format
         return tuple(torch.from_numpy(img.copy()).permute(2, 0, 1).contiguous() for img in images)
 
     def particles(self, pair_id: PairId) -> Optional[Particles | LayeredParticles]:

@@ -12,8 +12,7 @@ import torch
 from ..datasets import reopen_dataset
 from ..engine import load_particles, render_pair
 from ..errors import WeatherGenError
-from ..io.exr import read_exr
-from ..io.images import read_image, to_uint8
+from ..io.images import to_uint8
 from ..outputs import PairOutput, read_manifest
 from ..words import counted
 
@@ -76,8 +75,7 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
             opacity = opacity.clamp(0, 1).numpy()
         else:                   # an Lp attack: the frames themselves are perturbed
             opacity = np.zeros(pair.image1.shape[-2:], np.float32)
-        weather = (read_image(out.frames_png[0]) if manifest.fmt in ("png", "both")
-                   else np.clip(read_exr(out.frames_exr[0])["RGB"], 0, 1))
+        weather = out.read_frame(0)
         original = pair.image1.permute(1, 2, 0).numpy()
         h, w = original.shape[:2]
         size = (width, max(1, round(h * width / w)))

@@ -22,7 +22,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Iterator, Optional
 
-import cv2
 import numpy as np
 import torch
 
@@ -30,8 +29,6 @@ from ..datasets import Dataset, frame_rate_of, reopen_dataset
 from ..engine import load_particles, render_pair
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
-from ..io.exr import read_exr
-from ..io.images import read_image
 from ..outputs import OutputManifest, PairOutput, WeatherFolder, read_manifest
 from .preview import caption_tile
 
@@ -136,13 +133,13 @@ class VideoPreview:
         m = self.manifest
         out = PairOutput.of(self.folder, pair_id, m.pass_name, m.fmt, sequence=self.sequence)
         shown = sorted({s.second for s in self.shots if s.pair == pair_id})
-        exr = m.fmt == "exr"
+        stored = {s: out.stored_opacity(int(s)) for s in shown} if self.with_opacity else {}
         pair = None
-        if self.with_input or (self.with_opacity and not exr):
+        if self.with_input or (self.with_opacity and None in stored.values()):
             pair = self._dataset_pair(pair_id)
         opacity = {}
-        if self.with_opacity and exr:         # stored beside the colour
-            opacity = {s: read_exr(out.frames_exr[int(s)])["opacity"] for s in shown}
+        if stored and None not in stored.values():  # the format stores it beside the colour
+            opacity = stored
         elif self.with_opacity:               # re-rendered from the stored particles (exact)
             with torch.no_grad():
                 rendered = render_pair(pair, load_particles(out.metadata))
@@ -155,8 +152,7 @@ class VideoPreview:
             if self.with_input:
                 clean = (pair.image2 if second else pair.image1).permute(1, 2, 0).numpy()
                 row.append(caption_tile(clean, self.tile, label))
-            weather = (np.clip(read_exr(out.frames_exr[int(second)])["RGB"], 0, 1) if exr
-                       else read_image(out.frames_png[int(second)]))
+            weather = out.read_frame(int(second))
             text = (preset if self.with_input else f"{label}  {preset}") if self.captions else ""
             row.append(caption_tile(weather, self.tile, text))
             if self.with_opacity:
@@ -234,7 +230,7 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
     loops = max(1, math.ceil(MIN_SECONDS * rate / len(shots) - 1e-9))
     first = PairOutput.of(render_dir, chosen[0], manifest.pass_name, manifest.fmt,
                           sequence=sequence)
-    h, w = _frame_size(first, manifest.fmt)
+    h, w = first.frame_size()
     tile = (w, h) if width is None else (int(width), max(1, round(h * width / w)))
     return VideoPreview(render_dir, manifest, shots, rate, tile, with_input, with_opacity,
                         captions, sequence, len(chosen), len(complete), loops=loops)
@@ -243,15 +239,4 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
 def _wrote_second_frame(root: Path, manifest: OutputManifest, pair_id: PairId) -> bool:
     """Whether a sequence output's pair wrote its second frame (the last pair of a scene does)."""
     out = PairOutput.of(root, pair_id, manifest.pass_name, manifest.fmt, sequence=True)
-    second = out.frames_png[1] if manifest.fmt in ("png", "both") else out.frames_exr[1]
-    return second in out.listed_files()
-
-
-def _frame_size(out: PairOutput, fmt: str) -> tuple[int, int]:
-    """(height, width) of a pair's weather frames, read from the first frame's header."""
-    if fmt in ("png", "both"):
-        img = cv2.imread(str(out.frames_png[0]), cv2.IMREAD_UNCHANGED)
-        if img is None:
-            return read_image(out.frames_png[0]).shape[:2]    # names the file in its error
-        return img.shape[:2]
-    return read_exr(out.frames_exr[0])["RGB"].shape[:2]
+    return out.frame_file(1) in out.listed_files()
