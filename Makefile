@@ -90,18 +90,18 @@ demo: install
 	@echo "Next: activate the environment with '. $(VENV)/bin/activate' (or run $(BIN)/weathergen ...)"
 
 bench: install
-	$(BIN)/python benchmarks/bench.py
-	$(BIN)/python benchmarks/bench_fog.py $(if $(FOG_BEFORE),--before $(FOG_BEFORE))
-	$(BIN)/python benchmarks/bench_core.py $(if $(CORE_BEFORE),--before $(CORE_BEFORE))
-	$(BIN)/python benchmarks/bench_field.py
-	$(BIN)/python benchmarks/bench_combined.py
-	$(BIN)/python benchmarks/bench_models.py
-	$(BIN)/python benchmarks/bench_attack.py --checkpointing both
-	$(BIN)/python benchmarks/bench_training.py
-	$(BIN)/python benchmarks/bench_batch.py
-	$(BIN)/python benchmarks/bench_quick_look.py
+	$(BIN)/python speed/bench.py
+	$(BIN)/python speed/bench_fog.py $(if $(FOG_BEFORE),--before $(FOG_BEFORE))
+	$(BIN)/python speed/bench_core.py $(if $(CORE_BEFORE),--before $(CORE_BEFORE))
+	$(BIN)/python speed/bench_field.py
+	$(BIN)/python speed/bench_combined.py
+	$(BIN)/python speed/bench_models.py
+	$(BIN)/python speed/bench_attack.py --checkpointing both
+	$(BIN)/python speed/bench_training.py
+	$(BIN)/python speed/bench_batch.py
+	$(BIN)/python speed/bench_quick_look.py
 	if $(BIN)/python -c "import torch, sys; sys.exit(not torch.cuda.is_available())"; then \
-	  $(BIN)/python benchmarks/bench_batch.py --device cuda --models raft --batch-sizes 1 4 8 --steps 5; fi
+	  $(BIN)/python speed/bench_batch.py --device cuda --models raft --batch-sizes 1 4 8 --steps 5; fi
 
 images: install
 	$(BIN)/python scripts/make_images.py $(if $(REAL),--real $(REAL) --real-dataset $(REAL_DATASET)) \
@@ -112,9 +112,9 @@ cli-docs: install
 
 # The probe needs torch alone, so that a machine without CUDA is told at once, before any install.
 gpu-check: $(TORCH_STAMP)
-	@$(BIN)/python benchmarks/gpu_check.py --probe
+	@$(BIN)/python speed/gpu_check.py --probe
 	$(MAKE) --no-print-directory install
-	$(BIN)/python benchmarks/gpu_check.py --json out/gpu-check.json
+	$(BIN)/python speed/gpu_check.py --json out/gpu-check.json
 
 clean:
 	rm -rf $(VENV) $(OLDEST) build *.egg-info out

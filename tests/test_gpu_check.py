@@ -1,4 +1,4 @@
-"""`make gpu-check` (benchmarks/gpu_check.py): one table of every CUDA test and GPU benchmark.
+"""`make gpu-check` (speed/gpu_check.py): one table of every CUDA test and GPU benchmark.
 
 No GPU is needed here: without CUDA the command says so in one line; the table is assembled on
 the CPU by the dry run (``--device cpu --quick``), whose figures mean nothing.
@@ -17,7 +17,7 @@ import torch
 
 from conftest import PROJECT_ROOT
 
-SCRIPT = PROJECT_ROOT / "benchmarks" / "gpu_check.py"
+SCRIPT = PROJECT_ROOT / "speed" / "gpu_check.py"
 
 
 @pytest.fixture(scope="module")

@@ -50,7 +50,7 @@ def test_the_tour_names_render_preview_attack_evaluate_and_the_shipped_checkpoin
 
 def test_the_quick_look_is_what_make_bench_times_and_writes_a_folder_of_its_own():
     spec = importlib.util.spec_from_file_location("bench_quick_look",
-                                                  PROJECT_ROOT / "benchmarks" / "bench_quick_look.py")
+                                                  PROJECT_ROOT / "speed" / "bench_quick_look.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
     attack = _quick_look()
@@ -69,7 +69,7 @@ def test_the_quick_look_is_what_make_bench_times_and_writes_a_folder_of_its_own(
 def test_the_tour_runs_as_written(tmp_path):
     """Each command of the tour, in order, in a fresh folder, as a user types it: exit code 0 and
     the files it promises. The attack runs 2 of its 20 steps here (make bench runs it whole:
-    benchmarks/bench_quick_look.py)."""
+    speed/bench_quick_look.py)."""
     for words in tour_commands():
         if words[0] == "attack":
             assert words[words.index("--steps") + 1] == "20"

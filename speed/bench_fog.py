@@ -7,7 +7,7 @@ weathergen, e.g. ``git worktree add /tmp/before <commit>``) the same timing runs
 a subprocess, alternating with the installed one for ``--rounds`` rounds so that both see the same
 machine load, and the ratios are printed.
 
-    python benchmarks/bench_fog.py [--before SRC] [--rounds 2] [--repeats 5]
+    python speed/bench_fog.py [--before SRC] [--rounds 2] [--repeats 5]
 """
 
 from __future__ import annotations

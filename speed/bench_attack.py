@@ -8,8 +8,8 @@ backward with the same particles and a loss on the rendered frames). Each config
 fresh process, so its peak resident memory is its own. Network weights are random (speed and memory
 do not depend on them); the scene is a synthetic 1024x436 frame pair with a slanted ground plane.
 
-    python benchmarks/bench_attack.py                         # RAFT, 12 iterations, snow
-    python benchmarks/bench_attack.py --models raft-small --steps 3 --checkpointing both
+    python speed/bench_attack.py                         # RAFT, 12 iterations, snow
+    python speed/bench_attack.py --models raft-small --steps 3 --checkpointing both
 """
 
 from __future__ import annotations

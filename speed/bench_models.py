@@ -3,9 +3,9 @@
 Each measurement runs in a fresh process so that its peak resident memory is its own. Weights are
 random (speed and memory do not depend on them), so no checkpoint is needed.
 
-    python benchmarks/bench_models.py          # every network, 1024x436, default iterations
-    python benchmarks/bench_models.py --models raft-small spynet --size 512x218 --iters 6
-    python benchmarks/bench_models.py --device cuda --repeat 5   # (default: CUDA if any, and CPU)
+    python speed/bench_models.py          # every network, 1024x436, default iterations
+    python speed/bench_models.py --models raft-small spynet --size 512x218 --iters 6
+    python speed/bench_models.py --device cuda --repeat 5   # (default: CUDA if any, and CPU)
 
 Prints a Markdown table: seconds, peak resident memory of the process, and the part of that peak
 added by the measured call (above the memory of the loaded model and inputs). On CUDA the memory

@@ -6,8 +6,8 @@ B weather pairs, the summed loss, the backward pass and one Adam update. Each ba
 a fresh process (its own peak memory). Random network weights (they do not change the cost), a
 synthetic 1024x436 pair (see bench_attack.py), each pair of the batch with its own particles.
 
-    python benchmarks/bench_batch.py                                   # RAFT-small, CPU, B = 1 2 4
-    python benchmarks/bench_batch.py --device cuda --models raft --batch-sizes 1 4 8 --steps 5
+    python speed/bench_batch.py                                   # RAFT-small, CPU, B = 1 2 4
+    python speed/bench_batch.py --device cuda --models raft --batch-sizes 1 4 8 --steps 5
 """
 
 from __future__ import annotations

@@ -10,7 +10,7 @@ time (``time.process_time``: other processes on the machine do not count), the m
 ``--repeats`` runs, combined and single runs interleaved so that both see the same machine
 state. The target: a ratio of at most 1 (a combined render costs no more than its layers).
 
-    python benchmarks/bench_combined.py [--repeats 5] [--combinations snow+fog rain-heavy+fog-light]
+    python speed/bench_combined.py [--repeats 5] [--combinations snow+fog rain-heavy+fog-light]
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ Prints one Markdown table (seconds: medians after a warm-up call; memory: the pe
 GPU memory during the measurement) and, with ``--json PATH``, writes the figures. Exits 2 with one
 line when CUDA is not there, 1 when a test or a measurement failed, else 0.
 
-    python benchmarks/gpu_check.py [--json out/gpu-check.json] [--models raft gma]
+    python speed/gpu_check.py [--json out/gpu-check.json] [--models raft gma]
 
 ``--device cpu --quick`` runs every measurement on tiny inputs on the CPU (no tests): a dry run
 that the test suite uses to check that the table is assembled; its figures mean nothing.
@@ -39,7 +39,7 @@ from typing import Callable, Optional
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(ROOT / "tests"))
 
 @dataclass

@@ -20,7 +20,7 @@ cost operations in proportion to the work but run faster than one large chunk (t
 stay in the caches), so the count bounded by the work's chunks is the GPU's. The CUDA table is
 still to be measured (no GPU was lent when these figures were taken).
 
-    python benchmarks/bench_core.py [--before SRC] [--rounds 3] [--repeats 5]
+    python speed/bench_core.py [--before SRC] [--rounds 3] [--repeats 5]
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(REPO / "benchmarks"))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_fog  # noqa: E402  (the worker and tree-staging helpers)
 PRESETS = ("snow", "rain", "sparks", "fog")
 

@@ -9,7 +9,7 @@ runs its main through :func:`record`::
         sys.exit(record(main))
 
 which prints as before and, when the run succeeds, stores what it printed as the section of its
-command line (``python benchmarks/bench.py``, with its arguments) together with the tree (git
+command line (``python speed/bench.py``, with its arguments) together with the tree (git
 commit, and whether it had uncommitted changes), the machine (CPU model, cores, memory, torch
 version, GPU), the benchmark settings in the environment (``BENCH_*``) and the load average
 when it started. A rerun of one command replaces its section and keeps the others, so each
@@ -52,9 +52,9 @@ def figures_path() -> Optional[Path]:
 
 
 def command_line(argv: Optional[list[str]] = None) -> str:
-    """The section's name: ``python benchmarks/SCRIPT ARGS`` for the running script."""
+    """The section's name: ``python speed/SCRIPT ARGS`` for the running script."""
     argv = list(sys.argv if argv is None else argv)
-    return shlex.join(["python", f"benchmarks/{Path(argv[0]).name}", *argv[1:]])
+    return shlex.join(["python", f"speed/{Path(argv[0]).name}", *argv[1:]])
 
 
 def tree() -> dict:
@@ -186,7 +186,7 @@ def _rank(command: str) -> tuple:
 def markdown(data: dict) -> str:
     """The figures page: one section per command, with its tree, machine and printed output."""
     lines = ["# Benchmark figures", "",
-             "Written by `make bench` (each script through `benchmarks/figures.py`); do not edit by "
+             "Written by `make bench` (each script through `speed/figures.py`); do not edit by "
              "hand. Every speed and memory figure of the documentation is here; each section says "
              "on which tree and machine it was measured. GPU figures: "
              "[gpu-check.json](gpu-check.json) (`make gpu-check`).", ""]

@@ -6,8 +6,8 @@ adversarial weather from its ``summary.json``: the figures the README and docs/a
 The command runs with the Python of this script (``python -m weathergen.cli``), so it measures
 the weathergen that the other benchmarks import.
 
-    python benchmarks/bench_quick_look.py
-    python benchmarks/bench_quick_look.py --device cuda
+    python speed/bench_quick_look.py
+    python speed/bench_quick_look.py --device cuda
 """
 
 from __future__ import annotations

@@ -7,7 +7,7 @@ frame rendered alone. Prints the field's construction time, then per block of fr
 sampling and rendering times and the process's peak resident memory, which must stay flat as
 the sequence grows (frames stream; the field is never re-sampled). Nothing is written to disk.
 
-    python benchmarks/bench_field.py [--frames 200] [--preset snow-heavy] [--device cpu|cuda]
+    python speed/bench_field.py [--frames 200] [--preset snow-heavy] [--device cpu|cuda]
 
 A benchmark, not a test: nothing here fails on slow machines.
 """
