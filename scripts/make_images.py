@@ -4,7 +4,7 @@ Written into docs/images/ (``--out`` elsewhere):
 
 - ``presets.png`` (README): snow, rain, sparks and fog on the demo street, frame 1, each panel
   labelled with its preset and particle count;
-- ``video-still.png`` (README): a frame of ``weathergen preview --video`` of a ``--sequence``
+- ``video-still.png`` (docs/render.md): a frame of ``weathergen preview --video`` of a ``--sequence``
   render of the demo street with snow-moderate (input | weather | opacity);
 - ``every-preset.png`` (docs/engine.md, "Pictures"): every preset, paper and field, as
   ``weathergen render --preset NAME`` draws it into frame 1 of the demo street (seed 0), one
@@ -17,11 +17,12 @@ else's frames: it is for looking at, not for the repository (the FlyingThings3D 
 docs/engine.md names may not be redistributed).
 
 Everything is drawn with one torch thread and fixed seeds, so a rerun writes the same bytes. The
-README's two pictures are tracked in git: each is left untouched when a fresh rendering differs from
-it by at most one grey level per pixel (floating-point rounding across machines moves a few pixels
-across a quantisation step; ``--force`` rewrites it anyway). The sheet of every preset is stored
-with a palette of 256 colours (median cut, no dithering) to keep the file small. ``--quick`` draws
-everything on a small crop of the demo frame (and the video still from two pairs), for tests.
+README's picture and the video still are tracked in git: each is left untouched when a fresh
+rendering differs from it by at most one grey level per pixel (floating-point rounding across
+machines moves a few pixels across a quantisation step; ``--force`` rewrites it anyway). The
+sheet of every preset is stored with a palette of 256 colours (median cut, no dithering) to keep
+the file small. ``--quick`` draws everything on a small crop of the demo frame (and the video
+still from two pairs), for tests.
 """
 
 from __future__ import annotations
@@ -77,7 +78,7 @@ def crop(pair, top: int, left: int, height: int, width: int):
     return dataclasses.replace(pair, intrinsics=k, **cut)
 
 
-# -- the README's pictures --------------------------------------------------------------------
+# -- the README's picture and the video still ---------------------------------------------
 
 def render_sheet(quick: bool = False) -> np.ndarray:
     """The README picture: the paper's four weathers in a 2 x 2 grid, each panel below a strip
@@ -295,7 +296,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="folder for presets.png, video-still.png, every-preset.png "
                              "(default docs/images)")
     parser.add_argument("--force", action="store_true",
-                        help="rewrite the README pictures even when nothing visible changed")
+                        help="rewrite presets.png and video-still.png even when nothing visible changed")
     parser.add_argument("--quick", action="store_true",
                         help="draw on a small crop of the demo frame (for tests; not for the docs)")
     parser.add_argument("--real", type=Path, metavar="ROOT",
