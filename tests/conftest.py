@@ -35,6 +35,12 @@ def pytest_configure(config):
     global _CACHE
     _CACHE = tempfile.mkdtemp(prefix="weathergen-test-cache-")
     os.environ["WEATHERGEN_CACHE"] = _CACHE
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # pytest-xdist (`make test` runs two workers): one thread each, so that the workers
+        # share the cores rather than each asking torch for all of them
+        import torch
+
+        torch.set_num_threads(1)
 
 
 def pytest_collection_modifyitems(config, items):
