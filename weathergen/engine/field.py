@@ -382,28 +382,30 @@ def sample_field_particles(pair: FramePair, preset: FieldPreset, seed=0, *,
 
 def sample_weather(pair: FramePair, preset, seed=0, *, world_up: str = "auto",
                    frame_rate: Optional[float] = None,
-                   templates: Optional[TemplateLibrary] = None, device=None
+                   templates: Optional[TemplateLibrary] = None, device=None, sample_on=None
                    ) -> Union[Particles, LayeredParticles]:
     """Sample a pair's particles with the preset's model: a field preset draws from the field of
     ``seed`` (:func:`sample_field_particles`; ``frame_rate``: the dataset's, needed unless the
     preset sets one), a paper preset samples the pair
     (:func:`~weathergen.engine.sampling.sample_particles`), a combined preset samples each layer
-    (:func:`sample_layers`; ``seed`` may then be one seed per layer, ``templates`` is not taken)."""
+    (:func:`sample_layers`; ``seed`` may then be one seed per layer, ``templates`` is not taken).
+    ``sample_on``: where a paper preset's sampling arithmetic runs (see :func:`sample_particles`;
+    the same random numbers, from the seed's CPU generator); a field is enumerated on the CPU."""
     if isinstance(preset, CombinedPreset):
         if templates is not None:
             raise ConfigError("a combined preset's layers each load their own templates")
         return sample_layers(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
-                             device=device)
+                             device=device, sample_on=sample_on)
     if isinstance(preset, FieldPreset):
         return sample_field_particles(pair, preset, seed, world_up=world_up,
                                       frame_rate=frame_rate, templates=templates, device=device)
     return sample_particles(pair, preset, seed, world_up=world_up, templates=templates,
-                            device=device)
+                            device=device, sample_on=sample_on)
 
 
 def sample_layers(pair: FramePair, preset: CombinedPreset, seed: Union[int, Sequence[int]] = 0, *,
                   world_up: str = "auto", frame_rate: Optional[float] = None,
-                  device=None) -> LayeredParticles:
+                  device=None, sample_on=None) -> LayeredParticles:
     """The particles of every layer of a combined preset for one pair.
 
     ``seed`` is one seed per layer, or one seed from which each layer's is derived
@@ -423,6 +425,6 @@ def sample_layers(pair: FramePair, preset: CombinedPreset, seed: Union[int, Sequ
             raise ConfigError(f"{len(seeds)} seeds for the {len(preset.layers)} layers of "
                               f"{preset.name}")
     records = tuple(sample_weather(pair, layer, s, world_up=world_up, frame_rate=frame_rate,
-                                   device=device)
+                                   device=device, sample_on=sample_on)
                     for layer, s in zip(preset.layers, seeds))
     return LayeredParticles(records, preset.layer_names)
