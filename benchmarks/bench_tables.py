@@ -226,6 +226,7 @@ class Options:
 
     checkpointing: bool = False
     compile: Optional[str] = None       # torch.compile mode of the iteration steps, or None
+    backend: str = "inductor"           # torch.compile's backend (aot_eager: a quick smoke test)
 
     def label(self) -> str:
         parts = (["checkpointing"] if self.checkpointing else []) + \
@@ -289,12 +290,14 @@ def _is_oom(exc: BaseException) -> bool:
     return isinstance(exc, torch.cuda.OutOfMemoryError) or "out of memory" in str(exc).lower()
 
 
-def precision_settings(name: str, precision: str, device: str) -> tuple[bool, bool]:
+def precision_settings(name: str, precision: str, device: str,
+                       anywhere: bool = False) -> tuple[bool, bool]:
     """``(amp, tf32_matmul)`` of a precision for network ``name`` on ``device``; ValueError where
-    it does not apply (amp for a network without a mixed-precision mode, amp or tf32 off CUDA)."""
+    it does not apply (amp for a network without a mixed-precision mode, amp or tf32 off CUDA;
+    ``anywhere``: also off CUDA, where both change nothing: a smoke test of the code path)."""
     from weathergen.models import model_spec, resolve_amp
 
-    cuda = device.startswith("cuda")
+    cuda = device.startswith("cuda") or anywhere
     if precision == "paper":
         return resolve_amp(name, None, device), False
     if precision == "float32":
@@ -332,7 +335,7 @@ class Bench:
         model.requires_grad_(False)
         model.amp = amp
         if options.compile:
-            compile_iterations(model, options.compile)
+            compile_iterations(model, options.compile, options.backend)
         return model
 
     def step(self, model, batch: int):
@@ -376,14 +379,16 @@ class Bench:
 
 
 def measure(bench: Bench, name: str, precision: str, options: Options = Options(),
-            budget_s: float = math.inf, log: Callable[[str], None] = lambda s: None) -> Measured:
+            budget_s: float = math.inf, log: Callable[[str], None] = lambda s: None,
+            anywhere: bool = False, batch_sizes: Optional[tuple] = None) -> Measured:
     """Throughput of ``name``'s attack on the bench's device at growing batch sizes (see module).
     Stops trying larger batches at out-of-memory, when the throughput grows by less than
-    :data:`MIN_GAIN`, or once ``budget_s`` seconds have passed."""
+    :data:`MIN_GAIN`, or once ``budget_s`` seconds have passed. ``batch_sizes``: those to try
+    (default: the bench's; at most its largest)."""
     import torch
 
     start = time.perf_counter()
-    amp, tf32 = precision_settings(name, precision, bench.device)
+    amp, tf32 = precision_settings(name, precision, bench.device, anywhere)
     result = Measured(name, precision, options.label())
     cuda = bench.device.startswith("cuda")
     old_tf32 = torch.backends.cuda.matmul.allow_tf32
@@ -391,7 +396,7 @@ def measure(bench: Bench, name: str, precision: str, options: Options = Options(
     model = run = best_run = None
     try:
         model = bench.model(name, amp, options)
-        for batch in bench.sizes.batch_sizes:
+        for batch in batch_sizes or bench.sizes.batch_sizes:
             if time.perf_counter() - start > budget_s:
                 result.stop = f"time budget ({budget_s:.0f} s) spent before batch {batch}"
                 break

@@ -305,7 +305,7 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     cone2 = _view_cone(k, depth2.shape[-2], depth2.shape[-1]).to(on)
     # the longest motion (rotations keep lengths; a camera's scale, if any, stretches it)
     reach = abs(preset.motion_y) * (1 + preset.motion_scale_jitter) \
-        * float(torch.linalg.matrix_norm(cam2_from_ref[:3, :3], ord=2))
+        * float(torch.linalg.matrix_norm(cam2_from_ref[:3, :3].cpu(), ord=2))
     batch = min(max(4096, 4 * n), 1 << 18)  # depends on the count only: reproducible anywhere
     tried = 0
 
