@@ -10,12 +10,13 @@ Run from the repository root on a machine with a CUDA GPU (the package from its 
 Sections, in order, each writing ``DIR/gpu_session.json`` when it ends (a run cut short keeps
 what it measured) and printing its rows as it goes:
 
-1. ``tests``: the CUDA tests of device-side sampling (``pytest -m cuda -k sampling_on``);
+1. ``tests``: the CUDA tests of device-side sampling (``pytest -m cuda -k "sampling_on or
+   fields_views"``);
 2. ``tables``: :mod:`bench_tables` for the paper's six networks in the paper's precision and in
    float32, batch sizes up to 16 within 78 GiB (an 80 GB H100's memory), and the GPU-hours of
    the paper's Tables 2-5 that follow;
-3. ``sampler``: a paper preset's particles sampled on the CPU and on the GPU (time per pair, the
-   share of identical particles);
+3. ``sampler``: particles of paper presets and of a weather field sampled on the CPU and on the
+   GPU (time per pair, the share of identical particles);
 4. ``training``: the weather of a batch of 6 Sintel-size pairs (``WeatherAugment.apply_batch``)
    sampled on the CPU (today), on the device, and prepared in loader workers (render only; the
    worker's sampling time per sample beside it), against a RAFT training step on the 368x768
@@ -116,8 +117,9 @@ def timed(fn: Callable[[], object], device: str, repeats: int) -> float:
 def section_tests(s: Session) -> dict:
     if not s.device.startswith("cuda"):
         return {"skipped": "no CUDA device"}
-    cmd = [sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-k", "sampling_on", "-p",
-           "no:cacheprovider", "tests/engine/test_engine_sampling.py",
+    cmd = [sys.executable, "-m", "pytest", "-q", "-m", "cuda", "-k",
+           "sampling_on or fields_views", "-p", "no:cacheprovider",
+           "tests/engine/test_engine_sampling.py", "tests/engine/test_engine_field.py",
            "tests/training/test_training_augment.py"]
     try:
         done = subprocess.run(cmd, cwd=ROOT, capture_output=True, text=True,
@@ -227,21 +229,28 @@ def section_options(s: Session, sizes: bt.Sizes, budget_s: float) -> dict:
 
 def section_sampler(s: Session, sizes: bt.Sizes) -> dict:
     from bench_attack import synthetic_pair
-    from weathergen.engine import load_preset, sample_particles
+    from weathergen.engine import load_preset, sample_weather
 
     pair = synthetic_pair(sizes.width, sizes.height)
     on_device = pair.to(s.device)
     overrides = {"count": sizes.count} if sizes.count else None
     rows = []
-    for name in ("snow", "rain", "sparks"):
-        preset = load_preset(name, overrides)
-        cpu_s = timed(lambda: sample_particles(pair, preset, seed=1), "cpu", 3)
-        dev_s = timed(lambda: sample_particles(on_device, preset, seed=1, sample_on=s.device,
-                                               device=s.device), s.device, 3)
-        a = sample_particles(pair, preset, seed=1)
-        b = sample_particles(on_device, preset, seed=1, sample_on=s.device, device=s.device)
+    for name in ("snow", "rain", "sparks", "snow-light"):
+        preset = load_preset(name, overrides if name != "snow-light" else None)
+
+        def sample(p, on=None):
+            return sample_weather(p, preset, 1, sample_on=on, device=on, frame_rate=24.0)
+
+        try:
+            cpu_s = timed(lambda: sample(pair), "cpu", 3)
+            dev_s = timed(lambda: sample(on_device, s.device), s.device, 3)
+            a, b = sample(pair), sample(on_device, s.device)
+        except Exception as exc:          # noqa: BLE001 - one row's failure hides no other
+            rows.append({"preset": name, "failed": f"{type(exc).__name__}: {exc}"[:300]})
+            s.log(f"  sample {name}: FAILED {rows[-1]['failed']}")
+            continue
         same = float((a.position == b.position.cpu()).all(1).float().mean()) \
-            if a.count == b.count else 0.0
+            if a.count == b.count and a.count else float(a.count == b.count)
         row = {"preset": name, "count": a.count, "cpu_s": cpu_s, "device_s": dev_s,
                "same_count": a.count == b.count, "identical_particles": same}
         s.log(f"  sample {name}: CPU {cpu_s * 1000:.1f} ms, {s.device} {dev_s * 1000:.1f} ms per "
@@ -298,11 +307,16 @@ def section_training(s: Session, sizes: bt.Sizes, batch: int, crop: tuple, repea
                          ("sampled on the device", lambda: dev_aug.apply_batch(on_device)),
                          ("prepared in loader workers: render only",
                           lambda: cpu_aug.apply_batch(ready))):
-            seconds = timed(fn, s.device, repeats)
-            row = {"what": f"weather of a batch of {batch}: {preset}, {what}",
-                   "seconds": seconds, "share_of_training_step": seconds / step_s}
-            rows.append(row)
-            s.log(f"  {row['what']}: {seconds:.3f} s ({seconds / step_s:.0%} of a RAFT step)")
+            label = f"weather of a batch of {batch}: {preset}, {what}"
+            try:
+                seconds = timed(fn, s.device, repeats)
+            except Exception as exc:      # noqa: BLE001 - one row's failure hides no other
+                rows.append({"what": label, "failed": f"{type(exc).__name__}: {exc}"[:300]})
+                s.log(f"  {label}: FAILED {rows[-1]['failed']}")
+                continue
+            rows.append({"what": label, "seconds": seconds,
+                         "share_of_training_step": seconds / step_s})
+            s.log(f"  {label}: {seconds:.3f} s ({seconds / step_s:.0%} of a RAFT step)")
         rows.append({"what": f"{preset}: a loader worker's prepare() per sample (CPU, 1 process)",
                      "seconds": worker_s})
         s.log(f"  {preset}: prepare() in a worker {worker_s:.3f} s per sample")

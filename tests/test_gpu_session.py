@@ -36,7 +36,7 @@ def test_sampler_and_training_sections_on_tiny_sizes(session, tmp_path):
     sections = figures["sections"]
     assert sections["tests"] == {"skipped": "no CUDA device"}
     rows = sections["sampler"]["rows"]
-    assert [r["preset"] for r in rows] == ["snow", "rain", "sparks"]
+    assert [r["preset"] for r in rows] == ["snow", "rain", "sparks", "snow-light"]
     assert all(r["same_count"] and r["identical_particles"] == 1.0 for r in rows)  # CPU: same bytes
     whats = [r["what"] for r in sections["training"]["rows"]]
     assert whats[0] == "raft training step"

@@ -235,7 +235,7 @@ class WeatherAugment:
             ``"device"`` (the batch's device: the same random numbers from the same CPU
             generators, the arithmetic where the depth maps are; on a GPU the particles equal the
             CPU's but for candidates within rounding of a border, see ``docs/engine.md``). Only
-            presets sample on a device; other sources sample on the CPU.
+            presets (of either model) sample on a device; other sources sample on the CPU.
 
     Shape: frames ``(3, H, W)`` per sample or ``(B, 3, H, W)`` per batch, RGB in ``[0, 1]``;
     the pairs need depth and cameras (every weathergen reader provides them).
