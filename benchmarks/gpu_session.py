@@ -330,8 +330,9 @@ def main(argv=None) -> int:
     parser.add_argument("--device", default="cuda")
     parser.add_argument("--out", type=Path, default=Path(os.environ.get("OUT") or
                                                           "out/gpu-session"))
-    parser.add_argument("--deadline-s", type=float, default=300.0,
-                        help="seconds from the start after which sections are cut short")
+    parser.add_argument("--deadline-s", type=float, default=None,
+                        help="seconds from the start after which sections are cut short "
+                             "(default 300; with --quick 3600)")
     parser.add_argument("--quick", action="store_true", help="tiny sizes (the CPU smoke test)")
     parser.add_argument("--sections", nargs="+",
                         default=["tests", "tables", "sampler", "training", "options"])
@@ -340,7 +341,9 @@ def main(argv=None) -> int:
         print("gpu_session: no CUDA device here (--device cpu --quick for the smoke test)",
               file=sys.stderr)
         return 2
-    s = Session(args.out, args.deadline_s, args.device, args.quick)
+    deadline = args.deadline_s if args.deadline_s is not None else (3600.0 if args.quick
+                                                                     else 300.0)
+    s = Session(args.out, deadline, args.device, args.quick)
     s.log(f"gpu_session on {s.figures['machine']}, out {args.out}")
     if args.quick:
         sizes = dataclasses.replace(bt.QUICK, batch_sizes=(1, 2))
