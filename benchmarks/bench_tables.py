@@ -472,7 +472,7 @@ def cap_memory(device: str, gib: Optional[float]) -> None:
 
     if gib and device.startswith("cuda"):
         total = torch.cuda.get_device_properties(torch.device(device)).total_memory / 2**30
-        torch.cuda.set_per_process_memory_fraction(min(1.0, gib / total), torch.device(device))
+        torch.cuda.set_per_process_memory_fraction(min(1.0, gib / total), torch.device(device).index or 0)
 
 
 def run_measurements(device: str, sizes: Sizes, networks, precisions, options: Options,
