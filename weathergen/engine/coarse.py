@@ -48,14 +48,37 @@ SQRT3 = math.sqrt(3.0)
 def footprint_depths(depth: torch.Tensor, factor: int, height: int, width: int
                      ) -> tuple[torch.Tensor, torch.Tensor]:
     """The nearest and the farthest scene depth of every coarse pixel's footprint: the image
-    pixels its bilinear upsampling reaches, ``f j − f / 2 .. f j + 3 f / 2 − 1`` per axis (the
-    image's edge replicated). Shape: (V, 1, H, W) -> two (V, 1, h, w), h = ceil(H / f)."""
-    half = factor // 2
-    pad = (half, half + (-width % factor), half, half + (-height % factor))
-    d = F.pad(depth, pad, mode="replicate")
-    far = F.max_pool2d(d, 2 * factor, factor)
-    near = -F.max_pool2d(-d, 2 * factor, factor)
+    pixels its bilinear upsampling reaches, ``f j − f / 2 .. f j + 3 f / 2 − 1`` per axis (within
+    the image). Shape: (V, 1, H, W) -> two (V, 1, h, w), h = ceil(H / f)."""
+    near = _window(_window(depth, factor, 2, torch.amin, torch.minimum), factor, 3, torch.amin,
+                   torch.minimum)
+    far = _window(_window(depth, factor, 2, torch.amax, torch.maximum), factor, 3, torch.amax,
+                  torch.maximum)
     return near, far
+
+
+def _window(x: torch.Tensor, factor: int, dim: int, reduce, pick) -> torch.Tensor:
+    """Along ``dim``: the extremum (``reduce`` over a dimension, ``pick`` of two tensors) over
+    ``f j − f / 2 .. f j + 3 f / 2 − 1`` for every coarse index j: of half blocks (each value
+    read once), then of four half blocks two apart (half block k holds ``(k − 1) f / 2 ..
+    k f / 2 − 1``; those outside the image hold nothing)."""
+    half, n = factor // 2, x.shape[dim]
+    whole = n // half
+    blocks = reduce(x.narrow(dim, 0, whole * half).unflatten(dim, (whole, half)), dim + 1) \
+        if half > 1 else x
+    if n % half:
+        blocks = torch.cat((blocks, reduce(x.narrow(dim, whole * half, n % half), dim,
+                                           keepdim=True)), dim)
+    coarse = -(-n // factor)
+    shape = list(blocks.shape)
+    empty = float("inf") if reduce is torch.amin else -float("inf")
+    shape[dim] = 1
+    head = blocks.new_full(shape, empty)
+    shape[dim] = 2 * coarse + 1 - blocks.shape[dim]
+    blocks = torch.cat((head, blocks, blocks.new_full(shape, empty)), dim)
+    paired = blocks.unflatten(dim, (coarse + 1, 2))
+    pairs = pick(paired.select(dim + 1, 0), paired.select(dim + 1, 1))
+    return pick(pairs.narrow(dim, 0, coarse), pairs.narrow(dim, 1, coarse))
 
 
 def _squash(z: torch.Tensor) -> torch.Tensor:
@@ -150,9 +173,10 @@ def ramps(near: torch.Tensor, far: torch.Tensor, moments: tuple, bounds: tuple,
 def across_edges(base: torch.Tensor, near: torch.Tensor, far: torch.Tensor, moments: tuple,
                  info: CoarseDepths, index: int, level: int) -> torch.Tensor:
     """The upsampled planes of one coarse level (``base``: the bilinear upsampling of
-    ``near``) plus, at every image pixel next to an ambiguous coarse pixel, the ambiguous light
-    in front of it (see the module doc). Shape: base (C, V, H, W); near, far (C, V, h, w);
-    moments four (V, h, w) -> (C, V, H, W). Differentiable in base, near, far and moments."""
+    ``near``, added to in place) plus, at every image pixel next to an ambiguous coarse pixel,
+    the ambiguous light in front of it (see the module doc). Shape: base (C, V, H, W); near,
+    far (C, V, h, w); moments four (V, h, w) -> (C, V, H, W). Differentiable in base, near, far
+    and moments."""
     channels, views, height, width = base.shape
     h, w = near.shape[-2:]
     factor = 2 ** level
@@ -165,33 +189,56 @@ def across_edges(base: torch.Tensor, near: torch.Tensor, far: torch.Tensor, mome
     near_d, far_d = info.footprints[index]
     bounds = (order.in_front(group, near_d), order.in_front(group, far_d))
     delta, lo, hi = ramps(near, far, moments, bounds, order.spread(group))
-    y0, y1, wy = _neighbours(height, h, factor, device)
-    x0, x1, wx = _neighbours(width, w, factor, device)
-    rows = ambiguous.index_select(1, y0) | ambiguous.index_select(1, y1)     # (V, H, w)
-    touched = rows.index_select(2, x0) | rows.index_select(2, x1)           # (V, H, W)
-    v, y, x = torch.nonzero(touched, as_tuple=True)
-    rank = order.in_front(group.view(-1).index_select(0, v), info.depth[v, y, x])
-    flat_delta = delta.reshape(channels, -1)
-    lo, width_ = lo.reshape(-1), (hi - lo).reshape(-1)
-    total = None
-    for cy, wgt_y in ((y0, 1 - wy), (y1, wy)):
-        for cx, wgt_x in ((x0, 1 - wx), (x1, wx)):
-            j = (v * h + cy.index_select(0, y)) * w + cx.index_select(0, x)
-            weight = (wgt_y.index_select(0, y) * wgt_x.index_select(0, x)).to(base.dtype)
-            share = _share(rank, lo.index_select(0, j), width_.index_select(0, j), base.dtype)
-            term = flat_delta.index_select(1, j) * (weight * share)
-            total = term if total is None else total + term
+    v, y, x = _pixels_near(ambiguous, height, width, factor)
     pixel = (v * height + y) * width + x
-    return base.reshape(channels, -1).index_add(1, pixel, total).view(channels, views, height,
-                                                                      width)
+    rank = order.in_front(group.view(-1).index_select(0, v),
+                          info.depth.reshape(-1).index_select(0, pixel)).to(base.dtype)
+    y0, y1, wy = (t.index_select(0, y) for t in _neighbours(height, h, factor, device))
+    x0, x1, wx = (t.index_select(0, x) for t in _neighbours(width, w, factor, device))
+    wy, wx = wy.to(base.dtype), wx.to(base.dtype)
+    # the four neighbours (rows y0, y1 times columns x0, x1), each with its ramp and light
+    row0, row1 = v * h + y0, v * h + y1
+    j = torch.stack((row0 * w + x0, row0 * w + x1, row1 * w + x0, row1 * w + x1))
+    cells = torch.cat((lo[None], (hi - lo)[None], delta)).reshape(2 + channels, -1)
+    near4 = cells.index_select(1, j.view(-1)).view(2 + channels, 4, -1)
+    weight = torch.stack(((1 - wy) * (1 - wx), (1 - wy) * wx, wy * (1 - wx), wy * wx))
+    terms = near4[2:] * (_share(rank, near4[0], near4[1]) * weight)          # (C, 4, K)
+    total = (terms[:, 0] + terms[:, 1]) + (terms[:, 2] + terms[:, 3])
+    base.view(channels, -1).index_add_(1, pixel, total)
+    return base
 
 
-def _share(rank: torch.Tensor, lo: torch.Tensor, width: torch.Tensor, dtype) -> torch.Tensor:
+def _pixels_near(ambiguous: torch.Tensor, height: int, width: int, factor: int
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The image pixels one of whose four bilinear neighbours is ambiguous, as (view, row,
+    column) (K,) each, each once: the pixels of every cell ``(i, j)`` (those whose first
+    neighbours are row i and column j) that holds an ambiguous corner."""
+    device = ambiguous.device
+    cell = ambiguous | torch.cat((ambiguous[:, 1:], ambiguous[:, -1:]), 1)
+    cell = cell | torch.cat((cell[:, :, 1:], cell[:, :, -1:]), 2)
+    v, i, j = torch.nonzero(cell, as_tuple=True)
+    h, w = ambiguous.shape[-2:]
+    rows = torch.bincount(_neighbours(height, h, factor, device)[0], minlength=h)
+    cols = torch.bincount(_neighbours(width, w, factor, device)[0], minlength=w)
+    first_row, first_col = torch.cumsum(rows, 0) - rows, torch.cumsum(cols, 0) - cols
+    nr, nc = rows.index_select(0, i), cols.index_select(0, j)
+    size = nr * nc
+    total = int(size.sum())
+    which = torch.repeat_interleave(torch.arange(v.numel(), device=device), size,
+                                    output_size=total)
+    at = torch.arange(total, device=device) - (torch.cumsum(size, 0) - size).index_select(0, which)
+    across = nc.index_select(0, which)
+    y = first_row.index_select(0, i).index_select(0, which) + torch.div(at, across,
+                                                                       rounding_mode="floor")
+    x = first_col.index_select(0, j).index_select(0, which) + torch.remainder(at, across)
+    return v.index_select(0, which), y, x
+
+
+def _share(rank: torch.Tensor, lo: torch.Tensor, span: torch.Tensor) -> torch.Tensor:
     """``clamp((P − a) / (b − a), 0, 1)``; a step at ``a`` where the ramp has no width."""
-    rank = rank.to(dtype)
-    flat = width <= 0
-    ramp = ((rank - lo) / torch.where(flat, torch.ones_like(width), width)).clamp(0, 1)
-    return torch.where(flat, (rank > lo).to(dtype), ramp)
+    flat = span <= 0
+    ramp = ((rank - lo) / torch.where(flat, torch.ones_like(span), span)).clamp(0, 1)
+    return torch.where(flat, (rank > lo).to(lo.dtype), ramp)
 
 
 def drop_moments(grid: torch.Tensor, info: CoarseDepths) -> torch.Tensor:
