@@ -118,7 +118,7 @@ class DepthOrder:
         group = torch.broadcast_to(group, depth.shape)
         at = torch.searchsorted(self.keys, (group.to(torch.float64) + _squash(depth.detach()))
                                 .contiguous())
-        return (at - self.start[group]) / self.count[group].clamp(min=1)
+        return (at - self.start[group]).to(torch.float64) / self.count[group].clamp(min=1)
 
     def spread(self, group: torch.Tensor) -> torch.Tensor:
         """The half-width in rank of one billboard's ramp, ``SINGLE_SPREAD / n``."""
