@@ -587,9 +587,10 @@ def oracle_render(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam
 
         for t, (image, depth) in enumerate(((image1[b], depth1[b]), (image2[b], depth2[b]))):
             scene = depth[0].double().tolist()
-            frame = draws(record, t, k, cams, scene, beta, lib.resolution, number, coarse_side)
+            side = coarse_side if record.settings.coarse else None
+            frame = draws(record, t, k, cams, scene, beta, lib.resolution, number, side)
             out, opacity = render_frame(image, scene, frame, levels, lib.resolution,
-                                        record.settings.blend, coarse_side, detach_occlusion)
+                                        record.settings.blend, side, detach_occlusion)
             outs[t].append(out)
             outs[2 + t].append(opacity)
     return tuple(torch.stack(o) for o in outs)

@@ -211,3 +211,21 @@ def splat_of_tiny(pair, parts, lib, stamps):
     _, tracks = pair_tracks([parts], views, lib.resolution, beta=BETA_ATTACK,
                             dtype=torch.float64)
     return splat(blur_samples(tracks, torch.float64, stamps.gap), stamps, views.depth)
+
+
+def test_a_record_that_asks_for_the_exact_path_gets_it_in_any_batch():
+    """``coarse = false`` (``--set coarse=false``): that record's billboards are drawn exactly,
+    the same bytes as ``coarse_side=None``, alone or beside a record of the coarse path."""
+    from weathergen.framepair import FramePairBatch
+    pair = plane_pair(48, 64, depth=2.5, near_block=True)
+    fog = sample_particles(pair, load_preset("fog", {"count": 4}), seed=2)
+    exact = sample_particles(pair, load_preset("fog", {"count": 4, "coarse": "false"}), seed=2)
+    assert exact.settings.coarse is False and torch.equal(exact.position, fog.position)
+    alone = render_pair(pair, exact)
+    assert torch.equal(alone.image1, render_pair(pair, fog, coarse_side=None).image1)
+    coarse = render_pair(pair, fog)
+    assert not torch.equal(alone.image1, coarse.image1)
+    both = render_pair(FramePairBatch.stack([pair, pair]), [fog, exact])
+    assert torch.equal(both.image1[:1], coarse.image1)
+    assert torch.equal(both.image1[1:], alone.image1)
+    assert torch.equal(both.image2[1:], alone.image2)
