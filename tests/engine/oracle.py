@@ -498,7 +498,7 @@ def frame_grids(depth, frame_draws, levels, resolution, coarse_side, detach_occl
         twice = depth_aware and made[0] > 0
         passes += [(i, draw, made, 0)] + ([(i, draw, made, 1)] if twice else [])
     moments = {}
-    for i, (looks, samples, theta, colour, b, _), (level, phases, pixels), copy in passes:
+    for i, (_, samples, theta, colour, b, _), (level, phases, pixels), copy in passes:
         reach = max(abs(dx) for _, dx in pixels) // phases + 1     # pixels from the centre
         f = 2 ** level
         key = (level, copy)

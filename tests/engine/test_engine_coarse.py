@@ -3,7 +3,6 @@ differentiable."""
 
 from __future__ import annotations
 
-import pytest
 import torch
 import torch.nn.functional as F
 

@@ -38,7 +38,6 @@ from dataclasses import dataclass
 from typing import Sequence
 
 import torch
-import torch.nn.functional as F
 
 #: The ramp of one billboard is this fraction of one rank wide (< 1 / 2: a step between ranks).
 SINGLE_SPREAD = 0.25
