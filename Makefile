@@ -1,7 +1,10 @@
 # weathergen: set-up, tests, demo and benchmarks in a local virtual environment.
 #
 #   make test                  create .venv, install the pinned CPU torch, the package, run the
-#                              linter (ruff, configured in pyproject.toml) and the tests
+#                              linter (ruff, configured in pyproject.toml) and the tests, in
+#                              TEST_WORKERS=2 pytest-xdist processes of one torch thread each
+#                              (TEST_WORKERS=0: in one process; PYTEST_ARGS: more pytest options,
+#                              e.g. --shuffle-seed N to run them in a shuffled order)
 #   make demo                  render the default preset on the bundled demo scene
 #   make bench                 measure speed and memory (renderer, weather field, combined weather,
 #                              networks, attack step, batched attacks, training, the README's quick
@@ -26,6 +29,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 TORCH  ?= torch==2.13.0
 PYTEST_ARGS ?=
+TEST_WORKERS ?= 2
 FOG_BEFORE ?=
 CORE_BEFORE ?=
 REAL ?=
@@ -68,10 +72,11 @@ install: $(STAMP)
 	rm -rf build    # a stale build/ would put removed modules into the wheel
 	$(BIN)/python -m pip install -q --no-deps --force-reinstall .
 
+# Whole test files go to the workers (--dist loadfile): a file's module fixtures are built once.
 test: install
 	$(BIN)/ruff check .
-	@echo "running the tests: several minutes on a 2-core CPU (pytest -m 'not slow' runs the quick ones)"
-	$(BIN)/pytest -q $(PYTEST_ARGS)
+	@echo "running the tests in $(TEST_WORKERS) processes: about N minutes on a 2-core CPU (pytest -m 'not slow' runs the quick ones)"
+	$(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 # The dependency floors of setup.cfg, installed exactly; torch as for `make test`.
 test-oldest:
