@@ -125,7 +125,7 @@ LAYERS = [("weathergen", "weathergen.errors", "weathergen.workers", "weathergen.
            "weathergen.execution"),
           ("weathergen.datasets", "weathergen.models", "weathergen.engine"),
           ("weathergen.training",),
-          ("weathergen.outputs",), ("weathergen.render",), ("weathergen.attack",),
+          ("weathergen.outputs",), ("weathergen.jobs",), ("weathergen.render",), ("weathergen.attack",),
           ("weathergen.benchmark",),
           ("weathergen.cli",)]
 
@@ -223,3 +223,31 @@ def test_frame_file_check_sees_an_import(tmp_path, monkeypatch):
     probe.write_text("from ..io.exr import read_exr\nfrom weathergen.io.images import to_uint8\n")
     monkeypatch.setitem(MODULES, "weathergen.render.probe", probe)
     assert _frame_file_uses("weathergen.render.probe") == ["line 1: read_exr"]
+
+
+#: The two jobs over a dataset. What they share (a pair's particles and seeds, what its frames
+#: show) lives in weathergen/jobs/, so that neither job imports the other.
+JOBS = ("weathergen.render.job", "weathergen.attack.job")
+
+
+def _job_imports(name: str) -> list[str]:
+    """The imports in ``name`` of the other job of :data:`JOBS`, or of its package (which
+    re-exports it)."""
+    (other,) = (job for job in JOBS if job != name)
+    return [f"line {line}: {target}" for target, line, _ in _imports(name)
+            if target in (other, other.rpartition(".")[0])]
+
+
+def test_the_render_and_attack_jobs_do_not_import_each_other():
+    for job in JOBS:
+        assert not _job_imports(job), (f"{job} imports the other job; move what they share to "
+                                       f"weathergen/jobs/: {_job_imports(job)}")
+
+
+def test_job_check_sees_an_import(tmp_path, monkeypatch):
+    probe = tmp_path / "job.py"
+    probe.write_text("from ..render.job import visibility_of\nfrom ..render import run_render\n"
+                     "from ..jobs import pair_seed\n")
+    monkeypatch.setitem(MODULES, "weathergen.attack.job", probe)
+    assert _job_imports("weathergen.attack.job") == ["line 1: weathergen.render.job",
+                                                     "line 2: weathergen.render"]

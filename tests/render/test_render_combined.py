@@ -15,7 +15,7 @@ from weathergen.cli.main import _register, cli
 from weathergen.engine import (EXAMPLE_COMBINATIONS, LayeredParticles, layer_seed, load_preset,
                                sample_layers, scene_seed)
 from weathergen.framepair import PairId
-from weathergen.render.particles import layer_seeds, pair_particles, pair_seed, weather_seed
+from weathergen.jobs import layer_seeds, pair_particles, pair_seed, weather_seed
 
 
 def run(*args):

@@ -5,7 +5,7 @@ and reports through callbacks, so the command line only wires options and shows 
 itself is :func:`weathergen.attack.attack_pair`; the folder and its files belong to
 :mod:`weathergen.outputs`.
 
-Particles come from :func:`weathergen.render.pair_particles`, seeded per pair exactly as ``render``
+Particles come from :func:`weathergen.jobs.pair_particles`, seeded per pair exactly as ``render``
 seeds them, so ``attack --seed S`` starts from the weather that ``render --seed S`` writes for the
 same preset.
 """
@@ -32,9 +32,8 @@ from ..models import get_model, resolve_amp
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
-from ..render.job import frame2_note, visibility_of
-from ..render.particles import (layer_seeds, pair_particles, pair_seed, weather_scaling,
-                                weather_seed)
+from ..jobs import (frame2_note, layer_seeds, pair_particles, pair_seed, visibility_of,
+                    weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -131,7 +130,7 @@ class PairReport:
     #: particle centres frame 1 and frame 2 show before the optimisation (None for an Lp attack)
     visible: Optional[tuple] = None
     #: a paper preset's pair whose frame 2 shows fewer than half of them (strong camera motion;
-    #: see :func:`weathergen.render.job.few_in_frame2`)
+    #: see :func:`weathergen.jobs.few_in_frame2`)
     few_in_frame2: bool = False
 
 

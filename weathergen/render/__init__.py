@@ -1,6 +1,7 @@
 """The render job: weather rendered into every selected pair of a dataset, written to a folder.
 
-- :mod:`.particles`: which particles a pair gets (its own seed, or an earlier output's);
+- which particles a pair gets (its own seed, or an earlier output's) is
+  :mod:`weathergen.jobs`, shared with the attack job;
 - :mod:`.shards`: splitting a run over job arrays;
 - :mod:`.job`: the run itself (workers, batches, resumption, the manifest), writing through
   :mod:`weathergen.outputs`;
@@ -11,7 +12,7 @@
 from __future__ import annotations
 
 from .job import RENDER_THREADS, PairResult, RenderJob, record_run, render_batch, run_render
-from .particles import pair_particles, pair_seed
+from ..jobs import pair_particles, pair_seed
 from .plan import (APPEARANCE_KEYS, ResolvedPreset, default_batch_size, default_out,
                    default_pass_name, resolve_preset)
 from .preview import contact_sheet

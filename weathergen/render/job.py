@@ -25,27 +25,22 @@ import torch
 
 from ..datasets import Dataset, PairRef, right_camera
 from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, load_templates,
-                      particle_truth, reference_transforms, render_pair, visible_counts)
-from ..engine.presets import list_presets
+                      particle_truth, reference_transforms, render_pair)
 from ..engine.renderer import pair_starts, render_first_frame
 from ..engine.stereo import render_right, render_right_layers, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
+from ..jobs import (frame2_note, layer_seeds, pair_particles, visibility_of, weather_scaling,
+                    weather_seed)
 from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
                        pair_metadata, write_manifest_part, write_pair_outputs)
 from ..io.atomic import write_error
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
 from ..words import counted
-from .particles import layer_seeds, pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
 from .shards import shard_refs
-
-#: A pair of a paper preset whose frame 2 shows fewer than this fraction of the particle centres
-#: frame 1 shows (strong camera motion, e.g. driving forward) is marked ``few_in_frame2`` in the
-#: manifest, and the run says once that weather fields are the model for such motion.
-FRAME2_KEPT_MIN = 0.5
 
 #: Every pair renders with this many intra-op threads, whatever the worker count: thread count can
 #: change the order of floating-point reductions, and with it the output bytes.
@@ -108,7 +103,7 @@ class PairResult:
     bytes: int = 0
     message: str = ""
     visible: tuple = ()         # particle centres in view (in front of the scene) in frames 1, 2
-    few_in_frame2: bool = False # a paper preset's pair that keeps < FRAME2_KEPT_MIN of them
+    few_in_frame2: bool = False # a paper preset's pair that keeps < jobs.FRAME2_KEPT_MIN of them
     particles: Optional[int] = None   # written: particles in the pair's record (the count its
                                       # frame size gave, see the metadata's frame_scaling)
     input: dict = field(default_factory=dict)   # facts the reader reports (e.g. KITTI's pose fit)
@@ -233,43 +228,6 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
                       bytes=sum(p.stat().st_size for p in files), visible=visible,
                       few_in_frame2=few,
                       particles=particles.count, input=jsonable(facts), warnings=warnings)
-
-
-def visibility_of(pair, particles) -> tuple[tuple[int, int], bool]:
-    """The particle centres frames 1 and 2 show in front of the scene (over every layer of
-    combined weather), and whether a paper preset's particles (a paper layer's) are
-    :func:`few_in_frame2`."""
-    layers = particles.layers if isinstance(particles, LayeredParticles) else (particles,)
-    per_layer = [visible_counts(pair, r) for r in layers]
-    visible = (sum(v[0] for v in per_layer), sum(v[1] for v in per_layer))
-    return visible, any(r.optics is None and few_in_frame2(*v) for r, v in zip(layers, per_layer))
-
-
-def few_in_frame2(visible1: int, visible2: int) -> bool:
-    """Whether frame 2 shows fewer than :data:`FRAME2_KEPT_MIN` of the particle centres frame 1
-    shows. The paper's model samples a pair's particles among the points visible in frame 1 or
-    frame 2, in a box in front of camera 1: a camera that moves far into that box leaves most of
-    them behind it or outside its view."""
-    return visible2 < FRAME2_KEPT_MIN * visible1
-
-
-def frame2_note(few: list[tuple[str, tuple[int, int]]], preset_name: str) -> Optional[str]:
-    """The run's one line about the pairs it marked ``few_in_frame2`` (``few``: each one's name and
-    visible counts in frames 1 and 2), or None when there are none. Render and attack print it."""
-    if not few:
-        return None
-    order = ("snow", "rain", "sparks", "fog")
-    fields = sorted((name for name in list_presets("field") if name.endswith("-moderate")),
-                    key=lambda name: (order.index(name.split("-")[0])
-                                      if name.split("-")[0] in order else len(order), name))
-    worst, (v1, v2) = min(few, key=lambda f: f[1][1] / max(f[1][0], 1))
-    share = v2 / max(v1, 1)
-    return (f"in {counted(len(few), 'pair')} frame 2 shows fewer than half of the particles frame 1 "
-            f"shows (strong camera motion; e.g. {worst}: {v2} of {v1}, {share:.0%}), marked "
-            f"few_in_frame2 in the manifest. The paper's preset "
-            f"'{preset_name}' places its particles in a box in front of camera 1; for strong "
-            f"camera motion use a weather-field preset ({', '.join(fields)}, ...), whose "
-            f"particles fill the world that both cameras see")
 
 
 def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:

@@ -1,0 +1,15 @@
+"""What the render and attack jobs share, so that neither job imports the other.
+
+- :mod:`.particles`: which particles a pair gets (its own seed, or an earlier output's), the
+  same rule for ``render`` and ``attack``;
+- :mod:`.visibility`: the particle centres a pair's frames show, ``few_in_frame2`` and the run's
+  note about such pairs.
+"""
+
+from __future__ import annotations
+
+from .particles import layer_seeds, pair_particles, pair_seed, weather_scaling, weather_seed
+from .visibility import FRAME2_KEPT_MIN, few_in_frame2, frame2_note, visibility_of
+
+__all__ = ["FRAME2_KEPT_MIN", "few_in_frame2", "frame2_note", "layer_seeds", "pair_particles",
+           "pair_seed", "visibility_of", "weather_scaling", "weather_seed"]
