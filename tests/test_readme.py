@@ -48,11 +48,12 @@ def test_the_tour_names_render_preview_attack_evaluate_and_the_shipped_checkpoin
     assert "path/to" not in README
 
 
-def test_the_quick_look_is_what_make_bench_times_and_writes_a_folder_of_its_own():
+def test_make_bench_times_the_tour_and_the_quick_look_writes_a_folder_of_its_own():
     spec = importlib.util.spec_from_file_location("bench_quick_look",
                                                   PROJECT_ROOT / "speed" / "bench_quick_look.py")
     bench = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(bench)
+    assert bench.tour_commands(README) == tour_commands()      # make bench times the whole tour
     attack = _quick_look()
     out = attack[attack.index("--out") + 1]
     assert attack[:attack.index("--out")] + attack[attack.index("--out") + 2:] == bench.QUICK_LOOK
