@@ -82,3 +82,19 @@ def test_the_tour_runs_as_written(tmp_path):
     for path in ("snow/manifest.json", "snow/preview.png", "snow.gif", "street/manifest.json",
                  "street.mp4", "quick-look/summary.json"):
         assert (out / path).is_file(), path
+
+
+def test_the_set_up_quotes_what_make_prints(tmp_path):
+    """The lines the README says `make demo` and `make test` print on a fresh clone are theirs."""
+    section = README.split("## Set up", 1)[1].split("\n## ", 1)[0]
+    quoted = [q.removesuffix("...").removesuffix("...)").rstrip(" ;")
+              for q in re.findall(r"`((?:installing|running) [^`]+)`", section)]
+    assert len(quoted) >= 3, quoted
+    venv = tmp_path / ".venv"
+    printed = []
+    for target in ("demo", "test"):
+        plan = subprocess.run(["make", "-n", "-C", str(PROJECT_ROOT), target, f"VENV={venv}"],
+                              check=True, capture_output=True, text=True).stdout
+        printed += [m.replace(str(venv), ".venv") for m in re.findall(r'echo "([^"]+)"', plan)]
+    for line in quoted:
+        assert any(p.startswith(line) for p in printed), (line, printed)
