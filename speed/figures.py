@@ -189,7 +189,9 @@ def markdown(data: dict) -> str:
              "Written by `make bench` (each script through `speed/figures.py`); do not edit by "
              "hand. Every speed and memory figure of the documentation is here; each section says "
              "on which tree and machine it was measured. GPU figures: "
-             "[gpu-check.json](gpu-check.json) (`make gpu-check`).", ""]
+             "[gpu-check.json](gpu-check.json) (`make gpu-check`) and "
+             "[gpu-session.json](gpu-session.json) (`speed/gpu_session.sh`), each naming its GPU "
+             "and torch.", ""]
     for command, s in data["sections"].items():
         m = s["machine"]
         state = " with uncommitted changes" if s.get("dirty") else ""
