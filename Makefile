@@ -75,7 +75,7 @@ install: $(STAMP)
 # Whole test files go to the workers (--dist loadfile): a file's module fixtures are built once.
 test: install
 	$(BIN)/ruff check .
-	@echo "running the tests in $(TEST_WORKERS) processes: about 5 minutes on a 2-core CPU (pytest -m 'not slow' runs the quick ones)"
+	@echo "running the tests in $(TEST_WORKERS) processes: about 8 minutes on a 2-core CPU (pytest -m 'not slow' runs the quick ones)"
 	$(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 # The dependency floors of setup.cfg, installed exactly; torch as for `make test`.

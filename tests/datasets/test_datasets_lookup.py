@@ -105,7 +105,7 @@ def test_help_texts_take_the_frame_rates_from_the_readers(monkeypatch):
         listed.update({name: rate for name in names.split(", ")})
     assert listed == expected
     help_text = " ".join(CliRunner().invoke(cli, ["preview", "--help"]).output.split())
-    assert f"Default: the dataset's ({frame_rates_text()})" in help_text
+    assert f"the dataset's ({frame_rates_text()})" in help_text
 
     class Slow(DATASETS["demo"]):
         frame_rate = 12.5

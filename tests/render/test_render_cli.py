@@ -309,12 +309,14 @@ def test_kitti_render_keeps_sparse_flow_validity(tmp_path, demo_root):
 def test_full_disk_stops_the_run_with_one_line(tmp_path, monkeypatch):
     import errno
 
+    import weathergen.outputs.formats.png as png_format
     import weathergen.outputs.pairs as outputs
 
     def no_space(path, *args, **kwargs):
         raise OSError(errno.ENOSPC, "No space left on device", str(path))
 
-    monkeypatch.setattr(outputs, "write_png", no_space)
+    monkeypatch.setattr(png_format, "write_png", no_space)    # the weather frames
+    monkeypatch.setattr(outputs, "write_png", no_space)       # the masks beside them
     out = tmp_path / "full"
     res = run("render", "--out", out, *FAST)
     assert res.exit_code == 2, res.output
