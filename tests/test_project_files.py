@@ -52,6 +52,16 @@ def test_the_readme_first_command_works_after_make_demo():
     assert ". .venv/bin/activate" in setup and ".venv/bin/weathergen" in setup
 
 
+def test_the_readme_names_what_make_demo_writes():
+    """The README's `make demo` line names the folder the recipe renders into and the contact
+    sheet its `weathergen preview` writes there (preview's default, RENDER_DIR/preview.png)."""
+    said = re.search(r"^make demo\s+#(.*)$", README, re.M).group(1)
+    out = _demo_out()
+    recipe = (PROJECT_ROOT / "Makefile").read_text().split("\ndemo:", 1)[1].split("\n\n", 1)[0]
+    assert re.search(rf"weathergen preview {re.escape(out)}\s*$", recipe, re.M), recipe
+    assert f"{out}," in said and f"{out}/preview.png" in said, said
+
+
 def test_every_test_the_guarantees_name_exists():
     page = PROJECT_ROOT / "docs" / "guarantees.md"
     if page.exists():
