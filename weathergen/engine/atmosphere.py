@@ -19,7 +19,8 @@ farther.
 
 Integration (:class:`AirView`): with ``h = 0`` and no density lattice, ``τ = β₀ L`` exactly. A
 heterogeneous medium is integrated by the midpoint rule along the rays of a coarse grid of
-pixels, every :data:`RAY_STEP` pixels, in :data:`RAY_SAMPLES` intervals that grow geometrically
+pixels, every :data:`RAY_STEP` pixels (fewer for short focal lengths: at most
+:data:`RAY_ANGLE` apart), in :data:`RAY_SAMPLES` intervals that grow geometrically
 from ``sky_distance / 2000`` to ``sky_distance``; a pixel (or a particle) reads the cumulative
 integral at its own distance on the four coarse rays around it (linearly within an interval) and
 interpolates them bilinearly. The error against a fine reference is bounded and tested (see
@@ -54,8 +55,11 @@ SNOW_FALL_SPEED = 1.0
 LATTICE = 32
 #: Voxels per ``heterogeneity_scale``.
 VOXELS_PER_SCALE = 4
-#: Pixels between the coarse rays along which a heterogeneous medium is integrated.
+#: Pixels between the coarse rays along which a heterogeneous medium is integrated: at most
+#: this many, and at most :data:`RAY_ANGLE` radians apart (``floor(f · RAY_ANGLE)`` pixels, at
+#: least 1, for a focal length of ``f`` pixels).
 RAY_STEP = 8
+RAY_ANGLE = 1 / 64
 #: Midpoint intervals per coarse ray, from the camera to ``sky_distance``.
 RAY_SAMPLES = 128
 #: The first interval, as a fraction of ``sky_distance``; the others grow geometrically.
@@ -370,6 +374,8 @@ class AirView:
         self.cam_from_ref = cam_from_ref.detach().double().to(self.device)
         self.size = (int(size[0]), int(size[1]))
         self.frame = int(frame)
+        focal = float(torch.sqrt(self.intrinsics[0, 0] * self.intrinsics[1, 1]))
+        self.step = max(1, min(RAY_STEP, int(math.floor(focal * RAY_ANGLE))))
         self._table = None
 
     @property
@@ -395,8 +401,8 @@ class AirView:
         k = (torch.searchsorted(ends, length.detach().contiguous(), right=True) - 1) \
             .clamp(0, m - 1)
         part = length - ends.index_select(0, k.reshape(-1)).view(k.shape)
-        fy = ((v.double() + 0.5) / RAY_STEP).clamp(0, rows - 1)
-        fx = ((u.double() + 0.5) / RAY_STEP).clamp(0, cols - 1)
+        fy = ((v.double() + 0.5) / self.step).clamp(0, rows - 1)
+        fx = ((u.double() + 0.5) / self.step).clamp(0, cols - 1)
         y0 = torch.floor(fy.detach()).long().clamp(max=rows - 2)
         x0 = torch.floor(fx.detach()).long().clamp(max=cols - 2)
         wy, wx = fy - y0, fx - x0
@@ -418,11 +424,11 @@ class AirView:
         if self._table is None:
             atm = self.atmosphere
             height, width = self.size
-            rows, cols = -(-height // RAY_STEP) + 1, -(-width // RAY_STEP) + 1
+            rows, cols = -(-height // self.step) + 1, -(-width // self.step) + 1
             dev = self.device
             ends, mids, lengths = (t.to(dev) for t in _nodes(float(atm.sky_distance)))
-            y = -0.5 + RAY_STEP * torch.arange(rows, dtype=torch.float64, device=dev)
-            x = -0.5 + RAY_STEP * torch.arange(cols, dtype=torch.float64, device=dev)
+            y = -0.5 + self.step * torch.arange(rows, dtype=torch.float64, device=dev)
+            x = -0.5 + self.step * torch.arange(cols, dtype=torch.float64, device=dev)
             yy, xx = torch.meshgrid(y, x, indexing="ij")
             k = self.intrinsics
             cy = (yy - k[1, 2]) / k[1, 1]
@@ -458,8 +464,16 @@ def reference_optical_depth(air: AirView, u: torch.Tensor, v: torch.Tensor,
     rot, trans = air.cam_from_ref[:3, :3], air.cam_from_ref[:3, 3]
     direction = (ray[..., :, None] * rot).sum(-2)
     centre = -(trans[:, None] * rot).sum(0)
+    if atm.uniform:
+        return atm.extinction * length
+    lattice = atm.lattice(torch.float64, length.device)
+    origin = centre - atm.drift[air.frame].to(length.device)
     total = torch.zeros_like(length)
-    for j in range(samples):
-        s = (j + 0.5) / samples * length
-        total = total + atm.density_at(centre + direction * s[..., None], air.frame)
+    chunk = max(1, (1 << 22) // max(1, length.numel()))
+    for j0 in range(0, samples, chunk):
+        fractions = (torch.arange(j0, min(samples, j0 + chunk), dtype=torch.float64,
+                                  device=length.device) + 0.5) / samples
+        s = length[..., None] * fractions                                    # (..., J)
+        points = origin + direction[..., None, :] * s[..., None]
+        total = total + sample_lattice(lattice, points / atm.voxel).double().sum(-1)
     return atm.extinction * length * total / samples

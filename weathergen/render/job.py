@@ -293,9 +293,9 @@ def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
         else:
             lib = load_templates(particles.settings.templates)
             start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
-            rendered = (render_right(image, view, particles, start, disp, lib)
-                        for image, view, start in zip((rc.image1, rc.image2), views[:count],
-                                                      (start1, start2)))
+            rendered = (render_right(image, view, particles, start, disp, lib, frame=t)
+                        for t, (image, view, start) in enumerate(zip(
+                            (rc.image1, rc.image2), views[:count], (start1, start2))))
         frames, opacity, depths, cams = [], [], [], []
         for (out, alpha), view in zip(rendered, views[:count]):
             frames.append(out.permute(1, 2, 0).numpy())
