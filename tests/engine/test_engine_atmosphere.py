@@ -13,9 +13,9 @@ import torch
 from engine_scenes import plane_pair, pose, rotation
 from weathergen.engine import (LayeredParticles, Particles, load_preset, render_pair,
                                sample_weather)
-from weathergen.engine.atmosphere import (LATTICE, AirView, density_lattice,
-                                          estimate_airlight, rain_extinction,
-                                          reference_optical_depth, snow_extinction)
+from weathergen.engine.air import AirView, reference_optical_depth
+from weathergen.engine.atmosphere import (LATTICE, density_lattice, estimate_airlight,
+                                          rain_extinction, snow_extinction)
 from weathergen.engine.field import sample_field_particles
 from weathergen.engine.renderer import render, render_view
 from weathergen.engine.sampling import reference_transforms
@@ -414,3 +414,26 @@ def test_clear_presets_and_paper_presets_carry_no_atmosphere():
     assert sample_weather(pair, load_preset("snow", {"count": "10"}), 0).atmosphere is None
     record = sample_field_particles(pair, load_preset("snow-light"), 0, frame_rate=RATE)
     assert record.atmosphere is not None and record.atmosphere.uniform
+
+
+def test_particle_truth_sees_the_air_in_front_of_the_particles():
+    from weathergen.engine import particle_truth
+
+    pair = plane_pair(40, 56, depth=20.0, dtype=torch.float64)
+    preset = load_preset("rain-heavy", {"density": "2", "rain_rate": "0", "visibility": "10"})
+    record = sample_weather(pair, preset, 1, frame_rate=RATE)
+    with_air = particle_truth(pair, record)
+    without = particle_truth(pair, dataclasses.replace(record, atmosphere=None))
+    covered = without.weight > 1e-4
+    assert bool(covered.any())
+    ratio = with_air.weight[covered] / without.weight[covered]
+    assert float(ratio.max()) < 1 and float(ratio.min()) > 0
+    assert float(with_air.opacity.sum()) < float(without.opacity.sum())
+    # combined weather: the same through the layered path
+    combined = load_preset("rain-heavy+fog-heavy", {"rain-heavy.density": "2",
+                                                    "rain-heavy.rain_rate": "0"})
+    layers = sample_weather(pair, combined, 1, frame_rate=RATE)
+    clear = LayeredParticles(tuple(dataclasses.replace(r, atmosphere=None)
+                                   for r in layers.layers), layers.names)
+    assert float(particle_truth(pair, layers).weight.sum()) < \
+        float(particle_truth(pair, clear).weight.sum())

@@ -17,8 +17,8 @@ wind, and is the same at the same world point in every frame of a sequence and i
 a stereo rig. Rays end at the scene's surface, or at ``sky_distance`` for the sky and anything
 farther.
 
-Integration (:class:`AirView`): with ``h = 0`` and no density lattice, ``τ = β₀ L`` exactly. A
-heterogeneous medium is integrated by the midpoint rule along the rays of a coarse grid of
+Integration (:mod:`~weathergen.engine.air`): with ``h = 0`` and no density lattice,
+``τ = β₀ L`` exactly. A heterogeneous medium is integrated by the midpoint rule along the rays of a coarse grid of
 pixels, every :data:`RAY_STEP` pixels (fewer for short focal lengths: at most
 :data:`RAY_ANGLE` apart), in :data:`RAY_SAMPLES` intervals that grow geometrically
 from ``sky_distance / 2000`` to ``sky_distance``; a pixel (or a particle) reads the cumulative
@@ -150,7 +150,7 @@ def density_lattice(seed: int, heterogeneity: float) -> torch.Tensor:
     return 1 + heterogeneity * _noise(int(seed))
 
 
-def _wrapped(lattice: torch.Tensor) -> torch.Tensor:
+def wrapped_lattice(lattice: torch.Tensor) -> torch.Tensor:
     """The lattice with its first slice repeated after the last along each axis (periodic
     trilinear interpolation by ``grid_sample``). Shape: (P, P, P) -> (1, 1, P+1, P+1, P+1)."""
     out = torch.cat((lattice, lattice[:1]), 0)
@@ -166,12 +166,14 @@ def sample_lattice(lattice: torch.Tensor, voxels: torch.Tensor) -> torch.Tensor:
     size = lattice.shape[0]
     coords = torch.remainder(voxels, size) * (2.0 / size) - 1
     grid = coords.flip(-1).reshape(1, -1, 1, 1, 3).to(lattice.dtype)     # grid_sample: x, y, z
-    out = F.grid_sample(_wrapped(lattice), grid, mode="bilinear", padding_mode="border",
+    out = F.grid_sample(wrapped_lattice(lattice), grid, mode="bilinear", padding_mode="border",
                         align_corners=True)
     return out.reshape(voxels.shape[:-1])
 
 
 # -- the record ------------------------------------------------------------------------------
+
+_LATTICES: dict = {}
 
 @dataclass
 class Atmosphere:
@@ -211,11 +213,18 @@ class Atmosphere:
         return dataclasses.replace(self, **changes)
 
     def lattice(self, dtype=torch.float32, device=None) -> torch.Tensor:
-        """The density lattice ρ (explicit, or the seed's). Shape: (LATTICE,) * 3."""
+        """The density lattice ρ (explicit, or the seed's, made once per process for each
+        dtype and device). Shape: (LATTICE,) * 3."""
         if self.density is not None:
             return self.density.to(device=device, dtype=dtype) if device is not None \
                 else self.density.to(dtype)
-        return density_lattice(self.seed, self.heterogeneity).to(device=device, dtype=dtype)
+        key = (int(self.seed), float(self.heterogeneity), dtype, str(torch.device(device or "cpu")))
+        if key not in _LATTICES:
+            if len(_LATTICES) >= 32:
+                _LATTICES.clear()
+            _LATTICES[key] = density_lattice(self.seed, self.heterogeneity).to(
+                device=device, dtype=dtype)
+        return _LATTICES[key]
 
     def density_at(self, points: torch.Tensor, frame: int = 0) -> torch.Tensor:
         """ρ at reference points in the pair's frame ``frame`` (0 or 1). Shape: (..., 3) ->
@@ -337,7 +346,7 @@ def estimate_airlight(images: Sequence[torch.Tensor], depths: Sequence[torch.Ten
 # -- integration along rays ------------------------------------------------------------------
 
 @lru_cache(maxsize=8)
-def _nodes(sky_distance: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+def ray_nodes(sky_distance: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Distances along a ray: the ends ``s`` (M + 1,) of :data:`RAY_SAMPLES` intervals from 0 to
     ``sky_distance`` growing geometrically from ``FIRST_INTERVAL · sky_distance``, their midpoints
     and lengths (M,). float64, CPU."""
@@ -356,124 +365,3 @@ def _nodes(sky_distance: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tenso
     ends[-1] = sky_distance
     lengths = ends[1:] - ends[:-1]
     return ends, 0.5 * (ends[1:] + ends[:-1]), lengths
-
-
-class AirView:
-    """One atmosphere seen by one camera in one frame of its pair: the optical depth along any
-    ray of the view (:meth:`optical_depth`).
-
-    Shape: intrinsics (3, 3), cam_from_ref (4, 4) (the record's reference frame -> camera),
-    size (H, W); frame 0 or 1 (the drift of the pair's frame 1 or 2).
-    """
-
-    def __init__(self, atmosphere: Atmosphere, intrinsics: torch.Tensor,
-                 cam_from_ref: torch.Tensor, size: tuple[int, int], frame: int, device=None):
-        self.atmosphere = atmosphere
-        self.device = torch.device(device) if device is not None else cam_from_ref.device
-        self.intrinsics = intrinsics.detach().double().to(self.device)
-        self.cam_from_ref = cam_from_ref.detach().double().to(self.device)
-        self.size = (int(size[0]), int(size[1]))
-        self.frame = int(frame)
-        focal = float(torch.sqrt(self.intrinsics[0, 0] * self.intrinsics[1, 1]))
-        self.step = max(1, min(RAY_STEP, int(math.floor(focal * RAY_ANGLE))))
-        self._table = None
-
-    @property
-    def uniform(self) -> bool:
-        return self.atmosphere.uniform
-
-    def distances(self, depth: torch.Tensor) -> torch.Tensor:
-        """Every pixel's ray length, at most ``sky_distance``. Shape: (1, H, W) -> (1, H, W)."""
-        return pixel_distances(depth.to(self.device), self.intrinsics) \
-            .clamp(max=self.atmosphere.sky_distance)
-
-    def optical_depth(self, u: torch.Tensor, v: torch.Tensor, distance: torch.Tensor
-                      ) -> torch.Tensor:
-        """τ along the rays through image points ``(u, v)`` up to ``distance`` (clamped to
-        ``[0, sky_distance]``). Shape: any (same) shape -> that shape, float64;
-        differentiable in the points, the distance and the density lattice."""
-        atm = self.atmosphere
-        length = distance.double().clamp(0, atm.sky_distance)
-        if atm.uniform:
-            return atm.extinction * length
-        ends, cumulative, density, rows, cols = self._rays()
-        m = RAY_SAMPLES
-        k = (torch.searchsorted(ends, length.detach().contiguous(), right=True) - 1) \
-            .clamp(0, m - 1)
-        part = length - ends.index_select(0, k.reshape(-1)).view(k.shape)
-        fy = ((v.double() + 0.5) / self.step).clamp(0, rows - 1)
-        fx = ((u.double() + 0.5) / self.step).clamp(0, cols - 1)
-        y0 = torch.floor(fy.detach()).long().clamp(max=rows - 2)
-        x0 = torch.floor(fx.detach()).long().clamp(max=cols - 2)
-        wy, wx = fy - y0, fx - x0
-        flat_c, flat_d = cumulative.reshape(-1), density.reshape(-1)
-
-        def along(y, x):            # the midpoint integral up to ``length`` on ray (y, x)
-            ray = y * cols + x
-            c = flat_c.index_select(0, (ray * (m + 1) + k).reshape(-1)).view(k.shape)
-            d = flat_d.index_select(0, (ray * m + k).reshape(-1)).view(k.shape)
-            return c + part * d
-
-        top = torch.lerp(along(y0, x0), along(y0, x0 + 1), wx)
-        bottom = torch.lerp(along(y0 + 1, x0), along(y0 + 1, x0 + 1), wx)
-        return atm.extinction * torch.lerp(top, bottom, wy)
-
-    def _rays(self):
-        """The coarse rays' cumulative midpoint integrals of ρ (rows, cols, M + 1) and the
-        densities at their midpoints (rows, cols, M), float64, with the nodes (made once)."""
-        if self._table is None:
-            atm = self.atmosphere
-            height, width = self.size
-            rows, cols = -(-height // self.step) + 1, -(-width // self.step) + 1
-            dev = self.device
-            ends, mids, lengths = (t.to(dev) for t in _nodes(float(atm.sky_distance)))
-            y = -0.5 + self.step * torch.arange(rows, dtype=torch.float64, device=dev)
-            x = -0.5 + self.step * torch.arange(cols, dtype=torch.float64, device=dev)
-            yy, xx = torch.meshgrid(y, x, indexing="ij")
-            k = self.intrinsics
-            cy = (yy - k[1, 2]) / k[1, 1]
-            cx = (xx - k[0, 2] - k[0, 1] * cy) / k[0, 0]
-            ray = torch.stack((cx, cy, torch.ones_like(cx)), -1)
-            ray = ray / ray.norm(dim=-1, keepdim=True)
-            rot, trans = self.cam_from_ref[:3, :3], self.cam_from_ref[:3, 3]
-            # reference-frame directions R^T d (rows) and the camera centre −R^T t, minus drift
-            direction = (ray[..., :, None] * rot).sum(-2)
-            centre = -(trans[:, None] * rot).sum(0) - atm.drift[self.frame].to(dev)
-            points = centre + direction[..., None, :] * mids[:, None]      # (rows, cols, M, 3)
-            lattice = atm.lattice(torch.float64 if atm.density is None
-                                  else atm.density.dtype, dev)
-            density = sample_lattice(lattice, points / atm.voxel).double()
-            cumulative = torch.cat((torch.zeros(rows, cols, 1, dtype=torch.float64, device=dev),
-                                    torch.cumsum(density * lengths, -1)), -1)
-            self._table = (ends, cumulative, density, rows, cols)
-        return self._table
-
-
-def reference_optical_depth(air: AirView, u: torch.Tensor, v: torch.Tensor,
-                            distance: torch.Tensor, samples: int) -> torch.Tensor:
-    """τ by the midpoint rule with ``samples`` equal intervals along each point's own ray (no
-    coarse rays): the fine reference the integration is tested against.
-    Shape: any (same) shape -> that shape, float64."""
-    atm = air.atmosphere
-    length = distance.double().clamp(0, atm.sky_distance)
-    k = air.intrinsics
-    cy = (v.double() - k[1, 2]) / k[1, 1]
-    cx = (u.double() - k[0, 2] - k[0, 1] * cy) / k[0, 0]
-    ray = torch.stack((cx, cy, torch.ones_like(cx)), -1)
-    ray = ray / ray.norm(dim=-1, keepdim=True)
-    rot, trans = air.cam_from_ref[:3, :3], air.cam_from_ref[:3, 3]
-    direction = (ray[..., :, None] * rot).sum(-2)
-    centre = -(trans[:, None] * rot).sum(0)
-    if atm.uniform:
-        return atm.extinction * length
-    lattice = atm.lattice(torch.float64, length.device)
-    origin = centre - atm.drift[air.frame].to(length.device)
-    total = torch.zeros_like(length)
-    chunk = max(1, (1 << 22) // max(1, length.numel()))
-    for j0 in range(0, samples, chunk):
-        fractions = (torch.arange(j0, min(samples, j0 + chunk), dtype=torch.float64,
-                                  device=length.device) + 0.5) / samples
-        s = length[..., None] * fractions                                    # (..., J)
-        points = origin + direction[..., None, :] * s[..., None]
-        total = total + sample_lattice(lattice, points / atm.voxel).double().sum(-1)
-    return atm.extinction * length * total / samples
