@@ -10,7 +10,7 @@ Written into docs/images/ (``--out`` elsewhere):
   labelled tile each;
 - ``atmosphere.png`` (docs/engine.md, "The atmosphere"): the fog ladder (mist, fog-light,
   fog-moderate, fog-heavy), heavy rain and snow and a downpour in light fog on the demo street,
-  frame 1, with the clean frame first.
+  frame 1 and its opacity, after the clean frame and its depth.
 
 ``--real ROOT`` also draws every preset, both frames, into the first pair of a real dataset
 (``--real-dataset``, KITTI layout by default; ``--depth-scale`` as for ``render``) and writes the
@@ -284,10 +284,41 @@ def main_every_preset(out: Path = EVERY_PRESET, quick: bool = False) -> bool:
     return save_palette(out, every_preset_sheet(pair, ds))
 
 
+def ladder_sheet(pair, dataset, *, both_frames: bool = False, shrink: int = 1) -> np.ndarray:
+    """The atmosphere's ladder (:data:`LADDER`) drawn into ``pair``: per rung its frame 1 (and
+    frame 2 with ``both_frames``) and the opacity of frame 1 (white: opaque), labelled; the
+    ``clean`` rung shows the frame and the scene's depth instead (white: near, black: the
+    farthest, at most 100 m). Four tiles a row; uint8 RGB."""
+    torch.set_num_threads(1)
+    tiles = []
+    for name in LADDER:
+        if name == "clean":
+            frames = (pair.image1, pair.image2)
+            depth = pair.depth1[0].double().clamp(max=100.0)
+            extra, what = 1 - depth / float(depth.max()), f"depth, black {float(depth.max()):.0f} m"
+        else:
+            particles = pair_particles(pair, load_preset(name), 0, world_up=dataset.world_up,
+                                       frame_rate=dataset.frame_rate)
+            with torch.no_grad():
+                out = render_pair(pair, particles)
+            frames = (out.image1[0], out.image2[0])
+            extra, what = out.opacity1[0, 0].double(), "opacity"
+        shown = [(f"{name}, frame {t + 1}" if both_frames else name, frame)
+                 for t, frame in enumerate(frames[:2 if both_frames else 1])]
+        shown.append((f"{name}: {what}", extra[None].expand(3, -1, -1)))
+        for label, image in shown:
+            tile = to_uint8(image.permute(1, 2, 0).numpy())
+            if shrink > 1:
+                tile = cv2.resize(tile, (tile.shape[1] // shrink, tile.shape[0] // shrink),
+                                  interpolation=cv2.INTER_AREA)
+            tiles.append(labelled(tile, label))
+    return grid(tiles, 4)
+
+
 def main_atmosphere(out: Path = ATMOSPHERE, quick: bool = False) -> bool:
     """Write the atmosphere's ladder on the demo street to ``out``."""
     pair, ds = demo_pair(quick)
-    return save_palette(out, every_preset_sheet(pair, ds, columns=4, names=LADDER))
+    return save_palette(out, ladder_sheet(pair, ds))
 
 
 def main_real(root: Path, out: Path = REAL_SHEET, dataset: str = "kitti",
@@ -302,8 +333,7 @@ def main_real(root: Path, out: Path = REAL_SHEET, dataset: str = "kitti",
     write_small_png(out, sheet)
     print(f"wrote {out} ({pair.id}, {pair.size[1]}x{pair.size[0]}, tiles 1/{shrink})")
     ladder = out.with_name("atmosphere-real.png")
-    write_small_png(ladder, every_preset_sheet(pair, ds, both_frames=True, shrink=shrink,
-                                               columns=4, names=LADDER))
+    write_small_png(ladder, ladder_sheet(pair, ds, both_frames=True, shrink=shrink))
     print(f"wrote {ladder}")
     return out
 

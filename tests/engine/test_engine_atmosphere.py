@@ -142,6 +142,8 @@ def test_sky_pixels_reach_the_airlight_for_heavy_fog():
 
 
 def test_auto_airlight_is_the_far_bright_pixels_colour_nearly_grey_and_shared_by_the_pair():
+    """The farthest 5 % of both frames' pixels, the brightest quarter of them, a quarter of
+    their colour kept, and no darker than the frames' white point."""
     h, w = 20, 20
     image1 = torch.full((3, h, w), 0.2, dtype=torch.float64)
     image2 = image1.clone()
@@ -163,6 +165,14 @@ def test_auto_airlight_is_the_far_bright_pixels_colour_nearly_grey_and_shared_by
     grey = (lum * mean).sum()
     assert torch.allclose(light, grey + 0.25 * (mean - grey), atol=1e-12)
     assert float(far.max()) >= float(light.max())
+    # no sky, dark far walls: the airlight is lifted to the frames' white point (99th
+    # percentile of the luminance), keeping its colour
+    dark = image1.clone()
+    dark[:, :2, :] = 0.1
+    dark[:, 10:, :4] = 0.9                     # bright near surfaces: 20 % of frame 1's pixels
+    lifted = estimate_airlight([dark, image2], [depth, depth], k)
+    assert float((lum * lifted).sum()) == pytest.approx(0.9, abs=1e-12)
+    assert torch.allclose(lifted, torch.full((3,), 0.9, dtype=torch.float64), atol=1e-12)
     # a pair's record holds it, and both frames use it
     pair = FramePair(id=PairId("synthetic", "test", "sky", 1), image1=image1.float(),
                      image2=image2.float(), depth1=depth.float(), depth2=depth.float(),

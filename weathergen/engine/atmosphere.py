@@ -72,6 +72,9 @@ DEFAULT_AIRLIGHT = (0.8, 0.8, 0.8)
 AIRLIGHT_FAR = 0.05
 AIRLIGHT_BRIGHT = 0.25
 AIRLIGHT_CHROMA = 0.25
+#: The luminance quantile of all the frames' pixels below which the ``auto`` airlight is not:
+#: the frames' white point.
+AIRLIGHT_WHITE = 0.99
 #: Rec. 709 luminance weights.
 LUMINANCE = (0.2126, 0.7152, 0.0722)
 
@@ -323,8 +326,10 @@ def estimate_airlight(images: Sequence[torch.Tensor], depths: Sequence[torch.Ten
     ``sky_distance`` count as at it), the mean colour of the :data:`AIRLIGHT_BRIGHT` brightest
     (Rec. 709 luminance), its colour then reduced to :data:`AIRLIGHT_CHROMA` of itself around its
     luminance (fog and rain droplets scatter every wavelength alike: the airlight has the colour
-    of the light, not the sky's blue). Shape: images (3, H, W), depths (1, H, W) -> (3,) float64
-    in [0, 1], on the CPU."""
+    of the light, not the sky's blue), and brightened, where it is darker, to the frames' white
+    point (the :data:`AIRLIGHT_WHITE` quantile of every pixel's luminance: without sky in view
+    the farthest surfaces can be dark walls, while the air is lit as a white surface is).
+    Shape: images (3, H, W), depths (1, H, W) -> (3,) float64 in [0, 1], on the CPU."""
     colours, distances = [], []
     for image, depth in zip(images, depths):
         colours.append(image.detach().double().cpu().reshape(3, -1))
@@ -339,8 +344,18 @@ def estimate_airlight(images: Sequence[torch.Tensor], depths: Sequence[torch.Ten
     bright = max(1, int(round(AIRLIGHT_BRIGHT * far)))
     chosen = torch.argsort(luminance, descending=True, stable=True)[:bright]
     mean = candidates[:, chosen].mean(1)
-    grey = (torch.tensor(LUMINANCE, dtype=torch.float64) * mean).sum()
-    return (grey + AIRLIGHT_CHROMA * (mean - grey)).clamp(0, 1)
+    weights = torch.tensor(LUMINANCE, dtype=torch.float64)
+    grey = (weights * mean).sum()
+    light = grey + AIRLIGHT_CHROMA * (mean - grey)
+    # no darker than the frames' white point: with no sky in view the farthest surfaces may be
+    # dark, while the air is lit as a white surface is
+    all_luminance = (weights[:, None] * colour).sum(0)
+    white = torch.sort(all_luminance).values[int(AIRLIGHT_WHITE * (all_luminance.numel() - 1))]
+    if float(grey) < float(white) and float(grey) > 0:
+        light = light * (white / grey)
+    elif float(grey) <= 0:
+        light = white.expand(3).clone()
+    return light.clamp(0, 1)
 
 
 # -- integration along rays ------------------------------------------------------------------
