@@ -294,17 +294,20 @@ class Air:
         """Tracks seen through the air between each particle and its camera: additive tracks'
         θ times ``t_p``, alpha-blended tracks' colour ``γ t_p + A_p (1 − t_p)`` (unless not
         ``tint``: their colours are other values, e.g. flow vectors), both along the ray to the
-        middle of the streak. ``alpha`` (V,) bool: which views draw the tracks alpha-blended.
-        Tracks of views without air keep their bits."""
+        middle of the streak, at its detached position (no gradient to the offsets through
+        ``t_p``). ``alpha`` (V,) bool: which views draw the tracks alpha-blended. Tracks of
+        views without air keep their bits."""
         if tracks.count == 0:
             return tracks
         reach = (tracks.samples - 1).clamp(min=0) * tracks.spacing
-        middle = torch.addcmul(tracks.h0, (0.5 * reach)[:, None], tracks.hd)
+        # (a look: it follows the detached position, as a field particle's footprint and fade
+        # do; gradients reach the density lattice and the airlight)
+        middle = torch.addcmul(tracks.h0.detach(), (0.5 * reach)[:, None], tracks.hd.detach())
         z = middle[:, 2]
         safe = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
         u, v = middle[:, 0] / safe, middle[:, 1] / safe
         view = tracks.view.to(self.device)
-        distance = z.clamp(min=0) * self.ray_norms(view, u.detach(), v.detach())
+        distance = z.clamp(min=0) * self.ray_norms(view, u, v)
         # (a view without air reads the clear component: t = 1 and A = 0, which keep the bits)
         t, airlight = self._through(view, u, v, distance)
         dtype = tracks.theta.dtype

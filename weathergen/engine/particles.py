@@ -31,7 +31,9 @@ positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for moti
 template indices uint16; defocus radii uint8. Field records keep float32 positions, motions and
 scales (a field's positions are exact multiples of its grid quantum, so that a frame is the same
 image in every pair that holds it) and float16 offsets, colours, transparencies and rotations,
-plus the ``optics`` entry. Sampling returns a record already rounded to these precisions
+plus the ``optics`` entry and, for a field with an atmosphere (:mod:`weathergen.engine.atmosphere`),
+the ``atmosphere`` entry (JSON) and, for an explicit density lattice, ``atmosphere_density``
+(float16). Sampling returns a record already rounded to these precisions
 (:meth:`Particles.quantized`, idempotent), so rendering the in-memory record and rendering the
 reloaded file give identical bytes.
 
