@@ -4,8 +4,9 @@ On the Sintel-size bench scene of ``bench.py`` (1024 x 436, f = 1120 px, a camer
 a uniform atmosphere (``rain-heavy``'s veil: ``τ = β L`` per pixel) and a heterogeneous one
 (``fog-moderate``: the banks integrated along coarse rays), the atmosphere alone (its record's
 particles left out) is rendered into both frames of the pair; the time is given per frame (half
-the pair's). Forward (no gradient) and forward + backward (gradients to the density lattice and
-the airlight, as the attack takes them). Then the extra cost of seeing particles through the air:
+the pair's). Forward (no gradient) and forward + backward (gradients to the airlight and, for the
+heterogeneous one, the density lattice, as the attack takes them; an attack on a uniform medium's
+density makes it heterogeneous, at the second row's cost). Then the extra cost of seeing particles through the air:
 ``rain-heavy`` with its veil against the same drops without it (the drops dimmed one by one).
 One torch thread, the process's CPU time (other processes do not count), the median of
 ``--repeats`` runs; ``--device cuda`` times on a GPU instead (wall clock, synchronised).
@@ -67,14 +68,16 @@ def forward(pair, record, device):
 
 
 def backward(pair, record, device):
+    """Forward and backward: gradients to the airlight and, for heterogeneous air, to the
+    density lattice (a uniform medium keeps its exact, table-free integration)."""
     from weathergen.engine import render_pair
 
     def run():
         atm = record.atmosphere.to(device)
-        density = atm.lattice(torch.float32, device).clone().requires_grad_()
-        airlight = atm.airlight.float().clone().requires_grad_()
-        moved = record.to(device).replace(atmosphere=atm.replace(density=density,
-                                                                 airlight=airlight))
+        changes = {"airlight": atm.airlight.float().clone().requires_grad_()}
+        if not atm.uniform:
+            changes["density"] = atm.lattice(torch.float32, device).clone().requires_grad_()
+        moved = record.to(device).replace(atmosphere=atm.replace(**changes))
         out = render_pair(pair, moved, device=device)
         (out.image1.sum() + out.image2.sum()).backward()
     return run
