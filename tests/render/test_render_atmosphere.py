@@ -117,3 +117,49 @@ def test_stereo_right_camera_sees_the_same_fog(tmp_path, demo_root):
     # the same scene seen from 0.54 m aside: nearly the same fog
     assert abs(float(left["opacity"].mean()) - float(right["opacity"].mean())) < 0.05
     assert float(right["opacity"].min()) > 0
+
+
+def test_preview_of_a_fog_output_shows_the_air(fog_run, tmp_path):
+    """`preview` reads an output whose records hold only an atmosphere (no particles) and
+    re-renders it: the stored records' opacity is the air's, > 0 on every pixel."""
+    import torch
+
+    from weathergen.datasets import open_dataset
+    from weathergen.engine import render_pair
+    from weathergen.outputs import WeatherFolder
+
+    res = run("preview", fog_run, "--out", tmp_path / "sheet.png")
+    assert res.exit_code == 0, res.output
+    assert read_image(tmp_path / "sheet.png").shape[0] > 50
+    folder = WeatherFolder.open(fog_run)
+    stored = folder.particles(folder.pairs[0])
+    assert stored.count == 0 and stored.atmosphere is not None
+    demo = open_dataset("demo", scenes=["street"], frames_per_scene=1)
+    with torch.no_grad():
+        out = render_pair(demo.load(demo.pairs()[0]), stored)
+    assert float(out.opacity1.min()) > 0
+
+
+def test_weather_augment_draws_the_atmosphere_per_sample_and_per_batch():
+    """WeatherAugment with fog-heavy: the far half of the frame moves towards the airlight more
+    than the near half; a batch gives each sample's frames byte for byte."""
+    import torch
+
+    from weathergen.datasets import open_dataset
+    from weathergen.training import PairDataset, WeatherAugment, collate_pairs
+
+    data = PairDataset(open_dataset("demo", scenes=["street"], frames_per_scene=2))
+    samples = [data[i] for i in range(len(data))]
+    aug = WeatherAugment("fog-heavy", p=1.0, seed=5, keep_particles=True)
+    one = [aug(s) for s in samples]
+    for s, clean in zip(one, samples):
+        atmosphere = s.particles.atmosphere
+        assert atmosphere is not None and atmosphere.extinction > 0
+        change = (s.pair.image1 - clean.pair.image1).abs().mean(0)
+        depth = clean.pair.depth1[0]
+        near, far = depth < depth.quantile(0.2), depth > depth.quantile(0.8)
+        assert float(change[far].mean()) > float(change[near].mean()) + 0.02
+    batched = aug.apply_batch(collate_pairs(samples))
+    for k, s in enumerate(one):
+        assert torch.equal(batched.pairs.image1[k], s.pair.image1)
+        assert torch.equal(batched.pairs.image2[k], s.pair.image2)
