@@ -48,9 +48,15 @@ def test_render_fog_heavy_on_the_demo_scene(fog_run, demo_root):
     pair = root / "fog-heavy_clean" / "street_0001"
     fogged = read_image(pair / "frame_0001.png")
     clean = read_image(demo_root / "training" / "clean" / "street" / "frame_0001.png")
-    assert np.abs(fogged - clean).mean() > 0.05
     exr = read_exr(root / "fog-heavy_clean_exr" / "street_0001" / "frame_0001.exr")
     opacity = exr["opacity"]
+    # the frame is Koschmieder's composite of the clean frame and the stored airlight
+    scalars = json.loads(str(np.load(root / "particles" / "street_0001" / "frame_0001.npz")
+                             ["scalars"]))
+    airlight = np.array(json.loads(scalars["atmosphere"][0])["airlight"], dtype=np.float32)
+    t = 1 - opacity[..., None]
+    assert np.abs(fogged - (clean * t + airlight * (1 - t))).max() <= 1.5 / 255
+    assert np.abs(fogged - clean).mean() > 0.02
     depth = read_dpt(root / "depth" / "street_0001" / "frame_0001.dpt")
     # Koschmieder: 1 − t = 1 − exp(−β L), L ≥ depth, banks within 1 ± 0.5 of the mean density
     beta = -math.log(0.05) / 100.0
@@ -114,8 +120,9 @@ def test_stereo_right_camera_sees_the_same_fog(tmp_path, demo_root):
     left = read_exr(out / "training" / "fog-heavy_clean_exr" / "000004_0010" / "frame_0010.exr")
     right = read_exr(out / "training" / "fog-heavy_clean_right_exr" / "000004_0010"
                      / "frame_0010.exr")
-    # the same scene seen from 0.54 m aside: nearly the same fog
-    assert abs(float(left["opacity"].mean()) - float(right["opacity"].mean())) < 0.05
+    # the same scene seen from 0.54 m aside: nearly the same fog (the right view's pixels that
+    # no left pixel sees have no depth: they take the far depth, and the sky's opacity)
+    assert abs(float(np.median(left["opacity"])) - float(np.median(right["opacity"]))) < 0.05
     assert float(right["opacity"].min()) > 0
 
 
