@@ -3,8 +3,6 @@ when asked, the airlight, through RAFT-small, on the CPU and on CUDA."""
 
 from __future__ import annotations
 
-import dataclasses
-
 import pytest
 import torch
 
@@ -14,19 +12,9 @@ from weathergen.attack import (ATMOSPHERE_VARIABLES, OPTIMIZABLE, VARIABLES, Att
 from weathergen.engine import load_preset, render_pair, sample_weather
 from weathergen.errors import ConfigError
 
+from .test_attack_pair import crop_pair
+
 RATE = 24.0      # the demo scene's frame rate
-
-
-def crop_pair(pair, top: int, left: int, height: int, width: int):
-    k = pair.intrinsics.clone()
-    k[0, 2] -= left
-    k[1, 2] -= top
-    rows, cols = slice(top, top + height), slice(left, left + width)
-    crop = lambda t: None if t is None else t[:, rows, cols].contiguous()  # noqa: E731
-    return dataclasses.replace(pair, image1=crop(pair.image1), image2=crop(pair.image2),
-                               depth1=crop(pair.depth1), depth2=crop(pair.depth2),
-                               flow=crop(pair.flow), flow_valid=crop(pair.flow_valid),
-                               intrinsics=k)
 
 
 @pytest.fixture(scope="module")

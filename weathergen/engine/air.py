@@ -417,38 +417,35 @@ def fog_images(images: Sequence[torch.Tensor], transmission: torch.Tensor,
     """The scene through the air: ``J t + A (1 − t)`` where a view has air, ``J`` itself
     elsewhere. Shape: T images (B, 3, H, W) (view ``t B + b``); transmission (V, 1, H, W),
     airlight (V, 3, H, W) -> T images (B, 3, H, W)."""
-    bsz = images[0].shape[0]
-    out = []
-    for t, image in enumerate(images):
-        rows = air.has_air[t * bsz:(t + 1) * bsz]
-        if not any(rows):
-            out.append(image)
-            continue
-        fogged = torch.lerp(airlight[t * bsz:(t + 1) * bsz], image,
-                            transmission[t * bsz:(t + 1) * bsz])
-        if not all(rows):
-            keep = air.has[t * bsz:(t + 1) * bsz].to(image.device).view(-1, 1, 1, 1)
-            fogged = torch.where(keep, fogged, image)
-        out.append(fogged)
-    return out
+    return _where_air(images, air,
+                      lambda image, views: torch.lerp(airlight[views], image, transmission[views]))
 
 
 def combined_opacity(opacities: Sequence[torch.Tensor], transmission: torch.Tensor,
                      air: Air) -> list[torch.Tensor]:
     """The weather's opacity with the air's: ``1 − t (1 − α)`` where a view has air.
     Shape: T opacities (B, 1, H, W), transmission (V, 1, H, W) -> T opacities (B, 1, H, W)."""
-    bsz = opacities[0].shape[0]
+    return _where_air(opacities, air,
+                      lambda opacity, views: 1 - transmission[views] * (1 - opacity))
+
+
+def _where_air(frames: Sequence[torch.Tensor], air: Air, through) -> list[torch.Tensor]:
+    """Each frame's batch (B, C, H, W) (views ``t B .. t B + B − 1``) as ``through(frame,
+    views)`` gives it where a view has air, the frame itself elsewhere (a frame none of whose
+    views has air is returned as it is)."""
+    bsz = frames[0].shape[0]
     out = []
-    for t, opacity in enumerate(opacities):
-        rows = air.has_air[t * bsz:(t + 1) * bsz]
+    for t, frame in enumerate(frames):
+        views = slice(t * bsz, (t + 1) * bsz)
+        rows = air.has_air[views]
         if not any(rows):
-            out.append(opacity)
+            out.append(frame)
             continue
-        combined = 1 - transmission[t * bsz:(t + 1) * bsz] * (1 - opacity)
+        changed = through(frame, views)
         if not all(rows):
-            keep = air.has[t * bsz:(t + 1) * bsz].to(opacity.device).view(-1, 1, 1, 1)
-            combined = torch.where(keep, combined, opacity)
-        out.append(combined)
+            keep = air.has[views].to(frame.device).view(-1, 1, 1, 1)
+            changed = torch.where(keep, changed, frame)
+        out.append(changed)
     return out
 
 
