@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+from . import startup  # first: Ctrl-C while the commands import torch is one line
+
+import signal
 import sys
 
 import click
@@ -18,6 +21,9 @@ from .inspect_cmd import inspect, preview
 from .options import ARGV_KEY, option_of
 from .presets_cmd import presets_command
 from .render import render
+from .stopping import terminate_as_interrupt
+
+startup.started()
 
 
 class _Group(click.Group):
@@ -28,11 +34,20 @@ class _Group(click.Group):
         return super().parse_args(ctx, args)
 
     def invoke(self, ctx):
+        stopped_by: list = []
         try:
-            return super().invoke(ctx)
+            with terminate_as_interrupt() as stopped_by:
+                return super().invoke(ctx)
         except WeatherGenError as exc:
             click.echo(f"Error: {exc.render(option_of)}", err=True)
             sys.exit(2)
+        except KeyboardInterrupt:
+            # the commands that run jobs say how far they got themselves; any other is stopped
+            # before it wrote anything under a final name (every write is atomic)
+            signum = stopped_by[0] if stopped_by else signal.SIGINT
+            click.echo(f"Interrupted ({signal.Signals(signum).name}); no file was left "
+                       "half-written.", err=True)
+            sys.exit(128 + signum)
 
 
 @click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})

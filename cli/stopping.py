@@ -32,6 +32,9 @@ def terminate_as_interrupt() -> Iterator[list]:
         stopped_by.append(signum)
         raise KeyboardInterrupt
 
+    if signal.getsignal(signal.SIGTERM) == signal.SIG_IGN:   # started ignoring it: it stays so
+        yield stopped_by
+        return
     try:
         previous = signal.signal(signal.SIGTERM, handler)
     except ValueError:          # not the main thread: leave signals alone

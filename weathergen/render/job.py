@@ -15,6 +15,7 @@ import multiprocessing
 import os
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -34,9 +35,9 @@ from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker
 from ..framepair import FramePairBatch, PairId
 from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
                        pair_metadata, write_manifest_part, write_pair_outputs)
-from ..io.atomic import write_error
+from ..io.atomic import remove_temporaries, write_error
 from ..outputs.manifest import MANIFEST, jsonable
-from ..workers import StopRequests, init_worker, spawning
+from ..workers import StopRequests, how_it_ended, init_worker, spawning
 from ..words import counted
 from .particles import layer_seeds, pair_particles, weather_scaling, weather_seed
 from .plan import auto_workers
@@ -314,6 +315,17 @@ def sequence_ends(ids: list[PairId]) -> frozenset:
 
 # -- the output folder ---------------------------------------------------------------------------
 
+def _pair_files(out: PairOutput, job: RenderJob) -> list[Path]:
+    """Every file the job may write for one pair (``out``)."""
+    native = out.native_flow
+    extra = out.right_files() if job.stereo else []
+    if job.truth:
+        extra += list(out.truth_files().values())
+        extra += [p for p in (out.native_truth(kind) for kind in ("particle", "seen"))
+                  if p is not None]
+    return out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else []) + extra
+
+
 def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
     """Where a killed run of this shard may have left temporary files of its pairs (atomic writes
     that never reached their rename), as ``(folder, name prefix)``: the folders of this shard's
@@ -323,15 +335,7 @@ def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
     for ref in refs:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                             job.sequence, job.dataset.native_flow)
-        native = out.native_flow
-        extra = out.right_files() if job.stereo else []
-        if job.truth:
-            extra += list(out.truth_files().values())
-            extra += [p for p in (out.native_truth(kind) for kind in ("particle", "seen"))
-                      if p is not None]
-        for path in (out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else [])
-                     + extra):
-            folders.add(path.parent)
+        folders.update(path.parent for path in _pair_files(out, job))
     return [(folder, ".") for folder in sorted(folders)]
 
 
@@ -400,7 +404,7 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     with claim_folder(job.out, RENDER_FOLDER, job.config(), resume=job.resume,
                       overwrite=job.overwrite, shard=job.shard,
                       temporary=_temporary_places(job, refs), on_note=on_note) as claim:
-        results = _render_locked(job, refs, on_result, on_start)
+        results = _render_locked(job, refs, on_result, on_start, on_note)
         note = frame2_note([(r.pair, r.visible) for r in results
                             if r.status == "written" and r.few_in_frame2], job.preset_name)
         if note is not None:
@@ -415,7 +419,8 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
         return results
 
 
-def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> list[PairResult]:
+def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start,
+                   on_note) -> list[PairResult]:
     started = time.time()
     t0 = time.perf_counter()
     results: list[PairResult] = []
@@ -447,7 +452,7 @@ def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> 
             finally:
                 torch.set_num_threads(threads)
         else:
-            _run_pool(job, todo, results, on_result)
+            _run_pool(job, todo, results, on_result, on_note)
     except BaseException as exc:
         stopped_by = exc
         raise
@@ -487,40 +492,116 @@ def _run_ray(job, todo, results, on_result):
             on_result(r)
 
 
-def _run_pool(job, todo, results, on_result):
+def _run_pool(job, todo, results, on_result, on_note):
     """Render the chunks on a pool of worker processes, recording each result as it arrives.
 
     Ctrl-C and SIGTERM are held back while the pool runs (see :class:`StopRequests`): once one
     comes, no new chunk starts, the chunks already running finish, every result is recorded, and
     only then is the interruption passed on. Nothing a worker finished is left out of the record.
+
+    A worker that dies (killed by the system when memory runs out, say) breaks the pool: the
+    results that came in are kept, the other workers are stopped, and the chunks that were out
+    (the dead worker's and the others') go to a new pool, each at most :data:`WORKER_RETRIES`
+    times; a chunk lost once more fails, its pairs saying how their worker ended.
     """
+    queue = [(chunk, 0) for chunk in _chunks(todo, job.batch_size)]     # (refs, times lost)
+    with StopRequests() as stop:
+        while queue and stop.signum is None:
+            lost, ended = _pool_round(job, queue, stop, results, on_result)
+            if not lost:
+                continue
+            again = [(refs, times + 1) for refs, times in lost if times < WORKER_RETRIES]
+            for refs, _ in (item for item in lost if item[1] >= WORKER_RETRIES):
+                for ref in refs:
+                    r = PairResult(ref.id.key, str(ref.id), "failed",
+                                   weather_seed(job.preset, job.seed, ref.id),
+                                   message=f"the worker process rendering it died twice ({ended}); "
+                                           "render it with --workers 1 to see why")
+                    results.append(r)
+                    on_result(r)
+            if again and stop.signum is None:
+                pairs = sum(len(refs) for refs, _ in again)
+                on_note(f"a worker process died ({ended}); the {counted(pairs, 'pair')} it and "
+                        "the other workers had in hand are rendered again by new workers")
+            queue[:0] = again
+
+
+def _pool_round(job, queue: list, stop: StopRequests, results, on_result) -> tuple[list, str]:
+    """Hand the chunks of ``queue`` to one pool of workers until it is empty, a stop is
+    requested or a worker dies. Returns the chunks that were out when a worker died (``(refs,
+    times lost)``, none otherwise) and how the dead worker ended; chunks never handed out stay in
+    ``queue``."""
     ctx = multiprocessing.get_context("spawn")
-    queue = _chunks(todo, job.batch_size)
-    order: dict = {}                       # future -> position, to record in a fixed order
+    before = set(multiprocessing.active_children())
+    workers: set = set()
+    out: dict = {}                         # future -> (position, queue item)
     pending: set = set()
-    with StopRequests() as stop, ProcessPoolExecutor(
-            max_workers=job.workers, mp_context=ctx, initializer=init_worker,
-            initargs=(os.getpid(),)) as pool:
-        while pending or (queue and stop.signum is None):
-            while queue and stop.signum is None and len(pending) < 2 * job.workers:
-                with spawning():           # the pool starts its workers on demand, in submit
-                    fut = pool.submit(render_batch, job, queue.pop(0))
-                order[fut] = len(order)
+    lost: list = []
+    pool = ProcessPoolExecutor(max_workers=job.workers, mp_context=ctx, initializer=init_worker,
+                               initargs=(os.getpid(),))
+    try:
+        while pending or (queue and stop.signum is None and not lost):
+            while queue and stop.signum is None and not lost and len(pending) < 2 * job.workers:
+                try:
+                    with spawning():       # the pool starts its workers on demand, in submit
+                        fut = pool.submit(render_batch, job, queue[0][0])
+                except BrokenProcessPool:
+                    break                  # a worker died: the loop below collects its chunks
+                out[fut] = (len(out), queue.pop(0))
                 pending.add(fut)
+                workers |= set(multiprocessing.active_children()) - before
             done, pending = wait(pending, timeout=POLL_SECONDS, return_when=FIRST_COMPLETED)
             if stop.signum is not None:
                 for fut in pending:
                     fut.cancel()           # not started yet: it stays undone (--resume renders it)
-            for fut in sorted(done, key=order.__getitem__):
+            for fut in sorted(done, key=lambda f: out[f][0]):
                 if fut.cancelled():
+                    continue
+                if isinstance(fut.exception(), BrokenProcessPool):
+                    lost.append(out[fut][1])
                     continue
                 for r in fut.result():
                     results.append(r)
                     on_result(r)
+            if lost:                       # every future of a broken pool fails at once
+                lost += [out[f][1] for f in pending]
+                pending = set()
+    finally:
+        ended = _stop_workers(workers) if lost else ""
+        pool.shutdown(wait=True, cancel_futures=True)
+    if lost:
+        _remove_temporaries(job, [ref for refs, _ in lost for ref in refs])
+    return lost, ended
+
+
+def _stop_workers(workers: set) -> str:
+    """After a worker died: how it ended, in words (:func:`~weathergen.workers.how_it_ended`);
+    the workers still alive are killed (what they were rendering was lost with the pool, and a
+    worker ignores the pool's own SIGTERM)."""
+    time.sleep(POLL_SECONDS)               # the dead one is reaped, its exit code known
+    dead = [p.exitcode for p in workers if p.exitcode not in (None, 0)]
+    for p in workers:
+        if p.exitcode is None:
+            p.kill()
+    for p in workers:
+        p.join(timeout=10)
+    return how_it_ended(dead[0]) if dead else "ended without a word"
+
+
+def _remove_temporaries(job: RenderJob, refs) -> None:
+    """The temporary files that killed workers left for the files of ``refs`` (their writes never
+    reached the rename)."""
+    for ref in refs:
+        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
+                            job.sequence, job.dataset.native_flow)
+        for path in _pair_files(out, job):
+            remove_temporaries(path, only_of_dead=False)
 
 
 #: How often the pool loop looks for a held-back Ctrl-C or SIGTERM (seconds).
 POLL_SECONDS = 0.1
+#: How often a chunk whose worker died (taking the pool with it) is handed to a new pool.
+WORKER_RETRIES = 1
 
 
 __all__ = ["RenderJob", "PairResult", "render_batch", "run_render", "record_run"]
