@@ -4,6 +4,7 @@ look at what a render wrote."""
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import click
@@ -200,6 +201,16 @@ def preview(render_dir: Path, out, video, pairs, width, with_input, with_opacity
                    f"(--pairs {sheet.total} shows all)")
     else:
         click.echo(f"Preview of {counted(sheet.total, 'pair')} written to {out}")
+    _left_out(sheet.unreadable)
+
+
+def _left_out(unreadable: list[str]) -> None:
+    """One warning line per pair a preview left out (its particle file cannot be read); exit 1
+    when there is any."""
+    for line in unreadable:
+        click.echo(f"warning: {line}", err=True)
+    if unreadable:
+        sys.exit(1)
 
 
 def _preview_video(render_dir: Path, out, video: Path, pairs, width, with_input, with_opacity,
@@ -218,3 +229,4 @@ def _preview_video(render_dir: Path, out, video: Path, pairs, width, with_input,
              else counted(plan.total, "pair"))
     click.echo(f"Video of {shown} written to {video}: {counted(count, 'frame')} of {w}x{h} at "
                f"{plan.fps:g} fps ({count / plan.fps:.1f} s)")
+    _left_out(plan.unreadable)

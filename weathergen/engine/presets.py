@@ -344,10 +344,15 @@ def load_preset(name_or_path: str | Path = "snow",
 
     model = data.pop("model", "paper")
     overrides = dict(overrides or {})
-    if "model" in overrides:          # a re-render of a stored field preset names its model
+    if "model" in overrides:          # a stored preset's values name their model: the same
         wanted = str(overrides.pop("model")).strip().strip('"')
         if wanted != model:
-            data, model = {}, wanted   # every key of the other model comes from the overrides
+            others = ", ".join(n for n in list_presets(wanted) if "-" not in n
+                               or n.endswith("-moderate")) if wanted in ("paper", "field") else ""
+            raise ConfigError(f"{where}: key 'model' = {wanted!r}: {name} is a {model} preset, "
+                              f"and an override cannot change its model (every key would fall "
+                              f"back to the other model's defaults); choose a {wanted} preset "
+                              f"instead{f' ({others}, ...)' if others else ''}")
     if model == "field":
         return build_field_preset(name, where, data, overrides, base_dir)
     if model != "paper":
