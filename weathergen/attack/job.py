@@ -24,6 +24,7 @@ import torch
 
 from ..datasets import Dataset
 from ..engine import CombinedPreset, render_pair
+from ..engine.budget import check_pair_memory
 from ..errors import ConfigError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
@@ -177,6 +178,8 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
+            if job.lp is None:      # the weather's part; the network's is not estimated
+                check_pair_memory(pair, job.preset, device, share=len(refs))
             particles = None if job.lp is not None else pair_particles(
                 pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
                 frame_rate=job.dataset.frame_rate, particles_from=job.particles_from)

@@ -27,6 +27,7 @@ import torch
 from ..datasets import Dataset, PairRef, right_camera
 from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, load_templates,
                       particle_truth, reference_transforms, render_pair, visible_counts)
+from ..engine.budget import check_pair_memory
 from ..engine.presets import list_presets
 from ..engine.renderer import pair_starts, render_first_frame
 from ..engine.stereo import render_right, render_right_layers, stereo_view, warp_depth
@@ -36,6 +37,7 @@ from ..framepair import FramePairBatch, PairId
 from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
                        pair_metadata, write_manifest_part, write_pair_outputs)
 from ..io.atomic import remove_temporaries, write_error
+from ..memory import available_memory
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, how_it_ended, init_worker, spawning
 from ..words import counted
@@ -133,6 +135,7 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
+            check_pair_memory(pair, job.preset, job.device, share=_drawn_at_once(job))
             particles = pair_particles(pair, job.preset, job.seed,
                                        world_up=getattr(job.dataset, "world_up", "auto"),
                                        frame_rate=job.dataset.frame_rate,
@@ -171,6 +174,12 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
             results[ref.id].seconds = spent + share + time.perf_counter() - start
             results[ref.id].ran = ran
     return [results[ref.id] for ref in refs]
+
+
+def _drawn_at_once(job: RenderJob) -> int:
+    """How many pairs may be drawn at the same time on one machine: a batch in each worker."""
+    workers = job.workers if job.executor == "local" else 1
+    return max(1, workers) * max(1, job.batch_size)
 
 
 def _sequence_pair(job: RenderJob, ref: PairRef, seed: int, pair, particles, spent: float) -> PairResult:
@@ -376,6 +385,7 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     selected pair fails (an output folder that this run created is removed again).
     """
     check_executor(job.executor)
+    available_memory()          # a memory budget that is not an amount fails here
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     every = job.dataset.pairs()
     for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
