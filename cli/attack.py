@@ -20,6 +20,7 @@ from weathergen.execution import RunClock, check_executor
 from weathergen.words import counted
 
 from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
+                      job_exit_codes,
                       model_options, out_option, overwrite_option, quiet_option, resume_option,
                       seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
@@ -67,7 +68,7 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
                  _fmt(summary[f"outliers_{n}px"], 2) for n in (1, 3, 5)))]
 
 
-@click.command()
+@click.command(epilog=job_exit_codes())
 @dataset_options
 @model_options
 @click.option("--method", type=click.Choice(("weather",) + LP_METHODS), default="weather",

@@ -24,13 +24,15 @@ from weathergen.outputs import read_metadata, stored_frame_scaling
 from weathergen.render import contact_sheet, video_preview
 from weathergen.words import counted
 
+from .options import BAD_INPUT, STOPPED, exit_codes
+
 
 def _preset_origin(name: str, source: str) -> str:
     """A bundled preset by its name; a user's preset file by name and path."""
     return name if not source or source.startswith("preset ") else f"{name} (from {source})"
 
 
-@click.command()
+@click.command(epilog=exit_codes(("0", "shown"), ("2", "the file cannot be read (one line)")))
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 def inspect(file: Path):
     """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges
@@ -149,7 +151,11 @@ def _ranges(arrays: dict, title: str, path: Path) -> Table:
     return ranges
 
 
-@click.command()
+@click.command(epilog=exit_codes(
+    ("0", "written"),
+    ("1", "written, but some pairs were left out: their particle files cannot be read (each "
+          "named)"),
+    BAD_INPUT, STOPPED))
 @click.argument("render_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Contact sheet (PNG) to write. Default: RENDER_DIR/preview.png.")

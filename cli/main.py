@@ -18,7 +18,7 @@ from .check import check
 from .demo_scene import demo_scene
 from .evaluate import evaluate
 from .inspect_cmd import inspect, preview
-from .options import ARGV_KEY, option_of
+from .options import ARGV_KEY, exit_codes, option_of
 from .presets_cmd import presets_command
 from .render import render
 from .stopping import terminate_as_interrupt
@@ -50,7 +50,13 @@ class _Group(click.Group):
             sys.exit(128 + signum)
 
 
-@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]})
+@click.group(cls=_Group, context_settings={"help_option_names": ["-h", "--help"]},
+             epilog=exit_codes(
+                 ("0", "done"), ("1", "done, but some pairs failed or were left out (named)"),
+                 ("2", "bad options or input, a full disk, a memory budget a pair does not fit, "
+                       "or nothing could be done (one line)"),
+                 ("130, 143", "stopped by Ctrl-C / SIGTERM (one line; no file half-written)"),
+                 ("", "`weathergen COMMAND --help` says what each code means for COMMAND")))
 @click.version_option(__version__, "--version", prog_name="weathergen")
 def cli():
     """Physically placed weather for optical-flow datasets, and weather attacks on flow networks."""
