@@ -142,3 +142,54 @@ def test_write_video_leaves_no_file_when_a_frame_fails(tmp_path):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(ConfigError, match="unknown video format '.avi'"):
         write_video(tmp_path / "v.avi", frames(), fps=24)
+
+
+# -- an MP4 is checked before it gets its name ---------------------------------------------------
+
+def _frames(n, h=31, w=45):
+    return [np.full((h, w, 3), 7 * i, np.uint8) for i in range(n)]
+
+
+def test_a_complete_mp4_passes_its_check_and_a_cut_one_does_not(tmp_path):
+    import errno
+
+    from weathergen.io.video import check_mp4
+
+    path = tmp_path / "a.mp4"
+    assert write_video(path, _frames(9), 10) == 9
+    check_mp4(path, 9)                                   # boxes, index and frame count agree
+    with pytest.raises(OSError, match="its index counts \\[9\\] frames, not 10"):
+        check_mp4(path, 10)
+    data = path.read_bytes()
+    for cut in (len(data) - 1, len(data) // 2, 40):
+        (tmp_path / "cut.mp4").write_bytes(data[:cut])
+        with pytest.raises(OSError) as caught:
+            check_mp4(tmp_path / "cut.mp4", 9, "named.mp4")
+        assert caught.value.errno in (errno.EIO, errno.ENOSPC)
+        assert caught.value.filename == "named.mp4"
+        assert "the video is incomplete" in caught.value.strerror
+
+
+def test_the_next_write_removes_the_temporary_of_a_killed_writer_only(tmp_path):
+    """A temporary of a writer that is gone (its pid in its name) is removed; one of a writer
+    that runs (this process) stays, and so does a file that is no temporary of the video."""
+    import os
+
+    dead = subprocess_pid()
+    gone = tmp_path / f".v.mp4.{dead}.abcd1234.mp4"
+    mine = tmp_path / f".v.mp4.{os.getpid()}.efgh5678.mp4"
+    other = tmp_path / ".v.mp4.notes.txt"
+    for p in (gone, mine, other):
+        p.write_bytes(b"x")
+    write_video(tmp_path / "v.mp4", _frames(2), 10)
+    assert not gone.exists() and mine.exists() and other.exists()
+
+
+def subprocess_pid() -> int:
+    """The pid of a process that has ended."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid

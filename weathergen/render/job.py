@@ -511,55 +511,59 @@ def _run_pool(job, todo, results, on_result, on_note):
 
     A worker that dies (killed by the system when memory runs out, say) breaks the pool: the
     results that came in are kept, the other workers are stopped, and the chunks that were out
-    (the dead worker's and the others') go to a new pool, each at most :data:`WORKER_RETRIES`
-    times; a chunk lost once more fails, its pairs saying how their worker ended.
+    (the dead worker's and the others') are rendered again, one at a time by a worker of their
+    own, so that a chunk whose worker dies again is known to be the cause: it fails, its pairs
+    saying how the worker ended. Then the rest goes on with every worker.
     """
-    queue = [(chunk, 0) for chunk in _chunks(todo, job.batch_size)]     # (refs, times lost)
+    queue = _chunks(todo, job.batch_size)
+    suspects: list = []
     with StopRequests() as stop:
-        while queue and stop.signum is None:
-            lost, ended = _pool_round(job, queue, stop, results, on_result)
-            if not lost:
+        while (suspects or queue) and stop.signum is None:
+            if suspects:                   # one at a time: a death names its chunk
+                lost, ended = _pool_round(job, suspects, stop, results, on_result, workers=1)
+                for refs in lost:
+                    for ref in refs:
+                        r = PairResult(ref.id.key, str(ref.id), "failed",
+                                       weather_seed(job.preset, job.seed, ref.id),
+                                       message=f"its worker process died twice, the second time "
+                                               f"rendering it alone ({ended}); render it with "
+                                               f"--workers 1 to see why")
+                        results.append(r)
+                        on_result(r)
                 continue
-            again = [(refs, times + 1) for refs, times in lost if times < WORKER_RETRIES]
-            for refs, _ in (item for item in lost if item[1] >= WORKER_RETRIES):
-                for ref in refs:
-                    r = PairResult(ref.id.key, str(ref.id), "failed",
-                                   weather_seed(job.preset, job.seed, ref.id),
-                                   message=f"the worker process rendering it died twice ({ended}); "
-                                           "render it with --workers 1 to see why")
-                    results.append(r)
-                    on_result(r)
-            if again and stop.signum is None:
-                pairs = sum(len(refs) for refs, _ in again)
+            suspects, ended = _pool_round(job, queue, stop, results, on_result, job.workers)
+            if suspects and stop.signum is None:
+                pairs = sum(len(refs) for refs in suspects)
                 on_note(f"a worker process died ({ended}); the {counted(pairs, 'pair')} it and "
-                        "the other workers had in hand are rendered again by new workers")
-            queue[:0] = again
+                        "the other workers had in hand are rendered again, one batch at a time")
 
 
-def _pool_round(job, queue: list, stop: StopRequests, results, on_result) -> tuple[list, str]:
-    """Hand the chunks of ``queue`` to one pool of workers until it is empty, a stop is
-    requested or a worker dies. Returns the chunks that were out when a worker died (``(refs,
-    times lost)``, none otherwise) and how the dead worker ended; chunks never handed out stay in
-    ``queue``."""
+def _pool_round(job, queue: list, stop: StopRequests, results, on_result,
+                workers: int) -> tuple[list, str]:
+    """Hand the chunks of ``queue`` to one pool of ``workers`` workers until it is empty, a stop
+    is requested or a worker dies. Returns the chunks that were out when a worker died (none
+    otherwise) and how the dead worker ended; chunks never handed out stay in ``queue``."""
     ctx = multiprocessing.get_context("spawn")
     before = set(multiprocessing.active_children())
-    workers: set = set()
-    out: dict = {}                         # future -> (position, queue item)
+    started: set = set()
+    out: dict = {}                         # future -> (position, chunk)
     pending: set = set()
     lost: list = []
-    pool = ProcessPoolExecutor(max_workers=job.workers, mp_context=ctx, initializer=init_worker,
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=init_worker,
                                initargs=(os.getpid(),))
     try:
         while pending or (queue and stop.signum is None and not lost):
-            while queue and stop.signum is None and not lost and len(pending) < 2 * job.workers:
+            while queue and stop.signum is None and not lost and len(pending) < 2 * workers:
+                if workers == 1 and pending:
+                    break                  # one at a time
                 try:
                     with spawning():       # the pool starts its workers on demand, in submit
-                        fut = pool.submit(render_batch, job, queue[0][0])
+                        fut = pool.submit(render_batch, job, queue[0])
                 except BrokenProcessPool:
                     break                  # a worker died: the loop below collects its chunks
                 out[fut] = (len(out), queue.pop(0))
                 pending.add(fut)
-                workers |= set(multiprocessing.active_children()) - before
+                started |= set(multiprocessing.active_children()) - before
             done, pending = wait(pending, timeout=POLL_SECONDS, return_when=FIRST_COMPLETED)
             if stop.signum is not None:
                 for fut in pending:
@@ -577,10 +581,10 @@ def _pool_round(job, queue: list, stop: StopRequests, results, on_result) -> tup
                 lost += [out[f][1] for f in pending]
                 pending = set()
     finally:
-        ended = _stop_workers(workers) if lost else ""
+        ended = _stop_workers(started) if lost else ""
         pool.shutdown(wait=True, cancel_futures=True)
     if lost:
-        _remove_temporaries(job, [ref for refs, _ in lost for ref in refs])
+        _remove_temporaries(job, [ref for refs in lost for ref in refs])
     return lost, ended
 
 
@@ -610,8 +614,6 @@ def _remove_temporaries(job: RenderJob, refs) -> None:
 
 #: How often the pool loop looks for a held-back Ctrl-C or SIGTERM (seconds).
 POLL_SECONDS = 0.1
-#: How often a chunk whose worker died (taking the pool with it) is handed to a new pool.
-WORKER_RETRIES = 1
 
 
 __all__ = ["RenderJob", "PairResult", "render_batch", "run_render", "record_run"]
