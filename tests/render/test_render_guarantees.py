@@ -1,7 +1,7 @@
 """What `weathergen render` promises when things go wrong: kills, full disks, concurrent runs,
 paths, bad pairs. Each test drives the failure itself on the demo scene (or a tiny fake Sintel).
 
-The README's "Guarantees" section names these tests.
+docs/guarantees.md names these tests.
 """
 
 from __future__ import annotations
