@@ -207,7 +207,7 @@ def how_it_ended(exitcode: int | None) -> str:
             name = signal.Signals(-exitcode).name
         except ValueError:
             name = f"signal {-exitcode}"
-        if -exitcode == signal.SIGKILL:
+        if -exitcode == getattr(signal, "SIGKILL", None):
             return f"killed by {name}, as the system does when memory runs out"
         return f"killed by {name}"
     return f"exited with code {exitcode}"
