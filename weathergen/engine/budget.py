@@ -210,10 +210,13 @@ def room_on(device) -> Optional[Available]:
     return budget
 
 
-def check_pair_memory(pair, preset, device="cpu", share: int = 1) -> MemoryEstimate:
+def check_pair_memory(pair, preset, device="cpu", share: int = 1) -> Optional[MemoryEstimate]:
     """Refuse a pair whose drawing would not fit: ConfigError saying the estimate
     (:func:`estimate_pair_memory`), the room (:func:`room_on`, divided among ``share`` pairs drawn
-    at the same time: workers, a batch) and the preset keys to lower. Returns the estimate."""
+    at the same time: workers, a batch) and the preset keys to lower. Returns the estimate (None
+    for a pair without a camera or depth, which drawing refuses in its own words)."""
+    if pair.intrinsics is None or pair.depth1 is None or pair.depth2 is None:
+        return None
     estimate = estimate_pair_memory(*pair.size, pair.intrinsics, (pair.depth1, pair.depth2),
                                     preset)
     room = room_on(device)
