@@ -549,18 +549,20 @@ def _pool_round(job, queue: list, stop: StopRequests, results, on_result,
     out: dict = {}                         # future -> (position, chunk)
     pending: set = set()
     lost: list = []
+    broken = False                         # a worker died (idle ones too: submit refuses then)
     pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=init_worker,
                                initargs=(os.getpid(),))
     try:
-        while pending or (queue and stop.signum is None and not lost):
-            while queue and stop.signum is None and not lost and len(pending) < 2 * workers:
+        while pending or (queue and stop.signum is None and not broken):
+            while queue and stop.signum is None and not broken and len(pending) < 2 * workers:
                 if workers == 1 and pending:
                     break                  # one at a time
                 try:
                     with spawning():       # the pool starts its workers on demand, in submit
                         fut = pool.submit(render_batch, job, queue[0])
                 except BrokenProcessPool:
-                    break                  # a worker died: the loop below collects its chunks
+                    broken = True          # the loop below collects the chunks that were out
+                    break
                 out[fut] = (len(out), queue.pop(0))
                 pending.add(fut)
                 started |= set(multiprocessing.active_children()) - before
@@ -573,6 +575,7 @@ def _pool_round(job, queue: list, stop: StopRequests, results, on_result,
                     continue
                 if isinstance(fut.exception(), BrokenProcessPool):
                     lost.append(out[fut][1])
+                    broken = True
                     continue
                 for r in fut.result():
                     results.append(r)
@@ -581,7 +584,7 @@ def _pool_round(job, queue: list, stop: StopRequests, results, on_result,
                 lost += [out[f][1] for f in pending]
                 pending = set()
     finally:
-        ended = _stop_workers(started) if lost else ""
+        ended = _stop_workers(started) if broken else ""
         pool.shutdown(wait=True, cancel_futures=True)
     if lost:
         _remove_temporaries(job, [ref for refs in lost for ref in refs])
