@@ -226,6 +226,24 @@ def test_ctrl_c_in_a_command_that_does_not_handle_it_is_one_line_and_130(two_pai
     assert res.output == "Interrupted (SIGINT); no file was left half-written.\n"
 
 
+def test_a_ctrl_c_that_surfaces_as_a_system_error_is_an_interruption(monkeypatch, tmp_path):
+    """Ctrl-C inside some C calls surfaces as SystemError ("returned a result with an exception
+    set", the KeyboardInterrupt its cause): still one line and 130, not a traceback."""
+    import weathergen.cli.inspect_cmd as command
+
+    def awkward(*args, **kwargs):
+        try:
+            raise KeyboardInterrupt
+        except KeyboardInterrupt as exc:
+            raise SystemError("<function PurePath.__str__> returned a result with an exception "
+                              "set") from exc
+
+    monkeypatch.setattr(command, "contact_sheet", awkward)
+    res = run("preview", tmp_path, "--out", tmp_path / "sheet.png")
+    assert res.exit_code == 130, res.output
+    assert res.output == "Interrupted (SIGINT); no file was left half-written.\n"
+
+
 # -- 5 and 6: videos: stopped writers, full disks ------------------------------------------------
 
 @pytest.mark.slow
