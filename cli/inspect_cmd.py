@@ -32,7 +32,8 @@ def _preset_origin(name: str, source: str) -> str:
     return name if not source or source.startswith("preset ") else f"{name} (from {source})"
 
 
-@click.command(epilog=exit_codes(("0", "shown"), ("2", "the file cannot be read (one line)")))
+@click.command(epilog=exit_codes(("0", "shown"), ("2", "the file cannot be read (one line)"),
+                                 STOPPED))
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 def inspect(file: Path):
     """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges

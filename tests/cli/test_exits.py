@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -428,19 +429,66 @@ def test_an_override_cannot_turn_a_field_layer_into_the_paper_model(tmp_path):
                                  "preset fog-light (fog-light.toml): key 'model' = 'paper': "
                                  "fog-light is a field preset, and an override cannot change its "
                                  "model"), res.output
+    assert len(res.output.splitlines()) == 1 and "Traceback" not in res.output
+    assert not (tmp_path / "o").exists()
     res = run("presets", "fog-light", "--set", "model=field")     # its own model: fine
+    assert res.exit_code == 0, res.output
+
+
+def test_a_model_override_without_a_layer_is_checked_by_each_layer(tmp_path):
+    """Every preset may name its model, so a bare --set model=... of a combined preset reaches
+    each layer, and the first whose model it is not says so (not "no layer has this key")."""
+    res = run("render", "--preset", "snow-moderate+fog-light", "--set", "model=paper", "--out",
+              tmp_path / "o", "-q")
+    assert res.exit_code == 2, res.output
+    assert res.output.startswith("Error: --preset snow-moderate+fog-light: layer 1 "
+                                 "(snow-moderate): preset snow-moderate (snow-moderate.toml): key "
+                                 "'model' = 'paper': snow-moderate is a field preset, and an "
+                                 "override cannot change its model"), res.output
+    assert len(res.output.splitlines()) == 1
+    res = run("presets", "snow+fog-light", "--set", "model=field")
+    assert res.exit_code == 2
+    assert "layer 1 (snow): preset snow (snow.toml): key 'model' = 'field': snow is a paper " \
+           "preset" in res.output
+    res = run("presets", "fog-light", "--set", "model=fields")
+    assert res.exit_code == 2
+    assert res.output == ("Error: preset fog-light (fog-light.toml): key 'model' = 'fields':"
+                          " must be paper or field\n")
+    res = run("presets", "snow-moderate+fog-light", "--set", "model=field")    # theirs: fine
     assert res.exit_code == 0, res.output
 
 
 # -- every command's --help states its exit codes -----------------------------------------------
 
-@pytest.mark.parametrize("command", [[], *[[name] for name in sorted(cli.commands)]],
-                         ids=lambda c: c[0] if c else "weathergen")
+def _commands(group=cli, path=()):
+    """Every command line of the group, its subgroups' commands too: ``("render",)``, ..."""
+    import click
+
+    yield path
+    for name, command in sorted(group.commands.items()):
+        if isinstance(command, click.Group):
+            yield from _commands(command, (*path, name))
+        else:
+            yield (*path, name)
+
+
+def test_the_walk_finds_every_command():
+    assert {"render", "attack", "preview", "presets", "inspect"} <= {c[-1] for c in _commands()
+                                                                    if c}
+
+
+@pytest.mark.parametrize("command", list(_commands()), ids=lambda c: " ".join(c) or "weathergen")
 def test_help_states_the_exit_codes(command):
+    """0, 2 and 130/143 (every command turns Ctrl-C and SIGTERM into one line) at least, each
+    with what it means, in the order of the codes."""
     res = run(*command, "--help")
     assert res.exit_code == 0, res.output
+    assert "Exit codes:\n" in res.output, res.output
     lines = [line for line in res.output.split("Exit codes:\n", 1)[1].splitlines() if line.strip()]
     indent = min(len(line) - len(line.lstrip()) for line in lines)
-    listed = [line.split()[0].rstrip(",") for line in lines if line[indent:indent + 1].strip()]
-    codes = "\n".join(lines)
-    assert listed[0] == "0" and "2" in listed, codes
+    entries = [re.fullmatch(r"(\d+(?:, \d+)*) {2,}(\S.*)", line[indent:])
+               for line in lines if line[indent:indent + 1].strip()]
+    assert all(entries), lines                            # each code with what it means
+    listed = [c for entry in entries for c in entry.group(1).split(", ")]
+    assert listed == sorted(listed, key=int) and listed[0] == "0", lines
+    assert {"2", "130", "143"} <= set(listed), lines

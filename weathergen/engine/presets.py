@@ -434,9 +434,11 @@ def load_preset(name_or_path: str | Path = "snow",
     overrides = dict(overrides or {})
     if "model" in overrides:          # a stored preset's values name their model: the same
         wanted = str(overrides.pop("model")).strip().strip('"')
+        if wanted not in ("paper", "field"):
+            raise ConfigError(f"{where}: key 'model' = {wanted!r}: must be paper or field")
         if wanted != model:
             others = ", ".join(n for n in list_presets(wanted) if "-" not in n
-                               or n.endswith("-moderate")) if wanted in ("paper", "field") else ""
+                               or n.endswith("-moderate"))
             raise ConfigError(f"{where}: key 'model' = {wanted!r}: {name} is a {model} preset, "
                               f"and an override cannot change its model (every key would fall "
                               f"back to the other model's defaults); choose a {wanted} preset "
@@ -947,7 +949,8 @@ def load_combined(text: str, overrides: Optional[Mapping[str, Any]] = None) -> C
                 raise ConfigError(f"${{overrides}} {key}: {name} has no layer {prefix!r} "
                                   f"(layers: {listed}; name one or give its position)")
             continue
-        lacking = [i for i, p in enumerate(plain) if key not in _keys_of(p)]
+        # every preset file may name its model: each layer checks a bare ``model`` itself
+        lacking = [i for i, p in enumerate(plain) if key not in _keys_of(p) and key != "model"]
         if len(lacking) == len(parts):
             raise ConfigError(f"${{overrides}} {key}: no layer of {name} has this key "
                               f"(`weathergen presets {name}` lists their keys)")
