@@ -17,7 +17,7 @@ from weathergen.engine import FrameScaling
 from weathergen.engine.layers import layer_arrays
 from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
 from weathergen.errors import ConfigError
-from weathergen.io.atomic import write_error
+from weathergen.io.atomic import remove_temporaries, write_error
 from weathergen.io.images import write_png
 from weathergen.io.video import check_video_path, write_video
 from weathergen.outputs import read_metadata, stored_frame_scaling
@@ -199,6 +199,7 @@ def preview(render_dir: Path, out, video, pairs, width, with_input, with_opacity
                               "shows the input, the weather and the opacity)")
     sheet = contact_sheet(render_dir, pairs=pairs or 4, width=width or 480)
     out = out or render_dir / "preview.png"
+    remove_temporaries(out)         # those of an earlier preview that was killed
     try:
         write_png(out, sheet.image)
     except OSError as exc:

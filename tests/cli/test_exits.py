@@ -106,6 +106,30 @@ def test_ctrl_c_to_the_group_of_a_run_started_ignoring_it_is_ignored_with_worker
     assert len(metadata_files(out)) == 4
 
 
+@pytest.mark.slow
+def test_ctrl_c_to_the_group_of_a_run_with_workers_is_an_interruption_never_success(tmp_path,
+                                                                                  demo_root):
+    """Ctrl-C at the terminal: every process of the group gets SIGINT. The run stops with 130 and
+    one line, the manifest lists exactly the pairs on disk, and --resume finishes the run."""
+    out = tmp_path / "ctrl-c"
+    proc = start("render", "--out", out, "--workers", "2", "-q", *FOUR)
+    assert wait_for(lambda: metadata_files(out) or proc.poll() is not None)
+    os.killpg(proc.pid, signal.SIGINT)
+    output = proc.communicate(timeout=120)[0].decode()
+    if proc.returncode == 0 and len(metadata_files(out)) == 4:
+        pytest.skip("the run finished before the signal arrived")
+    assert proc.returncode == 130, output
+    written = [k for k, s in recorded(out).items() if s == "written"]
+    assert output.splitlines() == [
+        f"Interrupted after {len(written)} pair{'s' if len(written) != 1 else ''}; rerun with "
+        "--resume to finish (finished pairs are kept)."], output
+    assert len(written) == len(metadata_files(out)) >= 1
+    assert not temp_files(out)
+    res = run("render", "--out", out, "--workers", "2", "-q", "--resume", *FOUR)
+    assert res.exit_code == 0, res.output
+    assert sorted(recorded(out).values()) == ["written"] * 4
+
+
 def test_stop_requests_leave_an_ignored_signal_ignored_and_never_end_as_success():
     from weathergen.workers import StopRequests
 
@@ -160,6 +184,43 @@ def test_a_pair_that_kills_its_worker_fails_alone_and_every_finished_pair_is_rec
     assert sorted(recorded(out).values()) == ["failed", "written", "written", "written"]
     assert len(metadata_files(out)) == 3
     assert not temp_files(out)
+
+
+def digests(out: Path) -> dict:
+    import hashlib
+
+    return {str(p.relative_to(out)): hashlib.sha256(p.read_bytes()).hexdigest()
+            for p in sorted(out.rglob("*")) if p.is_file() and p.suffix in (".png", ".npz", ".flo")}
+
+
+@linux_only
+@pytest.mark.slow
+def test_a_worker_killed_from_outside_is_one_note_and_its_pairs_are_rendered_again(tmp_path,
+                                                                                   demo_root):
+    """SIGKILL (the out-of-memory killer's signal) to a worker of a real run: no traceback, one
+    note naming the signal, the lost pairs rendered again, exit 0, and the same files as a run
+    where nothing happened; the manifest lists every pair."""
+    out = tmp_path / "killed"
+    proc = start("render", "--out", out, "--workers", "2", "-q", *FOUR)
+    assert wait_for(lambda: len(workers_of(proc.pid)) == 2 or proc.poll() is not None)
+    workers = workers_of(proc.pid)
+    assert wait_for(lambda: metadata_files(out) or proc.poll() is not None)
+    if proc.poll() is not None or not all(Path(f"/proc/{w}").exists() for w in workers):
+        pytest.skip("the run finished before a worker could be killed")
+    os.kill(workers[0], signal.SIGKILL)
+    output = proc.communicate(timeout=300)[0].decode()
+    if "worker process died" not in output and proc.returncode == 0:
+        pytest.skip("the killed worker had nothing left to do")
+    assert proc.returncode == 0, output
+    assert "Traceback" not in output and "BrokenProcessPool" not in output, output
+    lines = output.splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        "Note: a worker process died (killed by SIGKILL"), output
+    assert sorted(recorded(out).values()) == ["written"] * 4
+    assert len(metadata_files(out)) == 4 and not temp_files(out)
+    clean = tmp_path / "clean"
+    assert run("render", "--out", clean, "-q", *FOUR).exit_code == 0
+    assert digests(out) == digests(clean)
 
 
 @linux_only
@@ -271,6 +332,20 @@ def test_a_stopped_video_writer_leaves_no_temporary_and_a_killed_ones_is_swept(t
     res = run("preview", two_pairs, "--video", videos[signal.SIGKILL], "--cycles", "1")
     assert res.exit_code == 0, res.output
     assert [p.name for p in videos[signal.SIGKILL].parent.iterdir()] == ["v.mp4"]
+
+
+def test_a_killed_previews_temporary_contact_sheet_is_swept_by_the_next(two_pairs, tmp_path):
+    """A preview killed while writing its PNG leaves ``.sheet.png.PID.XXXXXXXX.tmp``; the next
+    preview to that file removes it (that of a preview still running stays)."""
+    ended = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"],
+                           capture_output=True, text=True).stdout.strip()
+    left = tmp_path / f".sheet.png.{ended}.abcd1234.tmp"
+    running = tmp_path / f".sheet.png.{os.getpid()}.efgh5678.tmp"
+    for f in (left, running):
+        f.write_bytes(b"half a png")
+    res = run("preview", two_pairs, "--out", tmp_path / "sheet.png")
+    assert res.exit_code == 0, res.output
+    assert sorted(p.name for p in tmp_path.iterdir()) == [running.name, "sheet.png"]
 
 
 def _assert_full_disk_refused(res, video: Path) -> None:
@@ -402,6 +477,7 @@ def test_non_finite_or_missing_ground_truth_flow_is_a_warning(fake_sintel, tmp_p
 
 # -- 10: preview of an output with a corrupt particle file --------------------------------------
 
+@pytest.mark.slow
 def test_preview_says_which_pair_it_leaves_out_for_a_corrupt_particle_file(two_pairs, tmp_path):
     out = tmp_path / "corrupt"
     shutil.copytree(two_pairs, out)

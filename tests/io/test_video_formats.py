@@ -170,6 +170,52 @@ def test_a_complete_mp4_passes_its_check_and_a_cut_one_does_not(tmp_path):
         assert "the video is incomplete" in caught.value.strerror
 
 
+def _box(kind: str, payload: bytes = b"", large: bool = False) -> bytes:
+    """An ISO-BMFF box: 32-bit size and type, or size 1 and a 64-bit size after the type."""
+    if large:
+        return (1).to_bytes(4, "big") + kind.encode() + (16 + len(payload)).to_bytes(8, "big") \
+            + payload
+    return (8 + len(payload)).to_bytes(4, "big") + kind.encode() + payload
+
+
+def _index(frames: int) -> bytes:
+    """A moov box with one track whose stsz (version/flags, sample size 0, count) counts
+    ``frames`` samples."""
+    stsz = _box("stsz", bytes(4) + bytes(4) + frames.to_bytes(4, "big") + bytes(4 * frames))
+    return _box("moov", _box("mvhd", bytes(100)) + _box("trak", _box("mdia", _box("minf", _box(
+        "stbl", _box("stsd", bytes(8)) + stsz)))))
+
+
+def test_check_mp4_reads_the_boxes_as_written_by_hand(tmp_path):
+    """Files built box by box: the index before or after the data, a 64-bit box size, a last box
+    of size 0 (to the end of the file) pass; a missing index, a box running past the end, a
+    wrong count and trailing bytes are refused, each saying what is wrong."""
+    from weathergen.io.video import check_mp4
+
+    ftyp = _box("ftyp", b"isom" + bytes(4) + b"isommp41")
+    good = {
+        "index last": ftyp + _box("mdat", bytes(50)) + _index(3),
+        "index first": ftyp + _index(3) + _box("mdat", bytes(50)),
+        "64-bit data": ftyp + _box("mdat", bytes(50), large=True) + _index(3),
+        "data to the end": ftyp + _index(3) + (0).to_bytes(4, "big") + b"mdat" + bytes(50),
+    }
+    for data in good.values():
+        (tmp_path / "a.mp4").write_bytes(data)
+        check_mp4(tmp_path / "a.mp4", 3)
+    head = ftyp + _box("mdat", bytes(50))                   # 24 + 58 bytes
+    bad = {
+        "no index": (head, "no moov box (82 bytes written)"),
+        "cut in the index": ((head + _index(3))[:-5], "its boxes end at byte 82 of "),
+        "another count": (head + _index(2), "its index counts [2] frames, not 3"),
+        "trailing bytes": (head + _index(3) + b"xyz", "(truncated)"),
+    }
+    for name, (data, problem) in bad.items():
+        (tmp_path / "a.mp4").write_bytes(data)
+        with pytest.raises(OSError) as caught:
+            check_mp4(tmp_path / "a.mp4", 3)
+        assert problem in caught.value.strerror, (name, caught.value.strerror)
+
+
 def test_the_next_write_removes_the_temporary_of_a_killed_writer_only(tmp_path):
     """A temporary of a writer that is gone (its pid in its name) is removed; one of a writer
     that runs (this process) stays, and so does a file that is no temporary of the video."""
