@@ -3,9 +3,10 @@
 Data goes to a hidden temporary file in the destination folder (``.NAME.PID.*.tmp``, PID the
 writing process's), is flushed to disk, and is renamed over the destination in one step
 (``os.replace`` is atomic on POSIX and Windows). A process killed outright can leave such a
-temporary file behind; it never carries a final name, ``weathergen render --resume`` deletes it,
-and so does the next write of the same file once its writer is gone
-(:func:`remove_temporaries`).
+temporary file behind; it never carries a final name, the next run in the same output folder
+deletes it (``weathergen render --resume``, see :func:`~weathergen.outputs.folder.prepare_folder`),
+and the writers of single files (a video, a contact sheet) delete those of their file whose writer
+is gone before they write it (:func:`remove_temporaries`).
 """
 
 from __future__ import annotations
