@@ -286,14 +286,23 @@ def exit_codes(*codes: tuple[str, str]) -> str:
     return "\b\nExit codes:\n" + "\n".join(lines)
 
 
-def job_exit_codes(again: str = "--resume finishes the run") -> str:
-    """The exit codes of ``render`` and ``attack`` (``again``: how a stopped run is finished)."""
+def job_exit_codes(again: str = "--resume finishes the run", every_failed: int = 2) -> str:
+    """The exit codes of ``render`` and ``attack`` (``again``: how a stopped run is finished;
+    ``every_failed``: the code of a run where every selected pair failed, 2 for ``render``, 1 for
+    ``attack``, which records the failures in its manifest)."""
+    if every_failed == 2:
+        failed = ("1", "some pairs failed (each named on stderr, recorded in the manifest); the "
+                       "others were written")
+        bad = ("2", "bad options or input, a full disk or unwritable folder, or every pair failed "
+                    "(one line; the finished pairs are recorded, a folder the run created and "
+                    "wrote nothing into is removed)")
+    else:
+        failed = ("1", "some or all pairs failed (each named on stderr, recorded in the manifest); "
+                       "the others were written")
+        bad = ("2", "bad options or input, a full disk or unwritable folder (one line; the "
+                    "finished pairs are recorded)")
     return exit_codes(
         ("0", "every selected pair written (or already complete); warnings may be printed"),
-        ("1", "some pairs failed (each named on stderr, recorded in the manifest); the others "
-              "were written"),
-        ("2", "bad options or input, a full disk or unwritable folder, or every pair failed "
-              "(one line; the finished pairs are recorded, a folder the run created and wrote "
-              "nothing into is removed)"),
+        failed, bad,
         ("130, 143", f"stopped by Ctrl-C / SIGTERM: the finished pairs are kept and recorded; "
                      f"{again}"))

@@ -16,7 +16,7 @@ import re
 from pathlib import Path
 from typing import NamedTuple, Optional
 
-from .errors import ConfigError
+from .errors import ConfigError, WeatherGenError
 
 #: The environment variable that sets the memory budget (bytes; suffixes K, M, G, T: powers of 1024).
 BUDGET_VARIABLE = "WEATHERGEN_MEMORY_BUDGET"
@@ -47,6 +47,40 @@ def human_bytes(n: float) -> str:
             return f"{n:.0f} {unit}" if unit == "B" else f"{n:.1f} {unit}"
         n /= 1024
     return f"{n:.1f} GiB"
+
+
+#: What the allocators say when they cannot get memory: torch's CPU allocator (a RuntimeError),
+#: CUDA's (torch.OutOfMemoryError); NumPy and Python raise MemoryError.
+_OUT_OF_MEMORY = re.compile(r"can't allocate memory|CUDA out of memory|out of memory", re.I)
+
+
+def out_of_memory(exc: BaseException) -> Optional[str]:
+    """What ``exc`` says about memory when it is an allocation that failed (MemoryError, torch's
+    OutOfMemoryError, torch's CPU allocator's RuntimeError), in a few words: "tried to allocate
+    1.0 GiB"; None for any other error."""
+    text = str(exc)
+    if not (isinstance(exc, MemoryError) or type(exc).__name__ == "OutOfMemoryError"
+            or (isinstance(exc, RuntimeError) and _OUT_OF_MEMORY.search(text))):
+        return None
+    asked = re.search(r"allocate (\d+) bytes", text)
+    if asked:
+        return f"tried to allocate {human_bytes(int(asked.group(1)))}"
+    asked = re.search(r"allocate ([0-9.]+ [KMGTP]i?B)", text)
+    return f"tried to allocate {asked.group(1)}" if asked else "an allocation failed"
+
+
+def failure_message(exc: Exception, fewer: str) -> str:
+    """The message of a pair that failed with ``exc``: a user error's own words, or for an
+    allocation that failed (an estimate fell short, or something else took the memory meanwhile)
+    what to lower (``fewer``: the options that draw fewer pairs at once). Any other error is
+    raised again: a bug, to be seen."""
+    if isinstance(exc, WeatherGenError):
+        return str(exc)
+    short = out_of_memory(exc)
+    if short is None:
+        raise exc
+    return (f"ran out of memory ({short}); lower the preset's particle count or density (or its "
+            f"far depth), or draw fewer pairs at once ({fewer})")
 
 
 def available_memory(environ: Optional[dict] = None, root: Path = Path("/")) -> Optional[Available]:

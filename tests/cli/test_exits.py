@@ -440,6 +440,61 @@ def test_a_pair_that_would_not_fit_the_memory_budget_is_refused_before_drawing(t
                           "(e.g. 512M, 4G)\n")
 
 
+def test_an_allocation_that_fails_anyway_fails_its_pair_in_one_line(tmp_path, monkeypatch):
+    """Where the estimate falls short (or something else took the memory meanwhile) the
+    allocator's error fails that pair with one line saying what to lower; the other pairs are
+    written, exit 1. Any other error is not taken for one."""
+    import weathergen.render.job as render_job
+
+    real = render_job.render_pair
+
+    def allocating(pair, particles, **kwargs):
+        if "street" in str(getattr(pair, "id", "")):
+            raise RuntimeError("[enforce fail at alloc_cpu.cpp:127] err == 0. DefaultCPUAllocator:"
+                               " can't allocate memory: you tried to allocate 1073741824 bytes. "
+                               "Error code 12 (Cannot allocate memory)")
+        return real(pair, particles, **kwargs)
+
+    monkeypatch.setattr(render_job, "render_pair", allocating)
+    out = tmp_path / "o"
+    res = run("render", "--frames-per-scene", "1", "--set", "count=50", "--out", out, "-q")
+    assert res.exit_code == 1, res.output
+    assert res.output.splitlines() == [
+        "failed demo/training/street/0001: ran out of memory (tried to allocate "
+        "1.0 GiB); lower the preset's particle count or density (or its far depth), or draw "
+        "fewer pairs at once (--workers, --batch-size)",
+        "1 pair failed; see the messages above and the manifest."], res.output
+    assert sorted(recorded(out).values()) == ["failed", "written"]
+    assert len(metadata_files(out)) == 1 and not temp_files(out)
+    from weathergen.memory import out_of_memory
+
+    assert out_of_memory(MemoryError()) == "an allocation failed"
+    assert out_of_memory(RuntimeError("CUDA out of memory. Tried to allocate 2.00 GiB")) == \
+        "tried to allocate 2.00 GiB"
+    assert out_of_memory(RuntimeError("shape mismatch")) is None
+    assert out_of_memory(ValueError("out of memory")) is None
+
+
+def test_an_attack_whose_allocation_fails_fails_its_pairs_in_one_line(tmp_path, monkeypatch,
+                                                                     raft_small_weights):
+    import weathergen.attack.job as attack_job
+
+    def allocating(*args, **kwargs):
+        raise RuntimeError("DefaultCPUAllocator: can't allocate memory: you tried to allocate "
+                           "3221225472 bytes. Error code 12 (Cannot allocate memory)")
+
+    monkeypatch.setattr(attack_job, "attack_batch", allocating)
+    res = run("attack", "--model", "raft-small", "--checkpoint", raft_small_weights, "--iters",
+              "1", "--steps", "1", "--scenes", "street", "--frames-per-scene", "1", "--set",
+              "count=50", "--out", tmp_path / "a", "-q")
+    assert res.exit_code == 1, res.output           # as attack --help says: failures recorded
+    assert res.output.splitlines() == [
+        "failed demo/training/street/0001: ran out of memory (tried to allocate 3.0 GiB); lower "
+        "the preset's particle count or density (or its far depth), or draw fewer pairs at once "
+        "(--batch-size)", "1 pair failed; see the messages above."], res.output
+    assert list(recorded(tmp_path / "a").values()) == ["failed"]
+
+
 @pytest.mark.parametrize("epsilon, slip", [("1e9", ""), ("8", "; did you mean 0.03137 (8 on the "
                                                                "0-255 scale)?")])
 def test_an_lp_epsilon_beyond_pixel_values_is_refused(tmp_path, epsilon, slip):

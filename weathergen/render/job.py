@@ -37,7 +37,7 @@ from ..framepair import FramePairBatch, PairId
 from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
                        pair_metadata, write_manifest_part, write_pair_outputs)
 from ..io.atomic import remove_temporaries, write_error
-from ..memory import available_memory
+from ..memory import available_memory, failure_message
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, how_it_ended, init_worker, spawning
 from ..words import counted
@@ -142,9 +142,9 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
                                        particles_from=job.particles_from, appearance=job.appearance,
                                        preset_name=job.preset_name, sequence=job.sequence)
             ready.append((ref, seed, pair, particles, time.perf_counter() - start))
-        except WeatherGenError as exc:
+        except (WeatherGenError, MemoryError, RuntimeError) as exc:
             results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed,
-                                         time.perf_counter() - start, message=str(exc))
+                                         time.perf_counter() - start, message=_failure(exc))
     if job.sequence:
         for ref, seed, pair, particles, spent in ready:
             results[ref.id] = _sequence_pair(job, ref, seed, pair, particles, spent)
@@ -161,10 +161,10 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
                 else:
                     rendered = render_pair(FramePairBatch.stack([g[2] for g in group]),
                                            [g[3] for g in group], device=job.device)
-        except WeatherGenError as exc:
+        except (WeatherGenError, MemoryError, RuntimeError) as exc:
             for ref, seed, _, _, spent in group:
                 results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed, spent,
-                                             message=str(exc))
+                                             message=_failure(exc))
             continue
         share = (time.perf_counter() - start) / len(group)
         ran = {**where_ran(job.device), "batch": len(group)}
@@ -174,6 +174,11 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
             results[ref.id].seconds = spent + share + time.perf_counter() - start
             results[ref.id].ran = ran
     return [results[ref.id] for ref in refs]
+
+
+def _failure(exc: Exception) -> str:
+    """A failed pair's message (:func:`~weathergen.memory.failure_message`)."""
+    return failure_message(exc, "--workers, --batch-size")
 
 
 def _drawn_at_once(job: RenderJob) -> int:
@@ -194,8 +199,8 @@ def _sequence_pair(job: RenderJob, ref: PairRef, seed: int, pair, particles, spe
             else:
                 image, alpha = render_first_frame(pair, particles, device=job.device)
                 rendered = _FirstFrame(image1=image, opacity1=alpha)
-    except WeatherGenError as exc:
-        return PairResult(ref.id.key, str(ref.id), "failed", seed, spent, message=str(exc))
+    except (WeatherGenError, MemoryError, RuntimeError) as exc:
+        return PairResult(ref.id.key, str(ref.id), "failed", seed, spent, message=_failure(exc))
     result = _write_one(job, ref, seed, pair, particles, rendered, 0, second=second)
     result.seconds = spent + time.perf_counter() - start
     return result
