@@ -10,6 +10,7 @@ Each network is one module of this package that registers itself on import (see
 """
 
 from .base import FlowModel
+from .compiled import COMPILE_MODES, compile_iterations
 from .checkpoints import CheckpointSpec, cache_dir, download_checkpoint, read_state_dict
 from .padding import InputPadder
 from .registry import (ModelSpec, available_checkpoints, available_models, build_model,
@@ -34,7 +35,7 @@ __all__ = [
     "GMAModel", "FlowFormer", "FlowFormerModel",
     "get_model", "build_model", "available_models", "available_checkpoints", "model_spec",
     "checkpoint_spec", "register_model", "register_checkpoint", "resolve_amp", "cache_dir",
-    "download_checkpoint", "read_state_dict",
+    "download_checkpoint", "read_state_dict", "COMPILE_MODES", "compile_iterations",
     "SpyNet", "SpyNetModel", "SpyNetSniklaus", "SpyNetSniklausModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
     "FlowNetCRobustModel", "FlowNet2", "FlowNet2Model",
 ]

@@ -74,7 +74,8 @@ def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = Non
     if not overrides:
         appearance = {}
     elif isinstance(resolved, FieldPreset):   # its streak follows the dataset's frame rate
-        appearance = {"blend": resolved.blend, "blur_samples": resolved.blur_samples}
+        appearance = {"blend": resolved.blend, "blur_samples": resolved.blur_samples,
+                      "coarse": resolved.coarse}
     else:
         appearance = RenderSettings.from_preset(resolved).appearance()
     return ResolvedPreset(resolved, name, appearance)
