@@ -35,8 +35,8 @@ from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
 from ..render.job import frame2_note, visibility_of
-from ..render.particles import (layer_seeds, pair_particles, pair_seed, weather_scaling,
-                                weather_seed)
+from ..render.particles import (layer_seeds, pair_particles, pair_seed, scene_airlight,
+                                scene_firsts, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -75,6 +75,7 @@ class AttackJob:
     executor: str = "local"             # "local" or "ray" (weathergen.execution)
     ray_address: Optional[str] = "auto"
     threads: Optional[int] = None       # torch threads of each unit (None: leave as is)
+    scene_firsts: dict = field(default_factory=dict)   # each scene's first selected pair
 
     def amp_setting(self) -> bool:
         """Whether the network runs in mixed precision (:func:`~weathergen.models.resolve_amp`
@@ -181,9 +182,12 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
             pair = job.dataset.load(ref)
             if job.lp is None:      # the weather's part; the network's is not estimated
                 check_pair_memory(pair, job.preset, device, share=len(refs))
+            airlight = None if job.lp is not None or job.particles_from is not None else \
+                scene_airlight(job.dataset, ref.id, job.scene_firsts, job.preset)
             particles = None if job.lp is not None else pair_particles(
                 pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
-                frame_rate=job.dataset.frame_rate, particles_from=job.particles_from)
+                frame_rate=job.dataset.frame_rate, particles_from=job.particles_from,
+                airlight=airlight)
         except (WeatherGenError, MemoryError, RuntimeError) as exc:
             reports[ref.id.key] = PairReport(str(ref.id), "failed", key=ref.id.key,
                                              message=failure_message(exc, "--batch-size"))
@@ -337,6 +341,7 @@ def run_attack(job: AttackJob,
         on_note(note)
     if not refs:
         raise ConfigError(job.dataset.no_pairs_message())
+    job.scene_firsts = scene_firsts(refs)
     local = job.executor == "local"
     # The driver of a Ray run checks the network and its checkpoint on the CPU.
     model = job_model(job) if local else get_model(
