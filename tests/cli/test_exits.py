@@ -422,6 +422,18 @@ def test_a_diameter_in_millimetres_is_refused_naming_the_slip(tmp_path):
     assert not (tmp_path / "o").exists()
 
 
+@pytest.mark.parametrize("key, value, expected", [
+    ("visibility", "0.3", "must be 0 (clear air) or a visibility in metres in [10, 200000] (fog: "
+                          "below 1000, mist and haze: 1000 to 10000); did you mean 300 m (0.3 km)?"),
+    ("sky_distance", "2", "2 m is outside the plausible 10 to 1e+06 m; did you mean 2000 m (2 km)?"),
+    ("snow_rate", "50", "must lie in [0, 30]")])
+def test_an_atmospheres_distance_in_kilometres_is_refused_naming_the_slip(key, value, expected):
+    res = run("render", "--preset", "fog-light", "--set", f"{key}={value}", "-q")
+    assert res.exit_code == 2, res.output
+    assert res.output.startswith(f"Error: --set: key '{key}' = "), res.output
+    assert res.output.rstrip().endswith(expected) and len(res.output.splitlines()) == 1, res.output
+
+
 def test_a_pair_that_would_not_fit_the_memory_budget_is_refused_before_drawing(tmp_path):
     res = run("render", "--preset", "snow-heavy", "--scenes", "street", "--frames-per-scene", "1",
               "--out", tmp_path / "o", "-q", env={"WEATHERGEN_MEMORY_BUDGET": "64M"})
