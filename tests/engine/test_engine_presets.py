@@ -290,7 +290,7 @@ def test_every_bundled_field_preset_lies_in_the_plausible_ranges():
                          "(-90 km/h)?"),
     ("near", "150", "150 m is outside the plausible 0.01 to 100 m; did you mean 0.15 m (150 mm)?"),
     ("aperture", "4", "4 m is outside the plausible 0 to 0.5 m; did you mean 0.004 m (4 mm)?"),
-    ("density", "1e6", "1e+06 per m³ is outside the plausible 0.001 to 100000 per m³"),
+    ("density", "1e6", "1e+06 per m³ is outside the plausible 0.001 to 100000 per m³ (or 0)"),
     ("frame_rate", "0.5", "0.5 fps is outside the plausible 1 to 1000 fps (or 0)"),
 ])
 def test_a_value_outside_its_plausible_range_names_key_range_and_slip(key, value, message):
@@ -306,9 +306,10 @@ def test_a_slip_beyond_the_keys_hard_limit_is_named_too():
 
 
 def test_the_diameters_range_follows_the_templates():
-    assert load_preset("fog-light", {"diameter": "20"}).diameter == 20      # clouds of haze
+    haze = {"templates": "haze", "density": "0.01"}                          # wisps of haze
+    assert load_preset("fog-light", {**haze, "diameter": "20"}).diameter == 20
     with pytest.raises(ConfigError, match="0.1 to 100 m for clouds"):
-        load_preset("fog-light", {"diameter": "0.01"})
+        load_preset("fog-light", {**haze, "diameter": "0.01"})
     with pytest.raises(ConfigError, match="for particles"):
         load_preset("snow-moderate", {"diameter": "4"})
 

@@ -10,6 +10,7 @@ bytes written do not depend on worker count, order, sharding or resumption.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import multiprocessing
 import os
@@ -598,7 +599,7 @@ def _pool_round(job, queue: list, stop: StopRequests, results, on_result,
         ended = _stop_workers(started) if broken else ""
         pool.shutdown(wait=True, cancel_futures=True)
     if lost:
-        _remove_temporaries(job, [ref for refs in lost for ref in refs])
+        _forget_lost(job, [ref for refs in lost for ref in refs])
     return lost, ended
 
 
@@ -616,14 +617,19 @@ def _stop_workers(workers: set) -> str:
     return how_it_ended(dead[0]) if dead else "ended without a word"
 
 
-def _remove_temporaries(job: RenderJob, refs) -> None:
-    """The temporary files that killed workers left for the files of ``refs`` (their writes never
-    reached the rename)."""
+def _forget_lost(job: RenderJob, refs) -> None:
+    """Undo what the stopped workers wrote of ``refs``, whose results were lost with the pool:
+    the temporary files (writes that never reached the rename) and a metadata file (written last:
+    a worker killed after writing it, before its result came back, finished the pair unseen), so
+    that the disk holds no pair the manifest does not record; the pair is rendered again or
+    stays undone for --resume."""
     for ref in refs:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                             job.sequence, job.dataset.native_flow)
         for path in _pair_files(out, job):
             remove_temporaries(path, only_of_dead=False)
+        with contextlib.suppress(OSError):
+            out.metadata.unlink()
 
 
 #: How often the pool loop looks for a held-back Ctrl-C or SIGTERM (seconds).
