@@ -36,7 +36,9 @@ def _checkpoints(items) -> dict:
 @click.command()
 @dataset_options
 @click.option("--networks", default="raft", show_default=True, metavar="A,B,...",
-              help="Flow networks (comma-separated), one table column each.")
+              help="Flow networks (comma-separated), one table column each: names as for "
+                   "`attack --model`, networks of your own as FILE.py:NAME or "
+                   "package.module:NAME too.")
 @click.option("--checkpoint", "checkpoint_items", multiple=True, metavar="NETWORK=CKPT",
               help="Checkpoint file or name of one network (repeatable). Default: its own.")
 @click.option("--presets", default=",".join(DEFAULT_PRESETS), show_default=True,

@@ -10,7 +10,7 @@ from rich.table import Table
 
 from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
 from weathergen.engine import resolve_device
-from weathergen.models import get_model, resolve_amp
+from weathergen.models import canonical_network, get_model, network_label, network_record, resolve_amp
 from weathergen.outputs import WeatherFolder
 
 from .attack import region_rows
@@ -33,7 +33,8 @@ def _fmt(value) -> str:
 @click.option("--pass", "pass_", default=None,
               help="Clean pass (Sintel: clean or final). Default: as recorded.")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
-              default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json.")
+              default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json (a network of "
+                   "your own: evaluate-<file stem>.<NAME>.json).")
 @device_option
 @quiet_option
 def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name, root, pass_,
@@ -58,13 +59,16 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
                           soft_wrap=True)
 
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
-    info = {"model": model, "checkpoint": checkpoint, "iters": iters, "amp": amp,
+    info = {"model": canonical_network(model), "checkpoint": checkpoint, "iters": iters, "amp": amp,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
-    json_path = json_path or default_evaluation_path(weather_dir, model)
+    source = network_record(model)
+    if source is not None:
+        info["source"] = source
+    json_path = json_path or default_evaluation_path(weather_dir, network_label(model))
     write_evaluation(json_path, info, rows, summary)
     if quiet:
         return
-    table = Table(title=f"weathergen evaluate: {model} on {weather_dir} (pixels)")
+    table = Table(title=f"weathergen evaluate: {network_label(model)} on {weather_dir} (pixels)")
     for i, col in enumerate(("pair", "AEE(f, f̌)", "EPE clean", "EPE weather")):
         table.add_column(col, justify="left" if i == 0 else "right")
     for r in rows:

@@ -237,9 +237,12 @@ def model_options(func):
     for option in reversed((
         click.option("--model", default="raft", show_default=True,
                      help="Flow network or checkpoint name (raft, raft-small, gma, flowformer, "
-                          "raft-things, ...)."),
+                          "raft-things, ...; `weathergen models` lists them), an installed "
+                          "network's name, or a network of your own: FILE.py:NAME or "
+                          "package.module:NAME (see docs/models.md)."),
         click.option("--checkpoint", default=None,
-                     help="Checkpoint file or name. Default: the model's own, from the user cache."),
+                     help="Checkpoint file or name. Default: the model's own, from the user cache "
+                          "(a network of your own: none, its code gives the weights)."),
         click.option("--iters", type=click.IntRange(min=1), default=None,
                      help="Refinement iterations of recurrent networks. Default: the network's "
                           "own (RAFT 12, GMA 6, FlowFormer 32)."),

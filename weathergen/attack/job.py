@@ -28,7 +28,7 @@ from ..errors import ConfigError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
-from ..models import get_model, resolve_amp
+from ..models import canonical_network, get_model, network_record, resolve_amp
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
@@ -85,10 +85,14 @@ class AttackJob:
         return resolve_amp(self.model, self.amp, self.device)
 
     def model_config(self) -> dict:
-        """The network as recorded in the manifest: name, checkpoint, iterations, precision."""
-        return {"name": self.model, "checkpoint": str(self.checkpoint)
-                if self.checkpoint is not None else None, "iters": self.iters,
-                "amp": self.amp_setting()}
+        """The network as recorded in the manifest: name, checkpoint, iterations, precision; for
+        a network from outside the package its resolved name and the code's ``source`` (file and
+        sha256, see :func:`~weathergen.models.network_record`)."""
+        record = network_record(self.model)
+        config = {"name": canonical_network(self.model), "checkpoint": str(self.checkpoint)
+                  if self.checkpoint is not None else None, "iters": self.iters,
+                  "amp": self.amp_setting()}
+        return config if record is None else {**config, "source": record}
 
     def config(self) -> dict:
         """What must agree between an interrupted run and its resumption."""

@@ -32,6 +32,7 @@ from ..attack.plan import attack_pass_name, plan_attack
 from ..datasets import Dataset, reopen_dataset
 from ..engine import list_presets
 from ..errors import ConfigError
+from ..models import network_label, network_record
 from ..models.checkpoints import sha256_of
 
 #: The paper's four weather presets and its two Lp baselines.
@@ -45,8 +46,9 @@ PAPER_NAMES = {"flownet2": "FN2", "flownetcrobust": "FNCR", "spynet": "SpyNet", 
 
 
 def network_name(name: str) -> str:
-    """A network as the paper's tables name it."""
-    return PAPER_NAMES.get(name, name)
+    """A network as the paper's tables name it (a network of your own by its short label,
+    ``stem.NAME``)."""
+    return PAPER_NAMES.get(name) or network_label(name)
 
 
 @dataclass(frozen=True)
@@ -58,7 +60,9 @@ class Cell:
     label: str
 
     def folder(self, out: Path) -> Path:
-        return Path(out) / "runs" / self.network / self.label
+        """``OUT/runs/<network>/<label>``; a network of your own under its short label
+        (``stem.NAME``, :func:`~weathergen.models.network_label`)."""
+        return Path(out) / "runs" / network_label(self.network) / self.label
 
 
 @dataclass
@@ -90,6 +94,12 @@ class BenchmarkSpec:
         options)."""
         if not self.networks:
             raise ConfigError("${networks} names no network")
+        labels: dict = {}
+        for net in self.networks:
+            other = labels.setdefault(network_label(net), net)
+            if other != net:
+                raise ConfigError(f"${{networks}}: {other!r} and {net!r} would share the run "
+                                  f"folder {network_label(net)!r}; name one of them otherwise")
         for method in self.lp_methods:
             if method not in LP_METHODS:
                 raise ConfigError(f"${{lp}} {method!r}: expected {', '.join(LP_METHODS)}")
@@ -146,10 +156,13 @@ def shard_cells(cells: list[Cell], shard: Optional[tuple[int, int]]) -> list[Cel
 
 def checkpoint_record(name: str, checkpoint: Optional[str]) -> dict:
     """What identifies a network's weights: its name, the checkpoint given and, for a file, its
-    sha256."""
+    sha256; for a network from outside the package also its code (``source``)."""
     record = {"network": name, "checkpoint": checkpoint, "sha256": None}
     if checkpoint is not None and Path(checkpoint).is_file():
         record["sha256"] = sha256_of(Path(checkpoint))
+    source = network_record(name)
+    if source is not None:
+        record["source"] = source        # a network of your own: its file and that file's sha256
     return record
 
 
