@@ -32,7 +32,7 @@ from ..attack.plan import attack_pass_name, plan_attack
 from ..datasets import Dataset, reopen_dataset
 from ..engine import list_presets
 from ..errors import ConfigError
-from ..models import network_label, network_record
+from ..models import get_model, is_external_name, network_label, network_record
 from ..models.checkpoints import sha256_of
 
 #: The paper's four weather presets and its two Lp baselines.
@@ -171,13 +171,17 @@ def run_grid(spec: BenchmarkSpec, shard: Optional[tuple[int, int]] = None,
              on_cell: Callable[[int, int, Cell], None] = lambda i, n, c: None) -> list[Cell]:
     """Run the cells of ``shard`` (all without one) through ``execute``; return them.
 
-    Every cell's job is built before the first runs, so a bad preset, method or option fails
-    before anything is written.
+    Every cell's job is built before the first runs, and every network from outside the package
+    is built and checked (:func:`~weathergen.models.get_model`), so a bad preset, method, option
+    or network fails before anything is written.
     """
     cells = shard_cells(spec.cells(), shard)
     jobs = [cell_job(spec, c) for c in cells]
     for job in jobs:
         job.amp_setting()                   # --amp for a network or device without it
+    for net in dict.fromkeys(c.network for c in cells):
+        if is_external_name(net):           # a network of your own: built and run once on a small
+            get_model(net, spec.checkpoints.get(net), device=spec.device, iters=spec.iters)  # pair
     for i, (cell, job) in enumerate(zip(cells, jobs)):
         on_cell(i, len(cells), cell)
         execute(job)
