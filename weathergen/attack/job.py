@@ -28,7 +28,7 @@ from ..errors import ConfigError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
-from ..models import canonical_network, get_model, network_record, resolve_amp
+from ..models import canonical_network, get_model, network_record, resolve_amp, resolved_spec
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
@@ -73,6 +73,11 @@ class AttackJob:
     executor: str = "local"             # "local" or "ray" (weathergen.execution)
     ray_address: Optional[str] = "auto"
     threads: Optional[int] = None       # torch threads of each unit (None: leave as is)
+
+    def __post_init__(self):
+        # a network in a file by its resolved path: the same file from any working directory
+        # (a Ray worker may start in another folder, a resumed run in another)
+        self.model = resolved_spec(self.model)
 
     def amp_setting(self) -> bool:
         """Whether the network runs in mixed precision (:func:`~weathergen.models.resolve_amp`
@@ -146,7 +151,9 @@ def job_model(job: AttackJob, device: Optional[str] = None):
     """The job's network on ``device`` (default the job's), loaded once per process."""
     device = device or job.device
     amp = resolve_amp(job.model, job.amp, device)
-    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, amp)
+    code = network_record(job.model)        # a network of your own: its file's content too
+    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, amp,
+           None if code is None else code["sha256"])
     if key not in _MODELS:
         _MODELS.clear()                     # one network per process at a time
         _MODELS[key] = get_model(job.model, job.checkpoint, device=device, iters=job.iters,

@@ -14,7 +14,7 @@ outside the package (``FILE.py:NAME``, ``package.module:NAME``, entry points of 
 from .base import FlowModel
 from .checkpoints import CheckpointSpec, cache_dir, download_checkpoint, read_state_dict
 from .padding import InputPadder
-from .external import ENTRY_POINT_GROUP, ModuleFlowModel, NetworkSource, entry_points
+from .external import ENTRY_POINT_GROUP, ModuleFlowModel, NetworkSource, entry_points, resolved_spec
 from .registry import (ModelSpec, available_checkpoints, available_models, build_model,
                        canonical_network, checkpoint_spec, get_model, is_external_name,
                        model_spec, network_label, network_record, register_checkpoint,
@@ -40,7 +40,7 @@ __all__ = [
     "checkpoint_spec", "register_model", "register_checkpoint", "resolve_amp", "cache_dir",
     "download_checkpoint", "read_state_dict", "ENTRY_POINT_GROUP", "ModuleFlowModel",
     "NetworkSource", "entry_points", "canonical_network", "is_external_name", "network_label",
-    "network_record",
+    "network_record", "resolved_spec",
     "SpyNet", "SpyNetModel", "SpyNetSniklaus", "SpyNetSniklausModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
     "FlowNetCRobustModel", "FlowNet2", "FlowNet2Model",
 ]

@@ -132,6 +132,17 @@ def parse_spec(spec: str) -> tuple[str, str, str]:
     return "module", target, attribute
 
 
+def resolved_spec(spec):
+    """``spec`` with a file network's path resolved (``/abs/path/FILE.py:NAME``), so that it names
+    the same file from any working directory; any other name as given. Loads nothing."""
+    if not is_external(spec):
+        return spec
+    kind, target, attribute = parse_spec(str(spec))
+    if kind != "file":
+        return str(spec)
+    return f"{Path(target).expanduser().resolve()}:{attribute}"
+
+
 def entry_points() -> dict:
     """The entry points of group :data:`ENTRY_POINT_GROUP` of the installed distributions, by
     name (the first of a name wins)."""
