@@ -34,6 +34,7 @@ from ..engine import list_presets
 from ..errors import ConfigError
 from ..models import get_model, is_external_name, network_label, network_record
 from ..models.checkpoints import sha256_of
+from .ladder import ladder_presets
 
 #: The paper's four weather presets and its two Lp baselines.
 DEFAULT_PRESETS = ("snow", "rain", "sparks", "fog")
@@ -87,11 +88,22 @@ class BenchmarkSpec:
     amp: Optional[bool] = None           # mixed precision; None: each network's paper setting
     command: list = field(default_factory=list)
     compat: str = "paper"                # the weather attacks' terms (paper or reference)
+    #: severity ladders (``snow``: snow-light, snow-moderate, snow-heavy), their rungs run as
+    #: weather cells after ``presets`` (:mod:`.ladder`)
+    ladders: Sequence[str] = ()
+
+    def weather_labels(self) -> list[str]:
+        """The weather cells' labels of each network: the presets, then every ladder's rungs not
+        among them."""
+        labels = list(dict.fromkeys(self.presets))
+        for ladder in self.ladders:
+            labels += [p for p in ladder_presets(ladder) if p not in labels]
+        return labels
 
     def cells(self) -> list[Cell]:
         """Every run of the grid, in order. ConfigError names the benchmark's option of a
-        method or preset it cannot run (before the attack's own checks would name the attack's
-        options)."""
+        method, preset or ladder it cannot run (before the attack's own checks would name the
+        attack's options)."""
         if not self.networks:
             raise ConfigError("${networks} names no network")
         labels: dict = {}
@@ -103,9 +115,10 @@ class BenchmarkSpec:
         for method in self.lp_methods:
             if method not in LP_METHODS:
                 raise ConfigError(f"${{lp}} {method!r}: expected {', '.join(LP_METHODS)}")
+        labels = self.weather_labels()
         cells = []
         for net in self.networks:
-            cells += [Cell(net, "weather", p) for p in self.presets]
+            cells += [Cell(net, "weather", p) for p in labels]
             cells += [Cell(net, "lp", m) for m in self.lp_methods]
         return cells
 

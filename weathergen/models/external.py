@@ -87,12 +87,8 @@ class NetworkSource:
     @property
     def label(self) -> str:
         """A short name fit for a folder or a table column: ``stem.NAME`` for a file,
-        ``module.NAME`` for a module, the entry point's name."""
-        if self.kind == "file":
-            return f"{Path(self.path).stem}.{self.attribute}"
-        if self.kind == "module":
-            return f"{self.module}.{self.attribute}"
-        return self.spec
+        ``module.NAME`` for a module, the entry point's name (:func:`spec_label`)."""
+        return spec_label(self.spec)
 
     def record(self) -> dict:
         """The manifest's record of the network's code."""
@@ -130,6 +126,16 @@ def parse_spec(spec: str) -> tuple[str, str, str]:
     if not _MODULE_NAME.match(target):
         raise ConfigError(f"${{model}} {spec!r}: {target!r} is neither a .py file nor a module name")
     return "module", target, attribute
+
+
+def spec_label(spec) -> str:
+    """The short label of a name (no code is loaded): ``stem.NAME`` of ``FILE.py:NAME``,
+    ``module.NAME`` of ``module:NAME``, any other name as it is."""
+    if not is_external(spec):
+        return str(spec)
+    kind, target, attribute = parse_spec(str(spec))
+    stem = Path(target).stem if kind == "file" else target
+    return f"{stem}.{attribute}"
 
 
 def resolved_spec(spec):

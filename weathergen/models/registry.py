@@ -29,7 +29,7 @@ from ..errors import ConfigError
 from .base import FlowModel
 from .checkpoints import CheckpointSpec, resolve_named
 from .external import (check_network, entry_point, entry_points, external_network, is_external,
-                       network_source, supports_amp)
+                       network_source, spec_label, supports_amp)
 
 #: Builds an untrained adapter: ``build(iters=..., gradient_checkpointing=...)``.
 Builder = Callable[..., FlowModel]
@@ -142,8 +142,9 @@ def canonical_network(name: str) -> str:
 
 def network_label(name: str) -> str:
     """A short name of the network fit for a file or folder name and a table column: the
-    registered name, ``stem.NAME`` of a file network, ``module.NAME``, an entry point's name."""
-    return network_source(name).label if is_external_name(name) else str(name)
+    registered name, ``stem.NAME`` of a file network, ``module.NAME``, an entry point's name
+    (from the name alone: nothing is loaded)."""
+    return spec_label(name)
 
 
 def checkpoint_spec(name: str) -> CheckpointSpec:
