@@ -6,12 +6,14 @@ own folder ``OUT/runs/<network>/<label>``, so each is resumable and readable lik
 output:
 
 - one *weather* cell per network and preset: its ``aee_random`` (step 0: the random weather that
-  ``render --seed S`` writes for the preset) fills the "augmentations" table and, with its
-  ``aee_adversarial``, the "weatherattacks" table; a label that names an attack configuration of
+  ``render --seed S`` writes for the preset) fills the "augmentations" table and its
+  ``aee_adversarial`` the "weatherattacks" table; a label that names an attack configuration of
   the supplement rather than a preset (``grey-offset1`` ...) is attacked with that configuration
   and fills the "optimvariables" table;
 - one *Lp* cell per network and Lp method (``pcfa``, ``ifgsm``): its ``aee_adversarial`` fills
-  the "of_attacks" table, next to the adversarial snow of the same network.
+  the "of_attacks" table, next to the adversarial snow of the same network;
+- with ladders (``ladders``, :mod:`.ladder`), one weather cell per network and rung of each
+  ladder (``snow-light`` ...), which fill the ladder's curves and tables.
 
 :func:`run_grid` runs the cells of one shard (``i/N`` takes every N-th cell) one after another
 through ``execute`` — the place where another executor (worker pool, cluster) plugs in: it gets

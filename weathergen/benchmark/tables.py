@@ -12,28 +12,32 @@ Files written into the benchmark folder (all atomically)::
     OUT/tables/NAME.md      one table per file, Markdown
     OUT/tables/NAME.tex     one table per file, a LaTeX ``table`` float to ``\\input``
     OUT/aee.png             AEE(f, f̌) per network and preset, random and adversarial (:mod:`.plot`)
+    OUT/ladders.csv         with ladders: every curve (:mod:`.ladder`), one row per point
+    OUT/robustness.csv      with ladders: the scores R and RCE per ladder, network and mode
+    OUT/ladder.png          with ladders: the curves (:func:`~.plot.draw_ladder`)
 
-One table per table of the paper that the grid's cells fill, laid out as the paper's (AEE(f, f̌)
-in pixels, mean over the pairs; networks as columns, named as the paper names them: FN2, FNCR,
-SpyNet, RAFT, GMA, FF; the worst, i.e. largest, value of each column bold, of each family in
-Table 1):
+One table per table of the paper that the grid's cells fill, numbered and laid out as the paper's
+(AEE(f, f̌) in pixels, mean over the pairs; networks as columns in the paper's order, named as it
+names them: FN2, FNCR, SpyNet, RAFT, GMA, FF, then the other networks in the order given; rows in
+the paper's order, others after them; the worst, i.e. largest, value of each column bold, of each
+family in Table 2):
 
-- ``augmentations`` (the paper's Table 1; on KITTI its supplement's KITTI table): the random
+- ``augmentations`` (the paper's Table 2; on KITTI its supplement's KITTI table): the random
   weather of every preset cell (``aee_random``), the paper's families (particles, motion blur,
   colour, size) grouped under their headings in the paper's order, the main augmentations in
   their families' rows as the paper highlights them (snow is ``3000 (snow)`` of Particles, rain
   ``0.15 (rain)`` of Motion blur, sparks ``red (sparks)`` of Color additive, fog ``fog`` of Size),
   the worst of each family bold, as the paper marks it (rows alone in their section are ranked
-  with one another);
-- ``optimvariables`` (Table 2): the attack-configuration cells (e.g. ``grey-offset1``), one row
-  per set of freed variables, under an ``Initial`` row (the random weather, not ranked); the
-  second worst underlined;
-- ``weatherattacks`` (Table 3): every preset cell, the random and the adversarial figure next to
-  each other under each network;
-- ``of_attacks`` (Table 4): the Lp baselines (PCFA, I-FGSM) beside the adversarial snow.
+  with one another); presets outside the families last;
+- ``optimvariables`` (Table 3): the attack-configuration cells (e.g. ``grey-offset1``), one row
+  per set of freed variables in the paper's three sections, under an ``Initial`` row (the random
+  weather, not ranked); the second worst underlined;
+- ``weatherattacks`` (Table 4): the adversarial figure of every preset cell (snow, rain, sparks,
+  fog first);
+- ``of_attacks`` (Table 5): the Lp baselines (PCFA, I-FGSM) beside the adversarial snow.
 
 A table whose cells the grid does not have is left out; a cell not finished (yet) shows ``–`` and
-counts for no mark.
+counts for no mark. With ladders, two tables per ladder follow (:func:`ladder_tables`).
 """
 
 from __future__ import annotations
