@@ -133,10 +133,15 @@ def dataset_options(func):
     @click.option("--depth-scale", type=float, default=1.0, show_default=True,
                   help="Multiply all depth (and camera translation) by this factor.")
     @click.option("--scene-scales", type=click.Path(dir_okay=False, path_type=str), default=None,
-                  help="TOML/JSON table of per-scene depth factors, applied on top of --depth-scale. "
-                       "Default: none (every scene 1.0).")
+                  help="TOML/JSON table of per-scene depth factors, applied on top of --depth-scale; "
+                       "'research': the paper's research code's table (bundled). Default: none "
+                       "(every scene 1.0).")
     @click.option("--camera-translation/--no-camera-translation", default=True, show_default=True,
                   help="Keep the camera translation between the two frames (or zero it).")
+    @click.option("--no-translation-in-scaled-scenes", "unscaled_translation", is_flag=True,
+                  help="Zero the camera translation only in the scenes --depth-scale and "
+                       "--scene-scales scale (factor not 1), as the paper's research code does "
+                       "(with --scene-scales research: its frame and scaling).")
     @click.option("--far-depth", type=click.FloatRange(min=0, min_open=True), default=None,
                   help="kitti, spring, custom: depth (dataset units, before --depth-scale) given to "
                        "pixels without depth, such as the sky. Default: 1000.")
@@ -149,11 +154,16 @@ def dataset_options(func):
     @reader_options
     @functools.wraps(func)
     def wrapper(*args, dataset_name, root, split, pass_, scenes, from_scene, frames_per_scene,
-                first_frame, depth_scale, scene_scales, camera_translation, far_depth, world_up,
-                **kwargs):
+                first_frame, depth_scale, scene_scales, camera_translation, unscaled_translation,
+                far_depth, world_up, **kwargs):
         name = dataset_name or default_dataset(root)
         reader = DATASETS[name]
-        options = dict(depth_scale=depth_scale, camera_translation=camera_translation,
+        if unscaled_translation and not camera_translation:
+            raise click.UsageError("--no-translation-in-scaled-scenes keeps the translation of "
+                                   "the unscaled scenes; --no-camera-translation zeroes every one: "
+                                   "give one of them")
+        translation = "unscaled" if unscaled_translation else camera_translation
+        options = dict(depth_scale=depth_scale, camera_translation=translation,
                        scene_scales=load_scene_scales(scene_scales) if scene_scales else None,
                        world_up=world_up)
         for flag, keyword in READER_OPTIONS.items():

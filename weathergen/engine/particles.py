@@ -24,6 +24,14 @@ particle's diameter in scene units and ``transparency`` its base θ, and footpri
 depth fade are computed for every frame from that frame's own depth of the particle
 (:mod:`weathergen.engine.tracks`).
 
+Stored stamps: a record may carry each particle's own stamp (``stamps``, (N, S, S): the alpha
+image it is drawn with, as the paper's research code stores its particles' flakes, see
+:mod:`weathergen.engine.published`); its ``template``, ``scale``, ``rotation`` and ``defocus`` are
+then not used, and the particles are drawn with the record's own number of blur samples. The file
+keeps every stamp exactly: the bounding box of its non-zero pixels (``stamp_boxes`` (N, 4) uint16:
+top, left, height, width), those pixels (``stamp_pixels``, float32, one box after the other,
+row-major) and the side (``stamp_side``).
+
 Storage precision of the paper's records: positions and motions as codes on a per-record linear
 grid (``lo + code * step`` per axis, the grid spanning the record's values; 15 bits for
 positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for motions); colours as
@@ -170,6 +178,8 @@ class Particles:
         scale: (N,) image pixels per template pixel, fixed at sampling; with ``optics``: the
             particle's diameter in scene units.
         defocus: (N,) int64 disc-blur radius in pixels (0 or 1: no blur); 0 with ``optics``.
+        stamps: None, or (N, S, S) float, S odd: each particle's own stamp (alpha in [0, 1],
+            drawn centred on the particle at its native pixels; see the module doc).
     Float fields are float32 (or the dtype the caller chose, e.g. float64 for gradcheck).
     """
 
@@ -186,6 +196,7 @@ class Particles:
     frame: str = "world"
     settings: RenderSettings = RenderSettings()
     optics: Optional[FieldOptics] = None
+    stamps: Optional[torch.Tensor] = None
 
     @property
     def per_frame(self) -> bool:
@@ -215,11 +226,17 @@ class Particles:
             if dtype is not None and t.is_floating_point():
                 t = t.to(dtype)
             moved[name] = t.to(device) if device is not None else t
+        if self.stamps is not None:
+            t = self.stamps.to(dtype) if dtype is not None else self.stamps
+            moved["stamps"] = t.to(device) if device is not None else t
         return self.replace(**moved)
 
     def select(self, index: torch.Tensor) -> "Particles":
         """The particles picked by a boolean mask or index tensor, shape (N,)."""
-        return self.replace(**{name: getattr(self, name)[index] for name in _TENSOR_FIELDS})
+        picked = {name: getattr(self, name)[index] for name in _TENSOR_FIELDS}
+        if self.stamps is not None:
+            picked["stamps"] = self.stamps[index.to(self.stamps.device)]
+        return self.replace(**picked)
 
     def quantized(self) -> "Particles":
         """A detached copy with every field rounded to its storage precision (see module doc).
@@ -234,8 +251,11 @@ class Particles:
                     storage = torch.from_numpy(np.zeros(0, np_dtype)).dtype
                     out[name] = t.to(storage).to(torch.float32)
             return self.replace(**out)
-        return self.replace(**{name: quantize_field(name, getattr(self, name)).to(
-            getattr(self, name).device) for name in _TENSOR_FIELDS})
+        out = {name: quantize_field(name, getattr(self, name)).to(getattr(self, name).device)
+               for name in _TENSOR_FIELDS}
+        if self.stamps is not None:         # stored exactly, in float32
+            out["stamps"] = self.stamps.detach().to(torch.float32)
+        return self.replace(**out)
 
     def metadata(self) -> dict:
         """The non-tensor fields: reference frame and render settings."""
@@ -265,6 +285,8 @@ class Particles:
                     _CODED_DTYPES.get(name, np_dtype))
         arrays["frame"] = np.array(self.frame)
         arrays.update(self.settings.to_arrays())
+        if self.stamps is not None:
+            arrays.update(stamp_arrays(self.stamps))
         return arrays
 
     def _to_numpy_field(self) -> dict[str, np.ndarray]:
@@ -338,8 +360,58 @@ class Particles:
                 optics = FieldOptics.from_dict(json.loads(str(arrays["optics"])))
             except (ValueError, TypeError) as exc:
                 raise FormatError(path, f"unreadable 'optics' entry ({exc})") from None
+        stamps = read_stamp_arrays(arrays, n, path) if "stamp_boxes" in arrays else None
+        if stamps is not None and device is not None:
+            stamps = stamps.to(device)
         return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path),
-                   optics=optics)
+                   optics=optics, stamps=stamps)
+
+
+def stamp_arrays(stamps: torch.Tensor) -> dict[str, np.ndarray]:
+    """The file entries of stored stamps (see the module doc): each stamp's bounding box of
+    non-zero pixels and those pixels, exactly. Shape: (N, S, S) -> entries."""
+    a = stamps.detach().cpu().to(torch.float32).numpy()
+    n, side = a.shape[0], a.shape[-1]
+    boxes = np.zeros((n, 4), np.uint16)
+    pieces = []
+    for i in range(n):
+        rows = np.flatnonzero(a[i].any(1))
+        cols = np.flatnonzero(a[i].any(0))
+        if rows.size == 0:
+            continue
+        top, left = rows[0], cols[0]
+        height, width = rows[-1] - top + 1, cols[-1] - left + 1
+        boxes[i] = (top, left, height, width)
+        pieces.append(a[i, top:top + height, left:left + width].ravel())
+    pixels = np.concatenate(pieces) if pieces else np.zeros(0, np.float32)
+    return {"stamp_side": np.array(side, np.int32), "stamp_boxes": boxes,
+            "stamp_pixels": pixels.astype(np.float32)}
+
+
+def read_stamp_arrays(arrays: dict, n: int, path) -> torch.Tensor:
+    """The stamps stored by :func:`stamp_arrays`; FormatError names ``path`` on any
+    inconsistency. Shape: -> (N, S, S) float32."""
+    side, boxes, pixels = (arrays.get(k) for k in ("stamp_side", "stamp_boxes", "stamp_pixels"))
+    if side is None or pixels is None:
+        raise FormatError(path, "stamp_boxes without stamp_side and stamp_pixels")
+    side = int(side)
+    if side < 1 or side % 2 == 0:
+        raise FormatError(path, f"stamp_side must be odd and positive, got {side}")
+    if boxes.dtype != np.uint16 or boxes.shape != (n, 4) or pixels.dtype != np.float32:
+        raise FormatError(path, f"stamp_boxes must be uint16 ({n}, 4) and stamp_pixels float32, "
+                                f"got {boxes.dtype} {boxes.shape} and {pixels.dtype}")
+    top, left, height, width = boxes.astype(np.int64).T
+    if np.any(top + height > side) or np.any(left + width > side):
+        raise FormatError(path, "a stamp box reaches beyond the stamp")
+    sizes = height * width
+    if int(sizes.sum()) != pixels.size:
+        raise FormatError(path, f"stamp_pixels holds {pixels.size} values, the boxes {int(sizes.sum())}")
+    out = np.zeros((n, side, side), np.float32)
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    for i in np.flatnonzero(sizes):
+        out[i, top[i]:top[i] + height[i], left[i]:left[i] + width[i]] = \
+            pixels[starts[i]:starts[i + 1]].reshape(height[i], width[i])
+    return torch.from_numpy(out)
 
 
 def _decoded(arrays: dict, name: str, version: int, path) -> np.ndarray:
