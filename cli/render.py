@@ -56,9 +56,11 @@ def _parse_workers(ctx, param, value):
 
 @click.command()
 @dataset_options
-@click.option("--preset", default="snow", show_default=True,
+@click.option("--preset", default=None,
               help="Weather preset by name (see `weathergen presets`); presets joined by + "
-                   "render together in one pass, e.g. rain-heavy+fog-light.")
+                   "render together in one pass, e.g. rain-heavy+fog-light. Default: snow; with "
+                   "--particles of the paper's published weather, the preset its folder's name "
+                   "says (particles_3000_npz: particles-3000).")
 @click.option("--preset-file", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="Your own preset file (TOML); replaces --preset. Default: none.")
 @click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
@@ -66,7 +68,9 @@ def _parse_workers(ctx, param, value):
 @out_option("out/<preset>")
 @seed_option("Run seed; each pair's seed derives from it and the pair's identity.")
 @click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
-              default=None, help="Re-render the particles of an earlier render output instead of sampling. "
+              default=None, help="Re-render the particles of an earlier render output instead of sampling, "
+                                  "or the paper's published weather (a set of the research "
+                                  "code's SCENE/frame_NNNN.npz files; see docs/render.md). "
                                   "Default: sample new particles.")
 @click.option("--pass-name", default=None,
               help="Name of the output pass folder. Default: <preset>_<input pass>.")

@@ -33,8 +33,8 @@ from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
 from ..render.job import frame2_note, visibility_of
-from ..render.particles import (layer_seeds, pair_particles, pair_seed, weather_scaling,
-                                weather_seed)
+from ..render.particles import (layer_seeds, pair_particles, pair_seed, published_geometry_note,
+                                weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -257,7 +257,7 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
              if isinstance(job.preset, CombinedPreset) else None)
     meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id),
                          job.preset.to_dict(), job.preset_name, seeds,
-                         scaling=weather_scaling(job.preset, pair))
+                         scaling=weather_scaling(job.preset, pair, job.particles_from))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
     out = pair_output(job, pair.id)
@@ -341,6 +341,9 @@ def run_attack(job: AttackJob,
     refs = job.dataset.pairs()
     for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
         on_note(note)
+    geometry = published_geometry_note(job.dataset, job.particles_from)
+    if geometry is not None:
+        on_note(geometry)
     if not refs:
         raise ConfigError(job.dataset.no_pairs_message())
     local = job.executor == "local"

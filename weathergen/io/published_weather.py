@@ -81,12 +81,17 @@ def is_published_set(folder: str | Path) -> bool:
     if not folder.is_dir() or (folder / "manifest.json").exists():
         return False
     for path in sorted(folder.glob("*/frame_[0-9][0-9][0-9][0-9].npz"))[:1]:
-        try:
-            with np.load(path, allow_pickle=False) as data:
-                return "points3D" in data.files
-        except Exception:       # numpy raises several types for a file it cannot read
-            return False
+        return is_published_file(path)
     return False
+
+
+def is_published_file(path: str | Path) -> bool:
+    """Whether ``path`` is an ``.npz`` file holding the research code's arrays."""
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return all(k in data.files for k in ARRAYS)
+    except Exception:           # not a file, not an archive: not one of these
+        return False
 
 
 def _load(path: Path) -> dict:

@@ -38,7 +38,8 @@ from ..io.atomic import write_error
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
 from ..words import counted
-from .particles import layer_seeds, pair_particles, weather_scaling, weather_seed
+from .particles import (layer_seeds, pair_particles, published_geometry_note, weather_scaling,
+                        weather_seed)
 from .plan import auto_workers
 from .shards import shard_refs
 
@@ -211,7 +212,7 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     seeds = (layer_seeds(job.preset, job.seed, ref.id)
              if isinstance(particles, LayeredParticles) else None)
     meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name, seeds,
-                         scaling=weather_scaling(job.preset, pair))
+                         scaling=weather_scaling(job.preset, pair, job.particles_from))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                         job.sequence, job.dataset.native_flow)
@@ -376,6 +377,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     every = job.dataset.pairs()
     for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
         on_note(note)
+    geometry = published_geometry_note(job.dataset, job.particles_from)
+    if geometry is not None:
+        on_note(geometry)
     refs = shard_refs(every, job.shard)
     if not every:
         raise ConfigError(job.dataset.no_pairs_message())
