@@ -27,10 +27,11 @@ depth fade are computed for every frame from that frame's own depth of the parti
 Stored stamps: a record may carry each particle's own stamp (``stamps``, (N, S, S): the alpha
 image it is drawn with, as the paper's research code stores its particles' flakes, see
 :mod:`weathergen.engine.published`); its ``template``, ``scale``, ``rotation`` and ``defocus`` are
-then not used, and the particles are drawn with the record's own number of blur samples. The file
-keeps every stamp exactly: the bounding box of its non-zero pixels (``stamp_boxes`` (N, 4) uint16:
-top, left, height, width), those pixels (``stamp_pixels``, float32, one box after the other,
-row-major) and the side (``stamp_side``).
+then not used, and the particles are drawn with the record's own number of blur samples. Such a
+record is kept exactly: its file has the float layout with every float field in float32 (no
+rounding: :meth:`Particles.quantized` only detaches it), and every stamp: the bounding box of its
+non-zero pixels (``stamp_boxes`` (N, 4) uint16: top, left, height, width), those pixels
+(``stamp_pixels``, float32, one box after the other, row-major) and the side (``stamp_side``).
 
 Storage precision of the paper's records: positions and motions as codes on a per-record linear
 grid (``lo + code * step`` per axis, the grid spanning the record's values; 15 bits for
@@ -241,6 +242,10 @@ class Particles:
     def quantized(self) -> "Particles":
         """A detached copy with every field rounded to its storage precision (see module doc).
         Idempotent: quantizing a quantized record changes nothing."""
+        if self.stamps is not None:     # stored stamps (published weather): kept exactly
+            return self.replace(**{name: getattr(self, name).detach().to(
+                torch.int64 if name in _INTEGER_FIELDS else torch.float32)
+                for name in _TENSOR_FIELDS}, stamps=self.stamps.detach().to(torch.float32))
         if self.optics is not None:     # field records: the float layout of version 2
             out = {}
             for name, (np_dtype, _) in _TENSOR_FIELDS.items():
@@ -251,11 +256,8 @@ class Particles:
                     storage = torch.from_numpy(np.zeros(0, np_dtype)).dtype
                     out[name] = t.to(storage).to(torch.float32)
             return self.replace(**out)
-        out = {name: quantize_field(name, getattr(self, name)).to(getattr(self, name).device)
-               for name in _TENSOR_FIELDS}
-        if self.stamps is not None:         # stored exactly, in float32
-            out["stamps"] = self.stamps.detach().to(torch.float32)
-        return self.replace(**out)
+        return self.replace(**{name: quantize_field(name, getattr(self, name)).to(
+            getattr(self, name).device) for name in _TENSOR_FIELDS})
 
     def metadata(self) -> dict:
         """The non-tensor fields: reference frame and render settings."""
@@ -265,7 +267,7 @@ class Particles:
 
     def to_numpy(self) -> dict[str, np.ndarray]:
         """The ``.npz`` content (format version 5): storage arrays plus 0-d metadata arrays."""
-        if self.optics is not None:
+        if self.optics is not None or self.stamps is not None:
             return self._to_numpy_field()
         arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
@@ -285,19 +287,21 @@ class Particles:
                     _CODED_DTYPES.get(name, np_dtype))
         arrays["frame"] = np.array(self.frame)
         arrays.update(self.settings.to_arrays())
-        if self.stamps is not None:
-            arrays.update(stamp_arrays(self.stamps))
         return arrays
 
     def _to_numpy_field(self) -> dict[str, np.ndarray]:
-        """Field records: float storage arrays plus the metadata and the ``optics`` entry."""
+        """Field records: float storage arrays plus the metadata and the ``optics`` entry; records
+        with stored stamps: every float field float32, plus the stamps."""
         q = self.quantized()
         arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
-            arrays[name] = getattr(q, name).cpu().numpy().astype(np_dtype)
+            arrays[name] = getattr(q, name).cpu().numpy().astype(_dtype_of(name, np_dtype, q.stamps))
         arrays["frame"] = np.array(self.frame)
         arrays.update(self.settings.to_arrays())
-        arrays["optics"] = np.array(json.dumps(self.optics.to_dict(), sort_keys=True))
+        if self.optics is not None:
+            arrays["optics"] = np.array(json.dumps(self.optics.to_dict(), sort_keys=True))
+        if self.stamps is not None:
+            arrays.update(stamp_arrays(self.stamps))
         return arrays
 
     def save(self, path: str | Path) -> Path:
@@ -326,7 +330,9 @@ class Particles:
         if version not in READABLE_VERSIONS:
             raise FormatError(path, f"particle format version {version}; this weathergen "
                                     f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
-        field_record = "optics" in arrays if version == FORMAT_VERSION else version in (1, 2)
+        stamped = "stamp_boxes" in arrays
+        field_record = ("optics" in arrays or stamped) if version == FORMAT_VERSION \
+            else version in (1, 2)
         coded = version in _CODED_VERSIONS and not field_record
         n = None
         fields = {}
@@ -336,7 +342,7 @@ class Particles:
             a = arrays[name]
             if n is None:
                 n = a.shape[0] if a.ndim else -1
-            want, shape = np_dtype, (n, *tail)
+            want, shape = _dtype_of(name, np_dtype, stamped or None), (n, *tail)
             if coded:
                 want = _CODED_DTYPES.get(name, np_dtype)
                 if name == "motion" and version == FORMAT_VERSION:
@@ -353,7 +359,7 @@ class Particles:
         if frame not in REFERENCE_FRAMES:
             raise FormatError(path, f"unknown reference frame {frame!r}")
         optics = None
-        if version == 2 or (version == FORMAT_VERSION and field_record):
+        if version == 2 or (version == FORMAT_VERSION and field_record and not stamped):
             if "optics" not in arrays:
                 raise FormatError(path, f"version {version} field record without 'optics'")
             try:
@@ -365,6 +371,14 @@ class Particles:
             stamps = stamps.to(device)
         return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path),
                    optics=optics, stamps=stamps)
+
+
+def _dtype_of(name: str, np_dtype, stamps) -> type:
+    """The storage dtype of field ``name`` in the float layout: float32 for every float field of a
+    record with stored stamps (kept exactly), the field's own otherwise."""
+    if stamps is not None and name not in _INTEGER_FIELDS:
+        return np.float32
+    return np_dtype
 
 
 def stamp_arrays(stamps: torch.Tensor) -> dict[str, np.ndarray]:
