@@ -244,13 +244,14 @@ def test_render_draws_the_files_as_the_same_particles_given_directly(tree, rende
             expected = render_pair(pair, direct)
         name = f"{ref.id.scene}_{ref.id.frame:04d}"
         for k, img in ((1, expected.image1), (2, expected.image2)):
-            written = read_image(out / "training" / "snow_clean" / name / f"frame_{k:04d}.png")
+            written = read_image(out / "training" / "snow_clean" / name
+                                 / f"frame_{ref.id.frame + k - 1:04d}.png")
             direct_png = to_uint8(img[0].permute(1, 2, 0).numpy())
             assert np.array_equal(to_uint8(written), direct_png), (name, k)
         # the output keeps every particle's stamp exactly
-        stored = Particles.load(out / "training" / "particles" / name / "frame_0001.npz")
+        stored = Particles.load(out / "training" / "particles" / name / f"frame_{ref.id.frame:04d}.npz")
         assert torch.equal(stored.stamps, direct.stamps)
-        assert torch.all(expected.image1 != pair.image1[None])  # the weather is drawn (θ > 0)
+        assert (expected.image1 != pair.image1[None]).float().mean() > 0.05   # weather drawn
 
 
 @pytest.mark.slow
