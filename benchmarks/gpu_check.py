@@ -10,6 +10,8 @@ For whoever has an NVIDIA GPU and a CUDA build of torch (`make gpu-check TORCH=t
 - training: the weather of a batch of 6 Sintel-size pairs on the device (``apply_batch``), and a
   RAFT-small and a RAFT training step on the cropped batch;
 - attack batch: a step of ``attack --batch-size B`` with RAFT for B = 1, 4, 8;
+- tables: the paper's six networks' attack at their best batch size in the paper's precision
+  (``bench_tables.py``) and the GPU-hours of the paper's Tables 2-5 that follow;
 - networks: forward and forward + backward of every registered network, time and memory.
 
 Prints one Markdown table (seconds: medians after a warm-up call; memory: the peak of allocated
@@ -27,6 +29,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import math
 import re
 import statistics
 import subprocess
@@ -294,6 +297,37 @@ def attack_rows(device: str, sizes: Sizes) -> list[Row]:
     return rows
 
 
+def table_rows(device: str, sizes: Sizes) -> list[Row]:
+    """The paper's networks' attack at their best batch size in the paper's precision
+    (:mod:`bench_tables`), and the GPU-hours of the paper's Tables 2-5 that follow."""
+    import bench_tables as bt
+
+    quick = sizes.width < 1024
+    tsizes = bt.Sizes(width=sizes.width, height=sizes.height, iters=sizes.iters, count=sizes.count,
+                      batch_sizes=(1, 2) if quick else (1, 2, 4, 8, 16), steps=sizes.steps)
+    networks = [sizes.attack_model] if quick else list(bt.PAPER_NETWORKS)
+    results = bt.run_measurements(device, tsizes, networks, ["paper"], bt.Options(),
+                                  budget_s=30.0 if not quick else math.inf, log=lambda s: None)
+    rows = []
+    for r in results:
+        if r.attack is None:
+            rows.append(Row("tables", f"{r.network}: attack", note=r.stop, failed=True))
+            continue
+        best = r.batches[r.best_batch]
+        rows.append(Row("tables", f"{r.network}: attack step at batch {r.best_batch} (paper "
+                                  f"precision)", best["step_seconds"], best["memory_gib"],
+                        f"{r.attack:.2f} pair-steps/s; network alone {r.network_share:.0%} of "
+                        f"a step; {r.stop}"))
+    tps = bt.best_throughputs(results, "paper")
+    if tps:
+        hours = bt.all_hours(bt.paper_runs(), tps)["all"]
+        rows.append(Row("tables", f"Tables 2-5 on Sintel, {len(tps)} network(s): "
+                                  f"{hours['total']:.1f} GPU-hours",
+                        note=f"Table 4: {hours['4']:.1f} h, Table 3: {hours['3']:.1f} h, "
+                             f"Table 5: {hours['5']:.1f} h, Table 2: {hours['2']:.1f} h"))
+    return rows
+
+
 def every_network() -> list[str]:
     """Every registered network, in the tables' order (:func:`bench_models.every_network`)."""
     import bench_models
@@ -361,7 +395,7 @@ def table(rows: list[Row], title: str) -> str:
 
 
 AREAS = {"render": render_rows, "field": field_rows, "training": training_rows,
-         "attack batch": attack_rows}
+         "attack batch": attack_rows, "tables": table_rows}
 
 
 def run(device: str, sizes: Sizes, models, tests: bool,

@@ -109,12 +109,15 @@ def test_the_dry_run_measures_every_area_into_one_table(tmp_path):
     res = run_script("--device", "cpu", "--quick", "--models", "spynet", "--json", out)
     assert res.returncode == 0, res.stdout + res.stderr
     rows = json.loads(out.read_text())["rows"]
-    assert {r["area"] for r in rows} == {"render", "field", "training", "attack batch", "networks"}
+    assert {r["area"] for r in rows} == {"render", "field", "training", "attack batch", "tables",
+                                         "networks"}
     assert not [r for r in rows if r["failed"]]
-    assert all(r["seconds"] > 0 for r in rows)
+    assert all(r["seconds"] > 0 for r in rows if not r["what"].startswith("Tables 2-5"))
     whats = {r["what"] for r in rows}
     assert {"snow (100), forward", "fog (4), forward + backward", "spynet, forward + backward",
             "raft-small, batch of 2: a step", "snow-heavy: render a frame"} <= whats
+    assert any(w.startswith("raft-small: attack step at batch ") for w in whats)
+    assert any(w.startswith("Tables 2-5 on Sintel, 1 network(s): ") for w in whats)
     table = [line for line in res.stdout.splitlines() if line.startswith("| ")]
     assert table[0] == "| area | what | seconds | GPU memory (GiB) | note |"
     assert len(table) == 1 + len(rows)            # the header and one line per figure

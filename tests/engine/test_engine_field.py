@@ -502,3 +502,34 @@ def test_right_camera_renders_the_same_field_particles_at_their_disparity():
     _, a_right = render_right(torch.zeros(3, H, W), right, record, record.position,
                               record.motion, disc_library())
     assert centroid(a_left)[0] - centroid(a_right)[0] == pytest.approx(F * baseline / 2.5, abs=0.05)
+
+
+# -- the views' tests on the render's device ---------------------------------------------------
+
+def test_a_fields_views_tested_on_the_cpu_by_name_give_todays_record():
+    from weathergen.engine.particles import TENSOR_FIELDS
+
+    from engine_scenes import plane_pair
+
+    pair = plane_pair(64, 96, near_block=True)
+    preset = load_preset("snow-light")
+    a = sample_field_particles(pair, preset, 3, frame_rate=24.0)
+    b = sample_field_particles(pair, preset, 3, frame_rate=24.0, sample_on="cpu")
+    assert a.count > 0
+    assert all(torch.equal(getattr(a, n), getattr(b, n)) for n in TENSOR_FIELDS)
+
+
+@pytest.mark.cuda
+def test_a_fields_views_tested_on_cuda_give_the_cpus_particles():
+    from engine_scenes import plane_pair
+
+    pair = plane_pair(436, 1024, near_block=True)
+    preset = load_preset("snow-light")
+    cpu = sample_field_particles(pair, preset, 3, frame_rate=24.0)
+    gpu = sample_field_particles(pair.to("cuda"), preset, 3, frame_rate=24.0, sample_on="cuda",
+                                 device="cuda")
+    assert gpu.position.device.type == "cuda" and cpu.count > 100
+    assert abs(gpu.count - cpu.count) <= max(2, cpu.count // 200)
+    if gpu.count == cpu.count:
+        same = (gpu.position.cpu() == cpu.position).all(1)
+        assert float(same.float().mean()) > 0.99

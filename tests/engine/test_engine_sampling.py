@@ -371,3 +371,37 @@ def test_the_motion_prefilter_never_drops_a_candidate_frame_2_could_see():
     left = left if float(left @ ray(24.0, 15.5)) > 0 else -left      # inward
     outside = (4 * ray(-0.5, 15.0) - left)[None]
     assert bool(_within_reach(outside, cone, 1.01)) and not bool(_within_reach(outside, cone, 0.99))
+
+
+# -- sampling on the render's device -------------------------------------------------------------
+
+def _same_record(a, b) -> bool:
+    from weathergen.engine.particles import TENSOR_FIELDS
+
+    return all(torch.equal(getattr(a, n).cpu(), getattr(b, n).cpu()) for n in TENSOR_FIELDS)
+
+
+@pytest.mark.parametrize("name", ["snow", "rain", "sparks", "fog"])
+def test_sampling_on_the_cpu_by_name_is_todays_sampling(name):
+    """``sample_on`` moves the arithmetic, never the random numbers: on the CPU the same bytes."""
+    pair = plane_pair(40, 56, near_block=True)
+    preset = load_preset(name, {"count": 300 if name != "fog" else 5})
+    assert _same_record(sample_particles(pair, preset, seed=4),
+                        sample_particles(pair, preset, seed=4, sample_on="cpu"))
+
+
+@pytest.mark.cuda
+@pytest.mark.parametrize("name", ["snow", "rain", "sparks"])
+def test_sampling_on_cuda_gives_the_cpus_particles(name):
+    """The same random numbers, the arithmetic on the GPU: the same count, and the same particles
+    but for candidates within float64 rounding of an image border or the scene surface."""
+    pair = plane_pair(436, 1024, near_block=True)
+    preset = load_preset(name)
+    cpu = sample_particles(pair, preset, seed=2)
+    gpu = sample_particles(pair.to("cuda"), preset, seed=2, sample_on="cuda", device="cuda")
+    assert gpu.count == cpu.count == 3000 and gpu.position.device.type == "cuda"
+    same = (gpu.position.cpu() == cpu.position).all(1)
+    assert float(same.float().mean()) > 0.99
+    assert torch.equal(gpu.template.cpu()[same], cpu.template[same])
+    torch.testing.assert_close(gpu.transparency.cpu()[same], cpu.transparency[same],
+                               rtol=1e-3, atol=1e-3)

@@ -160,6 +160,36 @@ def test_batches_equal_per_sample_frames_in_either_precision(samples, dtype):
             assert (changed > 100) == w.applied, (name, k)
 
 
+def test_sampling_on_the_batch_device_is_the_cpus_on_a_cpu_batch(samples):
+    aug = WeatherAugment(["snow", "rain"], p=1.0, seed=5, overrides=LIGHT, sample_on="device")
+    ref = WeatherAugment(["snow", "rain"], p=1.0, seed=5, overrides=LIGHT)
+    a, b = aug.apply_batch(collate_pairs(samples[:3])), ref.apply_batch(collate_pairs(samples[:3]))
+    assert a.weather == b.weather
+    assert torch.equal(a.pairs.image1, b.pairs.image1) and torch.equal(a.pairs.image2, b.pairs.image2)
+    with pytest.raises(ConfigError, match="sample_on 'gpu'"):
+        WeatherAugment("snow", sample_on="gpu")
+
+
+@pytest.mark.cuda
+def test_sampling_on_cuda_draws_the_cpus_weather(samples):
+    """``sample_on="device"``: the same draws, the same particle counts, frames within one grey
+    level of the CPU's but where a particle within rounding of a border is kept on one device
+    only (a few in a thousand pixels)."""
+    aug = WeatherAugment(["snow", "rain"], p=1.0, seed=6, overrides=LIGHT, sample_on="device",
+                         keep_particles=True)
+    cpu = aug.apply_batch(collate_pairs(samples[:3]))
+    gpu = aug.apply_batch(collate_pairs(samples[:3]).to("cuda"))
+    assert gpu.weather == cpu.weather
+    for p, q in zip(gpu.particles, cpu.particles):
+        assert p.position.device.type == "cuda" and p.count == q.count
+        same = (p.position.cpu() == q.position).all(1)
+        assert float(same.float().mean()) > 0.99
+    for name in ("image1", "image2"):
+        x, y = getattr(gpu.pairs, name).cpu(), getattr(cpu.pairs, name)
+        grey = (x * 255).round() != (y * 255).round()
+        assert float(grey.float().mean()) < 5e-3, name
+
+
 @pytest.mark.cuda
 def test_batched_path_on_cuda_matches_the_cpu(samples):
     """What docs/training.md promises for CUDA: the same draws and particles, and frames within

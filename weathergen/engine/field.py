@@ -128,19 +128,22 @@ class Field:
     def candidates(self, view: View, frame: int, chunk: int = 1 << 20
                    ) -> tuple[torch.Tensor, torch.Tensor]:
         """Trajectories ``(j (M,), k (M, 3))`` drawn in ``view`` at ``frame``, in canonical order
-        (by ``j``, then ``k``), chosen by :func:`view_mask`."""
+        (by ``j``, then ``k``), chosen by :func:`view_mask`. The tests run on the device of the
+        view's depth (integer arithmetic, and the mask in float64); the answer is on the CPU."""
         if self.count == 0:
             return torch.zeros(0, dtype=torch.long), torch.zeros(0, 3, dtype=torch.long)
+        dev = view.depth.device
         lo, hi = self._view_box(view)
         q, lu = self.quantum, self.tile_units
-        unwrapped = self.start + frame * self.step                        # (N, 3) quanta
+        start, step = self.start.to(dev), self.step.to(dev)
+        unwrapped = start + frame * step                                  # (N, 3) quanta
         base = torch.remainder(unwrapped, lu)
         shift = torch.div(unwrapped - base, lu, rounding_mode="floor")   # copy of the start
         cell_lo = torch.floor(lo / (q * lu)).long()
         cell_hi = torch.floor(hi / (q * lu)).long()
         ranges = [torch.arange(int(cell_lo[a]), int(cell_hi[a]) + 1) for a in range(3)]
         cells = torch.cartesian_prod(*ranges).reshape(-1, 3)
-        cells = cells[self._boxes_in_view(view, cells.double(), 1.0)]
+        cells = cells[self._boxes_in_view(view, cells.double(), 1.0)].to(dev)
         # Within the tile, particles are binned into SUBDIV^3 sub-cells; only the sub-cells of
         # each copy that meet the view volume are tested particle by particle.
         sd = SUBDIV
@@ -149,9 +152,11 @@ class Field:
         order = torch.argsort(sub_id, stable=True)
         counts = torch.bincount(sub_id, minlength=sd ** 3)
         offsets = torch.cumsum(counts, 0) - counts
-        sub_xyz = torch.stack(torch.meshgrid(*(torch.arange(sd),) * 3, indexing="ij"), -1)
+        sub_xyz = torch.stack(torch.meshgrid(*(torch.arange(sd, device=dev),) * 3,
+                                             indexing="ij"), -1)
         sub_xyz = sub_xyz.reshape(-1, 3).double()
-        streak = self.step.double() * q * self.streak
+        streak = step.double() * q * self.streak
+        diameter = self.diameter.to(dev)
         found_j, found_k = [], []
         windows = view_windows(view)
         per = max(1, chunk // (sd ** 3))
@@ -164,16 +169,15 @@ class Field:
             if ci.numel() == 0:
                 continue
             size = counts[si]
-            rep = torch.repeat_interleave(torch.arange(si.numel()), size)
-            within = torch.arange(int(size.sum())) - torch.repeat_interleave(
+            rep = torch.repeat_interleave(torch.arange(si.numel(), device=dev), size)
+            within = torch.arange(int(size.sum()), device=dev) - torch.repeat_interleave(
                 torch.cumsum(size, 0) - size, size)
             j = order[offsets[si][rep] + within]
             copy = cell[ci][rep]
             pts = (base[j] + copy * lu).double() * q
-            ok = view_mask(view, pts, streak[j], self.diameter[j], self.preset.optics(),
-                           windows)
-            found_j.append(j[ok])
-            found_k.append(copy[ok] - shift[j[ok]])
+            ok = view_mask(view, pts, streak[j], diameter[j], self.preset.optics(), windows)
+            found_j.append(j[ok].cpu())
+            found_k.append((copy[ok] - shift[j[ok]]).cpu())
         if not found_j:
             return torch.zeros(0, dtype=torch.long), torch.zeros(0, 3, dtype=torch.long)
         return _canonical(torch.cat(found_j), torch.cat(found_k))
@@ -209,8 +213,8 @@ class Field:
         longest streak, meets the inner side of every plane. Shape: (C, 3) -> (C,)."""
         side = self.tile * fraction
         centres = (corners + 0.5 * fraction) * self.tile
-        cam = transform_points(view.cam_from_ref.double().cpu(), centres)
-        planes = self._view_planes(view)
+        cam = transform_points(view.cam_from_ref.double().to(centres.device), centres)
+        planes = self._view_planes(view).to(centres.device)
         dist = cam @ planes[:, :3].T + planes[:, 3]
         radius = 0.5 * math.sqrt(3) * side + self.max_streak()
         return (dist >= -radius).all(1)
@@ -219,7 +223,7 @@ class Field:
         """Axis-aligned reference-frame box around the view volume, widened by the largest
         stamp (as a fraction of depth) and the longest streak. Shape: -> (3,), (3,) float64."""
         h, w = view.size
-        k = view.intrinsics.double()
+        k = view.intrinsics.double().cpu()
         f = float(torch.sqrt(k[0, 0] * k[1, 1]))
         optics = self.preset.optics()
         # the widest stamp: largest diameter at the near plane, plus the widest defocus disc
@@ -354,56 +358,64 @@ def field_for_pair(pair: FramePair, preset: FieldPreset, seed, *, world_up: str 
     return make_field(preset, seed, down=down, frame_rate=rate, frame=frame, templates=templates)
 
 
-def pair_views(pair: FramePair) -> tuple[View, View]:
-    """The two views of a pair (reference transforms from :func:`reference_transforms`)."""
+def pair_views(pair: FramePair, device=None) -> tuple[View, View]:
+    """The two views of a pair (reference transforms from :func:`reference_transforms`), on
+    ``device`` (default: the CPU)."""
     _, c1, c2 = reference_transforms(pair)
-    k = pair.intrinsics.double().cpu()
-    return (View(k, c1.cpu(), pair.depth1.cpu()), View(k, c2.cpu(), pair.depth2.cpu()))
+    dev = torch.device("cpu") if device is None else torch.device(device)
+    k = pair.intrinsics.double().to(dev)
+    return (View(k, c1.to(dev), pair.depth1.to(dev)), View(k, c2.to(dev), pair.depth2.to(dev)))
 
 
 def sample_field_particles(pair: FramePair, preset: FieldPreset, seed=0, *,
                            world_up: str = "auto", frame_rate: Optional[float] = None,
                            templates: Optional[TemplateLibrary] = None,
-                           device=None) -> Particles:
+                           device=None, sample_on=None) -> Particles:
     """The record of one pair sampled from the field of seed ``seed`` (the *scene's* seed: pairs of
     one scene sampled with the same seed share their frames, see :func:`scene_seed`).
 
     Frame numbers are the pair's (``pair.id.frame`` and the next one), so that the field's time
     is the dataset's; ``frame_rate`` is the dataset's frames per second (see
     :func:`field_for_pair`). Returns a quantized record on ``device`` (default CPU).
+    ``sample_on``: where the views' tests run (default: the CPU; the field's tile is drawn on
+    the CPU either way, and on the CPU the record is the same bytes).
     """
     check_pair_for_engine(pair)
     dev = resolve_device(device)
     fld = field_for_pair(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
                          templates=templates)
     n = int(pair.id.frame)
-    return pair_particles(fld, pair_views(pair), (n, n + 1)).to(dev)
+    views = pair_views(pair, resolve_device(sample_on))
+    return pair_particles(fld, views, (n, n + 1)).to(dev)
 
 
 def sample_weather(pair: FramePair, preset, seed=0, *, world_up: str = "auto",
                    frame_rate: Optional[float] = None,
-                   templates: Optional[TemplateLibrary] = None, device=None
+                   templates: Optional[TemplateLibrary] = None, device=None, sample_on=None
                    ) -> Union[Particles, LayeredParticles]:
     """Sample a pair's particles with the preset's model: a field preset draws from the field of
     ``seed`` (:func:`sample_field_particles`; ``frame_rate``: the dataset's, needed unless the
     preset sets one), a paper preset samples the pair
     (:func:`~weathergen.engine.sampling.sample_particles`), a combined preset samples each layer
-    (:func:`sample_layers`; ``seed`` may then be one seed per layer, ``templates`` is not taken)."""
+    (:func:`sample_layers`; ``seed`` may then be one seed per layer, ``templates`` is not taken).
+    ``sample_on``: where the sampling arithmetic runs (see :func:`sample_particles` and
+    :func:`sample_field_particles`; the same random numbers, from the seed's CPU generator)."""
     if isinstance(preset, CombinedPreset):
         if templates is not None:
             raise ConfigError("a combined preset's layers each load their own templates")
         return sample_layers(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
-                             device=device)
+                             device=device, sample_on=sample_on)
     if isinstance(preset, FieldPreset):
         return sample_field_particles(pair, preset, seed, world_up=world_up,
-                                      frame_rate=frame_rate, templates=templates, device=device)
+                                      frame_rate=frame_rate, templates=templates, device=device,
+                                      sample_on=sample_on)
     return sample_particles(pair, preset, seed, world_up=world_up, templates=templates,
-                            device=device)
+                            device=device, sample_on=sample_on)
 
 
 def sample_layers(pair: FramePair, preset: CombinedPreset, seed: Union[int, Sequence[int]] = 0, *,
                   world_up: str = "auto", frame_rate: Optional[float] = None,
-                  device=None) -> LayeredParticles:
+                  device=None, sample_on=None) -> LayeredParticles:
     """The particles of every layer of a combined preset for one pair.
 
     ``seed`` is one seed per layer, or one seed from which each layer's is derived
@@ -423,6 +435,6 @@ def sample_layers(pair: FramePair, preset: CombinedPreset, seed: Union[int, Sequ
             raise ConfigError(f"{len(seeds)} seeds for the {len(preset.layers)} layers of "
                               f"{preset.name}")
     records = tuple(sample_weather(pair, layer, s, world_up=world_up, frame_rate=frame_rate,
-                                   device=device)
+                                   device=device, sample_on=sample_on)
                     for layer, s in zip(preset.layers, seeds))
     return LayeredParticles(records, preset.layer_names)

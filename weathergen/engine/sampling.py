@@ -259,7 +259,8 @@ def check_pair_for_engine(pair: FramePair) -> None:
 
 def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Generator] = 0, *,
                      world_up: str = "auto", templates: Optional[TemplateLibrary] = None,
-                     device=None, max_candidates_factor: int = 500) -> Particles:
+                     device=None, max_candidates_factor: int = 500,
+                     sample_on=None) -> Particles:
     """Sample the preset's count of particles for one frame pair (``preset.count`` on a 1024x436
     frame; on other frame sizes as :func:`~weathergen.engine.presets.frame_scaling` says).
 
@@ -268,16 +269,24 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     ``world_up`` says which reference axis points up (see :func:`world_down`). Raises ConfigError
     when fewer than ``count`` visible positions turn up among ``max_candidates_factor * count``
     candidates (the sampling box lies behind the scene or outside the view).
+
+    ``sample_on``: the device of the arithmetic (default: the CPU). The random numbers are always
+    drawn from the seed's CPU generator, in the same order, and moved there; on the CPU the
+    record is the same bytes either way. On a GPU (the device a batch is rendered on) the
+    visibility tests run where the depth maps already are; the record then equals the CPU's
+    except where a candidate lies within float64 rounding of an image border or the scene
+    surface (see docs/engine.md, "Sampling on the render's device").
     """
     check_pair_for_engine(pair)
     dev = resolve_device(device)
+    on = resolve_device(sample_on)
     gen = cpu_generator(seed)
     lib = templates if templates is not None else load_templates(preset.templates)
     frame, cam1_from_ref, cam2_from_ref = reference_transforms(pair)
-    cam1_from_ref, cam2_from_ref = cam1_from_ref.cpu(), cam2_from_ref.cpu()
+    cam1_from_ref, cam2_from_ref = cam1_from_ref.to(on), cam2_from_ref.to(on)
     ref_from_cam1 = invert_rigid(cam1_from_ref)
-    k = pair.intrinsics.double().cpu()
-    depth1, depth2 = pair.depth1.cpu(), pair.depth2.cpu()
+    k = pair.intrinsics.double().to(on)
+    depth1, depth2 = pair.depth1.to(on), pair.depth2.to(on)
     settings = RenderSettings.from_preset(preset, lib)
     scaling = frame_scaling(preset, depth1.shape[-2], depth1.shape[-1])
     n = scaling.count
@@ -285,18 +294,18 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
         return empty_particles(frame, settings).to(dev)
 
     ref_from_vertical = _vertical_frame(world_down(cam1_from_ref, cam2_from_ref, world_up),
-                                        cam1_from_ref)
+                                        cam1_from_ref).to(on)
     lo = torch.tensor([preset.volume_x[0], preset.volume_y[0], preset.volume_z[0]],
-                      dtype=torch.float64)
+                      dtype=torch.float64, device=on)
     hi = torch.tensor([preset.volume_x[1], preset.volume_y[1], preset.volume_z[1]],
-                      dtype=torch.float64)
+                      dtype=torch.float64, device=on)
     angle = math.radians(preset.motion_angle_jitter)
-    base = torch.tensor([0.0, preset.motion_y, 0.0], dtype=torch.float64)
+    base = torch.tensor([0.0, preset.motion_y, 0.0], dtype=torch.float64, device=on)
 
-    cone2 = _view_cone(k, depth2.shape[-2], depth2.shape[-1])
+    cone2 = _view_cone(k, depth2.shape[-2], depth2.shape[-1]).to(on)
     # the longest motion (rotations keep lengths; a camera's scale, if any, stretches it)
     reach = abs(preset.motion_y) * (1 + preset.motion_scale_jitter) \
-        * float(torch.linalg.matrix_norm(cam2_from_ref[:3, :3], ord=2))
+        * float(torch.linalg.matrix_norm(cam2_from_ref[:3, :3].cpu(), ord=2))
     batch = min(max(4096, 4 * n), 1 << 18)  # depends on the count only: reproducible anywhere
     tried = 0
 
@@ -314,7 +323,7 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
                 f"x{list(preset.volume_x)} y{list(preset.volume_y)} z{list(preset.volume_z)} "
                 "is mostly hidden behind the scene or outside the view (check the depth scale "
                 "or the preset's volume_* keys)")
-        u = torch.rand(batch, 7, generator=gen, dtype=torch.float64)
+        u = torch.rand(batch, 7, generator=gen, dtype=torch.float64).to(on)
         tried += batch
         pos_cam1 = lo + (hi - lo) * u[:, :3]
         pos_ref = transform_points(ref_from_cam1, pos_cam1)
@@ -333,8 +342,8 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
         vis = vis1[cand] | _visible(transform_points(cam2_from_ref, pos_ref + motion), k, depth2)
         return pos_ref[vis], motion[vis]
 
-    accepted_pos, accepted_motion = torch.zeros(0, 3, dtype=torch.float64), \
-        torch.zeros(0, 3, dtype=torch.float64)
+    accepted_pos, accepted_motion = torch.zeros(0, 3, dtype=torch.float64, device=on), \
+        torch.zeros(0, 3, dtype=torch.float64, device=on)
     while True:
         while accepted_pos.shape[0] < n:
             pos_b, motion_b = draw(accepted_pos.shape[0])
@@ -345,16 +354,16 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
         # moves out of both views (it lay on the image border or the scene surface) gives its
         # place to the next accepted one, so that every stored particle is visible in frame 1
         # or frame 2 (rare: about one in several thousand particles).
-        position = quantize_field("position", accepted_pos[:n]).double()
-        motion = quantize_field("motion", accepted_motion[:n]).double()
+        position = quantize_field("position", accepted_pos[:n]).double().to(on)
+        motion = quantize_field("motion", accepted_motion[:n]).double().to(on)
         ok = visible_either(position, motion)
         if bool(ok.all()):
             break
-        keep = torch.cat((ok, torch.ones(accepted_pos.shape[0] - n, dtype=torch.bool)))
+        keep = torch.cat((ok, torch.ones(accepted_pos.shape[0] - n, dtype=torch.bool, device=on)))
         accepted_pos, accepted_motion = accepted_pos[keep], accepted_motion[keep]
 
     # Per-particle appearance, drawn for exactly n particles after the positions.
-    u = torch.rand(n, 4, generator=gen, dtype=torch.float64)
+    u = torch.rand(n, 4, generator=gen, dtype=torch.float64).to(on)
     template = torch.randint(0, lib.count, (n,), generator=gen)
     rotation = u[:, 0] * 2 * math.pi
 
@@ -368,18 +377,21 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
         theta = torch.full_like(d, preset.transparency)
     else:
         theta = preset.transparency * transparency_hat(d)
-    defocus = defocus_radius(d, scaling.pixel_scale) if preset.defocus else torch.zeros(n, dtype=torch.int64)
+    defocus = defocus_radius(d, scaling.pixel_scale) if preset.defocus else \
+        torch.zeros(n, dtype=torch.int64, device=on)
 
-    hls = rgb_to_hls(torch.tensor(preset.color, dtype=torch.float64) / 255.0).expand(n, 3)
+    hls = rgb_to_hls(torch.tensor(preset.color, dtype=torch.float64, device=on) / 255.0) \
+        .expand(n, 3)
     jitter = (2 * u[:, 1:4] - 1) * torch.tensor(
         [preset.hue_jitter / 360.0, preset.lightness_jitter, preset.saturation_jitter],
-        dtype=torch.float64)
+        dtype=torch.float64, device=on)
     hls = hls + jitter
     hls = torch.stack((torch.remainder(hls[:, 0], 1.0), hls[:, 1].clamp(0, 1),
                        hls[:, 2].clamp(0, 1)), -1)
     color = hls_to_rgb(hls).clamp(0, 1)
 
-    zeros = torch.zeros(n, 3, dtype=torch.float64)
+    zeros = torch.zeros(n, 3, dtype=torch.float64, device=on)
+    template = template.to(on)
     record = Particles(position=position, motion=motion, offset1=zeros, offset2=zeros.clone(),
                        color=color, transparency=theta, template=template, rotation=rotation,
                        scale=scale, defocus=defocus, frame=frame, settings=settings)

@@ -360,23 +360,25 @@ def view_mask(view: View, points: torch.Tensor, streak: torch.Tensor, diameter: 
     test to every view it draws).
 
     Shape: points (M, 3) reference coordinates, streak (M, 3) the streak's end minus its start,
-    diameter (M,) -> (M,) bool. Computed in float64 on the CPU. ``windows``: the view's
-    :func:`view_windows`, when many calls test the same view.
+    diameter (M,) -> (M,) bool. Computed in float64 on the device of the view's depth (the
+    CPU for a view made from CPU tensors). ``windows``: the view's :func:`view_windows`, when
+    many calls test the same view.
     """
-    views = Views.of(view.intrinsics[None], view.cam_from_ref[None], view.depth[None].cpu(),
-                     device="cpu")
+    dev = view.depth.device
+    views = Views.of(view.intrinsics[None], view.cam_from_ref[None], view.depth[None],
+                     device=dev)
     m = points.shape[0]
-    index = torch.zeros(m, dtype=torch.long)
+    index = torch.zeros(m, dtype=torch.long, device=dev)
     mask, _, _ = field_mask(views.project.expand(m, 3, 4), views.focal.expand(m),
-                            points.double().cpu(), streak.double().cpu(),
-                            diameter.double().cpu(), optics, views.depth, index, windows)
+                            points.double().to(dev), streak.double().to(dev),
+                            diameter.double().to(dev), optics, views.depth, index, windows)
     return mask
 
 
 def view_windows(view: View) -> DepthWindows:
     """The :class:`DepthWindows` :func:`view_mask` reads for ``view`` (build them once for many
-    calls on one view)."""
-    return depth_windows(view.depth[None].detach().cpu())
+    calls on one view), on the device of its depth."""
+    return depth_windows(view.depth[None].detach())
 
 
 # -- records, looks and tracks -----------------------------------------------------------------

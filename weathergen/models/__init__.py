@@ -12,6 +12,7 @@ outside the package (``FILE.py:NAME``, ``package.module:NAME``, entry points of 
 """
 
 from .base import FlowModel
+from .compiled import COMPILE_MODES, compile_iterations
 from .checkpoints import CheckpointSpec, cache_dir, download_checkpoint, read_state_dict
 from .padding import InputPadder
 from .external import ENTRY_POINT_GROUP, ModuleFlowModel, NetworkSource, entry_points, resolved_spec
@@ -40,7 +41,7 @@ __all__ = [
     "checkpoint_spec", "register_model", "register_checkpoint", "resolve_amp", "cache_dir",
     "download_checkpoint", "read_state_dict", "ENTRY_POINT_GROUP", "ModuleFlowModel",
     "NetworkSource", "entry_points", "canonical_network", "is_external_name", "network_label",
-    "network_record", "resolved_spec",
+    "network_record", "resolved_spec", "COMPILE_MODES", "compile_iterations",
     "SpyNet", "SpyNetModel", "SpyNetSniklaus", "SpyNetSniklausModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
     "FlowNetCRobustModel", "FlowNet2", "FlowNet2Model",
 ]

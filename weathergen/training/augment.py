@@ -163,15 +163,17 @@ class PresetSource:
             return "combined"
         return "field" if isinstance(self.preset, FieldPreset) else "paper"
 
-    def sample(self, pair: FramePair, seed: int, world_up: str):
+    def sample(self, pair: FramePair, seed: int, world_up: str, sample_on=None):
         """The particles of ``pair`` from ``seed``; a field moves at the frame rate of the pair's
         dataset (its reader's, looked up by the name the pair carries). A combined preset gives
         :class:`~weathergen.engine.LayeredParticles`, every layer from its own seed derived from
-        ``seed`` (:func:`~weathergen.engine.layer_seed`)."""
+        ``seed`` (:func:`~weathergen.engine.layer_seed`). ``sample_on``: the device of the
+        sampling arithmetic (:func:`~weathergen.engine.sample_weather`), the record's too."""
         combined = isinstance(self.preset, CombinedPreset)
         return sample_weather(pair, self.preset, seed, world_up=world_up,
                               frame_rate=frame_rate_of(pair.id.dataset),
-                              templates=None if combined else load_templates(self.templates))
+                              templates=None if combined else load_templates(self.templates),
+                              sample_on=sample_on, device=sample_on)
 
     def __repr__(self) -> str:
         return f"PresetSource({self.name!r})"
@@ -192,6 +194,10 @@ def _is_source(obj) -> bool:
 # ---------------------------------------------------------------------------------------------
 # The weather transform
 # ---------------------------------------------------------------------------------------------
+
+#: Where :meth:`WeatherAugment.apply_batch` samples particles (its ``sample_on``).
+SAMPLE_ON = ("cpu", "device")
+
 
 @dataclass(frozen=True)
 class WeatherDraw:
@@ -224,6 +230,12 @@ class WeatherAugment:
             with each frame's area).
         world_up: which world axis points up; ``None`` takes each sample's (its dataset's) setting.
         keep_particles: keep the rendered particle record in :attr:`PairSample.particles`.
+        sample_on: where :meth:`apply_batch` samples the particles it has to sample itself:
+            ``"cpu"`` (from the batch's depth and cameras copied to the CPU, in threads) or
+            ``"device"`` (the batch's device: the same random numbers from the same CPU
+            generators, the arithmetic where the depth maps are; on a GPU the particles equal the
+            CPU's but for candidates within rounding of a border, see ``docs/engine.md``). Only
+            presets (of either model) sample on a device; other sources sample on the CPU.
 
     Shape: frames ``(3, H, W)`` per sample or ``(B, 3, H, W)`` per batch, RGB in ``[0, 1]``;
     the pairs need depth and cameras (every weathergen reader provides them).
@@ -231,7 +243,8 @@ class WeatherAugment:
 
     def __init__(self, presets: Union[str, Preset, WeatherSource, Sequence] = ("snow",),
                  p: float = 0.5, seed: int = 0, *, overrides: Optional[Mapping] = None,
-                 world_up: Optional[str] = None, keep_particles: bool = False):
+                 world_up: Optional[str] = None, keep_particles: bool = False,
+                 sample_on: str = "cpu"):
         single = isinstance(presets, (str, Path, *_PRESET_TYPES)) or _is_source(presets)
         items = [presets] if single else list(presets)
         if not items:
@@ -246,6 +259,9 @@ class WeatherAugment:
         self.seed = _check_seed(seed)
         self.world_up = world_up
         self.keep_particles = bool(keep_particles)
+        if sample_on not in SAMPLE_ON:
+            raise ConfigError(f"sample_on {sample_on!r}: expected {' or '.join(SAMPLE_ON)}")
+        self.sample_on = sample_on
 
     def __repr__(self) -> str:
         names = ", ".join(s.name for s in self.sources)
@@ -267,8 +283,11 @@ class WeatherAugment:
         raise ConfigError(f"sample was prepared with weather {name!r}, which this transform "
                           f"does not have ({', '.join(s.name for s in self.sources)})")
 
-    def _particles(self, pair: FramePair, draw: WeatherDraw, world_up: str):
-        return self._source(draw.source).sample(pair, draw.seed, self.world_up or world_up)
+    def _particles(self, pair: FramePair, draw: WeatherDraw, world_up: str, sample_on=None):
+        source = self._source(draw.source)
+        if sample_on is not None and isinstance(source, PresetSource):
+            return source.sample(pair, draw.seed, self.world_up or world_up, sample_on=sample_on)
+        return source.sample(pair, draw.seed, self.world_up or world_up)
 
     # -- per sample ------------------------------------------------------------------------
     def prepare(self, sample: PairSample) -> PairSample:
@@ -306,8 +325,9 @@ class WeatherAugment:
         template library, on the device the batch is on (``batch.to("cuda")`` first for a GPU).
 
         Particles prepared in the workers (:meth:`prepare`) are used as they are; the others are
-        sampled here, on the CPU, from the pairs' depth and cameras, in threads (one per pair, up
-        to the CPU count; each pair's draw is its own, so the particles do not depend on them).
+        sampled here, from the pairs' depth and cameras, on the CPU or (``sample_on="device"``)
+        on the batch's device, in threads (one per pair, up to the CPU count; each pair's draw is
+        its own, so the particles do not depend on them).
         Shape: ``batch.pairs`` images ``(B, 3, H, W)``; returns a batch of the same shapes.
         """
         pairs = batch.pairs
@@ -324,10 +344,12 @@ class WeatherAugment:
         if not todo:
             return replace(batch, weather=draws)
         if unsampled:
-            geometry = _geometry_on_cpu(pairs)
+            on_device = self.sample_on == "device" and pairs.image1.device.type != "cpu"
+            geometry = pairs if on_device else _geometry_on_cpu(pairs)
+            where = pairs.image1.device if on_device else None
 
             def sample(k):
-                return self._particles(pair_of(geometry, k), draws[k], batch.world_up[k])
+                return self._particles(pair_of(geometry, k), draws[k], batch.world_up[k], where)
 
             threads = min(len(unsampled), os.cpu_count() or 1)
             if threads > 1:

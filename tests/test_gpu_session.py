@@ -1,0 +1,52 @@
+"""benchmarks/gpu_session.py, the short GPU session of speed measurements, run on the CPU on tiny
+sizes (its figures mean nothing there): the sections the table benchmark's tests do not cover
+run to the end and write their figures, and without CUDA the script stops with one line."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import subprocess
+import sys
+
+import pytest
+import torch
+
+from conftest import PROJECT_ROOT
+
+SCRIPT = PROJECT_ROOT / "benchmarks" / "gpu_session.py"
+
+
+@pytest.fixture(scope="module")
+def session():
+    spec = importlib.util.spec_from_file_location("gpu_session", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["gpu_session"] = module
+    try:
+        spec.loader.exec_module(module)
+        yield module
+    finally:
+        del sys.modules["gpu_session"]
+
+
+def test_sampler_and_training_sections_on_tiny_sizes(session, tmp_path):
+    assert session.main(["--device", "cpu", "--quick", "--out", str(tmp_path),
+                         "--sections", "tests", "sampler", "training"]) == 0
+    figures = json.loads((tmp_path / "gpu_session.json").read_text())
+    sections = figures["sections"]
+    assert sections["tests"] == {"skipped": "no CUDA device"}
+    rows = sections["sampler"]["rows"]
+    assert [r["preset"] for r in rows] == ["snow", "rain", "sparks", "snow-light"]
+    assert all(r["same_count"] and r["identical_particles"] == 1.0 for r in rows)  # CPU: same bytes
+    whats = [r["what"] for r in sections["training"]["rows"]]
+    assert whats[0] == "raft training step"
+    assert sum("sampled on the device" in w for w in whats) == 3
+    assert all(r["seconds"] > 0 for r in sections["training"]["rows"])
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="CUDA is here: the session would run")
+def test_without_cuda_it_says_so_in_one_line(tmp_path):
+    done = subprocess.run([sys.executable, str(SCRIPT), "--out", str(tmp_path)],
+                          capture_output=True, text=True, timeout=300)
+    assert done.returncode == 2 and len(done.stderr.strip().splitlines()) == 1
+    assert "no CUDA device" in done.stderr
