@@ -11,6 +11,7 @@ from rich.console import Console
 from weathergen.attack import run_attack
 from weathergen.benchmark import (DEFAULT_LP, DEFAULT_PRESETS, BenchmarkSpec, available_ladders, run_grid,
                                   tr115_default, write_tables)
+from weathergen.datasets import in_research_frame
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.render.shards import parse_shard
@@ -86,6 +87,8 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text
     running the command again resumes where it stopped.
     """
     resolve_device(device)
+    if compat == "reference":           # the research code's frame and scaling too
+        dataset = in_research_frame(dataset)
     ladders = _names(ladder_text)
     spec = BenchmarkSpec(
         dataset=tr115_default(dataset), out=out, networks=_names(networks),

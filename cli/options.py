@@ -62,8 +62,21 @@ def compat_option(func):
         help="paper (default): the attack of the paper's equations and tables; reference: the "
              "authors' research code where it departs from them (gradients accumulated over the "
              "steps, occlusion detached, penalty over the squared frame-1 depth, homogeneous "
-             "offsets, transparency capped at the preset's, its figures), to reproduce its "
-             "published tables. See docs/attack.md.")(func)
+             "offsets, transparency capped at the preset's, its figures, and its frame and "
+             "scaling of Sintel: --scene-scales research unless given, the camera translation "
+             "zeroed in the scaled scenes), to reproduce its published tables. See "
+             "docs/attack.md.")(func)
+
+
+def render_compat_option(func):
+    """``--compat`` of ``render``: the dataset in the research code's frame and scaling."""
+    return click.option(
+        "--compat", type=click.Choice(("paper", "reference")), default=None,
+        help="reference: open the dataset in the frame and scaling of the paper's research code "
+             "(its per-scene table, --scene-scales research, unless given; the camera translation "
+             "zeroed in the scenes it scales), where the paper's published weather was placed, "
+             "so --particles SET draws the research code's render of it. Default: paper (the "
+             "dataset as the other options open it).")(func)
 
 
 def overwrite_option(help: str):

@@ -268,6 +268,27 @@ def test_the_output_renders_again_to_the_same_bytes(tree, rendered, tmp_path):
 
 
 @pytest.mark.slow
+def test_compat_reference_opens_the_research_frame(tree, rendered, tmp_path):
+    """``--compat reference`` is the research code's frame and scaling: the same frames as the
+    explicit options; the demo scene, whose scenes that table does not name, stays as it is."""
+    from weathergen.datasets import in_research_frame
+
+    sintel, weather = tree
+    out, _ = rendered
+    again = tmp_path / "compat"
+    result = invoke(["render", "--root", sintel, "--particles", weather, "--compat", "reference",
+                     "--out", again, "--quiet"])
+    assert result.exit_code == 0 and "Note:" not in result.output, result.output
+    for png in (out / "training" / "snow_clean").rglob("*.png"):
+        assert png.read_bytes() == (again / png.relative_to(out)).read_bytes()
+    demo = open_dataset("demo")
+    assert in_research_frame(demo) is demo
+    own = open_dataset("sintel", sintel, scene_scales={"bamboo_2": 3.0})
+    assert in_research_frame(own).describe()["scene_scales"] == {"bamboo_2": 3.0}   # kept
+    assert in_research_frame(own).keeps_translation("bamboo_2") is False
+
+
+@pytest.mark.slow
 def test_a_dataset_opened_otherwise_gets_a_note(tree, tmp_path):
     sintel, weather = tree
     result = invoke(["render", "--root", sintel, "--particles", weather, "--scenes", "bamboo_2",

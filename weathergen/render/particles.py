@@ -97,4 +97,5 @@ def published_geometry_note(dataset, particles_from: Optional[Path]) -> Optional
         return None
     return (f"{particles_from} holds the paper's published weather, placed in the research code's "
             f"frame and scaling; to draw it where that code drew it, open the dataset as it did: "
-            f"--scene-scales research --no-translation-in-scaled-scenes (docs/render.md)")
+            f"--compat reference, or --scene-scales research --no-translation-in-scaled-scenes "
+            f"(docs/render.md)")
