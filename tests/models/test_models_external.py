@@ -210,7 +210,7 @@ def test_the_record_of_a_file_network_names_its_path_and_content(net_file, tmp_p
     ("{dir}/none.py:make", ConfigError, "does not exist"),
     ("{file}:missing", ConfigError, "has no 'missing' (it defines"),
     ("{file}:not_a_module", ConfigError, "returned a value of type dict, expected a torch.nn.Module"),
-    ("{file}:LIMIT", ConfigError, "is a int, not a callable"),
+    ("{file}:LIMIT", ConfigError, "'LIMIT' is not callable (a value of type int)"),
     ("{file}:Quarter", ShapeError, "returned a flow of shape (1, 2, 16, 16)"),
     ("{file}:Pair", ShapeError, "returned a value of type list"),
     ("{file}:broken", ConfigError, "calling it failed: RuntimeError: no weights here"),

@@ -354,8 +354,9 @@ def external_network(spec: str, iters: Optional[int] = None,
     if isinstance(target, nn.Module):
         made = copy.deepcopy(target)
     elif not callable(target):
-        raise ConfigError(f"${{model}} {spec!r}: {loaded.source.attribute!r} is a "
-                          f"{type(target).__name__}, not a callable returning a torch.nn.Module")
+        raise ConfigError(f"${{model}} {spec!r}: {loaded.source.attribute!r} is not callable (a "
+                          f"value of type {type(target).__name__}); expected a callable returning "
+                          f"a torch.nn.Module")
     else:
         made = _call_with(target, spec, iters=iters,
                           gradient_checkpointing=gradient_checkpointing or None)
