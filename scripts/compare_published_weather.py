@@ -102,7 +102,7 @@ def write_tree(root: Path) -> None:
                           np.zeros((H, W, 2), np.float32))
 
 
-def run_research(research: Path, tree: Path, out: Path, count: int) -> None:
+def run_research(research: Path, tree: Path, out: Path, count: int, sets) -> None:
     """The research code's reader, generator, ``save_weatherfile`` and renderer on the tree."""
     sys.path.insert(0, str(research))
     sys.modules.setdefault("torchvision", types.ModuleType("torchvision"))
@@ -121,7 +121,8 @@ def run_research(research: Path, tree: Path, out: Path, count: int) -> None:
                           from_frame=0, scene_scale=1.0, weather_data="")
     ds = datasets.MpiSintel(data_args, split="training", root=str(tree), has_gt=True,
                             get_weather=True)
-    for name, config in CONFIGS.items():
+    for name in sets:
+        config = CONFIGS[name]
         args = Namespace(**{**DEFAULTS, **config,
                             "flake_folder": str(research / "weather_attack" / "billboards")})
         if name != "fog":          # (fog keeps its 60 clouds)
@@ -143,12 +144,12 @@ def run_research(research: Path, tree: Path, out: Path, count: int) -> None:
                 np.save(target / f"frame_{k}_{frame + 1:04d}.npy", image[0].permute(1, 2, 0).numpy())
 
 
-def compare(tree: Path, out: Path) -> None:
+def compare(tree: Path, out: Path, sets) -> None:
     """weathergen's render of every file against the research code's, per frame."""
     ds = open_dataset("sintel", tree, scene_scales=load_scene_scales("research"),
                       camera_translation="unscaled")
     print("set     scene     frame  max |diff| (/255)  mean |diff| (/255)  pixels > 0.5/255")
-    for name in CONFIGS:
+    for name in sets:
         preset = load_preset(name)
         for ref in ds.pairs():
             pair = ds.load(ref)
@@ -170,11 +171,14 @@ def main():
     parser.add_argument("--out", type=Path, default=Path("out/published-comparison"))
     parser.add_argument("--particles", type=int, default=400,
                         help="particles per pair of snow, rain and sparks (fog: its 60)")
+    parser.add_argument("--sets", default=",".join(CONFIGS),
+                        help=f"which of {', '.join(CONFIGS)} (comma-separated; default all)")
     args = parser.parse_args()
-    tree, sets = args.out / "sintel", args.out / "sets"
+    sets = [s.strip() for s in args.sets.split(",") if s.strip()]
+    tree, folder = args.out / "sintel", args.out / "sets"
     write_tree(tree)
-    run_research(args.research.resolve(), tree, sets, args.particles)
-    compare(tree, sets)
+    run_research(args.research.resolve(), tree, folder, args.particles, sets)
+    compare(tree, folder, sets)
 
 
 if __name__ == "__main__":
