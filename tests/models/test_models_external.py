@@ -287,25 +287,59 @@ def test_attack_evaluate_and_benchmark_with_an_installed_network(installed, net_
     assert head.index("tinyflow") < head.index("my_nets.make")     # the command line's order
 
 
+def library_attack_and_evaluate(name, dataset, out):
+    """``run_attack`` with the network ``name`` (one step, 20 snow particles), then
+    ``run_evaluation`` of its output with the same network. Returns the summary and the figures."""
+    from weathergen.attack import AttackJob, plan_attack, run_attack, run_evaluation
+    from weathergen.outputs import WeatherFolder
+
+    plan = plan_attack(None, "snow", {"count": "20"}, steps=1)
+    summary = run_attack(AttackJob(dataset=dataset, out=out, model=name, checkpoint=None,
+                                   preset=plan.preset, preset_name=plan.preset_name,
+                                   settings=plan.settings))
+    rows, figures = run_evaluation(get_model(name), WeatherFolder.open(out), dataset)
+    return summary, rows, figures
+
+
 def test_the_library_runs_an_attack_and_a_benchmark_with_a_file_network(net_file, sintel_options,
                                                                        tmp_path):
-    from weathergen.attack import AttackJob, plan_attack, run_attack
     from weathergen.benchmark import BenchmarkSpec, run_grid
     from weathergen.datasets import open_dataset
 
     root = sintel_options[sintel_options.index("--root") + 1]
     dataset = open_dataset("sintel", root, scenes=["alley"], frames_per_scene=1)
-    plan = plan_attack(None, "snow", {"count": "20"}, steps=1)
-    summary = run_attack(AttackJob(dataset=dataset, out=tmp_path / "a", model=f"{net_file}:make",
-                                   checkpoint=None, preset=plan.preset, preset_name=plan.preset_name,
-                                   settings=plan.settings))
-    assert summary["pairs"] == 1
+    summary, rows, figures = library_attack_and_evaluate(f"{net_file}:make", dataset, tmp_path / "a")
+    assert summary["pairs"] == 1 and len(rows) == 1 and figures["pairs"] == 1
+    # the network evaluated on the attack's written (8-bit) frames: the attack's figure, nearly
+    assert figures["aee_weather"] == pytest.approx(summary["aee_adversarial"], rel=1e-3, abs=1e-4)
     spec = BenchmarkSpec(dataset=dataset, out=tmp_path / "b", networks=[f"{net_file}:Shift"],
                          presets=["snow"], lp_methods=["ifgsm"], steps=1, lp_steps=1,
                          overrides={"count": "20"})
     cells = run_grid(spec)
     assert [c.folder(spec.out).relative_to(spec.out).as_posix() for c in cells] == \
         ["runs/my_nets.Shift/snow", "runs/my_nets.Shift/ifgsm"]
+
+
+def test_the_library_runs_an_attack_evaluate_and_benchmark_with_an_installed_network(
+        installed, net_file, sintel_options, tmp_path):
+    from weathergen.benchmark import BenchmarkSpec, run_grid
+    from weathergen.datasets import open_dataset
+
+    root = sintel_options[sintel_options.index("--root") + 1]
+    dataset = open_dataset("sintel", root, scenes=["alley"], frames_per_scene=1)
+    summary, rows, figures = library_attack_and_evaluate("tinyflow", dataset, tmp_path / "a")
+    manifest = json.loads((tmp_path / "a" / "manifest.json").read_text())
+    assert manifest["config"]["model"]["source"]["entry_point"] == "tinyflow = fakenets.flows:make"
+    assert summary["pairs"] == 1 and figures["pairs"] == 1
+    assert figures["aee_weather"] == pytest.approx(summary["aee_adversarial"], rel=1e-3, abs=1e-4)
+    # the entry point's network is the module's own: the same figures as the file's network
+    _, _, same = library_attack_and_evaluate(f"{net_file}:make", dataset, tmp_path / "f")
+    assert figures["aee_weather"] == same["aee_weather"]
+    spec = BenchmarkSpec(dataset=dataset, out=tmp_path / "b", networks=["tinyflow"],
+                         presets=["snow"], lp_methods=[], steps=1, overrides={"count": "20"})
+    (cell,) = run_grid(spec)
+    assert cell.folder(spec.out).relative_to(spec.out).as_posix() == "runs/tinyflow/snow"
+    assert json.loads((spec.out / "runs" / "tinyflow" / "snow" / "summary.json").read_text())["pairs"] == 1
 
 
 def test_the_models_command_lists_networks_checkpoints_and_installed_ones(installed, net_file):
