@@ -64,6 +64,9 @@ def test_the_package_runs_the_command_line_as_a_module():
     assert "count" in res.stdout and "3000" in res.stdout
     bad = _bare(["-m", "weathergen", "presets", "no-such-preset"], PROJECT_ROOT, _dependencies())
     assert bad.returncode == 2 and bad.stderr.startswith("Error:") and "Traceback" not in bad.stderr
+    usage = _bare(["-m", "weathergen", "--help"], PROJECT_ROOT, _dependencies())
+    assert usage.returncode == 0, usage.stderr
+    assert usage.stdout.startswith("Usage: weathergen ") and "models" in usage.stdout
 
 
 # setuptools' editable finder, as `pip install -e` of another checkout installs it: appended to
