@@ -1,7 +1,10 @@
 # weathergen: set-up, tests, demo and benchmarks in a local virtual environment.
 #
 #   make test                  create .venv, install the pinned CPU torch, the package, run the
-#                              linter (ruff, configured in pyproject.toml) and the tests
+#                              linter (ruff, configured in pyproject.toml) and the tests, in
+#                              TEST_WORKERS=2 pytest-xdist processes of one torch thread each
+#                              (TEST_WORKERS=0: in one process; PYTEST_ARGS: more pytest options,
+#                              e.g. --shuffle-seed N to run them in a shuffled order)
 #   make demo                  render the default preset on the bundled demo scene
 #   make bench                 print speed and memory figures (renderer, weather field, combined
 #                              weather, networks, attack step, batched attacks, training);
@@ -22,6 +25,7 @@ PYTHON ?= python3
 VENV   ?= .venv
 TORCH  ?= torch==2.13.0
 PYTEST_ARGS ?=
+TEST_WORKERS ?= 2
 FOG_BEFORE ?=
 CORE_BEFORE ?=
 REAL ?=
@@ -62,9 +66,10 @@ install: $(STAMP)
 	rm -rf build    # a stale build/ would put removed modules into the wheel
 	$(BIN)/python -m pip install -q --no-deps --force-reinstall .
 
+# Whole test files go to the workers (--dist loadfile): a file's module fixtures are built once.
 test: install
 	$(BIN)/ruff check .
-	$(BIN)/pytest -q $(PYTEST_ARGS)
+	$(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
 
 # The dependency floors of setup.cfg, installed exactly; torch as for `make test`.
 test-oldest:

@@ -1,8 +1,10 @@
-"""Shared fixtures: an isolated cache (so the demo scene is generated fresh), tiny fake datasets."""
+"""Shared fixtures: an isolated cache (so the demo scene is generated fresh), tiny fake datasets;
+a fixed global seed before every test, and an opt-in shuffled order (``--shuffle-seed N``)."""
 
 from __future__ import annotations
 
 import os
+import random
 import shutil
 import tempfile
 from pathlib import Path
@@ -13,22 +15,94 @@ import pytest
 _CACHE = None
 
 
+#: The seed of torch's, NumPy's and Python's global generators at the start of every test.
+GLOBAL_SEED = 0
+
+
+def pytest_addoption(parser):
+    group = parser.getgroup("weathergen")
+    group.addoption("--shuffle-seed", type=int, default=None, metavar="N",
+                    help="run the tests in an order shuffled with seed N (the files in a shuffled "
+                         "order, and the tests of each file in a shuffled order; with "
+                         "--shuffle-tests, every test anywhere): a test that depends on the "
+                         "tests before it fails in some order")
+    group.addoption("--shuffle-tests", action="store_true",
+                    help="with --shuffle-seed: shuffle all tests together, not file by file "
+                         "(module fixtures are then set up again each time their file comes up)")
+
+
 def pytest_configure(config):
     global _CACHE
     _CACHE = tempfile.mkdtemp(prefix="weathergen-test-cache-")
     os.environ["WEATHERGEN_CACHE"] = _CACHE
+    if os.environ.get("PYTEST_XDIST_WORKER"):
+        # pytest-xdist (`make test` runs two workers): one thread each, so that the workers
+        # share the cores rather than each asking torch for all of them
+        import torch
+
+        torch.set_num_threads(1)
 
 
 def pytest_collection_modifyitems(config, items):
-    """Tests marked ``cuda`` skip where there is no CUDA device (``make gpu-check`` runs them)."""
+    """Shuffle the order with ``--shuffle-seed``; tests marked ``cuda`` skip where there is no
+    CUDA device (``make gpu-check`` runs them)."""
     import torch
 
+    seed = config.getoption("--shuffle-seed")
+    if seed is not None:
+        items[:] = shuffled(items, seed, config.getoption("--shuffle-tests"))
     if torch.cuda.is_available():
         return
     skip = pytest.mark.skip(reason="needs a CUDA device (make gpu-check runs it on one)")
     for item in items:
         if item.get_closest_marker("cuda"):
             item.add_marker(skip)
+
+
+def shuffled(items: list, seed: int, across_files: bool) -> list:
+    """``items`` in an order drawn from ``seed`` alone (the same in every pytest-xdist worker):
+    every item anywhere if ``across_files``, else the files in a random order and each file's
+    items in a random order."""
+    rng = random.Random(seed)
+    if across_files:
+        order = list(items)
+        rng.shuffle(order)
+        return order
+    files: dict = {}
+    for item in items:
+        files.setdefault(item.nodeid.split("::")[0], []).append(item)
+    groups = list(files.values())
+    rng.shuffle(groups)
+    for group in groups:
+        rng.shuffle(group)
+    return [item for group in groups for item in group]
+
+
+def pytest_report_header(config):
+    seed = config.getoption("--shuffle-seed")
+    if seed is not None:
+        across = "all tests together" if config.getoption("--shuffle-tests") else "file by file"
+        return f"weathergen: tests in an order shuffled with seed {seed} ({across})"
+    return None
+
+
+@pytest.fixture(autouse=True)
+def _fixed_global_state():
+    """Every test starts from the same global state, whatever ran before it: torch's, NumPy's
+    and Python's global generators seeded with ``GLOBAL_SEED``; torch's thread count, default
+    dtype and gradient mode are put back afterwards (a command run in-process may set the
+    thread count, and the number of threads changes how float sums are split)."""
+    import torch
+
+    threads, dtype, grad = torch.get_num_threads(), torch.get_default_dtype(), torch.is_grad_enabled()
+    torch.manual_seed(GLOBAL_SEED)
+    np.random.seed(GLOBAL_SEED)
+    random.seed(GLOBAL_SEED)
+    yield
+    if torch.get_num_threads() != threads:
+        torch.set_num_threads(threads)
+    torch.set_default_dtype(dtype)
+    torch.set_grad_enabled(grad)
 
 
 def pytest_unconfigure(config):

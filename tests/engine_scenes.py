@@ -181,3 +181,34 @@ def count_operations(fn) -> int:
     with counter:
         fn()
     return counter.ops
+
+
+def column_scene(size: tuple = (218, 512), *, column_depth: float = 0.7, far: float = 5.0,
+                 floor: float = 0.25, columns: tuple = (0.3, 0.45), focal: float = 560.0,
+                 dtype=torch.float32) -> FramePair:
+    """A corridor as a real indoor pair shows it: a textured back wall at ``far``, a floor
+    ``floor`` scene units below the camera receding towards it, and a near column at
+    ``column_depth`` whose face spans the image columns ``columns`` (fractions of the width),
+    in front of both. Both frames from identity cameras (the column's edges are vertical depth
+    edges from 0.7 to 5 units; the floor crosses every depth in between)."""
+    height, width = size
+    cx, cy = (width - 1) / 2, (height - 1) / 2
+    k = torch.tensor([[focal, 0, cx], [0, focal, cy], [0, 0, 1]], dtype=torch.float64)
+    rx = ((torch.arange(width, dtype=torch.float64) - cx) / focal)[None, :].expand(height, width)
+    ry = ((torch.arange(height, dtype=torch.float64) - cy) / focal)[:, None].expand(height, width)
+    depth = torch.full((height, width), far, dtype=torch.float64)
+    on_floor = ry * far > floor
+    depth = torch.where(on_floor, floor / ry.clamp(min=1e-9), depth)
+    u = torch.arange(width, dtype=torch.float64)[None, :].expand(height, width)
+    on_column = (u >= columns[0] * width) & (u < columns[1] * width)
+    depth = torch.where(on_column, torch.full_like(depth, column_depth), depth)
+    a, b = depth * rx, depth * ry                      # surface coordinates, scene units
+    checker = torch.remainder(torch.floor(4 * a) + torch.floor(4 * b), 2)
+    texture = torch.stack([0.4 + 0.08 * (checker - 0.5) + 0.05 * torch.sin((5 + 2 * c) * a)
+                           * torch.sin((3 + c) * b + c) for c in range(3)])
+    texture = torch.where(on_column[None], 0.8 * texture, texture)
+    d = depth[None].to(dtype)
+    eye = torch.eye(4, dtype=torch.float64)
+    return FramePair(id=PairId("synthetic", "test", "column", 1), image1=texture.to(dtype),
+                     image2=texture.to(dtype), depth1=d, depth2=d.clone(), intrinsics=k,
+                     cam2_from_cam1=eye, cam1_from_world=eye, cam2_from_world=eye.clone())

@@ -322,18 +322,114 @@ def upsample(grid, f: int, height: int, width: int):
     return out
 
 
-def frame_sums(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion=False):
+def frame_sums(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion=False,
+               depth_aware=True):
     """The sums A, C_r, C_g, C_b and the depth sum Z = Σ θ B V z of what a frame draws, on the
-    image grid. Shape: -> (5, H, W) float64."""
+    image grid. Shape: -> (5, H, W) float64. ``depth_aware``: coarse grids drawn against the
+    nearest and farthest depth of each coarse pixel's footprint and brought to the image grid
+    pixel by pixel (:func:`across_edges`); else against the blocks' mean depth."""
     height, width = len(depth), len(depth[0])
-    grids = frame_grids(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion)
+    grids = frame_grids(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion,
+                        depth_aware)
     total = torch.zeros(5, height, width, dtype=torch.float64)
     for level in sorted(grids, reverse=True):
         sums = grids[level]
-        if level:
+        if level and depth_aware:
+            sums = across_edges(sums, depth, 2 ** level)
+        elif level:
             sums = [upsample(s, 2 ** level, height, width) for s in sums]
         total = total + _stack(sums)
     return total
+
+
+# -- coarse grids across depth edges ---------------------------------------------------------
+
+def footprint_depth(depth, f: int, pick):
+    """``pick`` (min or max) of the scene depth over each coarse pixel's footprint: the image
+    pixels ``f j − f / 2 .. f j + 3 f / 2 − 1`` per axis, clamped to the image."""
+    height, width = len(depth), len(depth[0])
+    h, w = -(-height // f), -(-width // f)
+
+    def span(j, size):
+        return range(max(f * j - f // 2, 0), min(f * j + 3 * f // 2, size))
+
+    return [[pick(depth[y][x] for y in span(i, height) for x in span(j, width))
+             for j in range(w)] for i in range(h)]
+
+
+def squash(z: float) -> float:
+    return 1 - 1 / (1 + z)
+
+
+def rank_in_front(keys, group: int, depth: float) -> float:
+    """The share of a group's coarse blur samples (their keys ``group + squash(z)``) nearer than
+    ``depth``."""
+    key = float(group) + squash(depth)
+    return sum(1 for k in keys if k < key) / max(len(keys), 1)
+
+
+def _clamp(x, lo, hi):
+    return x.clamp(lo, hi) if torch.is_tensor(x) else min(max(x, lo), hi)
+
+
+def _max(a, b):
+    return torch.maximum(torch.as_tensor(a, dtype=torch.float64), torch.as_tensor(
+        b, dtype=torch.float64)) if torch.is_tensor(a) or torch.is_tensor(b) else max(a, b)
+
+
+def _min(a, b):
+    return torch.minimum(torch.as_tensor(a, dtype=torch.float64), torch.as_tensor(
+        b, dtype=torch.float64)) if torch.is_tensor(a) or torch.is_tensor(b) else min(a, b)
+
+
+def _sqrt(x):
+    return torch.sqrt(x) if torch.is_tensor(x) else math.sqrt(x)
+
+
+def across_edges(grid, depth, f: int):
+    """A coarse level drawn twice (``grid``: near sums A, C_r, C_g, C_b, Z, then the far ones,
+    the moments ``Σ θ B ΔV φ`` and ``Σ θ B ΔV φ²`` near and far, the footprints' depths, the
+    level's sample keys and group) brought to the image grid: the near sums upsampled
+    bilinearly, plus at each pixel, from each of its four coarse neighbours j whose sums differ,
+    its bilinear weight times the share of the difference in front of the pixel: a ramp over
+    the ranks ``mean ± √3 sd`` (sd at least a quarter rank), clipped to the ranks in front of
+    the footprint's nearest and farthest depth, at the pixel's rank."""
+    near, far, moments, (d_near, d_far), keys, group = grid
+    height, width = len(depth), len(depth[0])
+    h, w = len(near[0]), len(near[0][0])
+    spread = 0.25 / max(len(keys), 1)
+    out = [upsample(s, f, height, width) for s in near]
+
+    def taps(dst, n):
+        src = max((dst + 0.5) / f - 0.5, 0.0)
+        i0 = math.floor(src)
+        return ((i0, 1 - (src - i0)), (min(i0 + 1, n - 1), src - i0))
+
+    for y in range(height):
+        for x in range(width):
+            rank = rank_in_front(keys, group, depth[y][x])
+            for cy, wy in taps(y, h):
+                for cx, wx in taps(x, w):
+                    delta = [far[c][cy][cx] - near[c][cy][cx] for c in range(5)]
+                    if all(_value(d) == 0 for d in delta[:4]):
+                        continue
+                    mass = delta[0]
+                    m1 = (moments[2][cy][cx] - moments[0][cy][cx]) / mass if _value(mass) > 0 \
+                        else 0.0
+                    m2 = (moments[3][cy][cx] - moments[1][cy][cx]) / mass if _value(mass) > 0 \
+                        else 0.0
+                    mean = _clamp(m1, 0.0, 1.0)
+                    sd = _sqrt(_clamp(m2 - mean * mean, 0.0, math.inf) + spread * spread)
+                    lo = _max(mean - math.sqrt(3) * sd,
+                              rank_in_front(keys, group, d_near[cy][cx]))
+                    hi = _max(_min(mean + math.sqrt(3) * sd,
+                                   rank_in_front(keys, group, d_far[cy][cx])), lo)
+                    span = hi - lo
+                    share = float(rank > _value(lo)) if _value(span) <= 0 \
+                        else _clamp((rank - lo) / span, 0.0, 1.0)
+                    for c in range(4):
+                        out[c][y][x] = out[c][y][x] + wy * wx * share * delta[c]
+    return out
 
 
 def read_grids(grids, u, v):
@@ -359,22 +455,67 @@ def read_grids(grids, u, v):
     return a_total, z_total
 
 
-def frame_grids(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion=False):
+def coarse_ranks(frame_draws, stamps, height: int, width: int):
+    """The depth rank ``φ = (k + 1/2) / n`` of every blur sample drawn on a coarse grid (in
+    front of the camera, its patch touching the grid) among its level's, per (draw, sample),
+    and each level's sorted keys ``level + squash(z)`` (the group of the level in a one-view
+    frame)."""
+    drawn = []
+    for i, ((_, samples, *_), (level, _, pixels)) in enumerate(zip(frame_draws, stamps)):
+        if not level:
+            continue
+        f = 2 ** level
+        h, w = -(-height // f), -(-width // f)
+        q = max(abs(dx) for _, dx in pixels) + 1
+        for k, (u, v, z) in enumerate(samples):
+            cu = math.floor(_value((u + 0.5) / f - 0.5))
+            cv = math.floor(_value((v + 0.5) / f - 0.5))
+            if _value(z) > NEAR and cu + q >= 0 and cu - q + 1 <= w - 1 and cv + q >= 0 \
+                    and cv - q + 1 <= h - 1:
+                drawn.append((float(level) + squash(_value(z)), level, i, k))
+    drawn.sort(key=lambda d: d[0])                  # stable: ties keep the draws' order
+    ranks, keys = {}, {}
+    for level in {d[1] for d in drawn}:
+        mine = [d for d in drawn if d[1] == level]
+        keys[level] = [d[0] for d in mine]
+        for k, (_, _, i, j) in enumerate(mine):
+            ranks[(i, j)] = (k + 0.5) / len(mine)
+    return ranks, keys
+
+
+def frame_grids(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion=False,
+                depth_aware=False):
     """The sums A, C_r, C_g, C_b, Z of what a frame draws on each grid level it draws on
-    (level -> five lists of rows)."""
+    (level -> five lists of rows). ``depth_aware``: a coarse level is drawn against the nearest
+    and the farthest depth of each coarse pixel's footprint, with the moment sums (level ->
+    what :func:`across_edges` takes)."""
     height, width = len(depth), len(depth[0])
     grids = {}                       # level -> [A, C_r, C_g, C_b, Z] lists of rows
-    for looks, samples, theta, colour, b, _ in frame_draws:
-        level, phases, pixels = stamp(levels, *looks, resolution, coarse_side)
+    stamps = [stamp(levels, *looks, resolution, coarse_side) for looks, *_ in frame_draws]
+    ranks, keys = coarse_ranks(frame_draws, stamps, height, width) if depth_aware else ({}, {})
+    passes = []
+    for i, (draw, made) in enumerate(zip(frame_draws, stamps)):
+        twice = depth_aware and made[0] > 0
+        passes += [(i, draw, made, 0)] + ([(i, draw, made, 1)] if twice else [])
+    moments = {}
+    for i, (_, samples, theta, colour, b, _), (level, phases, pixels), copy in passes:
         reach = max(abs(dx) for _, dx in pixels) // phases + 1     # pixels from the centre
         f = 2 ** level
-        if level not in grids:
+        key = (level, copy)
+        if key not in grids:
             h, w = -(-height // f), -(-width // f)
-            grids[level] = ([[[0.0] * w for _ in range(h)] for _ in range(5)],
-                            depth if level == 0 else block_depth(depth, f))
-        sums, scene = grids[level]
+            if level == 0:
+                scene = depth
+            elif depth_aware:
+                scene = footprint_depth(depth, f, max if copy else min)
+            else:
+                scene = block_depth(depth, f)
+            grids[key] = ([[[0.0] * w for _ in range(h)] for _ in range(5)], scene)
+            if level and depth_aware:
+                moments[key] = [[[0.0] * w for _ in range(h)] for _ in range(2)]
+        sums, scene = grids[key]
         h, w = len(scene), len(scene[0])
-        for u, v, z in samples:
+        for n, (u, v, z) in enumerate(samples):
             if _value(z) <= NEAR:
                 continue
             uc, vc = (u + 0.5) / f - 0.5, (v + 0.5) / f - 0.5       # on the level's grid
@@ -400,7 +541,21 @@ def frame_grids(depth, frame_draws, levels, resolution, coarse_side, detach_occl
                     for c in range(3):
                         sums[1 + c][py][px] = sums[1 + c][py][px] + a * colour[c]
                     sums[4][py][px] = sums[4][py][px] + a * _value(z)
-    return {level: sums for level, (sums, _) in grids.items()}
+                    if key in moments:
+                        phi = ranks.get((i, n), 0.0)
+                        moments[key][0][py][px] = moments[key][0][py][px] + a * phi
+                        moments[key][1][py][px] = moments[key][1][py][px] + a * phi * phi
+    out = {}
+    for (level, copy), (sums, scene) in grids.items():
+        if copy:
+            continue
+        if level and depth_aware:
+            far, far_scene = grids[(level, 1)]
+            out[level] = (sums, far, moments[(level, 0)] + moments[(level, 1)],
+                          (scene, far_scene), keys.get(level, []), level)
+        else:
+            out[level] = sums
+    return out
 
 
 def render_frame(image, depth, frame_draws, levels, resolution, blend, coarse_side,
@@ -432,9 +587,10 @@ def oracle_render(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam
 
         for t, (image, depth) in enumerate(((image1[b], depth1[b]), (image2[b], depth2[b]))):
             scene = depth[0].double().tolist()
-            frame = draws(record, t, k, cams, scene, beta, lib.resolution, number, coarse_side)
+            side = coarse_side if record.settings.coarse else None
+            frame = draws(record, t, k, cams, scene, beta, lib.resolution, number, side)
             out, opacity = render_frame(image, scene, frame, levels, lib.resolution,
-                                        record.settings.blend, coarse_side, detach_occlusion)
+                                        record.settings.blend, side, detach_occlusion)
             outs[t].append(out)
             outs[2 + t].append(opacity)
     return tuple(torch.stack(o) for o in outs)

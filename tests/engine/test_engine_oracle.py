@@ -93,6 +93,23 @@ def test_exact_large_billboards_equal_the_oracle():
     assert_equal_to_oracle(pairs, records, coarse_side=None)
 
 
+def test_fog_across_a_depth_edge_equals_the_oracle():
+    """Fog billboards between the near block (depth 1) and the plane (5) on a 2x coarser grid:
+    drawn against each footprint's nearest and farthest depth and taken pixel by pixel by depth
+    rank (the oracle's loops), outputs and gradients."""
+    from test_engine_coarse import core_sums
+    pairs = [scene(0, size=(16, 20))]
+    records = [paper(pairs[0], "fog", 5, 3, size=41)]
+    sums = core_sums(pairs[0], records[0], depth_aware=True, dtype=torch.float64,
+                     coarse_side=24)
+    level = sums.grids.levels[0][0]                  # (coarsest first)
+    grid = sums.grids.planes(sums.values, 0)
+    assert level == 1 and bool(((grid[0, 2:] - grid[0, :2]).abs() > 1e-3).any())   # an edge
+    assert_equal_to_oracle(pairs, records, coarse_side=24)
+    got, expected = core_and_oracle_gradients(pairs, records, coarse_side=24)
+    assert_gradients_equal(got, expected)
+
+
 FIELD = [n for n in list_presets("field")]
 def test_long_streaks_get_more_blur_samples_and_equal_the_oracle():
     """Streaks longer than the preset's samples cover one pixel apart get more samples (up to
@@ -252,10 +269,14 @@ def test_combined_weather_equals_the_layered_oracle():
     from weathergen.engine import LayeredParticles
 
     pairs = [scene(0), scene(1)]
+    # The rain thinned as in test_field_presets_equal_the_oracle (still hundreds of drops over
+    # the snow and fog of each frame): the oracle's time grows with drops x streak samples.
     layered = [LayeredParticles((paper(p, "snow", 20 + i, 6, size=15, blend="alpha"),
                                  paper(p, "fog", 30 + i, 2),
-                                 field(p, "rain-light", 40 + i)), ("snow", "fog", "rain-light"))
+                                 field(p, "rain-light", 40 + i, **THIN["rain"])),
+                                ("snow", "fog", "rain-light"))
                for i, p in enumerate(pairs)]
+    assert all(stack.layer(2).count > 100 for stack in layered)
     args = arguments(pairs, layered)
     core = render(*args, beta=BETA_RENDER)
     want = oracle_layered(*args, beta=BETA_RENDER)

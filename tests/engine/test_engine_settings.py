@@ -57,3 +57,20 @@ def test_a_file_without_a_setting_or_with_a_bad_one_is_refused(tmp_path):
     np.savez(tmp_path / "b.npz", **{**arrays, "blend": np.array("glow")})
     with pytest.raises(FormatError, match=r"b\.npz: unknown blend mode 'glow'"):
         Particles.load(tmp_path / "b.npz")
+
+
+def test_the_exact_path_is_stored_only_when_asked_for(tmp_path):
+    """``coarse``: from the preset, an appearance setting; a particle file holds it only when
+    false (the files of the default path keep their bytes, and files written before the key
+    existed read as the coarse path)."""
+    fog = load_preset("fog", {"coarse": "false"})
+    assert RenderSettings.from_preset(fog).coarse is False
+    assert RenderSettings.from_preset(load_preset("fog")).coarse is True
+    assert "coarse" in APPEARANCE_KEYS and "coarse" in APPEARANCE_FIELDS
+    exact = empty_particles("camera1", RenderSettings(coarse=False)).save(tmp_path / "e.npz")
+    default = empty_particles("camera1", RenderSettings()).save(tmp_path / "d.npz")
+    with np.load(exact) as a, np.load(default) as b:
+        assert "coarse" in json.loads(str(a["scalars"]))
+        assert "coarse" not in json.loads(str(b["scalars"]))
+    assert Particles.load(exact).settings.coarse is False
+    assert Particles.load(default).settings.coarse is True

@@ -52,7 +52,7 @@ def assert_loads_strictly(arch: str, path: Path, state: dict, source: torch.nn.M
     loaded = get_model(arch, checkpoint=path, iters=2)
     for key, value in loaded.network.state_dict().items():
         assert torch.equal(value, state[prefix + key]), key
-    x1, x2 = torch.rand(2, 1, 3, *size).unbind(0)
+    x1, x2 = random_frames(1, size)
     with torch.no_grad():
         assert torch.allclose(loaded(x1, x2), source(x1, x2), atol=1e-5)
 
@@ -97,10 +97,18 @@ def input_gradient(model, x1: torch.Tensor, x2: torch.Tensor) -> torch.Tensor:
     return torch.cat([a.grad.flatten(), b.grad.flatten()])
 
 
-def batch_and_alone(model, size: tuple[int, int], index: int = 0):
-    """The flow of pair ``index`` of a random batch of two pairs of ``size``, and the flow of
-    that pair alone: equal when the batch elements are independent."""
-    x1, x2 = torch.rand(2, 2, 3, *size).unbind(0)
+def random_frames(batch: int, size: tuple[int, int], seed: int = 0):
+    """Two random frame batches ``(batch, 3, *size)`` in [0, 1), drawn from ``seed`` with a
+    generator of their own (whatever the global generator's state)."""
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand(2, batch, 3, *size, generator=g).unbind(0)
+
+
+def batch_and_alone(model, size: tuple[int, int], index: int = 0, seed: int = 0):
+    """The flow of pair ``index`` of a random batch of two pairs of ``size`` (drawn from
+    ``seed``), and the flow of that pair alone: equal up to rounding when the batch elements
+    are independent."""
+    x1, x2 = random_frames(2, size, seed)
     one = slice(index, index + 1)
     with torch.no_grad():
         both = model(x1, x2)

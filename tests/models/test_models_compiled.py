@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import pytest
 import torch
+from numerics import assert_float32_close, rounding_k
 
 from weathergen.errors import ConfigError
 from weathergen.models import build_model, compile_iterations
@@ -33,8 +34,13 @@ def test_compiled_iterations_give_the_eager_flow_and_gradient():
     assert compile_iterations(model, backend="aot_eager") == ["network.update_block"]
     assert list(model.state_dict()) == keys
     flow_c, grad_c = _flow_and_grad(model, a, b)
-    torch.testing.assert_close(flow_c, flow, rtol=1e-5, atol=1e-5)
-    torch.testing.assert_close(grad_c, grad, rtol=1e-4, atol=1e-7)
+    # Equal up to float32 rounding (the traced graph may add in another order), relative to
+    # the values' size (tests/numerics.py): RAFT-small's chain of sums, forward, is its
+    # encoder's 20 convolutions, the correlation, about 10 per step and the upsampling, the
+    # longest under 256 x 3 x 3 terms; the gradient goes the same way back.
+    sums = 20 + 1 + 10 * 2 + 1
+    assert_float32_close(flow_c, flow, rounding_k(sums, 256 * 9), "flow")
+    assert_float32_close(grad_c, grad, rounding_k(2 * sums, 256 * 9), "input gradient")
 
 
 def test_flowformer_compiles_its_decoder_iteration_and_networks_without_iterations_nothing():

@@ -45,7 +45,7 @@ def test_only_appearance_keys_change_stored_particles(tmp_path):
                                                     "blur_samples": "4"}, particles_from=folder)
     assert name == "snow"
     assert appearance == {"blend": "additive", "blur_length": 0.5, "blur_samples": 4,
-                          "defocus_brighten": True}
+                          "defocus_brighten": True, "coarse": True}
     with pytest.raises(ConfigError, match="^overrides count: fixed by the stored particles") as bad:
         resolve_preset(overrides={"count": "5"}, particles_from=folder)
     assert all(key in str(bad.value) for key in APPEARANCE_KEYS)

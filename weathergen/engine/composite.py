@@ -20,6 +20,7 @@ from typing import Optional, Sequence
 import torch
 import torch.nn.functional as F
 
+from .coarse import across_edges, drop_moments
 from .splat import Sums
 
 
@@ -143,8 +144,9 @@ class _Crop(torch.autograd.Function):
         out = grads[0].new_empty(ctx.shape)
         for index, grad in enumerate(grads):
             _, offset, h, w, m = grids.levels[index]
-            size = grids.views * (h + 1) * (w + 2 * m)
-            full = out[:, offset:offset + size].view(out.shape[0], grids.views, h + 1, w + 2 * m)
+            count = grids.count(index)
+            size = count * (h + 1) * (w + 2 * m)
+            full = out[:, offset:offset + size].view(out.shape[0], count, h + 1, w + 2 * m)
             full[..., h, :].zero_()
             full[..., :h, :m].zero_()
             full[..., :h, m + w:].zero_()
@@ -157,20 +159,33 @@ class _Crop(torch.autograd.Function):
 
 def planes(sums: Sums) -> torch.Tensor:
     """The sums of every view on the image grid: each coarse grid cropped and upsampled to the
-    image grid, added coarsest first, then the image grid's own sums. A level that holds
-    nothing of a view adds exact zeros to it, so a view's sums do not depend on which levels the
-    other views of the call need. Shape: -> (1 + C, V, 1, H, W) (a view of the sums where no coarse
-    grid is drawn)."""
-    grids = sums.grids
-    channels = sums.values.shape[0]
+    image grid (across depth edges where the splat drew it against the footprints' nearest and
+    farthest depths: :func:`~weathergen.engine.coarse.across_edges`), added coarsest first, then
+    the image grid's own sums. A level that holds nothing of a view adds exact zeros to it, so a
+    view's sums do not depend on which levels the other views of the call need. The moment
+    sums of depth-aware coarse grids are used up here. Shape: -> (1 + C, V, 1, H, W) (a view of
+    the sums where no coarse grid is drawn)."""
+    grids, info = sums.grids, sums.coarse
+    views = grids.views
     total = None
-    for (level, _, h, w, _), grid in zip(grids.levels, _Crop.apply(sums.values, grids)):
+    for index, ((level, _, h, w, _), grid) in enumerate(
+            zip(grids.levels, _Crop.apply(sums.values, grids))):
+        if info is not None:
+            moments = grid[info.moments:info.moments + 2]
+            grid = drop_moments(grid, info)
+        channels = grid.shape[0]
         if level:   # one plane per image: the kernel treats every plane alike, whatever V
-            grid = upsample(grid.reshape(channels * grids.views, 1, h, w), 2 ** level,
-                            (grids.height, grids.width)).view(channels, grids.views,
-                                                              grids.height, grids.width)
+            near = grid[:, :views]
+            up = upsample(near.reshape(channels * views, 1, h, w), 2 ** level,
+                          (grids.height, grids.width)).view(channels, views, grids.height,
+                                                            grids.width)
+            if info is not None:
+                up = across_edges(up, near, grid[:, views:],
+                                  (moments[0, :views], moments[1, :views], moments[0, views:],
+                                   moments[1, views:]), info, index, level)
+            grid = up
         total = grid if total is None else total + grid
-    return total.view(channels, grids.views, 1, grids.height, grids.width)
+    return total.view(total.shape[0], views, 1, grids.height, grids.width)
 
 
 class _Blend(torch.autograd.Function):

@@ -315,7 +315,7 @@ def field_record(fld: Field, j: torch.Tensor, k: torch.Tensor, frame: int, frame
     settings = RenderSettings(blend=preset.blend, blur_length=fld.streak / max(1, frames),
                               blur_samples=preset.blur_samples if fld.streak > 0 else 1,
                               defocus_brighten=False, templates=fld.templates,
-                              templates_digest=fld.templates_digest)
+                              templates_digest=fld.templates_digest, coarse=preset.coarse)
     m = int(j.numel())
     if m == 0:
         return empty_particles(fld.frame, settings, preset.optics())

@@ -217,7 +217,7 @@ def _layer_sums(views: Views, paper: list, field: list, stamp_set: StampSet, *, 
         inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]),
                                                          1))
     return splat(inst, stamp_set, views.depth, chunk_elements=chunk_elements,
-                 detach_occlusion=detach_occlusion, passive=int(depth))
+                 detach_occlusion=detach_occlusion, passive=int(depth), depth_aware=False)
 
 
 def _dimmed(tracks: Tracks, alpha_layers: Sequence[Sums]) -> Tracks:

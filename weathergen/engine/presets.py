@@ -111,6 +111,9 @@ SHARED_KEYS = {
               "additive (glow) or alpha (order-independent alpha blending)", True),
     "transparency": (0.75, _number(0, 2), "", True),
     "blur_samples": (1, _number(1, 1000), "", True),
+    "coarse": (True, None, "draw stamps of at least 128 px (fog, large dust) on a coarser grid "
+                           "and upsample them across depth edges (fast, within the tolerance of "
+                           "docs/engine.md); false: every pixel exactly", False),
 }
 
 
@@ -171,6 +174,7 @@ class Preset:
     defocus: bool = _key(True, None, "disc blur for particles near the focal distance")
     defocus_brighten: bool = _key(True, None,
                                   "brighten the disc-blurred alpha b to min(1, (2b)^(1/3))")
+    coarse: bool = _shared("coarse")
     # -- where particles are sampled, camera-1 coordinates
     volume_x: tuple = _key((-5.0, 5.0), _interval, "sampling box x range, camera 1")
     volume_y: tuple = _key((-5.0, 5.0), _interval, "sampling box y range, camera 1")
@@ -594,6 +598,7 @@ class FieldPreset:
                            "exposure time, s: streak length = velocity x exposure "
                            "(at most one frame interval); 0: no streak", main=True)
     blur_samples: int = _shared("blur_samples", "samples along a streak")
+    coarse: bool = _shared("coarse")
     # -- where particles are drawn and how the lens sees them
     near: float = _key(0.1, _number(0, 1e6, lo_open=True),
                        "nearest camera depth drawn, scene units (fade-in up to 2 x near)")

@@ -6,8 +6,9 @@ file stores it once (:meth:`RenderSettings.to_arrays`, one 0-d array per field) 
 file gives it back (:meth:`RenderSettings.from_arrays`).
 
 The preset keys it comes from are ``blend``, ``motion_blur``, ``blur_length``, ``blur_samples``,
-``defocus_brighten`` and ``templates``; all but ``templates`` change only how stored particles
-look, so they may change when stored particles are rendered again (:data:`APPEARANCE_KEYS`).
+``defocus_brighten``, ``coarse`` and ``templates``; all but ``templates`` change only how stored
+particles look, so they may change when stored particles are rendered again
+(:data:`APPEARANCE_KEYS`).
 """
 
 from __future__ import annotations
@@ -24,9 +25,13 @@ from .presets import BLEND_MODES, Preset
 from .templates import TemplateLibrary
 
 #: Preset keys that only change how stored particles look, so they may change on re-rendering.
-APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defocus_brighten")
+APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defocus_brighten",
+                   "coarse")
 #: The fields of :class:`RenderSettings` that :data:`APPEARANCE_KEYS` set.
-APPEARANCE_FIELDS = ("blend", "blur_length", "blur_samples", "defocus_brighten")
+APPEARANCE_FIELDS = ("blend", "blur_length", "blur_samples", "defocus_brighten", "coarse")
+#: Fields a particle file holds only when they differ from their default (files written before
+#: they existed read as the default, and files of the default keep their bytes).
+OPTIONAL_FIELDS = ("coarse",)
 
 
 @dataclass(frozen=True)
@@ -37,7 +42,9 @@ class RenderSettings:
     the frame-to-frame motion (0: none); blur_samples: samples K per blurred particle (1: none);
     defocus_brighten: brighten the disc-blurred alpha b to min(1, (2 b)^(1/3)); templates: the
     template library's name (``flakes``, ``dust`` or a folder); templates_digest: its digest ("" for
-    any), so that particles are never drawn with other templates than they were sampled with.
+    any), so that particles are never drawn with other templates than they were sampled with;
+    coarse: stamps of at least ``COARSE_SIDE`` pixels may be drawn on a coarser grid (false:
+    every pixel exactly).
     """
 
     blend: str = "additive"
@@ -46,6 +53,7 @@ class RenderSettings:
     defocus_brighten: bool = True
     templates: str = "flakes"
     templates_digest: str = ""
+    coarse: bool = True
 
     @classmethod
     def from_preset(cls, preset: Preset, library: Optional[TemplateLibrary] = None) -> "RenderSettings":
@@ -54,7 +62,8 @@ class RenderSettings:
         return cls(blend=preset.blend, blur_length=preset.effective_blur_length,
                    blur_samples=preset.blur_sample_count, defocus_brighten=preset.defocus_brighten,
                    templates=library.name if library is not None else preset.templates,
-                   templates_digest=library.digest if library is not None else "")
+                   templates_digest=library.digest if library is not None else "",
+                   coarse=preset.coarse)
 
     def appearance(self) -> dict:
         """The fields that may change when stored particles are rendered again."""
@@ -67,14 +76,19 @@ class RenderSettings:
         return dataclasses.asdict(self)
 
     def to_arrays(self) -> dict[str, np.ndarray]:
-        """One 0-d array per field, in declaration order (the particle file's entries)."""
-        return {name: np.array(value) for name, value in self.to_dict().items()}
+        """One 0-d array per field, in declaration order (the particle file's entries); the
+        :data:`OPTIONAL_FIELDS` only where they differ from their default."""
+        defaults = RenderSettings()
+        return {name: np.array(value) for name, value in self.to_dict().items()
+                if name not in OPTIONAL_FIELDS or value != getattr(defaults, name)}
 
     @classmethod
     def from_arrays(cls, arrays: Mapping[str, np.ndarray], path: str | Path) -> "RenderSettings":
         """The settings stored by :meth:`to_arrays`; FormatError names ``path`` and the entry."""
         values = {}
         for f in dataclasses.fields(cls):
+            if f.name not in arrays and f.name in OPTIONAL_FIELDS:
+                continue
             if f.name not in arrays:
                 raise FormatError(path, f"missing field '{f.name}'")
             values[f.name] = type(f.default)(arrays[f.name].item())

@@ -8,9 +8,12 @@ phases per axis are read at stride P: differentiable in the position), times the
 visibility ``V = 1 / (1 + exp(β (d − D)))`` of its depth ``d`` against the scene depth ``D``
 under each patch pixel, times its ``θ / K``; the products are added into per-pixel sums
 ``A = Σ θ B V`` and ``C_c = Σ γ_c θ B V`` (:class:`Sums`), one plane per view. Entries drawn on
-a coarse grid (large billboards) are splatted into that grid's planes, at ``(u + 0.5) / f − 0.5``
-against the scene depth averaged over ``f x f`` blocks; :mod:`~weathergen.engine.composite`
-brings them to the image grid.
+a coarse grid (large billboards) are splatted into that grid's planes, at ``(u + 0.5) / f − 0.5``,
+twice: against the nearest and against the farthest scene depth of each coarse pixel's footprint,
+with two more channels, the sums of ``θ B V φ`` and ``θ B V φ²`` (``φ`` the blur sample's depth
+rank; :mod:`~weathergen.engine.coarse`), from which :mod:`~weathergen.engine.composite` brings
+them to the image grid, pixel by pixel across depth edges (``depth_aware=False``: once, against
+the scene depth averaged over ``f x f`` blocks, upsampled bilinearly).
 
 Layout: a patch has an even side (stamp sides are odd), so it is cut into 2 x 2 blocks: a
 sample's blocks are rows of blocks, and the rows of every sample of the call are one ragged run
@@ -43,6 +46,7 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
+from .coarse import CoarseDepths, DepthOrder, footprint_depths, moment_channels
 from .ragged import chunk_spans
 from .sampling import NEAR
 from .stamps import COARSE_MAX_LEVEL, StampSet
@@ -75,11 +79,13 @@ def chunk_elements_for(device: torch.device) -> int:
 class Grids:
     """Where the planes of each grid level sit in the flat sums.
 
-    ``levels``: ``(level, offset, h, w, margin)`` per level drawn (coarsest first): V planes of
+    ``levels``: ``(level, offset, h, w, margin)`` per level drawn (coarsest first): P planes of
     ``(h + 1) x (w + 2 margin)`` values from ``offset`` on, plane ``v``'s pixel ``(y, x)`` at
     ``offset + (v (h + 1) + y) (w + 2 margin) + margin + x``; the margins and row ``h`` collect
-    what falls outside the image. ``size``: the total; ``views``: V; ``height``, ``width``: the
-    image's.
+    what falls outside the image. P is V on the image grid and ``copies`` V on a coarse grid
+    (``copies = 2``: planes ``v`` against the nearest depth of each coarse pixel's footprint,
+    planes ``V + v`` against the farthest). ``size``: the total; ``views``: V; ``height``,
+    ``width``: the image's.
     """
 
     levels: list
@@ -87,31 +93,40 @@ class Grids:
     views: int
     height: int
     width: int
+    copies: int = 1
+
+    def count(self, level_index: int) -> int:
+        """The planes of one level: V, or ``copies`` V on a coarse grid."""
+        return self.views * (self.copies if self.levels[level_index][0] else 1)
 
     def planes(self, values: torch.Tensor, level_index: int) -> torch.Tensor:
-        """One level's sums without margins. Shape: (C, N) -> (C, V, h, w) (a view)."""
+        """One level's sums without margins. Shape: (C, N) -> (C, P, h, w) (a view)."""
         _, offset, h, w, m = self.levels[level_index]
-        size = self.views * (h + 1) * (w + 2 * m)
-        grid = values[:, offset:offset + size].view(values.shape[0], self.views, h + 1,
-                                                   w + 2 * m)
+        count = self.count(level_index)
+        size = count * (h + 1) * (w + 2 * m)
+        grid = values[:, offset:offset + size].view(values.shape[0], count, h + 1, w + 2 * m)
         return grid[..., :h, m:m + w]
 
 
 @dataclass
 class Sums:
-    """The splat's output. Shape: values (1 + C, N), the sums A, C_r, C_g, C_b (and, for a
-    layered render, the depth sum ``Σ θ B V z``: the instances' fourth colour channel) laid out as
-    :class:`Grids` says; reached (V,) bool, which views any blur sample was splatted into (a
-    view none reached does not depend on the particles)."""
+    """The splat's output. Shape: values (1 + C, N), the sums A, C_r, C_g, C_b (then, where the
+    coarse grids are depth-aware, the two moment sums; and, for a layered render, the depth sum
+    ``Σ θ B V z``: the instances' last colour channel) laid out as :class:`Grids` says; reached
+    (V,) bool, which views any blur sample was splatted into (a view none reached does not
+    depend on the particles); coarse: what the depth-aware upsampling needs (None: no coarse
+    grid, or ``depth_aware=False``)."""
 
     values: torch.Tensor
     grids: Grids
     reached: torch.Tensor
+    coarse: Optional[CoarseDepths] = None
 
 
-def grids_for(stamps: StampSet, views: int, height: int, width: int) -> Grids:
+def grids_for(stamps: StampSet, views: int, height: int, width: int, copies: int = 1) -> Grids:
     """The grid levels the stamps need (the image grid only when a stamp is drawn on it or
-    none is coarse), each with a margin as wide as its widest patch. A
+    none is coarse), each with a margin as wide as its widest patch, and ``copies`` planes per
+    view on a coarse grid. A
     level left out would add exact zeros to every view (sums are never −0), so leaving it out
     changes no bit and saves a full-size plane per view (fog draws on a coarse grid alone). One
     host synchronisation."""
@@ -129,29 +144,38 @@ def grids_for(stamps: StampSet, views: int, height: int, width: int) -> Grids:
         h, w = -(-height // f), -(-width // f)
         m = used[1][c]
         levels.append((c, offset, h, w, m))
-        offset += views * (h + 1) * (w + 2 * m)
-    return Grids(levels=levels, size=offset, views=views, height=height, width=width)
+        offset += views * (copies if c else 1) * (h + 1) * (w + 2 * m)
+    return Grids(levels=levels, size=offset, views=views, height=height, width=width,
+                 copies=copies)
 
 
-def scene_depths(depth: torch.Tensor, grids: Grids, dtype) -> torch.Tensor:
-    """The scene depth on every grid, laid out as the sums (coarse grids: averaged over f x f
-    blocks, the image's edge replicated up to a whole block; margins and the extra row −∞).
-    Shape: depth (V, 1, H, W) -> (N,)."""
+def scene_depths(depth: torch.Tensor, grids: Grids, dtype) -> tuple[torch.Tensor, list]:
+    """The scene depth on every grid, laid out as the sums (margins and the extra row −∞): on
+    a coarse grid with two copies, the nearest then the farthest depth of each coarse pixel's
+    footprint (:func:`~weathergen.engine.coarse.footprint_depths`), with one, the depth averaged
+    over f x f blocks (the image's edge replicated up to a whole block). Shape: depth
+    (V, 1, H, W) -> (N,), and per level the footprints' (nearest, farthest) (V, h, w) (None
+    where not drawn twice)."""
     depth = depth.detach().to(dtype)
-    parts = []
+    parts, footprints = [], []
     for c, _, _, _, m in grids.levels:
         f = 2 ** c
-        d = depth
-        if c:
+        d, pair = depth, None
+        if c and grids.copies == 2:
+            pair = footprint_depths(d, f, grids.height, grids.width)
+            d = torch.cat(pair)
+            pair = (pair[0][:, 0], pair[1][:, 0])
+        elif c:
             pad = (0, -grids.width % f, 0, -grids.height % f)
             d = F.avg_pool2d(F.pad(d, pad, mode="replicate") if any(pad) else d, f)
         parts.append(F.pad(d, (m, m, 0, 1), value=-float("inf")).reshape(-1))
-    return torch.cat(parts)
+        footprints.append(pair)
+    return torch.cat(parts), footprints
 
 
 def splat(inst: Instances, stamps: StampSet, depth: torch.Tensor, *,
           chunk_elements: Optional[int] = None, detach_occlusion: bool = False,
-          passive: int = 0) -> Sums:
+          passive: int = 0, depth_aware: bool = True) -> Sums:
     """The per-pixel sums of every blur sample's stamp (see the module doc).
 
     Shape: depth (V, 1, H, W) the scene depth of the V views; returns :class:`Sums`.
@@ -159,17 +183,26 @@ def splat(inst: Instances, stamps: StampSet, depth: torch.Tensor, *,
     ``detach_occlusion``, ``inst.z`` (through the visibility ``V``).
     ``passive``: how many of the last colour channels are sums no gradient comes back to (the
     depth of a layered render, which only orders the layers): the backward pass skips them.
+    ``depth_aware``: coarse grids drawn against the nearest and farthest depth of each coarse
+    pixel's footprint, with the moment sums (see :mod:`~weathergen.engine.coarse`); else
+    against the block's mean depth.
     """
     views, _, height, width = depth.shape
     dtype = inst.u.dtype
-    grids = grids_for(stamps, views, height, width)
+    grids = grids_for(stamps, views, height, width, copies=2 if depth_aware else 1)
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(depth.device)
-    plan = _Plan(inst, stamps, scene_depths(depth, grids, dtype), grids, chunk_elements)
+    scene, footprints = scene_depths(depth, grids, dtype)
+    plan = _Plan(inst, stamps, scene, grids, chunk_elements)
     plan.passive = passive
     z = inst.z.detach() if detach_occlusion else inst.z
-    values = _Splat.apply(inst.u, inst.v, z, inst.theta, inst.color, plan)
-    return Sums(values=values, grids=grids, reached=plan.reached)
+    colour, coarse = inst.color, None
+    if plan.order is not None:
+        colour = moment_channels(colour, plan.rank, passive)
+        coarse = CoarseDepths(depth=depth.detach()[:, 0].to(dtype), footprints=footprints,
+                              order=plan.order, moments=1 + inst.color.shape[1] - passive)
+    values = _Splat.apply(inst.u, inst.v, z, inst.theta, colour, plan)
+    return Sums(values=values, grids=grids, reached=plan.reached, coarse=coarse)
 
 
 class _Plan:
@@ -199,6 +232,7 @@ class _Plan:
         self.cpu = device.type == "cpu"
         self.reached = torch.zeros(grids.views, dtype=torch.bool, device=device)
         self.count, self.passive = 0, 0
+        self.order, self.rank = None, None
         if inst.count == 0 or stamps.count == 0:
             return
         top = COARSE_MAX_LEVEL + 1
@@ -214,7 +248,7 @@ class _Plan:
             side, level, phases = stamps.side, stamps.coarse, stamps.phases
             q = torch.div(side, 2, rounding_mode="floor").add_(1)
             grid = torch.tensor(rows, device=device).index_select(0, level)
-            kind = torch.add(phases > 1, level, alpha=2 * grids.views)
+            kind = torch.add(phases > 1, level, alpha=2 * grids.views * grids.copies)
             # per blur sample: whether its patch touches the image (its first column and row,
             # uv0 − q + 1, not after w − 1 and h − 1; its last, uv0 + q, from 0 on) and its key: by
             # plane, then by tile of the image (samples of a chunk hit nearby pixels: fewer
@@ -230,10 +264,13 @@ class _Plan:
             keep = ((uv0 + reach >= 0) & (uv0 - reach < per[:, 2:4].t())).all(0) \
                 & (inst.z > NEAR)
             kept = torch.nonzero(keep).squeeze(1)
+            # (view: the sample's plane; a coarse sample is drawn again into plane V + view)
+            view = inst.view.index_select(0, kept)
+            if grids.copies > 1 and self.coarse:
+                kept, view = self._twice(inst, level, kept, view, grids.views)
             tile = torch.div(uv0.index_select(1, kept), TILE, rounding_mode="floor") \
                 .clamp_(-1, 1 << 12).add_(1)
             tile_u, tile_v = tile.unbind(0)
-            view = inst.view.index_select(0, kept)
             kind = torch.add(per[:, 1].index_select(0, kept), view, alpha=2)
             key = torch.add(torch.add(tile_u, tile_v, alpha=1 << 14), kind, alpha=1 << 28)
             key, order = torch.sort(key, stable=True)
@@ -262,7 +299,7 @@ class _Plan:
             # (what _per_sample's fu, fv are: the shift's fraction of a grid step, P f − φ)
             self.fraction = shift.sub_(phase)
             first = torch.addcmul(first, late_v, fine).add_(late_u)
-            self.reached.index_fill_(0, view, True)
+            self.reached.index_fill_(0, torch.remainder(view, grids.views), True)
             self.kept, self.q, self.phases = kept, q, phases
             if self.coarse:
                 self.factor = f.to(self.dtype)
@@ -283,6 +320,23 @@ class _Plan:
                 pieces = chunk_spans(q, self.blocks_per_chunk, repeats=q,
                                      ends=(rows_end, blocks_end))
             self._slabs(pieces, row_start, rows_end, (phases > 1).long())
+
+    def _twice(self, inst: Instances, level: torch.Tensor, kept: torch.Tensor,
+               view: torch.Tensor, views: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """The kept samples with those on coarse grids once more, into planes ``V + view``
+        (against the footprints' farthest depth); sets ``order`` and ``rank`` (the depth order
+        of the coarse samples per level and view, :class:`~weathergen.engine.coarse.DepthOrder`)."""
+        at = level.index_select(0, inst.entry.index_select(0, kept))
+        on = torch.nonzero(at > 0).squeeze(1)
+        if on.numel() == 0:
+            return kept, view
+        drawn, again = kept.index_select(0, on), view.index_select(0, on)
+        group = torch.add(again, at.index_select(0, on), alpha=views)
+        self.order, rank = DepthOrder.of(inst.z.index_select(0, drawn), group,
+                                         (COARSE_MAX_LEVEL + 1) * views)
+        self.rank = torch.zeros(inst.count, dtype=torch.float64, device=kept.device) \
+            .index_copy_(0, drawn, rank)
+        return torch.cat((kept, drawn)), torch.cat((view, again + views))
 
     def _slabs(self, pieces: list, row_start: torch.Tensor, rows_end: torch.Tensor,
                phase: torch.Tensor):

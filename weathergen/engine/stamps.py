@@ -172,7 +172,8 @@ def floor_log2(x: torch.Tensor) -> torch.Tensor:
 
 def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor,
                    resolution: Union[int, torch.Tensor], level_count: Union[int, torch.Tensor],
-                   coarse_side: Optional[int] = COARSE_SIDE) -> tuple:
+                   coarse_side: Optional[int] = COARSE_SIDE,
+                   allowed: Optional[torch.Tensor] = None) -> tuple:
     """Each entry's stamp layout from its footprint (pixels, float64, >= 1) and defocus radius.
 
     Stamps at least ``coarse_side`` pixels wide (template plus defocus) go to a grid ``f = 2**L``
@@ -185,13 +186,17 @@ def stamp_geometry(footprint: torch.Tensor, defocus: torch.Tensor,
     the footprint) and the phases P per axis (``sub`` for small stamps without a blur: they are
     sampled at every 1 / P pixel; 1 otherwise). ``resolution`` and ``level_count``: the
     template library's side and mip levels, or per entry (E,) (float64, int64) where the
-    entries come from several libraries.
+    entries come from several libraries. ``allowed`` (E,) bool: the entries that may go to a
+    coarser grid (None: all).
     """
     radius = defocus.masked_fill(defocus <= 1, 0)
     coarse = torch.zeros_like(radius)
     full = torch.add(footprint, radius, alpha=2)
-    if coarse_side is not None and bool((full >= coarse_side).any()):
-        coarse = torch.where(full >= coarse_side,
+    large = full >= coarse_side if coarse_side is not None else None
+    if large is not None and allowed is not None:
+        large &= allowed
+    if large is not None and bool(large.any()):
+        coarse = torch.where(large,
                              floor_log2(full / COARSE_MIN_SIDE)
                              .clamp(1, COARSE_MAX_LEVEL),
                              torch.zeros_like(full)).long()
@@ -402,7 +407,7 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
             level_count = level_count.long()
         footprint, radius, coarse, side, sub, level, phases = stamp_geometry(
             looks.footprint.to(torch.float64), looks.defocus, resolution, level_count,
-            coarse_side)
+            coarse_side, looks.coarse)
         # brightened blurred stamps are softened afterwards and grow by the kernel's reach
         blurred = radius > 0
         soft = looks.brighten & blurred

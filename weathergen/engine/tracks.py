@@ -442,25 +442,37 @@ class ParticleTable:
 class Looks:
     """How each stamp entry looks (E entries). Shape: footprint (E,) float64 pixels (>= 1);
     defocus (E,) int64 disc radius in pixels; rotation (E,) float64 radians; template (E,)
-    int64; brighten (E,) bool (the disc-blurred alpha b becomes ``min(1, (2 b)^(1/3))``)."""
+    int64; brighten (E,) bool (the disc-blurred alpha b becomes ``min(1, (2 b)^(1/3))``);
+    coarse (E,) bool, whether a large stamp may be drawn on a coarser grid (its record's
+    ``coarse`` setting; None: every entry may)."""
 
     footprint: torch.Tensor
     defocus: torch.Tensor
     rotation: torch.Tensor
     template: torch.Tensor
     brighten: torch.Tensor
+    coarse: Optional[torch.Tensor] = None
 
     @property
     def count(self) -> int:
         return int(self.template.numel())
 
+    def may_be_coarse(self) -> torch.Tensor:
+        """``coarse``, all true where not given. Shape: (E,) bool."""
+        return self.coarse if self.coarse is not None \
+            else torch.ones_like(self.brighten, dtype=torch.bool)
+
     def select(self, rows: torch.Tensor) -> "Looks":
-        return Looks(**{k: getattr(self, k)[rows] for k in Looks.__dataclass_fields__})
+        return Looks(**{k: None if getattr(self, k) is None else getattr(self, k)[rows]
+                        for k in Looks.__dataclass_fields__})
 
     @staticmethod
     def cat(parts: Sequence["Looks"]) -> "Looks":
-        return Looks(**{k: torch.cat([getattr(p, k) for p in parts])
-                        for k in Looks.__dataclass_fields__})
+        fields = {k: torch.cat([getattr(p, k) for p in parts])
+                  for k in Looks.__dataclass_fields__ if k != "coarse"}
+        if any(p.coarse is not None for p in parts):
+            fields["coarse"] = torch.cat([p.may_be_coarse() for p in parts])
+        return Looks(**fields)
 
 
 @dataclass
@@ -504,17 +516,19 @@ class RecordRows:
     blur); spacing (R,) float64 (``blur_length / (K − 1)``, 0 for K = 1); blur_length (R,)
     float64; brighten (R,) bool; optics (R, 7) float64 (near, far, fade, aperture, focus,
     depth_softness, zeros for the paper's records; then blur_length again: every number a
-    field record's candidates read, gathered at once)."""
+    field record's candidates read, gathered at once); coarse (R,) bool (large stamps may be
+    drawn on a coarser grid)."""
 
     samples: torch.Tensor
     spacing: torch.Tensor
     blur_length: torch.Tensor
     brighten: torch.Tensor
     optics: torch.Tensor
+    coarse: torch.Tensor
 
     @classmethod
     def of(cls, records: Sequence[Particles], device) -> "RecordRows":
-        samples, spacing, length, bright, optics = [], [], [], [], []
+        samples, spacing, length, bright, optics, coarse = [], [], [], [], [], []
         for r in records:
             s = r.settings
             k = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
@@ -522,6 +536,7 @@ class RecordRows:
             spacing.append(float(s.blur_length) / (k - 1) if k > 1 else 0.0)
             length.append(float(s.blur_length))
             bright.append(bool(s.defocus_brighten))
+            coarse.append(bool(s.coarse))
             o = r.optics
             optics.append([0.0] * 6 + [length[-1]] if o is None else
                           [o.near, o.far, o.fade, o.aperture, o.focus, o.depth_softness,
@@ -531,14 +546,16 @@ class RecordRows:
                    spacing=torch.tensor(spacing, dtype=f64, device=device),
                    blur_length=torch.tensor(length, dtype=f64, device=device),
                    brighten=torch.tensor(bright, device=device),
-                   optics=torch.tensor(optics, dtype=f64, device=device).view(-1, 7))
+                   optics=torch.tensor(optics, dtype=f64, device=device).view(-1, 7),
+                   coarse=torch.tensor(coarse, dtype=torch.bool, device=device))
 
 
 def fixed_looks(table: ParticleTable, rows: RecordRows, resolution: int) -> Looks:
     """The paper's model: looks fixed at sampling (footprint ``scale`` x template pixels)."""
     return Looks(footprint=(table.scale * resolution).clamp(min=1.0), defocus=table.defocus,
                  rotation=table.rotation, template=table.template,
-                 brighten=rows.brighten[table.record] & (table.defocus > 1))
+                 brighten=rows.brighten[table.record] & (table.defocus > 1),
+                 coarse=rows.coarse[table.record])
 
 
 def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, views: Views,
@@ -572,7 +589,8 @@ def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, vie
     looks = Looks(footprint=fp.index_select(0, keep).clamp(min=1.0), defocus=radius,
                   rotation=table.rotation.index_select(0, drawn),
                   template=table.template.index_select(0, drawn),
-                  brighten=rows.brighten.index_select(0, record) & (radius > 1))
+                  brighten=rows.brighten.index_select(0, record) & (radius > 1),
+                  coarse=rows.coarse.index_select(0, record))
     colour = table.color if color is None else color
     tracks = Tracks(entry=torch.arange(first_entry, first_entry + keep.numel(),
                                        device=keep.device),

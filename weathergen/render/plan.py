@@ -106,7 +106,8 @@ def resolve_preset(preset: Optional[str] = None, preset_file: Optional[str | Pat
     if not overrides:
         appearance = {}
     elif isinstance(resolved, FieldPreset):   # its streak follows the dataset's frame rate
-        appearance = {"blend": resolved.blend, "blur_samples": resolved.blur_samples}
+        appearance = {"blend": resolved.blend, "blur_samples": resolved.blur_samples,
+                      "coarse": resolved.coarse}
     else:
         appearance = RenderSettings.from_preset(resolved).appearance()
     return ResolvedPreset(resolved, name, appearance)
