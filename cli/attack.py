@@ -98,14 +98,17 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
               help=f"Optimisation steps per pair (at least 1). Default: {DEFAULT_STEPS} (weather), 20 (pcfa), "
                    "25 (ifgsm).")
 @click.option("--optimize", default=None, metavar="A,B,...",
-              help="Variables to optimise: offset1, offset2, color, transparency (or 'all'). "
-                   "Default: the --config's, else all (fog: all but offset2).")
+              help="Variables to optimise: offset1, offset2, color, transparency; density and "
+                   "airlight of a weather field's atmosphere (fog-*, mist, rain-*, snow-*); or "
+                   "'all'. Default: the --config's, else the four particle variables (fog: all "
+                   "but offset2), and density where the preset has an atmosphere.")
 @click.option("--optimize-layer", "optimize_layer", default=None, metavar="NAME[,NAME]|all",
               help="Combined presets (layers joined by +): the layers whose particles are "
                    "optimised, by name (e.g. fog-light); the others stay as sampled. "
                    "Default: all.")
 @click.option("--lr", type=float, default=None,
-              help="Adam learning rate. Default: 1e-5 when an offset is optimised, else 1e-3; "
+              help="Adam learning rate. Default: 1e-5 when an offset is optimised, else 1e-3 "
+                   "(density and airlight: 1e-2); "
                    "pcfa: L-BFGS step size 1, Adam 1e-3; for ifgsm the step size, default "
                    "epsilon / steps.")
 @click.option("--alpha1", type=float, default=1000.0, show_default=True,

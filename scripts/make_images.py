@@ -7,13 +7,17 @@ Written into docs/images/ (``--out`` elsewhere):
   render of the demo street with snow-moderate (input | weather | opacity);
 - ``every-preset.png`` (docs/engine.md, "Pictures"): every preset, paper and field, as
   ``weathergen render --preset NAME`` draws it into frame 1 of the demo street (seed 0), one
-  labelled tile each.
+  labelled tile each;
+- ``atmosphere.png`` (docs/engine.md, "The atmosphere"): the fog ladder (mist, fog-light,
+  fog-moderate, fog-heavy), heavy rain and snow and a downpour in light fog on the demo street,
+  frame 1 and its opacity, after the clean frame and its depth.
 
 ``--real ROOT`` also draws every preset, both frames, into the first pair of a real dataset
 (``--real-dataset``, KITTI layout by default; ``--depth-scale`` as for ``render``) and writes the
-sheet to ``--real-out`` (default ``out/images/every-preset-real.png``). That sheet shows someone
-else's frames: it is for looking at, not for the repository (the FlyingThings3D pair
-docs/engine.md names may not be redistributed).
+sheet to ``--real-out`` (default ``out/images/every-preset-real.png``), and the atmosphere's
+ladder, both frames, beside it (``atmosphere-real.png``). These sheets show someone else's
+frames: they are for looking at, not for the repository (the FlyingThings3D pair docs/engine.md
+names may not be redistributed).
 
 Everything is drawn with one torch thread and fixed seeds, so a rerun writes the same bytes. The
 README's two pictures are tracked in git: each is left untouched when a fresh rendering differs from
@@ -51,7 +55,11 @@ IMAGES = ROOT / "docs" / "images"
 PICTURE = IMAGES / "presets.png"
 VIDEO_STILL = IMAGES / "video-still.png"
 EVERY_PRESET = IMAGES / "every-preset.png"
+ATMOSPHERE = IMAGES / "atmosphere.png"
 REAL_SHEET = ROOT / "out" / "images" / "every-preset-real.png"
+#: The atmosphere's ladder, as ``atmosphere.png`` shows it ("clean": the frame without weather).
+LADDER = ("clean", "mist", "fog-light", "fog-moderate", "fog-heavy", "rain-heavy", "snow-heavy",
+          "rain-heavy+fog-light")
 #: The crop of the demo frame that ``--quick`` draws on: (top, left, height, width).
 QUICK_CROP = (24, 96, 128, 192)
 LABEL_PX = 18                          # the label strip above each tile of a sheet
@@ -155,13 +163,16 @@ def grid(tiles: list[np.ndarray], columns: int) -> np.ndarray:
 
 def every_preset_sheet(pair, dataset, *, both_frames: bool = False, shrink: int = 1,
                        columns: int = 6, names=None) -> np.ndarray:
-    """Every preset (paper and field; or ``names``) drawn into ``pair``, one labelled tile each
-    (two, frame 1 and frame 2, with ``both_frames``), tiles shrunk ``shrink`` times; uint8 RGB."""
+    """Every preset (paper and field; or ``names``, where ``clean`` is the frame without
+    weather) drawn into ``pair``, one labelled tile each (two, frame 1 and frame 2, with
+    ``both_frames``), tiles shrunk ``shrink`` times; uint8 RGB."""
     torch.set_num_threads(1)
     tiles = []
     for name in names or sheet_order():
         try:
-            frames = preset_frames(pair, dataset, name)
+            frames = (tuple(to_uint8(img.permute(1, 2, 0).numpy())
+                            for img in (pair.image1, pair.image2)) if name == "clean"
+                      else preset_frames(pair, dataset, name))
             failed = ""
         except WeatherGenError as exc:      # as `render` fails the pair: said, and shown clean
             print(f"{name}: {exc}", file=sys.stderr)
@@ -273,9 +284,47 @@ def main_every_preset(out: Path = EVERY_PRESET, quick: bool = False) -> bool:
     return save_palette(out, every_preset_sheet(pair, ds))
 
 
+def ladder_sheet(pair, dataset, *, both_frames: bool = False, shrink: int = 1) -> np.ndarray:
+    """The atmosphere's ladder (:data:`LADDER`) drawn into ``pair``: per rung its frame 1 (and
+    frame 2 with ``both_frames``) and the opacity of frame 1 (white: opaque), labelled; the
+    ``clean`` rung shows the frame and the scene's depth instead (white: near, black: the
+    farthest, at most 100 m). Four tiles a row; uint8 RGB."""
+    torch.set_num_threads(1)
+    tiles = []
+    for name in LADDER:
+        if name == "clean":
+            frames = (pair.image1, pair.image2)
+            depth = pair.depth1[0].double().clamp(max=100.0)
+            extra, what = 1 - depth / float(depth.max()), f"depth, black {float(depth.max()):.0f} m"
+        else:
+            particles = pair_particles(pair, load_preset(name), 0, world_up=dataset.world_up,
+                                       frame_rate=dataset.frame_rate)
+            with torch.no_grad():
+                out = render_pair(pair, particles)
+            frames = (out.image1[0], out.image2[0])
+            extra, what = out.opacity1[0, 0].double(), "opacity"
+        shown = [(f"{name}, frame {t + 1}" if both_frames else name, frame)
+                 for t, frame in enumerate(frames[:2 if both_frames else 1])]
+        shown.append((f"{name}: {what}", extra[None].expand(3, -1, -1)))
+        for label, image in shown:
+            tile = to_uint8(image.permute(1, 2, 0).numpy())
+            if shrink > 1:
+                tile = cv2.resize(tile, (tile.shape[1] // shrink, tile.shape[0] // shrink),
+                                  interpolation=cv2.INTER_AREA)
+            tiles.append(labelled(tile, label))
+    return grid(tiles, 4)
+
+
+def main_atmosphere(out: Path = ATMOSPHERE, quick: bool = False) -> bool:
+    """Write the atmosphere's ladder on the demo street to ``out``."""
+    pair, ds = demo_pair(quick)
+    return save_palette(out, ladder_sheet(pair, ds))
+
+
 def main_real(root: Path, out: Path = REAL_SHEET, dataset: str = "kitti",
               depth_scale: float | None = None) -> Path:
-    """Write the sheet of every preset, both frames, on the first pair of a real dataset."""
+    """Write the sheet of every preset, both frames, on the first pair of a real dataset, and
+    the atmosphere's ladder, both frames, beside it (``atmosphere-real.png``)."""
     ds = open_dataset(dataset, root, frames_per_scene=1,
                       **({"depth_scale": depth_scale} if depth_scale is not None else {}))
     pair = ds.load(ds.pairs()[0])
@@ -283,14 +332,17 @@ def main_real(root: Path, out: Path = REAL_SHEET, dataset: str = "kitti",
     sheet = every_preset_sheet(pair, ds, both_frames=True, shrink=shrink, columns=4)
     write_small_png(out, sheet)
     print(f"wrote {out} ({pair.id}, {pair.size[1]}x{pair.size[0]}, tiles 1/{shrink})")
+    ladder = out.with_name("atmosphere-real.png")
+    write_small_png(ladder, ladder_sheet(pair, ds, both_frames=True, shrink=shrink))
+    print(f"wrote {ladder}")
     return out
 
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=IMAGES,
-                        help="folder for presets.png, video-still.png, every-preset.png "
-                             "(default docs/images)")
+                        help="folder for presets.png, video-still.png, every-preset.png, "
+                             "atmosphere.png (default docs/images)")
     parser.add_argument("--force", action="store_true",
                         help="rewrite the README pictures even when nothing visible changed")
     parser.add_argument("--quick", action="store_true",
@@ -313,6 +365,7 @@ def run(argv=None) -> None:
     main(args.out / PICTURE.name, args.force, args.quick)
     main_video_still(args.out / VIDEO_STILL.name, args.force, args.quick)
     main_every_preset(args.out / EVERY_PRESET.name, args.quick)
+    main_atmosphere(args.out / ATMOSPHERE.name, args.quick)
     if args.real is not None:
         main_real(args.real, args.real_out, args.real_dataset, args.depth_scale)
     print(f"{time.process_time() - start:.0f} s of CPU time")

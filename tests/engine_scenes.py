@@ -183,6 +183,27 @@ def count_operations(fn) -> int:
     return counter.ops
 
 
+#: Wisps of haze as particles: the billboard fog the field presets drew before they became
+#: atmospheres (4 m `haze` clouds, alpha blended, θ 0.15, from 1 to 25 m, 0.03 per m³), with
+#: no atmosphere of their own. Overrides of any field preset (``load_preset("fog-moderate",
+#: HAZE_WISPS)``), or of a layer (:func:`wisps`).
+HAZE_WISPS = {"density": "0.03", "diameter": "4.0", "diameter_jitter": "0.3", "templates": "haze",
+              "blend": "alpha", "transparency": "0.15", "fall_speed": "0", "exposure": "0",
+              "blur_samples": "1", "near": "1.0", "far": "25.0", "fade": "0.4",
+              "aperture": "0", "focus": "5.0", "depth_softness": "0.2", "tile": "10.0",
+              "visibility": "0", "rain_rate": "0", "snow_rate": "0"}
+
+
+def wisps(layer: str, density: float = 0.03, atmosphere: bool = False) -> dict:
+    """:data:`HAZE_WISPS` for layer ``layer`` of a combined preset, at ``density`` per m³
+    (keeping the layer's own atmosphere with ``atmosphere``)."""
+    values = {**HAZE_WISPS, "density": str(density)}
+    if atmosphere:
+        for key in ("visibility", "rain_rate", "snow_rate"):
+            values.pop(key)
+    return {f"{layer}.{k}": v for k, v in values.items()}
+
+
 def column_scene(size: tuple = (218, 512), *, column_depth: float = 0.7, far: float = 5.0,
                  floor: float = 0.25, columns: tuple = (0.3, 0.45), focal: float = 560.0,
                  dtype=torch.float32) -> FramePair:

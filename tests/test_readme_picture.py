@@ -54,9 +54,10 @@ def test_the_video_still_is_a_frame_of_the_video_the_code_makes_today(tmp_path):
 
 
 def test_make_images_quick_writes_every_picture_it_promises(tmp_path, capsys):
-    """`--quick` (a crop of the demo frame, a two-pair video) writes the three pictures, each the
-    size its layout gives; the sheet holds one labelled tile per preset, paper and field; a second
-    run writes the same bytes; and the quick stand-ins are refused in docs/images."""
+    """`--quick` (a crop of the demo frame, a two-pair video) writes the four pictures, each the
+    size its layout gives; the sheet holds one labelled tile per preset, paper and field, the
+    atmosphere's ladder one per rung after the clean frame; a second run writes the same bytes;
+    and the quick stand-ins are refused in docs/images."""
     import cv2
     import pytest
 
@@ -66,7 +67,7 @@ def test_make_images_quick_writes_every_picture_it_promises(tmp_path, capsys):
     out = tmp_path / "images"
     script.run(["--quick", "--out", str(out)])
     files = {p.name for p in out.iterdir()}
-    assert files == {"presets.png", "video-still.png", "every-preset.png"}
+    assert files == {"presets.png", "video-still.png", "every-preset.png", "atmosphere.png"}
     _, _, h, w = script.QUICK_CROP
     assert read_png(out / "presets.png").shape == (2 * h, 2 * w, 3)
     still = read_png(out / "video-still.png")
@@ -84,6 +85,20 @@ def test_make_images_quick_writes_every_picture_it_promises(tmp_path, capsys):
         top = r * (h + script.LABEL_PX) + script.LABEL_PX
         tile = sheet[top:top + h, c * w:(c + 1) * w].astype(float)
         assert np.abs(tile - clean).mean() > 0.5, name
+    ladder = read_png(out / "atmosphere.png")
+    assert ladder.shape == (4 * (h + script.LABEL_PX), 4 * w, 3)
+    first_tile = None
+    for i, name in enumerate(script.LADDER):        # the clean tile first, then fogged ones
+        r, c = divmod(2 * i, 4)                     # (each rung: its frame, then its opacity)
+        top = r * (h + script.LABEL_PX) + script.LABEL_PX
+        tile = ladder[top:top + h, c * w:(c + 1) * w].astype(float)
+        if first_tile is None:                      # the clean frame, in the sheet's palette
+            first_tile = tile
+            assert np.abs(tile - clean).mean() < 4, name
+        else:
+            assert np.abs(tile - first_tile).mean() > 0.2, name   # mist on 25 m: ~0.35
+        opacity = ladder[top:top + h, (c + 1) * w:(c + 2) * w].astype(float)
+        assert name == "clean" or opacity.mean() > 2, name          # the air is there
     first = {p.name: p.read_bytes() for p in out.iterdir()}
     script.run(["--quick", "--out", str(out)])
     assert {p.name: p.read_bytes() for p in out.iterdir()} == first

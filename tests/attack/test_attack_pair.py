@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from weathergen.attack import (ATTACK_CONFIGS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE,
+from weathergen.attack import (ATTACK_CONFIGS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE, VARIABLES,
                                AttackSettings, TargetSpec, WeatherVariables, attack_config,
                                attack_loss, attack_pair, default_lr, offset_penalty,
                                parse_optimize, parse_target, particle_depths, target_flow)
@@ -56,8 +56,9 @@ def grey_particles(pair, count=80, seed=3):
 
 def test_parse_optimize_orders_and_validates():
     assert parse_optimize("color,offset1") == ("offset1", "color")
-    assert parse_optimize("all") == OPTIMIZABLE
-    with pytest.raises(ConfigError, match="offset1, offset2, color, transparency"):
+    # every variable: the particles' four, then the atmosphere's (ignored without an atmosphere)
+    assert parse_optimize("all") == VARIABLES == OPTIMIZABLE + ("density", "airlight")
+    with pytest.raises(ConfigError, match="offset1, offset2, color, transparency, density"):
         parse_optimize("offset1,colour")
     with pytest.raises(ConfigError):
         parse_optimize(" , ")

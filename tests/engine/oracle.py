@@ -558,14 +558,77 @@ def frame_grids(depth, frame_draws, levels, resolution, coarse_side, detach_occl
     return out
 
 
+# -- the atmosphere (uniform air) ------------------------------------------------------------
+
+def _ray_length(k, u: float, v: float) -> float:
+    """``|K⁻¹ (u, v, 1)|``: distance per unit of camera depth along the ray through (u, v)."""
+    y = (v - k[1][2]) / k[1][1]
+    x = (u - k[0][2] - k[0][1] * y) / k[0][0]
+    return math.sqrt(x * x + y * y + 1)
+
+
+def air_along(atmospheres, distance: float):
+    """Transmission and airlight of uniform atmospheres up to ``distance``: ``exp(−Σ τ_l)``
+    with ``τ_l = β_l min(distance, sky_l)``, the airlights mixed by optical depth (one
+    atmosphere: its own). The oracle integrates uniform air only."""
+    taus = []
+    for atm in atmospheres:
+        if not atm.uniform:
+            raise NotImplementedError("the oracle integrates uniform atmospheres only")
+        taus.append(atm.extinction * min(max(distance, 0.0), atm.sky_distance))
+    total = sum(taus)
+    lights = [atm.airlight.double() for atm in atmospheres]
+    if len(taus) == 1 or total <= 0:
+        return math.exp(-total), lights[0]
+    return math.exp(-total), sum(tau * light for tau, light in zip(taus, lights)) / total
+
+
+def through_air(frame_draws, atmospheres, k, blend):
+    """What a frame draws, each particle seen through the air in front of the middle of its
+    streak: an additive one's θ times ``t_p``, an alpha one's colour ``γ t_p + A (1 − t_p)``."""
+    if not atmospheres:
+        return frame_draws
+    out = []
+    for looks, samples, theta, colour, b, middle in frame_draws:
+        u, v, z = (_value(m) for m in middle)
+        t, light = air_along(atmospheres, max(z, 0.0) * _ray_length(k, u, v))
+        if blend == "alpha":
+            colour = [colour[c] * t + float(light[c]) * (1 - t) for c in range(3)]
+        else:
+            theta = theta * t
+        out.append((looks, samples, theta, colour, b, middle))
+    return out
+
+
+def fogged(image, depth, k, atmospheres):
+    """The scene through the air, pixel by pixel, and each pixel's transmission.
+    Shape: image (3, H, W) -> ((3, H, W), (1, H, W)) float64."""
+    image = image.double()
+    if not atmospheres:
+        return image, torch.ones(1, *image.shape[1:], dtype=torch.float64)
+    out = image.clone()
+    trans = torch.ones(1, *image.shape[1:], dtype=torch.float64)
+    for y in range(image.shape[1]):
+        for x in range(image.shape[2]):
+            t, light = air_along(atmospheres, depth[y][x] * _ray_length(k, x, y))
+            out[:, y, x] = image[:, y, x] * t + light * (1 - t)
+            trans[0, y, x] = t
+    return out, trans
+
+
 def render_frame(image, depth, frame_draws, levels, resolution, blend, coarse_side,
-                 detach_occlusion=False):
-    """One weather frame and its opacity from what it draws. Shape: image (3, H, W) tensor."""
+                 detach_occlusion=False, k=None, atmospheres=()):
+    """One weather frame and its opacity from what it draws, through ``atmospheres`` (uniform
+    air; ``k`` the intrinsics as lists). Shape: image (3, H, W) tensor."""
+    frame_draws = through_air(frame_draws, atmospheres, k, blend)
     total = frame_sums(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion)
     alpha, colour = total[:1], total[1:4]
-    image = image.double()
+    image, trans = fogged(image, depth, k, atmospheres)
     out = image * (1 - alpha) + colour if blend == "alpha" else image + colour
-    return out.clamp(0, 1), alpha.clamp(0, 1)
+    opacity = alpha.clamp(0, 1)
+    if atmospheres:
+        opacity = 1 - trans * (1 - opacity)
+    return out.clamp(0, 1), opacity
 
 
 def oracle_render(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam2_from_ref,
@@ -589,8 +652,10 @@ def oracle_render(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam
             scene = depth[0].double().tolist()
             side = coarse_side if record.settings.coarse else None
             frame = draws(record, t, k, cams, scene, beta, lib.resolution, number, side)
+            atmospheres = [record.atmosphere] if record.atmosphere is not None else []
             out, opacity = render_frame(image, scene, frame, levels, lib.resolution,
-                                        record.settings.blend, side, detach_occlusion)
+                                        record.settings.blend, side, detach_occlusion,
+                                        k, atmospheres)
             outs[t].append(out)
             outs[2 + t].append(opacity)
     return tuple(torch.stack(o) for o in outs)
@@ -629,6 +694,7 @@ def oracle_layered(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, ca
             scene = depth[0].double().tolist()
             height, width = len(scene), len(scene[0])
             modes = [record.settings.blend for record in stack.layers]
+            atmospheres = [r.atmosphere for r in stack.layers if r.atmosphere is not None]
             # with alpha and additive layers both present, the additive layers' particles are
             # dimmed by the alpha layers in front of their streak's middle, and they blend last
             dimming = "additive" in modes and any(m != "additive" for m in modes)
@@ -642,6 +708,7 @@ def oracle_layered(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, ca
                     under = {j: g for j, g in grids.items() if modes[j] != "additive"}
                     frame = [(looks, samples, theta * passed(under, middle), colour, b, middle)
                              for looks, samples, theta, colour, b, middle in frame]
+                frame = through_air(frame, atmospheres, k, modes[i])
                 grids[i] = frame_grids(scene, frame, mip_levels(lib.alphas), lib.resolution,
                                        coarse_side)
                 sums = torch.zeros(5, height, width, dtype=torch.float64)
@@ -653,7 +720,7 @@ def oracle_layered(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, ca
                 if dimmed:
                     sums[4] = 0.0                         # blends as the nearest
                 layers[i] = (sums, modes[i] == "alpha")
-            out = image.double().clone()
+            out, trans = fogged(image, scene, k, atmospheres)
             rows, clear_rows = [], []
             for y in range(height):
                 row, clear_row = [], []
@@ -672,6 +739,8 @@ def oracle_layered(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, ca
                             else pixel + sums[1:4, y, x]
                     for sums, _ in layers:
                         clear = clear * (1 - sums[0, y, x].clamp(0, 1))
+                    if atmospheres:
+                        clear = clear * trans[0, y, x]
                     row.append(pixel)
                     clear_row.append(1 - clear)
                 rows.append(torch.stack(row, 1))

@@ -179,10 +179,10 @@ def test_operation_count_does_not_grow_with_particles_or_pairs(monkeypatch):
     """The number of tensor operations (kernel launches on a GPU) does not grow with the
     particles or the pairs, for both weather models and their mix: chunked as on a GPU (2**25
     elements, views not cut into the CPU's fixed pieces) it stays under 900 for the paper's
-    model (about 755 measured) and under 1,000 with weather fields in the batch (about 945:
-    their per-view looks and view mask), and within the few operations that more particles
-    may bring (a chunk of its own for a larger item). On the CPU's small chunks, each chunk
-    adds a fixed number."""
+    model (about 755 measured) and under 1,100 with weather fields in the batch (about 1 090:
+    their per-view looks, view mask and atmosphere), and within the few operations that more
+    particles or pairs may bring (a chunk of its own for a larger item). On the CPU's small
+    chunks, each chunk adds a fixed number."""
     monkeypatch.setattr(splat, "PLANE_SPLIT", 1 << 40)
     chunk = 1 << 25
     counts = []
@@ -193,12 +193,13 @@ def test_operation_count_does_not_grow_with_particles_or_pairs(monkeypatch):
     assert max(counts) - min(counts) <= 200, counts
     assert max(counts) < 900, counts                      # "under 900" (README)
     field = []
-    for density in (4.0, 16.0):
-        scenes = [scene(i) for i in range(3)]
-        records = field_records(scenes[:2], ["snow-light", "rain-light"], density=density) \
-            + records_for(scenes[2:], ["snow"])
+    for density, size in ((4.0, 3), (16.0, 3), (16.0, 6)):
+        scenes = [scene(i) for i in range(size)]
+        records = field_records(scenes[:2 * size // 3],
+                                ["snow-light", "rain-light"] * (size // 3), density=density) \
+            + records_for(scenes[2 * size // 3:], ["snow"] * (size // 3))
         field.append(count(lambda: render(*arguments(scenes, records), chunk_elements=chunk)))
-    assert max(field) - min(field) <= 200 and max(field) < 1000, field
+    assert max(field) - min(field) <= 200 and max(field) < 1100, field
 
 
 @pytest.mark.cuda

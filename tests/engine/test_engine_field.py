@@ -428,13 +428,20 @@ LADDER = [f"{kind}-{level}" for kind in ("snow", "rain", "sparks", "fog")
 
 
 def test_severity_ladder_is_bundled_and_ordered():
+    """Snow, rain and sparks grow in particles; fog (and mist before it) grows in extinction,
+    snow and rain in both."""
     from weathergen.engine import list_presets
 
-    assert sorted(LADDER) == list_presets("field")
-    for kind in ("snow", "rain", "sparks", "fog"):
+    assert sorted(LADDER + ["mist"]) == list_presets("field")
+    for kind in ("snow", "rain", "sparks"):
         d = [load_preset(f"{kind}-{lvl}").density for lvl in ("light", "moderate", "heavy")]
         assert d[0] < d[1] < d[2]
         assert load_preset(f"{kind}-light").to_dict()["model"] == "field"
+    for kind in ("snow", "rain", "fog"):
+        beta = [load_preset(f"{kind}-{lvl}").extinction for lvl in ("light", "moderate", "heavy")]
+        assert 0 < beta[0] < beta[1] < beta[2]
+    assert load_preset("mist").extinction < load_preset("fog-light").extinction
+    assert all(load_preset(f"fog-{lvl}").density == 0 for lvl in ("light", "moderate", "heavy"))
 
 
 @pytest.mark.parametrize("name", [n for n in LADDER if not n.startswith(("snow", "fog"))])

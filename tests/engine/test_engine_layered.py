@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from engine_scenes import plane_pair
+from engine_scenes import plane_pair, wisps
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, LayeredParticles, build_stamps,
                                load_preset, load_templates, render, render_pair,
                                sample_particles, sample_weather)
@@ -352,8 +352,11 @@ def test_a_combined_sequence_frame_is_drawn_alone_with_the_pairs_bytes(names):
     from weathergen.engine.renderer import render_first_frame
 
     pair = plane_pair(40, 56, depth=5.0, seed=4)
-    layered = sample_weather(pair, load_preset(names), seed=2, frame_rate=24.0)
+    # fog-light as wisps of haze (an alpha layer of particles) in its own atmosphere
+    overrides = wisps("fog-light", 0.5, atmosphere=True) if "fog-light" in names else {}
+    layered = sample_weather(pair, load_preset(names, overrides), seed=2, frame_rate=24.0)
     assert all(r.optics is not None for r in layered.layers) and min(layered.counts) > 0
+    assert any(r.atmosphere is not None for r in layered.layers)
     image, opacity = render_first_frame(pair, layered)
     out = render_pair(pair, layered)
     assert torch.equal(image, out.image1) and torch.equal(opacity, out.opacity1)

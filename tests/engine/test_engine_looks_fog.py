@@ -1,6 +1,6 @@
-"""Looks measured on scenes made here: field fog reads as haze and stays behind nearer
-geometry; an out-of-focus flake is a soft disc carrying the light the paper's brightening rule
-gives it.
+"""Looks measured on scenes made here: the fog presets (atmospheres) and wisps of haze drawn as
+particles read as haze without steps, and wisps stay behind nearer geometry; an out-of-focus
+flake is a soft disc carrying the light the paper's brightening rule gives it.
 
 Scenes: a KITTI-like frame (1242 x 375, f = 721) of a textured plane at 30 m with a wall at 5 m
 over its left half (``engine_scenes.wall_scene``); isolated white flakes on a black plane far
@@ -15,7 +15,7 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from engine_scenes import plane_pair, wall_scene
+from engine_scenes import HAZE_WISPS, plane_pair, wall_scene
 from weathergen.engine import (Particles, RenderSettings, build_stamps, load_preset,
                                load_templates, render_pair, sample_weather)
 from weathergen.engine.sampling import defocus_radius
@@ -86,24 +86,29 @@ def test_haze_templates_fall_to_zero_at_the_rim_without_an_outline():
 
 
 @pytest.mark.parametrize("name", FOG)
-def test_field_fog_is_haze_without_steps(name):
-    """Over a whole frame of each field fog, on three seeds, no two neighbouring pixels of
-    ``opacity1`` differ by more than 1/64 away from the wall's edge (the clouds' flat bodies and
+@pytest.mark.parametrize("wisps", [False, True])
+def test_field_fog_is_haze_without_steps(name, wisps):
+    """Over a whole frame of each fog preset (the air itself, its banks), and of wisps of haze
+    drawn as particles at the density of the fog presets before they became atmospheres
+    (0.01, 0.03, 0.075 per m³), on three seeds, no two neighbouring pixels of ``opacity1``
+    differ by more than 1/64 away from the wall's edge (the earlier clouds' flat bodies and
     smoothstep rims gave steps of 0.10-0.16)."""
     pair = wall_scene(**KITTI)
+    density = {"fog-light": "0.01", "fog-moderate": "0.03", "fog-heavy": "0.075"}[name]
     for seed in range(3):
-        record = fog_record(pair, name, seed)
+        record = fog_record(pair, name, seed, **({**HAZE_WISPS, "density": density}
+                                                  if wisps else {}))
         opacity = render_pair(pair, record).opacity1[0, 0].double()
         assert float(opacity[:, 640:].mean()) > 0.02               # there is fog to measure
         assert largest_step(opacity) <= 1 / 64, (seed, largest_step(opacity))
 
 
 def test_an_isolated_fog_cloud_has_no_outline():
-    """A cloud alone over the open plane: its radial profile falls from the centre to the rim
+    """A wisp of haze alone over the open plane: its radial profile falls from the centre to the rim
     with no step (each of 12 rings below the last, the steepest fall at most twice the mean
     fall), not a flat disc that drops at its rim."""
     pair = wall_scene(**KITTI)
-    record = fog_record(pair, "fog-moderate")
+    record = fog_record(pair, "fog-moderate", **HAZE_WISPS)
     for z in (6.0, 12.0, 20.0):
         for index in range(3):
             one = cloud_at(pair, record, 930.0, 187.0, z, index)
@@ -117,14 +122,15 @@ def test_an_isolated_fog_cloud_has_no_outline():
 
 
 def test_field_fog_stays_behind_a_nearer_wall():
-    """Clouds 1 m behind the wall, their centres just past its edge so that their billboards
+    """Wisps of haze 1 m behind the wall, their centres just past its edge so that their billboards
     reach over it: alone, each adds at most 0.005 opacity over the wall; a dozen together
     1-3 m behind it also at most 0.005 (the old symmetric softness of 0.5 m let 0.028 and 0.019
     through)."""
     pair = wall_scene(**KITTI)
     g = torch.Generator().manual_seed(1)
-    for name in FOG:
-        record = fog_record(pair, name).select(torch.arange(12))
+    for name, density in zip(FOG, ("0.01", "0.03", "0.075")):
+        record = fog_record(pair, name, **{**HAZE_WISPS, "density": density}) \
+            .select(torch.arange(12))
         u = (630 + 60 * torch.rand(12, generator=g, dtype=torch.float64)).tolist()
         v = (375 * torch.rand(12, generator=g, dtype=torch.float64)).tolist()
         for i in range(12):

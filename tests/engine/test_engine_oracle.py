@@ -8,7 +8,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from engine_scenes import plane_pair, pose, rotation
+from engine_scenes import HAZE_WISPS, plane_pair, pose, rotation
 from oracle import oracle_render
 from weathergen.datasets import frame_rate_of
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, list_presets, load_preset,
@@ -153,17 +153,24 @@ def test_softened_streaks_space_their_samples_by_the_stamps_smoothness_and_equal
 
 #: Densities (and blur samples) that keep the oracle quick on a 24 x 32 frame: a dozen or two
 #: particles.
-THIN = {"snow": {"density": 10.0}, "rain": {"density": 10.0, "blur_samples": 4},
-        "sparks": {"density": 10.0, "blur_samples": 3}, "fog": {"density": 0.6}}
+#: Fog and mist are the air itself: drawn here as its uniform extinction (the oracle integrates
+#: uniform air; heterogeneous air has a test of its own, against a fine reference), with wisps
+#: of haze as particles in it (alpha-blended clouds on coarse grids).
+AIR = {**HAZE_WISPS, "density": 0.6, "visibility": "20", "heterogeneity": "0"}
+THIN = {"snow": {"density": 10.0, "snow_rate": 20.0},
+        "rain": {"density": 10.0, "blur_samples": 4, "rain_rate": 200.0},
+        "sparks": {"density": 10.0, "blur_samples": 3}, "fog": AIR, "mist": AIR}
 
 
 @pytest.mark.parametrize("name", FIELD)
 def test_field_presets_equal_the_oracle(name):
     """Per-frame looks: footprint f d / z, depth fade, the view mask, softer occlusion, streaks
-    along the particle's own motion; coarse grids for fog clouds."""
+    along the particle's own motion; coarse grids for fog clouds; every particle and the scene
+    seen through the preset's air (strong here: visibilities of 20 to 100 m)."""
     pairs = [scene(0), scene(1)]
     records = [field(p, name, 20 + i, **THIN[name.split("-")[0]]) for i, p in enumerate(pairs)]
     assert all(r.count > 0 for r in records)
+    assert all((r.atmosphere is not None) == (not name.startswith("sparks")) for r in records)
     assert_equal_to_oracle(pairs, records)
 
 
@@ -263,8 +270,9 @@ def test_gradcheck_of_a_field_record():
 
 
 def test_combined_weather_equals_the_layered_oracle():
-    """Snow and fog of the paper's model and a weather field in one pass: each layer's sums
-    with its own templates, composited per pixel far to near by the layers' mean depths."""
+    """Snow and fog of the paper's model and weather fields in one pass: each layer's sums
+    with its own templates, composited per pixel far to near by the layers' mean depths, the
+    scene and every particle seen through the composed air of the rain's veil and a fog."""
     from oracle import oracle_layered
     from weathergen.engine import LayeredParticles
 
@@ -273,8 +281,9 @@ def test_combined_weather_equals_the_layered_oracle():
     # the snow and fog of each frame): the oracle's time grows with drops x streak samples.
     layered = [LayeredParticles((paper(p, "snow", 20 + i, 6, size=15, blend="alpha"),
                                  paper(p, "fog", 30 + i, 2),
-                                 field(p, "rain-light", 40 + i, **THIN["rain"])),
-                                ("snow", "fog", "rain-light"))
+                                 field(p, "rain-light", 40 + i, **THIN["rain"]),
+                                 field(p, "fog-heavy", 0, heterogeneity=0.0, visibility=30.0)),
+                                ("snow", "fog", "rain-light", "fog-heavy"))
                for i, p in enumerate(pairs)]
     assert all(stack.layer(2).count > 100 for stack in layered)
     args = arguments(pairs, layered)

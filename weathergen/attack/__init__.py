@@ -31,8 +31,9 @@ from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisat
                    StepRecord, WeatherVariables, attack_batch, attack_loss, attack_pair,
                    mean_summary, offset_penalty, particle_depths, summarize_pair)
 from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack
-from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE, LR_POSITIONS, OPTIMIZABLE,
-                       POSITION_VARIABLES, AttackSettings, default_lr, parse_optimize,
+from .settings import (ATMOSPHERE_VARIABLES, DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE,
+                       LR_ATMOSPHERE, LR_POSITIONS, OPTIMIZABLE, POSITION_VARIABLES, VARIABLES,
+                       AttackSettings, default_lr, default_optimize, parse_optimize,
                        transparency_bound)
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
@@ -41,8 +42,9 @@ __all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOp
            "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_attack_pair", "lp_pass_name",
            "lp_settings", "plan_lp",
            "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
-           "ATTACK_CONFIGS", "AttackConfig", "AttackJob", "AttackResult", "AttackSettings",
-           "DEFAULT_ALPHA", "DEFAULT_STEPS", "EvalRow", "LR_APPEARANCE", "LR_POSITIONS",
+           "ATMOSPHERE_VARIABLES", "ATTACK_CONFIGS", "AttackConfig", "AttackJob", "AttackResult", "AttackSettings",
+           "DEFAULT_ALPHA", "DEFAULT_STEPS", "EvalRow", "LR_APPEARANCE", "LR_ATMOSPHERE",
+           "LR_POSITIONS", "VARIABLES", "default_optimize",
            "MIN_REG_DEPTH", "OPTIMIZABLE", "POSITION_VARIABLES", "PairOptimisation", "PairReport",
            "PairSummary", "StepRecord", "TargetSpec", "WeatherVariables", "attack_config",
            "attack_loss", "attack_batch", "attack_pair", "attack_refs", "BatchOptimisation",

@@ -34,7 +34,7 @@ from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder
 from ..outputs.metadata import identity_arrays
 from ..render.job import frame2_note, visibility_of
 from ..render.particles import (layer_seeds, pair_particles, pair_seed, published_geometry_note,
-                                weather_scaling, weather_seed)
+                                scene_airlight, scene_firsts, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -73,6 +73,7 @@ class AttackJob:
     executor: str = "local"             # "local" or "ray" (weathergen.execution)
     ray_address: Optional[str] = "auto"
     threads: Optional[int] = None       # torch threads of each unit (None: leave as is)
+    scene_firsts: dict = field(default_factory=dict)   # each scene's first selected pair
 
     def __post_init__(self):
         # a network in a file by its resolved path: the same file from any working directory
@@ -188,9 +189,12 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
+            airlight = None if job.lp is not None or job.particles_from is not None else \
+                scene_airlight(job.dataset, ref.id, job.scene_firsts, job.preset)
             particles = None if job.lp is not None else pair_particles(
                 pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
-                frame_rate=job.dataset.frame_rate, particles_from=job.particles_from)
+                frame_rate=job.dataset.frame_rate, particles_from=job.particles_from,
+                airlight=airlight)
         except WeatherGenError as exc:
             reports[ref.id.key] = PairReport(str(ref.id), "failed", message=str(exc),
                                              key=ref.id.key)
@@ -346,6 +350,7 @@ def run_attack(job: AttackJob,
         on_note(geometry)
     if not refs:
         raise ConfigError(job.dataset.no_pairs_message())
+    job.scene_firsts = scene_firsts(refs)
     local = job.executor == "local"
     # The driver of a Ray run checks the network and its checkpoint on the CPU.
     model = job_model(job) if local else get_model(

@@ -60,7 +60,7 @@ from ..geometry import transform_points
 from .figures import FIGURE_KEYS, RegionFigures, mean_figures, region_figures
 from .compat import (camera_translation_in_reference, detaches_occlusion, reference_figure_flows,
                      reference_offset_penalty, resets_gradients)
-from .settings import DEFAULT_ALPHA, AttackSettings
+from .settings import DEFAULT_ALPHA, DENSITY_BOUND, AttackSettings
 from .targets import TargetSpec, target_flow
 
 #: Smallest particle depth (scene units) used in the offset penalty.
@@ -106,19 +106,44 @@ class WeatherVariables:
         self.axes2 = c2[:3, :3].to(device=dev, dtype=dtype)
         shapes = {"offset1": (n, 3), "offset2": (n, 3), "color": (n, 3), "transparency": (n,)}
         self.delta = {name: torch.zeros(shapes[name], dtype=dtype, device=dev, requires_grad=True)
-                      for name in self.optimize}
+                      for name in self.optimize if name in shapes}
+        self.atmosphere = {}          # the atmosphere's freed variables (none without one)
+        atm = particles.atmosphere
+        if atm is not None:
+            if "density" in self.optimize:
+                start = (atm.lattice(dtype, dev) - 1) / DENSITY_BOUND
+                self.eta_density = torch.atanh(start.clamp(-1 + 1e-6, 1 - 1e-6))
+                self.atmosphere["density"] = torch.zeros_like(start, requires_grad=True)
+            if "airlight" in self.optimize:
+                self.eta_airlight = to_atanh(atm.airlight.detach().to(device=dev, dtype=dtype))
+                self.atmosphere["airlight"] = torch.zeros(3, dtype=dtype, device=dev,
+                                                          requires_grad=True)
         if homogeneous and "offset1" in self.optimize:
             self.translation = camera_translation_in_reference(c1, c2).to(device=dev, dtype=dtype)
             self.delta["offset1_w"] = torch.zeros(n, dtype=dtype, device=dev, requires_grad=True)
 
     def parameters(self) -> list[torch.Tensor]:
+        """The particles' freed variables (the atmosphere's: :meth:`atmosphere_parameters`)."""
         return list(self.delta.values())
+
+    def atmosphere_parameters(self) -> list[torch.Tensor]:
+        return list(self.atmosphere.values())
 
     def particles(self):
         """The current record; differentiable in the freed variables. Fixed fields are the
         starting record's tensors (a variable not optimised keeps its exact starting value)."""
         b, d = self.base, self.delta
         changes = {}
+        if self.atmosphere:
+            a = self.atmosphere
+            air = {}
+            if "density" in a:
+                # (squeezed as from_atanh: strictly inside the bounds in float32 too)
+                air["density"] = 1 + DENSITY_BOUND * (1 - 2e-6) * torch.tanh(
+                    self.eta_density + a["density"])
+            if "airlight" in a:
+                air["airlight"] = from_atanh(self.eta_airlight + a["airlight"])
+            changes["atmosphere"] = b.atmosphere.replace(**air)
         if "offset1" in d:
             changes["offset1"] = b.offset1 + d["offset1"] @ self.axes1
         if "offset2" in d:
@@ -154,6 +179,9 @@ class LayeredVariables:
 
     def parameters(self) -> list[torch.Tensor]:
         return [p for v in self.freed.values() for p in v.parameters()]
+
+    def atmosphere_parameters(self) -> list[torch.Tensor]:
+        return [p for v in self.freed.values() for p in v.atmosphere_parameters()]
 
     def particles(self) -> LayeredParticles:
         out = self.base
@@ -298,8 +326,13 @@ def _snapshot(particles):
     """A detached CPU copy of a record (of every layer of combined weather)."""
     if isinstance(particles, LayeredParticles):
         return LayeredParticles(tuple(_snapshot(r) for r in particles.layers), particles.names)
+    atm = particles.atmosphere
+    if atm is not None:
+        atm = atm.replace(airlight=atm.airlight.detach().cpu().clone(),
+                          density=None if atm.density is None
+                          else atm.density.detach().cpu().clone(), drift=atm.drift.cpu())
     return particles.replace(**{n: getattr(particles, n).detach().cpu().clone()
-                                for n in TENSOR_FIELDS})
+                                for n in TENSOR_FIELDS}, atmosphere=atm)
 
 
 class BatchOptimisation:
@@ -387,8 +420,11 @@ class BatchOptimisation:
         self.start_depth1 = [torch.cat([start_depth(x, c1) for x in self._freed(i, r)])
                              for i, (r, (c1, _)) in enumerate(zip(moved, transforms))]
         self.detach_occlusion = detaches_occlusion(settings)
-        self.optimizer = torch.optim.Adam([p for v in self.variables for p in v.parameters()],
-                                          lr=settings.learning_rate)
+        groups = [{"params": [p for v in self.variables for p in v.parameters()]}]
+        air = [p for v in self.variables for p in v.atmosphere_parameters()]
+        if air:     # the atmosphere's variables at their own rate
+            groups.append({"params": air, "lr": settings.atmosphere_learning_rate})
+        self.optimizer = torch.optim.Adam(groups, lr=settings.learning_rate)
 
     def render(self, particles: Sequence):
         """The weather frames of B records (a :class:`~weathergen.engine.RenderOutput`)."""
@@ -447,8 +483,8 @@ class BatchOptimisation:
         if active is not None:
             for v, keep in zip(self.variables, active):
                 if not keep:
-                    for p in v.parameters():     # a finished pair keeps its variables
-                        p.grad = None
+                    for p in v.parameters() + v.atmosphere_parameters():
+                        p.grad = None            # a finished pair keeps its variables
         self.optimizer.step()
 
 

@@ -27,7 +27,8 @@ from ..errors import ConfigError
 from ..render.plan import resolve_preset
 from .compat import transparency_bound_for
 from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
-from .settings import DEFAULT_ALPHA, DEFAULT_STEPS, OPTIMIZABLE, AttackSettings, parse_optimize
+from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, AttackSettings, default_optimize,
+                       parse_optimize)
 
 
 @dataclass(frozen=True)
@@ -77,7 +78,7 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
                           f"from {name!r}; leave ${{preset}} out to attack them")
     config = named if named is not None else ATTACK_CONFIGS.get(name)
     if optimize is None:
-        variables = config.optimize if config else OPTIMIZABLE
+        variables = config.optimize if config else default_optimize(resolved.preset)
     else:
         variables = parse_optimize(optimize if isinstance(optimize, str) else ",".join(optimize))
     if lr is None and config is not None and variables == config.optimize:

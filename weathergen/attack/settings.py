@@ -11,32 +11,52 @@ from ..errors import ConfigError
 
 #: The particle variables an attack may optimise, in their canonical order.
 OPTIMIZABLE = ("offset1", "offset2", "color", "transparency")
+#: The atmosphere's variables (weather fields with a visibility, rain or snow rate): the density
+#: lattice, each value within ``DENSITY_BOUND`` of the mean density 1 (``ρ = 1 + tanh(η)``: from
+#: no fog to twice the preset's), and the airlight, each channel in (0, 1).
+ATMOSPHERE_VARIABLES = ("density", "airlight")
+#: Every variable, in canonical order (``--optimize all``).
+VARIABLES = OPTIMIZABLE + ATMOSPHERE_VARIABLES
 POSITION_VARIABLES = ("offset1", "offset2")
 #: Paper defaults (Section 4.2 and the supplement's attack-configuration table).
 DEFAULT_STEPS = 750
 DEFAULT_ALPHA = 1000.0
 LR_POSITIONS = 1e-5
 LR_APPEARANCE = 1e-3
+#: Adam's learning rate for the atmosphere's variables (in the tanh domain), unless ``lr`` is
+#: given.
+LR_ATMOSPHERE = 1e-2
+DENSITY_BOUND = 1.0
 #: ``paper``: the paper's equations and tables; ``reference``: the research code's behaviour
 #: where it departs from them (see :mod:`weathergen.attack.compat`).
 COMPAT_MODES = ("paper", "reference")
 
 
 def parse_optimize(text: str) -> tuple[str, ...]:
-    """``"offset1,color"`` -> ``("offset1", "color")`` in canonical order; ``"all"`` -> all four.
+    """``"offset1,color"`` -> ``("offset1", "color")`` in canonical order; ``"all"`` -> every
+    variable (:data:`VARIABLES`).
 
     Raises ConfigError naming the unknown entries and listing the valid ones.
     """
     names = [t.strip() for t in str(text).split(",") if t.strip()]
     if names == ["all"]:
-        return OPTIMIZABLE
-    unknown = [n for n in names if n not in OPTIMIZABLE]
+        return VARIABLES
+    unknown = [n for n in names if n not in VARIABLES]
     if unknown:
         raise ConfigError(f"${{optimize}}: unknown variable(s) {', '.join(map(repr, unknown))}; "
-                          f"choose from {', '.join(OPTIMIZABLE)} (comma-separated) or 'all'")
+                          f"choose from {', '.join(VARIABLES)} (comma-separated) or 'all'")
     if not names:
-        raise ConfigError(f"${{optimize}}: name at least one of {', '.join(OPTIMIZABLE)}")
-    return tuple(n for n in OPTIMIZABLE if n in names)
+        raise ConfigError(f"${{optimize}}: name at least one of {', '.join(VARIABLES)}")
+    return tuple(n for n in VARIABLES if n in names)
+
+
+def default_optimize(preset) -> tuple[str, ...]:
+    """The variables an attack frees when none are named: the particles' four, and the
+    atmosphere's density where the preset (a layer of it) has an atmosphere."""
+    layers = getattr(preset, "layers", None) or (preset,)
+    if any(getattr(layer, "has_atmosphere", False) for layer in layers):
+        return OPTIMIZABLE + ("density",)
+    return OPTIMIZABLE
 
 
 def default_lr(optimize: tuple[str, ...]) -> float:
@@ -105,6 +125,11 @@ class AttackSettings:
     @property
     def learning_rate(self) -> float:
         return self.lr if self.lr is not None else default_lr(self.optimize)
+
+    @property
+    def atmosphere_learning_rate(self) -> float:
+        """The atmosphere's variables' rate: ``lr`` where given, else :data:`LR_ATMOSPHERE`."""
+        return self.lr if self.lr is not None else LR_ATMOSPHERE
 
     def to_dict(self) -> dict:
         return {"optimize": list(self.optimize), "steps": int(self.steps),

@@ -49,6 +49,7 @@ import torch
 from ..errors import ConfigError
 from ..framepair import FramePair
 from ..geometry import invert_rigid, transform_points
+from .atmosphere import DEFAULT_AIRLIGHT, Atmosphere, estimate_airlight
 from .layers import LayeredParticles, layer_seed
 from .presets import CombinedPreset, FieldPreset
 from .particles import Particles, empty_particles
@@ -104,6 +105,7 @@ class Field:
     preset: FieldPreset
     templates: str
     templates_digest: str
+    atmosphere: Optional[Atmosphere] = None   # its drift: the wind's per frame (1, 3)
 
     @property
     def count(self) -> int:
@@ -261,14 +263,19 @@ def _canonical(j: torch.Tensor, k: torch.Tensor) -> tuple[torch.Tensor, torch.Te
 
 
 def make_field(preset: FieldPreset, seed, *, down: torch.Tensor, frame_rate: float,
-               frame: str = "world", templates: Optional[TemplateLibrary] = None) -> Field:
+               frame: str = "world", templates: Optional[TemplateLibrary] = None,
+               airlight: Optional[Sequence[float]] = None) -> Field:
     """Draw one field tile from ``seed`` (an int or a CPU generator).
 
     ``down`` (3,) is the reference frame's down axis (see :func:`world_down`); ``frame_rate``
-    turns the preset's speeds (per second) into steps per frame.
+    turns the preset's speeds (per second) into steps per frame. A preset with an atmosphere
+    gets one (:func:`field_atmosphere`); ``airlight`` (RGB in [0, 1]) is its airlight where the
+    preset says ``auto`` (default: :data:`~weathergen.engine.atmosphere.DEFAULT_AIRLIGHT`).
     """
     if not frame_rate > 0:
         raise ConfigError(f"frame rate {frame_rate!r}: must be > 0")
+    atmosphere = field_atmosphere(preset, seed, down=down, frame_rate=frame_rate,
+                                  airlight=airlight)
     gen = cpu_generator(seed)
     lib = templates if templates is not None else load_templates(preset.templates)
     quantum = 2.0 ** math.floor(math.log2(preset.tile) - GRID_BITS)
@@ -304,7 +311,30 @@ def make_field(preset: FieldPreset, seed, *, down: torch.Tensor, frame_rate: flo
                  color=color, template=template, rotation=rotation, quantum=quantum,
                  tile_units=tile_units, frame=frame, frame_rate=frame_rate,
                  streak=preset.streak_fraction(frame_rate), preset=preset,
-                 templates=lib.name, templates_digest=lib.digest)
+                 templates=lib.name, templates_digest=lib.digest, atmosphere=atmosphere)
+
+
+def field_atmosphere(preset: FieldPreset, seed, *, down: torch.Tensor, frame_rate: float,
+                     airlight: Optional[Sequence[float]] = None) -> Optional[Atmosphere]:
+    """The atmosphere of a field preset (None for clear air), its ``drift`` one frame's wind
+    (1, 3) (:func:`field_record` turns it into the pair's frames), its density lattice seeded
+    from ``seed`` (a generator's initial seed), its airlight the preset's colour or, for
+    ``auto``, ``airlight``."""
+    if not preset.has_atmosphere:
+        return None
+    if isinstance(preset.airlight, tuple):
+        light = torch.tensor(preset.airlight, dtype=torch.float64) / 255.0
+    else:
+        light = torch.tensor(DEFAULT_AIRLIGHT if airlight is None else list(airlight),
+                             dtype=torch.float64).clamp(0, 1)
+    step = torch.zeros(3, dtype=torch.float64)
+    a, b = horizontal_axes(down.double().cpu())
+    step[a] = preset.wind[0] / frame_rate
+    step[b] = preset.wind[1] / frame_rate
+    base = seed.initial_seed() if isinstance(seed, torch.Generator) else int(seed)
+    return Atmosphere(extinction=preset.extinction, airlight=light, drift=step[None],
+                      heterogeneity=preset.heterogeneity, scale=preset.heterogeneity_scale,
+                      seed=base, sky_distance=preset.sky_distance)
 
 
 def field_record(fld: Field, j: torch.Tensor, k: torch.Tensor, frame: int, frames: int = 1
@@ -317,8 +347,13 @@ def field_record(fld: Field, j: torch.Tensor, k: torch.Tensor, frame: int, frame
                               defocus_brighten=False, templates=fld.templates,
                               templates_digest=fld.templates_digest, coarse=preset.coarse)
     m = int(j.numel())
+    atmosphere = None
+    if fld.atmosphere is not None:
+        step = fld.atmosphere.drift[0]
+        atmosphere = fld.atmosphere.replace(drift=torch.stack((float(frame) * step,
+                                                               float(frame + frames) * step)))
     if m == 0:
-        return empty_particles(fld.frame, settings, preset.optics())
+        return empty_particles(fld.frame, settings, preset.optics(), atmosphere)
     zeros = torch.zeros(m, 3, dtype=torch.float64)
     record = Particles(position=fld.positions(j, k, frame),
                        motion=(fld.step[j] * frames).double() * fld.quantum,
@@ -326,7 +361,7 @@ def field_record(fld: Field, j: torch.Tensor, k: torch.Tensor, frame: int, frame
                        transparency=fld.transparency[j], template=fld.template[j],
                        rotation=fld.rotation[j], scale=fld.diameter[j],
                        defocus=torch.zeros(m, dtype=torch.long), frame=fld.frame,
-                       settings=settings, optics=preset.optics())
+                       settings=settings, optics=preset.optics(), atmosphere=atmosphere)
     return record.quantized()
 
 
@@ -348,14 +383,28 @@ def pair_particles(fld: Field, views: Sequence[View], frames: tuple[int, int]) -
 
 def field_for_pair(pair: FramePair, preset: FieldPreset, seed, *, world_up: str = "auto",
                    frame_rate: Optional[float] = None,
-                   templates: Optional[TemplateLibrary] = None) -> Field:
+                   templates: Optional[TemplateLibrary] = None,
+                   airlight: Optional[Sequence[float]] = None) -> Field:
     """The field of the pair's scene: reference frame and down axis from the pair's cameras,
     the frame rate from the preset or, where it sets none, ``frame_rate`` (the dataset's: its
-    reader's :attr:`~weathergen.datasets.Dataset.frame_rate`)."""
+    reader's :attr:`~weathergen.datasets.Dataset.frame_rate`). An ``auto`` airlight is
+    ``airlight`` (RGB in [0, 1]; a scene's, so that its pairs share it) or, without one, the
+    pair's (:func:`pair_airlight`)."""
     frame, c1, c2 = reference_transforms(pair)
     down = world_down(c1.cpu(), c2.cpu(), world_up)
     rate = preset.frame_rate_for(frame_rate)
-    return make_field(preset, seed, down=down, frame_rate=rate, frame=frame, templates=templates)
+    if airlight is None and preset.has_atmosphere and preset.airlight == "auto":
+        airlight = pair_airlight(pair, preset.sky_distance)
+    return make_field(preset, seed, down=down, frame_rate=rate, frame=frame, templates=templates,
+                      airlight=airlight)
+
+
+def pair_airlight(pair: FramePair, sky_distance: float = 1000.0) -> tuple[float, float, float]:
+    """The ``auto`` airlight of a pair, from both its frames
+    (:func:`~weathergen.engine.atmosphere.estimate_airlight`), so that both frames share it."""
+    light = estimate_airlight([pair.image1, pair.image2], [pair.depth1, pair.depth2],
+                              pair.intrinsics, sky_distance)
+    return tuple(float(c) for c in light)
 
 
 def pair_views(pair: FramePair, device=None) -> tuple[View, View]:
@@ -370,20 +419,22 @@ def pair_views(pair: FramePair, device=None) -> tuple[View, View]:
 def sample_field_particles(pair: FramePair, preset: FieldPreset, seed=0, *,
                            world_up: str = "auto", frame_rate: Optional[float] = None,
                            templates: Optional[TemplateLibrary] = None,
-                           device=None, sample_on=None) -> Particles:
+                           device=None, sample_on=None,
+                           airlight: Optional[Sequence[float]] = None) -> Particles:
     """The record of one pair sampled from the field of seed ``seed`` (the *scene's* seed: pairs of
     one scene sampled with the same seed share their frames, see :func:`scene_seed`).
 
     Frame numbers are the pair's (``pair.id.frame`` and the next one), so that the field's time
     is the dataset's; ``frame_rate`` is the dataset's frames per second (see
-    :func:`field_for_pair`). Returns a quantized record on ``device`` (default CPU).
-    ``sample_on``: where the views' tests run (default: the CPU; the field's tile is drawn on
-    the CPU either way, and on the CPU the record is the same bytes).
+    :func:`field_for_pair`; ``airlight``: an ``auto`` airlight given, e.g. the scene's). Returns
+    a quantized record on ``device`` (default CPU). ``sample_on``: where the views' tests run
+    (default: the CPU; the field's tile is drawn on the CPU either way, and on the CPU the record
+    is the same bytes).
     """
     check_pair_for_engine(pair)
     dev = resolve_device(device)
     fld = field_for_pair(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
-                         templates=templates)
+                         templates=templates, airlight=airlight)
     n = int(pair.id.frame)
     views = pair_views(pair, resolve_device(sample_on))
     return pair_particles(fld, views, (n, n + 1)).to(dev)
@@ -391,32 +442,36 @@ def sample_field_particles(pair: FramePair, preset: FieldPreset, seed=0, *,
 
 def sample_weather(pair: FramePair, preset, seed=0, *, world_up: str = "auto",
                    frame_rate: Optional[float] = None,
-                   templates: Optional[TemplateLibrary] = None, device=None, sample_on=None
+                   templates: Optional[TemplateLibrary] = None, device=None, sample_on=None,
+                   airlight: Optional[Sequence[float]] = None
                    ) -> Union[Particles, LayeredParticles]:
     """Sample a pair's particles with the preset's model: a field preset draws from the field of
     ``seed`` (:func:`sample_field_particles`; ``frame_rate``: the dataset's, needed unless the
-    preset sets one), a paper preset samples the pair
-    (:func:`~weathergen.engine.sampling.sample_particles`), a combined preset samples each layer
-    (:func:`sample_layers`; ``seed`` may then be one seed per layer, ``templates`` is not taken).
-    ``sample_on``: where the sampling arithmetic runs (see :func:`sample_particles` and
-    :func:`sample_field_particles`; the same random numbers, from the seed's CPU generator)."""
+    preset sets one; ``airlight``: the ``auto`` airlight of its atmosphere, default the pair's),
+    a paper preset samples the pair (:func:`~weathergen.engine.sampling.sample_particles`), a
+    combined preset samples each layer (:func:`sample_layers`; ``seed`` may then be one seed per
+    layer, ``templates`` is not taken). ``sample_on``: where the sampling arithmetic runs (see
+    :func:`sample_particles` and :func:`sample_field_particles`; the same random numbers, from the
+    seed's CPU generator)."""
     if isinstance(preset, CombinedPreset):
         if templates is not None:
             raise ConfigError("a combined preset's layers each load their own templates")
         return sample_layers(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
-                             device=device, sample_on=sample_on)
+                             device=device, sample_on=sample_on, airlight=airlight)
     if isinstance(preset, FieldPreset):
         return sample_field_particles(pair, preset, seed, world_up=world_up,
                                       frame_rate=frame_rate, templates=templates, device=device,
-                                      sample_on=sample_on)
+                                      sample_on=sample_on, airlight=airlight)
     return sample_particles(pair, preset, seed, world_up=world_up, templates=templates,
                             device=device, sample_on=sample_on)
 
 
 def sample_layers(pair: FramePair, preset: CombinedPreset, seed: Union[int, Sequence[int]] = 0, *,
                   world_up: str = "auto", frame_rate: Optional[float] = None,
-                  device=None, sample_on=None) -> LayeredParticles:
-    """The particles of every layer of a combined preset for one pair.
+                  device=None, sample_on=None,
+                  airlight: Optional[Sequence[float]] = None) -> LayeredParticles:
+    """The particles of every layer of a combined preset for one pair (``airlight``: the
+    ``auto`` airlight of every layer's atmosphere; default the pair's, estimated once).
 
     ``seed`` is one seed per layer, or one seed from which each layer's is derived
     (:func:`~weathergen.engine.layers.layer_seed`, by the layer's name). Each layer is sampled as
@@ -434,7 +489,11 @@ def sample_layers(pair: FramePair, preset: CombinedPreset, seed: Union[int, Sequ
         if len(seeds) != len(preset.layers):
             raise ConfigError(f"{len(seeds)} seeds for the {len(preset.layers)} layers of "
                               f"{preset.name}")
+    auto = [layer for layer in preset.layers if isinstance(layer, FieldPreset)
+            and layer.has_atmosphere and layer.airlight == "auto"]
+    if airlight is None and auto:
+        airlight = pair_airlight(pair, max(layer.sky_distance for layer in auto))
     records = tuple(sample_weather(pair, layer, s, world_up=world_up, frame_rate=frame_rate,
-                                   device=device, sample_on=sample_on)
+                                   device=device, sample_on=sample_on, airlight=airlight)
                     for layer, s in zip(preset.layers, seeds))
     return LayeredParticles(records, preset.layer_names)

@@ -40,7 +40,9 @@ positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for moti
 template indices uint16; defocus radii uint8. Field records keep float32 positions, motions and
 scales (a field's positions are exact multiples of its grid quantum, so that a frame is the same
 image in every pair that holds it) and float16 offsets, colours, transparencies and rotations,
-plus the ``optics`` entry. Sampling returns a record already rounded to these precisions
+plus the ``optics`` entry and, for a field with an atmosphere (:mod:`weathergen.engine.atmosphere`),
+the ``atmosphere`` entry (JSON) and, for an explicit density lattice, ``atmosphere_density``
+(float16). Sampling returns a record already rounded to these precisions
 (:meth:`Particles.quantized`, idempotent), so rendering the in-memory record and rendering the
 reloaded file give identical bytes.
 
@@ -72,6 +74,7 @@ import torch
 from ..errors import FormatError
 from ..io.atomic import atomic_write_bytes
 from ..io.npz import npz_bytes, read_npz
+from .atmosphere import Atmosphere
 from .optics import FieldOptics
 from .settings import RenderSettings
 
@@ -197,6 +200,7 @@ class Particles:
     frame: str = "world"
     settings: RenderSettings = RenderSettings()
     optics: Optional[FieldOptics] = None
+    atmosphere: Optional[Atmosphere] = None
     stamps: Optional[torch.Tensor] = None
 
     @property
@@ -227,6 +231,8 @@ class Particles:
             if dtype is not None and t.is_floating_point():
                 t = t.to(dtype)
             moved[name] = t.to(device) if device is not None else t
+        if self.atmosphere is not None:
+            moved["atmosphere"] = self.atmosphere.to(device, dtype)
         if self.stamps is not None:
             t = self.stamps.to(dtype) if dtype is not None else self.stamps
             moved["stamps"] = t.to(device) if device is not None else t
@@ -255,6 +261,8 @@ class Particles:
                 else:
                     storage = torch.from_numpy(np.zeros(0, np_dtype)).dtype
                     out[name] = t.to(storage).to(torch.float32)
+            if self.atmosphere is not None:
+                out["atmosphere"] = self.atmosphere.quantized()
             return self.replace(**out)
         return self.replace(**{name: quantize_field(name, getattr(self, name)).to(
             getattr(self, name).device) for name in _TENSOR_FIELDS})
@@ -300,6 +308,8 @@ class Particles:
         arrays.update(self.settings.to_arrays())
         if self.optics is not None:
             arrays["optics"] = np.array(json.dumps(self.optics.to_dict(), sort_keys=True))
+        if self.atmosphere is not None:
+            arrays.update(self.atmosphere.to_arrays())
         if self.stamps is not None:
             arrays.update(stamp_arrays(self.stamps))
         return arrays
@@ -366,11 +376,19 @@ class Particles:
                 optics = FieldOptics.from_dict(json.loads(str(arrays["optics"])))
             except (ValueError, TypeError) as exc:
                 raise FormatError(path, f"unreadable 'optics' entry ({exc})") from None
-        stamps = read_stamp_arrays(arrays, n, path) if "stamp_boxes" in arrays else None
+        atmosphere = None
+        if optics is not None:
+            try:
+                atmosphere = Atmosphere.from_arrays(arrays)
+            except (ValueError, TypeError, KeyError) as exc:
+                raise FormatError(path, f"unreadable 'atmosphere' entry ({exc})") from None
+            if atmosphere is not None and device is not None:
+                atmosphere = atmosphere.to(device)
+        stamps = read_stamp_arrays(arrays, n, path) if stamped else None
         if stamps is not None and device is not None:
             stamps = stamps.to(device)
         return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path),
-                   optics=optics, stamps=stamps)
+                   optics=optics, atmosphere=atmosphere, stamps=stamps)
 
 
 def _dtype_of(name: str, np_dtype, stamps) -> type:
@@ -487,15 +505,17 @@ def stored_values(arrays: dict, name: str) -> np.ndarray:
 
 
 def empty_particles(frame: str = "world", settings: RenderSettings = RenderSettings(),
-                    optics: Optional[FieldOptics] = None) -> Particles:
-    """A record with no particles (renders to the unchanged frames)."""
+                    optics: Optional[FieldOptics] = None,
+                    atmosphere: Optional[Atmosphere] = None) -> Particles:
+    """A record with no particles (renders to the unchanged frames, or with ``atmosphere``
+    to the frames seen through it)."""
     z3 = torch.zeros(0, 3)
     z = torch.zeros(0)
     zi = torch.zeros(0, dtype=torch.int64)
     return Particles(position=z3, motion=z3.clone(), offset1=z3.clone(), offset2=z3.clone(),
                      color=z3.clone(), transparency=z, template=zi, rotation=z.clone(),
                      scale=z.clone(), defocus=zi.clone(), frame=frame, settings=settings,
-                     optics=optics)
+                     optics=optics, atmosphere=atmosphere)
 
 
 def to_atanh(xi: torch.Tensor, eps: float = 1e-6) -> torch.Tensor:

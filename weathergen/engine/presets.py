@@ -33,6 +33,7 @@ from typing import Any, Callable, Mapping, Optional
 
 from ..errors import ConfigError, WeatherGenError
 from ..io.text import read_text_file
+from .atmosphere import rain_extinction, snow_extinction, visibility_extinction
 from .optics import FieldOptics
 from .templates import BUILTIN_TEMPLATE_KINDS, load_templates
 
@@ -91,9 +92,12 @@ def _templates(v: str) -> Optional[str]:
     return None if v.strip() else f"must be {' or '.join(BUILTIN_TEMPLATE_KINDS)} or a folder of PNGs"
 
 
-def _key(default, check=None, doc: str = "", main: bool = False):
-    """Declare a preset key once: its default, its check, a one-line description."""
-    return field(default=default, metadata={"check": check, "doc": doc, "main": main})
+def _key(default, check=None, doc: str = "", main: bool = False, coerce=None):
+    """Declare a preset key once: its default, its check, a one-line description; ``coerce``:
+    for a key of several types, a function ``value -> (canonical value, problem or None)`` in
+    place of the type check (it then does the check too)."""
+    return field(default=default, metadata={"check": check, "doc": doc, "main": main,
+                                            "coerce": coerce})
 
 
 #: The keys of both weather models (the paper's :class:`Preset` and :class:`FieldPreset`), declared
@@ -224,6 +228,12 @@ def _coerce(where: str, key: str, value: Any, keys: Optional[Mapping] = None) ->
         raise ConfigError(f"{where}: unknown key '{key}' (known keys: {', '.join(keys)})")
     default = f.default
     bad = lambda what: ConfigError(f"{where}: key '{key}' = {value!r}: {what}")  # noqa: E731
+    coerce = f.metadata.get("coerce")
+    if coerce is not None:
+        out, problem = coerce(value)
+        if problem:
+            raise bad(problem)
+        return out
     if isinstance(default, bool):
         if not isinstance(value, bool):
             raise bad("must be true or false")
@@ -560,6 +570,33 @@ def _pair(v: tuple) -> Optional[str]:
     return None
 
 
+def _visibility(v: float) -> Optional[str]:
+    if v == 0:
+        return None
+    if not math.isfinite(v) or v < 10 or v > 200_000:
+        return ("must be 0 (clear air) or a visibility in metres in [10, 200000] (fog: below "
+                "1000, mist and haze: 1000 to 10000)")
+    return None
+
+
+def _airlight(value: Any) -> tuple[Any, Optional[str]]:
+    """``auto`` or three integers 0-255 (a list, or text ``R,G,B``)."""
+    problem = "must be auto or three integers R, G, B in [0, 255]"
+    if isinstance(value, str):
+        text = value.strip()
+        if text == "auto":
+            return "auto", None
+        try:
+            value = [int(part) for part in text.strip("[]").split(",")]
+        except ValueError:
+            return value, problem
+    if not isinstance(value, (list, tuple)) or len(value) != 3 \
+            or any(isinstance(c, bool) or not isinstance(c, (int, float)) for c in value) \
+            or any(not float(c).is_integer() or c < 0 or c > 255 for c in value):
+        return value, problem
+    return tuple(int(c) for c in value), None
+
+
 @dataclass(frozen=True)
 class FieldPreset:
     """A weather field: particles at world positions with a density, in scene units and seconds.
@@ -570,8 +607,9 @@ class FieldPreset:
 
     description: str = _shared("description")
     # -- how many and how large
-    density: float = _key(100.0, _number(0, 1e7, lo_open=True),
-                          "particles per cubic scene unit", main=True)
+    density: float = _key(100.0, _number(0, 1e7),
+                          "particles per cubic scene unit (0: none, for an atmosphere alone)",
+                          main=True)
     diameter: float = _key(0.005, _number(0, 1e3, lo_open=True),
                            "particle diameter, scene units", main=True)
     diameter_jitter: float = _key(0.3, _number(0, 0.9), "diameter x (1 + U[-f, f])")
@@ -612,12 +650,43 @@ class FieldPreset:
                                  "width of the occlusion test's transition, scene units")
     tile: float = _key(4.0, _number(0, 1e6, lo_open=True),
                        "side of the periodic tile the field repeats, scene units")
+    # -- the atmosphere: extinction of light with distance (see engine/atmosphere.py)
+    visibility: float = _key(0.0, _visibility,
+                             "meteorological optical range of fog or haze (5 % contrast), metres "
+                             "(scene units); 0: clear air", main=True)
+    rain_rate: float = _key(0.0, _number(0, 300),
+                            "rain rate, mm/h: the rain's extinction (Marshall-Palmer drops)")
+    snow_rate: float = _key(0.0, _number(0, 30),
+                            "snowfall rate, mm/h of liquid water: the snow's extinction")
+    heterogeneity: float = _key(0.0, _number(0, 0.9),
+                                "density of the air between 1 - h and 1 + h times its mean, in "
+                                "banks fixed in the world; 0: uniform")
+    heterogeneity_scale: float = _key(20.0, _number(0.01, 1e4),
+                                      "size of the largest banks of the heterogeneous air, metres "
+                                      "(scene units)")
+    airlight: object = _key("auto", None, "colour of the air's in-scattered light, 8-bit RGB, or "
+                                          "auto: from the frames' farthest, brightest pixels",
+                            coerce=_airlight)
+    sky_distance: float = _key(1000.0, _number(1, 1e7),
+                               "where rays end: the distance given to the sky and to anything "
+                               "farther, metres (scene units)")
 
     # Not keys.
     name: str = field(default="custom", compare=False, metadata={"key": False})
     source: str = field(default="<defaults>", compare=False, metadata={"key": False})
 
     model = "field"
+
+    @property
+    def extinction(self) -> float:
+        """β₀, per scene unit: fog or haze of the preset's visibility, plus its rain and
+        snow (:mod:`~weathergen.engine.atmosphere`); 0 for clear air."""
+        return (visibility_extinction(self.visibility) + rain_extinction(self.rain_rate)
+                + snow_extinction(self.snow_rate))
+
+    @property
+    def has_atmosphere(self) -> bool:
+        return self.extinction > 0
 
     def to_dict(self) -> dict:
         """Every key with its resolved value, plus ``model``, ``name`` and ``source``."""
@@ -670,7 +739,11 @@ def build_field_preset(name: str, where: str, data: Mapping[str, Any],
     if n > MAX_TILE_PARTICLES:
         raise ConfigError(f"{where}: key 'tile' = {preset.tile!r}: density x tile^3 = {n} "
                           f"particles per tile, at most {MAX_TILE_PARTICLES}; use a smaller tile")
-    if n < 1:
+    if preset.density == 0:
+        if not preset.has_atmosphere:
+            raise ConfigError(f"{where}: key 'density' = 0: a preset without particles needs an "
+                              "atmosphere (visibility, rain_rate or snow_rate)")
+    elif n < 1:
         raise ConfigError(f"{where}: key 'tile' = {preset.tile!r}: density x tile^3 rounds to no "
                           "particle; use a larger tile")
     _check_template_folder(preset.templates, templates_from)

@@ -29,6 +29,7 @@ import torch
 
 from ..errors import ConfigError, DatasetError, ShapeError
 from ..framepair import FramePair, FramePairBatch
+from .air import combined_opacity, fog_images, pair_air, record_atmospheres, view_air
 from .composite import RenderOutput, composite, planes
 from .layered import as_layers, build_layer_stamps, render_layers, render_layers_view
 from .layers import LayeredParticles
@@ -196,6 +197,11 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
                      torch.cat((depth1, depth2)), device=device)
     looks, tracks = pair_tracks(records, views, templates.resolution, beta=float(beta),
                                 dtype=dtype)
+    air = pair_air([record_atmospheres(r) for r in records], intrinsics, cam1_from_ref,
+                   cam2_from_ref, (height, width), device)
+    alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
+    if air is not None:
+        tracks = air.dim(tracks, torch.cat((alpha_mode, alpha_mode)))
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(device)
     if stamps is None:
@@ -221,10 +227,17 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
                                         chunk_elements=chunk_elements)])
     sums = splat(blur_samples(tracks, dtype, stamp_set.gap), stamp_set, views.depth,
                  chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
-    alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
-    (out1, out2), (opacity1, opacity2) = composite(sums, [image1, image2], alpha_mode)
+    images = [image1, image2]
+    if air is not None:
+        transmission, airlight = air.pixels(views.depth, dtype)
+        images = fog_images(images, transmission, airlight, air)
+    (out1, out2), (opacity1, opacity2) = composite(sums, images, alpha_mode)
+    reached = sums.reached.view(2, bsz).any(0)
+    if air is not None:
+        opacity1, opacity2 = combined_opacity([opacity1, opacity2], transmission, air)
+        reached = reached | air.reached().to(reached.device).view(2, bsz).any(0)
     return RenderOutput(image1=out1, image2=out2, opacity1=opacity1, opacity2=opacity2,
-                        reached=sums.reached.view(2, bsz).any(0))
+                        reached=reached)
 
 
 def render_pair(pair: Union[FramePair, FramePairBatch],
@@ -284,12 +297,16 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
 def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement: torch.Tensor,
                templates: TemplateLibrary, *, beta: float, dtype, device,
                chunk_elements: Optional[int], values: Optional[torch.Tensor] = None,
-               detach_occlusion: bool = False):
+               detach_occlusion: bool = False, frame: int = 0):
     views = Views.of(view.intrinsics[None], view.cam_from_ref[None],
                      view.depth[None].to(device), device=device)
     looks, tracks, kept = view_tracks(record.to(device), views, start, displacement,
                                       templates.resolution, beta=float(beta), dtype=dtype,
                                       color=values, kept=True)
+    air = view_air(record_atmospheres(record), view, frame, device)
+    if air is not None:     # (with values in place of colours, only θ is dimmed)
+        alpha = torch.tensor([record.settings.blend == "alpha"], device=device)
+        tracks = air.dim(tracks, alpha, tint=values is None)
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(torch.device(device))
     if record.stamps is not None:       # the particles in front of the camera, their own stamps
@@ -298,38 +315,48 @@ def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement:
     else:
         stamps = build(looks, templates, dtype=dtype, chunk_elements=chunk_elements)
     return splat(blur_samples(tracks, dtype, stamps.gap), stamps, views.depth,
-                 chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
+                 chunk_elements=chunk_elements, detach_occlusion=detach_occlusion), air
 
 
 def render_view(image: torch.Tensor, view: View, record: Particles, start: torch.Tensor,
                 displacement: torch.Tensor, templates: TemplateLibrary, *,
                 beta: float = BETA_RENDER, chunk_elements: Optional[int] = None,
-                detach_occlusion: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
+                detach_occlusion: bool = False, frame: int = 0
+                ) -> tuple[torch.Tensor, torch.Tensor]:
     """One weather frame seen by ``view``: every particle from ``start`` (N, 3) along
-    ``displacement`` (N, 3), reference frame (a field record with the view's looks). The same
-    bytes as the frame of a pair that holds this view. ``detach_occlusion`` as for
-    :func:`render`.
+    ``displacement`` (N, 3), reference frame (a field record with the view's looks), and the
+    record's atmosphere as in frame ``frame`` (0 or 1) of its pair. The same bytes as the frame
+    of a pair that holds this view. ``detach_occlusion`` as for :func:`render`.
 
     Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W)).
     """
-    sums = _view_sums(view, record, start, displacement, templates, beta=beta,
-                      dtype=image.dtype, device=image.device, chunk_elements=chunk_elements,
-                      detach_occlusion=detach_occlusion)
+    sums, air = _view_sums(view, record, start, displacement, templates, beta=beta,
+                           dtype=image.dtype, device=image.device, chunk_elements=chunk_elements,
+                           detach_occlusion=detach_occlusion, frame=frame)
     alpha_mode = torch.tensor([record.settings.blend == "alpha"], device=image.device)
-    (out,), (opacity,) = composite(sums, [image[None]], alpha_mode)
+    images = [image[None]]
+    if air is not None:
+        transmission, airlight = air.pixels(view.depth[None].to(image.device), image.dtype)
+        images = fog_images(images, transmission, airlight, air)
+    (out,), (opacity,) = composite(sums, images, alpha_mode)
+    if air is not None:
+        (opacity,) = combined_opacity([opacity], transmission, air)
     return out[0], opacity[0]
 
 
 def view_sums(view: View, record: Particles, start: torch.Tensor, displacement: torch.Tensor,
               templates: TemplateLibrary, *, beta: float = BETA_RENDER,
               values: Optional[torch.Tensor] = None, dtype=torch.float64, device=None,
-              chunk_elements: Optional[int] = None) -> tuple[torch.Tensor, torch.Tensor]:
+              chunk_elements: Optional[int] = None, frame: int = 0
+              ) -> tuple[torch.Tensor, torch.Tensor]:
     """The splat's sums of one view (as :func:`render_view` draws it) before blending:
     ``A = Σ θ B V`` and ``C = Σ γ θ B V``, with ``values`` (N, 3) in place of the colours ``γ``
-    when given (e.g. flow vectors). Shape: -> (A (1, H, W), C (3, H, W))."""
+    when given (e.g. flow vectors; an additive particle's θ is still dimmed by the air in front
+    of it, an alpha-blended one's values are not tinted). Shape: -> (A (1, H, W), C (3, H, W))."""
     device = torch.device("cpu") if device is None else torch.device(device)
-    sums = _view_sums(view, record, start, displacement, templates, beta=beta, dtype=dtype,
-                      device=device, chunk_elements=chunk_elements, values=values)
+    sums, _ = _view_sums(view, record, start, displacement, templates, beta=beta, dtype=dtype,
+                         device=device, chunk_elements=chunk_elements, values=values,
+                         frame=frame)
     grid = planes(sums)[:, 0, 0]
     return grid[:1], grid[1:]
 

@@ -58,13 +58,15 @@ def stereo_view(left: View, right_from_left: torch.Tensor, right_depth: torch.Te
 
 def render_right(image: torch.Tensor, right: View, particles: Particles, start: torch.Tensor,
                  displacement: torch.Tensor, templates, *, beta: float = BETA_RENDER,
-                 chunk_elements: Optional[int] = None):
-    """The weather frame of the right camera: the same particles, its own looks per frame.
+                 chunk_elements: Optional[int] = None, frame: int = 0):
+    """The weather frame of the right camera: the same particles, its own looks per frame, and
+    the record's atmosphere as in frame ``frame`` (0 or 1) of the pair (the same density at
+    the same world point as the left camera's).
 
     Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W)).
     """
     return render_view(image, right, particles, start, displacement, templates, beta=beta,
-                       chunk_elements=chunk_elements)
+                       chunk_elements=chunk_elements, frame=frame)
 
 
 def render_right_layers(images, views, particles: LayeredParticles, *,

@@ -38,8 +38,8 @@ from ..io.atomic import write_error
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, init_worker, spawning
 from ..words import counted
-from .particles import (layer_seeds, pair_particles, published_geometry_note, weather_scaling,
-                        weather_seed)
+from .particles import (layer_seeds, pair_particles, published_geometry_note, scene_airlight,
+                        scene_firsts, weather_scaling, weather_seed)
 from .plan import auto_workers
 from .shards import shard_refs
 
@@ -69,6 +69,7 @@ class RenderJob:
     sequence: bool = False              # whole scenes, each frame once (field presets)
     stereo: bool = False                # also render the dataset's second (right) camera
     scene_ends: frozenset = frozenset() # sequence: pairs whose second frame no other pair writes
+    scene_firsts: dict = field(default_factory=dict)  # each scene's first selected pair
     device: str = "cpu"
     particles_from: Optional[Path] = None
     appearance: dict = field(default_factory=dict)   # re-render overrides of Particles settings
@@ -133,11 +134,14 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
+            airlight = None if job.particles_from is not None else \
+                scene_airlight(job.dataset, ref.id, job.scene_firsts, job.preset)
             particles = pair_particles(pair, job.preset, job.seed,
                                        world_up=getattr(job.dataset, "world_up", "auto"),
                                        frame_rate=job.dataset.frame_rate,
                                        particles_from=job.particles_from, appearance=job.appearance,
-                                       preset_name=job.preset_name, sequence=job.sequence)
+                                       preset_name=job.preset_name, sequence=job.sequence,
+                                       airlight=airlight)
             ready.append((ref, seed, pair, particles, time.perf_counter() - start))
         except WeatherGenError as exc:
             results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed,
@@ -294,9 +298,9 @@ def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
         else:
             lib = load_templates(particles.settings.templates)
             start1, start2, disp = pair_starts(particles, torch.float32, torch.device("cpu"))
-            rendered = (render_right(image, view, particles, start, disp, lib)
-                        for image, view, start in zip((rc.image1, rc.image2), views[:count],
-                                                      (start1, start2)))
+            rendered = (render_right(image, view, particles, start, disp, lib, frame=t)
+                        for t, (image, view, start) in enumerate(zip(
+                            (rc.image1, rc.image2), views[:count], (start1, start2))))
         frames, opacity, depths, cams = [], [], [], []
         for (out, alpha), view in zip(rendered, views[:count]):
             frames.append(out.permute(1, 2, 0).numpy())
@@ -401,6 +405,7 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
                               f"e.g. snow-moderate); '{job.preset_name}' is a paper preset, "
                               "whose particles belong to one pair")
         job.scene_ends = sequence_ends([r.id for r in every])
+    job.scene_firsts = scene_firsts(every)
     with claim_folder(job.out, RENDER_FOLDER, job.config(), resume=job.resume,
                       overwrite=job.overwrite, shard=job.shard,
                       temporary=_temporary_places(job, refs), on_note=on_note) as claim:

@@ -7,12 +7,16 @@ Render and attack share this rule, so ``attack --seed S`` starts from the weathe
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
-from typing import Optional
+from typing import Optional, Sequence
 
 from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, Particles, Preset, frame_scaling,
                       layer_seed, sample_weather, scene_seed)
+from ..datasets import PairRef
+from ..engine.field import pair_airlight
 from ..engine.published import published_particles
+from ..errors import WeatherGenError
 from ..framepair import FramePair, PairId
 from ..io.published_weather import is_published_set, published_file, read_published_weather
 from ..outputs.reading import load_pair_particles
@@ -58,11 +62,13 @@ def weather_scaling(preset, pair: FramePair, particles_from: Optional[Path] = No
 def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: str = "auto",
                    frame_rate: Optional[float] = None, particles_from: Optional[Path] = None,
                    appearance: Optional[dict] = None, preset_name: Optional[str] = None,
-                   sequence: bool = False) -> Particles | LayeredParticles:
+                   sequence: bool = False, airlight: Optional[Sequence[float]] = None
+                   ) -> Particles | LayeredParticles:
     """The particles of ``pair``: sampled from ``preset`` with the pair's seed (the scene's for a
     weather field, see :func:`weather_seed`; a combined preset's layers with :func:`layer_seeds`,
     as :class:`~weathergen.engine.LayeredParticles`; ``world_up`` and ``frame_rate`` are the
-    dataset's, as its reader declares them), or, with ``particles_from``, the ones stored there for
+    dataset's, as its reader declares them; ``airlight``: an ``auto`` airlight of the scene,
+    :func:`scene_airlight`), or, with ``particles_from``, the ones stored there for
     the pair (``sequence``: a ``render --sequence`` folder), with the ``appearance`` settings
     replaced (see :func:`weathergen.render.resolve_preset`); they must have been sampled from
     ``preset`` (up to its appearance keys) and, when given, be labelled ``preset_name``. A
@@ -72,7 +78,8 @@ def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: 
     if particles_from is None:
         seed = (layer_seeds(preset, run_seed, pair.id) if isinstance(preset, CombinedPreset)
                 else weather_seed(preset, run_seed, pair.id))
-        return sample_weather(pair, preset, seed, world_up=world_up, frame_rate=frame_rate)
+        return sample_weather(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
+                              airlight=airlight)
     if is_published_set(particles_from):   # the research code's files: drawn with ``preset``
         return published_particles(read_published_weather(
             published_file(particles_from, pair.id.scene, pair.id.frame)), pair, preset)
@@ -99,3 +106,51 @@ def published_geometry_note(dataset, particles_from: Optional[Path]) -> Optional
             f"frame and scaling; to draw it where that code drew it, open the dataset as it did: "
             f"--compat reference, or --scene-scales research --no-translation-in-scaled-scenes "
             f"(docs/render.md)")
+
+
+def _auto_sky(preset) -> Optional[float]:
+    """The farthest sky distance of the preset's field layers whose atmosphere takes an ``auto``
+    airlight; None where none does."""
+    layers = preset.layers if isinstance(preset, CombinedPreset) else (preset,)
+    skies = [p.sky_distance for p in layers if isinstance(p, FieldPreset) and p.has_atmosphere
+             and p.airlight == "auto"]
+    return max(skies) if skies else None
+
+
+def scene_key(pair_id: PairId) -> tuple[str, str, str]:
+    return pair_id.dataset, pair_id.split, pair_id.scene
+
+
+def scene_firsts(refs: Sequence[PairRef]) -> dict:
+    """Each scene's first selected pair (its lowest frame), by :func:`scene_key`: where a run
+    estimates the scene's ``auto`` airlight (:func:`scene_airlight`), whatever its shards."""
+    out: dict = {}
+    for ref in refs:
+        key = scene_key(ref.id)
+        if key not in out or ref.id.frame < out[key].id.frame:
+            out[key] = ref
+    return out
+
+
+_SCENE_AIRLIGHTS: dict = {}
+
+
+def scene_airlight(dataset, pair_id: PairId, firsts: dict, preset
+                   ) -> Optional[tuple[float, float, float]]:
+    """The ``auto`` airlight of the scene of ``pair_id`` for ``preset``'s atmospheres: estimated
+    once (per process) from both frames of the scene's first selected pair (``firsts``, from
+    :func:`scene_firsts`), so that every pair of a scene, and so every frame of a sequence, shares
+    it. None where the preset takes none, or the first pair cannot be read (each pair then
+    estimates its own)."""
+    sky = _auto_sky(preset)
+    first = firsts.get(scene_key(pair_id))
+    if sky is None or first is None:
+        return None
+    key = (json.dumps(dataset.describe(), sort_keys=True, default=str), first.id.key,
+           tuple(sorted((k, str(v)) for k, v in first.files.items())), sky)
+    if key not in _SCENE_AIRLIGHTS:
+        try:
+            _SCENE_AIRLIGHTS[key] = pair_airlight(dataset.load(first), sky)
+        except WeatherGenError:
+            return None
+    return _SCENE_AIRLIGHTS[key]
