@@ -21,6 +21,7 @@ from weathergen.execution import RunClock, check_executor
 from weathergen.words import counted
 
 from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
+                      job_exit_codes,
                       model_options, out_option, overwrite_option, quiet_option, resume_option,
                       seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
@@ -68,7 +69,7 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
                  _fmt(summary[f"outliers_{n}px"], 2) for n in (1, 3, 5)))]
 
 
-@click.command()
+@click.command(epilog=job_exit_codes(every_failed=1))
 @dataset_options
 @model_options
 @click.option("--method", type=click.Choice(("weather",) + LP_METHODS), default="weather",
@@ -253,7 +254,8 @@ def _run(job, model, label, target, steps, out, quiet):
         if report.status == "failed":
             failed.append(report)
             (progress.console if progress else err).print(
-                f"[red]failed[/red] {report.pair}: {report.message}", highlight=False)
+                f"[red]failed[/red] {report.pair}: {report.message}", highlight=False,
+                soft_wrap=True)     # one unwrapped line, so paths stay whole
         if progress is not None:
             # counts the steps a pair did not report (skipped, failed, frozen, run by Ray)
             progress.update(task, completed=clock.done * (total_steps + 1),

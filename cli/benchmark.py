@@ -16,8 +16,8 @@ from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.render.shards import parse_shard
 
-from .options import (amp_option, attack_steps, compat_option, dataset_options, device_option,
-                      quiet_option, seed_option)
+from .options import (BAD_INPUT, amp_option, attack_steps, compat_option, dataset_options,
+                      device_option, exit_codes, quiet_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 
@@ -35,7 +35,12 @@ def _checkpoints(items) -> dict:
     return out
 
 
-@click.command()
+@click.command(epilog=exit_codes(
+    ("0", "every cell of the grid run (pairs that failed are recorded in its cells' manifests) "
+          "and the tables written"),
+    BAD_INPUT,
+    ("130, 143", "stopped by Ctrl-C / SIGTERM: the finished pairs are kept; the same command "
+                 "finishes the grid")))
 @dataset_options
 @click.option("--networks", default="raft", show_default=True, metavar="A,B,...",
               help="Flow networks (comma-separated), one table column each: names as for "

@@ -12,10 +12,13 @@ from weathergen.datasets.checking import check_dataset, relative
 from weathergen.errors import DatasetError
 from weathergen.words import counted
 
-from .options import dataset_options
+from .options import STOPPED, dataset_options, exit_codes
 
 
-@click.command()
+@click.command(epilog=exit_codes(
+    ("0", "every selected pair can be read (warnings may be printed)"),
+    ("1", "some selected pairs cannot be read (each named)"),
+    ("2", "bad options, or a root that is not of the chosen layout"), STOPPED))
 @dataset_options
 @click.option("--geometry", is_flag=True,
               help="Also measure how well depth and cameras reproduce the dataset's ground-truth "

@@ -13,10 +13,10 @@ from weathergen.datasets.demo import write_demo_scene
 from weathergen.errors import ConfigError
 from weathergen.io.atomic import UMASK
 
-from .options import overwrite_option
+from .options import BAD_INPUT, STOPPED, exit_codes, overwrite_option
 
 
-@click.command("demo-scene")
+@click.command("demo-scene", epilog=exit_codes(("0", "the scene written"), BAD_INPUT, STOPPED))
 @click.argument("out", type=click.Path(file_okay=False, path_type=Path))
 @overwrite_option("Replace OUT if it exists and is not empty.")
 def demo_scene(out: Path, overwrite: bool):

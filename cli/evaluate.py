@@ -18,14 +18,15 @@ from weathergen.outputs import PublishedWeatherSet, WeatherFolder
 from weathergen.render import resolve_preset
 
 from .attack import region_rows
-from .options import device_option, model_options, quiet_option
+from .options import BAD_INPUT, STOPPED, device_option, exit_codes, model_options, quiet_option
 
 
 def _fmt(value) -> str:
     return "–" if value is None else f"{value:.3f}"
 
 
-@click.command()
+@click.command(epilog=exit_codes(("0", "every complete pair evaluated, the figures written"),
+                                  BAD_INPUT, STOPPED))
 @click.option("--weather", "weather_dir", required=True,
               type=click.Path(file_okay=False, path_type=Path),
               help="Folder written by `weathergen render` (or `weathergen attack`).")

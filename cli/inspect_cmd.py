@@ -4,6 +4,7 @@ look at what a render wrote."""
 from __future__ import annotations
 
 import json
+import sys
 from pathlib import Path
 
 import click
@@ -16,7 +17,7 @@ from weathergen.engine import FrameScaling
 from weathergen.engine.layers import layer_arrays
 from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
 from weathergen.errors import ConfigError
-from weathergen.io.atomic import write_error
+from weathergen.io.atomic import remove_temporaries, write_error
 from weathergen.io.published_weather import is_published_file, read_published_weather
 from weathergen.io.images import write_png
 from weathergen.io.video import check_video_path, write_video
@@ -24,13 +25,16 @@ from weathergen.outputs import read_metadata, stored_frame_scaling
 from weathergen.render import contact_sheet, video_preview
 from weathergen.words import counted
 
+from .options import BAD_INPUT, STOPPED, exit_codes
+
 
 def _preset_origin(name: str, source: str) -> str:
     """A bundled preset by its name; a user's preset file by name and path."""
     return name if not source or source.startswith("preset ") else f"{name} (from {source})"
 
 
-@click.command()
+@click.command(epilog=exit_codes(("0", "shown"), ("2", "the file cannot be read (one line)"),
+                                 STOPPED))
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 def inspect(file: Path):
     """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges
@@ -190,7 +194,11 @@ def _ranges(arrays: dict, title: str, path: Path) -> Table:
     return ranges
 
 
-@click.command()
+@click.command(epilog=exit_codes(
+    ("0", "written"),
+    ("1", "written, but some pairs were left out: their particle files cannot be read (each "
+          "named)"),
+    BAD_INPUT, STOPPED))
 @click.argument("render_dir", type=click.Path(file_okay=False, exists=True, path_type=Path))
 @click.option("--out", type=click.Path(dir_okay=False, path_type=Path), default=None,
               help="Contact sheet (PNG) to write. Default: RENDER_DIR/preview.png.")
@@ -233,6 +241,7 @@ def preview(render_dir: Path, out, video, pairs, width, with_input, with_opacity
                               "shows the input, the weather and the opacity)")
     sheet = contact_sheet(render_dir, pairs=pairs or 4, width=width or 480)
     out = out or render_dir / "preview.png"
+    remove_temporaries(out)         # those of an earlier preview that was killed
     try:
         write_png(out, sheet.image)
     except OSError as exc:
@@ -242,6 +251,16 @@ def preview(render_dir: Path, out, video, pairs, width, with_input, with_opacity
                    f"(--pairs {sheet.total} shows all)")
     else:
         click.echo(f"Preview of {counted(sheet.total, 'pair')} written to {out}")
+    _left_out(sheet.unreadable)
+
+
+def _left_out(unreadable: list[str]) -> None:
+    """One warning line per pair a preview left out (its particle file cannot be read); exit 1
+    when there is any."""
+    for line in unreadable:
+        click.echo(f"warning: {line}", err=True)
+    if unreadable:
+        sys.exit(1)
 
 
 def _preview_video(render_dir: Path, out, video: Path, pairs, width, with_input, with_opacity,
@@ -260,3 +279,4 @@ def _preview_video(render_dir: Path, out, video: Path, pairs, width, with_input,
              else counted(plan.total, "pair"))
     click.echo(f"Video of {shown} written to {video}: {counted(count, 'frame')} of {w}x{h} at "
                f"{plan.fps:g} fps ({count / plan.fps:.1f} s)")
+    _left_out(plan.unreadable)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import textwrap
 from pathlib import Path
 
 import click
@@ -290,3 +291,44 @@ def executor_options(func):
     )):
         func = option(func)
     return func
+
+
+# -- exit codes, stated in every command's --help ------------------------------------------------
+
+#: Exit 2: what every command says about it.
+BAD_INPUT = ("2", "bad options or input, or a file that cannot be written: one line on stderr, "
+                  "no file left half-written")
+#: Exit 130 / 143 of a command that writes nothing a later run needs.
+STOPPED = ("130, 143", "stopped by Ctrl-C / SIGTERM (one line; no file left half-written)")
+
+
+def exit_codes(*codes: tuple[str, str]) -> str:
+    """The epilog of a command's ``--help``: its exit codes, one per line (``(code, meaning)``)."""
+    width = max(len(code) for code, _ in codes)
+    lines = []
+    for code, text in codes:
+        wrapped = textwrap.wrap(text, 76 - width) or [""]
+        lines += [f"  {code:<{width}}  {wrapped[0]}", *(f"  {'':<{width}}  {w}" for w in wrapped[1:])]
+    return "\b\nExit codes:\n" + "\n".join(lines)
+
+
+def job_exit_codes(again: str = "--resume finishes the run", every_failed: int = 2) -> str:
+    """The exit codes of ``render`` and ``attack`` (``again``: how a stopped run is finished;
+    ``every_failed``: the code of a run where every selected pair failed, 2 for ``render``, 1 for
+    ``attack``, which records the failures in its manifest)."""
+    if every_failed == 2:
+        failed = ("1", "some pairs failed (each named on stderr, recorded in the manifest); the "
+                       "others were written")
+        bad = ("2", "bad options or input, a full disk or unwritable folder, or every pair failed "
+                    "(one line; the finished pairs are recorded, a folder the run created and "
+                    "wrote nothing into is removed)")
+    else:
+        failed = ("1", "some or all pairs failed (each named on stderr, recorded in the manifest); "
+                       "the others were written")
+        bad = ("2", "bad options or input, a full disk or unwritable folder (one line; the "
+                    "finished pairs are recorded)")
+    return exit_codes(
+        ("0", "every selected pair written (or already complete); warnings may be printed"),
+        failed, bad,
+        ("130, 143", f"stopped by Ctrl-C / SIGTERM: the finished pairs are kept and recorded; "
+                     f"{again}"))

@@ -10,8 +10,12 @@ from weathergen.engine.presets import (EXAMPLE_COMBINATIONS, LAYER_JOIN, Combine
                                        field_preset_keys, list_presets, load_preset,
                                        parse_set_options, preset_keys)
 
+from .options import STOPPED, exit_codes
 
-@click.command("presets")
+
+@click.command("presets", epilog=exit_codes(("0", "listed or shown"),
+                                             ("2", "an unknown preset, or a bad override (one line)"),
+                                             STOPPED))
 @click.argument("name", required=False)
 @click.option("--set", "overrides", multiple=True, metavar="[LAYER.]KEY=VALUE",
               help="Override one preset key (repeatable), e.g. --set count=500; in a combined "

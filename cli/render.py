@@ -22,9 +22,9 @@ from weathergen.render import RenderJob, parse_shard, run_render
 from weathergen.render.plan import default_batch_size, default_out, default_pass_name, resolve_preset
 from weathergen.words import counted
 
-from .options import (ARGV_KEY, dataset_options, device_option, executor_options, out_option,
-                      overwrite_option, render_compat_option,
-                      quiet_option, resume_option, seed_option)
+from .options import (ARGV_KEY, dataset_options, device_option, executor_options, job_exit_codes,
+                      out_option, overwrite_option, quiet_option, render_compat_option,
+                      resume_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 class _RateColumn(ProgressColumn):
@@ -55,7 +55,7 @@ def _parse_workers(ctx, param, value):
     return n
 
 
-@click.command()
+@click.command(epilog=job_exit_codes())
 @dataset_options
 @click.option("--preset", default=None,
               help="Weather preset by name (see `weathergen presets`); presets joined by + "

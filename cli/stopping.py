@@ -24,7 +24,9 @@ def terminate_as_interrupt() -> Iterator[list]:
 
     Either way the run stops cleanly: the pairs in progress finish or leave no file, the manifest
     records what was written, the lock is released, and ``--resume`` finishes the job. Yields a list
-    that receives the number of the signal that stopped the run.
+    that receives the number of the signal that stopped the run. The ``SystemError`` that an
+    interruption can cause (see :func:`interruption`) leaves the block as ``KeyboardInterrupt``.
+    A SIGTERM that the process was started ignoring stays ignored.
     """
     stopped_by: list = []
 
@@ -32,15 +34,34 @@ def terminate_as_interrupt() -> Iterator[list]:
         stopped_by.append(signum)
         raise KeyboardInterrupt
 
+    previous = None
+    if signal.getsignal(signal.SIGTERM) != signal.SIG_IGN:
+        try:
+            previous = signal.signal(signal.SIGTERM, handler)
+        except ValueError:      # not the main thread: leave signals alone
+            previous = None
     try:
-        previous = signal.signal(signal.SIGTERM, handler)
-    except ValueError:          # not the main thread: leave signals alone
         yield stopped_by
-        return
-    try:
-        yield stopped_by
+    except SystemError as exc:
+        if interruption(exc):
+            raise KeyboardInterrupt from None
+        raise
     finally:
-        signal.signal(signal.SIGTERM, previous)
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def interruption(exc: BaseException) -> bool:
+    """Whether ``exc`` is an interruption: a ``KeyboardInterrupt``, or an error it caused (a
+    Ctrl-C inside some C calls surfaces as ``SystemError`` "returned a result with an exception
+    set", the ``KeyboardInterrupt`` its cause)."""
+    seen = set()
+    while exc is not None and id(exc) not in seen:
+        if isinstance(exc, KeyboardInterrupt):
+            return True
+        seen.add(id(exc))
+        exc = exc.__cause__ or exc.__context__
+    return False
 
 
 def exit_interrupted(written: int, stopped_by: list, again: str = "rerun with --resume") -> NoReturn:

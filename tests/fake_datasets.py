@@ -268,3 +268,29 @@ def write_fake_kitti_stereo(root: Path, pair, *, scene: str = "000004") -> Path:
     for n in (10, 11):
         shutil.copy(split / "image_2" / f"{scene}_{n}.png", split / "image_3" / f"{scene}_{n}.png")
     return split
+
+
+class DemoKillingItsWorker:
+    """Stands in for a dataset: the demo scene, whose pairs in ``deadly`` kill the worker process
+    loading them with SIGKILL, as the system's out-of-memory killer would (in the main process
+    they load as usual). Picklable, so that ``render --workers`` hands it to its workers."""
+
+    def __init__(self, deadly=(), **selection):
+        from weathergen.datasets import open_dataset
+
+        self.inner = open_dataset("demo", **selection)
+        self.deadly = set(deadly)
+
+    def __getattr__(self, name):
+        if name == "inner":
+            raise AttributeError(name)
+        return getattr(self.inner, name)
+
+    def load(self, ref):
+        import multiprocessing
+        import os
+        import signal
+
+        if ref.id.key in self.deadly and multiprocessing.parent_process() is not None:
+            os.kill(os.getpid(), signal.SIGKILL)
+        return self.inner.load(ref)

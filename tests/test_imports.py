@@ -122,7 +122,7 @@ def test_packages_resolve_their_names_at_import(module):
 #: The layers of docs/architecture.md, lowest first; a package imports only lower layers.
 LAYERS = [("weathergen", "weathergen.errors", "weathergen.workers", "weathergen.words"),
           ("weathergen.framepair", "weathergen.geometry", "weathergen.flow", "weathergen.io",
-           "weathergen.execution"),
+           "weathergen.execution", "weathergen.memory"),
           ("weathergen.datasets", "weathergen.models", "weathergen.engine"),
           ("weathergen.training",),
           ("weathergen.outputs",), ("weathergen.render",), ("weathergen.attack",),

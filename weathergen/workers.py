@@ -172,7 +172,11 @@ class StopRequests:
 
     def __enter__(self) -> "StopRequests":
         if threading.current_thread() is threading.main_thread():
-            self._previous = {s: signal.signal(s, self._hold) for s in self.SIGNALS}
+            # A signal ignored when the run starts stays ignored: a shell starts a script's
+            # background jobs (``cmd &``) with Ctrl-C ignored, and ``nohup`` ignores hang-ups, so
+            # that those signals do not stop them; the workers ignore both anyway.
+            self._previous = {s: signal.signal(s, self._hold) for s in self.SIGNALS
+                              if signal.getsignal(s) != signal.SIG_IGN}
         return self
 
     def __exit__(self, *exc) -> None:
@@ -182,11 +186,28 @@ class StopRequests:
             self.pass_on()
 
     def pass_on(self) -> None:
-        """Hand the held-back signal to the handler that was in place before (which may raise)."""
+        """Hand the held-back signal to the handler that was in place before. The work inside the
+        block was cut short, so this always raises: the handler's own exception, or
+        ``KeyboardInterrupt`` when the handler returns (a run that stopped early never ends as if
+        it had finished)."""
         handler = self._previous.get(self.signum)
         if callable(handler):
             handler(self.signum, None)
-        elif handler == signal.SIG_DFL:
-            if self.signum == signal.SIGINT:
-                raise KeyboardInterrupt
+        elif handler == signal.SIG_DFL and self.signum != signal.SIGINT:
             signal.raise_signal(self.signum)
+        raise KeyboardInterrupt
+
+
+def how_it_ended(exitcode: int | None) -> str:
+    """A worker process's end in words, from its exit code (negative: the signal that killed it)."""
+    if exitcode is None:
+        return "still running"
+    if exitcode < 0:
+        try:
+            name = signal.Signals(-exitcode).name
+        except ValueError:
+            name = f"signal {-exitcode}"
+        if -exitcode == getattr(signal, "SIGKILL", None):
+            return f"killed by {name}, as the system does when memory runs out"
+        return f"killed by {name}"
+    return f"exited with code {exitcode}"

@@ -5,7 +5,7 @@ lock is taken over with a note naming its pid; no lock file is left when a run e
 
 Each test runs the real command in its own process on the demo scene, with RAFT-small (the released
 weights in tests/data), one refinement iteration and one step, and drives the signal itself.
-The README's "Guarantees" section names these tests.
+docs/guarantees.md names these tests.
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ from weathergen.engine import (Particles, TemplateLibrary, load_preset, load_tem
 from weathergen.engine.field import (field_for_pair, frame_particles, make_field, pair_views,
                                      sample_field_particles, scene_seed)
 from weathergen.datasets import DATASETS, DemoDataset
-from weathergen.engine.presets import FieldPreset
+from weathergen.engine.presets import FieldPreset, preset_from_values
 from weathergen.engine.groundtruth import particle_truth, seen_flow
 from weathergen.engine.optics import FieldOptics
 from weathergen.engine.settings import RenderSettings
@@ -48,7 +48,7 @@ def field_preset(**over) -> FieldPreset:
               "near": 0.3, "far": 6.0, "fade": 0.0, "aperture": 0.0, "tile": 2.0,
               "fall_speed": 0.0, "transparency": 1.0}
     values.update(over)
-    return load_preset("snow", {k: v for k, v in values.items()})
+    return preset_from_values("snow", "preset snow (test)", values)
 
 
 def forward_cameras(n: int, step: float = 0.4):
@@ -332,11 +332,11 @@ def test_field_preset_validation_and_frame_rates():
     with pytest.raises(ConfigError, match="far"):
         field_preset(near=2.0, far=1.0)
     with pytest.raises(ConfigError, match="unknown key 'count'"):
-        load_preset("snow", {"model": "field", "count": "5"})
+        preset_from_values("snow", "preset snow (test)", {"model": "field", "count": 5})
     with pytest.raises(ConfigError, match="density"):
         field_preset(density=-1.0)
     with pytest.raises(ConfigError, match="particles per tile"):
-        field_preset(density=1e6, tile=100.0)
+        field_preset(density=1e4, tile=100.0)
 
 
 def test_view_mask_keeps_rim_particles_whose_stamp_reaches_the_image():

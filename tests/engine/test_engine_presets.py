@@ -250,3 +250,79 @@ def test_cli_errors_are_one_line(cli):
     result = CliRunner().invoke(cli, ["presets", "snow", "--set", "templates=/nonexistent/x"])
     assert result.exit_code == 2 and "'templates'" in result.output
     assert len(result.output.strip().splitlines()) == 1
+
+
+# -- plausible ranges of keys in physical units -----------------------------------------------------
+
+def test_every_numeric_field_key_declares_its_plausible_range():
+    """A key in physical units carries a Plausible range where it is declared, a dimensionless one
+    says UNITLESS: a new key must say which it is."""
+    from weathergen.engine.presets import UNITLESS, Plausible, PlausibleBy, field_preset_keys
+
+    for f in field_preset_keys():
+        if isinstance(f.default, (bool, str)):
+            continue
+        plausible = f.metadata.get("plausible")
+        assert plausible is UNITLESS or isinstance(plausible, (Plausible, PlausibleBy)), f.name
+
+
+def test_every_bundled_field_preset_lies_in_the_plausible_ranges():
+    from weathergen.engine.presets import Plausible, PlausibleBy, field_preset_keys
+
+    for name in list_presets("field"):
+        p = load_preset(name)
+        for f in field_preset_keys():
+            plausible = f.metadata.get("plausible")
+            if isinstance(plausible, PlausibleBy):
+                plausible = plausible.range_for(p)
+            if isinstance(plausible, Plausible):
+                values = getattr(p, f.name)
+                for v in values if isinstance(values, tuple) else (values,):
+                    assert plausible.problem(v) is None, (name, f.name, v)
+
+
+@pytest.mark.parametrize("key, value, message", [
+    ("diameter", "8", "8 m is outside the plausible 0.0001 to 0.1 m for particles (flakes "
+                      "templates); did you mean 0.008 m (8 mm)?"),
+    ("fall_speed", "100", "100 m/s is outside the plausible -60 to 60 m/s; did you mean 27.78 m/s "
+                          "(100 km/h)?"),
+    ("wind", "[0, -90]", "-90 m/s is outside the plausible -60 to 60 m/s; did you mean -25 m/s "
+                         "(-90 km/h)?"),
+    ("near", "150", "150 m is outside the plausible 0.01 to 100 m; did you mean 0.15 m (150 mm)?"),
+    ("aperture", "4", "4 m is outside the plausible 0 to 0.5 m; did you mean 0.004 m (4 mm)?"),
+    ("density", "1e6", "1e+06 per m³ is outside the plausible 0.001 to 100000 per m³ (or 0)"),
+    ("frame_rate", "0.5", "0.5 fps is outside the plausible 1 to 1000 fps (or 0)"),
+])
+def test_a_value_outside_its_plausible_range_names_key_range_and_slip(key, value, message):
+    with pytest.raises(ConfigError) as caught:
+        load_preset("snow-moderate", {key: value})
+    assert str(caught.value).split(f"key '{key}' = ", 1)[1].split(": ", 1)[1] == message
+
+
+def test_a_slip_beyond_the_keys_hard_limit_is_named_too():
+    with pytest.raises(ConfigError, match=r"key 'exposure' = 16\.7: must lie in \[0, 10\]; did you "
+                                          r"mean 0\.0167 s \(16\.7 ms\)\?"):
+        load_preset("rain-moderate", {"exposure": "16.7"})
+
+
+def test_the_diameters_range_follows_the_templates():
+    haze = {"templates": "haze", "density": "0.01"}                          # wisps of haze
+    assert load_preset("fog-light", {**haze, "diameter": "20"}).diameter == 20
+    with pytest.raises(ConfigError, match="0.1 to 100 m for clouds"):
+        load_preset("fog-light", {**haze, "diameter": "0.01"})
+    with pytest.raises(ConfigError, match="for particles"):
+        load_preset("snow-moderate", {"diameter": "4"})
+
+
+def test_zero_is_allowed_where_it_is_a_switch():
+    assert load_preset("snow-moderate", {"frame_rate": "0", "exposure": "0",
+                                         "aperture": "0"}).frame_rate == 0
+
+
+def test_an_override_cannot_change_a_presets_model():
+    with pytest.raises(ConfigError, match="snow is a paper preset, and an override cannot change "
+                                          "its model"):
+        load_preset("snow", {"model": "field"})
+    assert load_preset("snow", {"model": "paper"}).count == 3000
+    with pytest.raises(ConfigError, match=r"layer 2 \(fog-light\): .*fog-light is a field preset"):
+        load_preset("snow+fog-light", {"fog-light.model": "paper"})

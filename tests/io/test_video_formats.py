@@ -142,3 +142,100 @@ def test_write_video_leaves_no_file_when_a_frame_fails(tmp_path):
     assert list(tmp_path.iterdir()) == []
     with pytest.raises(ConfigError, match="unknown video format '.avi'"):
         write_video(tmp_path / "v.avi", frames(), fps=24)
+
+
+# -- an MP4 is checked before it gets its name ---------------------------------------------------
+
+def _frames(n, h=31, w=45):
+    return [np.full((h, w, 3), 7 * i, np.uint8) for i in range(n)]
+
+
+def test_a_complete_mp4_passes_its_check_and_a_cut_one_does_not(tmp_path):
+    import errno
+
+    from weathergen.io.video import check_mp4
+
+    path = tmp_path / "a.mp4"
+    assert write_video(path, _frames(9), 10) == 9
+    check_mp4(path, 9)                                   # boxes, index and frame count agree
+    with pytest.raises(OSError, match="its index counts \\[9\\] frames, not 10"):
+        check_mp4(path, 10)
+    data = path.read_bytes()
+    for cut in (len(data) - 1, len(data) // 2, 40):
+        (tmp_path / "cut.mp4").write_bytes(data[:cut])
+        with pytest.raises(OSError) as caught:
+            check_mp4(tmp_path / "cut.mp4", 9, "named.mp4")
+        assert caught.value.errno in (errno.EIO, errno.ENOSPC)
+        assert caught.value.filename == "named.mp4"
+        assert "the video is incomplete" in caught.value.strerror
+
+
+def _box(kind: str, payload: bytes = b"", large: bool = False) -> bytes:
+    """An ISO-BMFF box: 32-bit size and type, or size 1 and a 64-bit size after the type."""
+    if large:
+        return (1).to_bytes(4, "big") + kind.encode() + (16 + len(payload)).to_bytes(8, "big") \
+            + payload
+    return (8 + len(payload)).to_bytes(4, "big") + kind.encode() + payload
+
+
+def _index(frames: int) -> bytes:
+    """A moov box with one track whose stsz (version/flags, sample size 0, count) counts
+    ``frames`` samples."""
+    stsz = _box("stsz", bytes(4) + bytes(4) + frames.to_bytes(4, "big") + bytes(4 * frames))
+    return _box("moov", _box("mvhd", bytes(100)) + _box("trak", _box("mdia", _box("minf", _box(
+        "stbl", _box("stsd", bytes(8)) + stsz)))))
+
+
+def test_check_mp4_reads_the_boxes_as_written_by_hand(tmp_path):
+    """Files built box by box: the index before or after the data, a 64-bit box size, a last box
+    of size 0 (to the end of the file) pass; a missing index, a box running past the end, a
+    wrong count and trailing bytes are refused, each saying what is wrong."""
+    from weathergen.io.video import check_mp4
+
+    ftyp = _box("ftyp", b"isom" + bytes(4) + b"isommp41")
+    good = {
+        "index last": ftyp + _box("mdat", bytes(50)) + _index(3),
+        "index first": ftyp + _index(3) + _box("mdat", bytes(50)),
+        "64-bit data": ftyp + _box("mdat", bytes(50), large=True) + _index(3),
+        "data to the end": ftyp + _index(3) + (0).to_bytes(4, "big") + b"mdat" + bytes(50),
+    }
+    for data in good.values():
+        (tmp_path / "a.mp4").write_bytes(data)
+        check_mp4(tmp_path / "a.mp4", 3)
+    head = ftyp + _box("mdat", bytes(50))                   # 24 + 58 bytes
+    bad = {
+        "no index": (head, "no moov box (82 bytes written)"),
+        "cut in the index": ((head + _index(3))[:-5], "its boxes end at byte 82 of "),
+        "another count": (head + _index(2), "its index counts [2] frames, not 3"),
+        "trailing bytes": (head + _index(3) + b"xyz", "(truncated)"),
+    }
+    for name, (data, problem) in bad.items():
+        (tmp_path / "a.mp4").write_bytes(data)
+        with pytest.raises(OSError) as caught:
+            check_mp4(tmp_path / "a.mp4", 3)
+        assert problem in caught.value.strerror, (name, caught.value.strerror)
+
+
+def test_the_next_write_removes_the_temporary_of_a_killed_writer_only(tmp_path):
+    """A temporary of a writer that is gone (its pid in its name) is removed; one of a writer
+    that runs (this process) stays, and so does a file that is no temporary of the video."""
+    import os
+
+    dead = subprocess_pid()
+    gone = tmp_path / f".v.mp4.{dead}.abcd1234.mp4"
+    mine = tmp_path / f".v.mp4.{os.getpid()}.efgh5678.mp4"
+    other = tmp_path / ".v.mp4.notes.txt"
+    for p in (gone, mine, other):
+        p.write_bytes(b"x")
+    write_video(tmp_path / "v.mp4", _frames(2), 10)
+    assert not gone.exists() and mine.exists() and other.exists()
+
+
+def subprocess_pid() -> int:
+    """The pid of a process that has ended."""
+    import subprocess
+    import sys
+
+    proc = subprocess.Popen([sys.executable, "-c", "pass"])
+    proc.wait()
+    return proc.pid

@@ -86,6 +86,37 @@ def test_a_folder_that_holds_a_run_needs_resume_with_the_same_settings(tmp_path)
     prepare_folder(out, RENDER_FOLDER, {"seed": 2}, previous, resume=False, overwrite=True)
 
 
+def test_resume_and_overwrite_remove_a_killed_runs_temporaries_exr_ones_too(tmp_path):
+    out = tmp_path / "run"
+    prepare_folder(out, RENDER_FOLDER, {"seed": 1}, None, resume=False, overwrite=False)
+    pair = out / "training" / "snow_clean" / "alley_0001"
+    pair.mkdir(parents=True)
+    for mode in ("resume", "overwrite"):
+        left = [pair / ".frame_0001.png.4242.abcd1234.tmp",
+                pair / ".frame_0001.exr.4242.efgh5678.tmp.exr"]
+        kept = pair / "frame_0001.png"
+        for f in (*left, kept):
+            f.write_bytes(b"x")
+        prepare_folder(out, RENDER_FOLDER, {"seed": 1}, {"seed": 1}, resume=mode == "resume",
+                       overwrite=mode == "overwrite", temporary=[(pair, ".")])
+        assert not any(f.exists() for f in left) and kept.exists(), mode
+
+
+def test_a_run_killed_before_it_recorded_anything_leaves_temporaries_the_next_removes(tmp_path):
+    """An attack folder's record is its manifest, written after the first pair: a run killed
+    during it leaves the marker and a temporary file, and the next run (no --resume needed,
+    there is nothing to resume) removes the temporary; a real file stays."""
+    out = tmp_path / "attack"
+    prepare_folder(out, ATTACK_FOLDER, {"seed": 1}, None, resume=False, overwrite=False)
+    left = out / "alley_0001" / ".frame_0001.png.4242.abcd1234.tmp"
+    kept = out / "alley_0001" / "frame_0001.png"
+    left.parent.mkdir()
+    for f in (left, kept):
+        f.write_bytes(b"x")
+    prepare_folder(out, ATTACK_FOLDER, {"seed": 1}, None, resume=False, overwrite=False)
+    assert not left.exists() and kept.exists()
+
+
 def test_claim_folder_holds_the_folder_for_its_block_and_leaves_no_lock(tmp_path):
     out, config = tmp_path / "run", {"seed": 1}
     with claim_folder(out, RENDER_FOLDER, config, resume=False, overwrite=False) as claim:

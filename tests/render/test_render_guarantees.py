@@ -1,7 +1,7 @@
 """What `weathergen render` promises when things go wrong: kills, full disks, concurrent runs,
 paths, bad pairs. Each test drives the failure itself on the demo scene (or a tiny fake Sintel).
 
-The README's "Guarantees" section names these tests.
+docs/guarantees.md names these tests.
 """
 
 from __future__ import annotations
@@ -115,6 +115,7 @@ ORPHAN_SECONDS = 2.0
 
 
 @linux_only
+@pytest.mark.slow
 def test_kill_9_right_after_the_workers_start_leaves_no_orphans(tmp_path, demo_root, busy_cpu):
     """The parent dies before its workers finished starting: they and multiprocessing's resource
     tracker are gone within moments, on a busy machine too, and nothing more is written."""
@@ -137,6 +138,7 @@ def test_kill_9_right_after_the_workers_start_leaves_no_orphans(tmp_path, demo_r
     assert len(metadata_files(out)) == written          # and rendered nothing meanwhile
 
 
+@pytest.mark.slow
 def test_worker_of_a_dead_parent_leaves_and_workers_ignore_the_groups_sigterm():
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
@@ -182,6 +184,7 @@ def test_stop_requests_hold_a_signal_back_until_the_pool_is_looked_after():
         signal.signal(signal.SIGTERM, previous)
 
 
+@pytest.mark.slow
 def test_sigterm_to_the_process_group_with_workers_stops_cleanly(tmp_path, clean_six):
     """What a job scheduler sends: every process of the group gets SIGTERM at once."""
     out = tmp_path / "term"
@@ -275,6 +278,7 @@ def test_read_only_subfolder_names_the_file_not_a_temporary(tmp_path, monkeypatc
 
 # -- one writer per output folder ----------------------------------------------------------------
 
+@pytest.mark.slow
 def test_a_second_writer_is_refused_while_a_run_holds_the_folder(tmp_path, clean_six):
     out = tmp_path / "busy"
     first = start("render", "--out", out, "-q", *SIX)
@@ -295,6 +299,7 @@ def test_a_second_writer_is_refused_while_a_run_holds_the_folder(tmp_path, clean
     assert digests(out) == digests(clean_six)
 
 
+@pytest.mark.slow
 def test_stale_lock_of_a_killed_run_is_reported_and_taken_over(tmp_path):
     out = tmp_path / "stale"
     proc = start("render", "--out", out, "-q", *TWO)

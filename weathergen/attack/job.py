@@ -24,10 +24,12 @@ import torch
 
 from ..datasets import Dataset
 from ..engine import CombinedPreset, render_pair
+from ..engine.budget import check_pair_memory
 from ..errors import ConfigError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
+from ..memory import failure_message
 from ..models import canonical_network, get_model, network_record, resolve_amp, resolved_spec
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
@@ -189,15 +191,17 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
+            if job.lp is None:      # the weather's part; the network's is not estimated
+                check_pair_memory(pair, job.preset, device, share=len(refs))
             airlight = None if job.lp is not None or job.particles_from is not None else \
                 scene_airlight(job.dataset, ref.id, job.scene_firsts, job.preset)
             particles = None if job.lp is not None else pair_particles(
                 pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
                 frame_rate=job.dataset.frame_rate, particles_from=job.particles_from,
                 airlight=airlight)
-        except WeatherGenError as exc:
-            reports[ref.id.key] = PairReport(str(ref.id), "failed", message=str(exc),
-                                             key=ref.id.key)
+        except (WeatherGenError, MemoryError, RuntimeError) as exc:
+            reports[ref.id.key] = PairReport(str(ref.id), "failed", key=ref.id.key,
+                                             message=failure_message(exc, "--batch-size"))
             continue
         groups.setdefault(pair.size, []).append((ref, pair, particles,
                                                  time.perf_counter() - start))
@@ -219,9 +223,10 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
                 results = attack_batch(model, pairs, [g[2] for g in group], job.settings,
                                        job.target, device=device,
                                        target_file_flow=target_file_flow, on_step=step)
-        except WeatherGenError as exc:
+        except (WeatherGenError, MemoryError, RuntimeError) as exc:
+            message = failure_message(exc, "--batch-size")
             for ref, _, _, _ in group:
-                reports[ref.id.key] = PairReport(str(ref.id), "failed", message=str(exc),
+                reports[ref.id.key] = PairReport(str(ref.id), "failed", message=message,
                                                  key=ref.id.key)
             continue
         share = (time.perf_counter() - start) / len(group)

@@ -56,6 +56,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from ..engine import from_atanh, to_atanh
+from ..engine.presets import Plausible
 from ..errors import ConfigError
 from ..flow import aee
 from .pair import AttackResult, StepLog, StepRecord
@@ -66,6 +67,11 @@ LP_METHODS = ("pcfa", "ifgsm")
 #: optimiser, :data:`PCFA_LR`; I-FGSM: None = ε / steps).
 LP_DEFAULTS = {"pcfa": {"epsilon": 5e-3, "steps": 20, "lr": None},
                "ifgsm": {"epsilon": 5e-3, "steps": 25, "lr": None}}
+#: Where ε plausibly lies: the perturbation is measured on pixel values in [0, 1] (PCFA's
+#: normalised L2 is a root mean square over them), so a bound of 1 allows any frames; a bound
+#: given on the 0-255 scale (8 for 8/255) is the usual slip.
+EPSILON_RANGE = Plausible(0, 1, "", ((1 / 255, "on the 0-255 scale"),),
+                          what="perturbations of pixel values in [0, 1]")
 #: PCFA's optimisers, the published one (L-BFGS) first: the default.
 PCFA_OPTIMIZERS = ("lbfgs", "adam")
 #: PCFA's default step size per optimiser: L-BFGS's 1 (PyTorch's, which the reference keeps),
@@ -118,6 +124,9 @@ def lp_settings(method: str, epsilon: Optional[float] = None, steps: Optional[in
     eps = float(d["epsilon"] if epsilon is None else epsilon)
     if not (math.isfinite(eps) and eps > 0):
         raise ConfigError(f"${{epsilon}} must be a positive number, not {epsilon!r}")
+    problem = EPSILON_RANGE.problem(eps)
+    if problem is not None:
+        raise ConfigError(f"${{epsilon}} {eps:g}: {problem}")
     n = int(d["steps"] if steps is None else steps)
     if n < 0:
         raise ConfigError("${steps} must be >= 0")

@@ -187,6 +187,43 @@ def read_frames(files: dict) -> tuple[np.ndarray, np.ndarray, dict]:
     return img1, img2, meta
 
 
+def flow_warnings(path, flow, valid, *, nan_marks_invalid: bool = False
+                  ) -> tuple[Optional[np.ndarray], Optional[np.ndarray], list[str]]:
+    """A pair's ground-truth flow checked, with warnings for the record's ``meta``: values that
+    are not finite are marked invalid (and set to 0) and, unless the format uses NaN to mark
+    invalid flow (``nan_marks_invalid``), said; a flow without any valid value is said; a
+    missing flow file (``flow`` None) is said when its folder holds other flow files of its
+    kind (the pair is then written without flow). Returns ``(flow, valid, warnings)``.
+    Shape: flow (H, W, 2) float, valid (H, W) bool."""
+    if flow is None:
+        folder = Path(path).parent
+        if folder.is_dir() and any(folder.glob(f"*{Path(path).suffix}")):
+            return None, None, [f"{path}: ground-truth flow file is missing (the scene's other "
+                                "pairs have one); the pair is written without flow"]
+        return None, None, []
+    valid = np.ones(flow.shape[:2], bool) if valid is None else valid
+    finite = np.isfinite(flow).all(axis=2)
+    bad = int((~finite).sum())
+    if bad:
+        flow = np.where(finite[..., None], flow, 0).astype(np.float32)
+        valid = valid & finite
+    said = f" ({bad} of {finite.size} not finite)" if bad and not nan_marks_invalid else ""
+    if not valid.any():
+        return flow, valid, [f"{path}: the ground-truth flow has no valid vector{said}; it is "
+                             "written as invalid everywhere"]
+    if said:
+        return flow, valid, [f"{path}: {bad} of {finite.size} ground-truth flow vectors are not "
+                             "finite; they are written as invalid"]
+    return flow, valid, []
+
+
+def add_warnings(meta: dict, warnings: list[str]) -> dict:
+    """``meta`` with ``warnings`` added to its ``"warnings"`` list (which the commands print)."""
+    if warnings:
+        meta["warnings"] = [*meta.get("warnings", []), *warnings]
+    return meta
+
+
 def require_files(files: dict, keys: tuple[str, ...], hint: str = "") -> None:
     """Raise :class:`DatasetError` naming the first of ``files[key]`` that does not exist."""
     for key in keys:

@@ -44,7 +44,8 @@ from ..io.custom_formats import DEPTH_SUFFIXES, CameraFile, read_camera_file, re
 from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
 from .base import WARNING, Problem
-from .common import FarDepthDataset, check_size, read_frames, require_files
+from .common import (FarDepthDataset, add_warnings, check_size, flow_warnings, read_frames,
+                     require_files)
 from .densify import fill_sparse
 from .framenames import order_frames
 from .stereo import RightCamera, custom_right
@@ -241,9 +242,10 @@ class CustomDataset(FarDepthDataset):
             fl = read_flo(files["flow"])
             check_size(files["flow"], "flow", fl.shape, size)
             # Middlebury convention: components beyond 1e9 mark unknown flow
-            ok = np.isfinite(fl).all(axis=2) & (np.abs(fl) < 1e9).all(axis=2)
-            fl = np.where(ok[..., None], fl, 0).astype(np.float32)
-            flow, flow_valid = fl, ok
+            known = ~(np.abs(fl) >= 1e9).any(axis=2)
+            flow, flow_valid = np.where(known[..., None], fl, 0).astype(np.float32), known
+        flow, flow_valid, notes = flow_warnings(files["flow"], flow, flow_valid)
+        add_warnings(meta, notes)
 
         return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
                                flow_valid=flow_valid, measured=measured,

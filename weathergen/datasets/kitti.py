@@ -67,7 +67,8 @@ from ..io.kitti_formats import read_disparity_png, read_flow_png, read_object_ma
 from .base import NativeFlow, PairRef, Selection
 from .camera_motion import (FitSettings, MotionFit, backproject_pixels, check_fit, fit_motion_pnp,
                             match_features)
-from .common import FarDepthDataset, check_size, chw, read_frames, require_files, scaled_motion
+from .common import (FarDepthDataset, add_warnings, check_size, chw, flow_warnings, read_frames,
+                     require_files, scaled_motion)
 from .densify import fill_sparse
 from .stereo import RightCamera, rectified_right
 
@@ -223,6 +224,8 @@ class KittiDataset(FarDepthDataset):
         if Path(files["flow"]).exists():
             flow, flow_valid = read_flow_png(files["flow"])
             check_size(files["flow"], "flow", flow.shape, size)
+        flow, flow_valid, notes = flow_warnings(files["flow"], flow, flow_valid)
+        add_warnings(meta, notes)
         objects = None
         if self.use_object_map and Path(files["objects"]).exists():
             objects = read_object_map(files["objects"])

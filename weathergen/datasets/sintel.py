@@ -37,7 +37,7 @@ from ..io.images import read_raw
 from ..io.sintel_formats import read_cam, read_dpt, read_flo
 from ..io.text import read_text_file
 from .base import PairRef, Selection, frame_numbers
-from .common import ScaledDataset, read_frames
+from .common import ScaledDataset, add_warnings, flow_warnings, read_frames
 
 _FRAME_RE = re.compile(r"^frame_(\d{4,})\.png$")
 SPLITS = ("training", "test")
@@ -202,9 +202,10 @@ class SintelDataset(ScaledDataset):
                 if inv.ndim == 3:
                     inv = inv.max(axis=2)
                 valid = inv == 0
+        flow, valid, notes = flow_warnings(files["flow"], flow, valid)
 
         return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
-                               flow_valid=valid, meta=meta)
+                               flow_valid=valid, meta=add_warnings(meta, notes))
 
 
 def _common_size(files: dict, sizes: dict) -> tuple[int, int]:

@@ -40,7 +40,8 @@ from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
 from .base import NativeFlow, PairRef, Selection, frame_numbers
-from .common import FarDepthDataset, check_size, read_frames, require_files
+from .common import (FarDepthDataset, add_warnings, check_size, flow_warnings, read_frames,
+                     require_files)
 from .stereo import RightCamera, rectified_right
 
 _FRAME_RE = re.compile(r"^frame_left_(\d{4,})\.png$")
@@ -149,10 +150,13 @@ class SpringDataset(FarDepthDataset):
 
         flow = flow_valid = None
         if Path(files["flow"]).exists():
-            fl, ok = _at_frame_size(read_flo5(files["flow"]), files["flow"], "flow", size)
-            flow_valid = ok & np.isfinite(fl).all(axis=2)
-            fl[~flow_valid] = 0
-            flow = fl
+            flow, flow_valid = _at_frame_size(read_flo5(files["flow"]), files["flow"], "flow", size)
+        # the format marks invalid flow with NaN
+        flow, flow_valid, notes = flow_warnings(files["flow"], flow, flow_valid,
+                                                nan_marks_invalid=True)
+        if flow is not None:
+            flow[~flow_valid] = 0
+        add_warnings(meta, notes)
 
         return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
                                flow_valid=flow_valid, measured=measured,

@@ -92,39 +92,125 @@ def _templates(v: str) -> Optional[str]:
     return None if v.strip() else f"must be {' or '.join(BUILTIN_TEMPLATE_KINDS)} or a folder of PNGs"
 
 
-def _key(default, check=None, doc: str = "", main: bool = False, coerce=None):
-    """Declare a preset key once: its default, its check, a one-line description; ``coerce``:
-    for a key of several types, a function ``value -> (canonical value, problem or None)`` in
-    place of the type check (it then does the check too)."""
+# ---------------------------------------------------------------------------------------------
+# Plausible ranges: a key in physical units declares the range its values plausibly lie in. A value
+# outside it that the key's check allows is most often a slip of unit (millimetres written as
+# metres, km/h as m/s), which would draw absurd weather or exhaust the memory: refused in one line
+# that names the key, the range and the slip.
+
+@dataclass(frozen=True)
+class Plausible:
+    """The range ``[lo, hi]`` (in ``unit``) a key's values plausibly lie in (``zero``: 0 is
+    allowed too, as a switch: no streak, the dataset's frame rate), and the unit slips worth
+    naming: ``(factor, unit given)``, where ``value * factor`` is the value meant when it was
+    written in ``unit given`` (8 for 0.008 m: ``(0.001, "millimetres")``)."""
+
+    lo: float
+    hi: float
+    unit: str
+    slips: tuple = ()
+    zero: bool = False
+    what: str = ""              # whose range this is, where a key has several (see PlausibleBy)
+
+    def problem(self, value: float) -> Optional[str]:
+        """What is wrong with ``value`` (None when it is plausible), in a few words."""
+        if self.lo <= value <= self.hi or (self.zero and value == 0):
+            return None
+        unit = f" {self.unit}" if self.unit else ""
+        text = (f"{value:g}{unit} is outside the plausible {self.lo:g} to {self.hi:g}{unit}"
+                f"{' (or 0)' if self.zero else ''}{f' for {self.what}' if self.what else ''}")
+        return text + self.slip(value)
+
+    def slip(self, value: float) -> str:
+        """``"; did you mean 0.008 m (8 mm)?"`` where ``value`` written in one of the ``slips``'
+        units lies in the range, else ``""``."""
+        for factor, given in self.slips:
+            meant = value * factor
+            if self.lo <= meant <= self.hi and meant != value:
+                unit = f" {self.unit}" if self.unit else ""
+                return f"; did you mean {meant:.4g}{unit} ({value:g} {given})?"
+        return ""
+
+
+@dataclass(frozen=True)
+class PlausibleBy:
+    """Plausible ranges that depend on another key's value (``key``): ``ranges`` maps its values
+    to a :class:`Plausible`, ``other`` holds for any other value."""
+
+    key: str
+    ranges: Mapping[str, Plausible]
+    other: Plausible
+
+    def range_for(self, preset) -> Plausible:
+        return self.ranges.get(str(getattr(preset, self.key)), self.other)
+
+
+#: The plausible range of a dimensionless key (a jitter, a fraction, an angle, a count) is the
+#: range its check allows: declared so, so that every numeric key says which it is.
+UNITLESS = "unitless"
+
+#: Unit slips of lengths in metres, speeds in m/s and times in seconds.
+LENGTH_SLIPS = ((0.001, "mm"), (0.01, "cm"))
+SPEED_SLIPS = ((1 / 3.6, "km/h"),)
+TIME_SLIPS = ((0.001, "ms"),)
+#: Distances in metres written in kilometres (a visibility of 0.3 for 300 m).
+KM_SLIPS = ((1000, "km"),)
+
+
+def _key(default, check=None, doc: str = "", main: bool = False, plausible=None, coerce=None):
+    """Declare a preset key once: its default, its check, a one-line description, for a key in
+    physical units its :class:`Plausible` range (or :data:`UNITLESS`); ``coerce``: for a key of
+    several types, a function ``value -> (canonical value, problem or None)`` in place of the type
+    check (it then does the check too)."""
     return field(default=default, metadata={"check": check, "doc": doc, "main": main,
-                                            "coerce": coerce})
+                                            "plausible": plausible, "coerce": coerce})
+
+
+def check_plausible(preset, keys: Mapping[str, dataclasses.Field], where: str,
+                    overridden: Mapping[str, Any] = {}) -> None:
+    """Refuse a value outside its key's plausible range (see :class:`Plausible`): ConfigError
+    naming the key, the value, the range and the likely unit slip, and where the value came from
+    (``${overrides}`` for a key in ``overridden``, else ``where``)."""
+    for name, f in keys.items():
+        plausible = f.metadata.get("plausible")
+        if isinstance(plausible, PlausibleBy):
+            plausible = plausible.range_for(preset)
+        if not isinstance(plausible, Plausible):
+            continue
+        value = getattr(preset, name)
+        for v in (value if isinstance(value, tuple) else (value,)):
+            problem = plausible.problem(float(v))
+            if problem is not None:
+                origin = "${overrides}" if name in overridden else where
+                shown = list(value) if isinstance(value, tuple) else value
+                raise ConfigError(f"{origin}: key '{name}' = {shown!r}: {problem}")
 
 
 #: The keys of both weather models (the paper's :class:`Preset` and :class:`FieldPreset`), declared
-#: here once: name -> (default, check, description, main). ``transparency`` and ``blur_samples``
-#: mean something model-specific, which each model's description says.
+#: here once: name -> (default, check, description, main, plausible). ``transparency`` and
+#: ``blur_samples`` mean something model-specific, which each model's description says.
 SHARED_KEYS = {
-    "description": ("", None, "free text shown by `weathergen presets`", False),
+    "description": ("", None, "free text shown by `weathergen presets`", False, None),
     "templates": ("flakes", _templates,
-                  "template library: flakes, dust, haze, or a folder of grey-scale PNGs", True),
-    "color": ((255, 255, 255), _rgb, "base colour, 8-bit RGB", True),
-    "hue_jitter": (0.0, _number(0, 180), "random hue change, +- degrees", False),
-    "lightness_jitter": (0.0, _number(0, 1), "random HLS lightness change, +-", False),
-    "saturation_jitter": (0.0, _number(0, 1), "random HLS saturation change, +-", False),
+                  "template library: flakes, dust, haze, or a folder of grey-scale PNGs", True, None),
+    "color": ((255, 255, 255), _rgb, "base colour, 8-bit RGB", True, UNITLESS),
+    "hue_jitter": (0.0, _number(0, 180), "random hue change, +- degrees", False, UNITLESS),
+    "lightness_jitter": (0.0, _number(0, 1), "random HLS lightness change, +-", False, UNITLESS),
+    "saturation_jitter": (0.0, _number(0, 1), "random HLS saturation change, +-", False, UNITLESS),
     "blend": ("additive", _choice(BLEND_MODES),
-              "additive (glow) or alpha (order-independent alpha blending)", True),
-    "transparency": (0.75, _number(0, 2), "", True),
-    "blur_samples": (1, _number(1, 1000), "", True),
+              "additive (glow) or alpha (order-independent alpha blending)", True, None),
+    "transparency": (0.75, _number(0, 2), "", True, UNITLESS),
+    "blur_samples": (1, _number(1, 1000), "", True, UNITLESS),
     "coarse": (True, None, "draw stamps of at least 128 px (fog, large dust) on a coarser grid "
                            "and upsample them across depth edges (fast, within the tolerance of "
-                           "docs/engine.md); false: every pixel exactly", False),
+                           "docs/engine.md); false: every pixel exactly", False, None),
 }
 
 
 def _shared(name: str, doc: str = ""):
     """A key of :data:`SHARED_KEYS` (``doc``: the model's own description, where it has one)."""
-    default, check, text, main = SHARED_KEYS[name]
-    return _key(default, check, doc or text, main)
+    default, check, text, main, plausible = SHARED_KEYS[name]
+    return _key(default, check, doc or text, main, plausible)
 
 
 @dataclass(frozen=True)
@@ -270,6 +356,9 @@ def _coerce(where: str, key: str, value: Any, keys: Optional[Mapping] = None) ->
     check = f.metadata.get("check")
     problem = check(out) if check else None
     if problem:
+        plausible = f.metadata.get("plausible")
+        if isinstance(plausible, Plausible) and isinstance(out, float):
+            problem += plausible.slip(out)
         raise bad(problem)
     return out
 
@@ -358,10 +447,17 @@ def load_preset(name_or_path: str | Path = "snow",
 
     model = data.pop("model", "paper")
     overrides = dict(overrides or {})
-    if "model" in overrides:          # a re-render of a stored field preset names its model
+    if "model" in overrides:          # a stored preset's values name their model: the same
         wanted = str(overrides.pop("model")).strip().strip('"')
+        if wanted not in ("paper", "field"):
+            raise ConfigError(f"{where}: key 'model' = {wanted!r}: must be paper or field")
         if wanted != model:
-            data, model = {}, wanted   # every key of the other model comes from the overrides
+            others = ", ".join(n for n in list_presets(wanted) if "-" not in n
+                               or n.endswith("-moderate"))
+            raise ConfigError(f"{where}: key 'model' = {wanted!r}: {name} is a {model} preset, "
+                              f"and an override cannot change its model (every key would fall "
+                              f"back to the other model's defaults); choose a {wanted} preset "
+                              f"instead{f' ({others}, ...)' if others else ''}")
     if model == "field":
         return build_field_preset(name, where, data, overrides, base_dir)
     if model != "paper":
@@ -609,10 +705,18 @@ class FieldPreset:
     # -- how many and how large
     density: float = _key(100.0, _number(0, 1e7),
                           "particles per cubic scene unit (0: none, for an atmosphere alone)",
-                          main=True)
+                          main=True, plausible=Plausible(1e-3, 1e5, "per m³", zero=True))
     diameter: float = _key(0.005, _number(0, 1e3, lo_open=True),
-                           "particle diameter, scene units", main=True)
-    diameter_jitter: float = _key(0.3, _number(0, 0.9), "diameter x (1 + U[-f, f])")
+                           "particle diameter, scene units", main=True,
+                           plausible=PlausibleBy("templates", {
+                               "flakes": Plausible(1e-4, 0.1, "m", LENGTH_SLIPS,
+                                                   what="particles (flakes templates)"),
+                               "dust": Plausible(1e-4, 0.1, "m", LENGTH_SLIPS,
+                                                 what="particles (dust templates)"),
+                               "haze": Plausible(0.1, 100, "m", what="clouds (haze templates)")},
+                               Plausible(1e-4, 100, "m", LENGTH_SLIPS)))
+    diameter_jitter: float = _key(0.3, _number(0, 0.9), "diameter x (1 + U[-f, f])",
+                                  plausible=UNITLESS)
     templates: str = _shared("templates")
     # -- colour and opacity
     color: tuple = _shared("color")
@@ -624,52 +728,68 @@ class FieldPreset:
     # -- motion, per second
     fall_speed: float = _key(1.0, _number(-1e3, 1e3),
                              "speed along the world's down axis, scene units/s (< 0 rises)",
-                             main=True)
-    speed_jitter: float = _key(0.0, _number(0, 1), "speed x (1 + U[-f, f])")
+                             main=True, plausible=Plausible(-60, 60, "m/s", SPEED_SLIPS))
+    speed_jitter: float = _key(0.0, _number(0, 1), "speed x (1 + U[-f, f])", plausible=UNITLESS)
     angle_jitter: float = _key(0.0, _number(0, 180),
-                               "fall direction turned by Euler angles U[-a, a] degrees")
+                               "fall direction turned by Euler angles U[-a, a] degrees",
+                               plausible=UNITLESS)
     wind: tuple = _key((0.0, 0.0), _pair,
-                       "wind along the world's two horizontal axes, scene units/s", main=True)
+                       "wind along the world's two horizontal axes, scene units/s", main=True,
+                       plausible=Plausible(-60, 60, "m/s", SPEED_SLIPS))
     frame_rate: float = _key(0.0, _number(0, 1e4),
-                             "frames per second; 0: the dataset's (its reader's frame_rate)")
+                             "frames per second; 0: the dataset's (its reader's frame_rate)",
+                             plausible=Plausible(1, 1000, "fps", zero=True))
     exposure: float = _key(0.0, _number(0, 10),
                            "exposure time, s: streak length = velocity x exposure "
-                           "(at most one frame interval); 0: no streak", main=True)
+                           "(at most one frame interval); 0: no streak", main=True,
+                           plausible=Plausible(0, 1, "s", TIME_SLIPS))
     blur_samples: int = _shared("blur_samples", "samples along a streak")
     coarse: bool = _shared("coarse")
     # -- where particles are drawn and how the lens sees them
     near: float = _key(0.1, _number(0, 1e6, lo_open=True),
-                       "nearest camera depth drawn, scene units (fade-in up to 2 x near)")
+                       "nearest camera depth drawn, scene units (fade-in up to 2 x near)",
+                       plausible=Plausible(0.01, 100, "m", LENGTH_SLIPS))
     far: float = _key(10.0, _number(0, 1e6, lo_open=True),
-                      "farthest camera depth drawn, scene units", main=True)
-    fade: float = _key(0.3, _number(0, 1), "fraction of far over which particles fade out")
+                      "farthest camera depth drawn, scene units", main=True,
+                      plausible=Plausible(0.1, 10_000, "m", LENGTH_SLIPS))
+    fade: float = _key(0.3, _number(0, 1), "fraction of far over which particles fade out",
+                       plausible=UNITLESS)
     aperture: float = _key(0.004, _number(0, 10),
-                           "lens aperture diameter, scene units (0: pinhole, no defocus)")
-    focus: float = _key(5.0, _number(0, 1e6, lo_open=True), "focus distance, scene units")
+                           "lens aperture diameter, scene units (0: pinhole, no defocus)",
+                           plausible=Plausible(0, 0.5, "m", LENGTH_SLIPS))
+    focus: float = _key(5.0, _number(0, 1e6, lo_open=True), "focus distance, scene units",
+                        plausible=Plausible(0.01, 100_000, "m", LENGTH_SLIPS))
     depth_softness: float = _key(0.004, _number(0, 1e3, lo_open=True),
-                                 "width of the occlusion test's transition, scene units")
+                                 "width of the occlusion test's transition, scene units",
+                                 plausible=Plausible(1e-4, 10, "m", LENGTH_SLIPS))
     tile: float = _key(4.0, _number(0, 1e6, lo_open=True),
-                       "side of the periodic tile the field repeats, scene units")
+                       "side of the periodic tile the field repeats, scene units",
+                       plausible=Plausible(0.1, 1000, "m", LENGTH_SLIPS))
     # -- the atmosphere: extinction of light with distance (see engine/atmosphere.py)
     visibility: float = _key(0.0, _visibility,
                              "meteorological optical range of fog or haze (5 % contrast), metres "
-                             "(scene units); 0: clear air", main=True)
+                             "(scene units); 0: clear air", main=True,
+                             plausible=Plausible(10, 200_000, "m", KM_SLIPS, zero=True))
     rain_rate: float = _key(0.0, _number(0, 300),
-                            "rain rate, mm/h: the rain's extinction (Marshall-Palmer drops)")
+                            "rain rate, mm/h: the rain's extinction (Marshall-Palmer drops)",
+                            plausible=Plausible(0, 300, "mm/h"))
     snow_rate: float = _key(0.0, _number(0, 30),
-                            "snowfall rate, mm/h of liquid water: the snow's extinction")
+                            "snowfall rate, mm/h of liquid water: the snow's extinction",
+                            plausible=Plausible(0, 30, "mm/h"))
     heterogeneity: float = _key(0.0, _number(0, 0.9),
                                 "density of the air between 1 - h and 1 + h times its mean, in "
-                                "banks fixed in the world; 0: uniform")
+                                "banks fixed in the world; 0: uniform", plausible=UNITLESS)
     heterogeneity_scale: float = _key(20.0, _number(0.01, 1e4),
                                       "size of the largest banks of the heterogeneous air, metres "
-                                      "(scene units)")
+                                      "(scene units)",
+                                      plausible=Plausible(0.1, 10_000, "m", LENGTH_SLIPS))
     airlight: object = _key("auto", None, "colour of the air's in-scattered light, 8-bit RGB, or "
                                           "auto: from the frames' farthest, brightest pixels",
                             coerce=_airlight)
     sky_distance: float = _key(1000.0, _number(1, 1e7),
                                "where rays end: the distance given to the sky and to anything "
-                               "farther, metres (scene units)")
+                               "farther, metres (scene units)",
+                               plausible=Plausible(10, 1e6, "m", KM_SLIPS))
 
     # Not keys.
     name: str = field(default="custom", compare=False, metadata={"key": False})
@@ -732,6 +852,7 @@ def build_field_preset(name: str, where: str, data: Mapping[str, Any],
     values, templates_from = _preset_values(where, data, overrides, base_dir, _FIELD_KEYS,
                                             ignored=("name", "source"))
     preset = FieldPreset(name=name, source=where, **values)
+    check_plausible(preset, _FIELD_KEYS, where, overrides)
     if not preset.far > preset.near:
         raise ConfigError(f"{where}: key 'far' = {preset.far!r}: must be greater than near "
                           f"({preset.near!r})")
@@ -911,7 +1032,8 @@ def load_combined(text: str, overrides: Optional[Mapping[str, Any]] = None) -> C
                 raise ConfigError(f"${{overrides}} {key}: {name} has no layer {prefix!r} "
                                   f"(layers: {listed}; name one or give its position)")
             continue
-        lacking = [i for i, p in enumerate(plain) if key not in _keys_of(p)]
+        # every preset file may name its model: each layer checks a bare ``model`` itself
+        lacking = [i for i, p in enumerate(plain) if key not in _keys_of(p) and key != "model"]
         if len(lacking) == len(parts):
             raise ConfigError(f"${{overrides}} {key}: no layer of {name} has this key "
                               f"(`weathergen presets {name}` lists their keys)")

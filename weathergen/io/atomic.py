@@ -1,16 +1,21 @@
 """Atomic file writes: a reader never sees a half-written file, even after a crash or Ctrl-C.
 
-Data goes to a hidden temporary file in the destination folder (``.NAME.*.tmp``), is flushed to
-disk, and is renamed over the destination in one step (``os.replace`` is atomic on POSIX and
-Windows). A process killed outright can leave such a temporary file behind; it never carries a
-final name, and ``weathergen render --resume`` deletes it.
+Data goes to a hidden temporary file in the destination folder (``.NAME.PID.*.tmp``, PID the
+writing process's), is flushed to disk, and is renamed over the destination in one step
+(``os.replace`` is atomic on POSIX and Windows). A process killed outright can leave such a
+temporary file behind; it never carries a final name, the next run in the same output folder
+deletes it (``weathergen render --resume``, see :func:`~weathergen.outputs.folder.prepare_folder`),
+and the writers of single files (a video, a contact sheet) delete those of their file whose writer
+is gone before they write it (:func:`remove_temporaries`).
 """
 
 from __future__ import annotations
 
 import contextlib
 import errno
+import glob
 import os
+import re
 import tempfile
 from pathlib import Path
 
@@ -58,7 +63,7 @@ def atomic_path(path: str | Path, suffix: str = ".tmp"):
     path = Path(path)
     try:
         path.parent.mkdir(parents=True, exist_ok=True)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=suffix, dir=path.parent)
+        fd, tmp = tempfile.mkstemp(prefix=temporary_prefix(path), suffix=suffix, dir=path.parent)
     except OSError as exc:
         raise _naming(exc, path, None) from None
     try:
@@ -72,6 +77,49 @@ def atomic_path(path: str | Path, suffix: str = ".tmp"):
         if isinstance(exc, OSError):
             raise _naming(exc, path, tmp) from None
         raise
+
+
+def temporary_prefix(path: str | Path) -> str:
+    """The name with which this process's temporary files for ``path`` begin: ``.NAME.PID.``."""
+    return f".{Path(path).name}.{os.getpid()}."
+
+
+def remove_temporaries(path: str | Path, only_of_dead: bool = True) -> list[Path]:
+    """Delete the temporary files that writes of ``path`` left in its folder (a killed writer's:
+    ``.NAME.PID.XXXXXXXX`` with a temporary suffix); with ``only_of_dead``, only those whose
+    writing process is gone (on this machine), so that a write in progress keeps its file.
+    Returns what was deleted."""
+    path = Path(path)
+    pattern = re.compile(rf"\.{re.escape(path.name)}\.(?:(\d+)\.)?[a-z0-9_]{{8}}"
+                         rf"(?:\.tmp.*|{re.escape(path.suffix)})")
+    removed = []
+    try:
+        candidates = list(path.parent.glob(f"{glob.escape('.' + path.name)}.*"))
+    except OSError:
+        return removed
+    for tmp in candidates:
+        match = pattern.fullmatch(tmp.name)
+        if match is None or not tmp.is_file():
+            continue
+        if only_of_dead and match.group(1) is not None and _alive(int(match.group(1))):
+            continue
+        with contextlib.suppress(OSError):
+            tmp.unlink()
+            removed.append(tmp)
+    return removed
+
+
+def _alive(pid: int) -> bool:
+    """Whether process ``pid`` runs on this machine (this process does)."""
+    if pid == os.getpid():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except OSError:                     # someone else's process
+        return True
+    return True
 
 
 def _naming(exc: OSError, path: Path, tmp) -> OSError:

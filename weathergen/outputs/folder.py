@@ -72,9 +72,11 @@ def prepare_folder(out: Path, kind: FolderKind, config: dict, previous: Optional
     non-empty folder without ``kind``'s marker is refused unless ``overwrite`` (entries named in
     ``ignore``, such as the caller's lock file, do not count); a folder that holds a run is
     refused unless ``resume`` (or ``shared``: another shard of the same run may start in it) with
-    the same configuration, or ``overwrite``. Resuming removes the temporary files that a killed
-    run left: with ``temporary``, only those in the given places (``(folder, name prefix)``
-    pairs: other shards may be writing elsewhere), else every one below ``out``.
+    the same configuration, or ``overwrite``. A run that goes on in a folder of ``kind``
+    (resuming, overwriting, or after a run killed before it recorded anything) removes the
+    temporary files that a killed run left: with ``temporary``, only those in the given places
+    (``(folder, name prefix)`` pairs: other shards may be writing elsewhere), else every one below
+    ``out``.
     """
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -92,13 +94,14 @@ def prepare_folder(out: Path, kind: FolderKind, config: dict, previous: Optional
                 diff = sorted(k for k in set(previous) | set(new) if previous.get(k) != new.get(k))
                 raise ConfigError(f"{out}: was {kind.done} with different settings "
                                   f"({', '.join(diff)}); use another ${{out}}, or ${{overwrite}}")
-    if resume and out.is_dir():
-        # temporary files of a killed run (atomic writes that never reached their rename)
+    if (out / kind.marker).exists() and out.is_dir():
+        # temporary files of a killed run (atomic writes that never reached their rename; an
+        # EXR's end in .tmp.exr): resumed, redone, or killed before it recorded anything
         if temporary is None:
             stale_files = out.rglob(".*.tmp*")
         else:
             stale_files = (p for folder, prefix in temporary
-                           for p in Path(folder).glob(f"{glob.escape(prefix)}*.tmp"))
+                           for p in Path(folder).glob(f"{glob.escape(prefix)}*.tmp*"))
         for stale in stale_files:
             if stale.is_file():
                 stale.unlink()

@@ -217,6 +217,17 @@ class PairOutput:
             return False
         return all(p.exists() for p in listed)
 
+    def unreadable(self) -> Optional[str]:
+        """What is wrong with the pair's metadata file when it is there but cannot be read (a
+        corrupt or truncated file: the pair counts as not written), else None."""
+        if not self.metadata.exists():
+            return None
+        try:
+            self.listed_files()
+        except FormatError as exc:
+            return str(exc)
+        return None
+
 
 def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarray, np.ndarray],
                        opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray],

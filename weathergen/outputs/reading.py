@@ -7,7 +7,7 @@ attacking stored particles (``particles_from``) need from an output folder.
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
@@ -93,20 +93,33 @@ class WeatherFolder:
     input: dict
     pairs: list
     sequence: bool = False        # a `render --sequence` tree: scenes hold every frame
+    #: with ``skip_unreadable``: what is wrong with each particle file that cannot be read
+    unreadable: list = field(default_factory=list)
 
     @classmethod
-    def open(cls, root: str | Path) -> "WeatherFolder":
+    def open(cls, root: str | Path, skip_unreadable: bool = False) -> "WeatherFolder":
+        """The output at ``root``. A particle-metadata file that cannot be read raises
+        FormatError naming it, or with ``skip_unreadable`` leaves its pair out and is listed in
+        ``unreadable`` (one line each)."""
         root = Path(root)
         manifest = read_manifest(root, "weather")
         pass_name, fmt = manifest.pass_name, manifest.fmt
-        pairs = []
+        pairs, unreadable = [], []
         for meta in sorted(root.glob("*/particles/*/frame_*.npz")):
-            pid = pair_identity(read_metadata(meta))
+            try:
+                pid = pair_identity(read_metadata(meta))
+            except FormatError as exc:
+                if not skip_unreadable:
+                    raise
+                unreadable.append(f"{exc}; its pair is left out")
+                continue
             if PairOutput.of(root, pid, pass_name, fmt, sequence=manifest.sequence).is_complete():
                 pairs.append(pid)
         if not pairs:
-            raise DatasetError(f"{root}: holds no complete weather pairs")
-        return cls(root, pass_name, fmt, manifest.input, sorted(pairs), manifest.sequence)
+            why = f" ({unreadable[0]})" if unreadable else ""
+            raise DatasetError(f"{root}: holds no complete weather pairs{why}")
+        return cls(root, pass_name, fmt, manifest.input, sorted(pairs), manifest.sequence,
+                   unreadable)
 
     def frames(self, pair_id: PairId) -> tuple[torch.Tensor, torch.Tensor]:
         """The weather frames of a pair. Shape: two (3, H, W) float32 in [0, 1]."""

@@ -10,11 +10,13 @@ bytes written do not depend on worker count, order, sharding or resumption.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import multiprocessing
 import os
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field, replace
 from datetime import datetime, timezone
 from pathlib import Path
@@ -26,6 +28,7 @@ import torch
 from ..datasets import Dataset, PairRef, right_camera
 from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, load_templates,
                       particle_truth, reference_transforms, render_pair, visible_counts)
+from ..engine.budget import check_pair_memory
 from ..engine.presets import list_presets
 from ..engine.renderer import pair_starts, render_first_frame
 from ..engine.stereo import render_right, render_right_layers, stereo_view, warp_depth
@@ -34,9 +37,10 @@ from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker
 from ..framepair import FramePairBatch, PairId
 from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
                        pair_metadata, write_manifest_part, write_pair_outputs)
-from ..io.atomic import write_error
+from ..io.atomic import remove_temporaries, write_error
+from ..memory import available_memory, failure_message
 from ..outputs.manifest import MANIFEST, jsonable
-from ..workers import StopRequests, init_worker, spawning
+from ..workers import StopRequests, how_it_ended, init_worker, spawning
 from ..words import counted
 from .particles import (layer_seeds, pair_particles, published_geometry_note, scene_airlight,
                         scene_firsts, weather_scaling, weather_seed)
@@ -134,6 +138,7 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
+            check_pair_memory(pair, job.preset, job.device, share=_drawn_at_once(job))
             airlight = None if job.particles_from is not None else \
                 scene_airlight(job.dataset, ref.id, job.scene_firsts, job.preset)
             particles = pair_particles(pair, job.preset, job.seed,
@@ -143,9 +148,9 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
                                        preset_name=job.preset_name, sequence=job.sequence,
                                        airlight=airlight)
             ready.append((ref, seed, pair, particles, time.perf_counter() - start))
-        except WeatherGenError as exc:
+        except (WeatherGenError, MemoryError, RuntimeError) as exc:
             results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed,
-                                         time.perf_counter() - start, message=str(exc))
+                                         time.perf_counter() - start, message=_failure(exc))
     if job.sequence:
         for ref, seed, pair, particles, spent in ready:
             results[ref.id] = _sequence_pair(job, ref, seed, pair, particles, spent)
@@ -162,10 +167,10 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
                 else:
                     rendered = render_pair(FramePairBatch.stack([g[2] for g in group]),
                                            [g[3] for g in group], device=job.device)
-        except WeatherGenError as exc:
+        except (WeatherGenError, MemoryError, RuntimeError) as exc:
             for ref, seed, _, _, spent in group:
                 results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed, spent,
-                                             message=str(exc))
+                                             message=_failure(exc))
             continue
         share = (time.perf_counter() - start) / len(group)
         ran = {**where_ran(job.device), "batch": len(group)}
@@ -175,6 +180,17 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
             results[ref.id].seconds = spent + share + time.perf_counter() - start
             results[ref.id].ran = ran
     return [results[ref.id] for ref in refs]
+
+
+def _failure(exc: Exception) -> str:
+    """A failed pair's message (:func:`~weathergen.memory.failure_message`)."""
+    return failure_message(exc, "--workers, --batch-size")
+
+
+def _drawn_at_once(job: RenderJob) -> int:
+    """How many pairs may be drawn at the same time on one machine: a batch in each worker."""
+    workers = job.workers if job.executor == "local" else 1
+    return max(1, workers) * max(1, job.batch_size)
 
 
 def _sequence_pair(job: RenderJob, ref: PairRef, seed: int, pair, particles, spent: float) -> PairResult:
@@ -189,8 +205,8 @@ def _sequence_pair(job: RenderJob, ref: PairRef, seed: int, pair, particles, spe
             else:
                 image, alpha = render_first_frame(pair, particles, device=job.device)
                 rendered = _FirstFrame(image1=image, opacity1=alpha)
-    except WeatherGenError as exc:
-        return PairResult(ref.id.key, str(ref.id), "failed", seed, spent, message=str(exc))
+    except (WeatherGenError, MemoryError, RuntimeError) as exc:
+        return PairResult(ref.id.key, str(ref.id), "failed", seed, spent, message=_failure(exc))
     result = _write_one(job, ref, seed, pair, particles, rendered, 0, second=second)
     result.seconds = spent + time.perf_counter() - start
     return result
@@ -319,6 +335,17 @@ def sequence_ends(ids: list[PairId]) -> frozenset:
 
 # -- the output folder ---------------------------------------------------------------------------
 
+def _pair_files(out: PairOutput, job: RenderJob) -> list[Path]:
+    """Every file the job may write for one pair (``out``)."""
+    native = out.native_flow
+    extra = out.right_files() if job.stereo else []
+    if job.truth:
+        extra += list(out.truth_files().values())
+        extra += [p for p in (out.native_truth(kind) for kind in ("particle", "seen"))
+                  if p is not None]
+    return out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else []) + extra
+
+
 def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
     """Where a killed run of this shard may have left temporary files of its pairs (atomic writes
     that never reached their rename), as ``(folder, name prefix)``: the folders of this shard's
@@ -328,15 +355,7 @@ def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
     for ref in refs:
         out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                             job.sequence, job.dataset.native_flow)
-        native = out.native_flow
-        extra = out.right_files() if job.stereo else []
-        if job.truth:
-            extra += list(out.truth_files().values())
-            extra += [p for p in (out.native_truth(kind) for kind in ("particle", "seen"))
-                      if p is not None]
-        for path in (out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else [])
-                     + extra):
-            folders.add(path.parent)
+        folders.update(path.parent for path in _pair_files(out, job))
     return [(folder, ".") for folder in sorted(folders)]
 
 
@@ -377,6 +396,7 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     selected pair fails (an output folder that this run created is removed again).
     """
     check_executor(job.executor)
+    available_memory()          # a memory budget that is not an amount fails here
     # A root that is not of the chosen layout fails here, before the output folder is touched.
     every = job.dataset.pairs()
     for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
@@ -409,7 +429,7 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     with claim_folder(job.out, RENDER_FOLDER, job.config(), resume=job.resume,
                       overwrite=job.overwrite, shard=job.shard,
                       temporary=_temporary_places(job, refs), on_note=on_note) as claim:
-        results = _render_locked(job, refs, on_result, on_start)
+        results = _render_locked(job, refs, on_result, on_start, on_note)
         note = frame2_note([(r.pair, r.visible) for r in results
                             if r.status == "written" and r.few_in_frame2], job.preset_name)
         if note is not None:
@@ -424,7 +444,8 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
         return results
 
 
-def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> list[PairResult]:
+def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start,
+                   on_note) -> list[PairResult]:
     started = time.time()
     t0 = time.perf_counter()
     results: list[PairResult] = []
@@ -456,7 +477,7 @@ def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start) -> 
             finally:
                 torch.set_num_threads(threads)
         else:
-            _run_pool(job, todo, results, on_result)
+            _run_pool(job, todo, results, on_result, on_note)
     except BaseException as exc:
         stopped_by = exc
         raise
@@ -496,36 +517,122 @@ def _run_ray(job, todo, results, on_result):
             on_result(r)
 
 
-def _run_pool(job, todo, results, on_result):
+def _run_pool(job, todo, results, on_result, on_note):
     """Render the chunks on a pool of worker processes, recording each result as it arrives.
 
     Ctrl-C and SIGTERM are held back while the pool runs (see :class:`StopRequests`): once one
     comes, no new chunk starts, the chunks already running finish, every result is recorded, and
     only then is the interruption passed on. Nothing a worker finished is left out of the record.
+
+    A worker that dies (killed by the system when memory runs out, say) breaks the pool: the
+    results that came in are kept, the other workers are stopped, and the chunks that were out
+    (the dead worker's and the others') are rendered again, one at a time by a worker of their
+    own, so that a chunk whose worker dies again is known to be the cause: it fails, its pairs
+    saying how the worker ended. Then the rest goes on with every worker.
     """
-    ctx = multiprocessing.get_context("spawn")
     queue = _chunks(todo, job.batch_size)
-    order: dict = {}                       # future -> position, to record in a fixed order
+    suspects: list = []
+    with StopRequests() as stop:
+        while (suspects or queue) and stop.signum is None:
+            if suspects:                   # one at a time: a death names its chunk
+                lost, ended = _pool_round(job, suspects, stop, results, on_result, workers=1)
+                for refs in lost:
+                    for ref in refs:
+                        r = PairResult(ref.id.key, str(ref.id), "failed",
+                                       weather_seed(job.preset, job.seed, ref.id),
+                                       message=f"its worker process died twice, the second time "
+                                               f"rendering it alone ({ended}); render it with "
+                                               f"--workers 1 to see why")
+                        results.append(r)
+                        on_result(r)
+                continue
+            suspects, ended = _pool_round(job, queue, stop, results, on_result, job.workers)
+            if suspects and stop.signum is None:
+                pairs = sum(len(refs) for refs in suspects)
+                on_note(f"a worker process died ({ended}); the {counted(pairs, 'pair')} it and "
+                        "the other workers had in hand are rendered again, one batch at a time")
+
+
+def _pool_round(job, queue: list, stop: StopRequests, results, on_result,
+                workers: int) -> tuple[list, str]:
+    """Hand the chunks of ``queue`` to one pool of ``workers`` workers until it is empty, a stop
+    is requested or a worker dies. Returns the chunks that were out when a worker died (none
+    otherwise) and how the dead worker ended; chunks never handed out stay in ``queue``."""
+    ctx = multiprocessing.get_context("spawn")
+    before = set(multiprocessing.active_children())
+    started: set = set()
+    out: dict = {}                         # future -> (position, chunk)
     pending: set = set()
-    with StopRequests() as stop, ProcessPoolExecutor(
-            max_workers=job.workers, mp_context=ctx, initializer=init_worker,
-            initargs=(os.getpid(),)) as pool:
-        while pending or (queue and stop.signum is None):
-            while queue and stop.signum is None and len(pending) < 2 * job.workers:
-                with spawning():           # the pool starts its workers on demand, in submit
-                    fut = pool.submit(render_batch, job, queue.pop(0))
-                order[fut] = len(order)
+    lost: list = []
+    broken = False                         # a worker died (idle ones too: submit refuses then)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=init_worker,
+                               initargs=(os.getpid(),))
+    try:
+        while pending or (queue and stop.signum is None and not broken):
+            while queue and stop.signum is None and not broken and len(pending) < 2 * workers:
+                if workers == 1 and pending:
+                    break                  # one at a time
+                try:
+                    with spawning():       # the pool starts its workers on demand, in submit
+                        fut = pool.submit(render_batch, job, queue[0])
+                except BrokenProcessPool:
+                    broken = True          # the loop below collects the chunks that were out
+                    break
+                out[fut] = (len(out), queue.pop(0))
                 pending.add(fut)
+                started |= set(multiprocessing.active_children()) - before
             done, pending = wait(pending, timeout=POLL_SECONDS, return_when=FIRST_COMPLETED)
             if stop.signum is not None:
                 for fut in pending:
                     fut.cancel()           # not started yet: it stays undone (--resume renders it)
-            for fut in sorted(done, key=order.__getitem__):
+            for fut in sorted(done, key=lambda f: out[f][0]):
                 if fut.cancelled():
+                    continue
+                if isinstance(fut.exception(), BrokenProcessPool):
+                    lost.append(out[fut][1])
+                    broken = True
                     continue
                 for r in fut.result():
                     results.append(r)
                     on_result(r)
+            if lost:                       # every future of a broken pool fails at once
+                lost += [out[f][1] for f in pending]
+                pending = set()
+    finally:
+        ended = _stop_workers(started) if broken else ""
+        pool.shutdown(wait=True, cancel_futures=True)
+    if lost:
+        _forget_lost(job, [ref for refs in lost for ref in refs])
+    return lost, ended
+
+
+def _stop_workers(workers: set) -> str:
+    """After a worker died: how it ended, in words (:func:`~weathergen.workers.how_it_ended`);
+    the workers still alive are killed (what they were rendering was lost with the pool, and a
+    worker ignores the pool's own SIGTERM)."""
+    time.sleep(POLL_SECONDS)               # the dead one is reaped, its exit code known
+    dead = [p.exitcode for p in workers if p.exitcode not in (None, 0)]
+    for p in workers:
+        if p.exitcode is None:
+            p.kill()
+    for p in workers:
+        p.join(timeout=10)
+    return how_it_ended(dead[0]) if dead else "ended without a word"
+
+
+def _forget_lost(job: RenderJob, refs) -> None:
+    """Undo what the stopped workers wrote of ``refs``, whose results were lost with the pool:
+    the temporary files (writes that never reached the rename) and a metadata file (written last:
+    a worker killed after writing it, before its result came back, finished the pair unseen), so
+    that the disk holds no pair the manifest does not record; the pair is rendered again or
+    stays undone for --resume."""
+    for ref in refs:
+        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
+                            job.sequence, job.dataset.native_flow)
+        for path in _pair_files(out, job):
+            remove_temporaries(path, only_of_dead=False)
+        with contextlib.suppress(OSError):
+            out.metadata.unlink()
 
 
 #: How often the pool loop looks for a held-back Ctrl-C or SIGTERM (seconds).

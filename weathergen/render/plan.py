@@ -101,7 +101,8 @@ def resolve_preset(preset: Optional[str] = None, preset_file: Optional[str | Pat
     if "model" not in values:    # a paper preset: one recorded before frame scaling used it as given
         values = {**UNSCALED, **values}
     name = stored.preset_name
-    base = name if name in list_presets() else "snow"  # every key is set anyway
+    model = values.get("model", "paper")                 # every key is set anyway: any preset
+    base = name if name in list_presets(model) else list_presets(model)[0]   # of its model
     resolved = load_preset(base, {**values, **overrides})
     if not overrides:
         appearance = {}

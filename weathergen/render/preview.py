@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -11,7 +11,7 @@ import torch
 
 from ..datasets import reopen_dataset
 from ..engine import load_particles, render_pair
-from ..errors import WeatherGenError
+from ..errors import FormatError, WeatherGenError
 from ..io.exr import read_exr
 from ..io.images import read_image, to_uint8
 from ..outputs import PairOutput, read_manifest
@@ -36,11 +36,13 @@ def caption_tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarra
 
 @dataclass
 class ContactSheet:
-    """A contact sheet and what it shows: ``shown`` of the ``total`` complete pairs."""
+    """A contact sheet and what it shows: ``shown`` of the ``total`` complete pairs;
+    ``unreadable``: one line per pair left out because its particle file cannot be read."""
 
     image: np.ndarray           # (rows * h [+ footer], 3 * width, 3) uint8 RGB
     shown: int
     total: int
+    unreadable: list = field(default_factory=list)
 
     @property
     def partial(self) -> bool:
@@ -61,18 +63,28 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
     ds = reopen_dataset(manifest.input)
     rows = []
     total = 0
+    unreadable = []
     for ref in ds.pairs():
         out = PairOutput.of(render_dir, ref.id, manifest.pass_name, manifest.fmt, manifest.geometry,
                             sequence=manifest.sequence)
         if not out.is_complete():
+            problem = out.unreadable()
+            if problem is not None:
+                unreadable.append(f"{problem}; pair {ref.id} is left out")
             continue
         total += 1
         if len(rows) == pairs:
             continue            # only counted
         pair = ds.load(ref)
         if manifest.holds_particles:
+            try:
+                particles = load_particles(out.metadata)
+            except FormatError as exc:
+                unreadable.append(f"{exc}; pair {ref.id} is left out")
+                total -= 1
+                continue
             with torch.no_grad():
-                opacity = render_pair(pair, load_particles(out.metadata)).opacity1[0, 0]
+                opacity = render_pair(pair, particles).opacity1[0, 0]
             opacity = opacity.clamp(0, 1).numpy()
         else:                   # an Lp attack: the frames themselves are perturbed
             opacity = np.zeros(pair.image1.shape[-2:], np.float32)
@@ -87,10 +99,11 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
                               "opacity" if manifest.holds_particles else "no particles")]
         rows.append(np.hstack(tiles))
     if not rows:
-        raise WeatherGenError(f"{render_dir}: no complete pair to preview")
+        why = f" ({len(unreadable)} with unreadable particle files: {unreadable[0]})" if unreadable else ""
+        raise WeatherGenError(f"{render_dir}: no complete pair to preview{why}")
     if len(rows) < total:
         footer = np.full((28, rows[0].shape[1], 3), 32, np.uint8)
         cv2.putText(footer, f"{len(rows)} of {counted(total, 'pair')} shown (--pairs {total} shows all)", (6, 19),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
         rows.append(footer)
-    return ContactSheet(np.vstack(rows), min(pairs, total), total)
+    return ContactSheet(np.vstack(rows), min(pairs, total), total, unreadable)

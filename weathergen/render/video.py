@@ -73,6 +73,7 @@ class VideoPreview:
     sequence: bool = False
     pairs: int = 0                                 # pairs shown
     total: int = 0                                 # complete pairs in the output
+    unreadable: list = field(default_factory=list) # pairs left out: their particle file's problem
     _input: Optional[tuple[Dataset, dict]] = field(default=None, repr=False)   # opened on first use
 
     @property
@@ -178,7 +179,7 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
                           "frames in order")
     if cycles is not None and cycles < 1:
         raise ConfigError(f"${{cycles}} {cycles}: must be >= 1")
-    folder = WeatherFolder.open(render_dir)
+    folder = WeatherFolder.open(render_dir, skip_unreadable=True)
     complete = folder.pairs
     chosen = complete if pairs is None else complete[:pairs]
     shots: list[Shot] = []
@@ -197,7 +198,7 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
     h, w = _frame_size(first, manifest.fmt)
     tile = (w, h) if width is None else (int(width), max(1, round(h * width / w)))
     return VideoPreview(render_dir, manifest, shots, rate, tile, with_input, with_opacity,
-                        captions, sequence, len(chosen), len(complete))
+                        captions, sequence, len(chosen), len(complete), folder.unreadable)
 
 
 def _wrote_second_frame(root: Path, manifest: OutputManifest, pair_id: PairId) -> bool:
