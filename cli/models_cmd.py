@@ -12,8 +12,13 @@ from weathergen.models import (ENTRY_POINT_GROUP, available_checkpoints, availab
                                network_record)
 from weathergen.models.checkpoints import cached_path
 
+from .options import STOPPED, exit_codes
 
-@click.command("models")
+
+@click.command("models", epilog=exit_codes(("0", "listed or shown"),
+                                            ("2", "an unknown network, or one that does not load "
+                                                  "(one line)"),
+                                            STOPPED))
 @click.argument("name", required=False)
 def models_command(name):
     """List the flow networks (those weathergen ships and those installed packages offer through
