@@ -14,6 +14,7 @@ from rich.table import Table
 from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, LP_METHODS, PCFA_OPTIMIZERS, AttackJob,
                                lp_pass_name, parse_target, plan_lp, run_attack)
 from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
+from weathergen.datasets import in_research_frame
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.execution import RunClock, check_executor
@@ -173,6 +174,8 @@ def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, op
         if optimizer is not None:
             raise ConfigError("${optimizer} applies to --method pcfa only")
         steps = DEFAULT_STEPS if steps is None else steps
+        if compat == "reference":       # the research code's frame and scaling too
+            dataset = in_research_frame(dataset)
         job, label = _weather_job(dataset, model, checkpoint, iters, download, config_name,
                                   preset, set_items, particles_dir, steps, optimize, lr, alpha1,
                                   alpha2, target, occlusion_gradient, compat or "paper",

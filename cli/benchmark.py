@@ -9,7 +9,9 @@ import click
 from rich.console import Console
 
 from weathergen.attack import run_attack
-from weathergen.benchmark import (DEFAULT_LP, DEFAULT_PRESETS, BenchmarkSpec, run_grid, tr115_default, write_tables)
+from weathergen.benchmark import (DEFAULT_LP, DEFAULT_PRESETS, BenchmarkSpec, available_ladders, run_grid,
+                                  tr115_default, write_tables)
+from weathergen.datasets import in_research_frame
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.render.shards import parse_shard
@@ -41,16 +43,23 @@ def _checkpoints(items) -> dict:
                  "finishes the grid")))
 @dataset_options
 @click.option("--networks", default="raft", show_default=True, metavar="A,B,...",
-              help="Flow networks (comma-separated), one table column each.")
+              help="Flow networks (comma-separated), one table column each: names as for "
+                   "`attack --model`, networks of your own as FILE.py:NAME or "
+                   "package.module:NAME too.")
 @click.option("--checkpoint", "checkpoint_items", multiple=True, metavar="NETWORK=CKPT",
               help="Checkpoint file or name of one network (repeatable). Default: its own.")
-@click.option("--presets", default=",".join(DEFAULT_PRESETS), show_default=True,
-              metavar="A,B,...",
+@click.option("--presets", default=None, metavar="A,B,...",
               help="Weather presets (random and adversarial; combinations such as "
                    "snow-light+fog-light too) or attack configurations of the supplement "
-                   "(grey-offset1 ... grey-all: the paper's Table 2); '' for none.")
-@click.option("--lp", "lp_text", default=",".join(DEFAULT_LP), show_default=True,
-              metavar="A,B,...", help="Lp attacks (pcfa, ifgsm); '' for none.")
+                   "(grey-offset1 ... grey-all: the paper's Table 3); '' for none. Default: "
+                   f"{','.join(DEFAULT_PRESETS)}, none with --ladder.")
+@click.option("--lp", "lp_text", default=None, metavar="A,B,...",
+              help=f"Lp attacks (pcfa, ifgsm); '' for none. Default: {','.join(DEFAULT_LP)}, "
+                   "none with --ladder.")
+@click.option("--ladder", "ladder_text", default="", metavar="A,B,...",
+              help=f"Severity ladders ({', '.join(available_ladders())}): each weather's -light, "
+                   "-moderate and -heavy presets, random and adversarial, one curve per network "
+                   "(ladders.csv, ladder.png) and its robustness score (robustness.csv).")
 @click.option("--steps", type=int, default=None, callback=attack_steps,
               help="Weather attack steps per pair (at least 1). Default: the attack's (750).")
 @click.option("--lp-steps", type=int, default=None, callback=attack_steps,
@@ -71,20 +80,26 @@ def _checkpoints(items) -> dict:
 @device_option
 @amp_option
 @quiet_option
-def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_steps, iters,
+def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text, steps, lp_steps, iters,
               set_items, shard_text, download, out, compat, seed, device, amp, quiet):
     """Run networks x {random weather, adversarial weather, Lp attacks} x presets and write
     the paper's tables (CSV, JSON, Markdown, LaTeX; one file per table in OUT/tables) and a plot
-    of AEE per network and preset (OUT/aee.png) into OUT.
+    of AEE per network and preset (OUT/aee.png) into OUT; with --ladder also each network's
+    curve over the severities and its robustness score.
 
     Without --frames-per-scene at most 5 pairs per scene are used (the
     paper's Sintel-tr115 on Sintel training). Every run is an `attack` output under OUT/runs;
     running the command again resumes where it stopped.
     """
     resolve_device(device)
+    if compat == "reference":           # the research code's frame and scaling too
+        dataset = in_research_frame(dataset)
+    ladders = _names(ladder_text)
     spec = BenchmarkSpec(
         dataset=tr115_default(dataset), out=out, networks=_names(networks),
-        presets=_names(presets), lp_methods=_names(lp_text),
+        presets=_names(presets) if presets is not None else [] if ladders else list(DEFAULT_PRESETS),
+        lp_methods=_names(lp_text) if lp_text is not None else [] if ladders else list(DEFAULT_LP),
+        ladders=ladders,
         checkpoints=_checkpoints(checkpoint_items), steps=steps, lp_steps=lp_steps, iters=iters,
         overrides=parse_set_options(set_items), seed=seed, device=device, download=download,
         amp=amp, command=["weathergen", *sys.argv[1:]], compat=compat or "paper")
@@ -124,3 +139,6 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, steps, lp_s
         console.print(f"Tables: {paths['markdown']}, {paths['latex']} (one file per table in "
                       f"{Path(out) / 'tables'}); plot: {paths['plot']}; results: {paths['csv']}, "
                       f"{paths['json']}", highlight=False, soft_wrap=True)
+        if "curves" in paths:
+            console.print(f"Severity ladders: curves {paths['curves']}, scores {paths['scores']}, "
+                          f"plot {paths['ladder_plot']}", highlight=False, soft_wrap=True)

@@ -10,8 +10,12 @@ from rich.table import Table
 
 from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
 from weathergen.engine import resolve_device
-from weathergen.models import get_model, resolve_amp
-from weathergen.outputs import WeatherFolder
+from weathergen.models import canonical_network, get_model, network_label, network_record, resolve_amp
+from weathergen.datasets import load_scene_scales, open_dataset
+from weathergen.errors import ConfigError
+from weathergen.io.published_weather import is_published_set
+from weathergen.outputs import PublishedWeatherSet, WeatherFolder
+from weathergen.render import resolve_preset
 
 from .attack import region_rows
 from .options import BAD_INPUT, STOPPED, device_option, exit_codes, model_options, quiet_option
@@ -33,12 +37,17 @@ def _fmt(value) -> str:
               help="Where the clean dataset is stored. Default: as recorded.")
 @click.option("--pass", "pass_", default=None,
               help="Clean pass (Sintel: clean or final). Default: as recorded.")
+@click.option("--preset", default=None,
+              help="The paper's published weather (--weather a set of the research code's "
+                   "particle files): the preset it is drawn with. Default: the one the set's "
+                   "folder name says (particles_3000_npz: particles-3000).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
-              default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json.")
+              default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json (a network of "
+                   "your own: evaluate-<file stem>.<NAME>.json).")
 @device_option
 @quiet_option
 def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name, root, pass_,
-             json_path, device, quiet):
+             preset, json_path, device, quiet):
     """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
 
     Also reports the end-point error against ground truth, for the clean and the weather frames,
@@ -48,7 +57,13 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
     """
     resolve_device(device)
     amp = resolve_amp(model, amp, device)
-    folder = WeatherFolder.open(weather_dir)
+    if is_published_set(weather_dir):
+        folder = open_published(weather_dir, preset, dataset_name, root, pass_)
+    else:
+        if preset is not None:
+            raise click.UsageError("--preset applies to the paper's published weather only; a "
+                                   "weathergen folder records its preset")
+        folder = WeatherFolder.open(weather_dir)
     dataset = folder.clean_dataset(dataset_name, root, pass_)
     network = get_model(model, checkpoint, device=device, iters=iters, download=download, amp=amp)
     console = Console()
@@ -59,13 +74,18 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
                           soft_wrap=True)
 
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
-    info = {"model": model, "checkpoint": checkpoint, "iters": iters, "amp": amp,
+    info = {"model": canonical_network(model), "checkpoint": checkpoint, "iters": iters, "amp": amp,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
-    json_path = json_path or default_evaluation_path(weather_dir, model)
+    source = network_record(model)
+    if source is not None:
+        info["source"] = source
+    if isinstance(folder, PublishedWeatherSet):
+        info["published"] = {"preset": folder.preset_name}
+    json_path = json_path or default_evaluation_path(weather_dir, network_label(model))
     write_evaluation(json_path, info, rows, summary)
     if quiet:
         return
-    table = Table(title=f"weathergen evaluate: {model} on {weather_dir} (pixels)")
+    table = Table(title=f"weathergen evaluate: {network_label(model)} on {weather_dir} (pixels)")
     for i, col in enumerate(("pair", "AEE(f, f̌)", "EPE clean", "EPE weather")):
         table.add_column(col, justify="left" if i == 0 else "right")
     for r in rows:
@@ -77,3 +97,15 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
     for label, value in region_rows(summary):
         console.print(f"{label}: {value}", highlight=False, soft_wrap=True)
     console.print(f"Figures: {json_path}", highlight=False, soft_wrap=True)
+
+
+def open_published(folder, preset, dataset_name, root, pass_) -> PublishedWeatherSet:
+    """A published set against the clean dataset at ``root`` (Sintel unless named), opened in
+    the research code's frame and scaling, where its particles were placed."""
+    if root is None:
+        raise ConfigError(f"{folder} holds the paper's published weather (particles, no record of "
+                          f"the dataset): give the clean dataset with ${{root}}")
+    resolved = resolve_preset(preset, None, None, folder)
+    dataset = open_dataset(dataset_name or "sintel", root, pass_=pass_ or "clean",
+                           scene_scales=load_scene_scales("research"), camera_translation="unscaled")
+    return PublishedWeatherSet.open(folder, dataset, resolved.preset, resolved.name)

@@ -19,6 +19,7 @@ from weathergen.engine.layers import layer_arrays
 from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
 from weathergen.errors import ConfigError
 from weathergen.io.atomic import remove_temporaries, write_error
+from weathergen.io.published_weather import is_published_file, read_published_weather
 from weathergen.io.images import write_png
 from weathergen.io.video import check_video_path, write_video
 from weathergen.outputs import read_metadata, stored_frame_scaling
@@ -39,9 +40,13 @@ def _preset_origin(name: str, source: str) -> str:
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
 def inspect(file: Path):
     """Show what a particle-metadata file holds: pair, seed, preset, counts and value ranges
-    (per layer for a combined preset)."""
-    arrays = read_metadata(file)
+    (per layer for a combined preset); or a particle file of the paper's published weather (the
+    research code's format)."""
     console = Console()
+    if is_published_file(file):
+        _published(console, file)
+        return
+    arrays = read_metadata(file)
     if "format_version" not in arrays and "lp_attack" in arrays:
         console.print(_lp_head(arrays, file))     # an Lp attack perturbs the frames: no particles
         return
@@ -81,7 +86,9 @@ def inspect(file: Path):
             ("blend", str(arrays.get("blend", "?"))),
             ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, "
                             f"{int(arrays.get('blur_samples', 1))} samples"),
-            ("templates", str(arrays.get("templates", "?"))),
+            ("templates", str(arrays.get("templates", "?")) if "stamp_boxes" not in arrays else
+             f"none: each particle's own stored stamp ({int(arrays['stamp_side'])} px square, "
+             f"from the paper's published weather)"),
         ]
     version = int(layers[0].get("format_version", 0))
     rows += [
@@ -96,6 +103,41 @@ def inspect(file: Path):
     for name, a in zip(names, layers):
         title = f"per-particle values{f' of layer {name}' if name else ''} (as Particles.load reads them)"
         console.print(_ranges(a, title, file))
+
+
+def _published(console: Console, file: Path) -> None:
+    """A particle file of the paper's published weather: the pair it names, its particles' values
+    in the research code's terms, and how weathergen draws it."""
+    w = read_published_weather(file)
+    head = Table(title=str(file), show_header=False)
+    head.add_column("key")
+    head.add_column("value")
+    extent = [int(np.count_nonzero((a > 0).any(0))) for a in w.alpha]
+    for key, value in (
+            ("format", "the paper's research code (save_weatherfile): points3D, motion3D, flakes, "
+                       "flakescol, flakestrans; weathergen reads it as published weather"),
+            ("pair", f"scene {file.parent.name}, frame {file.stem.removeprefix('frame_')} "
+                     f"(and the next)"),
+            ("particles", str(w.count)),
+            ("flakes", f"{w.side} px square each, alpha drawn {min(extent, default=0)} to "
+                       f"{max(extent, default=0)} px wide; no colour offsets"),
+            ("drawn by weathergen", "render --particles SET (its folder), with the preset it was "
+                                    "generated with; docs/render.md"),
+            ("file size", f"{file.stat().st_size:,} bytes")):
+        head.add_row(key, value)
+    console.print(head)
+    ranges = Table(title="per-particle values (as the file holds them)")
+    for col in ("value", "shape", "min", "max", "mean"):
+        ranges.add_column(col, justify="left" if col in ("value", "shape") else "right", no_wrap=True)
+    theta = (np.tanh(w.transparency.astype(np.float64)) + 1) / 2
+    for label, values in (("position x, y, z (camera 1)", w.points), ("depth z (camera 1)", w.points[:, 2]),
+                          ("motion x, y, z (camera 2 axes)", w.motion), ("colour r, g, b", w.color),
+                          ("transparency (before tanh)", w.transparency),
+                          ("θ / s = (tanh + 1) / 2", theta), ("flake alpha", w.alpha)):
+        v = np.asarray(values, np.float64)
+        ranges.add_row(label, str(tuple(v.shape)), *(f"{f(v):.4g}" if v.size else "–"
+                                                     for f in (np.min, np.max, np.mean)))
+    console.print(ranges)
 
 
 def _lp_head(arrays: dict, file: Path) -> Table:

@@ -18,6 +18,7 @@ from .check import check
 from .demo_scene import demo_scene
 from .evaluate import evaluate
 from .inspect_cmd import inspect, preview
+from .models_cmd import models_command
 from .options import ARGV_KEY, exit_codes, option_of
 from .presets_cmd import presets_command
 from .render import render
@@ -62,7 +63,8 @@ def cli():
     """Physically placed weather for optical-flow datasets, and weather attacks on flow networks."""
 
 
-for _command in (attack, benchmark, check, demo_scene, evaluate, inspect, preview, presets_command, render):
+for _command in (attack, benchmark, check, demo_scene, evaluate, inspect, models_command, preview,
+                 presets_command, render):
     cli.add_command(_command)
 
 

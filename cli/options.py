@@ -63,8 +63,21 @@ def compat_option(func):
         help="paper (default): the attack of the paper's equations and tables; reference: the "
              "authors' research code where it departs from them (gradients accumulated over the "
              "steps, occlusion detached, penalty over the squared frame-1 depth, homogeneous "
-             "offsets, transparency capped at the preset's, its figures), to reproduce its "
-             "published tables. See docs/attack.md.")(func)
+             "offsets, transparency capped at the preset's, its figures, and its frame and "
+             "scaling of Sintel: --scene-scales research unless given, the camera translation "
+             "zeroed in the scaled scenes), to reproduce its published tables. See "
+             "docs/attack.md.")(func)
+
+
+def render_compat_option(func):
+    """``--compat`` of ``render``: the dataset in the research code's frame and scaling."""
+    return click.option(
+        "--compat", type=click.Choice(("paper", "reference")), default=None,
+        help="reference: open the dataset in the frame and scaling of the paper's research code "
+             "(its per-scene table, --scene-scales research, unless given; the camera translation "
+             "zeroed in the scenes it scales), where the paper's published weather was placed, "
+             "so --particles SET draws the research code's render of it. Default: paper (the "
+             "dataset as the other options open it).")(func)
 
 
 def overwrite_option(help: str):
@@ -134,10 +147,15 @@ def dataset_options(func):
     @click.option("--depth-scale", type=float, default=1.0, show_default=True,
                   help="Multiply all depth (and camera translation) by this factor.")
     @click.option("--scene-scales", type=click.Path(dir_okay=False, path_type=str), default=None,
-                  help="TOML/JSON table of per-scene depth factors, applied on top of --depth-scale. "
-                       "Default: none (every scene 1.0).")
+                  help="TOML/JSON table of per-scene depth factors, applied on top of --depth-scale; "
+                       "'research': the paper's research code's table (bundled). Default: none "
+                       "(every scene 1.0).")
     @click.option("--camera-translation/--no-camera-translation", default=True, show_default=True,
                   help="Keep the camera translation between the two frames (or zero it).")
+    @click.option("--no-translation-in-scaled-scenes", "unscaled_translation", is_flag=True,
+                  help="Zero the camera translation only in the scenes --depth-scale and "
+                       "--scene-scales scale (factor not 1), as the paper's research code does "
+                       "(with --scene-scales research: its frame and scaling).")
     @click.option("--far-depth", type=click.FloatRange(min=0, min_open=True), default=None,
                   help="kitti, spring, custom: depth (dataset units, before --depth-scale) given to "
                        "pixels without depth, such as the sky. Default: 1000.")
@@ -150,11 +168,16 @@ def dataset_options(func):
     @reader_options
     @functools.wraps(func)
     def wrapper(*args, dataset_name, root, split, pass_, scenes, from_scene, frames_per_scene,
-                first_frame, depth_scale, scene_scales, camera_translation, far_depth, world_up,
-                **kwargs):
+                first_frame, depth_scale, scene_scales, camera_translation, unscaled_translation,
+                far_depth, world_up, **kwargs):
         name = dataset_name or default_dataset(root)
         reader = DATASETS[name]
-        options = dict(depth_scale=depth_scale, camera_translation=camera_translation,
+        if unscaled_translation and not camera_translation:
+            raise click.UsageError("--no-translation-in-scaled-scenes keeps the translation of "
+                                   "the unscaled scenes; --no-camera-translation zeroes every one: "
+                                   "give one of them")
+        translation = "unscaled" if unscaled_translation else camera_translation
+        options = dict(depth_scale=depth_scale, camera_translation=translation,
                        scene_scales=load_scene_scales(scene_scales) if scene_scales else None,
                        world_up=world_up)
         for flag, keyword in READER_OPTIONS.items():
@@ -238,9 +261,12 @@ def model_options(func):
     for option in reversed((
         click.option("--model", default="raft", show_default=True,
                      help="Flow network or checkpoint name (raft, raft-small, gma, flowformer, "
-                          "raft-things, ...)."),
+                          "raft-things, ...; `weathergen models` lists them), an installed "
+                          "network's name, or a network of your own: FILE.py:NAME or "
+                          "package.module:NAME (see docs/models.md)."),
         click.option("--checkpoint", default=None,
-                     help="Checkpoint file or name. Default: the model's own, from the user cache."),
+                     help="Checkpoint file or name. Default: the model's own, from the user cache "
+                          "(a network of your own: none, its code gives the weights)."),
         click.option("--iters", type=click.IntRange(min=1), default=None,
                      help="Refinement iterations of recurrent networks. Default: the network's "
                           "own (RAFT 12, GMA 6, FlowFormer 32)."),

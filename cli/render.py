@@ -14,6 +14,7 @@ from rich.progress import (BarColumn, MofNCompleteColumn, Progress, ProgressColu
 from rich.text import Text
 from rich.table import Table
 
+from weathergen.datasets import in_research_frame
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.execution import RunClock, check_executor
 from weathergen.outputs import FORMATS, folder_size
@@ -22,7 +23,8 @@ from weathergen.render.plan import default_batch_size, default_out, default_pass
 from weathergen.words import counted
 
 from .options import (ARGV_KEY, dataset_options, device_option, executor_options, job_exit_codes,
-                      out_option, overwrite_option, quiet_option, resume_option, seed_option)
+                      out_option, overwrite_option, quiet_option, render_compat_option,
+                      resume_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 class _RateColumn(ProgressColumn):
@@ -55,9 +57,11 @@ def _parse_workers(ctx, param, value):
 
 @click.command(epilog=job_exit_codes())
 @dataset_options
-@click.option("--preset", default="snow", show_default=True,
+@click.option("--preset", default=None,
               help="Weather preset by name (see `weathergen presets`); presets joined by + "
-                   "render together in one pass, e.g. rain-heavy+fog-light.")
+                   "render together in one pass, e.g. rain-heavy+fog-light. Default: snow; with "
+                   "--particles of the paper's published weather, the preset its folder's name "
+                   "says (particles_3000_npz: particles-3000).")
 @click.option("--preset-file", type=click.Path(dir_okay=False, path_type=str), default=None,
               help="Your own preset file (TOML); replaces --preset. Default: none.")
 @click.option("--set", "set_items", multiple=True, metavar="KEY=VALUE",
@@ -65,8 +69,11 @@ def _parse_workers(ctx, param, value):
 @out_option("out/<preset>")
 @seed_option("Run seed; each pair's seed derives from it and the pair's identity.")
 @click.option("--particles", "particles_dir", type=click.Path(file_okay=False, path_type=Path),
-              default=None, help="Re-render the particles of an earlier render output instead of sampling. "
+              default=None, help="Re-render the particles of an earlier render output instead of sampling, "
+                                  "or the paper's published weather (a set of the research "
+                                  "code's SCENE/frame_NNNN.npz files; see docs/render.md). "
                                   "Default: sample new particles.")
+@render_compat_option
 @click.option("--pass-name", default=None,
               help="Name of the output pass folder. Default: <preset>_<input pass>.")
 @device_option
@@ -101,7 +108,7 @@ def _parse_workers(ctx, param, value):
 @overwrite_option("Redo every pair, even in a folder that holds a render, and write into a non-empty "
                   "folder that render did not create.")
 @quiet_option
-def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pass_name, device,
+def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, compat, pass_name, device,
            workers, batch_size, fmt, geometry, sequence, stereo, truth, shard, executor, ray_address,
            resume, overwrite,
            quiet):
@@ -110,6 +117,8 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, pa
     With no option it renders the snow preset onto the bundled demo scene into out/snow.
     """
     check_executor(executor)
+    if compat == "reference":
+        dataset = in_research_frame(dataset)
     # A Ray driver need not have the workers' devices.
     dev = (resolve_device(device) if executor == "local"
            else torch.device("cuda" if device.startswith("cuda") else "cpu"))

@@ -127,7 +127,7 @@ LAYERS = [("weathergen", "weathergen.errors", "weathergen.workers", "weathergen.
           ("weathergen.training",),
           ("weathergen.outputs",), ("weathergen.jobs",), ("weathergen.render",), ("weathergen.attack",),
           ("weathergen.benchmark",),
-          ("weathergen.cli",)]
+          ("weathergen.cli",), ("weathergen.__main__",)]
 
 
 def test_each_layer_imports_only_the_layers_below_it():

@@ -68,6 +68,18 @@ def test_the_command_line_runs_from_the_repository_root_as_a_module():
     assert "count" in res.stdout and "3000" in res.stdout
 
 
+def test_the_package_runs_the_command_line_as_a_module():
+    """``python -m weathergen`` is ``python -m weathergen.cli``: the commands, their exit codes."""
+    res = _bare(["-m", "weathergen", "presets", "snow"], PROJECT_ROOT, _dependencies())
+    assert res.returncode == 0, res.stderr
+    assert "count" in res.stdout and "3000" in res.stdout
+    bad = _bare(["-m", "weathergen", "presets", "no-such-preset"], PROJECT_ROOT, _dependencies())
+    assert bad.returncode == 2 and bad.stderr.startswith("Error:") and "Traceback" not in bad.stderr
+    usage = _bare(["-m", "weathergen", "--help"], PROJECT_ROOT, _dependencies())
+    assert usage.returncode == 0, usage.stderr
+    assert usage.stdout.startswith("Usage: weathergen ") and "models" in usage.stdout
+
+
 # setuptools' editable finder, as `pip install -e` of another checkout installs it: appended to
 # sys.meta_path at start-up, mapping the package and its two relocated subpackages by name.
 OTHER_EDITABLE = """

@@ -74,7 +74,7 @@ def test_tables_equal_the_per_run_summaries(bench, raft_small_weights):
     md = (out / "tables.md").read_text()
     tex = (out / "tables.tex").read_text()
     f = lambda v: f"{v:.2f}"                                        # noqa: E731
-    # Table 4: the Lp baseline beside the adversarial snow, the worst bold.
+    # Table 5: the Lp baseline beside the adversarial snow, the worst bold.
     worst = max(ifgsm["aee_adversarial"], snow["aee_adversarial"])
     for name, value in (("I-FGSM", ifgsm["aee_adversarial"]),
                         ("Snow (ours)", snow["aee_adversarial"])):
@@ -82,16 +82,24 @@ def test_tables_equal_the_per_run_summaries(bench, raft_small_weights):
         assert f"| {name} | {shown} |" in md
         shown = r"\textbf{" + f(value) + "}" if value == worst else f(value)
         assert f"{name} & {shown} \\\\" in tex
-    # Table 1: the random weather of each preset; snow is the paper's Particles row 3000.
+    # Table 2: the random weather of each preset; snow is the paper's Particles row 3000.
     augmentations = (out / "tables" / "augmentations.md").read_text()
     assert f"| **Particles** |  |\n| 3000 (snow) | **{f(snow['aee_random'])}** |" in augmentations
-    # Table 2: Initial (not ranked) above the configuration's adversarial figure.
+    # Table 3: Initial (not ranked) above the configuration's adversarial figure.
     assert f"| Initial | {f(grey['aee_random'])} |" in md
     assert f"| δc (grey-color) | **{f(grey['aee_adversarial'])}** |" in md
-    # Table 3: random and adversarial next to each other under the network.
-    assert (f"| snow | **{f(snow['aee_random'])}** | **{f(snow['aee_adversarial'])}** |" in md)
-    assert "| Weather | raft-small rand. | raft-small adv. |" in md
-    assert r"\multicolumn{2}{c}{raft-small}" in tex
+    # Table 4: the adversarial weather alone (its random figure is Table 2's).
+    weather = (out / "tables" / "weatherattacks.md").read_text()
+    assert f"| snow | **{f(snow['aee_adversarial'])}** |" in weather
+    assert "| Attack | raft-small |" in weather and "rand." not in weather
+    # numbered as in the paper, in its order
+    assert [line.split(":")[0] for line in md.splitlines() if line.startswith("### ")] == [
+        "### Table 2 (augmentations)", "### Table 3 (optimvariables)",
+        "### Table 4 (weatherattacks)", "### Table 5 (of_attacks)"]
+    for number, label in ((2, "augmentations"), (3, "optimvariables"), (4, "weatherattacks"),
+                          (5, "of_attacks")):
+        at = tex.index("\\setcounter{table}{" + str(number - 1) + "}")
+        assert tex.index("\\begin{table}", at) < tex.index("\\label{table:" + label + "}", at)
     for label in ("augmentations", "optimvariables", "weatherattacks", "of_attacks"):
         assert r"\label{table:" + label + "}" in tex
         assert (out / "tables" / f"{label}.md").read_text() in md
@@ -137,7 +145,7 @@ def test_table_layout_column_counts_and_a_whole_document(bench):
         for row in rows:
             assert cell_count(row) == len(spec), (spec, row)
         widths.append(len(spec))
-    assert widths == [2, 2, 3, 2]             # one network; Table 3 has rand. and adv.
+    assert widths == [2, 2, 2, 2]             # one network, one column each
     for block in (out / "tables.md").read_text().split("### ")[1:]:
         lines = [ln for ln in block.splitlines() if ln.startswith("|")]
         bars = {ln.replace(r"\|", "").count("|") for ln in lines}
@@ -172,14 +180,15 @@ def test_latex_escapes_and_markdown_pipes():
     assert r"\emph{Color $\alpha$-blending}" in tex            # the paper's family heading
     assert "α" not in tex and "my_preset" not in tex
     md = markdown_table(tables["weatherattacks"], "c")
-    assert r"| my_preset%#\| | 1.00 | **2.00** |" in md
-    assert "| alpha-blue | **3.00** | – |" in md
+    assert r"| my_preset%#\| | **2.00** |" in md
+    assert "| alpha-blue | – |" in md
 
 
 def test_augmentations_are_the_papers_families_each_with_its_worst_bold():
-    """Table 1 as the paper lays it out: families in the paper's order under their headings, the
-    main augmentations in their families' rows, the worst of each family bold (rows alone in their
-    family are ranked with one another)."""
+    """Table 2 as the paper lays it out: families in the paper's order under their headings, their
+    rows in the paper's order whatever the order asked for, the main augmentations in their
+    families' rows, presets outside the families after them, the worst of each family bold (rows
+    alone in their family are ranked with one another)."""
     from weathergen.benchmark import build_tables, latex_table, markdown_table
 
     figures = {"fog": 1.0, "snow": 2.0, "rain": 3.0, "sparks": 4.0, "particles-1000": 1.5,
@@ -189,14 +198,13 @@ def test_augmentations_are_the_papers_families_each_with_its_worst_bold():
     (table,) = [t for t in build_tables(rows, ["a"]) if t.name == "augmentations"]
     md = markdown_table(table, "c").split("\n")
     body = [line for line in md[md.index("| --- | ---: |") + 1:] if line]
-    assert body == ["| own-preset | 0.50 |",
-                    "| **Particles** |  |", "| 3000 (snow) | 2.00 |", "| 1000 | 1.50 |",
+    assert body == ["| **Particles** |  |", "| 1000 | 1.50 |", "| 3000 (snow) | 2.00 |",
                     "| 5000 | **7.00** |",
-                    "| **Motion blur** |  |", "| 0.15 (rain) | **3.00** |", "| 0.0375 | 2.50 |",
+                    "| **Motion blur** |  |", "| 0.0375 | 2.50 |", "| 0.15 (rain) | **3.00** |",
                     "| **Color additive** |  |", "| red (sparks) | **4.00** |",
-                    "| **Size** |  |", "| fog | 1.00 |"]
+                    "| **Size** |  |", "| fog | 1.00 |", "| own-preset | 0.50 |"]
     tex = latex_table(table, "c")
-    assert "\\emph{Particles}} \\\\\n3000 (snow) & 2.00 \\\\\n1000 & 1.50" in tex
+    assert "\\emph{Particles}} \\\\\n1000 & 1.50 \\\\\n3000 (snow) & 2.00" in tex
     from weathergen.engine import load_preset
 
     for main, member in (("snow", "particles-3000"), ("rain", "motion-blur-0.15"),
@@ -206,7 +214,7 @@ def test_augmentations_are_the_papers_families_each_with_its_worst_bold():
 
 
 def test_optimvariables_marks_the_worst_bold_and_the_second_worst_underlined():
-    """Table 2 as the paper marks it, per column: the worst configuration bold, the second worst
+    """Table 3 as the paper marks it, per column: the worst configuration bold, the second worst
     underlined; the Initial row (random particles) takes part in neither, however large."""
     from weathergen.benchmark import build_tables, latex_table, markdown_table
 

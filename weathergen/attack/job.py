@@ -30,12 +30,13 @@ from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
 from ..memory import failure_message
-from ..models import get_model, resolve_amp
+from ..models import canonical_network, get_model, network_record, resolve_amp, resolved_spec
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
-from ..jobs import (frame2_note, layer_seeds, pair_particles, pair_seed, scene_airlight,
-                    scene_firsts, visibility_of, weather_scaling, weather_seed)
+from ..jobs import (frame2_note, layer_seeds, pair_particles, pair_seed,
+                    published_geometry_note, scene_airlight, scene_firsts, visibility_of,
+                    weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -76,6 +77,11 @@ class AttackJob:
     threads: Optional[int] = None       # torch threads of each unit (None: leave as is)
     scene_firsts: dict = field(default_factory=dict)   # each scene's first selected pair
 
+    def __post_init__(self):
+        # a network in a file by its resolved path: the same file from any working directory
+        # (a Ray worker may start in another folder, a resumed run in another)
+        self.model = resolved_spec(self.model)
+
     def amp_setting(self) -> bool:
         """Whether the network runs in mixed precision (:func:`~weathergen.models.resolve_amp`
         of the job's network, request and device).
@@ -87,10 +93,14 @@ class AttackJob:
         return resolve_amp(self.model, self.amp, self.device)
 
     def model_config(self) -> dict:
-        """The network as recorded in the manifest: name, checkpoint, iterations, precision."""
-        return {"name": self.model, "checkpoint": str(self.checkpoint)
-                if self.checkpoint is not None else None, "iters": self.iters,
-                "amp": self.amp_setting()}
+        """The network as recorded in the manifest: name, checkpoint, iterations, precision; for
+        a network from outside the package its resolved name and the code's ``source`` (file and
+        sha256, see :func:`~weathergen.models.network_record`)."""
+        record = network_record(self.model)
+        config = {"name": canonical_network(self.model), "checkpoint": str(self.checkpoint)
+                  if self.checkpoint is not None else None, "iters": self.iters,
+                  "amp": self.amp_setting()}
+        return config if record is None else {**config, "source": record}
 
     def config(self) -> dict:
         """What must agree between an interrupted run and its resumption."""
@@ -144,7 +154,9 @@ def job_model(job: AttackJob, device: Optional[str] = None):
     """The job's network on ``device`` (default the job's), loaded once per process."""
     device = device or job.device
     amp = resolve_amp(job.model, job.amp, device)
-    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, amp)
+    code = network_record(job.model)        # a network of your own: its file's content too
+    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, amp,
+           None if code is None else code["sha256"])
     if key not in _MODELS:
         _MODELS.clear()                     # one network per process at a time
         _MODELS[key] = get_model(job.model, job.checkpoint, device=device, iters=job.iters,
@@ -254,7 +266,7 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
              if isinstance(job.preset, CombinedPreset) else None)
     meta = pair_metadata(best, pair.id, weather_seed(job.preset, job.seed, pair.id),
                          job.preset.to_dict(), job.preset_name, seeds,
-                         scaling=weather_scaling(job.preset, pair))
+                         scaling=weather_scaling(job.preset, pair, job.particles_from))
     flows = {"benign": result.benign_flow, "initial": result.initial_flow,
              "adversarial": adversarial, "target": result.target}
     out = pair_output(job, pair.id)
@@ -338,6 +350,9 @@ def run_attack(job: AttackJob,
     refs = job.dataset.pairs()
     for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
         on_note(note)
+    geometry = published_geometry_note(job.dataset, job.particles_from)
+    if geometry is not None:
+        on_note(geometry)
     if not refs:
         raise ConfigError(job.dataset.no_pairs_message())
     job.scene_firsts = scene_firsts(refs)

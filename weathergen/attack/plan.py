@@ -11,7 +11,9 @@ Precedence, as the command line applies it:
    its second offset fixed and differentiates through occlusion, however its particles were
    obtained);
 5. stored particles (``particles_from``) fix the preset: another ``preset`` is refused, and so is
-   any override (re-render them instead).
+   any override (re-render them instead); the paper's published weather (a set of the research
+   code's files) is attacked with the preset given, or the one the set's name says, overrides
+   allowed.
 """
 
 from __future__ import annotations
@@ -64,7 +66,8 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
     combinations with ``particles_from``.
     """
     named = attack_config(config_name) if config_name else None
-    chosen = preset or (named.preset if named else "snow")
+    # None: snow, or for the paper's published weather the preset its set's name says
+    chosen = preset or (named.preset if named else None)
     resolved = resolve_preset(chosen, None, overrides, particles_from)
     name = resolved.name
     if resolved.appearance:

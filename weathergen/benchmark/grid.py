@@ -6,12 +6,14 @@ own folder ``OUT/runs/<network>/<label>``, so each is resumable and readable lik
 output:
 
 - one *weather* cell per network and preset: its ``aee_random`` (step 0: the random weather that
-  ``render --seed S`` writes for the preset) fills the "augmentations" table and, with its
-  ``aee_adversarial``, the "weatherattacks" table; a label that names an attack configuration of
+  ``render --seed S`` writes for the preset) fills the "augmentations" table and its
+  ``aee_adversarial`` the "weatherattacks" table; a label that names an attack configuration of
   the supplement rather than a preset (``grey-offset1`` ...) is attacked with that configuration
   and fills the "optimvariables" table;
 - one *Lp* cell per network and Lp method (``pcfa``, ``ifgsm``): its ``aee_adversarial`` fills
-  the "of_attacks" table, next to the adversarial snow of the same network.
+  the "of_attacks" table, next to the adversarial snow of the same network;
+- with ladders (``ladders``, :mod:`.ladder`), one weather cell per network and rung of each
+  ladder (``snow-light`` ...), which fill the ladder's curves and tables.
 
 :func:`run_grid` runs the cells of one shard (``i/N`` takes every N-th cell) one after another
 through ``execute`` — the place where another executor (worker pool, cluster) plugs in: it gets
@@ -32,7 +34,9 @@ from ..attack.plan import attack_pass_name, plan_attack
 from ..datasets import Dataset, reopen_dataset
 from ..engine import list_presets
 from ..errors import ConfigError
+from ..models import get_model, is_external_name, network_label, network_record
 from ..models.checkpoints import sha256_of
+from .ladder import ladder_presets
 
 #: The paper's four weather presets and its two Lp baselines.
 DEFAULT_PRESETS = ("snow", "rain", "sparks", "fog")
@@ -45,8 +49,9 @@ PAPER_NAMES = {"flownet2": "FN2", "flownetcrobust": "FNCR", "spynet": "SpyNet", 
 
 
 def network_name(name: str) -> str:
-    """A network as the paper's tables name it."""
-    return PAPER_NAMES.get(name, name)
+    """A network as the paper's tables name it (a network of your own by its short label,
+    ``stem.NAME``)."""
+    return PAPER_NAMES.get(name) or network_label(name)
 
 
 @dataclass(frozen=True)
@@ -58,7 +63,9 @@ class Cell:
     label: str
 
     def folder(self, out: Path) -> Path:
-        return Path(out) / "runs" / self.network / self.label
+        """``OUT/runs/<network>/<label>``; a network of your own under its short label
+        (``stem.NAME``, :func:`~weathergen.models.network_label`)."""
+        return Path(out) / "runs" / network_label(self.network) / self.label
 
 
 @dataclass
@@ -83,19 +90,37 @@ class BenchmarkSpec:
     amp: Optional[bool] = None           # mixed precision; None: each network's paper setting
     command: list = field(default_factory=list)
     compat: str = "paper"                # the weather attacks' terms (paper or reference)
+    #: severity ladders (``snow``: snow-light, snow-moderate, snow-heavy), their rungs run as
+    #: weather cells after ``presets`` (:mod:`.ladder`)
+    ladders: Sequence[str] = ()
+
+    def weather_labels(self) -> list[str]:
+        """The weather cells' labels of each network: the presets, then every ladder's rungs not
+        among them."""
+        labels = list(dict.fromkeys(self.presets))
+        for ladder in self.ladders:
+            labels += [p for p in ladder_presets(ladder) if p not in labels]
+        return labels
 
     def cells(self) -> list[Cell]:
         """Every run of the grid, in order. ConfigError names the benchmark's option of a
-        method or preset it cannot run (before the attack's own checks would name the attack's
-        options)."""
+        method, preset or ladder it cannot run (before the attack's own checks would name the
+        attack's options)."""
         if not self.networks:
             raise ConfigError("${networks} names no network")
+        labels: dict = {}
+        for net in self.networks:
+            other = labels.setdefault(network_label(net), net)
+            if other != net:
+                raise ConfigError(f"${{networks}}: {other!r} and {net!r} would share the run "
+                                  f"folder {network_label(net)!r}; name one of them otherwise")
         for method in self.lp_methods:
             if method not in LP_METHODS:
                 raise ConfigError(f"${{lp}} {method!r}: expected {', '.join(LP_METHODS)}")
+        labels = self.weather_labels()
         cells = []
         for net in self.networks:
-            cells += [Cell(net, "weather", p) for p in self.presets]
+            cells += [Cell(net, "weather", p) for p in labels]
             cells += [Cell(net, "lp", m) for m in self.lp_methods]
         return cells
 
@@ -146,10 +171,13 @@ def shard_cells(cells: list[Cell], shard: Optional[tuple[int, int]]) -> list[Cel
 
 def checkpoint_record(name: str, checkpoint: Optional[str]) -> dict:
     """What identifies a network's weights: its name, the checkpoint given and, for a file, its
-    sha256."""
+    sha256; for a network from outside the package also its code (``source``)."""
     record = {"network": name, "checkpoint": checkpoint, "sha256": None}
     if checkpoint is not None and Path(checkpoint).is_file():
         record["sha256"] = sha256_of(Path(checkpoint))
+    source = network_record(name)
+    if source is not None:
+        record["source"] = source        # a network of your own: its file and that file's sha256
     return record
 
 
@@ -158,13 +186,17 @@ def run_grid(spec: BenchmarkSpec, shard: Optional[tuple[int, int]] = None,
              on_cell: Callable[[int, int, Cell], None] = lambda i, n, c: None) -> list[Cell]:
     """Run the cells of ``shard`` (all without one) through ``execute``; return them.
 
-    Every cell's job is built before the first runs, so a bad preset, method or option fails
-    before anything is written.
+    Every cell's job is built before the first runs, and every network from outside the package
+    is built and checked (:func:`~weathergen.models.get_model`), so a bad preset, method, option
+    or network fails before anything is written.
     """
     cells = shard_cells(spec.cells(), shard)
     jobs = [cell_job(spec, c) for c in cells]
     for job in jobs:
         job.amp_setting()                   # --amp for a network or device without it
+    for net in dict.fromkeys(c.network for c in cells):
+        if is_external_name(net):           # a network of your own: built and run once on a small
+            get_model(net, spec.checkpoints.get(net), device=spec.device, iters=spec.iters)  # pair
     for i, (cell, job) in enumerate(zip(cells, jobs)):
         on_cell(i, len(cells), cell)
         execute(job)

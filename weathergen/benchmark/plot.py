@@ -1,4 +1,5 @@
-"""A bar chart of AEE(f, f̌) per network and preset, drawn with OpenCV and numpy.
+"""A bar chart of AEE(f, f̌) per network and preset, and the severity ladders' curves, drawn with
+OpenCV and numpy.
 
 One group of bars per preset (the weather cells that name a preset, in the grid's order); in each
 group one pair of bars per network, in the network's colour: the random weather (light) and the
@@ -97,12 +98,91 @@ def draw_chart(values: dict, presets: Sequence[str], networks: Sequence[str]) ->
     return img
 
 
-def draw_aee(path: str | Path, rows: list[dict], networks: Sequence[str]) -> Path:
+def draw_aee(path: str | Path, rows: list[dict], networks: Sequence[str],
+             presets: Optional[Sequence[str]] = None) -> Path:
     """Draw the chart of the grid's result ``rows`` (:func:`~.tables.collect_results`) and write
-    it as a PNG, atomically."""
-    presets = [r["label"] for r in rows if r["kind"] == "weather" and r["network"] == networks[0]
-               and label_config(r["label"]) is None]
+    it as a PNG, atomically. ``presets``: the groups, in order (default: every weather cell that
+    names a preset)."""
+    if presets is None:
+        presets = [r["label"] for r in rows if r["kind"] == "weather"
+                   and r["network"] == networks[0] and label_config(r["label"]) is None]
     values: dict[tuple[str, str], tuple[Optional[float], Optional[float]]] = {
         (r["label"], r["network"]): (r["aee_random"], r["aee_adversarial"])
         for r in rows if r["kind"] == "weather"}
-    return write_png(path, draw_chart(values, presets, list(networks)))
+    return write_png(path, draw_chart(values, list(presets), list(networks)))
+
+
+# -- severity ladders ----------------------------------------------------------------------------
+
+PANEL_W, PANEL_H, PANEL_GAP = 300, 200, 70
+LADDER_TITLE = ("Severity ladders per network: AEE(f, f_weather) and EPE [px] over the rungs; "
+                "solid = adversarial, thin = random")
+
+
+def draw_ladder_chart(curves: Sequence, networks: Sequence[str]) -> np.ndarray:
+    """The curves of :func:`~.ladder.ladder_curves` as an RGB image: one row of two panels per
+    ladder (AEE(f, f̌), then EPE against the ground truth), the points clean, light, moderate,
+    heavy on the x axis, one colour per network (in the order of ``networks``), adversarial
+    weather solid and thick, random weather thin and light. Shape: returns (H, W, 3) uint8."""
+    ladders = list(dict.fromkeys(c.ladder for c in curves))
+    colour = {net: PALETTE[j % len(PALETTE)] for j, net in enumerate(networks)}
+    (title_w, _), _ = cv2.getTextSize(LADDER_TITLE, FONT, 0.45, 1)
+    width = max(LEFT + 2 * PANEL_W + PANEL_GAP + RIGHT, LEFT + title_w + RIGHT)
+    height = TOP + max(1, len(ladders)) * (PANEL_H + BOTTOM + 24)
+    img = np.full((height, width, 3), 255, dtype=np.uint8)
+    _text(img, LADDER_TITLE, (LEFT, 20), 0.45)
+    x = LEFT
+    for net in networks:                                          # the legend
+        name = network_name(net)
+        if x + 16 + 8 * len(name) > width - RIGHT:
+            break
+        cv2.line(img, (x, 40), (x + 20, 40), colour[net], 3, cv2.LINE_AA)
+        _text(img, name, (x + 26, 44), 0.42)
+        x += 26 + 9 * len(name) + 16
+    for row, ladder in enumerate(ladders):
+        top = TOP + row * (PANEL_H + BOTTOM + 24) + 20
+        mine = [c for c in curves if c.ladder == ladder]
+        for col, (index, label) in enumerate(((1, "AEE(f, f_weather)"), (2, "EPE vs ground truth"))):
+            left = LEFT + col * (PANEL_W + PANEL_GAP)
+            _panel(img, mine, colour, index, (left, top), f"{ladder}: {label}")
+    if not ladders:
+        _text(img, "no ladder in the grid", (width / 2, TOP + PANEL_H / 2), 0.5, centre=True)
+    return img
+
+
+def _panel(img, curves, colour, index: int, origin, title: str) -> None:
+    """One panel: value ``index`` of each curve's points (1 AEE, 2 EPE) against the points."""
+    left, top = origin
+    base = top + PANEL_H
+    known = [p[index] for c in curves for p in c.points if p[index] is not None]
+    step = _nice_step(max(known, default=1.0) * 1.05)
+    ceiling = step * max(1, math.ceil(max(known, default=1.0) * 1.05 / step))
+    labels = [p[0].rsplit("-", 1)[-1] for p in curves[0].points] if curves else []
+    xs = [left + 20 + i * (PANEL_W - 40) / max(1, len(labels) - 1) for i in range(len(labels))]
+
+    def y_of(v: float) -> int:
+        return int(round(base - PANEL_H * v / ceiling))
+
+    for i in range(int(round(ceiling / step)) + 1):
+        y = y_of(i * step)
+        cv2.line(img, (left, y), (left + PANEL_W, y), GRID, 1)
+        _text(img, f"{i * step:g}", (left - 8 - 7 * len(f"{i * step:g}"), y + 4), 0.38)
+    _text(img, title, (left, top - 6), 0.42)
+    for x, label in zip(xs, labels):
+        _text(img, label, (x, base + 18), 0.4, centre=True)
+    for curve in sorted(curves, key=lambda c: c.mode != "random"):     # adversarial on top
+        adversarial = curve.mode == "adversarial"
+        tone = colour[curve.network] if adversarial else _light(colour[curve.network])
+        points = [(int(round(x)), y_of(p[index])) for x, p in zip(xs, curve.points)
+                  if p[index] is not None]
+        for a, b in zip(points, points[1:]):
+            cv2.line(img, a, b, tone, 2 if adversarial else 1, cv2.LINE_AA)
+        for p in points:
+            cv2.circle(img, p, 3 if adversarial else 2, tone, -1, cv2.LINE_AA)
+    cv2.line(img, (left, base), (left + PANEL_W, base), INK, 1)
+    cv2.line(img, (left, top), (left, base), INK, 1)
+
+
+def draw_ladder(path: str | Path, curves: Sequence, networks: Sequence[str]) -> Path:
+    """Draw :func:`draw_ladder_chart` and write it as a PNG, atomically."""
+    return write_png(path, draw_ladder_chart(curves, list(networks)))

@@ -119,6 +119,26 @@ def reopen_dataset(description: dict) -> Dataset:
                         first_frame=description.get("first_frame"), **options)
 
 
+def in_research_frame(dataset: Dataset) -> Dataset:
+    """``dataset`` opened in the frame and scaling of the paper's research code (what
+    ``--compat reference`` opens): its per-scene depth factors (the bundled ``research`` table,
+    unless the dataset has a table of its own) and the camera translation zeroed in the scenes
+    they scale (unless the dataset zeroes it everywhere). A dataset none of whose scenes that
+    changes (the demo, KITTI, a tree without Sintel's scene names) is returned as it is."""
+    description = dataset.describe()
+    if "scene_scales" not in description:
+        return dataset
+    table = description.get("scene_scales") or load_scene_scales("research")
+    scenes = dataset.all_scenes() or []
+    if not any(table.get(scene, 1.0) != 1.0 for scene in scenes):
+        return dataset
+    if not description.get("scene_scales"):
+        description.update(scene_scales=table, scene_scales_bundled=True)
+    if description.get("camera_translation") is True:
+        description["camera_translation"] = "unscaled"
+    return reopen_dataset(description)
+
+
 def demo_pairs(**selection) -> list:
     """Every selected pair of the demo scene, loaded (a convenience for examples and tests)."""
     ds = open_dataset("demo", **selection)
@@ -127,4 +147,5 @@ def demo_pairs(**selection) -> list:
 
 __all__ = ["DATASETS", "frame_rates_text", "CustomDataset", "Dataset", "DemoDataset", "KittiDataset", "NativeFlow",
            "PairRef", "RightCamera", "Selection", "SintelDataset", "SpringDataset", "default_dataset", "demo_pairs",
-           "frame_rate_of", "load_scene_scales", "open_dataset", "reopen_dataset", "right_camera"]
+           "frame_rate_of", "in_research_frame", "load_scene_scales", "open_dataset", "reopen_dataset",
+           "right_camera"]

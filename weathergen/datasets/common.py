@@ -31,7 +31,9 @@ class ScaledDataset(Dataset):
     """A reader with the depth options of every command (Sintel and every reader below).
 
     ``depth_scale * scene_scales[scene]`` multiplies depth and camera translations, so that geometry
-    stays consistent; ``camera_translation=False`` zeroes the translation between the two cameras.
+    stays consistent; ``camera_translation=False`` zeroes the translation between the two cameras,
+    ``camera_translation="unscaled"`` only in the scenes whose scale is not 1 (the paper's research
+    code's rule: it zeroes the translation of every scene it scales).
     ``world_up`` says which axis of the world (camera 1's axes where the dataset has no poses)
     points up, so that weather falls along the world's vertical; ``None`` takes the reader's
     :attr:`default_world_up`.
@@ -41,8 +43,9 @@ class ScaledDataset(Dataset):
     default_world_up = "auto"
 
     def __init__(self, root, selection: Selection = Selection(), *, depth_scale: float = 1.0,
-                 scene_scales: Optional[dict[str, float]] = None, camera_translation: bool = True,
-                 world_up: Optional[str] = None):
+                 scene_scales: Optional[dict[str, float]] = None,
+                 camera_translation: bool | str = True,
+                 world_up: Optional[str] = None, scene_scales_bundled: bool = False):
         super().__init__(root, selection)
         if not (math.isfinite(depth_scale) and depth_scale > 0):
             # an infinite or NaN scale would make every depth map look corrupt instead
@@ -53,14 +56,20 @@ class ScaledDataset(Dataset):
         #: where the table came from (a file, see :func:`load_scene_scales`), for messages
         self.scene_scales_source = getattr(scene_scales, "source", None) or "scene scales"
         self.scene_scales = dict(scene_scales or {})
+        #: the table is one weathergen ships (its scenes need not all be in the tree)
+        self.scene_scales_bundled = scene_scales_bundled or bool(getattr(scene_scales, "bundled",
+                                                                         False))
+        if camera_translation not in (True, False, "unscaled"):
+            raise ConfigError(f"${{camera_translation}} must be true, false or 'unscaled', got "
+                              f"{camera_translation!r}")
         self.camera_translation = camera_translation
         self.world_up = world_up
 
     def check_scene_scales(self) -> None:
         """Refuse a scene-scale entry that names no scene of the split (a typo would otherwise
         leave that scene unscaled without a word)."""
-        if not self.scene_scales:
-            return
+        if not self.scene_scales or self.scene_scales_bundled:
+            return                      # a bundled table names scenes a tree may not hold
         scenes = self.all_scenes()
         if scenes is None:
             return
@@ -74,6 +83,12 @@ class ScaledDataset(Dataset):
         """The depth scale applied to ``scene``."""
         return self.depth_scale * self.scene_scales.get(scene, 1.0)
 
+    def keeps_translation(self, scene: str) -> bool:
+        """Whether ``scene``'s pairs keep the translation between their cameras."""
+        if self.camera_translation == "unscaled":
+            return self.scale_of(scene) == 1.0
+        return bool(self.camera_translation)
+
     def posed_pair(self, ref, files: dict, images, depths, intrinsics, cam1_from_world,
                    cam2_from_world, *, flow=None, flow_valid=None, measured=None,
                    meta: Optional[dict] = None) -> FramePair:
@@ -85,7 +100,7 @@ class ScaledDataset(Dataset):
         """
         scale = self.scale_of(ref.id.scene)
         cam1, cam2, cam2_from_cam1 = scaled_poses(cam1_from_world, cam2_from_world, scale,
-                                                  self.camera_translation)
+                                                  self.keeps_translation(ref.id.scene))
         return FramePair(
             id=ref.id,
             image1=chw(images[0]), image2=chw(images[1]),
@@ -104,6 +119,8 @@ class ScaledDataset(Dataset):
         out = super().describe()
         out.update(depth_scale=self.depth_scale, scene_scales=self.scene_scales,
                    camera_translation=self.camera_translation, world_up=self.world_up)
+        if self.scene_scales_bundled:
+            out["scene_scales_bundled"] = True
         return out
 
 

@@ -250,7 +250,7 @@ class KittiDataset(FarDepthDataset):
             image1=chw(img1), image2=chw(img2),
             depth1=chw(depth1 * np.float32(scale)), depth2=chw(depth2 * np.float32(scale)),
             intrinsics=torch.from_numpy(k),
-            cam2_from_cam1=scaled_motion(fit.cam2_from_cam1, scale, self.camera_translation),
+            cam2_from_cam1=scaled_motion(fit.cam2_from_cam1, scale, self.keeps_translation(ref.id.scene)),
             flow=None if flow is None else chw(flow),
             flow_valid=None if flow_valid is None else chw(flow_valid),
             depth_measured1=chw(valid1), depth_measured2=chw(valid2),

@@ -14,8 +14,10 @@ places particles in a fixed volume of scene units. The reader multiplies each sc
 camera translations, so that geometry stays consistent) by ``depth_scale * scene_scales[scene]``.
 Both default to 1. The authors' research code used a hand-made per-scene table (for example
 mountain_1 x0.05, market_2 x0.2, ambush_7 x7); pass such a table as a TOML or JSON file of
-``scene = factor`` entries if you want the same look. ``camera_translation=False`` zeroes the
-translation between the two cameras (also what that research code did), keeping the rotation.
+``scene = factor`` entries if you want the same look (``research`` names that table, bundled).
+``camera_translation=False`` zeroes the translation between the two cameras, keeping the rotation;
+``camera_translation="unscaled"`` zeroes it in the scenes whose depth is scaled only, which is what
+that research code did.
 """
 
 from __future__ import annotations
@@ -44,18 +46,27 @@ _NOT_PASSES = {"depth", "camdata_left", "flow", "flow_viz", "invalid", "occlusio
 
 
 class SceneScales(dict):
-    """A per-scene depth-scale table (scene -> factor) that remembers the file it came from."""
+    """A per-scene depth-scale table (scene -> factor) that remembers the file it came from.
+    ``bundled``: a table shipped with weathergen (its scenes need not all be in a tree)."""
 
     source: str = "scene scales"
+    bundled: bool = False
+
+
+#: Tables shipped with weathergen, by the name ``--scene-scales`` takes: ``research``, the
+#: per-scene factors of the paper's research code (``datasets/scales/research.toml``).
+BUNDLED_SCALES = {"research": Path(__file__).resolve().parent / "scales" / "research.toml"}
 
 
 def load_scene_scales(path: str | Path) -> dict[str, float]:
-    """Read a per-scene depth-scale table (TOML or JSON object of ``scene: factor``).
+    """Read a per-scene depth-scale table (TOML or JSON object of ``scene: factor``), or a bundled
+    one by name (:data:`BUNDLED_SCALES`: ``research``) where no file of that name exists.
 
     Returns a :class:`SceneScales` dictionary whose ``source`` is the file, so that readers name it
     when an entry names no scene of the dataset.
     """
-    path = Path(path)
+    bundled = str(path) in BUNDLED_SCALES and not Path(path).exists()
+    path = BUNDLED_SCALES[str(path)] if bundled else Path(path)
     text = read_text_file(path, "scene-scale table")
     try:
         table = json.loads(text) if path.suffix.lower() == ".json" else tomllib.loads(text)
@@ -66,6 +77,7 @@ def load_scene_scales(path: str | Path) -> dict[str, float]:
                           f"got a JSON {type(table).__name__}")
     out = SceneScales()
     out.source = str(path)
+    out.bundled = bundled
     for scene, value in table.items():
         if (isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0
                 or not math.isfinite(value)):

@@ -24,6 +24,15 @@ particle's diameter in scene units and ``transparency`` its base θ, and footpri
 depth fade are computed for every frame from that frame's own depth of the particle
 (:mod:`weathergen.engine.tracks`).
 
+Stored stamps: a record may carry each particle's own stamp (``stamps``, (N, S, S): the alpha
+image it is drawn with, as the paper's research code stores its particles' flakes, see
+:mod:`weathergen.engine.published`); its ``template``, ``scale``, ``rotation`` and ``defocus`` are
+then not used, and the particles are drawn with the record's own number of blur samples. Such a
+record is kept exactly: its file has the float layout with every float field in float32 (no
+rounding: :meth:`Particles.quantized` only detaches it), and every stamp: the bounding box of its
+non-zero pixels (``stamp_boxes`` (N, 4) uint16: top, left, height, width), those pixels
+(``stamp_pixels``, float32, one box after the other, row-major) and the side (``stamp_side``).
+
 Storage precision of the paper's records: positions and motions as codes on a per-record linear
 grid (``lo + code * step`` per axis, the grid spanning the record's values; 15 bits for
 positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for motions); colours as
@@ -173,6 +182,8 @@ class Particles:
         scale: (N,) image pixels per template pixel, fixed at sampling; with ``optics``: the
             particle's diameter in scene units.
         defocus: (N,) int64 disc-blur radius in pixels (0 or 1: no blur); 0 with ``optics``.
+        stamps: None, or (N, S, S) float, S odd: each particle's own stamp (alpha in [0, 1],
+            drawn centred on the particle at its native pixels; see the module doc).
     Float fields are float32 (or the dtype the caller chose, e.g. float64 for gradcheck).
     """
 
@@ -190,6 +201,7 @@ class Particles:
     settings: RenderSettings = RenderSettings()
     optics: Optional[FieldOptics] = None
     atmosphere: Optional[Atmosphere] = None
+    stamps: Optional[torch.Tensor] = None
 
     @property
     def per_frame(self) -> bool:
@@ -221,15 +233,25 @@ class Particles:
             moved[name] = t.to(device) if device is not None else t
         if self.atmosphere is not None:
             moved["atmosphere"] = self.atmosphere.to(device, dtype)
+        if self.stamps is not None:
+            t = self.stamps.to(dtype) if dtype is not None else self.stamps
+            moved["stamps"] = t.to(device) if device is not None else t
         return self.replace(**moved)
 
     def select(self, index: torch.Tensor) -> "Particles":
         """The particles picked by a boolean mask or index tensor, shape (N,)."""
-        return self.replace(**{name: getattr(self, name)[index] for name in _TENSOR_FIELDS})
+        picked = {name: getattr(self, name)[index] for name in _TENSOR_FIELDS}
+        if self.stamps is not None:
+            picked["stamps"] = self.stamps[index.to(self.stamps.device)]
+        return self.replace(**picked)
 
     def quantized(self) -> "Particles":
         """A detached copy with every field rounded to its storage precision (see module doc).
         Idempotent: quantizing a quantized record changes nothing."""
+        if self.stamps is not None:     # stored stamps (published weather): kept exactly
+            return self.replace(**{name: getattr(self, name).detach().to(
+                torch.int64 if name in _INTEGER_FIELDS else torch.float32)
+                for name in _TENSOR_FIELDS}, stamps=self.stamps.detach().to(torch.float32))
         if self.optics is not None:     # field records: the float layout of version 2
             out = {}
             for name, (np_dtype, _) in _TENSOR_FIELDS.items():
@@ -253,7 +275,7 @@ class Particles:
 
     def to_numpy(self) -> dict[str, np.ndarray]:
         """The ``.npz`` content (format version 5): storage arrays plus 0-d metadata arrays."""
-        if self.optics is not None:
+        if self.optics is not None or self.stamps is not None:
             return self._to_numpy_field()
         arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
@@ -276,16 +298,20 @@ class Particles:
         return arrays
 
     def _to_numpy_field(self) -> dict[str, np.ndarray]:
-        """Field records: float storage arrays plus the metadata and the ``optics`` entry."""
+        """Field records: float storage arrays plus the metadata and the ``optics`` entry; records
+        with stored stamps: every float field float32, plus the stamps."""
         q = self.quantized()
         arrays: dict[str, np.ndarray] = {"format_version": np.array(FORMAT_VERSION, np.int32)}
         for name, (np_dtype, _) in _TENSOR_FIELDS.items():
-            arrays[name] = getattr(q, name).cpu().numpy().astype(np_dtype)
+            arrays[name] = getattr(q, name).cpu().numpy().astype(_dtype_of(name, np_dtype, q.stamps))
         arrays["frame"] = np.array(self.frame)
         arrays.update(self.settings.to_arrays())
-        arrays["optics"] = np.array(json.dumps(self.optics.to_dict(), sort_keys=True))
+        if self.optics is not None:
+            arrays["optics"] = np.array(json.dumps(self.optics.to_dict(), sort_keys=True))
         if self.atmosphere is not None:
             arrays.update(self.atmosphere.to_arrays())
+        if self.stamps is not None:
+            arrays.update(stamp_arrays(self.stamps))
         return arrays
 
     def save(self, path: str | Path) -> Path:
@@ -314,7 +340,9 @@ class Particles:
         if version not in READABLE_VERSIONS:
             raise FormatError(path, f"particle format version {version}; this weathergen "
                                     f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
-        field_record = "optics" in arrays if version == FORMAT_VERSION else version in (1, 2)
+        stamped = "stamp_boxes" in arrays
+        field_record = ("optics" in arrays or stamped) if version == FORMAT_VERSION \
+            else version in (1, 2)
         coded = version in _CODED_VERSIONS and not field_record
         n = None
         fields = {}
@@ -324,7 +352,7 @@ class Particles:
             a = arrays[name]
             if n is None:
                 n = a.shape[0] if a.ndim else -1
-            want, shape = np_dtype, (n, *tail)
+            want, shape = _dtype_of(name, np_dtype, stamped or None), (n, *tail)
             if coded:
                 want = _CODED_DTYPES.get(name, np_dtype)
                 if name == "motion" and version == FORMAT_VERSION:
@@ -341,7 +369,7 @@ class Particles:
         if frame not in REFERENCE_FRAMES:
             raise FormatError(path, f"unknown reference frame {frame!r}")
         optics = None
-        if version == 2 or (version == FORMAT_VERSION and field_record):
+        if version == 2 or (version == FORMAT_VERSION and field_record and not stamped):
             if "optics" not in arrays:
                 raise FormatError(path, f"version {version} field record without 'optics'")
             try:
@@ -356,8 +384,66 @@ class Particles:
                 raise FormatError(path, f"unreadable 'atmosphere' entry ({exc})") from None
             if atmosphere is not None and device is not None:
                 atmosphere = atmosphere.to(device)
+        stamps = read_stamp_arrays(arrays, n, path) if stamped else None
+        if stamps is not None and device is not None:
+            stamps = stamps.to(device)
         return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path),
-                   optics=optics, atmosphere=atmosphere)
+                   optics=optics, atmosphere=atmosphere, stamps=stamps)
+
+
+def _dtype_of(name: str, np_dtype, stamps) -> type:
+    """The storage dtype of field ``name`` in the float layout: float32 for every float field of a
+    record with stored stamps (kept exactly), the field's own otherwise."""
+    if stamps is not None and name not in _INTEGER_FIELDS:
+        return np.float32
+    return np_dtype
+
+
+def stamp_arrays(stamps: torch.Tensor) -> dict[str, np.ndarray]:
+    """The file entries of stored stamps (see the module doc): each stamp's bounding box of
+    non-zero pixels and those pixels, exactly. Shape: (N, S, S) -> entries."""
+    a = stamps.detach().cpu().to(torch.float32).numpy()
+    n, side = a.shape[0], a.shape[-1]
+    boxes = np.zeros((n, 4), np.uint16)
+    pieces = []
+    for i in range(n):
+        rows = np.flatnonzero(a[i].any(1))
+        cols = np.flatnonzero(a[i].any(0))
+        if rows.size == 0:
+            continue
+        top, left = rows[0], cols[0]
+        height, width = rows[-1] - top + 1, cols[-1] - left + 1
+        boxes[i] = (top, left, height, width)
+        pieces.append(a[i, top:top + height, left:left + width].ravel())
+    pixels = np.concatenate(pieces) if pieces else np.zeros(0, np.float32)
+    return {"stamp_side": np.array(side, np.int32), "stamp_boxes": boxes,
+            "stamp_pixels": pixels.astype(np.float32)}
+
+
+def read_stamp_arrays(arrays: dict, n: int, path) -> torch.Tensor:
+    """The stamps stored by :func:`stamp_arrays`; FormatError names ``path`` on any
+    inconsistency. Shape: -> (N, S, S) float32."""
+    side, boxes, pixels = (arrays.get(k) for k in ("stamp_side", "stamp_boxes", "stamp_pixels"))
+    if side is None or pixels is None:
+        raise FormatError(path, "stamp_boxes without stamp_side and stamp_pixels")
+    side = int(side)
+    if side < 1 or side % 2 == 0:
+        raise FormatError(path, f"stamp_side must be odd and positive, got {side}")
+    if boxes.dtype != np.uint16 or boxes.shape != (n, 4) or pixels.dtype != np.float32:
+        raise FormatError(path, f"stamp_boxes must be uint16 ({n}, 4) and stamp_pixels float32, "
+                                f"got {boxes.dtype} {boxes.shape} and {pixels.dtype}")
+    top, left, height, width = boxes.astype(np.int64).T
+    if np.any(top + height > side) or np.any(left + width > side):
+        raise FormatError(path, "a stamp box reaches beyond the stamp")
+    sizes = height * width
+    if int(sizes.sum()) != pixels.size:
+        raise FormatError(path, f"stamp_pixels holds {pixels.size} values, the boxes {int(sizes.sum())}")
+    out = np.zeros((n, side, side), np.float32)
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    for i in np.flatnonzero(sizes):
+        out[i, top[i]:top[i] + height[i], left[i]:left[i] + width[i]] = \
+            pixels[starts[i]:starts[i + 1]].reshape(height[i], width[i])
+    return torch.from_numpy(out)
 
 
 def _decoded(arrays: dict, name: str, version: int, path) -> np.ndarray:

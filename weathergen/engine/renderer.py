@@ -37,7 +37,7 @@ from .particles import Particles
 from .presets import BLEND_MODES
 from .sampling import check_pair_for_engine, reference_transforms, resolve_device
 from .splat import SPLAT_CHUNK_ELEMENTS, chunk_elements_for, splat
-from .stamps import COARSE_SIDE, StampSet, build
+from .stamps import COARSE_SIDE, StampSet, build, stored
 from .templates import TemplateLibrary, load_templates
 from .tracks import (ParticleTable, RecordRows, View, Views, blur_samples, empty_looks,
                      fixed_looks, pair_starts, pair_tracks, view_tracks)
@@ -63,6 +63,9 @@ def check_records(records: Sequence[Particles],
             raise ConfigError(f"records of one render call must share templates; got {sorted(names)}")
         templates = load_templates(names.pop())
     for r in records:
+        if r.stamps is not None:
+            check_stored_stamps(r)
+            continue            # drawn with its own stamps: the library is not read
         if r.settings.templates_digest and templates.digest != r.settings.templates_digest:
             raise ConfigError(f"particles were sampled with templates '{r.settings.templates}' "
                               f"(digest {r.settings.templates_digest}) but are rendered with "
@@ -70,6 +73,44 @@ def check_records(records: Sequence[Particles],
         if r.settings.blend not in BLEND_MODES:
             raise ConfigError(f"unknown blend mode {r.settings.blend!r}")
     return templates
+
+
+def check_stored_stamps(record: Particles) -> None:
+    """A record's stored stamps must be one odd square per particle of the paper's model."""
+    stamps = record.stamps
+    if record.optics is not None:
+        raise ConfigError("stored stamps belong to particles of the paper's model (no optics)")
+    if (stamps.dim() != 3 or stamps.shape[0] != record.count or stamps.shape[1] != stamps.shape[2]
+            or stamps.shape[-1] % 2 == 0):
+        raise ConfigError(f"stored stamps must be (N, S, S), S odd, for N = {record.count} "
+                          f"particles; got {tuple(stamps.shape)}")
+
+
+def paper_stamps(records: Sequence[Particles], looks, templates: TemplateLibrary, *,
+                 dtype: torch.dtype, coarse_side: Optional[int],
+                 chunk_elements: int = DEFAULT_CHUNK_ELEMENTS) -> StampSet:
+    """The stamps of the paper-model entries of ``looks`` (the records' particles, in record
+    order): rasterised from the library, or a record's stored stamps where it has them."""
+    paper = [r for r in records if r.optics is None and r.count]
+    if not any(r.stamps is not None for r in paper):
+        return build(looks, templates, dtype=dtype, coarse_side=coarse_side,
+                     chunk_elements=chunk_elements)
+    parts, at, run = [], 0, 0
+    device = looks.template.device
+
+    def flush(start, stop):
+        if stop > start:
+            parts.append(build(looks.select(torch.arange(start, stop, device=device)), templates,
+                               dtype=dtype, coarse_side=coarse_side, chunk_elements=chunk_elements))
+
+    for r in paper:
+        if r.stamps is not None:
+            flush(run, at)
+            parts.append(stored(r.stamps, dtype=dtype, device=device))
+            run = at + r.count
+        at += r.count
+    flush(run, at)
+    return StampSet.cat(parts)
 
 
 def build_stamps(records: Sequence[Particles], templates: TemplateLibrary, *,
@@ -94,9 +135,8 @@ def build_stamps(records: Sequence[Particles], templates: TemplateLibrary, *,
         if paper:
             looks = fixed_looks(ParticleTable.of(paper, device), RecordRows.of(paper, device),
                                 templates.resolution)
-        else:
-            looks = empty_looks(device)
-        return build(looks, templates, dtype=dtype, coarse_side=coarse_side)
+            return paper_stamps(paper, looks, templates, dtype=dtype, coarse_side=coarse_side)
+        return build(empty_looks(device), templates, dtype=dtype, coarse_side=coarse_side)
 
 
 def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
@@ -165,8 +205,17 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(device)
     if stamps is None:
-        stamp_set = build(looks, templates, dtype=dtype, coarse_side=coarse_side,
-                          chunk_elements=chunk_elements)
+        paper = sum(r.count for r in records if r.optics is None)
+        stamp_set = paper_stamps(records, looks.select(torch.arange(paper, device=device)),
+                                 templates, dtype=dtype, coarse_side=coarse_side,
+                                 chunk_elements=chunk_elements) \
+            if any(r.stamps is not None for r in records) else \
+            build(looks, templates, dtype=dtype, coarse_side=coarse_side,
+                  chunk_elements=chunk_elements)
+        if stamp_set.count != looks.count:          # the field particles' entries after them
+            stamp_set = StampSet.cat([stamp_set, build(
+                looks.select(torch.arange(paper, looks.count, device=device)), templates,
+                dtype=dtype, coarse_side=coarse_side, chunk_elements=chunk_elements)])
     else:
         paper = sum(r.count for r in records if r.optics is None)
         if stamps.count != paper:
@@ -251,15 +300,20 @@ def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement:
                detach_occlusion: bool = False, frame: int = 0):
     views = Views.of(view.intrinsics[None], view.cam_from_ref[None],
                      view.depth[None].to(device), device=device)
-    looks, tracks = view_tracks(record.to(device), views, start, displacement,
-                                templates.resolution, beta=float(beta), dtype=dtype, color=values)
+    looks, tracks, kept = view_tracks(record.to(device), views, start, displacement,
+                                      templates.resolution, beta=float(beta), dtype=dtype,
+                                      color=values, kept=True)
     air = view_air(record_atmospheres(record), view, frame, device)
     if air is not None:     # (with values in place of colours, only θ is dimmed)
         alpha = torch.tensor([record.settings.blend == "alpha"], device=device)
         tracks = air.dim(tracks, alpha, tint=values is None)
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(torch.device(device))
-    stamps = build(looks, templates, dtype=dtype, chunk_elements=chunk_elements)
+    if record.stamps is not None:       # the particles in front of the camera, their own stamps
+        check_stored_stamps(record)
+        stamps = stored(record.stamps.to(device)[kept], dtype=dtype, device=device)
+    else:
+        stamps = build(looks, templates, dtype=dtype, chunk_elements=chunk_elements)
     return splat(blur_samples(tracks, dtype, stamps.gap), stamps, views.depth,
                  chunk_elements=chunk_elements, detach_occlusion=detach_occlusion), air
 

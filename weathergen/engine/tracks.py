@@ -681,15 +681,17 @@ def pair_starts(record: Particles, dtype, device) -> tuple[torch.Tensor, torch.T
 
 def view_tracks(record: Particles, views: Views, start: torch.Tensor, displacement: torch.Tensor,
                 resolution: int, *, beta: float, dtype: torch.dtype,
-                color: Optional[torch.Tensor] = None) -> tuple[Looks, Tracks]:
+                color: Optional[torch.Tensor] = None, kept: bool = False):
     """Looks and tracks of one record drawn into a single view (view 0 of ``views``): every
     particle from ``start`` (N, 3) along ``displacement`` (N, 3) (reference frame). A field
     record gets the view's looks (:func:`field_looks`); a record of the paper's model keeps its
     looks and draws the particles whose start lies in front of the camera. ``color`` (N, 3)
-    replaces the colour (e.g. by flow vectors)."""
+    replaces the colour (e.g. by flow vectors). With ``kept``, also the indices (M,) of the
+    particles drawn, for a record of the paper's model (whose entries are those particles)."""
     device = views.project.device
     if record.count == 0:
-        return empty_looks(device), empty_tracks(device, dtype)
+        empty = (empty_looks(device), empty_tracks(device, dtype))
+        return (*empty, torch.zeros(0, dtype=torch.long, device=device)) if kept else empty
     table = ParticleTable.of([record], device)
     table.start = start.to(device=device, dtype=torch.float64)
     table.displacement = displacement.to(device=device, dtype=torch.float64)
@@ -697,19 +699,21 @@ def view_tracks(record: Particles, views: Views, start: torch.Tensor, displaceme
     view = torch.zeros(table.count, dtype=torch.long, device=device)
     colour = None if color is None else color.to(device)
     if record.optics is not None:
-        return field_looks(table, torch.arange(table.count, device=device), rows, views, view,
-                           table.start, beta=float(beta), dtype=dtype, color=colour)
+        looks, tracks = field_looks(table, torch.arange(table.count, device=device), rows, views,
+                                    view, table.start, beta=float(beta), dtype=dtype, color=colour)
+        return (looks, tracks, None) if kept else (looks, tracks)
     h0 = homogeneous(views.project[view], table.start)
     keep = torch.nonzero(h0.detach()[:, 2] > NEAR).squeeze(1)
     looks = fixed_looks(table.select(keep), rows, resolution)
     colour = table.color if colour is None else colour
     n = keep.numel()
-    return looks, Tracks(entry=torch.arange(n, device=device), view=view[keep], h0=h0[keep],
-                         hd=direction(views.project[view[keep]], table.displacement[keep]),
-                         samples=rows.samples[table.record[keep]],
-                         spacing=rows.spacing[table.record[keep]],
-                         theta=table.transparency[keep].to(dtype), color=colour[keep].to(dtype),
-                         beta=torch.full((n,), float(beta), dtype=torch.float64, device=device))
+    tracks = Tracks(entry=torch.arange(n, device=device), view=view[keep], h0=h0[keep],
+                    hd=direction(views.project[view[keep]], table.displacement[keep]),
+                    samples=rows.samples[table.record[keep]],
+                    spacing=rows.spacing[table.record[keep]],
+                    theta=table.transparency[keep].to(dtype), color=colour[keep].to(dtype),
+                    beta=torch.full((n,), float(beta), dtype=torch.float64, device=device))
+    return (looks, tracks, keep) if kept else (looks, tracks)
 
 
 def empty_looks(device) -> Looks:

@@ -15,8 +15,10 @@ from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, Particles, 
                       layer_seed, sample_weather, scene_seed)
 from ..datasets import PairRef
 from ..engine.field import pair_airlight
+from ..engine.published import published_particles
 from ..errors import WeatherGenError
 from ..framepair import FramePair, PairId
+from ..io.published_weather import is_published_set, published_file, read_published_weather
 from ..outputs.reading import load_pair_particles
 
 
@@ -43,10 +45,13 @@ def layer_seeds(preset: CombinedPreset, run_seed: int, pair_id: PairId) -> tuple
                  for layer in preset.layers)
 
 
-def weather_scaling(preset, pair: FramePair) -> Optional[dict]:
+def weather_scaling(preset, pair: FramePair, particles_from: Optional[Path] = None) -> Optional[dict]:
     """How a paper preset's count and size are set for the pair's frame size (the particle
-    metadata's ``frame_scaling`` entry); None for a weather field (world units: nothing scales);
-    for a combined preset ``{"layers": [...]}``, one entry (or None) per layer."""
+    metadata's ``frame_scaling`` entry); None for a weather field (world units: nothing scales)
+    and for the paper's published weather (its files fix the particles); for a combined preset
+    ``{"layers": [...]}``, one entry (or None) per layer."""
+    if particles_from is not None and is_published_set(particles_from):
+        return None
     if isinstance(preset, CombinedPreset):
         return {"layers": [weather_scaling(layer, pair) for layer in preset.layers]}
     if isinstance(preset, FieldPreset):
@@ -66,18 +71,41 @@ def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: 
     :func:`scene_airlight`), or, with ``particles_from``, the ones stored there for
     the pair (``sequence``: a ``render --sequence`` folder), with the ``appearance`` settings
     replaced (see :func:`weathergen.render.resolve_preset`); they must have been sampled from
-    ``preset`` (up to its appearance keys) and, when given, be labelled ``preset_name``."""
+    ``preset`` (up to its appearance keys) and, when given, be labelled ``preset_name``. A
+    published set of the paper's weather (the research code's files, one per pair) gives the
+    pair's file mapped into the pair (:func:`~weathergen.engine.published.published_particles`),
+    drawn with ``preset``."""
     if particles_from is None:
         seed = (layer_seeds(preset, run_seed, pair.id) if isinstance(preset, CombinedPreset)
                 else weather_seed(preset, run_seed, pair.id))
         return sample_weather(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
                               airlight=airlight)
+    if is_published_set(particles_from):   # the research code's files: drawn with ``preset``
+        return published_particles(read_published_weather(
+            published_file(particles_from, pair.id.scene, pair.id.frame)), pair, preset)
     # stored particles must be of the preset the output is labelled with (the stored manifest's)
     particles = load_pair_particles(particles_from, pair.id, preset_name, preset.to_dict(),
                                     sequence=sequence)
     if not appearance:
         return particles
     return particles.replace(settings=particles.settings.replace(**appearance))
+
+
+def published_geometry_note(dataset, particles_from: Optional[Path]) -> Optional[str]:
+    """A note when the paper's published weather is drawn into a dataset opened otherwise than
+    in the research code's frame and scaling (its per-scene depth factors, its camera translation
+    zeroed in the scenes it scales): the particles then sit elsewhere than that code drew them.
+    None when nothing is to be said."""
+    if particles_from is None or not is_published_set(particles_from):
+        return None
+    research = (getattr(dataset, "scene_scales_bundled", False)
+                and getattr(dataset, "camera_translation", None) == "unscaled")
+    if research:
+        return None
+    return (f"{particles_from} holds the paper's published weather, placed in the research code's "
+            f"frame and scaling; to draw it where that code drew it, open the dataset as it did: "
+            f"--compat reference, or --scene-scales research --no-translation-in-scaled-scenes "
+            f"(docs/render.md)")
 
 
 def _auto_sky(preset) -> Optional[float]:

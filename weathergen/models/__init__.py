@@ -6,15 +6,19 @@
 
 Shape: images ``(B, 3, H, W)`` RGB in ``[0, 1]`` of any size -> flow ``(B, 2, H, W)`` in pixels.
 Each network is one module of this package that registers itself on import (see
-:mod:`weathergen.models.registry`); importing this package imports them all.
+:mod:`weathergen.models.registry`); importing this package imports them all. Networks from
+outside the package (``FILE.py:NAME``, ``package.module:NAME``, entry points of the group
+``weathergen.models``) are loaded by :mod:`weathergen.models.external` when named.
 """
 
 from .base import FlowModel
 from .compiled import COMPILE_MODES, compile_iterations
 from .checkpoints import CheckpointSpec, cache_dir, download_checkpoint, read_state_dict
 from .padding import InputPadder
+from .external import ENTRY_POINT_GROUP, ModuleFlowModel, NetworkSource, entry_points, resolved_spec
 from .registry import (ModelSpec, available_checkpoints, available_models, build_model,
-                       checkpoint_spec, get_model, model_spec, register_checkpoint,
+                       canonical_network, checkpoint_spec, get_model, is_external_name,
+                       model_spec, network_label, network_record, register_checkpoint,
                        register_model, resolve_amp)
 
 # Network modules register themselves; import each one here.
@@ -35,7 +39,9 @@ __all__ = [
     "GMAModel", "FlowFormer", "FlowFormerModel",
     "get_model", "build_model", "available_models", "available_checkpoints", "model_spec",
     "checkpoint_spec", "register_model", "register_checkpoint", "resolve_amp", "cache_dir",
-    "download_checkpoint", "read_state_dict", "COMPILE_MODES", "compile_iterations",
+    "download_checkpoint", "read_state_dict", "ENTRY_POINT_GROUP", "ModuleFlowModel",
+    "NetworkSource", "entry_points", "canonical_network", "is_external_name", "network_label",
+    "network_record", "resolved_spec", "COMPILE_MODES", "compile_iterations",
     "SpyNet", "SpyNetModel", "SpyNetSniklaus", "SpyNetSniklausModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
     "FlowNetCRobustModel", "FlowNet2", "FlowNet2Model",
 ]

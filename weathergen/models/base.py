@@ -92,7 +92,9 @@ class FlowModel(nn.Module):
         padder = self.padder(image1.shape[-2], image1.shape[-1])
         x1 = self.normalize(padder.pad(image1.to(dtype)))
         x2 = self.normalize(padder.pad(image2.to(dtype)))
-        return padder.unpad(self.predict(x1, x2)).to(image1.dtype)
+        flow = self.predict(x1, x2)
+        _check_flow(flow, (image1.shape[0], 2, *padder.padded_size), self)
+        return padder.unpad(flow).to(image1.dtype)
 
 
 def mixed_precision(enabled: bool):
@@ -113,3 +115,16 @@ def _check_images(image1: torch.Tensor, image2: torch.Tensor) -> None:
     if image1.shape != image2.shape:
         raise ShapeError(f"expected image1 and image2 of the same shape, got "
                          f"{tuple(image1.shape)} and {tuple(image2.shape)}")
+
+
+def _check_flow(flow, expected: tuple, model: FlowModel) -> None:
+    """The prediction must be a flow tensor of the padded frames' shape; ShapeError naming the
+    network otherwise."""
+    name = model.architecture or type(model).__name__
+    if not isinstance(flow, torch.Tensor):
+        raise ShapeError(f"flow model {name!r} returned a value of type {type(flow).__name__}, "
+                         f"expected a flow tensor of shape {expected}")
+    if tuple(flow.shape) != tuple(expected):
+        raise ShapeError(f"flow model {name!r} returned a flow of shape {tuple(flow.shape)} for "
+                         f"frames of shape ({expected[0]}, 3, {expected[2]}, {expected[3]}), "
+                         f"expected {tuple(expected)}")

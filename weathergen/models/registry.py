@@ -12,7 +12,9 @@ Each network lives in one module of this package that, on import, registers
     flow = model(image1, image2)
 
 ``name`` may also be a checkpoint name (``get_model("raft-kitti")``), which selects that
-checkpoint's architecture.
+checkpoint's architecture, or a network from outside the package (:mod:`.external`):
+``FILE.py:NAME``, ``package.module:NAME``, or the name of an entry point of the group
+``weathergen.models``.
 """
 
 from __future__ import annotations
@@ -26,6 +28,8 @@ import torch
 from ..errors import ConfigError
 from .base import FlowModel
 from .checkpoints import CheckpointSpec, resolve_named
+from .external import (check_network, entry_point, entry_points, external_network, is_external,
+                       network_source, spec_label, supports_amp)
 
 #: Builds an untrained adapter: ``build(iters=..., gradient_checkpointing=...)``.
 Builder = Callable[..., FlowModel]
@@ -96,10 +100,51 @@ def model_spec(name: str) -> ModelSpec:
     Raises:
         ConfigError: unknown name; the message lists the known ones.
     """
-    try:
+    if name in _MODELS:
         return _MODELS[name]
-    except KeyError:
-        raise ConfigError(_unknown_message(name)) from None
+    if is_external_name(name):
+        return _external_spec(name)
+    raise ConfigError(_unknown_message(name))
+
+
+def is_external_name(name) -> bool:
+    """Whether ``name`` names a network from outside the package: ``FILE.py:NAME``,
+    ``module:NAME``, or an entry point of ``weathergen.models`` that no registered architecture
+    or checkpoint shadows."""
+    if is_external(name):
+        return True
+    return (isinstance(name, str) and name not in _MODELS and name not in _CHECKPOINTS
+            and entry_point(name) is not None)
+
+
+def _external_spec(name: str) -> ModelSpec:
+    """The :class:`ModelSpec` of an external network (loads its code)."""
+    def build(iters=None, gradient_checkpointing=False):
+        return external_network(name, iters=iters, gradient_checkpointing=gradient_checkpointing)
+
+    source = network_source(name)
+    return ModelSpec(name=str(name), build=build, default_checkpoint=None,
+                     description=f"{source.kind} {source.canonical}",
+                     mixed_precision=supports_amp(name))
+
+
+def network_record(name: str) -> Optional[dict]:
+    """What identifies an external network's code in a manifest (its file and the file's sha256,
+    see :meth:`~weathergen.models.external.NetworkSource.record`); None for a registered one."""
+    return network_source(name).record() if is_external_name(name) else None
+
+
+def canonical_network(name: str) -> str:
+    """``name`` as a manifest records it: a file network by its resolved path (the same from any
+    working directory), every other name as given."""
+    return network_source(name).canonical if is_external_name(name) else str(name)
+
+
+def network_label(name: str) -> str:
+    """A short name of the network fit for a file or folder name and a table column: the
+    registered name, ``stem.NAME`` of a file network, ``module.NAME``, an entry point's name
+    (from the name alone: nothing is loaded)."""
+    return spec_label(name)
 
 
 def checkpoint_spec(name: str) -> CheckpointSpec:
@@ -123,7 +168,7 @@ def resolve_amp(name: str, requested: Optional[bool],
         ConfigError: ``requested`` is ``True`` on a device other than CUDA, or for a network
             without a mixed-precision mode; an unknown name.
     """
-    spec = model_spec(_architecture_of(name))
+    spec = model_spec(name if is_external_name(name) else _architecture_of(name))
     try:
         kind = torch.device(device).type if device is not None else "cpu"
     except (RuntimeError, TypeError):
@@ -137,7 +182,9 @@ def resolve_amp(name: str, requested: Optional[bool],
     if requested and not spec.mixed_precision:
         raise ConfigError(f"${{amp}}: {spec.name!r} has no mixed-precision mode (the paper ran it "
                           f"in float32); networks with one: "
-                          f"{', '.join(n for n in available_models() if _MODELS[n].mixed_precision)}")
+                          f"{', '.join(n for n in available_models() if _MODELS[n].mixed_precision)}"
+                          f" and networks from outside the package (their own FlowModel's "
+                          f"supports_amp, or any plain module)")
     return spec.amp if requested is None else bool(requested)
 
 
@@ -185,6 +232,8 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
             missing file (the message says which file to put where), an unusable device.
         FormatError: the checkpoint file is unreadable or does not fit the architecture.
     """
+    if name not in _MODELS and name not in _CHECKPOINTS and is_external_name(name):
+        return _get_external(name, checkpoint, device, iters, gradient_checkpointing, amp)
     if name in _MODELS:
         arch = name
         if checkpoint is None:
@@ -207,6 +256,29 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
     model.load_checkpoint(model.read_checkpoint(path), source=path, what=what)
     model.requires_grad_(False)
     return model.to(device).eval()
+
+
+def _get_external(name: str, checkpoint, device, iters, gradient_checkpointing: bool,
+                  amp: bool) -> FlowModel:
+    """A network from outside the package: built by its own code (with the weights that code
+    gives it), a checkpoint file loaded into it where one is given, checked on a small pair."""
+    spec = _external_spec(name)
+    if amp and not spec.mixed_precision:
+        raise ConfigError(f"${{amp}}: {name!r} has no mixed-precision mode (its supports_amp is "
+                          f"false)")
+    device = _device(device)
+    model = build_model(name, iters=iters, gradient_checkpointing=gradient_checkpointing)
+    model.amp = bool(amp)
+    if checkpoint is not None:
+        path = Path(checkpoint).expanduser()
+        if not path.exists():
+            raise ConfigError(f"checkpoint {str(checkpoint)!r}: no such file (a network from "
+                              f"outside the package takes a checkpoint file, or none)")
+        model.load_checkpoint(model.read_checkpoint(path), source=path, what=repr(name))
+    model.requires_grad_(False)
+    model = model.to(device).eval()
+    check_network(model, name, device)
+    return model
 
 
 def _resolve_checkpoint(arch: str, checkpoint: Union[str, Path], download: bool,
@@ -236,6 +308,11 @@ def _device(device: Union[str, torch.device]) -> torch.device:
 
 
 def _unknown_message(name: str) -> str:
+    if str(name).endswith(".py"):
+        return f"flow model {name!r}: a network in a file is named FILE.py:NAME, NAME what it defines"
+    installed = sorted(n for n in entry_points() if n not in _MODELS and n not in _CHECKPOINTS)
+    extra = f"; installed networks: {', '.join(installed)}" if installed else ""
     return (f"unknown flow model {name!r}; known models: {', '.join(available_models())}; "
-            f"known checkpoints: {', '.join(available_checkpoints())}")
+            f"known checkpoints: {', '.join(available_checkpoints())}{extra}; or a network of "
+            f"your own as FILE.py:NAME or package.module:NAME")
 

@@ -26,9 +26,11 @@ from .metadata import (FRAME_SCALING, METADATA_KEYS, METADATA_VERSION, identity_
                        write_metadata)
 from .pairs import (FORMATS, NATIVE_FLOW, SINTEL_SPLIT_FOLDER, PairOutput, RightView,  # noqa: F401
                     write_pair_outputs)
+from .published import PublishedWeatherSet
 from .reading import WeatherFolder, load_pair_particles
 
-__all__ = ["ATTACK_FOLDER", "AttackPairOutput", "Claim", "FLOW_KINDS", "FORMATS", "FRAME_SCALING",
+__all__ = ["PublishedWeatherSet",
+           "ATTACK_FOLDER", "AttackPairOutput", "Claim", "FLOW_KINDS", "FORMATS", "FRAME_SCALING",
            "FolderKind",
            "MANIFEST", "MANIFEST_PARTS", "METADATA_KEYS", "METADATA_VERSION", "NATIVE_FLOW",
            "OutputManifest", "RENDER_FOLDER", "RightView", "SINTEL_SPLIT_FOLDER", "SUMMARY", "WeatherFolder",

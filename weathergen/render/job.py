@@ -34,8 +34,8 @@ from ..engine.stereo import render_right, render_right_layers, stereo_view, warp
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
-from ..jobs import (frame2_note, layer_seeds, pair_particles, scene_airlight, scene_firsts,
-                    visibility_of, weather_scaling, weather_seed)
+from ..jobs import (frame2_note, layer_seeds, pair_particles, published_geometry_note,
+                    scene_airlight, scene_firsts, visibility_of, weather_scaling, weather_seed)
 from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
                        pair_metadata, write_manifest_part, write_pair_outputs)
 from ..io.atomic import remove_temporaries, write_error
@@ -226,7 +226,7 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     seeds = (layer_seeds(job.preset, job.seed, ref.id)
              if isinstance(particles, LayeredParticles) else None)
     meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name, seeds,
-                         scaling=weather_scaling(job.preset, pair))
+                         scaling=weather_scaling(job.preset, pair, job.particles_from))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
     out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
                         job.sequence, job.dataset.native_flow)
@@ -358,6 +358,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     every = job.dataset.pairs()
     for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
         on_note(note)
+    geometry = published_geometry_note(job.dataset, job.particles_from)
+    if geometry is not None:
+        on_note(geometry)
     refs = shard_refs(every, job.shard)
     if not every:
         raise ConfigError(job.dataset.no_pairs_message())

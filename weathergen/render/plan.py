@@ -3,6 +3,8 @@
 Every rule the command line applies lives here, so a library user gets the same behaviour:
 
 - a preset file replaces the preset name; overrides apply on top of either;
+- the published weather of the paper (``particles_from`` a set of the research code's particle
+  files) is drawn with the preset given, or the one the set's name says;
 - re-rendering stored particles (``particles_from``) takes the preset they were sampled from,
   and only the :data:`~weathergen.engine.APPEARANCE_KEYS` may change (they change how the
   particles look, not where they are: the fields of their
@@ -24,6 +26,7 @@ from ..engine import (APPEARANCE_KEYS, CombinedPreset, FieldPreset, Preset, Rend
                       list_presets, load_preset)
 from ..engine.presets import UNSCALED
 from ..errors import ConfigError
+from ..io.published_weather import is_published_set
 from ..outputs import read_manifest
 
 class ResolvedPreset(NamedTuple):
@@ -34,19 +37,49 @@ class ResolvedPreset(NamedTuple):
     appearance: dict
 
 
-def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = None,
+#: How the published sets of the paper's weather are named (``<name>_npz``, ``<name>_png``, or
+#: ``weather_<tag>`` as the research code's generator writes them), where the name is not the
+#: preset's own with ``-`` for ``_``: the preset each was generated with.
+PUBLISHED_NAMES = {"color_additive_white": "additive-white", "color_additive_red": "additive-red",
+                   "color_additive_green": "additive-green", "color_additive_blue": "additive-blue",
+                   "color_additive_color": "additive-color", "color_alpha_white": "alpha-white",
+                   "color_alpha_red": "alpha-red", "color_alpha_green": "alpha-green",
+                   "color_alpha_blue": "alpha-blue", "color_alpha_color": "alpha-color",
+                   "rain_1500": "motion-blur-0.15"}
+
+
+def published_preset(folder: str | Path) -> Optional[str]:
+    """The bundled preset a published set of the paper's weather was generated with, from the
+    set's folder name (``particles_3000_npz`` -> ``particles-3000``, ``color_additive_red_npz``
+    -> ``additive-red``, ``weather_snow`` -> ``snow``), or None where the name does not say."""
+    name = Path(folder).resolve().name
+    for suffix in ("_npz", "_png"):
+        name = name.removesuffix(suffix)
+    name = name.removeprefix("weather_")
+    candidate = PUBLISHED_NAMES.get(name, name.replace("_", "-"))
+    return candidate if candidate in list_presets("paper") else None
+
+
+def resolve_preset(preset: Optional[str] = None, preset_file: Optional[str | Path] = None,
                    overrides: Optional[Mapping[str, str]] = None,
                    particles_from: Optional[str | Path] = None) -> ResolvedPreset:
     """The preset of a run and, when re-rendering, the particle settings that change.
 
-    ``preset`` names a bundled preset; ``preset_file`` (a TOML file) replaces it; ``overrides``
-    map preset keys to values (as :func:`~weathergen.engine.load_preset` takes them). With
-    ``particles_from`` (the folder of an earlier render or attack) the stored preset is used and
-    ``preset``/``preset_file`` are ignored; overrides of keys other than :data:`APPEARANCE_KEYS`
-    raise ConfigError. A combined preset (``rain-heavy+fog-light``, layer overrides as
-    ``LAYER.KEY``) is named by its layers; its stored particles re-render without overrides.
+    ``preset`` names a bundled preset (default ``snow``); ``preset_file`` (a TOML file) replaces
+    it; ``overrides`` map preset keys to values (as :func:`~weathergen.engine.load_preset` takes
+    them). With ``particles_from`` (the folder of an earlier render or attack) the stored preset
+    is used and ``preset``/``preset_file`` are ignored; overrides of keys other than
+    :data:`APPEARANCE_KEYS` raise ConfigError. A combined preset (``rain-heavy+fog-light``, layer
+    overrides as ``LAYER.KEY``) is named by its layers; its stored particles re-render without
+    overrides. ``particles_from`` a published set of the paper's weather
+    (:func:`~weathergen.io.published_weather.is_published_set`): its files fix the particles,
+    the preset (given, or the one the set's name says, :func:`published_preset`) says how they
+    are drawn, with any overrides.
     """
     overrides = dict(overrides or {})
+    if particles_from is not None and is_published_set(particles_from):
+        return _published(preset, preset_file, overrides, particles_from)
+    preset = preset or "snow"
     if particles_from is None:
         resolved = load_preset(preset_file or preset, overrides)
         if isinstance(resolved, CombinedPreset):
@@ -79,6 +112,21 @@ def resolve_preset(preset: str = "snow", preset_file: Optional[str | Path] = Non
     else:
         appearance = RenderSettings.from_preset(resolved).appearance()
     return ResolvedPreset(resolved, name, appearance)
+
+
+def _published(preset, preset_file, overrides, folder) -> ResolvedPreset:
+    """The preset a published set is drawn with: given, or named by the set's folder."""
+    name = Path(preset_file).stem if preset_file else preset or published_preset(folder)
+    if name is None:
+        raise ConfigError(f"${{particles_from}} {folder}: published weather does not record the "
+                          f"preset it was generated with, and the folder's name does not say: "
+                          f"name it with ${{preset}} (e.g. particles-3000, motion-blur-0.15, "
+                          f"additive-red, size-fog)")
+    resolved = load_preset(preset_file or name, overrides)
+    if not isinstance(resolved, Preset):
+        raise ConfigError(f"${{preset}} {name}: published weather is drawn with a preset of the "
+                          f"paper's model (the research code's), not a {resolved.model} preset")
+    return ResolvedPreset(resolved, name, {})
 
 
 def default_out(label: str) -> Path:

@@ -13,7 +13,8 @@ of :func:`soft_box` applied twice (a tent per axis: it keeps the rule's light an
 the brightening lifts into a ramp; the stamp grows by ``b − 1`` on each side). Stamps at least
 :data:`COARSE_SIDE` pixels wide (fog, large dust) are drawn for a grid ``2**L`` times coarser than the image (see
 :func:`stamp_geometry`). A stamp's looks are this package's alone: how a template is sampled, the
-disc that cuts it, the defocus kernel.
+disc that cuts it, the defocus kernel. A record's stored stamps (:func:`stored`: the paper's
+published weather) are drawn at their own pixels instead.
 
 Layout (:class:`StampSet`): every stamp with a one-pixel zero border, row-major, one after the
 other in one flat tensor; ragged, so a call costs a bounded number of tensor operations:
@@ -41,7 +42,7 @@ tensor (``exp``/``log`` rather than ``pow`` and ``sigmoid``, whose vectorised an
 kernels round differently), so a stamp is the same whatever other stamps the call holds.
 """
 
-from .building import StampSet, build, build_many
+from .building import StampSet, build, build_many, stored
 from .filters import defocus_brighten
 from .sampling import atlas, mip_pyramid
 from .tables import (COARSE_MAX_LEVEL, COARSE_MIN_SIDE, COARSE_SIDE, PHASE_FACTORS, PHASE_SIDE,
@@ -51,4 +52,4 @@ from .tables import (COARSE_MAX_LEVEL, COARSE_MIN_SIDE, COARSE_SIDE, PHASE_FACTO
 __all__ = ["COARSE_MAX_LEVEL", "COARSE_MIN_SIDE", "COARSE_SIDE", "PHASE_FACTORS", "PHASE_SIDE",
            "RIM_MARGIN", "SIDES", "STAMP_CHUNK_ELEMENTS", "StampSet", "atlas", "build", "build_many",
            "defocus_brighten", "disc_counts", "floor_log2", "mip_pyramid", "soft_box",
-           "stamp_geometry"]
+           "stamp_geometry", "stored"]

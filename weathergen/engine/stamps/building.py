@@ -4,10 +4,12 @@ entry's stamp and run the sampling and filters over them (see the package doc)."
 from __future__ import annotations
 
 import itertools
+import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import torch
+import torch.nn.functional as F
 
 from ...errors import ConfigError
 from ..ragged import starts
@@ -68,6 +70,28 @@ class StampSet:
                         coarse=torch.cat([p.coarse for p in parts]),
                         phases=torch.cat([p.phases for p in parts]),
                         gap=torch.cat([p.gap for p in parts]))
+
+
+def stored(images: torch.Tensor, *, dtype: torch.dtype = torch.float32, device=None) -> StampSet:
+    """Stamps given as images (a record's stored stamps, see
+    :class:`~weathergen.engine.Particles`): each drawn at its native pixels (P = 1, the image
+    grid), its centre pixel on the particle, a one-pixel zero border around it. Their ``gap`` is
+    infinite, so that a streak keeps the record's own number of blur samples, as the research code
+    that stored them draws it (:func:`~weathergen.engine.tracks.streak_samples`).
+    Shape: images (E, S, S), S odd -> :class:`StampSet` of E entries."""
+    images = images.detach().to(device=device if device is not None else images.device, dtype=dtype)
+    count, side = int(images.shape[0]), int(images.shape[-1])
+    if images.dim() != 3 or images.shape[-2] != side or side % 2 == 0:
+        raise ConfigError(f"stored stamps must be (N, S, S) with S odd, got {tuple(images.shape)}")
+    dev = images.device
+    framed = F.pad(images, (1, 1, 1, 1))
+    area = (side + 2) ** 2
+    return StampSet(pixels=framed.reshape(-1),
+                    first=torch.arange(count, device=dev, dtype=torch.int64) * area,
+                    side=torch.full((count,), side, dtype=torch.int64, device=dev),
+                    coarse=torch.zeros(count, dtype=torch.int64, device=dev),
+                    phases=torch.ones(count, dtype=torch.int64, device=dev),
+                    gap=torch.full((count,), math.inf, dtype=torch.float64, device=dev))
 
 
 def build(looks: Looks, lib: TemplateLibrary, *, dtype: torch.dtype = torch.float32,
