@@ -359,12 +359,13 @@ def _assert_full_disk_refused(res, video: Path) -> None:
 
 @pytest.fixture
 def small_tmpfs(tmp_path):
-    """A 200 KiB file system (root only; skipped where it cannot be mounted)."""
+    """A 16 KiB file system, smaller than any preview video (root only; skipped where it cannot
+    be mounted)."""
     folder = tmp_path / "small"
     folder.mkdir()
     if shutil.which("mount") is None or (hasattr(os, "geteuid") and os.geteuid() != 0):
         pytest.skip("mounting a tmpfs needs root")
-    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=200k", "tmpfs", str(folder)],
+    done = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=16k", "tmpfs", str(folder)],
                           capture_output=True)
     if done.returncode != 0:
         pytest.skip(f"cannot mount a tmpfs here: {done.stderr.decode().strip()}")
