@@ -61,7 +61,9 @@ def backward(pair, particles):
     record = (LayeredParticles(freed, particles.names) if isinstance(particles, LayeredParticles)
               else freed[0])
     out = render_pair(pair, record, beta=BETA_ATTACK)
-    (out.image1.sum() + out.image2.sum()).backward()
+    loss = out.image1.sum() + out.image2.sum()
+    if loss.requires_grad:          # (a layer that is an atmosphere alone frees nothing here)
+        loss.backward()
 
 
 def main() -> None:
