@@ -21,6 +21,7 @@ import pytest
 from click.testing import CliRunner
 
 from weathergen.cli.main import cli
+from run_helpers import wait_for
 
 SCRIPT = Path(sys.executable).parent / "weathergen"
 #: Four pairs (both demo scenes, two each) of a few hundred particles: long enough to signal.
@@ -38,15 +39,6 @@ def start(*args, sigint=signal.SIG_DFL) -> subprocess.Popen:
     return subprocess.Popen([str(SCRIPT), *map(str, args)], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, env=os.environ, start_new_session=True,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, sigint))
-
-
-def wait_for(condition, timeout=180.0, every=0.01) -> bool:
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        if condition():
-            return True
-        time.sleep(every)
-    return False
 
 
 def metadata_files(out: Path) -> list[Path]:

@@ -17,13 +17,13 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 from click.testing import CliRunner
 
 from weathergen.cli.main import cli
+from run_helpers import wait_for
 
 pytestmark = pytest.mark.slow
 
@@ -55,15 +55,6 @@ def start(args) -> subprocess.Popen:
 
 def invoke(args):
     return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
-
-
-def wait_for(condition, timeout=180.0, every=0.01) -> bool:
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        if condition():
-            return True
-        time.sleep(every)
-    return False
 
 
 def written_pairs(folder: Path) -> int:

@@ -4,10 +4,8 @@ scene's one airlight."""
 
 from __future__ import annotations
 
-import hashlib
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -15,6 +13,7 @@ from click.testing import CliRunner
 
 from weathergen.cli.main import _register, cli
 from weathergen.io.images import read_image
+from run_helpers import output_digests
 
 FOG = ("--scenes", "street", "--frames-per-scene", "2", "--preset", "fog-heavy")
 
@@ -22,12 +21,6 @@ FOG = ("--scenes", "street", "--frames-per-scene", "2", "--preset", "fog-heavy")
 def run(*args):
     _register()
     return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def digests(root: Path) -> dict:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file() and "manifest" not in str(p)
-            and not p.name.startswith(".")}
 
 
 @pytest.fixture(scope="module")
@@ -80,8 +73,8 @@ def test_rerendering_fog_from_its_particles_is_bit_identical(fog_run, tmp_path):
     res = run("render", "--particles", fog_run, "--scenes", "street", "--frames-per-scene", "2",
               "--format", "both", "--out", out)
     assert res.exit_code == 0, res.output
-    assert digests(out / "training" / "fog-heavy_clean") == \
-        digests(fog_run / "training" / "fog-heavy_clean")
+    assert output_digests(out / "training" / "fog-heavy_clean") == \
+        output_digests(fog_run / "training" / "fog-heavy_clean")
 
 
 def test_combined_rain_and_fog_sequence_end_to_end(tmp_path, demo_root):

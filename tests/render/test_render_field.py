@@ -3,9 +3,7 @@ workers, resume, re-rendering and the particle ground truth, end to end on the d
 
 from __future__ import annotations
 
-import hashlib
 import json
-from pathlib import Path
 
 import numpy as np
 import torch
@@ -15,6 +13,7 @@ from click.testing import CliRunner
 from weathergen.cli.main import _register, cli
 from weathergen.io.images import read_image
 from weathergen.io.sintel_formats import read_flo
+from run_helpers import output_digests
 
 FIELD = ("--scenes", "street", "--frames-per-scene", "2", "--preset", "snow-light",
          "--set", "far=5")
@@ -24,12 +23,6 @@ PASS = "snow-light_clean"
 def run(*args):
     _register()
     return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def digests(root: Path) -> dict:
-    return {str(p.relative_to(root)): hashlib.sha256(p.read_bytes()).hexdigest()
-            for p in sorted(root.rglob("*")) if p.is_file() and "manifest" not in str(p)
-            and not p.name.startswith(".")}
 
 
 @pytest.fixture(scope="module")
@@ -85,14 +78,14 @@ def test_sequence_bytes_do_not_depend_on_shards_workers_or_resume(sequence_run, 
     res = run("render", "--out", out, "--sequence", "--particle-truth", "--shard", "1/2",
               "--workers", "2", *FIELD)
     assert res.exit_code == 0, res.output
-    assert digests(out) == digests(sequence_run)
+    assert output_digests(out) == output_digests(sequence_run)
     # an interrupted run: a pair lost its metadata (and the frame it writes); resume redoes it
     (out / "training" / "particles" / "street" / "frame_0002.npz").unlink()
     (out / "training" / PASS / "street" / "frame_0002.png").unlink()
     res = run("render", "--out", out, "--sequence", "--particle-truth", "--resume", "--shard",
               "2/2", *FIELD)
     assert res.exit_code == 0, res.output
-    assert digests(out) == digests(sequence_run)
+    assert output_digests(out) == output_digests(sequence_run)
 
 
 def test_sequence_rerenders_from_its_particles_bit_identically(sequence_run, tmp_path):
@@ -102,7 +95,7 @@ def test_sequence_rerenders_from_its_particles_bit_identically(sequence_run, tmp
               "--out", out)
     assert res.exit_code == 0, res.output
     a, b = out / "training" / PASS, sequence_run / "training" / PASS
-    assert digests(a) == digests(b)
+    assert output_digests(a) == output_digests(b)
 
 
 def test_particle_truth_files(pairs_run):

@@ -21,6 +21,7 @@ import pytest
 from click.testing import CliRunner
 
 from weathergen.cli.main import _register, cli
+from run_helpers import wait_for
 
 # Six pairs (both demo scenes, three each) of a few hundred particles: long enough to interrupt.
 SIX = ("--frames-per-scene", "3", "--set", "count=300")
@@ -38,15 +39,6 @@ def start(*args) -> subprocess.Popen:
     """`weathergen ARGS` in its own process group (as a shell or a job scheduler starts it)."""
     return subprocess.Popen([str(SCRIPT), *map(str, args)], stdout=subprocess.PIPE,
                             stderr=subprocess.STDOUT, env=os.environ, start_new_session=True)
-
-
-def wait_for(condition, timeout=120.0, every=0.01):
-    deadline = time.time() + timeout
-    while time.time() < deadline:
-        if condition():
-            return True
-        time.sleep(every)
-    return False
 
 
 def children(pid: int) -> list[int]:
