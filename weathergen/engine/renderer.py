@@ -30,7 +30,7 @@ import torch
 from ..errors import ConfigError, DatasetError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from .air import combined_opacity, fog_images, pair_air, record_atmospheres, view_air
-from .composite import RenderOutput, composite, planes
+from .composite import RenderOutput, composite, composite_in_order, planes
 from .layered import as_layers, build_layer_stamps, render_layers, render_layers_view
 from .layers import LayeredParticles
 from .particles import Particles
@@ -225,14 +225,22 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         stamp_set = StampSet.cat([stamps.to(dtype, device),
                                   build(rest, templates, dtype=dtype, coarse_side=coarse_side,
                                         chunk_elements=chunk_elements)])
-    sums = splat(blur_samples(tracks, dtype, stamp_set.gap), stamp_set, views.depth,
-                 chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
+    ordered = torch.tensor([r.settings.blends_in_order for r in records], device=device)
+    sums = None if bool(ordered.any()) else splat(
+        blur_samples(tracks, dtype, stamp_set.gap), stamp_set, views.depth,
+        chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
     images = [image1, image2]
     if air is not None:
         transmission, airlight = air.pixels(views.depth, dtype)
         images = fog_images(images, transmission, airlight, air)
-    (out1, out2), (opacity1, opacity2) = composite(sums, images, alpha_mode)
-    reached = sums.reached.view(2, bsz).any(0)
+    if sums is None:    # blur samples blended one after another (the research code's order)
+        (out1, out2), (opacity1, opacity2), reached = composite_in_order(
+            tracks, stamp_set, views.depth, images, alpha_mode, ordered,
+            chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
+    else:
+        (out1, out2), (opacity1, opacity2) = composite(sums, images, alpha_mode)
+        reached = sums.reached
+    reached = reached.view(2, bsz).any(0)
     if air is not None:
         opacity1, opacity2 = combined_opacity([opacity1, opacity2], transmission, air)
         reached = reached | air.reached().to(reached.device).view(2, bsz).any(0)
