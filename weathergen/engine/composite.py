@@ -213,8 +213,8 @@ class _Blend(torch.autograd.Function):
                 pre = torch.addcmul(colour, image, 1 - alpha)
             elif no_alpha:
                 pre = image + colour
-            else:
-                pre = torch.where(mode, image * (1 - alpha) + colour, image + colour)
+            else:   # (the same operations as above: a pair's bits do not depend on the batch)
+                pre = torch.where(mode, torch.addcmul(colour, image, 1 - alpha), image + colour)
             if grad:    # where clamp passes the gradient: the value lies in [0, 1]
                 out, opacity = pre.clamp(0, 1), alpha.clamp(0, 1)
                 masks += [out == pre, opacity == alpha]

@@ -77,16 +77,21 @@ class RenderSettings:
                    coarse=preset.coarse)
 
     @property
+    def motion_blurred(self) -> bool:
+        """More than one blur sample along a streak of some length."""
+        return self.blur_samples > 1 and self.blur_length > 0
+
+    @property
     def blends_in_order(self) -> bool:
         """Whether the record's blur samples are blended one after another: ``sequential``,
-        α-blended, more than one sample."""
-        return self.blur_blend == "sequential" and self.blend == "alpha" and self.blur_samples > 1
+        α-blended, motion-blurred."""
+        return self.blur_blend == "sequential" and self.blend == "alpha" and self.motion_blurred
 
     def for_compat(self, compat: str) -> "RenderSettings":
         """The settings drawn under ``compat``: ``reference`` blends the blur samples of an
         α-blended, motion-blurred record one after another, as the research code does
         (``sequential``); ``paper`` all at once (``sum``). The other fields are kept."""
-        ordered = compat == "reference" and self.blend == "alpha" and self.blur_samples > 1
+        ordered = compat == "reference" and self.blend == "alpha" and self.motion_blurred
         return self.replace(blur_blend="sequential" if ordered else "sum")
 
     def appearance(self) -> dict:
