@@ -5,6 +5,9 @@ The splat's :class:`~weathergen.engine.splat.Sums` hold, per view, ``A = Σ θ B
 :func:`planes` brings the coarse grids to the image grid (bilinear upsampling, coarsest first)
 and :func:`composite` blends: additive ``I + C`` or order-independent alpha ``I (1 − A) + C``
 (Meshkin), each view with its record's mode, clamped to [0, 1]; the opacity is ``clamp(A, 0, 1)``.
+:func:`composite_in_order` draws records whose blur samples are blended one after another (the
+research code's order, ``RenderSettings.blur_blend = "sequential"``): a splat per sample place,
+blended step by step.
 
 Both steps touch every pixel of every frame, for every channel, so on the CPU their cost is the
 memory traffic: autograd's generic backward of the same expressions would allocate and fill
