@@ -132,7 +132,7 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, co
         geometry=geometry, truth=truth, sequence=sequence, stereo=stereo,
         device=device, particles_from=particles_dir, appearance=appearance,
         shard=parse_shard(shard), workers=workers, batch_size=batch_size, resume=resume, overwrite=overwrite,
-        executor=executor, ray_address=ray_address,
+        executor=executor, ray_address=ray_address, compat=compat or "paper",
         command=click.get_current_context().meta.get(ARGV_KEY, ["weathergen", *sys.argv[1:]]),
     )
     console = Console(stderr=False)

@@ -5,12 +5,13 @@ and whose camera translation it zeroes, and ``bamboo_1``, which it leaves as it 
 plane at depth 6, a near wall at 1.2, a camera that turns by 1.5 degrees and moves 0.3 right and
 0.4 forward), runs the research code on it (its Sintel reader, its generator and its renderer, with
 the settings of its readme's snow, rain, sparks and fog commands and of the paper's table's
-alpha-blended white sparks, alpha-white; fewer particles), saves each
+alpha-blended white and red sparks, alpha-white and alpha-red; fewer particles), saves each
 pair's particles with its ``save_weatherfile`` in the published layout (``SET/SCENE/
 frame_0001.npz``) and its float frames, then reads every file with weathergen
 (:mod:`weathergen.io.published_weather`), draws it in the research code's frame and scaling
 (``--scene-scales research``, camera translation zeroed in the scaled scenes) with the preset of
-the same name, and prints per frame the largest and the mean absolute difference between the two
+the same name, as ``--compat reference`` draws it (α-blended motion blur blended one sample after
+another), and prints per frame the largest and the mean absolute difference between the two
 renders (grey levels of 255).
 
 Nothing of the research code is part of weathergen; this script imports it from the given folder
@@ -20,6 +21,9 @@ code imports but does not use here, is stood in for. Run it from the repository 
 
     python scripts/compare_published_weather.py --research PATH/TO/DistractingDownpour \\
         --out out/published-comparison [--particles 400]
+
+``--compare-only`` compares again what an earlier run left in ``--out`` (the research code is
+not run; ``--research`` is not needed).
 """
 
 from __future__ import annotations
@@ -67,6 +71,12 @@ CONFIGS = {
                         flake_template_folder="particles", rendering_method="meshkin",
                         transparency_scale=1.5, do_motionblur=True, motionblur_scale=0.3,
                         motionblur_samples=10),
+    "alpha-red": dict(num_flakes=3000, flakesize_max=41, depth_decay=9, motion_y=-0.05,
+                      motion_random_scale=0.2, motion_random_angle=60,
+                      flake_template_folder="particles", flake_r=191, flake_g=79, flake_b=64,
+                      flake_random_h=15, flake_random_s=0.1, flake_random_l=0.1,
+                      rendering_method="meshkin", transparency_scale=1.5, do_motionblur=True,
+                      motionblur_scale=0.3, motionblur_samples=10),
     "fog": dict(num_flakes=60, flakesize_max=451, depth_decay=0.8, motion_y=0.0,
                 flake_template_folder="dust", rendering_method="meshkin",
                 transparency_scale=0.25, do_motionblur=False),
@@ -154,7 +164,8 @@ def compare(tree: Path, out: Path, sets) -> None:
         for ref in ds.pairs():
             pair = ds.load(ref)
             particles = published_particles(read_published_weather(
-                published_file(out / name, ref.id.scene, ref.id.frame)), pair, preset)
+                published_file(out / name, ref.id.scene, ref.id.frame)), pair, preset) \
+                .for_compat("reference")
             with torch.no_grad():
                 ours = render_pair(pair, particles)
             for k, image in ((1, ours.image1), (2, ours.image2)):
@@ -166,8 +177,10 @@ def compare(tree: Path, out: Path, sets) -> None:
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--research", type=Path, required=True,
+    parser.add_argument("--research", type=Path,
                         help="a checkout of cv-stuttgart/DistractingDownpour")
+    parser.add_argument("--compare-only", action="store_true",
+                        help="compare the files and frames an earlier run left in --out")
     parser.add_argument("--out", type=Path, default=Path("out/published-comparison"))
     parser.add_argument("--particles", type=int, default=400,
                         help="particles per pair of snow, rain and sparks (fog: its 60)")
@@ -176,8 +189,11 @@ def main():
     args = parser.parse_args()
     sets = [s.strip() for s in args.sets.split(",") if s.strip()]
     tree, folder = args.out / "sintel", args.out / "sets"
-    write_tree(tree)
-    run_research(args.research.resolve(), tree, folder, args.particles, sets)
+    if not args.compare_only:
+        if args.research is None:
+            parser.error("--research is required (or --compare-only)")
+        write_tree(tree)
+        run_research(args.research.resolve(), tree, folder, args.particles, sets)
     compare(tree, folder, sets)
 
 

@@ -200,6 +200,31 @@ def test_the_loop_frees_the_homogeneous_component_only_in_reference_mode(small_p
         assert len(run.optimizer.param_groups[0]["params"]) == 4 + has
 
 
+# -- blending of motion blur ---------------------------------------------------------------------
+
+def test_reference_blends_alpha_motion_blur_sample_by_sample(small_pair, raft_small):
+    """The research code blends an α-blended particle's blur samples one after another; the
+    attack draws (and differentiates) the same frames as ``render_pair`` of the record so
+    marked."""
+    from weathergen.engine import load_preset, render_pair, sample_particles
+
+    particles = sample_particles(small_pair, load_preset("alpha-white", {"count": "60"}), 3)
+    frames = {}
+    for compat, order in (("paper", "sum"), ("reference", "sequential")):
+        run = PairOptimisation(raft_small, small_pair, particles, settings(compat))
+        current = run.variables.particles()
+        assert current.settings.blur_blend == order
+        out = run.render(current)
+        with torch.no_grad():
+            want = render_pair(small_pair, particles.for_compat(compat), beta=run.settings.beta)
+        assert torch.allclose(out.image1, want.image1, atol=1e-6)
+        out.image1.sum().backward()
+        grads = [p.grad for p in run.variables.parameters()]
+        assert any(g is not None and float(g.abs().sum()) > 0 for g in grads)
+        frames[compat] = out.image1.detach()
+    assert float((frames["paper"] - frames["reference"]).abs().max()) > 1e-3
+
+
 # -- transparency bound --------------------------------------------------------------------------
 
 def test_reference_caps_transparency_at_the_presets():

@@ -216,6 +216,7 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
     """
     s = record.settings
     preset_samples = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
+    fixed = in_order(s)         # blended sample by sample: the preset's K, none added
     extent = s.blur_length if preset_samples > 1 else 0.0      # the streak's length
     height, width = len(depth), len(depth[0])
     f = math.sqrt(k[0][0] * k[1][1])
@@ -235,8 +236,8 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
             looks = (template, max(float(record.scale[j]) * resolution, 1.0),
                      int(record.defocus[j]), rotation,
                      bool(s.defocus_brighten) and int(record.defocus[j]) > 1)
-            samples = blur_count(k, xt, along, s.blur_length, preset_samples,
-                                 sample_gap(looks, coarse_side))
+            samples = preset_samples if fixed else blur_count(
+                k, xt, along, s.blur_length, preset_samples, sample_gap(looks, coarse_side))
             points = [[xt[a] + q * along[a] for a in range(3)]
                       for q in _steps(s.blur_length, samples)]
             middle = [xt[a] + 0.5 * extent * along[a] for a in range(3)]
@@ -275,8 +276,9 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
             along = [sum(cams[t][i][a] * d[a] for a in range(3)) for i in range(3)]  # R d
             looks = (template, max(footprint, 1.0), radius, rotation,
                      bool(s.defocus_brighten) and radius > 1)
-            samples = blur_count(k, _apply(cams[t], start), along, s.blur_length,
-                                 preset_samples, sample_gap(looks, coarse_side))
+            samples = preset_samples if fixed else blur_count(
+                k, _apply(cams[t], start), along, s.blur_length, preset_samples,
+                sample_gap(looks, coarse_side))
             points = [_apply(cams[t], [start[a] + q * d[a] for a in range(3)])
                       for q in _steps(s.blur_length, samples)]
             middle = _apply(cams[t], [start[a] + 0.5 * extent * d[a] for a in range(3)])
@@ -616,16 +618,36 @@ def fogged(image, depth, k, atmospheres):
     return out, trans
 
 
+def in_order(settings) -> bool:
+    """Whether a record's blur samples are blended one after another (``blur_blend``
+    sequential, alpha, motion blur)."""
+    return (settings.blur_blend == "sequential" and settings.blend == "alpha"
+            and int(settings.blur_samples) > 1 and settings.blur_length > 0)
+
+
+def sample_steps(frame_draws) -> list:
+    """What a frame draws, sample by sample: step k holds the k-th blur sample of every
+    particle that has one (θ / K each)."""
+    steps = max((len(d[1]) for d in frame_draws), default=1)
+    return [[(looks, [points[i]], *rest) for looks, points, *rest in frame_draws
+             if i < len(points)] for i in range(steps)]
+
+
 def render_frame(image, depth, frame_draws, levels, resolution, blend, coarse_side,
-                 detach_occlusion=False, k=None, atmospheres=()):
+                 detach_occlusion=False, k=None, atmospheres=(), ordered=False):
     """One weather frame and its opacity from what it draws, through ``atmospheres`` (uniform
-    air; ``k`` the intrinsics as lists). Shape: image (3, H, W) tensor."""
+    air; ``k`` the intrinsics as lists). ``ordered``: each blur sample's sums blended over the
+    frame the previous ones left, clamped after each. Shape: image (3, H, W) tensor."""
     frame_draws = through_air(frame_draws, atmospheres, k, blend)
-    total = frame_sums(depth, frame_draws, levels, resolution, coarse_side, detach_occlusion)
-    alpha, colour = total[:1], total[1:4]
     image, trans = fogged(image, depth, k, atmospheres)
-    out = image * (1 - alpha) + colour if blend == "alpha" else image + colour
-    opacity = alpha.clamp(0, 1)
+    out, kept = image, 1.0
+    for step in sample_steps(frame_draws) if ordered else [frame_draws]:
+        total = frame_sums(depth, step, levels, resolution, coarse_side, detach_occlusion)
+        alpha, colour = total[:1], total[1:4]
+        out = out * (1 - alpha) + colour if blend == "alpha" else out + colour
+        out = out.clamp(0, 1)
+        kept = kept * (1 - alpha.clamp(0, 1))
+    opacity = 1 - kept if ordered else alpha.clamp(0, 1)
     if atmospheres:
         opacity = 1 - trans * (1 - opacity)
     return out.clamp(0, 1), opacity
@@ -655,7 +677,7 @@ def oracle_render(image1, image2, depth1, depth2, intrinsics, cam1_from_ref, cam
             atmospheres = [record.atmosphere] if record.atmosphere is not None else []
             out, opacity = render_frame(image, scene, frame, levels, lib.resolution,
                                         record.settings.blend, side, detach_occlusion,
-                                        k, atmospheres)
+                                        k, atmospheres, in_order(record.settings))
             outs[t].append(out)
             outs[2 + t].append(opacity)
     return tuple(torch.stack(o) for o in outs)

@@ -297,6 +297,54 @@ def test_a_dataset_opened_otherwise_gets_a_note(tree, tmp_path):
     assert "--scene-scales research --no-translation-in-scaled-scenes" in result.output
 
 
+@pytest.mark.slow
+def test_compat_reference_blends_alpha_motion_blur_sample_by_sample(tree, tmp_path):
+    """A published α-blended set (``color_alpha_white``: 10 blur samples): under ``--compat
+    reference`` each sample is blended over the frame the earlier ones left, as the research
+    code draws it (the library's render of the record marked so); in the research frame without
+    it, weathergen's blending (all samples at once). ``evaluate`` of the set measures the first."""
+    sintel, _ = tree
+    weather = tmp_path / "color_alpha_white_npz"
+    published_file(weather, "alley_1", 1).parent.mkdir(parents=True)
+    np.savez(published_file(weather, "alley_1", 1), **weather_arrays(5, n=60))
+    select = ["--scenes", "alley_1", "--frames-per-scene", "1", "--quiet"]
+    runs = {}
+    for name, options in (("reference", ["--compat", "reference"]), ("paper", RESEARCH)):
+        runs[name] = tmp_path / name
+        result = invoke(["render", "--root", sintel, "--particles", weather, *options, *select,
+                         "--out", runs[name]])
+        assert result.exit_code == 0, result.output
+    ds = research_dataset(sintel, ["alley_1"])
+    pair = ds.load(ds.pairs()[0])
+    record = published_particles(read_published_weather(published_file(weather, "alley_1", 1)),
+                                 pair, load_preset("alpha-white"))
+    assert record.settings.blur_samples == 10 and record.settings.blur_blend == "sum"
+    ordered = record.for_compat("reference")
+    pngs = {}
+    for name, drawn in (("reference", ordered), ("paper", record)):
+        with torch.no_grad():
+            expected = render_pair(pair, drawn)
+        written = read_image(runs[name] / "training" / "alpha-white_clean" / "alley_1_0001"
+                             / "frame_0001.png")
+        pngs[name] = to_uint8(written)
+        assert np.array_equal(pngs[name], to_uint8(expected.image1[0].permute(1, 2, 0).numpy()))
+    assert not np.array_equal(pngs["reference"], pngs["paper"])      # the streaks overlap
+    stored = Particles.load(runs["reference"] / "training" / "particles" / "alley_1_0001"
+                            / "frame_0001.npz")
+    assert stored.settings == ordered.settings                       # kept in the output
+    manifest = json.loads((runs["reference"] / "manifest.json").read_text())
+    assert manifest["compat"] == "reference"
+    (tmp_path / "tiny.py").write_text(TINY)
+    model = ["--model", f"{tmp_path / 'tiny.py'}:build", "--quiet"]
+    figures = []
+    for source, extra in ((weather, ["--root", sintel]), (runs["reference"], [])):
+        path = tmp_path / f"{len(figures)}.json"
+        result = invoke(["evaluate", "--weather", source, *extra, *model, "--json", path])
+        assert result.exit_code == 0, result.output
+        figures.append(json.loads(path.read_text())["pairs"][0]["aee_weather"])
+    assert figures[0] == pytest.approx(figures[1], rel=1e-6)
+
+
 def test_inspect_shows_a_published_file(tree):
     _, weather = tree
     result = invoke(["inspect", published_file(weather, "alley_1", 1)])

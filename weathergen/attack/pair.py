@@ -375,7 +375,8 @@ class BatchOptimisation:
             if record.frame != frame:
                 raise ConfigError(f"particles live in {record.frame} coordinates but the frame "
                                   f"pair offers {frame} coordinates (sample them for this pair)")
-            moved.append(record.to(device=device, dtype=torch.float32))
+            # (under compat reference, α-blended motion blur is blended sample by sample)
+            moved.append(record.for_compat(settings.compat).to(device=device, dtype=torch.float32))
             transforms.append((c1, c2))
             for name in ("image1", "image2", "depth1", "depth2", "intrinsics"):
                 frames[name].append(getattr(pair, name))

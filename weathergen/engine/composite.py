@@ -5,7 +5,9 @@ the sums arrive on the image grid from :mod:`~weathergen.engine.planes`.
 
 One record per pair (:func:`composite`, :class:`_Blend`): each view's planes blend additive
 ``I + C`` or with order-independent alpha ``I (1 − A) + C`` (Meshkin), each view with its record's
-mode, clamped to [0, 1]; the opacity is ``clamp(A, 0, 1)``.
+mode, clamped to [0, 1]; the opacity is ``clamp(A, 0, 1)``. :func:`composite_in_order` draws
+records whose blur samples are blended one after another (the research code's order,
+``RenderSettings.blur_blend = "sequential"``): a splat per sample place, blended step by step.
 
 Combined weather (:func:`blend_layers`, :func:`composite_layers`; the layers drawn by
 :mod:`~weathergen.engine.layered`): at every pixel the alpha layers are ordered by their mean
@@ -29,15 +31,19 @@ the backward passes here write their gradients into buffers allocated once.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
 import torch
 
 from .planes import LayerPlanes, planes
-from .splat import Sums
+from .splat import Sums, splat
+from .stamps import StampSet
+from .tracks import Instances, Tracks, blur_samples
 
-__all__ = ["RenderOutput", "blend", "blend_layers", "composite", "composite_layers"]
+__all__ = ["RenderOutput", "blend", "blend_layers", "composite", "composite_in_order",
+           "composite_layers"]
 
 
 @dataclass
@@ -78,7 +84,8 @@ class _Blend(torch.autograd.Function):
             elif no_alpha:
                 pre = image + colour
             else:
-                pre = torch.where(mode, image * (1 - alpha) + colour, image + colour)
+                # (the same operations as above: a pair's bits do not depend on the batch)
+                pre = torch.where(mode, torch.addcmul(colour, image, 1 - alpha), image + colour)
             if grad:    # where clamp passes the gradient: the value lies in [0, 1]
                 out, opacity = pre.clamp(0, 1), alpha.clamp(0, 1)
                 masks += [out == pre, opacity == alpha]
@@ -437,3 +444,60 @@ class _LayeredBlend(torch.autograd.Function):
                 g_c.copy_(g_paint[k])
                 layout.finish(g_values, buffer, t, k)
         return (None, None, None, *g_values, *g_images)
+
+
+# -- blur samples blended one after another (the research code's order) ----------------------
+
+def sample_places(inst: Instances, ordered_views: torch.Tensor) -> torch.Tensor:
+    """Each blur sample's place ``k`` along its streak (0 for the streak's start, as
+    :func:`~weathergen.engine.tracks.blur_samples` lays them out: a track's samples consecutive,
+    no two consecutive tracks of the same entry and view) where its view is in
+    ``ordered_views``, 0 elsewhere. Shape: I instances, ordered_views (V,) bool -> (I,) int64."""
+    n = inst.count
+    index = torch.arange(n, device=inst.entry.device)
+    starts = torch.ones(n, dtype=torch.bool, device=index.device)
+    starts[1:] = (inst.entry[1:] != inst.entry[:-1]) | (inst.view[1:] != inst.view[:-1])
+    first = torch.cummax(torch.where(starts, index, 0), 0).values if n else index
+    return torch.where(ordered_views.index_select(0, inst.view), index - first, 0)
+
+
+def composite_in_order(tracks: Tracks, stamps: StampSet, depth: torch.Tensor,
+                       images: Sequence[torch.Tensor], alpha_mode: torch.Tensor,
+                       ordered: torch.Tensor, *, chunk_elements: Optional[int] = None,
+                       detach_occlusion: bool = False) -> tuple:
+    """The weather frames with the blur samples of the ``ordered`` pairs blended one after
+    another, as the research code draws them: sample ``k`` of every streak of the pair (``k``
+    from the streak's start; each streak its record's K samples, none added on long streaks)
+    splatted alone and blended over the frame that samples ``0 .. k − 1`` left,
+    ``I_k = clamp(I_{k−1} (1 − A_k) + C_k, 0, 1)`` (alpha; ``I_{k−1} + C_k`` additive), with
+    the opacity ``1 − Π_k (1 − clamp(A_k, 0, 1))``. The other pairs' samples are all in step 0,
+    the later steps leave their frames as they are: the same bytes as :func:`composite`.
+
+    One splat draws every step, step ``k``'s samples into views ``k V + v`` (depth repeated), so
+    memory grows with the number of steps; gradients flow as through :func:`composite` (each
+    step's blend is :class:`_Blend`).
+    Shape: tracks of V = T B views, depth (V, 1, H, W), images T tensors (B, 3, H, W),
+    alpha_mode and ordered (B,) bool -> (T images (B, 3, H, W), T opacities (B, 1, H, W),
+    reached (V,) bool).
+    """
+    frames = len(images)
+    bsz, _, height, width = images[0].shape
+    views = frames * bsz
+    ordered_views = ordered.to(tracks.entry.device).repeat(frames)
+    # the research code's K samples per streak: no samples added on long streaks
+    gap = stamps.gap.clone()
+    gap[tracks.entry[ordered_views.index_select(0, tracks.view)]] = float("inf")
+    inst = blur_samples(tracks, images[0].dtype, gap)
+    place = sample_places(inst, ordered_views)
+    steps = int(place.max()) + 1 if inst.count else 1
+    inst = dataclasses.replace(inst, view=place * views + inst.view)
+    sums = splat(inst, stamps, depth.repeat(steps, 1, 1, 1), chunk_elements=chunk_elements,
+                 detach_occlusion=detach_occlusion)
+    grid = planes(sums).view(4, steps, frames, bsz, 1, height, width)
+    outs, opacities = list(images), None
+    for step in grid.unbind(1):
+        blended = _Blend.apply(step, alpha_mode, *outs)
+        outs, alphas = list(blended[:frames]), blended[frames:]
+        opacities = list(alphas) if opacities is None else \
+            [torch.addcmul(o, a, 1 - o) for o, a in zip(opacities, alphas)]
+    return outs, opacities, sums.reached.view(steps, views).any(0)

@@ -143,6 +143,11 @@ class LayeredParticles:
         k = self.index_of(which)
         return dataclasses.replace(self, layers=self.layers[:k] + (record,) + self.layers[k + 1:])
 
+    def for_compat(self, compat: str) -> "LayeredParticles":
+        """Combined weather as drawn under ``compat``: as it is (the research code has none; its
+        layers keep weathergen's blending, see :meth:`Particles.for_compat`)."""
+        return self
+
     def to(self, device=None, dtype=None) -> "LayeredParticles":
         """A copy with every layer on ``device``; float fields cast to ``dtype`` when given."""
         return dataclasses.replace(self, layers=tuple(r.to(device, dtype) for r in self.layers))

@@ -223,6 +223,14 @@ class Particles:
         """A copy with some fields replaced (e.g. an offset tensor that requires grad)."""
         return dataclasses.replace(self, **changes)
 
+    def for_compat(self, compat: str) -> "Particles":
+        """The record as drawn under ``compat`` (``paper`` or ``reference``): under
+        ``reference`` an α-blended, motion-blurred record's blur samples are blended one after
+        another, as the research code does (:meth:`RenderSettings.for_compat`), under ``paper``
+        all at once; the record itself where that changes nothing."""
+        settings = self.settings.for_compat(compat)
+        return self if settings == self.settings else self.replace(settings=settings)
+
     def to(self, device=None, dtype=None) -> "Particles":
         """A copy with tensors on ``device``; float fields cast to ``dtype`` when given."""
         moved = {}

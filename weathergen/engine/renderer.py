@@ -33,7 +33,7 @@ import torch
 from ..errors import ConfigError, DatasetError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from .air import combined_opacity, fog_images, pair_air, record_atmospheres, view_air
-from .composite import RenderOutput, composite
+from .composite import RenderOutput, composite, composite_in_order
 from .layered import as_layers, build_layer_stamps, render_layers, render_layers_view
 from .layers import LayeredParticles
 from .particles import Particles
@@ -229,14 +229,22 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         stamp_set = StampSet.cat([stamps.to(dtype, device),
                                   build(rest, templates, dtype=dtype, coarse_side=coarse_side,
                                         chunk_elements=chunk_elements)])
-    sums = splat(blur_samples(tracks, dtype, stamp_set.gap), stamp_set, views.depth,
-                 chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
+    in_order = [r.settings.blends_in_order for r in records]
+    sums = None if any(in_order) else splat(
+        blur_samples(tracks, dtype, stamp_set.gap), stamp_set, views.depth,
+        chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
     images = [image1, image2]
     if air is not None:
         transmission, airlight = air.pixels(views.depth, dtype)
         images = fog_images(images, transmission, airlight, air)
-    (out1, out2), (opacity1, opacity2) = composite(sums, images, alpha_mode)
-    reached = sums.reached.view(2, bsz).any(0)
+    if sums is None:    # blur samples blended one after another (the research code's order)
+        (out1, out2), (opacity1, opacity2), reached = composite_in_order(
+            tracks, stamp_set, views.depth, images, alpha_mode, torch.tensor(in_order),
+            chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
+    else:
+        (out1, out2), (opacity1, opacity2) = composite(sums, images, alpha_mode)
+        reached = sums.reached
+    reached = reached.view(2, bsz).any(0)
     if air is not None:
         opacity1, opacity2 = combined_opacity([opacity1, opacity2], transmission, air)
         reached = reached | air.reached().to(reached.device).view(2, bsz).any(0)
@@ -318,6 +326,8 @@ def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement:
         stamps = stored(record.stamps.to(device)[kept], dtype=dtype, device=device)
     else:
         stamps = build(looks, templates, dtype=dtype, chunk_elements=chunk_elements)
+    if values is None and record.settings.blends_in_order:   # (render_view blends them in order)
+        return (tracks, stamps, views.depth), air
     return splat(blur_samples(tracks, dtype, stamps.gap), stamps, views.depth,
                  chunk_elements=chunk_elements, detach_occlusion=detach_occlusion), air
 
@@ -342,7 +352,12 @@ def render_view(image: torch.Tensor, view: View, record: Particles, start: torch
     if air is not None:
         transmission, airlight = air.pixels(view.depth[None].to(image.device), image.dtype)
         images = fog_images(images, transmission, airlight, air)
-    (out,), (opacity,) = composite(sums, images, alpha_mode)
+    if isinstance(sums, tuple):
+        (out,), (opacity,), _ = composite_in_order(
+            *sums, images, alpha_mode, torch.ones(1, dtype=torch.bool),
+            chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
+    else:
+        (out,), (opacity,) = composite(sums, images, alpha_mode)
     if air is not None:
         (opacity,) = combined_opacity([opacity], transmission, air)
     return out[0], opacity[0]

@@ -20,7 +20,7 @@ from typing import Mapping, Optional
 
 import numpy as np
 
-from ..errors import FormatError
+from ..errors import ConfigError, FormatError
 from .presets import BLEND_MODES, Preset
 from .templates import TemplateLibrary
 
@@ -31,7 +31,9 @@ APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defoc
 APPEARANCE_FIELDS = ("blend", "blur_length", "blur_samples", "defocus_brighten", "coarse")
 #: Fields a particle file holds only when they differ from their default (files written before
 #: they existed read as the default, and files of the default keep their bytes).
-OPTIONAL_FIELDS = ("coarse",)
+OPTIONAL_FIELDS = ("coarse", "blur_blend")
+#: How an α-blended record's blur samples are blended: all at once, or one after another.
+BLUR_BLENDS = ("sum", "sequential")
 
 
 @dataclass(frozen=True)
@@ -44,7 +46,10 @@ class RenderSettings:
     template library's name (``flakes``, ``dust`` or a folder); templates_digest: its digest ("" for
     any), so that particles are never drawn with other templates than they were sampled with;
     coarse: stamps of at least ``COARSE_SIDE`` pixels may be drawn on a coarser grid (false:
-    every pixel exactly).
+    every pixel exactly); blur_blend: how an α-blended record's K blur samples are blended,
+    ``sum``: all at once, ``I (1 − ΣA) + ΣC`` (weathergen's), ``sequential``: one after another
+    in their order along the streak, ``I_k = clamp(I_{k−1} (1 − A_k) + C_k, 0, 1)`` (the
+    research code's; what ``compat="reference"`` draws, see :meth:`for_compat`).
     """
 
     blend: str = "additive"
@@ -54,6 +59,12 @@ class RenderSettings:
     templates: str = "flakes"
     templates_digest: str = ""
     coarse: bool = True
+    blur_blend: str = "sum"
+
+    def __post_init__(self):
+        if self.blur_blend not in BLUR_BLENDS:
+            raise ConfigError(f"blur_blend must be {' or '.join(BLUR_BLENDS)}; "
+                              f"got {self.blur_blend!r}")
 
     @classmethod
     def from_preset(cls, preset: Preset, library: Optional[TemplateLibrary] = None) -> "RenderSettings":
@@ -64,6 +75,24 @@ class RenderSettings:
                    templates=library.name if library is not None else preset.templates,
                    templates_digest=library.digest if library is not None else "",
                    coarse=preset.coarse)
+
+    @property
+    def motion_blurred(self) -> bool:
+        """More than one blur sample along a streak of some length."""
+        return self.blur_samples > 1 and self.blur_length > 0
+
+    @property
+    def blends_in_order(self) -> bool:
+        """Whether the record's blur samples are blended one after another: ``sequential``,
+        α-blended, motion-blurred."""
+        return self.blur_blend == "sequential" and self.blend == "alpha" and self.motion_blurred
+
+    def for_compat(self, compat: str) -> "RenderSettings":
+        """The settings drawn under ``compat``: ``reference`` blends the blur samples of an
+        α-blended, motion-blurred record one after another, as the research code does
+        (``sequential``); ``paper`` all at once (``sum``). The other fields are kept."""
+        ordered = compat == "reference" and self.blend == "alpha" and self.motion_blurred
+        return self.replace(blur_blend="sequential" if ordered else "sum")
 
     def appearance(self) -> dict:
         """The fields that may change when stored particles are rendered again."""
@@ -94,4 +123,7 @@ class RenderSettings:
             values[f.name] = type(f.default)(arrays[f.name].item())
         if values["blend"] not in BLEND_MODES:
             raise FormatError(path, f"unknown blend mode {values['blend']!r}")
+        if values.get("blur_blend", "sum") not in BLUR_BLENDS:     # (before __post_init__'s)
+            raise FormatError(path, f"unknown blur_blend {values['blur_blend']!r} (expected "
+                                    f"{' or '.join(BLUR_BLENDS)})")
         return cls(**values)

@@ -5,7 +5,8 @@ A published ``_npz`` set holds particles, no frames of weathergen's: :class:`Pub
 draws each pair's particles into the clean pair (:func:`~weathergen.engine.render_pair` of
 :func:`~weathergen.engine.published.published_particles`, with a preset's render settings) and
 gives those frames rounded to 8 bits, as ``render`` would write them, so that ``evaluate`` of a
-set measures what ``render --particles SET`` followed by ``evaluate`` measures. It offers the
+set measures what ``render --particles SET --compat reference`` followed by ``evaluate``
+measures. It offers the
 attributes and methods of :class:`~weathergen.outputs.WeatherFolder` that evaluation reads.
 """
 
@@ -67,9 +68,10 @@ class PublishedWeatherSet:
         return self._cache[pair_id]
 
     def particles(self, pair_id: PairId):
-        """The pair's particles, mapped into its clean pair."""
+        """The pair's particles, mapped into its clean pair, drawn as under ``--compat
+        reference`` (α-blended motion blur blended sample by sample, as the research code)."""
         weather = read_published_weather(published_file(self.root, pair_id.scene, pair_id.frame))
-        return published_particles(weather, self._pair(pair_id), self.preset)
+        return published_particles(weather, self._pair(pair_id), self.preset).for_compat("reference")
 
     def frames(self, pair_id: PairId) -> tuple[torch.Tensor, torch.Tensor]:
         """The weather frames of a pair, drawn and rounded to 8 bits as ``render`` writes them.

@@ -79,6 +79,7 @@ class RenderJob:
     command: list = field(default_factory=list)
     executor: str = "local"             # "local" or "ray" (weathergen.execution)
     ray_address: Optional[str] = "auto"
+    compat: str = "paper"               # reference: blur samples blended as the research code does
 
     def config(self) -> dict:
         """What must agree between the runs and shards that write one output folder."""
@@ -93,6 +94,7 @@ class RenderJob:
                         **({"stereo": True} if self.stereo else {})},
             "particles_from": str(self.particles_from.absolute()) if self.particles_from else None,
             "appearance": self.appearance,
+            **({"compat": self.compat} if self.compat != "paper" else {}),
         }
 
 
@@ -140,7 +142,7 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
                                        frame_rate=job.dataset.frame_rate,
                                        particles_from=job.particles_from, appearance=job.appearance,
                                        preset_name=job.preset_name, sequence=job.sequence,
-                                       airlight=airlight)
+                                       airlight=airlight).for_compat(job.compat)
             ready.append((ref, seed, pair, particles, time.perf_counter() - start))
         except (WeatherGenError, MemoryError, RuntimeError) as exc:
             results[ref.id] = PairResult(ref.id.key, str(ref.id), "failed", seed,
