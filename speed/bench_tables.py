@@ -523,6 +523,20 @@ def report(runs: list[Run], throughputs: dict[str, Throughput], title: str,
     return "\n".join(text), figures
 
 
+def report_hours(runs: list[Run], results: list[Measured], precisions, title: str,
+                 target_hours: float = 4.0) -> dict:
+    """Print the GPU-hours report (``TITLE, PRECISION``) of each precision in ``precisions`` that
+    has measured throughputs, and return their figures by precision."""
+    out = {}
+    for precision in precisions:
+        tps = best_throughputs(results, precision)
+        if tps:
+            text, hours = report(runs, tps, f"{title}, {precision}", target_hours)
+            print(text + "\n", flush=True)
+            out[precision] = hours
+    return out
+
+
 def counts_table(runs: list[Run]) -> str:
     counts = table_counts(runs)
     lines = ["Network evaluations per network (pair-steps: forward + backward; forward: "
@@ -604,13 +618,10 @@ def main(argv=None) -> int:
         print("\n" + measured_table(results) + "\n")
         figures.update(machine=machine, size=[sizes.width, sizes.height], quick=args.quick,
                        measured=[dataclasses.asdict(r) for r in results])
-        for precision in args.precisions:
-            tps = best_throughputs(results, precision)
-            if tps:
-                text, hours = report(runs, tps, f"GPU-hours on {machine}, {precision}",
-                                     args.target_hours)
-                print(text + "\n")
-                figures.setdefault("hours", {})[precision] = hours
+        hours = report_hours(runs, results, args.precisions, f"GPU-hours on {machine}",
+                             args.target_hours)
+        if hours:
+            figures["hours"] = hours
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(figures, indent=1))

@@ -112,15 +112,9 @@ def section_tables(s: Session, sizes: bt.Sizes, networks, budget_s: float) -> di
                                   budget_s, log=s.log)
     print("\n" + bt.measured_table(results) + "\n", flush=True)
     runs = bt.paper_runs()
-    figures = {"measured": [dataclasses.asdict(r) for r in results], "hours": {},
-               "counts": bt.table_counts(runs)}
-    for precision in ("paper", "float32"):
-        tps = bt.best_throughputs(results, precision)
-        if tps:
-            text, hours = bt.report(runs, tps, f"GPU-hours, {precision}")
-            print(text + "\n", flush=True)
-            figures["hours"][precision] = hours
-    return figures
+    return {"measured": [dataclasses.asdict(r) for r in results],
+            "hours": bt.report_hours(runs, results, ("paper", "float32"), "GPU-hours"),
+            "counts": bt.table_counts(runs)}
 
 
 # -- 3. options -------------------------------------------------------------------------------------
