@@ -24,7 +24,9 @@
 #   make cli-docs              rewrite docs/cli.md (the command-line reference) from the commands'
 #                              --help; a test fails when the two differ
 #   make gpu-check             on a machine with CUDA (with TORCH=torch, a CUDA build): every CUDA
-#                              test and GPU benchmark, one table (figures in out/gpu-check.json);
+#                              test and GPU benchmark, one table; the figures, with the GPU, torch
+#                              and tree, go to docs/figures/gpu-check.json and the page
+#                              docs/figures/gpu.md (GPU_FIGURES=DIR: into DIR instead);
 #                              without CUDA it says so in one line and stops
 
 PYTHON ?= python3
@@ -37,6 +39,7 @@ CORE_BEFORE ?=
 REAL ?=
 REAL_DATASET ?= kitti
 DEPTH_SCALE ?=
+GPU_FIGURES ?= docs/figures
 BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.weathergen-deps
 # The torch requirement the venv was last set up with; a different TORCH reinstalls torch.
@@ -127,7 +130,7 @@ cli-docs: install
 gpu-check: $(TORCH_STAMP)
 	@$(BIN)/python speed/gpu_check.py --probe
 	$(MAKE) --no-print-directory install
-	$(BIN)/python speed/gpu_check.py --json out/gpu-check.json
+	$(BIN)/python speed/gpu_check.py --json $(GPU_FIGURES)/gpu-check.json
 
 clean:
 	rm -rf $(VENV) $(OLDEST) build *.egg-info out

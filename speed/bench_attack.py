@@ -19,7 +19,7 @@ import resource
 import sys
 import time
 
-import bench_options
+import bench_common
 
 
 def synthetic_pair(width: int, height: int):
@@ -92,12 +92,12 @@ def measure(model_name: str, preset: str, width: int, height: int, iters: int, s
 
 
 def main(argv=None) -> int:
-    parser = bench_options.parser(__doc__, models=["raft"])
-    bench_options.add_run_options(parser, steps=1)
+    parser = bench_common.parser(__doc__, models=["raft"])
+    bench_common.add_run_options(parser, steps=1)
     parser.add_argument("--checkpointing", choices=("off", "on", "both"), default="off",
                         help="gradient checkpointing in the network")
     parser.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
-    args = bench_options.parse(parser, argv)
+    args = bench_common.parse(parser, argv)
     width, height = args.width, args.height
 
     if args.one:
@@ -115,7 +115,7 @@ def main(argv=None) -> int:
     print("|---|---|---:|---:|---:|---:|---:|---:|")
     for model_name in args.models:
         for mode in modes:
-            r, error = bench_options.measure_in_new_process(
+            r, error = bench_common.measure_in_new_process(
                 __file__, f"{model_name}:{mode}", args, "--threads", str(args.threads))
             if r is None:
                 print(f"| {model_name} | {mode} | failed: {error} |")

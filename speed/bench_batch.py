@@ -19,7 +19,7 @@ import sys
 import time
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import bench_options  # noqa: E402
+import bench_common  # noqa: E402
 from bench_attack import synthetic_pair  # noqa: E402
 
 
@@ -64,11 +64,11 @@ def measure(model_name: str, preset: str, width: int, height: int, iters: int, s
 
 
 def main(argv=None) -> int:
-    parser = bench_options.parser(__doc__, models=["raft-small"])
+    parser = bench_common.parser(__doc__, models=["raft-small"])
     parser.add_argument("--batch-sizes", nargs="+", type=int, default=[1, 2, 4])
     parser.add_argument("--device", default="cpu", help="cpu, cuda or cuda:N")
-    bench_options.add_run_options(parser, steps=2)
-    args = bench_options.parse(parser, argv)
+    bench_common.add_run_options(parser, steps=2)
+    args = bench_common.parse(parser, argv)
     width, height = args.width, args.height
 
     if args.one:
@@ -85,7 +85,7 @@ def main(argv=None) -> int:
     print("|---|---:|---:|---:|---:|")
     for model_name in args.models:
         for batch in args.batch_sizes:
-            r, error = bench_options.measure_in_new_process(
+            r, error = bench_common.measure_in_new_process(
                 __file__, f"{model_name}:{batch}", args, "--device", args.device)
             if r is None:
                 print(f"| {model_name} | {batch} | failed: {error} | | |", flush=True)

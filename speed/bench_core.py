@@ -25,18 +25,16 @@ still to be measured (no GPU was lent when these figures were taken).
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import json
 import statistics
 import sys
-import tempfile
 import time
 from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import bench_fog  # noqa: E402  (the worker and tree-staging helpers)
+import bench_common  # noqa: E402  (the options, the worker, the earlier tree)
 PRESETS = ("snow", "rain", "sparks", "fog")
 
 
@@ -48,37 +46,21 @@ def measure(repeats: int) -> dict:
     sys.path.insert(0, str(REPO / "tests"))
     from engine_scenes import bench_scene
 
-    from weathergen.engine import BETA_ATTACK, load_preset, render_pair, sample_particles
+    from weathergen.engine import load_preset, sample_particles
 
     torch.set_num_threads(1)
     pair = bench_scene()
     result = {}
     for name in PRESETS:
         parts = sample_particles(pair, load_preset(name), seed=0)
-
-        def forward():
-            with torch.no_grad():
-                render_pair(pair, parts)
-
-        def forward_backward():
-            leaves = {k: getattr(parts, k).clone().requires_grad_(True)
-                      for k in ("offset1", "offset2", "color", "transparency")}
-            out = render_pair(pair, parts.replace(**leaves), beta=BETA_ATTACK)
-            (out.image1.sum() + out.image2.sum()).backward()
-
+        forward, forward_backward = bench_common.render_calls(pair, parts)
         for label, fn in (("forward", forward), ("forward_backward", forward_backward)):
-            fn()
-            times = []
-            for _ in range(repeats):
-                start = time.process_time()
-                fn()
-                times.append(time.process_time() - start)
-            result[f"{name} {label}"] = statistics.median(times)
+            result[f"{name} {label}"] = bench_common.cpu_median(fn, repeats)
     return result
 
 
 def run_worker(repeats: int, pythonpath: str | None = None) -> dict:
-    return bench_fog.run_worker(repeats, pythonpath, script=__file__)
+    return bench_common.run_worker(__file__, repeats, pythonpath)
 
 
 def operation_counts() -> None:
@@ -189,12 +171,7 @@ def _gpu_chunks(batch, records, **options):
 
 
 def main():
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--before", type=Path, help="source tree of an earlier weathergen")
-    parser.add_argument("--rounds", type=int, default=3)
-    parser.add_argument("--repeats", type=int, default=5)
-    parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
-    args = parser.parse_args()
+    args = bench_common.before_parser(__doc__, rounds=3).parse_args()
     if args.worker:
         print(json.dumps(measure(args.repeats)))
         return
@@ -205,19 +182,12 @@ def main():
         for key, value in now.items():
             print(f"  {key:24} {value:.3f} s")
     else:
-        if not (args.before / "weathergen").is_dir():
-            sys.exit(f"--before {args.before}: not a weathergen source tree "
-                     f"(no weathergen/ folder)")
-        with tempfile.TemporaryDirectory() as tmp:
-            old_path = str(bench_fog.staged_copy(args.before.resolve(), Path(tmp)))
-            before, after = [], []
-            for _ in range(args.rounds):
-                before.append(run_worker(args.repeats, old_path))
-                after.append(run_worker(args.repeats))
+        before, after = bench_common.before_and_after(__file__, args.before, args.rounds,
+                                                      args.repeats)
         print(f"  {'':24} {'before s':>9} {'now s':>9} {'speed-up':>9}")
         for key in before[0]:
-            b = statistics.median(r[key] for r in before)
-            a = statistics.median(r[key] for r in after)
+            b = bench_common.median_of(before, key)
+            a = bench_common.median_of(after, key)
             print(f"  {key:24} {b:9.3f} {a:9.3f} {b / a:8.2f}x")
     operation_counts()
 

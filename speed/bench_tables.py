@@ -52,7 +52,6 @@ import json
 import math
 import os
 import re
-import statistics
 import sys
 import time
 from dataclasses import dataclass, field
@@ -62,6 +61,8 @@ from typing import Callable, Optional
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "speed"))
 sys.path.insert(1, str(ROOT))           # the source checkout before an installed copy
+
+import bench_common  # noqa: E402  (the clock)
 
 #: The paper's six networks, in its tables' order.
 PAPER_NETWORKS = ("flownet2", "flownetcrobust", "spynet", "raft", "gma", "flowformer")
@@ -264,26 +265,6 @@ class Measured:
     seconds: float = 0.0                           # wall time of the measurement
 
 
-def _sync(device: str) -> None:
-    import torch
-
-    if device.startswith("cuda"):
-        torch.cuda.synchronize(device)
-
-
-def _timed(fn: Callable[[], object], device: str, repeats: int) -> float:
-    """Median seconds of ``repeats`` calls after one warm-up call."""
-    fn()
-    _sync(device)
-    times = []
-    for _ in range(max(1, repeats)):
-        start = time.perf_counter()
-        fn()
-        _sync(device)
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
-
-
 def _is_oom(exc: BaseException) -> bool:
     import torch
 
@@ -405,7 +386,7 @@ def measure(bench: Bench, name: str, precision: str, options: Options = Options(
                     torch.cuda.empty_cache()
                     torch.cuda.reset_peak_memory_stats(bench.device)
                 step, run = bench.step(model, batch)
-                seconds = _timed(step, bench.device, bench.sizes.steps)
+                seconds = bench_common.timed(step, bench.device, bench.sizes.steps)
             except Exception as exc:      # noqa: BLE001 - out of memory is an answer here
                 run = None
                 if not _is_oom(exc):
@@ -430,10 +411,11 @@ def measure(bench: Bench, name: str, precision: str, options: Options = Options(
             result.stop = "largest batch size tried"
         if best_run is not None:
             best = result.batches[result.best_batch]["step_seconds"]
-            alone = _timed(bench.network_alone(model, best_run), bench.device, bench.sizes.steps)
+            timed = bench_common.timed
+            alone = timed(bench.network_alone(model, best_run), bench.device, bench.sizes.steps)
             result.network_share = alone / best
-            result.forward = result.best_batch / _timed(bench.forward_only(model, best_run),
-                                                         bench.device, bench.sizes.steps)
+            result.forward = result.best_batch / timed(bench.forward_only(model, best_run),
+                                                       bench.device, bench.sizes.steps)
     finally:
         torch.backends.cuda.matmul.allow_tf32 = old_tf32
         del model, run, best_run
@@ -541,6 +523,20 @@ def report(runs: list[Run], throughputs: dict[str, Throughput], title: str,
     return "\n".join(text), figures
 
 
+def report_hours(runs: list[Run], results: list[Measured], precisions, title: str,
+                 target_hours: float = 4.0) -> dict:
+    """Print the GPU-hours report (``TITLE, PRECISION``) of each precision in ``precisions`` that
+    has measured throughputs, and return their figures by precision."""
+    out = {}
+    for precision in precisions:
+        tps = best_throughputs(results, precision)
+        if tps:
+            text, hours = report(runs, tps, f"{title}, {precision}", target_hours)
+            print(text + "\n", flush=True)
+            out[precision] = hours
+    return out
+
+
 def counts_table(runs: list[Run]) -> str:
     counts = table_counts(runs)
     lines = ["Network evaluations per network (pair-steps: forward + backward; forward: "
@@ -622,13 +618,10 @@ def main(argv=None) -> int:
         print("\n" + measured_table(results) + "\n")
         figures.update(machine=machine, size=[sizes.width, sizes.height], quick=args.quick,
                        measured=[dataclasses.asdict(r) for r in results])
-        for precision in args.precisions:
-            tps = best_throughputs(results, precision)
-            if tps:
-                text, hours = report(runs, tps, f"GPU-hours on {machine}, {precision}",
-                                     args.target_hours)
-                print(text + "\n")
-                figures.setdefault("hours", {})[precision] = hours
+        hours = report_hours(runs, results, args.precisions, f"GPU-hours on {machine}",
+                             args.target_hours)
+        if hours:
+            figures["hours"] = hours
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(figures, indent=1))

@@ -31,40 +31,21 @@ import os
 import statistics
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
-from engine_scenes import plane_pair, pose, rotation  # noqa: E402
+import bench_common  # noqa: E402  (the training batch)
 import bench_core  # noqa: E402  (the GPU's chunking, as its operation counts use it)
 
 from weathergen.engine import render  # noqa: E402
-from weathergen.framepair import PairId  # noqa: E402
 from weathergen.models import build_model  # noqa: E402
-from weathergen.training import (PairSample, RandomCrop, WeatherAugment,  # noqa: E402
+from weathergen.training import (RandomCrop, WeatherAugment,  # noqa: E402
                                  collate_pairs, raft_optimizer, train_step)
 
 HEIGHT, WIDTH, BATCH, CROP = 436, 1024, 6, (368, 768)
-
-
-def sintel_size_samples() -> list:
-    """Six 1024 x 436 pairs with depth, cameras and flow (the flow's values do not matter here)."""
-    out = []
-    for i in range(BATCH):
-        cam1 = pose(rotation(roll_deg=3, pitch_deg=-5 + i))
-        cam2 = pose(rotation(roll_deg=3, pitch_deg=-4 + i, yaw_deg=1), centre=(0.05, 0.0, 0.1))
-        pair = plane_pair(HEIGHT, WIDTH, depth=6.0, near_block=True, cam1_from_world=cam1,
-                          cam2_from_world=cam2, seed=i)
-        pair.depth1[..., :, 600:] = 2.0
-        pair.depth2[..., :, 600:] = 2.0
-        flow = torch.randn(2, HEIGHT, WIDTH, generator=torch.Generator().manual_seed(i))
-        pair = replace(pair, id=PairId("bench", "training", "plane", i + 1), flow=flow,
-                       flow_valid=torch.ones(1, HEIGHT, WIDTH, dtype=torch.bool))
-        out.append(PairSample(pair=pair, index=i, epoch=0))
-    return out
 
 
 #: Operators that wait for the device (their result's size or value goes to the host).
@@ -145,7 +126,7 @@ def main(argv=None):
     print(f"training cost: batch of {BATCH} pairs {WIDTH}x{HEIGHT}, cropped to "
           f"{CROP[0]}x{CROP[1]} after the weather; {name}; median of {repeats}")
 
-    samples = sintel_size_samples()
+    samples = bench_common.training_samples(HEIGHT, WIDTH, BATCH, wall=True)
     crop = RandomCrop(CROP, seed=0)
     batch_cpu = collate_pairs(samples)
     batch_dev = batch_cpu.to(device)

@@ -1,8 +1,10 @@
 """The figures file: what the benchmarks measured, on which tree and which machine.
 
-Every figure the documentation gives for speed or memory lives here and nowhere else:
+Every CPU figure the documentation gives for speed or memory lives here and nowhere else:
 ``docs/figures/bench.json`` (one section per benchmark command) and ``docs/figures/bench.md``
-(the same, for reading; rewritten from the JSON each time). ``make bench`` fills both. A script
+(the same, for reading; rewritten from the JSON each time). ``make bench`` fills both. The GPU
+figures have their page beside it, ``docs/figures/gpu.md``, written by :mod:`gpu_figures` from
+the JSON files of ``make gpu-check`` and of the GPU session. A script
 runs its main through :func:`record`::
 
     if __name__ == "__main__":
@@ -187,11 +189,10 @@ def markdown(data: dict) -> str:
     """The figures page: one section per command, with its tree, machine and printed output."""
     lines = ["# Benchmark figures", "",
              "Written by `make bench` (each script through `speed/figures.py`); do not edit by "
-             "hand. Every speed and memory figure of the documentation is here; each section says "
-             "on which tree and machine it was measured. GPU figures: "
-             "[gpu-check.json](gpu-check.json) (`make gpu-check`) and "
-             "[gpu-session.json](gpu-session.json) (`speed/gpu_session.sh`), each naming its GPU "
-             "and torch.", ""]
+             "hand. Every CPU speed and memory figure of the documentation is here; each section says "
+             "on which tree and machine it was measured. GPU figures: [gpu.md](gpu.md) "
+             "(`make gpu-check` and `speed/gpu_session.sh`, written by `speed/gpu_figures.py`).",
+             ""]
     for command, s in data["sections"].items():
         m = s["machine"]
         state = " with uncommitted changes" if s.get("dirty") else ""

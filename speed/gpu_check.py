@@ -15,10 +15,14 @@ For whoever has an NVIDIA GPU and a CUDA build of torch (`make gpu-check TORCH=t
 - networks: forward and forward + backward of every registered network, time and memory.
 
 Prints one Markdown table (seconds: medians after a warm-up call; memory: the peak of allocated
-GPU memory during the measurement) and, with ``--json PATH``, writes the figures. Exits 2 with one
-line when CUDA is not there, 1 when a test or a measurement failed, else 0.
+GPU memory during the measurement) and, with ``--json PATH``, writes the figures with the machine
+(GPU, torch, CUDA) and the tree (git commit) they were measured on, after each area (a run cut
+short keeps the areas it finished), and rewrites the page ``gpu.md`` beside ``PATH`` from it (and
+from ``gpu-session.json`` there, if any: :mod:`gpu_figures`); ``make gpu-check`` writes
+docs/figures/gpu-check.json and docs/figures/gpu.md. Exits 2 with one line when CUDA is not
+there, 1 when a test or a measurement failed, else 0.
 
-    python speed/gpu_check.py [--json out/gpu-check.json] [--models raft gma]
+    python speed/gpu_check.py [--json docs/figures/gpu-check.json] [--models raft gma]
 
 ``--device cpu --quick`` runs every measurement on tiny inputs on the CPU (no tests): a dry run
 that the test suite uses to check that the table is assembled; its figures mean nothing.
@@ -44,6 +48,11 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(ROOT / "tests"))
+
+import bench_common  # noqa: E402  (the training batch, the machine)
+import gpu_figures  # noqa: E402  (the page docs/figures/gpu.md)
+from figures import tree  # noqa: E402
+
 
 @dataclass
 class Row:
@@ -147,7 +156,7 @@ def scene(sizes: Sizes):
 
 
 def render_rows(device: str, sizes: Sizes) -> list[Row]:
-    from weathergen.engine import BETA_ATTACK, load_preset, render_pair, sample_particles
+    from weathergen.engine import load_preset, render_pair, sample_particles
     from weathergen.framepair import FramePairBatch
 
     meter = Meter(device, sizes.steps)
@@ -157,17 +166,7 @@ def render_rows(device: str, sizes: Sizes) -> list[Row]:
         count = sizes.fog_count if name == "fog" else sizes.count
         preset = load_preset(name, {"count": count} if count else None)
         parts = sample_particles(pair, preset, seed=0)
-
-        def forward():
-            with torch.no_grad():
-                render_pair(pair, parts, device=device)
-
-        def forward_backward():
-            leaves = {k: getattr(parts, k).clone().requires_grad_(True)
-                      for k in ("offset1", "offset2", "color", "transparency")}
-            out = render_pair(pair, parts.replace(**leaves), beta=BETA_ATTACK, device=device)
-            (out.image1.sum() + out.image2.sum()).backward()
-
+        forward, forward_backward = bench_common.render_calls(pair, parts, device)
         for label, fn in (("forward", forward), ("forward + backward", forward_backward)):
             seconds, memory = meter(fn)
             rows.append(Row("render", f"{name} ({parts.count}), {label}", seconds, memory))
@@ -237,21 +236,9 @@ def _shrunk(pair, sizes: Sizes):
 
 
 def training_rows(device: str, sizes: Sizes) -> list[Row]:
-    from engine_scenes import plane_pair, pose, rotation
-    from weathergen.framepair import PairId
-    from weathergen.training import PairSample, RandomCrop, WeatherAugment, collate_pairs
+    from weathergen.training import RandomCrop, WeatherAugment, collate_pairs
 
-    samples = []
-    for i in range(sizes.batch):
-        cam1 = pose(rotation(roll_deg=3, pitch_deg=-5 + i))
-        cam2 = pose(rotation(roll_deg=3, pitch_deg=-4 + i, yaw_deg=1), centre=(0.05, 0.0, 0.1))
-        pair = plane_pair(sizes.height, sizes.width, depth=6.0, near_block=True,
-                          cam1_from_world=cam1, cam2_from_world=cam2, seed=i)
-        flow = torch.randn(2, sizes.height, sizes.width, generator=torch.Generator().manual_seed(i))
-        pair = dataclasses.replace(pair, id=PairId("bench", "training", "plane", i + 1), flow=flow,
-                                   flow_valid=torch.ones(1, sizes.height, sizes.width,
-                                                         dtype=torch.bool))
-        samples.append(PairSample(pair=pair, index=i, epoch=0))
+    samples = bench_common.training_samples(sizes.height, sizes.width, sizes.batch)
     batch = collate_pairs(samples).to(device)
     meter = Meter(device, sizes.steps)
     rows = []
@@ -448,11 +435,15 @@ def main(argv=None) -> int:
     title = (f"gpu-check on {device_name(args.device)}, torch {torch.__version__}, "
              f"{sizes.width}x{sizes.height}" + (" (dry run: tiny inputs)" if args.quick else ""))
 
+    machine, measured_on = bench_common.gpu_machine(args.device), tree()
+
     def write_json(rows: list[Row]) -> None:
         if args.json:
-            args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json.dumps({"title": title,
-                                             "rows": [dataclasses.asdict(r) for r in rows]}, indent=1))
+            bench_common.write_atomic(args.json, json.dumps(
+                {"title": title, "machine": machine, "tree": measured_on,
+                 "rows": [dataclasses.asdict(r) for r in rows]}, indent=1))
+            gpu_figures.write_page(args.json.with_name(gpu_figures.PAGE), args.json,
+                                   args.json.with_name(gpu_figures.SESSION))
 
     def progress(area: str, rows: list[Row]) -> None:
         print(f"gpu-check: {area} done", file=sys.stderr, flush=True)

@@ -3,12 +3,15 @@ them, and the weather of a training batch against a RAFT training step.
 
 Run from the repository root on a machine with a CUDA GPU (the package from its source checkout)::
 
-    bash speed/gpu_session.sh                 # figures in $OUT (or out/gpu-session)
+    bash speed/gpu_session.sh                 # figures in $OUT (or docs/figures)
     PYTHONPATH=$PWD python3 speed/gpu_session.py --out DIR [--deadline-s 330]
     python speed/gpu_session.py --device cpu --quick --out /tmp/s   # the CPU smoke test
 
-Sections, in order, each writing ``DIR/gpu_session.json`` when it ends (a run cut short keeps
-what it measured) and printing its rows as it goes:
+Sections, in order, each writing ``DIR/gpu-session.json`` when it ends (a run cut short keeps
+what it measured), with the machine and the tree (git commit) it ran on, and rewriting the page
+``DIR/gpu.md`` from it (and from ``DIR/gpu-check.json`` where there is one:
+:mod:`gpu_figures`), and printing its rows as it goes. ``DIR`` is ``--out``, else ``$OUT``, else
+docs/figures (with ``--quick``: out/gpu-session, so that a smoke test leaves the figures alone):
 
 1. ``tests``: the CUDA tests of device-side sampling (``pytest -m cuda -k "sampling_on or
    fields_views"``);
@@ -36,14 +39,11 @@ import argparse
 import dataclasses
 import json
 import os
-import platform
-import statistics
 import subprocess
 import sys
 import time
 import traceback
 from pathlib import Path
-from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "speed"))
@@ -52,7 +52,10 @@ sys.path.insert(2, str(ROOT / "tests"))
 
 import torch  # noqa: E402
 
+import bench_common  # noqa: E402  (the clock, the machine, the training batch)
 import bench_tables as bt  # noqa: E402
+import gpu_figures  # noqa: E402  (the page docs/figures/gpu.md)
+from figures import tree  # noqa: E402
 
 
 class Session:
@@ -61,7 +64,8 @@ class Session:
     def __init__(self, out: Path, deadline_s: float, device: str, quick: bool):
         self.out, self.deadline_s, self.device, self.quick = out, deadline_s, device, quick
         self.start = time.perf_counter()
-        self.figures: dict = {"machine": machine(device), "quick": quick, "sections": {}}
+        self.figures: dict = {"machine": bench_common.gpu_machine(device), "tree": tree(),
+                              "quick": quick, "sections": {}}
         out.mkdir(parents=True, exist_ok=True)
 
     def elapsed(self) -> float:
@@ -76,40 +80,9 @@ class Session:
     def save(self, section: str, figures) -> None:
         self.figures["sections"][section] = figures
         self.figures["elapsed_s"] = self.elapsed()
-        path = self.out / "gpu_session.json"
-        tmp = path.with_suffix(".tmp")
-        tmp.write_text(json.dumps(self.figures, indent=1, default=str))
-        tmp.replace(path)
-
-
-def machine(device: str) -> dict:
-    info = {"torch": torch.__version__, "python": platform.python_version(),
-            "host": platform.node(), "cpus": os.cpu_count()}
-    if device.startswith("cuda"):
-        props = torch.cuda.get_device_properties(torch.device(device))
-        info.update(gpu=props.name, gpu_memory_gib=props.total_memory / 2**30,
-                    cuda=torch.version.cuda)
-    else:
-        info.update(gpu=None)
-    return info
-
-
-def sync(device: str) -> None:
-    if device.startswith("cuda"):
-        torch.cuda.synchronize(device)
-
-
-def timed(fn: Callable[[], object], device: str, repeats: int) -> float:
-    """Median seconds of ``repeats`` calls after one warm-up call."""
-    fn()
-    sync(device)
-    times = []
-    for _ in range(max(1, repeats)):
-        t0 = time.perf_counter()
-        fn()
-        sync(device)
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
+        path = self.out / gpu_figures.SESSION
+        bench_common.write_atomic(path, json.dumps(self.figures, indent=1, default=str))
+        gpu_figures.write_page(self.out / gpu_figures.PAGE, self.out / gpu_figures.CHECK, path)
 
 
 # -- 1. tests ---------------------------------------------------------------------------------------
@@ -139,14 +112,9 @@ def section_tables(s: Session, sizes: bt.Sizes, networks, budget_s: float) -> di
                                   budget_s, log=s.log)
     print("\n" + bt.measured_table(results) + "\n", flush=True)
     runs = bt.paper_runs()
-    figures = {"measured": [dataclasses.asdict(r) for r in results], "hours": {}}
-    for precision in ("paper", "float32"):
-        tps = bt.best_throughputs(results, precision)
-        if tps:
-            text, hours = bt.report(runs, tps, f"GPU-hours, {precision}")
-            print(text + "\n", flush=True)
-            figures["hours"][precision] = hours
-    return figures
+    return {"measured": [dataclasses.asdict(r) for r in results],
+            "hours": bt.report_hours(runs, results, ("paper", "float32"), "GPU-hours"),
+            "counts": bt.table_counts(runs)}
 
 
 # -- 3. options -------------------------------------------------------------------------------------
@@ -242,8 +210,8 @@ def section_sampler(s: Session, sizes: bt.Sizes) -> dict:
             return sample_weather(p, preset, 1, sample_on=on, device=on, frame_rate=24.0)
 
         try:
-            cpu_s = timed(lambda: sample(pair), "cpu", 3)
-            dev_s = timed(lambda: sample(on_device, s.device), s.device, 3)
+            cpu_s = bench_common.timed(lambda: sample(pair), "cpu", 3)
+            dev_s = bench_common.timed(lambda: sample(on_device, s.device), s.device, 3)
             a, b = sample(pair), sample(on_device, s.device)
         except Exception as exc:          # noqa: BLE001 - one row's failure hides no other
             rows.append({"preset": name, "failed": f"{type(exc).__name__}: {exc}"[:300]})
@@ -261,37 +229,17 @@ def section_sampler(s: Session, sizes: bt.Sizes) -> dict:
 
 # -- 5. training -----------------------------------------------------------------------------------
 
-def training_batch(sizes: bt.Sizes, batch: int):
-    from engine_scenes import plane_pair, pose, rotation
-    from weathergen.framepair import PairId
-    from weathergen.training import PairSample
-
-    samples = []
-    for i in range(batch):
-        cam1 = pose(rotation(roll_deg=3, pitch_deg=-5 + i))
-        cam2 = pose(rotation(roll_deg=3, pitch_deg=-4 + i, yaw_deg=1), centre=(0.05, 0.0, 0.1))
-        pair = plane_pair(sizes.height, sizes.width, depth=6.0, near_block=True,
-                          cam1_from_world=cam1, cam2_from_world=cam2, seed=i)
-        flow = torch.randn(2, sizes.height, sizes.width,
-                           generator=torch.Generator().manual_seed(i))
-        pair = dataclasses.replace(pair, id=PairId("bench", "training", "plane", i + 1),
-                                   flow=flow, flow_valid=torch.ones(1, sizes.height, sizes.width,
-                                                                    dtype=torch.bool))
-        samples.append(PairSample(pair=pair, index=i, epoch=0))
-    return samples
-
-
 def section_training(s: Session, sizes: bt.Sizes, batch: int, crop: tuple, repeats: int) -> dict:
     import gpu_check
     from weathergen.training import RandomCrop, WeatherAugment, collate_pairs
 
-    samples = training_batch(sizes, batch)
+    samples = bench_common.training_samples(sizes.height, sizes.width, batch)
     on_device = collate_pairs(samples).to(s.device)
     cropped = RandomCrop(crop, seed=0).apply_batch(collate_pairs(samples)).to(s.device).pairs
     step_sizes = gpu_check.Sizes(iters=sizes.iters)
     step = gpu_check._training_step("raft" if not s.quick else "raft-small", step_sizes, s.device,
                                     cropped)
-    step_s = timed(step, s.device, repeats)
+    step_s = bench_common.timed(step, s.device, repeats)
     s.log(f"  RAFT training step, batch {batch} {crop[0]}x{crop[1]}: {step_s:.3f} s")
     rows = [{"what": "raft training step", "seconds": step_s}]
     overrides = {"count": sizes.count} if sizes.count else None
@@ -309,7 +257,7 @@ def section_training(s: Session, sizes: bt.Sizes, batch: int, crop: tuple, repea
                           lambda: cpu_aug.apply_batch(ready))):
             label = f"weather of a batch of {batch}: {preset}, {what}"
             try:
-                seconds = timed(fn, s.device, repeats)
+                seconds = bench_common.timed(fn, s.device, repeats)
             except Exception as exc:      # noqa: BLE001 - one row's failure hides no other
                 rows.append({"what": label, "failed": f"{type(exc).__name__}: {exc}"[:300]})
                 s.log(f"  {label}: FAILED {rows[-1]['failed']}")
@@ -328,8 +276,9 @@ def section_training(s: Session, sizes: bt.Sizes, batch: int, crop: tuple, repea
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda")
-    parser.add_argument("--out", type=Path, default=Path(os.environ.get("OUT") or
-                                                          "out/gpu-session"))
+    parser.add_argument("--out", type=Path, default=None,
+                        help="the folder of gpu-session.json and gpu.md (default: $OUT, else "
+                             "docs/figures; with --quick: $OUT, else out/gpu-session)")
     parser.add_argument("--deadline-s", type=float, default=None,
                         help="seconds from the start after which sections are cut short "
                              "(default 300; with --quick 3600)")
@@ -341,6 +290,9 @@ def main(argv=None) -> int:
         print("gpu_session: no CUDA device here (--device cpu --quick for the smoke test)",
               file=sys.stderr)
         return 2
+    if args.out is None:
+        args.out = Path(os.environ.get("OUT") or ("out/gpu-session" if args.quick
+                                                  else gpu_figures.FOLDER))
     deadline = args.deadline_s if args.deadline_s is not None else (3600.0 if args.quick
                                                                      else 300.0)
     s = Session(args.out, deadline, args.device, args.quick)
@@ -380,7 +332,7 @@ def main(argv=None) -> int:
         if args.device.startswith("cuda"):
             torch.cuda.empty_cache()
         s.log(f"section {name} done")
-    s.log(f"finished; figures in {args.out / 'gpu_session.json'}"
+    s.log(f"finished; figures in {args.out / gpu_figures.SESSION} and {args.out / gpu_figures.PAGE}"
           + (f"; FAILED sections: {', '.join(failed)}" if failed else ""))
     return 1 if failed else 0
 

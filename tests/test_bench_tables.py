@@ -97,6 +97,26 @@ def test_dry_run_prints_the_hours_and_writes_them(tmp_path):
     assert missing.returncode == 2 and "no throughput for raft" in missing.stderr
 
 
+def test_the_hours_report_of_each_measured_precision(bt, capsys):
+    """What bench_tables.py and the GPU session print and keep: per precision measured, the
+    hours of every table at the best throughput (a float32 row stands in for the paper's)."""
+    runs = [bt.Run("2", "clean flow", 100, 1, backward=False), bt.Run("4", "snow", 10, 36)]
+    results = [bt.Measured("raft", "float32", "-", best_batch=8, attack=2.0, forward=5.0),
+               bt.Measured("gma", "paper", "-", best_batch=4, attack=4.0, forward=10.0),
+               bt.Measured("gma", "float32", "-", best_batch=4, attack=3.0),
+               bt.Measured("spynet", "paper", "-", stop="failed: boom")]
+    hours = bt.report_hours(runs, results, ["paper", "float32", "tf32"], "GPU-hours on X")
+    assert list(hours) == ["paper", "float32"]              # nothing measured in tf32
+    paper = hours["paper"]["hours"]
+    assert set(paper) == {"raft", "gma", "all"}
+    assert paper["raft"]["4"] == pytest.approx(360 / 2.0 / 3600)   # 10 pairs x 36 pair-steps
+    assert paper["raft"]["2"] == pytest.approx(100 / 5.0 / 3600)   # forward passes, forward rate
+    assert paper["gma"]["total"] == pytest.approx((100 / 10.0 + 360 / 4.0) / 3600)
+    assert hours["float32"]["hours"]["gma"]["4"] == pytest.approx(360 / 3.0 / 3600)
+    printed = capsys.readouterr().out
+    assert "GPU-hours on X, paper" in printed and "GPU-hours on X, float32" in printed
+
+
 TINY = dict(width=64, height=32, iters=1, count=20, batch_sizes=(1, 2), steps=1)
 
 

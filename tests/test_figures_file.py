@@ -96,4 +96,4 @@ def test_the_figures_file_holds_every_make_bench_command_with_its_tree_and_machi
                                   "docs/training.md", "docs/scale.md"])
 def test_the_docs_cite_the_figures_file(page):
     text = (PROJECT_ROOT / page).read_text()
-    assert "figures/bench.md" in text or "figures/gpu-check.json" in text, page
+    assert "figures/bench.md" in text or "figures/gpu.md" in text, page

@@ -63,7 +63,10 @@ def test_the_makefile_target_probes_before_it_installs_anything():
     recipe = makefile.split("\ngpu-check:", 1)[1].split("\n\n", 1)[0]
     commands = [line.strip() for line in recipe.splitlines()[1:]]
     assert "gpu_check.py --probe" in commands[0], commands
-    assert any(c.endswith("gpu_check.py --json out/gpu-check.json") for c in commands[1:]), commands
+    # the figures file and its page (docs/figures/gpu-check.json, gpu.md) unless GPU_FIGURES says
+    assert any(c.endswith("gpu_check.py --json $(GPU_FIGURES)/gpu-check.json") for c in commands[1:]), \
+        commands
+    assert "\nGPU_FIGURES ?= docs/figures\n" in makefile
 
 
 def test_table_and_summary_parsing(gpu_check):
@@ -108,7 +111,12 @@ def test_the_dry_run_measures_every_area_into_one_table(tmp_path):
     out = tmp_path / "figures.json"
     res = run_script("--device", "cpu", "--quick", "--models", "spynet", "--json", out)
     assert res.returncode == 0, res.stdout + res.stderr
-    rows = json.loads(out.read_text())["rows"]
+    figures = json.loads(out.read_text())
+    rows = figures["rows"]
+    assert figures["machine"]["gpu"] is None and len(figures["tree"]["commit"]) == 40
+    page = (tmp_path / "gpu.md").read_text()          # rewritten beside the JSON
+    assert "## make gpu-check" in page and "(dry run: tiny inputs)" in page
+    assert "### networks" in page and "| spynet |" in page
     assert {r["area"] for r in rows} == {"render", "field", "training", "attack batch", "tables",
                                          "networks"}
     assert not [r for r in rows if r["failed"]]

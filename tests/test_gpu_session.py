@@ -32,7 +32,14 @@ def session():
 def test_sampler_and_training_sections_on_tiny_sizes(session, tmp_path):
     assert session.main(["--device", "cpu", "--quick", "--out", str(tmp_path),
                          "--sections", "tests", "sampler", "training"]) == 0
-    figures = json.loads((tmp_path / "gpu_session.json").read_text())
+    figures = json.loads((tmp_path / "gpu-session.json").read_text())
+    assert figures["machine"]["torch"] == torch.__version__ and figures["machine"]["gpu"] is None
+    assert len(figures["tree"]["commit"]) == 40
+    # the page beside the JSON, rewritten with it (speed/gpu_figures.py)
+    page = (tmp_path / "gpu.md").read_text()
+    assert "## GPU session" in page and "- quick: tiny sizes" in page
+    assert f"- tree: `{figures['tree']['commit'][:12]}`" in page
+    assert "| raft training step |" in page and "No gpu-check.json yet." in page
     sections = figures["sections"]
     assert sections["tests"] == {"skipped": "no CUDA device"}
     rows = sections["sampler"]["rows"]
