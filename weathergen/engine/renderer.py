@@ -255,9 +255,10 @@ def _entry_stamps(records: Sequence[Particles], looks, templates: TemplateLibrar
 
 def _composited(sums, images: list, alpha_mode: torch.Tensor, air, depth: torch.Tensor
                 ) -> RenderOutput:
-    """Both frames of every pair from the splat's sums (:func:`composite`), behind the
-    records' atmosphere where they have one (``air``, :func:`pair_air`, or None). Shape: images
-    two (B, 3, H, W); alpha_mode (B,) bool; depth (2 B, 1, H, W)."""
+    """Both weather frames of every pair and their opacities from the splat's ``sums``
+    (:func:`composite`), the frames first seen through the records' atmosphere where they have
+    one (``air``: :func:`pair_air`'s, or None). Shape: images two (B, 3, H, W); alpha_mode (B,)
+    bool, the pairs drawn in alpha mode; depth (2 B, 1, H, W) the views' scene depth."""
     bsz = images[0].shape[0]
     if air is not None:
         transmission, airlight = air.pixels(depth, images[0].dtype)

@@ -334,7 +334,7 @@ class _Cameras:
 
 class _Candidates:
     """Candidate particles of one pair, drawn in batches from the seed's generator: positions
-    uniform in the preset's sampling box (camera-1 coordinates), motions ``motion_y`` along the
+    uniform in the preset's sampling box (camera-1 coordinates), motions ``motion_y`` down the
     world's vertical, turned by up to ``motion_angle_jitter`` degrees about each axis and scaled by
     up to ``1 ± motion_scale_jitter``; kept where frame 1 or, after the camera motion and their
     own, frame 2 shows them. ``limit``: the most candidates drawn before giving up."""
