@@ -1,10 +1,12 @@
 # weathergen: set-up, tests, demo and benchmarks in a local virtual environment.
 #
 #   make test                  create .venv, install the pinned CPU torch, the package, run the
-#                              linter (ruff, configured in pyproject.toml) and the tests, in
+#                              linter (ruff, configured in pyproject.toml) and the quick tests
+#                              (all but those marked slow), in
 #                              TEST_WORKERS=2 pytest-xdist processes of one torch thread each
 #                              (TEST_WORKERS=0: in one process; PYTEST_ARGS: more pytest options,
 #                              e.g. --shuffle-seed N to run them in a shuffled order)
+#   make test-slow             the end-to-end tests (marker slow); CI runs make test, then this
 #   make demo                  render the default preset on the bundled demo scene
 #   make bench                 measure speed and memory (renderer, weather field, combined weather,
 #                              networks, attack step, batched attacks, training, the README's quick
@@ -42,7 +44,7 @@ TORCH_STAMP := $(VENV)/.weathergen-torch
 
 OLDEST ?= .venv-oldest
 
-.PHONY: venv install test test-oldest demo bench images cli-docs gpu-check clean FORCE
+.PHONY: venv install test test-slow test-oldest demo bench images cli-docs gpu-check clean FORCE
 
 venv: $(STAMP)
 
@@ -73,10 +75,16 @@ install: $(STAMP)
 	$(BIN)/python -m pip install -q --no-deps --force-reinstall .
 
 # Whole test files go to the workers (--dist loadfile): a file's module fixtures are built once.
+# `make test` runs the quick tests, `make test-slow` the end-to-end runs (marker `slow`); CI
+# (.ci/run) runs both, one after the other.
 test: install
 	$(BIN)/ruff check .
-	@echo "running the tests in $(TEST_WORKERS) processes: about 8 minutes on a 2-core CPU (pytest -m 'not slow' runs the quick ones)"
-	$(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile $(PYTEST_ARGS)
+	@echo "running the quick tests in $(TEST_WORKERS) processes: about 4 minutes on a 2-core CPU (make test-slow runs the end-to-end ones)"
+	$(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile -m "not slow" $(PYTEST_ARGS)
+
+test-slow: install
+	@echo "running the end-to-end tests (marker slow) in $(TEST_WORKERS) processes: about 6 minutes on a 2-core CPU"
+	$(BIN)/pytest -q -n $(TEST_WORKERS) --dist loadfile -m slow $(PYTEST_ARGS)
 
 # The dependency floors of setup.cfg, installed exactly; torch as for `make test`.
 test-oldest:

@@ -251,3 +251,140 @@ def test_job_check_sees_an_import(tmp_path, monkeypatch):
     monkeypatch.setitem(MODULES, "weathergen.attack.job", probe)
     assert _job_imports("weathergen.attack.job") == ["line 1: weathergen.render.job",
                                                      "line 2: weathergen.render"]
+
+
+#: The blend module: every way weather is blended into frames (a single record's blend modes,
+#: combined weather's layers in depth order) is written there, with its backward pass.
+BLEND_OWNER = "weathergen.engine.composite"
+#: The engine's other custom autograd functions, none of which blends: the splat's scatter, the
+#: crop and the upsampling of its sums.
+OTHER_AUTOGRAD = {"weathergen.engine.splat": {"_Splat"},
+                  "weathergen.engine.planes": {"_Crop", "_Upsample"}}
+
+
+def _autograd_functions(name: str) -> set[str]:
+    """The classes of module ``name`` derived from ``torch.autograd.Function``."""
+    tree = ast.parse(MODULES[name].read_text())
+    return {node.name for node in ast.walk(tree) if isinstance(node, ast.ClassDef)
+            and any(ast.unparse(base).split(".")[-1] == "Function" for base in node.bases)}
+
+
+def _complement(node: ast.AST, names: set[str]) -> bool:
+    """Whether ``node`` is ``1 − x`` (a transmission), a name bound to one, an element or a
+    slice of one, or one clamped."""
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Sub):
+        return isinstance(node.left, ast.Constant) and node.left.value == 1
+    if isinstance(node, ast.Name):
+        return node.id in names
+    if isinstance(node, ast.Subscript):
+        return _complement(node.value, names)
+    if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) \
+            and node.func.attr in ("clamp", "clamp_"):
+        return _complement(node.func.value, names)
+    return False
+
+
+def _complement_names(function: ast.AST) -> set[str]:
+    """The names a function binds to complements (``keep = 1 − A``; ``a, b = 1 − x, 1 − y``;
+    ``keep = [1 − c for c in cover]``), to a fixed point."""
+    names: set[str] = set()
+    pairs = []
+    for node in ast.walk(function):
+        if isinstance(node, ast.Assign):
+            for target in node.targets:
+                if isinstance(target, ast.Tuple) and isinstance(node.value, ast.Tuple):
+                    pairs += zip(target.elts, node.value.elts)
+                else:
+                    pairs.append((target, node.value))
+    while True:
+        found = {target.id for target, value in pairs if isinstance(target, ast.Name)
+                 and (_complement(value, names) or isinstance(value, ast.ListComp)
+                      and _complement(value.elt, names))}
+        if found <= names:
+            return names
+        names |= found
+
+
+def _unwrapped(node: ast.AST) -> ast.AST:
+    """``node`` without its subscripts and clamps (``(1 - w)[:, None]`` -> ``1 - w``)."""
+    while isinstance(node, ast.Subscript) or isinstance(node, ast.Call) \
+            and isinstance(node.func, ast.Attribute) and node.func.attr in ("clamp", "clamp_"):
+        node = node.value if isinstance(node, ast.Subscript) else node.func.value
+    return node
+
+
+def _over(term: ast.AST, other: ast.AST, names: set[str]) -> bool:
+    """Whether ``term + other`` is ``x (1 − a) + c``: ``term`` a product with a complement,
+    ``other`` not weighted by that complement's ``a`` (``x (1 − w) + y w`` interpolates)."""
+    if not (isinstance(term, ast.BinOp) and isinstance(term.op, ast.Mult)):
+        return False
+    weights = [_unwrapped(f) for f in (term.left, term.right) if _complement(f, names)]
+    if not weights:
+        return False
+    inner = {ast.unparse(w.right) for w in weights if isinstance(w, ast.BinOp)}
+    return not (isinstance(other, ast.BinOp) and isinstance(other.op, ast.Mult)
+                and {ast.unparse(_unwrapped(f)) for f in (other.left, other.right)} & inner)
+
+
+def _blend_formulas(name: str) -> list[str]:
+    """Where module ``name`` writes a blend: a sum with a term weighted by a complement,
+    ``I (1 − A) + C`` written as ``x * (1 - a) + c`` or ``torch.addcmul(c, x, keep)`` (also the
+    layers' opacity ``1 − (1 − a)(1 − b)`` as an ``addcmul`` of two complements); a linear
+    interpolation ``x (1 − w) + y w`` is not one."""
+    tree = ast.parse(MODULES[name].read_text())
+    found = []
+    for function in ast.walk(tree):
+        if not isinstance(function, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            continue
+        names = _complement_names(function)
+        for node in ast.walk(function):
+            if isinstance(node, ast.Call):
+                func = node.func
+                attr = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", "")
+                torch_call = isinstance(func, ast.Attribute) and ast.unparse(func.value) == "torch"
+                factors = node.args[1:] if torch_call else node.args
+                hit = attr in ("addcmul", "addcmul_") and any(_complement(a, names) for a in factors)
+            elif isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):
+                hit = any(_over(side, other, names) for side, other in
+                          ((node.left, node.right), (node.right, node.left)))
+            else:
+                continue
+            if hit:
+                found.append((node.lineno, ast.unparse(node)))
+    return [f"line {line}: {text}" for line, text in sorted(set(found))]
+
+
+def test_blend_modes_and_layer_compositing_have_one_owner():
+    """The blend module alone defines the autograd functions that blend weather into frames and
+    writes the blend formulas; the engine's other modules call it (docs/architecture.md)."""
+    engine = [name for name in MODULES if name.startswith("weathergen.engine.")]
+    stray = [f"{MODULES[name].relative_to(ROOT)} defines {cls}" for name in engine
+             if name != BLEND_OWNER
+             for cls in sorted(_autograd_functions(name) - OTHER_AUTOGRAD.get(name, set()))]
+    stray += [f"{MODULES[name].relative_to(ROOT)} {use}" for name in engine
+              if name != BLEND_OWNER for use in _blend_formulas(name)]
+    assert not stray, (f"weather blended into frames outside {BLEND_OWNER} (move it there):\n"
+                       + "\n".join(stray))
+    # the check sees the owner's own: the single-record blend, the closed forms, the network
+    assert {"_Blend", "_TwoLayers", "_LayeredBlend"} <= _autograd_functions(BLEND_OWNER)
+    assert len(_blend_formulas(BLEND_OWNER)) >= 5, _blend_formulas(BLEND_OWNER)
+
+
+def test_blend_check_sees_a_blend_outside_its_module(tmp_path, monkeypatch):
+    probe = tmp_path / "probe.py"
+    probe.write_text(
+        "import torch\n"
+        "class _Over(torch.autograd.Function):\n    pass\n"
+        "def over(image, alpha, colour):\n    return image * (1 - alpha) + colour\n"
+        "def kept(image, alpha, colour):\n    keep = 1 - alpha\n"
+        "    return torch.addcmul(colour, image, keep)\n"
+        "def layers(image, cover, paint):\n    keep = [1 - c for c in cover]\n"
+        "    return torch.addcmul(paint[0], image, keep[0])\n"
+        "def opacity(one, a, b):\n    clear_a, clear_b = 1 - a.clamp(0, 1), 1 - b.clamp(0, 1)\n"
+        "    return torch.addcmul(one, clear_a, clear_b, value=-1)\n"
+        "def not_a_blend(x, y, w):\n    return torch.addcmul(1 - x, y, w) + (1 - x) - y * w\n"
+        "def lerp(x, y, w):\n    return x * (1 - w)[:, None] + y * w[:, None]\n")
+    monkeypatch.setitem(MODULES, "weathergen.engine.probe", probe)
+    assert _autograd_functions("weathergen.engine.probe") == {"_Over"}
+    assert [use.split(":")[0] for use in _blend_formulas("weathergen.engine.probe")] == \
+        ["line 5", "line 8", "line 11", "line 14"]

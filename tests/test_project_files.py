@@ -74,9 +74,9 @@ def test_every_test_the_guarantees_name_exists():
 
 
 @pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
-@pytest.mark.parametrize("target", ["demo", "test"])
+@pytest.mark.parametrize("target", ["demo", "test", "test-slow"])
 def test_make_says_what_it_installs_before_each_long_silent_step(tmp_path, target):
-    """`make demo` and `make test` on a fresh machine print a line before each quiet pip install
+    """`make demo`, `make test` and `make test-slow` on a fresh machine print a line before each quiet pip install
     (torch takes minutes) and before the tests, so they are never silent for minutes unexplained."""
     venv = tmp_path / "venv"
     plan = subprocess.run(["make", "-n", "-C", str(PROJECT_ROOT), target, f"VENV={venv}"],
@@ -86,6 +86,21 @@ def test_make_says_what_it_installs_before_each_long_silent_step(tmp_path, targe
     for i in installs:
         assert "echo" in plan[i - 1] and "installing" in plan[i - 1], plan[i - 1]
     assert "torch" in plan[installs[0] - 1] and "minutes" in plan[installs[0] - 1]
-    if target == "test":
+    if target.startswith("test"):
         pytest_line = next(i for i, line in enumerate(plan) if "bin/pytest -q" in line)
         assert "echo" in plan[pytest_line - 1] and "minutes" in plan[pytest_line - 1]
+
+
+@pytest.mark.skipif(shutil.which("make") is None, reason="needs make")
+def test_ci_runs_the_quick_tests_and_then_the_slow_ones(tmp_path):
+    """`make test` selects the tests not marked slow, `make test-slow` those marked slow, and CI
+    runs both: together they are every test, each once."""
+    def pytest_line(target):
+        plan = subprocess.run(["make", "-n", "-C", str(PROJECT_ROOT), target, f"VENV={tmp_path / 'v'}"],
+                              check=True, capture_output=True, text=True).stdout.splitlines()
+        return next(line for line in plan if "bin/pytest -q" in line)
+    assert '-m "not slow"' in pytest_line("test")
+    assert "-m slow" in pytest_line("test-slow")
+    steps = [line.strip() for line in (PROJECT_ROOT / ".ci" / "run").read_text().splitlines()
+             if line.strip().startswith("make ")]
+    assert steps == ["make test", "make test-slow"]

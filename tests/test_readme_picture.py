@@ -8,6 +8,7 @@ import importlib.util
 import shutil
 
 import numpy as np
+import pytest
 
 from conftest import PROJECT_ROOT
 
@@ -53,6 +54,7 @@ def test_the_video_still_is_a_frame_of_the_video_the_code_makes_today(tmp_path):
     assert copy.read_bytes() == tracked.read_bytes()
 
 
+@pytest.mark.slow
 def test_make_images_quick_writes_every_picture_it_promises(tmp_path, capsys):
     """`--quick` (a crop of the demo frame, a two-pair video) writes the four pictures, each the
     size its layout gives; the sheet holds one labelled tile per preset, paper and field, the

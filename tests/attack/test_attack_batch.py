@@ -73,7 +73,7 @@ def assert_same_result(batched, single):
             assert torch.equal(a, b), name
 
 
-@pytest.fixture(params=[1, 2], ids=["1-thread", "2-threads"])
+@pytest.fixture(params=[1, pytest.param(2, marks=pytest.mark.slow)], ids=["1-thread", "2-threads"])
 def threads(request):
     """Rounding differs with the number of threads torch uses: the tolerance holds for both."""
     before = torch.get_num_threads()

@@ -447,3 +447,52 @@ def test_particle_truth_sees_the_air_in_front_of_the_particles():
                                    for r in layers.layers), layers.names)
     assert float(particle_truth(pair, layers).weight.sum()) < \
         float(particle_truth(pair, clear).weight.sum())
+
+
+def test_uniform_atmospheres_beside_a_heterogeneous_one_read_no_ray_tables(monkeypatch):
+    """A view with heterogeneous fog and a uniform veil (snow's) reads the coarse rays' tables
+    for the fog alone, and its transmission is the same to the bit as when the veil's slot reads
+    them too (where τ = β₀ L exactly)."""
+    from weathergen.engine.air import Air
+    from weathergen.engine.atmosphere import Atmosphere
+
+    drift = torch.zeros(2, 3, dtype=torch.float64)
+    fog = Atmosphere(extinction=0.02, airlight=torch.tensor([0.8, 0.8, 0.9]), drift=drift,
+                     heterogeneity=0.5, seed=3)
+    veil = Atmosphere(extinction=0.005, airlight=torch.tensor([0.9, 0.9, 0.9]), drift=drift)
+    k = torch.tensor([[30.0, 0, 20], [0, 30.0, 15], [0, 0, 1]], dtype=torch.float64)
+    depth = torch.linspace(2.0, 80.0, 30 * 40, dtype=torch.float64).view(1, 1, 30, 40)
+
+    def pixels(slot_hetero):
+        air = Air([[fog, veil], [veil, fog]], k.expand(2, 3, 3), torch.eye(4).expand(2, 4, 4)
+                  .double(), (30, 40), [0, 1])
+        if slot_hetero is not None:
+            air.slot_hetero = slot_hetero
+        calls = []
+        lookup = Air._lookup
+        monkeypatch.setattr(Air, "_lookup", lambda self, *a: calls.append(1) or lookup(self, *a))
+        t, airlight = air.pixels(depth.expand(2, 1, 30, 40), torch.float64)
+        monkeypatch.setattr(Air, "_lookup", lookup)
+        return t, airlight, len(calls)
+
+    # the fog sits in slot 0 of view 0 and slot 1 of view 1: both slots read the tables
+    t, a, calls = pixels(None)
+    assert calls == 2
+    same_t, same_a, _ = pixels([True, True])
+    assert torch.equal(t, same_t) and torch.equal(a, same_a)
+    # one view with the fog in slot 0 alone: slot 1 (the veil) reads nothing
+    air = Air([[fog, veil]], k[None], torch.eye(4, dtype=torch.float64)[None], (30, 40), [0])
+    assert air.slot_hetero == [True, False]
+    calls = []
+    lookup = Air._lookup
+    monkeypatch.setattr(Air, "_lookup", lambda self, *a: calls.append(1) or lookup(self, *a))
+    t1, a1 = air.pixels(depth, torch.float64)
+    assert len(calls) == 1
+    air.slot_hetero = [True, True]
+    t2, a2 = air.pixels(depth, torch.float64)
+    assert len(calls) == 3 and torch.equal(t1, t2) and torch.equal(a1, a2)
+    # and the veil's slot is Koschmieder's τ = β₀ L on top of the fog's
+    fog_only = Air([[fog]], k[None], torch.eye(4, dtype=torch.float64)[None], (30, 40), [0])
+    t_fog, _ = fog_only.pixels(depth, torch.float64)
+    length = distances(depth[0], k)[None].clamp(max=veil.sky_distance)
+    assert torch.allclose(t1, t_fog * torch.exp(-veil.extinction * length), rtol=1e-12, atol=0)

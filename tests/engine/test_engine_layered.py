@@ -10,7 +10,7 @@ from engine_scenes import plane_pair, wisps
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, LayeredParticles, build_stamps,
                                load_preset, load_templates, render, render_pair,
                                sample_particles, sample_weather)
-from weathergen.engine.layered import composite_layers
+from weathergen.engine.composite import composite_layers
 from weathergen.framepair import FramePairBatch
 from weathergen.errors import ConfigError
 

@@ -162,7 +162,10 @@ THIN = {"snow": {"density": 10.0, "snow_rate": 20.0},
         "sparks": {"density": 10.0, "blur_samples": 3}, "fog": AIR, "mist": AIR}
 
 
-@pytest.mark.parametrize("name", FIELD)
+# The light rung and mist of every weather in the quick tests, the other rungs (the same code at
+# other densities) with the slow ones.
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow)
+                                  if n.endswith(("-moderate", "-heavy")) else n for n in FIELD])
 def test_field_presets_equal_the_oracle(name):
     """Per-frame looks: footprint f d / z, depth fade, the view mask, softer occlusion, streaks
     along the particle's own motion; coarse grids for fog clouds; every particle and the scene

@@ -378,3 +378,24 @@ def test_the_commands_say_a_bad_network_in_one_line(command, net_file, sintel_op
         lines = result.output.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith("Error:") and words in lines[0], result.output
         assert not (tmp_path / "o").exists()              # nothing written
+
+
+def test_a_library_attack_gives_back_the_callers_torch_threads(net_file, sintel_options, tmp_path):
+    """An attack run with its own thread count (``AttackJob.threads``) restores the caller's."""
+    from weathergen.attack import AttackJob, plan_attack, run_attack
+    from weathergen.datasets import open_dataset
+
+    root = sintel_options[sintel_options.index("--root") + 1]
+    dataset = open_dataset("sintel", root, scenes=["alley"], frames_per_scene=1)
+    plan = plan_attack(None, "snow", {"count": "20"}, steps=1)
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        summary = run_attack(AttackJob(dataset=dataset, out=tmp_path / "a", model=f"{net_file}:make",
+                                       checkpoint=None, preset=plan.preset,
+                                       preset_name=plan.preset_name, settings=plan.settings,
+                                       threads=1))
+        assert summary["pairs"] == 1
+        assert torch.get_num_threads() == 2
+    finally:
+        torch.set_num_threads(before)

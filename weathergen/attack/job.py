@@ -35,8 +35,8 @@ from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
 from ..jobs import (frame2_note, layer_seeds, pair_particles, pair_seed,
-                    published_geometry_note, scene_airlight, scene_firsts, visibility_of,
-                    weather_scaling, weather_seed)
+                    published_geometry_note, scene_airlight, scene_firsts, torch_threads,
+                    visibility_of, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .settings import AttackSettings
@@ -176,13 +176,16 @@ def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
     batches of their own. A pair whose input is bad fails alone; an error in the optimisation
     fails the pairs of its batch. This is the work unit of every executor.
     """
-    device = device or job.device
+    with torch_threads(job.threads):
+        return _attack_refs(job, refs, model, target_file_flow, on_step, device or job.device)
+
+
+def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
+                 device: str) -> list[PairReport]:
     if model is None:
         model = job_model(job, device)
     if target_file_flow is None and job.target.kind == "file":
         target_file_flow = read_target_flow(job.target.path)
-    if job.threads:
-        torch.set_num_threads(job.threads)
     reports: dict[str, PairReport] = {}
     groups: dict[tuple, list] = {}
     seen: dict[str, tuple] = {}          # particle centres each frame shows, before optimising

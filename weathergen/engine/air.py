@@ -90,6 +90,9 @@ class Air:
                                      for a in self.components]
                                     + [torch.zeros(3, dtype=f64, device=dev)])
         self.hetero = [c for c, a in enumerate(self.components) if not a.uniform]
+        #: per atmosphere slot l: whether any view's l-th atmosphere is heterogeneous (a slot of
+        #: uniform or clear components alone needs no ray tables: τ = β₀ L)
+        self.slot_hetero = [any(row[k] in self.hetero for row in table) for k in range(layers)]
         self._tables = None
 
     @classmethod
@@ -120,18 +123,19 @@ class Air:
         return torch.sqrt(x * x + y * y + 1)
 
     def optical_depth(self, comp: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
-                      distance: torch.Tensor) -> torch.Tensor:
+                      distance: torch.Tensor, hetero: bool = True) -> torch.Tensor:
         """τ of component ``comp`` (the clear one, ``len(components)``: τ = 0) along the rays
         through image points ``(u, v)`` of its view up to ``distance`` (clamped to
         ``[0, sky_distance]``). Arguments broadcast to one shape; float64 (a heterogeneous
         component's table is read in its lattice's dtype). Differentiable in the points, the
-        distance and the density lattices."""
+        distance and the density lattices. ``hetero=False``: the caller knows that no element's
+        component is heterogeneous (the tables are then not read)."""
         shape = torch.broadcast_shapes(comp.shape, u.shape, v.shape, distance.shape)
         flat = comp.reshape(-1)
         sky = self.sky.index_select(0, flat).view(comp.shape)
         length = torch.minimum(distance.double().clamp(min=0), sky)
         beta = self.extinction.index_select(0, flat).view(comp.shape)
-        if not self.hetero:
+        if not self.hetero or not hetero:
             return (beta * length).expand(shape)
         path = self._lookup(comp.expand(shape), u.expand(shape), v.expand(shape),
                             length.expand(shape))
@@ -254,7 +258,7 @@ class Air:
         Shape: broadcast (...) -> (t (...), A (..., 3)), float64."""
         comps = self.layer_of.index_select(0, view.reshape(-1)).view(*view.shape, -1)
         comp0 = comps[..., 0]
-        total = self.optical_depth(comp0, u, v, distance)
+        total = self.optical_depth(comp0, u, v, distance, self.slot_hetero[0])
         airlight = self.airlight.index_select(0, comp0.reshape(-1)).view(*comp0.shape, 3)
         if all(self.single):
             return torch.exp(-total), airlight.expand(*total.shape, 3)
@@ -262,7 +266,7 @@ class Air:
         mixed = total[..., None] * airlight
         for layer in range(1, comps.shape[-1]):
             comp = comps[..., layer]
-            tau = self.optical_depth(comp, u, v, distance)
+            tau = self.optical_depth(comp, u, v, distance, self.slot_hetero[layer])
             total = total + tau
             light = self.airlight.index_select(0, comp.reshape(-1)).view(*comp.shape, 3)
             mixed = mixed + tau[..., None] * light

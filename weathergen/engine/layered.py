@@ -1,5 +1,6 @@
 """Combined weather in one pass: every layer of a :class:`~weathergen.engine.LayeredParticles`
-drawn by the render core, then composited once, in depth order.
+drawn by the render core, then composited once, in depth order
+(:func:`~weathergen.engine.composite.blend_layers`, where the blend modes live).
 
 Each layer is drawn as a single render draws its record (:func:`_layer_sums`): the layer's
 records of every pair of the batch, the pairs' two views, its own tracks, stamps (from its own
@@ -16,18 +17,8 @@ multiplied by ``T = Π_l (1 − clamp(A_l, 0, 1))`` over the alpha layers whose 
 middle of the particle's streak is nearer than the particle, so its light and opacity reach the
 camera through the fog in front of it; where no alpha layer lies in front, ``T = 1`` and the
 layer's sums keep their bytes. Dimmed additive layers need no depth sum: they blend last.
-
-Composite (:func:`composite_layers`): at every pixel the alpha layers are ordered by ``Z / A``,
-far to near, and blended one over the other (``I (1 − A) + C``), then the additive layers'
-light is added (``+ C``), clamped to [0, 1] once at the end; the opacity is
-``1 − Π (1 − clamp(A_l, 0, 1))``. Within a layer the particles keep the order-independent sums
-of a single preset. Two layers, one additive and one alpha-blended (snow, rain or sparks with
-fog), and two additive layers have closed forms with a few full-frame passes
-(:class:`_AdditiveOverAlpha`, :class:`_AdditivePair`, through :class:`_TwoLayers`); other
-combinations go through a sorting network (:class:`_LayeredBlend`, in which a dimmed additive
-layer sorts as the nearest). Where every layer blends additively the order changes nothing: no
-layer is dimmed and none carries a depth sum (two layers), or all are sorted as alpha layers
-of zero opacity.
+The composite then orders the alpha layers at each pixel by ``Z / A``, far to near, and adds
+the additive layers' light on top (see :mod:`~weathergen.engine.composite`).
 
 The approximation and its limits: an alpha layer is one surface per pixel, at its mean depth
 there, so two alpha layers that interleave in depth at a pixel are seen one wholly in front of
@@ -48,17 +39,18 @@ import torch
 
 from ..errors import ConfigError
 from .air import Air, combined_opacity, fog_images, pair_air, record_atmospheres, view_air
-from .composite import RenderOutput, planes, upsample, upsample_adjoint
+from .composite import RenderOutput, blend_layers
 from .layers import LayeredParticles
 from .particles import Particles
-from .splat import Grids, Sums, chunk_elements_for, splat
+from .planes import planes
+from .splat import Sums, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, build_many
 from .templates import TemplateLibrary, load_templates
 from .tracks import (Looks, ParticleTable, RecordRows, Tracks, View, Views, blur_samples,
                      empty_looks, fixed_looks, pair_starts, pair_tracks, view_tracks)
 
-__all__ = ["as_layers", "build_layer_stamps", "composite_layers", "layers_view_sums",
-           "render_layers", "render_layers_view"]
+__all__ = ["as_layers", "build_layer_stamps", "layers_view_sums", "render_layers",
+           "render_layers_view"]
 
 
 def as_layers(particles: Union[Particles, LayeredParticles, Sequence]) -> list[LayeredParticles]:
@@ -254,8 +246,9 @@ def _read_sums(sums: Sums, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor
                ) -> tuple[torch.Tensor, torch.Tensor]:
     """A layer's opacity sum ``A`` and depth sum ``Z`` (detached) at image points ``(u, v)`` of
     views ``view``, as its planes on the image grid hold them (each grid level interpolated
-    bilinearly at ``(u + 0.5) / f − 0.5``, edges replicated: at pixel centres the composite's
-    upsampling). Shape: view, u, v (T,) -> two (T,)."""
+    bilinearly at ``(u + 0.5) / f − 0.5``, edges replicated: what
+    :func:`~weathergen.engine.planes.upsample` gives at pixel centres).
+    Shape: view, u, v (T,) -> two (T,)."""
     grids = sums.grids
     a_total = z_total = None
     for level, offset, h, w, m in grids.levels:
@@ -433,367 +426,14 @@ def _draw(views: Views, prepared: list, stamp_sets: list, modes: list, alpha_mod
     """Every layer's sums on ``views`` and the composite of ``images`` (T frames of B views
     each, frame ``t``'s views ``t B .. t B + B − 1``), seen through ``air`` where given: the
     frames, then their opacities, and the layers' :class:`Sums`."""
-    additive_pair = modes == [{"additive"}, {"additive"}]   # their order changes nothing
     sums = _layer_sums_all(views, prepared, stamp_sets, modes, beta=beta,
                            dtype=images[0].dtype, chunk_elements=chunk_elements,
                            detach_occlusion=detach_occlusion, air=air, alpha_mode=alpha_mode)
     if air is not None:
         transmission, airlight = air.pixels(views.depth, images[0].dtype)
         images = tuple(fog_images(images, transmission, airlight, air))
-    layout = _LayerPlanes([s.grids for s in sums], images[0].shape[0])
-    values = [s.values for s in sums]
-    if additive_pair:
-        outs = _TwoLayers.apply(_AdditivePair, layout, *values, *images)
-    elif len(modes) == 2 and {"additive"} in modes and {"alpha"} in modes:
-        order = (0, 1) if modes[0] == {"additive"} else (1, 0)      # the additive layer first
-        outs = _TwoLayers.apply(_AdditiveOverAlpha, layout.select(order),
-                                *(values[k] for k in order), *images)
-    else:
-        outs = _LayeredBlend.apply(alpha_mode, layout, len(values), *values, *images)
+    outs = blend_layers(sums, modes, alpha_mode, images)
     if air is not None:
         frames = len(images)
         outs = (*outs[:frames], *combined_opacity(outs[frames:], transmission, air))
     return outs, sums
-
-
-class _LayerPlanes:
-    """Every layer's sums on the image grid, frame by frame (layer ``k``'s values laid out as
-    ``grids[k]`` says, views ``t B + b``), and their gradients.
-
-    :meth:`read` brings a layer's coarse grids to the image grid (bilinear upsampling, coarsest
-    first, then the image grid's own sums, as :func:`~weathergen.engine.composite.planes` adds
-    them: a pixel covered by one layer sees that layer's sums of its record rendered alone).
-    The gradient (:meth:`gradients`, then per frame and layer :meth:`buffer`, filled by the
-    caller, and :meth:`finish`) is allocated uninitialised: the image grid's A and C planes are
-    written whole through :meth:`buffer`, and only their margins, the depth plane and the
-    (small) coarse grids are zero-filled; a layer drawn on coarse grids alone gets a
-    full-size buffer whose adjoint upsampling :meth:`finish` adds to its grids."""
-
-    def __init__(self, grids: Sequence[Grids], bsz: int):
-        self.grids, self.bsz = list(grids), bsz
-
-    def select(self, order: Sequence[int]) -> "_LayerPlanes":
-        return _LayerPlanes([self.grids[k] for k in order], self.bsz)
-
-    def _frame(self, t: int) -> slice:
-        return slice(t * self.bsz, (t + 1) * self.bsz)
-
-    def read(self, values: Sequence[torch.Tensor], t: int, k: int,
-             channels: Optional[int] = None) -> torch.Tensor:
-        """The first ``channels`` planes (default: all). Shape: -> (C, B, H, W) (a view of the
-        sums where the layer has no coarse grid)."""
-        grids, at = self.grids[k], self._frame(t)
-        total = None
-        for index, (level, _, h, w, _) in enumerate(grids.levels):
-            grid = grids.planes(values[k], index)[:channels, at]           # (C, B, h, w)
-            if level:
-                up = upsample(grid.reshape(-1, 1, h, w), 2 ** level, (grids.height, grids.width))
-                grid = up.view(grid.shape[0], grid.shape[1], grids.height, grids.width)
-            total = grid if total is None else total + grid
-        return total
-
-    def gradients(self, values: Sequence[torch.Tensor]) -> list:
-        out = []
-        for grids, v in zip(self.grids, values):
-            g = torch.empty_like(v)
-            for level, offset, h, w, m in grids.levels:
-                size = grids.views * (h + 1) * (w + 2 * m)
-                if level:
-                    g[:, offset:offset + size].zero_()
-                    continue
-                full = g[:, offset:offset + size].view(g.shape[0], grids.views, h + 1, w + 2 * m)
-                full[..., h, :].zero_()
-                full[..., :h, :m].zero_()
-                full[..., :h, m + w:].zero_()
-                full[4:, :, :h, m:m + w].zero_()
-            out.append(g)
-        return out
-
-    def buffer(self, g_values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
-        """Where the gradient of frame ``t``'s A and C planes of layer ``k`` goes, (4, B, H, W):
-        the image grid's planes, or a new tensor for a layer without one."""
-        grids = self.grids[k]
-        level = grids.levels[-1][0]
-        if level == 0:
-            return grids.planes(g_values[k], len(grids.levels) - 1)[:4, self._frame(t)]
-        g = g_values[k]
-        return g.new_empty((4, self.bsz, grids.height, grids.width))
-
-    def finish(self, g_values: Sequence[torch.Tensor], buffer: torch.Tensor, t: int,
-               k: int) -> None:
-        """Add the adjoint upsampling of ``buffer`` (filled) to layer ``k``'s coarse grids."""
-        grids, at = self.grids[k], self._frame(t)
-        coarse = [(i, level, h, w) for i, (level, _, h, w, _) in enumerate(grids.levels) if level]
-        if not coarse:
-            return
-        flat = buffer.reshape(-1, 1, grids.height, grids.width)
-        for index, level, h, w in coarse:
-            back = upsample_adjoint(flat, 2 ** level, (h, w))
-            grids.planes(g_values[k], index)[:4, at].add_(back.view(4, self.bsz, h, w))
-
-
-class _GridLayout:
-    """Planes given whole, ``(5, T, B, L, 1, H, W)`` (:func:`composite_layers`)."""
-
-    def read(self, values: Sequence[torch.Tensor], t: int, k: int,
-             channels: Optional[int] = None) -> torch.Tensor:
-        return values[0][:channels, t, :, k, 0]
-
-    def gradients(self, values: Sequence[torch.Tensor]) -> list:
-        return [torch.zeros_like(values[0])]
-
-    def buffer(self, g_values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
-        return g_values[0][:4, t, :, k, 0]
-
-    def finish(self, g_values, buffer, t: int, k: int) -> None:
-        pass
-
-
-def composite_layers(alpha: torch.Tensor, colour: torch.Tensor, depth: torch.Tensor,
-                     image: torch.Tensor, alpha_mode: torch.Tensor
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The frames of layered sums: per pixel the layers far to near by their mean depth
-    ``Z / A``, each blended over the result so far with its mode, clamped once at the end.
-
-    Shape: alpha (B, L, 1, H, W) ``A``; colour (B, L, 3, H, W) ``C``; depth (B, L, 1, H, W)
-    ``Z = Σ θ B V z``; image (B, 3, H, W); alpha_mode (B, L) bool -> (image (B, 3, H, W),
-    opacity (B, 1, H, W)). Differentiable in alpha, colour and image (not in the order).
-    """
-    grid = torch.cat((alpha, colour, depth), 2).permute(2, 0, 1, 3, 4)[:, None, :, :, None]
-    out, opacity = _LayeredBlend.apply(alpha_mode, _GridLayout(), 1, grid, image)
-    return out, opacity
-
-
-def _split(planes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """A layer's planes (C, B, H, W) -> A (B, 1, H, W), C (B, 3, H, W) (views)."""
-    return planes[0].unsqueeze(1), planes[1:4].transpose(0, 1)
-
-
-def _clamp_passed(pre: torch.Tensor, grad: bool) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
-    """``clamp(pre, 0, 1)`` and, with gradients, where the clamp passes them."""
-    if not grad:
-        return pre.clamp_(0, 1), None
-    out = pre.clamp(0, 1)
-    return out, out == pre
-
-
-def _inside(clear: torch.Tensor) -> torch.Tensor:
-    """Where ``clear = 1 − clamp(A, 0, 1)`` passes a gradient to A."""
-    return (clear > 0) & (clear < 1)
-
-
-class _TwoLayers(torch.autograd.Function):
-    """Two layers composited per pixel in closed form (:class:`_AdditiveOverAlpha`,
-    :class:`_AdditivePair`): the frames' loops and the gradient buffers here, the arithmetic of
-    one frame in the form.
-
-    Shape: form the closed form; layout a :class:`_LayerPlanes` (the layers in the form's
-    order); values the two layers' sums; images T tensors (B, 3, H, W) -> T images
-    (B, 3, H, W), then T opacities (B, 1, H, W).
-    """
-
-    @staticmethod
-    def forward(ctx, form, layout, values_0, values_1, *images):
-        values = (values_0, values_1)
-        grad = any(ctx.needs_input_grad)
-        one = images[0].new_ones(())
-        outs, opacities, saved = [], [], []
-        for t, image in enumerate(images):
-            # (the closed forms read no depth sum: A and C alone)
-            out, opacity, kept = form.frame(layout.read(values, t, 0, 4),
-                                            layout.read(values, t, 1, 4), image, one, grad)
-            outs.append(out)
-            opacities.append(opacity)
-            if grad:
-                saved.append(kept)
-        ctx.form, ctx.saved, ctx.layout, ctx.shapes = form, saved, layout, values
-        return (*outs, *opacities)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, *grads):
-        layout, frames = ctx.layout, len(ctx.saved)
-        g_values = layout.gradients(ctx.shapes)
-        g_images = []
-        for t, kept in enumerate(ctx.saved):
-            buffers = [layout.buffer(g_values, t, k) for k in (0, 1)]
-            g_images.append(ctx.form.frame_backward(kept, grads[t], grads[frames + t],
-                                                    *(_split(b) for b in buffers),
-                                                    ctx.needs_input_grad[4 + t]))
-            for k, b in enumerate(buffers):
-                layout.finish(g_values, b, t, k)
-        return (None, None, *g_values, *g_images)
-
-
-class _AdditiveOverAlpha:
-    """Two layers, the first additive and the second alpha-blended in every pair (snow, rain or
-    sparks with fog), composited in closed form (through :class:`_TwoLayers`). The additive
-    layer's particles behind the alpha layer were dimmed before the splat (:func:`_dimmed`), so
-    its light goes on top: ``C_a + I k + C_s`` with ``k = 1 − A_a`` (the alpha layer's
-    transmission); the opacity ``1 − (1 − clamp(A_s)) clamp(k)``. The additive layer's planes
-    hold no depth sum.
-    """
-
-    @staticmethod
-    def frame(planes_s, planes_a, image, one, grad: bool):
-        alpha_s, colour_s = _split(planes_s)
-        alpha_a, colour_a = _split(planes_a)
-        keep = 1 - alpha_a
-        pre = torch.addcmul(colour_a, image, keep).add_(colour_s)
-        out, passed = _clamp_passed(pre, grad)
-        clear_s, clear_a = 1 - alpha_s.clamp(0, 1), keep.clamp(0, 1)
-        opacity = torch.addcmul(one, clear_s, clear_a, value=-1)
-        return out, opacity, (keep, passed, image, clear_s, clear_a)
-
-    @staticmethod
-    def frame_backward(kept, g_out, g_op, grads_s, grads_a, need_image: bool):
-        keep, passed, image, clear_s, clear_a = kept
-        (g_alpha_s, g_colour_s), (g_alpha_a, g) = grads_s, grads_a
-        if g_out is None:                       # dL/dC_a = dL/dC_s: what passes the clamp
-            g.zero_()
-        else:
-            torch.mul(g_out, passed, out=g)
-        g_colour_s.copy_(g)
-        # dL/dA_a = −Σ_c g_c I_c
-        torch.mul(g[:, :1], image[:, :1], out=g_alpha_a)
-        for c in (1, 2):
-            g_alpha_a.addcmul_(g[:, c:c + 1], image[:, c:c + 1])
-        g_alpha_a.neg_()
-        if g_op is None:
-            g_alpha_s.zero_()
-        else:       # d(1 − clear_s clear_a)/dA: the other layer's clear, inside the clamp
-            torch.mul(g_op * clear_a, _inside(clear_s), out=g_alpha_s)
-            g_alpha_a.addcmul_(g_op * clear_s, _inside(clear_a))
-        return g * keep if need_image else None
-
-
-class _AdditivePair:
-    """Two additive layers (through :class:`_TwoLayers`): their order changes nothing
-    (``I + C_1 + C_2``), so they carry no depth sum; ``I + (C_1 + C_2)`` whichever layer is
-    listed first. The opacity ``1 − (1 − clamp(A_1)) (1 − clamp(A_2))``.
-    """
-
-    @staticmethod
-    def frame(planes_1, planes_2, image, one, grad: bool):
-        (alpha_1, colour_1), (alpha_2, colour_2) = _split(planes_1), _split(planes_2)
-        out, passed = _clamp_passed((colour_1 + colour_2).add_(image), grad)
-        clear_1, clear_2 = 1 - alpha_1.clamp(0, 1), 1 - alpha_2.clamp(0, 1)
-        return out, torch.addcmul(one, clear_1, clear_2, value=-1), (passed, clear_1, clear_2)
-
-    @staticmethod
-    def frame_backward(kept, g_out, g_op, grads_1, grads_2, need_image: bool):
-        passed, clear_1, clear_2 = kept
-        (g_alpha_1, g_colour_1), (g_alpha_2, g_colour_2) = grads_1, grads_2
-        if g_out is None:
-            g_colour_1.zero_()
-        else:
-            torch.mul(g_out, passed, out=g_colour_1)
-        g_colour_2.copy_(g_colour_1)
-        if g_op is None:
-            g_alpha_1.zero_()
-            g_alpha_2.zero_()
-        else:
-            torch.mul(g_op * clear_2, _inside(clear_1), out=g_alpha_1)
-            torch.mul(g_op * clear_1, _inside(clear_2), out=g_alpha_2)
-        return g_colour_1.clone() if need_image else None
-
-
-class _LayeredBlend(torch.autograd.Function):
-    """T frames of a batch of B pairs with L layers each, composited per pixel far to near.
-
-    The order is a sorting network of compare-and-swap steps on whole frames (``L (L − 1) / 2``
-    of them: one for two layers), each a few elementwise selections whose masks the backward
-    pass replays (a layer that covers a pixel not at all blends nothing there, wherever it
-    sorts; with three layers or more it sorts as the nearest, mean depth 0, so that it never
-    stands between two others unordered). An additive layer blends as one of zero opacity:
-    ``I (1 − 0) + C``; a dimmed one (:func:`_dimmed`) has no depth sum and sorts as the nearest
-    (mean depth 0). Layer ``k`` is nearer than layer ``j`` where ``Z_k A_j < Z_j A_k`` (mean
-    depths compared without a division).
-
-    Shape: values as ``layout`` reads them (each layer's sums, or whole planes), each frame
-    and layer's planes (5, B, H, W) (A, C_r, C_g, C_b, Z; 4 without Z); alpha_mode (B, L) bool; images T
-    tensors (B, 3, H, W) -> T images (B, 3, H, W), then T opacities (B, 1, H, W). Gradients flow
-    to the A and C planes and the images.
-    """
-
-    @staticmethod
-    def forward(ctx, alpha_mode, layout, count, *tensors):
-        values, images = tensors[:count], tensors[count:]
-        nl = alpha_mode.shape[1]
-        mode = alpha_mode.to(values[0].dtype)[:, :, None, None]             # (B, L, 1, 1)
-        every = alpha_mode.all(0).tolist()      # layers alpha-blended in every pair: A as is
-        grad = any(ctx.needs_input_grad)
-        one, zero = values[0].new_ones(()), values[0].new_zeros(())
-        outs, opacities, saved = [], [], []
-        for t, image in enumerate(images):
-            planes = [layout.read(values, t, k) for k in range(nl)]         # (5, B, H, W) each
-            alpha = [p[0].unsqueeze(1) for p in planes]                     # (B, 1, H, W)
-            # (a dimmed additive layer has no depth sum: it blends as the nearest)
-            depth = [p[4].unsqueeze(1) if p.shape[0] > 4 else zero for p in planes]
-            cover = [alpha[k] if every[k] else alpha[k] * mode[:, k, None] for k in range(nl)]
-            paint = [p[1:4].transpose(0, 1) for p in planes]                # (B, 3, H, W)
-            if nl > 2:      # a layer absent from a pixel sorts as the nearest (mean depth 0)
-                alpha, depth = ([torch.where(a > 0, x, fill) for a, x in zip(alpha, xs)]
-                                for xs, fill in ((alpha, one), (depth, zero)))
-            swaps = []
-            for top in range(nl - 1, 0, -1):     # bubble the nearest layer to the end
-                for k in range(top):
-                    swap = depth[k] * alpha[k + 1] < depth[k + 1] * alpha[k]   # k nearer
-                    swaps.append((k, swap))
-                    moved = (cover, paint) if top == 1 else (alpha, depth, cover, paint)
-                    for x in moved:
-                        x[k], x[k + 1] = (torch.where(swap, x[k + 1], x[k]),
-                                          torch.where(swap, x[k], x[k + 1]))
-            under, keep = [image], [1 - c for c in cover]
-            for k in range(nl):
-                under.append(torch.addcmul(paint[k], under[-1], keep[k]))
-            pre = under.pop()
-            out = pre.clamp(0, 1) if grad or not nl else pre.clamp_(0, 1)
-            clear = [1 - p[0].unsqueeze(1).clamp(0, 1) for p in planes]
-            total = clear[0]
-            for c in clear[1:]:
-                total = total * c
-            outs.append(out)
-            opacities.append((1 - total).clamp_(0, 1))
-            if grad:
-                saved.append((swaps, keep, under, out == pre, clear))
-        ctx.saved, ctx.layout = saved, layout
-        ctx.values, ctx.mode = values, mode
-        return (*outs, *opacities)
-
-    @staticmethod
-    @torch.autograd.function.once_differentiable
-    def backward(ctx, *grads):
-        frames = len(ctx.saved)
-        layout = ctx.layout
-        g_values = layout.gradients(ctx.values)
-        g_images = []
-        for t, (swaps, keep, under, passed, clear) in enumerate(ctx.saved):
-            g_out, g_op = grads[t], grads[frames + t]
-            nl = len(keep)
-            g = (torch.zeros_like(under[0]) if g_out is None else g_out * passed)
-            g_cover, g_paint = [None] * nl, [None] * nl
-            for k in range(nl - 1, -1, -1):
-                g_paint[k] = g
-                g_cover[k] = (g * under[k]).sum(1, keepdim=True)      # negated below
-                g = g * keep[k]
-            g_images.append(g)
-            for k, swap in reversed(swaps):
-                for x in (g_cover, g_paint):
-                    x[k], x[k + 1] = (torch.where(swap, x[k + 1], x[k]),
-                                      torch.where(swap, x[k], x[k + 1]))
-            for k in range(nl):
-                g_alpha = g_cover[k] * -ctx.mode[:, k, None]
-                if g_op is not None:      # d(1 − Π clear)/dA_k = Π_{j≠k} clear_j where 0 < A_k < 1
-                    others = None
-                    for j in range(nl):
-                        if j != k:
-                            others = clear[j] if others is None else others * clear[j]
-                    inside = _inside(clear[k])
-                    g_alpha = g_alpha + g_op * others * inside
-                buffer = layout.buffer(g_values, t, k)
-                g_a, g_c = _split(buffer)
-                g_a.copy_(g_alpha)
-                g_c.copy_(g_paint[k])
-                layout.finish(g_values, buffer, t, k)
-        return (None, None, None, *g_values, *g_images)

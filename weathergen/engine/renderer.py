@@ -10,7 +10,10 @@ between each (see ``docs/engine.md``):
 2. :mod:`~weathergen.engine.stamps`: looks -> :class:`~weathergen.engine.stamps.StampSet`;
 3. :mod:`~weathergen.engine.splat`: samples and stamps -> :class:`~weathergen.engine.splat.Sums`
    (``A = Σ θ B V``, ``C = Σ γ θ B V`` per view), differentiably;
-4. :mod:`~weathergen.engine.composite`: sums -> frames and opacities (:class:`RenderOutput`).
+4. :mod:`~weathergen.engine.planes`, then :mod:`~weathergen.engine.composite`: sums -> planes on
+   the image grid -> frames and opacities (:class:`RenderOutput`); the blend modes, a single
+   record's and combined weather's layers (drawn by :mod:`~weathergen.engine.layered`), all
+   live in :mod:`~weathergen.engine.composite`.
 
 Both weather models go through the same stages: a record of the paper's model carries its looks,
 a record sampled from a weather field (``optics`` set) gets its looks per view in stage 1.
@@ -30,10 +33,11 @@ import torch
 from ..errors import ConfigError, DatasetError, ShapeError
 from ..framepair import FramePair, FramePairBatch
 from .air import combined_opacity, fog_images, pair_air, record_atmospheres, view_air
-from .composite import RenderOutput, composite, planes
+from .composite import RenderOutput, composite
 from .layered import as_layers, build_layer_stamps, render_layers, render_layers_view
 from .layers import LayeredParticles
 from .particles import Particles
+from .planes import planes
 from .presets import BLEND_MODES
 from .sampling import check_pair_for_engine, reference_transforms, resolve_device
 from .splat import SPLAT_CHUNK_ELEMENTS, chunk_elements_for, splat

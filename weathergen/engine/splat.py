@@ -11,7 +11,7 @@ under each patch pixel, times its ``θ / K``; the products are added into per-pi
 a coarse grid (large billboards) are splatted into that grid's planes, at ``(u + 0.5) / f − 0.5``,
 twice: against the nearest and against the farthest scene depth of each coarse pixel's footprint,
 with two more channels, the sums of ``θ B V φ`` and ``θ B V φ²`` (``φ`` the blur sample's depth
-rank; :mod:`~weathergen.engine.coarse`), from which :mod:`~weathergen.engine.composite` brings
+rank; :mod:`~weathergen.engine.coarse`), from which :mod:`~weathergen.engine.planes` brings
 them to the image grid, pixel by pixel across depth edges (``depth_aware=False``: once, against
 the scene depth averaged over ``f x f`` blocks, upsampled bilinearly).
 
