@@ -338,65 +338,89 @@ class Particles:
         """The record stored as ``arrays`` (what :meth:`to_numpy` gives, or a file's entries as
         :func:`read_particle_arrays` gives them); FormatError names ``path`` on any problem."""
         path = Path(path)
-        version = arrays.get("format_version")
-        if version is None:
-            raise FormatError(path, "no format_version: not a weathergen particle file")
-        version = int(version)
-        if version == LAYERED_FORMAT_VERSION:
-            raise FormatError(path, "holds the layers of a combined preset; read it with "
-                                    "LayeredParticles.load (or load_particles)")
-        if version not in READABLE_VERSIONS:
-            raise FormatError(path, f"particle format version {version}; this weathergen "
-                                    f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
+        version = _readable_version(arrays, path)
         stamped = "stamp_boxes" in arrays
         field_record = ("optics" in arrays or stamped) if version == FORMAT_VERSION \
             else version in (1, 2)
         coded = version in _CODED_VERSIONS and not field_record
-        n = None
-        fields = {}
-        for name, (np_dtype, tail) in _TENSOR_FIELDS.items():
-            if name not in arrays:
-                raise FormatError(path, f"missing array '{name}'")
-            a = arrays[name]
-            if n is None:
-                n = a.shape[0] if a.ndim else -1
-            want, shape = _dtype_of(name, np_dtype, stamped or None), (n, *tail)
-            if coded:
-                want = _CODED_DTYPES.get(name, np_dtype)
-                if name == "motion" and version == FORMAT_VERSION:
-                    want, shape = np.uint32, (n,)
-            if a.dtype != want or a.shape != shape:
-                raise FormatError(path, f"array '{name}' is {a.dtype} {a.shape}, expected "
-                                        f"{np.dtype(want)} {shape}")
-            t = torch.from_numpy(_decoded(arrays, name, version, path)) if coded else \
-                torch.from_numpy(a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32))
-            fields[name] = t.to(device) if device is not None else t
+        fields, n = _tensor_fields(arrays, path, version, coded=coded, stamped=stamped,
+                                   device=device)
         if "frame" not in arrays:
             raise FormatError(path, "missing field 'frame'")
         frame = str(arrays["frame"].item())
         if frame not in REFERENCE_FRAMES:
             raise FormatError(path, f"unknown reference frame {frame!r}")
-        optics = None
+        optics, atmosphere = None, None
         if version == 2 or (version == FORMAT_VERSION and field_record and not stamped):
-            if "optics" not in arrays:
-                raise FormatError(path, f"version {version} field record without 'optics'")
-            try:
-                optics = FieldOptics.from_dict(json.loads(str(arrays["optics"])))
-            except (ValueError, TypeError) as exc:
-                raise FormatError(path, f"unreadable 'optics' entry ({exc})") from None
-        atmosphere = None
-        if optics is not None:
-            try:
-                atmosphere = Atmosphere.from_arrays(arrays)
-            except (ValueError, TypeError, KeyError) as exc:
-                raise FormatError(path, f"unreadable 'atmosphere' entry ({exc})") from None
-            if atmosphere is not None and device is not None:
-                atmosphere = atmosphere.to(device)
+            optics, atmosphere = _field_entries(arrays, path, version, device)
         stamps = read_stamp_arrays(arrays, n, path) if stamped else None
         if stamps is not None and device is not None:
             stamps = stamps.to(device)
         return cls(**fields, frame=frame, settings=RenderSettings.from_arrays(arrays, path),
                    optics=optics, atmosphere=atmosphere, stamps=stamps)
+
+
+def _readable_version(arrays: dict[str, np.ndarray], path: Path) -> int:
+    """The format version of a record's ``arrays``; FormatError naming ``path`` where there is
+    none, where they hold layers (a combined preset's file) or a version this one cannot read."""
+    version = arrays.get("format_version")
+    if version is None:
+        raise FormatError(path, "no format_version: not a weathergen particle file")
+    version = int(version)
+    if version == LAYERED_FORMAT_VERSION:
+        raise FormatError(path, "holds the layers of a combined preset; read it with "
+                                "LayeredParticles.load (or load_particles)")
+    if version not in READABLE_VERSIONS:
+        raise FormatError(path, f"particle format version {version}; this weathergen "
+                                f"reads versions {', '.join(map(str, READABLE_VERSIONS))}")
+    return version
+
+
+def _tensor_fields(arrays: dict[str, np.ndarray], path: Path, version: int, *, coded: bool,
+                   stamped: bool, device) -> tuple[dict[str, torch.Tensor], Optional[int]]:
+    """Every tensor field of a record of format ``version`` from its ``arrays``, decoded where
+    they are ``coded`` (the integer layout), else as float32 or int64, on ``device``, and the
+    particle count N (the first field's length). FormatError naming ``path`` for a missing
+    array or one of the wrong dtype or shape."""
+    n = None
+    fields = {}
+    for name, (np_dtype, tail) in _TENSOR_FIELDS.items():
+        if name not in arrays:
+            raise FormatError(path, f"missing array '{name}'")
+        a = arrays[name]
+        if n is None:
+            n = a.shape[0] if a.ndim else -1
+        want, shape = _dtype_of(name, np_dtype, stamped or None), (n, *tail)
+        if coded:
+            want = _CODED_DTYPES.get(name, np_dtype)
+            if name == "motion" and version == FORMAT_VERSION:
+                want, shape = np.uint32, (n,)
+        if a.dtype != want or a.shape != shape:
+            raise FormatError(path, f"array '{name}' is {a.dtype} {a.shape}, expected "
+                                    f"{np.dtype(want)} {shape}")
+        t = torch.from_numpy(_decoded(arrays, name, version, path)) if coded else \
+            torch.from_numpy(a.astype(np.int64 if name in _INTEGER_FIELDS else np.float32))
+        fields[name] = t.to(device) if device is not None else t
+    return fields, n
+
+
+def _field_entries(arrays: dict[str, np.ndarray], path: Path, version: int, device
+                   ) -> tuple[FieldOptics, Optional[Atmosphere]]:
+    """A field record's ``optics`` and its atmosphere (None without one), on ``device``;
+    FormatError naming ``path`` where either is missing or unreadable."""
+    if "optics" not in arrays:
+        raise FormatError(path, f"version {version} field record without 'optics'")
+    try:
+        optics = FieldOptics.from_dict(json.loads(str(arrays["optics"])))
+    except (ValueError, TypeError) as exc:
+        raise FormatError(path, f"unreadable 'optics' entry ({exc})") from None
+    try:
+        atmosphere = Atmosphere.from_arrays(arrays)
+    except (ValueError, TypeError, KeyError) as exc:
+        raise FormatError(path, f"unreadable 'atmosphere' entry ({exc})") from None
+    if atmosphere is not None and device is not None:
+        atmosphere = atmosphere.to(device)
+    return optics, atmosphere
 
 
 def _dtype_of(name: str, np_dtype, stamps) -> type:

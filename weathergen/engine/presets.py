@@ -998,16 +998,7 @@ def load_combined(text: str, overrides: Optional[Mapping[str, Any]] = None) -> C
     density instead), and field layers of different frame rates (their motions would not share
     one clock); naming ``${overrides}`` for an override of no layer.
     """
-    parts = [p.strip() for p in text.split(LAYER_JOIN)]
-    for i, part in enumerate(parts, 1):
-        if not part:
-            raise ConfigError(f"${{preset}} {text}: layer {i} of {len(parts)} is empty; join "
-                              f"preset names with {LAYER_JOIN}, e.g. rain-heavy+fog-light")
-    labels = [_layer_label(p) for p in parts]
-    for label in labels:
-        if labels.count(label) > 1:
-            raise ConfigError(f"${{preset}} {text}: layer {label!r} is given twice; a preset is one "
-                              "layer (raise its count or density instead)")
+    parts, labels = _layer_parts(text)
     name = LAYER_JOIN.join(labels)
 
     def load(i: int, sets: Mapping[str, Any]):
@@ -1019,11 +1010,45 @@ def load_combined(text: str, overrides: Optional[Mapping[str, Any]] = None) -> C
                               ) from None
 
     plain = [load(i, {}) for i in range(len(parts))]      # each layer's model and schema
-    per_layer: list[dict] = [{} for _ in parts]
-    for key, value in (overrides or {}).items():
+    per_layer = _layer_overrides(overrides or {}, plain, labels, name)
+    layers = tuple(load(i, sets) if sets else plain[i] for i, sets in enumerate(per_layer))
+    rates = {p.name: p.frame_rate for p in layers if isinstance(p, FieldPreset)}
+    if len(set(rates.values())) > 1:
+        listed = ", ".join(f"{n} {r:g}" for n, r in rates.items())
+        raise ConfigError(f"${{preset}} {name}: its field layers have different frame rates "
+                          f"(frame_rate: {listed}; 0 is the dataset's), so their motions would "
+                          "not share one clock; give them one (${overrides} LAYER.frame_rate=...)")
+    return CombinedPreset(layers, name, "; ".join(p.source for p in layers))
+
+
+def _layer_parts(text: str) -> tuple[list[str], list[str]]:
+    """The parts of a combined preset's name (``"rain-heavy+fog-light"``) and the names its
+    layers will have. Raises ConfigError naming ``${preset}`` for an empty part or a layer given
+    twice."""
+    parts = [p.strip() for p in text.split(LAYER_JOIN)]
+    for i, part in enumerate(parts, 1):
+        if not part:
+            raise ConfigError(f"${{preset}} {text}: layer {i} of {len(parts)} is empty; join "
+                              f"preset names with {LAYER_JOIN}, e.g. rain-heavy+fog-light")
+    labels = [_layer_label(p) for p in parts]
+    for label in labels:
+        if labels.count(label) > 1:
+            raise ConfigError(f"${{preset}} {text}: layer {label!r} is given twice; a preset is one "
+                              "layer (raise its count or density instead)")
+    return parts, labels
+
+
+def _layer_overrides(overrides: Mapping[str, Any], plain: list, labels: list[str],
+                     name: str) -> list[dict]:
+    """The overrides of each layer of combined preset ``name`` (see :func:`load_combined`):
+    ``LAYER.key`` (a layer's name or 1-based position) for that layer, a bare key for every layer
+    (``plain``: the layers' presets without overrides, whose schemas must all have it). Raises
+    ConfigError naming ``${overrides}`` for an override of no layer."""
+    per_layer: list[dict] = [{} for _ in labels]
+    for key, value in overrides.items():
         prefix, dot, bare = str(key).rpartition(".")
         if dot:
-            if prefix.isdigit() and 1 <= int(prefix) <= len(parts):
+            if prefix.isdigit() and 1 <= int(prefix) <= len(labels):
                 per_layer[int(prefix) - 1][bare] = value
             elif prefix in labels:
                 per_layer[labels.index(prefix)][bare] = value
@@ -1034,7 +1059,7 @@ def load_combined(text: str, overrides: Optional[Mapping[str, Any]] = None) -> C
             continue
         # every preset file may name its model: each layer checks a bare ``model`` itself
         lacking = [i for i, p in enumerate(plain) if key not in _keys_of(p) and key != "model"]
-        if len(lacking) == len(parts):
+        if len(lacking) == len(labels):
             raise ConfigError(f"${{overrides}} {key}: no layer of {name} has this key "
                               f"(`weathergen presets {name}` lists their keys)")
         if lacking:
@@ -1045,11 +1070,4 @@ def load_combined(text: str, overrides: Optional[Mapping[str, Any]] = None) -> C
                               f"{having}.{key}=...")
         for sets in per_layer:
             sets[key] = value
-    layers = tuple(load(i, sets) if sets else plain[i] for i, sets in enumerate(per_layer))
-    rates = {p.name: p.frame_rate for p in layers if isinstance(p, FieldPreset)}
-    if len(set(rates.values())) > 1:
-        listed = ", ".join(f"{n} {r:g}" for n, r in rates.items())
-        raise ConfigError(f"${{preset}} {name}: its field layers have different frame rates "
-                          f"(frame_rate: {listed}; 0 is the dataset's), so their motions would "
-                          "not share one clock; give them one (${overrides} LAYER.frame_rate=...)")
-    return CombinedPreset(layers, name, "; ".join(p.source for p in layers))
+    return per_layer

@@ -76,20 +76,39 @@ def chunk_spans(sizes: torch.Tensor, limit: int, groups: Optional[torch.Tensor] 
         item_ends, ends = torch.cumsum(repeats, 0), torch.cumsum(sizes * repeats, 0)
     else:
         item_ends, ends = None, torch.cumsum(sizes, 0)
+    split = limit if groups is None or split is None else split
+    b, t = _group_bounds(n, groups, item_ends, ends)
+    pieces, large = _packed(b, t, limit, split)
+    if large:
+        cuts = iter(_cuts(sizes, repeats, item_ends, ends, large, split))
+        pieces = [p for piece in pieces for p in ([piece] if piece is not None else next(cuts))]
+    return [p for p in pieces if p[3] > p[2]]
+
+
+def _group_bounds(n: int, groups: Optional[torch.Tensor], item_ends: Optional[torch.Tensor],
+                  ends: torch.Tensor) -> tuple[list, list]:
+    """Where each group of :func:`chunk_spans`'s ``n`` entries starts, as its first item and its
+    first element, then where the layout ends (without ``groups``: one group). ``item_ends``,
+    ``ends``: the cumulative items (None: one per entry) and elements. One host
+    synchronisation. Shape: -> two lists of G + 1 ints."""
     if groups is None:
-        split = limit
         if item_ends is None:
-            b, t = [0, n], [0, ends[-1:].tolist()[0]]
-        else:
-            b, t = [[0, total] for total in torch.stack((item_ends[-1], ends[-1])).tolist()]
-    else:
-        split = limit if split is None else split
-        first = torch.searchsorted(groups, groups.unique_consecutive())
-        bounds = torch.cat((first, first.new_full((1,), n)))
-        zero = sizes.new_zeros(1)
-        # per group: its first item and its first element (and the layout's ends)
-        b, t = torch.stack((bounds if item_ends is None else torch.cat((zero, item_ends))[bounds],
-                            torch.cat((zero, ends))[bounds])).tolist()
+            return [0, n], [0, ends[-1:].tolist()[0]]
+        b, t = [[0, total] for total in torch.stack((item_ends[-1], ends[-1])).tolist()]
+        return b, t
+    first = torch.searchsorted(groups, groups.unique_consecutive())
+    bounds = torch.cat((first, first.new_full((1,), n)))
+    zero = ends.new_zeros(1)
+    b, t = torch.stack((bounds if item_ends is None else torch.cat((zero, item_ends))[bounds],
+                        torch.cat((zero, ends))[bounds])).tolist()
+    return b, t
+
+
+def _packed(b: list, t: list, limit: int, split: int) -> tuple[list, list]:
+    """Groups (first items ``b``, first elements ``t``, see :func:`_group_bounds`) packed into
+    chunks ``(a, b, lo, hi)`` of up to ``limit`` elements, in order, empty groups left out; a
+    group of more than ``split`` elements is a ``None`` in that list, to be cut by
+    :func:`_cuts`, and is listed in the second list as ``(a, b, lo, hi)``."""
     pieces, open_piece, large = [], None, []
     for g in range(len(b) - 1):
         size = t[g + 1] - t[g]
@@ -109,10 +128,7 @@ def chunk_spans(sizes: torch.Tensor, limit: int, groups: Optional[torch.Tensor] 
             open_piece = (b[g], b[g + 1], t[g], t[g + 1])
     if open_piece is not None:
         pieces.append(open_piece)
-    if large:
-        cuts = iter(_cuts(sizes, repeats, item_ends, ends, large, split))
-        pieces = [p for piece in pieces for p in ([piece] if piece is not None else next(cuts))]
-    return [p for p in pieces if p[3] > p[2]]
+    return pieces, large
 
 
 def _cuts(sizes, repeats, item_ends, ends, large: list, split: int) -> list:

@@ -169,20 +169,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     splat (default: by device, :func:`~weathergen.engine.splat.chunk_elements_for`).
     ``detach_occlusion``: no gradient through the visibility term (the particle depth in V).
     """
-    records = [particles] if isinstance(particles, (Particles, LayeredParticles)) \
-        else list(particles)
-    if image1.dim() != 4 or image1.shape[1] != 3 or image2.shape != image1.shape:
-        raise ShapeError(f"images must be (B, 3, H, W) and equal; got {tuple(image1.shape)} "
-                         f"and {tuple(image2.shape)}")
-    bsz, _, height, width = image1.shape
-    for name, d in (("depth1", depth1), ("depth2", depth2)):
-        if d is None:
-            raise DatasetError(f"{name} is missing; weather rendering needs scene depth")
-        if tuple(d.shape) != (bsz, 1, height, width):
-            raise ShapeError(f"{name} has shape {tuple(d.shape)}, expected "
-                             f"{(bsz, 1, height, width)}")
-    if len(records) != bsz:
-        raise ConfigError(f"{len(records)} particle records for a batch of {bsz} frame pairs")
+    records = _record_list(particles)
+    _check_batch(image1, image2, depth1, depth2, len(records))
     dtype, device = image1.dtype, image1.device
     if any(isinstance(r, LayeredParticles) for r in records):
         layered = as_layers(records)
@@ -202,48 +190,103 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
     looks, tracks = pair_tracks(records, views, templates.resolution, beta=float(beta),
                                 dtype=dtype)
     air = pair_air([record_atmospheres(r) for r in records], intrinsics, cam1_from_ref,
-                   cam2_from_ref, (height, width), device)
+                   cam2_from_ref, tuple(image1.shape[-2:]), device)
     alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
     if air is not None:
         tracks = air.dim(tracks, torch.cat((alpha_mode, alpha_mode)))
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(device)
-    if stamps is None:
-        paper = sum(r.count for r in records if r.optics is None)
-        stamp_set = paper_stamps(records, looks.select(torch.arange(paper, device=device)),
-                                 templates, dtype=dtype, coarse_side=coarse_side,
-                                 chunk_elements=chunk_elements) \
-            if any(r.stamps is not None for r in records) else \
-            build(looks, templates, dtype=dtype, coarse_side=coarse_side,
-                  chunk_elements=chunk_elements)
-        if stamp_set.count != looks.count:          # the field particles' entries after them
-            stamp_set = StampSet.cat([stamp_set, build(
-                looks.select(torch.arange(paper, looks.count, device=device)), templates,
-                dtype=dtype, coarse_side=coarse_side, chunk_elements=chunk_elements)])
-    else:
-        paper = sum(r.count for r in records if r.optics is None)
+    stamp_set = _entry_stamps(records, looks, templates, stamps, dtype=dtype,
+                              coarse_side=coarse_side, chunk_elements=chunk_elements)
+    blend = _blender(records, tracks, stamp_set, views.depth, alpha_mode, dtype=dtype,
+                     chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
+    return _composited(blend, [image1, image2], alpha_mode, air, views.depth)
+
+
+def _check_batch(image1: torch.Tensor, image2: torch.Tensor, depth1: Optional[torch.Tensor],
+                 depth2: Optional[torch.Tensor], records: int) -> None:
+    """Check that :func:`render`'s frames are B pairs of one shape, with depth, and that there
+    are B ``records``. Raises ShapeError, DatasetError (no depth) or ConfigError."""
+    if image1.dim() != 4 or image1.shape[1] != 3 or image2.shape != image1.shape:
+        raise ShapeError(f"images must be (B, 3, H, W) and equal; got {tuple(image1.shape)} "
+                         f"and {tuple(image2.shape)}")
+    bsz, _, height, width = image1.shape
+    for name, d in (("depth1", depth1), ("depth2", depth2)):
+        if d is None:
+            raise DatasetError(f"{name} is missing; weather rendering needs scene depth")
+        if tuple(d.shape) != (bsz, 1, height, width):
+            raise ShapeError(f"{name} has shape {tuple(d.shape)}, expected "
+                             f"{(bsz, 1, height, width)}")
+    if records != bsz:
+        raise ConfigError(f"{records} particle records for a batch of {bsz} frame pairs")
+
+
+def _record_list(particles) -> list:
+    """The records of a render call: one record (or layered record) alone, or a sequence."""
+    return [particles] if isinstance(particles, (Particles, LayeredParticles)) \
+        else list(particles)
+
+
+def _entry_stamps(records: Sequence[Particles], looks, templates: TemplateLibrary,
+                  stamps: Optional[StampSet], *, dtype: torch.dtype, coarse_side: Optional[int],
+                  chunk_elements: int) -> StampSet:
+    """The stamps of every entry of ``looks`` (:func:`pair_tracks` of ``records``): first the
+    paper-model particles' (``stamps`` where given, else built from the library or a record's
+    stored stamps), then the field particles' entries, built. Raises ConfigError when
+    ``stamps`` do not hold one entry per paper-model particle."""
+    device = looks.template.device
+    paper = sum(r.count for r in records if r.optics is None)
+    if stamps is not None:
         if stamps.count != paper:
             raise ConfigError(f"stamps hold {stamps.count} entries but the records hold {paper} "
                               f"particles of the paper's model (build them from these records)")
         rest = looks.select(torch.arange(paper, looks.count, device=device))
-        stamp_set = StampSet.cat([stamps.to(dtype, device),
-                                  build(rest, templates, dtype=dtype, coarse_side=coarse_side,
-                                        chunk_elements=chunk_elements)])
+        return StampSet.cat([stamps.to(dtype, device),
+                             build(rest, templates, dtype=dtype, coarse_side=coarse_side,
+                                   chunk_elements=chunk_elements)])
+    stamp_set = paper_stamps(records, looks.select(torch.arange(paper, device=device)),
+                             templates, dtype=dtype, coarse_side=coarse_side,
+                             chunk_elements=chunk_elements) \
+        if any(r.stamps is not None for r in records) else \
+        build(looks, templates, dtype=dtype, coarse_side=coarse_side,
+              chunk_elements=chunk_elements)
+    if stamp_set.count != looks.count:          # the field particles' entries after them
+        stamp_set = StampSet.cat([stamp_set, build(
+            looks.select(torch.arange(paper, looks.count, device=device)), templates,
+            dtype=dtype, coarse_side=coarse_side, chunk_elements=chunk_elements)])
+    return stamp_set
+
+
+def _blender(records: Sequence[Particles], tracks, stamp_set: StampSet, depth: torch.Tensor,
+             alpha_mode: torch.Tensor, *, dtype: torch.dtype, chunk_elements: int,
+             detach_occlusion: bool):
+    """How the splatted tracks are blended into the frames: a function of the two frames
+    (B, 3, H, W) returning ``(frames, opacities, reached)`` (``reached`` (2 B,) per view).
+    Records marked to blend their blur samples one after another (the research code's order,
+    ``blends_in_order``) go through :func:`composite_in_order`; otherwise the splat's sums are
+    blended at once (:func:`composite`). ``depth`` (2 B, 1, H, W): the views' scene depth."""
     in_order = [r.settings.blends_in_order for r in records]
-    sums = None if any(in_order) else splat(
-        blur_samples(tracks, dtype, stamp_set.gap), stamp_set, views.depth,
-        chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
-    images = [image1, image2]
-    if air is not None:
-        transmission, airlight = air.pixels(views.depth, dtype)
-        images = fog_images(images, transmission, airlight, air)
-    if sums is None:    # blur samples blended one after another (the research code's order)
-        (out1, out2), (opacity1, opacity2), reached = composite_in_order(
-            tracks, stamp_set, views.depth, images, alpha_mode, torch.tensor(in_order),
+    if any(in_order):
+        marked = torch.tensor(in_order)
+        return lambda images: composite_in_order(
+            tracks, stamp_set, depth, images, alpha_mode, marked,
             chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
-    else:
-        (out1, out2), (opacity1, opacity2) = composite(sums, images, alpha_mode)
-        reached = sums.reached
+    sums = splat(blur_samples(tracks, dtype, stamp_set.gap), stamp_set, depth,
+                 chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
+    return lambda images: (*composite(sums, images, alpha_mode), sums.reached)
+
+
+def _composited(blend, images: list, alpha_mode: torch.Tensor, air, depth: torch.Tensor
+                ) -> RenderOutput:
+    """Both weather frames of every pair and their opacities, blended by ``blend``
+    (:func:`_blender`'s), the frames first seen through the records' atmosphere where they have
+    one (``air``: :func:`pair_air`'s, or None). Shape: images two (B, 3, H, W); alpha_mode (B,)
+    bool, the pairs drawn in alpha mode; depth (2 B, 1, H, W) the views' scene depth."""
+    bsz = images[0].shape[0]
+    if air is not None:
+        transmission, airlight = air.pixels(depth, images[0].dtype)
+        images = fog_images(images, transmission, airlight, air)
+    (out1, out2), (opacity1, opacity2), reached = blend(images)
     reached = reached.view(2, bsz).any(0)
     if air is not None:
         opacity1, opacity2 = combined_opacity([opacity1, opacity2], transmission, air)
@@ -271,8 +314,7 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
         if dev is not None:
             pair = pair.to(dev)
         frame, c1, c2 = reference_transforms(pair)
-        records = [particles] if isinstance(particles, (Particles, LayeredParticles)) \
-            else list(particles)
+        records = _record_list(particles)
         fields = dict(image1=pair.image1[None], image2=pair.image2[None],
                       depth1=pair.depth1[None], depth2=pair.depth2[None],
                       intrinsics=pair.intrinsics[None])
@@ -287,8 +329,7 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
         else:
             c1 = torch.eye(4, dtype=torch.float64).expand(bsz, 4, 4)
             c2, frames = pair.cam2_from_cam1, ["camera1"] * bsz
-        records = [particles] if isinstance(particles, (Particles, LayeredParticles)) \
-            else list(particles)
+        records = _record_list(particles)
         fields = dict(image1=pair.image1, image2=pair.image2, depth1=pair.depth1,
                       depth2=pair.depth2, intrinsics=pair.intrinsics)
         if dev is not None:

@@ -34,6 +34,7 @@ only frame 2 shows is drawn at the size its frame-2 depth gives), fixed at sampl
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 from typing import Optional, Union
 
 import torch
@@ -42,7 +43,7 @@ from ..errors import ConfigError, DatasetError, WeatherGenError
 from ..framepair import FramePair
 from ..geometry import WORLD_UP_AXES, invert_rigid, project, transform_points, up_direction
 from .particles import Particles, quantize_field, empty_particles
-from .presets import Preset, frame_scaling
+from .presets import FrameScaling, Preset, frame_scaling
 from .settings import RenderSettings
 from .templates import TemplateLibrary, load_templates
 
@@ -282,120 +283,177 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     on = resolve_device(sample_on)
     gen = cpu_generator(seed)
     lib = templates if templates is not None else load_templates(preset.templates)
-    frame, cam1_from_ref, cam2_from_ref = reference_transforms(pair)
-    cam1_from_ref, cam2_from_ref = cam1_from_ref.to(on), cam2_from_ref.to(on)
-    ref_from_cam1 = invert_rigid(cam1_from_ref)
-    k = pair.intrinsics.double().to(on)
-    depth1, depth2 = pair.depth1.to(on), pair.depth2.to(on)
+    cams = _Cameras.of(pair, on)
     settings = RenderSettings.from_preset(preset, lib)
-    scaling = frame_scaling(preset, depth1.shape[-2], depth1.shape[-1])
+    scaling = frame_scaling(preset, cams.depth1.shape[-2], cams.depth1.shape[-1])
     n = scaling.count
     if n == 0:
-        return empty_particles(frame, settings).to(dev)
+        return empty_particles(cams.frame, settings).to(dev)
+    candidates = _Candidates(cams, preset, n, gen, world_up=world_up,
+                             limit=max_candidates_factor * n)
+    position, motion = candidates.visible_particles()
+    # Per-particle appearance, drawn for exactly n particles after the positions.
+    u = torch.rand(n, 4, generator=gen, dtype=torch.float64).to(on)
+    template = torch.randint(0, lib.count, (n,), generator=gen).to(on)
+    scale, theta, defocus = _depth_looks(cams, position, motion, preset, scaling, lib.resolution)
+    zeros = torch.zeros(n, 3, dtype=torch.float64, device=on)
+    record = Particles(position=position, motion=motion, offset1=zeros, offset2=zeros.clone(),
+                       color=_jittered_colors(preset, u[:, 1:4]), transparency=theta,
+                       template=template, rotation=u[:, 0] * 2 * math.pi, scale=scale,
+                       defocus=defocus, frame=cams.frame, settings=settings)
+    return record.quantized().to(dev)
 
-    ref_from_vertical = _vertical_frame(world_down(cam1_from_ref, cam2_from_ref, world_up),
-                                        cam1_from_ref).to(on)
-    lo = torch.tensor([preset.volume_x[0], preset.volume_y[0], preset.volume_z[0]],
-                      dtype=torch.float64, device=on)
-    hi = torch.tensor([preset.volume_x[1], preset.volume_y[1], preset.volume_z[1]],
-                      dtype=torch.float64, device=on)
-    angle = math.radians(preset.motion_angle_jitter)
-    base = torch.tensor([0.0, preset.motion_y, 0.0], dtype=torch.float64, device=on)
 
-    cone2 = _view_cone(k, depth2.shape[-2], depth2.shape[-1]).to(on)
-    # the longest motion (rotations keep lengths; a camera's scale, if any, stretches it)
-    reach = abs(preset.motion_y) * (1 + preset.motion_scale_jitter) \
-        * float(torch.linalg.matrix_norm(cam2_from_ref[:3, :3].cpu(), ord=2))
-    batch = min(max(4096, 4 * n), 1 << 18)  # depends on the count only: reproducible anywhere
-    tried = 0
+@dataclass
+class _Cameras:
+    """A pair's cameras on the device of the sampling arithmetic: the reference ``frame``
+    (``"world"`` or ``"camera1"``), both cameras' transforms from it and camera 1's inverse
+    (4, 4) float64, the intrinsics (3, 3) float64, the depth maps (1, H, W)."""
 
-    def visible_either(pos_ref: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
-        return _visible(transform_points(cam1_from_ref, pos_ref), k, depth1) \
-            | _visible(transform_points(cam2_from_ref, pos_ref + motion), k, depth2)
+    frame: str
+    cam1_from_ref: torch.Tensor
+    cam2_from_ref: torch.Tensor
+    ref_from_cam1: torch.Tensor
+    k: torch.Tensor
+    depth1: torch.Tensor
+    depth2: torch.Tensor
 
-    def draw(have: int) -> tuple[torch.Tensor, torch.Tensor]:
+    @classmethod
+    def of(cls, pair: FramePair, on: torch.device) -> "_Cameras":
+        frame, cam1_from_ref, cam2_from_ref = reference_transforms(pair)
+        cam1_from_ref, cam2_from_ref = cam1_from_ref.to(on), cam2_from_ref.to(on)
+        return cls(frame, cam1_from_ref, cam2_from_ref, invert_rigid(cam1_from_ref),
+                   pair.intrinsics.double().to(on), pair.depth1.to(on), pair.depth2.to(on))
+
+    def visible_either(self, pos_ref: torch.Tensor, motion: torch.Tensor) -> torch.Tensor:
+        """Which particles at ``pos_ref`` moving by ``motion`` (reference frame) frame 1 or
+        frame 2 shows. Shape: (N, 3) each -> (N,) bool."""
+        return _visible(transform_points(self.cam1_from_ref, pos_ref), self.k, self.depth1) \
+            | _visible(transform_points(self.cam2_from_ref, pos_ref + motion), self.k, self.depth2)
+
+
+class _Candidates:
+    """Candidate particles of one pair, drawn in batches from the seed's generator: positions
+    uniform in the preset's sampling box (camera-1 coordinates), motions ``motion_y`` down the
+    world's vertical, turned by up to ``motion_angle_jitter`` degrees about each axis and scaled by
+    up to ``1 ± motion_scale_jitter``; kept where frame 1 or, after the camera motion and their
+    own, frame 2 shows them. ``limit``: the most candidates drawn before giving up."""
+
+    def __init__(self, cams: _Cameras, preset: Preset, n: int, gen: torch.Generator, *,
+                 world_up: str, limit: int):
+        on = cams.k.device
+        self.cams, self.preset, self.n, self.gen, self.limit = cams, preset, n, gen, limit
+        self.ref_from_vertical = _vertical_frame(
+            world_down(cams.cam1_from_ref, cams.cam2_from_ref, world_up), cams.cam1_from_ref).to(on)
+        self.lo = torch.tensor([preset.volume_x[0], preset.volume_y[0], preset.volume_z[0]],
+                               dtype=torch.float64, device=on)
+        self.hi = torch.tensor([preset.volume_x[1], preset.volume_y[1], preset.volume_z[1]],
+                               dtype=torch.float64, device=on)
+        self.angle = math.radians(preset.motion_angle_jitter)
+        self.base = torch.tensor([0.0, preset.motion_y, 0.0], dtype=torch.float64, device=on)
+        self.cone2 = _view_cone(cams.k, cams.depth2.shape[-2], cams.depth2.shape[-1]).to(on)
+        # the longest motion (rotations keep lengths; a camera's scale, if any, stretches it)
+        self.reach = abs(preset.motion_y) * (1 + preset.motion_scale_jitter) \
+            * float(torch.linalg.matrix_norm(cams.cam2_from_ref[:3, :3].cpu(), ord=2))
+        self.batch = min(max(4096, 4 * n), 1 << 18)  # depends on the count only: reproducible
+        self.tried = 0
+
+    def visible_particles(self) -> tuple[torch.Tensor, torch.Tensor]:
+        """The first ``n`` kept candidates, positions and motions rounded to their stored
+        precision, every one still visible in frame 1 or frame 2. Shape: -> (n, 3) each."""
+        n, on = self.n, self.cams.k.device
+        accepted_pos, accepted_motion = torch.zeros(0, 3, dtype=torch.float64, device=on), \
+            torch.zeros(0, 3, dtype=torch.float64, device=on)
+        while True:
+            while accepted_pos.shape[0] < n:
+                pos_b, motion_b = self.draw(accepted_pos.shape[0])
+                accepted_pos = torch.cat((accepted_pos, pos_b))
+                accepted_motion = torch.cat((accepted_motion, motion_b))
+            # Round to the stored precision first, so that the depth-dependent properties
+            # follow from exactly the positions a saved record holds. A candidate that the
+            # rounding moves out of both views (it lay on the image border or the scene surface)
+            # gives its place to the next accepted one, so that every stored particle is visible
+            # in frame 1 or frame 2 (rare: about one in several thousand particles).
+            position = quantize_field("position", accepted_pos[:n]).double().to(on)
+            motion = quantize_field("motion", accepted_motion[:n]).double().to(on)
+            ok = self.cams.visible_either(position, motion)
+            if bool(ok.all()):
+                return position, motion
+            keep = torch.cat((ok, torch.ones(accepted_pos.shape[0] - n, dtype=torch.bool,
+                                             device=on)))
+            accepted_pos, accepted_motion = accepted_pos[keep], accepted_motion[keep]
+
+    def draw(self, have: int) -> tuple[torch.Tensor, torch.Tensor]:
         """One batch of candidates: the positions (reference frame) and motions of those
-        visible in frame 1 or, after the camera motion and their own, in frame 2."""
-        nonlocal tried
-        if tried >= max_candidates_factor * n:
+        visible in frame 1 or, after the camera motion and their own, in frame 2 (``have``: how
+        many were kept so far, for the error). Shape: -> (M, 3) each."""
+        cams, preset = self.cams, self.preset
+        if self.tried >= self.limit:
             raise ConfigError(
-                f"could place only {have} of {n} particles: the sampling box "
+                f"could place only {have} of {self.n} particles: the sampling box "
                 f"x{list(preset.volume_x)} y{list(preset.volume_y)} z{list(preset.volume_z)} "
                 "is mostly hidden behind the scene or outside the view (check the depth scale "
                 "or the preset's volume_* keys)")
-        u = torch.rand(batch, 7, generator=gen, dtype=torch.float64).to(on)
-        tried += batch
-        pos_cam1 = lo + (hi - lo) * u[:, :3]
-        pos_ref = transform_points(ref_from_cam1, pos_cam1)
-        vis1 = _visible(pos_cam1, k, depth1)
+        u = torch.rand(self.batch, 7, generator=self.gen, dtype=torch.float64).to(cams.k.device)
+        self.tried += self.batch
+        pos_cam1 = self.lo + (self.hi - self.lo) * u[:, :3]
+        pos_ref = transform_points(cams.ref_from_cam1, pos_cam1)
+        vis1 = _visible(pos_cam1, cams.k, cams.depth1)
         # Most candidates lie outside both views. Frame 2 can only see one whose motionless
         # position is within the longest motion of its view cone, so only those and the ones
         # frame 1 sees need their motion (the same particles as testing every candidate).
-        near2 = _within_reach(transform_points(cam2_from_ref, pos_ref), cone2, reach)
+        near2 = _within_reach(transform_points(cams.cam2_from_ref, pos_ref), self.cone2,
+                              self.reach)
         cand = torch.nonzero(vis1 | near2).squeeze(1)
-        uc = u[cand]
-        rot = euler_rotations((2 * uc[:, 3:6] - 1) * angle)
-        factor = 1 + (2 * uc[:, 6] - 1) * preset.motion_scale_jitter
-        motion_vertical = (rot @ base) * factor[:, None]
-        motion = motion_vertical @ ref_from_vertical.T
+        motion = self.motions(u[cand])
         pos_ref = pos_ref[cand]
-        vis = vis1[cand] | _visible(transform_points(cam2_from_ref, pos_ref + motion), k, depth2)
+        vis = vis1[cand] | _visible(transform_points(cams.cam2_from_ref, pos_ref + motion),
+                                    cams.k, cams.depth2)
         return pos_ref[vis], motion[vis]
 
-    accepted_pos, accepted_motion = torch.zeros(0, 3, dtype=torch.float64, device=on), \
-        torch.zeros(0, 3, dtype=torch.float64, device=on)
-    while True:
-        while accepted_pos.shape[0] < n:
-            pos_b, motion_b = draw(accepted_pos.shape[0])
-            accepted_pos = torch.cat((accepted_pos, pos_b))
-            accepted_motion = torch.cat((accepted_motion, motion_b))
-        # Round to the stored precision first, so that the depth-dependent properties below
-        # follow from exactly the positions a saved record holds. A candidate that the rounding
-        # moves out of both views (it lay on the image border or the scene surface) gives its
-        # place to the next accepted one, so that every stored particle is visible in frame 1
-        # or frame 2 (rare: about one in several thousand particles).
-        position = quantize_field("position", accepted_pos[:n]).double().to(on)
-        motion = quantize_field("motion", accepted_motion[:n]).double().to(on)
-        ok = visible_either(position, motion)
-        if bool(ok.all()):
-            break
-        keep = torch.cat((ok, torch.ones(accepted_pos.shape[0] - n, dtype=torch.bool, device=on)))
-        accepted_pos, accepted_motion = accepted_pos[keep], accepted_motion[keep]
+    def motions(self, u: torch.Tensor) -> torch.Tensor:
+        """The candidates' motions (reference frame) from their uniform numbers: columns 3-5 the
+        jitter angles, column 6 the scale. Shape: (M, 7) -> (M, 3)."""
+        rot = euler_rotations((2 * u[:, 3:6] - 1) * self.angle)
+        factor = 1 + (2 * u[:, 6] - 1) * self.preset.motion_scale_jitter
+        motion_vertical = (rot @ self.base) * factor[:, None]
+        return motion_vertical @ self.ref_from_vertical.T
 
-    # Per-particle appearance, drawn for exactly n particles after the positions.
-    u = torch.rand(n, 4, generator=gen, dtype=torch.float64).to(on)
-    template = torch.randint(0, lib.count, (n,), generator=gen)
-    rotation = u[:, 0] * 2 * math.pi
 
-    x1 = transform_points(cam1_from_ref, position)
-    z2 = transform_points(cam2_from_ref, position + motion)[:, 2]
-    # the depth in the frame that accepted the particle: frame 1 where it sees it, else frame 2
-    d = torch.where(_visible(x1, k, depth1), x1[:, 2], z2)
+def _depth_looks(cams: _Cameras, position: torch.Tensor, motion: torch.Tensor, preset: Preset,
+                 scaling: FrameScaling, resolution: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The looks that follow from each particle's camera depth in the frame that accepted it
+    (frame 1 where it sees the particle, else frame 2; see the module doc): the template scale
+    (footprint pixels / template resolution), the transparency θ and the defocus radius (pixels).
+    ``scaling``: the preset's :class:`~weathergen.engine.presets.FrameScaling` for the frame.
+    Shape: (n, 3) each -> (n,) float64, (n,) float64, (n,) int64."""
+    x1 = transform_points(cams.cam1_from_ref, position)
+    z2 = transform_points(cams.cam2_from_ref, position + motion)[:, 2]
+    d = torch.where(_visible(x1, cams.k, cams.depth1), x1[:, 2], z2)
     footprint = (scaling.size * torch.clamp(1.0 / (d * preset.depth_decay), max=1.0)).clamp(min=1.0)
-    scale = footprint / lib.resolution
+    scale = footprint / resolution
     if preset.transparency_mode == "constant":
         theta = torch.full_like(d, preset.transparency)
     else:
         theta = preset.transparency * transparency_hat(d)
     defocus = defocus_radius(d, scaling.pixel_scale) if preset.defocus else \
-        torch.zeros(n, dtype=torch.int64, device=on)
+        torch.zeros(d.shape[0], dtype=torch.int64, device=d.device)
+    return scale, theta, defocus
 
-    hls = rgb_to_hls(torch.tensor(preset.color, dtype=torch.float64, device=on) / 255.0) \
-        .expand(n, 3)
-    jitter = (2 * u[:, 1:4] - 1) * torch.tensor(
+
+def _jittered_colors(preset: Preset, u: torch.Tensor) -> torch.Tensor:
+    """The preset's colour jittered in HLS by up to ``hue_jitter`` degrees, ``lightness_jitter``
+    and ``saturation_jitter``, from uniform numbers ``u`` (hue, lightness, saturation).
+    Shape: (n, 3) -> (n, 3) RGB in [0, 1], float64."""
+    hls = rgb_to_hls(torch.tensor(preset.color, dtype=torch.float64, device=u.device) / 255.0) \
+        .expand(u.shape[0], 3)
+    jitter = (2 * u - 1) * torch.tensor(
         [preset.hue_jitter / 360.0, preset.lightness_jitter, preset.saturation_jitter],
-        dtype=torch.float64, device=on)
+        dtype=torch.float64, device=u.device)
     hls = hls + jitter
     hls = torch.stack((torch.remainder(hls[:, 0], 1.0), hls[:, 1].clamp(0, 1),
                        hls[:, 2].clamp(0, 1)), -1)
-    color = hls_to_rgb(hls).clamp(0, 1)
-
-    zeros = torch.zeros(n, 3, dtype=torch.float64, device=on)
-    template = template.to(on)
-    record = Particles(position=position, motion=motion, offset1=zeros, offset2=zeros.clone(),
-                       color=color, transparency=theta, template=template, rotation=rotation,
-                       scale=scale, defocus=defocus, frame=frame, settings=settings)
-    return record.quantized().to(dev)
+    return hls_to_rgb(hls).clamp(0, 1)
 
 
 def visibility(pair: FramePair, particles: Particles) -> tuple[torch.Tensor, torch.Tensor]:

@@ -235,91 +235,102 @@ class _Plan:
         self.order, self.rank = None, None
         if inst.count == 0 or stamps.count == 0:
             return
-        top = COARSE_MAX_LEVEL + 1
-        # per level: its last column and row w − 1, h − 1, the factor f, h, where its planes'
-        # pixel (0, 0) sits, a row's and a plane's length in the sums
-        rows = [[0] * 7 for _ in range(top)]
-        for c, offset, h, w, m in grids.levels:
-            rows[c] = [w - 1, h - 1, 2 ** c, h, offset + m, w + 2 * m, (h + 1) * (w + 2 * m)]
         self.coarse = grids.levels[0][0] > 0       # (coarsest first)
         with torch.no_grad():
-            # per entry: its stamp's blocks per side q (its side is 2 q − 1), P, level, its
-            # level's grid; and its part of the sort key
-            side, level, phases = stamps.side, stamps.coarse, stamps.phases
+            # per entry: its stamp's blocks per side q (its side is 2 q − 1), P, its level's grid
+            side, phases = stamps.side, stamps.phases
             q = torch.div(side, 2, rounding_mode="floor").add_(1)
-            grid = torch.tensor(rows, device=device).index_select(0, level)
-            kind = torch.add(phases > 1, level, alpha=2 * grids.views * grids.copies)
-            # per blur sample: whether its patch touches the image (its first column and row,
-            # uv0 − q + 1, not after w − 1 and h − 1; its last, uv0 + q, from 0 on) and its key: by
-            # plane, then by tile of the image (samples of a chunk hit nearby pixels: fewer
-            # cache misses in the scatter), phase stamps after the others (most chunks then
-            # hold one kind, see _Blocks); the key depends on the sample alone
-            per = torch.cat((torch.stack((q, kind), 1), grid[:, :3]), 1) \
-                .index_select(0, inst.entry)
-            uv = torch.stack((inst.u, inst.v))                                 # (2, I)
-            if self.coarse:
-                uv = _on_grid(uv, per[:, 4])
-            uv0 = torch.floor(uv).long()
-            reach = per[:, 0]
-            keep = ((uv0 + reach >= 0) & (uv0 - reach < per[:, 2:4].t())).all(0) \
-                & (inst.z > NEAR)
-            kept = torch.nonzero(keep).squeeze(1)
-            # (view: the sample's plane; a coarse sample is drawn again into plane V + view)
-            view = inst.view.index_select(0, kept)
-            if grids.copies > 1 and self.coarse:
-                kept, view = self._twice(inst, level, kept, view, grids.views)
-            tile = torch.div(uv0.index_select(1, kept), TILE, rounding_mode="floor") \
-                .clamp_(-1, 1 << 12).add_(1)
-            tile_u, tile_v = tile.unbind(0)
-            kind = torch.add(per[:, 1].index_select(0, kept), view, alpha=2)
-            key = torch.add(torch.add(tile_u, tile_v, alpha=1 << 14), kind, alpha=1 << 28)
-            key, order = torch.sort(key, stable=True)
-            self.count = int(order.numel())
+            grid = torch.tensor(_level_rows(grids), device=device).index_select(0, stamps.coarse)
+            kept, view, uv, uv0, key = self._sorted_samples(inst, q, grid)
             if self.count == 0:
                 return
-            kept, view = kept.index_select(0, order), view.index_select(0, order)
-            # per entry, what its rows need: q, 2 P (fine − q) (see below), the bordered
+            # per entry, what its rows need: q, 2 P (fine − q) (see _place), the bordered
             # stamp's row length fine, P, its level's h and row length in the sums
             fine = torch.addcmul(phases, phases, side).add_(1)
             two_p = phases + phases
             self.rows_of_entry = torch.cat((torch.stack((q, two_p * (fine - q), fine, phases),
                                                         1), grid[:, 3::2]), 1)
-            # per kept sample: its stamp's and plane's numbers
-            self.entry = inst.entry.index_select(0, kept)
-            q, phases, fine, first, f, origin, plane_len = torch.cat(
-                (torch.stack((q, phases, fine, stamps.first), 1), grid[:, 2::2]), 1) \
-                .index_select(0, self.entry).unbind(1)
-            uv, uv0 = uv.index_select(1, kept), uv0.index_select(1, kept)
-            col0, row0 = (uv0 - q + 1).unbind(0)       # the patch's first column and row
-            # the phase stamp's grid point at the patch's top-left pixel (see _Blocks): the
-            # phase φ = floor(P f) of the sub-pixel shift f, per axis
-            shift = (uv - uv0) * phases
-            phase = torch.floor(shift)
-            late_u, late_v = ((phases - 1) - phase.long()).unbind(0)            # P − 1 − φ
-            # (what _per_sample's fu, fv are: the shift's fraction of a grid step, P f − φ)
-            self.fraction = shift.sub_(phase)
-            first = torch.addcmul(first, late_v, fine).add_(late_u)
-            self.reached.index_fill_(0, torch.remainder(view, grids.views), True)
-            self.kept, self.q, self.phases = kept, q, phases
-            if self.coarse:
-                self.factor = f.to(self.dtype)
-            # a sample's row j is row row_start + j of the call, its block c block b =
-            # block_start + j q + c; that block's top-left stamp pixel is first + 2 P fine j
-            # + 2 P c = first − 2 P block_start + 2 P (fine − q) j + 2 P b
-            blocks = q * q
-            rows_end, blocks_end = torch.cumsum(q, 0), torch.cumsum(blocks, 0)
-            row_start, block_start = rows_end - q, blocks_end - blocks
-            self.coef = torch.stack((row_start, torch.addcmul(first, phases, block_start,
-                                                              value=-2),
-                                     block_start, row0,
-                                     torch.addcmul(origin + col0, view, plane_len)), 1)
+            # per entry, what its samples need: q, P, fine, its first stamp pixel, its level's
+            # f, where its planes' pixel (0, 0) sits and a plane's length in the sums
+            per_entry = torch.cat((torch.stack((q, phases, fine, stamps.first), 1),
+                                   grid[:, 2::2]), 1)
+            row_start, rows_end, blocks_end = self._place(inst, per_entry, kept, view, uv, uv0)
             if self.cpu:      # the module's constant, read at call time (benchmarks replace it)
-                pieces = chunk_spans(q, self.blocks_per_chunk, key.bitwise_right_shift_(29),
-                                     PLANE_SPLIT, repeats=q, ends=(rows_end, blocks_end))
+                pieces = chunk_spans(self.q, self.blocks_per_chunk, key.bitwise_right_shift_(29),
+                                     PLANE_SPLIT, repeats=self.q, ends=(rows_end, blocks_end))
             else:
-                pieces = chunk_spans(q, self.blocks_per_chunk, repeats=q,
+                pieces = chunk_spans(self.q, self.blocks_per_chunk, repeats=self.q,
                                      ends=(rows_end, blocks_end))
-            self._slabs(pieces, row_start, rows_end, (phases > 1).long())
+            self._slabs(pieces, row_start, rows_end, (self.phases > 1).long())
+
+    def _sorted_samples(self, inst: Instances, q: torch.Tensor, grid: torch.Tensor) -> tuple:
+        """The blur samples to draw, sorted: those whose patch touches the image (a coarse one
+        twice, see :meth:`_twice`), by plane, then by tile of the image (samples of a chunk hit
+        nearby pixels: fewer cache misses in the scatter), phase stamps after the others (most
+        chunks then hold one kind, see :class:`_Blocks`); the key depends on the sample alone.
+        Sets ``count``. ``q`` (E,) blocks per side, ``grid`` (E, 7) the entry's level's numbers
+        (see :func:`_level_rows`). Returns ``(kept, view, uv, uv0, key)``: the samples'
+        instances and planes' views (K,) int64, their positions on their grids (2, K) and those
+        rounded down (2, K) int64, their sort keys (K,) int64."""
+        grids, stamps = self.grids, self.stamps
+        kind = torch.add(stamps.phases > 1, stamps.coarse, alpha=2 * grids.views * grids.copies)
+        # whether a patch touches the image: its first column and row, uv0 − q + 1, not after
+        # w − 1 and h − 1; its last, uv0 + q, from 0 on
+        per = torch.cat((torch.stack((q, kind), 1), grid[:, :3]), 1).index_select(0, inst.entry)
+        uv = torch.stack((inst.u, inst.v))                                 # (2, I)
+        if self.coarse:
+            uv = _on_grid(uv, per[:, 4])
+        uv0 = torch.floor(uv).long()
+        reach = per[:, 0]
+        keep = ((uv0 + reach >= 0) & (uv0 - reach < per[:, 2:4].t())).all(0) & (inst.z > NEAR)
+        kept = torch.nonzero(keep).squeeze(1)
+        # (view: the sample's plane; a coarse sample is drawn again into plane V + view)
+        view = inst.view.index_select(0, kept)
+        if grids.copies > 1 and self.coarse:
+            kept, view = self._twice(inst, stamps.coarse, kept, view, grids.views)
+        tile = torch.div(uv0.index_select(1, kept), TILE, rounding_mode="floor") \
+            .clamp_(-1, 1 << 12).add_(1)
+        tile_u, tile_v = tile.unbind(0)
+        kind = torch.add(per[:, 1].index_select(0, kept), view, alpha=2)
+        key = torch.add(torch.add(tile_u, tile_v, alpha=1 << 14), kind, alpha=1 << 28)
+        key, order = torch.sort(key, stable=True)
+        self.count = int(order.numel())
+        kept, view = kept.index_select(0, order), view.index_select(0, order)
+        return kept, view, uv.index_select(1, kept), uv0.index_select(1, kept), key
+
+    def _place(self, inst: Instances, per_entry: torch.Tensor, kept: torch.Tensor,
+               view: torch.Tensor, uv: torch.Tensor, uv0: torch.Tensor) -> tuple:
+        """The kept samples' numbers (see :meth:`_sorted_samples`): sets ``entry``, ``kept``,
+        ``q``, ``phases``, ``fraction``, ``factor`` (on coarse grids), ``reached`` and ``coef``.
+        ``per_entry`` (E, 7): q, P, fine, first, f, origin, plane length. Returns where each
+        sample's rows start and end and where its blocks end among the call's. Shape: (K,)
+        int64 each."""
+        self.entry = inst.entry.index_select(0, kept)
+        q, phases, fine, first, f, origin, plane_len = \
+            per_entry.index_select(0, self.entry).unbind(1)
+        col0, row0 = (uv0 - q + 1).unbind(0)       # the patch's first column and row
+        # the phase stamp's grid point at the patch's top-left pixel (see _Blocks): the
+        # phase φ = floor(P f) of the sub-pixel shift f, per axis
+        shift = (uv - uv0) * phases
+        phase = torch.floor(shift)
+        late_u, late_v = ((phases - 1) - phase.long()).unbind(0)            # P − 1 − φ
+        # (what _per_sample's fu, fv are: the shift's fraction of a grid step, P f − φ)
+        self.fraction = shift.sub_(phase)
+        first = torch.addcmul(first, late_v, fine).add_(late_u)
+        self.reached.index_fill_(0, torch.remainder(view, self.grids.views), True)
+        self.kept, self.q, self.phases = kept, q, phases
+        if self.coarse:
+            self.factor = f.to(self.dtype)
+        # a sample's row j is row row_start + j of the call, its block c block b =
+        # block_start + j q + c; that block's top-left stamp pixel is first + 2 P fine j
+        # + 2 P c = first − 2 P block_start + 2 P (fine − q) j + 2 P b
+        blocks = q * q
+        rows_end, blocks_end = torch.cumsum(q, 0), torch.cumsum(blocks, 0)
+        row_start, block_start = rows_end - q, blocks_end - blocks
+        self.coef = torch.stack((row_start, torch.addcmul(first, phases, block_start, value=-2),
+                                 block_start, row0,
+                                 torch.addcmul(origin + col0, view, plane_len)), 1)
+        return row_start, rows_end, blocks_end
 
     def _twice(self, inst: Instances, level: torch.Tensor, kept: torch.Tensor,
                view: torch.Tensor, views: int) -> tuple[torch.Tensor, torch.Tensor]:
@@ -402,6 +413,16 @@ class _Plan:
 SLAB_ROWS = 1 << 15
 #: Sends negative pixel rows above any image's height (see _Plan._slab).
 _MASK = (1 << 40) - 1
+
+
+def _level_rows(grids: Grids) -> list:
+    """Per grid level (0 .. :data:`COARSE_MAX_LEVEL`), the numbers its samples need: its last
+    column and row w − 1, h − 1, the factor f, h, where its planes' pixel (0, 0) sits, a row's
+    and a plane's length in the sums (zeros for a level not drawn). Shape: 7 ints per level."""
+    rows = [[0] * 7 for _ in range(COARSE_MAX_LEVEL + 1)]
+    for c, offset, h, w, m in grids.levels:
+        rows[c] = [w - 1, h - 1, 2 ** c, h, offset + m, w + 2 * m, (h + 1) * (w + 2 * m)]
+    return rows
 
 
 def _on_grid(x: torch.Tensor, f: torch.Tensor) -> torch.Tensor:

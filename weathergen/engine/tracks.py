@@ -634,26 +634,9 @@ def pair_tracks(records: Sequence[Particles], views: Views, resolution: int, *, 
     if paper:
         head = table if n == table.count else table.head(n)
         entries.append(fixed_looks(head, rows, resolution))
-        start, record, p = head.start, head.record, pair[:n]
-        # both frames at once: frame 1 from X1, frame 2 from X2 (the first n rows, the last n)
-        view = torch.cat((p, bsz + p))
-        h = homogeneous(views.project.index_select(0, view),
-                        torch.cat((start, start + head.displacement)))
-        hd = h[n:] - h[:n]
-        entry = torch.arange(n, device=device)
-        samples = rows.samples.index_select(0, record)
-        spacing = rows.spacing.index_select(0, record)
-        theta, colour = head.transparency.to(dtype), head.color.to(dtype)
-        for key, piece in (("entry", entry), ("hd", hd), ("samples", samples),
-                           ("spacing", spacing), ("theta", theta), ("color", colour)):
-            # (a differentiable piece repeated: its gradient is then the sum of both frames' in
-            # the order of repeat's backward, to the sign of a zero)
-            columns[key] += [piece.repeat(2, *[1] * (piece.dim() - 1))] \
-                if piece.requires_grad else [piece, piece]
-        columns["view"].append(view)
-        columns["h0"].append(h)
-        columns["beta"].append(torch.full((2 * n,), float(beta), dtype=torch.float64,
-                                          device=device))
+        for key, pieces in _paper_columns(head, rows, views, pair[:n], beta=beta,
+                                          dtype=dtype).items():
+            columns[key] += pieces
     if field:
         # every field particle is a candidate in both frames of its pair
         which = torch.arange(n, table.count, device=device).repeat(2)
@@ -667,6 +650,34 @@ def pair_tracks(records: Sequence[Particles], views: Views, resolution: int, *, 
             columns[key].append(getattr(tracks, key))
     looks = entries[0] if len(entries) == 1 else Looks.cat(entries)
     return looks, Tracks(**{k: v[0] if len(v) == 1 else torch.cat(v) for k, v in columns.items()})
+
+
+def _paper_columns(head: ParticleTable, rows: RecordRows, views: Views, p: torch.Tensor, *,
+                   beta: float, dtype: torch.dtype) -> dict[str, list]:
+    """The tracks of the paper's particles ``head`` (the first n rows of the call's table, entries
+    0 .. n − 1) in both frames of their pairs ``p`` (n,): frame 1 from ``X1``, frame 2 from
+    ``X2``, both along ``X2 − X1``. Returns each :class:`Tracks` column's pieces, frame 1's rows
+    then frame 2's (2 n rows in all)."""
+    n, device = head.count, p.device
+    start, record = head.start, head.record
+    # both frames at once: frame 1 from X1, frame 2 from X2 (the first n rows, the last n)
+    view = torch.cat((p, views.count // 2 + p))
+    h = homogeneous(views.project.index_select(0, view),
+                    torch.cat((start, start + head.displacement)))
+    hd = h[n:] - h[:n]
+    entry = torch.arange(n, device=device)
+    samples = rows.samples.index_select(0, record)
+    spacing = rows.spacing.index_select(0, record)
+    theta, colour = head.transparency.to(dtype), head.color.to(dtype)
+    columns = {"view": [view], "h0": [h],
+               "beta": [torch.full((2 * n,), float(beta), dtype=torch.float64, device=device)]}
+    for key, piece in (("entry", entry), ("hd", hd), ("samples", samples),
+                       ("spacing", spacing), ("theta", theta), ("color", colour)):
+        # (a differentiable piece repeated: its gradient is then the sum of both frames' in
+        # the order of repeat's backward, to the sign of a zero)
+        columns[key] = [piece.repeat(2, *[1] * (piece.dim() - 1))] \
+            if piece.requires_grad else [piece, piece]
+    return columns
 
 
 def pair_starts(record: Particles, dtype, device) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

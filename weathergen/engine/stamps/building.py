@@ -6,7 +6,7 @@ from __future__ import annotations
 import itertools
 import math
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Any, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -113,15 +113,7 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
     :data:`RAGGED_CHUNK`) consecutive parts of one library are built together and the others
     one after the other (the same bytes): splitting every chunk's reads by library costs more
     there than the operations it saves."""
-    libs: list[TemplateLibrary] = []
-    which = []
-    for _, lib in parts:
-        k = next((i for i, known in enumerate(libs)
-                  if known is lib or (known.digest, known.name) == (lib.digest, lib.name)), None)
-        if k is None:
-            libs.append(lib)
-            k = len(libs) - 1
-        which.append(k)
+    libs, which = _distinct_libraries(parts)
     if len(libs) > 1 and chunk_elements < RAGGED_CHUNK:
         runs_of_one = [[part for part, _ in group]
                        for _, group in itertools.groupby(zip(parts, which), key=lambda pw: pw[1])]
@@ -131,24 +123,115 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
                                  for run in runs_of_one])
     looks = parts[0][0] if len(parts) == 1 else Looks.cat([p[0] for p in parts])
     device = looks.template.device
+    _check_template_indices(parts)
+    with torch.no_grad():
+        books = [atlas(lib, dtype, device) for lib in libs]
+        lib_of, resolution, level_count = _entry_libraries(parts, libs, which, books, device)
+        layout = _Layout.of(looks, resolution, level_count, coarse_side, chunk_elements)
+        canvases = layout.canvases
+        work = torch.zeros(layout.blur_end + (canvases.size if canvases else 0),
+                           dtype=torch.float64, device=device)
+        _sample(layout, looks, books, lib_of, work, dtype, chunk_elements)
+        if layout.blurs:
+            _blur(layout, work, chunk_elements)
+        if canvases is not None:
+            soften(work, canvases, layout.top, layout.inner, layout.box, layout.full,
+                   chunk_elements)
+        gap = layout.gaps()
+    return StampSet(pixels=work[:layout.size].to(dtype), first=layout.first, side=layout.full,
+                    coarse=layout.coarse, phases=layout.phases, gap=gap)
+
+
+def _distinct_libraries(parts: Sequence[tuple[Looks, TemplateLibrary]]
+                        ) -> tuple[list[TemplateLibrary], list[int]]:
+    """The parts' libraries, each once (the same object, or the same digest and name), and
+    which of them each part draws with."""
+    libs: list[TemplateLibrary] = []
+    which = []
+    for _, lib in parts:
+        k = next((i for i, known in enumerate(libs)
+                  if known is lib or (known.digest, known.name) == (lib.digest, lib.name)), None)
+        if k is None:
+            libs.append(lib)
+            k = len(libs) - 1
+        which.append(k)
+    return libs, which
+
+
+def _check_template_indices(parts: Sequence[tuple[Looks, TemplateLibrary]]) -> None:
+    """Raise ConfigError when a part's template index lies outside its library."""
     for (part, lib) in parts:
         low, high = [t.tolist() for t in torch.aminmax(part.template)] if part.count \
             else (0, 0)
         if not 0 <= low <= high < lib.count:
             raise ConfigError(f"particle template index out of range for the {lib.count} "
                               f"templates of '{lib.name}'")
-    with torch.no_grad():
-        books = [atlas(lib, dtype, device) for lib in libs]
-        if len(libs) == 1:
-            lib_of, resolution, level_count = None, libs[0].resolution, int(books[0].res.numel())
-        else:
-            lib_of = torch.repeat_interleave(
-                torch.tensor(which, device=device),
-                torch.tensor([p[0].count for p in parts], device=device))
-            resolution, level_count = torch.tensor(
-                [[float(lib.resolution) for lib in libs], [b.res.numel() for b in books]],
-                dtype=torch.float64, device=device).index_select(1, lib_of).unbind(0)
-            level_count = level_count.long()
+
+
+def _entry_libraries(parts, libs: list, which: list, books: list, device) -> tuple:
+    """Each entry's library: ``(lib_of, resolution, level_count)``, with one library ``(None,
+    its side, its mip levels)``, else per entry (E,) the library's index (int64), its side
+    (float64) and its atlas's mip levels (int64)."""
+    if len(libs) == 1:
+        return None, libs[0].resolution, int(books[0].res.numel())
+    lib_of = torch.repeat_interleave(torch.tensor(which, device=device),
+                                     torch.tensor([p[0].count for p in parts], device=device))
+    resolution, level_count = torch.tensor(
+        [[float(lib.resolution) for lib in libs], [b.res.numel() for b in books]],
+        dtype=torch.float64, device=device).index_select(1, lib_of).unbind(0)
+    return lib_of, resolution, level_count.long()
+
+
+@dataclass
+class _Layout:
+    """Where every entry's stamp goes in one float64 work buffer: every stamp in its bordered
+    place (``first``, the entry's ``P (full + 1) + 1`` squared values), then, for the stamps to
+    blur, their rows before the blur (from ``rows_first`` on, one per row of ``width`` values:
+    2 r zeros, the row, 2 r zeros, so that every box of the blur lies inside it), then the
+    softening canvases. Per entry (E,): ``footprint`` (float64), ``radius``, ``coarse``,
+    ``side``, ``sub``, ``level``, ``phases`` as :func:`stamp_geometry` gives them; ``blurred``,
+    ``soft`` (blurred and brightened: softened afterwards) and ``bright`` (brightened without a
+    blur) bool; the softening ``box``, by how much softening grows the stamp on each side
+    (``grow``), its side after the blur (``inner``) and after softening (``full``), int64; where
+    its bordered pixel (1, 1) is (``top``); pixel (y, x) of its samples goes to ``place + y pitch
+    + x``. On the host: the stamps' values ``size``, the blur rows' end ``blur_end``, how many
+    stamps are blurred, softened and brightened unblurred (``blurs``, ``softs``, ``brights``);
+    the softening ``canvases`` (:func:`soften_canvases`; None without).
+    """
+
+    footprint: torch.Tensor
+    radius: torch.Tensor
+    coarse: torch.Tensor
+    side: torch.Tensor
+    sub: torch.Tensor
+    level: torch.Tensor
+    phases: torch.Tensor
+    blurred: torch.Tensor
+    soft: torch.Tensor
+    bright: torch.Tensor
+    box: torch.Tensor
+    grow: torch.Tensor
+    inner: torch.Tensor
+    full: torch.Tensor
+    first: torch.Tensor
+    rows_first: torch.Tensor
+    top: torch.Tensor
+    place: torch.Tensor
+    pitch: torch.Tensor
+    size: int
+    width: int
+    blur_end: int
+    blurs: int
+    softs: int
+    brights: int
+    canvases: Optional[Any]
+
+    @classmethod
+    def of(cls, looks: Looks, resolution, level_count, coarse_side: Optional[int],
+           chunk_elements: int) -> "_Layout":
+        """The layout of the entries of ``looks`` (``resolution``, ``level_count``: see
+        :func:`stamp_geometry`)."""
+        device = looks.template.device
         footprint, radius, coarse, side, sub, level, phases = stamp_geometry(
             looks.footprint.to(torch.float64), looks.defocus, resolution, level_count,
             coarse_side, looks.coarse)
@@ -163,10 +246,6 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
         fine = torch.addcmul(phases, phases, full).add_(1)
         block = fine * fine
         first = starts(block)
-        # One float64 buffer: every stamp in its bordered place, then, for the stamps to blur,
-        # their rows before the blur, one per row of ``width`` values: 2 r zeros, the row, 2 r
-        # zeros (so that every box of the blur lies inside it): the sampled pixels go straight
-        # where they belong, and a row's prefix sums are the cumulative sum of its values.
         rows = side * blurred
         rows_first = starts(rows)
         # stamps brightened without a blur (a defocus radius that rounds to 0 on a coarse grid)
@@ -180,47 +259,62 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
         # the brightened, blurred stamps are blurred onto canvases of similar sides (after the
         # rows), brightened and softened there, then copied to their places
         blur_end = size + row_count * width
-        canvases = soften_canvases(torch.nonzero(soft).squeeze(1), full, blur_end, chunk_elements) \
-            if softs else None
-        work = torch.zeros(blur_end + (canvases.size if canvases else 0), dtype=torch.float64,
-                           device=device)
-        # pixel (y, x) of entry e goes to ``place[e] + y * pitch[e] + x``; an unblurred stamp's
-        # pixel (0, 0) is at its bordered pixel (1, 1) (it does not grow)
+        canvases = soften_canvases(torch.nonzero(soft).squeeze(1), full, blur_end,
+                                   chunk_elements) if softs else None
+        # an unblurred stamp's pixel (0, 0) is at its bordered pixel (1, 1) (it does not grow);
+        # a blurred one's samples go to its rows, after their 2 r zeros
         top = first + full + 3
         place = torch.where(blurred, torch.add(rows_first * width, radius, alpha=2)
                             .add_(size + 1), top)
         pitch = (full + 2).masked_fill_(blurred, width)
-        images = [b.image for b in books]
-        coef = coefficients(looks, books, lib_of, footprint, side, level, dtype)
-        (sample_stamps if chunk_elements >= RAGGED_CHUNK else sample_per_factor)(
-            coef, images, lib_of, side, sub, place, pitch, work, bright if brights else None,
-            chunk_elements, phases == 1)
-        (sample_phases if chunk_elements >= RAGGED_CHUNK else sample_phases_per_side)(
-            coef, images, lib_of, side, phases, first, work, chunk_elements)
-        if blurs:
-            members = torch.nonzero(blurred).squeeze(1)
-            # each row divided by its disc's taps (the blur's normalisation, linear), then
-            # summed up
-            rows_of = torch.repeat_interleave(disc_counts(radius.index_select(0, members)),
-                                              side.index_select(0, members))
-            prefix = work[size:blur_end].view(-1, width).div_(rows_of[:, None]).cumsum_(1) \
-                .view(-1)
-            # blurred pixel (0, 0): at the bordered pixel (1, 1), or on the softening canvas at
-            # (b − 1, b − 1)
-            origin, out_pitch = top, full + 2
-            if canvases is not None:
-                grown = grow.index_select(0, canvases.members)
-                origin = origin.index_copy(0, canvases.members, torch.addcmul(
-                    canvases.origin + grown, grown, canvases.side))
-                out_pitch = out_pitch.index_copy(0, canvases.members, canvases.side)
-            disc_blur(prefix, members, side, radius, rows_first, width, origin, out_pitch, work,
-                  chunk_elements)
-        if canvases is not None:
-            soften(work, canvases, top, inner, box, full, chunk_elements)
+        return cls(footprint, radius, coarse, side, sub, level, phases, blurred, soft, bright,
+                   box, grow, inner, full, first, rows_first, top, place, pitch, size, width,
+                   blur_end, blurs, softs, brights, canvases)
+
+    def gaps(self) -> torch.Tensor:
+        """How far apart each entry's blur samples may lie (image pixels, see
+        :class:`StampSet`). Shape: (E,) float64."""
         # softened stamps are smooth over the box: blur samples may lie (b - 1) / 2 of their
         # grid's pixels apart; the others one pixel (both times the grid's factor)
-        gap = torch.where(soft, constant("gaps", GAPS, torch.float64, device)
-                          .index_select(0, radius), constant("one", 1.0, torch.float64, device)) \
-            * constant("factors", FACTORS, torch.float64, device).index_select(0, coarse)
-    return StampSet(pixels=work[:size].to(dtype), first=first, side=full, coarse=coarse,
-                    phases=phases, gap=gap)
+        device = self.radius.device
+        return torch.where(self.soft, constant("gaps", GAPS, torch.float64, device)
+                           .index_select(0, self.radius),
+                           constant("one", 1.0, torch.float64, device)) \
+            * constant("factors", FACTORS, torch.float64, device).index_select(0, self.coarse)
+
+
+def _sample(layout: _Layout, looks: Looks, books: list, lib_of: Optional[torch.Tensor],
+            work: torch.Tensor, dtype: torch.dtype, chunk_elements: int) -> None:
+    """Sample every stamp from its template into ``work``: the stamps sampled at whole pixels
+    where ``layout.place`` says (see :func:`~.sampling.sample_stamps`), the phase stamps in
+    their bordered places (:func:`~.phases.sample_phases`)."""
+    images = [b.image for b in books]
+    coef = coefficients(looks, books, lib_of, layout.footprint, layout.side, layout.level, dtype)
+    ragged = chunk_elements >= RAGGED_CHUNK
+    (sample_stamps if ragged else sample_per_factor)(
+        coef, images, lib_of, layout.side, layout.sub, layout.place, layout.pitch, work,
+        layout.bright if layout.brights else None, chunk_elements, layout.phases == 1)
+    (sample_phases if ragged else sample_phases_per_side)(
+        coef, images, lib_of, layout.side, layout.phases, layout.first, work, chunk_elements)
+
+
+def _blur(layout: _Layout, work: torch.Tensor, chunk_elements: int) -> None:
+    """Disc-blur the blurred stamps' rows in ``work`` into their bordered places, or onto their
+    softening canvases (see the package doc)."""
+    members = torch.nonzero(layout.blurred).squeeze(1)
+    # each row divided by its disc's taps (the blur's normalisation, linear), then summed up
+    rows_of = torch.repeat_interleave(disc_counts(layout.radius.index_select(0, members)),
+                                      layout.side.index_select(0, members))
+    prefix = work[layout.size:layout.blur_end].view(-1, layout.width) \
+        .div_(rows_of[:, None]).cumsum_(1).view(-1)
+    # blurred pixel (0, 0): at the bordered pixel (1, 1), or on the softening canvas at
+    # (b − 1, b − 1)
+    origin, out_pitch = layout.top, layout.full + 2
+    canvases = layout.canvases
+    if canvases is not None:
+        grown = layout.grow.index_select(0, canvases.members)
+        origin = origin.index_copy(0, canvases.members, torch.addcmul(
+            canvases.origin + grown, grown, canvases.side))
+        out_pitch = out_pitch.index_copy(0, canvases.members, canvases.side)
+    disc_blur(prefix, members, layout.side, layout.radius, layout.rows_first, layout.width,
+              origin, out_pitch, work, chunk_elements)

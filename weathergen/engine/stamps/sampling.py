@@ -224,57 +224,88 @@ def sample_per_factor(coef: torch.Tensor, images: Sequence[torch.Tensor],
     so."""
     if side.numel() == 0 or not bool(whole.any()):
         return
-    device, dtype = coef.device, coef.dtype
-    # entries by supersampling factor (4, 2, 1), then one item per stamp row, the groups' rows one
-    # after the other: its entry, its row y and where its pixel 0 goes in ``work`` (a pixel's
-    # column is then its index in the item)
-    groups = [(f, torch.nonzero((sub == f) & whole).squeeze(1)) for f in (4, 2, 1)]
-    groups = [(f, m) for f, m in groups if m.numel()]
-    order = torch.cat([m for _, m in groups]) if len(groups) > 1 else groups[0][1]
-    s = side.index_select(0, order)
-    ends = torch.cumsum(s, 0)
-    last = list(itertools.accumulate(int(m.numel()) for _, m in groups))
-    cuts = [0] + ends.index_select(0, torch.tensor(last, device=device) - 1).tolist()
-    rows = cuts[-1]
-    row_of = torch.repeat_interleave(s, output_size=rows)          # each row's index in order
-    row_entry = order.index_select(0, row_of)
-    row_y = torch.arange(rows, device=device) - (ends - s).index_select(0, row_of)
-    row_size, row_place, row_pitch = torch.stack((side, place, pitch)).index_select(1, row_entry)
-    row_at = torch.addcmul(row_place, row_y, row_pitch)
-    for g, (factor, _) in enumerate(groups):
-        # sample offsets in a pixel along one axis: (sub, 1); a pixel's sub² samples are
-        # row-major, (sub rows, sub columns), so a sample's x depends on its column alone and its
-        # y on its row: the coordinates are computed per axis (sub, n) and broadcast
-        offsets = constant(f"offsets{factor}", [[(k + 0.5) / factor - 0.5]
-                                                 for k in range(factor)], dtype, device)
-        row_offsets = constant(f"row_offsets{factor}", [[[(k + 0.5) / factor - 0.5]]
-                                                         for k in range(factor)], dtype, device)
-        lo, hi = cuts[g], cuts[g + 1]
-        for item, col in runs(row_size[lo:hi], max(1, chunk // (factor * factor))):
+    rows = _StampRows.of(side, sub, place, pitch, whole)
+    for g, factor in enumerate(rows.factors):
+        lo, hi = rows.cuts[g], rows.cuts[g + 1]
+        for item, col in runs(rows.size[lo:hi], max(1, chunk // (factor * factor))):
             if lo:
                 item = item + lo
-            e = row_entry.index_select(0, item)
-            row = row_y.index_select(0, item)
-            bx, by, ax, cx, ay, cy, rho2, centre = coef.index_select(1, e)
-            gx = (col.to(dtype) + centre) + offsets             # (sub columns, n)
-            gy = (row.to(dtype) + centre) + row_offsets         # (sub rows, 1, n)
-            n = gx.shape[-1]
-            grid = torch.empty(factor, factor, n, 2, dtype=dtype, device=device)
-            grid_x, grid_y = grid.unbind(-1)
-            torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
-            torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
-            inside = torch.addcmul(gx * gx, gy, gy) <= rho2
-            lib = None if lib_of is None else lib_of.index_select(0, e).repeat(factor * factor)
-            value = read_samples(images, grid.view(-1, 2), lib).view(inside.shape) * inside
-            while value.numel() > n:         # pairwise, in a fixed order: the same bits anywhere
-                value = value.view(2, -1, n).sum(0)
-            value = value.view(-1)
-            if factor > 1:
-                value = value / (factor * factor)
+            e = rows.entry.index_select(0, item)
+            value = _pixel_means(coef, images, lib_of, e, rows.y.index_select(0, item), col,
+                                 factor)
             if bright is not None:      # (only the pixels of the stamps it brightens)
                 which = torch.nonzero(bright.index_select(0, e)).squeeze(1)
                 value.index_copy_(0, which, defocus_brighten(value.index_select(0, which)))
-            work.index_copy_(0, row_at.index_select(0, item) + col, value.to(torch.float64))
+            work.index_copy_(0, rows.at.index_select(0, item) + col, value.to(torch.float64))
+
+
+@dataclass
+class _StampRows:
+    """The rows of the stamps :func:`sample_per_factor` samples: entries by supersampling factor
+    (``factors``, of 4, 2, 1 those present), one item per stamp row, the groups' rows one after
+    the other (group g's are rows ``cuts[g] .. cuts[g + 1] − 1``). Per row (R,) int64: its
+    ``entry``, its row ``y`` in the stamp, its ``size`` (the stamp's side) and where its pixel 0
+    goes in ``work`` (``at``; a pixel's column is then its index in the row)."""
+
+    factors: list
+    cuts: list
+    entry: torch.Tensor
+    y: torch.Tensor
+    size: torch.Tensor
+    at: torch.Tensor
+
+    @classmethod
+    def of(cls, side, sub, place, pitch, whole) -> "_StampRows":
+        """The rows of the entries ``whole`` says, laid out as ``place`` and ``pitch`` say
+        (see :func:`sample_per_factor`). Shape: (E,) each."""
+        device = side.device
+        groups = [(f, torch.nonzero((sub == f) & whole).squeeze(1)) for f in (4, 2, 1)]
+        groups = [(f, m) for f, m in groups if m.numel()]
+        order = torch.cat([m for _, m in groups]) if len(groups) > 1 else groups[0][1]
+        s = side.index_select(0, order)
+        ends = torch.cumsum(s, 0)
+        last = list(itertools.accumulate(int(m.numel()) for _, m in groups))
+        cuts = [0] + ends.index_select(0, torch.tensor(last, device=device) - 1).tolist()
+        rows = cuts[-1]
+        row_of = torch.repeat_interleave(s, output_size=rows)      # each row's index in order
+        entry = order.index_select(0, row_of)
+        y = torch.arange(rows, device=device) - (ends - s).index_select(0, row_of)
+        size, row_place, row_pitch = torch.stack((side, place, pitch)).index_select(1, entry)
+        return cls([f for f, _ in groups], cuts, entry, y, size,
+                   torch.addcmul(row_place, y, row_pitch))
+
+
+def _pixel_means(coef: torch.Tensor, images: Sequence[torch.Tensor],
+                 lib_of: Optional[torch.Tensor], e: torch.Tensor, row: torch.Tensor,
+                 col: torch.Tensor, factor: int) -> torch.Tensor:
+    """Pixels (``row``, ``col``) of the stamps of entries ``e`` supersampled ``factor x
+    factor``: the mean of their samples, zero outside the footprint's disc (see
+    :func:`sample_per_factor`). Shape: (n,) each -> (n,)."""
+    dtype, device = coef.dtype, coef.device
+    # sample offsets in a pixel along one axis: (sub, 1); a pixel's sub² samples are
+    # row-major, (sub rows, sub columns), so a sample's x depends on its column alone and its
+    # y on its row: the coordinates are computed per axis (sub, n) and broadcast
+    offsets = constant(f"offsets{factor}", [[(k + 0.5) / factor - 0.5]
+                                             for k in range(factor)], dtype, device)
+    row_offsets = constant(f"row_offsets{factor}", [[[(k + 0.5) / factor - 0.5]]
+                                                     for k in range(factor)], dtype, device)
+    bx, by, ax, cx, ay, cy, rho2, centre = coef.index_select(1, e)
+    gx = (col.to(dtype) + centre) + offsets             # (sub columns, n)
+    gy = (row.to(dtype) + centre) + row_offsets         # (sub rows, 1, n)
+    n = gx.shape[-1]
+    grid = torch.empty(factor, factor, n, 2, dtype=dtype, device=device)
+    grid_x, grid_y = grid.unbind(-1)
+    torch.addcmul(torch.addcmul(bx, ax, gx), cx, gy, out=grid_x)
+    torch.addcmul(torch.addcmul(by, ay, gx), cy, gy, out=grid_y)
+    inside = torch.addcmul(gx * gx, gy, gy) <= rho2
+    lib = None if lib_of is None else lib_of.index_select(0, e).repeat(factor * factor)
+    value = read_samples(images, grid.view(-1, 2), lib).view(inside.shape) * inside
+    while value.numel() > n:         # pairwise, in a fixed order: the same bits anywhere
+        value = value.view(2, -1, n).sum(0)
+    value = value.view(-1)
+    if factor > 1:
+        value = value / (factor * factor)
+    return value
 
 
 def _sample_offsets(dtype, device) -> torch.Tensor:
