@@ -3,7 +3,6 @@ and a measurement on tiny sizes on the CPU (its figures mean nothing; the code p
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -12,20 +11,15 @@ import pytest
 import torch
 
 from conftest import PROJECT_ROOT
+from run_helpers import script_module
 
 SCRIPT = PROJECT_ROOT / "speed" / "bench_tables.py"
 
 
 @pytest.fixture(scope="module")
 def bt():
-    spec = importlib.util.spec_from_file_location("bench_tables", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["bench_tables"] = module          # dataclasses look their module up there
-    try:
-        spec.loader.exec_module(module)
+    with script_module(SCRIPT) as module:
         yield module
-    finally:
-        del sys.modules["bench_tables"]
 
 
 def test_the_counts_are_the_papers(bt):

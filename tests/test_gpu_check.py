@@ -6,7 +6,6 @@ the CPU by the dry run (``--device cpu --quick``), whose figures mean nothing.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import re
 import subprocess
@@ -16,20 +15,15 @@ import pytest
 import torch
 
 from conftest import PROJECT_ROOT
+from run_helpers import script_module
 
 SCRIPT = PROJECT_ROOT / "speed" / "gpu_check.py"
 
 
 @pytest.fixture(scope="module")
 def gpu_check():
-    spec = importlib.util.spec_from_file_location("gpu_check", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["gpu_check"] = module          # dataclasses look their module up there
-    try:
-        spec.loader.exec_module(module)
+    with script_module(SCRIPT) as module:
         yield module
-    finally:
-        del sys.modules["gpu_check"]
 
 
 def run_script(*args, cwd=PROJECT_ROOT):

@@ -6,13 +6,12 @@ the arithmetic worked out by hand below."""
 from __future__ import annotations
 
 import copy
-import importlib.util
 import json
-import sys
 
 import pytest
 
 from conftest import PROJECT_ROOT
+from run_helpers import script_module
 
 SCRIPT = PROJECT_ROOT / "speed" / "gpu_figures.py"
 FOLDER = PROJECT_ROOT / "docs" / "figures"
@@ -20,14 +19,8 @@ FOLDER = PROJECT_ROOT / "docs" / "figures"
 
 @pytest.fixture(scope="module")
 def gf():
-    spec = importlib.util.spec_from_file_location("gpu_figures", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["gpu_figures"] = module
-    try:
-        spec.loader.exec_module(module)
+    with script_module(SCRIPT) as module:
         yield module
-    finally:
-        del sys.modules["gpu_figures"]
 
 
 MACHINE = {"torch": "2.9.0+cu128", "python": "3.12.0", "host": "box", "cpus": 8,

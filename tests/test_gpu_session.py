@@ -4,7 +4,6 @@ run to the end and write their figures, and without CUDA the script stops with o
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import subprocess
 import sys
@@ -13,20 +12,15 @@ import pytest
 import torch
 
 from conftest import PROJECT_ROOT
+from run_helpers import script_module
 
 SCRIPT = PROJECT_ROOT / "speed" / "gpu_session.py"
 
 
 @pytest.fixture(scope="module")
 def session():
-    spec = importlib.util.spec_from_file_location("gpu_session", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["gpu_session"] = module
-    try:
-        spec.loader.exec_module(module)
+    with script_module(SCRIPT) as module:
         yield module
-    finally:
-        del sys.modules["gpu_session"]
 
 
 def test_sampler_and_training_sections_on_tiny_sizes(session, tmp_path):
