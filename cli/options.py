@@ -56,10 +56,15 @@ def resume_option(help: str):
     return click.option("--resume", is_flag=True, help=help)
 
 
+def _compat(help: str):
+    """``--compat paper|reference`` (unset: paper) with the command's own ``help``."""
+    return click.option("--compat", type=click.Choice(("paper", "reference")), default=None,
+                        help=help)
+
+
 def compat_option(func):
     """``--compat``: the paper's attack terms (default) or the research code's."""
-    return click.option(
-        "--compat", type=click.Choice(("paper", "reference")), default=None,
+    return _compat(
         help="paper (default): the attack of the paper's equations and tables; reference: the "
              "authors' research code where it departs from them (gradients accumulated over the "
              "steps, occlusion detached, penalty over the squared frame-1 depth, homogeneous "
@@ -72,8 +77,7 @@ def compat_option(func):
 
 def render_compat_option(func):
     """``--compat`` of ``render``: the dataset in the research code's frame and scaling."""
-    return click.option(
-        "--compat", type=click.Choice(("paper", "reference")), default=None,
+    return _compat(
         help="reference: open the dataset in the frame and scaling of the paper's research code "
              "(its per-scene table, --scene-scales research, unless given; the camera translation "
              "zeroed in the scenes it scales), where the paper's published weather was placed, "
