@@ -22,7 +22,7 @@ from weathergen.words import counted
 
 from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
                       job_exit_codes,
-                      model_options, out_option, overwrite_option, quiet_option, resume_option,
+                      model_options, out_option, resolve_model, overwrite_option, quiet_option, resume_option,
                       seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
@@ -136,7 +136,7 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 @resume_option("Finish an interrupted run: skip finished pairs.")
 @overwrite_option("Redo every pair, even in a folder that holds one.")
 @quiet_option
-def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, optimizer, config_name,
+def attack(dataset, model, checkpoint, iters, download, model_input, amp, method, epsilon, optimizer, config_name,
            preset, set_items,
            particles_dir, steps,
            optimize, optimize_layer, lr, alpha1, alpha2, target_text, occlusion_gradient,
@@ -152,6 +152,7 @@ def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, op
     if executor == "local":       # a Ray driver need not have the workers' devices
         resolve_device(device)
     target = parse_target(target_text)
+    model = resolve_model(model, model_input)
     execution = dict(batch_size=batch_size, executor=executor, ray_address=ray_address,
                      threads=torch.get_num_threads())
     if method != "weather":
@@ -182,7 +183,7 @@ def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, op
                                   gradient_checkpointing, out, seed, device, resume, overwrite,
                                   execution, amp, optimize_layer)
         out = job.out
-    _run(job, model, label, target, steps, out, quiet)
+    _run(job, model.label, label, target, steps, out, quiet)
 
 
 def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,

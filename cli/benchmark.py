@@ -103,6 +103,9 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text
         checkpoints=_checkpoints(checkpoint_items), steps=steps, lp_steps=lp_steps, iters=iters,
         overrides=parse_set_options(set_items), seed=seed, device=device, download=download,
         amp=amp, command=["weathergen", *sys.argv[1:]], compat=compat or "paper")
+    for network in spec.resolved.values():
+        if network.note():
+            click.echo(f"Note: {network.note()}", err=True)
     shard = parse_shard(shard_text) if shard_text else None
     console = Console()
 

@@ -10,7 +10,7 @@ from rich.table import Table
 
 from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
 from weathergen.engine import resolve_device
-from weathergen.models import canonical_network, get_model, network_label, network_record, resolve_amp
+from weathergen.models import get_model, resolve_amp
 from weathergen.datasets import load_scene_scales, open_dataset
 from weathergen.errors import ConfigError
 from weathergen.io.published_weather import is_published_set
@@ -18,7 +18,7 @@ from weathergen.outputs import PublishedWeatherSet, WeatherFolder
 from weathergen.render import resolve_preset
 
 from .attack import region_rows
-from .options import BAD_INPUT, STOPPED, device_option, exit_codes, model_options, quiet_option
+from .options import BAD_INPUT, STOPPED, device_option, exit_codes, model_options, quiet_option, resolve_model
 
 
 def _fmt(value) -> str:
@@ -46,7 +46,7 @@ def _fmt(value) -> str:
                    "your own: evaluate-<file stem>.<NAME>.json).")
 @device_option
 @quiet_option
-def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name, root, pass_,
+def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, dataset_name, root, pass_,
              preset, json_path, device, quiet):
     """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
 
@@ -56,6 +56,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
     weather flow. All figures are in pixels, rates in percent.
     """
     resolve_device(device)
+    model = resolve_model(model, model_input)
     amp = resolve_amp(model, amp, device)
     if is_published_set(weather_dir):
         folder = open_published(weather_dir, preset, dataset_name, root, pass_)
@@ -74,18 +75,18 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
                           soft_wrap=True)
 
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
-    info = {"model": canonical_network(model), "checkpoint": checkpoint, "iters": iters, "amp": amp,
+    info = {"model": model.name, "checkpoint": checkpoint, "iters": iters, "amp": amp,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
-    source = network_record(model)
+    source = model.source()
     if source is not None:
         info["source"] = source
     if isinstance(folder, PublishedWeatherSet):
         info["published"] = {"preset": folder.preset_name}
-    json_path = json_path or default_evaluation_path(weather_dir, network_label(model))
+    json_path = json_path or default_evaluation_path(weather_dir, model.label)
     write_evaluation(json_path, info, rows, summary)
     if quiet:
         return
-    table = Table(title=f"weathergen evaluate: {network_label(model)} on {weather_dir} (pixels)")
+    table = Table(title=f"weathergen evaluate: {model.label} on {weather_dir} (pixels)")
     for i, col in enumerate(("pair", "AEE(f, f̌)", "EPE clean", "EPE weather")):
         table.add_column(col, justify="left" if i == 0 else "right")
     for r in rows:

@@ -12,6 +12,7 @@ from weathergen.datasets import DATASETS, default_dataset, load_scene_scales, op
 from weathergen.datasets.common import WORLD_UP_CHOICES
 from weathergen.errors import ConfigError
 from weathergen.geometry import up_direction
+from weathergen.models import INPUT_CONVENTIONS, resolve_network
 
 
 #: Where the group keeps the command line it was given (``ctx.meta``), for manifests.
@@ -263,7 +264,8 @@ amp_option = click.option(
 
 
 def model_options(func):
-    """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``, ``amp``."""
+    """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``,
+    ``model_input``, ``amp``."""
     for option in reversed((
         click.option("--model", default="raft", show_default=True,
                      help="Flow network or checkpoint name (raft, raft-small, gma, flowformer, "
@@ -278,10 +280,23 @@ def model_options(func):
                           "own (RAFT 12, GMA 6, FlowFormer 32)."),
         click.option("--download", is_flag=True,
                      help="Fetch a named checkpoint that is missing from the cache (needs a network)."),
+        click.option("--model-input", type=click.Choice(list(INPUT_CONVENTIONS)), default=None,
+                     help="The input convention of a plain module of your own that declares none "
+                          "(input_range, channel_order): rgb, bgr ([0, 1]), rgb255, bgr255 "
+                          "([0, 255]). Default: rgb, said in a note."),
         amp_option,
     )):
         func = option(func)
     return func
+
+
+def resolve_model(name: str, model_input=None, parameter: str = "model"):
+    """The network ``name`` resolved once (:func:`~weathergen.models.resolve_network`); a plain
+    module that declares no input convention gets one note on stderr."""
+    network = resolve_network(name, model_input, parameter)
+    if network.note():
+        click.echo(f"Note: {network.note()}", err=True)
+    return network
 
 
 def executor_options(func):

@@ -30,7 +30,7 @@ from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
 from ..memory import failure_message
-from ..models import canonical_network, get_model, network_record, resolve_amp, resolved_spec
+from ..models import Network, get_model, probe_frames, probe_network, resolve_amp, resolve_network
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
@@ -49,7 +49,7 @@ class AttackJob:
 
     dataset: Dataset
     out: Path
-    model: str
+    model: Network                      # a name is resolved when the job is made
     checkpoint: Optional[str]
     preset: object                       # weathergen.engine.Preset (None for an Lp attack)
     preset_name: str
@@ -78,9 +78,7 @@ class AttackJob:
     scene_firsts: dict = field(default_factory=dict)   # each scene's first selected pair
 
     def __post_init__(self):
-        # a network in a file by its resolved path: the same file from any working directory
-        # (a Ray worker may start in another folder, a resumed run in another)
-        self.model = resolved_spec(self.model)
+        self.model = resolve_network(self.model)
 
     def amp_setting(self) -> bool:
         """Whether the network runs in mixed precision (:func:`~weathergen.models.resolve_amp`
@@ -94,10 +92,10 @@ class AttackJob:
 
     def model_config(self) -> dict:
         """The network as recorded in the manifest: name, checkpoint, iterations, precision; for
-        a network from outside the package its resolved name and the code's ``source`` (file and
-        sha256, see :func:`~weathergen.models.network_record`)."""
-        record = network_record(self.model)
-        config = {"name": canonical_network(self.model), "checkpoint": str(self.checkpoint)
+        a network from outside the package the code's ``source`` (file and sha256, see
+        :meth:`~weathergen.models.Network.source`)."""
+        record = self.model.source()
+        config = {"name": self.model.name, "checkpoint": str(self.checkpoint)
                   if self.checkpoint is not None else None, "iters": self.iters,
                   "amp": self.amp_setting()}
         return config if record is None else {**config, "source": record}
@@ -147,23 +145,35 @@ class PairReport:
     few_in_frame2: bool = False
 
 
-_MODELS: dict = {}
+_LOADED: dict = {}
 
 
 def job_model(job: AttackJob, device: Optional[str] = None):
     """The job's network on ``device`` (default the job's), loaded once per process."""
     device = device or job.device
     amp = resolve_amp(job.model, job.amp, device)
-    code = network_record(job.model)        # a network of your own: its file's content too
-    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, amp,
-           None if code is None else code["sha256"])
-    if key not in _MODELS:
-        _MODELS.clear()                     # one network per process at a time
-        _MODELS[key] = get_model(job.model, job.checkpoint, device=device, iters=job.iters,
+    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, amp)
+    if key not in _LOADED:
+        _LOADED.clear()                     # one network per process at a time
+        _LOADED[key] = get_model(job.model, job.checkpoint, device=device, iters=job.iters,
                                  download=job.download,
                                  gradient_checkpointing=job.gradient_checkpointing, amp=amp)
-        _MODELS[key].padding = getattr(job.dataset, "padding", "even")  # the benchmark's protocol
-    return _MODELS[key]
+        _LOADED[key].padding = getattr(job.dataset, "padding", "even")  # the benchmark's protocol
+    return _LOADED[key]
+
+
+def probe_job_network(job: AttackJob, model, ref, device: Optional[str] = None) -> None:
+    """Run the job's network once on the pair ``ref`` (the first), forward and backward: a flow
+    that is not finite, of another shape or without a gradient to the frames is refused in one
+    line (:func:`~weathergen.models.probe_network`) before anything is written. A first pair
+    that does not load (it fails alone later) gives way to a small random pair."""
+    device = device or job.device
+    try:
+        pair = job.dataset.load(ref)
+        frames = (pair.image1[None].to(device), pair.image2[None].to(device))
+    except WeatherGenError:
+        frames = probe_frames(model, device)
+    probe_network(model, job.model.label, *frames, gradient=True)
 
 
 def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
@@ -363,6 +373,7 @@ def run_attack(job: AttackJob,
     # The driver of a Ray run checks the network and its checkpoint on the CPU.
     model = job_model(job) if local else get_model(
         job.model, job.checkpoint, device="cpu", iters=job.iters, download=job.download)
+    probe_job_network(job, model, refs[0], job.device if local else "cpu")
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
     if not local:
         model = None

@@ -123,7 +123,7 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
     """One row per cell of the whole grid, its figures read from the cell's ``summary.json``
     (None where the cell has not finished)."""
     rows = []
-    records = {net: checkpoint_record(net, spec.checkpoints.get(net)) for net in spec.networks}
+    records = {net: checkpoint_record(spec, net) for net in spec.networks}
     for cell in spec.cells():
         folder = cell.folder(spec.out)
         summary = read_summary(folder)
@@ -509,7 +509,7 @@ def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
     curves = ladder_curves(rows, spec.ladders, table_networks(networks)) if spec.ladders else []
     document = {"weathergen_version": __version__, "input": spec.dataset.describe(),
                 "seed": spec.seed,
-                "networks": [checkpoint_record(n, spec.checkpoints.get(n)) for n in networks],
+                "networks": [checkpoint_record(spec, n) for n in networks],
                 "settings": {"weather_steps": spec.steps, "lp_steps": spec.lp_steps,
                              "iters": spec.iters, "overrides": dict(spec.overrides),
                              "compat": spec.compat, "amp": spec.amp,
