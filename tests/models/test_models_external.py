@@ -350,6 +350,7 @@ def test_the_models_command_lists_networks_checkpoints_and_installed_ones(instal
                  "fakenets.flows:make"):
         assert name in listing.output
     assert "names a module" in listing.output                 # the broken entry point, said
+    assert "raft-small*" in listing.output        # shipped with the package (the cache is empty)
     one = invoke(["models", f"{net_file}:make"])
     assert one.exit_code == 0 and "sha256" in one.output and "8, 0" in one.output
     raft = invoke(["models", "raft-kitti"])
