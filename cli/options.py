@@ -280,7 +280,7 @@ def model_options(func):
                           "own (RAFT 12, GMA 6, FlowFormer 32)."),
         click.option("--download", is_flag=True,
                      help="Fetch a named checkpoint that is missing from the cache (needs a network)."),
-        click.option("--model-input", type=click.Choice(list(INPUT_CONVENTIONS)), default=None,
+        click.option("--model-input", type=click.Choice(list(INPUT_CONVENTIONS)), default=None, metavar="CONV",
                      help="The input convention of a plain module of your own that declares none "
                           "(input_range, channel_order): rgb, bgr ([0, 1]), rgb255, bgr255 "
                           "([0, 255]). Default: rgb, said in a note."),

@@ -30,7 +30,7 @@ from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
 from ..memory import failure_message
-from ..models import Network, get_model, probe_frames, probe_network, resolve_amp, resolve_network
+from ..models import Network, get_model, probe_network, resolve_amp, resolve_network
 from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
@@ -170,10 +170,10 @@ def probe_job_network(job: AttackJob, model, ref, device: Optional[str] = None) 
     device = device or job.device
     try:
         pair = job.dataset.load(ref)
-        frames = (pair.image1[None].to(device), pair.image2[None].to(device))
     except WeatherGenError:
-        frames = probe_frames(model, device)
-    probe_network(model, job.model.label, *frames, gradient=True)
+        return probe_network(model, job.model.label, gradient=True)
+    probe_network(model, job.model.label, pair.image1[None].to(device),
+                  pair.image2[None].to(device), gradient=True)
 
 
 def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,

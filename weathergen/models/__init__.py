@@ -16,7 +16,7 @@ from .compiled import COMPILE_MODES, compile_iterations
 from .checkpoints import CheckpointSpec, cache_dir, download_checkpoint, read_state_dict
 from .padding import InputPadder
 from .external import (ENTRY_POINT_GROUP, INPUT_CONVENTIONS, ModuleFlowModel, entry_points,
-                       flow_input, probe_frames, probe_network)
+                       flow_input, probe_network)
 from .registry import (ModelSpec, Network, available_checkpoints, available_models, build_model,
                        checkpoint_spec, get_model, model_spec, register_checkpoint, register_model,
                        resolve_amp, resolve_network)
@@ -40,7 +40,7 @@ __all__ = [
     "get_model", "build_model", "available_models", "available_checkpoints", "model_spec",
     "checkpoint_spec", "register_model", "register_checkpoint", "resolve_amp", "cache_dir",
     "download_checkpoint", "read_state_dict", "ENTRY_POINT_GROUP", "ModuleFlowModel",
-    "Network", "resolve_network", "flow_input", "probe_network", "probe_frames", "INPUT_CONVENTIONS",
+    "Network", "resolve_network", "flow_input", "probe_network", "INPUT_CONVENTIONS",
     "entry_points", "COMPILE_MODES", "compile_iterations",
     "SpyNet", "SpyNetModel", "SpyNetSniklaus", "SpyNetSniklausModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
     "FlowNetCRobustModel", "FlowNet2", "FlowNet2Model",

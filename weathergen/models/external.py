@@ -1,34 +1,23 @@
 """Flow networks from outside the package: a Python file, an importable module, an entry point.
 
 A network that weathergen does not ship is named where a registered name would go
-(``get_model``, ``--model``, ``benchmark --networks``)::
-
-    FILE.py:NAME            NAME defined in the Python file FILE.py
-    package.module:NAME     NAME of an importable module
-    NAME                    an entry point of the group ``weathergen.models`` of an installed
-                            distribution (``mynet = "mypackage.flow:build"``)
-
-``NAME`` is one of
-
-- a :class:`~weathergen.models.base.FlowModel` subclass: instantiated, its own ``normalize``,
-  ``predict``, padding (``multiple``, ``min_size``) and mixed-precision mode (``supports_amp``)
-  apply;
-- a callable returning a ``torch.nn.Module`` (a function, an ``nn.Module`` subclass) or a
-  ``FlowModel``; an ``nn.Module`` instance is used as it is (a copy of it). A plain module maps
-  ``(image1, image2)`` ``(B, 3, H, W)`` to the flow ``(B, 2, H, W)`` in pixels, and is wrapped in
-  :class:`ModuleFlowModel`, which pads the frames to the module's ``multiple`` and ``min_size``
-  attributes (1 and 0 where it has none), gives them in the module's input convention (its
-  ``input_range`` and ``channel_order``, see :func:`flow_input`) and crops the flow back.
+(``get_model``, ``--model``, ``benchmark --networks``): ``FILE.py:NAME`` (NAME defined in the
+Python file), ``package.module:NAME``, or the name of an entry point of the group
+``weathergen.models`` (``mynet = "mypackage.flow:build"``). NAME is a
+:class:`~weathergen.models.base.FlowModel` subclass (its own conventions apply), or a callable
+returning an ``nn.Module`` or a ``FlowModel`` (an ``nn.Module`` instance is copied). A plain
+module is wrapped in :class:`ModuleFlowModel`: padded to its ``multiple`` and ``min_size``, given
+the frames in its input convention (:func:`flow_input`), its flow cropped back.
 
 :func:`load_source` reads and runs the code once, when the name is resolved
-(:func:`~weathergen.models.resolve_network`); :func:`target_of` finds the same object again from
-the record without reading the file (in a fresh process: read again, and refused when its content
-changed). :func:`probe_network` runs a network once and refuses a flow that is not finite or
-gives no gradient to the frames.
+(:func:`~weathergen.models.resolve_network`); :func:`target_of` finds the object again from the
+record without reading the file (another process reads it again, and refuses changed content).
+:func:`probe_network` refuses a flow that is not finite or gives no gradient to the frames.
 """
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import hashlib
 import importlib
@@ -125,15 +114,10 @@ def _module_name(path: Path, digest: str) -> str:
 
 
 def load_source(spec: str) -> tuple[dict, object]:
-    """What an external name names, loaded once: ``(fields, target)``, the fields of its record
-    (``kind``, ``name``: the name that means the same network from any working directory,
-    ``attribute``, ``path``, ``module``, ``sha256`` of the file that defines NAME,
-    ``entry_point``, ``distribution``) and the object NAME.
-
-    Raises:
-        ConfigError: a missing file or module, a failing import, a missing attribute, an unknown
-            entry point.
-    """
+    """``(fields, target)``: the fields of the external network's record (``kind``, ``name``,
+    ``attribute``, ``path``, ``module``, ``sha256``, ``entry_point``, ``distribution``; see
+    :class:`~weathergen.models.Network`) and the object NAME, its code read and run once.
+    ConfigError: a missing file or module, a failing import, a missing attribute."""
     spec = str(spec)
     if is_external(spec):
         kind, target, attribute = parse_spec(spec)
@@ -153,17 +137,25 @@ def load_source(spec: str) -> tuple[dict, object]:
         "distribution": f"{dist.metadata['Name']} {dist.version}" if dist is not None else None})
 
 
-def _load_file(spec: str, target: str, attribute: str) -> tuple[dict, object]:
+def _load_file(spec: str, target: str, attribute: str,
+               recorded: Optional[str] = None) -> tuple[dict, object]:
+    """The file's record and NAME; with the ``recorded`` sha256 the module this process ran from
+    it, without reading it again, or (another process) the file if its content is unchanged."""
     path = Path(target).expanduser()
-    if not path.is_file():
-        what = "is a folder" if path.is_dir() else "does not exist"
-        raise ConfigError(f"${{model}} {spec!r}: the file {str(path)!r} {what}")
-    path = path.resolve()
-    data = read_source(path)
-    digest = _sha256(data)
-    module = sys.modules.get(_module_name(path, digest)) or _exec_file(spec, path, data, digest)
+    module = sys.modules.get(_module_name(path, recorded)) if recorded else None
+    if module is None:
+        if not path.is_file():
+            what = "is a folder" if path.is_dir() else "does not exist"
+            raise ConfigError(f"${{model}} {spec!r}: the file {str(path)!r} {what}")
+        path = path.resolve()
+        data = read_source(path)
+        digest = _sha256(data)
+        if recorded not in (None, digest):
+            raise ConfigError(f"${{model}} {spec!r}: {path} changed since the run started "
+                              f"(sha256 {digest[:12]}…, recorded {recorded[:12]}…)")
+        module = sys.modules.get(_module_name(path, digest)) or _exec_file(spec, path, data, digest)
     fields = {"kind": "file", "name": f"{path}:{attribute}", "attribute": attribute,
-              "path": str(path), "sha256": digest}
+              "path": str(path), "sha256": recorded or digest}
     return fields, _attribute(module, attribute, spec, str(path))
 
 
@@ -187,10 +179,8 @@ def _exec_file(spec: str, path: Path, data: bytes, digest: str):
             raise
         raise ConfigError(f"${{model}} {spec!r}: running {path} failed: {_one_line(exc)}") from None
     finally:
-        try:
+        with contextlib.suppress(ValueError):
             sys.path.remove(str(path.parent))
-        except ValueError:
-            pass
     return module
 
 
@@ -214,13 +204,12 @@ def _attribute(module, attribute: str, spec: str, where: str):
 def _import(spec: str, target: str):
     try:
         return importlib.import_module(target)
-    except ModuleNotFoundError as exc:
-        if exc.name and (target == exc.name or target.startswith(exc.name + ".")):
-            raise ConfigError(f"${{model}} {spec!r}: no module named {exc.name!r} "
-                              f"(not installed, or not on the Python path)") from None
-        raise ConfigError(f"${{model}} {spec!r}: importing {target} failed: {_one_line(exc)}") from None
     except Exception as exc:
-        raise ConfigError(f"${{model}} {spec!r}: importing {target} failed: {_one_line(exc)}") from None
+        missing = isinstance(exc, ModuleNotFoundError) and exc.name and (
+            target == exc.name or target.startswith(exc.name + "."))
+        why = (f"no module named {exc.name!r} (not installed, or not on the Python path)" if missing
+               else f"importing {target} failed: {_one_line(exc)}")
+        raise ConfigError(f"${{model}} {spec!r}: {why}") from None
 
 
 def _load_module(spec: str, target: str, attribute: str, fields: dict) -> tuple[dict, object]:
@@ -233,30 +222,13 @@ def _load_module(spec: str, target: str, attribute: str, fields: dict) -> tuple[
 
 
 def target_of(network) -> object:
-    """The object NAME of a resolved external network (a record with ``kind``, ``name``,
-    ``path``, ``module``, ``attribute``, ``sha256``), found again without reading its file where
-    this process has run it; otherwise (another process) its file is read and run, and refused
-    when its content is no longer the one recorded.
-
-    Raises:
-        ConfigError: the file changed or is gone, the module no longer imports.
-    """
-    if network.kind != "file":
-        return _attribute(_import(network.name, network.module), network.attribute, network.name,
-                          f"module {network.module}")
-    module = sys.modules.get(_module_name(network.path, network.sha256))
-    if module is None:
-        try:
-            data = read_source(network.path)
-        except OSError as exc:
-            raise ConfigError(f"${{model}} {network.name!r}: cannot read {network.path} "
-                              f"({exc.strerror or exc})") from None
-        if _sha256(data) != network.sha256:
-            raise ConfigError(f"${{model}} {network.name!r}: {network.path} changed since the run "
-                              f"started (sha256 {_sha256(data)[:12]}…, recorded "
-                              f"{network.sha256[:12]}…)")
-        module = _exec_file(network.name, Path(network.path), data, network.sha256)
-    return _attribute(module, network.attribute, network.name, network.path)
+    """The object NAME of a resolved external network (a :class:`~weathergen.models.Network`),
+    found again without reading its file where this process has run it (see :func:`_load_file`).
+    ConfigError: the file changed or is gone, the module no longer imports."""
+    if network.kind == "file":
+        return _load_file(network.name, network.path, network.attribute, network.sha256)[1]
+    return _attribute(_import(network.name, network.module), network.attribute, network.name,
+                      f"module {network.module}")
 
 
 def is_adapter(target) -> bool:
@@ -272,15 +244,9 @@ def supports_amp(target) -> bool:
 
 
 def flow_input(input_range: int = 1, channel_order: str = "RGB"):
-    """Declare the input convention of a plain module (on its class or on the function that
-    builds it)::
-
-        @flow_input(255, "BGR")
-        def build(): ...
-
-    The same as the attributes ``input_range`` (1 or 255: frames in ``[0, 1]`` or ``[0, 255]``)
-    and ``channel_order`` (``"RGB"`` or ``"BGR"``) on the class or function.
-    """
+    """Declare the input convention of a plain module on its class or on the function that
+    builds it (``@flow_input(255, "BGR")``): the attributes ``input_range`` (1 or 255: frames in
+    ``[0, 1]`` or ``[0, 255]``) and ``channel_order`` (``"RGB"`` or ``"BGR"``)."""
     def declare(target):
         target.input_range, target.channel_order = input_range, channel_order
         declared_input(target, "flow_input")          # a bad value is said here, at once
@@ -290,29 +256,16 @@ def flow_input(input_range: int = 1, channel_order: str = "RGB"):
 
 def declared_input(target, spec: str) -> Optional[str]:
     """The input convention NAME declares (a key of :data:`INPUT_CONVENTIONS`), None where it
-    declares neither ``input_range`` nor ``channel_order``.
-
-    Raises:
-        ConfigError: a value other than 1 or 255, RGB or BGR.
-    """
-    value = getattr(target, "input_range", None)
-    order = getattr(target, "channel_order", None)
+    declares neither ``input_range`` nor ``channel_order``; ConfigError for another value."""
+    value, order = getattr(target, "input_range", None), getattr(target, "channel_order", None)
     if value is None and order is None:
         return None
-    value = value[1] if isinstance(value, (tuple, list)) and len(value) == 2 else value
-    order = str(order or "RGB").upper()
-    if value not in (None, 1, 255) or isinstance(value, bool) or order not in ("RGB", "BGR"):
+    top = value[1] if isinstance(value, (tuple, list)) and len(value) == 2 else value
+    name = str(order or "RGB").lower() + ("255" if top == 255 else "")
+    if top not in (None, 1, 255) or isinstance(top, bool) or name not in INPUT_CONVENTIONS:
         raise ConfigError(f"${{model}} {spec!r}: its input_range must be 1 or 255 ([0, 1] or "
-                          f"[0, 255]) and its channel_order RGB or BGR, got "
-                          f"{getattr(target, 'input_range', None)!r}, "
-                          f"{getattr(target, 'channel_order', None)!r}")
-    return order.lower() + ("255" if value == 255 else "")
-
-
-def describe_input(convention: str) -> str:
-    """``"BGR in [0, 255]"`` for ``"bgr255"``."""
-    order, top = INPUT_CONVENTIONS[convention]
-    return f"{order} in [0, {top}]"
+                          f"[0, 255]) and its channel_order RGB or BGR, got {value!r}, {order!r}")
+    return name
 
 
 class ModuleFlowModel(FlowModel):
@@ -412,16 +365,22 @@ def build_external(network, iters: Optional[int] = None,
                       f"{type(made).__name__}, expected a torch.nn.Module")
 
 
-def probe_network(model: FlowModel, name: str, image1: torch.Tensor, image2: torch.Tensor,
-                  gradient: bool = False) -> None:
-    """Run ``model`` once on a pair ``(B, 3, H, W)``: its flow must have the frames' shape
-    (checked by :meth:`FlowModel.forward`) and be finite; with ``gradient`` (an attack) it must
-    also carry a finite gradient back to the frames.
+def probe_network(model: FlowModel, name: str, image1: Optional[torch.Tensor] = None,
+                  image2: Optional[torch.Tensor] = None, gradient: bool = False) -> None:
+    """Run ``model`` once on a pair ``(B, 3, H, W)`` (without one: a random pair of side
+    :data:`PROBE_SIDE`, at least the network's ``min_size``, on its device): its flow must have
+    the frames' shape (checked by :meth:`FlowModel.forward`) and be finite; with ``gradient``
+    (an attack) it must also carry a finite gradient back to the frames.
 
     Raises:
         ShapeError: a flow of another shape or type, naming the network.
         ConfigError: the forward pass failed, a flow that is not finite, no gradient.
     """
+    if image1 is None:
+        side = max(PROBE_SIDE, model.min_size)
+        device = next(model.parameters(), torch.zeros(())).device
+        image1, image2 = torch.rand(2, 1, 3, side, side, generator=torch.Generator().manual_seed(0)
+                                    ).to(device).unbind(0)
     size = tuple(image1.shape)
     image1 = image1.detach().clone().requires_grad_(gradient)
     try:
@@ -447,11 +406,3 @@ def check_finite(flow: torch.Tensor, name: str, size: tuple) -> None:
     if not torch.isfinite(flow).all():
         raise ConfigError(f"flow model {name!r} answers a flow that is not finite (NaN or inf) on "
                           f"frames of shape {size}")
-
-
-def probe_frames(model: FlowModel, device) -> tuple[torch.Tensor, torch.Tensor]:
-    """A small random pair (side :data:`PROBE_SIDE`, at least the network's ``min_size``) on
-    ``device``, the same every time."""
-    side = max(PROBE_SIDE, int(getattr(model, "min_size", 0) or 0))
-    frames = torch.rand(2, 1, 3, side, side, generator=torch.Generator().manual_seed(0))
-    return frames[0].to(device), frames[1].to(device)

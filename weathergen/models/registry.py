@@ -29,9 +29,9 @@ import torch
 from ..errors import ConfigError
 from .base import FlowModel
 from .checkpoints import CheckpointSpec, resolve_named
-from .external import (build_external, declared_input, describe_input, entry_point, entry_points,
-                       is_adapter, is_external, load_source, network_label, probe_frames,
-                       probe_network, supports_amp)
+from .external import (build_external, declared_input, entry_point, entry_points, is_adapter,
+                       is_external, load_source, network_label, probe_network,
+                       supports_amp)
 
 #: Builds an untrained adapter: ``build(iters=..., gradient_checkpointing=...)``.
 Builder = Callable[..., FlowModel]
@@ -109,26 +109,16 @@ def model_spec(name: str) -> ModelSpec:
 
 @dataclass(frozen=True)
 class Network:
-    """A flow network, resolved once from its name (:func:`resolve_network`): what it is, where
-    it comes from, its content hash and its input contract. The jobs carry it; building the
-    network (:func:`get_model`) and the manifests' records use it, so a network of your own is
-    read once per run.
+    """A flow network resolved once from its name (:func:`resolve_network`), which the jobs
+    carry and :func:`get_model` builds, so that a network of your own is read once per run.
 
-    Attributes:
-        name: what a manifest records: a registered name as given (``raft``, ``raft-kitti``),
-            a file network as ``PATH:NAME`` with the resolved path (the same from any working
-            directory), ``module:NAME`` or an entry point's name as given.
-        kind: ``registered``, ``file``, ``module`` or ``entry-point``.
-        label: a short name fit for a folder or a table column (``stem.NAME`` of a file).
-        architecture: the registered architecture (None for a network of your own).
-        default_checkpoint: the checkpoint used when none is given (a checkpoint name given as
-            ``name`` is its own default).
-        attribute, path, module, sha256, entry_point, distribution: where the code of a network
-            of your own comes from; ``sha256`` of the file that defines NAME.
-        input: a plain module's input convention (``rgb``, ``bgr``, ``rgb255``, ``bgr255``; see
-            :func:`~weathergen.models.flow_input`); None for an adapter, which normalises itself.
-        declared: False where a plain module declares no convention and ``rgb`` is assumed.
-        mixed_precision, amp: as :class:`ModelSpec`'s.
+    ``name``: as a manifest records it (a file network as ``PATH:NAME``, the path resolved);
+    ``kind``: ``registered``, ``file``, ``module`` or ``entry-point``; ``label``: short, for
+    folders and tables (``stem.NAME``); ``architecture`` and ``default_checkpoint``: of a
+    registered one; ``attribute`` … ``distribution``: where a network of your own comes from
+    (``sha256`` of the file that defines NAME); ``input``: a plain module's input convention (a
+    key of :data:`~weathergen.models.external.INPUT_CONVENTIONS`; None for an adapter, which
+    normalises itself), ``declared`` False where it is assumed.
     """
 
     name: str
@@ -166,21 +156,15 @@ class Network:
         if self.declared:
             return None
         return (f"flow model {self.label!r} declares no input convention: its frames are given "
-                f"as {describe_input('rgb')} (to say otherwise: its input_range and "
+                f"as RGB in [0, 1] (to say otherwise: its input_range and "
                 f"channel_order, or --model-input; docs/models.md)")
 
 
 def resolve_network(name, model_input: Optional[str] = None, parameter: str = "model") -> Network:
-    """The :class:`Network` a name means: a registered architecture or checkpoint name,
-    ``FILE.py:NAME``, ``module:NAME`` or an entry point of ``weathergen.models`` (its code loaded
-    here, once). ``model_input``: the input convention of a plain module that declares none
-    (``--model-input``). A :class:`Network` is returned as it is. The errors name the network's
-    parameter as ``${parameter}`` (``networks`` for the benchmark's).
-
-    Raises:
-        ConfigError: an unknown name, code that does not load, a bad or conflicting input
-            convention.
-    """
+    """The :class:`Network` a name means (a :class:`Network` is returned as it is), its code
+    loaded here, once. ``model_input``: the input convention of a plain module that declares
+    none. ConfigError (naming the parameter as ``${parameter}``): an unknown name, code that
+    does not load, a bad or conflicting input convention."""
     try:
         return _resolve(name, model_input)
     except ConfigError as exc:
@@ -320,7 +304,7 @@ def get_model(name, checkpoint: Union[str, Path, None] = None,
     model.requires_grad_(False)
     model = model.to(device).eval()
     if network.external:
-        probe_network(model, network.name, *probe_frames(model, device))
+        probe_network(model, network.name)
     return model
 
 
