@@ -290,10 +290,10 @@ def model_options(func):
     return func
 
 
-def resolve_model(name: str, model_input=None, parameter: str = "model"):
+def resolve_model(name: str, model_input=None):
     """The network ``name`` resolved once (:func:`~weathergen.models.resolve_network`); a plain
     module that declares no input convention gets one note on stderr."""
-    network = resolve_network(name, model_input, parameter)
+    network = resolve_network(name, model_input)
     if network.note():
         click.echo(f"Note: {network.note()}", err=True)
     return network

@@ -109,8 +109,10 @@ class BenchmarkSpec:
             raise ConfigError(f"${{checkpoint}} {stray[0]}={self.checkpoints[stray[0]]}: "
                               f"{stray[0]!r} is not among ${{networks}} "
                               f"({', '.join(self.networks) or 'none'})")
-        self.resolved = {n: self.resolved.get(n) or resolve_network(n, parameter="networks")
-                         for n in self.networks}
+        try:
+            self.resolved = {n: self.resolved.get(n) or resolve_network(n) for n in self.networks}
+        except ConfigError as exc:
+            raise renamed(exc, "networks") from None
 
     def weather_labels(self) -> list[str]:
         """The weather cells' labels of each network: the presets, then every ladder's rungs not

@@ -51,7 +51,7 @@ _MODULE_NAME = re.compile(r"^[A-Za-z_][A-Za-z0-9_]*(\.[A-Za-z_][A-Za-z0-9_]*)*$"
 
 def is_external(name) -> bool:
     """Whether ``name`` is a ``FILE.py:NAME`` or ``module:NAME`` network (entry points are looked
-    up by :func:`entry_point` once the registry does not know the name)."""
+    up among :func:`entry_points` once the registry does not know the name)."""
     return isinstance(name, (str, Path)) and ":" in str(name)
 
 
@@ -95,11 +95,6 @@ def entry_points() -> dict:
     return found
 
 
-def entry_point(name: str):
-    """The entry point called ``name``, or None."""
-    return entry_points().get(name)
-
-
 def read_source(path: Path) -> bytes:
     """The bytes of a network's Python file: the one place its file is read."""
     return Path(path).read_bytes()
@@ -124,7 +119,7 @@ def load_source(spec: str) -> tuple[dict, object]:
         if kind == "file":
             return _load_file(spec, target, attribute)
         return _load_module(spec, target, attribute, {"kind": "module", "name": spec})
-    ep = entry_point(spec)
+    ep = entry_points().get(spec)
     if ep is None:
         raise ConfigError(f"unknown flow model {spec!r}")
     target, _, attribute = ep.value.partition(":")
@@ -232,15 +227,11 @@ def target_of(network) -> object:
 
 
 def is_adapter(target) -> bool:
-    """Whether NAME is a :class:`FlowModel` (class or instance): its own conventions apply."""
+    """Whether NAME is a :class:`FlowModel` (class or instance): its own conventions and
+    mixed-precision mode (``supports_amp``) apply; any other module runs under CUDA autocast as
+    a whole."""
     return isinstance(target, FlowModel) or (inspect.isclass(target)
                                              and issubclass(target, FlowModel))
-
-
-def supports_amp(target) -> bool:
-    """Whether NAME has a mixed-precision mode: a FlowModel says so itself (``supports_amp``);
-    any other module runs under CUDA autocast as a whole."""
-    return bool(target.supports_amp) if is_adapter(target) else True
 
 
 def flow_input(input_range: int = 1, channel_order: str = "RGB"):

@@ -29,9 +29,8 @@ import torch
 from ..errors import ConfigError
 from .base import FlowModel
 from .checkpoints import CheckpointSpec, resolve_named
-from .external import (build_external, declared_input, entry_point, entry_points, is_adapter,
-                       is_external, load_source, network_label, probe_network,
-                       supports_amp)
+from .external import (build_external, declared_input, entry_points, is_adapter, is_external,
+                       load_source, network_label, probe_network)
 
 #: Builds an untrained adapter: ``build(iters=..., gradient_checkpointing=...)``.
 Builder = Callable[..., FlowModel]
@@ -160,18 +159,11 @@ class Network:
                 f"channel_order, or --model-input; docs/models.md)")
 
 
-def resolve_network(name, model_input: Optional[str] = None, parameter: str = "model") -> Network:
+def resolve_network(name, model_input: Optional[str] = None) -> Network:
     """The :class:`Network` a name means (a :class:`Network` is returned as it is), its code
     loaded here, once. ``model_input``: the input convention of a plain module that declares
-    none. ConfigError (naming the parameter as ``${parameter}``): an unknown name, code that
-    does not load, a bad or conflicting input convention."""
-    try:
-        return _resolve(name, model_input)
-    except ConfigError as exc:
-        raise renamed(exc, parameter) from None
-
-
-def _resolve(name, model_input: Optional[str]) -> Network:
+    none. ConfigError: an unknown name, code that does not load, a bad or conflicting input
+    convention."""
     if isinstance(name, Network):
         return name
     name = str(name)
@@ -184,7 +176,7 @@ def _resolve(name, model_input: Optional[str]) -> Network:
         return Network(name, "registered", name, arch,
                        spec.default_checkpoint if name == arch else name,
                        mixed_precision=spec.mixed_precision, amp=spec.amp)
-    if not is_external(name) and entry_point(name) is None:
+    if not is_external(name) and name not in entry_points():
         raise ConfigError(_unknown_message(name))
     fields, target = load_source(name)
     declared = None if is_adapter(target) else declared_input(target, name)
@@ -194,7 +186,7 @@ def _resolve(name, model_input: Optional[str]) -> Network:
     convention = None if is_adapter(target) else (declared or model_input or "rgb")
     return Network(**fields, label=network_label(name), input=convention,
                    declared=convention is None or declared is not None or model_input is not None,
-                   mixed_precision=supports_amp(target))
+                   mixed_precision=bool(target.supports_amp) if is_adapter(target) else True)
 
 
 def renamed(error: ConfigError, parameter: str) -> ConfigError:
@@ -304,7 +296,7 @@ def get_model(name, checkpoint: Union[str, Path, None] = None,
     model.requires_grad_(False)
     model = model.to(device).eval()
     if network.external:
-        probe_network(model, network.name)
+        probe_network(model, network.label)
     return model
 
 
