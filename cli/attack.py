@@ -22,8 +22,8 @@ from weathergen.words import counted
 
 from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
                       job_exit_codes,
-                      model_options, out_option, resolve_model, overwrite_option, quiet_option, resume_option,
-                      seed_option)
+                      model_options, out_option, overwrite_option, quiet_option, resolve_model,
+                      resume_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 

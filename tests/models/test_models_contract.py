@@ -222,3 +222,18 @@ def _in(folder: Path, name: str):
         return resolve_network(name)
     finally:
         os.chdir(here)
+
+
+def test_a_record_built_in_another_process_reads_the_file_and_refuses_changed_content(tmp_path):
+    """A Ray worker gets the record, not the module: it reads the file again, and refuses it when
+    its content is no longer the one the run started with."""
+    net = tmp_path / "moved.py"
+    net.write_text(NETWORKS)
+    network = resolve_network(f"{net}:plain")
+    module = type(get_model(network).network).__module__
+    del sys.modules[module]                                  # as in a fresh process
+    assert isinstance(get_model(network), ModuleFlowModel) and module in sys.modules
+    del sys.modules[module]
+    net.write_text(NETWORKS.replace("0.5", "0.75"))
+    with pytest.raises(ConfigError, match="changed since the run started"):
+        get_model(network)
