@@ -10,7 +10,7 @@ import torch
 
 from engine_scenes import plane_pair
 from weathergen.engine import frame_scaling, load_preset, sample_particles
-from weathergen.engine.presets import (FieldPreset, FrameScaling, field_preset_keys, scaled_count,
+from weathergen.engine.weather.presets import (FieldPreset, FrameScaling, field_preset_keys, scaled_count,
                                        scaled_size)
 from weathergen.errors import ConfigError
 

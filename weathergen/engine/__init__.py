@@ -13,23 +13,23 @@ function.
 
 from __future__ import annotations
 
-from .field import (Field, frame_particles, make_field, pair_particles, sample_field_particles,
+from .sampling.field import (Field, frame_particles, make_field, field_pair_particles, sample_field_particles,
                     sample_layers, sample_weather, scene_seed)
-from .groundtruth import ParticleTruth, particle_truth, seen_flow
-from .layers import LayeredParticles, layer_seed, load_particles
-from .particles import Particles, empty_particles, from_atanh, to_atanh
-from .optics import FieldOptics
-from .presets import (EXAMPLE_COMBINATIONS, REFERENCE_FRAME, CombinedPreset, FieldPreset,
+from .rendering.groundtruth import ParticleTruth, particle_truth, seen_flow
+from .records.layered import LayeredParticles, layer_seed, load_particles
+from .records.particles import Particles, empty_particles, from_atanh, to_atanh
+from .weather.optics import FieldOptics
+from .weather.presets import (EXAMPLE_COMBINATIONS, REFERENCE_FRAME, CombinedPreset, FieldPreset,
                       FrameScaling, Preset, frame_scaling, list_presets, load_preset, parse_override,
                       parse_set_options, preset_keys)
-from .renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps, render,
+from .rendering.renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps, render,
                        render_pair, render_view)
-from .sampling import (reference_transforms, resolve_device, sample_particles, visible_counts,
+from .sampling.pair import (reference_transforms, resolve_device, sample_particles, visible_counts,
                        world_down)
-from .settings import APPEARANCE_KEYS, RenderSettings
-from .templates import (TemplateLibrary, generate_templates, load_templates,
+from .records.settings import APPEARANCE_KEYS, RenderSettings
+from .weather.templates import (TemplateLibrary, generate_templates, load_templates,
                         write_builtin_templates)
-from .tracks import View
+from .rendering.tracks import View
 
 __all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset",
            "EXAMPLE_COMBINATIONS", "Field", "FieldOptics", "FieldPreset", "FrameScaling",
@@ -37,7 +37,7 @@ __all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset",
            "RenderSettings", "StampSet", "TemplateLibrary", "View", "build_stamps",
            "empty_particles", "frame_particles", "frame_scaling", "from_atanh", "generate_templates",
            "layer_seed", "list_presets", "load_particles", "load_preset", "load_templates", "make_field",
-           "pair_particles",
+           "field_pair_particles",
            "parse_override", "parse_set_options", "particle_truth", "preset_keys",
            "reference_transforms", "render", "render_pair", "render_view", "resolve_device",
            "sample_field_particles", "sample_layers", "sample_particles", "sample_weather", "scene_seed",
