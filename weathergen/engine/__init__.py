@@ -7,8 +7,10 @@ Typical use::
     particles = sample_particles(pair, preset, seed=0)
     out = render_pair(pair, particles)          # out.image1, out.image2, out.opacity1, out.opacity2
 
-The renderer module is ``renderer`` (not ``render``) so that it never shadows the :func:`render`
-function.
+Its subpackages, in the order the data flows: :mod:`.weather` (presets, templates, the
+atmosphere model), :mod:`.records` (the particle records), :mod:`.sampling` (a pair's particles
+from a preset) and :mod:`.rendering` (records and cameras -> frames). The renderer module is
+``rendering.renderer`` (not ``render``) so that it never shadows the :func:`render` function.
 """
 
 from __future__ import annotations

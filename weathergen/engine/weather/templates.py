@@ -115,7 +115,7 @@ def _read_png(path: Path) -> np.ndarray:
 @functools.lru_cache(maxsize=8)
 def _load_cached(spec: str) -> TemplateLibrary:
     if spec in BUILTIN_TEMPLATE_KINDS:
-        folder = resources.files("weathergen.engine") / "templates" / spec
+        folder = resources.files("weathergen.engine.weather") / "templates" / spec
         files = sorted((f for f in folder.iterdir() if f.name.endswith(".png")), key=lambda f: f.name)
         if not files:  # a broken installation, not a user error
             raise RuntimeError(f"built-in template library '{spec}' is missing from the package")
@@ -253,7 +253,7 @@ def generate_templates(kind: str, seed: int = 0) -> list[np.ndarray]:
 def write_builtin_templates(root: str | Path, seed: int = 0) -> list[Path]:
     """Regenerate the shipped PNGs under ``root/<kind>/NN.png`` (run from a source checkout:
     ``python -c "from weathergen.engine.weather.templates import write_builtin_templates as w;
-    w('weathergen/engine/templates')"``)."""
+    w('weathergen/engine/weather/templates')"``)."""
     written = []
     for kind in BUILTIN_TEMPLATE_KINDS:
         folder = Path(root) / kind
