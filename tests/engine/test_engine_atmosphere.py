@@ -15,7 +15,7 @@ from weathergen.engine import (LayeredParticles, Particles, load_preset, render_
                                sample_weather)
 from weathergen.engine.rendering.transmittance import AirView, reference_optical_depth
 from weathergen.engine.weather.atmosphere import (LATTICE, density_lattice, estimate_airlight,
-                                          rain_extinction, snow_extinction)
+                                                  rain_extinction, snow_extinction)
 from weathergen.engine.sampling.field import sample_field_particles
 from weathergen.engine.rendering.renderer import render, render_view
 from weathergen.engine.sampling.pair import reference_transforms

@@ -14,8 +14,8 @@ import torch
 from engine_scenes import pose, rotation
 from weathergen.engine import (Particles, TemplateLibrary, load_preset, load_templates,
                                render_pair, sample_particles, sample_weather)
-from weathergen.engine.sampling.field import (field_for_pair, frame_particles, make_field, pair_views,
-                                     sample_field_particles, scene_seed)
+from weathergen.engine.sampling.field import (field_for_pair, frame_particles, make_field,
+                                              pair_views, sample_field_particles, scene_seed)
 from weathergen.datasets import DATASETS, DemoDataset
 from weathergen.engine.weather.presets import FieldPreset, preset_from_values
 from weathergen.engine.rendering.groundtruth import particle_truth, seen_flow

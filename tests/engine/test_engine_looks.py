@@ -19,7 +19,7 @@ from weathergen.engine import (BETA_ATTACK, Particles, RenderSettings, load_pres
                                sample_particles)
 from weathergen.engine.rendering.renderer import reference_transforms
 from weathergen.engine.rendering.tracks import (MAX_BLUR_SAMPLES, Views, blur_samples, pair_tracks,
-                                      streak_samples)
+                                                streak_samples)
 
 
 def tracks_of(pair, record):

@@ -12,7 +12,7 @@ from engine_scenes import forward_scene, plane_pair, pose, rotation, wall_scene
 from weathergen.engine import (load_preset, reference_transforms, sample_particles,
                                visible_counts, world_down)
 from weathergen.engine.sampling.pair import (defocus_radius, hls_to_rgb, resolve_device, rgb_to_hls,
-                                        transparency_hat)
+                                             transparency_hat)
 from weathergen.errors import ConfigError, DatasetError, WeatherGenError
 from weathergen.geometry import project, transform_points
 

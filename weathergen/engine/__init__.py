@@ -15,22 +15,22 @@ from a preset) and :mod:`.rendering` (records and cameras -> frames). The render
 
 from __future__ import annotations
 
-from .sampling.field import (Field, frame_particles, make_field, field_pair_particles, sample_field_particles,
-                    sample_layers, sample_weather, scene_seed)
+from .sampling.field import (Field, frame_particles, make_field, field_pair_particles,
+                             sample_field_particles, sample_layers, sample_weather, scene_seed)
 from .rendering.groundtruth import ParticleTruth, particle_truth, seen_flow
 from .records.layered import LayeredParticles, layer_seed, load_particles
 from .records.particles import Particles, empty_particles, from_atanh, to_atanh
 from .weather.optics import FieldOptics
 from .weather.presets import (EXAMPLE_COMBINATIONS, REFERENCE_FRAME, CombinedPreset, FieldPreset,
-                      FrameScaling, Preset, frame_scaling, list_presets, load_preset, parse_override,
-                      parse_set_options, preset_keys)
-from .rendering.renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps, render,
-                       render_pair, render_view)
+                              FrameScaling, Preset, frame_scaling, list_presets, load_preset,
+                              parse_override, parse_set_options, preset_keys)
+from .rendering.renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps,
+                                 render, render_pair, render_view)
 from .sampling.pair import (reference_transforms, resolve_device, sample_particles, visible_counts,
-                       world_down)
+                            world_down)
 from .records.settings import APPEARANCE_KEYS, RenderSettings
 from .weather.templates import (TemplateLibrary, generate_templates, load_templates,
-                        write_builtin_templates)
+                                write_builtin_templates)
 from .rendering.tracks import View
 
 __all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset",

@@ -41,7 +41,7 @@ import torch
 import torch.nn.functional as F
 
 from ..weather.atmosphere import (RAY_ANGLE, RAY_SAMPLES, RAY_STEP, Atmosphere, ray_nodes,
-                         sample_lattice, wrapped_lattice)
+                                  sample_lattice, wrapped_lattice)
 from .tracks import Tracks
 
 
