@@ -162,18 +162,17 @@ def job_model(job: AttackJob, device: Optional[str] = None):
     return _LOADED[key]
 
 
-def probe_job_network(job: AttackJob, model, ref, device: Optional[str] = None) -> None:
+def probe_job_network(job: AttackJob, model, ref) -> None:
     """Run the job's network once on the pair ``ref`` (the first), forward and backward: a flow
     that is not finite, of another shape or without a gradient to the frames is refused in one
     line (:func:`~weathergen.models.probe_network`) before anything is written. A first pair
     that does not load (it fails alone later) gives way to a small random pair."""
-    device = device or job.device
     try:
         pair = job.dataset.load(ref)
     except WeatherGenError:
         return probe_network(model, job.model.label, gradient=True)
-    probe_network(model, job.model.label, pair.image1[None].to(device),
-                  pair.image2[None].to(device), gradient=True)
+    probe_network(model, job.model.label, pair.image1[None].to(job.device),
+                  pair.image2[None].to(job.device), gradient=True)
 
 
 def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
@@ -373,7 +372,10 @@ def run_attack(job: AttackJob,
     # The driver of a Ray run checks the network and its checkpoint on the CPU.
     model = job_model(job) if local else get_model(
         job.model, job.checkpoint, device="cpu", iters=job.iters, download=job.download)
-    probe_job_network(job, model, refs[0], job.device if local else "cpu")
+    if local:
+        probe_job_network(job, model, refs[0])
+    else:                                   # the driver: a small pair on the CPU
+        probe_network(model, job.model.label, gradient=True)
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
     if not local:
         model = None
