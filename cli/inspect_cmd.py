@@ -24,7 +24,8 @@ from weathergen.io.images import write_png
 from weathergen.io.video import check_video_path, write_video
 from weathergen.outputs import read_metadata, stored_frame_scaling
 from weathergen.render import contact_sheet, video_preview
-from weathergen.render.video import MIN_SECONDS, PAIR_FPS, PAIR_SECONDS
+from weathergen.render.preview import MAX_TILE_WIDTH
+from weathergen.render.video import MAX_CYCLES, MAX_FPS, MIN_FPS, MIN_SECONDS, PAIR_FPS, PAIR_SECONDS
 from weathergen.words import counted
 
 from .options import BAD_INPUT, STOPPED, exit_codes
@@ -213,17 +214,17 @@ def _ranges(arrays: dict, title: str, path: Path) -> Table:
 @click.option("--pairs", type=click.IntRange(min=1), default=None,
               help="Pairs to show (the first ones). Default: 4 on the contact sheet (it says when "
                    "there are more), all in a video.")
-@click.option("--width", type=click.IntRange(min=64), default=None,
+@click.option("--width", type=click.IntRange(64, MAX_TILE_WIDTH), default=None,
               help="Width of each tile. Default: 480 on the contact sheet, the frames' own in a "
                    "video.")
 @click.option("--with-input", is_flag=True,
               help="--video: show the clean input frame left of the weather frame.")
 @click.option("--with-opacity", is_flag=True,
               help="--video: show the particles' opacity right of the weather frame.")
-@click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--fps", type=click.FloatRange(MIN_FPS, MAX_FPS), default=None,
               help=f"--video: frames per second. Default: for a --sequence output the dataset's "
                    f"({frame_rates_text()}) or a field preset's frame_rate; for pairs {PAIR_FPS:g}.")
-@click.option("--cycles", type=click.IntRange(min=1), default=None,
+@click.option("--cycles", type=click.IntRange(1, MAX_CYCLES), default=None,
               help="--video of pairs: how often each pair shows frame 1 and frame 2. "
                    f"Default: for {PAIR_SECONDS:g} s.")
 @click.option("--captions/--no-captions", default=True, show_default=True,
