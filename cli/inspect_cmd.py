@@ -74,23 +74,8 @@ def inspect(file: Path):
         ("visible in frame 1 / 2", f"{int(arrays['visible1'])} / {int(arrays['visible2'])}"
                                    if "visible1" in arrays else "not recorded"),
     ]
-    if layered:
-        seeds = np.atleast_1d(arrays.get("layer_seeds", np.zeros(0, np.uint64)))
-        for k, (name, a, n) in enumerate(zip(names, layers, counts)):
-            seed = f", seed {int(seeds[k])}" if k < len(seeds) else ""
-            rows.append((f"layer {k}", f"{name}: {counted(n, 'particle')}, {_looks(a)}{seed}"))
-            rows.append((f"layer {k} for the frame", _scaling_text(scalings[k])))
-        rows.append(("reference frame", str(layers[0].get("frame", "?"))))
-    else:
-        rows += [
-            ("reference frame", str(arrays.get("frame", "?"))),
-            ("blend", str(arrays.get("blend", "?"))),
-            ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, "
-                            f"{int(arrays.get('blur_samples', 1))} samples"),
-            ("templates", str(arrays.get("templates", "?")) if "stamp_boxes" not in arrays else
-             f"none: each particle's own stored stamp ({int(arrays['stamp_side'])} px square, "
-             f"from the paper's published weather)"),
-        ]
+    rows += (_layer_rows(arrays, names, layers, counts, scalings) if layered
+             else _record_rows(arrays))
     version = int(layers[0].get("format_version", 0))
     rows += [
         ("format", f"metadata v{int(arrays['metadata_version'])}, particles v{version}"
@@ -104,6 +89,31 @@ def inspect(file: Path):
     for name, a in zip(names, layers):
         title = f"per-particle values{f' of layer {name}' if name else ''} (as Particles.load reads them)"
         console.print(_ranges(a, title, file))
+
+
+def _layer_rows(arrays: dict, names: list, layers: list, counts: list, scalings: list) -> list:
+    """The rows of a combined preset's layers: each layer's look, seed and frame scaling."""
+    rows = []
+    seeds = np.atleast_1d(arrays.get("layer_seeds", np.zeros(0, np.uint64)))
+    for k, (name, a, n) in enumerate(zip(names, layers, counts)):
+        seed = f", seed {int(seeds[k])}" if k < len(seeds) else ""
+        rows.append((f"layer {k}", f"{name}: {counted(n, 'particle')}, {_looks(a)}{seed}"))
+        rows.append((f"layer {k} for the frame", _scaling_text(scalings[k])))
+    rows.append(("reference frame", str(layers[0].get("frame", "?"))))
+    return rows
+
+
+def _record_rows(arrays: dict) -> list:
+    """The rows of one record's look: reference frame, blend, motion blur and templates."""
+    return [
+        ("reference frame", str(arrays.get("frame", "?"))),
+        ("blend", str(arrays.get("blend", "?"))),
+        ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, "
+                        f"{int(arrays.get('blur_samples', 1))} samples"),
+        ("templates", str(arrays.get("templates", "?")) if "stamp_boxes" not in arrays else
+         f"none: each particle's own stored stamp ({int(arrays['stamp_side'])} px square, "
+         f"from the paper's published weather)"),
+    ]
 
 
 def _published(console: Console, file: Path) -> None:
