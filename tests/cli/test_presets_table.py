@@ -11,7 +11,7 @@ from click.testing import CliRunner
 
 from weathergen.cli.main import _register, cli
 from weathergen.cli.presets_cmd import ATMOSPHERE_KEYS
-from weathergen.engine.presets import field_preset_keys, load_preset
+from weathergen.engine.weather.presets import field_preset_keys, load_preset
 
 PARTICLE_KEYS = ("diameter", "templates", "fall_speed", "exposure", "blur_samples", "near", "far")
 
