@@ -287,7 +287,7 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     record is the same bytes either way. On a GPU (the device a batch is rendered on) the
     visibility tests run where the depth maps already are; the record then equals the CPU's
     except where a candidate lies within float64 rounding of an image border or the scene
-    surface (see docs/engine.md, "Sampling on the render's device").
+    surface (see docs/engine.md, "Sampling", on the render's device).
     """
     expect_kind(preset, Preset, "sample_particles")
     check_pair_for_engine(pair)
