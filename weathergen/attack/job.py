@@ -39,7 +39,8 @@ from ..jobs import (frame2_note, layer_seeds, pair_particles, pair_seed,
                     visibility_of, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
-from .settings import AttackSettings
+from .record import run_settings
+from .settings import ATMOSPHERE_VARIABLES, AttackSettings
 from .targets import TargetSpec, read_target_flow
 
 
@@ -316,7 +317,22 @@ def run_summary(job: AttackJob, rows: list[PairSummary]) -> dict:
     attack's ``compat`` mode (None for an Lp attack) and the precision the network ran in
     (``amp``: mixed precision on CUDA)."""
     return {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None,
-            "amp": job.amp_setting()}
+            "amp": job.amp_setting(), "settings": job_settings(job)}
+
+
+def job_settings(job: AttackJob) -> dict:
+    """The run's settings record (:func:`~weathergen.attack.record.run_settings`): the network as
+    the job runs it, the steps and the learning rates of its optimiser (the particles' ``lr``,
+    the atmosphere's where it is freed; an Lp attack's ``lr``), its seed."""
+    if job.lp is not None:
+        steps, rates = job.lp.steps, {"lr": job.lp.lr}
+    else:
+        steps, rates = job.settings.steps, {"lr": job.settings.learning_rate}
+        if any(v in ATMOSPHERE_VARIABLES for v in job.settings.optimize):
+            rates["atmosphere_lr"] = job.settings.atmosphere_learning_rate
+    return run_settings(job.model, job.checkpoint, iters=job.iters, amp=job.amp_setting(),
+                        padding=getattr(job.dataset, "padding", "even"), steps=steps,
+                        learning_rates=rates, seed=job.seed)
 
 
 def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
