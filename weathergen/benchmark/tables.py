@@ -149,6 +149,16 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
     return rows
 
 
+def _with_settings(table_rows: list[dict], rows: Sequence[dict]) -> list[dict]:
+    """Rows of a ladder's curves or scores with their network's settings (of its weather cells)."""
+    of = {}
+    for r in rows:
+        if r["kind"] == "weather" and r.get("settings"):
+            of.setdefault(r["network"], r)
+    return [{**t, **{k: of.get(t["network"], {}).get(k) for k in SETTINGS_COLUMNS}}
+            for t in table_rows]
+
+
 def settings_lines(rows: Sequence[dict]) -> list[str]:
     """The settings behind the finished cells, one line each that differs
     (:func:`~weathergen.attack.record.settings_text`): what every table's caption carries."""
@@ -552,7 +562,8 @@ def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
                              "ladders": list(spec.ladders)},
                 "rows": rows}
     if curves:
-        document["ladders"] = {"curves": curve_rows(curves), "scores": score_rows(curves)}
+        document["ladders"] = {"curves": _with_settings(curve_rows(curves), rows),
+                               "scores": _with_settings(score_rows(curves), rows)}
     tables = build_tables(rows, networks, presets=spec.presets) + ladder_tables(curves, networks)
     settings = settings_lines(rows)
     caption = {name: (md + "".join(f" Settings, {line}." for line in settings),
@@ -574,7 +585,9 @@ def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
     if curves:
         paths.update(curves=out / "ladders.csv", scores=out / "robustness.csv",
                      ladder_plot=out / "ladder.png")
-        atomic_write_bytes(paths["curves"], _table_csv(curve_rows(curves), CURVE_COLUMNS))
-        atomic_write_bytes(paths["scores"], _table_csv(score_rows(curves), SCORE_COLUMNS))
+        atomic_write_bytes(paths["curves"], _table_csv(document["ladders"]["curves"],
+                                                       CURVE_COLUMNS + SETTINGS_COLUMNS))
+        atomic_write_bytes(paths["scores"], _table_csv(document["ladders"]["scores"],
+                                                       SCORE_COLUMNS + SETTINGS_COLUMNS))
         draw_ladder(paths["ladder_plot"], curves, table_networks(networks))
     return paths
