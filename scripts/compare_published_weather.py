@@ -3,16 +3,18 @@
 Writes a small Sintel-format tree (two scenes: ``alley_1``, which the research code scales by 2
 and whose camera translation it zeroes, and ``bamboo_1``, which it leaves as it is; a textured
 plane at depth 6, a near wall at 1.2, a near box at 0.8 and a post at 2.0, the same in both
-frames; a camera that turns by 1.5 degrees and moves 0.3 right and 0.4 forward), runs the research code on it (its Sintel reader, its generator and its renderer, with
-the settings of its readme's snow, rain, sparks and fog commands and of the paper's table's
-alpha-blended white and red sparks, alpha-white and alpha-red; fewer particles), saves each
-pair's particles with its ``save_weatherfile`` in the published layout (``SET/SCENE/
-frame_0001.npz``) and its float frames, then reads every file with weathergen
-(:mod:`weathergen.io.published_weather`), draws it in the research code's frame and scaling
-(``--scene-scales research``, camera translation zeroed in the scaled scenes) with the preset of
-the same name, as ``--compat reference`` draws it (α-blended motion blur blended one sample after
-another, the scene depth read half a pixel up and left; ``--depth-shift 0``: at the pixel), and prints per frame the largest and the mean absolute difference between the two
-renders (grey levels of 255), overall and within 2 pixels of a depth step.
+frames; a camera that turns by 1.5 degrees and moves 0.3 right and 0.4 forward), runs the
+research code on it (its Sintel reader, its generator and its renderer, with the settings of its
+readme's snow, rain, sparks and fog commands and of the paper's table's alpha-blended white and
+red sparks, alpha-white and alpha-red; fewer particles), saves each pair's particles with its
+``save_weatherfile`` in the published layout (``SET/SCENE/frame_0001.npz``) and its float
+frames, then reads every file with weathergen (:mod:`weathergen.io.published_weather`), draws it
+in the research code's frame and scaling (``--scene-scales research``, camera translation zeroed
+in the scaled scenes) with the preset of the same name, as ``--compat reference`` draws it
+(α-blended motion blur blended one sample after another, the scene depth read half a pixel up and
+left; ``--depth-shift 0``: at the pixel), and prints per frame the largest and the mean absolute
+difference between the two renders (grey levels of 255), overall and within 2 pixels of a depth
+step.
 
 Nothing of the research code is part of weathergen; this script imports it from the given folder
 (https://github.com/cv-stuttgart/DistractingDownpour, GPL-3.0), unmodified. It needs ``scipy``,
