@@ -108,3 +108,40 @@ def test_every_benchmark_table_carries_the_settings(demo_root, tmp_path):
         with open(paths[name], newline="") as fh:
             assert {(r["iters"], r["precision"], r["steps"]) for r in csv.DictReader(fh)} == \
                 {("4", "float32", "5")}
+
+
+@pytest.mark.slow
+def test_attack_and_evaluate_write_the_robust_figures_and_the_settings(tmp_path,
+                                                                       raft_small_weights):
+    import json
+
+    from click.testing import CliRunner
+
+    from weathergen.cli.main import _register, cli
+
+    _register()
+
+    def invoke(args):
+        return CliRunner().invoke(cli, [str(a) for a in args], catch_exceptions=False)
+
+    out = tmp_path / "a"
+    attacked = invoke(["attack", "--model", "raft-small", "--checkpoint", raft_small_weights,
+                       "--iters", "1", "--scenes", "courtyard", "--frames-per-scene", "1",
+                       "--steps", "1", "--set", "count=40", "--seed", "5", "--out", out])
+    assert attacked.exit_code == 0, attacked.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["settings"]["steps"] == 1 and summary["settings"]["seed"] == 5
+    assert summary["settings"]["learning_rates"] == {"lr": 1e-5}
+    assert summary["settings"]["checkpoint_sha256"] == hashlib.sha256(
+        raft_small_weights.read_bytes()).hexdigest()
+    assert summary["robust_epe"] == pytest.approx(summary["aee_adversarial"], rel=1e-5)
+    assert 0 <= summary["robust_1px"] <= 100 and summary["robust_fl"] <= summary["robust_1px"]
+    assert "Settings: network raft-small" in attacked.output and "RobustSpring" in attacked.output
+    evaluated = invoke(["evaluate", "--weather", out, "--model", "raft-small", "--checkpoint",
+                        raft_small_weights, "--iters", "1", "--json", tmp_path / "e.json"])
+    assert evaluated.exit_code == 0, evaluated.output
+    figures = json.loads((tmp_path / "e.json").read_text())
+    assert figures["settings"]["iters"] == 1 and figures["settings"]["seed"] == 5
+    assert figures["settings"]["steps"] is None and figures["settings"]["padding"] == "even"
+    assert figures["summary"]["robust_epe"] == pytest.approx(summary["robust_epe"], rel=1e-4)
+    assert "Settings: network raft-small" in evaluated.output
