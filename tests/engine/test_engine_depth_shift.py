@@ -14,8 +14,8 @@ import torch
 
 from engine_scenes import plane_pair
 from weathergen.engine import Particles, RenderSettings, load_templates, render_pair, render_view
-from weathergen.engine.field import pair_views
-from weathergen.engine.renderer import pair_starts
+from weathergen.engine.sampling.field import pair_views
+from weathergen.engine.rendering.renderer import pair_starts
 from weathergen.errors import ConfigError, FormatError
 
 NAMES = ("image1", "image2", "opacity1", "opacity2")

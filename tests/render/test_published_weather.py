@@ -18,7 +18,7 @@ from conftest import write_fake_sintel
 
 from weathergen.datasets import load_scene_scales, open_dataset, reopen_dataset
 from weathergen.engine import Particles, RenderSettings, load_preset, render_pair
-from weathergen.engine.published import published_particles
+from weathergen.engine.sampling.published import published_particles
 from weathergen.errors import ConfigError, FormatError
 from weathergen.io.images import read_image, to_uint8
 from weathergen.io.published_weather import (PublishedWeather, is_published_set, published_file,
@@ -249,6 +249,11 @@ def test_a_set_is_told_from_a_weathergen_folder_and_names_its_preset(tree, tmp_p
     result = invoke(["render", "--particles", tmp_path / "my_weather", "--out", tmp_path / "o"])
     assert result.exit_code == 2 and "name it with --preset" in result.output
     assert len(result.output.strip().splitlines()) == 1
+    # evaluate takes the set with --weather, and says so (not render's --particles)
+    result = invoke(["evaluate", "--weather", tmp_path / "my_weather", "--root", tree[0]])
+    assert result.exit_code == 2 and result.output.startswith(
+        f"Error: --weather {tmp_path / 'my_weather'}: published weather does not record")
+    assert "name it with --preset" in result.output and "--particles" not in result.output
 
 
 # -- the commands --------------------------------------------------------------------------------
@@ -469,7 +474,7 @@ def test_evaluate_measures_the_set_as_render_then_evaluate_does(tree, rendered, 
 
 
 def test_stored_stamps_are_refused_on_a_weather_field_and_of_the_wrong_shape(tree):
-    from weathergen.engine.renderer import check_stored_stamps
+    from weathergen.engine.rendering.renderer import check_stored_stamps
 
     sintel, weather = tree
     ds = research_dataset(sintel, ["alley_1"])
