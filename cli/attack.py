@@ -14,6 +14,7 @@ from rich.table import Table
 from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, LP_METHODS, PCFA_OPTIMIZERS, AttackJob,
                                lp_pass_name, parse_target, plan_lp, run_attack)
 from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
+from weathergen.attack.record import settings_text
 from weathergen.datasets import in_research_frame
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
@@ -66,7 +67,10 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
             ("EPE weather / clear pixels", pair("epe_weather_px", "epe_clear_px")),
             ("Fl-all; outliers > 1, 3, 5 px (%)",
              f"{_fmt(summary['fl_all'], 2)}; " + ", ".join(
-                 _fmt(summary[f"outliers_{n}px"], 2) for n in (1, 3, 5)))]
+                 _fmt(summary[f"outliers_{n}px"], 2) for n in (1, 3, 5))),
+            ("robust EPE; Fl, 1px (%) vs clean flow (RobustSpring)",
+             f"{_fmt(summary.get('robust_epe'))}; {_fmt(summary.get('robust_fl'), 2)}, "
+             f"{_fmt(summary.get('robust_1px'), 2)}")]
 
 
 @click.command(epilog=job_exit_codes(every_failed=1))
@@ -288,6 +292,8 @@ def _run(job, model, label, target, steps, out, quiet):
                                     f"{target.describe()}{mode} (pixels)", summary,
                                     "weather" if job.lp is None else "perturbation",
                                     compat=compat_mode))
+        console.print(f"Settings: {settings_text(summary['settings'])}", highlight=False,
+                      soft_wrap=True)
         console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
                       soft_wrap=True)
     if failed:

@@ -9,12 +9,13 @@ from rich.console import Console
 from rich.table import Table
 
 from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
+from weathergen.attack.record import run_settings, settings_text
 from weathergen.engine import resolve_device
 from weathergen.models import get_model, resolve_amp
 from weathergen.datasets import load_scene_scales, open_dataset
 from weathergen.errors import ConfigError
 from weathergen.io.published_weather import is_published_set
-from weathergen.outputs import PublishedWeatherSet, WeatherFolder
+from weathergen.outputs import PublishedWeatherSet, WeatherFolder, read_manifest
 from weathergen.render import published_preset, resolve_preset
 
 from .attack import region_rows
@@ -43,7 +44,8 @@ def _fmt(value) -> str:
                    "folder name says (particles_3000_npz: particles-3000).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
               default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json (a network of "
-                   "your own: evaluate-<file stem>.<NAME>.json).")
+                   "your own: evaluate-<file stem>.<NAME>.json); for a published set, which is "
+                   "left as it is, evaluate-<set>-<model>.json in the working folder.")
 @device_option
 @quiet_option
 def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, dataset_name, root, pass_,
@@ -80,9 +82,14 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
     source = model.source()
     if source is not None:
         info["source"] = source
-    if isinstance(folder, PublishedWeatherSet):
+    published = isinstance(folder, PublishedWeatherSet)
+    if published:
         info["published"] = {"preset": folder.preset_name}
-    json_path = json_path or default_evaluation_path(weather_dir, model.label)
+    info["settings"] = run_settings(
+        model, checkpoint, iters=getattr(network, "iters", iters), amp=amp,
+        padding=network.padding,
+        seed=None if published else read_manifest(weather_dir, "weather").data.get("seed"))
+    json_path = json_path or default_evaluation_path(weather_dir, model.label, published)
     write_evaluation(json_path, info, rows, summary)
     if quiet:
         return
@@ -97,6 +104,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
     console.print(table)
     for label, value in region_rows(summary):
         console.print(f"{label}: {value}", highlight=False, soft_wrap=True)
+    console.print(f"Settings: {settings_text(info['settings'])}", highlight=False, soft_wrap=True)
     console.print(f"Figures: {json_path}", highlight=False, soft_wrap=True)
 
 

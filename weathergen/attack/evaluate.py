@@ -129,8 +129,12 @@ def mean_rows(rows: list[EvalRow]) -> dict:
     return out
 
 
-def default_evaluation_path(weather: str | Path, model: str) -> Path:
-    """Where the figures go when no file is given: ``WEATHER/evaluate-<model>.json``."""
+def default_evaluation_path(weather: str | Path, model: str, published: bool = False) -> Path:
+    """Where the figures go when no file is given: ``WEATHER/evaluate-<model>.json`` beside a
+    weathergen output; for a published set of the paper's weather (someone else's data, left as
+    it is) ``evaluate-<set>-<model>.json`` in the working folder."""
+    if published:
+        return Path(f"evaluate-{Path(weather).resolve().name}-{model}.json")
     return Path(weather) / f"evaluate-{model}.json"
 
 

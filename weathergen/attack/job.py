@@ -25,13 +25,15 @@ import torch
 from ..datasets import Dataset
 from ..engine import CombinedPreset, render_pair
 from ..engine.sampling.budget import check_pair_memory
-from ..errors import ConfigError, WeatherGenError
+from ..errors import ConfigError, OutputError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
+from ..io.atomic import write_error
 from ..io.images import to_uint8
 from ..memory import failure_message
+from ..words import counted
 from ..models import Network, get_model, probe_network, resolve_amp, resolve_network
-from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
+from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
 from ..jobs import (frame2_note, layer_seeds, pair_particles, pair_seed,
@@ -39,7 +41,8 @@ from ..jobs import (frame2_note, layer_seeds, pair_particles, pair_seed,
                     visibility_of, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
-from .settings import AttackSettings
+from .record import run_settings
+from .settings import ATMOSPHERE_VARIABLES, AttackSettings
 from .targets import TargetSpec, read_target_flow
 
 
@@ -246,7 +249,10 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
         write = write_lp_pair if job.lp is not None else write_attacked_pair
         for (ref, pair, _, spent), result in zip(group, results):
             begin = time.perf_counter()
-            summary = write(job, model, pair, result, device)
+            try:
+                summary = write(job, model, pair, result, device)
+            except OSError as exc:      # a full or unwritable disk stops the run, as render's
+                raise write_error(exc, job.out, "then rerun with ${resume}") from None
             summary.seconds = spent + share + time.perf_counter() - begin
             reports[ref.id.key] = PairReport(str(ref.id), "written", summary, key=ref.id.key,
                                              ran=ran, warnings=list(pair.meta.get("warnings", [])),
@@ -325,7 +331,37 @@ def run_summary(job: AttackJob, rows: list[PairSummary]) -> dict:
     attack's ``compat`` mode (None for an Lp attack) and the precision the network ran in
     (``amp``: mixed precision on CUDA)."""
     return {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None,
-            "amp": job.amp_setting()}
+            "amp": job.amp_setting(), "settings": job_settings(job)}
+
+
+def job_settings(job: AttackJob) -> dict:
+    """The run's settings record (:func:`~weathergen.attack.record.run_settings`): the network as
+    the job runs it, the steps and the learning rates of its optimiser (the particles' ``lr``,
+    the atmosphere's where it is freed; an Lp attack's ``lr``), its seed."""
+    if job.lp is not None:
+        steps, rates = job.lp.steps, {"lr": job.lp.lr}
+    else:
+        steps, rates = job.settings.steps, {"lr": job.settings.learning_rate}
+        if any(v in ATMOSPHERE_VARIABLES for v in job.settings.optimize):
+            rates["atmosphere_lr"] = job.settings.atmosphere_learning_rate
+    return run_settings(job.model, job.checkpoint, iters=job.iters, amp=job.amp_setting(),
+                        padding=getattr(job.dataset, "padding", "even"), steps=steps,
+                        learning_rates=rates, seed=job.seed)
+
+
+def _last_save(save, run: dict, stopped_by) -> None:
+    """Write the manifest at the end of a run; when the disk refuses, say so without hiding why
+    the run stopped (as render does): a write that failed first keeps its message, with the
+    manifest's added; an interruption or a bug goes through as it is."""
+    try:
+        save()
+    except OutputError as exc:
+        if stopped_by is None:
+            raise
+        if isinstance(stopped_by, OutputError) and str(stopped_by) != str(exc):
+            raise OutputError(f"{stopped_by.args[0]}; the manifest could not be updated either; "
+                              f"${{resume}} finds the {counted(run['written'], 'pair')} "
+                              f"finished in this run on disk") from None
 
 
 def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
@@ -407,9 +443,11 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
     def save():
         ordered = {k: pairs_entry[k] for k in order if k in pairs_entry}
         ordered.update({k: v for k, v in pairs_entry.items() if k not in ordered})
-        write_attack_manifest(job.out, config, ordered,
-                              run_summary(job, [summaries[k] for k in order if k in summaries]),
-                              runs)
+        try:
+            write_attack_manifest(job.out, config, ordered, run_summary(
+                job, [summaries[k] for k in order if k in summaries]), runs)
+        except OSError as exc:
+            raise write_error(exc, job.out / MANIFEST, "then rerun with ${resume}") from None
 
     def record(report: PairReport):
         if report.status == "failed":
@@ -433,7 +471,7 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
 
     on_start(len(refs))
     t0 = time.perf_counter()
-    todo = []
+    todo, stopped_by = [], None
     try:
         for ref in refs:
             out = pair_output(job, ref.id)
@@ -454,9 +492,12 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
             for report in reports:
                 record(report)
             save()
+    except BaseException as exc:
+        stopped_by = exc
+        raise
     finally:
         run["seconds"] = round(time.perf_counter() - t0, 3)
-        save()
+        _last_save(save, run, stopped_by)
     note = frame2_note([(r.pair, r.visible) for r in written if r.few_in_frame2], job.preset_name)
     if note is not None:
         on_note(note)
