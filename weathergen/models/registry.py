@@ -26,7 +26,7 @@ from typing import Callable, Optional, Union
 import torch
 
 from ..errors import ConfigError
-from .base import FlowModel
+from .base import PRECISIONS, FlowModel
 from .checkpoints import CheckpointSpec, resolve_named
 from .external import (check_network, entry_point, entry_points, external_network, is_external,
                        network_source, spec_label, supports_amp)
@@ -49,6 +49,9 @@ class ModelSpec:
             the parts their code runs under it), which ``amp`` switches on.
         amp: the paper's configuration runs the network in mixed precision on CUDA: the
             default of ``--amp`` there (on the CPU mixed precision is always off).
+        precision_bound: the largest RMS difference (pixels) from the float32 flow that a
+            precision may make on the demo scene (``speed/bench_precision.py``, docs/models.md).
+        refused_precisions: the precisions whose measured difference exceeds that bound.
     """
 
     name: str
@@ -57,6 +60,8 @@ class ModelSpec:
     description: str = ""
     mixed_precision: bool = False
     amp: bool = False
+    precision_bound: float = 0.1
+    refused_precisions: tuple = ()
 
     def __post_init__(self):
         if self.amp and not self.mixed_precision:
@@ -188,6 +193,36 @@ def resolve_amp(name: str, requested: Optional[bool],
     return spec.amp if requested is None else bool(requested)
 
 
+def resolve_precision(name: str, precision: Optional[str], amp: Optional[bool],
+                      device: Union[str, torch.device, None]) -> str:
+    """The precision network ``name`` runs in (one of :data:`~weathergen.models.base.PRECISIONS`).
+
+    ``precision`` as asked (``--precision``), or None for ``amp``'s answer (:func:`resolve_amp`:
+    ``fp16`` where mixed precision is on, else ``float32``).
+
+    Raises:
+        ConfigError: both given; an unknown precision; ``tf32`` off CUDA; a precision refused
+            for the network (its flow differs from float32's by more than its bound); what
+            :func:`resolve_amp` refuses.
+    """
+    if precision is None:
+        return "fp16" if resolve_amp(name, amp, device) else "float32"
+    if amp is not None:
+        raise ConfigError("${precision} and ${amp} are exclusive: give one (--amp is the authors' "
+                          "fp16 autocast on CUDA)")
+    if precision not in PRECISIONS:
+        raise ConfigError(f"${{precision}} must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    spec = model_spec(name if is_external_name(name) else _architecture_of(name))
+    kind = torch.device(device).type if device is not None else "cpu"
+    if precision == "tf32" and kind != "cuda":
+        raise ConfigError(f"${{precision}} tf32 needs a CUDA device (device {device or 'cpu'})")
+    if precision in spec.refused_precisions:
+        raise ConfigError(f"${{precision}} {precision} is refused for {spec.name!r}: its flow differs "
+                          f"from float32's by more than its bound, {spec.precision_bound:g} px RMS "
+                          f"(docs/models.md)")
+    return precision
+
+
 def _architecture_of(name: str) -> str:
     if name in _MODELS:
         return name
@@ -208,7 +243,8 @@ def build_model(name: str, iters: Optional[int] = None,
 def get_model(name: str, checkpoint: Union[str, Path, None] = None,
               device: Union[str, torch.device] = "cpu", iters: Optional[int] = None, *,
               download: bool = False, gradient_checkpointing: bool = False,
-              timeout: float = 60.0, amp: bool = False) -> FlowModel:
+              timeout: float = 60.0, amp: bool = False,
+              precision: Optional[str] = None) -> FlowModel:
     """A flow network with trained weights, ready to call as ``model(image1, image2)``.
 
     Args:
@@ -221,8 +257,10 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
         gradient_checkpointing: recompute activations in the backward pass instead of
             keeping them (less memory for attacks, more time).
         timeout: seconds a download may stall before it is given up.
-        amp: run the network in its authors' mixed precision on CUDA (see :func:`resolve_amp`
-            for the paper's setting per network); has no effect on other devices.
+        amp: run the network in its authors' mixed precision (fp16 autocast; see
+            :func:`resolve_amp` for the paper's setting per network).
+        precision: one of :data:`~weathergen.models.base.PRECISIONS` (checked by
+            :func:`resolve_precision`), instead of ``amp``.
 
     The returned model is in evaluation mode and its parameters do not require gradients;
     gradients still flow to the input images.
@@ -233,7 +271,8 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
         FormatError: the checkpoint file is unreadable or does not fit the architecture.
     """
     if name not in _MODELS and name not in _CHECKPOINTS and is_external_name(name):
-        return _get_external(name, checkpoint, device, iters, gradient_checkpointing, amp)
+        model = _get_external(name, checkpoint, device, iters, gradient_checkpointing, amp)
+        return _in_precision(model, name, precision, device)
     if name in _MODELS:
         arch = name
         if checkpoint is None:
@@ -255,7 +294,14 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
     model.amp = bool(amp)
     model.load_checkpoint(model.read_checkpoint(path), source=path, what=what)
     model.requires_grad_(False)
-    return model.to(device).eval()
+    return _in_precision(model.to(device).eval(), name, precision, device)
+
+
+def _in_precision(model: FlowModel, name: str, precision: Optional[str], device) -> FlowModel:
+    """``model`` set to run in ``precision`` (checked for ``name`` on ``device``) where given."""
+    if precision is not None:
+        model.precision = resolve_precision(name, precision, None, device)
+    return model
 
 
 def _get_external(name: str, checkpoint, device, iters, gradient_checkpointing: bool,
