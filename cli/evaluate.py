@@ -10,7 +10,8 @@ from rich.table import Table
 
 from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
 from weathergen.engine import resolve_device
-from weathergen.models import canonical_network, get_model, network_label, network_record, resolve_amp
+from weathergen.models import (AUTOCAST, canonical_network, get_model, network_label, network_record,
+                               resolve_precision)
 from weathergen.datasets import load_scene_scales, open_dataset
 from weathergen.errors import ConfigError
 from weathergen.io.published_weather import is_published_set
@@ -46,7 +47,7 @@ def _fmt(value) -> str:
                    "your own: evaluate-<file stem>.<NAME>.json).")
 @device_option
 @quiet_option
-def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name, root, pass_,
+def evaluate(weather_dir, model, checkpoint, iters, download, amp, precision, dataset_name, root, pass_,
              preset, json_path, device, quiet):
     """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
 
@@ -56,7 +57,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
     weather flow. All figures are in pixels, rates in percent.
     """
     resolve_device(device)
-    amp = resolve_amp(model, amp, device)
+    precision = resolve_precision(model, precision, amp, device)
     if is_published_set(weather_dir):
         folder = open_published(weather_dir, preset, dataset_name, root, pass_)
     else:
@@ -65,7 +66,8 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
                                    "weathergen folder records its preset")
         folder = WeatherFolder.open(weather_dir)
     dataset = folder.clean_dataset(dataset_name, root, pass_)
-    network = get_model(model, checkpoint, device=device, iters=iters, download=download, amp=amp)
+    network = get_model(model, checkpoint, device=device, iters=iters, download=download,
+                        precision=precision)
     console = Console()
 
     def on_pair(row):
@@ -74,7 +76,8 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
                           soft_wrap=True)
 
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
-    info = {"model": canonical_network(model), "checkpoint": checkpoint, "iters": iters, "amp": amp,
+    info = {"model": canonical_network(model), "checkpoint": checkpoint, "iters": iters,
+            "amp": precision in AUTOCAST, "precision": precision,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
     source = network_record(model)
     if source is not None:
