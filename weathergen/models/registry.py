@@ -270,9 +270,11 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
             missing file (the message says which file to put where), an unusable device.
         FormatError: the checkpoint file is unreadable or does not fit the architecture.
     """
+    if precision is not None:       # checked before any weights are read
+        precision = resolve_precision(name, precision, None, device)
     if name not in _MODELS and name not in _CHECKPOINTS and is_external_name(name):
         model = _get_external(name, checkpoint, device, iters, gradient_checkpointing, amp)
-        return _in_precision(model, name, precision, device)
+        return _in_precision(model, precision)
     if name in _MODELS:
         arch = name
         if checkpoint is None:
@@ -294,13 +296,13 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
     model.amp = bool(amp)
     model.load_checkpoint(model.read_checkpoint(path), source=path, what=what)
     model.requires_grad_(False)
-    return _in_precision(model.to(device).eval(), name, precision, device)
+    return _in_precision(model.to(device).eval(), precision)
 
 
-def _in_precision(model: FlowModel, name: str, precision: Optional[str], device) -> FlowModel:
-    """``model`` set to run in ``precision`` (checked for ``name`` on ``device``) where given."""
+def _in_precision(model: FlowModel, precision: Optional[str]) -> FlowModel:
+    """``model`` set to run in ``precision`` where one is given."""
     if precision is not None:
-        model.precision = resolve_precision(name, precision, None, device)
+        model.precision = precision
     return model
 
 
