@@ -524,7 +524,7 @@ class PairOptimisation(BatchOptimisation):
 def _stalled(settings: AttackSettings, history: list, loss: torch.Tensor) -> bool:
     """Whether ``settings.early_stop`` ends, at a step of ``loss``, a pair with ``history``."""
     stop = settings.early_stop
-    return stop is not None and stop.stalled([r.loss for r in history] + [float(loss)])
+    return stop is not None and stop.stalled([r.loss for r in history] + [float(loss.detach())])
 
 
 def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: Sequence,
