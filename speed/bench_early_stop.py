@@ -9,8 +9,9 @@ full run's per-step loss and distance; the first setting is also run for the fir
 checked against them. The AEE(f, f̌) compared is the one of the best step's float frames
 (``StepRecord.robustness``). RAFT-small runs with its shipped checkpoint, SpyNet with random
 weights (seed 0; its checkpoint is not shipped). The last line, ``figures: {...}``, holds every
-figure as JSON; ``step_fraction`` of each network (the first setting's share of the full budget's
-pair-steps) is what ``speed/bench_tables.py --from-figures`` applies to the weather attacks.
+figure as JSON; ``step_fraction`` of each network with trained weights (the first setting's share
+of the full budget's pair-steps) is what ``speed/bench_tables.py --from-figures`` applies to the
+weather attacks.
 
     python speed/bench_early_stop.py
     python speed/bench_early_stop.py --steps 60 --settings 10:0.001 20:0.01
@@ -103,9 +104,9 @@ def main(argv=None) -> int:
     parser.add_argument("--models", nargs="+", default=["raft-small", "spynet"])
     parser.add_argument("--settings", nargs="+", default=["10:0.001", "20:0.001", "20:0.01"],
                         help="WINDOW:TOL settings; the first gives the figures line")
-    parser.add_argument("--steps", type=int, default=80, help="the full budget")
-    parser.add_argument("--pairs", type=int, default=3, help="demo pairs")
-    parser.add_argument("--size", default="128x96", help="WIDTHxHEIGHT of the demo crops")
+    parser.add_argument("--steps", type=int, default=60, help="the full budget")
+    parser.add_argument("--pairs", type=int, default=2, help="demo pairs")
+    parser.add_argument("--size", default="96x64", help="WIDTHxHEIGHT of the demo crops")
     parser.add_argument("--iters", type=int, default=6, help="refinement iterations")
     parser.add_argument("--count", type=int, default=300, help="snow particles")
     args = parser.parse_args(argv)
@@ -128,7 +129,7 @@ def main(argv=None) -> int:
                   f"{s['step_fraction']:.0%} | {s['aee_full']:.3f} | {s['aee_early']:.3f} | "
                   f"{s['aee_change']:+.3f} |", flush=True)
         figures[name] = {**summary(result, str(settings[0]), args.steps), "setting": str(settings[0]),
-                         "budget": args.steps, "pairs": result["pairs"]}
+                         "budget": args.steps, "weights": result["weights"], "pairs": result["pairs"]}
     print("\nfigures: " + json.dumps(figures, sort_keys=True))
     return 0
 

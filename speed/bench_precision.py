@@ -132,9 +132,9 @@ def main(argv=None) -> int:
     parser.add_argument("--models", nargs="+", default=list(NETWORKS), choices=available_models())
     parser.add_argument("--precisions", nargs="+", default=list(CPU_PRECISIONS),
                         choices=CPU_PRECISIONS)
-    parser.add_argument("--size", default="128x96", help="WIDTHxHEIGHT of the demo crop")
+    parser.add_argument("--size", default="96x64", help="WIDTHxHEIGHT of the demo crop")
     parser.add_argument("--iters", type=int, default=4, help="refinement iterations")
-    parser.add_argument("--steps", type=int, default=4, help="attack steps")
+    parser.add_argument("--steps", type=int, default=2, help="attack steps")
     parser.add_argument("--count", type=int, default=300, help="snow particles")
     args = parser.parse_args(argv)
     width, height = (int(v) for v in args.size.split("x"))

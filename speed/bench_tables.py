@@ -544,13 +544,16 @@ def session_throughputs(path: Path) -> dict[str, dict[str, Throughput]]:
 
 def step_fractions(path: Path) -> dict[str, float]:
     """Per network, the share of the full budget's pair-steps an attack with early stopping ran:
-    the ``figures:`` line of ``speed/bench_early_stop.py``'s section of the figures file."""
+    the ``figures:`` line of ``speed/bench_early_stop.py``'s section of the figures file, its
+    networks with trained weights only (random weights' flat losses say nothing of a trained
+    network's)."""
     sections = json.loads(Path(path).read_text()).get("sections", {}) if Path(path).exists() else {}
     for command, section in sections.items():
         if "bench_early_stop.py" in command:
             for line in section.get("output", "").splitlines():
                 if line.startswith("figures: "):
-                    return {n: f["step_fraction"] for n, f in json.loads(line[9:]).items()}
+                    return {n: f["step_fraction"] for n, f in json.loads(line[9:]).items()
+                            if f.get("weights") != "random weights"}
     return {}
 
 

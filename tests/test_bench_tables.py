@@ -179,7 +179,9 @@ def session_file(tmp_path):
 
 
 def bench_file(tmp_path, fractions):
-    line = "figures: " + json.dumps({n: {"step_fraction": f} for n, f in fractions.items()})
+    line = "figures: " + json.dumps({**{n: {"step_fraction": f, "weights": "shipped checkpoint"}
+                                        for n, f in fractions.items()},
+                                     "spynet": {"step_fraction": 0.1, "weights": "random weights"}})
     data = {"sections": {"python speed/bench_early_stop.py": {"output": f"a table\n{line}\n"}}}
     path = tmp_path / "bench.json"
     path.write_text(json.dumps(data))
