@@ -124,7 +124,12 @@ def test_float32_parts_keep_float64_for_gradient_checks():
         assert double(torch.ones(2, dtype=torch.bfloat16), 2.0).dtype == torch.float32
 
 
-@pytest.mark.parametrize("name", available_models())
+#: Networks whose reduced-precision convolutions are slow on a CPU (no bfloat16/float16 units).
+SLOW_ON_CPU = ("flownet2", "spynet", "spynet-sniklaus")
+
+
+@pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.slow) if n in SLOW_ON_CPU
+                                  else n for n in available_models()])
 def test_the_flow_in_each_accepted_precision_is_within_the_networks_bound(name):
     spec = model_spec(name)
     torch.manual_seed(0)
