@@ -393,6 +393,8 @@ def measure(bench: Bench, name: str, precision: str, options: Options = Options(
     setting = precision_settings(name, precision, bench.device, anywhere)
     result = Measured(name, precision, options.label())
     cuda = bench.device.startswith("cuda")
+    old_tf32 = torch.backends.cuda.matmul.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = setting == "tf32"   # the backward passes too
     model = run = best_run = None
     try:
         model = bench.model(name, setting, options)
@@ -436,6 +438,7 @@ def measure(bench: Bench, name: str, precision: str, options: Options = Options(
             result.forward = result.best_batch / timed(bench.forward_only(model, best_run),
                                                        bench.device, bench.sizes.steps)
     finally:
+        torch.backends.cuda.matmul.allow_tf32 = old_tf32
         del model, run, best_run
         if cuda:
             torch.cuda.empty_cache()

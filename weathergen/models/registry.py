@@ -300,7 +300,10 @@ def get_model(name: str, checkpoint: Union[str, Path, None] = None,
 
 
 def _in_precision(model: FlowModel, precision: Optional[str]) -> FlowModel:
-    """``model`` set to run in ``precision`` where one is given."""
+    """``model`` set to run in ``precision`` where one is given. TF32 is switched on for the
+    process, so that the backward passes (outside the network's forward) run in it too."""
+    if precision == "tf32":
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
     if precision is not None:
         model.precision = precision
     return model
