@@ -546,8 +546,9 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
         device: where rendering and the network run (default: the model's device).
         on_step: called with the pair's index and every :class:`StepRecord` of that pair.
     Returns: one :class:`AttackResult` per pair, each as :func:`attack_pair` gives it for that
-    pair alone (best step, history, freeze when nothing of the pair is visible); a record's
-    ``seconds`` is the time of the batched step.
+    pair alone (best step, history, freeze when nothing of the pair is visible, the end of a
+    pair whose loss has converged under ``settings.early_stop``); a record's ``seconds`` is the
+    time of the batched step.
     """
     run = BatchOptimisation(model, pairs, particles, settings, target, device=device,
                             target_file_flow=target_file_flow)
