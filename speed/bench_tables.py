@@ -573,6 +573,7 @@ def precision_hours(runs: list[Run], by_precision: dict[str, dict[str, Throughpu
             full, early = table_hours(runs, tp), table_hours(runs, tp, fraction)
             rows.append({"network": name, "precision": precision, "pair_steps_per_second": tp.attack,
                          "step_fraction": fraction, "measured_fraction": name in fractions,
+                         "fraction_of": name if name in fractions else ", ".join(fractions) or "-",
                          "table4": full["4"], "total": full["total"],
                          "table4_early": early["4"], "total_early": early["total"],
                          "source": tp.source})
@@ -595,7 +596,8 @@ def precision_report(rows: list[dict], target_hours: float = 4.0) -> str:
              "early stopping | Table 4 h, early stopping | all tables h, early stopping |",
              "|---|---|---:|---:|---:|---:|---:|---:|"]
     for r in rows:
-        share = f"{r['step_fraction']:.0%}" + ("" if r["measured_fraction"] else " (mean)")
+        share = f"{r['step_fraction']:.0%}" + ("" if r["measured_fraction"] else
+                                               f" (of {r['fraction_of']})")
         lines.append(f"| {r['network']} | {r['precision']} | {r['pair_steps_per_second']:.2f} | "
                      f"{r['table4']:.1f} | {r['total']:.1f} | {share} | {r['table4_early']:.1f} | "
                      f"{r['total_early']:.1f} |")
