@@ -146,7 +146,9 @@ def test_precisions_that_do_not_apply_are_refused(bt, monkeypatch):
     assert bt.precision_settings("gma", "paper", "cuda") == "fp16"     # the paper's GMA
     assert bt.precision_settings("raft", "float32", "cpu") == "float32"
     assert bt.precision_settings("raft", "amp", "cuda") == "fp16"
-    assert bt.precision_settings("flowformer", "bf16", "cpu") == "bf16"   # autocast on the CPU
+    assert bt.precision_settings("gma", "bf16", "cpu") == "bf16"   # autocast on the CPU
+    with pytest.raises(ValueError, match="refused for 'flowformer'"):   # beyond its bound
+        bt.precision_settings("flowformer", "bf16", "cuda")
     for precision in ("amp", "tf32"):
         with pytest.raises(ValueError, match="CUDA"):
             bt.precision_settings("raft", precision, "cpu")

@@ -554,10 +554,11 @@ class FlowFormerModel(IteratedFlowModel):
 FLOWFORMER_RELEASE_PAGE = \
     "https://drive.google.com/drive/folders/1K2dcWxaqOLiQ3PoqRdokrgWsGIf3yBA_"
 
+# bf16's flow measured beyond the bound on the demo (speed/bench_precision.py): refused.
 register_model(ModelSpec(
     name="flowformer", build=FlowFormerModel, default_checkpoint="flowformer-sintel",
     description="FlowFormer (Huang et al., ECCV 2022), cost-volume transformer with a "
-                "Twins-SVT encoder, 16.2M parameters"))
+                "Twins-SVT encoder, 16.2M parameters", refused_precisions=("bf16",)))
 
 for _stage, _description in [
         ("chairs", "FlowFormer trained on FlyingChairs"),
