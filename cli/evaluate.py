@@ -11,7 +11,7 @@ from rich.table import Table
 from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
 from weathergen.attack.record import run_settings, settings_text
 from weathergen.engine import resolve_device
-from weathergen.models import get_model, resolve_amp
+from weathergen.models import AUTOCAST, get_model, resolve_precision
 from weathergen.datasets import load_scene_scales, open_dataset
 from weathergen.errors import ConfigError
 from weathergen.io.published_weather import is_published_set
@@ -48,7 +48,8 @@ def _fmt(value) -> str:
                    "left as it is, evaluate-<set>-<model>.json in the working folder.")
 @device_option
 @quiet_option
-def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, dataset_name, root, pass_,
+def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, precision, dataset_name,
+             root, pass_,
              preset, json_path, device, quiet):
     """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
 
@@ -59,7 +60,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
     """
     resolve_device(device)
     model = resolve_model(model, model_input)
-    amp = resolve_amp(model, amp, device)
+    precision = resolve_precision(model, precision, amp, device)
     if is_published_set(weather_dir):
         folder = open_published(weather_dir, preset, dataset_name, root, pass_)
     else:
@@ -68,7 +69,8 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
                                    "weathergen folder records its preset")
         folder = WeatherFolder.open(weather_dir)
     dataset = folder.clean_dataset(dataset_name, root, pass_)
-    network = get_model(model, checkpoint, device=device, iters=iters, download=download, amp=amp)
+    network = get_model(model, checkpoint, device=device, iters=iters, download=download,
+                        precision=precision)
     console = Console()
 
     def on_pair(row):
@@ -77,7 +79,8 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
                           soft_wrap=True)
 
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
-    info = {"model": model.name, "checkpoint": checkpoint, "iters": iters, "amp": amp,
+    info = {"model": model.name, "checkpoint": checkpoint, "iters": iters,
+            "amp": precision in AUTOCAST, "precision": precision,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
     source = model.source()
     if source is not None:
@@ -86,7 +89,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
     if published:
         info["published"] = {"preset": folder.preset_name}
     info["settings"] = run_settings(
-        model, checkpoint, iters=getattr(network, "iters", iters), amp=amp,
+        model, checkpoint, iters=getattr(network, "iters", iters), precision=precision,
         padding=network.padding,
         seed=None if published else read_manifest(weather_dir, "weather").data.get("seed"))
     json_path = json_path or default_evaluation_path(weather_dir, model.label, published)

@@ -43,7 +43,7 @@ def test_the_settings_record_and_its_line(tmp_path):
     digest = hashlib.sha256(b"weights").hexdigest()
     assert record["checkpoint_sha256"] == digest
     assert record["precision"] == "float32" and record["crop"] == "none"
-    assert run_settings("raft", amp=True)["precision"] == "mixed"
+    assert run_settings("raft", precision="fp16")["precision"] == "fp16"
     line = settings_text(record)
     for words in ("network raft", f"sha256 {digest[:12]}", "iters 12", "float32", "padding even",
                   "crop none", "20 steps", "lr 1e-05", "seed 3"):

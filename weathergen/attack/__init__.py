@@ -33,7 +33,7 @@ from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisat
 from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack
 from .settings import (ATMOSPHERE_VARIABLES, DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE,
                        LR_ATMOSPHERE, LR_POSITIONS, OPTIMIZABLE, POSITION_VARIABLES, VARIABLES,
-                       AttackSettings, default_lr, default_optimize, parse_optimize,
+                       AttackSettings, EarlyStop, default_lr, default_optimize, parse_optimize,
                        transparency_bound)
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
@@ -43,6 +43,7 @@ __all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOp
            "lp_settings", "plan_lp",
            "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
            "ATMOSPHERE_VARIABLES", "ATTACK_CONFIGS", "AttackConfig", "AttackJob", "AttackResult", "AttackSettings",
+           "EarlyStop",
            "DEFAULT_ALPHA", "DEFAULT_STEPS", "EvalRow", "LR_APPEARANCE", "LR_ATMOSPHERE",
            "LR_POSITIONS", "VARIABLES", "default_optimize",
            "MIN_REG_DEPTH", "OPTIMIZABLE", "POSITION_VARIABLES", "PairOptimisation", "PairReport",

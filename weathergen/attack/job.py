@@ -32,7 +32,7 @@ from ..io.atomic import write_error
 from ..io.images import to_uint8
 from ..memory import failure_message
 from ..words import counted
-from ..models import Network, get_model, probe_network, resolve_amp, resolve_network
+from ..models import AUTOCAST, Network, get_model, probe_network, resolve_network, resolve_precision
 from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
@@ -69,6 +69,8 @@ class AttackJob:
     #: mixed precision as asked (``--amp``/``--no-amp``); None: the network's paper setting
     #: on CUDA, off elsewhere (see :meth:`amp_setting`)
     amp: Optional[bool] = None
+    #: the network's precision as asked (``--precision``, exclusive with ``amp``); None: ``amp``'s
+    precision: Optional[str] = None
     resume: bool = False
     overwrite: bool = False
     command: list = field(default_factory=list)
@@ -83,15 +85,19 @@ class AttackJob:
     def __post_init__(self):
         self.model = resolve_network(self.model)
 
-    def amp_setting(self) -> bool:
-        """Whether the network runs in mixed precision (:func:`~weathergen.models.resolve_amp`
-        of the job's network, request and device).
+    def precision_setting(self) -> str:
+        """The precision the network runs in (:func:`~weathergen.models.resolve_precision` of the
+        job's network, requests and device).
 
         Raises:
-            ConfigError: ``amp`` asked for on a device other than CUDA, or for a network
-                without a mixed-precision mode.
+            ConfigError: a request the device or the network cannot meet (``--amp`` off CUDA or
+                for a network without a mixed-precision mode, a refused ``--precision``).
         """
-        return resolve_amp(self.model, self.amp, self.device)
+        return resolve_precision(self.model, self.precision, self.amp, self.device)
+
+    def amp_setting(self) -> bool:
+        """Whether the network runs under autocast (:meth:`precision_setting` bf16 or fp16)."""
+        return self.precision_setting() in AUTOCAST
 
     def model_config(self) -> dict:
         """The network as recorded in the manifest: name, checkpoint, iterations, precision; for
@@ -101,6 +107,8 @@ class AttackJob:
         config = {"name": self.model.name, "checkpoint": str(self.checkpoint)
                   if self.checkpoint is not None else None, "iters": self.iters,
                   "amp": self.amp_setting()}
+        if self.precision is not None:      # asked for: recorded (a run without it resumes as before)
+            config["precision"] = self.precision_setting()
         return config if record is None else {**config, "source": record}
 
     def config(self) -> dict:
@@ -154,13 +162,14 @@ _LOADED: dict = {}
 def job_model(job: AttackJob, device: Optional[str] = None):
     """The job's network on ``device`` (default the job's), loaded once per process."""
     device = device or job.device
-    amp = resolve_amp(job.model, job.amp, device)
-    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, amp)
+    precision = resolve_precision(job.model, job.precision, job.amp, device)
+    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, precision)
     if key not in _LOADED:
         _LOADED.clear()                     # one network per process at a time
         _LOADED[key] = get_model(job.model, job.checkpoint, device=device, iters=job.iters,
                                  download=job.download,
-                                 gradient_checkpointing=job.gradient_checkpointing, amp=amp)
+                                 gradient_checkpointing=job.gradient_checkpointing,
+                                 precision=precision)
         _LOADED[key].padding = getattr(job.dataset, "padding", "even")  # the benchmark's protocol
     return _LOADED[key]
 
@@ -329,9 +338,10 @@ def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
 def run_summary(job: AttackJob, rows: list[PairSummary]) -> dict:
     """The run's summary (``summary.json``): the means over pairs (:func:`mean_summary`), the
     attack's ``compat`` mode (None for an Lp attack) and the precision the network ran in
-    (``amp``: mixed precision on CUDA)."""
+    (``amp``: under autocast; ``precision``: float32, tf32, bf16 or fp16)."""
     return {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None,
-            "amp": job.amp_setting(), "settings": job_settings(job)}
+            "amp": job.amp_setting(), "precision": job.precision_setting(),
+            "settings": job_settings(job)}
 
 
 def job_settings(job: AttackJob) -> dict:
@@ -344,7 +354,7 @@ def job_settings(job: AttackJob) -> dict:
         steps, rates = job.settings.steps, {"lr": job.settings.learning_rate}
         if any(v in ATMOSPHERE_VARIABLES for v in job.settings.optimize):
             rates["atmosphere_lr"] = job.settings.atmosphere_learning_rate
-    return run_settings(job.model, job.checkpoint, iters=job.iters, amp=job.amp_setting(),
+    return run_settings(job.model, job.checkpoint, iters=job.iters, precision=job.precision_setting(),
                         padding=getattr(job.dataset, "padding", "even"), steps=steps,
                         learning_rates=rates, seed=job.seed)
 
@@ -393,7 +403,7 @@ def run_attack(job: AttackJob,
     check_executor(job.executor)
     if job.batch_size < 1:
         raise ConfigError(f"${{batch_size}} must be >= 1 (got {job.batch_size})")
-    job.amp_setting()                      # a request the device or network cannot meet
+    job.precision_setting()                # a request the device or network cannot meet
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
     for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering

@@ -24,17 +24,17 @@ SETTINGS_KEYS = ("network", "checkpoint", "checkpoint_sha256", "iters", "precisi
 
 
 def run_settings(network: Network | str, checkpoint=None, *, iters: Optional[int] = None,
-                 amp: bool = False, padding: Optional[str] = None, steps: Optional[int] = None,
+                 precision: str = "float32", padding: Optional[str] = None, steps: Optional[int] = None,
                  learning_rates: Optional[Mapping[str, float]] = None,
                  seed: Optional[int] = None) -> dict:
     """The settings record (keys :data:`SETTINGS_KEYS`). ``iters``: as the network ran them (None:
-    its own default); ``amp``: mixed precision (precision ``mixed``, else ``float32``);
+    its own default); ``precision``: the network's arithmetic (:data:`~weathergen.models.PRECISIONS`);
     ``padding``: where padding rows go (the dataset's protocol, ``even`` or ``bottom``)."""
     network = network if isinstance(network, Network) else resolve_network(network)
     return {"network": network.name,
             "checkpoint": None if checkpoint is None else str(checkpoint),
             "checkpoint_sha256": checkpoint_sha256(network, checkpoint),
-            "iters": iters, "precision": "mixed" if amp else "float32", "padding": padding,
+            "iters": iters, "precision": precision, "padding": padding,
             "crop": "none", "steps": steps,
             "learning_rates": dict(learning_rates) if learning_rates else None, "seed": seed}
 

@@ -24,12 +24,12 @@ then the tables are written from the per-run ``summary.json`` files (:mod:`.tabl
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Mapping, Optional, Sequence
 
-from ..attack import (ATTACK_CONFIGS, LP_METHODS, AttackConfig, AttackJob, job_model, lp_pass_name,
-                      lp_settings, probe_job_network, run_attack)
+from ..attack import (ATTACK_CONFIGS, LP_METHODS, AttackConfig, AttackJob, EarlyStop, job_model,
+                      lp_pass_name, lp_settings, probe_job_network, run_attack)
 from ..attack.plan import attack_pass_name, plan_attack
 from ..datasets import Dataset, reopen_dataset
 from ..engine import list_presets
@@ -93,6 +93,8 @@ class BenchmarkSpec:
     device: str = "cpu"
     download: bool = False
     amp: Optional[bool] = None           # mixed precision; None: each network's paper setting
+    precision: Optional[str] = None      # float32, tf32, bf16, fp16; None: as amp
+    early_stop: Optional[EarlyStop] = None   # the weather attacks' convergence; None: every step
     command: list = field(default_factory=list)
     compat: str = "paper"                # the weather attacks' terms (paper or reference)
     #: severity ladders (``snow``: snow-light, snow-moderate, snow-heavy), their rungs run as
@@ -169,7 +171,7 @@ def cell_job(spec: BenchmarkSpec, cell: Cell) -> AttackJob:
     common = dict(dataset=spec.dataset, out=cell.folder(spec.out), model=spec.resolved[cell.network],
                   checkpoint=spec.checkpoints.get(cell.network), iters=spec.iters,
                   seed=spec.seed, device=spec.device, download=spec.download, amp=spec.amp,
-                  resume=True, command=list(spec.command))
+                  precision=spec.precision, resume=True, command=list(spec.command))
     input_pass = spec.dataset.selection.pass_
     if cell.kind == "lp":
         return AttackJob(preset=None, preset_name=cell.label, settings=None,
@@ -179,7 +181,8 @@ def cell_job(spec: BenchmarkSpec, cell: Cell) -> AttackJob:
     config = cell.label if label_config(cell.label) is not None else None
     plan = plan_attack(config, None if config else cell.label, dict(spec.overrides),
                        compat=spec.compat, **kwargs)
-    return AttackJob(preset=plan.preset, preset_name=plan.preset_name, settings=plan.settings,
+    return AttackJob(preset=plan.preset, preset_name=plan.preset_name,
+                     settings=replace(plan.settings, early_stop=spec.early_stop),
                      config_name=config, pass_name=attack_pass_name(plan.preset_name, input_pass),
                      **common)
 
@@ -217,7 +220,7 @@ def run_grid(spec: BenchmarkSpec, shard: Optional[tuple[int, int]] = None,
     cells = shard_cells(spec.cells(), shard)
     jobs = [cell_job(spec, c) for c in cells]
     for job in jobs:
-        job.amp_setting()                   # --amp for a network or device without it
+        job.precision_setting()             # a precision the network or device cannot run
     for job in {job.model: job for job in jobs if job.model.external}.values():
         refs = job.dataset.pairs()
         try:

@@ -34,7 +34,7 @@ from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
 from ..errors import ConfigError, WeatherGenError
-from .base import FlowModel, mixed_precision
+from .base import FlowModel, autocast_mode, mixed_precision
 from .checkpoints import load_strict
 
 #: The entry-point group through which installed distributions offer networks.
@@ -264,8 +264,9 @@ class ModuleFlowModel(FlowModel):
 
     The module sees the frames in its input convention (``convention``, a key of
     :data:`INPUT_CONVENTIONS`: RGB in ``[0, 1]`` by default), padded to its ``multiple`` (and at
-    least ``min_size``), and answers the flow ``(B, 2, H, W)`` in pixels. With ``amp`` (CUDA
-    only) it runs under CUDA autocast and its flow is taken back to float32; with
+    least ``min_size``), and answers the flow ``(B, 2, H, W)`` in pixels. In ``bf16``/``fp16``
+    (:attr:`~weathergen.models.base.FlowModel.precision`) it runs under autocast and its flow is
+    taken back to float32; with
     ``gradient_checkpointing`` and a module without its own (no ``gradient_checkpointing``
     attribute) its whole forward pass is recomputed in the backward pass.
     """
@@ -291,12 +292,12 @@ class ModuleFlowModel(FlowModel):
         return image * top if top != 1 else image
 
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        with mixed_precision(self.amp and image1.is_cuda):
+        with mixed_precision(autocast_mode(self.precision, image1)):
             if self.recompute and torch.is_grad_enabled():
                 flow = recompute(self.network, image1, image2, use_reentrant=False)
             else:
                 flow = self.network(image1, image2)
-        if isinstance(flow, torch.Tensor) and flow.dtype == torch.float16 and self.amp:
+        if isinstance(flow, torch.Tensor) and flow.dtype in (torch.float16, torch.bfloat16):
             return flow.float()
         return flow                     # its type and shape are checked by FlowModel.forward
 

@@ -27,7 +27,7 @@ from typing import Callable, Optional, Union
 import torch
 
 from ..errors import ConfigError
-from .base import FlowModel
+from .base import PRECISIONS, FlowModel
 from .checkpoints import CheckpointSpec, resolve_named
 from .external import (build_external, declared_input, entry_points, is_adapter, is_external,
                        load_source, network_label, probe_network)
@@ -50,6 +50,9 @@ class ModelSpec:
             the parts their code runs under it), which ``amp`` switches on.
         amp: the paper's configuration runs the network in mixed precision on CUDA: the
             default of ``--amp`` there (on the CPU mixed precision is always off).
+        precision_bound: the largest RMS difference (pixels) from the float32 flow that a
+            precision may make on the demo scene (``speed/bench_precision.py``, docs/models.md).
+        refused_precisions: the precisions whose measured difference exceeds that bound.
     """
 
     name: str
@@ -58,6 +61,8 @@ class ModelSpec:
     description: str = ""
     mixed_precision: bool = False
     amp: bool = False
+    precision_bound: float = 0.1
+    refused_precisions: tuple = ()
 
     def __post_init__(self):
         if self.amp and not self.mixed_precision:
@@ -234,6 +239,38 @@ def resolve_amp(name, requested: Optional[bool], device: Union[str, torch.device
     return network.amp if requested is None else bool(requested)
 
 
+def resolve_precision(name, precision: Optional[str], amp: Optional[bool],
+                      device: Union[str, torch.device, None]) -> str:
+    """The precision network ``name`` (a name or a :class:`Network`) runs in (one of
+    :data:`~weathergen.models.base.PRECISIONS`).
+
+    ``precision`` as asked (``--precision``), or None for ``amp``'s answer (:func:`resolve_amp`:
+    ``fp16`` where mixed precision is on, else ``float32``).
+
+    Raises:
+        ConfigError: both given; an unknown precision; ``tf32`` off CUDA; a precision refused
+            for the network (its flow differs from float32's by more than its bound); what
+            :func:`resolve_amp` refuses.
+    """
+    if precision is None:
+        return "fp16" if resolve_amp(name, amp, device) else "float32"
+    if amp is not None:
+        raise ConfigError("${precision} and ${amp} are exclusive: give one (--amp is the authors' "
+                          "fp16 autocast on CUDA)")
+    if precision not in PRECISIONS:
+        raise ConfigError(f"${{precision}} must be one of {', '.join(PRECISIONS)}, got {precision!r}")
+    network = resolve_network(name)
+    kind = torch.device(device).type if device is not None else "cpu"
+    if precision == "tf32" and kind != "cuda":
+        raise ConfigError(f"${{precision}} tf32 needs a CUDA device (device {device or 'cpu'})")
+    spec = None if network.external else _ARCHITECTURES[network.architecture]
+    if spec is not None and precision in spec.refused_precisions:
+        raise ConfigError(f"${{precision}} {precision} is refused for {spec.name!r}: its flow differs "
+                          f"from float32's by more than its bound, {spec.precision_bound:g} px RMS "
+                          f"(docs/models.md)")
+    return precision
+
+
 def build_model(name, iters: Optional[int] = None,
                 gradient_checkpointing: bool = False) -> FlowModel:
     """An untrained (randomly initialised) adapter of network ``name`` (a name or a
@@ -250,7 +287,8 @@ def build_model(name, iters: Optional[int] = None,
 def get_model(name, checkpoint: Union[str, Path, None] = None,
               device: Union[str, torch.device] = "cpu", iters: Optional[int] = None, *,
               download: bool = False, gradient_checkpointing: bool = False,
-              timeout: float = 60.0, amp: bool = False) -> FlowModel:
+              timeout: float = 60.0, amp: bool = False,
+              precision: Optional[str] = None) -> FlowModel:
     """A flow network with trained weights, ready to call as ``model(image1, image2)``.
 
     Args:
@@ -265,8 +303,10 @@ def get_model(name, checkpoint: Union[str, Path, None] = None,
         gradient_checkpointing: recompute activations in the backward pass instead of
             keeping them (less memory for attacks, more time).
         timeout: seconds a download may stall before it is given up.
-        amp: run the network in its authors' mixed precision on CUDA (see :func:`resolve_amp`
-            for the paper's setting per network); has no effect on other devices.
+        amp: run the network in its authors' mixed precision (fp16 autocast; see
+            :func:`resolve_amp` for the paper's setting per network).
+        precision: one of :data:`~weathergen.models.base.PRECISIONS` (checked by
+            :func:`resolve_precision`), instead of ``amp``.
 
     The returned model is in evaluation mode and its parameters do not require gradients;
     gradients still flow to the input images. A network of your own is run once on a small
@@ -279,6 +319,8 @@ def get_model(name, checkpoint: Union[str, Path, None] = None,
         ShapeError: a network of your own answers a flow of another shape.
     """
     network = resolve_network(name)
+    if precision is not None:       # checked before any weights are read
+        precision = resolve_precision(network, precision, None, device)
     checkpoint = network.default_checkpoint if checkpoint is None else checkpoint
     if amp and not network.mixed_precision:
         raise ConfigError(f"${{amp}}: {network.architecture or network.name!r} has no "
@@ -294,9 +336,19 @@ def get_model(name, checkpoint: Union[str, Path, None] = None,
     if path is not None:
         model.load_checkpoint(model.read_checkpoint(path), source=path, what=what)
     model.requires_grad_(False)
-    model = model.to(device).eval()
+    model = _in_precision(model.to(device).eval(), precision)
     if network.external:
         probe_network(model, network.label)
+    return model
+
+
+def _in_precision(model: FlowModel, precision: Optional[str]) -> FlowModel:
+    """``model`` set to run in ``precision`` where one is given. TF32 is switched on for the
+    process, so that the backward passes (outside the network's forward) run in it too."""
+    if precision == "tf32":
+        torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
+    if precision is not None:
+        model.precision = precision
     return model
 
 
