@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, DatasetError, WeatherGenError
-from ..framepair import FramePair
+from ..framepair import MEASURED, FramePair
 from ..geometry import WORLD_UP_AXES, invert_rigid, to_homogeneous, up_direction
 from ..io.images import read_image_kind
 from .base import FILE_ROLES, Dataset, Selection
@@ -90,13 +90,13 @@ class ScaledDataset(Dataset):
         return bool(self.camera_translation)
 
     def posed_pair(self, ref, files: dict, images, depths, intrinsics, cam1_from_world,
-                   cam2_from_world, *, flow=None, flow_valid=None, measured=None,
+                   cam2_from_world, *, flow=None, flow_valid=None, provenance=None,
                    meta: Optional[dict] = None) -> FramePair:
         """The validated record of a pair with absolute poses, the scene's depth scale applied.
 
         Shape: images two (H, W, 3) float in [0, 1]; depths two (H, W) in dataset units (unscaled);
-        intrinsics (3, 3); poses (3, 4) or (4, 4) world-to-camera; flow (H, W, 2), flow_valid and
-        each of ``measured`` (H, W) bool, or None.
+        intrinsics (3, 3); poses (3, 4) or (4, 4) world-to-camera; flow (H, W, 2), flow_valid
+        (H, W) bool, or None; ``provenance`` two (H, W) uint8 maps, or None: all measured.
         """
         scale = self.scale_of(ref.id.scene)
         cam1, cam2, cam2_from_cam1 = scaled_poses(cam1_from_world, cam2_from_world, scale,
@@ -109,8 +109,8 @@ class ScaledDataset(Dataset):
             cam2_from_cam1=cam2_from_cam1, cam1_from_world=cam1, cam2_from_world=cam2,
             flow=None if flow is None else chw(flow),
             flow_valid=None if flow_valid is None else chw(flow_valid),
-            depth_measured1=None if measured is None else chw(measured[0]),
-            depth_measured2=None if measured is None else chw(measured[1]),
+            depth_provenance1=chw(_provenance(provenance, depths, 0)),
+            depth_provenance2=chw(_provenance(provenance, depths, 1)),
             sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
             depth_scale=scale, meta=dict(meta or {}),
         ).validate()
@@ -124,11 +124,18 @@ class ScaledDataset(Dataset):
         return out
 
 
+def _provenance(provenance, depths, i: int) -> np.ndarray:
+    if provenance is None:
+        return np.full(np.shape(depths[i]), MEASURED, np.uint8)
+    return np.ascontiguousarray(provenance[i], np.uint8)
+
+
 class FarDepthDataset(ScaledDataset):
     """A reader whose depth may have pixels without a value (KITTI, Spring, custom).
 
-    ``far_depth`` (in the dataset's units, before scaling) fills those pixels; the record's
-    ``depth_measured1/2`` mark the others. One rendering pass; splits by ``split_folders``.
+    ``far_depth`` (in the dataset's units, before scaling) is the depth of the sky (and of
+    pixels left unknown); the record's ``depth_provenance1/2`` say where each depth comes from
+    (:mod:`weathergen.datasets.depth`). One rendering pass; splits by ``split_folders``.
     """
 
     #: Names the ``--split`` option accepts, mapped to the folder below the root.
