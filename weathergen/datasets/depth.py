@@ -15,8 +15,9 @@ depth:
    known value extends upward to the pixels above it that are not sky and not cut from it by
    sky (IP-Basic's upward extension, stopped at the sky); what that leaves (holes walled in by
    sky, columns without any value) is filled coarse to fine by the same guided fill without a
-   distance limit (and the few pixels that fill cannot reach take their nearest value); an edge-aware smoothing guided by the image (a normalised joint bilateral
-   filter over the completed pixels alone) then removes the column streaks.
+   distance limit (the few pixels it cannot reach take their nearest value); an edge-aware
+   smoothing guided by the image (a normalised joint bilateral filter over the completed pixels
+   alone) then removes the column streaks.
 4. ``max_gap_px = 0`` completes nothing: unmeasured pixels that are not sky are ``UNKNOWN`` and
    get the far depth like the sky (the readers' ``--fill-gaps 0``).
 
