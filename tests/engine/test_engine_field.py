@@ -492,6 +492,32 @@ def test_warped_right_depth_of_a_plane_and_an_occluder():
     assert bool((right[0, 5, : W - 3] == 4.0).all())                     # no cracks
 
 
+def test_right_view_disocclusions_take_the_background_never_the_sky():
+    """Beside a near block the right view sees background the left one hid, and at its right
+    border what the left never saw: those holes take the farther side's depth along the row (the
+    plane behind), not the far depth; the provenance follows each pixel (filled holes completed)."""
+    from weathergen.engine.stereo import warp_depth, warp_view_depth
+    from weathergen.framepair import COMPLETED, MEASURED, SKY
+
+    right_from_left = torch.eye(4, dtype=torch.float64)
+    right_from_left[0, 3] = -0.2
+    depth = torch.full((1, H, W), 4.0)
+    depth[..., :10, :] = 1000.0                # the sky
+    depth[..., 20:30, 20:30] = 2.0             # a near block
+    provenance = torch.zeros((1, H, W), dtype=torch.uint8)
+    provenance[..., :10, :] = SKY
+    right, kind = warp_view_depth(depth, provenance, K, right_from_left)
+    holes = warp_depth(depth, K, right_from_left, fill=-1.0)[0] == -1.0
+    ground = holes.clone()
+    ground[:11] = False                        # (row 10 also takes row 9's sky: the 2x2 splat)
+    assert int(ground[20:30].sum(dim=1).min()) >= 2       # beside the block and at the border
+    assert bool((right[0][ground] == 4.0).all()) and bool((kind[0][ground] == COMPLETED).all())
+    assert float(right[0, 11:].max()) == 4.0              # nothing below the sky at the far depth
+    assert bool((kind[0, :10] == SKY).all()) and bool((right[0, :10] == 1000.0).all())
+    assert bool((kind[0, 11:][~holes[11:]] == MEASURED).all())
+    torch.testing.assert_close(warp_depth(depth, K, right_from_left), right)
+
+
 def test_right_camera_renders_the_same_field_particles_at_their_disparity():
     from weathergen.engine.stereo import render_right, stereo_view, warp_depth
 

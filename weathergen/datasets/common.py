@@ -15,6 +15,7 @@ from ..framepair import MEASURED, FramePair
 from ..geometry import WORLD_UP_AXES, invert_rigid, to_homogeneous, up_direction
 from ..io.images import read_image_kind
 from .base import FILE_ROLES, Dataset, Selection
+from .depth import provenance_shares
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
 #: and regions no measurement reaches. Far beyond where weather particles are placed.
@@ -112,7 +113,7 @@ class ScaledDataset(Dataset):
             depth_provenance1=chw(_provenance(provenance, depths, 0)),
             depth_provenance2=chw(_provenance(provenance, depths, 1)),
             sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
-            depth_scale=scale, meta=dict(meta or {}),
+            depth_scale=scale, meta={**(meta or {}), **provenance_meta(provenance)},
         ).validate()
 
     def describe(self) -> dict:
@@ -122,6 +123,14 @@ class ScaledDataset(Dataset):
         if self.scene_scales_bundled:
             out["scene_scales_bundled"] = True
         return out
+
+
+def provenance_meta(provenance) -> dict:
+    """``{"depth_provenance": [shares of frame 1, of frame 2]}`` for a pair's ``meta`` (and so
+    the manifest), or nothing for depth measured everywhere (``provenance`` None)."""
+    if provenance is None:
+        return {}
+    return {"depth_provenance": [provenance_shares(p) for p in provenance]}
 
 
 def _provenance(provenance, depths, i: int) -> np.ndarray:
@@ -142,6 +151,8 @@ class FarDepthDataset(ScaledDataset):
     split_folders: dict[str, str] = {}
     dense_depth = False
     options = ("far_depth",)
+    #: How far from a measurement gaps are filled (readers that complete depth set it; 0: none).
+    max_gap_px: Optional[float] = None
 
     def __init__(self, root, selection: Selection = Selection(), *, far_depth: Optional[float] = None,
                  **scaling):
@@ -177,6 +188,25 @@ class FarDepthDataset(ScaledDataset):
         out = super().describe()
         out.update(far_depth=self.far_depth)
         return out
+
+    def scene_notes(self) -> list[str]:
+        """The scenes' notes, and the one line of ``max_gap_px`` 0 (``--fill-gaps 0``): what the
+        pixels it leaves unfilled do."""
+        notes = super().scene_notes()
+        if self.max_gap_px == 0:
+            notes.append(f"--fill-gaps 0: no depth is completed; pixels without a measurement that "
+                         f"are not sky stay unknown at the far depth ({self.far_depth:g}), so fog "
+                         f"there shows its full airlight and every particle is drawn in front of them")
+        return notes
+
+    def pair_notes(self, pair: FramePair) -> list[str]:
+        """The share of each depth provenance class in each frame of ``pair``."""
+        shares = pair.meta.get("depth_provenance")
+        if not shares:
+            return []
+        return ["depth " + "; ".join(f"frame {i}: " + ", ".join(f"{name} {100 * share:.1f}%"
+                                                                for name, share in s.items())
+                                     for i, s in enumerate(shares, start=1))]
 
 
 def read_frames(files: dict) -> tuple[np.ndarray, np.ndarray, dict]:

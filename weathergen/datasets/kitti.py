@@ -68,8 +68,8 @@ from ..io.kitti_formats import read_disparity_png, read_flow_png, read_object_ma
 from .base import NativeFlow, PairRef, Selection
 from .camera_motion import (FitSettings, MotionFit, backproject_pixels, check_fit, fit_motion_pnp,
                             match_features)
-from .common import (FarDepthDataset, add_warnings, check_size, chw, flow_warnings, read_frames,
-                     require_files, scaled_motion)
+from .common import (FarDepthDataset, add_warnings, check_size, chw, flow_warnings,
+                     provenance_meta, read_frames, require_files, scaled_motion)
 from .depth import complete_depth
 from .stereo import RightCamera, rectified_right
 
@@ -199,9 +199,10 @@ class KittiDataset(FarDepthDataset):
     def pair_notes(self, pair: FramePair) -> list[str]:
         fit = pair.meta.get("camera_motion")
         if not fit:
-            return []
+            return super().pair_notes(pair)
         t = fit["translation"]
-        return [f"camera motion t=({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}), rotation {fit['rotation_deg']:.2f}°, "
+        return super().pair_notes(pair) + [
+                f"camera motion t=({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}), rotation {fit['rotation_deg']:.2f}°, "
                 f"{100 * fit['inlier_fraction']:.0f}% of {fit['points']} points within "
                 f"{fit['threshold_px']:g} px, RMS {fit['rms_px']:.2f} px"]
 
@@ -259,7 +260,7 @@ class KittiDataset(FarDepthDataset):
             sources={key: Path(v) for key, v in files.items() if Path(v).exists()},
             depth_scale=scale,
             meta={"camera_motion": fit.summary(), "baseline_m": baseline, "far_depth": self.far_depth,
-                  **meta},
+                  **meta, **provenance_meta((prov1, prov2))},
         ).validate()
 
     def _dense_depth(self, disparity, valid, image, focal_baseline) -> tuple[np.ndarray, np.ndarray]:
