@@ -10,6 +10,13 @@ and compared with the exact depth: the relative error of completed pixels within
 measurement and beyond, the completed pixels that fall in the sky, the sky estimate's recall and
 precision, and the time per frame.
 
+The look: fog-moderate drawn into the street with its depth from the scan, completed (now) or
+as readers gave it before (gaps within 24 px filled, everything else at the far depth), and
+from the exact depth with holes punched into it. Two figures (:func:`fog_figures`): the share of
+pixels where the image has no edge (luminance gradient below :data:`WEAK_IMAGE`) but the fog's
+opacity has one (gradient above :data:`STRONG_OPACITY`), and the share of white (opacity above
+:data:`WHITE`) among the pixels above the top beam, to compare with the sky's share there.
+
     python scripts/depth_completion.py
 """
 
@@ -17,18 +24,29 @@ from __future__ import annotations
 
 import time
 
+import dataclasses
+
 import cv2
 import numpy as np
+import torch
 
-from weathergen.datasets import demo_pairs
+from weathergen.datasets import demo_pairs, open_dataset
+from weathergen.datasets.densify import fill_sparse
 from weathergen.datasets.depth import complete_depth, lidar_scan
+from weathergen.engine import load_preset, render_pair
 from weathergen.framepair import COMPLETED, SKY
 from weathergen.geometry import backproject, invert_rigid, transform_points
+from weathergen.jobs import pair_particles
 
 #: Surfaces of the demo street above this height (metres) are the sky.
 SKY_ABOVE = 3.8
 FAR_DEPTH = 1000.0
 NEAR_PX = 24.0
+#: The fog figures' thresholds: a weak image gradient and a strong opacity gradient (per pixel,
+#: Sobel / 8 of luminance and of opacity), and the opacity counted as white.
+WEAK_IMAGE = 0.01
+STRONG_OPACITY = 0.05
+WHITE = 0.95
 
 
 def street_with_sky(pair, frame: int = 1):
@@ -89,6 +107,67 @@ def measure(frames) -> dict:
             "ms_per_frame": 1000 * seconds / len(frames)}
 
 
+def depth_before(exact, measured, image) -> np.ndarray:
+    """The depth readers gave before: gaps within 24 px filled, every other pixel far."""
+    inverse = np.where(measured, 1.0 / exact, 0.0).astype(np.float32)
+    values, known = fill_sparse(inverse, measured, image, max_gap_px=NEAR_PX)
+    return np.where(known, 1.0 / np.where(known, values, 1.0), FAR_DEPTH).astype(np.float32)
+
+
+def punched(exact, sky, seed: int = 0, holes: int = 12) -> np.ndarray:
+    """The exact depth's measured pixels with ``holes`` rectangles (20-60 by 10-30 px) taken out
+    and no return from the sky. Shape: (H, W) bool."""
+    rng = np.random.default_rng(seed)
+    measured = ~sky
+    h, w = sky.shape
+    for _ in range(holes):
+        hw, hh = int(rng.integers(20, 60)), int(rng.integers(10, 30))
+        x, y = int(rng.integers(0, w - hw)), int(rng.integers(0, h - hh))
+        measured[y:y + hh, x:x + hw] = False
+    return measured
+
+
+def fog_opacity(pair, image, depth, preset: str = "fog-moderate") -> np.ndarray:
+    """The opacity of ``preset`` in frame 1 of ``pair`` with its image and depth replaced."""
+    ds = open_dataset("demo")
+    chw = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))
+    pair = dataclasses.replace(pair, image1=chw, depth1=torch.from_numpy(depth)[None])
+    particles = pair_particles(pair, load_preset(preset), 0, world_up=ds.world_up,
+                               frame_rate=ds.frame_rate)
+    with torch.no_grad():
+        return render_pair(pair, particles).opacity1[0, 0].numpy()
+
+
+def _gradient(a: np.ndarray) -> np.ndarray:
+    a = np.ascontiguousarray(a, np.float32)
+    return np.hypot(cv2.Sobel(a, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(a, cv2.CV_32F, 0, 1, ksize=3)) / 8
+
+
+def fog_figures(opacity, image, sky, measured) -> dict:
+    """``edges``: the share of pixels with a weak image gradient and a strong opacity gradient;
+    ``white_above`` and ``sky_above``: the shares of white and of sky above the top beam."""
+    weak = _gradient(cv2.cvtColor(np.ascontiguousarray(image, np.float32), cv2.COLOR_RGB2GRAY)) < WEAK_IMAGE
+    strong = _gradient(opacity) > STRONG_OPACITY
+    above = np.arange(sky.shape[0])[:, None] < np.argmax(measured.any(axis=1))
+    above = np.broadcast_to(above, sky.shape)
+    return {"edges": float((weak & strong).mean()),
+            "white_above": float((opacity[above] > WHITE).mean()), "sky_above": float(sky[above].mean())}
+
+
+def fog_comparison(pair=None) -> dict:
+    """:func:`fog_figures` of the first street pair with its LiDAR-like scan and with holes
+    punched, its depth completed (``after``) or as before (``before``), and from the exact depth."""
+    pair = pair or demo_pairs(scenes=("street",), frames_per_scene=1)[0]
+    image, exact, sky = street_with_sky(pair)
+    scan = lidar_scan(exact.shape, pair.intrinsics.numpy(), seed=1) & ~sky
+    out = {"exact": fog_figures(fog_opacity(pair, image, exact), image, sky, scan)}
+    for name, measured in (("lidar", scan), ("holes", punched(exact, sky))):
+        after, _ = complete_depth(exact, measured, image, far_depth=FAR_DEPTH)
+        for when, depth in (("before", depth_before(exact, measured, image)), ("after", after)):
+            out[f"{name} {when}"] = fog_figures(fog_opacity(pair, image, depth), image, sky, scan)
+    return out
+
+
 def main() -> None:
     figures = measure(lidar_frames())
     for region in ("near", "beyond"):
@@ -99,6 +178,10 @@ def main() -> None:
     print(f"sky estimate: recall {figures['sky_recall']:.3f}  precision "
           f"{figures['sky_precision']:.3f}")
     print(f"{figures['ms_per_frame']:.1f} ms a frame")
+    for name, f in fog_comparison().items():
+        print(f"fog-moderate, {name:13s} opacity edges where the image has none "
+              f"{100 * f['edges']:.2f}%, white above the top beam {100 * f['white_above']:.1f}% "
+              f"(sky {100 * f['sky_above']:.1f}%)")
 
 
 if __name__ == "__main__":
