@@ -40,15 +40,19 @@ from .densify import fill_sparse
 #: frame's :data:`SKY_BRIGHT_QUANTILE` luminance quantile (the sky is among the brightest parts).
 SKY_MAX_GRADIENT = 0.02
 SKY_WINDOW = 5
-SKY_BRIGHT_QUANTILE = 0.75
+SKY_BRIGHT_QUANTILE = 0.6
 #: Blue to grey: a sky pixel's blue is at least its red and its green less this.
 SKY_HUE = 0.02
+#: The largest distance (RGB) between the mean colours of two parts of one sky.
+SKY_COLOR_SPREAD = 0.15
 #: The colour tolerance of the vote that settles the pixels along the sky's edge.
 SKY_EDGE_COLOR_SIGMA = 0.05
-#: The joint-bilateral smoothing of large completed regions: window (pixels) and colour tolerance.
-SMOOTH_DIAMETER = 9
-SMOOTH_COLOR_SIGMA = 0.1
-SMOOTH_SPACE_SIGMA = 4.0
+#: The membrane fill of large holes: Jacobi sweeps at each level, colour tolerance of its links.
+MEMBRANE_SWEEPS = 20
+MEMBRANE_COLOR_SIGMA = 0.1
+#: The guided-filter smoothing of large completed regions: radius (pixels), regularisation.
+SMOOTH_RADIUS = 4
+SMOOTH_EPS = 1e-3
 
 
 def complete_depth(depth: np.ndarray, measured: np.ndarray, image: np.ndarray, *,
@@ -82,35 +86,63 @@ def complete_depth(depth: np.ndarray, measured: np.ndarray, image: np.ndarray, *
 
 
 def _complete_large(values, known, large, sky, image):
-    """Large regions: upward extension in each column (not through the sky), the guided fill for
-    the rest, then an edge-aware smoothing of what was completed here. Shape: (H, W) each."""
+    """Large regions: upward extension in each column (not through the sky), the edge-aware
+    membrane for the rest, then an edge-aware smoothing of what was completed here.
+    Shape: (H, W) each."""
     values = np.where(known, values, 0).astype(np.float32)
     up = extend_upward(values, known, sky)
     values, known = np.where(up, _column_tops(values, known), values), known | up
     rest = large & ~known
     if rest.any():
-        filled, reached = fill_sparse(values, known, image, max_gap_px=np.inf, exclude=sky)
-        take = rest & reached
-        values, known = np.where(take, filled, values), known | take
-    rest = large & ~known
-    if rest.any():                       # cut off by the sky and unlike all around: the nearest
-        values, known = np.where(rest, _nearest(values, known), values), known | rest
+        guide = np.ascontiguousarray(image, np.float32)
+        values = np.where(rest, _membrane(values, known, guide, ~sky), values)
+        known = known | rest
     return _smooth_within(values, known & large, known, image), known
-
-
-def _nearest(values, known):
-    """Every pixel takes the value of the nearest known pixel. Shape: (H, W) -> (H, W)."""
-    _, labels = cv2.distanceTransformWithLabels((~known).astype(np.uint8), cv2.DIST_L2, 5,
-                                                labelType=cv2.DIST_LABEL_PIXEL)
-    by_label = np.zeros(int(labels.max()) + 1, np.float32)
-    by_label[labels[known]] = values[known]
-    return by_label[labels]
 
 
 def _column_tops(values, known):
     """Every pixel takes the top-most known value of its column. Shape: (H, W) -> (H, W)."""
     top = np.argmax(known, axis=0)
     return np.broadcast_to(values[top, np.arange(values.shape[1])], values.shape)
+
+
+def _membrane(values, known, guide, open_):
+    """The unknown pixels filled so that each is the weighted mean of its four neighbours, the
+    weights falling with the colour difference (:data:`MEMBRANE_COLOR_SIGMA`) and zero towards
+    pixels that are not ``open_`` (the sky): an edge-aware harmonic fill, exact on a plane's
+    inverse depth within a surface of one colour. Solved coarse to fine: the half-size problem's
+    answer, brought up bilinearly, starts :data:`MEMBRANE_SWEEPS` Jacobi sweeps.
+
+    Shape: values, known, open_ (H, W); guide (H, W, 3) -> (H, W) float32.
+    """
+    h, w = known.shape
+    if min(h, w) >= 8:
+        size = ((w + 1) // 2, (h + 1) // 2)
+        weight = cv2.resize(known.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+        total = cv2.resize(np.where(known, values, 0).astype(np.float32), size,
+                           interpolation=cv2.INTER_AREA)
+        coarse = _membrane(np.where(weight > 0, total / np.maximum(weight, 1e-12), 0), weight > 0,
+                           cv2.resize(guide, size, interpolation=cv2.INTER_AREA),
+                           np.ones(size[::-1], bool))
+        start = cv2.resize(coarse.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+    else:
+        start = np.full((h, w), values[known].mean() if known.any() else 0, np.float32)
+    v = np.where(known, values, start).astype(np.float32)
+    pads = [(1, 0), (0, 1)]
+    weights = []
+    for axis in (0, 1):
+        step = np.diff(guide, axis=axis)
+        link = np.exp(-(step ** 2).sum(axis=2) / (2 * MEMBRANE_COLOR_SIGMA ** 2))
+        link *= np.delete(open_, 0, axis=axis) & np.delete(open_, -1, axis=axis)
+        for pad in pads:        # the link to the neighbour before and after along ``axis``
+            weights.append(np.pad(link, [pad if a == axis else (0, 0) for a in (0, 1)]))
+    total = np.maximum(sum(weights), 1e-12)
+    for _ in range(MEMBRANE_SWEEPS):
+        p = np.pad(v, 1, mode="edge")
+        around = (weights[0] * p[:-2, 1:-1] + weights[1] * p[2:, 1:-1]
+                  + weights[2] * p[1:-1, :-2] + weights[3] * p[1:-1, 2:])
+        v = np.where(known, values, around / total)
+    return v
 
 
 def extend_upward(values: np.ndarray, known: np.ndarray, sky: np.ndarray) -> np.ndarray:
@@ -127,16 +159,14 @@ def extend_upward(values: np.ndarray, known: np.ndarray, sky: np.ndarray) -> np.
 
 
 def _smooth_within(values, region, known, image):
-    """``values`` smoothed in ``region`` by a joint bilateral filter guided by ``image`` that
+    """``values`` smoothed in ``region`` by a guided filter (He et al.) steered by ``image`` that
     averages known values alone (normalised); other pixels unchanged. Shape: (H, W) each."""
     if not region.any():
         return values
     guide = np.ascontiguousarray(image, np.float32)
     weight = known.astype(np.float32)
-    num = cv2.ximgproc.jointBilateralFilter(guide, (values * weight).astype(np.float32),
-                                            SMOOTH_DIAMETER, SMOOTH_COLOR_SIGMA, SMOOTH_SPACE_SIGMA)
-    den = cv2.ximgproc.jointBilateralFilter(guide, weight, SMOOTH_DIAMETER, SMOOTH_COLOR_SIGMA,
-                                            SMOOTH_SPACE_SIGMA)
+    num, den = (cv2.ximgproc.guidedFilter(guide, a, SMOOTH_RADIUS, SMOOTH_EPS)
+                for a in ((values * weight).astype(np.float32), weight))
     ok = region & (den > 1e-3)
     out = values.copy()
     out[ok] = num[ok] / den[ok]
@@ -150,6 +180,7 @@ def estimate_sky(image: np.ndarray, measured: np.ndarray, *,
     measurement of their column (every row of a column without one), smooth, bright, blue to grey
     (blue at least red and green), connected to the top border.
 
+    Of several such parts, those whose mean colour is far from the largest one's are not sky.
     Smooth is judged twice: a core whose luminance gradient stays below ``max_gradient`` within
     :data:`SKY_WINDOW` pixels (away from every edge), then grown to the pixels whose own gradient
     stays below twice that (up to the edges of what stands against the sky). Bright is at least
@@ -167,7 +198,7 @@ def estimate_sky(image: np.ndarray, measured: np.ndarray, *,
     possible = ((np.arange(h)[:, None] < top[None, :]) & (image[..., 2] >= image[..., :2].max(axis=2) - SKY_HUE)
                 & (grey >= np.quantile(grey, bright_quantile)))
     texture = cv2.dilate(gradient, np.ones((SKY_WINDOW, SKY_WINDOW), np.uint8))
-    core = _touching_top(possible & (texture <= max_gradient))
+    core = _one_sky(_touching_top(possible & (texture <= max_gradient)), image)
     sky = _grown(possible & (gradient <= 2 * max_gradient), core)
     return _edge_pixels(sky, np.arange(h)[:, None] < top[None, :], image)
 
@@ -185,6 +216,21 @@ def _edge_pixels(sky: np.ndarray, above: np.ndarray, image: np.ndarray) -> np.nd
                                                SKY_WINDOW / 2)
              for m in (decided * sky, decided)]
     return sky | (band & (votes[0] > 0.5 * votes[1]))
+
+
+def _one_sky(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
+    """The parts of ``mask`` whose mean colour is within :data:`SKY_COLOR_SPREAD` of its largest
+    part's (a frame has one sky: a smooth grey wall beside a blue sky is not part of it)."""
+    count, labels = cv2.connectedComponents(mask.astype(np.uint8), connectivity=4)
+    if count <= 2:
+        return mask
+    sizes = np.bincount(labels.ravel(), minlength=count).astype(np.float64)
+    means = np.stack([np.bincount(labels.ravel(), image[..., c].ravel(), count)
+                      for c in range(3)], 1) / np.maximum(sizes, 1)[:, None]
+    sizes[0] = 0
+    keep = np.linalg.norm(means - means[np.argmax(sizes)], axis=1) <= SKY_COLOR_SPREAD
+    keep[0] = False
+    return keep[labels]
 
 
 def _grown(mask: np.ndarray, seeds: np.ndarray) -> np.ndarray:
