@@ -138,7 +138,7 @@ def test_sensor_holes_are_filled_and_a_large_region_that_is_not_sky_is_completed
     # (the smooth blue ceiling of the street, at the top, is taken for sky)
     prov = pair.depth_provenance1[0].numpy()
     assert (prov[holes] == COMPLETED).all() and np.isin(prov[:40], (COMPLETED, SKY)).all()
-    assert (prov[:40] == COMPLETED).mean() > 0.9 and (got[prov == SKY] == 700.0).all()
+    assert (prov[:40] == COMPLETED).mean() > 0.8 and (got[prov == SKY] == 700.0).all()
     top = (np.abs(got[:40] - true[:40]) / true[:40])[prov[:40] == COMPLETED]
     assert np.median(top) < 0.05 and np.quantile(top, 0.9) < 0.2, (np.median(top), top.max())
     assert pair.meta["depth_values"][0]["filled"] == pytest.approx((prov == COMPLETED).mean(), abs=1e-4)

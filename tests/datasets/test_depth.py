@@ -3,6 +3,7 @@ the fog's look on completed depth (weathergen/datasets/depth.py, scripts/depth_c
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import cv2
@@ -150,3 +151,39 @@ def test_the_sky_gets_the_far_depth_and_the_full_airlight(measure):
     assert (depth[prov == SKY] == FAR).all()
     assert opacity[prov == SKY].min() > 0.95                # the airlight, all of it
     assert np.quantile(opacity[prov == COMPLETED], 0.99) < 0.5
+
+
+def test_check_shows_the_shares_and_a_render_writes_the_provenance_and_says_what_it_is(
+        tmp_path, demo_root):
+    import json
+
+    from click.testing import CliRunner
+
+    from fake_datasets import demo_sequence, write_fake_custom
+    from weathergen.cli.main import _register, cli
+    from weathergen.io.images import read_raw
+
+    _register()
+    frames, _ = demo_sequence("street")
+    root = write_fake_custom(tmp_path / "s", frames[:2], missing=(0, 60))    # rows 0-59 of frame 0
+    res = CliRunner().invoke(cli, ["check", "--dataset", "custom", "--root", str(root)])
+    assert res.exit_code == 0, res.output
+    line = next(x for x in res.output.splitlines() if "depth frame 1:" in x)
+    shares = [float(v) for v in re.findall(r"(\d+\.\d)%", line)]
+    assert len(shares) == 8 and abs(sum(shares[:4]) - 100) < 0.3 and shares[4] == 100.0, line
+    assert shares[0] == pytest.approx(100 * (1 - 60 / 176), abs=0.1)      # measured
+    out = tmp_path / "out"
+    res = CliRunner().invoke(cli, ["render", "--dataset", "custom", "--root", str(root), "--preset",
+                                   "fog-light", "--fill-gaps", "0", "--out", str(out)])
+    assert res.exit_code == 0, res.output
+    said = res.output.replace("\n", " ")
+    assert "--fill-gaps 0: no depth is completed; pixels without a measurement that are not sky " \
+           "stay unknown at the far depth (1000)" in said
+    assert "in 1 pair more than 50% of a frame's depth is completed or more than 2% unknown" in said
+    written = read_raw(out / "training" / "depth_provenance" / "s_0000" / "frame_0000.png")
+    assert written.dtype == np.uint8 and set(np.unique(written)) <= {MEASURED, SKY, UNKNOWN}
+    assert (written[60:] == MEASURED).all() and (written[:60] != MEASURED).all()
+    manifest = json.loads((out / "manifest.json").read_text())
+    facts = next(iter(manifest["pairs"].values()))["input"]["depth_provenance"]
+    assert facts[0]["measured"] == pytest.approx(1 - 60 / 176, abs=1e-3)
+    assert facts[0]["unknown"] + facts[0]["sky"] == pytest.approx(60 / 176, abs=1e-3)

@@ -492,6 +492,30 @@ def test_warped_right_depth_of_a_plane_and_an_occluder():
     assert bool((right[0, 5, : W - 3] == 4.0).all())                     # no cracks
 
 
+def test_a_particle_behind_a_completed_tree_is_hidden():
+    """A tree reaches above a scanner's top beam: left unknown (at the far depth) a flake behind
+    it is drawn in front of it; completed (its column extended upward) the tree hides it."""
+    from weathergen.datasets.depth import complete_depth
+    from weathergen.framepair import COMPLETED, UNKNOWN
+
+    exact = np.full((H, W), 8.0, np.float32)                # a wall
+    exact[:, 24:32] = 3.0                                   # a tree trunk, all the way up
+    rng = np.random.default_rng(0)
+    image = (np.array([0.35, 0.25, 0.15]) + 0.1 * rng.random((H, W, 3))).astype(np.float32)  # brown
+    measured = np.zeros((H, W), bool)
+    measured[20::2, ::2] = True                             # nothing above row 20
+    seen = []
+    for gap in (0.0, 24.0):
+        depth, prov = complete_depth(exact, measured, image, far_depth=1000.0, max_gap_px=gap)
+        assert (prov[:20, 24:32] == (UNKNOWN if gap == 0 else COMPLETED)).all()
+        u, v, z = 28.0, 8.0, 5.0                            # behind the tree, in front of the wall
+        point = ((u - float(K[0, 2])) * z / F, (v - float(K[1, 2])) * z / F, z)
+        _, alpha = render_one(one_particle_record(point, diameter=0.2), pose(rotation(), (0, 0, 0)),
+                              torch.from_numpy(depth)[None])
+        seen.append(float(alpha.sum()))
+    assert seen[0] > 0.5 and seen[1] == 0.0, seen
+
+
 def test_right_view_disocclusions_take_the_background_never_the_sky():
     """Beside a near block the right view sees background the left one hid, and at its right
     border what the left never saw: those holes take the farther side's depth along the row (the
