@@ -113,7 +113,8 @@ class ScaledDataset(Dataset):
             depth_provenance1=chw(_provenance(provenance, depths, 0)),
             depth_provenance2=chw(_provenance(provenance, depths, 1)),
             sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
-            depth_scale=scale, meta={**(meta or {}), **provenance_meta(provenance)},
+            depth_scale=scale, frame_rate=self.frame_rate,
+            meta={**(meta or {}), **provenance_meta(provenance)},
         ).validate()
 
     def describe(self) -> dict:
