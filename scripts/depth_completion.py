@@ -127,15 +127,22 @@ def punched(exact, sky, seed: int = 0, holes: int = 12) -> np.ndarray:
     return measured
 
 
-def fog_opacity(pair, image, depth, preset: str = "fog-moderate") -> np.ndarray:
-    """The opacity of ``preset`` in frame 1 of ``pair`` with its image and depth replaced."""
-    ds = open_dataset("demo")
+def fog_render(pair, image, depth, preset: str = "fog-moderate", dataset=None):
+    """Frame 1 of ``pair`` with its image and depth replaced, drawn with ``preset`` as ``render``
+    does (``dataset``: its reader, the demo's by default): ``(frame (H, W, 3), opacity (H, W))``."""
+    ds = dataset or open_dataset("demo")
     chw = torch.from_numpy(np.ascontiguousarray(image.transpose(2, 0, 1)))
     pair = dataclasses.replace(pair, image1=chw, depth1=torch.from_numpy(depth)[None])
     particles = pair_particles(pair, load_preset(preset), 0, world_up=ds.world_up,
                                frame_rate=ds.frame_rate)
     with torch.no_grad():
-        return render_pair(pair, particles).opacity1[0, 0].numpy()
+        out = render_pair(pair, particles)
+    return out.image1[0].permute(1, 2, 0).numpy(), out.opacity1[0, 0].numpy()
+
+
+def fog_opacity(pair, image, depth, preset: str = "fog-moderate") -> np.ndarray:
+    """The opacity of ``preset`` in frame 1 of ``pair`` with its image and depth replaced."""
+    return fog_render(pair, image, depth, preset)[1]
 
 
 def _gradient(a: np.ndarray) -> np.ndarray:
