@@ -44,7 +44,7 @@ SKY_BRIGHT_QUANTILE = 0.6
 #: Blue to grey: a sky pixel's blue is at least its red and its green less this.
 SKY_HUE = 0.02
 #: The largest distance (RGB) between the mean colours of two parts of one sky.
-SKY_COLOR_SPREAD = 0.15
+SKY_COLOR_SPREAD = 0.25
 #: The colour tolerance of the vote that settles the pixels along the sky's edge.
 SKY_EDGE_COLOR_SIGMA = 0.05
 #: The membrane fill of large holes: Jacobi sweeps at each level, colour tolerance of its links.
