@@ -187,3 +187,25 @@ def test_check_shows_the_shares_and_a_render_writes_the_provenance_and_says_what
     facts = next(iter(manifest["pairs"].values()))["input"]["depth_provenance"]
     assert facts[0]["measured"] == pytest.approx(1 - 60 / 176, abs=1e-3)
     assert facts[0]["unknown"] + facts[0]["sky"] == pytest.approx(60 / 176, abs=1e-3)
+
+
+def test_an_attack_run_records_the_shares_and_says_when_depth_is_mostly_estimated(tmp_path,
+                                                                                   demo_root):
+    import json
+
+    from fake_datasets import demo_sequence, write_fake_custom
+    from weathergen.attack import AttackJob, plan_attack, run_attack
+    from weathergen.datasets import open_dataset
+
+    frames, _ = demo_sequence("street")
+    root = write_fake_custom(tmp_path / "s", frames[:2], missing=(0, 60))
+    plan = plan_attack(None, "snow", {"count": "20"}, steps=1)
+    notes = []
+    run_attack(AttackJob(dataset=open_dataset("custom", root, max_gap_px=0), out=tmp_path / "a",
+                         model="raft-small", checkpoint=None, preset=plan.preset,
+                         preset_name=plan.preset_name, settings=plan.settings),
+               on_note=notes.append)
+    assert sum("of a frame's depth is completed or more than 2% unknown" in n for n in notes) == 1
+    assert sum(n.startswith("--fill-gaps 0: no depth is completed") for n in notes) == 1
+    entry = next(iter(json.loads((tmp_path / "a" / "manifest.json").read_text())["pairs"].values()))
+    assert entry["depth_provenance"][0]["measured"] == pytest.approx(1 - 60 / 176, abs=1e-3)
