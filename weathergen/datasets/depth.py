@@ -6,23 +6,23 @@ A pixel without a measurement is not the sky. A reader hands its measured depth 
 depth:
 
 1. **Sky** is a user's mask where one is given, else :func:`estimate_sky`: pixels without a
-   measurement, above the highest measurement of their column, smooth (a weak image gradient)
-   and bright, connected to the top border of the frame. Only the sky gets the far depth (and so
-   the full airlight of fog).
+   measurement, above the highest measurement of their column, smooth (a weak image gradient),
+   bright and blue to grey, connected to the top border of the frame. Only the sky gets the far
+   depth (and so the full airlight of fog).
 2. **Small gaps** (within ``max_gap_px`` of a measurement): the joint-bilateral fill of
    :func:`~weathergen.datasets.densify.fill_sparse`, in inverse depth, guided by the image.
 3. **Large regions** (above a laser scanner's top beam, big holes): each column's top-most
    known value extends upward to the pixels above it that are not sky and not cut from it by
    sky (IP-Basic's upward extension, stopped at the sky); what that leaves (holes walled in by
-   sky, columns without any value) is filled coarse to fine by the same guided fill without a
-   distance limit (the few pixels it cannot reach take their nearest value); an edge-aware
-   smoothing guided by the image (a normalised joint bilateral filter over the completed pixels
-   alone) then removes the column streaks.
+   measurements) is an edge-aware membrane, each pixel the mean of its four neighbours weighted
+   by how alike their colours are, solved coarse to fine; a guided filter over the completed
+   pixels alone then smooths away the column streaks along the image's edges.
 4. ``max_gap_px = 0`` completes nothing: unmeasured pixels that are not sky are ``UNKNOWN`` and
    get the far depth like the sky (the readers' ``--fill-gaps 0``).
 
 Everything is NumPy and OpenCV on whole arrays (no loop over pixels). :func:`lidar_scan` makes a
-LiDAR-like measurement pattern from an exact depth map, to measure all of this against the truth.
+LiDAR-like measurement pattern for a frame and its camera, to measure all of this against exact
+depth (``scripts/depth_completion.py``; the figures are in docs/datasets.md).
 """
 
 from __future__ import annotations
