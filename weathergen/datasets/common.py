@@ -11,7 +11,7 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, DatasetError, WeatherGenError
-from ..framepair import MEASURED, FramePair
+from ..framepair import FramePair
 from ..geometry import WORLD_UP_AXES, invert_rigid, to_homogeneous, up_direction
 from ..io.images import read_image_kind
 from .base import FILE_ROLES, Dataset, Selection
@@ -97,7 +97,8 @@ class ScaledDataset(Dataset):
 
         Shape: images two (H, W, 3) float in [0, 1]; depths two (H, W) in dataset units (unscaled);
         intrinsics (3, 3); poses (3, 4) or (4, 4) world-to-camera; flow (H, W, 2), flow_valid
-        (H, W) bool, or None; ``provenance`` two (H, W) uint8 maps, or None: all measured.
+        (H, W) bool, or None; ``provenance`` two (H, W) uint8 maps, or None: all measured
+        (Sintel, the demo).
         """
         scale = self.scale_of(ref.id.scene)
         cam1, cam2, cam2_from_cam1 = scaled_poses(cam1_from_world, cam2_from_world, scale,
@@ -110,8 +111,8 @@ class ScaledDataset(Dataset):
             cam2_from_cam1=cam2_from_cam1, cam1_from_world=cam1, cam2_from_world=cam2,
             flow=None if flow is None else chw(flow),
             flow_valid=None if flow_valid is None else chw(flow_valid),
-            depth_provenance1=chw(_provenance(provenance, depths, 0)),
-            depth_provenance2=chw(_provenance(provenance, depths, 1)),
+            depth_provenance1=None if provenance is None else chw(provenance[0]),
+            depth_provenance2=None if provenance is None else chw(provenance[1]),
             sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
             depth_scale=scale, frame_rate=self.frame_rate,
             meta={**(meta or {}), **provenance_meta(provenance)},
@@ -132,12 +133,6 @@ def provenance_meta(provenance) -> dict:
     if provenance is None:
         return {}
     return {"depth_provenance": [provenance_shares(p) for p in provenance]}
-
-
-def _provenance(provenance, depths, i: int) -> np.ndarray:
-    if provenance is None:
-        return np.full(np.shape(depths[i]), MEASURED, np.uint8)
-    return np.ascontiguousarray(provenance[i], np.uint8)
 
 
 class FarDepthDataset(ScaledDataset):

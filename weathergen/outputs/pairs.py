@@ -288,9 +288,9 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
         written.append(write_cam(depth_files[2], k, e1))
         if second:
             written.append(write_cam(depth_files[3], k, e2))
-        maps = (pair.depth_provenance1, pair.depth_provenance2)[:n]
-        written += [write_png(path, m[0].numpy()) for path, m in zip(out.provenance_files(), maps)
-                    if m is not None]
+        maps = (pair.depth_provenance1, pair.depth_provenance2)[:n]      # None: all measured
+        written += [write_png(path, np.zeros(pair.size, np.uint8) if m is None else m[0].numpy())
+                    for path, m in zip(out.provenance_files(), maps)]
         if pair.flow is not None:
             written.append(write_flo(depth_files[4], pair.flow.numpy().transpose(1, 2, 0)))
             if pair.flow_valid is not None and not bool(pair.flow_valid.all()):
