@@ -54,7 +54,7 @@ def warp_view_depth(depth: torch.Tensor, provenance: Optional[torch.Tensor],
     k_right = intrinsics if right_intrinsics is None else right_intrinsics
     pts = backproject(depth.double(), intrinsics.double()).reshape(3, -1).T      # (HW, 3)
     pix, z = project(transform_points(right_from_left.double(), pts), k_right.double())
-    out = torch.full((h * w,), math.inf, dtype=torch.float64)
+    out = torch.full((h * w,), math.inf, dtype=torch.float64, device=depth.device)
     # each left pixel covers the four right pixels around where it lands (no cracks between
     # neighbours at fractional shifts); the z-buffer keeps the nearest surface
     c0, r0 = torch.floor(pix[:, 0]).long(), torch.floor(pix[:, 1]).long()
@@ -65,10 +65,10 @@ def warp_view_depth(depth: torch.Tensor, provenance: Optional[torch.Tensor],
             ok = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
             hits.append((row[ok] * w + col[ok], z[ok], ok))
             out = out.scatter_reduce(0, hits[-1][0], hits[-1][1], reduce="amin", include_self=True)
-    kind = None if provenance is None else _winners(out, hits, provenance.reshape(-1))
+    kind = None if provenance is None else _winners(out, hits, provenance.reshape(-1).to(out.device))
     reached = torch.isfinite(out).view(h, w)
     if fill is not None:
-        out = torch.where(reached.reshape(-1), out, torch.tensor(float(fill), dtype=out.dtype))
+        out = torch.where(reached.reshape(-1), out, torch.full_like(out, float(fill)))
         kind = None if kind is None else torch.where(reached.reshape(-1), kind,
                                                      torch.full_like(kind, UNKNOWN))
         return _shaped(out, kind, depth, h, w)
@@ -101,7 +101,7 @@ def _background_fill(depth, reached, kind, far: float):
     Shape: depth (H, W) float64 (holes any value), reached (H, W) bool, kind (H W,) or None.
     """
     h, w = depth.shape
-    cols = torch.arange(w).expand(h, w)
+    cols = torch.arange(w, device=depth.device).expand(h, w)
     left = torch.cummax(torch.where(reached, cols, -1), dim=1).values
     right = torch.cummin(torch.where(reached, cols, w).flip(1), dim=1).values.flip(1)
     left_z = depth.gather(1, left.clamp(min=0))
@@ -109,8 +109,7 @@ def _background_fill(depth, reached, kind, far: float):
     take_right = (right < w) & ((left < 0) | (right_z > left_z))
     source = torch.where(take_right, right, left)
     some = source >= 0
-    filled = torch.where(some, depth.gather(1, source.clamp(min=0)),
-                         torch.tensor(far, dtype=depth.dtype))
+    filled = torch.where(some, depth.gather(1, source.clamp(min=0)), torch.full_like(depth, far))
     out = torch.where(reached, depth, filled).reshape(-1)
     if kind is None:
         return out, None
