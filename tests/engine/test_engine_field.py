@@ -542,6 +542,24 @@ def test_right_view_disocclusions_take_the_background_never_the_sky():
     torch.testing.assert_close(warp_depth(depth, K, right_from_left), right)
 
 
+@pytest.mark.cuda
+def test_the_right_views_depth_and_provenance_on_cuda_are_the_cpus():
+    from weathergen.engine.rendering.stereo import warp_view_depth
+    from weathergen.framepair import SKY
+
+    right_from_left = torch.eye(4, dtype=torch.float64)
+    right_from_left[0, 3] = -0.2
+    depth = torch.full((1, H, W), 4.0)
+    depth[..., :10, :] = 1000.0
+    depth[..., 20:30, 20:30] = 2.0
+    provenance = torch.zeros((1, H, W), dtype=torch.uint8)
+    provenance[..., :10, :] = SKY
+    cpu = warp_view_depth(depth, provenance, K, right_from_left)
+    gpu = warp_view_depth(depth.cuda(), provenance.cuda(), K.cuda(), right_from_left.cuda())
+    assert gpu[0].device.type == "cuda"
+    assert torch.equal(gpu[0].cpu(), cpu[0]) and torch.equal(gpu[1].cpu(), cpu[1])
+
+
 def test_right_camera_renders_the_same_field_particles_at_their_disparity():
     from weathergen.engine.rendering.stereo import render_right, stereo_view, warp_depth
 
