@@ -186,17 +186,8 @@ def fit_motion_pnp(points1: np.ndarray, pixels2: np.ndarray, intrinsics: np.ndar
     k = np.asarray(intrinsics, np.float64)
     thr = float(settings.threshold_px)
 
-    rng = np.random.default_rng(settings.seed)
-    sub = np.sort(rng.choice(n, size=settings.max_points, replace=False)) if n > settings.max_points \
-        else np.arange(n)
     candidates = [] if initial is None else [np.asarray(initial, np.float64)]
-    cv2.setRNGSeed(int(settings.seed))
-    ok, rvec, tvec, _ = cv2.solvePnPRansac(
-        p1[sub], q2[sub], k, None, iterationsCount=int(settings.iterations),
-        reprojectionError=thr, confidence=float(settings.confidence), flags=cv2.SOLVEPNP_EPNP)
-    if ok:
-        candidates.append(_pose(rvec, tvec))
-
+    candidates += _ransac_poses(p1, q2, k, settings)
     best = None
 
     def consider(pose):
@@ -210,20 +201,7 @@ def fit_motion_pnp(points1: np.ndarray, pixels2: np.ndarray, intrinsics: np.ndar
         return inl
 
     for pose in candidates:
-        # Levenberg-Marquardt on the inliers, re-selecting them until the set settles; every
-        # step is a candidate, and the best one is kept.
-        inl = consider(pose)
-        for _ in range(5):
-            if inl.sum() < 6:
-                break
-            r, _ = cv2.Rodrigues(pose[:3, :3])
-            t = pose[:3, 3].reshape(3, 1).copy()
-            r, t = cv2.solvePnPRefineLM(p1[inl], q2[inl], k, None, r, t)
-            pose = _pose(r, t)
-            new = consider(pose)
-            if np.array_equal(new, inl):
-                break
-            inl = new
+        _refine(pose, p1, q2, k, consider)
     if best is None:
         # RANSAC found no consensus at all: report the identity with its (large) errors
         pose = np.eye(4)
@@ -231,6 +209,37 @@ def fit_motion_pnp(points1: np.ndarray, pixels2: np.ndarray, intrinsics: np.ndar
         best = (None, pose, err, err < thr)
     _, pose, err, inl = best
     return MotionFit(cam2_from_cam1=pose, inliers=inl, errors_px=err, threshold_px=thr, source=source)
+
+
+def _ransac_poses(p1: np.ndarray, q2: np.ndarray, k: np.ndarray, settings: FitSettings) -> list:
+    """EPnP RANSAC's pose on a seeded subset of the correspondences (none when it fails)."""
+    n = len(p1)
+    rng = np.random.default_rng(settings.seed)
+    sub = np.sort(rng.choice(n, size=settings.max_points, replace=False)) if n > settings.max_points \
+        else np.arange(n)
+    cv2.setRNGSeed(int(settings.seed))
+    ok, rvec, tvec, _ = cv2.solvePnPRansac(
+        p1[sub], q2[sub], k, None, iterationsCount=int(settings.iterations),
+        reprojectionError=float(settings.threshold_px), confidence=float(settings.confidence),
+        flags=cv2.SOLVEPNP_EPNP)
+    return [_pose(rvec, tvec)] if ok else []
+
+
+def _refine(pose: np.ndarray, p1: np.ndarray, q2: np.ndarray, k: np.ndarray, consider) -> None:
+    """Levenberg-Marquardt on the inliers, re-selecting them until the set settles; every step
+    is handed to ``consider`` (which keeps the best and returns its inliers)."""
+    inl = consider(pose)
+    for _ in range(5):
+        if inl.sum() < 6:
+            break
+        r, _ = cv2.Rodrigues(pose[:3, :3])
+        t = pose[:3, 3].reshape(3, 1).copy()
+        r, t = cv2.solvePnPRefineLM(p1[inl], q2[inl], k, None, r, t)
+        pose = _pose(r, t)
+        new = consider(pose)
+        if np.array_equal(new, inl):
+            break
+        inl = new
 
 
 def check_fit(fit: MotionFit, settings: FitSettings) -> Optional[str]:
