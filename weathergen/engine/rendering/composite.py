@@ -43,7 +43,7 @@ from .stamps import StampSet
 from .tracks import Instances, Tracks, blur_samples
 
 __all__ = ["RenderOutput", "blend", "blend_layers", "composite", "composite_in_order",
-           "composite_layers"]
+           "composite_layers", "fog", "fogged_opacity", "tinted"]
 
 
 @dataclass
@@ -57,6 +57,27 @@ class RenderOutput:
     opacity1: torch.Tensor
     opacity2: torch.Tensor
     reached: Optional[torch.Tensor] = None
+
+
+# -- the air: the scene and the particles seen through the atmosphere --------------------------
+
+def fog(image: torch.Tensor, transmission: torch.Tensor, airlight: torch.Tensor) -> torch.Tensor:
+    """The scene seen through the air (Koschmieder): ``J t + A (1 − t)``. Shape: broadcast."""
+    return torch.lerp(airlight, image, transmission)
+
+
+def fogged_opacity(opacity: torch.Tensor, transmission: torch.Tensor) -> torch.Tensor:
+    """The weather's opacity with the air's in front of the scene: ``1 − t (1 − α)``."""
+    return 1 - transmission * (1 - opacity)
+
+
+def tinted(colour: torch.Tensor, transmission: torch.Tensor, airlight: torch.Tensor,
+           dtype: torch.dtype) -> torch.Tensor:
+    """Alpha-blended particles' colours seen through the air in front of them:
+    ``γ t_p + A_p (1 − t_p)``. Shape: colour (N, 3), transmission (N,), airlight (N, 3) ->
+    (N, 3) in ``dtype``."""
+    light = ((1 - transmission)[:, None] * airlight).to(dtype)
+    return colour * transmission.to(dtype)[:, None] + light
 
 
 # -- one record per pair ----------------------------------------------------------------------

@@ -6,7 +6,7 @@ extinctions add, ``τ = Σ_l τ_l``, and their airlights mix by optical depth,
 ``A = Σ_l τ_l A_l / τ`` (one atmosphere: its own ``A``). In each view:
 
 - the scene ``J`` becomes ``J t + A (1 − t)``, ``t = exp(−τ)`` along each pixel's ray up to its
-  surface (:meth:`Air.pixels`, :func:`fog_images`);
+  surface (:meth:`Air.pixels`, :func:`~weathergen.engine.rendering.composite.fog`);
 - a particle sees the air between it and the camera (:meth:`Air.dim`): an additive particle's
   light reaches the camera times ``t_p`` (its θ is multiplied by ``t_p``), an alpha-blended
   particle keeps its opacity and its colour becomes ``γ t_p + A_p (1 − t_p)``, with ``t_p`` and
@@ -14,7 +14,11 @@ extinctions add, ``τ = Σ_l τ_l``, and their airlights mix by optical depth,
   the composite, so ``I = (1 − a) I_scene + a (γ t_p + A_p (1 − t_p))`` for an alpha particle of
   opacity ``a``, and ``I_scene + t_p C`` for additive light ``C``: the single-scattering
   solution for a particle at distance ``d_p`` in front of a surface at ``d``;
-- the opacity is ``1 − t (1 − α)``, ``α`` the particles' (:func:`combined_opacity`).
+- the opacity is ``1 − t (1 − α)``, ``α`` the particles'
+  (:func:`~weathergen.engine.rendering.composite.fogged_opacity`).
+
+:func:`through_air` applies all three, in that order, for every entry point of the renderer; the
+formulas live in the blend module, :mod:`~weathergen.engine.rendering.composite`.
 
 Integration: a uniform atmosphere (``h = 0``, no explicit density) gives ``τ = β₀ L`` exactly. A
 heterogeneous one is integrated by the midpoint rule along the rays of a coarse grid of pixels,
@@ -35,13 +39,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
 
 from ..weather.atmosphere import (RAY_ANGLE, RAY_SAMPLES, RAY_STEP, Atmosphere, ray_nodes,
-                                  sample_lattice, wrapped_lattice)
+                                  ray_norms, sample_lattice, wrapped_lattice)
+from .composite import fog, fogged_opacity, tinted
 from .tracks import Tracks
 
 
@@ -77,6 +82,7 @@ class Air:
         self.has_air = [bool(a) for a in self.atmospheres]
         self.has = torch.tensor(self.has_air)
         self.view = torch.tensor([v for v, _ in comps], dtype=torch.long, device=dev)
+        self.intrinsics = intrinsics.detach().to(device=dev, dtype=f64)
         #: per view: fx, fy, cx, cy, skew
         self.camera = intrinsics.detach().to(device=dev, dtype=f64).reshape(-1, 9)[
             :, torch.tensor([0, 4, 2, 5, 1], device=dev)]
@@ -114,13 +120,9 @@ class Air:
 
     # -- optical depth -------------------------------------------------------------------------
 
-    def ray_norms(self, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """``|K⁻¹ (u, v, 1)|`` of view ``view`` (broadcast with the points). float64."""
-        fx, fy, cx, cy, skew = self.camera.index_select(0, view.reshape(-1)) \
-            .view(*view.shape, 5).unbind(-1)
-        y = (v.double() - cy) / fy
-        x = (u.double() - cx - skew * y) / fx
-        return torch.sqrt(x * x + y * y + 1)
+    def intrinsics_of(self, view: torch.Tensor) -> torch.Tensor:
+        """The intrinsics of views ``view``. Shape: (...) -> (..., 3, 3) float64."""
+        return self.intrinsics.index_select(0, view.reshape(-1)).view(*view.shape, 3, 3)
 
     def optical_depth(self, comp: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
                       distance: torch.Tensor, hetero: bool = True) -> torch.Tensor:
@@ -289,7 +291,7 @@ class Air:
         view = torch.arange(count, device=dev)[:, None, None]
         v = torch.arange(height, dtype=torch.float64, device=dev)[None, :, None]
         u = torch.arange(width, dtype=torch.float64, device=dev)[None, None, :]
-        distance = depth[:, 0].to(dev).double() * self.ray_norms(view, u, v)
+        distance = depth[:, 0].to(dev).double() * ray_norms(self.intrinsics_of(view), u, v)
         # (a view without air reads the clear component: t = exp(0) = 1 and A = 0 exactly)
         t, airlight = self._through(view, u, v, distance)
         return t[:, None].to(dtype), airlight.permute(0, 3, 1, 2).to(dtype)
@@ -311,7 +313,7 @@ class Air:
         safe = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
         u, v = middle[:, 0] / safe, middle[:, 1] / safe
         view = tracks.view.to(self.device)
-        distance = z.clamp(min=0) * self.ray_norms(view, u, v)
+        distance = z.clamp(min=0) * ray_norms(self.intrinsics_of(view), u, v)
         # (a view without air reads the clear component: t = 1 and A = 0, which keep the bits)
         t, airlight = self._through(view, u, v, distance)
         dtype = tracks.theta.dtype
@@ -320,8 +322,7 @@ class Air:
         theta = torch.where(alpha_track, tracks.theta, tracks.theta * passed)
         if not tint:
             return dataclasses.replace(tracks, theta=theta)
-        light = ((1 - t)[:, None] * airlight).to(dtype)
-        colour = torch.where(alpha_track[:, None], tracks.color * passed[:, None] + light,
+        colour = torch.where(alpha_track[:, None], tinted(tracks.color, t, airlight, dtype),
                              tracks.color)
         return dataclasses.replace(tracks, theta=theta, color=colour)
 
@@ -374,7 +375,7 @@ class AirView:
         v = torch.arange(height, dtype=torch.float64, device=dev)[:, None]
         u = torch.arange(width, dtype=torch.float64, device=dev)[None, :]
         zero = torch.zeros((), dtype=torch.long, device=dev)
-        return (depth.to(dev).double() * self.air.ray_norms(zero, u, v)) \
+        return (depth.to(dev).double() * ray_norms(self.air.intrinsics_of(zero), u, v)) \
             .clamp(max=self.atmosphere.sky_distance)
 
     def optical_depth(self, u: torch.Tensor, v: torch.Tensor, distance: torch.Tensor
@@ -416,21 +417,40 @@ def reference_optical_depth(air: AirView, u: torch.Tensor, v: torch.Tensor,
 
 # -- a render call's air ---------------------------------------------------------------------
 
-def fog_images(images: Sequence[torch.Tensor], transmission: torch.Tensor,
-               airlight: torch.Tensor, air: Air) -> list[torch.Tensor]:
-    """The scene through the air: ``J t + A (1 − t)`` where a view has air, ``J`` itself
-    elsewhere. Shape: T images (B, 3, H, W) (view ``t B + b``); transmission (V, 1, H, W),
-    airlight (V, 3, H, W) -> T images (B, 3, H, W)."""
-    return _where_air(images, air,
-                      lambda image, views: torch.lerp(airlight[views], image, transmission[views]))
+def unchanged(tracks: Tracks, alpha: Optional[torch.Tensor] = None, tint: bool = True
+              ) -> Tracks:
+    """The tracks of views without air, as they are (:meth:`Air.dim`'s signature)."""
+    return tracks
 
 
-def combined_opacity(opacities: Sequence[torch.Tensor], transmission: torch.Tensor,
-                     air: Air) -> list[torch.Tensor]:
-    """The weather's opacity with the air's: ``1 − t (1 − α)`` where a view has air.
-    Shape: T opacities (B, 1, H, W), transmission (V, 1, H, W) -> T opacities (B, 1, H, W)."""
-    return _where_air(opacities, air,
-                      lambda opacity, views: 1 - transmission[views] * (1 - opacity))
+def dimming(air: Optional[Air]) -> Callable[..., Tracks]:
+    """How particles are seen through ``air`` (None: no view has any): :meth:`Air.dim`, or
+    :func:`unchanged`. The entry points that stop at the splat's sums use this step alone."""
+    return air.dim if air is not None else unchanged
+
+
+def through_air(air: Optional[Air], depth: torch.Tensor, images: Sequence[torch.Tensor], draw
+                ) -> tuple[list, list, Optional[torch.Tensor]]:
+    """Weather drawn into ``images`` seen through the air, in the order every entry point of the
+    renderer applies it: ``draw(dim)`` draws the particles, their tracks passed through ``dim``
+    (:func:`dimming`: the air between each particle and its camera), and returns the blend; the
+    scene is seen through its air (:func:`~weathergen.engine.rendering.composite.fog`), blended
+    with the weather, and the opacities take the air's
+    (:func:`~weathergen.engine.rendering.composite.fogged_opacity`); views with air count as
+    reached. ``blend(images)`` returns ``(frames, opacities, reached)``, ``reached`` (V,) or None.
+    Shape: T images (B, 3, H, W) (view ``t B + b``), depth (V, 1, H, W) the views' scene depth.
+    """
+    blend = draw(dimming(air))
+    if air is None:
+        return blend(images)
+    transmission, airlight = air.pixels(depth, images[0].dtype)
+    frames, opacities, reached = blend(_where_air(
+        images, air, lambda image, views: fog(image, transmission[views], airlight[views])))
+    opacities = _where_air(opacities, air,
+                           lambda opacity, views: fogged_opacity(opacity, transmission[views]))
+    if reached is not None:
+        reached = reached | air.reached().to(reached.device)
+    return frames, opacities, reached
 
 
 def _where_air(frames: Sequence[torch.Tensor], air: Air, through) -> list[torch.Tensor]:

@@ -302,10 +302,10 @@ class Atmosphere:
 
 def ray_norms(intrinsics: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """``|K⁻¹ (u, v, 1)|``: scene distance per unit of camera depth along the ray through image
-    point ``(u, v)``. Shape: intrinsics (3, 3); u, v any (same) shape -> that shape, float64."""
+    point ``(u, v)``. Shape: intrinsics (..., 3, 3) broadcast with u, v (...) -> (...) float64."""
     k = intrinsics.double().to(u.device)
-    y = (v.double() - k[1, 2]) / k[1, 1]
-    x = (u.double() - k[0, 2] - k[0, 1] * y) / k[0, 0]
+    y = (v.double() - k[..., 1, 2]) / k[..., 1, 1]
+    x = (u.double() - k[..., 0, 2] - k[..., 0, 1] * y) / k[..., 0, 0]
     return torch.sqrt(x * x + y * y + 1)
 
 
