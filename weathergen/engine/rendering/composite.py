@@ -71,13 +71,13 @@ def fogged_opacity(opacity: torch.Tensor, transmission: torch.Tensor) -> torch.T
     return 1 - transmission * (1 - opacity)
 
 
-def tinted(colour: torch.Tensor, transmission: torch.Tensor, airlight: torch.Tensor,
-           dtype: torch.dtype) -> torch.Tensor:
+def tinted(colour: torch.Tensor, passed: torch.Tensor, transmission: torch.Tensor,
+           airlight: torch.Tensor) -> torch.Tensor:
     """Alpha-blended particles' colours seen through the air in front of them:
-    ``γ t_p + A_p (1 − t_p)``. Shape: colour (N, 3), transmission (N,), airlight (N, 3) ->
-    (N, 3) in ``dtype``."""
-    light = ((1 - transmission)[:, None] * airlight).to(dtype)
-    return colour * transmission.to(dtype)[:, None] + light
+    ``γ t_p + A_p (1 − t_p)``, ``passed`` the transmission in the colours' dtype.
+    Shape: colour (N, 3), passed, transmission (N,), airlight (N, 3) -> (N, 3)."""
+    light = ((1 - transmission)[:, None] * airlight).to(passed.dtype)
+    return colour * passed[:, None] + light
 
 
 # -- one record per pair ----------------------------------------------------------------------

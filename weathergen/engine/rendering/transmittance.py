@@ -322,7 +322,7 @@ class Air:
         theta = torch.where(alpha_track, tracks.theta, tracks.theta * passed)
         if not tint:
             return dataclasses.replace(tracks, theta=theta)
-        colour = torch.where(alpha_track[:, None], tinted(tracks.color, t, airlight, dtype),
+        colour = torch.where(alpha_track[:, None], tinted(tracks.color, passed, t, airlight),
                              tracks.color)
         return dataclasses.replace(tracks, theta=theta, color=colour)
 
