@@ -141,6 +141,42 @@ def test_each_layer_imports_only_the_layers_below_it():
     assert not upward, "imports that do not go down a layer:\n" + "\n".join(upward)
 
 
+#: The floors of weathergen/engine/ (docs/architecture.md), lowest first: a subpackage imports only
+#: lower floors, so sampling and rendering do not import each other.
+ENGINE_FLOORS = [("weathergen.engine.common", "weathergen.engine.weather"),
+                 ("weathergen.engine.records", "weathergen.engine.views"),
+                 ("weathergen.engine.sampling", "weathergen.engine.rendering")]
+
+
+def _engine_part(module: str) -> str:
+    return ".".join(module.split(".")[:3])
+
+
+def _engine_upward() -> list[str]:
+    rank = {part: i for i, floor in enumerate(ENGINE_FLOORS) for part in floor}
+    graph = _graph()
+    engine = [name for name in MODULES if name.startswith("weathergen.engine.")]
+    assert {_engine_part(name) for name in engine} == set(rank), "a subpackage has no floor"
+    return [f"{a} imports {b}" for a in engine for b in graph[a]
+            if b.startswith("weathergen.engine.") and _engine_part(a) != _engine_part(b)
+            and rank[_engine_part(a)] <= rank[_engine_part(b)]]
+
+
+def test_each_engine_floor_imports_only_the_floors_below_it():
+    upward = _engine_upward()
+    assert not upward, "engine imports that do not go down a floor:\n" + "\n".join(upward)
+
+
+def test_engine_floor_check_sees_sampling_import_rendering(tmp_path, monkeypatch):
+    probe = tmp_path / "probe.py"
+    probe.write_text("from ..rendering.tracks import Tracks\nfrom ..views import View\n")
+    monkeypatch.setitem(MODULES, "weathergen.engine.sampling.probe", probe)
+    assert sorted(_engine_upward()) == ["weathergen.engine.sampling.probe imports "
+                                        "weathergen.engine.rendering",
+                                        "weathergen.engine.sampling.probe imports "
+                                        "weathergen.engine.rendering.tracks"]
+
+
 def _private(name: str) -> bool:
     return name.startswith("_") and not (name.startswith("__") and name.endswith("__"))
 

@@ -20,7 +20,7 @@ from weathergen.engine.sampling.field import sample_field_particles
 from weathergen.engine.rendering.renderer import render, render_view
 from weathergen.engine.sampling.pair import reference_transforms
 from weathergen.engine.rendering.stereo import stereo_view
-from weathergen.engine.rendering.tracks import View
+from weathergen.engine.views import View
 from weathergen.errors import ConfigError
 from weathergen.framepair import FramePair, PairId
 

@@ -46,8 +46,9 @@ from .planes import planes
 from .splat import Sums, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, build_many
 from ..weather.templates import TemplateLibrary, load_templates
-from .tracks import (Looks, ParticleTable, RecordRows, Tracks, View, Views, blur_samples,
-                     empty_looks, fixed_looks, pair_starts, pair_tracks, view_tracks)
+from .tracks import (Looks, ParticleTable, RecordRows, Tracks, blur_samples, empty_looks,
+                     fixed_looks, pair_starts, pair_tracks, view_tracks)
+from ..views import View, Views
 
 __all__ = ["as_layers", "build_layer_stamps", "layers_view_sums", "render_layers",
            "render_layers_view"]

@@ -32,6 +32,7 @@ import torch
 
 from ...errors import ConfigError, DatasetError, ShapeError
 from ...framepair import FramePair, FramePairBatch
+from ..common import check_pair_for_engine, reference_transforms, resolve_device
 from .transmittance import dimming, pair_air, record_atmospheres, through_air, view_air
 from .composite import RenderOutput, composite, composite_in_order
 from .combined import as_layers, build_layer_stamps, render_layers, render_layers_view
@@ -39,12 +40,12 @@ from ..records.layered import LayeredParticles
 from ..records.particles import Particles
 from .planes import planes
 from ..weather.presets import BLEND_MODES
-from ..sampling.pair import check_pair_for_engine, reference_transforms, resolve_device
 from .splat import SPLAT_CHUNK_ELEMENTS, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, stored
 from ..weather.templates import TemplateLibrary, load_templates
-from .tracks import (ParticleTable, RecordRows, View, Views, blur_samples, empty_looks,
-                     fixed_looks, pair_starts, pair_tracks, view_tracks)
+from .tracks import (ParticleTable, RecordRows, blur_samples, empty_looks, fixed_looks,
+                     pair_starts, pair_tracks, view_tracks)
+from ..views import View, Views
 
 BETA_RENDER = 250.0
 BETA_ATTACK = 30.0

@@ -47,9 +47,9 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
+from ..common import NEAR
 from .coarse import CoarseDepths, DepthOrder, footprint_depths, moment_channels
 from .ragged import chunk_spans
-from ..sampling.pair import NEAR
 from .stamps import COARSE_MAX_LEVEL, StampSet
 from .tracks import Instances
 

@@ -82,7 +82,6 @@ class Air:
         self.has_air = [bool(a) for a in self.atmospheres]
         self.has = torch.tensor(self.has_air)
         self.view = torch.tensor([v for v, _ in comps], dtype=torch.long, device=dev)
-        self.intrinsics = intrinsics.detach().to(device=dev, dtype=f64)
         #: per view: fx, fy, cx, cy, skew
         self.camera = intrinsics.detach().to(device=dev, dtype=f64).reshape(-1, 9)[
             :, torch.tensor([0, 4, 2, 5, 1], device=dev)]
@@ -120,9 +119,9 @@ class Air:
 
     # -- optical depth -------------------------------------------------------------------------
 
-    def intrinsics_of(self, view: torch.Tensor) -> torch.Tensor:
-        """The intrinsics of views ``view``. Shape: (...) -> (..., 3, 3) float64."""
-        return self.intrinsics.index_select(0, view.reshape(-1)).view(*view.shape, 3, 3)
+    def camera_of(self, view: torch.Tensor) -> torch.Tensor:
+        """:attr:`camera` of views ``view``. Shape: (...) -> (..., 5) float64."""
+        return self.camera.index_select(0, view.reshape(-1)).view(*view.shape, 5)
 
     def optical_depth(self, comp: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
                       distance: torch.Tensor, hetero: bool = True) -> torch.Tensor:
@@ -291,7 +290,7 @@ class Air:
         view = torch.arange(count, device=dev)[:, None, None]
         v = torch.arange(height, dtype=torch.float64, device=dev)[None, :, None]
         u = torch.arange(width, dtype=torch.float64, device=dev)[None, None, :]
-        distance = depth[:, 0].to(dev).double() * ray_norms(self.intrinsics_of(view), u, v)
+        distance = depth[:, 0].to(dev).double() * ray_norms(self.camera_of(view), u, v)
         # (a view without air reads the clear component: t = exp(0) = 1 and A = 0 exactly)
         t, airlight = self._through(view, u, v, distance)
         return t[:, None].to(dtype), airlight.permute(0, 3, 1, 2).to(dtype)
@@ -313,7 +312,7 @@ class Air:
         safe = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
         u, v = middle[:, 0] / safe, middle[:, 1] / safe
         view = tracks.view.to(self.device)
-        distance = z.clamp(min=0) * ray_norms(self.intrinsics_of(view), u, v)
+        distance = z.clamp(min=0) * ray_norms(self.camera_of(view), u, v)
         # (a view without air reads the clear component: t = 1 and A = 0, which keep the bits)
         t, airlight = self._through(view, u, v, distance)
         dtype = tracks.theta.dtype
@@ -375,7 +374,7 @@ class AirView:
         v = torch.arange(height, dtype=torch.float64, device=dev)[:, None]
         u = torch.arange(width, dtype=torch.float64, device=dev)[None, :]
         zero = torch.zeros((), dtype=torch.long, device=dev)
-        return (depth.to(dev).double() * ray_norms(self.air.intrinsics_of(zero), u, v)) \
+        return (depth.to(dev).double() * ray_norms(self.air.camera_of(zero), u, v)) \
             .clamp(max=self.atmosphere.sky_distance)
 
     def optical_depth(self, u: torch.Tensor, v: torch.Tensor, distance: torch.Tensor
