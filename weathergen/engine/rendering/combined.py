@@ -43,7 +43,8 @@ from .composite import RenderOutput, blend_layers
 from ..records.layered import LayeredParticles
 from ..records.particles import Particles
 from .planes import planes
-from .splat import Sums, chunk_elements_for, splat
+from .grids import Sums
+from .splat import chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, build_many
 from ..weather.templates import TemplateLibrary, load_templates
 from .tracks import (Looks, ParticleTable, RecordRows, Tracks, blur_samples, empty_looks,

@@ -38,7 +38,8 @@ from typing import Optional, Sequence
 import torch
 
 from .planes import LayerPlanes, planes
-from .splat import Sums, splat
+from .grids import Sums
+from .splat import splat
 from .stamps import StampSet
 from .tracks import Instances, Tracks, blur_samples
 

@@ -24,7 +24,7 @@ import torch
 import torch.nn.functional as F
 
 from .coarse import across_edges, drop_moments
-from .splat import Grids, Sums
+from .grids import Grids, Sums
 
 __all__ = ["LayerPlanes", "planes", "upsample", "upsample_adjoint"]
 

@@ -202,11 +202,8 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
                                   coarse_side=coarse_side, chunk_elements=chunk_elements)
         return _blender(records, seen, stamp_set, views.depth, alpha_mode, dtype=dtype,
                         chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
-
-    (out1, out2), (opacity1, opacity2), reached = through_air(air, views.depth,
-                                                              [image1, image2], draw)
-    return RenderOutput(image1=out1, image2=out2, opacity1=opacity1, opacity2=opacity2,
-                        reached=reached.view(2, image1.shape[0]).any(0))
+    frames, opacities, reached = through_air(air, views.depth, [image1, image2], draw)
+    return RenderOutput(*frames, *opacities, reached=reached.view(2, -1).any(0))
 
 
 def _check_batch(image1: torch.Tensor, image2: torch.Tensor, depth1: Optional[torch.Tensor],
