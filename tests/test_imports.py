@@ -14,9 +14,9 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCES = {"weathergen": ROOT / "weathergen", "weathergen.cli": ROOT / "cli"}
 
 
-def _modules() -> dict[str, Path]:
+def _modules(sources: dict[str, Path] = SOURCES) -> dict[str, Path]:
     out = {}
-    for package, folder in SOURCES.items():
+    for package, folder in sources.items():
         for path in sorted(folder.rglob("*.py")):
             parts = list(path.relative_to(folder).with_suffix("").parts)
             if parts[-1] == "__init__":
@@ -31,8 +31,8 @@ def _modules() -> dict[str, Path]:
 MODULES = _modules()
 
 
-def _is_package(name: str) -> bool:
-    return MODULES[name].name == "__init__.py"
+def _is_package(name: str, modules: dict[str, Path] = MODULES) -> bool:
+    return modules[name].name == "__init__.py"
 
 
 def _import_stem(node: ast.ImportFrom, base: str) -> str:
@@ -45,11 +45,11 @@ def _import_stem(node: ast.ImportFrom, base: str) -> str:
     return ".".join(anchor + ([node.module] if node.module else []))
 
 
-def _imports(name: str) -> list[tuple[str, int, bool]]:
+def _imports(name: str, modules: dict[str, Path] = MODULES) -> list[tuple[str, int, bool]]:
     """(imported module, line, at module level) for every import of weathergen in ``name``."""
-    tree = ast.parse(MODULES[name].read_text())
+    tree = ast.parse(modules[name].read_text())
     top = {id(node) for node in tree.body}
-    base = name if _is_package(name) else name.rpartition(".")[0]
+    base = name if _is_package(name, modules) else name.rpartition(".")[0]
     found = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -58,7 +58,7 @@ def _imports(name: str) -> list[tuple[str, int, bool]]:
             stem = _import_stem(node, base)
             targets = [stem]
             # "from .pkg import module" imports a module, not only a name
-            targets += [f"{stem}.{a.name}" for a in node.names if f"{stem}.{a.name}" in MODULES]
+            targets += [f"{stem}.{a.name}" for a in node.names if f"{stem}.{a.name}" in modules]
         else:
             continue
         for target in targets:
@@ -73,24 +73,24 @@ def test_every_import_is_at_the_top_of_its_module():
     assert not inside, "imports inside functions:\n" + "\n".join(inside)
 
 
-def _graph() -> dict[str, set[str]]:
+def _graph(modules: dict[str, Path] = MODULES) -> dict[str, set[str]]:
     graph = {}
-    for name in MODULES:
+    for name in modules:
         edges = set()
-        for target, _, _ in _imports(name):
+        for target, _, _ in _imports(name, modules):
             # importing a.b.c runs a/__init__ and a/b/__init__ first, unless the importer is
             # inside them already
             parts = target.split(".")
             for i in range(1, len(parts) + 1):
                 module = ".".join(parts[:i])
-                if module in MODULES and module != name and not name.startswith(module + "."):
+                if module in modules and module != name and not name.startswith(module + "."):
                     edges.add(module)
         graph[name] = edges
     return graph
 
 
-def test_there_is_no_import_cycle():
-    graph = _graph()
+def _cycles(graph: dict[str, set[str]]) -> list[str]:
+    """The import cycles a depth-first walk of ``graph`` meets (one per edge that closes one)."""
     state: dict[str, int] = {}
     cycles = []
 
@@ -106,6 +106,44 @@ def test_there_is_no_import_cycle():
     for node in sorted(graph):
         if node not in state:
             visit(node, [node])
+    return cycles
+
+
+def structure(modules: dict[str, Path], package: str = "weathergen.engine") -> dict[str, int]:
+    """Figures of the layout of ``package`` (docs/architecture.md compares them): its modules
+    (its own ``__init__`` left out) and their lines, the import edges between them and the
+    cycles among them; its parts (a subpackage, or a module at its top) and the import edges and
+    cycles between the parts; its longest module's lines."""
+    inside = {n: p for n, p in modules.items() if n.startswith(package + ".")}
+    graph = {n: {m for m in edges if m in inside} for n, edges in _graph(modules).items()
+             if n in inside}
+    depth = package.count(".") + 2
+    parts: dict[str, set[str]] = {}
+    for name, edges in graph.items():
+        part = ".".join(name.split(".")[:depth])
+        parts.setdefault(part, set()).update(
+            {".".join(m.split(".")[:depth]) for m in edges} - {part})
+    lines = [len(p.read_text().splitlines()) for p in inside.values()]
+    return {"modules": len(inside), "lines": sum(lines),
+            "import edges": sum(map(len, graph.values())), "cycles": len(_cycles(graph)),
+            "parts": len(parts), "edges between parts": sum(map(len, parts.values())),
+            "cycles between parts": len(_cycles(parts)), "longest module": max(lines)}
+
+
+def test_the_engine_figures_in_the_docs_are_the_trees():
+    """docs/architecture.md's "after" column is this tree's engine (scripts/engine_structure.py
+    writes the table)."""
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    rows = {line.split("|")[1].strip(): line.split("|")[-2].strip()
+            for line in text.splitlines() if line.startswith("| ") and line.count("|") == 5}
+    figures = structure(MODULES)
+    shown = {key: rows.get(key) for key in figures}
+    assert shown == {key: str(value) for key, value in figures.items()}, \
+        "docs/architecture.md's engine figures differ: run scripts/engine_structure.py"
+
+
+def test_there_is_no_import_cycle():
+    cycles = _cycles(_graph())
     assert not cycles, "import cycles:\n" + "\n".join(cycles)
 
 
