@@ -135,7 +135,8 @@ def test_the_engine_figures_in_the_docs_are_the_trees():
     writes the table)."""
     text = (ROOT / "docs" / "architecture.md").read_text()
     rows = {line.split("|")[1].strip(): line.split("|")[-2].strip()
-            for line in text.splitlines() if line.startswith("| ") and line.count("|") == 5}
+            for line in map(str.strip, text.splitlines())
+            if line.startswith("| ") and line.count("|") == 5}
     figures = structure(MODULES)
     shown = {key: rows.get(key) for key in figures}
     assert shown == {key: str(value) for key, value in figures.items()}, \

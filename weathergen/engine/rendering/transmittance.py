@@ -45,7 +45,7 @@ import torch
 import torch.nn.functional as F
 
 from ..weather.atmosphere import (RAY_ANGLE, RAY_SAMPLES, RAY_STEP, Atmosphere, ray_nodes,
-                                  ray_norms, sample_lattice, wrapped_lattice)
+                                  ray_norms, wrapped_lattice)
 from .composite import fog, fogged_opacity, tinted
 from .tracks import Tracks
 
@@ -80,7 +80,7 @@ class Air:
         self.layer_of = torch.tensor(table, dtype=torch.long, device=dev).view(-1, layers)
         self.single = [sum(1 for c in row if c != clear) <= 1 for row in table]
         self.has_air = [bool(a) for a in self.atmospheres]
-        self.has = torch.tensor(self.has_air)
+        self.has = torch.tensor(self.has_air)        #: which views have air (V,) bool, CPU
         self.view = torch.tensor([v for v, _ in comps], dtype=torch.long, device=dev)
         #: per view: fx, fy, cx, cy, skew
         self.camera = intrinsics.detach().to(device=dev, dtype=f64).reshape(-1, 9)[
@@ -99,23 +99,6 @@ class Air:
         #: uniform or clear components alone needs no ray tables: τ = β₀ L)
         self.slot_hetero = [any(row[k] in self.hetero for row in table) for k in range(layers)]
         self._tables = None
-
-    @classmethod
-    def of(cls, atmospheres: Sequence[Sequence[Atmosphere]], intrinsics: torch.Tensor,
-           cam_from_ref: torch.Tensor, size: tuple[int, int], frames: Sequence[int],
-           device=None) -> Optional["Air"]:
-        """The air of V views, or None where no view has any atmosphere."""
-        if not any(atmospheres):
-            return None
-        return cls(atmospheres, intrinsics, cam_from_ref, size, frames, device)
-
-    @property
-    def count(self) -> int:
-        return len(self.atmospheres)
-
-    def reached(self) -> torch.Tensor:
-        """Which views have air. Shape: (V,) bool (CPU)."""
-        return self.has
 
     # -- optical depth -------------------------------------------------------------------------
 
@@ -347,73 +330,6 @@ def _sample_rays(lattices: torch.Tensor, origin: torch.Tensor, direction: torch.
     return out.reshape(coords.shape[:-1])
 
 
-# -- one view, one atmosphere ----------------------------------------------------------------
-
-class AirView:
-    """One atmosphere seen by one camera in frame ``frame`` (0 or 1) of its pair: the optical
-    depth along any ray of the view (:meth:`optical_depth`), as a render integrates it.
-
-    Shape: intrinsics (3, 3), cam_from_ref (4, 4), size (H, W).
-    """
-
-    def __init__(self, atmosphere: Atmosphere, intrinsics: torch.Tensor,
-                 cam_from_ref: torch.Tensor, size: tuple[int, int], frame: int, device=None):
-        self.atmosphere = atmosphere
-        self.frame = int(frame)
-        self.air = Air([[atmosphere]], intrinsics[None], cam_from_ref[None], size, [frame],
-                       device)
-        self.intrinsics = intrinsics.detach().double().to(self.air.device)
-        self.cam_from_ref = self.air.cam_from_ref[0]
-        focal = float(torch.sqrt(self.intrinsics[0, 0] * self.intrinsics[1, 1]))
-        self.step = max(1, min(RAY_STEP, int(math.floor(focal * RAY_ANGLE))))
-
-    def distances(self, depth: torch.Tensor) -> torch.Tensor:
-        """Every pixel's ray length, at most ``sky_distance``. Shape: (1, H, W) -> (1, H, W)."""
-        height, width = depth.shape[-2:]
-        dev = self.air.device
-        v = torch.arange(height, dtype=torch.float64, device=dev)[:, None]
-        u = torch.arange(width, dtype=torch.float64, device=dev)[None, :]
-        zero = torch.zeros((), dtype=torch.long, device=dev)
-        return (depth.to(dev).double() * ray_norms(self.air.camera_of(zero), u, v)) \
-            .clamp(max=self.atmosphere.sky_distance)
-
-    def optical_depth(self, u: torch.Tensor, v: torch.Tensor, distance: torch.Tensor
-                      ) -> torch.Tensor:
-        """τ along the rays through ``(u, v)`` up to ``distance``. Shape: any (same) -> same,
-        float64."""
-        zero = torch.zeros((), dtype=torch.long, device=self.air.device)
-        return self.air.optical_depth(zero, u, v, distance)
-
-
-def reference_optical_depth(air: AirView, u: torch.Tensor, v: torch.Tensor,
-                            distance: torch.Tensor, samples: int) -> torch.Tensor:
-    """τ by the midpoint rule with ``samples`` equal intervals along each point's own ray (no
-    coarse rays): the fine reference the integration is tested against.
-    Shape: any (same) shape -> that shape, float64."""
-    atm = air.atmosphere
-    length = distance.double().clamp(0, atm.sky_distance)
-    if atm.uniform:
-        return atm.extinction * length
-    k = air.intrinsics
-    cy = (v.double() - k[1, 2]) / k[1, 1]
-    cx = (u.double() - k[0, 2] - k[0, 1] * cy) / k[0, 0]
-    ray = torch.stack((cx, cy, torch.ones_like(cx)), -1)
-    ray = ray / ray.norm(dim=-1, keepdim=True)
-    rot, trans = air.cam_from_ref[:3, :3], air.cam_from_ref[:3, 3]
-    direction = (ray[..., :, None] * rot).sum(-2)
-    origin = -(trans[:, None] * rot).sum(0) - atm.drift[air.frame].to(length.device)
-    lattice = atm.lattice(torch.float64, length.device)
-    total = torch.zeros_like(length)
-    chunk = max(1, (1 << 22) // max(1, length.numel()))
-    for j0 in range(0, samples, chunk):
-        fractions = (torch.arange(j0, min(samples, j0 + chunk), dtype=torch.float64,
-                                  device=length.device) + 0.5) / samples
-        s = length[..., None] * fractions                                    # (..., J)
-        points = origin + direction[..., None, :] * s[..., None]
-        total = total + sample_lattice(lattice, points / atm.voxel).double().sum(-1)
-    return atm.extinction * length * total / samples
-
-
 # -- a render call's air ---------------------------------------------------------------------
 
 def unchanged(tracks: Tracks, alpha: Optional[torch.Tensor] = None, tint: bool = True
@@ -448,7 +364,7 @@ def through_air(air: Optional[Air], depth: torch.Tensor, images: Sequence[torch.
     opacities = _where_air(opacities, air,
                            lambda opacity, views: fogged_opacity(opacity, transmission[views]))
     if reached is not None:
-        reached = reached | air.reached().to(reached.device)
+        reached = reached | air.has.to(reached.device)
     return frames, opacities, reached
 
 

@@ -175,8 +175,8 @@ _LATTICES: dict = {}
 
 @dataclass
 class Atmosphere:
-    """The atmosphere a field record carries: what :class:`AirView` needs to integrate it in any
-    view of the record's pair.
+    """The atmosphere a field record carries: what a render needs to integrate it in any view of
+    the record's pair (:mod:`~weathergen.engine.rendering.transmittance`).
 
     Lengths in scene units (metres on metric datasets), in the record's reference frame.
     extinction: β₀ (per scene unit); heterogeneity: ``h`` in [0, 1); scale: the

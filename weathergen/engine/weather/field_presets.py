@@ -80,19 +80,19 @@ class FieldPreset:
     description: str = shared_key("description")
     # -- how many and how large
     density: float = preset_key(100.0, number_check(0, 1e7),
-                          "particles per cubic scene unit (0: none, for an atmosphere alone)",
-                          main=True, plausible=Plausible(1e-3, 1e5, "per m³", zero=True))
+                                "particles per cubic scene unit (0: none, for an atmosphere alone)",
+                                main=True, plausible=Plausible(1e-3, 1e5, "per m³", zero=True))
     diameter: float = preset_key(0.005, number_check(0, 1e3, lo_open=True),
-                           "particle diameter, scene units", main=True,
-                           plausible=PlausibleBy("templates", {
-                               "flakes": Plausible(1e-4, 0.1, "m", LENGTH_SLIPS,
-                                                   what="particles (flakes templates)"),
-                               "dust": Plausible(1e-4, 0.1, "m", LENGTH_SLIPS,
-                                                 what="particles (dust templates)"),
-                               "haze": Plausible(0.1, 100, "m", what="clouds (haze templates)")},
-                               Plausible(1e-4, 100, "m", LENGTH_SLIPS)))
+                                 "particle diameter, scene units", main=True,
+                                 plausible=PlausibleBy("templates", {
+                                     "flakes": Plausible(1e-4, 0.1, "m", LENGTH_SLIPS,
+                                                         what="particles (flakes templates)"),
+                                     "dust": Plausible(1e-4, 0.1, "m", LENGTH_SLIPS,
+                                                       what="particles (dust templates)"),
+                                     "haze": Plausible(0.1, 100, "m", what="clouds (haze templates)")},
+                                     Plausible(1e-4, 100, "m", LENGTH_SLIPS)))
     diameter_jitter: float = preset_key(0.3, number_check(0, 0.9), "diameter x (1 + U[-f, f])",
-                                  plausible=UNITLESS)
+                                        plausible=UNITLESS)
     templates: str = shared_key("templates")
     # -- colour and opacity
     color: tuple = shared_key("color")
@@ -103,69 +103,69 @@ class FieldPreset:
     transparency: float = shared_key("transparency", "base theta before the depth fade")
     # -- motion, per second
     fall_speed: float = preset_key(1.0, number_check(-1e3, 1e3),
-                             "speed along the world's down axis, scene units/s (< 0 rises)",
-                             main=True, plausible=Plausible(-60, 60, "m/s", SPEED_SLIPS))
+                                   "speed along the world's down axis, scene units/s (< 0 rises)",
+                                   main=True, plausible=Plausible(-60, 60, "m/s", SPEED_SLIPS))
     speed_jitter: float = preset_key(0.0, number_check(0, 1), "speed x (1 + U[-f, f])", plausible=UNITLESS)
     angle_jitter: float = preset_key(0.0, number_check(0, 180),
-                               "fall direction turned by Euler angles U[-a, a] degrees",
-                               plausible=UNITLESS)
+                                     "fall direction turned by Euler angles U[-a, a] degrees",
+                                     plausible=UNITLESS)
     wind: tuple = preset_key((0.0, 0.0), _pair,
-                       "wind along the world's two horizontal axes, scene units/s", main=True,
-                       plausible=Plausible(-60, 60, "m/s", SPEED_SLIPS))
+                             "wind along the world's two horizontal axes, scene units/s", main=True,
+                             plausible=Plausible(-60, 60, "m/s", SPEED_SLIPS))
     frame_rate: float = preset_key(0.0, number_check(0, 1e4),
-                             "frames per second; 0: the dataset's (its reader's frame_rate)",
-                             plausible=Plausible(1, 1000, "fps", zero=True))
+                                   "frames per second; 0: the dataset's (its reader's frame_rate)",
+                                   plausible=Plausible(1, 1000, "fps", zero=True))
     exposure: float = preset_key(0.0, number_check(0, 10),
-                           "exposure time, s: streak length = velocity x exposure "
-                           "(at most one frame interval); 0: no streak", main=True,
-                           plausible=Plausible(0, 1, "s", TIME_SLIPS))
+                                 "exposure time, s: streak length = velocity x exposure "
+                                 "(at most one frame interval); 0: no streak", main=True,
+                                 plausible=Plausible(0, 1, "s", TIME_SLIPS))
     blur_samples: int = shared_key("blur_samples", "samples along a streak")
     coarse: bool = shared_key("coarse")
     # -- where particles are drawn and how the lens sees them
     near: float = preset_key(0.1, number_check(0, 1e6, lo_open=True),
-                       "nearest camera depth drawn, scene units (fade-in up to 2 x near)",
-                       plausible=Plausible(0.01, 100, "m", LENGTH_SLIPS))
+                             "nearest camera depth drawn, scene units (fade-in up to 2 x near)",
+                             plausible=Plausible(0.01, 100, "m", LENGTH_SLIPS))
     far: float = preset_key(10.0, number_check(0, 1e6, lo_open=True),
-                      "farthest camera depth drawn, scene units", main=True,
-                      plausible=Plausible(0.1, 10_000, "m", LENGTH_SLIPS))
+                            "farthest camera depth drawn, scene units", main=True,
+                            plausible=Plausible(0.1, 10_000, "m", LENGTH_SLIPS))
     fade: float = preset_key(0.3, number_check(0, 1), "fraction of far over which particles fade out",
-                       plausible=UNITLESS)
+                             plausible=UNITLESS)
     aperture: float = preset_key(0.004, number_check(0, 10),
-                           "lens aperture diameter, scene units (0: pinhole, no defocus)",
-                           plausible=Plausible(0, 0.5, "m", LENGTH_SLIPS))
+                                 "lens aperture diameter, scene units (0: pinhole, no defocus)",
+                                 plausible=Plausible(0, 0.5, "m", LENGTH_SLIPS))
     focus: float = preset_key(5.0, number_check(0, 1e6, lo_open=True), "focus distance, scene units",
-                        plausible=Plausible(0.01, 100_000, "m", LENGTH_SLIPS))
+                              plausible=Plausible(0.01, 100_000, "m", LENGTH_SLIPS))
     depth_softness: float = preset_key(0.004, number_check(0, 1e3, lo_open=True),
-                                 "width of the occlusion test's transition, scene units",
-                                 plausible=Plausible(1e-4, 10, "m", LENGTH_SLIPS))
+                                       "width of the occlusion test's transition, scene units",
+                                       plausible=Plausible(1e-4, 10, "m", LENGTH_SLIPS))
     tile: float = preset_key(4.0, number_check(0, 1e6, lo_open=True),
-                       "side of the periodic tile the field repeats, scene units",
-                       plausible=Plausible(0.1, 1000, "m", LENGTH_SLIPS))
+                             "side of the periodic tile the field repeats, scene units",
+                             plausible=Plausible(0.1, 1000, "m", LENGTH_SLIPS))
     # -- the atmosphere: extinction of light with distance (see engine/weather/atmosphere.py)
     visibility: float = preset_key(0.0, _visibility,
-                             "meteorological optical range of fog or haze (5 % contrast), metres "
-                             "(scene units); 0: clear air", main=True,
-                             plausible=Plausible(10, 200_000, "m", KM_SLIPS, zero=True))
+                                   "meteorological optical range of fog or haze (5 % contrast), metres "
+                                   "(scene units); 0: clear air", main=True,
+                                   plausible=Plausible(10, 200_000, "m", KM_SLIPS, zero=True))
     rain_rate: float = preset_key(0.0, number_check(0, 300),
-                            "rain rate, mm/h: the rain's extinction (Marshall-Palmer drops)",
-                            plausible=Plausible(0, 300, "mm/h"))
+                                  "rain rate, mm/h: the rain's extinction (Marshall-Palmer drops)",
+                                  plausible=Plausible(0, 300, "mm/h"))
     snow_rate: float = preset_key(0.0, number_check(0, 30),
-                            "snowfall rate, mm/h of liquid water: the snow's extinction",
-                            plausible=Plausible(0, 30, "mm/h"))
+                                  "snowfall rate, mm/h of liquid water: the snow's extinction",
+                                  plausible=Plausible(0, 30, "mm/h"))
     heterogeneity: float = preset_key(0.0, number_check(0, 0.9),
-                                "density of the air between 1 - h and 1 + h times its mean, in "
-                                "banks fixed in the world; 0: uniform", plausible=UNITLESS)
+                                      "density of the air between 1 - h and 1 + h times its mean, in "
+                                      "banks fixed in the world; 0: uniform", plausible=UNITLESS)
     heterogeneity_scale: float = preset_key(20.0, number_check(0.01, 1e4),
-                                      "size of the largest banks of the heterogeneous air, metres "
-                                      "(scene units)",
-                                      plausible=Plausible(0.1, 10_000, "m", LENGTH_SLIPS))
+                                            "size of the largest banks of the heterogeneous air, metres "
+                                            "(scene units)",
+                                            plausible=Plausible(0.1, 10_000, "m", LENGTH_SLIPS))
     airlight: object = preset_key("auto", None, "colour of the air's in-scattered light, 8-bit RGB, or "
-                                          "auto: from the frames' farthest, brightest pixels",
-                            coerce=_airlight)
+                                                "auto: from the frames' farthest, brightest pixels",
+                                  coerce=_airlight)
     sky_distance: float = preset_key(1000.0, number_check(1, 1e7),
-                               "where rays end: the distance given to the sky and to anything "
-                               "farther, metres (scene units)",
-                               plausible=Plausible(10, 1e6, "m", KM_SLIPS))
+                                     "where rays end: the distance given to the sky and to anything "
+                                     "farther, metres (scene units)",
+                                     plausible=Plausible(10, 1e6, "m", KM_SLIPS))
 
     # Not keys.
     name: str = field(default="custom", compare=False, metadata={"key": False})
@@ -226,7 +226,7 @@ def build_field_preset(name: str, where: str, data: Mapping[str, Any],
                        overrides: Mapping[str, Any], base_dir: Optional[Path]) -> FieldPreset:
     """Validate a field preset's file values and overrides (see :func:`presets.load_preset`)."""
     values, templates_from = preset_values(where, data, overrides, base_dir, FIELD_KEYS,
-                                            ignored=("name", "source"))
+                                           ignored=("name", "source"))
     preset = FieldPreset(name=name, source=where, **values)
     check_plausible(preset, FIELD_KEYS, where, overrides)
     if not preset.far > preset.near:

@@ -28,18 +28,18 @@ class Preset:
     description: str = shared_key("description")
     # -- particle base properties
     count: int = preset_key(3000, count_check, "particles per frame pair of 1024x436 pixels; other frame "
-                                    "sizes scale it by their area (see scale_count)", main=True)
+                                               "sizes scale it by their area (see scale_count)", main=True)
     size: int = preset_key(71, odd_size_check, "template side in pixels at depth <= 1/depth_decay (odd)",
-                     main=True)
+                           main=True)
     scale_count: bool = preset_key(True, None, "scale count with the frame's area relative to 1024x436, "
-                                         "keeping particles per pixel area (false: count on every "
-                                         "frame; --set count=N sets it false)")
+                                               "keeping particles per pixel area (false: count on every "
+                                               "frame; --set count=N sets it false)")
     scale_size: bool = preset_key(False, None, "scale size and the defocus radius with the frame's "
-                                         "diagonal relative to 1024x436 (with scale_count false: "
-                                         "the frame as a resized 1024x436 one; --set size=N sets "
-                                         "it false)")
+                                               "diagonal relative to 1024x436 (with scale_count false: "
+                                               "the frame as a resized 1024x436 one; --set size=N sets "
+                                               "it false)")
     depth_decay: float = preset_key(9.0, number_check(0, 1e6, lo_open=True),
-                              "size scales by min(1, 1/(depth * depth_decay))", main=True)
+                                    "size scales by min(1, 1/(depth * depth_decay))", main=True)
     templates: str = shared_key("templates")
     # -- colour
     color: tuple = shared_key("color")
@@ -48,26 +48,26 @@ class Preset:
     saturation_jitter: float = shared_key("saturation_jitter")
     blend: str = shared_key("blend")
     transparency: float = shared_key("transparency",
-                                  "theta = this x depth hat (the hat peaks at 0.73), or this value "
-                                  "itself when transparency_mode is constant")
+                                     "theta = this x depth hat (the hat peaks at 0.73), or this value "
+                                     "itself when transparency_mode is constant")
     transparency_mode: str = preset_key("depth", choice_check(TRANSPARENCY_MODES),
-                                  "depth: hat over depth; constant: theta for every particle")
+                                        "depth: hat over depth; constant: theta for every particle")
     # -- motion
     motion_y: float = preset_key(0.2, number_check(-1e3, 1e3),
-                           "frame-to-frame fall distance, > 0 falls down, < 0 rises", main=True)
+                                 "frame-to-frame fall distance, > 0 falls down, < 0 rises", main=True)
     motion_scale_jitter: float = preset_key(0.0, number_check(0, 1),
-                                      "motion length scaled by 1 + U[-f, f]")
+                                            "motion length scaled by 1 + U[-f, f]")
     motion_angle_jitter: float = preset_key(0.0, number_check(0, 180),
-                                      "motion direction turned by Euler angles U[-a, a] degrees")
+                                            "motion direction turned by Euler angles U[-a, a] degrees")
     # -- motion blur
     motion_blur: bool = preset_key(False, None, "render K samples along the 3D motion", main=True)
     blur_length: float = preset_key(0.0, number_check(0, 10),
-                              "blur streak as a fraction of the frame-to-frame motion", main=True)
+                                    "blur streak as a fraction of the frame-to-frame motion", main=True)
     blur_samples: int = shared_key("blur_samples", "samples K per blurred particle")
     # -- out-of-focus blur
     defocus: bool = preset_key(True, None, "disc blur for particles near the focal distance")
     defocus_brighten: bool = preset_key(True, None,
-                                  "brighten the disc-blurred alpha b to min(1, (2b)^(1/3))")
+                                        "brighten the disc-blurred alpha b to min(1, (2b)^(1/3))")
     coarse: bool = shared_key("coarse")
     # -- where particles are sampled, camera-1 coordinates
     volume_x: tuple = preset_key((-5.0, 5.0), interval_check, "sampling box x range, camera 1")
@@ -123,7 +123,7 @@ def _coerce(where: str, key: str, value: Any, keys: Optional[Mapping] = None) ->
         out, problem = coerce(value)
         if problem:
             raise bad(problem)
-        return out
+    return out
     if isinstance(default, bool):
         if not isinstance(value, bool):
             raise bad("must be true or false")
@@ -194,8 +194,8 @@ def parse_override(key: str, text: str, where: str = "${overrides}",
 
 
 def preset_values(where: str, data: Mapping[str, Any], overrides: Mapping[str, Any],
-                   base_dir: Optional[Path], keys: Mapping[str, dataclasses.Field],
-                   ignored: tuple[str, ...] = ()) -> tuple[dict, str]:
+                  base_dir: Optional[Path], keys: Mapping[str, dataclasses.Field],
+                  ignored: tuple[str, ...] = ()) -> tuple[dict, str]:
     """Type-check a preset file's values (``data``, read from ``where``) and then ``overrides``
     (later ones win) against the schema ``keys``; override keys in ``ignored`` are skipped. A
     relative ``templates`` folder in the file is resolved against ``base_dir`` (None: as given).

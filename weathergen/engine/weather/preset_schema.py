@@ -21,7 +21,7 @@ TRANSPARENCY_MODES = ("depth", "constant")
 # Checks: each returns an error text (what the value must be) or None when the value is fine.
 
 def number_check(lo: float = -math.inf, hi: float = math.inf, *, lo_open: bool = False
-            ) -> Callable[[Any], Optional[str]]:
+                 ) -> Callable[[Any], Optional[str]]:
     def check(v):
         if not math.isfinite(v):
             return "must be a finite number"
