@@ -52,8 +52,7 @@ class AirView:
         dev = self.air.device
         v = torch.arange(height, dtype=torch.float64, device=dev)[:, None]
         u = torch.arange(width, dtype=torch.float64, device=dev)[None, :]
-        zero = torch.zeros((), dtype=torch.long, device=dev)
-        return (depth.to(dev).double() * ray_norms(self.air.camera_of(zero), u, v)) \
+        return (depth.to(dev).double() * ray_norms(self.air.camera[0], u, v)) \
             .clamp(max=self.atmosphere.sky_distance)
 
     def optical_depth(self, u: torch.Tensor, v: torch.Tensor, distance: torch.Tensor

@@ -1,7 +1,5 @@
-"""What sampling and rendering both need of a frame pair: the engine's check of a pair
-(:func:`check_pair_for_engine`), the reference frame its particles live in
-(:func:`reference_transforms`), the device it is drawn on (:func:`resolve_device`) and the
-nearest camera depth a particle may have (:data:`NEAR`)."""
+"""What sampling and rendering both need of a frame pair: its check, the reference frame its
+particles live in, the device it is drawn on and the nearest depth a particle may have."""
 
 from __future__ import annotations
 

@@ -1,15 +1,8 @@
-"""One camera and what it sees of a weather field, below both sampling and rendering.
-
-:class:`View` (one camera) and :class:`Views` (the cameras of one render call, as projection
-rows); a field particle's looks in a view (the footprint ``f d / z``, the thin-lens defocus, the
-depth fade: :func:`footprint`, :func:`field_defocus_radius`, :func:`depth_fade`); and the view
-mask, which particles a view draws (:func:`field_mask`, :func:`view_mask`): the field model
-keeps the particles some view draws (:mod:`~weathergen.engine.sampling.field`), and the render
-core draws them with the same test (:mod:`~weathergen.engine.rendering.tracks`).
-
-Every geometric product is an elementwise product and a sum over the last axis (no matrix
-products), so that a particle's numbers do not depend on how many others the call holds.
-"""
+"""One camera and what it sees of a weather field: :class:`View`, :class:`Views` (a render
+call's cameras as projection rows), a field particle's looks in a view (footprint, thin-lens
+defocus, depth fade) and the view mask (:func:`field_mask`), with which the field model samples
+and the render core draws. Products are elementwise with sums over the last axis (no matrix
+products), so that a particle's numbers do not depend on how many others the call holds."""
 
 from __future__ import annotations
 

@@ -42,8 +42,7 @@ from .transmittance import Air, dimming, pair_air, record_atmospheres, through_a
 from .composite import RenderOutput, blend_layers
 from ..records.layered import LayeredParticles
 from ..records.particles import Particles
-from .planes import planes
-from .grids import Sums
+from .planes import Sums, planes
 from .splat import chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, build_many
 from ..weather.templates import TemplateLibrary, load_templates
@@ -191,8 +190,7 @@ def _layer_stamps(prepared: Sequence[tuple], given: Sequence[Optional[StampSet]]
 
 def _layer_sums(views: Views, paper: list, field: list, stamp_set: StampSet, *, beta: float,
                 dtype, chunk_elements: int, detach_occlusion: bool, depth: bool,
-                under: Sequence[Sums] = (), dim=None, alpha: Optional[torch.Tensor] = None,
-                tint: bool = True) -> Sums:
+                dim, alpha: torch.Tensor, under: Sequence[Sums] = (), tint: bool = True) -> Sums:
     """One layer's sums on the pairs' views, drawn as a single render draws its records (the
     same tracks, stamps, grid levels and splat) from its parts (:func:`_layer_parts`) and
     stamps (:func:`_layer_stamps`); ``depth``: with the depth sum ``Z`` as a fifth (passive)
@@ -210,8 +208,7 @@ def _layer_sums(views: Views, paper: list, field: list, stamp_set: StampSet, *, 
         tracks = pair_tracks([], views, 1, beta=beta, dtype=dtype)[1]
     if under:
         tracks = _dimmed(tracks, under)
-    if dim is not None:
-        tracks = dim(tracks, alpha, tint=tint)
+    tracks = dim(tracks, alpha, tint=tint)
     inst = blur_samples(tracks, dtype, stamp_set.gap)
     if depth:
         inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]),
@@ -326,13 +323,9 @@ def render_layers_view(image: torch.Tensor, view: View, particles: LayeredPartic
     draws its record, composited as :func:`render_layers` does. For weather fields, frame 1 is
     the bytes of frame 1 of a pair whose first view is ``view`` (a sequence writes each frame
     once). Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W))."""
-    layered, views, prepared, stamp_sets, chunk_elements = _view_parts(
+    views, prepared, stamp_sets, chunk_elements, modes, alpha_mode, air = _view_parts(
         view, particles, None, frame=frame, beta=beta, dtype=image.dtype, device=image.device,
         chunk_elements=chunk_elements)
-    modes = [{r.settings.blend} for r in layered.layers]
-    alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
-                              device=image.device)
-    air = view_air(record_atmospheres(layered), view, frame, image.device)
     (out,), (opacity,), _ = _draw(views, prepared, stamp_sets, modes, alpha_mode, (image[None],),
                                   beta=float(beta), chunk_elements=chunk_elements,
                                   detach_occlusion=False, air=air)
@@ -347,13 +340,9 @@ def layers_view_sums(view: View, particles: LayeredParticles,
     (the additive layers' particles dimmed by the alpha layers in front of them), with
     ``values[l]`` (N_l, 3) in place of layer ``l``'s colours where given (e.g. flow vectors).
     Shape: -> per layer (A (1, H, W), C (3, H, W))."""
-    layered, views, prepared, stamp_sets, chunk_elements = _view_parts(
+    views, prepared, stamp_sets, chunk_elements, modes, alpha_mode, air = _view_parts(
         view, particles, values, frame=0, beta=beta, dtype=dtype, device=device,
         chunk_elements=chunk_elements)
-    modes = [{r.settings.blend} for r in layered.layers]
-    alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
-                              device=device)
-    air = view_air(record_atmospheres(layered), view, 0, device)
     sums = _layer_sums_all(views, prepared, stamp_sets, modes, beta=float(beta), dtype=dtype,
                            chunk_elements=chunk_elements, detach_occlusion=False,
                            dim=dimming(air), alpha_mode=alpha_mode, tint=False)
@@ -366,8 +355,9 @@ def layers_view_sums(view: View, particles: LayeredParticles,
 
 def _view_parts(view: View, particles: LayeredParticles, values, *, frame: int, beta: float,
                 dtype, device, chunk_elements: Optional[int]):
-    """What one view draws of every layer: (the layers, views, prepared parts, stamps, chunk
-    size), each layer's tracks from :func:`~weathergen.engine.rendering.tracks.view_tracks`."""
+    """What one view draws of every layer: (views, prepared parts, stamps, chunk size, blend
+    modes, which layers blend alpha (1, L), the air), each layer's tracks from
+    :func:`~weathergen.engine.rendering.tracks.view_tracks`."""
     layered = as_layers(particles)[0]
     device = torch.device(device)
     _check_blends(layered.layers)
@@ -390,13 +380,15 @@ def _view_parts(view: View, particles: LayeredParticles, values, *, frame: int, 
         chunk_elements = chunk_elements_for(device)
     stamp_sets = _layer_stamps(prepared, [None] * len(prepared), dtype=dtype, device=device,
                                coarse_side=COARSE_SIDE, chunk_elements=chunk_elements)
-    return layered, views, prepared, stamp_sets, chunk_elements
+    alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
+                              device=device)
+    return (views, prepared, stamp_sets, chunk_elements, [{r.settings.blend} for r in layered.layers],
+            alpha_mode, view_air(record_atmospheres(layered), view, frame, device))
 
 
 def _layer_sums_all(views: Views, prepared: list, stamp_sets: list, modes: list, *,
                     beta: float, dtype, chunk_elements: int, detach_occlusion: bool,
-                    dim=None, alpha_mode: Optional[torch.Tensor] = None,
-                    tint: bool = True) -> list:
+                    dim, alpha_mode: torch.Tensor, tint: bool = True) -> list:
     """Every layer's :class:`Sums`: the alpha-blended layers first (with their depth sums),
     then the additive layers, whose particles behind them they dim (:func:`_dimmed`; those
     carry no depth sum: they blend as the nearest). Two additive layers carry none either.
@@ -410,8 +402,7 @@ def _layer_sums_all(views: Views, prepared: list, stamp_sets: list, modes: list,
         (_, paper, field), stamp_set = prepared[k], stamp_sets[k]
         under = [sums[j] for j in range(len(modes)) if not additive[j]] \
             if dimming and additive[k] else ()
-        alpha = None if dim is None else \
-            alpha_mode[:, k].repeat(views.count // alpha_mode.shape[0])
+        alpha = alpha_mode[:, k].repeat(views.count // alpha_mode.shape[0])
         sums[k] = _layer_sums(views, paper, field, stamp_set, beta=beta, dtype=dtype,
                               chunk_elements=chunk_elements, detach_occlusion=detach_occlusion,
                               depth=not additive_pair and not under, under=under, dim=dim,

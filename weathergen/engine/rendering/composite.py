@@ -37,8 +37,7 @@ from typing import Optional, Sequence
 
 import torch
 
-from .planes import LayerPlanes, planes
-from .grids import Sums
+from .planes import LayerPlanes, Sums, planes
 from .splat import splat
 from .stamps import StampSet
 from .tracks import Instances, Tracks, blur_samples
@@ -60,8 +59,6 @@ class RenderOutput:
     reached: Optional[torch.Tensor] = None
 
 
-# -- the air: the scene and the particles seen through the atmosphere --------------------------
-
 def fog(image: torch.Tensor, transmission: torch.Tensor, airlight: torch.Tensor) -> torch.Tensor:
     """The scene seen through the air (Koschmieder): ``J t + A (1 − t)``. Shape: broadcast."""
     return torch.lerp(airlight, image, transmission)
@@ -74,9 +71,8 @@ def fogged_opacity(opacity: torch.Tensor, transmission: torch.Tensor) -> torch.T
 
 def tinted(colour: torch.Tensor, passed: torch.Tensor, transmission: torch.Tensor,
            airlight: torch.Tensor) -> torch.Tensor:
-    """Alpha-blended particles' colours seen through the air in front of them:
-    ``γ t_p + A_p (1 − t_p)``, ``passed`` the transmission in the colours' dtype.
-    Shape: colour (N, 3), passed, transmission (N,), airlight (N, 3) -> (N, 3)."""
+    """Alpha-blended particles' colours through the air in front of them, ``γ t_p + A_p (1 − t_p)``
+    (``passed``: ``t_p`` in the colours' dtype). Shape: (N, 3), (N,), (N,), (N, 3) -> (N, 3)."""
     light = ((1 - transmission)[:, None] * airlight).to(passed.dtype)
     return colour * passed[:, None] + light
 

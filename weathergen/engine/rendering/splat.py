@@ -47,7 +47,7 @@ import torch
 
 from ..common import NEAR
 from .coarse import CoarseDepths, DepthOrder, moment_channels
-from .grids import Grids, Sums, grids_for, scene_depths
+from .planes import Grids, Sums, grids_for, scene_depths
 from .ragged import chunk_spans
 from .stamps import COARSE_MAX_LEVEL, StampSet
 from .tracks import Instances

@@ -102,10 +102,6 @@ class Air:
 
     # -- optical depth -------------------------------------------------------------------------
 
-    def camera_of(self, view: torch.Tensor) -> torch.Tensor:
-        """:attr:`camera` of views ``view``. Shape: (...) -> (..., 5) float64."""
-        return self.camera.index_select(0, view.reshape(-1)).view(*view.shape, 5)
-
     def optical_depth(self, comp: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
                       distance: torch.Tensor, hetero: bool = True) -> torch.Tensor:
         """τ of component ``comp`` (the clear one, ``len(components)``: τ = 0) along the rays
@@ -273,7 +269,7 @@ class Air:
         view = torch.arange(count, device=dev)[:, None, None]
         v = torch.arange(height, dtype=torch.float64, device=dev)[None, :, None]
         u = torch.arange(width, dtype=torch.float64, device=dev)[None, None, :]
-        distance = depth[:, 0].to(dev).double() * ray_norms(self.camera_of(view), u, v)
+        distance = depth[:, 0].to(dev).double() * ray_norms(self.camera.view(-1, 1, 1, 5), u, v)
         # (a view without air reads the clear component: t = exp(0) = 1 and A = 0 exactly)
         t, airlight = self._through(view, u, v, distance)
         return t[:, None].to(dtype), airlight.permute(0, 3, 1, 2).to(dtype)
@@ -295,7 +291,7 @@ class Air:
         safe = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
         u, v = middle[:, 0] / safe, middle[:, 1] / safe
         view = tracks.view.to(self.device)
-        distance = z.clamp(min=0) * ray_norms(self.camera_of(view), u, v)
+        distance = z.clamp(min=0) * ray_norms(self.camera.index_select(0, view), u, v)
         # (a view without air reads the clear component: t = 1 and A = 0, which keep the bits)
         t, airlight = self._through(view, u, v, distance)
         dtype = tracks.theta.dtype
@@ -332,29 +328,20 @@ def _sample_rays(lattices: torch.Tensor, origin: torch.Tensor, direction: torch.
 
 # -- a render call's air ---------------------------------------------------------------------
 
-def unchanged(tracks: Tracks, alpha: Optional[torch.Tensor] = None, tint: bool = True
-              ) -> Tracks:
-    """The tracks of views without air, as they are (:meth:`Air.dim`'s signature)."""
-    return tracks
-
-
 def dimming(air: Optional[Air]) -> Callable[..., Tracks]:
-    """How particles are seen through ``air`` (None: no view has any): :meth:`Air.dim`, or
-    :func:`unchanged`. The entry points that stop at the splat's sums use this step alone."""
-    return air.dim if air is not None else unchanged
+    """How particles are seen through ``air`` (None: no view has any): :meth:`Air.dim`, or the
+    tracks as they are. The entry points that stop at the splat's sums use this step alone."""
+    return air.dim if air is not None else lambda tracks, *_, **__: tracks
 
 
 def through_air(air: Optional[Air], depth: torch.Tensor, images: Sequence[torch.Tensor], draw
                 ) -> tuple[list, list, Optional[torch.Tensor]]:
-    """Weather drawn into ``images`` seen through the air, in the order every entry point of the
-    renderer applies it: ``draw(dim)`` draws the particles, their tracks passed through ``dim``
-    (:func:`dimming`: the air between each particle and its camera), and returns the blend; the
-    scene is seen through its air (:func:`~weathergen.engine.rendering.composite.fog`), blended
-    with the weather, and the opacities take the air's
-    (:func:`~weathergen.engine.rendering.composite.fogged_opacity`); views with air count as
-    reached. ``blend(images)`` returns ``(frames, opacities, reached)``, ``reached`` (V,) or None.
-    Shape: T images (B, 3, H, W) (view ``t B + b``), depth (V, 1, H, W) the views' scene depth.
-    """
+    """Weather drawn into ``images`` seen through the air, as every entry point of the renderer
+    applies it: ``draw(dim)`` draws the particles seen through ``dim`` (:func:`dimming`) and
+    returns ``blend(images) -> (frames, opacities, reached (V,) or None)``; the scene is fogged,
+    blended, its opacities take the air's and views with air count as reached (the formulas:
+    :mod:`~weathergen.engine.rendering.composite`). Shape: T images (B, 3, H, W) (view
+    ``t B + b``), depth (V, 1, H, W) the views' scene depth."""
     blend = draw(dimming(air))
     if air is None:
         return blend(images)
@@ -363,9 +350,7 @@ def through_air(air: Optional[Air], depth: torch.Tensor, images: Sequence[torch.
         images, air, lambda image, views: fog(image, transmission[views], airlight[views])))
     opacities = _where_air(opacities, air,
                            lambda opacity, views: fogged_opacity(opacity, transmission[views]))
-    if reached is not None:
-        reached = reached | air.has.to(reached.device)
-    return frames, opacities, reached
+    return frames, opacities, None if reached is None else reached | air.has.to(reached.device)
 
 
 def _where_air(frames: Sequence[torch.Tensor], air: Air, through) -> list[torch.Tensor]:

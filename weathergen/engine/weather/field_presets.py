@@ -1,5 +1,18 @@
-"""The weather-field model's presets: :class:`FieldPreset` and its validation
-(:func:`build_field_preset`)."""
+"""The weather-field model's presets (:class:`FieldPreset`, :func:`build_field_preset`):
+physical units, one frame rate per dataset, severity levels.
+
+A field preset is a TOML file with ``model = "field"`` (see ``presets/snow-moderate.toml``). Its
+keys are in scene units and seconds; on metric datasets (KITTI, Spring, real RGB-D data in the
+custom layout) scene units are metres, so the same preset looks alike on each of them without a
+depth scale. Keys are declared once on :class:`FieldPreset` (default, check, meaning), validated and
+resolved like the paper's presets: schema defaults < file < overrides, errors name the file, the
+key and the value.
+
+Frame rates: particles move ``velocity / frame_rate`` scene units per frame. ``frame_rate = 0``
+(the default) takes the dataset's rate, which its reader declares
+(:attr:`weathergen.datasets.Dataset.frame_rate`) and the caller passes in; any other value
+overrides it (``--set frame_rate=30``).
+"""
 
 from __future__ import annotations
 
@@ -15,22 +28,6 @@ from .optics import FieldOptics
 from .paper_presets import check_template_folder, key_values, preset_values
 from .preset_schema import (KM_SLIPS, LENGTH_SLIPS, SPEED_SLIPS, TIME_SLIPS, UNITLESS, Plausible,
                             PlausibleBy, check_plausible, number_check, preset_key, shared_key)
-
-# ---------------------------------------------------------------------------------------------
-# Weather-field presets
-# Presets of the weather-field model: physical units, one frame rate per dataset, severity levels.
-#
-# A field preset is a TOML file with ``model = "field"`` (see ``presets/snow-moderate.toml``). Its
-# keys are in scene units and seconds; on metric datasets (KITTI, Spring, real RGB-D data in the
-# custom layout) scene units are metres, so the same preset looks alike on each of them without a
-# depth scale. Keys are declared once on :class:`FieldPreset` (default, check, meaning), validated and
-# resolved like the paper's presets: schema defaults < file < overrides, errors name the file, the
-# key and the value.
-#
-# Frame rates: particles move ``velocity / frame_rate`` scene units per frame. ``frame_rate = 0``
-# (the default) takes the dataset's rate, which its reader declares
-# (:attr:`weathergen.datasets.Dataset.frame_rate`) and the caller passes in; any other value
-# overrides it (``--set frame_rate=30``).
 
 #: At most this many particles in one tile of the field (memory of the tile and of a frame's cull).
 MAX_TILE_PARTICLES = 2_000_000

@@ -1,7 +1,6 @@
-"""The paper's presets: :class:`Preset` (every key declared once, with
-:mod:`.preset_schema`), a preset file's values checked against a schema (:func:`preset_values`,
-:func:`parse_override`), and a paper preset's count and sizes on another frame size
-(:func:`frame_scaling`)."""
+"""The paper's presets: :class:`Preset` (every key declared once), a preset file's values checked
+against a schema (:func:`preset_values`, :func:`parse_override`), and a paper preset's count and
+sizes on another frame size (:func:`frame_scaling`)."""
 
 from __future__ import annotations
 

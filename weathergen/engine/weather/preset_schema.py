@@ -1,7 +1,6 @@
-"""The preset key schema: how a key is declared once (:func:`preset_key`: default, check,
-meaning, plausible range), the checks a value passes, the keys both weather models share
-(:data:`SHARED_KEYS`) and the warning for an implausible value (:func:`check_plausible`). The
-models' presets declare their keys with it: :mod:`.paper_presets`, :mod:`.field_presets`."""
+"""The preset key schema, with which both models' presets declare their keys: a key declared once
+(:func:`preset_key`: default, check, meaning, plausible range), the checks of a value, the keys
+both models share (:data:`SHARED_KEYS`), the warning for an implausible value."""
 
 from __future__ import annotations
 
