@@ -56,7 +56,7 @@ def _checkpoints(items) -> dict:
 @click.option("--lp", "lp_text", default=None, metavar="A,B,...",
               help=f"Lp attacks (pcfa, ifgsm); '' for none. Default: {','.join(DEFAULT_LP)}, "
                    "none with --ladder.")
-@click.option("--ladder", "ladder_text", default="", metavar="A,B,...",
+@click.option("--ladder", "ladder_text", default=None, metavar="A,B,...",
               help=f"Severity ladders ({', '.join(available_ladders())}): each weather's -light, "
                    "-moderate and -heavy presets, random and adversarial, one curve per network "
                    "(ladders.csv, ladder.png) and its robustness score (robustness.csv).")
@@ -94,7 +94,10 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text
     resolve_device(device)
     if compat == "reference":           # the research code's frame and scaling too
         dataset = in_research_frame(dataset)
-    ladders = _names(ladder_text)
+    ladders = _names(ladder_text or "")
+    if ladder_text is not None and not ladders:
+        raise ConfigError(f"${{ladder}} {ladder_text!r} names no ladder: expected "
+                          f"{', '.join(available_ladders())}")
     spec = BenchmarkSpec(
         dataset=tr115_default(dataset), out=out, networks=_names(networks),
         presets=_names(presets) if presets is not None else [] if ladders else list(DEFAULT_PRESETS),

@@ -15,7 +15,7 @@ from weathergen.datasets import load_scene_scales, open_dataset
 from weathergen.errors import ConfigError
 from weathergen.io.published_weather import is_published_set
 from weathergen.outputs import PublishedWeatherSet, WeatherFolder
-from weathergen.render import resolve_preset
+from weathergen.render import published_preset, resolve_preset
 
 from .attack import region_rows
 from .options import BAD_INPUT, STOPPED, device_option, exit_codes, model_options, quiet_option
@@ -105,6 +105,10 @@ def open_published(folder, preset, dataset_name, root, pass_) -> PublishedWeathe
     if root is None:
         raise ConfigError(f"{folder} holds the paper's published weather (particles, no record of "
                           f"the dataset): give the clean dataset with ${{root}}")
+    if preset is None and published_preset(folder) is None:
+        raise ConfigError(f"${{weather}} {folder}: published weather does not record the preset "
+                          f"it was generated with, and the folder's name does not say: name it "
+                          f"with ${{preset}} (e.g. particles-3000)")
     resolved = resolve_preset(preset, None, None, folder)
     dataset = open_dataset(dataset_name or "sintel", root, pass_=pass_ or "clean",
                            scene_scales=load_scene_scales("research"), camera_translation="unscaled")

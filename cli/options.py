@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import textwrap
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import click
 
@@ -89,6 +92,37 @@ def render_compat_option(func):
 def overwrite_option(help: str):
     """``--overwrite``: redo or replace what a folder holds; ``help`` says what."""
     return click.option("--overwrite", is_flag=True, help=help)
+
+
+# -- settings records: options that travel together ---------------------------------------------
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Where a job's pairs are computed and what it does with an earlier run's output: the
+    options every command that runs a job over a dataset takes (``--device``, ``--executor``,
+    ``--ray-address``, ``--batch-size``, ``--resume``, ``--overwrite``), named as the jobs'
+    fields."""
+
+    device: str = "cpu"
+    executor: str = "local"
+    ray_address: Optional[str] = "auto"
+    batch_size: Optional[int] = None
+    resume: bool = False
+    overwrite: bool = False
+
+
+def gathered(name: str, record: type):
+    """Decorator (right above the command's ``def``): the command's options named as the fields
+    of the dataclass ``record`` come in as one ``record`` under the parameter ``name``."""
+    fields = [f.name for f in dataclasses.fields(record)]
+
+    def wrap(command):
+        @functools.wraps(command)
+        def call(**options):
+            values = {key: options.pop(key) for key in fields}
+            return command(**options, **{name: record(**values)})
+        return call
+    return wrap
 
 
 # -- option groups --------------------------------------------------------------------------

@@ -10,7 +10,7 @@ pixel-sample (patch pixel of a blur sample), three ways over the same chunks of 
   thread per block, additions in the kernel), skipped where Warp is not installed.
 
 Each is checked against the eager sums (max difference printed). Measured figures and the
-conclusion are in docs/engine.md ("A fused splat, measured").
+conclusion are in docs/engine.md ("Benchmark").
 
     python speed/bench_splat_fused.py [--compile] [--presets sparks rain]
 """

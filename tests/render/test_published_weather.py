@@ -199,6 +199,11 @@ def test_a_set_is_told_from_a_weathergen_folder_and_names_its_preset(tree, tmp_p
     result = invoke(["render", "--particles", tmp_path / "my_weather", "--out", tmp_path / "o"])
     assert result.exit_code == 2 and "name it with --preset" in result.output
     assert len(result.output.strip().splitlines()) == 1
+    # evaluate takes the set with --weather, and says so (not render's --particles)
+    result = invoke(["evaluate", "--weather", tmp_path / "my_weather", "--root", tree[0]])
+    assert result.exit_code == 2 and result.output.startswith(
+        f"Error: --weather {tmp_path / 'my_weather'}: published weather does not record")
+    assert "name it with --preset" in result.output and "--particles" not in result.output
 
 
 # -- the commands --------------------------------------------------------------------------------

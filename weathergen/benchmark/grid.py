@@ -118,6 +118,9 @@ class BenchmarkSpec:
             if method not in LP_METHODS:
                 raise ConfigError(f"${{lp}} {method!r}: expected {', '.join(LP_METHODS)}")
         labels = self.weather_labels()
+        if not labels and not self.lp_methods:
+            raise ConfigError("the grid is empty: ${presets}, ${lp} and ${ladder} name nothing "
+                              "to run")
         cells = []
         for net in self.networks:
             cells += [Cell(net, "weather", p) for p in labels]

@@ -1,11 +1,11 @@
 """The particle engine: presets, billboard templates, particle sampling and the differentiable renderer.
 
-Typical use::
+Typical use (any preset: the paper's, a weather field, an atmosphere alone, a combination)::
 
-    from weathergen.engine import load_preset, sample_particles, render_pair
-    preset = load_preset("snow", overrides={"count": "500"})
-    particles = sample_particles(pair, preset, seed=0)
-    out = render_pair(pair, particles)          # out.image1, out.image2, out.opacity1, out.opacity2
+    from weathergen.engine import Weather, render_pair
+    weather = Weather("snow", seed=0, overrides={"count": "500"})
+    out = weather.render(pair)                  # out.image1, out.image2, out.opacity1, out.opacity2
+    particles = weather.sample(pair)            # the record: save, optimise, render_pair(pair, particles)
 
 Its subpackages, in the order the data flows: :mod:`.weather` (presets, templates, the
 atmosphere model), :mod:`.records` (the particle records), :mod:`.sampling` (a pair's particles
@@ -17,6 +17,7 @@ from __future__ import annotations
 
 from .sampling.field import (Field, frame_particles, make_field, field_pair_particles,
                              sample_field_particles, sample_layers, sample_weather, scene_seed)
+from .pipeline import Weather
 from .rendering.groundtruth import ParticleTruth, particle_truth, seen_flow
 from .records.layered import LayeredParticles, layer_seed, load_particles
 from .records.particles import Particles, empty_particles, from_atanh, to_atanh
@@ -36,7 +37,7 @@ from .views import View
 __all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset",
            "EXAMPLE_COMBINATIONS", "Field", "FieldOptics", "FieldPreset", "FrameScaling",
            "LayeredParticles", "ParticleTruth", "Particles", "Preset", "REFERENCE_FRAME", "RenderOutput",
-           "RenderSettings", "StampSet", "TemplateLibrary", "View", "build_stamps",
+           "RenderSettings", "StampSet", "TemplateLibrary", "View", "Weather", "build_stamps",
            "empty_particles", "frame_particles", "frame_scaling", "from_atanh", "generate_templates",
            "layer_seed", "list_presets", "load_particles", "load_preset", "load_templates", "make_field",
            "field_pair_particles",

@@ -54,8 +54,8 @@ from ..records.layered import LayeredParticles, layer_seed
 from ..weather.presets import CombinedPreset, FieldPreset
 from ..records.particles import Particles, empty_particles
 from ..common import check_pair_for_engine, reference_transforms, resolve_device
-from .pair import (cpu_generator, euler_rotations, hls_to_rgb, rgb_to_hls, sample_particles,
-                   world_down)
+from .pair import (cpu_generator, euler_rotations, expect_kind, hls_to_rgb, rgb_to_hls,
+                   sample_particles, world_down)
 from ..records.settings import RenderSettings
 from ..weather.templates import TemplateLibrary, load_templates
 from ..views import MAX_DEFOCUS, View, focal, view_mask, view_windows
@@ -387,12 +387,12 @@ def field_for_pair(pair: FramePair, preset: FieldPreset, seed, *, world_up: str 
                    airlight: Optional[Sequence[float]] = None) -> Field:
     """The field of the pair's scene: reference frame and down axis from the pair's cameras,
     the frame rate from the preset or, where it sets none, ``frame_rate`` (the dataset's: its
-    reader's :attr:`~weathergen.datasets.Dataset.frame_rate`). An ``auto`` airlight is
+    reader's :attr:`~weathergen.datasets.Dataset.frame_rate`; default the pair's own). An ``auto`` airlight is
     ``airlight`` (RGB in [0, 1]; a scene's, so that its pairs share it) or, without one, the
     pair's (:func:`pair_airlight`)."""
     frame, c1, c2 = reference_transforms(pair)
     down = world_down(c1.cpu(), c2.cpu(), world_up)
-    rate = preset.frame_rate_for(frame_rate)
+    rate = preset.frame_rate_for(pair.frame_rate if frame_rate is None else frame_rate)
     if airlight is None and preset.has_atmosphere and preset.airlight == "auto":
         airlight = pair_airlight(pair, preset.sky_distance)
     return make_field(preset, seed, down=down, frame_rate=rate, frame=frame, templates=templates,
@@ -431,6 +431,7 @@ def sample_field_particles(pair: FramePair, preset: FieldPreset, seed=0, *,
     (default: the CPU; the field's tile is drawn on the CPU either way, and on the CPU the record
     is the same bytes).
     """
+    expect_kind(preset, FieldPreset, "sample_field_particles")
     check_pair_for_engine(pair)
     dev = resolve_device(device)
     fld = field_for_pair(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
@@ -480,6 +481,7 @@ def sample_layers(pair: FramePair, preset: CombinedPreset, seed: Union[int, Sequ
     pass each field layer a seed derived from its scene's (as ``weathergen render`` will) for the
     pairs of a scene to share their frames.
     """
+    expect_kind(preset, CombinedPreset, "sample_layers")
     if isinstance(seed, torch.Generator):
         raise ConfigError("a combined preset takes an integer seed (or one per layer)")
     if isinstance(seed, int):

@@ -215,6 +215,17 @@ def cpu_generator(seed: Union[int, torch.Generator]) -> torch.Generator:
     return g
 
 
+def expect_kind(preset, kind: type, call: str) -> None:
+    """Refuse, in one line, a preset of another model than ``call`` samples (a field or combined
+    preset given to the paper's sampler, or the other way round), naming the call that takes it."""
+    if not isinstance(preset, kind):
+        what = {"Preset": "a paper preset", "FieldPreset": "a weather-field preset",
+                "CombinedPreset": "a combined preset"}.get(type(preset).__name__, repr(preset))
+        raise ConfigError(f"{getattr(preset, 'name', preset)!s} is {what}, which {call} does not "
+                          "take: sample any preset with sample_weather(pair, preset, seed), or "
+                          "render it in one call with Weather(preset, seed).render(pair)")
+
+
 def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Generator] = 0, *,
                      world_up: str = "auto", templates: Optional[TemplateLibrary] = None,
                      device=None, max_candidates_factor: int = 500,
@@ -233,8 +244,9 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     record is the same bytes either way. On a GPU (the device a batch is rendered on) the
     visibility tests run where the depth maps already are; the record then equals the CPU's
     except where a candidate lies within float64 rounding of an image border or the scene
-    surface (see docs/engine.md, "Sampling on the render's device").
+    surface (see docs/engine.md, "Sampling", on the render's device).
     """
+    expect_kind(preset, Preset, "sample_particles")
     check_pair_for_engine(pair)
     dev = resolve_device(device)
     on = resolve_device(sample_on)
