@@ -59,7 +59,7 @@ class RenderOutput:
     reached: Optional[torch.Tensor] = None
 
 
-def fog(image: torch.Tensor, transmission: torch.Tensor, airlight: torch.Tensor) -> torch.Tensor:
+def fog(airlight: torch.Tensor, image: torch.Tensor, transmission: torch.Tensor) -> torch.Tensor:
     """The scene seen through the air (Koschmieder): ``J t + A (1 − t)``. Shape: broadcast."""
     return torch.lerp(airlight, image, transmission)
 

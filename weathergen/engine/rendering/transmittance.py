@@ -347,7 +347,7 @@ def through_air(air: Optional[Air], depth: torch.Tensor, images: Sequence[torch.
         return blend(images)
     transmission, airlight = air.pixels(depth, images[0].dtype)
     frames, opacities, reached = blend(_where_air(
-        images, air, lambda image, views: fog(image, transmission[views], airlight[views])))
+        images, air, lambda image, views: fog(airlight[views], image, transmission[views])))
     opacities = _where_air(opacities, air,
                            lambda opacity, views: fogged_opacity(opacity, transmission[views]))
     return frames, opacities, None if reached is None else reached | air.has.to(reached.device)
