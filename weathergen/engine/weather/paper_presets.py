@@ -122,7 +122,7 @@ def _coerce(where: str, key: str, value: Any, keys: Optional[Mapping] = None) ->
         out, problem = coerce(value)
         if problem:
             raise bad(problem)
-    return out
+        return out
     if isinstance(default, bool):
         if not isinstance(value, bool):
             raise bad("must be true or false")
