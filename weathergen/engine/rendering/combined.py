@@ -38,7 +38,7 @@ from typing import Optional, Sequence, Union
 import torch
 
 from ...errors import ConfigError
-from .transmittance import Air, dimming, pair_air, record_atmospheres, through_air, view_air
+from .transmittance import Air, dimming, pair_air, through_air, view_air
 from .composite import RenderOutput, blend_layers
 from ..records.layered import LayeredParticles
 from ..records.particles import Particles
@@ -305,8 +305,7 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
                 for stack in stacks]
     stamp_sets = _layer_stamps(prepared, cut, dtype=image1.dtype, device=device,
                                coarse_side=coarse_side, chunk_elements=chunk_elements)
-    air = pair_air([record_atmospheres(p) for p in layered], intrinsics, cam1_from_ref,
-                   cam2_from_ref, tuple(image1.shape[-2:]), device)
+    air = pair_air(layered, intrinsics, cam1_from_ref, cam2_from_ref, image1.shape[-2:], device)
     (out1, out2), (opacity1, opacity2), reached = _draw(
         views, prepared, stamp_sets, modes, alpha_mode, (image1, image2), beta=float(beta),
         chunk_elements=chunk_elements, detach_occlusion=detach_occlusion, air=air)
@@ -383,7 +382,7 @@ def _view_parts(view: View, particles: LayeredParticles, values, *, frame: int, 
     alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
                               device=device)
     return (views, prepared, stamp_sets, chunk_elements, [{r.settings.blend} for r in layered.layers],
-            alpha_mode, view_air(record_atmospheres(layered), view, frame, device))
+            alpha_mode, view_air(layered, view, frame, device))
 
 
 def _layer_sums_all(views: Views, prepared: list, stamp_sets: list, modes: list, *,

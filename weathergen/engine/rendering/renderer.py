@@ -33,7 +33,7 @@ import torch
 from ...errors import ConfigError, DatasetError, ShapeError
 from ...framepair import FramePair, FramePairBatch
 from ..common import check_pair_for_engine, reference_transforms, resolve_device
-from .transmittance import dimming, pair_air, record_atmospheres, through_air, view_air
+from .transmittance import dimming, pair_air, through_air, view_air
 from .composite import RenderOutput, composite, composite_in_order
 from .combined import as_layers, build_layer_stamps, render_layers, render_layers_view
 from ..records.layered import LayeredParticles
@@ -185,25 +185,38 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
                                  detach_occlusion=detach_occlusion)
         records = [p.layers[0] for p in layered]    # one layer: the record's own bytes
     templates = check_records(records, templates)
+    depth = torch.cat((depth1, depth2)).detach().to(device)
     views = Views.of(torch.cat((intrinsics, intrinsics)).to(device),
                      torch.cat((cam1_from_ref, cam2_from_ref)).to(device),
-                     torch.cat((depth1, depth2)), device=device)
+                     depth_seen(depth, [r.settings.depth_shift for r in records] * 2),
+                     device=device)
     looks, tracks = pair_tracks(records, views, templates.resolution, beta=float(beta),
                                 dtype=dtype)
-    air = pair_air([record_atmospheres(r) for r in records], intrinsics, cam1_from_ref,
-                   cam2_from_ref, tuple(image1.shape[-2:]), device)
+    air = pair_air(records, intrinsics, cam1_from_ref, cam2_from_ref, image1.shape[-2:], device)
     alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(device)
-
     def draw(dim):
         seen = dim(tracks, torch.cat((alpha_mode, alpha_mode)))
         stamp_set = _entry_stamps(records, looks, templates, stamps, dtype=dtype,
                                   coarse_side=coarse_side, chunk_elements=chunk_elements)
         return _blender(records, seen, stamp_set, views.depth, alpha_mode, dtype=dtype,
                         chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
-    frames, opacities, reached = through_air(air, views.depth, [image1, image2], draw)
+    frames, opacities, reached = through_air(air, depth, [image1, image2], draw)
     return RenderOutput(*frames, *opacities, reached=reached.view(2, -1).any(0))
+
+
+def depth_seen(depth: torch.Tensor, shifts: Sequence[float]) -> torch.Tensor:
+    """The scene depth that particles are tested against: each view's depth read its record's
+    ``depth_shift`` s pixels up and left of each pixel, bilinearly, the image's first row and
+    column repeated beyond it (s = 0.5: the mean of a pixel and its three upper-left
+    neighbours). Shape: depth (V, 1, H, W), shifts V floats -> (V, 1, H, W)."""
+    if not any(shifts):
+        return depth
+    s = torch.tensor(shifts, dtype=depth.dtype, device=depth.device).view(-1, 1, 1, 1)
+    padded = torch.nn.functional.pad(depth, (1, 0, 1, 0), mode="replicate")
+    up, left, corner = padded[..., :-1, 1:], padded[..., 1:, :-1], padded[..., :-1, :-1]
+    return (1 - s) ** 2 * depth + s * (1 - s) * (up + left) + s * s * corner
 
 
 def _check_batch(image1: torch.Tensor, image2: torch.Tensor, depth1: Optional[torch.Tensor],
@@ -338,7 +351,8 @@ def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement:
     """One view's splat sums (or, for a record blended in order, its tracks, stamps and depth),
     the tracks seen through ``dim`` (:func:`~weathergen.engine.rendering.transmittance.dimming`)."""
     views = Views.of(view.intrinsics[None], view.cam_from_ref[None],
-                     view.depth[None].to(device), device=device)
+                     depth_seen(view.depth[None].detach().to(device),
+                                [record.settings.depth_shift]), device=device)
     looks, tracks, kept = view_tracks(record.to(device), views, start, displacement,
                                       templates.resolution, beta=float(beta), dtype=dtype,
                                       color=values, kept=True)
@@ -382,7 +396,7 @@ def render_view(image: torch.Tensor, view: View, record: Particles, start: torch
                 chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
         return lambda images: (*composite(sums, images, alpha_mode), None)
 
-    air = view_air(record_atmospheres(record), view, frame, image.device)
+    air = view_air(record, view, frame, image.device)
     (out,), (opacity,), _ = through_air(air, view.depth[None].to(image.device), [image[None]],
                                         draw)
     return out[0], opacity[0]
@@ -398,7 +412,7 @@ def view_sums(view: View, record: Particles, start: torch.Tensor, displacement: 
     when given (e.g. flow vectors; an additive particle's θ is still dimmed by the air in front
     of it, an alpha-blended one's values are not tinted). Shape: -> (A (1, H, W), C (3, H, W))."""
     device = torch.device("cpu") if device is None else torch.device(device)
-    air = view_air(record_atmospheres(record), view, frame, device)
+    air = view_air(record, view, frame, device)
     sums = _view_sums(view, record, start, displacement, templates, dimming(air), beta=beta,
                       dtype=dtype, device=device, chunk_elements=chunk_elements, values=values)
     grid = planes(sums)[:, 0, 0]

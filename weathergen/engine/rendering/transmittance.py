@@ -373,22 +373,25 @@ def _where_air(frames: Sequence[torch.Tensor], air: Air, through) -> list[torch.
     return out
 
 
-def pair_air(atmospheres: Sequence[Sequence[Atmosphere]], intrinsics: torch.Tensor,
-             cam1_from_ref: torch.Tensor, cam2_from_ref: torch.Tensor, size: tuple[int, int],
-             device=None) -> Optional[Air]:
+def pair_air(records: Sequence, intrinsics: torch.Tensor, cam1_from_ref: torch.Tensor,
+             cam2_from_ref: torch.Tensor, size, device=None) -> Optional[Air]:
     """The air of the 2B views of B pairs (view ``t B + b``: frame ``t`` of pair ``b``), pair
-    ``b`` seeing ``atmospheres[b]`` (every layer's); None where no pair has any.
-    Shape: intrinsics (B, 3, 3), cam*_from_ref (B, 4, 4)."""
+    ``b`` seeing the atmospheres of ``records[b]`` (every layer's); None where no pair has any.
+    Shape: intrinsics (B, 3, 3), cam*_from_ref (B, 4, 4), size (H, W)."""
+    atmospheres = [record_atmospheres(r) for r in records]
     if not any(atmospheres):
         return None
     bsz = len(atmospheres)
-    return Air(list(atmospheres) * 2, torch.cat((intrinsics, intrinsics)),
-               torch.cat((cam1_from_ref, cam2_from_ref)), size, [0] * bsz + [1] * bsz, device)
+    return Air(atmospheres * 2, torch.cat((intrinsics, intrinsics)),
+               torch.cat((cam1_from_ref, cam2_from_ref)), tuple(size), [0] * bsz + [1] * bsz,
+               device)
 
 
-def view_air(atmospheres: Sequence[Atmosphere], view, frame: int, device=None) -> Optional[Air]:
+def view_air(record, view, frame: int, device=None) -> Optional[Air]:
     """The air of one :class:`~weathergen.engine.View` (a frame of a sequence, a stereo camera)
-    seeing ``atmospheres`` in frame ``frame`` (0 or 1) of their pair; None without any."""
+    seeing the atmospheres of ``record`` in frame ``frame`` (0 or 1) of its pair; None without
+    any."""
+    atmospheres = record_atmospheres(record)
     if not atmospheres:
         return None
     return Air([list(atmospheres)], view.intrinsics[None], view.cam_from_ref[None],
