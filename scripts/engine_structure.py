@@ -1,4 +1,4 @@
-"""The engine's structure before and after a re-layout: modules, lines, import edges and cycles,
+"""The engine's structure before and after a re-layout: modules, import edges and cycles,
 between modules and between its parts (subpackages, and modules at its top), for the table of
 docs/architecture.md.
 
