@@ -26,7 +26,7 @@ import torch
 from ..datasets import Dataset, PairRef, right_camera
 from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, load_templates,
                       particle_truth, reference_transforms, render_pair)
-from ..engine.sampling.budget import check_pair_memory
+from ..engine.rendering.budget import check_pair_memory
 from ..engine.rendering.renderer import pair_starts, render_first_frame
 from ..engine.rendering.stereo import render_right, render_right_layers, stereo_view, warp_view_depth
 from ..errors import ConfigError, NothingRendered, WeatherGenError

@@ -204,11 +204,6 @@ class Particles:
     stamps: Optional[torch.Tensor] = None
 
     @property
-    def per_frame(self) -> bool:
-        """True when footprint, defocus and fade follow each frame's depth (field records)."""
-        return self.optics is not None
-
-    @property
     def count(self) -> int:
         return int(self.position.shape[0])
 
