@@ -98,7 +98,10 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text
     resolve_device(device)
     if compat == "reference":           # the research code's frame and scaling too
         dataset = in_research_frame(dataset)
-    ladders = _ladders(ladder_text)
+    ladders = _names(ladder_text or "")
+    if ladder_text is not None and not ladders:
+        raise ConfigError(f"${{ladder}} {ladder_text!r} names no ladder: expected "
+                          f"{', '.join(available_ladders())}")
     spec = BenchmarkSpec(
         dataset=tr115_default(dataset), out=out, networks=_names(networks),
         presets=_names(presets) if presets is not None else [] if ladders else list(DEFAULT_PRESETS),
@@ -139,15 +142,6 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text
         exit_interrupted(len(written), stopped_by, again="rerun the same command")
     if not quiet:
         _print_tables(console, paths, out)
-
-
-def _ladders(text) -> list[str]:
-    """The ladders --ladder names (none without it); a --ladder naming none is refused."""
-    ladders = _names(text or "")
-    if text is not None and not ladders:
-        raise ConfigError(f"${{ladder}} {text!r} names no ladder: expected "
-                          f"{', '.join(available_ladders())}")
-    return ladders
 
 
 def _note_once():

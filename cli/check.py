@@ -39,7 +39,16 @@ def check(dataset, geometry, geometry_pairs, verbose):
     if not scenes:
         raise DatasetError(dataset.no_pairs_message())
 
-    table = _table(dataset, geometry)
+    where = (dataset.selection.split if dataset.single_pass      # one rendering, no pass to name
+             else f"{dataset.selection.split}/{dataset.selection.pass_}")
+    table = Table(title=f"{dataset.name} {where} at {dataset.root}")
+    columns = [("scene", {}), ("pairs", {"justify": "right"}), ("readable", {"justify": "right"}),
+               ("depth scale", {"justify": "right"}), ("status", {})]
+    if geometry:
+        columns += [("flow err median", {"justify": "right"}), ("p90", {"justify": "right"}),
+                    ("≤1 px", {"justify": "right"})]
+    for col, kw in columns:
+        table.add_column(col, **kw)
     lines = []
     shown_max = None if verbose else 3
     for sc in scenes:
@@ -76,21 +85,6 @@ def check(dataset, geometry, geometry_pairs, verbose):
                   f"{'are' if total != 1 else 'is'} readable.[/green]")
 
 
-def _table(dataset, geometry: bool) -> Table:
-    """The table of scenes, its columns without rows."""
-    where = (dataset.selection.split if dataset.single_pass      # one rendering, no pass to name
-             else f"{dataset.selection.split}/{dataset.selection.pass_}")
-    table = Table(title=f"{dataset.name} {where} at {dataset.root}")
-    columns = [("scene", {}), ("pairs", {"justify": "right"}), ("readable", {"justify": "right"}),
-               ("depth scale", {"justify": "right"}), ("status", {})]
-    if geometry:
-        columns += [("flow err median", {"justify": "right"}), ("p90", {"justify": "right"}),
-                    ("≤1 px", {"justify": "right"})]
-    for col, kw in columns:
-        table.add_column(col, **kw)
-    return table
-
-
 def _scene_lines(sc, groups, geometry: bool, root, shown_max) -> list[str]:
     """The lines under the table for one scene: its pairs' notes, its geometry, its problems
     (``groups``, each listing at most ``shown_max`` places)."""
@@ -110,6 +104,7 @@ def _scene_lines(sc, groups, geometry: bool, root, shown_max) -> list[str]:
         at = f": {', '.join(listed)}{more}" if places else ""
         lines.append(f"{sc.scene}: {'warning: ' if sev == 'warning' else ''}{kind}{at}")
     return lines
+
 
 def _photometric_line(p) -> str:
     """The geometry line of a scene without ground-truth flow (the photometric check)."""

@@ -186,8 +186,17 @@ def fit_motion_pnp(points1: np.ndarray, pixels2: np.ndarray, intrinsics: np.ndar
     k = np.asarray(intrinsics, np.float64)
     thr = float(settings.threshold_px)
 
+    rng = np.random.default_rng(settings.seed)
+    sub = np.sort(rng.choice(n, size=settings.max_points, replace=False)) if n > settings.max_points \
+        else np.arange(n)
     candidates = [] if initial is None else [np.asarray(initial, np.float64)]
-    candidates += _ransac_poses(p1, q2, k, settings)
+    cv2.setRNGSeed(int(settings.seed))
+    ok, rvec, tvec, _ = cv2.solvePnPRansac(
+        p1[sub], q2[sub], k, None, iterationsCount=int(settings.iterations),
+        reprojectionError=thr, confidence=float(settings.confidence), flags=cv2.SOLVEPNP_EPNP)
+    if ok:
+        candidates.append(_pose(rvec, tvec))
+
     best = None
 
     def consider(pose):
@@ -209,20 +218,6 @@ def fit_motion_pnp(points1: np.ndarray, pixels2: np.ndarray, intrinsics: np.ndar
         best = (None, pose, err, err < thr)
     _, pose, err, inl = best
     return MotionFit(cam2_from_cam1=pose, inliers=inl, errors_px=err, threshold_px=thr, source=source)
-
-
-def _ransac_poses(p1: np.ndarray, q2: np.ndarray, k: np.ndarray, settings: FitSettings) -> list:
-    """EPnP RANSAC's pose on a seeded subset of the correspondences (none when it fails)."""
-    n = len(p1)
-    rng = np.random.default_rng(settings.seed)
-    sub = np.sort(rng.choice(n, size=settings.max_points, replace=False)) if n > settings.max_points \
-        else np.arange(n)
-    cv2.setRNGSeed(int(settings.seed))
-    ok, rvec, tvec, _ = cv2.solvePnPRansac(
-        p1[sub], q2[sub], k, None, iterationsCount=int(settings.iterations),
-        reprojectionError=float(settings.threshold_px), confidence=float(settings.confidence),
-        flags=cv2.SOLVEPNP_EPNP)
-    return [_pose(rvec, tvec)] if ok else []
 
 
 def _refine(pose: np.ndarray, p1: np.ndarray, q2: np.ndarray, k: np.ndarray, consider) -> None:
