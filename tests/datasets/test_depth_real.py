@@ -8,7 +8,7 @@ import numpy as np
 
 from weathergen.datasets.densify import fill_sparse
 from weathergen.datasets.depth import complete_depth, estimate_sky, stray_measurements
-from weathergen.framepair import COMPLETED, MEASURED, SKY
+from weathergen.framepair import COMPLETED, MEASURED
 
 
 def _vignetted_street(h=120, w=240, seed=0):
