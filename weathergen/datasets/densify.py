@@ -61,15 +61,21 @@ def fill_sparse(values: np.ndarray, measured: np.ndarray, guide: np.ndarray, *,
     return filled, known | measured
 
 
-def _bilateral_pass(values, known, guide, color_sigma):
-    """One normalised joint-bilateral pass: (values, known) -> (values, known), more pixels known.
-    The weighted sum and the weight are filtered together (one three-channel filter)."""
-    stack = np.dstack([np.where(known, values, 0), known, np.zeros_like(values)]).astype(np.float32)
-    num, den, _ = cv2.split(cv2.ximgproc.jointBilateralFilter(guide, stack, 2 * _RADIUS + 1,
-                                                             color_sigma, _SIGMA_SPACE))
-    new = ~known & (den > 1e-4)
+def _bilateral_pass(values, known, guide, color_sigma, wanted):
+    """One normalised joint-bilateral pass: (values, known) -> (values, known), more pixels known
+    (``wanted`` ones only). The weighted sum and the weight are filtered together (one
+    three-channel filter), on the rows that hold wanted pixels (and the kernel's reach)."""
+    rows = np.flatnonzero((wanted & ~known).any(axis=1))
+    lo, hi = max(rows[0] - _RADIUS, 0), rows[-1] + _RADIUS + 1
+    part = slice(lo, hi)
+    stack = np.dstack([np.where(known[part], values[part], 0), known[part],
+                       np.zeros_like(values[part])]).astype(np.float32)
+    num, den, _ = cv2.split(cv2.ximgproc.jointBilateralFilter(
+        np.ascontiguousarray(guide[part]), stack, 2 * _RADIUS + 1, color_sigma, _SIGMA_SPACE))
+    new = np.zeros_like(known)
+    new[part] = wanted[part] & ~known[part] & (den > 1e-4)
     out = values.copy()
-    out[new] = num[new] / den[new]
+    out[new] = num[new[part]] / den[new[part]]
     return out, known | new
 
 
@@ -77,7 +83,7 @@ def _fill_pyramid(values, known, guide, wanted, color_sigma):
     for _ in range(2):
         if not (wanted & ~known).any():
             return values, known
-        values, known = _bilateral_pass(values, known, guide, color_sigma)
+        values, known = _bilateral_pass(values, known, guide, color_sigma, wanted)
     missing = wanted & ~known
     h, w = known.shape
     if not missing.any() or min(h, w) < 2 * (2 * _RADIUS + 1):

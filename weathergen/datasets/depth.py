@@ -248,11 +248,15 @@ def _edge_pixels(sky: np.ndarray, above: np.ndarray, image: np.ndarray) -> np.nd
     band &= ~sky & above
     if not band.any():
         return sky
-    decided = (~band).astype(np.float32)
-    votes = [cv2.ximgproc.jointBilateralFilter(image, m, SKY_WINDOW + 2, SKY_EDGE_COLOR_SIGMA,
-                                               SKY_WINDOW / 2)
-             for m in (decided * sky, decided)]
-    return sky | (band & (votes[0] > 0.5 * votes[1]))
+    rows = np.flatnonzero(band.any(axis=1))
+    part = slice(max(rows[0] - SKY_WINDOW, 0), rows[-1] + SKY_WINDOW + 1)   # the kernel's reach
+    decided = (~band[part]).astype(np.float32)
+    votes = cv2.ximgproc.jointBilateralFilter(
+        np.ascontiguousarray(image[part]), np.dstack([decided * sky[part], decided, decided * 0]),
+        SKY_WINDOW + 2, SKY_EDGE_COLOR_SIGMA, SKY_WINDOW / 2)
+    out = sky.copy()
+    out[part] |= band[part] & (votes[..., 0] > 0.5 * votes[..., 1])
+    return out
 
 
 def _one_sky(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
