@@ -73,3 +73,18 @@ def test_a_coarse_fill_does_not_paste_a_near_object_over_what_is_behind_it():
     assert trees[30:60, 40:120].all()
     depth = 1 / filled[trees]
     assert np.abs(depth - 60).max() < 6, f"tree pixels took {depth.min():.1f} m"
+
+
+def test_the_sky_seen_inside_a_sign_gantry_is_sky_and_a_grey_panel_there_is_not():
+    """Sky the top border does not reach (framed by a dark gantry above the scanner) is still sky;
+    a smooth pale grey panel framed the same way is not."""
+    image, measured, sky_true = _vignetted_street()
+    frame = np.zeros(sky_true.shape, bool)
+    frame[4:34, 20:110] = True
+    frame[8:30, 24:60] = False                   # sky seen through the gantry
+    frame[8:30, 70:106] = False                  # a panel
+    image[frame] = (0.1, 0.1, 0.12)
+    image[8:30, 70:106] = (0.85, 0.85, 0.85)
+    sky = estimate_sky(image, measured)
+    assert sky[10:28, 26:58].all()
+    assert not sky[8:30, 70:106].any() and not sky[frame].any()

@@ -230,6 +230,7 @@ def estimate_sky(image: np.ndarray, measured: np.ndarray, *,
         # The bright parts find the sky, which may be darker elsewhere (a lens darkens the corners)
         bright = grey >= SKY_RELATIVE_BRIGHTNESS * np.median(grey[sky])
         sky = _smooth_sky(possible & bright, texture, gradient, max_gradient, image)
+        sky |= _enclosed_sky(possible & bright, texture, gradient, max_gradient, image, sky)
     return _edge_pixels(sky, above, image)
 
 
@@ -238,6 +239,23 @@ def _smooth_sky(possible, texture, gradient, max_gradient, image):
     ``max_gradient`` grown over ``gradient`` below twice that. Shape: (H, W) each -> (H, W)."""
     core = _one_sky(_touching_top(possible & (texture <= max_gradient)), image)
     return _grown(possible & (gradient <= 2 * max_gradient), core)
+
+
+def _enclosed_sky(possible, texture, gradient, max_gradient, image, sky):
+    """The sky seen where it does not reach the top border (between a sign and a pole, through a
+    tree): smooth parts of ``possible`` at least :data:`SKY_WINDOW` pixels wide whose hue is
+    within :data:`SKY_COLOR_SPREAD` of the sky's. Shape: (H, W) each, image (H, W, 3) -> (H, W)."""
+    core = (possible & (texture <= max_gradient) & ~sky).astype(np.uint8)
+    wide = cv2.erode(core, np.ones((SKY_WINDOW, SKY_WINDOW), np.uint8)) > 0
+    count, labels = cv2.connectedComponents(_grown(core > 0, wide).astype(np.uint8), connectivity=4)
+    sizes = np.maximum(np.bincount(labels.ravel(), minlength=count), 1)
+    means = np.stack([np.bincount(labels.ravel(), image[..., c].ravel(), count) for c in range(3)],
+                     1) / sizes[:, None]
+    ref = image[sky].mean(axis=0)
+    hue = means / np.maximum(means.mean(axis=1, keepdims=True), 1e-6)
+    keep = np.linalg.norm(hue - ref / max(ref.mean(), 1e-6), axis=1) <= SKY_COLOR_SPREAD
+    keep[0] = False
+    return _grown(possible & (gradient <= 2 * max_gradient), keep[labels])
 
 
 def _edge_pixels(sky: np.ndarray, above: np.ndarray, image: np.ndarray) -> np.ndarray:
