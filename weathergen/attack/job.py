@@ -26,7 +26,7 @@ from ..datasets import Dataset
 from ..engine import CombinedPreset, render_pair
 from ..engine.budget import check_pair_memory
 from ..errors import ConfigError, WeatherGenError
-from ..flow import weather_mask
+from ..flow import aee, weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.images import to_uint8
 from ..memory import failure_message
@@ -35,10 +35,12 @@ from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
 from ..jobs import (frame2_note, layer_seeds, pair_particles, pair_seed,
-                    published_geometry_note, scene_airlight, scene_firsts, torch_threads,
-                    visibility_of, weather_scaling, weather_seed)
+                    published_geometry_note, scene_airlight, scene_firsts, scene_key,
+                    torch_threads, visibility_of, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
+from .sequence import (attack_sequence, check_sequence_preset, check_sequence_settings,
+                       scene_figures, scene_units, scene_weather)
 from .settings import AttackSettings
 from .targets import TargetSpec, read_target_flow
 
@@ -76,6 +78,7 @@ class AttackJob:
     ray_address: Optional[str] = "auto"
     threads: Optional[int] = None       # torch threads of each unit (None: leave as is)
     scene_firsts: dict = field(default_factory=dict)   # each scene's first selected pair
+    sequence: bool = False              # one weather per scene (weathergen.attack.sequence)
 
     def __post_init__(self):
         # a network in a file by its resolved path: the same file from any working directory
@@ -120,7 +123,8 @@ class AttackJob:
             "outputs": {"pass": self.pass_name, "format": "png", "geometry": True},
             "particles_from": str(self.particles_from) if self.particles_from else None,
             "attack": {**self.settings.to_dict(), "target": self.target.describe(),
-                       "configuration": self.config_name},
+                       "configuration": self.config_name,
+                       **({"sequence": True} if self.sequence else {})},
             "model": self.model_config(),
         }
 
@@ -215,6 +219,7 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
         names = [str(ref.id) for ref, _, _, _ in group]
         pairs = [g[1] for g in group]
         step = lambda i, record: on_step(names[i], record)     # noqa: E731
+        alone = None
         try:
             if job.lp is not None:
                 results = lp_attack_batch(
@@ -222,6 +227,9 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
                     torch.stack([p.image2 for p in pairs]).to(device), job.lp, job.target,
                     seeds=[pair_seed(job.seed, p.id) for p in pairs],
                     target_file_flow=target_file_flow, on_step=step)
+            elif job.sequence:
+                results, alone = sequence_results(job, model, pairs, [g[2] for g in group],
+                                                  device, target_file_flow, step)
             else:
                 results = attack_batch(model, pairs, [g[2] for g in group], job.settings,
                                        job.target, device=device,
@@ -235,9 +243,11 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
         share = (time.perf_counter() - start) / len(group)
         ran = {**where_ran(device), "batch": len(group)}
         write = write_lp_pair if job.lp is not None else write_attacked_pair
-        for (ref, pair, _, spent), result in zip(group, results):
+        for i, ((ref, pair, _, spent), result) in enumerate(zip(group, results)):
             begin = time.perf_counter()
             summary = write(job, model, pair, result, device)
+            if alone is not None:
+                compare_alone(job, model, pair, alone[i], summary, device)
             summary.seconds = spent + share + time.perf_counter() - begin
             reports[ref.id.key] = PairReport(str(ref.id), "written", summary, key=ref.id.key,
                                              ran=ran, warnings=list(pair.meta.get("warnings", [])),
@@ -246,12 +256,10 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
     return [reports[ref.id.key] for ref in refs]
 
 
-def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
-    """Write one optimised pair's outputs; return its figures."""
-    # What is written is the best record at storage precision, rendered and rounded to the
-    # 8-bit PNG frames; the adversarial flow is the network's flow on exactly those frames, so
-    # the figures describe the files on disk (`evaluate --weather OUT` measures the same).
-    best = result.best_particles.quantized()
+def stored_flow(job: AttackJob, model, pair, particles, device) -> tuple:
+    """A record as written: ``(record at storage precision, its rendering, the 8-bit frames,
+    the network's flow on them (1, 2, H, W) on the CPU)``."""
+    best = particles.quantized()
     with torch.no_grad():
         rendered = render_pair(pair, best, beta=job.settings.beta, device=device)
     frames = tuple(to_uint8(img[0].permute(1, 2, 0).cpu().numpy())
@@ -259,7 +267,16 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
     stored = [torch.from_numpy(f).permute(2, 0, 1)[None].float().div(255).to(device)
               for f in frames]
     with torch.no_grad():
-        adversarial = model(*stored).cpu()
+        return best, rendered, frames, model(*stored).cpu()
+
+
+def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
+    """Write one optimised pair's outputs; return its figures."""
+    # What is written is the best record at storage precision, rendered and rounded to the
+    # 8-bit PNG frames; the adversarial flow is the network's flow on exactly those frames, so
+    # the figures describe the files on disk (`evaluate --weather OUT` measures the same).
+    best, rendered, frames, adversarial = stored_flow(job, model, pair, result.best_particles,
+                                                      device)
     covered = weather_mask(rendered.opacity1, rendered.opacity2)[0, 0].cpu()
     summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
                              compat=job.settings.compat, covered=covered)
@@ -276,6 +293,37 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
     write_attack_pair(out, pair.to("cpu"), frames, opacity, meta, flows, result.history,
                       asdict(summary))
     return summary
+
+
+def sequence_results(job: AttackJob, model, pairs: list, particles: list, device,
+                     target_file_flow, on_step) -> tuple[list, list]:
+    """A scene's pairs attacked with one weather (:func:`~weathergen.attack.attack_sequence`,
+    ``job.batch_size`` pairs per forward pass), and each pair alone with the same settings
+    and start (:func:`~weathergen.attack.attack_batch`), for comparison."""
+    combined = isinstance(job.preset, CombinedPreset)
+    seeds = [layer_seeds(job.preset, job.seed, p.id) if combined
+             else weather_seed(job.preset, job.seed, p.id) for p in pairs]
+    weather = scene_weather(pairs, particles, job.preset, seeds,
+                            world_up=getattr(job.dataset, "world_up", "auto"),
+                            frame_rate=job.dataset.frame_rate,
+                            airlight=scene_airlight(job.dataset, pairs[0].id, job.scene_firsts,
+                                                    job.preset))
+    options = dict(device=device, target_file_flow=target_file_flow)
+    results = attack_sequence(model, pairs, particles, weather, job.settings, job.target,
+                              chunk=job.batch_size, on_step=on_step, **options)
+    n = job.batch_size
+    alone = [r for i in range(0, len(pairs), n)
+             for r in attack_batch(model, pairs[i:i + n], particles[i:i + n], job.settings,
+                                   job.target, **options)]
+    return results, alone
+
+
+def compare_alone(job: AttackJob, model, pair, alone, summary: PairSummary, device) -> None:
+    """Set a sequence attack's pair's figures of the pair attacked alone (``alone``, its
+    :class:`~weathergen.attack.AttackResult`), measured as the written ones."""
+    flow = stored_flow(job, model, pair, alone.best_particles, device)[3]
+    summary.per_pair_aee_adversarial = float(aee(flow, alone.benign_flow).mean())
+    summary.per_pair_target_adversarial = float(aee(flow, alone.target).mean())
 
 
 def lp_pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
@@ -315,8 +363,11 @@ def run_summary(job: AttackJob, rows: list[PairSummary]) -> dict:
     """The run's summary (``summary.json``): the means over pairs (:func:`mean_summary`), the
     attack's ``compat`` mode (None for an Lp attack) and the precision the network ran in
     (``amp``: mixed precision on CUDA)."""
-    return {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None,
-            "amp": job.amp_setting()}
+    summary = {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None,
+               "amp": job.amp_setting()}
+    if job.sequence:
+        summary["scenes"] = scene_figures(rows)
+    return summary
 
 
 def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
@@ -349,6 +400,12 @@ def run_attack(job: AttackJob,
     if job.batch_size < 1:
         raise ConfigError(f"${{batch_size}} must be >= 1 (got {job.batch_size})")
     job.amp_setting()                      # a request the device or network cannot meet
+    if job.sequence:
+        check_sequence_preset(job.preset, job.preset_name)
+        check_sequence_settings(job.settings)
+        if job.particles_from is not None:
+            raise ConfigError("${particles_from}: a sequence attack starts from the weather "
+                              "field of ${seed}, not from stored particles")
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
     for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
@@ -421,17 +478,21 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
     on_start(len(refs))
     t0 = time.perf_counter()
     todo = []
+    # a sequence attack redoes every pair of a scene that is not complete
+    redo = {scene_key(u[0].id) for u in scene_units(refs) if job.sequence and not all(
+        pair_output(job, r.id).is_complete() for r in u)}
     try:
         for ref in refs:
             out = pair_output(job, ref.id)
-            if not job.overwrite and out.is_complete():
+            if not job.overwrite and scene_key(ref.id) not in redo and out.is_complete():
                 stored = read_pair_summary(out)
                 if stored is not None:
                     record(PairReport(str(ref.id), "skipped", PairSummary.from_dict(stored),
                                       key=ref.id.key))
                     continue
             todo.append(ref)
-        units = [todo[i:i + job.batch_size] for i in range(0, len(todo), job.batch_size)]
+        units = (scene_units(todo) if job.sequence else
+                 [todo[i:i + job.batch_size] for i in range(0, len(todo), job.batch_size)])
         if local:
             results = (attack_refs(job, unit, model, target_file_flow, on_step) for unit in units)
         else:

@@ -60,7 +60,7 @@ from ..geometry import transform_points
 from .figures import FIGURE_KEYS, RegionFigures, mean_figures, region_figures
 from .compat import (camera_translation_in_reference, detaches_occlusion, reference_figure_flows,
                      reference_offset_penalty, resets_gradients)
-from .settings import DEFAULT_ALPHA, DENSITY_BOUND, AttackSettings
+from .settings import DEFAULT_ALPHA, DENSITY_FACTOR, AttackSettings, lr_group
 from .targets import TargetSpec, target_flow
 
 #: Smallest particle depth (scene units) used in the offset penalty.
@@ -111,9 +111,9 @@ class WeatherVariables:
         atm = particles.atmosphere
         if atm is not None:
             if "density" in self.optimize:
-                start = (atm.lattice(dtype, dev) - 1) / DENSITY_BOUND
-                self.eta_density = torch.atanh(start.clamp(-1 + 1e-6, 1 - 1e-6))
-                self.atmosphere["density"] = torch.zeros_like(start, requires_grad=True)
+                self.rho_density = atm.lattice(dtype, dev).detach()
+                self.atmosphere["density"] = torch.zeros_like(self.rho_density,
+                                                              requires_grad=True)
             if "airlight" in self.optimize:
                 self.eta_airlight = to_atanh(atm.airlight.detach().to(device=dev, dtype=dtype))
                 self.atmosphere["airlight"] = torch.zeros(3, dtype=dtype, device=dev,
@@ -126,6 +126,13 @@ class WeatherVariables:
         """The particles' freed variables (the atmosphere's: :meth:`atmosphere_parameters`)."""
         return list(self.delta.values())
 
+    def groups(self) -> dict[str, list[torch.Tensor]]:
+        """Every freed variable by its learning-rate group (:data:`LR_GROUPS`)."""
+        out: dict[str, list[torch.Tensor]] = {}
+        for name, p in (*self.delta.items(), *self.atmosphere.items()):
+            out.setdefault(lr_group(name), []).append(p)
+        return out
+
     def atmosphere_parameters(self) -> list[torch.Tensor]:
         return list(self.atmosphere.values())
 
@@ -137,10 +144,10 @@ class WeatherVariables:
         if self.atmosphere:
             a = self.atmosphere
             air = {}
-            if "density" in a:
-                # (squeezed as from_atanh: strictly inside the bounds in float32 too)
-                air["density"] = 1 + DENSITY_BOUND * (1 - 2e-6) * torch.tanh(
-                    self.eta_density + a["density"])
+            if "density" in a:     # log space, within DENSITY_FACTOR of the sampled value
+                bound = math.log(DENSITY_FACTOR)
+                air["density"] = self.rho_density * torch.exp(
+                    bound * torch.tanh(a["density"] / bound))
             if "airlight" in a:
                 air["airlight"] = from_atanh(self.eta_airlight + a["airlight"])
             changes["atmosphere"] = b.atmosphere.replace(**air)
@@ -183,6 +190,13 @@ class LayeredVariables:
     def atmosphere_parameters(self) -> list[torch.Tensor]:
         return [p for v in self.freed.values() for p in v.atmosphere_parameters()]
 
+    def groups(self) -> dict[str, list[torch.Tensor]]:
+        out: dict[str, list[torch.Tensor]] = {}
+        for v in self.freed.values():
+            for group, params in v.groups().items():
+                out.setdefault(group, []).extend(params)
+        return out
+
     def particles(self) -> LayeredParticles:
         out = self.base
         for k, v in self.freed.items():
@@ -194,6 +208,21 @@ class LayeredVariables:
         """The freed layers' added offsets, joined (as :attr:`WeatherVariables.delta`)."""
         names = {n for v in self.freed.values() for n in v.delta}
         return {n: torch.cat([v.delta[n] for v in self.freed.values()]) for n in names}
+
+
+def group_optimizer(variables: Sequence, settings: AttackSettings) -> torch.optim.Adam:
+    """Adam over the freed variables of ``variables`` (:class:`WeatherVariables` or
+    :class:`LayeredVariables`), one parameter group per learning-rate group, named ``group``,
+    at the rate :attr:`AttackSettings.learning_rates` gives it."""
+    joined: dict[str, list[torch.Tensor]] = {}
+    for v in variables:
+        for group, params in v.groups().items():
+            joined.setdefault(group, []).extend(params)
+    rates = settings.learning_rates
+    groups = [{"params": params, "lr": rates[group], "group": group}
+              for group, params in joined.items()]
+    # (no variable at all, e.g. nothing visible: an empty group keeps Adam's constructor happy)
+    return torch.optim.Adam(groups or [{"params": [], "group": "none"}], lr=1.0)
 
 
 def _joined(depths: list) -> tuple[torch.Tensor, torch.Tensor]:
@@ -322,10 +351,10 @@ class StepLog:
             self.on_step(i, record)
 
 
-def _snapshot(particles):
+def snapshot(particles):
     """A detached CPU copy of a record (of every layer of combined weather)."""
     if isinstance(particles, LayeredParticles):
-        return LayeredParticles(tuple(_snapshot(r) for r in particles.layers), particles.names)
+        return LayeredParticles(tuple(snapshot(r) for r in particles.layers), particles.names)
     atm = particles.atmosphere
     if atm is not None:
         atm = atm.replace(airlight=atm.airlight.detach().cpu().clone(),
@@ -421,11 +450,7 @@ class BatchOptimisation:
         self.start_depth1 = [torch.cat([start_depth(x, c1) for x in self._freed(i, r)])
                              for i, (r, (c1, _)) in enumerate(zip(moved, transforms))]
         self.detach_occlusion = detaches_occlusion(settings)
-        groups = [{"params": [p for v in self.variables for p in v.parameters()]}]
-        air = [p for v in self.variables for p in v.atmosphere_parameters()]
-        if air:     # the atmosphere's variables at their own rate
-            groups.append({"params": air, "lr": settings.atmosphere_learning_rate})
-        self.optimizer = torch.optim.Adam(groups, lr=settings.learning_rate)
+        self.optimizer = group_optimizer(self.variables, settings)
 
     def render(self, particles: Sequence):
         """The weather frames of B records (a :class:`~weathergen.engine.RenderOutput`)."""
@@ -562,7 +587,7 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
             if step == 0:
                 initial_flow[i] = flow[i:i + 1].detach().cpu()
             if log.improves(i, step, dists[i], flow):
-                best_particles[i] = _snapshot(current[i])
+                best_particles[i] = snapshot(current[i])
         last = step == steps
         finishing = [False] * size
         if not last:
@@ -612,6 +637,10 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
                         on_step=lambda i, record: on_step(record))[0]
 
 
+#: The figures of a sequence attack's pairs attacked alone (None otherwise).
+SEQUENCE_FIGURES = ("per_pair_aee_adversarial", "per_pair_target_adversarial")
+
+
 @dataclass
 class PairSummary(RegionFigures):
     """Per-pair figures of an attack (pixels). ``epe_*`` are None without ground truth.
@@ -636,6 +665,9 @@ class PairSummary(RegionFigures):
     seconds: float = 0.0
     nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
     particles: Optional[int] = None   # particles in the record (the count the frame size gave)
+    #: ``attack --sequence``: the figures of each pair attacked alone, same settings and start
+    per_pair_aee_adversarial: Optional[float] = None
+    per_pair_target_adversarial: Optional[float] = None
 
     @classmethod
     def from_dict(cls, data: dict) -> "PairSummary":
@@ -690,9 +722,10 @@ def mean_summary(rows: list[PairSummary]) -> dict:
     figures by region and outlier rates as :func:`~weathergen.attack.figures.mean_figures`)."""
     out: dict = {"pairs": len(rows)}
     for key in ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
-                "epe_benign", "epe_random", "epe_adversarial"):
+                "epe_benign", "epe_random", "epe_adversarial", *SEQUENCE_FIGURES):
         values = [getattr(r, key) for r in rows if getattr(r, key) is not None]
-        out[key] = sum(values) / len(values) if values else None
+        if values or key not in SEQUENCE_FIGURES:       # (those only where measured)
+            out[key] = sum(values) / len(values) if values else None
     out.update(mean_figures([{k: getattr(r, k) for k in (*FIGURE_KEYS, "gt_valid_px")}
                              for r in rows]))
     return out

@@ -13,7 +13,8 @@ function.
 
 from __future__ import annotations
 
-from .field import (Field, frame_particles, make_field, pair_particles, sample_field_particles,
+from .field import (Field, field_for_pair, field_record, frame_particles, make_field,
+                    pair_particles, pair_trajectories, pair_views, sample_field_particles,
                     sample_layers, sample_weather, scene_seed)
 from .groundtruth import ParticleTruth, particle_truth, seen_flow
 from .layers import LayeredParticles, layer_seed, load_particles
@@ -37,7 +38,7 @@ __all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset",
            "RenderSettings", "StampSet", "TemplateLibrary", "View", "build_stamps",
            "empty_particles", "frame_particles", "frame_scaling", "from_atanh", "generate_templates",
            "layer_seed", "list_presets", "load_particles", "load_preset", "load_templates", "make_field",
-           "pair_particles",
+           "pair_particles", "field_for_pair", "field_record", "pair_trajectories", "pair_views",
            "parse_override", "parse_set_options", "particle_truth", "preset_keys",
            "reference_transforms", "render", "render_pair", "render_view", "resolve_device",
            "sample_field_particles", "sample_layers", "sample_particles", "sample_weather", "scene_seed",
