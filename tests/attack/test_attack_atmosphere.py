@@ -6,7 +6,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from weathergen.attack import (ATMOSPHERE_VARIABLES, OPTIMIZABLE, VARIABLES, AttackSettings,
+from weathergen.attack import (ATMOSPHERE_VARIABLES, DENSITY_FACTOR, FIELD_LR, OPTIMIZABLE,
+                               VARIABLES, AttackSettings,
                                TargetSpec, WeatherVariables, attack_pair, parse_optimize,
                                plan_attack)
 from weathergen.engine import load_preset, render_pair, sample_weather
@@ -41,8 +42,8 @@ def test_the_atmospheres_variables_are_named_and_freed_by_default_for_fog():
     assert parse_optimize("all") == VARIABLES == OPTIMIZABLE + ATMOSPHERE_VARIABLES
     with pytest.raises(ConfigError, match="density, airlight"):
         parse_optimize("fog")
-    assert plan_attack(preset="fog-moderate").settings.optimize == OPTIMIZABLE + ("density",)
-    assert plan_attack(preset="snow+fog-light").settings.optimize == OPTIMIZABLE + ("density",)
+    assert plan_attack(preset="fog-moderate").settings.optimize == VARIABLES
+    assert plan_attack(preset="snow+fog-light").settings.optimize == VARIABLES
     assert plan_attack(preset="snow").settings.optimize == OPTIMIZABLE
     assert plan_attack(preset="sparks-light").settings.optimize == OPTIMIZABLE
     assert plan_attack(preset="fog-moderate", optimize="density,airlight").settings.optimize \
@@ -62,7 +63,10 @@ def test_variables_start_at_the_record_and_stay_within_their_bounds(small_pair):
             p.add_(torch.randn_like(p) * 50)                 # anywhere in the tanh domain
     with torch.no_grad():
         moved = v.particles().atmosphere
-    assert float(moved.density.min()) > 0 and float(moved.density.max()) < 2
+    ratio = moved.density / lattice          # within DENSITY_FACTOR of the sampled value
+    assert float(ratio.min()) >= 1 / DENSITY_FACTOR * (1 - 1e-6)
+    assert float(ratio.max()) <= DENSITY_FACTOR * (1 + 1e-6)
+    assert float((ratio - 1).abs().max()) > 1                # and far from it
     assert float(moved.airlight.min()) > 0 and float(moved.airlight.max()) < 1
     assert v.parameters() == [] or all(p.numel() == 0 for p in v.parameters())   # no particles
 
@@ -72,7 +76,8 @@ def test_an_attack_on_fog_lowers_its_loss_and_the_best_record_reproduces_it(smal
     record = fog(small_pair)
     assert record.count == 0
     settings = AttackSettings(optimize=("density", "airlight"), steps=2)
-    assert settings.atmosphere_learning_rate == 1e-2
+    assert settings.learning_rates == {"density": FIELD_LR["density"],
+                                       "airlight": FIELD_LR["airlight"]}
     result = attack_pair(raft_small, small_pair, record, settings, TargetSpec("zero"))
     losses = [r.loss for r in result.history]
     assert not result.frozen

@@ -91,10 +91,10 @@ def parse_optimize(text: str) -> tuple[str, ...]:
 
 def default_optimize(preset) -> tuple[str, ...]:
     """The variables an attack frees when none are named: the particles' four, and the
-    atmosphere's density where the preset (a layer of it) has an atmosphere."""
+    atmosphere's density and airlight where the preset (a layer of it) has an atmosphere."""
     layers = getattr(preset, "layers", None) or (preset,)
     if any(getattr(layer, "has_atmosphere", False) for layer in layers):
-        return OPTIMIZABLE + ("density",)
+        return VARIABLES
     return OPTIMIZABLE
 
 
