@@ -72,8 +72,8 @@ def check_sequence_settings(settings: AttackSettings) -> None:
 class SceneWeather:
     """A scene's weather as trajectories: ``world`` one record of every trajectory of the scene
     (a :class:`~weathergen.engine.LayeredParticles` for combined weather, one layer per field),
-    ``index[p][l]`` (M,) the position in layer ``l`` of ``world`` of each particle of pair ``p``'s
-    record (its order)."""
+    ``index[p][i]`` (M,) the position in layer ``i`` of ``world`` of each particle of pair ``p``'s
+    record (its order; ``index[p]`` alone for one layer)."""
 
     world: object
     index: list
@@ -102,29 +102,29 @@ def scene_weather(pairs: Sequence[FramePair], records: Sequence, preset, seeds: 
         seed = seeds[p] if layered else (seeds[p],)
         n = int(pair.id.frame)
         views = pair_views(pair)
-        for l, (layer, s) in enumerate(zip(layers, seed)):
+        for i, (layer, s) in enumerate(zip(layers, seed)):
             fld = field_for_pair(pair, layer, s, world_up=world_up, frame_rate=frame_rate,
                                  airlight=airlight)
             if p == 0 and fld.frame == "world":
                 fields.append(fld)
-            elif (fld.frame != "world" or not torch.equal(fld.start, fields[l].start)
-                  or not torch.equal(fld.step, fields[l].step)):
+            elif (fld.frame != "world" or not torch.equal(fld.start, fields[i].start)
+                  or not torch.equal(fld.step, fields[i].step)):
                 raise ConfigError(f"{pair.id}: its weather field is not the scene's (the "
                                   f"sequence attack needs cameras posed in one world)")
             j, k = pair_trajectories(fld, views, (n, n + 1))
-            count = (records[p].layers[l] if layered else records[p]).count
+            count = (records[p].layers[i] if layered else records[p]).count
             if int(j.numel()) != count:
                 raise ConfigError(f"{pair.id}: its particles are not its weather field's")
-            found[l].append((j, k))
+            found[i].append((j, k))
     world, index = [], [[None] * len(layers) for _ in pairs]
-    for l, per_pair in enumerate(found):
+    for i, per_pair in enumerate(found):
         rows = torch.cat([torch.cat((j[:, None], k), 1) for j, k in per_pair])
         unique, inverse = _unique_rows(rows)
         start = 0
         for p, (j, _) in enumerate(per_pair):
-            index[p][l] = inverse[start:start + j.numel()]
+            index[p][i] = inverse[start:start + j.numel()]
             start += j.numel()
-        world.append(field_record(fields[l], unique[:, 0], unique[:, 1:],
+        world.append(field_record(fields[i], unique[:, 0], unique[:, 1:],
                                   int(pairs[0].id.frame)))
     if layered:
         return SceneWeather(LayeredParticles(tuple(world), records[0].names), index)
