@@ -298,9 +298,12 @@ def _run(job, model, label, target, steps, out, quiet):
                             status=clock.describe())
         if not quiet and progress is None and report.status != "failed":
             s = report.summary
+            alone = ("" if s.per_pair_aee_adversarial is None else
+                     f" (the pair attacked alone: {s.per_pair_aee_adversarial:.3f})")
             console.print(f"[{clock.describe()}] {report.pair} {report.status}: "
                           f"AEE(f, f̌) random {s.aee_random:.3f} -> adversarial{versus} "
-                          f"{s.aee_adversarial:.3f}, distance to target {s.target_initial:.3f} "
+                          f"{s.aee_adversarial:.3f}{alone}, distance to target "
+                          f"{s.target_initial:.3f} "
                           f"-> {s.target_adversarial:.3f}", highlight=False, soft_wrap=True)
 
     if interactive:
