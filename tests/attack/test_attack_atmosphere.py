@@ -118,3 +118,24 @@ def test_an_attack_on_fog_runs_on_cuda_as_on_the_cpu(small_pair, raft_small_weig
     cpu, gpu = results
     assert min(r.loss for r in gpu.history[1:]) < gpu.history[0].loss
     assert abs(gpu.history[0].distance - cpu.history[0].distance) < 0.05
+
+
+@pytest.mark.slow
+def test_heavy_fog_doubles_its_effect_within_ten_steps(raft_small_weights):
+    """docs/attack.md, "Learning rates": on the demo street's first pair, RAFT-small (shipped
+    checkpoint, 12 iterations) on the CPU, fog-heavy with the default variables and rates more
+    than doubles AEE(f, f̌) of the random fog within 10 steps."""
+    from weathergen.datasets import open_dataset
+    from weathergen.jobs import pair_particles
+    from weathergen.models import get_model
+
+    dataset = open_dataset("demo", scenes=["street"], frames_per_scene=1)
+    pair = dataset.load(dataset.pairs()[0])
+    plan = plan_attack(preset="fog-heavy", steps=10)
+    record = pair_particles(pair, plan.preset, 0, world_up=dataset.world_up,
+                            frame_rate=dataset.frame_rate)
+    model = get_model("raft-small", checkpoint=raft_small_weights)
+    result = attack_pair(model, pair, record, plan.settings)
+    best = result.history[result.best_step]
+    assert best.robustness > 2 * result.history[0].robustness, [
+        (r.step, r.robustness) for r in result.history]
