@@ -15,8 +15,8 @@ from rich.table import Table
 
 from weathergen.datasets import frame_rates_text
 from weathergen.engine import FrameScaling
-from weathergen.engine.layers import layer_arrays
-from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
+from weathergen.engine.records.layered import layer_arrays
+from weathergen.engine.records.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
 from weathergen.errors import ConfigError
 from weathergen.io.atomic import remove_temporaries, write_error
 from weathergen.io.published_weather import is_published_file, read_published_weather

@@ -6,10 +6,10 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from weathergen.engine.preset_groups import preset_groups
-from weathergen.engine.presets import (EXAMPLE_COMBINATIONS, LAYER_JOIN, CombinedPreset, FieldPreset,
-                                       field_preset_keys, load_preset, parse_set_options,
-                                       preset_keys)
+from weathergen.engine.weather.preset_groups import preset_groups
+from weathergen.engine.weather.presets import (EXAMPLE_COMBINATIONS, LAYER_JOIN, CombinedPreset,
+                                               FieldPreset, field_preset_keys, load_preset,
+                                               parse_set_options, preset_keys)
 
 from .options import STOPPED, exit_codes
 

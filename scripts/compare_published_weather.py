@@ -43,7 +43,7 @@ sys.path.insert(0, str(ROOT))
 
 from weathergen.datasets import load_scene_scales, open_dataset  # noqa: E402
 from weathergen.engine import load_preset, render_pair  # noqa: E402
-from weathergen.engine.published import published_particles  # noqa: E402
+from weathergen.engine.sampling.published import published_particles  # noqa: E402
 from weathergen.io.images import write_png  # noqa: E402
 from weathergen.io.published_weather import published_file, read_published_weather  # noqa: E402
 from weathergen.io.sintel_formats import write_cam, write_dpt, write_flo  # noqa: E402

@@ -46,7 +46,7 @@ import torch
 
 from weathergen.datasets import open_dataset
 from weathergen.engine import load_preset, render_pair, sample_particles
-from weathergen.engine.presets import list_presets
+from weathergen.engine.weather.presets import list_presets
 from weathergen.errors import WeatherGenError
 from weathergen.io.atomic import atomic_write_bytes
 from weathergen.io.images import read_raw, to_uint8

@@ -186,7 +186,7 @@ def test_private_name_check_catches_both_forms(tmp_path, monkeypatch):
     """The check above sees both an imported private name and an attribute of an imported
     module (a check that cannot fail proves nothing)."""
     probe = tmp_path / "probe.py"
-    probe.write_text("from .engine.renderer import _hidden\nfrom .engine import sampling\n"
+    probe.write_text("from .engine.rendering.renderer import _hidden\nfrom .engine import sampling\n"
                      "x = sampling._generator(0)\nfrom .engine import __version__\n")
     monkeypatch.setitem(MODULES, "weathergen.probe", probe)
     found = _private_uses("weathergen.probe")
@@ -255,11 +255,11 @@ def test_job_check_sees_an_import(tmp_path, monkeypatch):
 
 #: The blend module: every way weather is blended into frames (a single record's blend modes,
 #: combined weather's layers in depth order) is written there, with its backward pass.
-BLEND_OWNER = "weathergen.engine.composite"
+BLEND_OWNER = "weathergen.engine.rendering.composite"
 #: The engine's other custom autograd functions, none of which blends: the splat's scatter, the
 #: crop and the upsampling of its sums.
-OTHER_AUTOGRAD = {"weathergen.engine.splat": {"_Splat"},
-                  "weathergen.engine.planes": {"_Crop", "_Upsample"}}
+OTHER_AUTOGRAD = {"weathergen.engine.rendering.splat": {"_Splat"},
+                  "weathergen.engine.rendering.planes": {"_Crop", "_Upsample"}}
 
 
 def _autograd_functions(name: str) -> set[str]:

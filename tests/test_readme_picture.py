@@ -63,7 +63,7 @@ def test_make_images_quick_writes_every_picture_it_promises(tmp_path, capsys):
     import cv2
     import pytest
 
-    from weathergen.engine.presets import list_presets
+    from weathergen.engine.weather.presets import list_presets
 
     script = _script()
     out = tmp_path / "images"

@@ -98,6 +98,9 @@ class FramePair:
     sources: dict = field(default_factory=dict)
     # The depth scale that was applied to the stored depth (and camera translations).
     depth_scale: float = 1.0
+    # Frames per second of the dataset the pair comes from (its reader's ``frame_rate``); None for
+    # a pair built in code. A weather field moves its particles ``velocity / frame_rate`` a frame.
+    frame_rate: Optional[float] = None
     # Plain-data facts the reader wants recorded in manifests, e.g. the residual of an estimated
     # camera motion ({"camera_motion": {"method": "opencv-pnp-ransac+lm", "rms_px": 0.3, ...}}).
     meta: dict = field(default_factory=dict)

@@ -38,7 +38,7 @@ def raft_small(raft_small_weights):
 def on_the_surface(pair, particles, gap=0.003):
     """The particles moved along their frame-1 camera rays to just in front of the scene
     surface they cover (V about 0.7 at β = 250): occlusion's gradient is large there."""
-    from weathergen.engine.sampling import reference_transforms
+    from weathergen.engine.sampling.pair import reference_transforms
     from weathergen.geometry import project
 
     _, c1, _ = reference_transforms(pair)
@@ -135,7 +135,7 @@ def test_reference_penalty_by_hand():
 def test_penalty_of_each_mode(small_pair, raft_small, compat):
     """The loop's penalty: the paper's ‖δ_t‖²/d_t with each frame's depth, or the research
     code's ‖Δ_t‖²/(z1² + ε) with the squared frame-1 depth for both."""
-    from weathergen.engine.sampling import reference_transforms
+    from weathergen.engine.sampling.pair import reference_transforms
 
     particles = grey_particles(small_pair, count=40)
     run = PairOptimisation(raft_small, small_pair, particles,
@@ -166,7 +166,7 @@ def test_penalty_of_each_mode(small_pair, raft_small, compat):
 # -- homogeneous offsets -------------------------------------------------------------------------
 
 def test_reference_homogeneous_component_moves_frame_two_along_the_camera_translation(small_pair):
-    from weathergen.engine.sampling import reference_transforms
+    from weathergen.engine.sampling.pair import reference_transforms
 
     _, c1, c2 = reference_transforms(small_pair)
     particles = grey_particles(small_pair, count=10)

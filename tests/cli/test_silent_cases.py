@@ -252,7 +252,7 @@ def test_stereo_with_format_both_writes_the_right_view_as_the_left(tmp_path, dem
     import torch
 
     from fake_datasets import KITTI_BASELINE, demo_sequence, write_fake_kitti_stereo
-    from weathergen.engine.stereo import warp_depth
+    from weathergen.engine.rendering.stereo import warp_depth
     from weathergen.io.exr import read_exr
     from weathergen.io.images import read_image
     from weathergen.io.sintel_formats import read_cam, read_dpt

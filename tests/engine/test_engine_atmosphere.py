@@ -13,14 +13,14 @@ import torch
 from engine_scenes import plane_pair, pose, rotation
 from weathergen.engine import (LayeredParticles, Particles, load_preset, render_pair,
                                sample_weather)
-from weathergen.engine.air import AirView, reference_optical_depth
-from weathergen.engine.atmosphere import (LATTICE, density_lattice, estimate_airlight,
-                                          rain_extinction, snow_extinction)
-from weathergen.engine.field import sample_field_particles
-from weathergen.engine.renderer import render, render_view
-from weathergen.engine.sampling import reference_transforms
-from weathergen.engine.stereo import stereo_view
-from weathergen.engine.tracks import View
+from weathergen.engine.rendering.transmittance import AirView, reference_optical_depth
+from weathergen.engine.weather.atmosphere import (LATTICE, density_lattice, estimate_airlight,
+                                                  rain_extinction, snow_extinction)
+from weathergen.engine.sampling.field import sample_field_particles
+from weathergen.engine.rendering.renderer import render, render_view
+from weathergen.engine.sampling.pair import reference_transforms
+from weathergen.engine.rendering.stereo import stereo_view
+from weathergen.engine.rendering.tracks import View
 from weathergen.errors import ConfigError
 from weathergen.framepair import FramePair, PairId
 
@@ -453,8 +453,8 @@ def test_uniform_atmospheres_beside_a_heterogeneous_one_read_no_ray_tables(monke
     """A view with heterogeneous fog and a uniform veil (snow's) reads the coarse rays' tables
     for the fog alone, and its transmission is the same to the bit as when the veil's slot reads
     them too (where τ = β₀ L exactly)."""
-    from weathergen.engine.air import Air
-    from weathergen.engine.atmosphere import Atmosphere
+    from weathergen.engine.rendering.transmittance import Air
+    from weathergen.engine.weather.atmosphere import Atmosphere
 
     drift = torch.zeros(2, 3, dtype=torch.float64)
     fog = Atmosphere(extinction=0.02, airlight=torch.tensor([0.8, 0.8, 0.9]), drift=drift,

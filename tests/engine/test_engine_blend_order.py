@@ -14,8 +14,8 @@ from engine_scenes import plane_pair, pose, rotation
 from oracle import oracle_render
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, Particles, RenderSettings, load_preset,
                                load_templates, render, render_view, sample_particles)
-from weathergen.engine.field import pair_views
-from weathergen.engine.renderer import pair_starts, view_sums
+from weathergen.engine.sampling.field import pair_views
+from weathergen.engine.rendering.renderer import pair_starts, view_sums
 from weathergen.errors import ConfigError, FormatError
 from weathergen.framepair import FramePairBatch
 

@@ -14,15 +14,15 @@ import torch
 from engine_scenes import pose, rotation
 from weathergen.engine import (Particles, TemplateLibrary, load_preset, load_templates,
                                render_pair, sample_particles, sample_weather)
-from weathergen.engine.field import (field_for_pair, frame_particles, make_field, pair_views,
-                                     sample_field_particles, scene_seed)
+from weathergen.engine.sampling.field import (field_for_pair, frame_particles, make_field,
+                                              pair_views, sample_field_particles, scene_seed)
 from weathergen.datasets import DATASETS, DemoDataset
-from weathergen.engine.presets import FieldPreset, preset_from_values
-from weathergen.engine.groundtruth import particle_truth, seen_flow
-from weathergen.engine.optics import FieldOptics
-from weathergen.engine.settings import RenderSettings
-from weathergen.engine.renderer import render_view
-from weathergen.engine.tracks import View, defocus_radius, depth_fade, footprint, view_mask
+from weathergen.engine.weather.presets import FieldPreset, preset_from_values
+from weathergen.engine.rendering.groundtruth import particle_truth, seen_flow
+from weathergen.engine.weather.optics import FieldOptics
+from weathergen.engine.records.settings import RenderSettings
+from weathergen.engine.rendering.renderer import render_view
+from weathergen.engine.rendering.tracks import View, field_defocus_radius, depth_fade, footprint, view_mask
 from weathergen.errors import ConfigError
 from weathergen.framepair import FramePair, PairId
 from weathergen.geometry import project, transform_points
@@ -133,7 +133,7 @@ def test_appearance_functions():
     assert fade[0] == 0 and fade[-1] == 0 and fade[2] == 1 and fade[3] == 1 and fade[4] == 1
     assert 0 < fade[1] < 1 and 0 < fade[5] < 1
     # thin-lens circle of confusion: 0.5 f A |1/z - 1/focus|, in whole pixels
-    r = defocus_radius(100.0, optics, torch.tensor([2.0, 0.5, 0.25], dtype=torch.float64))
+    r = field_defocus_radius(100.0, optics, torch.tensor([2.0, 0.5, 0.25], dtype=torch.float64))
     assert r.tolist() == [0, round(0.5 * 100 * 0.02 * 1.5), round(0.5 * 100 * 0.02 * 3.5)]
 
 
@@ -354,7 +354,7 @@ def test_depth_windows_read_the_farthest_depth_of_the_aligned_blocks_holding_a_w
     """Against a loop over the pixels: the window's side n, the smallest power of two s >= n,
     the maximum over the s x s blocks (aligned to multiples of s) the window touches; never
     less than the window's own maximum."""
-    from weathergen.engine.tracks import depth_windows
+    from weathergen.engine.rendering.tracks import depth_windows
 
     g = torch.Generator().manual_seed(3)
     depth = torch.rand(2, 1, 13, 21, generator=g, dtype=torch.float64)
@@ -377,7 +377,7 @@ def test_depth_windows_read_the_farthest_depth_of_the_aligned_blocks_holding_a_w
 def test_the_samplers_own_pixel_first_view_mask_keeps_what_the_renders_keeps():
     """With the view's depth windows given (the sampler: own pixel first, the window only for
     points behind the scene there) the mask is the render's (every window at once)."""
-    from weathergen.engine.tracks import view_windows
+    from weathergen.engine.rendering.tracks import view_windows
 
     g = torch.Generator().manual_seed(5)
     depth = torch.full((1, H, W), 8.0)
@@ -476,7 +476,7 @@ def test_presets_command_names_the_model():
 # -- stereo ------------------------------------------------------------------------------------
 
 def test_warped_right_depth_of_a_plane_and_an_occluder():
-    from weathergen.engine.stereo import warp_depth
+    from weathergen.engine.rendering.stereo import warp_depth
 
     baseline = 0.2
     right_from_left = torch.eye(4, dtype=torch.float64)
@@ -493,7 +493,7 @@ def test_warped_right_depth_of_a_plane_and_an_occluder():
 
 
 def test_right_camera_renders_the_same_field_particles_at_their_disparity():
-    from weathergen.engine.stereo import render_right, stereo_view, warp_depth
+    from weathergen.engine.rendering.stereo import render_right, stereo_view, warp_depth
 
     baseline = 0.25
     cams, depths = sequence(2)
@@ -514,7 +514,7 @@ def test_right_camera_renders_the_same_field_particles_at_their_disparity():
 # -- the views' tests on the render's device ---------------------------------------------------
 
 def test_a_fields_views_tested_on_the_cpu_by_name_give_todays_record():
-    from weathergen.engine.particles import TENSOR_FIELDS
+    from weathergen.engine.records.particles import TENSOR_FIELDS
 
     from engine_scenes import plane_pair
 

@@ -17,7 +17,7 @@ from conftest import write_fake_sintel
 
 from weathergen.datasets import load_scene_scales, open_dataset, reopen_dataset
 from weathergen.engine import Particles, RenderSettings, load_preset, render_pair
-from weathergen.engine.published import published_particles
+from weathergen.engine.sampling.published import published_particles
 from weathergen.errors import ConfigError, FormatError
 from weathergen.io.images import read_image, to_uint8
 from weathergen.io.published_weather import (PublishedWeather, is_published_set, published_file,
@@ -419,7 +419,7 @@ def test_evaluate_measures_the_set_as_render_then_evaluate_does(tree, rendered, 
 
 
 def test_stored_stamps_are_refused_on_a_weather_field_and_of_the_wrong_shape(tree):
-    from weathergen.engine.renderer import check_stored_stamps
+    from weathergen.engine.rendering.renderer import check_stored_stamps
 
     sintel, weather = tree
     ds = research_dataset(sintel, ["alley_1"])

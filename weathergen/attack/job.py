@@ -24,7 +24,7 @@ import torch
 
 from ..datasets import Dataset
 from ..engine import CombinedPreset, render_pair
-from ..engine.budget import check_pair_memory
+from ..engine.sampling.budget import check_pair_memory
 from ..errors import ConfigError, WeatherGenError
 from ..flow import aee, weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device

@@ -51,8 +51,8 @@ import torch
 
 from ..engine import (LayeredParticles, build_stamps, from_atanh, load_templates,
                       reference_transforms, render, to_atanh)
-from ..engine.particles import TENSOR_FIELDS
-from ..engine.sampling import check_pair_for_engine
+from ..engine.records.particles import TENSOR_FIELDS
+from ..engine.sampling.pair import check_pair_for_engine
 from ..errors import ConfigError
 from ..flow import aee
 from ..framepair import FramePair

@@ -1,7 +1,7 @@
 """One weather for a whole sequence, attacked: the world weather of a scene, optimised against
 every pair of the scene at once.
 
-A weather field (:mod:`weathergen.engine.field`) gives every pair of a scene its particles from
+A weather field (:mod:`weathergen.engine.sampling.field`) gives every pair of a scene its particles from
 one periodic field: particle ``j`` of tile copy ``k`` (a *trajectory*) is at
 ``start_j + n step_j + k L`` in frame ``n``, and the pairs that see it share it. The attack frees
 one value per trajectory of the scene (the union of its pairs' trajectories), per field layer:

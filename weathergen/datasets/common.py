@@ -112,7 +112,7 @@ class ScaledDataset(Dataset):
             depth_measured1=None if measured is None else chw(measured[0]),
             depth_measured2=None if measured is None else chw(measured[1]),
             sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
-            depth_scale=scale, meta=dict(meta or {}),
+            depth_scale=scale, frame_rate=self.frame_rate, meta=dict(meta or {}),
         ).validate()
 
     def describe(self) -> dict:

@@ -255,7 +255,7 @@ class KittiDataset(FarDepthDataset):
             flow_valid=None if flow_valid is None else chw(flow_valid),
             depth_measured1=chw(valid1), depth_measured2=chw(valid2),
             sources={key: Path(v) for key, v in files.items() if Path(v).exists()},
-            depth_scale=scale,
+            depth_scale=scale, frame_rate=self.frame_rate,
             meta={"camera_motion": fit.summary(), "baseline_m": baseline, "far_depth": self.far_depth,
                   **meta},
         ).validate()

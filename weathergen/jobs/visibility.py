@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Optional
 
 from ..engine import LayeredParticles, visible_counts
-from ..engine.presets import list_presets
+from ..engine.weather.presets import list_presets
 from ..words import counted
 
 #: A pair of a paper preset whose frame 2 shows fewer than this fraction of the particle centres

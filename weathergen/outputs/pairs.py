@@ -22,7 +22,7 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/flow_FW_left/PAIR/frame_FFFF.flo5   declares one (``Dataset.native_flow``): KITTI's
                                               16-bit PNG, Spring's HDF5
 
-With particle ground truth (``--particle-truth``; see :mod:`weathergen.engine.groundtruth`)::
+With particle ground truth (``--particle-truth``; see :mod:`weathergen.engine.rendering.groundtruth`)::
 
     OUT/SPLIT/particle_flow/PAIR/frame_FFFF.flo      flow of the particle layer (opacity-weighted)
     OUT/SPLIT/particle_opacity/PAIR/frame_FFFF.png   its opacity in frame 1, 16-bit (x 65535)
@@ -49,7 +49,7 @@ from typing import Optional
 import numpy as np
 
 from ..datasets import NativeFlow
-from ..engine.groundtruth import seen_flow
+from ..engine.rendering.groundtruth import seen_flow
 from ..errors import FormatError
 from ..framepair import FramePair, PairId
 from ..io.images import write_png, write_png16
@@ -254,7 +254,7 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
                        opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray],
                        truth=None, second: bool = True, right=None) -> list[Path]:
     """Write one pair: frames, optional EXR, geometry and particle ground truth (``truth``, a
-    :class:`~weathergen.engine.groundtruth.ParticleTruth`), then the metadata (last).
+    :class:`~weathergen.engine.rendering.groundtruth.ParticleTruth`), then the metadata (last).
     ``second=False`` (a sequence's pair whose second frame the next pair writes) leaves out the
     second frame's image, EXR, depth and camera. ``right`` (a :class:`RightView`, ``--stereo``)
     adds the second camera's frames, EXR, depth and cameras, and its placement to the metadata.

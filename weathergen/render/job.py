@@ -28,9 +28,9 @@ import torch
 from ..datasets import Dataset, PairRef, right_camera
 from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, load_templates,
                       particle_truth, reference_transforms, render_pair)
-from ..engine.budget import check_pair_memory
-from ..engine.renderer import pair_starts, render_first_frame
-from ..engine.stereo import render_right, render_right_layers, stereo_view, warp_depth
+from ..engine.sampling.budget import check_pair_memory
+from ..engine.rendering.renderer import pair_starts, render_first_frame
+from ..engine.rendering.stereo import render_right, render_right_layers, stereo_view, warp_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId

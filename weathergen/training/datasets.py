@@ -50,7 +50,7 @@ class PairSample:
         index: the pair's position in the :class:`PairDataset`.
         epoch: the epoch the sample was drawn for.
         world_up: the dataset's world-up setting (which way weather falls), see
-            :func:`weathergen.engine.sampling.world_down`.
+            :func:`weathergen.engine.sampling.pair.world_down`.
         weather: what the weather transform did (:class:`~weathergen.training.augment.WeatherDraw`),
             ``None`` before it ran.
         particles: the rendered particle record where the transform was asked to keep it.

@@ -1,7 +1,7 @@
 """Stage 4 of the render core: the blend modes, weather sums -> frames and opacities.
 
 Every way weather is blended into frames lives here, each with its hand-written backward pass;
-the sums arrive on the image grid from :mod:`~weathergen.engine.planes`.
+the sums arrive on the image grid from :mod:`~weathergen.engine.rendering.planes`.
 
 One record per pair (:func:`composite`, :class:`_Blend`): each view's planes blend additive
 ``I + C`` or with order-independent alpha ``I (1 − A) + C`` (Meshkin), each view with its record's
@@ -10,7 +10,7 @@ records whose blur samples are blended one after another (the research code's or
 ``RenderSettings.blur_blend = "sequential"``): a splat per sample place, blended step by step.
 
 Combined weather (:func:`blend_layers`, :func:`composite_layers`; the layers drawn by
-:mod:`~weathergen.engine.layered`): at every pixel the alpha layers are ordered by their mean
+:mod:`~weathergen.engine.rendering.combined`): at every pixel the alpha layers are ordered by their mean
 depth ``Z / A``, far to near, and blended one over the other (``I (1 − A) + C``), then the
 additive layers' light is added (``+ C``), clamped to [0, 1] once at the end; the opacity is
 ``1 − Π (1 − clamp(A_l, 0, 1))``. Within a layer the particles keep the order-independent sums
@@ -234,9 +234,10 @@ class _TwoLayers(torch.autograd.Function):
     :class:`_AdditivePair`): the frames' loops and the gradient buffers here, the arithmetic of
     one frame in the form.
 
-    Shape: form the closed form; layout a :class:`~weathergen.engine.planes.LayerPlanes` (the layers in the form's
-    order); values the two layers' sums; images T tensors (B, 3, H, W) -> T images
-    (B, 3, H, W), then T opacities (B, 1, H, W).
+    Shape: form the closed form; layout a
+    :class:`~weathergen.engine.rendering.planes.LayerPlanes` (the layers in the form's order);
+    values the two layers' sums; images T tensors (B, 3, H, W) -> T images (B, 3, H, W), then T
+    opacities (B, 1, H, W).
     """
 
     @staticmethod
@@ -276,7 +277,7 @@ class _AdditiveOverAlpha:
     """Two layers, the first additive and the second alpha-blended in every pair (snow, rain or
     sparks with fog), composited in closed form (through :class:`_TwoLayers`). The additive
     layer's particles behind the alpha layer were dimmed before the splat
-    (:mod:`~weathergen.engine.layered`), so its light goes on top: ``C_a + I k + C_s`` with
+    (:mod:`~weathergen.engine.rendering.combined`), so its light goes on top: ``C_a + I k + C_s`` with
     ``k = 1 − A_a`` (the alpha layer's transmission); the opacity
     ``1 − (1 − clamp(A_s)) clamp(k)``. The additive layer's planes hold no depth sum.
     """
@@ -353,7 +354,7 @@ class _LayeredBlend(torch.autograd.Function):
     pass replays (a layer that covers a pixel not at all blends nothing there, wherever it
     sorts; with three layers or more it sorts as the nearest, mean depth 0, so that it never
     stands between two others unordered). An additive layer blends as one of zero opacity:
-    ``I (1 − 0) + C``; a dimmed one (:mod:`~weathergen.engine.layered`) has no depth sum and
+    ``I (1 − 0) + C``; a dimmed one (:mod:`~weathergen.engine.rendering.combined`) has no depth sum and
     sorts as the nearest (mean depth 0). Layer ``k`` is nearer than layer ``j`` where ``Z_k A_j < Z_j A_k`` (mean
     depths compared without a division).
 
@@ -450,7 +451,7 @@ class _LayeredBlend(torch.autograd.Function):
 
 def sample_places(inst: Instances, ordered_views: torch.Tensor) -> torch.Tensor:
     """Each blur sample's place ``k`` along its streak (0 for the streak's start, as
-    :func:`~weathergen.engine.tracks.blur_samples` lays them out: a track's samples consecutive,
+    :func:`~weathergen.engine.rendering.tracks.blur_samples` lays them out: a track's samples consecutive,
     no two consecutive tracks of the same entry and view) where its view is in
     ``ordered_views``, 0 elsewhere. Shape: I instances, ordered_views (V,) bool -> (I,) int64."""
     n = inst.count

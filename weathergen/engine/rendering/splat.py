@@ -1,7 +1,7 @@
 """Stage 3 of the render core: blur samples and stamps -> per-pixel sums, differentiably.
 
-Every blur sample (:class:`~weathergen.engine.tracks.Instances`) leaves its entry's stamp
-(:class:`~weathergen.engine.stamps.StampSet`) placed at its sub-pixel position: each pixel of an
+Every blur sample (:class:`~weathergen.engine.rendering.tracks.Instances`) leaves its entry's stamp
+(:class:`~weathergen.engine.rendering.stamps.StampSet`) placed at its sub-pixel position: each pixel of an
 ``(s + 1) x (s + 1)`` patch ``B`` reads the stamp at its offset from the sample, interpolated
 bilinearly between the stamp's values (a pixel apart; 1 / P pixel for phase stamps, whose P
 phases per axis are read at stride P: differentiable in the position), times the
@@ -11,7 +11,7 @@ under each patch pixel, times its ``θ / K``; the products are added into per-pi
 a coarse grid (large billboards) are splatted into that grid's planes, at ``(u + 0.5) / f − 0.5``,
 twice: against the nearest and against the farthest scene depth of each coarse pixel's footprint,
 with two more channels, the sums of ``θ B V φ`` and ``θ B V φ²`` (``φ`` the blur sample's depth
-rank; :mod:`~weathergen.engine.coarse`), from which :mod:`~weathergen.engine.planes` brings
+rank; :mod:`~weathergen.engine.rendering.coarse`), from which :mod:`~weathergen.engine.rendering.planes` brings
 them to the image grid, pixel by pixel across depth edges (``depth_aware=False``: once, against
 the scene depth averaged over ``f x f`` blocks, upsampled bilinearly).
 
@@ -33,9 +33,10 @@ with or without gradients, whatever the particles' footprints.
 
 Order: on the CPU the samples of one plane are added in one order whatever else the call holds
 and whatever the chunk size (a plane is cut into pieces of :data:`PLANE_SPLIT` blocks counting
-from its start, see :func:`~weathergen.engine.ragged.runs`), and every elementwise operation gives the same bits at
-any position of its tensor, so a pair's frames are the same bytes alone or in a batch. On CUDA
-the additions are atomic, and their order (the last bits) may change between runs.
+from its start, see :func:`~weathergen.engine.rendering.ragged.runs`), and every elementwise
+operation gives the same bits at any position of its tensor, so a pair's frames are the same
+bytes alone or in a batch. On CUDA the additions are atomic, and their order (the last bits) may
+change between runs.
 """
 
 from __future__ import annotations
@@ -48,7 +49,7 @@ import torch.nn.functional as F
 
 from .coarse import CoarseDepths, DepthOrder, footprint_depths, moment_channels
 from .ragged import chunk_spans
-from .sampling import NEAR
+from ..sampling.pair import NEAR
 from .stamps import COARSE_MAX_LEVEL, StampSet
 from .tracks import Instances
 
@@ -152,7 +153,7 @@ def grids_for(stamps: StampSet, views: int, height: int, width: int, copies: int
 def scene_depths(depth: torch.Tensor, grids: Grids, dtype) -> tuple[torch.Tensor, list]:
     """The scene depth on every grid, laid out as the sums (margins and the extra row −∞): on
     a coarse grid with two copies, the nearest then the farthest depth of each coarse pixel's
-    footprint (:func:`~weathergen.engine.coarse.footprint_depths`), with one, the depth averaged
+    footprint (:func:`~weathergen.engine.rendering.coarse.footprint_depths`), with one, the depth averaged
     over f x f blocks (the image's edge replicated up to a whole block). Shape: depth
     (V, 1, H, W) -> (N,), and per level the footprints' (nearest, farthest) (V, h, w) (None
     where not drawn twice)."""
@@ -184,7 +185,7 @@ def splat(inst: Instances, stamps: StampSet, depth: torch.Tensor, *,
     ``passive``: how many of the last colour channels are sums no gradient comes back to (the
     depth of a layered render, which only orders the layers): the backward pass skips them.
     ``depth_aware``: coarse grids drawn against the nearest and farthest depth of each coarse
-    pixel's footprint, with the moment sums (see :mod:`~weathergen.engine.coarse`); else
+    pixel's footprint, with the moment sums (see :mod:`~weathergen.engine.rendering.coarse`); else
     against the block's mean depth.
     """
     views, _, height, width = depth.shape
@@ -336,7 +337,7 @@ class _Plan:
                view: torch.Tensor, views: int) -> tuple[torch.Tensor, torch.Tensor]:
         """The kept samples with those on coarse grids once more, into planes ``V + view``
         (against the footprints' farthest depth); sets ``order`` and ``rank`` (the depth order
-        of the coarse samples per level and view, :class:`~weathergen.engine.coarse.DepthOrder`)."""
+        of the coarse samples per level and view, :class:`~weathergen.engine.rendering.coarse.DepthOrder`)."""
         at = level.index_select(0, inst.entry.index_select(0, kept))
         on = torch.nonzero(at > 0).squeeze(1)
         if on.numel() == 0:

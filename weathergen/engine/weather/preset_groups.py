@@ -8,7 +8,7 @@
 - presets found in the preset folder that belong to none of these, per model.
 
 ``weathergen presets`` lists them in this order; the example combinations are
-:data:`~weathergen.engine.presets.EXAMPLE_COMBINATIONS`.
+:data:`~weathergen.engine.weather.presets.EXAMPLE_COMBINATIONS`.
 """
 
 from __future__ import annotations

@@ -12,7 +12,7 @@ Positions and motions are rounded to their stored precision; a candidate the rou
 both views gives its place to the next kept one, so every stored particle is visible in frame 1 or
 frame 2 (:func:`visibility`). The record is then moved to the requested device.
 
-The count is the one the preset gives the pair's frame size (:func:`~weathergen.engine.presets.
+The count is the one the preset gives the pair's frame size (:func:`~weathergen.engine.weather.presets.
 frame_scaling`: the preset's count on a 1024x436 frame, scaled by the frame's area elsewhere;
 ``size`` and the defocus radius scaled by its diagonal too where ``scale_size`` asks for it).
 
@@ -39,13 +39,13 @@ from typing import Optional, Union
 
 import torch
 
-from ..errors import ConfigError, DatasetError, WeatherGenError
-from ..framepair import FramePair
-from ..geometry import WORLD_UP_AXES, invert_rigid, project, transform_points, up_direction
-from .particles import Particles, quantize_field, empty_particles
-from .presets import FrameScaling, Preset, frame_scaling
-from .settings import RenderSettings
-from .templates import TemplateLibrary, load_templates
+from ...errors import ConfigError, DatasetError, WeatherGenError
+from ...framepair import FramePair
+from ...geometry import WORLD_UP_AXES, invert_rigid, project, transform_points, up_direction
+from ..records.particles import Particles, quantize_field, empty_particles
+from ..weather.presets import FrameScaling, Preset, frame_scaling
+from ..records.settings import RenderSettings
+from ..weather.templates import TemplateLibrary, load_templates
 
 #: The named world-up settings; a direction "X,Y,Z" is accepted too (see :func:`world_down`).
 WORLD_UP_CHOICES = ("auto",) + WORLD_UP_AXES
@@ -258,12 +258,23 @@ def check_pair_for_engine(pair: FramePair) -> None:
     pair.validate()
 
 
+def expect_kind(preset, kind: type, call: str) -> None:
+    """Refuse, in one line, a preset of another model than ``call`` samples (a field or combined
+    preset given to the paper's sampler, or the other way round), naming the call that takes it."""
+    if not isinstance(preset, kind):
+        what = {"Preset": "a paper preset", "FieldPreset": "a weather-field preset",
+                "CombinedPreset": "a combined preset"}.get(type(preset).__name__, repr(preset))
+        raise ConfigError(f"{getattr(preset, 'name', preset)!s} is {what}, which {call} does not "
+                          "take: sample any preset with sample_weather(pair, preset, seed), or "
+                          "render it in one call with Weather(preset, seed).render(pair)")
+
+
 def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Generator] = 0, *,
                      world_up: str = "auto", templates: Optional[TemplateLibrary] = None,
                      device=None, max_candidates_factor: int = 500,
                      sample_on=None) -> Particles:
     """Sample the preset's count of particles for one frame pair (``preset.count`` on a 1024x436
-    frame; on other frame sizes as :func:`~weathergen.engine.presets.frame_scaling` says).
+    frame; on other frame sizes as :func:`~weathergen.engine.weather.presets.frame_scaling` says).
 
     Shape: uses pair.depth1/depth2 (1, H, W), intrinsics (3, 3), the pair's poses (4, 4).
     Returns a quantized :class:`Particles` record on ``device`` (default CPU).
@@ -276,8 +287,9 @@ def sample_particles(pair: FramePair, preset: Preset, seed: Union[int, torch.Gen
     record is the same bytes either way. On a GPU (the device a batch is rendered on) the
     visibility tests run where the depth maps already are; the record then equals the CPU's
     except where a candidate lies within float64 rounding of an image border or the scene
-    surface (see docs/engine.md, "Sampling on the render's device").
+    surface (see docs/engine.md, "Sampling", on the render's device).
     """
+    expect_kind(preset, Preset, "sample_particles")
     check_pair_for_engine(pair)
     dev = resolve_device(device)
     on = resolve_device(sample_on)
@@ -425,7 +437,7 @@ def _depth_looks(cams: _Cameras, position: torch.Tensor, motion: torch.Tensor, p
     """The looks that follow from each particle's camera depth in the frame that accepted it
     (frame 1 where it sees the particle, else frame 2; see the module doc): the template scale
     (footprint pixels / template resolution), the transparency θ and the defocus radius (pixels).
-    ``scaling``: the preset's :class:`~weathergen.engine.presets.FrameScaling` for the frame.
+    ``scaling``: the preset's :class:`~weathergen.engine.weather.presets.FrameScaling` for the frame.
     Shape: (n, 3) each -> (n,) float64, (n,) float64, (n,) int64."""
     x1 = transform_points(cams.cam1_from_ref, position)
     z2 = transform_points(cams.cam2_from_ref, position + motion)[:, 2]

@@ -31,8 +31,8 @@ from importlib import resources
 from pathlib import Path
 from typing import Any, Callable, Mapping, Optional
 
-from ..errors import ConfigError, WeatherGenError
-from ..io.text import read_text_file
+from ...errors import ConfigError, WeatherGenError
+from ...io.text import read_text_file
 from .atmosphere import rain_extinction, snow_extinction, visibility_extinction
 from .optics import FieldOptics
 from .templates import BUILTIN_TEMPLATE_KINDS, load_templates
@@ -765,7 +765,7 @@ class FieldPreset:
     tile: float = _key(4.0, _number(0, 1e6, lo_open=True),
                        "side of the periodic tile the field repeats, scene units",
                        plausible=Plausible(0.1, 1000, "m", LENGTH_SLIPS))
-    # -- the atmosphere: extinction of light with distance (see engine/atmosphere.py)
+    # -- the atmosphere: extinction of light with distance (see engine/weather/atmosphere.py)
     visibility: float = _key(0.0, _visibility,
                              "meteorological optical range of fog or haze (5 % contrast), metres "
                              "(scene units); 0: clear air", main=True,
@@ -800,7 +800,7 @@ class FieldPreset:
     @property
     def extinction(self) -> float:
         """β₀, per scene unit: fog or haze of the preset's visibility, plus its rain and
-        snow (:mod:`~weathergen.engine.atmosphere`); 0 for clear air."""
+        snow (:mod:`~weathergen.engine.weather.atmosphere`); 0 for clear air."""
         return (visibility_extinction(self.visibility) + rain_extinction(self.rain_rate)
                 + snow_extinction(self.snow_rate))
 

@@ -1,13 +1,13 @@
 """Stage 4 of the render core, first half: the splat's sums on the image grid.
 
-The splat's :class:`~weathergen.engine.splat.Sums` hold, per view, ``A = Σ θ B V`` and
+The splat's :class:`~weathergen.engine.rendering.splat.Sums` hold, per view, ``A = Σ θ B V`` and
 ``C_c = Σ γ_c θ B V`` on the image grid and on the coarse grids of large billboards (fog).
 :func:`planes` crops every grid's margins (:class:`_Crop`) and brings the coarse grids to the
 image grid (bilinear upsampling by an integer factor, :func:`upsample`, coarsest first; across
 depth edges where the splat drew them against the footprints' depths), then adds the image grid's
 own sums. :class:`LayerPlanes` does the same for combined weather, one layer and frame at a time,
 and holds the layers' gradients. What the planes become, the frames and opacities of each blend
-mode, is :mod:`~weathergen.engine.composite`'s.
+mode, is :mod:`~weathergen.engine.rendering.composite`'s.
 
 These steps touch every pixel of every frame, for every channel, so on the CPU their cost is
 the memory traffic: autograd's generic backward of the same expressions would allocate and fill
@@ -152,7 +152,7 @@ class _Crop(torch.autograd.Function):
 def planes(sums: Sums) -> torch.Tensor:
     """The sums of every view on the image grid: each coarse grid cropped and upsampled to the
     image grid (across depth edges where the splat drew it against the footprints' nearest and
-    farthest depths: :func:`~weathergen.engine.coarse.across_edges`), added coarsest first, then
+    farthest depths: :func:`~weathergen.engine.rendering.coarse.across_edges`), added coarsest first, then
     the image grid's own sums. A level that holds nothing of a view adds exact zeros to it, so a
     view's sums do not depend on which levels the other views of the call need. The moment
     sums of depth-aware coarse grids are used up here. Shape: -> (1 + C, V, 1, H, W) (a view of

@@ -12,7 +12,7 @@ import torch
 import torch.nn.functional as F
 
 from ..ragged import runs
-from ..templates import TemplateLibrary
+from ...weather.templates import TemplateLibrary
 from ..tracks import Looks
 from .tables import CENTRES, RIM_MARGIN, constant
 from .filters import defocus_brighten

@@ -26,12 +26,12 @@ from __future__ import annotations
 
 import torch
 
-from ..framepair import FramePair
-from ..io.published_weather import PublishedWeather
-from .particles import Particles
-from .presets import Preset
-from .sampling import reference_transforms
-from .settings import RenderSettings
+from ...framepair import FramePair
+from ...io.published_weather import PublishedWeather
+from ..records.particles import Particles
+from ..weather.presets import Preset
+from .pair import reference_transforms
+from ..records.settings import RenderSettings
 
 
 def published_particles(weather: PublishedWeather, pair: FramePair, preset: Preset) -> Particles:

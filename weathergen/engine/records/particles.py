@@ -19,14 +19,14 @@ paper's ``T_rel (p1 + δ1) + m + δ2`` with ``m`` and ``δ2`` expressed in the r
 
 Appearance: a record sampled by the paper's model (``optics is None``) carries its footprint
 (``scale``), defocus radius and transparency fixed at sampling. A record sampled from a weather
-field (:mod:`weathergen.engine.field`) carries :class:`FieldOptics`: its ``scale`` is then the
+field (:mod:`weathergen.engine.sampling.field`) carries :class:`FieldOptics`: its ``scale`` is then the
 particle's diameter in scene units and ``transparency`` its base θ, and footprint, defocus and
 depth fade are computed for every frame from that frame's own depth of the particle
-(:mod:`weathergen.engine.tracks`).
+(:mod:`weathergen.engine.rendering.tracks`).
 
 Stored stamps: a record may carry each particle's own stamp (``stamps``, (N, S, S): the alpha
 image it is drawn with, as the paper's research code stores its particles' flakes, see
-:mod:`weathergen.engine.published`); its ``template``, ``scale``, ``rotation`` and ``defocus`` are
+:mod:`weathergen.engine.sampling.published`); its ``template``, ``scale``, ``rotation`` and ``defocus`` are
 then not used, and the particles are drawn with the record's own number of blur samples. Such a
 record is kept exactly: its file has the float layout with every float field in float32 (no
 rounding: :meth:`Particles.quantized` only detaches it), and every stamp: the bounding box of its
@@ -40,7 +40,7 @@ positions: a sampling box of 10 units gets steps of 3e-4 units; 10 bits for moti
 template indices uint16; defocus radii uint8. Field records keep float32 positions, motions and
 scales (a field's positions are exact multiples of its grid quantum, so that a frame is the same
 image in every pair that holds it) and float16 offsets, colours, transparencies and rotations,
-plus the ``optics`` entry and, for a field with an atmosphere (:mod:`weathergen.engine.atmosphere`),
+plus the ``optics`` entry and, for a field with an atmosphere (:mod:`weathergen.engine.weather.atmosphere`),
 the ``atmosphere`` entry (JSON) and, for an explicit density lattice, ``atmosphere_density``
 (float16). Sampling returns a record already rounded to these precisions
 (:meth:`Particles.quantized`, idempotent), so rendering the in-memory record and rendering the
@@ -54,7 +54,7 @@ File format versions (every one is still read):
   into one uint32 (``x << 20 | y << 10 | z``, shape (N,)). Field records (with ``optics``): the
   float layout of version 2.
 - 4: the layers of a combined preset, each a single record's entries under ``layer<k>.``
-  (:mod:`weathergen.engine.layers`; read with ``LayeredParticles.load`` or ``load_particles``).
+  (:mod:`weathergen.engine.records.layered`; read with ``LayeredParticles.load`` or ``load_particles``).
 - 3: paper records, the codes above with motion codes as uint16 (N, 3); one entry per 0-d value.
 - 2: field records, the float layout plus ``optics``.
 - 1: the float layout of version 2 without optics.
@@ -71,16 +71,16 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..errors import FormatError
-from ..io.atomic import atomic_write_bytes
-from ..io.npz import npz_bytes, read_npz
-from .atmosphere import Atmosphere
-from .optics import FieldOptics
+from ...errors import FormatError
+from ...io.atomic import atomic_write_bytes
+from ...io.npz import npz_bytes, read_npz
+from ..weather.atmosphere import Atmosphere
+from ..weather.optics import FieldOptics
 from .settings import RenderSettings
 
 #: Single records are written as version 5 (see the module doc).
 FORMAT_VERSION = 5
-#: Files of a combined preset's layers (:mod:`weathergen.engine.layers`) are version 4.
+#: Files of a combined preset's layers (:mod:`weathergen.engine.records.layered`) are version 4.
 LAYERED_FORMAT_VERSION = 4
 READABLE_VERSIONS = (1, 2, 3, 5)
 #: Versions whose paper records store codes (grids, 8-bit colours and rotations).

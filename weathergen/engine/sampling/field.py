@@ -1,6 +1,6 @@
 """Weather fields: particles at world positions with a density, shared by every camera that sees them.
 
-The paper's model (:mod:`weathergen.engine.sampling`) places a fixed number of *visible*
+The paper's model (:mod:`weathergen.engine.sampling.pair`) places a fixed number of *visible*
 particles in front of camera 1 of one pair. A field instead fills the space around the cameras
 with a *density* (particles per cubic scene unit), so that the weather seen stays the same as the
 cameras move, whatever the scene hides, and one field serves a pair, a whole sequence and a second
@@ -19,7 +19,7 @@ field see new particles enter and none pile up, and the field is never re-sample
 
 A frame's particles are enumerated from the copies that meet its view volume (the frustum from the
 preset's ``near`` to ``far``, widened by the largest footprint and streak) and kept when
-:func:`~weathergen.engine.tracks.view_mask` says so: in that depth range, inside the image (or
+:func:`~weathergen.engine.rendering.tracks.view_mask` says so: in that depth range, inside the image (or
 close enough that the stamp reaches it), and not behind the scene surface at its pixel. Particles
 inside solid objects are therefore never drawn (no camera sees them in front of the surface), and a
 near wall hides the weather behind it instead of concentrating it in the visible strip.
@@ -46,19 +46,18 @@ from typing import Optional, Sequence, Union
 
 import torch
 
-from ..errors import ConfigError
-from ..framepair import FramePair
-from ..geometry import invert_rigid, transform_points
-from .atmosphere import DEFAULT_AIRLIGHT, Atmosphere, estimate_airlight
-from .layers import LayeredParticles, layer_seed
-from .presets import CombinedPreset, FieldPreset
-from .particles import Particles, empty_particles
-from .sampling import (check_pair_for_engine, cpu_generator, euler_rotations, hls_to_rgb,
-                       reference_transforms, resolve_device, rgb_to_hls, sample_particles,
-                       world_down)
-from .settings import RenderSettings
-from .templates import TemplateLibrary, load_templates
-from .tracks import MAX_DEFOCUS, View, focal, view_mask, view_windows
+from ...errors import ConfigError
+from ...framepair import FramePair
+from ...geometry import invert_rigid, transform_points
+from ..weather.atmosphere import DEFAULT_AIRLIGHT, Atmosphere, estimate_airlight
+from ..records.layered import LayeredParticles, layer_seed
+from ..weather.presets import CombinedPreset, FieldPreset
+from ..records.particles import Particles, empty_particles
+from .pair import (check_pair_for_engine, cpu_generator, euler_rotations, expect_kind,
+                   hls_to_rgb, reference_transforms, resolve_device, rgb_to_hls, sample_particles, world_down)
+from ..records.settings import RenderSettings
+from ..weather.templates import TemplateLibrary, load_templates
+from ..rendering.tracks import MAX_DEFOCUS, View, focal, view_mask, view_windows
 
 #: Bits of the grid below the tile side: quantum = 2^floor(log2(L) - GRID_BITS).
 GRID_BITS = 16
@@ -270,7 +269,7 @@ def make_field(preset: FieldPreset, seed, *, down: torch.Tensor, frame_rate: flo
     ``down`` (3,) is the reference frame's down axis (see :func:`world_down`); ``frame_rate``
     turns the preset's speeds (per second) into steps per frame. A preset with an atmosphere
     gets one (:func:`field_atmosphere`); ``airlight`` (RGB in [0, 1]) is its airlight where the
-    preset says ``auto`` (default: :data:`~weathergen.engine.atmosphere.DEFAULT_AIRLIGHT`).
+    preset says ``auto`` (default: :data:`~weathergen.engine.weather.atmosphere.DEFAULT_AIRLIGHT`).
     """
     if not frame_rate > 0:
         raise ConfigError(f"frame rate {frame_rate!r}: must be > 0")
@@ -374,13 +373,13 @@ def frame_particles(fld: Field, view: View, frame: int) -> Particles:
 def pair_trajectories(fld: Field, views: Sequence[View], frames: tuple[int, int]
                       ) -> tuple[torch.Tensor, torch.Tensor]:
     """The trajectories ``(j (M,), k (M, 3))`` drawn in frame 1 or frame 2 of a pair (the
-    union, in canonical order: the order of the pair's record, :func:`pair_particles`)."""
+    union, in canonical order: the order of the pair's record, :func:`field_pair_particles`)."""
     j1, k1 = fld.candidates(views[0], frames[0])
     j2, k2 = fld.candidates(views[1], frames[1])
     return _canonical(torch.cat((j1, j2)), torch.cat((k1, k2)))
 
 
-def pair_particles(fld: Field, views: Sequence[View], frames: tuple[int, int]) -> Particles:
+def field_pair_particles(fld: Field, views: Sequence[View], frames: tuple[int, int]) -> Particles:
     """The particles drawn in frame 1 or frame 2 of a pair (the union, in canonical order):
     positions in frame 1, motion to frame 2."""
     j, k = pair_trajectories(fld, views, frames)
@@ -393,12 +392,12 @@ def field_for_pair(pair: FramePair, preset: FieldPreset, seed, *, world_up: str 
                    airlight: Optional[Sequence[float]] = None) -> Field:
     """The field of the pair's scene: reference frame and down axis from the pair's cameras,
     the frame rate from the preset or, where it sets none, ``frame_rate`` (the dataset's: its
-    reader's :attr:`~weathergen.datasets.Dataset.frame_rate`). An ``auto`` airlight is
+    reader's :attr:`~weathergen.datasets.Dataset.frame_rate`; default the pair's own). An ``auto`` airlight is
     ``airlight`` (RGB in [0, 1]; a scene's, so that its pairs share it) or, without one, the
     pair's (:func:`pair_airlight`)."""
     frame, c1, c2 = reference_transforms(pair)
     down = world_down(c1.cpu(), c2.cpu(), world_up)
-    rate = preset.frame_rate_for(frame_rate)
+    rate = preset.frame_rate_for(pair.frame_rate if frame_rate is None else frame_rate)
     if airlight is None and preset.has_atmosphere and preset.airlight == "auto":
         airlight = pair_airlight(pair, preset.sky_distance)
     return make_field(preset, seed, down=down, frame_rate=rate, frame=frame, templates=templates,
@@ -407,7 +406,7 @@ def field_for_pair(pair: FramePair, preset: FieldPreset, seed, *, world_up: str 
 
 def pair_airlight(pair: FramePair, sky_distance: float = 1000.0) -> tuple[float, float, float]:
     """The ``auto`` airlight of a pair, from both its frames
-    (:func:`~weathergen.engine.atmosphere.estimate_airlight`), so that both frames share it."""
+    (:func:`~weathergen.engine.weather.atmosphere.estimate_airlight`), so that both frames share it."""
     light = estimate_airlight([pair.image1, pair.image2], [pair.depth1, pair.depth2],
                               pair.intrinsics, sky_distance)
     return tuple(float(c) for c in light)
@@ -437,13 +436,14 @@ def sample_field_particles(pair: FramePair, preset: FieldPreset, seed=0, *,
     (default: the CPU; the field's tile is drawn on the CPU either way, and on the CPU the record
     is the same bytes).
     """
+    expect_kind(preset, FieldPreset, "sample_field_particles")
     check_pair_for_engine(pair)
     dev = resolve_device(device)
     fld = field_for_pair(pair, preset, seed, world_up=world_up, frame_rate=frame_rate,
                          templates=templates, airlight=airlight)
     n = int(pair.id.frame)
     views = pair_views(pair, resolve_device(sample_on))
-    return pair_particles(fld, views, (n, n + 1)).to(dev)
+    return field_pair_particles(fld, views, (n, n + 1)).to(dev)
 
 
 def sample_weather(pair: FramePair, preset, seed=0, *, world_up: str = "auto",
@@ -454,7 +454,7 @@ def sample_weather(pair: FramePair, preset, seed=0, *, world_up: str = "auto",
     """Sample a pair's particles with the preset's model: a field preset draws from the field of
     ``seed`` (:func:`sample_field_particles`; ``frame_rate``: the dataset's, needed unless the
     preset sets one; ``airlight``: the ``auto`` airlight of its atmosphere, default the pair's),
-    a paper preset samples the pair (:func:`~weathergen.engine.sampling.sample_particles`), a
+    a paper preset samples the pair (:func:`~weathergen.engine.sampling.pair.sample_particles`), a
     combined preset samples each layer (:func:`sample_layers`; ``seed`` may then be one seed per
     layer, ``templates`` is not taken). ``sample_on``: where the sampling arithmetic runs (see
     :func:`sample_particles` and :func:`sample_field_particles`; the same random numbers, from the
@@ -480,12 +480,13 @@ def sample_layers(pair: FramePair, preset: CombinedPreset, seed: Union[int, Sequ
     ``auto`` airlight of every layer's atmosphere; default the pair's, estimated once).
 
     ``seed`` is one seed per layer, or one seed from which each layer's is derived
-    (:func:`~weathergen.engine.layers.layer_seed`, by the layer's name). Each layer is sampled as
+    (:func:`~weathergen.engine.records.layered.layer_seed`, by the layer's name). Each layer is sampled as
     :func:`sample_weather` samples its preset alone with that seed, so a layer's particles depend
     neither on the other layers nor on their order. For a field layer the seed is its field's:
     pass each field layer a seed derived from its scene's (as ``weathergen render`` will) for the
     pairs of a scene to share their frames.
     """
+    expect_kind(preset, CombinedPreset, "sample_layers")
     if isinstance(seed, torch.Generator):
         raise ConfigError("a combined preset takes an integer seed (or one per layer)")
     if isinstance(seed, int):

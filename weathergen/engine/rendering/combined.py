@@ -1,6 +1,6 @@
 """Combined weather in one pass: every layer of a :class:`~weathergen.engine.LayeredParticles`
 drawn by the render core, then composited once, in depth order
-(:func:`~weathergen.engine.composite.blend_layers`, where the blend modes live).
+(:func:`~weathergen.engine.rendering.composite.blend_layers`, where the blend modes live).
 
 Each layer is drawn as a single render draws its record (:func:`_layer_sums`): the layer's
 records of every pair of the batch, the pairs' two views, its own tracks, stamps (from its own
@@ -18,7 +18,7 @@ middle of the particle's streak is nearer than the particle, so its light and op
 camera through the fog in front of it; where no alpha layer lies in front, ``T = 1`` and the
 layer's sums keep their bytes. Dimmed additive layers need no depth sum: they blend last.
 The composite then orders the alpha layers at each pixel by ``Z / A``, far to near, and adds
-the additive layers' light on top (see :mod:`~weathergen.engine.composite`).
+the additive layers' light on top (see :mod:`~weathergen.engine.rendering.composite`).
 
 The approximation and its limits: an alpha layer is one surface per pixel, at its mean depth
 there, so two alpha layers that interleave in depth at a pixel are seen one wholly in front of
@@ -37,15 +37,15 @@ from typing import Optional, Sequence, Union
 
 import torch
 
-from ..errors import ConfigError
-from .air import Air, combined_opacity, fog_images, pair_air, record_atmospheres, view_air
+from ...errors import ConfigError
+from .transmittance import Air, combined_opacity, fog_images, pair_air, record_atmospheres, view_air
 from .composite import RenderOutput, blend_layers
-from .layers import LayeredParticles
-from .particles import Particles
+from ..records.layered import LayeredParticles
+from ..records.particles import Particles
 from .planes import planes
 from .splat import Sums, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, build_many
-from .templates import TemplateLibrary, load_templates
+from ..weather.templates import TemplateLibrary, load_templates
 from .tracks import (Looks, ParticleTable, RecordRows, Tracks, View, Views, blur_samples,
                      empty_looks, fixed_looks, pair_starts, pair_tracks, view_tracks)
 
@@ -166,7 +166,7 @@ def _layer_stamps(prepared: Sequence[tuple], given: Sequence[Optional[StampSet]]
                   device, coarse_side: Optional[int], chunk_elements: int) -> list[StampSet]:
     """Every layer's stamps in the order of its parts (paper, then fields), the ones to build
     (a layer's paper-model stamps unless ``given``, and its fields') built in one call for all
-    the layers (:func:`~weathergen.engine.stamps.build_many`: each stamp the bytes of its
+    the layers (:func:`~weathergen.engine.rendering.stamps.build_many`: each stamp the bytes of its
     layer's own build)."""
     todo, counts = [], []
     for (_, paper, field), part in zip(prepared, given):
@@ -196,7 +196,7 @@ def _layer_sums(views: Views, paper: list, field: list, stamp_set: StampSet, *, 
     stamps (:func:`_layer_stamps`); ``depth``: with the depth sum ``Z`` as a fifth (passive)
     plane; ``under``: the sums (with ``Z``) of the alpha-blended layers that dim this additive
     layer's particles (:func:`_dimmed`); ``air``: the atmosphere between the particles and the
-    cameras (:meth:`~weathergen.engine.air.Air.dim`; ``alpha`` (V,) which views draw this
+    cameras (:meth:`~weathergen.engine.rendering.transmittance.Air.dim`; ``alpha`` (V,) which views draw this
     layer alpha-blended, ``tint`` as there)."""
     parts = paper + field
     if parts:
@@ -247,7 +247,7 @@ def _read_sums(sums: Sums, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor
     """A layer's opacity sum ``A`` and depth sum ``Z`` (detached) at image points ``(u, v)`` of
     views ``view``, as its planes on the image grid hold them (each grid level interpolated
     bilinearly at ``(u + 0.5) / f − 0.5``, edges replicated: what
-    :func:`~weathergen.engine.planes.upsample` gives at pixel centres).
+    :func:`~weathergen.engine.rendering.planes.upsample` gives at pixel centres).
     Shape: view, u, v (T,) -> two (T,)."""
     grids = sums.grids
     a_total = z_total = None
@@ -368,7 +368,7 @@ def layers_view_sums(view: View, particles: LayeredParticles,
 def _view_parts(view: View, particles: LayeredParticles, values, *, frame: int, beta: float,
                 dtype, device, chunk_elements: Optional[int]):
     """What one view draws of every layer: (the layers, views, prepared parts, stamps, chunk
-    size), each layer's tracks from :func:`~weathergen.engine.tracks.view_tracks`."""
+    size), each layer's tracks from :func:`~weathergen.engine.rendering.tracks.view_tracks`."""
     layered = as_layers(particles)[0]
     device = torch.device(device)
     _check_blends(layered.layers)

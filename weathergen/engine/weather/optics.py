@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 @dataclass(frozen=True)
 class FieldOptics:
-    """How a field-sampled record looks in each frame (see :mod:`weathergen.engine.tracks`).
+    """How a field-sampled record looks in each frame (see :mod:`weathergen.engine.rendering.tracks`).
 
     Lengths in scene units: ``near``/``far`` bound the camera depths at which particles are drawn;
     ``fade`` is the fraction of ``far`` over which they fade out before it (and they fade in over

@@ -1,7 +1,7 @@
 """Billboard templates: grey-scale alpha maps that give each particle its shape.
 
 Two built-in libraries ship with the package, both made by :func:`generate_templates` (our own,
-seeded, deterministic generators) and stored as PNGs under ``weathergen/engine/templates/``:
+seeded, deterministic generators) and stored as PNGs under ``weathergen/engine/weather/templates/``:
 
 - ``flakes``: nearly opaque round blobs with the inner structure of a dendrite (six brighter
   arms), a hexagonal plate or a soft grain (snow, rain and sparks);
@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 import torch
 
-from ..errors import ConfigError, FormatError
+from ...errors import ConfigError, FormatError
 
 #: The template libraries that ship with weathergen (a preset may also name a folder of PNGs).
 BUILTIN_TEMPLATE_KINDS = ("flakes", "dust", "haze")
@@ -115,7 +115,7 @@ def _read_png(path: Path) -> np.ndarray:
 @functools.lru_cache(maxsize=8)
 def _load_cached(spec: str) -> TemplateLibrary:
     if spec in BUILTIN_TEMPLATE_KINDS:
-        folder = resources.files("weathergen.engine") / "templates" / spec
+        folder = resources.files("weathergen.engine.weather") / "templates" / spec
         files = sorted((f for f in folder.iterdir() if f.name.endswith(".png")), key=lambda f: f.name)
         if not files:  # a broken installation, not a user error
             raise RuntimeError(f"built-in template library '{spec}' is missing from the package")
@@ -252,8 +252,8 @@ def generate_templates(kind: str, seed: int = 0) -> list[np.ndarray]:
 
 def write_builtin_templates(root: str | Path, seed: int = 0) -> list[Path]:
     """Regenerate the shipped PNGs under ``root/<kind>/NN.png`` (run from a source checkout:
-    ``python -c "from weathergen.engine.templates import write_builtin_templates as w;
-    w('weathergen/engine/templates')"``)."""
+    ``python -c "from weathergen.engine.weather.templates import write_builtin_templates as w;
+    w('weathergen/engine/weather/templates')"``)."""
     written = []
     for kind in BUILTIN_TEMPLATE_KINDS:
         folder = Path(root) / kind

@@ -1,7 +1,7 @@
 """Coarse grids across depth edges: large billboards drawn coarse, occluded per image pixel.
 
 Large billboards (fog) are splatted on a grid ``f`` times coarser than the image and upsampled
-bilinearly (:mod:`~weathergen.engine.stamps`, :mod:`~weathergen.engine.planes`). Their light
+bilinearly (:mod:`~weathergen.engine.rendering.stamps`, :mod:`~weathergen.engine.rendering.planes`). Their light
 is smooth, but the visibility ``V = 1 / (1 + exp(β (z − D)))`` of a billboard at depth ``z`` in
 front of the scene depth ``D`` is not: along a depth edge (a near column before a far wall) and
 where a billboard cuts a surface it changes from one image pixel to the next. One scene depth per

@@ -4,16 +4,16 @@ Pure functions, tensors in and tensors out, no file I/O; device-agnostic (every 
 images' device). Every entry point runs the one render core, four stages with a typed record
 between each (see ``docs/engine.md``):
 
-1. :mod:`~weathergen.engine.tracks`: records and cameras -> :class:`~weathergen.engine.tracks.Looks`
-   (one row per stamp entry) and :class:`~weathergen.engine.tracks.Tracks` (an entry's streak in
-   one view), then :class:`~weathergen.engine.tracks.Instances` (the blur samples);
-2. :mod:`~weathergen.engine.stamps`: looks -> :class:`~weathergen.engine.stamps.StampSet`;
-3. :mod:`~weathergen.engine.splat`: samples and stamps -> :class:`~weathergen.engine.splat.Sums`
+1. :mod:`~weathergen.engine.rendering.tracks`: records and cameras -> :class:`~weathergen.engine.rendering.tracks.Looks`
+   (one row per stamp entry) and :class:`~weathergen.engine.rendering.tracks.Tracks` (an entry's streak in
+   one view), then :class:`~weathergen.engine.rendering.tracks.Instances` (the blur samples);
+2. :mod:`~weathergen.engine.rendering.stamps`: looks -> :class:`~weathergen.engine.rendering.stamps.StampSet`;
+3. :mod:`~weathergen.engine.rendering.splat`: samples and stamps -> :class:`~weathergen.engine.rendering.splat.Sums`
    (``A = Σ θ B V``, ``C = Σ γ θ B V`` per view), differentiably;
-4. :mod:`~weathergen.engine.planes`, then :mod:`~weathergen.engine.composite`: sums -> planes on
+4. :mod:`~weathergen.engine.rendering.planes`, then :mod:`~weathergen.engine.rendering.composite`: sums -> planes on
    the image grid -> frames and opacities (:class:`RenderOutput`); the blend modes, a single
-   record's and combined weather's layers (drawn by :mod:`~weathergen.engine.layered`), all
-   live in :mod:`~weathergen.engine.composite`.
+   record's and combined weather's layers (drawn by :mod:`~weathergen.engine.rendering.combined`), all
+   live in :mod:`~weathergen.engine.rendering.composite`.
 
 Both weather models go through the same stages: a record of the paper's model carries its looks,
 a record sampled from a weather field (``optics`` set) gets its looks per view in stage 1.
@@ -30,19 +30,19 @@ from typing import Optional, Sequence, Union
 
 import torch
 
-from ..errors import ConfigError, DatasetError, ShapeError
-from ..framepair import FramePair, FramePairBatch
-from .air import combined_opacity, fog_images, pair_air, record_atmospheres, view_air
+from ...errors import ConfigError, DatasetError, ShapeError
+from ...framepair import FramePair, FramePairBatch
+from .transmittance import combined_opacity, fog_images, pair_air, record_atmospheres, view_air
 from .composite import RenderOutput, composite, composite_in_order
-from .layered import as_layers, build_layer_stamps, render_layers, render_layers_view
-from .layers import LayeredParticles
-from .particles import Particles
+from .combined import as_layers, build_layer_stamps, render_layers, render_layers_view
+from ..records.layered import LayeredParticles
+from ..records.particles import Particles
 from .planes import planes
-from .presets import BLEND_MODES
-from .sampling import check_pair_for_engine, reference_transforms, resolve_device
+from ..weather.presets import BLEND_MODES
+from ..sampling.pair import check_pair_for_engine, reference_transforms, resolve_device
 from .splat import SPLAT_CHUNK_ELEMENTS, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, stored
-from .templates import TemplateLibrary, load_templates
+from ..weather.templates import TemplateLibrary, load_templates
 from .tracks import (ParticleTable, RecordRows, View, Views, blur_samples, empty_looks,
                      fixed_looks, pair_starts, pair_tracks, view_tracks)
 
@@ -160,13 +160,13 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
         particles: one record per pair (a single record for B = 1), of either weather model, or
             one :class:`LayeredParticles` per pair (combined weather, the same number of layers
             each): drawn in one pass and composited in depth order
-            (:mod:`~weathergen.engine.layered`; ``templates`` must then be None).
+            (:mod:`~weathergen.engine.rendering.combined`; ``templates`` must then be None).
     Computes in the images' dtype and device. Returns :class:`RenderOutput`.
     ``stamps``: from :func:`build_stamps` of the same records (their paper-model particles).
     ``coarse_side``: stamps at least this wide are splatted on a coarser grid and upsampled;
     ``None`` renders every stamp at full resolution (ignored for ``stamps`` given).
     ``chunk_elements``: elements (patch pixels, stamp samples) per chunk of the stamps and the
-    splat (default: by device, :func:`~weathergen.engine.splat.chunk_elements_for`).
+    splat (default: by device, :func:`~weathergen.engine.rendering.splat.chunk_elements_for`).
     ``detach_occlusion``: no gradient through the visibility term (the particle depth in V).
     """
     records = _record_list(particles)
@@ -427,7 +427,7 @@ def render_first_frame(pair: FramePair, particles: Union[Particles, LayeredParti
                        chunk_elements: Optional[int] = None):
     """Frame 1 of a pair alone (a sequence writes each frame once), the same bytes as
     ``render_pair(pair, particles).image1`` for a field record, or for combined weather whose
-    layers are all field records (:func:`~weathergen.engine.layered.render_layers_view`).
+    layers are all field records (:func:`~weathergen.engine.rendering.combined.render_layers_view`).
 
     Shape: returns (image (1, 3, H, W), opacity (1, 1, H, W)).
     """

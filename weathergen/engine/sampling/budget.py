@@ -12,7 +12,7 @@ The estimate counts what the memory grows with (measured on the CPU, float32; se
 - the particles drawn: a weather field's expected number in view, ``density`` times the volume of
   the view frustum widened by the largest stamp, between ``near`` and ``far``, and where the scene
   lies farther (the fraction of pixels deeper than each depth, from the pair's depth maps); a paper
-  preset's count for the frame (:func:`~weathergen.engine.presets.frame_scaling`);
+  preset's count for the frame (:func:`~weathergen.engine.weather.presets.frame_scaling`);
 - their blur samples (``blur_samples`` where a streak is drawn) and stamp pixels (a stamp's side
   in pixels squared, an eighth of the side for stamps drawn on a coarser grid);
 - a field's culling, which tests every particle of the tiles that meet the widened view volume up
@@ -31,11 +31,11 @@ from typing import Optional
 import torch
 import torch.nn.functional as F
 
-from ..errors import ConfigError
-from ..memory import BUDGET_VARIABLE, Available, available_memory, human_bytes
-from .presets import CombinedPreset, FieldPreset, Preset, frame_scaling
-from .stamps import COARSE_MAX_LEVEL, COARSE_SIDE
-from .tracks import MAX_DEFOCUS
+from ...errors import ConfigError
+from ...memory import BUDGET_VARIABLE, Available, available_memory, human_bytes
+from ..weather.presets import CombinedPreset, FieldPreset, Preset, frame_scaling
+from ..rendering.stamps import COARSE_MAX_LEVEL, COARSE_SIDE
+from ..rendering.tracks import MAX_DEFOCUS
 
 #: Bytes of every draw: the template atlas, its mip levels, tables.
 BYTES_FIXED = 16 << 20
@@ -119,7 +119,7 @@ def _deeper_fraction(depths):
 
 def _stored_pixels(side: float) -> float:
     """Pixels a stamp of ``side`` pixels takes: its side squared, on a coarser grid (up to
-    2**COARSE_MAX_LEVEL times) from :data:`~weathergen.engine.stamps.COARSE_SIDE` on."""
+    2**COARSE_MAX_LEVEL times) from :data:`~weathergen.engine.rendering.stamps.COARSE_SIDE` on."""
     if side >= COARSE_SIDE:
         side = side / 2 ** COARSE_MAX_LEVEL
     return side * side

@@ -17,7 +17,7 @@ wind, and is the same at the same world point in every frame of a sequence and i
 a stereo rig. Rays end at the scene's surface, or at ``sky_distance`` for the sky and anything
 farther.
 
-Integration (:mod:`~weathergen.engine.air`): with ``h = 0`` and no density lattice,
+Integration (:mod:`~weathergen.engine.rendering.transmittance`): with ``h = 0`` and no density lattice,
 ``τ = β₀ L`` exactly. A heterogeneous medium is integrated by the midpoint rule along the rays of a coarse grid of
 pixels, every :data:`RAY_STEP` pixels (fewer for short focal lengths: at most
 :data:`RAY_ANGLE` apart), in :data:`RAY_SAMPLES` intervals that grow geometrically

@@ -1,6 +1,6 @@
 """The particles of a combined preset: one record per layer, kept together and stored in one file.
 
-A combined preset (``rain-heavy+fog-light``, :class:`~weathergen.engine.presets.CombinedPreset`)
+A combined preset (``rain-heavy+fog-light``, :class:`~weathergen.engine.weather.presets.CombinedPreset`)
 samples every layer exactly as its preset alone would, from the layer's own seed
 (:func:`layer_seed`: the seed and the layer's name, so a layer's particles depend neither on the
 other layers nor on their order). :class:`LayeredParticles` keeps the layers' records side by side.
@@ -43,9 +43,9 @@ from typing import Union
 import numpy as np
 import torch
 
-from ..errors import FormatError
-from ..io.atomic import atomic_write_bytes
-from ..io.npz import npz_bytes
+from ...errors import FormatError
+from ...io.atomic import atomic_write_bytes
+from ...io.npz import npz_bytes
 from .particles import (LAYERED_FORMAT_VERSION, TENSOR_FIELDS, VERSION_ENTRIES, Particles,
                         read_particle_arrays)
 

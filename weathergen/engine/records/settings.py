@@ -20,9 +20,9 @@ from typing import Mapping, Optional
 
 import numpy as np
 
-from ..errors import ConfigError, FormatError
-from .presets import BLEND_MODES, Preset
-from .templates import TemplateLibrary
+from ...errors import ConfigError, FormatError
+from ..weather.presets import BLEND_MODES, Preset
+from ..weather.templates import TemplateLibrary
 
 #: Preset keys that only change how stored particles look, so they may change on re-rendering.
 APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defocus_brighten",

@@ -16,10 +16,10 @@ from typing import Optional
 
 import torch
 
-from ..geometry import backproject, project, transform_points
-from .layered import render_layers_view
-from .layers import LayeredParticles
-from .particles import Particles
+from ...geometry import backproject, project, transform_points
+from .combined import render_layers_view
+from ..records.layered import LayeredParticles
+from ..records.particles import Particles
 from .renderer import BETA_RENDER, render_view
 from .tracks import View
 

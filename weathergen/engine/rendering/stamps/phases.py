@@ -10,7 +10,7 @@ import torch.nn.functional as F
 
 from ..ragged import runs
 from .tables import PHASE_FACTORS, constant
-from .sampling import read_samples
+from .atlas import read_samples
 
 
 def sample_phases(coef: torch.Tensor, images: Sequence[torch.Tensor],

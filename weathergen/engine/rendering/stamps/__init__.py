@@ -1,6 +1,6 @@
 """Stage 2 of the render core: looks -> stamps (no gradient).
 
-Each stamp entry's template (:class:`~weathergen.engine.tracks.Looks`) is rotated and scaled to
+Each stamp entry's template (:class:`~weathergen.engine.rendering.tracks.Looks`) is rotated and scaled to
 its own footprint on a pixel-centred grid, sampled from a mip level no finer than twice the
 footprint (no aliasing for far, tiny particles), zero outside the footprint's disc. Small stamps
 without a defocus blur are *phase stamps* (:data:`PHASE_SIDE`): sampled every 1 / P pixel
@@ -44,7 +44,7 @@ kernels round differently), so a stamp is the same whatever other stamps the cal
 
 from .building import StampSet, build, build_many, stored
 from .filters import defocus_brighten
-from .sampling import atlas, mip_pyramid
+from .atlas import atlas, mip_pyramid
 from .tables import (COARSE_MAX_LEVEL, COARSE_MIN_SIDE, COARSE_SIDE, PHASE_FACTORS, PHASE_SIDE,
                      RIM_MARGIN, SIDES, STAMP_CHUNK_ELEMENTS, disc_counts, floor_log2, soft_box,
                      stamp_geometry)

@@ -4,7 +4,7 @@
   displacements (frame 1 to frame 2) of the particles covering it in frame 1,
   ``Σ_i w_i f_i / Σ_i w_i`` with ``w_i = θ_i B_i V_i`` the particle's splatted weight and ``f_i`` the
   displacement of its centre's projection; zero where no particle is. Computed by the render
-  core's splat with the displacements in place of the colour (:func:`~weathergen.engine.renderer.view_sums`).
+  core's splat with the displacements in place of the colour (:func:`~weathergen.engine.rendering.renderer.view_sums`).
 - **Opacity** ``(1, H, W)``: ``clamp(Σ_i w_i, 0, 1)``, the renderer's opacity of frame 1.
 
 Combined weather (:class:`~weathergen.engine.LayeredParticles`): the particles of every layer
@@ -30,14 +30,14 @@ from typing import Optional, Union
 
 import torch
 
-from ..framepair import FramePair
-from ..geometry import project, transform_points
-from .layered import layers_view_sums
-from .layers import LayeredParticles
-from .particles import Particles
+from ...framepair import FramePair
+from ...geometry import project, transform_points
+from .combined import layers_view_sums
+from ..records.layered import LayeredParticles
+from ..records.particles import Particles
 from .renderer import BETA_RENDER, pair_starts, view_sums
-from .sampling import check_pair_for_engine, reference_transforms
-from .templates import TemplateLibrary, load_templates
+from ..sampling.pair import check_pair_for_engine, reference_transforms
+from ..weather.templates import TemplateLibrary, load_templates
 from .tracks import View
 
 SEEN_THRESHOLD = 0.5

@@ -11,12 +11,12 @@ from typing import Any, Optional, Sequence
 import torch
 import torch.nn.functional as F
 
-from ...errors import ConfigError
+from ....errors import ConfigError
 from ..ragged import starts
-from ..templates import TemplateLibrary
+from ...weather.templates import TemplateLibrary
 from ..tracks import Looks
 from .phases import sample_phases, sample_phases_per_side
-from .sampling import atlas, coefficients, sample_per_factor, sample_stamps
+from .atlas import atlas, coefficients, sample_per_factor, sample_stamps
 from .tables import (COARSE_SIDE, FACTORS, GAPS, RAGGED_CHUNK, SOFT_BOX, STAMP_CHUNK_ELEMENTS, constant,
                      disc_counts, stamp_geometry)
 from .filters import disc_blur, soften, soften_canvases
@@ -32,7 +32,7 @@ class StampSet:
     their border.
 
     ``gap``: how far apart (image pixels) an entry's blur samples may lie along its streak
-    without a visible ripple (:func:`~weathergen.engine.tracks.streak_samples`): ``(b − 1) / 2``
+    without a visible ripple (:func:`~weathergen.engine.rendering.tracks.streak_samples`): ``(b − 1) / 2``
     of its grid's pixels for a softened stamp (smooth over the box ``b``, :func:`soft_box`),
     one of its grid's pixels otherwise.
 
@@ -77,7 +77,7 @@ def stored(images: torch.Tensor, *, dtype: torch.dtype = torch.float32, device=N
     :class:`~weathergen.engine.Particles`): each drawn at its native pixels (P = 1, the image
     grid), its centre pixel on the particle, a one-pixel zero border around it. Their ``gap`` is
     infinite, so that a streak keeps the record's own number of blur samples, as the research code
-    that stored them draws it (:func:`~weathergen.engine.tracks.streak_samples`).
+    that stored them draws it (:func:`~weathergen.engine.rendering.tracks.streak_samples`).
     Shape: images (E, S, S), S odd -> :class:`StampSet` of E entries."""
     images = images.detach().to(device=device if device is not None else images.device, dtype=dtype)
     count, side = int(images.shape[0]), int(images.shape[-1])

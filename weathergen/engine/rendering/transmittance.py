@@ -1,4 +1,4 @@
-"""The air of a render call: every view's atmospheres (:mod:`~weathergen.engine.atmosphere`),
+"""The air of a render call: every view's atmospheres (:mod:`~weathergen.engine.weather.atmosphere`),
 integrated along the rays of the views, composed once, applied to the scene and the particles.
 
 A pair's records may each carry an atmosphere (a fog layer, a rain layer's veil): their
@@ -18,10 +18,10 @@ extinctions add, ``τ = Σ_l τ_l``, and their airlights mix by optical depth,
 
 Integration: a uniform atmosphere (``h = 0``, no explicit density) gives ``τ = β₀ L`` exactly. A
 heterogeneous one is integrated by the midpoint rule along the rays of a coarse grid of pixels,
-every ``step`` pixels (:data:`~weathergen.engine.atmosphere.RAY_STEP`, fewer for short focal
-lengths: at most :data:`~weathergen.engine.atmosphere.RAY_ANGLE` apart), in
-:data:`~weathergen.engine.atmosphere.RAY_SAMPLES` intervals growing geometrically to
-``sky_distance`` (:func:`~weathergen.engine.atmosphere.ray_nodes`); a pixel, or a particle, reads
+every ``step`` pixels (:data:`~weathergen.engine.weather.atmosphere.RAY_STEP`, fewer for short focal
+lengths: at most :data:`~weathergen.engine.weather.atmosphere.RAY_ANGLE` apart), in
+:data:`~weathergen.engine.weather.atmosphere.RAY_SAMPLES` intervals growing geometrically to
+``sky_distance`` (:func:`~weathergen.engine.weather.atmosphere.ray_nodes`); a pixel, or a particle, reads
 the cumulative integral at its own distance on the four coarse rays around it (linearly within an
 interval) and interpolates them bilinearly.
 
@@ -40,8 +40,8 @@ from typing import Optional, Sequence
 import torch
 import torch.nn.functional as F
 
-from .atmosphere import (RAY_ANGLE, RAY_SAMPLES, RAY_STEP, Atmosphere, ray_nodes,
-                         sample_lattice, wrapped_lattice)
+from ..weather.atmosphere import (RAY_ANGLE, RAY_SAMPLES, RAY_STEP, Atmosphere, ray_nodes,
+                                  sample_lattice, wrapped_lattice)
 from .tracks import Tracks
 
 

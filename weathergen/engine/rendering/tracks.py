@@ -32,9 +32,9 @@ from typing import Optional, Sequence
 import torch
 import torch.nn.functional as F
 
-from .optics import FieldOptics
-from .particles import Particles
-from .sampling import NEAR
+from ..weather.optics import FieldOptics
+from ..records.particles import Particles
+from ..sampling.pair import NEAR
 
 #: Largest thin-lens defocus radius of a field particle, pixels.
 MAX_DEFOCUS = 20
@@ -145,7 +145,7 @@ def coc_radius(f, aperture, focus, z: torch.Tensor) -> torch.Tensor:
                        _scalar(0.0, z.device)).long()
 
 
-def defocus_radius(f: float, optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
+def field_defocus_radius(f: float, optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
     """Circle-of-confusion radius in whole pixels. Shape: (N,) -> (N,) int64."""
     return coc_radius(f, optics.aperture, optics.focus, z)
 
@@ -780,7 +780,7 @@ def streak_samples(tracks: Tracks, gap: Optional[torch.Tensor] = None
     ``K_t = clamp(ceil(L_t / g) + 1, K, MAX_BLUR_SAMPLES)`` samples spread over the same streak
     (``spacing_t = (K − 1) spacing / (K_t − 1)``), K the record's ``blur_samples``.
 
-    ``gap``: g per stamp entry (the :class:`~weathergen.engine.stamps.StampSet`'s ``gap``, read
+    ``gap``: g per stamp entry (the :class:`~weathergen.engine.rendering.stamps.StampSet`'s ``gap``, read
     at each track's entry): a stamp that is smooth over several pixels (softened) leaves no
     ripple between samples that far apart; None: one pixel for every track.
 
