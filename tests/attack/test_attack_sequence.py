@@ -53,7 +53,7 @@ def test_one_weather_holds_in_every_pair_and_its_loss_falls(street, raft_small):
     assert all(r.count > 50 for r in records)
     settings = plan_attack(preset="snow-light", steps=2, sequence=True).settings
     assert "offset2" not in settings.optimize and settings.learning_rates == {
-        g: FIELD_LR[g] for g in ("positions", "color", "transparency", "density")}
+        g: FIELD_LR[g] for g in ("positions", "color", "transparency", "density", "airlight")}
     results = attack_sequence(raft_small, street, records, weather, settings, chunk=2)
     steps = [r.best_step for r in results]
     assert steps[0] > 0 and len(set(steps)) == 1                 # one best step for the scene
@@ -156,7 +156,7 @@ def test_the_command_writes_both_figures_and_its_output_rerenders(tmp_path, raft
                      "--preset", "snow-light", "--set", "density=100", "--sequence",
                      "--steps", "2", "--seed", "1", "--group-lr", "color=0.1", "--out", out])
     assert result.exit_code == 0, result.output
-    assert "each pair attacked alone" in result.output and "per scene" in result.output
+    assert "(the pair attacked alone: " in result.output and "per scene" in result.output
     summary = json.loads((out / "summary.json").read_text())
     scene = summary["scenes"]["demo/training/street"]
     assert scene["pairs"] == 2 and scene["per_pair_aee_adversarial"] is not None
