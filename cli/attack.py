@@ -141,10 +141,10 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 @click.option("--sequence", is_flag=True,
               help="One weather for each whole scene (weather-field presets): the field's "
                    "particles in the world (offset1, colour, transparency) and its atmosphere "
-                   "(density, airlight), optimised against every pair of the scene at once, so "
-                   "every frame shows the same weather; each pair is also attacked alone with "
-                   "the same settings, for comparison (per_pair_* figures). --batch-size: the "
-                   "pairs evaluated per forward pass.")
+                   "(density, airlight), optimised "
+                   "against every pair of the scene at once, so every frame shows the same "
+                   "weather; each pair is also attacked alone with the same settings, for "
+                   "comparison (per_pair_* figures).")
 @click.option("--alpha1", type=float, default=1000.0, show_default=True,
               help="Weight of the frame-1 offset penalty.")
 @click.option("--alpha2", type=float, default=1000.0, show_default=True,
