@@ -121,7 +121,8 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
               help="Variables to optimise: offset1, offset2, color, transparency; density and "
                    "airlight of a weather field's atmosphere (fog-*, mist, rain-*, snow-*); or "
                    "'all'. Default: the --config's, else the four particle variables (fog: all "
-                   "but offset2), and density where the preset has an atmosphere.")
+                   "but offset2), and density and airlight where the preset has an atmosphere; "
+                   "--sequence leaves out offset2.")
 @click.option("--optimize-layer", "optimize_layer", default=None, metavar="NAME[,NAME]|all",
               help="Combined presets (layers joined by +): the layers whose particles are "
                    "optimised, by name (e.g. fog-light); the others stay as sampled. "
@@ -135,9 +136,8 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
                    "positions (offset1, offset2), color, transparency, density, airlight. "
                    "Defaults: the paper's presets' particles 1e-5 when an offset is optimised, "
                    "else 1e-3 (all three groups); weather fields (snow-*, rain-*, fog-*, mist "
-                   f"and their combinations) {_field_rates()}; the atmosphere's always "
-                   "density and airlight as for weather fields. The manifest records the rates "
-                   "used.")
+                   f"and their combinations) {_field_rates()}, whose density and airlight rates "
+                   "hold for every preset's atmosphere. The manifest records the rates used.")
 @click.option("--sequence", is_flag=True,
               help="One weather for each whole scene (weather-field presets): the field's "
                    "particles in the world (offset1, colour, transparency) and its atmosphere "
