@@ -3,6 +3,7 @@ per term, each showing the reference mode's behaviour and the paper mode's (the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -14,6 +15,7 @@ from weathergen.attack.compat import (REFERENCE_DEPTH_EPS, detaches_occlusion,
                                       reference_offset_penalty, resets_gradients)
 from weathergen.attack.pair import AttackResult, start_depth
 from weathergen.engine import BETA_ATTACK, BETA_RENDER
+from weathergen.engine.rendering.renderer import depth_seen
 from weathergen.errors import ConfigError
 from weathergen.geometry import transform_points
 
@@ -99,11 +101,16 @@ def test_reference_detaches_occlusion_unless_it_is_softened(small_pair, raft_sma
     assert plan_attack(None, "fog", compat="reference").settings.beta == BETA_ATTACK
 
     particles = on_the_surface(small_pair, grey_particles(small_pair, count=80))
+    # the reference mode reads the depth half a pixel up and left: the paper mode gets the depth
+    # read there, so that both test the particles against the same depth
+    shifted = dataclasses.replace(small_pair, **{k: depth_seen(getattr(small_pair, k)[None],
+                                                               [0.5])[0]
+                                                 for k in ("depth1", "depth2")})
     grads, distances = {}, {}
-    for compat in ("paper", "reference"):
+    for compat, pair in (("paper", shifted), ("reference", small_pair)):
         # offset2 and colour only: no homogeneous component, no transparency bound, and both
         # penalties have zero gradient at the start.
-        run = PairOptimisation(raft_small, small_pair, particles,
+        run = PairOptimisation(raft_small, pair, particles,
                                settings(compat, optimize=("offset2", "color")))
         assert run.detach_occlusion == (compat == "reference")
         _, _, loss, distance, _ = run.evaluate()

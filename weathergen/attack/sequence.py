@@ -66,6 +66,9 @@ def check_sequence_settings(settings: AttackSettings) -> None:
                           "a sequence has one position per particle and frame: free offset1")
     if settings.compat != "paper":
         raise ConfigError("${compat} reference: the research code attacks pairs, not sequences")
+    if settings.early_stop is not None:
+        raise ConfigError("${early_stop}: a sequence attack runs every step (one weather for "
+                          "all the scene's pairs, whose losses converge apart)")
 
 
 @dataclass

@@ -31,7 +31,7 @@ APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defoc
 APPEARANCE_FIELDS = ("blend", "blur_length", "blur_samples", "defocus_brighten", "coarse")
 #: Fields a particle file holds only when they differ from their default (files written before
 #: they existed read as the default, and files of the default keep their bytes).
-OPTIONAL_FIELDS = ("coarse", "blur_blend")
+OPTIONAL_FIELDS = ("coarse", "blur_blend", "depth_shift")
 #: How an α-blended record's blur samples are blended: all at once, or one after another.
 BLUR_BLENDS = ("sum", "sequential")
 
@@ -49,7 +49,9 @@ class RenderSettings:
     every pixel exactly); blur_blend: how an α-blended record's K blur samples are blended,
     ``sum``: all at once, ``I (1 − ΣA) + ΣC`` (weathergen's), ``sequential``: one after another
     in their order along the streak, ``I_k = clamp(I_{k−1} (1 − A_k) + C_k, 0, 1)`` (the
-    research code's; what ``compat="reference"`` draws, see :meth:`for_compat`).
+    research code's; what ``compat="reference"`` draws, see :meth:`for_compat`); depth_shift:
+    where the scene depth a particle is tested against is read, this many pixels up and left of
+    each pixel, bilinearly (0: at the pixel, weathergen's; 0.5: the research code's).
     """
 
     blend: str = "additive"
@@ -60,11 +62,14 @@ class RenderSettings:
     templates_digest: str = ""
     coarse: bool = True
     blur_blend: str = "sum"
+    depth_shift: float = 0.0
 
     def __post_init__(self):
         if self.blur_blend not in BLUR_BLENDS:
             raise ConfigError(f"blur_blend must be {' or '.join(BLUR_BLENDS)}; "
                               f"got {self.blur_blend!r}")
+        if not 0 <= self.depth_shift <= 1:
+            raise ConfigError(f"depth_shift must be in [0, 1]; got {self.depth_shift!r}")
 
     @classmethod
     def from_preset(cls, preset: Preset, library: Optional[TemplateLibrary] = None) -> "RenderSettings":
@@ -89,10 +94,13 @@ class RenderSettings:
 
     def for_compat(self, compat: str) -> "RenderSettings":
         """The settings drawn under ``compat``: ``reference`` blends the blur samples of an
-        α-blended, motion-blurred record one after another, as the research code does
-        (``sequential``); ``paper`` all at once (``sum``). The other fields are kept."""
-        ordered = compat == "reference" and self.blend == "alpha" and self.motion_blurred
-        return self.replace(blur_blend="sequential" if ordered else "sum")
+        α-blended, motion-blurred record one after another and reads the scene depth half a
+        pixel up and left, as the research code does (``sequential``, ``depth_shift`` 0.5);
+        ``paper`` all at once at the pixel (``sum``, 0). The other fields are kept."""
+        reference = compat == "reference"
+        ordered = reference and self.blend == "alpha" and self.motion_blurred
+        return self.replace(blur_blend="sequential" if ordered else "sum",
+                            depth_shift=0.5 if reference else 0.0)
 
     def appearance(self) -> dict:
         """The fields that may change when stored particles are rendered again."""
@@ -126,4 +134,6 @@ class RenderSettings:
         if values.get("blur_blend", "sum") not in BLUR_BLENDS:     # (before __post_init__'s)
             raise FormatError(path, f"unknown blur_blend {values['blur_blend']!r} (expected "
                                     f"{' or '.join(BLUR_BLENDS)})")
+        if not 0 <= values.get("depth_shift", 0.0) <= 1:
+            raise FormatError(path, f"depth_shift must be in [0, 1], got {values['depth_shift']}")
         return cls(**values)

@@ -184,9 +184,11 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
                                  detach_occlusion=detach_occlusion)
         records = [p.layers[0] for p in layered]    # one layer: the record's own bytes
     templates = check_records(records, templates)
+    depth = torch.cat((depth1, depth2)).detach().to(device)
     views = Views.of(torch.cat((intrinsics, intrinsics)).to(device),
                      torch.cat((cam1_from_ref, cam2_from_ref)).to(device),
-                     torch.cat((depth1, depth2)), device=device)
+                     depth_seen(depth, [r.settings.depth_shift for r in records] * 2),
+                     device=device)
     looks, tracks = pair_tracks(records, views, templates.resolution, beta=float(beta),
                                 dtype=dtype)
     air = pair_air([record_atmospheres(r) for r in records], intrinsics, cam1_from_ref,
@@ -200,7 +202,20 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
                               coarse_side=coarse_side, chunk_elements=chunk_elements)
     blend = _blender(records, tracks, stamp_set, views.depth, alpha_mode, dtype=dtype,
                      chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
-    return _composited(blend, [image1, image2], alpha_mode, air, views.depth)
+    return _composited(blend, [image1, image2], alpha_mode, air, depth)
+
+
+def depth_seen(depth: torch.Tensor, shifts: Sequence[float]) -> torch.Tensor:
+    """The scene depth that particles are tested against: each view's depth read its record's
+    ``depth_shift`` s pixels up and left of each pixel, bilinearly, the image's first row and
+    column repeated beyond it (s = 0.5: the mean of a pixel and its three upper-left
+    neighbours). Shape: depth (V, 1, H, W), shifts V floats -> (V, 1, H, W)."""
+    if not any(shifts):
+        return depth
+    s = torch.tensor(shifts, dtype=depth.dtype, device=depth.device).view(-1, 1, 1, 1)
+    padded = torch.nn.functional.pad(depth, (1, 0, 1, 0), mode="replicate")
+    up, left, corner = padded[..., :-1, 1:], padded[..., 1:, :-1], padded[..., :-1, :-1]
+    return (1 - s) ** 2 * depth + s * (1 - s) * (up + left) + s * s * corner
 
 
 def _check_batch(image1: torch.Tensor, image2: torch.Tensor, depth1: Optional[torch.Tensor],
@@ -352,7 +367,8 @@ def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement:
                chunk_elements: Optional[int], values: Optional[torch.Tensor] = None,
                detach_occlusion: bool = False, frame: int = 0):
     views = Views.of(view.intrinsics[None], view.cam_from_ref[None],
-                     view.depth[None].to(device), device=device)
+                     depth_seen(view.depth[None].detach().to(device),
+                                [record.settings.depth_shift]), device=device)
     looks, tracks, kept = view_tracks(record.to(device), views, start, displacement,
                                       templates.resolution, beta=float(beta), dtype=dtype,
                                       color=values, kept=True)
