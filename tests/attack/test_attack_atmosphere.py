@@ -120,7 +120,6 @@ def test_an_attack_on_fog_runs_on_cuda_as_on_the_cpu(small_pair, raft_small_weig
     assert abs(gpu.history[0].distance - cpu.history[0].distance) < 0.05
 
 
-@pytest.mark.slow
 def test_heavy_fog_doubles_its_effect_within_ten_steps(raft_small_weights):
     """docs/attack.md, "Learning rates": on the demo street's first pair, RAFT-small (shipped
     checkpoint, 12 iterations) on the CPU, fog-heavy with the default variables and rates more
