@@ -199,7 +199,7 @@ def dataset_options(func):
                        "(with --scene-scales research: its frame and scaling).")
     @click.option("--far-depth", type=click.FloatRange(min=0, min_open=True), default=None,
                   help="kitti, spring, custom: depth (dataset units, before --depth-scale) given to "
-                       "pixels without depth, such as the sky. Default: 1000.")
+                       "the sky (and to unknown depth with --fill-gaps 0). Default: 1000.")
     @click.option("--world-up", metavar="|".join(WORLD_UP_CHOICES) + "|X,Y,Z", default=None,
                   callback=_world_up_option,
                   help="Axis of the dataset's world that points up (weather falls the other way), "
@@ -281,9 +281,10 @@ def reader_options(func):
                      help="custom: warn about frames with a smaller fraction of valid depth. "
                           "Default: 0.5."),
         click.option("--fill-gaps", type=click.FloatRange(min=0), default=None, metavar="PX",
-                     help="kitti, custom: fill pixels without depth up to this distance from a "
-                          "measured one (guided by the frame's colours); farther ones get the far "
-                          "depth; 0 fills nothing. Default: 24."),
+                     help="kitti, custom: fill gaps in the depth up to this distance from a "
+                          "measured pixel (guided by the frame's colours) and complete larger "
+                          "regions that are not sky; 0 fills nothing (unknown depth, at the far "
+                          "depth). Default: 24."),
     )):
         func = option(func)
     return func

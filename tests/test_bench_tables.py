@@ -155,7 +155,7 @@ def test_precisions_that_do_not_apply_are_refused(bt, monkeypatch):
     with pytest.raises(ValueError, match="no mixed-precision mode"):
         bt.precision_settings("spynet", "amp", "cuda")
     from weathergen.models import model_spec, registry
-    monkeypatch.setitem(registry._MODELS, "spynet", dataclasses.replace(
+    monkeypatch.setitem(registry._ARCHITECTURES, "spynet", dataclasses.replace(
         model_spec("spynet"), refused_precisions=("fp16",)))
     with pytest.raises(ValueError, match="refused for 'spynet'"):
         bt.precision_settings("spynet", "fp16", "cuda")

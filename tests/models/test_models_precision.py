@@ -37,7 +37,7 @@ def test_each_network_accepts_its_precisions_and_refuses_the_others(name):
 def test_a_precision_beyond_a_networks_bound_is_refused_in_one_line(monkeypatch):
     strict = dataclasses.replace(model_spec("spynet"), refused_precisions=("fp16",),
                                  precision_bound=0.02)
-    monkeypatch.setitem(registry._MODELS, "spynet", strict)
+    monkeypatch.setitem(registry._ARCHITECTURES, "spynet", strict)
     with pytest.raises(ConfigError) as refused:
         resolve_precision("spynet", "fp16", None, "cpu")
     message = refused.value.render(lambda name: f"--{name}")

@@ -36,7 +36,7 @@ from ..models import AUTOCAST, Network, get_model, probe_network, resolve_networ
 from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
-from ..jobs import (frame2_note, layer_seeds, pair_particles, pair_seed,
+from ..jobs import (depth_note, frame2_note, layer_seeds, pair_particles, pair_seed,
                     published_geometry_note, scene_airlight, scene_firsts, scene_key,
                     torch_threads, visibility_of, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
@@ -158,6 +158,8 @@ class PairReport:
     #: a paper preset's pair whose frame 2 shows fewer than half of them (strong camera motion;
     #: see :func:`weathergen.jobs.few_in_frame2`)
     few_in_frame2: bool = False
+    #: each frame's shares of measured, completed, sky and unknown depth, where the reader says
+    depth_provenance: list = field(default_factory=list)
 
 
 _LOADED: dict = {}
@@ -276,7 +278,8 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
             reports[ref.id.key] = PairReport(str(ref.id), "written", summary, key=ref.id.key,
                                              ran=ran, warnings=list(pair.meta.get("warnings", [])),
                                              visible=seen.get(ref.id.key),
-                                             few_in_frame2=few.get(ref.id.key, False))
+                                             few_in_frame2=few.get(ref.id.key, False),
+                                             depth_provenance=pair.meta.get("depth_provenance", []))
     return [reports[ref.id.key] for ref in refs]
 
 
@@ -530,7 +533,9 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
                        {k: old[k] for k in ("visible", "few_in_frame2") if k in old})
             pairs_entry[report.key] = {"status": "written", **asdict(report.summary),
                                        **({"ran": ran} if ran else {}),
-                                       **({"warnings": warnings} if warnings else {}), **sampled}
+                                       **({"warnings": warnings} if warnings else {}), **sampled,
+                                       **({"depth_provenance": report.depth_provenance}
+                                          if report.depth_provenance else {})}
         run[report.status] += 1
         if report.status == "written":
             written.append(report)
@@ -569,7 +574,9 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
     finally:
         run["seconds"] = round(time.perf_counter() - t0, 3)
         _last_save(save, run, stopped_by)
-    note = frame2_note([(r.pair, r.visible) for r in written if r.few_in_frame2], job.preset_name)
-    if note is not None:
+    for note in filter(None, (depth_note([(r.pair, {"depth_provenance": r.depth_provenance})
+                                          for r in written]),
+                              frame2_note([(r.pair, r.visible) for r in written if r.few_in_frame2],
+                                          job.preset_name))):
         on_note(note)
     return run_summary(job, [summaries[k] for k in order if k in summaries])

@@ -95,7 +95,7 @@ class PairSampleBatch:
 
 _BATCH_TENSORS = ("image1", "image2", "depth1", "depth2", "intrinsics", "cam2_from_cam1",
                   "cam1_from_world", "cam2_from_world", "flow", "flow_valid",
-                  "depth_measured1", "depth_measured2")
+                  "depth_provenance1", "depth_provenance2")
 
 
 def batch_to(batch: FramePairBatch, device) -> FramePairBatch:

@@ -4,18 +4,23 @@ A field record (or the paper's) is data in a reference frame, so a second camera
 own transform from that frame, ``cam_right_from_ref = right_from_left @ cam_left_from_ref``, and
 its own scene depth for the occlusion test. Datasets rarely ship the right view's depth; it is
 forward-warped from the left one (:func:`warp_depth`): each left pixel is back-projected, moved into
-the right camera and z-buffered into the four pixels around where it lands, and pixels that no
-left pixel reaches (disoccluded, or beyond the left view) get ``fill`` (by default the farthest
-left depth), so particles in front of them stay visible. For a rectified pair the particles land
-at disparity ``f · B / z`` (tested).
+the right camera and z-buffered into the four pixels around where it lands. Pixels that no left
+pixel reaches (disoccluded, or beyond the left view) take the depth of the background side along
+their row, the farther of the nearest reached pixels to their left and right (the standard hole
+filling of view synthesis: what a near object uncovers lies behind it), never the far depth of
+the sky unless that side is sky; :func:`warp_view_depth` carries the depth provenance along (a
+hole filled this way is ``COMPLETED``). For a rectified pair the particles land at disparity
+``f · B / z`` (tested).
 """
 
 from __future__ import annotations
 
+import math
 from typing import Optional
 
 import torch
 
+from ...framepair import COMPLETED, MEASURED, UNKNOWN
 from ...geometry import backproject, project, transform_points
 from .combined import render_layers_view
 from ..records.layered import LayeredParticles
@@ -27,26 +32,92 @@ from .tracks import View
 def warp_depth(depth: torch.Tensor, intrinsics: torch.Tensor, right_from_left: torch.Tensor,
                right_intrinsics: Optional[torch.Tensor] = None,
                fill: Optional[float] = None) -> torch.Tensor:
-    """The right camera's depth, forward-warped from the left camera's with a z-buffer.
+    """The right camera's depth, forward-warped from the left camera's with a z-buffer; holes
+    take their row's background depth, or ``fill`` where it is given.
 
     Shape: depth (1, H, W), intrinsics (3, 3), right_from_left (4, 4) -> (1, H, W), same dtype.
+    """
+    return warp_view_depth(depth, None, intrinsics, right_from_left, right_intrinsics, fill)[0]
+
+
+def warp_view_depth(depth: torch.Tensor, provenance: Optional[torch.Tensor],
+                    intrinsics: torch.Tensor, right_from_left: torch.Tensor,
+                    right_intrinsics: Optional[torch.Tensor] = None,
+                    fill: Optional[float] = None) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
+    """The right camera's depth and its provenance (each right pixel the class of the left pixel
+    it shows; a filled hole ``COMPLETED``, or ``SKY`` if its background is sky). ``provenance``
+    None gives None.
+
+    Shape: depth (1, H, W), provenance (1, H, W) uint8 or None -> ((1, H, W), (1, H, W) or None).
     """
     h, w = depth.shape[-2:]
     k_right = intrinsics if right_intrinsics is None else right_intrinsics
     pts = backproject(depth.double(), intrinsics.double()).reshape(3, -1).T      # (HW, 3)
     pix, z = project(transform_points(right_from_left.double(), pts), k_right.double())
-    far = float(depth.max()) if fill is None else float(fill)
-    out = torch.full((h * w,), far, dtype=torch.float64)
+    out = torch.full((h * w,), math.inf, dtype=torch.float64, device=depth.device)
     # each left pixel covers the four right pixels around where it lands (no cracks between
     # neighbours at fractional shifts); the z-buffer keeps the nearest surface
     c0, r0 = torch.floor(pix[:, 0]).long(), torch.floor(pix[:, 1]).long()
+    hits = []
     for dc in (0, 1):
         for dr in (0, 1):
             col, row = c0 + dc, r0 + dr
             ok = (z > 0) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
-            out = out.scatter_reduce(0, row[ok] * w + col[ok], z[ok], reduce="amin",
-                                     include_self=True)
-    return out.view(1, h, w).to(depth.dtype)
+            hits.append((row[ok] * w + col[ok], z[ok], ok))
+            out = out.scatter_reduce(0, hits[-1][0], hits[-1][1], reduce="amin", include_self=True)
+    kind = None if provenance is None else _winners(out, hits, provenance.reshape(-1).to(out.device))
+    reached = torch.isfinite(out).view(h, w)
+    if fill is not None:
+        out = torch.where(reached.reshape(-1), out, torch.full_like(out, float(fill)))
+        kind = None if kind is None else torch.where(reached.reshape(-1), kind,
+                                                     torch.full_like(kind, UNKNOWN))
+        return _shaped(out, kind, depth, h, w)
+    far = float(depth.max())
+    out, kind = _background_fill(out.view(h, w), reached, kind, far)
+    return _shaped(out, kind, depth, h, w)
+
+
+def _shaped(out, kind, depth, h, w):
+    return (out.reshape(1, h, w).to(depth.dtype),
+            None if kind is None else kind.reshape(1, h, w).to(torch.uint8))
+
+
+def _winners(out, hits, provenance):
+    """The provenance of the left pixel each right pixel shows (the z-buffer's winner; the lowest
+    class among equal depths). Shape: -> (H W,) int64, UNKNOWN where nothing landed."""
+    kind = torch.full_like(out, UNKNOWN, dtype=torch.int64)
+    for index, z, ok in hits:
+        won = z == out[index]
+        kind = kind.scatter_reduce(0, index[won], provenance[ok][won].long(), reduce="amin",
+                                   include_self=True)
+    return kind
+
+
+def _background_fill(depth, reached, kind, far: float):
+    """Holes take the farther of the nearest reached pixels on their left and right in their row
+    (the one side where the other has none); a row without any takes ``far``. The class of a
+    filled hole is its source's, ``COMPLETED`` for a measured one.
+
+    Shape: depth (H, W) float64 (holes any value), reached (H, W) bool, kind (H W,) or None.
+    """
+    h, w = depth.shape
+    cols = torch.arange(w, device=depth.device).expand(h, w)
+    left = torch.cummax(torch.where(reached, cols, -1), dim=1).values
+    right = torch.cummin(torch.where(reached, cols, w).flip(1), dim=1).values.flip(1)
+    left_z = depth.gather(1, left.clamp(min=0))
+    right_z = depth.gather(1, right.clamp(max=w - 1))
+    take_right = (right < w) & ((left < 0) | (right_z > left_z))
+    source = torch.where(take_right, right, left)
+    some = source >= 0
+    filled = torch.where(some, depth.gather(1, source.clamp(min=0)), torch.full_like(depth, far))
+    out = torch.where(reached, depth, filled).reshape(-1)
+    if kind is None:
+        return out, None
+    kind2 = kind.view(h, w)
+    from_side = kind2.gather(1, source.clamp(min=0))
+    from_side = torch.where(from_side == MEASURED, COMPLETED, from_side)
+    hole_kind = torch.where(some, from_side, torch.full_like(from_side, UNKNOWN))
+    return out, torch.where(reached, kind2, hole_kind).reshape(-1)
 
 
 def stereo_view(left: View, right_from_left: torch.Tensor, right_depth: torch.Tensor,
