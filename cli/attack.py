@@ -55,6 +55,9 @@ def summary_table(title: str, summary: dict, what: str = "weather", compat: str 
     if summary.get("per_pair_aee_adversarial") is not None:     # --sequence
         table.add_row("AEE(f, f̌), each pair attacked alone", "", _fmt(summary["aee_random"]),
                       _fmt(summary["per_pair_aee_adversarial"]))
+    if summary.get("second_aee_random") is not None:            # --sequence --stereo
+        table.add_row("AEE(f, f̌), second camera", "", _fmt(summary["second_aee_random"]),
+                      _fmt(summary["second_aee_adversarial"]))
     table.add_row("AEE(f̌, target)", "", _fmt(summary["target_initial"]),
                   _fmt(summary["target_adversarial"]))
     table.add_row("EPE vs ground truth", _fmt(summary["epe_benign"]), _fmt(summary["epe_random"]),
@@ -150,6 +153,9 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
                    "against every pair of the scene at once, so every frame shows the same "
                    "weather; each pair is also attacked alone with the same settings, for "
                    "comparison (per_pair_* figures).")
+@click.option("--stereo", is_flag=True,
+              help="With --sequence: against the dataset's second (right) camera too, as "
+                   "`render --stereo` draws it (second_aee_* figures, float frames).")
 @click.option("--alpha1", type=float, default=1000.0, show_default=True,
               help="Weight of the frame-1 offset penalty.")
 @click.option("--alpha2", type=float, default=1000.0, show_default=True,
@@ -178,7 +184,7 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 def attack(dataset, model, checkpoint, iters, download, model_input, amp, precision, method, epsilon,
            optimizer, config_name, preset, set_items,
            particles_dir, steps,
-           optimize, optimize_layer, lr, group_lr, sequence, alpha1, alpha2, target_text,
+           optimize, optimize_layer, lr, group_lr, sequence, stereo, alpha1, alpha2, target_text,
            occlusion_gradient, compat, early_stop, gradient_checkpointing, out, seed, device,
            batch_size, executor, ray_address, resume, overwrite, quiet):
     """Optimise weather particles so that a flow network's output moves towards a target.
@@ -195,9 +201,9 @@ def attack(dataset, model, checkpoint, iters, download, model_input, amp, precis
     execution = dict(batch_size=batch_size, executor=executor, ray_address=ray_address,
                      threads=torch.get_num_threads(), precision=precision)
     if method != "weather":
-        if group_lr or sequence:
-            raise ConfigError(f"${{{'group_lr' if group_lr else 'sequence'}}} applies to "
-                              "--method weather only")
+        if group_lr or sequence or stereo:
+            which = "group_lr" if group_lr else "sequence" if sequence else "stereo"
+            raise ConfigError(f"${{{which}}} applies to --method weather only")
         if early_stop is not None:
             raise ConfigError("${early_stop} applies to the weather attack only")
         lp = plan_lp(method, epsilon, steps, lr, optimizer, config_name=config_name, preset=preset,
@@ -227,7 +233,7 @@ def attack(dataset, model, checkpoint, iters, download, model_input, amp, precis
                                   alpha2, target, occlusion_gradient, compat or "paper",
                                   gradient_checkpointing, out, seed, device, resume, overwrite,
                                   execution, amp, optimize_layer, early_stop, group_lr,
-                                  sequence)
+                                  sequence, stereo)
         out = job.out
     _run(job, model.label, label, target, steps, out, quiet)
 
@@ -235,7 +241,8 @@ def attack(dataset, model, checkpoint, iters, download, model_input, amp, precis
 def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
                  particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
                  compat, gradient_checkpointing, out, seed, device, resume, overwrite, execution,
-                 amp, optimize_layer=None, early_stop=None, group_lr=(), sequence=False):
+                 amp, optimize_layer=None, early_stop=None, group_lr=(), sequence=False,
+                 stereo=False):
     plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
                        optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
                        steps=steps, alpha1=alpha1, alpha2=alpha2, compat=compat,
@@ -250,7 +257,7 @@ def _weather_job(dataset, model, checkpoint, iters, download, config_name, prese
                     pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
                     gradient_checkpointing=gradient_checkpointing, download=download, amp=amp,
                     resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]],
-                    sequence=sequence, **execution)
+                    sequence=sequence, stereo=stereo, **execution)
     return job, label
 
 

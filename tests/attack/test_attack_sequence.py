@@ -176,3 +176,48 @@ def test_the_command_writes_both_figures_and_its_output_rerenders(tmp_path, raft
     for path in written:
         rendered = again / "training" / "snow-light_clean" / path.parent.name / path.name
         assert np.array_equal(cv2.imread(str(path)), cv2.imread(str(rendered))), path
+
+
+@pytest.mark.slow
+def test_stereo_attacks_both_cameras_and_rerenders_as_render_stereo(tmp_path, raft_small_weights):
+    import shutil
+
+    from fake_datasets import demo_sequence, write_fake_spring
+
+    from weathergen.attack import second_frames, second_view
+    from weathergen.datasets import open_dataset, right_camera
+    from weathergen.engine import load_particles
+    from weathergen.io.images import read_image
+
+    frames, _ = demo_sequence("street")
+    root = write_fake_spring(tmp_path / "spring", frames[:3])
+    scene = root / "train" / "0001"
+    (scene / "frame_right").mkdir()
+    for n in (1, 2, 3):        # the right camera's frames (their content does not matter here)
+        shutil.copy(scene / "frame_left" / f"frame_left_{n:04d}.png",
+                    scene / "frame_right" / f"frame_right_{n:04d}.png")
+    data = ["--dataset", "spring", "--root", root, "--split", "train"]
+    out = tmp_path / "out"
+    result = invoke(["attack", *data, "--model", "raft-small", "--checkpoint", raft_small_weights,
+                     "--iters", "2", "--preset", "snow-moderate", "--set", "far=5",
+                     "--sequence", "--stereo", "--steps", "2", "--out", out])
+    assert result.exit_code == 0, result.output
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["second_aee_random"] > 0 and summary["second_aee_adversarial"] is not None
+    assert summary["scenes"]["spring/train/0001"]["second_aee_random"] is not None
+    # the second camera the attack saw is the one `render --stereo` draws from the stored weather
+    again = tmp_path / "again"
+    result = invoke(["render", *data, "--particles", out, "--stereo", "--out", again, "--quiet"])
+    assert result.exit_code == 0, result.output
+    dataset = open_dataset("spring", root, split="train")
+    ref = dataset.pairs()[0]
+    pair = dataset.load(ref)
+    record = load_particles(out / "training" / "particles" / "0001_0001" / "frame_0001.npz")
+    with torch.no_grad():
+        drawn = second_frames(record, second_view(pair, right_camera(dataset, pair)), 250.0)
+    for t, frame in enumerate(drawn):
+        written = read_image(again / "training" / "snow-moderate_clean_right" / "0001_0001"
+                             / f"frame_{t + 1:04d}.png")
+        assert np.abs(frame.permute(1, 2, 0).numpy() - written).max() <= 0.5 / 255 + 1e-6
+    result = invoke(["attack", "--preset", "snow-moderate", "--stereo", "--out", tmp_path / "x"])
+    assert result.exit_code == 2 and "--stereo applies to --sequence" in result.output

@@ -30,7 +30,8 @@ from .lp import (LP_DEFAULTS, LP_METHODS, PCFA_OPTIMIZERS, LpOptimisation, LpRes
 from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisation, PairSummary,
                    StepRecord, WeatherVariables, attack_batch, attack_loss, attack_pair,
                    mean_summary, offset_penalty, particle_depths, summarize_pair)
-from .sequence import SceneWeather, attack_sequence, scene_weather
+from .sequence import (SceneWeather, SecondView, attack_sequence, scene_weather, second_frames,
+                       second_view)
 from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack
 from .settings import (ATMOSPHERE_VARIABLES, DEFAULT_ALPHA, DEFAULT_STEPS, DENSITY_FACTOR,
                        FIELD_LR, LR_APPEARANCE, LR_GROUPS, LR_POSITIONS, OPTIMIZABLE,
@@ -54,4 +55,5 @@ __all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOp
            "mean_rows", "mean_summary", "offset_penalty", "parse_optimize", "parse_target",
            "particle_depths", "read_target_flow", "run_attack",
            "run_evaluation", "summarize_pair", "target_flow", "transparency_bound",
-           "write_evaluation", "SceneWeather", "attack_sequence", "scene_weather"]
+           "write_evaluation", "SceneWeather", "attack_sequence", "scene_weather",
+           "SecondView", "second_frames", "second_view"]

@@ -22,7 +22,7 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from ..datasets import Dataset
+from ..datasets import Dataset, right_camera
 from ..engine import CombinedPreset, render_pair
 from ..engine.sampling.budget import check_pair_memory
 from ..errors import ConfigError, OutputError, WeatherGenError
@@ -43,7 +43,7 @@ from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .record import run_settings
 from .sequence import (attack_sequence, check_sequence_preset, check_sequence_settings,
-                       scene_figures, scene_units, scene_weather)
+                       scene_figures, scene_units, scene_weather, second_view)
 from .settings import AttackSettings
 from .targets import TargetSpec, read_target_flow
 
@@ -84,6 +84,7 @@ class AttackJob:
     threads: Optional[int] = None       # torch threads of each unit (None: leave as is)
     scene_firsts: dict = field(default_factory=dict)   # each scene's first selected pair
     sequence: bool = False              # one weather per scene (weathergen.attack.sequence)
+    stereo: bool = False                # sequence: against the dataset's second camera too
 
     def __post_init__(self):
         self.model = resolve_network(self.model)
@@ -133,7 +134,8 @@ class AttackJob:
             "particles_from": str(self.particles_from) if self.particles_from else None,
             "attack": {**self.settings.to_dict(), "target": self.target.describe(),
                        "configuration": self.config_name,
-                       **({"sequence": True} if self.sequence else {})},
+                       **({"sequence": True} if self.sequence else {}),
+                       **({"stereo": True} if self.stereo else {})},
             "model": self.model_config(),
         }
 
@@ -271,7 +273,7 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
             try:
                 summary = write(job, model, pair, result, device)
                 if alone is not None:
-                    compare_alone(job, model, pair, alone[i], summary, device)
+                    compare_alone(job, model, pair, result, alone[i], summary, device)
             except OSError as exc:      # a full or unwritable disk stops the run, as render's
                 raise write_error(exc, job.out, "then rerun with ${resume}") from None
             summary.seconds = spent + share + time.perf_counter() - begin
@@ -336,8 +338,10 @@ def sequence_results(job: AttackJob, model, pairs: list, particles: list, device
                             airlight=scene_airlight(job.dataset, pairs[0].id, job.scene_firsts,
                                                     job.preset))
     options = dict(device=device, target_file_flow=target_file_flow)
+    seconds = ([second_view(p, right_camera(job.dataset, p)) for p in pairs] if job.stereo
+               else None)
     results = attack_sequence(model, pairs, particles, weather, job.settings, job.target,
-                              chunk=job.batch_size, on_step=on_step, **options)
+                              chunk=job.batch_size, seconds=seconds, on_step=on_step, **options)
     n = job.batch_size
     alone = [r for i in range(0, len(pairs), n)
              for r in attack_batch(model, pairs[i:i + n], particles[i:i + n], job.settings,
@@ -345,12 +349,18 @@ def sequence_results(job: AttackJob, model, pairs: list, particles: list, device
     return results, alone
 
 
-def compare_alone(job: AttackJob, model, pair, alone, summary: PairSummary, device) -> None:
+def compare_alone(job: AttackJob, model, pair, result, alone, summary: PairSummary,
+                  device) -> None:
     """Set a sequence attack's pair's figures of the pair attacked alone (``alone``, its
-    :class:`~weathergen.attack.AttackResult`), measured as the written ones."""
+    :class:`~weathergen.attack.AttackResult`), measured as the written ones, and of the second
+    camera where ``result`` has one (float frames)."""
     flow = stored_flow(job, model, pair, alone.best_particles, device)[3]
     summary.per_pair_aee_adversarial = float(aee(flow, alone.benign_flow).mean())
     summary.per_pair_target_adversarial = float(aee(flow, alone.target).mean())
+    if result.second is not None:
+        flows = result.second
+        summary.second_aee_random = float(aee(flows["initial"], flows["benign"]).mean())
+        summary.second_aee_adversarial = float(aee(flows["best"], flows["benign"]).mean())
 
 
 def lp_pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
@@ -458,6 +468,8 @@ def run_attack(job: AttackJob,
     if job.batch_size < 1:
         raise ConfigError(f"${{batch_size}} must be >= 1 (got {job.batch_size})")
     job.precision_setting()                # a request the device or network cannot meet
+    if job.stereo and not job.sequence:
+        raise ConfigError("${stereo} applies to ${sequence}: one weather seen by both cameras")
     if job.sequence:
         check_sequence_preset(job.preset, job.preset_name)
         check_sequence_settings(job.settings)

@@ -310,6 +310,8 @@ class AttackResult:
     best_flow: torch.Tensor
     target: torch.Tensor
     frozen: bool = False    # True when no variable could influence the loss (nothing visible)
+    #: a stereo sequence attack's second camera: its benign, initial and best flows (float frames)
+    second: Optional[dict] = None
 
 
 class StepLog:
@@ -647,7 +649,8 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
 
 
 #: The figures of a sequence attack's pairs attacked alone (None otherwise).
-SEQUENCE_FIGURES = ("per_pair_aee_adversarial", "per_pair_target_adversarial")
+SEQUENCE_FIGURES = ("per_pair_aee_adversarial", "per_pair_target_adversarial",
+                    "second_aee_random", "second_aee_adversarial")
 
 
 @dataclass
@@ -677,6 +680,9 @@ class PairSummary(RegionFigures):
     #: ``attack --sequence``: the figures of each pair attacked alone, same settings and start
     per_pair_aee_adversarial: Optional[float] = None
     per_pair_target_adversarial: Optional[float] = None
+    #: ``attack --sequence --stereo``: AEE(f, f̌) of the second camera (float frames)
+    second_aee_random: Optional[float] = None
+    second_aee_adversarial: Optional[float] = None
 
     @classmethod
     def from_dict(cls, data: dict) -> "PairSummary":

@@ -34,14 +34,18 @@ from typing import Callable, Optional, Sequence
 
 import torch
 
-from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, field_for_pair, field_record,
-                      pair_trajectories, pair_views)
+from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, field_for_pair,
+                      field_record, load_templates, pair_trajectories, pair_views,
+                      reference_transforms)
+from ..engine.rendering.stereo import render_right, render_right_layers, stereo_view, warp_view_depth
+from ..engine.rendering.tracks import pair_starts
 from ..errors import ConfigError
+from ..flow import aee
 from ..framepair import FramePair
 from .pair import (AttackResult, BatchOptimisation, LayeredVariables, StepLog, StepRecord,
                    WeatherVariables, group_optimizer, snapshot)
 from .settings import AttackSettings
-from .targets import TargetSpec
+from .targets import TargetSpec, target_flow
 
 #: The variables of one world weather.
 SEQUENCE_VARIABLES = ("offset1", "color", "transparency", "density", "airlight")
@@ -196,63 +200,151 @@ def _runs(model, pairs, particles, weather: SceneWeather, settings, target, devi
     return runs, scene
 
 
+@dataclass
+class SecondView:
+    """A pair's second (right) camera: its clean frames 1 and 2, (3, H, W) each, and its
+    :class:`~weathergen.engine.View` of each (occluded by the left depth warped into it)."""
+
+    images: tuple
+    views: tuple
+
+
+def second_view(pair: FramePair, camera) -> SecondView:
+    """The :class:`SecondView` of a pair from its dataset's right camera
+    (:func:`~weathergen.datasets.right_camera`), as ``render --stereo`` draws it."""
+    _, c1, c2 = reference_transforms(pair)
+    views = []
+    for depth, cam, kind in zip((pair.depth1, pair.depth2), (c1, c2),
+                                (pair.depth_provenance1, pair.depth_provenance2)):
+        right_depth, _ = warp_view_depth(depth, kind, pair.intrinsics, camera.right_from_left,
+                                         camera.intrinsics)
+        views.append(stereo_view(View(pair.intrinsics, cam, depth), camera.right_from_left,
+                                 right_depth, camera.intrinsics))
+    return SecondView((camera.image1, camera.image2), tuple(views))
+
+
+def second_frames(record, second: SecondView, beta: float) -> list[torch.Tensor]:
+    """The second camera's weather frames 1 and 2 of a pair's record, differentiable in it, as
+    ``render --stereo`` draws them. Shape: -> two (3, H, W)."""
+    if isinstance(record, LayeredParticles):
+        return render_right_layers(second.images, second.views, record, beta=beta)[0]
+    lib = load_templates(record.settings.templates)
+    device = second.images[0].device
+    start1, start2, moved = pair_starts(record, torch.float32, device)
+    return [render_right(image, view, record, start, moved, lib, beta=beta, frame=t)[0]
+            for t, (image, view, start) in enumerate(zip(second.images, second.views,
+                                                         (start1, start2)))]
+
+
+class _Seconds:
+    """The second cameras of one evaluation's pairs: their clean flow and goal, and their
+    distance to the goal under the pairs' current records."""
+
+    def __init__(self, model, seconds: Sequence[SecondView], target, target_file_flow, beta,
+                 device):
+        self.model, self.beta = model, beta
+        self.seconds = [SecondView(tuple(i.to(device) for i in s.images), tuple(
+            View(v.intrinsics.to(device), v.cam_from_ref.to(device), v.depth.to(device))
+            for v in s.views)) for s in seconds]
+        with torch.no_grad():
+            self.benign = model(*(torch.stack([s.images[t] for s in self.seconds])
+                                  for t in (0, 1)))
+        self.goal = target_flow(target, self.benign, target_file_flow)
+
+    def distances(self, records) -> tuple[torch.Tensor, torch.Tensor]:
+        """(B,) distances to the goal, with gradient, and the flow (B, 2, H, W)."""
+        frames = [second_frames(r, s, self.beta) for r, s in zip(records, self.seconds)]
+        flow = self.model(*(torch.stack([f[t] for f in frames]) for t in (0, 1)))
+        return aee(flow, self.goal), flow
+
+
+def _evaluate(run, seconds, scale: float, backward: bool) -> dict:
+    """One evaluation of a chunk of pairs (and their second cameras): the terms of the steps'
+    log, detached, after adding the gradient of ``scale`` times their losses."""
+    records, flow, loss, distance, penalty = run.evaluate()
+    total = loss.sum()
+    out = {"records": records, "depends": run.depends}
+    if seconds is not None:
+        far, second_flow = seconds.distances(records)
+        total = total + far.sum()
+        out.update(second=far.detach(), second_flow=second_flow.detach())
+    if backward and any(run.depends):
+        (total * scale).backward()
+    out.update(flow=flow.detach(), loss=loss.detach(), distance=distance.detach(),
+               penalty=penalty.detach())
+    return out
+
+
 def attack_sequence(model: torch.nn.Module, pairs: Sequence[FramePair], particles: Sequence,
                     weather: SceneWeather, settings: AttackSettings,
                     target: TargetSpec = TargetSpec("zero"), *, device=None,
                     target_file_flow: Optional[torch.Tensor] = None, chunk: int = 1,
+                    seconds: Optional[Sequence[SecondView]] = None,
                     on_step: Callable[[int, StepRecord], None] = lambda i, r: None
                     ) -> list[AttackResult]:
     """Optimise one weather for the pairs of a scene (see the module doc).
 
     Args: as :func:`~weathergen.attack.attack_batch`, and ``weather`` (:func:`scene_weather` of
-    these pairs and records), ``chunk`` the pairs evaluated in one forward pass.
+    these pairs and records), ``chunk`` the pairs evaluated in one forward pass, ``seconds``
+    each pair's :class:`SecondView` (stereo: the loss and the best step then take both cameras'
+    distances, averaged).
     Returns: one :class:`~weathergen.attack.AttackResult` per pair, all with the scene's best step
-    (each pair's record there, its history, its flows).
+    (each pair's record there, its history and flows: the left camera's); with ``seconds``,
+    each result's ``second`` holds the second camera's ``benign``, ``initial`` and ``best``
+    flows (float frames).
     """
     check_sequence_settings(settings)
-    pairs, particles = list(pairs), list(particles)
+    pairs, particles, n = list(pairs), list(particles), max(1, int(chunk))
     runs, scene = _runs(model, pairs, particles, weather, settings, target, device,
-                        target_file_flow, max(1, int(chunk)))
+                        target_file_flow, n)
+    twins = [None] * len(runs) if seconds is None else [
+        _Seconds(model, seconds[i * n:(i + 1) * n], target, target_file_flow, settings.beta,
+                 run.frames["image1"].device) for i, run in enumerate(runs)]
     optimizer = group_optimizer([scene], settings)
-    size, steps = len(pairs), int(settings.steps)
-    log = StepLog(size, on_step)
-    best, best_particles, initial = math.inf, [None] * size, [None] * size
+    size, steps, views = len(pairs), int(settings.steps), 1 if seconds is None else 2
+    log, keep = StepLog(size, on_step), {}
     benign = torch.cat([run.benign for run in runs])
-    frozen = False
     for step in range(steps + 1):
         t0 = time.perf_counter()
         optimizer.zero_grad(set_to_none=True)
-        current, flows, losses, distances, penalties, depends = [], [], [], [], [], []
-        for run in runs:
-            records, flow, loss, distance, penalty = run.evaluate()
-            if step < steps and any(run.depends):
-                (loss.sum() / size).backward()
-            current += records
-            flows.append(flow.detach())
-            losses.append(loss.detach())
-            distances.append(distance.detach())
-            penalties.append(penalty.detach())
-            depends += run.depends
-        flow, dists = torch.cat(flows), torch.cat(distances).cpu().tolist()
+        parts = [_evaluate(run, twin, 1 / (size * views), step < steps)
+                 for run, twin in zip(runs, twins)]
+        joined = {k: torch.cat([p[k] for p in parts]) for k in parts[0] if k not in
+                  ("records", "depends")}
+        dists = joined["distance"].cpu().tolist()
+        score = (sum(dists) + (float(joined["second"].sum()) if seconds else 0)) / (size * views)
         if step == 0:
-            initial = [flow[i:i + 1].cpu() for i in range(size)]
-        if sum(dists) / size < best:
-            best = sum(dists) / size
+            keep["initial"] = joined
+        if score < keep.get("score", math.inf):
+            keep.update(score=score, best=joined, records=[snapshot(r) for p in parts
+                                                            for r in p["records"]])
             for i in range(size):
                 log.best[i], log.best_step[i] = dists[i], step
-                log.best_flow[i] = flow[i:i + 1].cpu()
-                best_particles[i] = snapshot(current[i])
-        log.record(step, range(size), flow, benign, torch.cat(losses), dists,
-                   torch.cat(penalties), t0)
-        frozen = not any(depends)
+                log.best_flow[i] = joined["flow"][i:i + 1].cpu()
+        log.record(step, range(size), joined["flow"], benign, joined["loss"], dists,
+                   joined["penalty"], t0)
+        frozen = not any(d for p in parts for d in p["depends"])
         if step == steps or frozen:
             break
         optimizer.step()
+    return _results(runs, twins, log, keep, frozen)
+
+
+def _results(runs, twins, log: StepLog, keep: dict, frozen: bool) -> list[AttackResult]:
+    benign = torch.cat([run.benign for run in runs]).cpu()
     goal = torch.cat([run.goal for run in runs]).cpu()
-    return [AttackResult(best_particles=best_particles[i], best_step=log.best_step[i],
-                         history=log.history[i], benign_flow=benign[i:i + 1].cpu(),
-                         initial_flow=initial[i], best_flow=log.best_flow[i],
-                         target=goal[i:i + 1], frozen=frozen) for i in range(size)]
+    initial = keep["initial"]["flow"].cpu()
+    results = [AttackResult(best_particles=keep["records"][i], best_step=log.best_step[i],
+                            history=log.history[i], benign_flow=benign[i:i + 1],
+                            initial_flow=initial[i:i + 1], best_flow=log.best_flow[i],
+                            target=goal[i:i + 1], frozen=frozen) for i in range(len(benign))]
+    if twins[0] is not None:
+        second = torch.cat([t.benign for t in twins]).cpu()
+        first, best = keep["initial"]["second_flow"].cpu(), keep["best"]["second_flow"].cpu()
+        for i, result in enumerate(results):
+            result.second = {"benign": second[i:i + 1], "initial": first[i:i + 1],
+                             "best": best[i:i + 1]}
+    return results
 
 
 def scene_units(refs: Sequence) -> list[list]:
@@ -266,7 +358,8 @@ def scene_units(refs: Sequence) -> list[list]:
 
 #: The figures of a sequence attack's summary per scene.
 SCENE_FIGURES = ("aee_random", "aee_adversarial", "per_pair_aee_adversarial", "target_initial",
-                 "target_adversarial", "per_pair_target_adversarial")
+                 "target_adversarial", "per_pair_target_adversarial", "second_aee_random",
+                 "second_aee_adversarial")
 
 
 def scene_figures(rows: Sequence) -> dict:
