@@ -22,7 +22,9 @@ to its target plus the offset penalty at its own depths); pairs are evaluated ``
 and their gradients added, then Adam takes one step (one group per learning-rate group). The
 best step is the one with the lowest mean distance over the scene's pairs: one weather for all.
 ``offset2`` (a move in frame 2 alone) and ``compat="reference"`` (the research code attacks
-pairs) have no place here and are refused.
+pairs) have no place here and are refused. With each pair's second camera
+(:class:`SecondView`, stereo), the same weather is drawn into its frames as ``render --stereo``
+draws it, and each pair's loss adds that camera's distance to its target.
 """
 
 from __future__ import annotations
