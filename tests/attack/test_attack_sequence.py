@@ -3,6 +3,7 @@ and the learning rate of each variable group, as used and as recorded."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -94,6 +95,11 @@ def test_what_a_world_weather_cannot_be_is_refused(street, raft_small):
                              "reference")):
         with pytest.raises(ConfigError, match=match):
             attack_sequence(raft_small, street[:1], records, weather, settings)
+    # pairs without a shared world (cameras known only relative to each other) have no scene
+    unposed = [dataclasses.replace(p, cam1_from_world=None, cam2_from_world=None)
+               for p in street[:2]]
+    with pytest.raises(ConfigError, match="one world"):
+        scene_records(unposed, preset)
 
 
 def test_each_group_moves_at_its_own_rate_as_recorded(street, raft_small):
@@ -176,6 +182,16 @@ def test_the_command_writes_both_figures_and_its_output_rerenders(tmp_path, raft
     for path in written:
         rendered = again / "training" / "snow-light_clean" / path.parent.name / path.name
         assert np.array_equal(cv2.imread(str(path)), cv2.imread(str(rendered))), path
+    # a scene with an unfinished pair is redone whole on --resume; a finished one is skipped
+    (out / "training" / "particles" / "street_0002" / "frame_0002.npz").unlink()
+    args = ["attack", "--model", "raft-small", "--checkpoint", raft_small_weights, "--iters", "2",
+            "--scenes", "street", "--frames-per-scene", "2", "--preset", "snow-light", "--set",
+            "density=100", "--sequence", "--steps", "2", "--seed", "1", "--group-lr", "color=0.1",
+            "--out", out, "--resume"]
+    for _ in range(2):
+        assert invoke(args).exit_code == 0
+    runs = json.loads((out / "manifest.json").read_text())["runs"]
+    assert [(r["written"], r["skipped"]) for r in runs] == [(2, 0), (2, 0), (0, 2)]
 
 
 @pytest.mark.slow
