@@ -648,7 +648,8 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
                         on_step=lambda i, record: on_step(record))[0]
 
 
-#: The figures of a sequence attack's pairs attacked alone (None otherwise).
+#: A sequence attack's figures: its pairs attacked alone, and its second camera with --stereo
+#: (None, and left out of the means, otherwise).
 SEQUENCE_FIGURES = ("per_pair_aee_adversarial", "per_pair_target_adversarial",
                     "second_aee_random", "second_aee_adversarial")
 
