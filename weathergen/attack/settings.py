@@ -35,7 +35,7 @@ LR_GROUPS = {"positions": ("offset1", "offset2", "offset1_w"), "color": ("color"
 #: (docs/attack.md, "Learning rates"). The paper's presets keep the paper's rates
 #: (:func:`default_lr`) for their particles; the atmosphere's rates are these for every preset.
 FIELD_LR = {"positions": 1e-3, "color": 5e-2, "transparency": 5e-2, "density": 0.3,
-            "airlight": 0.2}
+            "airlight": 1.0}
 #: ``paper``: the paper's equations and tables; ``reference``: the research code's behaviour
 #: where it departs from them (see :mod:`weathergen.attack.compat`).
 COMPAT_MODES = ("paper", "reference")
