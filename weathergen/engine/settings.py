@@ -31,9 +31,11 @@ APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defoc
 APPEARANCE_FIELDS = ("blend", "blur_length", "blur_samples", "defocus_brighten", "coarse")
 #: Fields a particle file holds only when they differ from their default (files written before
 #: they existed read as the default, and files of the default keep their bytes).
-OPTIONAL_FIELDS = ("coarse", "blur_blend")
+OPTIONAL_FIELDS = ("coarse", "blur_blend", "stamp_style")
 #: How an α-blended record's blur samples are blended: all at once, or one after another.
 BLUR_BLENDS = ("sum", "sequential")
+#: How a record's stamps are made from its templates: weathergen's, or as the research code does.
+STAMP_STYLES = ("smooth", "research")
 
 
 @dataclass(frozen=True)
@@ -49,7 +51,11 @@ class RenderSettings:
     every pixel exactly); blur_blend: how an α-blended record's K blur samples are blended,
     ``sum``: all at once, ``I (1 − ΣA) + ΣC`` (weathergen's), ``sequential``: one after another
     in their order along the streak, ``I_k = clamp(I_{k−1} (1 − A_k) + C_k, 0, 1)`` (the
-    research code's; what ``compat="reference"`` draws, see :meth:`for_compat`).
+    research code's; what ``compat="reference"`` draws, see :meth:`for_compat`); stamp_style:
+    ``smooth`` (weathergen's: the footprint as sampled, a defocused stamp softened by the box of
+    :func:`~weathergen.engine.stamps.soft_box`) or ``research`` (what ``compat="reference"``
+    draws: the footprint of the research code's whole-pixel flake window, no softening, the
+    record's own blur samples; see docs/render.md, "The look of the paper's presets").
     """
 
     blend: str = "additive"
@@ -60,11 +66,15 @@ class RenderSettings:
     templates_digest: str = ""
     coarse: bool = True
     blur_blend: str = "sum"
+    stamp_style: str = "smooth"
 
     def __post_init__(self):
         if self.blur_blend not in BLUR_BLENDS:
             raise ConfigError(f"blur_blend must be {' or '.join(BLUR_BLENDS)}; "
                               f"got {self.blur_blend!r}")
+        if self.stamp_style not in STAMP_STYLES:
+            raise ConfigError(f"stamp_style must be {' or '.join(STAMP_STYLES)}; "
+                              f"got {self.stamp_style!r}")
 
     @classmethod
     def from_preset(cls, preset: Preset, library: Optional[TemplateLibrary] = None) -> "RenderSettings":
@@ -89,10 +99,13 @@ class RenderSettings:
 
     def for_compat(self, compat: str) -> "RenderSettings":
         """The settings drawn under ``compat``: ``reference`` blends the blur samples of an
-        α-blended, motion-blurred record one after another, as the research code does
-        (``sequential``); ``paper`` all at once (``sum``). The other fields are kept."""
-        ordered = compat == "reference" and self.blend == "alpha" and self.motion_blurred
-        return self.replace(blur_blend="sequential" if ordered else "sum")
+        α-blended, motion-blurred record one after another and makes its stamps as the
+        research code does (``sequential``, ``research``); ``paper`` all at once, weathergen's
+        stamps (``sum``, ``smooth``). The other fields are kept."""
+        reference = compat == "reference"
+        ordered = reference and self.blend == "alpha" and self.motion_blurred
+        return self.replace(blur_blend="sequential" if ordered else "sum",
+                            stamp_style="research" if reference else "smooth")
 
     def appearance(self) -> dict:
         """The fields that may change when stored particles are rendered again."""
@@ -126,4 +139,7 @@ class RenderSettings:
         if values.get("blur_blend", "sum") not in BLUR_BLENDS:     # (before __post_init__'s)
             raise FormatError(path, f"unknown blur_blend {values['blur_blend']!r} (expected "
                                     f"{' or '.join(BLUR_BLENDS)})")
+        if values.get("stamp_style", "smooth") not in STAMP_STYLES:
+            raise FormatError(path, f"unknown stamp_style {values['stamp_style']!r} (expected "
+                                    f"{' or '.join(STAMP_STYLES)})")
         return cls(**values)
