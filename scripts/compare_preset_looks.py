@@ -319,6 +319,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "weathergen's side alone)")
     parser.add_argument("--research-python", default=sys.executable,
                         help="the interpreter that runs the research code")
+    parser.add_argument("--reuse", action="store_true",
+                        help="read the research code's particles an earlier run left in --out "
+                             "(it is not run again)")
+    parser.add_argument("--research-commit", default=None,
+                        help="the research code's commit (default: asked of its git checkout)")
     parser.add_argument("--research-seeds", type=int, default=5)
     parser.add_argument("--seeds", type=int, default=10, help="weathergen's seeds")
     parser.add_argument("--size", default="1024x436", help="frame size WxH")
@@ -329,6 +334,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--json", type=Path, help="also write the figures here")
     parser.add_argument("--worker", action="store_true", help=argparse.SUPPRESS)
     return parser.parse_args(argv)
+
+
+def research_commit(args) -> str:
+    """``--research-commit``, else the research checkout's HEAD, else ``unknown``."""
+    if args.research_commit or args.research is None:
+        return args.research_commit or "unknown"
+    found = subprocess.run(["git", "-C", str(args.research), "rev-parse", "HEAD"],
+                           capture_output=True, text=True)
+    return found.stdout.strip() if found.returncode == 0 else "unknown"
 
 
 def run_research(args, rows: list, counts: dict) -> None:
@@ -356,17 +370,22 @@ def main(argv=None) -> dict:
     rows = [r.strip() for r in args.rows.split(",") if r.strip()]
     write_scene(args.out / "sintel", h, w)
     counts = {r: frame_scaling(load_preset(OURS[r][0]), h, w).count for r in rows}
-    if args.research is not None:
+    research = args.research is not None or args.reuse
+    if args.research is not None and not args.reuse:
         run_research(args, rows, counts)
     ds = open_dataset("sintel", args.out / "sintel")
     pair = ds.load(ds.pairs()[0])
+    commit = research_commit(args) if research else None
     print(f"scene {w}x{h}, weathergen: {args.seeds} seeds, --compat {args.compat}; research code: "
-          f"{args.research_seeds if args.research else 0} seeds; mean ± sd over the seeds")
-    figures = {"size": [w, h], "compat": args.compat, "rows": {}}
+          f"{args.research_seeds if research else 0} seeds (commit {commit}); mean ± sd over "
+          "the seeds")
+    figures = {"size": [w, h], "compat": args.compat, "research_commit": commit,
+               "seeds": args.seeds, "research_seeds": args.research_seeds if research else 0,
+               "rows": {}}
     for row in rows:
         o = summary(ours(pair, row, args.seeds, args.compat))
         t = summary(theirs(pair, args.out / "research", row, args.research_seeds)) \
-            if args.research is not None else None
+            if research else None
         figures["rows"][row] = {"weathergen": o, "research": t, "count": counts[row]}
         print_table(row, o, t)
     if args.json:
@@ -376,16 +395,10 @@ def main(argv=None) -> dict:
 
 
 def recorded() -> int:
-    """main(), its printout recorded as a section of the figures file."""
-    sys.path.insert(0, str(ROOT))
+    """main(), its printout recorded as a section of the figures file (speed/figures.py)."""
     sys.path.insert(0, str(ROOT / "speed"))
-    if "--worker" in sys.argv:
-        main()
-        return 0
     import figures
-    command = " ".join(["python", "scripts/compare_preset_looks.py", *sys.argv[1:]])
-    return figures.record(lambda: (main(), None)[1], ["compare_preset_looks.py", *sys.argv[1:]]) \
-        if command else 0
+    return figures.record(lambda: (main(), None)[1])
 
 
 if __name__ == "__main__":
