@@ -239,8 +239,8 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
             xt = x1 if t == 0 else x2
             along = [x2[a] - x1[a] for a in range(3)]
             footprint = float(record.scale[j]) * resolution
-            if research:        # the disc of the area of the research code's n x n window
-                footprint = math.floor(footprint) * 2 / math.sqrt(math.pi)
+            if research:        # the disc of the area of the research code's n x n window (at most f)
+                footprint = min(math.floor(footprint) * 2 / math.sqrt(math.pi), footprint)
             bright = bool(s.defocus_brighten) and int(record.defocus[j]) > 1
             looks = (template, max(footprint, 1.0), int(record.defocus[j]), rotation,
                      UNSOFTENED if bright and research else bright)

@@ -568,10 +568,12 @@ class RecordRows:
 def fixed_looks(table: ParticleTable, rows: RecordRows, resolution: int) -> Looks:
     """The paper's model: looks fixed at sampling (footprint ``scale`` x template pixels; for a
     ``research`` record the disc of the area of the ``n x n`` window, n = floor(footprint),
-    into which the research code resamples its flakes: :data:`RESEARCH_DISC` n)."""
+    into which the research code resamples its flakes, :data:`RESEARCH_DISC` n, at most the
+    footprint itself)."""
     research = rows.research[table.record]
     footprint = table.scale * resolution
-    footprint = torch.where(research, footprint.floor() * RESEARCH_DISC, footprint).clamp(min=1.0)
+    window = torch.minimum(footprint.floor() * RESEARCH_DISC, footprint)
+    footprint = torch.where(research, window, footprint).clamp(min=1.0)
     return Looks(footprint=footprint, defocus=table.defocus,
                  rotation=table.rotation, template=table.template,
                  brighten=rows.brighten[table.record] & (table.defocus > 1),
