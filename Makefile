@@ -9,9 +9,10 @@
 #   make test-slow             the end-to-end tests (marker slow); CI runs make test, then this
 #   make demo                  render the default preset on the bundled demo scene
 #   make bench                 measure speed and memory (renderer, weather field, combined weather,
-#                              networks, attack step, batched attacks, training, the README's quick
-#                              look) and write the figures, with the tree and machine they were
-#                              measured on, into docs/figures/bench.md and bench.json;
+#                              the atmosphere, networks, attack step, batched attacks, training,
+#                              the README's quick look) and write the figures, with the tree and
+#                              machine they were measured on, into docs/figures/bench.md and
+#                              bench.json;
 #                              FOG_BEFORE=DIR also times fog with the weathergen source tree
 #                              DIR (e.g. an older commit's), CORE_BEFORE=DIR the render core
 #                              against the renderer of tree DIR
@@ -111,6 +112,7 @@ bench: install
 	$(BIN)/python speed/bench_core.py $(if $(CORE_BEFORE),--before $(CORE_BEFORE))
 	$(BIN)/python speed/bench_field.py
 	$(BIN)/python speed/bench_combined.py
+	$(BIN)/python speed/bench_atmosphere.py
 	$(BIN)/python speed/bench_models.py
 	$(BIN)/python speed/bench_attack.py --checkpointing both
 	$(BIN)/python speed/bench_training.py

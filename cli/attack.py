@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 from pathlib import Path
 
 import click
@@ -12,18 +13,18 @@ from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, T
 from rich.table import Table
 
 from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, LP_METHODS, PCFA_OPTIMIZERS, AttackJob,
-                               lp_pass_name, parse_target, plan_lp, run_attack)
+                               EarlyStop, lp_pass_name, parse_target, plan_lp, run_attack)
 from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
+from weathergen.attack.record import settings_text
 from weathergen.datasets import in_research_frame
 from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.execution import RunClock, check_executor
 from weathergen.words import counted
 
-from .options import (attack_steps, compat_option, dataset_options, device_option, executor_options,
-                      job_exit_codes,
-                      model_options, out_option, overwrite_option, quiet_option, resume_option,
-                      seed_option)
+from .options import (attack_steps, compat_option, dataset_options, device_option, early_stop_option,
+                      executor_options, job_exit_codes, model_options, out_option, overwrite_option,
+                      quiet_option, resolve_model, resume_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 
@@ -66,7 +67,10 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
             ("EPE weather / clear pixels", pair("epe_weather_px", "epe_clear_px")),
             ("Fl-all; outliers > 1, 3, 5 px (%)",
              f"{_fmt(summary['fl_all'], 2)}; " + ", ".join(
-                 _fmt(summary[f"outliers_{n}px"], 2) for n in (1, 3, 5)))]
+                 _fmt(summary[f"outliers_{n}px"], 2) for n in (1, 3, 5))),
+            ("robust EPE; Fl, 1px (%) vs clean flow (RobustSpring)",
+             f"{_fmt(summary.get('robust_epe'))}; {_fmt(summary.get('robust_fl'), 2)}, "
+             f"{_fmt(summary.get('robust_1px'), 2)}")]
 
 
 @click.command(epilog=job_exit_codes(every_failed=1))
@@ -123,6 +127,7 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
               help="Soften occlusion (beta 30 instead of 250) so gradients pass through it. "
                    "Default: on for fog, off otherwise.")
 @compat_option
+@early_stop_option
 @click.option("--gradient-checkpointing", is_flag=True,
               help="Recompute the network's refinement steps in the backward pass (less memory, "
                    "more time).")
@@ -136,12 +141,12 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 @resume_option("Finish an interrupted run: skip finished pairs.")
 @overwrite_option("Redo every pair, even in a folder that holds one.")
 @quiet_option
-def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, optimizer, config_name,
-           preset, set_items,
+def attack(dataset, model, checkpoint, iters, download, model_input, amp, precision, method, epsilon,
+           optimizer, config_name, preset, set_items,
            particles_dir, steps,
            optimize, optimize_layer, lr, alpha1, alpha2, target_text, occlusion_gradient,
-           compat, gradient_checkpointing, out, seed, device, batch_size, executor, ray_address, resume,
-           overwrite, quiet):
+           compat, early_stop, gradient_checkpointing, out, seed, device, batch_size, executor, ray_address,
+           resume, overwrite, quiet):
     """Optimise weather particles so that a flow network's output moves towards a target.
 
     With no option it attacks RAFT with snow on the bundled demo scene into out/attack-snow.
@@ -152,9 +157,12 @@ def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, op
     if executor == "local":       # a Ray driver need not have the workers' devices
         resolve_device(device)
     target = parse_target(target_text)
+    model = resolve_model(model, model_input)
     execution = dict(batch_size=batch_size, executor=executor, ray_address=ray_address,
-                     threads=torch.get_num_threads())
+                     threads=torch.get_num_threads(), precision=precision)
     if method != "weather":
+        if early_stop is not None:
+            raise ConfigError("${early_stop} applies to the weather attack only")
         lp = plan_lp(method, epsilon, steps, lr, optimizer, config_name=config_name, preset=preset,
                      overrides=tuple(set_items), particles_from=particles_dir, optimize=optimize,
                      optimize_layer=optimize_layer, occlusion_gradient=occlusion_gradient,
@@ -173,6 +181,7 @@ def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, op
             raise ConfigError("${epsilon} applies to --method pcfa or ifgsm only")
         if optimizer is not None:
             raise ConfigError("${optimizer} applies to --method pcfa only")
+        early_stop = None if early_stop is None else EarlyStop.parse(early_stop)
         steps = DEFAULT_STEPS if steps is None else steps
         if compat == "reference":       # the research code's frame and scaling too
             dataset = in_research_frame(dataset)
@@ -180,15 +189,15 @@ def attack(dataset, model, checkpoint, iters, download, amp, method, epsilon, op
                                   preset, set_items, particles_dir, steps, optimize, lr, alpha1,
                                   alpha2, target, occlusion_gradient, compat or "paper",
                                   gradient_checkpointing, out, seed, device, resume, overwrite,
-                                  execution, amp, optimize_layer)
+                                  execution, amp, optimize_layer, early_stop)
         out = job.out
-    _run(job, model, label, target, steps, out, quiet)
+    _run(job, model.label, label, target, steps, out, quiet)
 
 
 def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
                  particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
                  compat, gradient_checkpointing, out, seed, device, resume, overwrite, execution,
-                 amp, optimize_layer=None):
+                 amp, optimize_layer=None, early_stop=None):
     plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
                        optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
                        steps=steps, alpha1=alpha1, alpha2=alpha2, compat=compat,
@@ -196,7 +205,8 @@ def _weather_job(dataset, model, checkpoint, iters, download, config_name, prese
     label = plan.label
     out = out or default_attack_out(label)
     job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
-                    preset=plan.preset, preset_name=plan.preset_name, settings=plan.settings,
+                    preset=plan.preset, preset_name=plan.preset_name,
+                    settings=replace(plan.settings, early_stop=early_stop),
                     target=target, iters=iters, seed=seed, device=device,
                     particles_from=particles_dir, config_name=config_name,
                     pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
@@ -287,6 +297,8 @@ def _run(job, model, label, target, steps, out, quiet):
                                     f"{target.describe()}{mode} (pixels)", summary,
                                     "weather" if job.lp is None else "perturbation",
                                     compat=compat_mode))
+        console.print(f"Settings: {settings_text(summary['settings'])}", highlight=False,
+                      soft_wrap=True)
         console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
                       soft_wrap=True)
     if failed:

@@ -8,7 +8,7 @@ from pathlib import Path
 import click
 from rich.console import Console
 
-from weathergen.attack import run_attack
+from weathergen.attack import EarlyStop, run_attack
 from weathergen.benchmark import (DEFAULT_LP, DEFAULT_PRESETS, BenchmarkSpec, available_ladders, run_grid,
                                   tr115_default, write_tables)
 from weathergen.datasets import in_research_frame
@@ -16,7 +16,8 @@ from weathergen.engine import parse_set_options, resolve_device
 from weathergen.errors import ConfigError
 from weathergen.render.shards import parse_shard
 
-from .options import (BAD_INPUT, amp_option, attack_steps, compat_option, dataset_options,
+from .options import (BAD_INPUT, amp_option, attack_steps, compat_option, dataset_options, early_stop_option,
+                      precision_option,
                       device_option, exit_codes, quiet_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
@@ -56,7 +57,7 @@ def _checkpoints(items) -> dict:
 @click.option("--lp", "lp_text", default=None, metavar="A,B,...",
               help=f"Lp attacks (pcfa, ifgsm); '' for none. Default: {','.join(DEFAULT_LP)}, "
                    "none with --ladder.")
-@click.option("--ladder", "ladder_text", default="", metavar="A,B,...",
+@click.option("--ladder", "ladder_text", default=None, metavar="A,B,...",
               help=f"Severity ladders ({', '.join(available_ladders())}): each weather's -light, "
                    "-moderate and -heavy presets, random and adversarial, one curve per network "
                    "(ladders.csv, ladder.png) and its robustness score (robustness.csv).")
@@ -76,12 +77,15 @@ def _checkpoints(items) -> dict:
 @click.option("--out", type=click.Path(file_okay=False, path_type=Path),
               default=Path("out/benchmark"), show_default=True, help="Benchmark folder.")
 @compat_option
+@early_stop_option
 @seed_option("Run seed of every run (weather as `weathergen render --seed`).")
 @device_option
 @amp_option
+@precision_option
 @quiet_option
 def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text, steps, lp_steps, iters,
-              set_items, shard_text, download, out, compat, seed, device, amp, quiet):
+              set_items, shard_text, download, out, compat, early_stop, seed, device, amp, precision,
+              quiet):
     """Run networks x {random weather, adversarial weather, Lp attacks} x presets and write
     the paper's tables (CSV, JSON, Markdown, LaTeX; one file per table in OUT/tables) and a plot
     of AEE per network and preset (OUT/aee.png) into OUT; with --ladder also each network's
@@ -94,7 +98,10 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text
     resolve_device(device)
     if compat == "reference":           # the research code's frame and scaling too
         dataset = in_research_frame(dataset)
-    ladders = _names(ladder_text)
+    ladders = _names(ladder_text or "")
+    if ladder_text is not None and not ladders:
+        raise ConfigError(f"${{ladder}} {ladder_text!r} names no ladder: expected "
+                          f"{', '.join(available_ladders())}")
     spec = BenchmarkSpec(
         dataset=tr115_default(dataset), out=out, networks=_names(networks),
         presets=_names(presets) if presets is not None else [] if ladders else list(DEFAULT_PRESETS),
@@ -102,7 +109,11 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text
         ladders=ladders,
         checkpoints=_checkpoints(checkpoint_items), steps=steps, lp_steps=lp_steps, iters=iters,
         overrides=parse_set_options(set_items), seed=seed, device=device, download=download,
-        amp=amp, command=["weathergen", *sys.argv[1:]], compat=compat or "paper")
+        amp=amp, precision=precision, command=["weathergen", *sys.argv[1:]], compat=compat or "paper",
+        early_stop=None if early_stop is None else EarlyStop.parse(early_stop))
+    for network in spec.resolved.values():
+        if network.note():
+            click.echo(f"Note: {network.note()}", err=True)
     shard = parse_shard(shard_text) if shard_text else None
     console = Console()
 

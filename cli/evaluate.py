@@ -9,16 +9,17 @@ from rich.console import Console
 from rich.table import Table
 
 from weathergen.attack import default_evaluation_path, run_evaluation, write_evaluation
+from weathergen.attack.record import run_settings, settings_text
 from weathergen.engine import resolve_device
-from weathergen.models import canonical_network, get_model, network_label, network_record, resolve_amp
+from weathergen.models import AUTOCAST, get_model, resolve_precision
 from weathergen.datasets import load_scene_scales, open_dataset
 from weathergen.errors import ConfigError
 from weathergen.io.published_weather import is_published_set
-from weathergen.outputs import PublishedWeatherSet, WeatherFolder
-from weathergen.render import resolve_preset
+from weathergen.outputs import PublishedWeatherSet, WeatherFolder, read_manifest
+from weathergen.render import published_preset, resolve_preset
 
 from .attack import region_rows
-from .options import BAD_INPUT, STOPPED, device_option, exit_codes, model_options, quiet_option
+from .options import BAD_INPUT, STOPPED, device_option, exit_codes, model_options, quiet_option, resolve_model
 
 
 def _fmt(value) -> str:
@@ -43,10 +44,12 @@ def _fmt(value) -> str:
                    "folder name says (particles_3000_npz: particles-3000).")
 @click.option("--json", "json_path", type=click.Path(dir_okay=False, path_type=Path),
               default=None, help="Write the figures here. Default: WEATHER/evaluate-<model>.json (a network of "
-                   "your own: evaluate-<file stem>.<NAME>.json).")
+                   "your own: evaluate-<file stem>.<NAME>.json); for a published set, which is "
+                   "left as it is, evaluate-<set>-<model>.json in the working folder.")
 @device_option
 @quiet_option
-def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name, root, pass_,
+def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, precision, dataset_name,
+             root, pass_,
              preset, json_path, device, quiet):
     """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
 
@@ -56,7 +59,8 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
     weather flow. All figures are in pixels, rates in percent.
     """
     resolve_device(device)
-    amp = resolve_amp(model, amp, device)
+    model = resolve_model(model, model_input)
+    precision = resolve_precision(model, precision, amp, device)
     if is_published_set(weather_dir):
         folder = open_published(weather_dir, preset, dataset_name, root, pass_)
     else:
@@ -65,7 +69,8 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
                                    "weathergen folder records its preset")
         folder = WeatherFolder.open(weather_dir)
     dataset = folder.clean_dataset(dataset_name, root, pass_)
-    network = get_model(model, checkpoint, device=device, iters=iters, download=download, amp=amp)
+    network = get_model(model, checkpoint, device=device, iters=iters, download=download,
+                        precision=precision)
     console = Console()
 
     def on_pair(row):
@@ -74,18 +79,24 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
                           soft_wrap=True)
 
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
-    info = {"model": canonical_network(model), "checkpoint": checkpoint, "iters": iters, "amp": amp,
+    info = {"model": model.name, "checkpoint": checkpoint, "iters": iters,
+            "amp": precision in AUTOCAST, "precision": precision,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
-    source = network_record(model)
+    source = model.source()
     if source is not None:
         info["source"] = source
-    if isinstance(folder, PublishedWeatherSet):
+    published = isinstance(folder, PublishedWeatherSet)
+    if published:
         info["published"] = {"preset": folder.preset_name}
-    json_path = json_path or default_evaluation_path(weather_dir, network_label(model))
+    info["settings"] = run_settings(
+        model, checkpoint, iters=getattr(network, "iters", iters), precision=precision,
+        padding=network.padding,
+        seed=None if published else read_manifest(weather_dir, "weather").data.get("seed"))
+    json_path = json_path or default_evaluation_path(weather_dir, model.label, published)
     write_evaluation(json_path, info, rows, summary)
     if quiet:
         return
-    table = Table(title=f"weathergen evaluate: {network_label(model)} on {weather_dir} (pixels)")
+    table = Table(title=f"weathergen evaluate: {model.label} on {weather_dir} (pixels)")
     for i, col in enumerate(("pair", "AEE(f, f̌)", "EPE clean", "EPE weather")):
         table.add_column(col, justify="left" if i == 0 else "right")
     for r in rows:
@@ -96,6 +107,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, amp, dataset_name,
     console.print(table)
     for label, value in region_rows(summary):
         console.print(f"{label}: {value}", highlight=False, soft_wrap=True)
+    console.print(f"Settings: {settings_text(info['settings'])}", highlight=False, soft_wrap=True)
     console.print(f"Figures: {json_path}", highlight=False, soft_wrap=True)
 
 
@@ -105,6 +117,10 @@ def open_published(folder, preset, dataset_name, root, pass_) -> PublishedWeathe
     if root is None:
         raise ConfigError(f"{folder} holds the paper's published weather (particles, no record of "
                           f"the dataset): give the clean dataset with ${{root}}")
+    if preset is None and published_preset(folder) is None:
+        raise ConfigError(f"${{weather}} {folder}: published weather does not record the preset "
+                          f"it was generated with, and the folder's name does not say: name it "
+                          f"with ${{preset}} (e.g. particles-3000)")
     resolved = resolve_preset(preset, None, None, folder)
     dataset = open_dataset(dataset_name or "sintel", root, pass_=pass_ or "clean",
                            scene_scales=load_scene_scales("research"), camera_translation="unscaled")

@@ -15,8 +15,8 @@ from rich.table import Table
 
 from weathergen.datasets import frame_rates_text
 from weathergen.engine import FrameScaling
-from weathergen.engine.layers import layer_arrays
-from weathergen.engine.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
+from weathergen.engine.records.layered import layer_arrays
+from weathergen.engine.records.particles import LAYERED_FORMAT_VERSION, TENSOR_FIELDS, Particles, stored_as
 from weathergen.errors import ConfigError
 from weathergen.io.atomic import remove_temporaries, write_error
 from weathergen.io.published_weather import is_published_file, read_published_weather
@@ -24,7 +24,8 @@ from weathergen.io.images import write_png
 from weathergen.io.video import check_video_path, write_video
 from weathergen.outputs import read_metadata, stored_frame_scaling
 from weathergen.render import contact_sheet, video_preview
-from weathergen.render.video import MIN_SECONDS, PAIR_FPS, PAIR_SECONDS
+from weathergen.render.preview import MAX_TILE_WIDTH
+from weathergen.render.video import MAX_CYCLES, MAX_FPS, MIN_FPS, MIN_SECONDS, PAIR_FPS, PAIR_SECONDS
 from weathergen.words import counted
 
 from .options import BAD_INPUT, STOPPED, exit_codes
@@ -73,23 +74,8 @@ def inspect(file: Path):
         ("visible in frame 1 / 2", f"{int(arrays['visible1'])} / {int(arrays['visible2'])}"
                                    if "visible1" in arrays else "not recorded"),
     ]
-    if layered:
-        seeds = np.atleast_1d(arrays.get("layer_seeds", np.zeros(0, np.uint64)))
-        for k, (name, a, n) in enumerate(zip(names, layers, counts)):
-            seed = f", seed {int(seeds[k])}" if k < len(seeds) else ""
-            rows.append((f"layer {k}", f"{name}: {counted(n, 'particle')}, {_looks(a)}{seed}"))
-            rows.append((f"layer {k} for the frame", _scaling_text(scalings[k])))
-        rows.append(("reference frame", str(layers[0].get("frame", "?"))))
-    else:
-        rows += [
-            ("reference frame", str(arrays.get("frame", "?"))),
-            ("blend", str(arrays.get("blend", "?"))),
-            ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, "
-                            f"{int(arrays.get('blur_samples', 1))} samples"),
-            ("templates", str(arrays.get("templates", "?")) if "stamp_boxes" not in arrays else
-             f"none: each particle's own stored stamp ({int(arrays['stamp_side'])} px square, "
-             f"from the paper's published weather)"),
-        ]
+    rows += (_layer_rows(arrays, names, layers, counts, scalings) if layered
+             else _record_rows(arrays))
     version = int(layers[0].get("format_version", 0))
     rows += [
         ("format", f"metadata v{int(arrays['metadata_version'])}, particles v{version}"
@@ -103,6 +89,31 @@ def inspect(file: Path):
     for name, a in zip(names, layers):
         title = f"per-particle values{f' of layer {name}' if name else ''} (as Particles.load reads them)"
         console.print(_ranges(a, title, file))
+
+
+def _layer_rows(arrays: dict, names: list, layers: list, counts: list, scalings: list) -> list:
+    """The rows of a combined preset's layers: each layer's look, seed and frame scaling."""
+    rows = []
+    seeds = np.atleast_1d(arrays.get("layer_seeds", np.zeros(0, np.uint64)))
+    for k, (name, a, n) in enumerate(zip(names, layers, counts)):
+        seed = f", seed {int(seeds[k])}" if k < len(seeds) else ""
+        rows.append((f"layer {k}", f"{name}: {counted(n, 'particle')}, {_looks(a)}{seed}"))
+        rows.append((f"layer {k} for the frame", _scaling_text(scalings[k])))
+    rows.append(("reference frame", str(layers[0].get("frame", "?"))))
+    return rows
+
+
+def _record_rows(arrays: dict) -> list:
+    """The rows of one record's look: reference frame, blend, motion blur and templates."""
+    return [
+        ("reference frame", str(arrays.get("frame", "?"))),
+        ("blend", str(arrays.get("blend", "?"))),
+        ("motion blur", f"length {float(arrays.get('blur_length', 0)):g}, "
+                        f"{int(arrays.get('blur_samples', 1))} samples"),
+        ("templates", str(arrays.get("templates", "?")) if "stamp_boxes" not in arrays else
+         f"none: each particle's own stored stamp ({int(arrays['stamp_side'])} px square, "
+         f"from the paper's published weather)"),
+    ]
 
 
 def _published(console: Console, file: Path) -> None:
@@ -213,17 +224,17 @@ def _ranges(arrays: dict, title: str, path: Path) -> Table:
 @click.option("--pairs", type=click.IntRange(min=1), default=None,
               help="Pairs to show (the first ones). Default: 4 on the contact sheet (it says when "
                    "there are more), all in a video.")
-@click.option("--width", type=click.IntRange(min=64), default=None,
+@click.option("--width", type=click.IntRange(64, MAX_TILE_WIDTH), default=None,
               help="Width of each tile. Default: 480 on the contact sheet, the frames' own in a "
                    "video.")
 @click.option("--with-input", is_flag=True,
               help="--video: show the clean input frame left of the weather frame.")
 @click.option("--with-opacity", is_flag=True,
               help="--video: show the particles' opacity right of the weather frame.")
-@click.option("--fps", type=click.FloatRange(min=0, min_open=True), default=None,
+@click.option("--fps", type=click.FloatRange(MIN_FPS, MAX_FPS), default=None,
               help=f"--video: frames per second. Default: for a --sequence output the dataset's "
                    f"({frame_rates_text()}) or a field preset's frame_rate; for pairs {PAIR_FPS:g}.")
-@click.option("--cycles", type=click.IntRange(min=1), default=None,
+@click.option("--cycles", type=click.IntRange(1, MAX_CYCLES), default=None,
               help="--video of pairs: how often each pair shows frame 1 and frame 2. "
                    f"Default: for {PAIR_SECONDS:g} s.")
 @click.option("--captions/--no-captions", default=True, show_default=True,

@@ -8,9 +8,8 @@ from rich.table import Table
 
 from weathergen.errors import WeatherGenError
 from weathergen.models import (ENTRY_POINT_GROUP, available_checkpoints, available_models, build_model,
-                               cache_dir, checkpoint_spec, entry_points, is_external_name, model_spec,
-                               network_record)
-from weathergen.models.checkpoints import cached_path
+                               cache_dir, checkpoint_spec, entry_points, model_spec, resolve_network)
+from weathergen.models.checkpoints import cached_path, shipped_path
 
 from .options import STOPPED, exit_codes
 
@@ -30,9 +29,8 @@ def models_command(name):
         return
     table = Table(title="flow networks (--model NAME; a checkpoint name selects its network)",
                   header_style="bold")
-    for col in ("name", "default checkpoint", "checkpoints (* in the cache)", "mixed precision",
-                "description"):
-        table.add_column(col, no_wrap=col not in ("checkpoints (* in the cache)", "description"))
+    for col in ("name", "default checkpoint", AVAILABLE, "mixed precision", "description"):
+        table.add_column(col, no_wrap=col not in (AVAILABLE, "description"))
     for arch in available_models():
         spec = model_spec(arch)
         table.add_row(arch, spec.default_checkpoint or "–", _checkpoints(arch),
@@ -57,9 +55,18 @@ def models_command(name):
                   soft_wrap=True)
 
 
+#: The column of checkpoints, those at hand marked.
+AVAILABLE = "checkpoints (* in the cache or shipped)"
+
+
+def _local_file(name: str):
+    """The file of checkpoint ``name`` here (the cache's, else the shipped one), or None."""
+    spec = checkpoint_spec(name)
+    return cached_path(spec) if cached_path(spec).is_file() else shipped_path(spec)
+
+
 def _checkpoints(arch: str) -> str:
-    return ", ".join(f"{c}{'*' if cached_path(checkpoint_spec(c)).is_file() else ''}"
-                     for c in available_checkpoints(arch)) or "–"
+    return ", ".join(f"{c}{'*' if _local_file(c) else ''}" for c in available_checkpoints(arch)) or "–"
 
 
 def _amp(spec) -> str:
@@ -73,7 +80,7 @@ def _status(ep_name: str) -> str:
     if ep_name in available_models() or ep_name in available_checkpoints():
         return f"shadowed by the registered {ep_name!r}"
     try:
-        model_spec(ep_name)
+        resolve_network(ep_name)
     except WeatherGenError as exc:
         return f"error: {exc}"
     return "ok"
@@ -83,18 +90,19 @@ def _show(console: Console, name: str) -> None:
     """One network: its settings and checkpoints, or where its code comes from."""
     if name not in available_models() and name in available_checkpoints():
         name = checkpoint_spec(name).architecture       # a checkpoint shows its network
-    spec = model_spec(name)
+    spec = resolve_network(name)
     table = Table(title=f"flow network {name}", header_style="bold", show_header=False)
     table.add_column("key")
     table.add_column("value")
-    record = network_record(name) if is_external_name(name) else None
+    record = spec.source()
     if record is not None:
         for key, value in record.items():
             if value is not None:
                 table.add_row(key, str(value))
-        model = build_model(name)
+        model = build_model(spec)
         table.add_row("padding multiple, min size", f"{model.multiple}, {model.min_size}")
     else:
+        spec = model_spec(spec.architecture)
         table.add_row("description", spec.description)
         table.add_row("default checkpoint", spec.default_checkpoint or "–")
     table.add_row("mixed precision", _amp(spec))
@@ -102,11 +110,11 @@ def _show(console: Console, name: str) -> None:
     if record is not None:
         return
     checkpoints = Table(title=f"checkpoints of {name}", header_style="bold")
-    for col in ("name", "trained on", "file in the cache", "from", "licence"):
+    for col in ("name", "trained on", "file (cache or shipped)", "from", "licence"):
         checkpoints.add_column(col)
     for c in available_checkpoints(name):
         cspec = checkpoint_spec(c)
-        path = cached_path(cspec)
-        checkpoints.add_row(c, cspec.description, str(path) if path.is_file() else "no",
+        path = _local_file(c)
+        checkpoints.add_row(c, cspec.description, str(path) if path else "no",
                             cspec.url or cspec.page or "–", cspec.licence or "–")
     console.print(checkpoints)

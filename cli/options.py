@@ -2,9 +2,12 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import textwrap
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import click
 
@@ -12,6 +15,7 @@ from weathergen.datasets import DATASETS, default_dataset, load_scene_scales, op
 from weathergen.datasets.common import WORLD_UP_CHOICES
 from weathergen.errors import ConfigError
 from weathergen.geometry import up_direction
+from weathergen.models import INPUT_CONVENTIONS, PRECISIONS, resolve_network
 
 
 #: Where the group keeps the command line it was given (``ctx.meta``), for manifests.
@@ -93,6 +97,37 @@ def overwrite_option(help: str):
     return click.option("--overwrite", is_flag=True, help=help)
 
 
+# -- settings records: options that travel together ---------------------------------------------
+
+@dataclass(frozen=True)
+class RunOptions:
+    """Where a job's pairs are computed and what it does with an earlier run's output: the
+    options every command that runs a job over a dataset takes (``--device``, ``--executor``,
+    ``--ray-address``, ``--batch-size``, ``--resume``, ``--overwrite``), named as the jobs'
+    fields."""
+
+    device: str = "cpu"
+    executor: str = "local"
+    ray_address: Optional[str] = "auto"
+    batch_size: Optional[int] = None
+    resume: bool = False
+    overwrite: bool = False
+
+
+def gathered(name: str, record: type):
+    """Decorator (right above the command's ``def``): the command's options named as the fields
+    of the dataclass ``record`` come in as one ``record`` under the parameter ``name``."""
+    fields = [f.name for f in dataclasses.fields(record)]
+
+    def wrap(command):
+        @functools.wraps(command)
+        def call(**options):
+            values = {key: options.pop(key) for key in fields}
+            return command(**options, **{name: record(**values)})
+        return call
+    return wrap
+
+
 # -- option groups --------------------------------------------------------------------------
 
 def attack_steps(ctx, param, value):
@@ -166,7 +201,7 @@ def dataset_options(func):
                        "(with --scene-scales research: its frame and scaling).")
     @click.option("--far-depth", type=click.FloatRange(min=0, min_open=True), default=None,
                   help="kitti, spring, custom: depth (dataset units, before --depth-scale) given to "
-                       "pixels without depth, such as the sky. Default: 1000.")
+                       "the sky (and to unknown depth with --fill-gaps 0). Default: 1000.")
     @click.option("--world-up", metavar="|".join(WORLD_UP_CHOICES) + "|X,Y,Z", default=None,
                   callback=_world_up_option,
                   help="Axis of the dataset's world that points up (weather falls the other way), "
@@ -248,9 +283,10 @@ def reader_options(func):
                      help="custom: warn about frames with a smaller fraction of valid depth. "
                           "Default: 0.5."),
         click.option("--fill-gaps", type=click.FloatRange(min=0), default=None, metavar="PX",
-                     help="kitti, custom: fill pixels without depth up to this distance from a "
-                          "measured one (guided by the frame's colours); farther ones get the far "
-                          "depth; 0 fills nothing. Default: 24."),
+                     help="kitti, custom: fill gaps in the depth up to this distance from a "
+                          "measured pixel (guided by the frame's colours) and complete larger "
+                          "regions that are not sky; 0 fills nothing (unknown depth, at the far "
+                          "depth). Default: 24."),
     )):
         func = option(func)
     return func
@@ -264,8 +300,28 @@ amp_option = click.option(
          "the CPU always off (--amp there is an error).")
 
 
+#: ``--precision``: the network's arithmetic; shared with ``benchmark``.
+precision_option = click.option(
+    "--precision", type=click.Choice(PRECISIONS), default=None,
+    help="The network's arithmetic: float32; tf32 (CUDA tensor cores); bf16 or fp16 (autocast; "
+         "correlation volumes, softmax, warping and the loss stay float32). A precision whose "
+         "flow differs too much from float32's is refused for that network (docs/models.md). "
+         "Default: as --amp (fp16 where it is on, else float32). Not with --amp/--no-amp.")
+
+
+def early_stop_option(func):
+    """``--early-stop WINDOW:TOL``: end a pair's weather attack once its loss has converged."""
+    return click.option(
+        "--early-stop", default=None, metavar="WINDOW:TOL",
+        help="End a pair's weather attack when its best loss over the last WINDOW steps is not "
+             "lower than before them by more than TOL (relative, e.g. 50:0.001); the best step "
+             "is kept. Default: every step (the paper's setting; --compat reference allows no "
+             "other).")(func)
+
+
 def model_options(func):
-    """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``, ``amp``."""
+    """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``,
+    ``model_input``, ``amp``, ``precision``."""
     for option in reversed((
         click.option("--model", default="raft", show_default=True,
                      help="Flow network or checkpoint name (raft, raft-small, gma, flowformer, "
@@ -280,10 +336,24 @@ def model_options(func):
                           "own (RAFT 12, GMA 6, FlowFormer 32)."),
         click.option("--download", is_flag=True,
                      help="Fetch a named checkpoint that is missing from the cache (needs a network)."),
+        click.option("--model-input", type=click.Choice(list(INPUT_CONVENTIONS)), default=None, metavar="CONV",
+                     help="The input convention of a plain module of your own that declares none "
+                          "(input_range, channel_order): rgb, bgr ([0, 1]), rgb255, bgr255 "
+                          "([0, 255]). Default: rgb, said in a note."),
         amp_option,
+        precision_option,
     )):
         func = option(func)
     return func
+
+
+def resolve_model(name: str, model_input=None):
+    """The network ``name`` resolved once (:func:`~weathergen.models.resolve_network`); a plain
+    module that declares no input convention gets one note on stderr."""
+    network = resolve_network(name, model_input)
+    if network.note():
+        click.echo(f"Note: {network.note()}", err=True)
+    return network
 
 
 def executor_options(func):

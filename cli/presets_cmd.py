@@ -6,12 +6,20 @@ import click
 from rich.console import Console
 from rich.table import Table
 
-from weathergen.engine.preset_groups import preset_groups
-from weathergen.engine.presets import (EXAMPLE_COMBINATIONS, LAYER_JOIN, CombinedPreset, FieldPreset,
-                                       field_preset_keys, load_preset, parse_set_options,
-                                       preset_keys)
+from weathergen.engine.weather.atmosphere import extinction_visibility
+from weathergen.engine.weather.preset_groups import preset_groups
+from weathergen.engine.weather.presets import (EXAMPLE_COMBINATIONS, LAYER_JOIN, CombinedPreset,
+                                               FieldPreset, field_preset_keys, load_preset,
+                                               parse_set_options, preset_keys)
 
 from .options import STOPPED, exit_codes
+
+#: The keys of a field preset that apply to an atmosphere alone (density 0, no particles): its
+#: air, and the wind and frame rate that drift a heterogeneous one.
+ATMOSPHERE_KEYS = ("description", "density", "wind", "frame_rate", "visibility", "rain_rate",
+                   "snow_rate", "heterogeneity", "heterogeneity_scale", "airlight", "sky_distance")
+#: Where ``weathergen presets NAME`` shows the visibility of the air as rendered.
+_VEIL_AFTER = "snow_rate"
 
 
 @click.command("presets", epilog=exit_codes(("0", "listed or shown"),
@@ -39,7 +47,8 @@ def presets_command(name, overrides):
         for group in preset_groups():
             keys, model_text = models[group.model]
             columns = [f.name for f in keys if f.metadata.get("main")]
-            table = Table(title=f"{group.title}; {model_text}", header_style="bold")
+            table = Table(title=f"{group.title}; {model_text}", header_style="bold",
+                          caption=_FIELD_CAPTION if group.model == "field" else None)
             table.add_column("name", no_wrap=True)  # names are what users type: never cut them
             if group.varies:
                 table.add_column("varies", no_wrap=True)
@@ -78,8 +87,16 @@ def _show(console: Console, p, title: str) -> None:
     table.add_row("model", "field" if field_model else "paper",
                   "field: weather field in scene units; paper: the paper's per-pair model")
     for f in (field_preset_keys() if field_model else preset_keys()):
-        table.add_row(f.name, _fmt(getattr(p, f.name)), f.metadata.get("doc", ""))
+        if _applies(p, f.name):
+            table.add_row(f.name, _fmt(getattr(p, f.name)), f.metadata.get("doc", ""))
+        if field_model and f.name == _VEIL_AFTER:
+            table.add_row("(veil)", _veil(p),
+                          "visibility of the air as rendered: -ln(0.05) / β₀, β₀ the extinction "
+                          "of visibility, rain_rate and snow_rate together")
     console.print(table)
+    if field_model and p.density == 0:
+        console.print("an atmosphere alone (density 0): the particle keys do not apply and are "
+                      "left out", markup=False, highlight=False)
     console.print(f"source: {p.source}", markup=False, highlight=False)
 
 
@@ -89,7 +106,27 @@ _HEADERS = {"depth_decay": "d-decay", "transparency": "θ", "motion_y": "m_y",
             "motion_blur": "blur", "blur_length": "blur length", "blur_samples": "blur K"}
 
 
+_FIELD_CAPTION = ("visibility: of the air as rendered, rain and snow included; –: a particle "
+                  "key, which an atmosphere alone does not use")
+
+
+def _applies(p, key: str) -> bool:
+    """Whether preset ``p`` uses ``key``: every key but the particles' in an atmosphere alone."""
+    return not isinstance(p, FieldPreset) or p.density > 0 or key in ATMOSPHERE_KEYS
+
+
+def _veil(p: FieldPreset) -> str:
+    """The visibility of a field preset's air as the renderer draws it, and its β₀."""
+    if not p.has_atmosphere:
+        return "clear air"
+    return f"{extinction_visibility(p.extinction):.0f} m (β₀ {1000 * p.extinction:.3g} /km)"
+
+
 def _main_value(p, key: str) -> str:
+    if not _applies(p, key):
+        return "–"
+    if key == "visibility":
+        return f"{extinction_visibility(p.extinction):.0f}" if p.has_atmosphere else "clear"
     if key == "transparency" and getattr(p, "transparency_mode", "") == "constant":
         return f"{_fmt(p.transparency)} const"  # not scaled by the depth hat
     return _fmt(getattr(p, key))

@@ -2,9 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import dataclasses
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Optional
 
 import click
 import torch
@@ -22,9 +26,9 @@ from weathergen.render import RenderJob, parse_shard, run_render
 from weathergen.render.plan import default_batch_size, default_out, default_pass_name, resolve_preset
 from weathergen.words import counted
 
-from .options import (ARGV_KEY, dataset_options, device_option, executor_options, job_exit_codes,
-                      out_option, overwrite_option, quiet_option, render_compat_option,
-                      resume_option, seed_option)
+from .options import (ARGV_KEY, RunOptions, dataset_options, device_option, executor_options,
+                      gathered, job_exit_codes, out_option, overwrite_option, quiet_option,
+                      render_compat_option, resume_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 class _RateColumn(ProgressColumn):
@@ -53,6 +57,20 @@ def _parse_workers(ctx, param, value):
     if n < 1:
         raise click.BadParameter(f"{n}: at least 1 (or auto)")
     return n
+
+
+@dataclass(frozen=True)
+class OutputOptions:
+    """What a render writes besides the weather frames (``--pass-name``, ``--format``,
+    ``--geometry``, ``--sequence``, ``--stereo``, ``--particle-truth``), named as
+    :class:`RenderJob`'s fields."""
+
+    pass_name: Optional[str] = None
+    fmt: str = "png"
+    geometry: bool = True
+    sequence: bool = False
+    stereo: bool = False
+    truth: bool = False
 
 
 @click.command(epilog=job_exit_codes())
@@ -108,93 +126,103 @@ def _parse_workers(ctx, param, value):
 @overwrite_option("Redo every pair, even in a folder that holds a render, and write into a non-empty "
                   "folder that render did not create.")
 @quiet_option
-def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, compat, pass_name, device,
-           workers, batch_size, fmt, geometry, sequence, stereo, truth, shard, executor, ray_address,
-           resume, overwrite,
-           quiet):
+@gathered("outputs", OutputOptions)
+@gathered("run", RunOptions)
+def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, compat, workers,
+           shard, quiet, run: RunOptions, outputs: OutputOptions):
     """Render weather into every selected frame pair and write frames plus particle metadata.
 
     With no option it renders the snow preset onto the bundled demo scene into out/snow.
     """
-    check_executor(executor)
+    check_executor(run.executor)
     if compat == "reference":
         dataset = in_research_frame(dataset)
     # A Ray driver need not have the workers' devices.
-    dev = (resolve_device(device) if executor == "local"
-           else torch.device("cuda" if device.startswith("cuda") else "cpu"))
-    batch_size = batch_size or default_batch_size(dev)
+    dev = (resolve_device(run.device) if run.executor == "local"
+           else torch.device("cuda" if run.device.startswith("cuda") else "cpu"))
+    run = dataclasses.replace(run, batch_size=run.batch_size or default_batch_size(dev))
     preset_obj, name, appearance = resolve_preset(preset, preset_file, parse_set_options(set_items),
                                                   particles_dir)
-    out = out or default_out(name)
+    outputs = dataclasses.replace(outputs, pass_name=outputs.pass_name or
+                                  default_pass_name(name, dataset.selection.pass_))
     job = RenderJob(
-        dataset=dataset, out=out, preset=preset_obj, preset_name=name, seed=seed,
-        pass_name=pass_name or default_pass_name(name, dataset.selection.pass_), fmt=fmt,
-        geometry=geometry, truth=truth, sequence=sequence, stereo=stereo,
-        device=device, particles_from=particles_dir, appearance=appearance,
-        shard=parse_shard(shard), workers=workers, batch_size=batch_size, resume=resume, overwrite=overwrite,
-        executor=executor, ray_address=ray_address, compat=compat or "paper",
+        dataset=dataset, out=out or default_out(name), preset=preset_obj, preset_name=name,
+        seed=seed, particles_from=particles_dir, appearance=appearance, shard=parse_shard(shard),
+        workers=workers, compat=compat or "paper", **dataclasses.asdict(run),
+        **dataclasses.asdict(outputs),
         command=click.get_current_context().meta.get(ARGV_KEY, ["weathergen", *sys.argv[1:]]),
     )
-    console = Console(stderr=False)
-    err = Console(stderr=True)
-    results = []
+    report = _Report(Console(stderr=False), quiet)
     t0 = time.perf_counter()
-    interactive = console.is_terminal and not quiet
-    progress = None
-    task = None
+    report.run(job)
+    _summary(job, report.results, time.perf_counter() - t0, report.console, quiet)
 
-    clock = None
 
-    def on_start(n):
-        nonlocal task, clock
-        clock = RunClock(n)
-        if progress is not None:
-            task = progress.add_task("render", total=n, pair="", rate="", left="")
+class _Report:
+    """What a render says while it runs: a progress bar on a terminal, else a line per pair;
+    failed pairs and warnings one line each, on stderr; the pairs' results kept in order."""
 
-    def on_note(text):
+    def __init__(self, console: Console, quiet: bool):
+        self.console, self.quiet = console, quiet
+        self.results: list = []
+        self.clock: Optional[RunClock] = None
+        self.progress = None
+        self.task = None
+        if console.is_terminal and not quiet:
+            self.progress = Progress(
+                TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
+                TaskProgressColumn(), _RateColumn(), TimeElapsedColumn(),
+                TextColumn("{task.fields[left]}"), TextColumn("{task.fields[pair]}"),
+                console=console)
+
+    def run(self, job: RenderJob) -> None:
+        """Run the render job, reporting; a stop (Ctrl-C, SIGTERM) says how far it got."""
+        stopped_by = None
+        try:
+            with terminate_as_interrupt() as stopped_by:
+                with self.progress if self.progress is not None else contextlib.nullcontext():
+                    run_render(job, self.on_result, self.on_start, self.on_note)
+        except KeyboardInterrupt:
+            exit_interrupted(sum(r.status == "written" for r in self.results), stopped_by)
+
+    def on_start(self, n: int) -> None:
+        self.clock = RunClock(n)
+        if self.progress is not None:
+            self.task = self.progress.add_task("render", total=n, pair="", rate="", left="")
+
+    @staticmethod
+    def on_note(text: str) -> None:
         click.echo(f"Note: {text}", err=True)
 
-    def on_result(r):
-        results.append(r)
-        clock.add(computed=r.status == "written")
+    def on_result(self, r) -> None:
+        self.results.append(r)
+        self.clock.add(computed=r.status == "written")
         if r.status == "failed":   # one unwrapped line, so paths stay whole
-            if progress is not None:
-                progress.console.print(f"[red]failed[/red] {r.pair}: {r.message}", highlight=False,
-                                       soft_wrap=True)
-            else:
-                click.echo(f"failed {r.pair}: {r.message}", err=True)
+            self._line("red", "failed", f"{r.pair}: {r.message}")
         for text in r.warnings:    # written, but the input looks wrong
-            if progress is not None:
-                progress.console.print(f"[yellow]warning[/yellow] {r.pair}: {text}", highlight=False,
-                                       soft_wrap=True)
-            else:
-                click.echo(f"warning {r.pair}: {text}", err=True)
-        if progress is not None:
-            progress.update(task, advance=1, pair=r.pair, rate=clock.pace(), left=clock.time_left())
-        elif not quiet:
-            console.print(f"[{clock.describe()}] {r.pair} {r.status} ({r.seconds:.2f} s)",
-                          highlight=False, soft_wrap=True)
+            self._line("yellow", "warning", f"{r.pair}: {text}")
+        if self.progress is not None:
+            self.progress.update(self.task, advance=1, pair=r.pair, rate=self.clock.pace(),
+                                 left=self.clock.time_left())
+        elif not self.quiet:
+            self.console.print(f"[{self.clock.describe()}] {r.pair} {r.status} ({r.seconds:.2f} s)",
+                               highlight=False, soft_wrap=True)
 
-    if interactive:
-        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(), MofNCompleteColumn(),
-                            TaskProgressColumn(), _RateColumn(), TimeElapsedColumn(),
-                            TextColumn("{task.fields[left]}"), TextColumn("{task.fields[pair]}"),
-                            console=console)
-    stopped_by = None
-    try:
-        with terminate_as_interrupt() as stopped_by:
-            if progress is not None:
-                with progress:
-                    run_render(job, on_result, on_start, on_note)
-            else:
-                run_render(job, on_result, on_start, on_note)
-    except KeyboardInterrupt:
-        exit_interrupted(sum(r.status == "written" for r in results), stopped_by)
-    elapsed = time.perf_counter() - t0
+    def _line(self, colour: str, word: str, text: str) -> None:
+        """One line on stderr (above the progress bar where there is one)."""
+        if self.progress is not None:
+            self.progress.console.print(f"[{colour}]{word}[/{colour}] {text}", highlight=False,
+                                        soft_wrap=True)
+        else:
+            click.echo(f"{word} {text}", err=True)
+
+
+def _summary(job: RenderJob, results: list, elapsed: float, console: Console, quiet: bool) -> None:
+    """The run's table and where its output is; exit 1 when a pair failed."""
     written = [r for r in results if r.status == "written"]
     failed = [r for r in results if r.status == "failed"]
     if not quiet:
-        table = Table(title=f"weathergen render: {name} -> {out}")
+        table = Table(title=f"weathergen render: {job.preset_name} -> {job.out}")
         for col in ("written", "skipped", "failed", "time per pair", "written size", "total time"):
             table.add_column(col, justify="right")
         per_pair = sum(r.seconds for r in written) / len(written) if written else 0.0
@@ -202,8 +230,10 @@ def render(dataset, preset, preset_file, set_items, out, seed, particles_dir, co
                       str(len(failed)), f"{per_pair:.2f} s", _human_bytes(sum(r.bytes for r in written)),
                       f"{elapsed:.1f} s")
         console.print(table)
-        console.print(f"Output: {out} (pass '{job.pass_name}', {_human_bytes(folder_size(out))} in all; "
-                      f"manifest: {out / 'manifest.json'})", highlight=False, soft_wrap=True)
+        console.print(f"Output: {job.out} (pass '{job.pass_name}', "
+                      f"{_human_bytes(folder_size(job.out))} in all; manifest: "
+                      f"{job.out / 'manifest.json'})", highlight=False, soft_wrap=True)
     if failed:
-        err.print(f"[red]{counted(len(failed), 'pair')} failed[/red]; see the messages above and the manifest.")
+        Console(stderr=True).print(f"[red]{counted(len(failed), 'pair')} failed[/red]; see the "
+                                   "messages above and the manifest.")
         sys.exit(1)

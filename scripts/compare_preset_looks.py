@@ -227,7 +227,7 @@ def placed_areas(stamps, seed: int = 0) -> np.ndarray:
 
 def particle_stats(pair, record, stamps) -> dict:
     """Per-record statistics of the particles themselves (see the module doc)."""
-    from weathergen.engine.sampling import reference_transforms, visible_counts
+    from weathergen.engine import reference_transforms, visible_counts
     from weathergen.geometry import transform_points
 
     _, cam1, _ = reference_transforms(pair)
@@ -244,9 +244,9 @@ def particle_stats(pair, record, stamps) -> dict:
 def record_stats(pair, record, compat: str) -> dict:
     """Every statistic of one record drawn into frame 1 of ``pair``."""
     from weathergen.engine import render_pair
-    from weathergen.engine.stamps import build, stored
-    from weathergen.engine.templates import load_templates
-    from weathergen.engine.tracks import ParticleTable, RecordRows, fixed_looks
+    from weathergen.engine.rendering.stamps import build, stored
+    from weathergen.engine.weather.templates import load_templates
+    from weathergen.engine.rendering.tracks import ParticleTable, RecordRows, fixed_looks
 
     record = record.for_compat(compat)
     if record.stamps is not None:
@@ -275,7 +275,7 @@ def ours(pair, row: str, seeds: int, compat: str) -> list:
 def theirs(pair, folder: Path, row: str, seeds: int) -> list:
     """The research code's statistics of a row from the files its sampler left in ``folder``."""
     from weathergen.engine import load_preset
-    from weathergen.engine.published import published_particles
+    from weathergen.engine.sampling.published import published_particles
     from weathergen.io.published_weather import published_file, read_published_weather
 
     preset = load_preset(OURS[row][0])
@@ -365,7 +365,7 @@ def main(argv=None) -> dict:
     sys.path.insert(0, str(ROOT))
     from weathergen.datasets import open_dataset
     from weathergen.engine import load_preset
-    from weathergen.engine.presets import frame_scaling
+    from weathergen.engine.weather.presets import frame_scaling
 
     rows = [r.strip() for r in args.rows.split(",") if r.strip()]
     write_scene(args.out / "sintel", h, w)

@@ -2,17 +2,19 @@
 
 Writes a small Sintel-format tree (two scenes: ``alley_1``, which the research code scales by 2
 and whose camera translation it zeroes, and ``bamboo_1``, which it leaves as it is; a textured
-plane at depth 6, a near wall at 1.2, a camera that turns by 1.5 degrees and moves 0.3 right and
-0.4 forward), runs the research code on it (its Sintel reader, its generator and its renderer, with
-the settings of its readme's snow, rain, sparks and fog commands and of the paper's table's
-alpha-blended white and red sparks, alpha-white and alpha-red; fewer particles), saves each
-pair's particles with its ``save_weatherfile`` in the published layout (``SET/SCENE/
-frame_0001.npz``) and its float frames, then reads every file with weathergen
-(:mod:`weathergen.io.published_weather`), draws it in the research code's frame and scaling
-(``--scene-scales research``, camera translation zeroed in the scaled scenes) with the preset of
-the same name, as ``--compat reference`` draws it (α-blended motion blur blended one sample after
-another), and prints per frame the largest and the mean absolute difference between the two
-renders (grey levels of 255).
+plane at depth 6, a near wall at 1.2, a near box at 0.8 and a post at 2.0, the same in both
+frames; a camera that turns by 1.5 degrees and moves 0.3 right and 0.4 forward), runs the
+research code on it (its Sintel reader, its generator and its renderer, with the settings of its
+readme's snow, rain, sparks and fog commands and of the paper's table's alpha-blended white and
+red sparks, alpha-white and alpha-red; fewer particles), saves each pair's particles with its
+``save_weatherfile`` in the published layout (``SET/SCENE/frame_0001.npz``) and its float
+frames, then reads every file with weathergen (:mod:`weathergen.io.published_weather`), draws it
+in the research code's frame and scaling (``--scene-scales research``, camera translation zeroed
+in the scaled scenes) with the preset of the same name, as ``--compat reference`` draws it
+(α-blended motion blur blended one sample after another, the scene depth read half a pixel up and
+left; ``--depth-shift 0``: at the pixel), and prints per frame the largest and the mean absolute
+difference between the two renders (grey levels of 255), overall and within 2 pixels of a depth
+step.
 
 Nothing of the research code is part of weathergen; this script imports it from the given folder
 (https://github.com/cv-stuttgart/DistractingDownpour, GPL-3.0), unmodified. It needs ``scipy``,
@@ -43,7 +45,7 @@ sys.path.insert(0, str(ROOT))
 
 from weathergen.datasets import load_scene_scales, open_dataset  # noqa: E402
 from weathergen.engine import load_preset, render_pair  # noqa: E402
-from weathergen.engine.published import published_particles  # noqa: E402
+from weathergen.engine.sampling.published import published_particles  # noqa: E402
 from weathergen.io.images import write_png  # noqa: E402
 from weathergen.io.published_weather import published_file, read_published_weather  # noqa: E402
 from weathergen.io.sintel_formats import write_cam, write_dpt, write_flo  # noqa: E402
@@ -95,6 +97,8 @@ def write_tree(root: Path) -> None:
     k = np.array([[300.0, 0, W / 2 - 0.5], [0, 300.0, H / 2 - 0.5], [0, 0, 1]])
     depth = np.full((H, W), 6.0, np.float32)
     depth[:, : int(0.3 * W)] = 1.2
+    depth[45:115, 150:215] = 0.8            # a near box: its top and left edges face the plane
+    depth[:, 250:262] = 2.0                 # a post
     a = math.radians(1.5)
     turn = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
     y, x = np.mgrid[0:H, 0:W]
@@ -154,11 +158,29 @@ def run_research(research: Path, tree: Path, out: Path, count: int, sets) -> Non
                 np.save(target / f"frame_{k}_{frame + 1:04d}.npy", image[0].permute(1, 2, 0).numpy())
 
 
-def compare(tree: Path, out: Path, sets) -> None:
-    """weathergen's render of every file against the research code's, per frame."""
+def near_steps(depth: np.ndarray, reach: int = 2) -> np.ndarray:
+    """The pixels within ``reach`` pixels of a depth step (neighbours more than 10 % apart)."""
+    step = np.zeros(depth.shape, bool)
+    for axis in (0, 1):
+        a, b = np.moveaxis(depth, axis, 0)[:-1], np.moveaxis(depth, axis, 0)[1:]
+        jump = np.abs(a - b) > 0.1 * np.minimum(a, b)
+        np.moveaxis(step, axis, 0)[:-1] |= jump
+        np.moveaxis(step, axis, 0)[1:] |= jump
+    grown = step.copy()
+    for dy in range(-reach, reach + 1):
+        for dx in range(-reach, reach + 1):
+            grown |= np.roll(step, (dy, dx), (0, 1))
+    return grown
+
+
+def compare(tree: Path, out: Path, sets, depth_shift: float | None = None) -> None:
+    """weathergen's render of every file against the research code's, per frame (with
+    ``depth_shift``: the scene depth read there rather than where ``--compat reference`` reads
+    it)."""
     ds = open_dataset("sintel", tree, scene_scales=load_scene_scales("research"),
                       camera_translation="unscaled")
-    print("set     scene     frame  max |diff| (/255)  mean |diff| (/255)  pixels > 0.5/255")
+    print("set     scene     frame  max |diff| (/255)  mean |diff| (/255)  pixels > 0.5/255  "
+          "max within 2 px of a depth step")
     for name in sets:
         preset = load_preset(name)
         for ref in ds.pairs():
@@ -166,13 +188,17 @@ def compare(tree: Path, out: Path, sets) -> None:
             particles = published_particles(read_published_weather(
                 published_file(out / name, ref.id.scene, ref.id.frame)), pair, preset) \
                 .for_compat("reference")
+            if depth_shift is not None:
+                particles = particles.replace(settings=particles.settings.replace(
+                    depth_shift=depth_shift))
             with torch.no_grad():
                 ours = render_pair(pair, particles)
-            for k, image in ((1, ours.image1), (2, ours.image2)):
+            for k, image, depth in ((1, ours.image1, pair.depth1), (2, ours.image2, pair.depth2)):
                 theirs = np.load(out / name / ref.id.scene / f"frame_{k}_{ref.id.frame:04d}.npy")
-                d = np.abs(image[0].permute(1, 2, 0).double().numpy() - theirs) * 255
+                d = np.abs(image[0].permute(1, 2, 0).double().numpy() - theirs).max(-1) * 255
+                edge = d[near_steps(depth[0].numpy())]
                 print(f"{name:7s} {ref.id.scene:9s} {k:5d}  {d.max():17.3f}  {d.mean():18.5f}  "
-                      f"{100 * (d.max(-1) > 0.5).mean():14.3f} %")
+                      f"{100 * (d > 0.5).mean():14.3f} %  {edge.max():17.3f}")
 
 
 def main():
@@ -184,6 +210,9 @@ def main():
     parser.add_argument("--out", type=Path, default=Path("out/published-comparison"))
     parser.add_argument("--particles", type=int, default=400,
                         help="particles per pair of snow, rain and sparks (fog: its 60)")
+    parser.add_argument("--depth-shift", type=float, default=None,
+                        help="read the scene depth this many pixels up and left (default: as "
+                             "--compat reference reads it, 0.5; 0: weathergen's own convention)")
     parser.add_argument("--sets", default=",".join(CONFIGS),
                         help=f"which of {', '.join(CONFIGS)} (comma-separated; default all)")
     args = parser.parse_args()
@@ -194,7 +223,7 @@ def main():
             parser.error("--research is required (or --compare-only)")
         write_tree(tree)
         run_research(args.research.resolve(), tree, folder, args.particles, sets)
-    compare(tree, folder, sets)
+    compare(tree, folder, sets, args.depth_shift)
 
 
 if __name__ == "__main__":

@@ -13,10 +13,16 @@ Written into docs/images/ (``--out`` elsewhere):
   fog-moderate, fog-heavy), heavy rain and snow and a downpour in light fog on the demo street,
   frame 1 and its opacity, after the clean frame and its depth.
 
+- ``depth.png`` (docs/datasets.md, "Depth with holes"): the demo street given a sky and scanned
+  by a LiDAR-like pattern (``scripts/depth_completion.py``): the input, where each depth comes
+  from (green measured, orange completed, blue sky, red unknown), fog-moderate with the depth as
+  readers gave it before (gaps within 24 px filled, the rest far) and completed.
+
 ``--real ROOT`` also draws every preset, both frames, into the first pair of a real dataset
 (``--real-dataset``, KITTI layout by default; ``--depth-scale`` as for ``render``) and writes the
 sheet to ``--real-out`` (default ``out/images/every-preset-real.png``), and the atmosphere's
-ladder, both frames, beside it (``atmosphere-real.png``). These sheets show someone else's
+ladder, both frames, beside it (``atmosphere-real.png``), and the depth panel of that pair
+(``depth-real.png``: its reader's provenance and completed depth). These sheets show someone else's
 frames: they are for looking at, not for the repository (the FlyingThings3D pair docs/engine.md
 names may not be redistributed).
 
@@ -44,9 +50,13 @@ import cv2
 import numpy as np
 import torch
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))    # depth_completion, beside this script
+from depth_completion import (FAR_DEPTH, depth_before, fog_render, lidar_scan,  # noqa: E402
+                              street_with_sky)
+
 from weathergen.datasets import open_dataset
 from weathergen.engine import load_preset, render_pair, sample_particles
-from weathergen.engine.presets import list_presets
+from weathergen.engine.weather.presets import list_presets
 from weathergen.errors import WeatherGenError
 from weathergen.io.atomic import atomic_write_bytes
 from weathergen.io.images import read_raw, to_uint8
@@ -58,6 +68,10 @@ PICTURE = IMAGES / "presets.png"
 VIDEO_STILL = IMAGES / "video-still.png"
 EVERY_PRESET = IMAGES / "every-preset.png"
 ATMOSPHERE = IMAGES / "atmosphere.png"
+DEPTH = IMAGES / "depth.png"
+#: The colours of the depth provenance classes: measured, completed, sky, unknown.
+PROVENANCE_COLOURS = np.array([[40, 190, 60], [240, 150, 40], [90, 150, 255], [220, 40, 40]],
+                              np.uint8)
 REAL_SHEET = ROOT / "out" / "images" / "every-preset-real.png"
 #: The atmosphere's ladder, as ``atmosphere.png`` shows it ("clean": the frame without weather).
 LADDER = ("clean", "mist", "fog-light", "fog-moderate", "fog-heavy", "rain-heavy", "snow-heavy",
@@ -325,10 +339,35 @@ def main_atmosphere(out: Path = ATMOSPHERE, quick: bool = False) -> bool:
     return save_palette(out, ladder_sheet(pair, ds))
 
 
+def depth_panel(pair, image, measured, provenance, depth, dataset=None) -> np.ndarray:
+    """Input, provenance, and fog-moderate with the depth as readers gave it before and with
+    ``depth`` (completed), four labelled tiles in a row. Shape: images (H, W, 3), the rest (H, W)
+    -> (LABEL_PX + H, 4 W, 3) uint8."""
+    torch.set_num_threads(1)
+    before = depth_before(np.where(measured, depth, 1.0), measured, image)
+    tiles = [labelled(to_uint8(image), "input"),
+             labelled(PROVENANCE_COLOURS[provenance], "green measured, orange completed, blue sky")]
+    for label, d in (("fog-moderate, before", before), ("fog-moderate, completed", depth)):
+        tiles.append(labelled(to_uint8(fog_render(pair, image, d, dataset=dataset)[0]), label))
+    return np.hstack(tiles)
+
+
+def main_depth(out: Path = DEPTH) -> bool:
+    """Write the depth panel of the demo street with a sky and a LiDAR-like scan to ``out``."""
+    from weathergen.datasets.depth import complete_depth
+
+    pair, _ = demo_pair()
+    image, exact, sky = street_with_sky(pair)
+    measured = lidar_scan(exact.shape, pair.intrinsics.numpy(), seed=1) & ~sky
+    depth, provenance = complete_depth(exact, measured, image, far_depth=FAR_DEPTH)
+    return save_palette(out, depth_panel(pair, image, measured, provenance, depth))
+
+
 def main_real(root: Path, out: Path = REAL_SHEET, dataset: str = "kitti",
               depth_scale: float | None = None) -> Path:
     """Write the sheet of every preset, both frames, on the first pair of a real dataset, and
-    the atmosphere's ladder, both frames, beside it (``atmosphere-real.png``)."""
+    the atmosphere's ladder, both frames, beside it (``atmosphere-real.png``), and the depth panel of that pair
+(``depth-real.png``: its reader's provenance and completed depth)."""
     ds = open_dataset(dataset, root, frames_per_scene=1,
                       **({"depth_scale": depth_scale} if depth_scale is not None else {}))
     pair = ds.load(ds.pairs()[0])
@@ -339,6 +378,12 @@ def main_real(root: Path, out: Path = REAL_SHEET, dataset: str = "kitti",
     ladder = out.with_name("atmosphere-real.png")
     write_small_png(ladder, ladder_sheet(pair, ds, both_frames=True, shrink=shrink))
     print(f"wrote {ladder}")
+    if pair.depth_provenance1 is not None:
+        panel = out.with_name("depth-real.png")
+        provenance = pair.depth_provenance1[0].numpy()
+        write_small_png(panel, depth_panel(pair, pair.image1.permute(1, 2, 0).numpy(),
+                                           provenance == 0, provenance, pair.depth1[0].numpy(), ds))
+        print(f"wrote {panel}")
     return out
 
 
@@ -346,7 +391,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--out", type=Path, default=IMAGES,
                         help="folder for presets.png, video-still.png, every-preset.png, "
-                             "atmosphere.png (default docs/images)")
+                             "atmosphere.png, depth.png (default docs/images)")
     parser.add_argument("--force", action="store_true",
                         help="rewrite presets.png and video-still.png even when nothing visible changed")
     parser.add_argument("--quick", action="store_true",
@@ -370,6 +415,7 @@ def run(argv=None) -> None:
     main_video_still(args.out / VIDEO_STILL.name, args.force, args.quick)
     main_every_preset(args.out / EVERY_PRESET.name, args.quick)
     main_atmosphere(args.out / ATMOSPHERE.name, args.quick)
+    main_depth(args.out / DEPTH.name)
     if args.real is not None:
         main_real(args.real, args.real_out, args.real_dataset, args.depth_scale)
     print(f"{time.process_time() - start:.0f} s of CPU time")

@@ -69,7 +69,7 @@ def opacity(pair, name: str, seed: int) -> torch.Tensor:
 
 def table(names, seeds: int) -> list[str]:
     from weathergen.engine import load_preset
-    from weathergen.engine.atmosphere import extinction_visibility
+    from weathergen.engine.weather.atmosphere import extinction_visibility
 
     pair = metric_scene()
     depth = pair.depth1[0].double()

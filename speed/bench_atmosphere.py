@@ -10,6 +10,7 @@ density makes it heterogeneous, at the second row's cost). Then the extra cost o
 ``rain-heavy`` with its veil against the same drops without it (the drops dimmed one by one).
 One torch thread, the process's CPU time (other processes do not count), the median of
 ``--repeats`` runs; ``--device cuda`` times on a GPU instead (wall clock, synchronised).
+``make bench`` runs it and records what it prints in the figures file (docs/figures/bench.md).
 
     python speed/bench_atmosphere.py [--repeats 5] [--device cpu]
 """
@@ -17,9 +18,7 @@ One torch thread, the process's CPU time (other processes do not count), the med
 from __future__ import annotations
 
 import argparse
-import statistics
 import sys
-import time
 from pathlib import Path
 
 import torch
@@ -28,22 +27,13 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 sys.path.insert(0, str(REPO / "tests"))
 
-
-def seconds(fn, device: str) -> float:
-    if device == "cpu":
-        start = time.process_time()
-        fn()
-        return time.process_time() - start
-    torch.cuda.synchronize()
-    start = time.perf_counter()
-    fn()
-    torch.cuda.synchronize()
-    return time.perf_counter() - start
+from bench_common import cpu_median, timed  # noqa: E402  (speed/, the script's own folder)
 
 
 def median(fn, repeats: int, device: str) -> float:
-    fn()                                                    # warm up (caches, lattices)
-    return statistics.median(seconds(fn, device) for _ in range(repeats))
+    """Median seconds of ``fn`` after a warm-up (caches, lattices): the process's CPU time on
+    the CPU, the synchronised wall clock on a GPU."""
+    return cpu_median(fn, repeats) if device == "cpu" else timed(fn, device, repeats)
 
 
 def records(pair):
@@ -111,4 +101,6 @@ def main(argv=None) -> None:
 
 
 if __name__ == "__main__":
-    main()
+    from figures import record   # the figures file (docs/figures/bench.md)
+
+    sys.exit(record(main))

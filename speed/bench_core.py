@@ -150,7 +150,7 @@ def _dispatch_cost() -> float:
 def _gpu_split():
     """Views not cut into the CPU's fixed pieces (which keep a view's additions in one order),
     as on a GPU."""
-    from weathergen.engine import splat
+    from weathergen.engine.rendering import splat
 
     split, splat.PLANE_SPLIT = splat.PLANE_SPLIT, 1 << 40
     try:

@@ -26,9 +26,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from engine_scenes import pose, rotation  # noqa: E402
 
 from weathergen.engine import load_preset  # noqa: E402
-from weathergen.engine.field import make_field, pair_particles  # noqa: E402
+from weathergen.engine.sampling.field import make_field, field_pair_particles  # noqa: E402
 from weathergen.engine import View  # noqa: E402
-from weathergen.engine.renderer import render_first_frame  # noqa: E402
+from weathergen.engine.rendering.renderer import render_first_frame  # noqa: E402
 from weathergen.framepair import FramePair, PairId  # noqa: E402
 
 HEIGHT, WIDTH, FOCAL = 436, 1024, 1120.0
@@ -87,7 +87,7 @@ def main():
         views = (View(pair.intrinsics, pair.cam1_from_world, pair.depth1),
                  View(pair.intrinsics, pair.cam2_from_world, pair.depth2))
         t0 = time.perf_counter()
-        record = pair_particles(fld, views, (n, n + 1))
+        record = field_pair_particles(fld, views, (n, n + 1))
         t1 = time.perf_counter()
         with torch.no_grad():
             image, _ = render_first_frame(pair, record, device=args.device)

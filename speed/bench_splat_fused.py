@@ -2,7 +2,7 @@
 sparks and rain (3000 particles, the Sintel-size bench scene, one thread, CPU time) in ns per
 pixel-sample (patch pixel of a blur sample), three ways over the same chunks of the same plan:
 
-- ``eager``: the render core's own forward (``engine/splat.py``);
+- ``eager``: the render core's own forward (``engine/rendering/splat.py``);
 - ``compiled``: each chunk's gathers, interpolation, visibility and weights as one function
   compiled by ``torch.compile`` (Inductor), the scatter-add left eager (``--compile``; compiling
   takes about a minute);
@@ -10,7 +10,7 @@ pixel-sample (patch pixel of a blur sample), three ways over the same chunks of 
   thread per block, additions in the kernel), skipped where Warp is not installed.
 
 Each is checked against the eager sums (max difference printed). Measured figures and the
-conclusion are in docs/engine.md ("A fused splat, measured").
+conclusion are in docs/engine.md ("Benchmark").
 
     python speed/bench_splat_fused.py [--compile] [--presets sparks rain]
 """
@@ -99,7 +99,7 @@ def warp_kernel():
 
 def captured_forward(name: str):
     """The arguments of the splat's forward pass for ``name`` on the bench scene."""
-    import weathergen.engine.splat as sp
+    import weathergen.engine.rendering.splat as sp
     from engine_scenes import bench_scene
     from weathergen.engine import BETA_ATTACK, load_preset, render_pair, sample_particles
 
@@ -131,7 +131,7 @@ def cpu_seconds(fn, repeats: int = 3) -> float:
 
 
 def main(argv=None) -> int:
-    import weathergen.engine.splat as sp
+    import weathergen.engine.rendering.splat as sp
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--presets", nargs="+", default=["sparks", "rain"])

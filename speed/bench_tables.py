@@ -36,6 +36,15 @@ evaluations (at most 201 per pair), I-FGSM 25 steps (26).
     python speed/bench_tables.py --dry-run                         # the arithmetic only
     python speed/bench_tables.py --dry-run --assume raft=36.1 flowformer=3.2/9.0
     python speed/bench_tables.py --device cpu --quick              # smoke test, tiny sizes
+    python speed/bench_tables.py --from-figures                    # every measured precision
+
+``--from-figures`` measures nothing either: it prints the GPU-hours of every network in every
+precision the GPU session measured (``--session``, default docs/figures/gpu-session.json; a
+network only ``make gpu-check`` measured, in its paper precision), each with every step and with
+early stopping: the weather attacks' pair-steps times the share of the steps an attack with
+``--early-stop`` ran (``speed/bench_early_stop.py``'s figure in ``--bench``, the CPU figures
+file; ``--step-fraction`` instead), and the distance of the fastest accepted precisions to the
+4-hour goal of Table 4.
 
 ``--dry-run`` measures nothing: the throughputs come from ``--assume NET=STEPS[/FORWARD]``
 (pair-steps per second of the attack [/ pairs per second of the forward pass]) and, for networks
@@ -73,10 +82,13 @@ SINTEL_TR115_PAIRS = 115
 TABLE2_FAMILIES = ("particles-", "motion-blur-", "additive-", "size-")
 #: Table 4's weather.
 TABLE4_PRESETS = ("snow", "rain", "sparks", "fog")
-PRECISIONS = ("paper", "float32", "amp", "tf32")
+#: ``paper`` and ``amp`` (fp16 in the network's own regions), then ``--precision``'s choices.
+PRECISIONS = ("paper", "float32", "amp", "tf32", "bf16", "fp16")
 #: A larger batch must raise the throughput by this much to count.
 MIN_GAIN = 1.05
 DEFAULT_FIGURES = ROOT / "docs" / "figures" / "gpu-check.json"
+DEFAULT_SESSION = ROOT / "docs" / "figures" / "gpu-session.json"
+DEFAULT_BENCH = ROOT / "docs" / "figures" / "bench.json"
 
 
 # -- the counts --------------------------------------------------------------------------------
@@ -91,6 +103,7 @@ class Run:
     pairs: int
     passes: int
     backward: bool = True
+    stoppable: bool = False     # a weather attack, which --early-stop may end before its last step
 
     @property
     def pair_steps(self) -> int:
@@ -107,13 +120,13 @@ def paper_runs() -> list[Run]:
     table2 = [p for p in list_presets() if p.startswith(TABLE2_FAMILIES)]
     runs = [Run("2", "clean flow", SINTEL_TRAIN_PAIRS, 1, backward=False)]
     runs += [Run("2", p, SINTEL_TRAIN_PAIRS, 1, backward=False) for p in table2]
-    runs += [Run("3", name, SINTEL_TR115_PAIRS, weather)
+    runs += [Run("3", name, SINTEL_TR115_PAIRS, weather, stoppable=True)
              for name, c in ATTACK_CONFIGS.items() if c.preset == "grey"]
-    runs += [Run("4", name, SINTEL_TR115_PAIRS, weather) for name in TABLE4_PRESETS]
+    runs += [Run("4", name, SINTEL_TR115_PAIRS, weather, stoppable=True) for name in TABLE4_PRESETS]
     runs += [Run("5", "pcfa", SINTEL_TRAIN_PAIRS,
                  LP_DEFAULTS["pcfa"]["steps"] * PCFA_LBFGS_ITERATIONS + 1),
              Run("5", "ifgsm", SINTEL_TRAIN_PAIRS, LP_DEFAULTS["ifgsm"]["steps"] + 1),
-             Run("5", "snow", SINTEL_TRAIN_PAIRS, weather)]
+             Run("5", "snow", SINTEL_TRAIN_PAIRS, weather, stoppable=True)]
     return runs
 
 
@@ -135,13 +148,16 @@ class Throughput:
     source: str = ""
 
 
-def table_hours(runs: list[Run], throughput: Throughput) -> dict[str, float]:
+def table_hours(runs: list[Run], throughput: Throughput,
+                step_fraction: float = 1.0) -> dict[str, float]:
     """GPU-hours per table (and ``total``) for one network at ``throughput``. A forward-only run
-    without a forward throughput counts at the attack's (an upper bound)."""
+    without a forward throughput counts at the attack's (an upper bound). ``step_fraction``: the
+    share of its pair-steps a weather attack runs (early stopping; 1: every step)."""
     out: dict[str, float] = {}
     for r in runs:
         rate = throughput.attack if r.backward else (throughput.forward or throughput.attack)
-        out[r.table] = out.get(r.table, 0.0) + r.pair_steps / rate / 3600.0
+        share = step_fraction if r.stoppable else 1.0
+        out[r.table] = out.get(r.table, 0.0) + share * r.pair_steps / rate / 3600.0
     out["total"] = sum(out.values())
     return out
 
@@ -271,27 +287,32 @@ def _is_oom(exc: BaseException) -> bool:
     return isinstance(exc, torch.cuda.OutOfMemoryError) or "out of memory" in str(exc).lower()
 
 
-def precision_settings(name: str, precision: str, device: str,
-                       anywhere: bool = False) -> tuple[bool, bool]:
-    """``(amp, tf32_matmul)`` of a precision for network ``name`` on ``device``; ValueError where
-    it does not apply (amp for a network without a mixed-precision mode, amp or tf32 off CUDA;
-    ``anywhere``: also off CUDA, where both change nothing: a smoke test of the code path)."""
-    from weathergen.models import model_spec, resolve_amp
+def precision_settings(name: str, precision: str, device: str, anywhere: bool = False) -> str:
+    """The :attr:`FlowModel.precision` a measured precision sets for network ``name`` on
+    ``device``: ``paper`` (fp16 where the paper ran the network in mixed precision, else float32),
+    ``amp`` (fp16 in the network's own mixed-precision regions), ``float32``, ``tf32``, ``bf16``,
+    ``fp16`` (``--precision``). ValueError where it does not apply: amp for a network without a
+    mixed-precision mode, a precision refused for the network, amp or tf32 off CUDA
+    (``anywhere``: allowed there too, where they change nothing or run on the CPU: a smoke test
+    of the code path)."""
+    from weathergen.errors import ConfigError
+    from weathergen.models import model_spec, resolve_amp, resolve_precision
 
     cuda = device.startswith("cuda") or anywhere
     if precision == "paper":
-        return resolve_amp(name, None, device), False
-    if precision == "float32":
-        return False, False
-    if not cuda:
+        return "fp16" if resolve_amp(name, None, device) else "float32"
+    if precision in ("amp", "tf32") and not cuda:
         raise ValueError(f"{precision} needs a CUDA device")
     if precision == "amp":
         if not model_spec(name).mixed_precision:
             raise ValueError(f"{name} has no mixed-precision mode")
-        return True, False
-    if precision == "tf32":
-        return False, True
-    raise ValueError(f"unknown precision {precision!r}")
+        return "fp16"
+    if precision not in PRECISIONS:
+        raise ValueError(f"unknown precision {precision!r}")
+    try:
+        return resolve_precision(name, precision, None, "cuda" if cuda else device)
+    except ConfigError as exc:
+        raise ValueError(str(exc)) from None
 
 
 class Bench:
@@ -308,13 +329,13 @@ class Bench:
         self.records = [sample_particles(self.pair, p, seed=i)
                         for i in range(max(sizes.batch_sizes))]
 
-    def model(self, name: str, amp: bool, options: Options):
+    def model(self, name: str, precision: str, options: Options):
         from weathergen.models import build_model, compile_iterations
 
         model = build_model(name, iters=self.sizes.iters,
                             gradient_checkpointing=options.checkpointing).to(self.device)
         model.requires_grad_(False)
-        model.amp = amp
+        model.precision = precision
         if options.compile:
             compile_iterations(model, options.compile, options.backend)
         return model
@@ -369,14 +390,14 @@ def measure(bench: Bench, name: str, precision: str, options: Options = Options(
     import torch
 
     start = time.perf_counter()
-    amp, tf32 = precision_settings(name, precision, bench.device, anywhere)
+    setting = precision_settings(name, precision, bench.device, anywhere)
     result = Measured(name, precision, options.label())
     cuda = bench.device.startswith("cuda")
     old_tf32 = torch.backends.cuda.matmul.allow_tf32
-    torch.backends.cuda.matmul.allow_tf32 = tf32
+    torch.backends.cuda.matmul.allow_tf32 = setting == "tf32"   # the backward passes too
     model = run = best_run = None
     try:
-        model = bench.model(name, amp, options)
+        model = bench.model(name, setting, options)
         for batch in batch_sizes or bench.sizes.batch_sizes:
             if time.perf_counter() - start > budget_s:
                 result.stop = f"time budget ({budget_s:.0f} s) spent before batch {batch}"
@@ -497,6 +518,98 @@ def best_throughputs(results: list[Measured], precision: str) -> dict[str, Throu
     return out
 
 
+# -- from the figures files: every measured precision, with and without early stopping ---------------
+
+def session_throughputs(path: Path) -> dict[str, dict[str, Throughput]]:
+    """``{precision: {network: Throughput}}`` from a GPU session's JSON file: the rows of its
+    ``tables`` and ``options`` sections measured without options, each under the precision it
+    sets (``paper``: fp16 for GMA, float32 for the others; ``amp``: fp16), the best where two
+    rows give one. A precision refused for a network is left out."""
+    data = json.loads(Path(path).read_text())
+    gpu = data.get("machine", {}).get("gpu", "a GPU")
+    sections = data.get("sections", {})
+    rows = sections.get("tables", {}).get("measured", []) + sections.get("options", {}).get("rows", [])
+    out: dict[str, dict[str, Throughput]] = {}
+    for r in rows:
+        if r.get("options", "-") != "-" or not r.get("attack"):
+            continue
+        try:
+            precision = precision_settings(r["network"], r["precision"], "cuda")
+        except ValueError:
+            continue
+        known = out.setdefault(precision, {}).get(r["network"])
+        if known is None or r["attack"] > known.attack:
+            out[precision][r["network"]] = Throughput(
+                r["attack"], r.get("forward"), f"{gpu}, measured as {r['precision']}, batch "
+                                               f"{r.get('best_batch')}")
+    return out
+
+
+def step_fractions(path: Path) -> dict[str, float]:
+    """Per network, the share of the full budget's pair-steps an attack with early stopping ran:
+    the ``figures:`` line of ``speed/bench_early_stop.py``'s section of the figures file, its
+    networks with trained weights only (random weights' flat losses say nothing of a trained
+    network's)."""
+    sections = json.loads(Path(path).read_text()).get("sections", {}) if Path(path).exists() else {}
+    for command, section in sections.items():
+        if "bench_early_stop.py" in command:
+            for line in section.get("output", "").splitlines():
+                if line.startswith("figures: "):
+                    return {n: f["step_fraction"] for n, f in json.loads(line[9:]).items()
+                            if f.get("weights") != "random weights"}
+    return {}
+
+
+def precision_hours(runs: list[Run], by_precision: dict[str, dict[str, Throughput]],
+                    fractions: dict[str, float]) -> list[dict]:
+    """One row per network and precision: its throughput and its GPU-hours of Table 4 and of all
+    tables, with every step and with early stopping (the network's measured step fraction, else
+    the mean of those measured; 1 where none is)."""
+    mean = sum(fractions.values()) / len(fractions) if fractions else 1.0
+    rows = []
+    for precision, throughputs in by_precision.items():
+        for name, tp in throughputs.items():
+            fraction = fractions.get(name, mean)
+            full, early = table_hours(runs, tp), table_hours(runs, tp, fraction)
+            rows.append({"network": name, "precision": precision, "pair_steps_per_second": tp.attack,
+                         "step_fraction": fraction, "measured_fraction": name in fractions,
+                         "fraction_of": name if name in fractions else ", ".join(fractions) or "-",
+                         "table4": full["4"], "total": full["total"],
+                         "table4_early": early["4"], "total_early": early["total"],
+                         "source": tp.source})
+    return sorted(rows, key=lambda r: (PAPER_NETWORKS + (r["network"],)).index(r["network"]))
+
+
+def fastest(rows: list[dict]) -> dict[str, dict]:
+    """Per network, its row of the fewest GPU-hours (its fastest accepted precision)."""
+    best: dict[str, dict] = {}
+    for r in rows:
+        if r["network"] not in best or r["total"] < best[r["network"]]["total"]:
+            best[r["network"]] = r
+    return best
+
+
+def precision_report(rows: list[dict], target_hours: float = 4.0) -> str:
+    """The table of :func:`precision_hours` and the distance of the fastest precisions to the
+    goal of ``target_hours`` for Table 4."""
+    lines = ["| network | precision | pair-steps/s | Table 4 h | all tables h | steps run with "
+             "early stopping | Table 4 h, early stopping | all tables h, early stopping |",
+             "|---|---|---:|---:|---:|---:|---:|---:|"]
+    for r in rows:
+        share = f"{r['step_fraction']:.0%}" + ("" if r["measured_fraction"] else
+                                               f" (of {r['fraction_of']})")
+        lines.append(f"| {r['network']} | {r['precision']} | {r['pair_steps_per_second']:.2f} | "
+                     f"{r['table4']:.1f} | {r['total']:.1f} | {share} | {r['table4_early']:.1f} | "
+                     f"{r['total_early']:.1f} |")
+    best = fastest(rows)
+    t4, t4_early = (sum(r[k] for r in best.values()) for k in ("table4", "table4_early"))
+    choice = ", ".join(f"{n} {r['precision']}" for n, r in best.items())
+    lines += ["", f"Fastest accepted precision per network ({choice}): Table 4 takes {t4:.1f} "
+                  f"GPU-hours, {t4 / target_hours:.1f}x the goal of {target_hours:g} hours; with "
+                  f"early stopping {t4_early:.1f} GPU-hours, {t4_early / target_hours:.1f}x."]
+    return "\n".join(lines)
+
+
 # -- the command ----------------------------------------------------------------------------------
 
 def report(runs: list[Run], throughputs: dict[str, Throughput], title: str,
@@ -548,6 +661,39 @@ def counts_table(runs: list[Run]) -> str:
     return "\n".join(lines)
 
 
+def from_figures(runs: list[Run], session: Path, check: Path, bench: Path,
+                 step_fraction: Optional[float], target_hours: float) -> dict:
+    """``--from-figures``: print the GPU-hours of every network in every precision measured in
+    the GPU session (networks measured only by ``make gpu-check``: in their paper precision), with
+    and without early stopping; return the figures."""
+    by_precision = session_throughputs(session) if session.exists() else {}
+    seen = {n for tps in by_precision.values() for n in tps}
+    for name, tp in (figures_throughputs(check) if check.exists() else {}).items():
+        if name not in seen and name in PAPER_NETWORKS:
+            by_precision.setdefault(precision_settings(name, "paper", "cuda"), {})[name] = tp
+    fractions = step_fractions(bench) if step_fraction is None else {
+        n: step_fraction for tps in by_precision.values() for n in tps}
+    rows = precision_hours(runs, by_precision, fractions)
+    print(f"GPU-hours per network and precision, from {session.name} and {check.name} (GPU "
+          f"figures measured on an earlier tree: not measured on this tree), early stopping's "
+          f"step fraction from "
+          f"{'--step-fraction' if step_fraction is not None else bench.name + ' (bench_early_stop.py)'}"
+          f"{'' if fractions else ': none measured, every step counted'}:\n")
+    print(precision_report(rows, target_hours))
+    missing = not_measured(by_precision)
+    print("\nNot measured on a GPU (no row in these files): "
+          + "; ".join(f"{n} {', '.join(ps)}" for n, ps in missing.items()))
+    return {"rows": rows, "step_fractions": fractions, "not_measured": missing}
+
+
+def not_measured(by_precision: dict[str, dict[str, Throughput]]) -> dict[str, list[str]]:
+    """Per paper network, the precisions it accepts that have no measured throughput."""
+    from weathergen.models import PRECISIONS as ACCEPTED, model_spec
+
+    return {n: [p for p in ACCEPTED if p not in model_spec(n).refused_precisions
+                and n not in by_precision.get(p, {})] for n in PAPER_NETWORKS}
+
+
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda", help="cuda, cuda:N or cpu")
@@ -572,6 +718,16 @@ def main(argv=None) -> int:
     parser.add_argument("--figures", type=Path, default=DEFAULT_FIGURES,
                         help="a make gpu-check figures file for --dry-run")
     parser.add_argument("--quick", action="store_true", help="tiny sizes (a smoke test)")
+    parser.add_argument("--from-figures", action="store_true",
+                        help="the hours of every precision measured in --session (and --figures), "
+                             "with and without early stopping (--bench's step saving)")
+    parser.add_argument("--session", type=Path, default=DEFAULT_SESSION,
+                        help="a GPU session's JSON file for --from-figures")
+    parser.add_argument("--bench", type=Path, default=DEFAULT_BENCH,
+                        help="the CPU figures file holding bench_early_stop.py's step saving")
+    parser.add_argument("--step-fraction", type=float, default=None,
+                        help="share of the weather attacks' steps run with early stopping "
+                             "(instead of --bench's)")
     parser.add_argument("--json", type=Path, default=None, help="write the figures here")
     args = parser.parse_args(argv)
 
@@ -579,7 +735,10 @@ def main(argv=None) -> int:
     figures: dict = {"counts": table_counts(runs),
                      "runs": [dataclasses.asdict(r) for r in runs]}
     print(counts_table(runs) + "\n")
-    if args.dry_run:
+    if args.from_figures:
+        figures["from_figures"] = from_figures(runs, args.session, args.figures, args.bench,
+                                               args.step_fraction, args.target_hours)
+    elif args.dry_run:
         try:
             given = parse_assume(args.assume)
         except ValueError as exc:

@@ -41,7 +41,7 @@ DEFAULT = ROOT / "docs" / "figures" / "bench.json"
 WORKER_FLAGS = ("--worker", "--one")
 #: The order of sections in bench.md: make bench's order; other commands follow, sorted.
 ORDER = ("bench.py", "bench_fog.py", "bench_core.py", "bench_field.py", "bench_combined.py",
-         "bench_models.py", "bench_attack.py", "bench_training.py", "bench_batch.py",
+         "bench_atmosphere.py", "bench_models.py", "bench_attack.py", "bench_training.py", "bench_batch.py",
          "bench_quick_look.py")
 
 

@@ -188,9 +188,9 @@ def render_rows(device: str, sizes: Sizes) -> list[Row]:
 def field_rows(device: str, sizes: Sizes) -> list[Row]:
     import bench_field
     from weathergen.engine import load_preset
-    from weathergen.engine.field import make_field, pair_particles
+    from weathergen.engine.sampling.field import make_field, field_pair_particles
     from weathergen.engine import View
-    from weathergen.engine.renderer import render_first_frame
+    from weathergen.engine.rendering.renderer import render_first_frame
 
     preset = load_preset("snow-heavy")
     start = time.perf_counter()
@@ -207,7 +207,7 @@ def field_rows(device: str, sizes: Sizes) -> list[Row]:
         views = (View(pair.intrinsics, pair.cam1_from_world, pair.depth1),
                  View(pair.intrinsics, pair.cam2_from_world, pair.depth2))
         start = time.perf_counter()
-        record = pair_particles(field, views, (n, n + 1))
+        record = field_pair_particles(field, views, (n, n + 1))
         samples.append(time.perf_counter() - start)
         counts.append(record.count)
 

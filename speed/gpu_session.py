@@ -146,18 +146,12 @@ def flow_difference(bench: bt.Bench, name: str, precision: str, options: bt.Opti
     RMS of the float32 flow for scale."""
     flows = []
     for prec, opts in (("float32", bt.Options()), (precision, options)):
-        amp, tf32 = bt.precision_settings(name, prec, bench.device, anywhere)
-        old = torch.backends.cuda.matmul.allow_tf32
-        torch.backends.cuda.matmul.allow_tf32 = tf32
-        try:
-            torch.manual_seed(0)
-            model = bench.model(name, amp, opts)
-            a = bench.pair.image1[None].to(bench.device)
-            b = bench.pair.image2[None].to(bench.device)
-            with torch.no_grad():
-                flows.append(model(a, b).float().cpu())
-        finally:
-            torch.backends.cuda.matmul.allow_tf32 = old
+        torch.manual_seed(0)
+        model = bench.model(name, bt.precision_settings(name, prec, bench.device, anywhere), opts)
+        a = bench.pair.image1[None].to(bench.device)
+        b = bench.pair.image2[None].to(bench.device)
+        with torch.no_grad():
+            flows.append(model(a, b).float().cpu())
         del model
     ref, got = flows
     diff = got - ref

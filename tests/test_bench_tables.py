@@ -3,6 +3,7 @@ and a measurement on tiny sizes on the CPU (its figures mean nothing; the code p
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import subprocess
 import sys
@@ -140,8 +141,99 @@ def test_out_of_memory_ends_the_batch_sizes(bt, monkeypatch):
     assert r.stop == "out of memory at batch 2"
 
 
-def test_precisions_that_do_not_apply_are_refused(bt):
-    assert bt.precision_settings("gma", "paper", "cpu") == (False, False)   # CPU: no autocast
-    assert bt.precision_settings("raft", "float32", "cpu") == (False, False)
-    with pytest.raises(ValueError, match="CUDA"):
-        bt.precision_settings("raft", "amp", "cpu")
+def test_precisions_that_do_not_apply_are_refused(bt, monkeypatch):
+    assert bt.precision_settings("gma", "paper", "cpu") == "float32"   # CPU: no autocast
+    assert bt.precision_settings("gma", "paper", "cuda") == "fp16"     # the paper's GMA
+    assert bt.precision_settings("raft", "float32", "cpu") == "float32"
+    assert bt.precision_settings("raft", "amp", "cuda") == "fp16"
+    assert bt.precision_settings("gma", "bf16", "cpu") == "bf16"   # autocast on the CPU
+    with pytest.raises(ValueError, match="refused for 'flowformer'"):   # beyond its bound
+        bt.precision_settings("flowformer", "bf16", "cuda")
+    for precision in ("amp", "tf32"):
+        with pytest.raises(ValueError, match="CUDA"):
+            bt.precision_settings("raft", precision, "cpu")
+    with pytest.raises(ValueError, match="no mixed-precision mode"):
+        bt.precision_settings("spynet", "amp", "cuda")
+    from weathergen.models import model_spec, registry
+    monkeypatch.setitem(registry._ARCHITECTURES, "spynet", dataclasses.replace(
+        model_spec("spynet"), refused_precisions=("fp16",)))
+    with pytest.raises(ValueError, match="refused for 'spynet'"):
+        bt.precision_settings("spynet", "fp16", "cuda")
+
+
+def session_file(tmp_path):
+    """A GPU session's JSON: raft in its paper precision (float32) and amp (fp16), gma in its
+    paper precision (fp16) and float32, and a row with options (not counted)."""
+    def row(network, precision, attack, options="-"):
+        return {"network": network, "precision": precision, "options": options,
+                "attack": attack, "forward": 2 * attack, "best_batch": 4}
+
+    data = {"machine": {"gpu": "GPU X"},
+            "sections": {"tables": {"measured": [row("raft", "paper", 10.0), row("gma", "paper", 8.0),
+                                                 row("gma", "float32", 5.0)]},
+                         "options": {"rows": [row("raft", "amp", 20.0),
+                                              row("raft", "float32", 99.0, "checkpointing"),
+                                              {"network": "raft", "precision": "tf32",
+                                               "options": "-", "skipped": "deadline"}]}}}
+    path = tmp_path / "gpu-session.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def bench_file(tmp_path, fractions):
+    line = "figures: " + json.dumps({**{n: {"step_fraction": f, "weights": "shipped checkpoint"}
+                                        for n, f in fractions.items()},
+                                     "spynet": {"step_fraction": 0.1, "weights": "random weights"}})
+    data = {"sections": {"python speed/bench_early_stop.py": {"output": f"a table\n{line}\n"}}}
+    path = tmp_path / "bench.json"
+    path.write_text(json.dumps(data))
+    return path
+
+
+def test_session_throughputs_by_the_precision_they_set(bt, tmp_path):
+    tps = bt.session_throughputs(session_file(tmp_path))
+    assert {p: sorted(t) for p, t in tps.items()} == {"float32": ["gma", "raft"],
+                                                      "fp16": ["gma", "raft"]}
+    assert tps["float32"]["raft"].attack == 10.0 and tps["fp16"]["raft"].attack == 20.0
+    assert tps["fp16"]["gma"].attack == 8.0 and tps["fp16"]["gma"].forward == 16.0
+    assert bt.step_fractions(bench_file(tmp_path, {"raft": 0.5})) == {"raft": 0.5}
+    assert bt.step_fractions(tmp_path / "missing.json") == {}
+
+
+def test_hours_per_precision_with_and_without_early_stopping(bt, tmp_path):
+    runs = [bt.Run("2", "clean flow", 100, 1, backward=False),
+            bt.Run("4", "snow", 10, 36, stoppable=True), bt.Run("5", "pcfa", 10, 20)]
+    tps = bt.session_throughputs(session_file(tmp_path))
+    rows = bt.precision_hours(runs, tps, {"raft": 0.5, "gma": 0.25})
+    raft = next(r for r in rows if r["network"] == "raft" and r["precision"] == "fp16")
+    assert raft["table4"] == pytest.approx(360 / 20.0 / 3600)
+    assert raft["table4_early"] == pytest.approx(0.5 * 360 / 20.0 / 3600)
+    # the forward-only and the Lp runs are not shortened by early stopping
+    assert raft["total"] == pytest.approx((100 / 40.0 + 360 / 20.0 + 200 / 20.0) / 3600)
+    assert raft["total_early"] == pytest.approx((100 / 40.0 + 180 / 20.0 + 200 / 20.0) / 3600)
+    gma = next(r for r in rows if r["network"] == "gma" and r["precision"] == "float32")
+    assert gma["table4_early"] == pytest.approx(0.25 * 360 / 5.0 / 3600)
+    # a network without a measured fraction takes the mean of the measured ones
+    mean = bt.precision_hours(runs, {"fp16": {"spynet": bt.Throughput(10.0)}}, {"a": 0.2, "b": 0.6})
+    assert mean[0]["step_fraction"] == pytest.approx(0.4) and not mean[0]["measured_fraction"]
+    best = bt.fastest(rows)
+    assert best["raft"]["precision"] == "fp16" and best["gma"]["precision"] == "fp16"
+    text = bt.precision_report(rows, target_hours=1.0)
+    t4 = 360 / 20.0 / 3600 + 360 / 8.0 / 3600
+    assert f"Table 4 takes {t4:.1f} GPU-hours" in text and "| raft | fp16 | 20.00 |" in text
+
+
+def test_from_figures_is_one_command(tmp_path):
+    out = tmp_path / "hours.json"
+    done = subprocess.run(
+        [sys.executable, str(SCRIPT), "--from-figures", "--session", str(session_file(tmp_path)),
+         "--figures", str(tmp_path / "none.json"), "--bench", str(bench_file(tmp_path, {"raft": 0.5})),
+         "--json", str(out)], capture_output=True, text=True, timeout=300)
+    assert done.returncode == 0, done.stderr
+    figures = json.loads(out.read_text())["from_figures"]
+    assert figures["step_fractions"] == {"raft": 0.5}
+    rows = {(r["network"], r["precision"]): r for r in figures["rows"]}
+    assert rows["raft", "fp16"]["table4"] == pytest.approx(345_460 / 20.0 / 3600)
+    assert rows["gma", "fp16"]["table4_early"] == pytest.approx(0.5 * 345_460 / 8.0 / 3600)
+    assert "not measured on this tree" in done.stdout and "x the goal of 4 hours" in done.stdout
+    assert figures["not_measured"]["raft"] == ["tf32", "bf16"]

@@ -84,7 +84,7 @@ def test_the_networks_measured_by_default_are_every_registered_one(gpu_check, mo
     assert sorted(gpu_check.every_network()) == sorted(available_models())
     assert gpu_check.every_network()[:2] == ["raft-small", "raft"]          # the tables' order
     # a network registered later is measured too, after the others
-    monkeypatch.setattr(registry, "_MODELS", {**registry._MODELS, "a-new-net": None})
+    monkeypatch.setattr(registry, "_ARCHITECTURES", {**registry._ARCHITECTURES, "a-new-net": None})
     assert gpu_check.every_network()[-1] == "a-new-net"
 
 

@@ -63,13 +63,13 @@ def test_make_images_quick_writes_every_picture_it_promises(tmp_path, capsys):
     import cv2
     import pytest
 
-    from weathergen.engine.presets import list_presets
+    from weathergen.engine.weather.presets import list_presets
 
     script = _script()
     out = tmp_path / "images"
     script.run(["--quick", "--out", str(out)])
     files = {p.name for p in out.iterdir()}
-    assert files == {"presets.png", "video-still.png", "every-preset.png", "atmosphere.png"}
+    assert files == {"presets.png", "video-still.png", "every-preset.png", "atmosphere.png", "depth.png"}
     _, _, h, w = script.QUICK_CROP
     assert read_png(out / "presets.png").shape == (2 * (h + script.LABEL_PX), 2 * w, 3)
     still = read_png(out / "video-still.png")

@@ -23,7 +23,7 @@ import sys
 import weathergen, weathergen.cli.main, weathergen.presets
 from weathergen.attack.configs import attack_config
 from weathergen.engine import load_preset
-from weathergen.engine.templates import load_templates
+from weathergen.engine.weather.templates import load_templates
 assert load_preset("snow").count == 3000 and load_preset("snow-light").model == "field"
 assert attack_config("snow").preset == "snow"
 assert load_templates("flakes").count == 8

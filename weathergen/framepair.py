@@ -9,9 +9,11 @@ Conventions (stated once here; docstrings elsewhere repeat them as ``Shape:`` li
 - **Flow**: ``(2, H, W)`` / ``(B, 2, H, W)``; ``float32``; pixels; channel 0 is ``u`` (towards +x,
   right), channel 1 is ``v`` (towards +y, down); ``p2 = p1 + flow(p1)``.
 - **Valid masks**: ``(1, H, W)`` / ``(B, 1, H, W)``; ``bool``.
-- **Measured-depth masks** (``depth_measured1/2``): ``(1, H, W)`` ``bool``, True where the depth was
-  measured (read from the dataset) rather than interpolated or set to a far depth by the reader;
-  ``None`` means every pixel was measured (dense ground truth such as Sintel's).
+- **Depth provenance** (``depth_provenance1/2``): ``(1, H, W)`` ``uint8``, where each pixel's depth
+  comes from: :data:`MEASURED` (0, read from the dataset), :data:`COMPLETED` (1, estimated from
+  measurements by the reader), :data:`SKY` (2, the sky: the far depth), :data:`UNKNOWN` (3, no
+  measurement and no completion: the far depth too); ``None`` means every pixel was measured.
+  ``depth_measured1/2`` are the ``bool`` masks of its :data:`MEASURED` pixels.
 - **Pixel coordinates**: ``x`` to the right, ``y`` down, the centre of the top-left pixel at
   ``(0, 0)`` (so the image spans ``[-0.5, W - 0.5]``).
 - **Camera axes** (OpenCV): +x right, +y down, +z forward, along the optical axis.
@@ -34,6 +36,10 @@ from typing import Optional
 import torch
 
 from .errors import DatasetError, ShapeError
+
+#: Depth provenance classes (``uint8`` codes of ``depth_provenance1/2``), and their names.
+MEASURED, COMPLETED, SKY, UNKNOWN = 0, 1, 2, 3
+PROVENANCE_NAMES = ("measured", "completed", "sky", "unknown")
 
 
 def _extremes(t: torch.Tensor) -> tuple[float, float]:
@@ -77,8 +83,9 @@ class FramePair:
         cam1_from_world, cam2_from_world: (4, 4) float64 where the dataset has absolute poses.
         flow: (2, H, W) float32 pixels, frame 1 to frame 2, where the dataset has it.
         flow_valid: (1, H, W) bool, where ``flow`` is given.
-        depth_measured1, depth_measured2: (1, H, W) bool, True where the depth was measured; None
-            when every pixel was (the reader filled in none).
+        depth_provenance1, depth_provenance2: (1, H, W) uint8, where each depth comes from
+            (:data:`MEASURED`, :data:`COMPLETED`, :data:`SKY`, :data:`UNKNOWN`); None when every
+            pixel was measured.
     """
 
     id: PairId
@@ -92,12 +99,15 @@ class FramePair:
     cam2_from_world: Optional[torch.Tensor] = None
     flow: Optional[torch.Tensor] = None
     flow_valid: Optional[torch.Tensor] = None
-    depth_measured1: Optional[torch.Tensor] = None
-    depth_measured2: Optional[torch.Tensor] = None
+    depth_provenance1: Optional[torch.Tensor] = None
+    depth_provenance2: Optional[torch.Tensor] = None
     # Which files this pair came from (for messages and manifests), e.g. {"image1": Path(...)}.
     sources: dict = field(default_factory=dict)
     # The depth scale that was applied to the stored depth (and camera translations).
     depth_scale: float = 1.0
+    # Frames per second of the dataset the pair comes from (its reader's ``frame_rate``); None for
+    # a pair built in code. A weather field moves its particles ``velocity / frame_rate`` a frame.
+    frame_rate: Optional[float] = None
     # Plain-data facts the reader wants recorded in manifests, e.g. the residual of an estimated
     # camera motion ({"camera_motion": {"method": "opencv-pnp-ransac+lm", "rms_px": 0.3, ...}}).
     meta: dict = field(default_factory=dict)
@@ -106,6 +116,16 @@ class FramePair:
     def size(self) -> tuple[int, int]:
         """``(H, W)`` of the frames."""
         return int(self.image1.shape[-2]), int(self.image1.shape[-1])
+
+    @property
+    def depth_measured1(self) -> Optional[torch.Tensor]:
+        """(1, H, W) bool: True where frame 1's depth was measured; None when every pixel was."""
+        return None if self.depth_provenance1 is None else self.depth_provenance1 == MEASURED
+
+    @property
+    def depth_measured2(self) -> Optional[torch.Tensor]:
+        """(1, H, W) bool: True where frame 2's depth was measured; None when every pixel was."""
+        return None if self.depth_provenance2 is None else self.depth_provenance2 == MEASURED
 
     def validate(self) -> "FramePair":
         """Check shapes, dtypes and values; raise :class:`DatasetError` naming the pair's files."""
@@ -152,9 +172,13 @@ class FramePair:
                 raise DatasetError(f"{src}: flow is {self.flow.shape[-1]}x{self.flow.shape[-2]} "
                                    f"but the image is {w}x{h}")
             expect("flow", (2, h, w), torch.float32)
-        for name in ("flow_valid", "depth_measured1", "depth_measured2"):
+        if self.flow_valid is not None:
+            expect("flow_valid", (1, h, w), torch.bool)
+        for name in ("depth_provenance1", "depth_provenance2"):
             if getattr(self, name) is not None:
-                expect(name, (1, h, w), torch.bool)
+                expect(name, (1, h, w), torch.uint8)
+                if int(getattr(self, name).max()) > UNKNOWN:
+                    fail(f"{name} has codes above {UNKNOWN} ({'/'.join(PROVENANCE_NAMES)})")
         return self
 
     def to(self, device: torch.device | str) -> "FramePair":
@@ -168,7 +192,7 @@ class FramePair:
 
 _TENSOR_FIELDS = ("image1", "image2", "depth1", "depth2", "intrinsics", "cam2_from_cam1",
                   "cam1_from_world", "cam2_from_world", "flow", "flow_valid",
-                  "depth_measured1", "depth_measured2")
+                  "depth_provenance1", "depth_provenance2")
 
 
 @dataclass
@@ -176,8 +200,8 @@ class FramePairBatch:
     """``B`` frame pairs of the same size stacked along a leading batch dimension.
 
     Shape: as :class:`FramePair` with a leading ``B``; optional fields are ``None`` unless every
-    pair has them, except the measured-depth masks, which are stacked (all True for a pair
-    without one) as soon as one pair has them.
+    pair has them, except the depth provenance maps, which are stacked (all :data:`MEASURED` for
+    a pair without one) as soon as one pair has them.
     """
 
     ids: list
@@ -191,8 +215,8 @@ class FramePairBatch:
     cam2_from_world: Optional[torch.Tensor] = None
     flow: Optional[torch.Tensor] = None
     flow_valid: Optional[torch.Tensor] = None
-    depth_measured1: Optional[torch.Tensor] = None
-    depth_measured2: Optional[torch.Tensor] = None
+    depth_provenance1: Optional[torch.Tensor] = None
+    depth_provenance2: Optional[torch.Tensor] = None
 
     @classmethod
     def stack(cls, pairs: list[FramePair]) -> "FramePairBatch":
@@ -206,13 +230,13 @@ class FramePairBatch:
             vals = [getattr(p, name) for p in pairs]
             return None if any(v is None for v in vals) else torch.stack(vals)
 
-        def measured(name):
-            # None means "all measured", so a pair without a mask stacks as all True.
+        def provenance(name):
+            # None means "all measured", so a pair without a map stacks as all MEASURED.
             vals = [getattr(p, name) for p in pairs]
             if all(v is None for v in vals):
                 return None
-            return torch.stack([torch.ones_like(p.depth1, dtype=torch.bool) if v is None else v
-                                for p, v in zip(pairs, vals)])
+            return torch.stack([torch.full_like(p.depth1, MEASURED, dtype=torch.uint8)
+                                if v is None else v for p, v in zip(pairs, vals)])
 
         return cls(
             ids=[p.id for p in pairs],
@@ -226,6 +250,6 @@ class FramePairBatch:
             cam2_from_world=opt("cam2_from_world"),
             flow=opt("flow"),
             flow_valid=opt("flow_valid"),
-            depth_measured1=measured("depth_measured1"),
-            depth_measured2=measured("depth_measured2"),
+            depth_provenance1=provenance("depth_provenance1"),
+            depth_provenance2=provenance("depth_provenance2"),
         )

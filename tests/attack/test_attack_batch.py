@@ -7,7 +7,7 @@ import pytest
 import torch
 
 from weathergen.attack import (OPTIMIZABLE, AttackSettings, TargetSpec, attack_batch, attack_pair)
-from weathergen.engine.particles import TENSOR_FIELDS
+from weathergen.engine.records.particles import TENSOR_FIELDS
 from weathergen.errors import ConfigError
 
 from .test_attack_pair import crop_pair, grey_particles

@@ -14,7 +14,7 @@ from click.testing import CliRunner
 from weathergen.attack import AttackSettings, TargetSpec, attack_pair
 from weathergen.attack.plan import plan_attack
 from weathergen.engine import LayeredParticles, load_preset, sample_weather
-from weathergen.engine.particles import TENSOR_FIELDS
+from weathergen.engine.records.particles import TENSOR_FIELDS
 from weathergen.errors import ConfigError
 
 

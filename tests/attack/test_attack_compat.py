@@ -3,6 +3,7 @@ per term, each showing the reference mode's behaviour and the paper mode's (the 
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import pytest
@@ -14,6 +15,7 @@ from weathergen.attack.compat import (REFERENCE_DEPTH_EPS, detaches_occlusion,
                                       reference_offset_penalty, resets_gradients)
 from weathergen.attack.pair import AttackResult, start_depth
 from weathergen.engine import BETA_ATTACK, BETA_RENDER
+from weathergen.engine.rendering.renderer import depth_seen
 from weathergen.errors import ConfigError
 from weathergen.geometry import transform_points
 
@@ -38,7 +40,7 @@ def raft_small(raft_small_weights):
 def on_the_surface(pair, particles, gap=0.003):
     """The particles moved along their frame-1 camera rays to just in front of the scene
     surface they cover (V about 0.7 at β = 250): occlusion's gradient is large there."""
-    from weathergen.engine.sampling import reference_transforms
+    from weathergen.engine.sampling.pair import reference_transforms
     from weathergen.geometry import project
 
     _, c1, _ = reference_transforms(pair)
@@ -99,11 +101,16 @@ def test_reference_detaches_occlusion_unless_it_is_softened(small_pair, raft_sma
     assert plan_attack(None, "fog", compat="reference").settings.beta == BETA_ATTACK
 
     particles = on_the_surface(small_pair, grey_particles(small_pair, count=80))
+    # the reference mode reads the depth half a pixel up and left: the paper mode gets the depth
+    # read there, so that both test the particles against the same depth
+    shifted = dataclasses.replace(small_pair, **{k: depth_seen(getattr(small_pair, k)[None],
+                                                               [0.5])[0]
+                                                 for k in ("depth1", "depth2")})
     grads, distances = {}, {}
-    for compat in ("paper", "reference"):
+    for compat, pair in (("paper", shifted), ("reference", small_pair)):
         # offset2 and colour only: no homogeneous component, no transparency bound, and both
         # penalties have zero gradient at the start.
-        run = PairOptimisation(raft_small, small_pair, particles,
+        run = PairOptimisation(raft_small, pair, particles,
                                settings(compat, optimize=("offset2", "color")))
         assert run.detach_occlusion == (compat == "reference")
         _, _, loss, distance, _ = run.evaluate()
@@ -135,7 +142,7 @@ def test_reference_penalty_by_hand():
 def test_penalty_of_each_mode(small_pair, raft_small, compat):
     """The loop's penalty: the paper's ‖δ_t‖²/d_t with each frame's depth, or the research
     code's ‖Δ_t‖²/(z1² + ε) with the squared frame-1 depth for both."""
-    from weathergen.engine.sampling import reference_transforms
+    from weathergen.engine.sampling.pair import reference_transforms
 
     particles = grey_particles(small_pair, count=40)
     run = PairOptimisation(raft_small, small_pair, particles,
@@ -166,7 +173,7 @@ def test_penalty_of_each_mode(small_pair, raft_small, compat):
 # -- homogeneous offsets -------------------------------------------------------------------------
 
 def test_reference_homogeneous_component_moves_frame_two_along_the_camera_translation(small_pair):
-    from weathergen.engine.sampling import reference_transforms
+    from weathergen.engine.sampling.pair import reference_transforms
 
     _, c1, c2 = reference_transforms(small_pair)
     particles = grey_particles(small_pair, count=10)

@@ -160,7 +160,7 @@ def test_transparency_above_one_survives_the_box_transform():
 
 
 def test_particle_depths_are_camera_z(small_pair):
-    from weathergen.engine.sampling import reference_transforms
+    from weathergen.engine.sampling.pair import reference_transforms
     from weathergen.geometry import transform_points
 
     particles = grey_particles(small_pair, count=20)
@@ -175,7 +175,7 @@ def test_particle_depths_are_camera_z(small_pair):
 
 def test_gradient_reaches_every_variable_through_raft(small_pair, raft_small):
     from weathergen.engine import render
-    from weathergen.engine.sampling import reference_transforms
+    from weathergen.engine.sampling.pair import reference_transforms
 
     particles = grey_particles(small_pair)
     _, c1, c2 = reference_transforms(small_pair)

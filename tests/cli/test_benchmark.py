@@ -262,6 +262,15 @@ def test_bad_options_fail_before_writing(tmp_path):
     assert result.exit_code == 2 and "NETWORK=FILE_OR_NAME" in result.output
     result = invoke(["benchmark", "--networks", "raft-small", "--amp", "--out", out])
     assert result.exit_code == 2 and "--amp needs a CUDA device" in result.output
+    result = invoke(["benchmark", "--networks", "raft-small,raft,raft-small", "--out", out])
+    assert result.output.strip() == "Error: --networks names 'raft-small' twice"
+    result = invoke(["benchmark", "--networks", "raft-small", "--checkpoint", "raft=raft-things",
+                     "--out", out])
+    assert result.output.strip() == ("Error: --checkpoint raft=raft-things: 'raft' is not among "
+                                     "--networks (raft-small)")
+    result = invoke(["benchmark", "--networks", "raft-small,nets.py:build", "--out", out])
+    assert result.output.strip() == ("Error: --networks 'nets.py:build': the file 'nets.py' does "
+                                     "not exist")
     assert not out.exists()
 
 
@@ -278,8 +287,8 @@ def test_amp_is_passed_on_to_every_run(demo_root, tmp_path, amp, expected):
                          device="cuda", amp=amp)
     jobs = []
     run_grid(spec, execute=jobs.append)
-    assert [(j.model, j.amp) for j in jobs] == [(n, amp) for n in ("gma", "gma", "raft", "raft")]
-    assert {j.model: j.config()["model"]["amp"] for j in jobs} == expected
+    assert [(j.model.name, j.amp) for j in jobs] == [(n, amp) for n in ("gma", "gma", "raft", "raft")]
+    assert {j.model.name: j.config()["model"]["amp"] for j in jobs} == expected
 
 
 def test_amp_for_a_network_without_the_mode_fails_before_any_run(demo_root, tmp_path):

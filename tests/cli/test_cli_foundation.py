@@ -86,3 +86,30 @@ def test_installed_console_script(fake_sintel):
                          text=True, env=os.environ)
     assert out.returncode == 0, out.stderr
     assert "alley" in out.stdout
+
+
+def test_options_gathered_into_a_settings_record():
+    """A command's options named as a record's fields come in as one record; the others as
+    they are; its --help is that of its options."""
+    import click
+
+    from weathergen.cli.options import RunOptions, gathered
+
+    seen = {}
+
+    @click.command()
+    @click.option("--device", default="cpu")
+    @click.option("--executor", default="local")
+    @click.option("--ray-address", default="auto")
+    @click.option("--batch-size", type=int, default=None)
+    @click.option("--resume", is_flag=True)
+    @click.option("--overwrite", is_flag=True)
+    @click.option("--seed", type=int, default=0)
+    @gathered("run", RunOptions)
+    def command(seed, run):
+        seen.update(seed=seed, run=run)
+
+    res = CliRunner().invoke(command, ["--batch-size", "3", "--resume", "--seed", "7"])
+    assert res.exit_code == 0, res.output
+    assert seen == {"seed": 7, "run": RunOptions(batch_size=3, resume=True)}
+    assert "--ray-address" in CliRunner().invoke(command, ["--help"]).output

@@ -308,7 +308,8 @@ def test_a_stopped_video_writer_leaves_no_temporary_and_a_killed_ones_is_swept(t
     procs = {}
     for sig, video in videos.items():
         video.parent.mkdir()
-        procs[sig] = start("preview", two_pairs, "--video", video, "--cycles", "400")
+        procs[sig] = start("preview", two_pairs, "--video", video, "--cycles", "100", "--width",
+                           "2048")            # 400 large frames: seconds to write
     for sig, proc in procs.items():
         folder = videos[sig].parent
         assert wait_for(lambda: list(folder.glob(".v.mp4.*")) or proc.poll() is not None)

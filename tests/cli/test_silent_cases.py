@@ -252,9 +252,9 @@ def test_stereo_with_format_both_writes_the_right_view_as_the_left(tmp_path, dem
     import torch
 
     from fake_datasets import KITTI_BASELINE, demo_sequence, write_fake_kitti_stereo
-    from weathergen.engine.stereo import warp_depth
+    from weathergen.engine.rendering.stereo import warp_depth
     from weathergen.io.exr import read_exr
-    from weathergen.io.images import read_image
+    from weathergen.io.images import read_image, read_raw
     from weathergen.io.sintel_formats import read_cam, read_dpt
     from weathergen.outputs import read_metadata
 
@@ -294,7 +294,12 @@ def test_stereo_with_format_both_writes_the_right_view_as_the_left(tmp_path, dem
     listed = set(json.loads(str(meta["files"])))
     assert {f"training/snow-moderate_clean_right_exr/{pair}/frame_0011.exr",
             f"training/depth_right/{pair}/frame_0011.dpt",
+            f"training/depth_provenance_right/{pair}/frame_0011.png",
             f"training/camdata_right/{pair}/frame_0010.cam"} <= listed
+    # the right view's classes: its holes (disoccluded, at the border) are completed, not far
+    kinds = read_raw(t / "depth_provenance_right" / pair / "frame_0010.png")
+    assert kinds.shape == right_depth.shape and set(np.unique(kinds)) <= {0, 1, 2}
+    assert (right_depth[kinds != 2] < 1000.0).all()
 
 
 # -- the progress rate counts computed pairs only ------------------------------------------------

@@ -14,6 +14,8 @@ from weathergen.datasets import open_dataset
 from weathergen.errors import ConfigError, DatasetError, FormatError
 from weathergen.geometry import reprojection_flow
 from weathergen.io.custom_formats import read_depth, write_depth
+from weathergen.framepair import COMPLETED, SKY, UNKNOWN
+from weathergen.io.images import write_png
 from weathergen.io.sintel_formats import write_flo
 
 
@@ -113,7 +115,7 @@ def test_png_depth_of_65535_is_missing(tmp_path, street):
     assert pair.meta["depth_values"][0]["valid"] == pytest.approx(1 - 10 / band.shape[0], abs=1e-4)
 
 
-def test_sensor_holes_are_filled_from_their_neighbours_and_large_gaps_get_the_far_depth(tmp_path, street):
+def test_sensor_holes_are_filled_and_a_large_region_that_is_not_sky_is_completed(tmp_path, street):
     # real depth sensors leave holes at object edges and on dark or shiny surfaces; the far depth
     # there would put weather in front of the near object, drawing its outline
     frames, pairs = street
@@ -132,12 +134,27 @@ def test_sensor_holes_are_filled_from_their_neighbours_and_large_gaps_get_the_fa
     np.testing.assert_array_equal(got[measured], true[measured])              # measured values kept
     rel = np.abs(got[holes] - true[holes]) / true[holes]
     assert np.median(rel) < 0.02 and rel.max() < 0.05, rel     # holes: their surface (two planes, a crease)
-    assert (got[:16] == 700.0).all()                                           # > 24 px from a measurement
-    near = got[17:40]
-    assert (near < 700.0).all() and (near >= true[40:].min()).all()           # extended from below
-    assert pair.meta["depth_values"][0]["filled"] == pytest.approx((holes.sum() + 24 * w) / (h * w), abs=2e-3)
-    unfilled = load(root, far_depth=700.0, max_gap_px=0).depth1[0].numpy()
-    assert (unfilled[holes] == 700.0).all()
+    # the textured walls above the missing rows are no sky: completed, not sent to the far depth
+    # (the smooth blue ceiling of the street, at the top, is taken for sky)
+    prov = pair.depth_provenance1[0].numpy()
+    assert (prov[holes] == COMPLETED).all() and np.isin(prov[:40], (COMPLETED, SKY)).all()
+    assert (prov[:40] == COMPLETED).mean() > 0.8 and (got[prov == SKY] == 700.0).all()
+    top = (np.abs(got[:40] - true[:40]) / true[:40])[prov[:40] == COMPLETED]
+    assert np.median(top) < 0.05 and np.quantile(top, 0.9) < 0.2, (np.median(top), top.max())
+    assert pair.meta["depth_values"][0]["filled"] == pytest.approx((prov == COMPLETED).mean(), abs=1e-4)
+    unfilled = load(root, far_depth=700.0, max_gap_px=0)
+    assert (unfilled.depth1[0].numpy()[holes] == 700.0).all()
+    assert np.isin(unfilled.depth_provenance1[0].numpy()[:40], (UNKNOWN, SKY)).all()
+    assert (unfilled.depth_provenance1[0].numpy()[holes] == UNKNOWN).all()
+    # a sky mask of the user's (sky/STEM.png): only the sky gets the far depth, never completed
+    (root / "sky").mkdir()
+    mask = np.zeros((h, w), np.uint8)
+    mask[:20, : w // 2] = 255
+    write_png(root / "sky" / "0000.png", mask)
+    masked = load(root, far_depth=700.0)
+    prov = masked.depth_provenance1[0].numpy()
+    assert (prov[mask > 0] == SKY).all() and (masked.depth1[0].numpy()[mask > 0] == 700.0).all()
+    assert (prov[:40][mask[:40] == 0] == COMPLETED).all()       # the mask replaces the estimate
     with pytest.raises(ConfigError, match="max_gap_px"):
         open_dataset("custom", root, max_gap_px=-1)
 

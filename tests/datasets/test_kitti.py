@@ -11,6 +11,7 @@ from click.testing import CliRunner
 from fake_datasets import KITTI_BASELINE, demo_sequence, write_fake_kitti
 from weathergen.datasets import open_dataset
 from weathergen.datasets.densify import fill_sparse
+from weathergen.framepair import COMPLETED, SKY, UNKNOWN
 from weathergen.datasets.kitti import forward_warp_disparity
 from weathergen.errors import ConfigError, DatasetError, FormatError
 from weathergen.geometry import rotation_angle_deg
@@ -156,8 +157,9 @@ def test_depth_of_both_frames_is_read_back(tmp_path, street):
     pair = load_one(tmp_path)
     assert pair.image1.shape == (3, *truth.size) and pair.depth1.dtype == torch.float32
     assert pair.meta["baseline_m"] == pytest.approx(KITTI_BASELINE)
-    for depth, true, measured in ((pair.depth1, truth.depth1, pair.depth_measured1),
-                                  (pair.depth2, truth.depth2, pair.depth_measured2)):
+    for depth, true, measured, provenance in (
+            (pair.depth1, truth.depth1, pair.depth_measured1, pair.depth_provenance1),
+            (pair.depth2, truth.depth2, pair.depth_measured2, pair.depth_provenance2)):
         rel = ((depth - true).abs() / true)[0]
         m = measured[0]
         far = depth[0] == 1000.0
@@ -166,10 +168,12 @@ def test_depth_of_both_frames_is_read_back(tmp_path, street):
         filled = ~m & ~far
         assert rel[filled].median() < 0.01
         assert rel[filled].quantile(0.9) < 0.05
-        assert not far[40:].any()
-    # frame 1: measurements exact; the band above them (beyond the fill distance) is far away
+        assert not far[60:].any()          # sky only above the scan (the street's blue ceiling)
+        prov = provenance[0]
+        assert ((prov == SKY) == far).all() and ((prov == COMPLETED) == filled).all()
+    # frame 1: measurements exact; the band above them is completed (the street's walls) or sky
     assert (pair.depth1 - truth.depth1).abs()[pair.depth_measured1].max() < 2e-3 * truth.depth1.max()
-    assert (pair.depth1[0, :5] == 1000.0).all()
+    assert (pair.depth_provenance1[0, :5] != UNKNOWN).all()
     # frame 2: measurements moved with the flow to whole pixels (sub-pixel shifts, a few
     # occlusion leftovers at edges)
     rel2 = ((pair.depth2 - truth.depth2).abs() / truth.depth2)[pair.depth_measured2]

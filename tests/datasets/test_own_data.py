@@ -13,6 +13,7 @@ from fake_datasets import demo_sequence, write_fake_custom
 from weathergen.datasets import open_dataset
 from weathergen.datasets.framenames import order_frames
 from weathergen.errors import DatasetError
+from weathergen.framepair import COMPLETED, SKY
 from weathergen.io.custom_formats import read_depth, write_depth
 from weathergen.io.images import write_png
 
@@ -142,16 +143,18 @@ def test_partly_missing_or_negative_depth_warns_and_lists_every_frame(tmp_path, 
     pair = ds.load(ds.pairs()[0])
     assert pair.meta["depth_values"][0]["valid"] == pytest.approx(0.3, abs=0.01)
     assert pair.depth_measured1.float().mean() == pytest.approx(0.3, abs=0.01)
-    # the band more than 24 px above the valid rows gets the far depth, the rest is filled in
-    far = pair.depth1[0, : int(0.7 * h) - 25]
-    assert (far == ds.far_depth).all()
-    assert (pair.depth1[0, int(0.7 * h) - 20: int(0.7 * h)] < ds.far_depth).all()
-    assert pair.meta["depth_values"][0]["filled"] == pytest.approx(24 / h, abs=0.01)
+    # the missing band is completed (a street's walls, no sky), or is sky at the far depth
+    prov = pair.depth_provenance1[0]
+    assert ((prov == COMPLETED) | (prov == SKY))[: int(0.7 * h)].all()
+    assert (pair.depth1[0][prov == SKY] == ds.far_depth).all()
+    assert (pair.depth1[0][prov == COMPLETED] < ds.far_depth).all()
+    assert pair.meta["depth_values"][0]["filled"] == pytest.approx(float((prov == COMPLETED).float().mean()),
+                                                                  abs=1e-4)
     res = run_cli("check", "--dataset", "custom", "--root", str(root))
     assert res.exit_code == 0, res.output             # warnings do not fail
     out = res.output.replace(f"{root}/", "")
-    assert re.search(r"holes: warning: less than 50% of the depth is valid \(the rest is filled in from "
-                     r"valid pixels up to 24 px away, or gets the far depth\): "
+    assert re.search(r"holes: warning: less than 50% of the depth is valid \(the rest is sky or "
+                     r"completed from the valid pixels\): "
                      r"depth/0000\.npy \(30% valid\), depth/0002\.npy \(30% valid\)$", out, re.M), out
     assert "holes: warning: negative depth is counted as missing" in out and "depth/0003.npy (25% negative)" in out
     res = run_cli("check", "--dataset", "custom", "--root", str(root), "--min-valid-depth", "0.2")

@@ -16,9 +16,10 @@ import math
 
 import torch
 
-from weathergen.engine.sampling import NEAR
-from weathergen.engine.stamps import COARSE_MAX_LEVEL, COARSE_MIN_SIDE, COARSE_SIDE, RIM_MARGIN
-from weathergen.engine.tracks import MAX_BLUR_SAMPLES, MAX_DEFOCUS
+from weathergen.engine.sampling.pair import NEAR
+from weathergen.engine.rendering.stamps import COARSE_MAX_LEVEL, COARSE_MIN_SIDE, COARSE_SIDE, RIM_MARGIN
+from weathergen.engine.rendering.tracks import MAX_BLUR_SAMPLES
+from weathergen.engine.views import MAX_DEFOCUS
 
 
 # -- number helpers: floats or 0-d tensors ---------------------------------------------------

@@ -14,8 +14,8 @@ from engine_scenes import plane_pair, pose, rotation
 from oracle import oracle_render
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, Particles, RenderSettings, load_preset,
                                load_templates, render, render_view, sample_particles)
-from weathergen.engine.field import pair_views
-from weathergen.engine.renderer import pair_starts, view_sums
+from weathergen.engine.sampling.field import pair_views
+from weathergen.engine.rendering.renderer import pair_starts, view_sums
 from weathergen.errors import ConfigError, FormatError
 from weathergen.framepair import FramePairBatch
 
@@ -175,7 +175,7 @@ def test_compat_picks_the_blending_and_the_file_keeps_it(tmp_path):
     assert settings.for_compat("reference").for_compat("paper") == settings
     for name in ("snow", "rain", "fog"):          # additive, or alpha without motion blur
         other = RenderSettings.from_preset(load_preset(name))
-        assert other.for_compat("reference") == other.replace(stamp_style="research")
+        assert other.for_compat("reference").blur_blend == "sum"
     pair = still_pair(dtype=torch.float32)
     record = sample_particles(pair, load_preset("alpha-white", {"count": 20}), seed=1)
     assert record.for_compat("paper") is record

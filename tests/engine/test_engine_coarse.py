@@ -10,12 +10,12 @@ from engine_scenes import column_scene, plane_pair
 from test_engine_render import blob_library, tiny_pair, tiny_particles
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, build_stamps, load_preset,
                                load_templates, render, render_pair, sample_particles)
-from weathergen.engine.coarse import DepthOrder, footprint_depths
-from weathergen.engine.composite import composite
-from weathergen.engine.sampling import reference_transforms
-from weathergen.engine.splat import splat
-from weathergen.engine.stamps import COARSE_MIN_SIDE, COARSE_SIDE, build
-from weathergen.engine.tracks import Views, blur_samples, pair_tracks
+from weathergen.engine.rendering.coarse import DepthOrder, footprint_depths
+from weathergen.engine.rendering.composite import composite
+from weathergen.engine.sampling.pair import reference_transforms
+from weathergen.engine.rendering.splat import splat
+from weathergen.engine.rendering.stamps import COARSE_MIN_SIDE, COARSE_SIDE, build
+from weathergen.engine.rendering.tracks import Views, blur_samples, pair_tracks
 
 
 def test_fog_on_the_coarse_grid_stays_close_to_the_exact_render():

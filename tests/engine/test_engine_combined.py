@@ -14,7 +14,7 @@ from weathergen.datasets import frame_rate_of
 from weathergen.engine import (EXAMPLE_COMBINATIONS, CombinedPreset, FieldPreset, LayeredParticles,
                                Particles, Preset, layer_seed, load_particles, load_preset,
                                sample_layers, sample_weather)
-from weathergen.engine.particles import TENSOR_FIELDS
+from weathergen.engine.records.particles import TENSOR_FIELDS
 from weathergen.errors import ConfigError, FormatError
 
 

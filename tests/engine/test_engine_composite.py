@@ -1,5 +1,5 @@
-"""The renderer's full-resolution steps with hand-written backward passes (engine/planes.py
-and engine/composite.py) against the plain torch expressions they replace."""
+"""The renderer's full-resolution steps with hand-written backward passes (engine/rendering/planes.py
+and engine/rendering/composite.py) against the plain torch expressions they replace."""
 
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from weathergen.engine.composite import blend
-from weathergen.engine.planes import upsample, upsample_adjoint
+from weathergen.engine.rendering.composite import blend
+from weathergen.engine.rendering.planes import upsample, upsample_adjoint
 
 
 @pytest.mark.parametrize("factor", [2, 4, 8])

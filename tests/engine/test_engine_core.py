@@ -11,12 +11,12 @@ import torch
 
 from engine_scenes import count_operations, plane_pair, pose, rotation
 from weathergen.datasets import frame_rate_of
-from weathergen.engine import splat
+from weathergen.engine.rendering import splat
 from weathergen.errors import ConfigError
 from weathergen.engine import (build_stamps, empty_particles, load_preset, load_templates,
                                render, render_view, sample_field_particles, sample_particles)
-from weathergen.engine.field import pair_views
-from weathergen.engine.renderer import pair_starts
+from weathergen.engine.sampling.field import pair_views
+from weathergen.engine.rendering.renderer import pair_starts
 from weathergen.framepair import FramePairBatch
 
 
@@ -227,7 +227,7 @@ def test_cuda_matches_the_cpu_forward_and_backward():
 def test_mip_and_grid_levels_come_from_the_binary_exponent_not_a_logarithm():
     """floor(log2 x) exactly at and next to powers of two (a logarithm's last bit differs between
     the CPU's and CUDA's libraries, which gave one flake another mip level on CUDA)."""
-    from weathergen.engine.stamps import floor_log2
+    from weathergen.engine.rendering.stamps import floor_log2
 
     powers = torch.tensor([2.0 ** k for k in range(-3, 12)], dtype=torch.float64)
     below = torch.nextafter(powers, torch.zeros_like(powers))
@@ -241,7 +241,7 @@ def test_mip_and_grid_levels_come_from_the_binary_exponent_not_a_logarithm():
 def _looks(count: int, lib, offset: int = 0):
     """Looks of every kind of stamp: phase stamps, stamps sampled at whole pixels (three
     supersamplings), disc-blurred, brightened and softened, and coarse-grid ones."""
-    from weathergen.engine.tracks import Looks
+    from weathergen.engine.rendering.tracks import Looks
 
     k = torch.arange(count)
     return Looks(footprint=1.0 + (k * 37 + offset * 11) % 300 * 0.73 + (k % 7) * 0.125,
@@ -255,7 +255,7 @@ def test_one_build_of_several_libraries_gives_each_stamp_its_own_builds_bytes(dt
     """build_many draws parts of several template libraries in one pass; every entry's stamp
     (pixels, layout, grid level, phases, blur-sample gap) is byte for byte the one its part's
     own build gives, whatever the chunk size."""
-    from weathergen.engine.stamps import StampSet, build, build_many
+    from weathergen.engine.rendering.stamps import StampSet, build, build_many
 
     libs = [load_templates(name) for name in ("flakes", "dust", "flakes", "haze")]
     parts = [(_looks(60 + 7 * i, lib, offset=i), lib) for i, lib in enumerate(libs)]
@@ -269,7 +269,7 @@ def test_one_build_of_several_libraries_gives_each_stamp_its_own_builds_bytes(dt
 
 
 def test_one_build_of_several_libraries_checks_each_parts_templates():
-    from weathergen.engine.stamps import build_many
+    from weathergen.engine.rendering.stamps import build_many
 
     flakes, haze = load_templates("flakes"), load_templates("haze")
     looks = _looks(10, flakes)

@@ -24,8 +24,8 @@ import torch.nn.functional as F
 from engine_scenes import plane_pair, wall_scene
 from weathergen.engine import (Particles, RenderSettings, load_preset, load_templates,
                                render_pair, sample_particles)
-from weathergen.engine.sampling import defocus_radius, transparency_hat
-from weathergen.engine.templates import TEMPLATE_ALPHA_RANGE, _disc_mask
+from weathergen.engine.sampling.pair import defocus_radius, transparency_hat
+from weathergen.engine.weather.templates import TEMPLATE_ALPHA_RANGE, _disc_mask
 
 H, W = 436, 1024
 BACKGROUND = 0.1

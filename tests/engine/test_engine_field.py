@@ -14,15 +14,15 @@ import torch
 from engine_scenes import pose, rotation
 from weathergen.engine import (Particles, TemplateLibrary, load_preset, load_templates,
                                render_pair, sample_particles, sample_weather)
-from weathergen.engine.field import (field_for_pair, frame_particles, make_field, pair_views,
-                                     sample_field_particles, scene_seed)
+from weathergen.engine.sampling.field import (field_for_pair, frame_particles, make_field,
+                                              pair_views, sample_field_particles, scene_seed)
 from weathergen.datasets import DATASETS, DemoDataset
-from weathergen.engine.presets import FieldPreset, preset_from_values
-from weathergen.engine.groundtruth import particle_truth, seen_flow
-from weathergen.engine.optics import FieldOptics
-from weathergen.engine.settings import RenderSettings
-from weathergen.engine.renderer import render_view
-from weathergen.engine.tracks import View, defocus_radius, depth_fade, footprint, view_mask
+from weathergen.engine.weather.presets import FieldPreset, preset_from_values
+from weathergen.engine.rendering.groundtruth import particle_truth, seen_flow
+from weathergen.engine.weather.optics import FieldOptics
+from weathergen.engine.records.settings import RenderSettings
+from weathergen.engine.rendering.renderer import render_view
+from weathergen.engine.views import View, field_defocus_radius, depth_fade, footprint, view_mask
 from weathergen.errors import ConfigError
 from weathergen.framepair import FramePair, PairId
 from weathergen.geometry import project, transform_points
@@ -133,7 +133,7 @@ def test_appearance_functions():
     assert fade[0] == 0 and fade[-1] == 0 and fade[2] == 1 and fade[3] == 1 and fade[4] == 1
     assert 0 < fade[1] < 1 and 0 < fade[5] < 1
     # thin-lens circle of confusion: 0.5 f A |1/z - 1/focus|, in whole pixels
-    r = defocus_radius(100.0, optics, torch.tensor([2.0, 0.5, 0.25], dtype=torch.float64))
+    r = field_defocus_radius(100.0, optics, torch.tensor([2.0, 0.5, 0.25], dtype=torch.float64))
     assert r.tolist() == [0, round(0.5 * 100 * 0.02 * 1.5), round(0.5 * 100 * 0.02 * 3.5)]
 
 
@@ -354,7 +354,7 @@ def test_depth_windows_read_the_farthest_depth_of_the_aligned_blocks_holding_a_w
     """Against a loop over the pixels: the window's side n, the smallest power of two s >= n,
     the maximum over the s x s blocks (aligned to multiples of s) the window touches; never
     less than the window's own maximum."""
-    from weathergen.engine.tracks import depth_windows
+    from weathergen.engine.views import depth_windows
 
     g = torch.Generator().manual_seed(3)
     depth = torch.rand(2, 1, 13, 21, generator=g, dtype=torch.float64)
@@ -377,7 +377,7 @@ def test_depth_windows_read_the_farthest_depth_of_the_aligned_blocks_holding_a_w
 def test_the_samplers_own_pixel_first_view_mask_keeps_what_the_renders_keeps():
     """With the view's depth windows given (the sampler: own pixel first, the window only for
     points behind the scene there) the mask is the render's (every window at once)."""
-    from weathergen.engine.tracks import view_windows
+    from weathergen.engine.views import view_windows
 
     g = torch.Generator().manual_seed(5)
     depth = torch.full((1, H, W), 8.0)
@@ -476,7 +476,7 @@ def test_presets_command_names_the_model():
 # -- stereo ------------------------------------------------------------------------------------
 
 def test_warped_right_depth_of_a_plane_and_an_occluder():
-    from weathergen.engine.stereo import warp_depth
+    from weathergen.engine.rendering.stereo import warp_depth
 
     baseline = 0.2
     right_from_left = torch.eye(4, dtype=torch.float64)
@@ -492,8 +492,76 @@ def test_warped_right_depth_of_a_plane_and_an_occluder():
     assert bool((right[0, 5, : W - 3] == 4.0).all())                     # no cracks
 
 
+def test_a_particle_behind_a_completed_tree_is_hidden():
+    """A tree reaches above a scanner's top beam: left unknown (at the far depth) a flake behind
+    it is drawn in front of it; completed (its column extended upward) the tree hides it."""
+    from weathergen.datasets.depth import complete_depth
+    from weathergen.framepair import COMPLETED, UNKNOWN
+
+    exact = np.full((H, W), 8.0, np.float32)                # a wall
+    exact[:, 24:32] = 3.0                                   # a tree trunk, all the way up
+    rng = np.random.default_rng(0)
+    image = (np.array([0.35, 0.25, 0.15]) + 0.1 * rng.random((H, W, 3))).astype(np.float32)  # brown
+    measured = np.zeros((H, W), bool)
+    measured[20::2, ::2] = True                             # nothing above row 20
+    seen = []
+    for gap in (0.0, 24.0):
+        depth, prov = complete_depth(exact, measured, image, far_depth=1000.0, max_gap_px=gap)
+        assert (prov[:20, 24:32] == (UNKNOWN if gap == 0 else COMPLETED)).all()
+        u, v, z = 28.0, 8.0, 5.0                            # behind the tree, in front of the wall
+        point = ((u - float(K[0, 2])) * z / F, (v - float(K[1, 2])) * z / F, z)
+        _, alpha = render_one(one_particle_record(point, diameter=0.2), pose(rotation(), (0, 0, 0)),
+                              torch.from_numpy(depth)[None])
+        seen.append(float(alpha.sum()))
+    assert seen[0] > 0.5 and seen[1] == 0.0, seen
+
+
+def test_right_view_disocclusions_take_the_background_never_the_sky():
+    """Beside a near block the right view sees background the left one hid, and at its right
+    border what the left never saw: those holes take the farther side's depth along the row (the
+    plane behind), not the far depth; the provenance follows each pixel (filled holes completed)."""
+    from weathergen.engine.rendering.stereo import warp_depth, warp_view_depth
+    from weathergen.framepair import COMPLETED, MEASURED, SKY
+
+    right_from_left = torch.eye(4, dtype=torch.float64)
+    right_from_left[0, 3] = -0.2
+    depth = torch.full((1, H, W), 4.0)
+    depth[..., :10, :] = 1000.0                # the sky
+    depth[..., 20:30, 20:30] = 2.0             # a near block
+    provenance = torch.zeros((1, H, W), dtype=torch.uint8)
+    provenance[..., :10, :] = SKY
+    right, kind = warp_view_depth(depth, provenance, K, right_from_left)
+    holes = warp_depth(depth, K, right_from_left, fill=-1.0)[0] == -1.0
+    ground = holes.clone()
+    ground[:11] = False                        # (row 10 also takes row 9's sky: the 2x2 splat)
+    assert int(ground[20:30].sum(dim=1).min()) >= 2       # beside the block and at the border
+    assert bool((right[0][ground] == 4.0).all()) and bool((kind[0][ground] == COMPLETED).all())
+    assert float(right[0, 11:].max()) == 4.0              # nothing below the sky at the far depth
+    assert bool((kind[0, :10] == SKY).all()) and bool((right[0, :10] == 1000.0).all())
+    assert bool((kind[0, 11:][~holes[11:]] == MEASURED).all())
+    torch.testing.assert_close(warp_depth(depth, K, right_from_left), right)
+
+
+@pytest.mark.cuda
+def test_the_right_views_depth_and_provenance_on_cuda_are_the_cpus():
+    from weathergen.engine.rendering.stereo import warp_view_depth
+    from weathergen.framepair import SKY
+
+    right_from_left = torch.eye(4, dtype=torch.float64)
+    right_from_left[0, 3] = -0.2
+    depth = torch.full((1, H, W), 4.0)
+    depth[..., :10, :] = 1000.0
+    depth[..., 20:30, 20:30] = 2.0
+    provenance = torch.zeros((1, H, W), dtype=torch.uint8)
+    provenance[..., :10, :] = SKY
+    cpu = warp_view_depth(depth, provenance, K, right_from_left)
+    gpu = warp_view_depth(depth.cuda(), provenance.cuda(), K.cuda(), right_from_left.cuda())
+    assert gpu[0].device.type == "cuda"
+    assert torch.equal(gpu[0].cpu(), cpu[0]) and torch.equal(gpu[1].cpu(), cpu[1])
+
+
 def test_right_camera_renders_the_same_field_particles_at_their_disparity():
-    from weathergen.engine.stereo import render_right, stereo_view, warp_depth
+    from weathergen.engine.rendering.stereo import render_right, stereo_view, warp_depth
 
     baseline = 0.25
     cams, depths = sequence(2)
@@ -514,7 +582,7 @@ def test_right_camera_renders_the_same_field_particles_at_their_disparity():
 # -- the views' tests on the render's device ---------------------------------------------------
 
 def test_a_fields_views_tested_on_the_cpu_by_name_give_todays_record():
-    from weathergen.engine.particles import TENSOR_FIELDS
+    from weathergen.engine.records.particles import TENSOR_FIELDS
 
     from engine_scenes import plane_pair
 

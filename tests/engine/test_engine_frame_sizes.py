@@ -10,8 +10,8 @@ import torch
 
 from engine_scenes import plane_pair
 from weathergen.engine import frame_scaling, load_preset, sample_particles
-from weathergen.engine.presets import (FieldPreset, FrameScaling, field_preset_keys, scaled_count,
-                                       scaled_size)
+from weathergen.engine.weather.presets import (FieldPreset, FrameScaling, field_preset_keys,
+                                               scaled_count, scaled_size)
 from weathergen.errors import ConfigError
 
 SINTEL, DEMO, KITTI = (436, 1024), (176, 384), (375, 1242)

@@ -1,4 +1,4 @@
-"""Combined weather rendered in one pass (weathergen/engine/layered.py): depth order between the
+"""Combined weather rendered in one pass (weathergen/engine/rendering/combined.py): depth order between the
 layers on a hand-made scene, the layered composite's gradient, a single layer's bytes, batches."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ from engine_scenes import plane_pair, wisps
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, LayeredParticles, build_stamps,
                                load_preset, load_templates, render, render_pair,
                                sample_particles, sample_weather)
-from weathergen.engine.composite import composite_layers
+from weathergen.engine.rendering.composite import composite_layers
 from weathergen.framepair import FramePairBatch
 from weathergen.errors import ConfigError
 
@@ -349,7 +349,7 @@ def test_a_combined_sequence_frame_is_drawn_alone_with_the_pairs_bytes(names):
     """A sequence writes each frame once: frame 1 of combined weather fields drawn from its
     view alone (additive particles dimmed by the fog in front of them, two additive layers,
     three layers through the sorting network) is frame 1 of the pair's render, bit for bit."""
-    from weathergen.engine.renderer import render_first_frame
+    from weathergen.engine.rendering.renderer import render_first_frame
 
     pair = plane_pair(40, 56, depth=5.0, seed=4)
     # fog-light as wisps of haze (an alpha layer of particles) in its own atmosphere

@@ -17,9 +17,9 @@ from weathergen.datasets import frame_rate_of
 from weathergen.engine import (BETA_ATTACK, Particles, RenderSettings, load_preset,
                                load_templates, render_pair, sample_field_particles,
                                sample_particles)
-from weathergen.engine.renderer import reference_transforms
-from weathergen.engine.tracks import (MAX_BLUR_SAMPLES, Views, blur_samples, pair_tracks,
-                                      streak_samples)
+from weathergen.engine.rendering.renderer import reference_transforms
+from weathergen.engine.rendering.tracks import (MAX_BLUR_SAMPLES, Views, blur_samples, pair_tracks,
+                                                streak_samples)
 
 
 def tracks_of(pair, record):
@@ -111,8 +111,8 @@ def test_softened_stamps_wider_sample_gaps_leave_the_frames_within_a_few_grey_le
     """Softened stamps (defocused glows) take blur samples (b − 1) / 2 px apart: a quarter
     fewer patch pixels to splat, and the frames within ``grey`` levels (of 255) of the one-pixel
     rule's everywhere."""
-    import weathergen.engine.renderer as renderer_module
-    from weathergen.engine import stamps as stamps_module
+    import weathergen.engine.rendering.renderer as renderer_module
+    from weathergen.engine.rendering import stamps as stamps_module
 
     pair = wall_scene()
     record = sample_particles(pair, load_preset(name), seed=0)

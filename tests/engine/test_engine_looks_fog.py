@@ -18,8 +18,8 @@ import torch.nn.functional as F
 from engine_scenes import HAZE_WISPS, plane_pair, wall_scene
 from weathergen.engine import (Particles, RenderSettings, build_stamps, load_preset,
                                load_templates, render_pair, sample_weather)
-from weathergen.engine.sampling import defocus_radius
-from weathergen.engine.templates import HAZE_ALPHA_RANGE, HAZE_MAX_SLOPE, _disc_mask
+from weathergen.engine.sampling.pair import defocus_radius
+from weathergen.engine.weather.templates import HAZE_ALPHA_RANGE, HAZE_MAX_SLOPE, _disc_mask
 
 KITTI = dict(size=(375, 1242), focal=721.0, plane_depth=30.0, wall_depth=5.0, wall_columns=620)
 EDGE = slice(600, 640)            # the wall's edge: a depth step, where fog may stop abruptly

@@ -13,8 +13,8 @@ from oracle import oracle_render
 from weathergen.datasets import frame_rate_of
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, list_presets, load_preset,
                                load_templates, render, sample_field_particles, sample_particles)
-from weathergen.engine.stamps import build
-from weathergen.engine.tracks import Views, pair_tracks, streak_samples
+from weathergen.engine.rendering.stamps import build
+from weathergen.engine.rendering.tracks import Views, pair_tracks, streak_samples
 from weathergen.framepair import FramePairBatch
 
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import pytest
 from click.testing import CliRunner
 
-from weathergen.engine.presets import Preset, list_presets, load_preset, parse_override
+from weathergen.engine.weather.presets import Preset, list_presets, load_preset, parse_override
 from weathergen.errors import ConfigError
 
 TABLE_ROWS = (
@@ -171,7 +171,7 @@ def test_invalid_override_and_unknown_preset():
 def test_keys_of_both_models_are_declared_once():
     """The keys the paper's presets and the weather fields share have one declaration: the same
     default, the same check and the same place in `weathergen presets`."""
-    from weathergen.engine.presets import SHARED_KEYS, field_preset_keys, preset_keys
+    from weathergen.engine.weather.presets import SHARED_KEYS, field_preset_keys, preset_keys
 
     paper = {f.name: f for f in preset_keys()}
     field = {f.name: f for f in field_preset_keys()}
@@ -256,8 +256,8 @@ def test_presets_are_grouped_as_the_paper_presents_them(cli):
     """The paper's four weathers, its ablation variants (every other paper preset, by the
     parameter it varies), the field ladders (each weather light, moderate, heavy): every bundled
     preset in exactly one group, and `weathergen presets` lists them in that order."""
-    from weathergen.engine.preset_groups import preset_groups
-    from weathergen.engine.presets import list_presets
+    from weathergen.engine.weather.preset_groups import preset_groups
+    from weathergen.engine.weather.presets import list_presets
 
     groups = preset_groups()
     assert [g.title for g in groups][:3] == ["the paper's four weathers",
@@ -287,7 +287,7 @@ def test_presets_are_grouped_as_the_paper_presents_them(cli):
 def test_every_numeric_field_key_declares_its_plausible_range():
     """A key in physical units carries a Plausible range where it is declared, a dimensionless one
     says UNITLESS: a new key must say which it is."""
-    from weathergen.engine.presets import UNITLESS, Plausible, PlausibleBy, field_preset_keys
+    from weathergen.engine.weather.presets import UNITLESS, Plausible, PlausibleBy, field_preset_keys
 
     for f in field_preset_keys():
         if isinstance(f.default, (bool, str)):
@@ -297,7 +297,7 @@ def test_every_numeric_field_key_declares_its_plausible_range():
 
 
 def test_every_bundled_field_preset_lies_in_the_plausible_ranges():
-    from weathergen.engine.presets import Plausible, PlausibleBy, field_preset_keys
+    from weathergen.engine.weather.presets import Plausible, PlausibleBy, field_preset_keys
 
     for name in list_presets("field"):
         p = load_preset(name)

@@ -1,5 +1,5 @@
-"""Ragged layouts: where :func:`~weathergen.engine.ragged.runs` and
-:func:`~weathergen.engine.ragged.chunk_spans` cut a layout into chunks."""
+"""Ragged layouts: where :func:`~weathergen.engine.rendering.ragged.runs` and
+:func:`~weathergen.engine.rendering.ragged.chunk_spans` cut a layout into chunks."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import random
 
 import torch
 
-from weathergen.engine.ragged import chunk_spans, runs
+from weathergen.engine.rendering.ragged import chunk_spans, runs
 
 
 def cut_by_hand(sizes, limit, groups=None, split=None):

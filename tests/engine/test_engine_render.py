@@ -13,9 +13,9 @@ import torch
 from engine_scenes import plane_pair
 from weathergen.engine import (BETA_ATTACK, Particles, RenderSettings, TemplateLibrary, from_atanh,
                                load_preset, render, render_pair, sample_particles, to_atanh)
-from weathergen.engine.particles import empty_particles
-from weathergen.engine.sampling import NEAR
-from weathergen.engine.tracks import MAX_BLUR_SAMPLES
+from weathergen.engine.records.particles import empty_particles
+from weathergen.engine.sampling.pair import NEAR
+from weathergen.engine.rendering.tracks import MAX_BLUR_SAMPLES
 from weathergen.errors import ConfigError, DatasetError, WeatherGenError
 
 GOLDEN = Path(__file__).parent / "golden"
@@ -432,8 +432,8 @@ def test_each_stamp_is_as_large_as_its_footprint_not_the_template():
 def test_rim_of_an_even_footprint_does_not_depend_on_rounding(rotation):
     """Rim samples of an even-sized footprint lie exactly on the template's circle: whether they are
     drawn must not depend on float32 against float64 (or CPU against GPU rounding)."""
-    from weathergen.engine.stamps import build
-    from weathergen.engine.tracks import Looks
+    from weathergen.engine.rendering.stamps import build
+    from weathergen.engine.rendering.tracks import Looks
 
     lib = TemplateLibrary(name="ones", alphas=torch.ones(1, 16, 16), digest="")
     looks = Looks(footprint=torch.tensor([10.0], dtype=torch.float64),

@@ -11,8 +11,8 @@ import torch
 from engine_scenes import forward_scene, plane_pair, pose, rotation, wall_scene
 from weathergen.engine import (load_preset, reference_transforms, sample_particles,
                                visible_counts, world_down)
-from weathergen.engine.sampling import (defocus_radius, hls_to_rgb, resolve_device, rgb_to_hls,
-                                        transparency_hat)
+from weathergen.engine.sampling.pair import (defocus_radius, hls_to_rgb, resolve_device, rgb_to_hls,
+                                             transparency_hat)
 from weathergen.errors import ConfigError, DatasetError, WeatherGenError
 from weathergen.geometry import project, transform_points
 
@@ -227,7 +227,7 @@ def test_explicit_world_up_and_rising_sparks():
 
 
 def test_world_up_as_a_direction_for_a_world_that_is_not_level():
-    from weathergen.engine.sampling import world_down
+    from weathergen.engine.sampling.pair import world_down
     from weathergen.geometry import up_direction
 
     assert up_direction("auto") is None
@@ -292,7 +292,7 @@ def test_demo_scene_world_is_z_up_and_snow_falls_down_its_screen(demo_pair):
     assert float(((p2 - p1)[:, 1] > 0).float().mean()) > 0.95  # down the screen (camera 1 view)
 
 
-@pytest.mark.parametrize("name", sorted(__import__("weathergen.engine.presets",
+@pytest.mark.parametrize("name", sorted(__import__("weathergen.engine.weather.presets",
                                                    fromlist=["list_presets"]).list_presets("paper")))
 def test_every_preset_samples_and_renders_on_the_demo_scene(name, demo_pair):
     from weathergen.engine import render_pair
@@ -345,7 +345,7 @@ def test_the_motion_prefilter_never_drops_a_candidate_frame_2_could_see():
     """Sampling computes the motion only of candidates within the longest motion of camera 2's
     view cone (or seen by camera 1); that test must hold for every point a motion of at most
     that length makes visible, also with a skewed camera, and fail well outside the reach."""
-    from weathergen.engine.sampling import _view_cone, _visible, _within_reach
+    from weathergen.engine.sampling.pair import _view_cone, _visible, _within_reach
     h, w = 30, 50
     k = torch.tensor([[40.0, 3.0, 24.0], [0.0, 45.0, 15.5], [0.0, 0.0, 1.0]], dtype=torch.float64)
     depth = torch.full((1, h, w), 50.0)
@@ -376,7 +376,7 @@ def test_the_motion_prefilter_never_drops_a_candidate_frame_2_could_see():
 # -- sampling on the render's device -------------------------------------------------------------
 
 def _same_record(a, b) -> bool:
-    from weathergen.engine.particles import TENSOR_FIELDS
+    from weathergen.engine.records.particles import TENSOR_FIELDS
 
     return all(torch.equal(getattr(a, n).cpu(), getattr(b, n).cpu()) for n in TENSOR_FIELDS)
 

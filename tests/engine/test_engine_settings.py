@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from weathergen.engine import Particles, RenderSettings, empty_particles, load_preset, load_templates
-from weathergen.engine.settings import APPEARANCE_FIELDS, APPEARANCE_KEYS
+from weathergen.engine.records.settings import APPEARANCE_FIELDS, APPEARANCE_KEYS
 from weathergen.errors import FormatError
 
 

@@ -20,9 +20,9 @@ import torch
 
 from weathergen.datasets import open_dataset
 from weathergen.engine import load_preset, render_pair, sample_particles
-from weathergen.engine.settings import RenderSettings
-from weathergen.engine.tracks import RESEARCH_DISC, ParticleTable, RecordRows, fixed_looks
-from weathergen.engine.particles import Particles
+from weathergen.engine.records.particles import Particles
+from weathergen.engine.records.settings import RenderSettings
+from weathergen.engine.rendering.tracks import RESEARCH_DISC, ParticleTable, RecordRows, fixed_looks
 from weathergen.errors import ConfigError, FormatError
 
 from tests.run_helpers import script_module

@@ -1,5 +1,5 @@
 """Mixed precision (``--amp``): the default per network follows the paper's configurations (GMA's
-ran under CUDA autocast, the others in float32), the CPU never runs it, requests that cannot be
+ran under CUDA autocast, the others in float32), --amp is refused on the CPU, requests that cannot be
 met fail with one line naming the option; on CUDA (skipped without one) the authors' autocast
 regions run in float16 and the flow stays close to the float32 one."""
 
@@ -60,16 +60,21 @@ def test_get_model_sets_the_adapter_and_refuses_networks_without_the_mode(tmp_pa
 
 
 @pytest.mark.parametrize("name", ["raft-small", "gma"])
-def test_on_cpu_tensors_the_mode_changes_nothing(name):
-    """As in the authors' code (torch.cuda.amp.autocast), only CUDA tensors are affected."""
+def test_on_cpu_tensors_the_mode_is_cpu_autocast_of_the_same_regions(name):
+    """The mode is autocast on the frames' device (``--amp`` itself stays CUDA-only): on the CPU
+    the authors' regions run in float16 and the flow stays float32."""
     torch.manual_seed(0)
     model = build_model(name, iters=2)
+    seen = []
+    model.network.fnet.register_forward_hook(lambda m, i, o: seen.append(o.dtype))
     x1, x2 = torch.rand(2, 1, 3, 64, 64).unbind(0)
     with torch.no_grad():
         plain = model(x1, x2)
         model.amp = True
         mixed = model(x1, x2)
-    assert torch.equal(plain, mixed)
+    assert seen == [torch.float32, torch.float16]
+    assert mixed.dtype == torch.float32 and not torch.equal(plain, mixed)
+    assert (mixed - plain).abs().max().item() <= 2e-2 * plain.abs().max().item() + 1e-3
 
 
 @pytest.mark.cuda

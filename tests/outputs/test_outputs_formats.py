@@ -84,4 +84,4 @@ def test_a_new_format_is_one_module_and_one_line(tmp_path, monkeypatch):
     np.testing.assert_array_equal(out.read_frame(1), frames[1])
     both, written, _, _ = _write(tmp_path / "both", "both")
     assert [p.suffix for p in written[:-1]] == [".png", ".png", ".exr", ".exr", ".npy", ".npy"]
-    assert len(both.right_files()) == 3 * 2 + 4            # every format's right frames, geometry
+    assert len(both.right_files()) == 3 * 2 + 4 + 2        # every format's right frames, geometry, provenance

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import textwrap
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -17,7 +18,7 @@ from conftest import write_fake_sintel
 
 from weathergen.datasets import load_scene_scales, open_dataset, reopen_dataset
 from weathergen.engine import Particles, RenderSettings, load_preset, render_pair
-from weathergen.engine.published import published_particles
+from weathergen.engine.sampling.published import published_particles
 from weathergen.errors import ConfigError, FormatError
 from weathergen.io.images import read_image, to_uint8
 from weathergen.io.published_weather import (PublishedWeather, is_published_set, published_file,
@@ -187,6 +188,55 @@ def test_every_bad_file_is_one_line_naming_it(change, words, tmp_path):
         read_published_weather(tmp_path / "broken.npz")
 
 
+def _truncated(path):
+    path.write_bytes(path.read_bytes()[:300])
+
+
+def _no_flakestrans(path):
+    arrays = weather_arrays(1)
+    arrays.pop("flakestrans")
+    np.savez(path, **arrays)
+
+
+@pytest.mark.parametrize("spoil, words", [
+    (_truncated, "not a readable .npz file, truncated or damaged"),
+    (lambda p: p.write_bytes(b""), "an empty file"),
+    (lambda p: p.write_text("points3D = 1"), "not an .npz archive"),
+    (_no_flakestrans, "not the research code's particle file: no flakestrans"),
+])
+def test_a_bad_first_or_only_file_of_a_set_is_named(spoil, words, tree, tmp_path):
+    import shutil
+
+    sintel, weather = tree
+    for only in (False, True):
+        copy = tmp_path / str(only) / "snow_npz"      # (the name says its preset)
+        shutil.copytree(weather, copy)
+        if only:                            # the set's only file
+            for path in copy.glob("*/frame_*.npz"):
+                if path != published_file(copy, "alley_1", 1):
+                    path.unlink()
+        first = published_file(copy, "alley_1", 1)
+        spoil(first)
+        assert is_published_set(copy)
+        result = invoke(["render", "--root", sintel, "--particles", copy, "--scenes", "alley_1",
+                         "--frames-per-scene", "1", "--out", tmp_path / f"out_{only}"])
+        assert result.exit_code == 2
+        assert f"{first}: {words}" in result.output and "manifest.json" not in result.output
+    if spoil is _no_flakestrans:                # inspect names the missing array too
+        shown = invoke(["inspect", first])
+        assert shown.exit_code == 2 and f"{first}: not the research code's particle file: no " \
+            f"flakestrans" in shown.output and "metadata_version" not in shown.output
+
+
+def test_evaluate_of_a_set_writes_into_the_working_folder_by_default(tree):
+    from weathergen.attack import default_evaluation_path
+
+    _, weather = tree
+    assert default_evaluation_path(weather, "raft", published=True) == \
+        Path("evaluate-snow_npz-raft.json")
+    assert default_evaluation_path(weather, "raft") == weather / "evaluate-raft.json"
+
+
 def test_a_set_is_told_from_a_weathergen_folder_and_names_its_preset(tree, tmp_path):
     _, weather = tree
     assert is_published_set(weather) and not is_published_set(tmp_path)
@@ -199,6 +249,11 @@ def test_a_set_is_told_from_a_weathergen_folder_and_names_its_preset(tree, tmp_p
     result = invoke(["render", "--particles", tmp_path / "my_weather", "--out", tmp_path / "o"])
     assert result.exit_code == 2 and "name it with --preset" in result.output
     assert len(result.output.strip().splitlines()) == 1
+    # evaluate takes the set with --weather, and says so (not render's --particles)
+    result = invoke(["evaluate", "--weather", tmp_path / "my_weather", "--root", tree[0]])
+    assert result.exit_code == 2 and result.output.startswith(
+        f"Error: --weather {tmp_path / 'my_weather'}: published weather does not record")
+    assert "name it with --preset" in result.output and "--particles" not in result.output
 
 
 # -- the commands --------------------------------------------------------------------------------
@@ -419,7 +474,7 @@ def test_evaluate_measures_the_set_as_render_then_evaluate_does(tree, rendered, 
 
 
 def test_stored_stamps_are_refused_on_a_weather_field_and_of_the_wrong_shape(tree):
-    from weathergen.engine.renderer import check_stored_stamps
+    from weathergen.engine.rendering.renderer import check_stored_stamps
 
     sintel, weather = tree
     ds = research_dataset(sintel, ["alley_1"])

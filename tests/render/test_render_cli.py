@@ -17,7 +17,7 @@ from click.testing import CliRunner
 
 from weathergen.cli.main import _register, cli
 from weathergen.datasets import open_dataset
-from weathergen.engine.particles import stored_values
+from weathergen.engine.records.particles import stored_values
 from weathergen.io.images import read_image
 from weathergen.outputs import read_metadata
 

@@ -74,8 +74,8 @@ def test_stereo_draws_a_combination_into_the_right_camera(tmp_path):
     gives the frames of that record's own right-camera render, byte for byte."""
     from fake_datasets import demo_sequence, write_fake_kitti_stereo
     from weathergen.engine import View, load_templates, reference_transforms
-    from weathergen.engine.renderer import pair_starts
-    from weathergen.engine.stereo import render_right, render_right_layers, stereo_view
+    from weathergen.engine.rendering.renderer import pair_starts
+    from weathergen.engine.rendering.stereo import render_right, render_right_layers, stereo_view
     from weathergen.io.images import read_image
 
     _, pairs = demo_sequence("street")

@@ -23,7 +23,7 @@ from .compat import COMPAT_MODES
 from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
 from .evaluate import (EvalRow, default_evaluation_path, evaluate_frames, mean_rows,
                        run_evaluation, write_evaluation)
-from .job import AttackJob, PairReport, attack_refs, run_attack
+from .job import AttackJob, PairReport, attack_refs, job_model, probe_job_network, run_attack
 from .lp import (LP_DEFAULTS, LP_METHODS, PCFA_OPTIMIZERS, LpOptimisation, LpResult, LpSettings, l2_normalised,
                  l2_normalised_per_pair, lp_attack_batch, lp_attack_pair, lp_pass_name,
                  lp_settings, plan_lp, random_perturbation)
@@ -33,16 +33,17 @@ from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisat
 from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack
 from .settings import (ATMOSPHERE_VARIABLES, DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE,
                        LR_ATMOSPHERE, LR_POSITIONS, OPTIMIZABLE, POSITION_VARIABLES, VARIABLES,
-                       AttackSettings, default_lr, default_optimize, parse_optimize,
+                       AttackSettings, EarlyStop, default_lr, default_optimize, parse_optimize,
                        transparency_bound)
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
 __all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOptimisation", "LpResult",
-           "LpSettings",
+           "LpSettings", "job_model", "probe_job_network",
            "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_attack_pair", "lp_pass_name",
            "lp_settings", "plan_lp",
            "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
            "ATMOSPHERE_VARIABLES", "ATTACK_CONFIGS", "AttackConfig", "AttackJob", "AttackResult", "AttackSettings",
+           "EarlyStop",
            "DEFAULT_ALPHA", "DEFAULT_STEPS", "EvalRow", "LR_APPEARANCE", "LR_ATMOSPHERE",
            "LR_POSITIONS", "VARIABLES", "default_optimize",
            "MIN_REG_DEPTH", "OPTIMIZABLE", "POSITION_VARIABLES", "PairOptimisation", "PairReport",

@@ -27,6 +27,7 @@ from ..engine import render_pair
 from ..errors import DatasetError
 from ..flow import aee, weather_mask
 from ..io.atomic import atomic_write_bytes
+from ..models.external import check_finite
 from ..outputs.reading import WeatherFolder
 from .figures import FIGURE_KEYS, RegionFigures, mean_figures, region_figures
 
@@ -50,6 +51,7 @@ def frame_flows(model, clean1: torch.Tensor, clean2: torch.Tensor, weather1: tor
         batch1 = torch.stack((clean1, weather1)).to(device)
         batch2 = torch.stack((clean2, weather2)).to(device)
         flows = model(batch1, batch2).cpu()
+    check_finite(flows, getattr(model, "architecture", "") or type(model).__name__, tuple(batch1.shape))
     return flows[:1], flows[1:]
 
 
@@ -127,8 +129,12 @@ def mean_rows(rows: list[EvalRow]) -> dict:
     return out
 
 
-def default_evaluation_path(weather: str | Path, model: str) -> Path:
-    """Where the figures go when no file is given: ``WEATHER/evaluate-<model>.json``."""
+def default_evaluation_path(weather: str | Path, model: str, published: bool = False) -> Path:
+    """Where the figures go when no file is given: ``WEATHER/evaluate-<model>.json`` beside a
+    weathergen output; for a published set of the paper's weather (someone else's data, left as
+    it is) ``evaluate-<set>-<model>.json`` in the working folder."""
+    if published:
+        return Path(f"evaluate-{Path(weather).resolve().name}-{model}.json")
     return Path(weather) / f"evaluate-{model}.json"
 
 

@@ -9,7 +9,12 @@ frames and (where the dataset has it) ground truth ``gt``:
 - ``fl_all``: KITTI's Fl-all of f̌ (percent of valid pixels with an error above 3 px and 5 % of
   the ground truth's length); ``outliers_1px``, ``outliers_3px``, ``outliers_5px``: percent of
   valid pixels with an error above 1, 3, 5 px;
-- ``weather_coverage``: the percentage of pixels the weather covers.
+- ``weather_coverage``: the percentage of pixels the weather covers;
+- ``robust_epe``, ``robust_fl``, ``robust_1px``: RobustSpring's robustness figures (Schmalfuss
+  et al., 2025), f̌ against f rather than against ground truth: the mean end-point error (the
+  same number as AEE(f, f̌)), the percentage of pixels whose error exceeds 3 px and 5 % of the
+  clean flow's length (KITTI's Fl rule, with f in place of ground truth) and the percentage whose
+  error exceeds 1 px; every pixel counts, no ground truth is needed.
 
 A figure over an empty region, or needing ground truth that the pair lacks, is None. Means over
 pairs: region figures are means over the pairs that have them; outlier rates pool the valid
@@ -44,6 +49,9 @@ class RegionFigures:
     outliers_1px: Optional[float] = field(default=None, metadata=_POOLED)
     outliers_3px: Optional[float] = field(default=None, metadata=_POOLED)
     outliers_5px: Optional[float] = field(default=None, metadata=_POOLED)
+    robust_epe: Optional[float] = field(default=None, metadata=_PER_PAIR)
+    robust_fl: Optional[float] = field(default=None, metadata=_PER_PAIR)
+    robust_1px: Optional[float] = field(default=None, metadata=_PER_PAIR)
     #: the valid ground-truth pixels the outlier rates count (None without ground truth)
     gt_valid_px: Optional[int] = None
 
@@ -78,6 +86,9 @@ def region_figures(clean: torch.Tensor, weather: torch.Tensor,
     out["aee_weather_px"] = _masked(weather, clean, covered)
     out["aee_clear_px"] = _masked(weather, clean, ~covered)
     out["weather_coverage"] = 100.0 * float(covered.float().mean())
+    out["robust_epe"] = float(aee(weather, clean)[0])
+    out["robust_fl"] = float(fl_all(weather, clean)[0])
+    out["robust_1px"] = float(outlier_rate(weather, clean, 1.0)[0])
     if gt is None:
         return out
     gt = gt.detach().cpu().float()[None]

@@ -24,22 +24,25 @@ import torch
 
 from ..datasets import Dataset
 from ..engine import CombinedPreset, render_pair
-from ..engine.budget import check_pair_memory
-from ..errors import ConfigError, WeatherGenError
+from ..engine.rendering.budget import check_pair_memory
+from ..errors import ConfigError, OutputError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
+from ..io.atomic import write_error
 from ..io.images import to_uint8
 from ..memory import failure_message
-from ..models import canonical_network, get_model, network_record, resolve_amp, resolved_spec
-from ..outputs import (ATTACK_FOLDER, AttackPairOutput, PairOutput, claim_folder, lock_file,
+from ..words import counted
+from ..models import AUTOCAST, Network, get_model, probe_network, resolve_network, resolve_precision
+from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, claim_folder, lock_file,
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
-from ..jobs import (frame2_note, layer_seeds, pair_particles, pair_seed,
+from ..jobs import (depth_note, frame2_note, layer_seeds, pair_particles, pair_seed,
                     published_geometry_note, scene_airlight, scene_firsts, torch_threads,
                     visibility_of, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
-from .settings import AttackSettings
+from .record import run_settings
+from .settings import ATMOSPHERE_VARIABLES, AttackSettings
 from .targets import TargetSpec, read_target_flow
 
 
@@ -49,7 +52,7 @@ class AttackJob:
 
     dataset: Dataset
     out: Path
-    model: str
+    model: Network                      # a name is resolved when the job is made
     checkpoint: Optional[str]
     preset: object                       # weathergen.engine.Preset (None for an Lp attack)
     preset_name: str
@@ -66,6 +69,8 @@ class AttackJob:
     #: mixed precision as asked (``--amp``/``--no-amp``); None: the network's paper setting
     #: on CUDA, off elsewhere (see :meth:`amp_setting`)
     amp: Optional[bool] = None
+    #: the network's precision as asked (``--precision``, exclusive with ``amp``); None: ``amp``'s
+    precision: Optional[str] = None
     resume: bool = False
     overwrite: bool = False
     command: list = field(default_factory=list)
@@ -78,28 +83,32 @@ class AttackJob:
     scene_firsts: dict = field(default_factory=dict)   # each scene's first selected pair
 
     def __post_init__(self):
-        # a network in a file by its resolved path: the same file from any working directory
-        # (a Ray worker may start in another folder, a resumed run in another)
-        self.model = resolved_spec(self.model)
+        self.model = resolve_network(self.model)
 
-    def amp_setting(self) -> bool:
-        """Whether the network runs in mixed precision (:func:`~weathergen.models.resolve_amp`
-        of the job's network, request and device).
+    def precision_setting(self) -> str:
+        """The precision the network runs in (:func:`~weathergen.models.resolve_precision` of the
+        job's network, requests and device).
 
         Raises:
-            ConfigError: ``amp`` asked for on a device other than CUDA, or for a network
-                without a mixed-precision mode.
+            ConfigError: a request the device or the network cannot meet (``--amp`` off CUDA or
+                for a network without a mixed-precision mode, a refused ``--precision``).
         """
-        return resolve_amp(self.model, self.amp, self.device)
+        return resolve_precision(self.model, self.precision, self.amp, self.device)
+
+    def amp_setting(self) -> bool:
+        """Whether the network runs under autocast (:meth:`precision_setting` bf16 or fp16)."""
+        return self.precision_setting() in AUTOCAST
 
     def model_config(self) -> dict:
         """The network as recorded in the manifest: name, checkpoint, iterations, precision; for
-        a network from outside the package its resolved name and the code's ``source`` (file and
-        sha256, see :func:`~weathergen.models.network_record`)."""
-        record = network_record(self.model)
-        config = {"name": canonical_network(self.model), "checkpoint": str(self.checkpoint)
+        a network from outside the package the code's ``source`` (file and sha256, see
+        :meth:`~weathergen.models.Network.source`)."""
+        record = self.model.source()
+        config = {"name": self.model.name, "checkpoint": str(self.checkpoint)
                   if self.checkpoint is not None else None, "iters": self.iters,
                   "amp": self.amp_setting()}
+        if self.precision is not None:      # asked for: recorded (a run without it resumes as before)
+            config["precision"] = self.precision_setting()
         return config if record is None else {**config, "source": record}
 
     def config(self) -> dict:
@@ -145,25 +154,39 @@ class PairReport:
     #: a paper preset's pair whose frame 2 shows fewer than half of them (strong camera motion;
     #: see :func:`weathergen.jobs.few_in_frame2`)
     few_in_frame2: bool = False
+    #: each frame's shares of measured, completed, sky and unknown depth, where the reader says
+    depth_provenance: list = field(default_factory=list)
 
 
-_MODELS: dict = {}
+_LOADED: dict = {}
 
 
 def job_model(job: AttackJob, device: Optional[str] = None):
     """The job's network on ``device`` (default the job's), loaded once per process."""
     device = device or job.device
-    amp = resolve_amp(job.model, job.amp, device)
-    code = network_record(job.model)        # a network of your own: its file's content too
-    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, amp,
-           None if code is None else code["sha256"])
-    if key not in _MODELS:
-        _MODELS.clear()                     # one network per process at a time
-        _MODELS[key] = get_model(job.model, job.checkpoint, device=device, iters=job.iters,
+    precision = resolve_precision(job.model, job.precision, job.amp, device)
+    key = (job.model, str(job.checkpoint), job.iters, device, job.gradient_checkpointing, precision)
+    if key not in _LOADED:
+        _LOADED.clear()                     # one network per process at a time
+        _LOADED[key] = get_model(job.model, job.checkpoint, device=device, iters=job.iters,
                                  download=job.download,
-                                 gradient_checkpointing=job.gradient_checkpointing, amp=amp)
-        _MODELS[key].padding = getattr(job.dataset, "padding", "even")  # the benchmark's protocol
-    return _MODELS[key]
+                                 gradient_checkpointing=job.gradient_checkpointing,
+                                 precision=precision)
+        _LOADED[key].padding = getattr(job.dataset, "padding", "even")  # the benchmark's protocol
+    return _LOADED[key]
+
+
+def probe_job_network(job: AttackJob, model, ref) -> None:
+    """Run the job's network once on the pair ``ref`` (the first), forward and backward: a flow
+    that is not finite, of another shape or without a gradient to the frames is refused in one
+    line (:func:`~weathergen.models.probe_network`) before anything is written. A first pair
+    that does not load (it fails alone later) gives way to a small random pair."""
+    try:
+        pair = job.dataset.load(ref)
+    except WeatherGenError:
+        return probe_network(model, job.model.label, gradient=True)
+    probe_network(model, job.model.label, pair.image1[None].to(job.device),
+                  pair.image2[None].to(job.device), gradient=True)
 
 
 def attack_refs(job: AttackJob, refs: list, model=None, target_file_flow=None,
@@ -237,12 +260,16 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
         write = write_lp_pair if job.lp is not None else write_attacked_pair
         for (ref, pair, _, spent), result in zip(group, results):
             begin = time.perf_counter()
-            summary = write(job, model, pair, result, device)
+            try:
+                summary = write(job, model, pair, result, device)
+            except OSError as exc:      # a full or unwritable disk stops the run, as render's
+                raise write_error(exc, job.out, "then rerun with ${resume}") from None
             summary.seconds = spent + share + time.perf_counter() - begin
             reports[ref.id.key] = PairReport(str(ref.id), "written", summary, key=ref.id.key,
                                              ran=ran, warnings=list(pair.meta.get("warnings", [])),
                                              visible=seen.get(ref.id.key),
-                                             few_in_frame2=few.get(ref.id.key, False))
+                                             few_in_frame2=few.get(ref.id.key, False),
+                                             depth_provenance=pair.meta.get("depth_provenance", []))
     return [reports[ref.id.key] for ref in refs]
 
 
@@ -314,9 +341,40 @@ def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
 def run_summary(job: AttackJob, rows: list[PairSummary]) -> dict:
     """The run's summary (``summary.json``): the means over pairs (:func:`mean_summary`), the
     attack's ``compat`` mode (None for an Lp attack) and the precision the network ran in
-    (``amp``: mixed precision on CUDA)."""
+    (``amp``: under autocast; ``precision``: float32, tf32, bf16 or fp16)."""
     return {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None,
-            "amp": job.amp_setting()}
+            "amp": job.amp_setting(), "precision": job.precision_setting(),
+            "settings": job_settings(job)}
+
+
+def job_settings(job: AttackJob) -> dict:
+    """The run's settings record (:func:`~weathergen.attack.record.run_settings`): the network as
+    the job runs it, the steps and the learning rates of its optimiser (the particles' ``lr``,
+    the atmosphere's where it is freed; an Lp attack's ``lr``), its seed."""
+    if job.lp is not None:
+        steps, rates = job.lp.steps, {"lr": job.lp.lr}
+    else:
+        steps, rates = job.settings.steps, {"lr": job.settings.learning_rate}
+        if any(v in ATMOSPHERE_VARIABLES for v in job.settings.optimize):
+            rates["atmosphere_lr"] = job.settings.atmosphere_learning_rate
+    return run_settings(job.model, job.checkpoint, iters=job.iters, precision=job.precision_setting(),
+                        padding=getattr(job.dataset, "padding", "even"), steps=steps,
+                        learning_rates=rates, seed=job.seed)
+
+
+def _last_save(save, run: dict, stopped_by) -> None:
+    """Write the manifest at the end of a run; when the disk refuses, say so without hiding why
+    the run stopped (as render does): a write that failed first keeps its message, with the
+    manifest's added; an interruption or a bug goes through as it is."""
+    try:
+        save()
+    except OutputError as exc:
+        if stopped_by is None:
+            raise
+        if isinstance(stopped_by, OutputError) and str(stopped_by) != str(exc):
+            raise OutputError(f"{stopped_by.args[0]}; the manifest could not be updated either; "
+                              f"${{resume}} finds the {counted(run['written'], 'pair')} "
+                              f"finished in this run on disk") from None
 
 
 def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
@@ -348,7 +406,7 @@ def run_attack(job: AttackJob,
     check_executor(job.executor)
     if job.batch_size < 1:
         raise ConfigError(f"${{batch_size}} must be >= 1 (got {job.batch_size})")
-    job.amp_setting()                      # a request the device or network cannot meet
+    job.precision_setting()                # a request the device or network cannot meet
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
     for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
@@ -363,6 +421,10 @@ def run_attack(job: AttackJob,
     # The driver of a Ray run checks the network and its checkpoint on the CPU.
     model = job_model(job) if local else get_model(
         job.model, job.checkpoint, device="cpu", iters=job.iters, download=job.download)
+    if local:
+        probe_job_network(job, model, refs[0])
+    else:                                   # the driver: a small pair on the CPU
+        probe_network(model, job.model.label, gradient=True)
     target_file_flow = read_target_flow(job.target.path) if job.target.kind == "file" else None
     if not local:
         model = None
@@ -394,9 +456,11 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
     def save():
         ordered = {k: pairs_entry[k] for k in order if k in pairs_entry}
         ordered.update({k: v for k, v in pairs_entry.items() if k not in ordered})
-        write_attack_manifest(job.out, config, ordered,
-                              run_summary(job, [summaries[k] for k in order if k in summaries]),
-                              runs)
+        try:
+            write_attack_manifest(job.out, config, ordered, run_summary(
+                job, [summaries[k] for k in order if k in summaries]), runs)
+        except OSError as exc:
+            raise write_error(exc, job.out / MANIFEST, "then rerun with ${resume}") from None
 
     def record(report: PairReport):
         if report.status == "failed":
@@ -412,7 +476,9 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
                        {k: old[k] for k in ("visible", "few_in_frame2") if k in old})
             pairs_entry[report.key] = {"status": "written", **asdict(report.summary),
                                        **({"ran": ran} if ran else {}),
-                                       **({"warnings": warnings} if warnings else {}), **sampled}
+                                       **({"warnings": warnings} if warnings else {}), **sampled,
+                                       **({"depth_provenance": report.depth_provenance}
+                                          if report.depth_provenance else {})}
         run[report.status] += 1
         if report.status == "written":
             written.append(report)
@@ -420,7 +486,7 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
 
     on_start(len(refs))
     t0 = time.perf_counter()
-    todo = []
+    todo, stopped_by = [], None
     try:
         for ref in refs:
             out = pair_output(job, ref.id)
@@ -441,10 +507,15 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
             for report in reports:
                 record(report)
             save()
+    except BaseException as exc:
+        stopped_by = exc
+        raise
     finally:
         run["seconds"] = round(time.perf_counter() - t0, 3)
-        save()
-    note = frame2_note([(r.pair, r.visible) for r in written if r.few_in_frame2], job.preset_name)
-    if note is not None:
+        _last_save(save, run, stopped_by)
+    for note in filter(None, (depth_note([(r.pair, {"depth_provenance": r.depth_provenance})
+                                          for r in written]),
+                              frame2_note([(r.pair, r.visible) for r in written if r.few_in_frame2],
+                                          job.preset_name))):
         on_note(note)
     return run_summary(job, [summaries[k] for k in order if k in summaries])

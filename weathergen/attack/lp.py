@@ -56,7 +56,7 @@ from typing import Callable, Optional, Sequence
 import torch
 
 from ..engine import from_atanh, to_atanh
-from ..engine.presets import Plausible
+from ..engine.weather.presets import Plausible
 from ..errors import ConfigError
 from ..flow import aee
 from .pair import AttackResult, StepLog, StepRecord

@@ -51,8 +51,8 @@ import torch
 
 from ..engine import (LayeredParticles, build_stamps, from_atanh, load_templates,
                       reference_transforms, render, to_atanh)
-from ..engine.particles import TENSOR_FIELDS
-from ..engine.sampling import check_pair_for_engine
+from ..engine.records.particles import TENSOR_FIELDS
+from ..engine.sampling.pair import check_pair_for_engine
 from ..errors import ConfigError
 from ..flow import aee
 from ..framepair import FramePair
@@ -521,6 +521,12 @@ class PairOptimisation(BatchOptimisation):
             self.variables = single
 
 
+def _stalled(settings: AttackSettings, history: list, loss: torch.Tensor) -> bool:
+    """Whether ``settings.early_stop`` ends, at a step of ``loss``, a pair with ``history``."""
+    stop = settings.early_stop
+    return stop is not None and stop.stalled([r.loss for r in history] + [float(loss.detach())])
+
+
 def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: Sequence,
                  settings: AttackSettings, target: TargetSpec = TargetSpec("zero"), *,
                  device=None, target_file_flow: Optional[torch.Tensor] = None,
@@ -540,8 +546,9 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
         device: where rendering and the network run (default: the model's device).
         on_step: called with the pair's index and every :class:`StepRecord` of that pair.
     Returns: one :class:`AttackResult` per pair, each as :func:`attack_pair` gives it for that
-    pair alone (best step, history, freeze when nothing of the pair is visible); a record's
-    ``seconds`` is the time of the batched step.
+    pair alone (best step, history, freeze when nothing of the pair is visible, the end of a
+    pair whose loss has converged under ``settings.early_stop``); a record's ``seconds`` is the
+    time of the batched step.
     """
     run = BatchOptimisation(model, pairs, particles, settings, target, device=device,
                             target_file_flow=target_file_flow)
@@ -567,16 +574,18 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
         finishing = [False] * size
         if not last:
             # A pair none of whose particles reaches its frames, and whose penalty depends on
-            # no freed variable, has nothing to optimise: it stops at this step.
-            finishing = [a and not d for a, d in zip(active, run.depends)]
-            going = [a and d for a, d in zip(active, run.depends)]
+            # no freed variable, has nothing to optimise: it stops at this step (frozen); so does
+            # one whose loss has converged (settings.early_stop).
+            finishing = [a and (not d or _stalled(settings, log.history[i], losses[i]))
+                         for i, (a, d) in enumerate(zip(active, run.depends))]
+            going = [a and not f for a, f in zip(active, finishing)]
             if any(going):
                 run.update(losses.sum(), going)
         log.record(step, [i for i in range(size) if active[i]], flow, run.benign, losses, dists,
                    penalties, t0)
         for i in range(size):
             if finishing[i]:        # only an active pair can be finishing
-                frozen[i], active[i] = True, False
+                frozen[i], active[i] = not run.depends[i], False
             if last:
                 active[i] = False
         del flow, losses, distances, penalties, current

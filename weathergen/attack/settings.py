@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 from ..errors import ConfigError
 
@@ -77,6 +77,49 @@ def transparency_bound(preset) -> float:
 
 
 @dataclass(frozen=True)
+class EarlyStop:
+    """Convergence of one pair's attack: it ends at step ``k`` when the lowest loss of its last
+    ``window`` steps (``k - window + 1 ... k``) is not below the lowest loss before them by more
+    than ``tol`` times that earlier loss (a relative tolerance). The best iterate is kept as
+    always; an attack without it runs every step (the paper's setting).
+    """
+
+    window: int
+    tol: float
+
+    def __post_init__(self):
+        if isinstance(self.window, bool) or not isinstance(self.window, int) or self.window < 1:
+            raise ConfigError(f"${{early_stop}}: the window must be a whole number of steps >= 1, "
+                              f"got {self.window!r}")
+        if not (self.tol >= 0 and math.isfinite(self.tol)):
+            raise ConfigError(f"${{early_stop}}: the tolerance must be a finite number >= 0, "
+                              f"got {self.tol!r}")
+
+    @classmethod
+    def parse(cls, text: str) -> "EarlyStop":
+        """``"WINDOW:TOL"`` (``"50:0.001"``) -> EarlyStop; ConfigError for another form."""
+        window, sep, tol = str(text).partition(":")
+        try:
+            numbers = (int(window), float(tol)) if sep else None
+        except ValueError:
+            numbers = None
+        if numbers is None:
+            raise ConfigError(f"${{early_stop}} must be WINDOW:TOL (steps and a relative loss "
+                              f"tolerance, e.g. 50:0.001), got {text!r}")
+        return cls(*numbers)
+
+    def stalled(self, losses: Sequence[float]) -> bool:
+        """Whether an attack whose steps ``0 ... k`` had ``losses`` has converged at step ``k``."""
+        if len(losses) <= self.window:
+            return False
+        before = min(losses[:-self.window])
+        return min(losses[-self.window:]) >= before - self.tol * abs(before)
+
+    def __str__(self) -> str:
+        return f"{self.window}:{self.tol:g}"
+
+
+@dataclass(frozen=True)
 class AttackSettings:
     """How one pair is attacked.
 
@@ -87,7 +130,9 @@ class AttackSettings:
     largest θ the attack may reach (:func:`transparency_bound` of the preset; ``None``: 1, or the
     record's largest θ where that is more); compat: ``paper`` (default) or ``reference``, the
     research code's terms (:mod:`weathergen.attack.compat`); layers: combined weather's layers
-    whose variables are freed, by name (``None``: every layer; the others stay as sampled).
+    whose variables are freed, by name (``None``: every layer; the others stay as sampled);
+    early_stop: :class:`EarlyStop` to end a pair's attack once its loss has converged (``None``:
+    every step, the paper's setting and the only one under ``compat="reference"``).
     """
 
     optimize: tuple[str, ...] = OPTIMIZABLE
@@ -99,6 +144,7 @@ class AttackSettings:
     transparency_max: Optional[float] = None
     compat: str = "paper"
     layers: Optional[tuple[str, ...]] = None
+    early_stop: Optional[EarlyStop] = None
 
     def __post_init__(self):
         parse_optimize(",".join(self.optimize))  # validates names and non-emptiness
@@ -121,6 +167,9 @@ class AttackSettings:
         if self.compat not in COMPAT_MODES:
             raise ConfigError(f"${{compat}} must be one of {', '.join(COMPAT_MODES)}, "
                               f"got {self.compat!r}")
+        if self.early_stop is not None and self.compat == "reference":
+            raise ConfigError("${early_stop} does not apply under ${compat} reference: the "
+                              "research code runs every step")
 
     @property
     def learning_rate(self) -> float:
@@ -135,4 +184,5 @@ class AttackSettings:
         return {"optimize": list(self.optimize), "steps": int(self.steps),
                 "lr": self.learning_rate, "alpha1": self.alpha1, "alpha2": self.alpha2,
                 "beta": self.beta, "transparency_max": self.transparency_max,
-                "compat": self.compat, **({"layers": list(self.layers)} if self.layers else {})}
+                "compat": self.compat, **({"layers": list(self.layers)} if self.layers else {}),
+                **({"early_stop": str(self.early_stop)} if self.early_stop else {})}

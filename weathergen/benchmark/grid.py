@@ -24,17 +24,19 @@ then the tables are written from the per-run ``summary.json`` files (:mod:`.tabl
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Mapping, Optional, Sequence
 
-from ..attack import (ATTACK_CONFIGS, LP_METHODS, AttackConfig, AttackJob, lp_pass_name, lp_settings,
-                      run_attack)
+from ..attack import (ATTACK_CONFIGS, LP_METHODS, AttackConfig, AttackJob, EarlyStop, job_model,
+                      lp_pass_name, lp_settings, probe_job_network, run_attack)
 from ..attack.plan import attack_pass_name, plan_attack
 from ..datasets import Dataset, reopen_dataset
 from ..engine import list_presets
 from ..errors import ConfigError
-from ..models import get_model, is_external_name, network_label, network_record
+from ..models import Network, resolve_network
+from ..models.external import network_label
+from ..models.registry import renamed
 from ..models.checkpoints import sha256_of
 from .ladder import ladder_presets
 
@@ -64,7 +66,7 @@ class Cell:
 
     def folder(self, out: Path) -> Path:
         """``OUT/runs/<network>/<label>``; a network of your own under its short label
-        (``stem.NAME``, :func:`~weathergen.models.network_label`)."""
+        (``stem.NAME``, :attr:`~weathergen.models.Network.label`)."""
         return Path(out) / "runs" / network_label(self.network) / self.label
 
 
@@ -72,7 +74,10 @@ class Cell:
 class BenchmarkSpec:
     """What a benchmark runs. ``checkpoints`` maps a network to its checkpoint (None: its own);
     ``overrides`` are preset keys applied to every weather cell (``--set``); ``compat`` the
-    weather attacks' terms (``paper`` or ``reference``, see :mod:`weathergen.attack.compat`)."""
+    weather attacks' terms (``paper`` or ``reference``, see :mod:`weathergen.attack.compat`).
+    ``resolved``: each network's :class:`~weathergen.models.Network`, resolved once when the spec
+    is made (given ones are kept). A network named twice, or a checkpoint for a network not in
+    ``networks``, is refused."""
 
     dataset: Dataset
     out: Path
@@ -88,11 +93,28 @@ class BenchmarkSpec:
     device: str = "cpu"
     download: bool = False
     amp: Optional[bool] = None           # mixed precision; None: each network's paper setting
+    precision: Optional[str] = None      # float32, tf32, bf16, fp16; None: as amp
+    early_stop: Optional[EarlyStop] = None   # the weather attacks' convergence; None: every step
     command: list = field(default_factory=list)
     compat: str = "paper"                # the weather attacks' terms (paper or reference)
     #: severity ladders (``snow``: snow-light, snow-moderate, snow-heavy), their rungs run as
     #: weather cells after ``presets`` (:mod:`.ladder`)
     ladders: Sequence[str] = ()
+    resolved: Mapping[str, Network] = field(default_factory=dict)
+
+    def __post_init__(self):
+        twice = sorted({n for n in self.networks if list(self.networks).count(n) > 1})
+        if twice:
+            raise ConfigError(f"${{networks}} names {', '.join(map(repr, twice))} twice")
+        stray = [n for n in self.checkpoints if n not in self.networks]
+        if stray:
+            raise ConfigError(f"${{checkpoint}} {stray[0]}={self.checkpoints[stray[0]]}: "
+                              f"{stray[0]!r} is not among ${{networks}} "
+                              f"({', '.join(self.networks) or 'none'})")
+        try:
+            self.resolved = {n: self.resolved.get(n) or resolve_network(n) for n in self.networks}
+        except ConfigError as exc:
+            raise renamed(exc, "networks") from None
 
     def weather_labels(self) -> list[str]:
         """The weather cells' labels of each network: the presets, then every ladder's rungs not
@@ -118,6 +140,9 @@ class BenchmarkSpec:
             if method not in LP_METHODS:
                 raise ConfigError(f"${{lp}} {method!r}: expected {', '.join(LP_METHODS)}")
         labels = self.weather_labels()
+        if not labels and not self.lp_methods:
+            raise ConfigError("the grid is empty: ${presets}, ${lp} and ${ladder} name nothing "
+                              "to run")
         cells = []
         for net in self.networks:
             cells += [Cell(net, "weather", p) for p in labels]
@@ -143,10 +168,10 @@ def tr115_default(dataset: Dataset) -> Dataset:
 
 def cell_job(spec: BenchmarkSpec, cell: Cell) -> AttackJob:
     """The attack run of one cell (resuming whatever its folder holds)."""
-    common = dict(dataset=spec.dataset, out=cell.folder(spec.out), model=cell.network,
+    common = dict(dataset=spec.dataset, out=cell.folder(spec.out), model=spec.resolved[cell.network],
                   checkpoint=spec.checkpoints.get(cell.network), iters=spec.iters,
                   seed=spec.seed, device=spec.device, download=spec.download, amp=spec.amp,
-                  resume=True, command=list(spec.command))
+                  precision=spec.precision, resume=True, command=list(spec.command))
     input_pass = spec.dataset.selection.pass_
     if cell.kind == "lp":
         return AttackJob(preset=None, preset_name=cell.label, settings=None,
@@ -156,7 +181,8 @@ def cell_job(spec: BenchmarkSpec, cell: Cell) -> AttackJob:
     config = cell.label if label_config(cell.label) is not None else None
     plan = plan_attack(config, None if config else cell.label, dict(spec.overrides),
                        compat=spec.compat, **kwargs)
-    return AttackJob(preset=plan.preset, preset_name=plan.preset_name, settings=plan.settings,
+    return AttackJob(preset=plan.preset, preset_name=plan.preset_name,
+                     settings=replace(plan.settings, early_stop=spec.early_stop),
                      config_name=config, pass_name=attack_pass_name(plan.preset_name, input_pass),
                      **common)
 
@@ -169,13 +195,14 @@ def shard_cells(cells: list[Cell], shard: Optional[tuple[int, int]]) -> list[Cel
     return list(cells)[i - 1::n]
 
 
-def checkpoint_record(name: str, checkpoint: Optional[str]) -> dict:
+def checkpoint_record(spec: BenchmarkSpec, name: str) -> dict:
     """What identifies a network's weights: its name, the checkpoint given and, for a file, its
     sha256; for a network from outside the package also its code (``source``)."""
+    checkpoint = spec.checkpoints.get(name)
     record = {"network": name, "checkpoint": checkpoint, "sha256": None}
     if checkpoint is not None and Path(checkpoint).is_file():
         record["sha256"] = sha256_of(Path(checkpoint))
-    source = network_record(name)
+    source = spec.resolved[name].source()
     if source is not None:
         record["source"] = source        # a network of your own: its file and that file's sha256
     return record
@@ -187,16 +214,20 @@ def run_grid(spec: BenchmarkSpec, shard: Optional[tuple[int, int]] = None,
     """Run the cells of ``shard`` (all without one) through ``execute``; return them.
 
     Every cell's job is built before the first runs, and every network from outside the package
-    is built and checked (:func:`~weathergen.models.get_model`), so a bad preset, method, option
-    or network fails before anything is written.
+    is built and run once on the first pair (:func:`~weathergen.attack.probe_job_network`), so a
+    bad preset, method, option or network fails before anything is written.
     """
     cells = shard_cells(spec.cells(), shard)
     jobs = [cell_job(spec, c) for c in cells]
     for job in jobs:
-        job.amp_setting()                   # --amp for a network or device without it
-    for net in dict.fromkeys(c.network for c in cells):
-        if is_external_name(net):           # a network of your own: built and run once on a small
-            get_model(net, spec.checkpoints.get(net), device=spec.device, iters=spec.iters)  # pair
+        job.precision_setting()             # a precision the network or device cannot run
+    for job in {job.model: job for job in jobs if job.model.external}.values():
+        refs = job.dataset.pairs()
+        try:
+            if refs:                        # none: run_attack says so
+                probe_job_network(job, job_model(job), refs[0])
+        except ConfigError as exc:
+            raise renamed(exc, "networks") from None
     for i, (cell, job) in enumerate(zip(cells, jobs)):
         on_cell(i, len(cells), cell)
         execute(job)

@@ -52,6 +52,7 @@ from typing import Optional, Sequence
 
 from .. import __version__
 from ..attack.figures import FIGURE_KEYS
+from ..attack.record import settings_text
 from ..io.atomic import atomic_write_bytes
 from ..outputs import read_summary
 from .grid import BenchmarkSpec, checkpoint_record, label_config, network_name
@@ -60,8 +61,11 @@ from .plot import draw_aee, draw_ladder
 
 FIGURES = ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
            "epe_benign", "epe_random", "epe_adversarial") + FIGURE_KEYS
+#: The settings record's entries each row of ``results.csv`` carries
+#: (:func:`~weathergen.attack.record.run_settings`; the network and checkpoint have their columns).
+SETTINGS_COLUMNS = ("iters", "precision", "padding", "crop", "steps", "learning_rates", "seed")
 COLUMNS = ("network", "kind", "label", "pairs") + FIGURES + ("compat", "amp", "checkpoint",
-                                                               "sha256", "folder")
+                                                               "sha256") + SETTINGS_COLUMNS + ("folder",)
 LP_NAMES = {"pcfa": "PCFA", "ifgsm": "I-FGSM"}
 #: The columns of ``ladders.csv`` (the curves) and ``robustness.csv`` (the scores).
 CURVE_COLUMNS = ("ladder", "network", "mode", "point", "label", "aee", "epe")
@@ -123,7 +127,7 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
     """One row per cell of the whole grid, its figures read from the cell's ``summary.json``
     (None where the cell has not finished)."""
     rows = []
-    records = {net: checkpoint_record(net, spec.checkpoints.get(net)) for net in spec.networks}
+    records = {net: checkpoint_record(spec, net) for net in spec.networks}
     for cell in spec.cells():
         folder = cell.folder(spec.out)
         summary = read_summary(folder)
@@ -131,13 +135,35 @@ def collect_results(spec: BenchmarkSpec) -> list[dict]:
                "pairs": summary.get("pairs") if summary else None}
         for key in FIGURES:
             row[key] = summary.get(key) if summary else None
+        settings = (summary or {}).get("settings") or {}
         row.update(compat=summary.get("compat") if summary else None,
                    amp=summary.get("amp") if summary else None,
                    checkpoint=records[cell.network]["checkpoint"],
-                   sha256=records[cell.network]["sha256"],
+                   sha256=records[cell.network]["sha256"] or settings.get("checkpoint_sha256"),
+                   **{key: settings.get(key) for key in SETTINGS_COLUMNS},
                    folder=str(folder.relative_to(spec.out)))
+        if row["learning_rates"]:
+            row["learning_rates"] = ";".join(f"{k}={v:g}" for k, v in row["learning_rates"].items())
+        row["settings"] = settings or None
         rows.append(row)
     return rows
+
+
+def _with_settings(table_rows: list[dict], rows: Sequence[dict]) -> list[dict]:
+    """Rows of a ladder's curves or scores with their network's settings (of its weather cells)."""
+    of = {}
+    for r in rows:
+        if r["kind"] == "weather" and r.get("settings"):
+            of.setdefault(r["network"], r)
+    return [{**t, **{k: of.get(t["network"], {}).get(k) for k in SETTINGS_COLUMNS}}
+            for t in table_rows]
+
+
+def settings_lines(rows: Sequence[dict]) -> list[str]:
+    """The settings behind the finished cells, one line each that differs
+    (:func:`~weathergen.attack.record.settings_text`): what every table's caption carries."""
+    return list(dict.fromkeys(f"{r['kind']} cells: {settings_text(r['settings'])}"
+                              for r in rows if r.get("settings")))
 
 
 # -- the tables as data --------------------------------------------------------------------------
@@ -151,6 +177,8 @@ class Row:
     label_tex: str
     values: list
     ranked: bool = True
+    #: columns whose cell is marked † (a ladder's adversarial rung below its random one)
+    flagged: tuple = ()
 
 
 @dataclass
@@ -325,21 +353,33 @@ def _optimvariables(configs, networks, names, value) -> Table:
                  sections=sections, number=TABLE_NUMBERS["optimvariables"])
 
 
+#: The remark under a ladder's table whose adversarial rung fell below its random one.
+LADDER_BELOW = ("† adversarial below random ({}): the attack ended weaker than the random "
+                "weather it started from; its figures at that rung do not bound the network's "
+                "robustness (more steps, another learning rate; docs/attack.md).")
+
+
 def ladder_tables(curves: Sequence[Curve], networks: Sequence[str]) -> list[Table]:
     """Per ladder two tables, one row per network (the paper's order, others after): AEE(f, f̌)
     per rung and the robustness score R, and EPE against the ground truth (clean, per rung) with
-    the relative corruption error RCE, random and adversarial weather side by side."""
+    the relative corruption error RCE, random and adversarial weather side by side. An
+    adversarial rung below its random one is marked † and named in the table's note."""
     tables = []
     order = table_networks(networks)
     for ladder in dict.fromkeys(c.ladder for c in curves):
         by = {(c.network, c.mode): c for c in curves if c.ladder == ladder}
         rungs = [label.rsplit("-", 1)[-1] for label, _, _ in by[(order[0], "random")].rungs]
-        aee, epe = [], []
+        aee, epe, below = [], [], []
         for net in order:
             name = network_name(net)
+            pairs = list(zip(by[(net, "random")].rungs, by[(net, "adversarial")].rungs))
+            flagged = tuple(len(rungs) + 1 + i for i, ((_, r, _), (_, a, _)) in enumerate(pairs)
+                            if r is not None and a is not None and a < r)
+            below += [f"{name} {rungs[c - len(rungs) - 1]}" for c in flagged]
             aee.append(Row(name, latex_text(name), [
                 v for mode in MODES for v in
-                [a for _, a, _ in by[(net, mode)].rungs] + [by[(net, mode)].robustness()]]))
+                [a for _, a, _ in by[(net, mode)].rungs] + [by[(net, mode)].robustness()]],
+                flagged=flagged))
             epe.append(Row(name, latex_text(name), [by[(net, "random")].points[0][2]] + [
                 v for mode in MODES for v in
                 [e for _, _, e in by[(net, mode)].rungs] + [by[(net, mode)].relative_error()]]))
@@ -347,7 +387,8 @@ def ladder_tables(curves: Sequence[Curve], networks: Sequence[str]) -> list[Tabl
         tables.append(Table(
             f"ladder_{ladder}", "Network",
             [f"{short[m]} {x}" for m in MODES for x in [*rungs, "R"]],
-            sections=[(None, aee)], groups=[(m, len(rungs) + 1) for m in MODES]))
+            sections=[(None, aee)], groups=[(m, len(rungs) + 1) for m in MODES],
+            note=LADDER_BELOW.format(", ".join(below)) if below else ""))
         tables.append(Table(
             f"ladder_{ladder}_epe", "Network",
             ["clean EPE"] + [f"{short[m]} {x}" for m in MODES for x in [*rungs, "RCE"]],
@@ -391,7 +432,7 @@ def markdown_table(table: Table, caption: str) -> str:
         if heading is not None:
             lines.append("| " + " | ".join([f"**{heading[0]}**"] + [""] * (width - 1)) + " |")
         for row in rows:
-            cells = [_fmt(v) for v in row.values]
+            cells = [_fmt(v) + ("†" if c in row.flagged else "") for c, v in enumerate(row.values)]
             cells = [wrap[marks[(id(row), c)]](t) if (id(row), c) in marks else t
                      for c, t in enumerate(cells)]
             lines.append("| " + " | ".join([_markdown_text(row.label), *cells]) + " |")
@@ -424,11 +465,16 @@ def latex_table(table: Table, caption: str) -> str:
         if heading is not None:
             lines.append(r"\multicolumn{" + str(width) + r"}{l}{\emph{" + heading[1] + r"}} \\")
         for row in rows:
-            cells = [_fmt(v).replace("–", "--") for v in row.values]
+            cells = [_fmt(v).replace("–", "--") + (r"$^\dagger$" if c in row.flagged else "")
+                     for c, v in enumerate(row.values)]
             cells = [wrap[marks[(id(row), c)]](t) if (id(row), c) in marks else t
                      for c, t in enumerate(cells)]
             lines.append(" & ".join([row.label_tex, *cells]) + r" \\")
-    lines += [r"\bottomrule", r"\end{tabular}", r"\caption{" + caption + "}",
+    lines += [r"\bottomrule", r"\end{tabular}"]
+    if table.note:
+        lines.append(r"\par\footnotesize " + r"$\dagger$".join(map(latex_text,
+                                                                   table.note.split("†"))))
+    lines += [r"\caption{" + caption + "}",
               r"\label{table:" + table.name + "}", r"\end{center}", r"\end{table}"]
     return "\n".join(lines) + "\n"
 
@@ -509,16 +555,20 @@ def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
     curves = ladder_curves(rows, spec.ladders, table_networks(networks)) if spec.ladders else []
     document = {"weathergen_version": __version__, "input": spec.dataset.describe(),
                 "seed": spec.seed,
-                "networks": [checkpoint_record(n, spec.checkpoints.get(n)) for n in networks],
+                "networks": [checkpoint_record(spec, n) for n in networks],
                 "settings": {"weather_steps": spec.steps, "lp_steps": spec.lp_steps,
                              "iters": spec.iters, "overrides": dict(spec.overrides),
                              "compat": spec.compat, "amp": spec.amp,
                              "ladders": list(spec.ladders)},
                 "rows": rows}
     if curves:
-        document["ladders"] = {"curves": curve_rows(curves), "scores": score_rows(curves)}
+        document["ladders"] = {"curves": _with_settings(curve_rows(curves), rows),
+                               "scores": _with_settings(score_rows(curves), rows)}
     tables = build_tables(rows, networks, presets=spec.presets) + ladder_tables(curves, networks)
-    caption = captions(spec, tables)
+    settings = settings_lines(rows)
+    caption = {name: (md + "".join(f" Settings, {line}." for line in settings),
+                      tex + "".join(f" Settings, {latex_text(line)}." for line in settings))
+               for name, (md, tex) in captions(spec, tables).items()}
     md = {t.name: markdown_table(t, caption[t.name][0]) for t in tables}
     tex = {t.name: latex_table(t, caption[t.name][1]) for t in tables}
     paths = {"csv": out / "results.csv", "json": out / "results.json",
@@ -535,7 +585,9 @@ def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
     if curves:
         paths.update(curves=out / "ladders.csv", scores=out / "robustness.csv",
                      ladder_plot=out / "ladder.png")
-        atomic_write_bytes(paths["curves"], _table_csv(curve_rows(curves), CURVE_COLUMNS))
-        atomic_write_bytes(paths["scores"], _table_csv(score_rows(curves), SCORE_COLUMNS))
+        atomic_write_bytes(paths["curves"], _table_csv(document["ladders"]["curves"],
+                                                       CURVE_COLUMNS + SETTINGS_COLUMNS))
+        atomic_write_bytes(paths["scores"], _table_csv(document["ladders"]["scores"],
+                                                       SCORE_COLUMNS + SETTINGS_COLUMNS))
         draw_ladder(paths["ladder_plot"], curves, table_networks(networks))
     return paths

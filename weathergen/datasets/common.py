@@ -15,6 +15,7 @@ from ..framepair import FramePair
 from ..geometry import WORLD_UP_AXES, invert_rigid, to_homogeneous, up_direction
 from ..io.images import read_image_kind
 from .base import FILE_ROLES, Dataset, Selection
+from .depth import provenance_shares
 
 #: Depth (dataset units, metres for KITTI and Spring) given to pixels without any depth: sky,
 #: and regions no measurement reaches. Far beyond where weather particles are placed.
@@ -90,13 +91,14 @@ class ScaledDataset(Dataset):
         return bool(self.camera_translation)
 
     def posed_pair(self, ref, files: dict, images, depths, intrinsics, cam1_from_world,
-                   cam2_from_world, *, flow=None, flow_valid=None, measured=None,
+                   cam2_from_world, *, flow=None, flow_valid=None, provenance=None,
                    meta: Optional[dict] = None) -> FramePair:
         """The validated record of a pair with absolute poses, the scene's depth scale applied.
 
         Shape: images two (H, W, 3) float in [0, 1]; depths two (H, W) in dataset units (unscaled);
-        intrinsics (3, 3); poses (3, 4) or (4, 4) world-to-camera; flow (H, W, 2), flow_valid and
-        each of ``measured`` (H, W) bool, or None.
+        intrinsics (3, 3); poses (3, 4) or (4, 4) world-to-camera; flow (H, W, 2), flow_valid
+        (H, W) bool, or None; ``provenance`` two (H, W) uint8 maps, or None: all measured
+        (Sintel, the demo).
         """
         scale = self.scale_of(ref.id.scene)
         cam1, cam2, cam2_from_cam1 = scaled_poses(cam1_from_world, cam2_from_world, scale,
@@ -109,10 +111,11 @@ class ScaledDataset(Dataset):
             cam2_from_cam1=cam2_from_cam1, cam1_from_world=cam1, cam2_from_world=cam2,
             flow=None if flow is None else chw(flow),
             flow_valid=None if flow_valid is None else chw(flow_valid),
-            depth_measured1=None if measured is None else chw(measured[0]),
-            depth_measured2=None if measured is None else chw(measured[1]),
+            depth_provenance1=None if provenance is None else chw(provenance[0]),
+            depth_provenance2=None if provenance is None else chw(provenance[1]),
             sources={k: Path(v) for k, v in files.items() if Path(v).exists()},
-            depth_scale=scale, meta=dict(meta or {}),
+            depth_scale=scale, frame_rate=self.frame_rate,
+            meta={**(meta or {}), **provenance_meta(provenance)},
         ).validate()
 
     def describe(self) -> dict:
@@ -124,17 +127,28 @@ class ScaledDataset(Dataset):
         return out
 
 
+def provenance_meta(provenance) -> dict:
+    """``{"depth_provenance": [shares of frame 1, of frame 2]}`` for a pair's ``meta`` (and so
+    the manifest), or nothing for depth measured everywhere (``provenance`` None)."""
+    if provenance is None:
+        return {}
+    return {"depth_provenance": [provenance_shares(p) for p in provenance]}
+
+
 class FarDepthDataset(ScaledDataset):
     """A reader whose depth may have pixels without a value (KITTI, Spring, custom).
 
-    ``far_depth`` (in the dataset's units, before scaling) fills those pixels; the record's
-    ``depth_measured1/2`` mark the others. One rendering pass; splits by ``split_folders``.
+    ``far_depth`` (in the dataset's units, before scaling) is the depth of the sky (and of
+    pixels left unknown); the record's ``depth_provenance1/2`` say where each depth comes from
+    (:mod:`weathergen.datasets.depth`). One rendering pass; splits by ``split_folders``.
     """
 
     #: Names the ``--split`` option accepts, mapped to the folder below the root.
     split_folders: dict[str, str] = {}
     dense_depth = False
     options = ("far_depth",)
+    #: How far from a measurement gaps are filled (readers that complete depth set it; 0: none).
+    max_gap_px: Optional[float] = None
 
     def __init__(self, root, selection: Selection = Selection(), *, far_depth: Optional[float] = None,
                  **scaling):
@@ -170,6 +184,25 @@ class FarDepthDataset(ScaledDataset):
         out = super().describe()
         out.update(far_depth=self.far_depth)
         return out
+
+    def scene_notes(self) -> list[str]:
+        """The scenes' notes, and the one line of ``max_gap_px`` 0 (``--fill-gaps 0``): what the
+        pixels it leaves unfilled do."""
+        notes = super().scene_notes()
+        if self.max_gap_px == 0:
+            notes.append(f"--fill-gaps 0: no depth is completed; pixels without a measurement that "
+                         f"are not sky stay unknown at the far depth ({self.far_depth:g}), so fog "
+                         f"there shows its full airlight and every particle is drawn in front of them")
+        return notes
+
+    def pair_notes(self, pair: FramePair) -> list[str]:
+        """The share of each depth provenance class in each frame of ``pair``."""
+        shares = pair.meta.get("depth_provenance")
+        if not shares:
+            return []
+        return ["depth " + "; ".join(f"frame {i}: " + ", ".join(f"{name} {100 * share:.1f}%"
+                                                                for name, share in s.items())
+                                     for i, s in enumerate(shares, start=1))]
 
 
 def read_frames(files: dict) -> tuple[np.ndarray, np.ndarray, dict]:

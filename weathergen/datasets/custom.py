@@ -6,6 +6,7 @@ Layout below the root (several scenes), or the root itself as the single scene::
     SCENE/depth/0000.npy          depth of each frame, same stem (or number): .npy, 16-bit .png or .exr
     SCENE/cameras.json            intrinsics and one pose per frame (or cameras.txt)
     SCENE/flow/0000.flo           optional: flow from this frame to the next one (Middlebury .flo)
+    SCENE/sky/0000.png            optional: the frame's sky mask (non-zero: sky), same stem
 
 Frame order and pairs (:mod:`~weathergen.datasets.framenames`): consecutive frames in order are
 the pairs. Where the names differ in one run of digits (``0000.png``, ``000012_left.png``,
@@ -20,10 +21,11 @@ world_from_cam; ``axes`` [opencv] (x right, y down, z forward) or opengl (x righ
 as Blender and OpenGL cameras); ``depth`` [z] (camera-z distance) or range (distance along the
 ray); ``depth_png_scale`` (scene units per PNG step, required for PNG depth).
 
-Valid depth. Depth values that are zero, negative, NaN or infinite are invalid: those within
-``max_gap_px`` (default 24) of a valid pixel are filled in from their neighbours (inverse depth,
-guided by the frame's colours: :func:`~weathergen.datasets.densify.fill_sparse`), the others get
-``far_depth``; ``depth_measured1/2`` mark the valid pixels. A frame without any valid depth is an
+Valid depth. Depth values that are zero, negative, NaN or infinite are invalid. The sky (the
+frame's mask in ``sky/`` where there is one, else estimated) gets ``far_depth``; the other invalid
+pixels are completed from the valid ones (:func:`~weathergen.datasets.depth.complete_depth`), or,
+with ``max_gap_px`` 0, left unknown at ``far_depth``; ``depth_provenance1/2`` say which pixel is
+which. A frame without any valid depth is an
 error (with a hint about the sign convention when its values are negative); a frame whose valid
 fraction is below ``min_valid_depth`` (default 0.5) gets a warning from ``check``.
 """
@@ -38,22 +40,24 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, DatasetError, FormatError
-from ..framepair import FramePair, PairId
+from ..framepair import COMPLETED, FramePair, PairId
 from ..geometry import backproject, invert_rigid
+from ..io.images import read_image
 from ..io.custom_formats import DEPTH_SUFFIXES, CameraFile, read_camera_file, read_depth
 from ..io.sintel_formats import read_flo
 from .base import PairRef, Selection
 from .base import WARNING, Problem
 from .common import (FarDepthDataset, add_warnings, check_size, flow_warnings, read_frames,
                      require_files)
-from .densify import fill_sparse
+from .depth import complete_depth
 from .framenames import order_frames
 from .stereo import RightCamera, custom_right
 
 #: Below this fraction of valid depth in a frame, ``check`` warns.
 DEFAULT_MIN_VALID_DEPTH = 0.5
 #: Gaps in the depth (sensor holes at object edges, dark or shiny surfaces) are filled up to this
-#: distance (pixels) from a valid pixel; farther pixels get the far depth.
+#: distance (pixels) from a valid pixel by the joint-bilateral fill; larger regions that are not
+#: sky are completed from the columns below them (:mod:`weathergen.datasets.depth`).
 DEFAULT_MAX_GAP_PX = 24.0
 #: OpenGL camera axes (y up, z backward) -> OpenCV camera axes (y down, z forward)
 _CV_FROM_GL = np.diag([1.0, -1.0, -1.0, 1.0])
@@ -164,10 +168,11 @@ class CustomDataset(FarDepthDataset):
             stats = pair.meta.get("depth_values", [{}, {}])[i]
             valid = stats.get("valid", 1.0)
             where = f"{ref.files[key]} ({100 * valid:.0f}% valid)"
+            rest = ("sky or completed from the valid pixels" if self.max_gap_px > 0
+                    else "sky or unknown, both at the far depth")
             if valid < self.min_valid_depth:
                 out.append(Problem(f"less than {100 * self.min_valid_depth:g}% of the depth is valid "
-                                   f"(the rest is filled in from valid pixels up to "
-                                   f"{self.max_gap_px:g} px away, or gets the far depth)", where, WARNING))
+                                   f"(the rest is {rest})", where, WARNING))
             if stats.get("negative", 0):
                 out.append(Problem(_NEGATIVE_HINT, f"{ref.files[key]} "
                                    f"({100 * stats['negative']:.0f}% negative)", WARNING))
@@ -192,7 +197,9 @@ class CustomDataset(FarDepthDataset):
         if not flow.exists():
             flow = by_number.get("flow", {}).get(numbers[0], flow)
         return {"image1": frame1, "image2": frame2, "depth1": depth_of(frame1, numbers[0]),
-                "depth2": depth_of(frame2, numbers[1]), "cameras": cams, "flow": flow}
+                "depth2": depth_of(frame2, numbers[1]), "cameras": cams, "flow": flow,
+                "sky1": scene_dir / "sky" / f"{frame1.stem}.png",
+                "sky2": scene_dir / "sky" / f"{frame2.stem}.png"}
 
     def missing_hint(self, key: str) -> str:
         if key in ("depth1", "depth2"):
@@ -218,7 +225,7 @@ class CustomDataset(FarDepthDataset):
             raise DatasetError(f"{files['cameras']}: frames {n1} and {n2} have different intrinsics; "
                                f"a frame pair holds one camera matrix")
 
-        depths, measured, values = [], [], []
+        depths, provenance, values = [], [], []
         for key in ("depth1", "depth2"):
             d = read_depth(files[key], cams.depth_png_scale)
             check_size(files[key], "depth", d.shape, size)
@@ -231,11 +238,13 @@ class CustomDataset(FarDepthDataset):
                 raise DatasetError(f"{files[key]}: no valid depth in this frame; {reason}")
             if cams.depth == "range":
                 d = _range_to_z(d, k1)
-            depth, filled = self._fill_gaps(d, ok, img1 if key == "depth1" else img2)
+            sky = self._sky(files.get("sky" + key[-1]), size)
+            depth, prov = complete_depth(d, ok, img1 if key == "depth1" else img2, sky=sky,
+                                         far_depth=self.far_depth, max_gap_px=self.max_gap_px)
             values.append({"valid": round(float(ok.mean()), 4), "negative": round(negative, 4),
-                           "filled": round(float(filled.mean()), 4)})
+                           "filled": round(float((prov == COMPLETED).mean()), 4)})
             depths.append(depth)
-            measured.append(ok)
+            provenance.append(prov)
 
         flow = flow_valid = None
         if Path(files["flow"]).exists():
@@ -248,7 +257,7 @@ class CustomDataset(FarDepthDataset):
         add_warnings(meta, notes)
 
         return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
-                               flow_valid=flow_valid, measured=measured,
+                               flow_valid=flow_valid, provenance=provenance,
                                meta={"far_depth": self.far_depth, "pose": cams.pose,
                                      "axes": cams.axes, "depth": cams.depth,
                                      "depth_values": values, **meta})
@@ -259,20 +268,15 @@ class CustomDataset(FarDepthDataset):
                    max_gap_px=self.max_gap_px)
         return out
 
-    def _fill_gaps(self, depth: np.ndarray, ok: np.ndarray, image: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
-        """Depth with its gaps filled: pixels within ``max_gap_px`` of a valid one get a value
-        from their neighbours (inverse depth, guided by the frame's colours, as KITTI's sparse
-        disparity), the rest the far depth. Shape: (H, W) each -> (depth float32, filled bool)."""
-        filled = np.zeros_like(ok)
-        out = np.where(ok, depth, self.far_depth).astype(np.float32)
-        if ok.all() or self.max_gap_px <= 0:
-            return out, filled
-        inverse = np.where(ok, 1.0 / np.where(ok, depth, 1.0), 0.0).astype(np.float32)
-        values, known = fill_sparse(inverse, ok, image, max_gap_px=self.max_gap_px)
-        filled = known & ~ok & np.isfinite(values) & (values > 0)
-        out[filled] = 1.0 / values[filled]
-        return out, filled
+    @staticmethod
+    def _sky(path, size) -> Optional[np.ndarray]:
+        """The frame's sky mask (``SCENE/sky/STEM.png``, non-zero: sky), or None where there is none
+        (the sky is then estimated). Shape: -> (H, W) bool."""
+        if path is None or not Path(path).is_file():
+            return None
+        mask = read_image(path)
+        check_size(path, "sky mask", mask.shape, size)
+        return mask.max(axis=2) > 0
 
     @staticmethod
     def _camera(cams: CameraFile, path, number: int, stem: str) -> tuple[np.ndarray, np.ndarray]:

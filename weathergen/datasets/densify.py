@@ -11,11 +11,15 @@ way (recursively), and brought back up for the pixels still missing.
 Fill in disparity (inverse depth), not depth: on a plane, disparity is an affine function of the
 pixel position, so averaging neighbours on both sides is exact there.
 
-Pixels farther than ``max_gap_px`` from any measurement (sky, the image region above a laser
-scanner's field of view) are left unfilled; the caller gives them a far depth.
+Pixels farther than ``max_gap_px`` from any measurement (the image region above a laser
+scanner's field of view, large holes) and the ``exclude``d ones (the sky) are left unfilled;
+:func:`~weathergen.datasets.depth.complete_depth` completes the former and gives the sky its
+far depth.
 """
 
 from __future__ import annotations
+
+from typing import Optional
 
 import cv2
 import numpy as np
@@ -26,14 +30,15 @@ _SIGMA_SPACE = 1.5
 
 
 def fill_sparse(values: np.ndarray, measured: np.ndarray, guide: np.ndarray, *,
-                max_gap_px: float = 24.0, color_sigma: float = 0.05) -> tuple[np.ndarray, np.ndarray]:
+                max_gap_px: float = 24.0, color_sigma: float = 0.05,
+                exclude: Optional[np.ndarray] = None) -> tuple[np.ndarray, np.ndarray]:
     """Fill the unmeasured pixels of a sparse map from nearby measurements, respecting edges.
 
     Shape: values (H, W) float (ignored where not measured); measured (H, W) bool; guide (H, W, 3)
     RGB float in [0, 1]. Returns ``(filled (H, W) float32, known (H, W) bool)``: measured pixels
     keep their value exactly; ``known`` is False (and ``filled`` NaN) where no measurement lies
-    within ``max_gap_px`` pixels. ``color_sigma`` is the colour tolerance of the kernel, in the
-    guide's [0, 1] units.
+    within ``max_gap_px`` pixels, and at ``exclude`` (an (H, W) bool mask, or None).
+    ``color_sigma`` is the colour tolerance of the kernel, in the guide's [0, 1] units.
     """
     values = np.asarray(values, np.float32)
     measured = np.asarray(measured, bool)
@@ -46,6 +51,8 @@ def fill_sparse(values: np.ndarray, measured: np.ndarray, guide: np.ndarray, *,
     # distance of every pixel to the nearest measurement (measured pixels are the zeros)
     gap = cv2.distanceTransform((~measured).astype(np.uint8), cv2.DIST_L2, 5)
     wanted = gap <= max_gap_px
+    if exclude is not None:
+        wanted &= ~np.asarray(exclude, bool)
     filled, known = _fill_pyramid(np.where(measured, values, 0).astype(np.float32), measured,
                                   np.ascontiguousarray(guide, np.float32), wanted, color_sigma)
     known &= wanted

@@ -14,10 +14,11 @@ A pair is identified as scene ``NNNNNN``, frame 10.
 
 Depth. ``depth = fx * B / disparity`` with ``fx`` from ``P_rect_02`` and the baseline ``B`` from
 ``P_rect_02`` and ``P_rect_03`` (metres). KITTI's disparity is measured on a subset of pixels, so
-it is filled in with an edge-aware interpolation guided by the frame
-(:func:`~weathergen.datasets.densify.fill_sparse`); pixels more than ``max_gap_px`` from any
-measurement (the sky, and everything above the laser scanner's field of view) get ``far_depth``.
-``depth_measured1/2`` in the record mark the measured pixels.
+it is completed (:func:`~weathergen.datasets.depth.complete_depth`): the sky is estimated
+(KITTI labels none) and gets ``far_depth``; gaps within ``max_gap_px`` of a measurement are filled
+by an edge-aware interpolation guided by the frame, and larger regions (everything above the
+laser scanner's field of view that is not sky) by extending each column's top-most value upward;
+``depth_provenance1/2`` in the record say which pixel is which.
 
 Frame-2 depth. ``disp_occ_0/NNNNNN_11.png``, where it exists (for example a stereo network's
 prediction for frame 11), is frame 11's disparity at its own pixels and is used as it is.
@@ -62,14 +63,14 @@ import numpy as np
 import torch
 
 from ..errors import ConfigError, DatasetError
-from ..framepair import FramePair, PairId
+from ..framepair import COMPLETED, FramePair, PairId
 from ..io.kitti_formats import read_disparity_png, read_flow_png, read_object_map, stereo_camera
 from .base import NativeFlow, PairRef, Selection
 from .camera_motion import (FitSettings, MotionFit, backproject_pixels, check_fit, fit_motion_pnp,
                             match_features)
-from .common import (FarDepthDataset, add_warnings, check_size, chw, flow_warnings, read_frames,
-                     require_files, scaled_motion)
-from .densify import fill_sparse
+from .common import (FarDepthDataset, add_warnings, check_size, chw, flow_warnings,
+                     provenance_meta, read_frames, require_files, scaled_motion)
+from .depth import complete_depth
 from .stereo import RightCamera, rectified_right
 
 _IMAGE_RE = re.compile(r"^(\d{6})_(\d{2})\.png$")
@@ -198,9 +199,10 @@ class KittiDataset(FarDepthDataset):
     def pair_notes(self, pair: FramePair) -> list[str]:
         fit = pair.meta.get("camera_motion")
         if not fit:
-            return []
+            return super().pair_notes(pair)
         t = fit["translation"]
-        return [f"camera motion t=({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}), rotation {fit['rotation_deg']:.2f}°, "
+        return super().pair_notes(pair) + [
+                f"camera motion t=({t[0]:+.3f}, {t[1]:+.3f}, {t[2]:+.3f}), rotation {fit['rotation_deg']:.2f}°, "
                 f"{100 * fit['inlier_fraction']:.0f}% of {fit['points']} points within "
                 f"{fit['threshold_px']:g} px, RMS {fit['rms_px']:.2f} px"]
 
@@ -238,8 +240,9 @@ class KittiDataset(FarDepthDataset):
             disp2_at1, valid2_at1 = read_disparity_png(files["disp2"])
             check_size(files["disp2"], "disparity", disp2_at1.shape, size)
             disp2, valid2 = forward_warp_disparity(disp2_at1, valid2_at1 & flow_valid, flow)
-        depth1, known1 = self._dense_depth(disp1, valid1, img1, focal_baseline)
-        depth2, _ = self._dense_depth(disp2, valid2, img2, focal_baseline)
+        depth1, prov1 = self._dense_depth(disp1, valid1, img1, focal_baseline)
+        depth2, prov2 = self._dense_depth(disp2, valid2, img2, focal_baseline)
+        known1 = prov1 <= COMPLETED
 
         fit = self._fit_motion(ref, files, k, depth1, known1, valid1, img1, img2, flow, flow_valid,
                                objects)
@@ -253,18 +256,17 @@ class KittiDataset(FarDepthDataset):
             cam2_from_cam1=scaled_motion(fit.cam2_from_cam1, scale, self.keeps_translation(ref.id.scene)),
             flow=None if flow is None else chw(flow),
             flow_valid=None if flow_valid is None else chw(flow_valid),
-            depth_measured1=chw(valid1), depth_measured2=chw(valid2),
+            depth_provenance1=chw(prov1), depth_provenance2=chw(prov2),
             sources={key: Path(v) for key, v in files.items() if Path(v).exists()},
-            depth_scale=scale,
+            depth_scale=scale, frame_rate=self.frame_rate,
             meta={"camera_motion": fit.summary(), "baseline_m": baseline, "far_depth": self.far_depth,
-                  **meta},
+                  **meta, **provenance_meta((prov1, prov2))},
         ).validate()
 
     def _dense_depth(self, disparity, valid, image, focal_baseline) -> tuple[np.ndarray, np.ndarray]:
-        filled, known = fill_sparse(disparity, valid, image, max_gap_px=self.max_gap_px)
-        depth = np.full(disparity.shape, self.far_depth, np.float32)
-        depth[known] = focal_baseline / filled[known]
-        return depth, known
+        depth = np.where(valid, focal_baseline / np.where(valid, disparity, 1.0), 0.0)
+        return complete_depth(depth, valid, image, far_depth=self.far_depth,
+                              max_gap_px=self.max_gap_px)
 
     def _fit_motion(self, ref, files, k, depth1, known1, valid1, img1, img2, flow, flow_valid,
                     objects) -> MotionFit:

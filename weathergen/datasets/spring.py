@@ -16,7 +16,8 @@ any other size is an error naming the file.
 
 Depth. ``depth = fx * 0.065 / disparity`` (Spring's stereo baseline is 0.065 m), in metres, from
 each frame's own disparity file. Pixels whose 2x2 block has no valid disparity (NaN, zero: the sky)
-get ``far_depth``; ``depth_measured1/2`` mark the others.
+are the sky: they get ``far_depth``, and the record's ``depth_provenance1/2`` say so (every other
+pixel is measured: Spring's depth is dense).
 
 Cameras. ``intrinsics.txt`` line i belongs to frame i. The record holds one camera matrix, so a
 pair whose two frames have different intrinsics (a zoom) is refused. ``extrinsics.txt`` matrix i
@@ -37,7 +38,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import ConfigError, DatasetError
-from ..framepair import FramePair, PairId
+from ..framepair import MEASURED, SKY, FramePair, PairId
 from ..io.spring_formats import read_dsp5, read_extrinsics_txt, read_flo5, read_intrinsics_txt, reduce_2x2
 from .base import NativeFlow, PairRef, Selection, frame_numbers
 from .common import (FarDepthDataset, add_warnings, check_size, flow_warnings, read_frames,
@@ -139,14 +140,14 @@ class SpringDataset(FarDepthDataset):
         if self.extrinsics == "camera-to-world":
             e1, e2 = np.linalg.inv(e1), np.linalg.inv(e2)
 
-        depths, measured = [], []
+        depths, provenance = [], []
         for key in ("disp1", "disp2"):
             disp, ok = _at_frame_size(read_dsp5(files[key]), files[key], "disparity", size)
             ok &= np.isfinite(disp) & (disp > 0)
             depth = np.full(size, self.far_depth, np.float32)
             depth[ok] = (k1[0, 0] * self.baseline / disp[ok]).astype(np.float32)
             depths.append(depth)
-            measured.append(ok)
+            provenance.append(np.where(ok, MEASURED, SKY).astype(np.uint8))
 
         flow = flow_valid = None
         if Path(files["flow"]).exists():
@@ -159,7 +160,7 @@ class SpringDataset(FarDepthDataset):
         add_warnings(meta, notes)
 
         return self.posed_pair(ref, files, (img1, img2), depths, k1, e1, e2, flow=flow,
-                               flow_valid=flow_valid, measured=measured,
+                               flow_valid=flow_valid, provenance=provenance,
                                meta={"baseline_m": self.baseline, "far_depth": self.far_depth,
                                      "extrinsics": self.extrinsics, **meta})
 

@@ -75,33 +75,45 @@ def published_file(folder: str | Path, scene: str, frame: int) -> Path:
 
 
 def is_published_set(folder: str | Path) -> bool:
-    """Whether ``folder`` is laid out as a published set (``SCENE/frame_NNNN.npz`` files holding
-    the research code's arrays) rather than a weathergen output (which has a manifest)."""
+    """Whether ``folder`` is laid out as a published set (``SCENE/frame_NNNN.npz`` files, no
+    manifest) rather than a weathergen output (which has a manifest and deeper folders); its
+    files are checked when read (:func:`read_published_weather` names a bad one)."""
     folder = Path(folder)
     if not folder.is_dir() or (folder / "manifest.json").exists():
         return False
-    for path in sorted(folder.glob("*/frame_[0-9][0-9][0-9][0-9].npz"))[:1]:
-        return is_published_file(path)
-    return False
+    return any(path.is_file() for path in folder.glob("*/frame_[0-9][0-9][0-9][0-9].npz"))
 
 
 def is_published_file(path: str | Path) -> bool:
-    """Whether ``path`` is an ``.npz`` file holding the research code's arrays."""
+    """Whether ``path`` claims to be a file of the research code: an ``.npz`` archive holding
+    any of its arrays (which :func:`read_published_weather` then checks)."""
     try:
         with np.load(path, allow_pickle=False) as data:
-            return all(k in data.files for k in ARRAYS)
+            return any(k in data.files for k in ARRAYS)
     except Exception:           # not a file, not an archive: not one of these
         return False
 
 
 def _load(path: Path) -> dict:
     try:
-        with np.load(path, allow_pickle=False) as data:
-            return {k: data[k] for k in data.files}
+        with open(path, "rb") as f:
+            head = f.read(4)
     except FileNotFoundError:
         raise FormatError(path, "no such particle file") from None
+    except OSError as exc:
+        raise FormatError(path, f"cannot be read ({exc.strerror or exc})") from None
+    if not head:
+        raise FormatError(path, "an empty file (expected the .npz archive of the research "
+                                "code's particle arrays)")
+    if head[:2] != b"PK":
+        raise FormatError(path, "not an .npz archive (the research code's particle files are "
+                                "zips of numpy arrays)")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
     except Exception as exc:            # corrupt archives raise several types
-        raise FormatError(path, f"not a readable .npz file ({' '.join(str(exc).split())})") from None
+        raise FormatError(path, f"not a readable .npz file, truncated or damaged "
+                                f"({' '.join(str(exc).split())})") from None
 
 
 def read_published_weather(path: str | Path) -> PublishedWeather:

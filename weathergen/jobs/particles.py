@@ -14,8 +14,8 @@ from typing import Optional, Sequence
 from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, Particles, Preset, frame_scaling,
                       layer_seed, sample_weather, scene_seed)
 from ..datasets import PairRef
-from ..engine.field import pair_airlight
-from ..engine.published import published_particles
+from ..engine.sampling.field import pair_airlight
+from ..engine.sampling.published import published_particles
 from ..errors import WeatherGenError
 from ..framepair import FramePair, PairId
 from ..io.published_weather import is_published_set, published_file, read_published_weather
@@ -73,7 +73,7 @@ def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: 
     replaced (see :func:`weathergen.render.resolve_preset`); they must have been sampled from
     ``preset`` (up to its appearance keys) and, when given, be labelled ``preset_name``. A
     published set of the paper's weather (the research code's files, one per pair) gives the
-    pair's file mapped into the pair (:func:`~weathergen.engine.published.published_particles`),
+    pair's file mapped into the pair (:func:`~weathergen.engine.sampling.published.published_particles`),
     drawn with ``preset``."""
     if particles_from is None:
         seed = (layer_seeds(preset, run_seed, pair.id) if isinstance(preset, CombinedPreset)

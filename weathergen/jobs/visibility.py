@@ -6,7 +6,7 @@ from __future__ import annotations
 from typing import Optional
 
 from ..engine import LayeredParticles, visible_counts
-from ..engine.presets import list_presets
+from ..engine.weather.presets import list_presets
 from ..words import counted
 
 #: A pair of a paper preset whose frame 2 shows fewer than this fraction of the particle centres
@@ -50,3 +50,26 @@ def frame2_note(few: list[tuple[str, tuple[int, int]]], preset_name: str) -> Opt
             f"'{preset_name}' places its particles in a box in front of camera 1; for strong "
             f"camera motion use a weather-field preset ({', '.join(fields)}, ...), whose "
             f"particles fill the world that both cameras see")
+
+
+#: A frame whose depth is more than this share completed, or more than :data:`UNKNOWN_NOTE`
+#: unknown (``--fill-gaps 0``), is counted in the run's one line about estimated depth.
+COMPLETED_NOTE = 0.5
+UNKNOWN_NOTE = 0.02
+
+
+def depth_note(facts: list[tuple[str, dict]]) -> Optional[str]:
+    """The run's one line about pairs whose depth is mostly estimated (``facts``: each written
+    pair's name and the reader's facts, whose ``depth_provenance`` holds each frame's shares of
+    measured, completed, sky and unknown depth), or None when no pair is."""
+    worst = [(name, max(s["completed"] for s in f["depth_provenance"]),
+              max(s["unknown"] for s in f["depth_provenance"]))
+             for name, f in facts if f.get("depth_provenance")]
+    worst = [w for w in worst if w[1] > COMPLETED_NOTE or w[2] > UNKNOWN_NOTE]
+    if not worst:
+        return None
+    name, completed, unknown = max(worst, key=lambda w: (w[2], w[1]))
+    return (f"in {counted(len(worst), 'pair')} more than {COMPLETED_NOTE:.0%} of a frame's depth "
+            f"is completed or more than {UNKNOWN_NOTE:.0%} unknown (e.g. {name}: {completed:.0%} "
+            f"completed, {unknown:.0%} unknown at the far depth); the weather there follows "
+            f"estimated depth: see depth_provenance/ beside the depth and docs/datasets.md")

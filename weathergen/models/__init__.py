@@ -11,15 +11,15 @@ outside the package (``FILE.py:NAME``, ``package.module:NAME``, entry points of 
 ``weathergen.models``) are loaded by :mod:`weathergen.models.external` when named.
 """
 
-from .base import FlowModel
+from .base import AUTOCAST, PRECISIONS, FlowModel
 from .compiled import COMPILE_MODES, compile_iterations
 from .checkpoints import CheckpointSpec, cache_dir, download_checkpoint, read_state_dict
 from .padding import InputPadder
-from .external import ENTRY_POINT_GROUP, ModuleFlowModel, NetworkSource, entry_points, resolved_spec
-from .registry import (ModelSpec, available_checkpoints, available_models, build_model,
-                       canonical_network, checkpoint_spec, get_model, is_external_name,
-                       model_spec, network_label, network_record, register_checkpoint,
-                       register_model, resolve_amp)
+from .external import (ENTRY_POINT_GROUP, INPUT_CONVENTIONS, ModuleFlowModel, entry_points,
+                       flow_input, probe_network)
+from .registry import (ModelSpec, Network, available_checkpoints, available_models, build_model,
+                       checkpoint_spec, get_model, model_spec, register_checkpoint, register_model,
+                       resolve_amp, resolve_network, resolve_precision)
 
 # Network modules register themselves; import each one here.
 from . import raft  # noqa: E402,F401  (registration side effect)
@@ -38,10 +38,10 @@ __all__ = [
     "FlowModel", "InputPadder", "ModelSpec", "CheckpointSpec", "RAFT", "RAFTModel", "GMA",
     "GMAModel", "FlowFormer", "FlowFormerModel",
     "get_model", "build_model", "available_models", "available_checkpoints", "model_spec",
-    "checkpoint_spec", "register_model", "register_checkpoint", "resolve_amp", "cache_dir",
+    "checkpoint_spec", "register_model", "register_checkpoint", "resolve_amp", "resolve_precision", "cache_dir",
     "download_checkpoint", "read_state_dict", "ENTRY_POINT_GROUP", "ModuleFlowModel",
-    "NetworkSource", "entry_points", "canonical_network", "is_external_name", "network_label",
-    "network_record", "resolved_spec", "COMPILE_MODES", "compile_iterations",
+    "Network", "resolve_network", "flow_input", "probe_network", "INPUT_CONVENTIONS",
+    "entry_points", "COMPILE_MODES", "compile_iterations",
     "SpyNet", "SpyNetModel", "SpyNetSniklaus", "SpyNetSniklausModel", "FlowNetC", "FlowNetCModel", "FlowNetCRobust",
-    "FlowNetCRobustModel", "FlowNet2", "FlowNet2Model",
+    "FlowNetCRobustModel", "FlowNet2", "FlowNet2Model", "PRECISIONS", "AUTOCAST",
 ]

@@ -14,6 +14,8 @@ backpropagates a loss on the flow into the weather particles that were rendered 
 from __future__ import annotations
 
 import contextlib
+import functools
+from typing import Optional
 
 import torch
 from torch import nn
@@ -43,11 +45,23 @@ class FlowModel(nn.Module):
     min_size: int = 0
     #: Where padding rows go: "even" or "bottom" (KITTI's protocol); set from ``Dataset.padding``.
     padding: str = "even"
-    #: Whether the network has its authors' mixed-precision mode (see :attr:`amp`).
+    #: Whether the network has its authors' mixed-precision mode (see :attr:`amp`): the adapter
+    #: places its own autocast regions (RAFT's and GMA's ``mixed_precision``); any other network
+    #: runs its whole :meth:`predict` under autocast, less its float32 parts (:func:`in_float32`).
     supports_amp: bool = False
-    #: Run the parts its authors' code runs under CUDA autocast in float16 (``mixed_precision``
-    #: of RAFT's and GMA's code). Only CUDA tensors are affected; elsewhere it changes nothing.
-    amp: bool = False
+    #: One of :data:`PRECISIONS`: ``float32``; ``tf32`` (matrix products and convolutions on
+    #: CUDA tensor cores in TF32); ``bf16``, ``fp16`` (autocast on the frames' device).
+    precision: str = "float32"
+
+    @property
+    def amp(self) -> bool:
+        """Whether the network runs under autocast (``bf16`` or ``fp16``); setting it chooses
+        ``fp16`` (the authors' mixed precision) or ``float32``."""
+        return self.precision in AUTOCAST
+
+    @amp.setter
+    def amp(self, on: bool) -> None:
+        self.precision = "fp16" if on else "float32"
 
     def normalize(self, image: torch.Tensor) -> torch.Tensor:
         """Turn ``(B, 3, H, W)`` RGB in ``[0, 1]`` into what the network was trained on."""
@@ -92,16 +106,59 @@ class FlowModel(nn.Module):
         padder = self.padder(image1.shape[-2], image1.shape[-1])
         x1 = self.normalize(padder.pad(image1.to(dtype)))
         x2 = self.normalize(padder.pad(image2.to(dtype)))
-        flow = self.predict(x1, x2)
+        with _tf32(self.precision == "tf32"), mixed_precision(
+                None if self.supports_amp else autocast_mode(self.precision, x1)):
+            flow = self.predict(x1, x2)
         _check_flow(flow, (image1.shape[0], 2, *padder.padded_size), self)
         return padder.unpad(flow).to(image1.dtype)
 
 
-def mixed_precision(enabled: bool):
-    """CUDA autocast (float16) where ``enabled``, else nothing: the regions of the networks that
-    their authors' code runs under ``torch.cuda.amp.autocast(enabled=mixed_precision)``. As
-    there, tensors on other devices are not affected."""
-    return torch.autocast("cuda", dtype=torch.float16) if enabled else contextlib.nullcontext()
+#: The precisions a network may run in (``--precision``); the last two are autocast's.
+PRECISIONS = ("float32", "tf32", "bf16", "fp16")
+#: Autocast's precisions and their dtypes.
+AUTOCAST = {"bf16": torch.bfloat16, "fp16": torch.float16}
+
+
+def autocast_mode(precision, like: torch.Tensor) -> Optional[tuple]:
+    """``(device type, dtype)`` of the autocast a ``precision`` (a name of :data:`PRECISIONS`;
+    ``True``: ``fp16``, the authors' mixed precision) asks for on the device of ``like``; None
+    for none (float32, tf32, False)."""
+    dtype = AUTOCAST.get("fp16" if precision is True else precision)
+    return None if dtype is None else (like.device.type, dtype)
+
+
+def mixed_precision(mode: Optional[tuple]):
+    """Autocast in ``mode`` (:func:`autocast_mode`), else nothing: the regions of the networks
+    that their authors' code runs under ``autocast(enabled=mixed_precision)``."""
+    return torch.autocast(mode[0], dtype=mode[1]) if mode else contextlib.nullcontext()
+
+
+@contextlib.contextmanager
+def _tf32(enabled: bool):
+    """CUDA matrix products and cuDNN convolutions in TF32 while ``enabled`` (restored after)."""
+    if not enabled:
+        yield
+        return
+    saved = torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32
+    torch.backends.cuda.matmul.allow_tf32 = torch.backends.cudnn.allow_tf32 = True
+    try:
+        yield
+    finally:
+        torch.backends.cuda.matmul.allow_tf32, torch.backends.cudnn.allow_tf32 = saved
+
+
+def in_float32(fn):
+    """``fn`` run in float32 whatever autocast is on: its half-precision tensor arguments taken
+    to float32, autocast off on their device (a network's correlation volume, its softmax, its
+    warping). Float64 arguments (gradient checks) stay float64."""
+    @functools.wraps(fn)
+    def run(*args, **kwargs):
+        tensors = [a for a in args if isinstance(a, torch.Tensor)]
+        args = [a.float() if isinstance(a, torch.Tensor) and a.dtype in AUTOCAST.values() else a
+                for a in args]
+        with torch.autocast(tensors[0].device.type if tensors else "cpu", enabled=False):
+            return fn(*args, **kwargs)
+    return run
 
 
 def _check_images(image1: torch.Tensor, image2: torch.Tensor) -> None:

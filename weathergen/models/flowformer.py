@@ -39,6 +39,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
+from .base import in_float32
 from .checkpoints import CheckpointSpec
 from .gma import ContextAttention, GMAUpdateBlock, IteratedFlowModel
 from .raft import coords_grid, convex_upsample, sample_bilinear
@@ -365,8 +366,7 @@ class MemoryEncoder(nn.Module):
         feats = self.channel_convertor(feats)
         f1, f2 = feats[:b], feats[b:]
         _, _, h, w = f1.shape
-        cost = torch.matmul(f1.flatten(2).transpose(1, 2), f2.flatten(2))  # (B, h*w, h*w)
-        cost_maps = cost.reshape(b * h * w, 1, h, w)
+        cost_maps = cost_volume(f1, f2).reshape(b * h * w, 1, h, w)
         return cost_maps, self.cost_perceiver_encoder(cost_maps, context, gradient_checkpointing)
 
 
@@ -374,6 +374,14 @@ class MemoryEncoder(nn.Module):
 # 3. Cost memory decoder
 # ---------------------------------------------------------------------------------------------
 
+@in_float32
+def cost_volume(f1: torch.Tensor, f2: torch.Tensor) -> torch.Tensor:
+    """Every dot product of a frame-1 and a frame-2 feature vector, in float32.
+    Shape: ``(B, C, h, w)`` x2 -> ``(B, h*w, h*w)``."""
+    return torch.matmul(f1.flatten(2).transpose(1, 2), f2.flatten(2))
+
+
+@in_float32
 def cost_window(cost_maps: torch.Tensor, coords: torch.Tensor, radius: int) -> torch.Tensor:
     """Cost values in a ``(2r+1)^2`` window around each pixel's current match, bilinearly sampled
     (zero outside the map); channel ``a*(2r+1) + b`` is the offset ``(a - r, b - r)`` in
@@ -546,10 +554,11 @@ class FlowFormerModel(IteratedFlowModel):
 FLOWFORMER_RELEASE_PAGE = \
     "https://drive.google.com/drive/folders/1K2dcWxaqOLiQ3PoqRdokrgWsGIf3yBA_"
 
+# bf16's flow measured beyond the bound on the demo (speed/bench_precision.py): refused.
 register_model(ModelSpec(
     name="flowformer", build=FlowFormerModel, default_checkpoint="flowformer-sintel",
     description="FlowFormer (Huang et al., ECCV 2022), cost-volume transformer with a "
-                "Twins-SVT encoder, 16.2M parameters"))
+                "Twins-SVT encoder, 16.2M parameters", refused_precisions=("bf16",)))
 
 for _stage, _description in [
         ("chairs", "FlowFormer trained on FlyingChairs"),

@@ -29,7 +29,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel
+from .base import FlowModel, in_float32
 from .checkpoints import load_strict, strip_prefix
 
 #: Slope of the leaky ReLUs of every FlowNet.
@@ -243,6 +243,7 @@ class FlowNetFamilyModel(FlowModel):
 # Correlation, warping, channel norm
 # ---------------------------------------------------------------------------------------------
 
+@in_float32
 def correlation(features1: torch.Tensor, features2: torch.Tensor, max_displacement: int = 20,
                 stride: int = 2, block: int = 32,
                 chunk_elements: int = CORRELATION_CHUNK_ELEMENTS) -> torch.Tensor:
@@ -303,6 +304,7 @@ def correlation(features1: torch.Tensor, features2: torch.Tensor, max_displaceme
     return out.permute(0, 1, 4, 2, 3).reshape(b, n * n, h, w) / c
 
 
+@in_float32
 def warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     """Sample ``image`` at ``x + flow(x)`` with bilinear interpolation, clamped at the border.
 

@@ -31,7 +31,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel, mixed_precision
+from .base import FlowModel, autocast_mode, in_float32, mixed_precision
 from .checkpoints import CheckpointSpec, load_strict, strip_prefix
 from .raft import (RAFT_FULL, CorrelationPyramid, Encoder, FlowHead, MotionEncoder, SepConvGRU,
                    coords_grid, convex_upsample)
@@ -78,8 +78,13 @@ class ContextAttention(nn.Module):
 
     def forward(self, context: torch.Tensor) -> torch.Tensor:
         q, k = self.to_qk(context).flatten(2).split(self.dim_head, dim=1)  # (B, d, h*w) each
-        similarity = torch.matmul((self.scale * q).transpose(1, 2), k)     # (B, h*w, h*w)
-        return similarity.softmax(dim=-1)
+        return _softmax_attention(self.scale * q, k)
+
+
+@in_float32
+def _softmax_attention(q: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
+    """``softmax(qᵀ k)`` over the keys, in float32. Shape: ``(B, d, n)`` x2 -> ``(B, n, n)``."""
+    return torch.matmul(q.transpose(1, 2), k).softmax(dim=-1)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -167,16 +172,17 @@ class GMA(nn.Module):
             image1, image2: ``(B, 3, H, W)`` RGB in ``[-1, 1]``, ``H`` and ``W`` multiples of 8.
             iters, detach_flow, gradient_checkpointing: as for
                 :meth:`weathergen.models.raft.RAFT.forward`.
-            amp: on CUDA, run the encoders, the context attention and the update operator under
-                autocast (float16), as the authors' code with ``mixed_precision`` (the paper's
-                configuration); correlation, lookup and flow stay in float32.
+            amp: ``bf16``/``fp16`` (``True``: fp16): the encoders, the context attention and the
+                update operator under autocast, as the authors' code with ``mixed_precision``
+                (the paper's configuration); correlation, lookup, the attention's softmax and
+                the flow stay in float32.
 
         Returns:
             ``(B, 2, H, W)`` flow in pixels.
         """
         cfg = self.config
         b = image1.shape[0]
-        amp = amp and image1.is_cuda
+        amp = autocast_mode(amp, image1)
         with mixed_precision(amp):
             fmaps = self.fnet(torch.cat([image1, image2], dim=0))
         fmaps = fmaps.float()
@@ -235,7 +241,7 @@ class IteratedFlowModel(FlowModel):
         return 2.0 * image - 1.0
 
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        kwargs = {"amp": self.amp} if self.supports_amp else {}
+        kwargs = {"amp": self.precision} if self.supports_amp else {}
         return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
                             gradient_checkpointing=self.gradient_checkpointing, **kwargs)
 

@@ -34,7 +34,7 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel, mixed_precision
+from .base import FlowModel, autocast_mode, mixed_precision
 from .checkpoints import CheckpointSpec, load_strict, strip_prefix
 from .registry import ModelSpec, register_checkpoint, register_model
 
@@ -433,9 +433,9 @@ class RAFT(nn.Module):
                 volume and the context features.
             gradient_checkpointing: recompute each step in the backward pass instead of keeping
                 its activations.
-            amp: on CUDA, run the encoders and the update operator under autocast (float16),
-                as the authors' code does with ``mixed_precision``; the correlation volume, its
-                lookup and the flow stay in float32.
+            amp: ``bf16``/``fp16`` (``True``: fp16): the encoders and the update operator under
+                autocast, as the authors' code with ``mixed_precision``; the correlation
+                volume, its lookup and the flow stay in float32.
 
         Returns:
             ``(B, 2, H, W)`` flow in pixels.
@@ -459,7 +459,7 @@ class RAFT(nn.Module):
              every_step: bool, amp: bool = False) -> list[torch.Tensor]:
         cfg = self.config
         b = image1.shape[0]
-        amp = amp and image1.is_cuda
+        amp = autocast_mode(amp, image1)
         with mixed_precision(amp):
             fmaps = self.fnet(torch.cat([image1, image2], dim=0))
         fmaps = fmaps.float()
@@ -551,7 +551,7 @@ class RAFTModel(FlowModel):
 
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
         return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
-                            gradient_checkpointing=self.gradient_checkpointing, amp=self.amp)
+                            gradient_checkpointing=self.gradient_checkpointing, amp=self.precision)
 
     def flow_sequence(self, image1: torch.Tensor, image2: torch.Tensor) -> list[torch.Tensor]:
         """The flow after every refinement step (for RAFT's sequence loss in training).
@@ -564,7 +564,7 @@ class RAFTModel(FlowModel):
         x2 = self.normalize(padder.pad(image2))
         flows = self.network.flow_sequence(x1, x2, iters=self.iters, detach_flow=self.detach_flow,
                                            gradient_checkpointing=self.gradient_checkpointing,
-                                           amp=self.amp)
+                                           amp=self.precision)
         return [padder.unpad(f) for f in flows]
 
     def load_checkpoint(self, state_dict: dict, source, what: str) -> None:

@@ -45,7 +45,7 @@ from torch.utils.checkpoint import checkpoint as recompute
 
 from ..errors import FormatError, ShapeError
 from ..io.torch7 import Torch7Object, read_torch7
-from .base import FlowModel
+from .base import FlowModel, in_float32
 from .checkpoints import (CheckpointSpec, load_strict, read_state_dict, read_tensor_file,
                           strip_prefix)
 from .flownet_parts import warp as border_warp
@@ -140,6 +140,7 @@ class _Pyramid(nn.Module):
         return step(torch.cat([first, self.warp(second, up), up], dim=1)) + up
 
 
+@in_float32
 def clamped_grid_warp(image: torch.Tensor, flow: torch.Tensor) -> torch.Tensor:
     """Frame 2 warped as the SpyNet authors' PyTorch code warps it (under PyTorch >= 1.3).
 

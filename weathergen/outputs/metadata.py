@@ -26,7 +26,7 @@ import numpy as np
 from .. import __version__
 from ..errors import FormatError
 from ..framepair import PairId
-from ..engine.particles import VERSION_ENTRIES
+from ..engine.records.particles import VERSION_ENTRIES
 from ..io.atomic import atomic_write_bytes
 from ..io.npz import npz_bytes, read_npz
 

@@ -16,13 +16,16 @@ pair's first frame, e.g. ``alley_1_0001``)::
     OUT/SPLIT/particles/PAIR/frame_FFFF.npz   particle metadata of the pair (numpy-readable)
     OUT/SPLIT/depth/PAIR/frame_FFFF.dpt       geometry the particles were placed in, in Sintel
     OUT/SPLIT/camdata_left/PAIR/frame_FFFF.cam   formats (depth and cameras after the depth scale),
+    OUT/SPLIT/depth_provenance/PAIR/frame_FFFF.png  where each depth comes from: 8-bit codes 0
+                                              measured, 1 completed, 2 sky, 3 unknown (the right
+                                              camera's in depth_provenance_right/)
     OUT/SPLIT/flow/PAIR/frame_FFFF.flo        and ground-truth flow where the input has it
     OUT/SPLIT/invalid/PAIR/frame_FFFF.png     non-zero where that flow is not valid (sparse flow)
     OUT/SPLIT/flow_occ/PAIR/frame_FFFF.png    the same flow in the input's own form, where its reader
     OUT/SPLIT/flow_FW_left/PAIR/frame_FFFF.flo5   declares one (``Dataset.native_flow``): KITTI's
                                               16-bit PNG, Spring's HDF5
 
-With particle ground truth (``--particle-truth``; see :mod:`weathergen.engine.groundtruth`)::
+With particle ground truth (``--particle-truth``; see :mod:`weathergen.engine.rendering.groundtruth`)::
 
     OUT/SPLIT/particle_flow/PAIR/frame_FFFF.flo      flow of the particle layer (opacity-weighted)
     OUT/SPLIT/particle_opacity/PAIR/frame_FFFF.png   its opacity in frame 1, 16-bit (x 65535)
@@ -49,7 +52,7 @@ from typing import Optional
 import numpy as np
 
 from ..datasets import NativeFlow
-from ..engine.groundtruth import seen_flow
+from ..engine.rendering.groundtruth import seen_flow
 from ..errors import FormatError
 from ..framepair import FramePair, PairId
 from ..io.images import write_png, write_png16
@@ -84,6 +87,7 @@ class RightView:
     intrinsics: np.ndarray
     cam_from_world: tuple
     right_from_left: np.ndarray
+    provenance: tuple = ()      # (H, W) uint8 per frame written, where the left view has one
 
     def metadata(self) -> dict[str, np.ndarray]:
         """Entries of the pair's particle metadata that place the right camera."""
@@ -171,10 +175,16 @@ class PairOutput:
                 self._file("camdata_right", self.frame, "cam"),
                 self._file("camdata_right", self.frame + 1, "cam")]
 
+    def provenance_files(self, right: bool = False) -> tuple[Path, Path]:
+        """The depth provenance maps of frames 1 and 2 (8-bit PNG of the class codes of
+        :data:`~weathergen.framepair.PROVENANCE_NAMES`), of the right camera with ``right``."""
+        folder = "depth_provenance_right" if right else "depth_provenance"
+        return self._file(folder, self.frame, "png"), self._file(folder, self.frame + 1, "png")
+
     def right_files(self) -> list[Path]:
         """Every file a stereo render may write of the right camera (for temporary-file cleanup)."""
         frames = [p for f in FRAME_FORMATS.values() for p in self.frame_files(f, right=True)]
-        return frames + self.right_geometry_files()
+        return frames + self.right_geometry_files() + list(self.provenance_files(right=True))
 
     @property
     def frames_exr(self) -> tuple[Path, Path]:
@@ -220,7 +230,7 @@ class PairOutput:
         """Every file of this pair, the metadata file last (it marks completion)."""
         out = [p for f in formats_of(self.fmt) for p in self.frame_files(f)]
         if self.geometry:
-            out += self.geometry_files(with_flow)
+            out += self.geometry_files(with_flow) + list(self.provenance_files())
         return out + [self.metadata]
 
     def listed_files(self) -> list[Path]:
@@ -254,7 +264,7 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
                        opacity: tuple[np.ndarray, np.ndarray], metadata: dict[str, np.ndarray],
                        truth=None, second: bool = True, right=None) -> list[Path]:
     """Write one pair: frames, optional EXR, geometry and particle ground truth (``truth``, a
-    :class:`~weathergen.engine.groundtruth.ParticleTruth`), then the metadata (last).
+    :class:`~weathergen.engine.rendering.groundtruth.ParticleTruth`), then the metadata (last).
     ``second=False`` (a sequence's pair whose second frame the next pair writes) leaves out the
     second frame's image, EXR, depth and camera. ``right`` (a :class:`RightView`, ``--stereo``)
     adds the second camera's frames, EXR, depth and cameras, and its placement to the metadata.
@@ -278,6 +288,9 @@ def write_pair_outputs(out: PairOutput, pair: FramePair, frames: tuple[np.ndarra
         written.append(write_cam(depth_files[2], k, e1))
         if second:
             written.append(write_cam(depth_files[3], k, e2))
+        maps = (pair.depth_provenance1, pair.depth_provenance2)[:n]      # None: all measured
+        written += [write_png(path, np.zeros(pair.size, np.uint8) if m is None else m[0].numpy())
+                    for path, m in zip(out.provenance_files(), maps)]
         if pair.flow is not None:
             written.append(write_flo(depth_files[4], pair.flow.numpy().transpose(1, 2, 0)))
             if pair.flow_valid is not None and not bool(pair.flow_valid.all()):
@@ -306,6 +319,8 @@ def _write_right(out: PairOutput, right: RightView, n: int) -> list[Path]:
             written.append(write_dpt(path, np.asarray(depth, np.float32)))
         for path, cam in list(zip(files[2:], right.cam_from_world))[:n]:
             written.append(write_cam(path, np.asarray(right.intrinsics), np.asarray(cam)))
+        written += [write_png(path, np.asarray(m, np.uint8)) for path, m in
+                    list(zip(out.provenance_files(right=True), right.provenance))[:n]]
     return written
 
 

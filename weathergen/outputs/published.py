@@ -3,7 +3,7 @@ the research code's particle files (:mod:`weathergen.io.published_weather`).
 
 A published ``_npz`` set holds particles, no frames of weathergen's: :class:`PublishedWeatherSet`
 draws each pair's particles into the clean pair (:func:`~weathergen.engine.render_pair` of
-:func:`~weathergen.engine.published.published_particles`, with a preset's render settings) and
+:func:`~weathergen.engine.sampling.published.published_particles`, with a preset's render settings) and
 gives those frames rounded to 8 bits, as ``render`` would write them, so that ``evaluate`` of a
 set measures what ``render --particles SET --compat reference`` followed by ``evaluate``
 measures. It offers the
@@ -20,7 +20,7 @@ import torch
 
 from ..datasets import Dataset
 from ..engine import Preset, render_pair
-from ..engine.published import published_particles
+from ..engine.sampling.published import published_particles
 from ..errors import DatasetError
 from ..framepair import FramePair, PairId
 from ..io.images import to_uint8

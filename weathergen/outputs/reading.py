@@ -15,7 +15,7 @@ import torch
 
 from ..datasets import Dataset, reopen_dataset
 from ..engine import APPEARANCE_KEYS, LayeredParticles, Particles, load_particles
-from ..engine.presets import UNSCALED
+from ..engine.weather.presets import UNSCALED
 from ..errors import DatasetError, FormatError
 from ..framepair import PairId
 from .manifest import read_manifest

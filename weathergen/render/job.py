@@ -28,13 +28,13 @@ import torch
 from ..datasets import Dataset, PairRef, right_camera
 from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, load_templates,
                       particle_truth, reference_transforms, render_pair)
-from ..engine.budget import check_pair_memory
-from ..engine.renderer import pair_starts, render_first_frame
-from ..engine.stereo import render_right, render_right_layers, stereo_view, warp_depth
+from ..engine.rendering.budget import check_pair_memory
+from ..engine.rendering.renderer import pair_starts, render_first_frame
+from ..engine.rendering.stereo import render_right, render_right_layers, stereo_view, warp_view_depth
 from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
-from ..jobs import (frame2_note, layer_seeds, pair_particles, published_geometry_note,
+from ..jobs import (depth_note, frame2_note, layer_seeds, pair_particles, published_geometry_note,
                     scene_airlight, scene_firsts, visibility_of, weather_scaling, weather_seed)
 from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
                        pair_metadata, write_manifest_part, write_pair_outputs)
@@ -261,11 +261,11 @@ def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
     k_right = pair.intrinsics if rc.intrinsics is None else rc.intrinsics
     count = 2 if second else 1
     layered = isinstance(particles, LayeredParticles)
-    views = []
-    for depth, cam in ((pair.depth1, c1), (pair.depth2, c2))[:count]:
-        left = View(pair.intrinsics, cam, depth)
-        right_depth = warp_depth(depth, pair.intrinsics, rc.right_from_left, rc.intrinsics)
-        views.append(stereo_view(left, rc.right_from_left, right_depth, rc.intrinsics))
+    views, kinds, left_kinds = [], [], (pair.depth_provenance1, pair.depth_provenance2)
+    for depth, cam, kind in zip((pair.depth1, pair.depth2)[:count], (c1, c2), left_kinds):
+        depth_r, kind_r = warp_view_depth(depth, kind, pair.intrinsics, rc.right_from_left, rc.intrinsics)
+        views.append(stereo_view(View(pair.intrinsics, cam, depth), rc.right_from_left, depth_r, rc.intrinsics))
+        kinds.append(kind_r)        # the right view's provenance (holes: their background's)
     with torch.no_grad():
         if layered:                     # each frame drawn from its own view
             rendered = zip(*render_right_layers((rc.image1, rc.image2)[:count], views,
@@ -282,8 +282,8 @@ def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
             opacity.append(alpha[0].numpy())
             depths.append(view.depth[0].numpy())
             cams.append(view.cam_from_ref.numpy())
-    return RightView(tuple(frames), tuple(opacity), tuple(depths), k_right.double().numpy(),
-                     tuple(cams), rc.right_from_left.double().numpy())
+    return RightView(tuple(frames), tuple(opacity), tuple(depths), k_right.double().numpy(), tuple(cams),
+                     rc.right_from_left.double().numpy(), tuple(k[0].numpy() for k in kinds if k is not None))
 
 
 def sequence_ends(ids: list[PairId]) -> frozenset:
@@ -389,9 +389,9 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
                       overwrite=job.overwrite, shard=job.shard,
                       temporary=_temporary_places(job, refs), on_note=on_note) as claim:
         results = _render_locked(job, refs, on_result, on_start, on_note)
-        note = frame2_note([(r.pair, r.visible) for r in results
-                            if r.status == "written" and r.few_in_frame2], job.preset_name)
-        if note is not None:
+        done = [r for r in results if r.status == "written"]
+        for note in filter(None, (depth_note([(r.pair, r.input) for r in done]), frame2_note(
+                [(r.pair, r.visible) for r in done if r.few_in_frame2], job.preset_name))):
             on_note(note)
         if results and all(r.status == "failed" for r in results):
             first = results[0]

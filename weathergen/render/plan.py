@@ -24,7 +24,7 @@ import torch
 
 from ..engine import (APPEARANCE_KEYS, CombinedPreset, FieldPreset, Preset, RenderSettings,
                       list_presets, load_preset)
-from ..engine.presets import UNSCALED
+from ..engine.weather.presets import UNSCALED
 from ..errors import ConfigError
 from ..io.published_weather import is_published_set
 from ..outputs import read_manifest

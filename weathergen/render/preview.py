@@ -11,10 +11,22 @@ import torch
 
 from ..datasets import reopen_dataset
 from ..engine import load_particles, render_pair
-from ..errors import FormatError, WeatherGenError
+from ..errors import ConfigError, FormatError, WeatherGenError
 from ..io.images import to_uint8
 from ..outputs import PairOutput, read_manifest
 from ..words import counted
+
+
+#: The narrowest and widest tile a preview draws, pixels: three tiles side by side stay within
+#: what MPEG-4 encodes (8191 pixels a side).
+MIN_TILE_WIDTH, MAX_TILE_WIDTH = 16, 2048
+
+
+def check_tile_width(width: int) -> None:
+    """ConfigError unless ``width`` is within [MIN_TILE_WIDTH, MAX_TILE_WIDTH]."""
+    if not MIN_TILE_WIDTH <= width <= MAX_TILE_WIDTH:
+        raise ConfigError(f"${{width}} {width}: must be in [{MIN_TILE_WIDTH}, {MAX_TILE_WIDTH}] "
+                          "pixels")
 
 
 def caption_tile(img: np.ndarray, size: tuple[int, int], text: str) -> np.ndarray:
@@ -57,6 +69,7 @@ def contact_sheet(render_dir: str | Path, pairs: int = 4, width: int = 480) -> C
     whatever the output format), and is empty for an Lp attack's output, which stores no
     particles.
     """
+    check_tile_width(width)
     render_dir = Path(render_dir)
     manifest = read_manifest(render_dir, "preview")
     ds = reopen_dataset(manifest.input)

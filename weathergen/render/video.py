@@ -30,7 +30,7 @@ from ..engine import load_particles, render_pair
 from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair, PairId
 from ..outputs import OutputManifest, PairOutput, WeatherFolder, read_manifest
-from .preview import caption_tile
+from .preview import caption_tile, check_tile_width
 
 
 #: The shortest video a preview writes, in seconds: shorter ones are played again until this long.
@@ -39,6 +39,10 @@ MIN_SECONDS = 2.0
 PAIR_FPS = 2.0
 #: How long each pair plays by default (frame 1 / frame 2 alternating), in seconds.
 PAIR_SECONDS = 2.0
+#: The frame rates a video may be given, frames per second.
+MIN_FPS, MAX_FPS = 0.1, 240.0
+#: The most cycles (frame 1, frame 2) of each pair a video of pairs may be given.
+MAX_CYCLES = 100
 
 
 def output_frame_rate(manifest: OutputManifest) -> float:
@@ -183,9 +187,11 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
 
     ``pairs``: only the first complete pairs (default all); ``cycles``: how often an output of
     pairs shows frame 1 and frame 2 of each pair (default: for ``PAIR_SECONDS``,
-    ``ceil(PAIR_SECONDS * fps / 2)``; a ``--sequence`` output plays each frame once and refuses
-    it); ``fps``: the frame rate (default: a sequence's dataset rate, :func:`output_frame_rate`;
-    ``PAIR_FPS`` for pairs); ``width``: of each tile, in pixels (default the frames' own);
+    ``ceil(PAIR_SECONDS * fps / 2)``; at most ``MAX_CYCLES``; a ``--sequence`` output plays each
+    frame once and refuses it); ``fps``: the frame rate, within [``MIN_FPS``, ``MAX_FPS``]
+    (default: a sequence's dataset rate, :func:`output_frame_rate`; ``PAIR_FPS`` for pairs);
+    ``width``: of each tile, in pixels, within [``MIN_TILE_WIDTH``, ``MAX_TILE_WIDTH``] of
+    :mod:`.preview` (default the frames' own);
     ``with_input`` / ``with_opacity``: show the clean input frame and the particles' opacity
     beside the weather frame; ``captions``: scene, frame and preset on the tiles. A video shorter
     than ``MIN_SECONDS`` plays its frames again (``loops``) until it lasts that long.
@@ -193,14 +199,9 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
     Raises ConfigError for a folder that is not a render output or a bad option (named), and
     DatasetError when it holds no complete pair.
     """
+    _check_options(pairs, width, fps, cycles)          # before any file is read
     render_dir = Path(render_dir)
     manifest = read_manifest(render_dir, "preview")
-    if pairs is not None and pairs < 1:
-        raise ConfigError(f"${{pairs}} {pairs}: must be >= 1")
-    if width is not None and width < 16:
-        raise ConfigError(f"${{width}} {width}: must be >= 16 pixels")
-    if fps is not None and not fps > 0:
-        raise ConfigError(f"${{fps}} {fps!r}: must be > 0")
     if with_opacity and not manifest.holds_particles:
         raise ConfigError(f"${{with_opacity}}: {render_dir} holds no particles to show (an Lp "
                           f"attack, {manifest.preset_name}, perturbs the frames themselves)")
@@ -212,8 +213,6 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
     if sequence and cycles is not None:
         raise ConfigError("${cycles} applies to outputs of pairs; a --sequence output plays its "
                           "frames in order")
-    if cycles is not None and cycles < 1:
-        raise ConfigError(f"${{cycles}} {cycles}: must be >= 1")
     folder = WeatherFolder.open(render_dir, skip_unreadable=True)
     complete = folder.pairs
     chosen = complete if pairs is None else complete[:pairs]
@@ -236,6 +235,20 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
     return VideoPreview(render_dir, manifest, shots, rate, tile, with_input, with_opacity,
                         captions, sequence, len(chosen), len(complete), loops=loops,
                         unreadable=folder.unreadable)
+
+
+def _check_options(pairs: Optional[int], width: Optional[int], fps: Optional[float],
+                   cycles: Optional[int]) -> None:
+    """ConfigError for an option of :func:`video_preview` out of its range (NaN included)."""
+    if pairs is not None and pairs < 1:
+        raise ConfigError(f"${{pairs}} {pairs}: must be >= 1")
+    if width is not None:
+        check_tile_width(width)
+    if fps is not None and not MIN_FPS <= fps <= MAX_FPS:
+        raise ConfigError(f"${{fps}} {fps!r}: must be in [{MIN_FPS:g}, {MAX_FPS:g}] frames per "
+                          "second")
+    if cycles is not None and not 1 <= cycles <= MAX_CYCLES:
+        raise ConfigError(f"${{cycles}} {cycles}: must be in [1, {MAX_CYCLES}]")
 
 
 def _wrote_second_frame(root: Path, manifest: OutputManifest, pair_id: PairId) -> bool:

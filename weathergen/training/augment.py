@@ -400,7 +400,7 @@ def _geometry_on_cpu(pairs: FramePairBatch) -> FramePairBatch:
 # ---------------------------------------------------------------------------------------------
 
 _PIXEL_FIELDS = ("image1", "image2", "depth1", "depth2", "flow", "flow_valid",
-                 "depth_measured1", "depth_measured2")
+                 "depth_provenance1", "depth_provenance2")
 
 
 def crop_pair(pair: FramePair, top: int, left: int, height: int, width: int) -> FramePair:

@@ -50,7 +50,7 @@ class PairSample:
         index: the pair's position in the :class:`PairDataset`.
         epoch: the epoch the sample was drawn for.
         world_up: the dataset's world-up setting (which way weather falls), see
-            :func:`weathergen.engine.sampling.world_down`.
+            :func:`weathergen.engine.sampling.pair.world_down`.
         weather: what the weather transform did (:class:`~weathergen.training.augment.WeatherDraw`),
             ``None`` before it ran.
         particles: the rendered particle record where the transform was asked to keep it.
@@ -95,7 +95,7 @@ class PairSampleBatch:
 
 _BATCH_TENSORS = ("image1", "image2", "depth1", "depth2", "intrinsics", "cam2_from_cam1",
                   "cam1_from_world", "cam2_from_world", "flow", "flow_valid",
-                  "depth_measured1", "depth_measured2")
+                  "depth_provenance1", "depth_provenance2")
 
 
 def batch_to(batch: FramePairBatch, device) -> FramePairBatch:
