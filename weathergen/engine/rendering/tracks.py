@@ -182,7 +182,8 @@ class RecordRows:
     float64; brighten (R,) bool; optics (R, 7) float64 (near, far, fade, aperture, focus,
     depth_softness, zeros for the paper's records; then blur_length again: every number a
     field record's candidates read, gathered at once); coarse (R,) bool (large stamps may be
-    drawn on a coarser grid); research (R,) bool (stamps made as the research code makes them).
+    drawn on a coarser grid); research (R,) bool (stamps made as the research code makes them;
+    None where no record's are).
     """
 
     samples: torch.Tensor
@@ -191,7 +192,7 @@ class RecordRows:
     brighten: torch.Tensor
     optics: torch.Tensor
     coarse: torch.Tensor
-    research: torch.Tensor
+    research: Optional[torch.Tensor]
 
     @classmethod
     def of(cls, records: Sequence[Particles], device) -> "RecordRows":
@@ -216,7 +217,8 @@ class RecordRows:
                    brighten=torch.tensor(bright, device=device),
                    optics=torch.tensor(optics, dtype=f64, device=device).view(-1, 7),
                    coarse=torch.tensor(coarse, dtype=torch.bool, device=device),
-                   research=torch.tensor(research, dtype=torch.bool, device=device))
+                   research=torch.tensor(research, dtype=torch.bool, device=device)
+                   if any(research) else None)
 
 
 def fixed_looks(table: ParticleTable, rows: RecordRows, resolution: int) -> Looks:
@@ -224,10 +226,12 @@ def fixed_looks(table: ParticleTable, rows: RecordRows, resolution: int) -> Look
     ``research`` record the disc of the area of the ``n x n`` window, n = floor(footprint),
     into which the research code resamples its flakes, :data:`RESEARCH_DISC` n, at most the
     footprint itself)."""
-    research = rows.research[table.record]
     footprint = table.scale * resolution
-    window = torch.minimum(footprint.floor() * RESEARCH_DISC, footprint)
-    footprint = torch.where(research, window, footprint).clamp(min=1.0)
+    research = None if rows.research is None else rows.research[table.record]
+    if research is not None:
+        window = torch.minimum(footprint.floor() * RESEARCH_DISC, footprint)
+        footprint = torch.where(research, window, footprint)
+    footprint = footprint.clamp(min=1.0)
     return Looks(footprint=footprint, defocus=table.defocus,
                  rotation=table.rotation, template=table.template,
                  brighten=rows.brighten[table.record] & (table.defocus > 1),

@@ -17,7 +17,7 @@ from ...weather.templates import TemplateLibrary
 from ..tracks import Looks
 from .phases import sample_phases, sample_phases_per_side
 from .atlas import atlas, coefficients, sample_per_factor, sample_stamps
-from .tables import (COARSE_SIDE, FACTORS, GAP_SHARE, RAGGED_CHUNK, RESEARCH_BOX, SOFT_BOX,
+from .tables import (COARSE_SIDE, FACTORS, GAPS, RAGGED_CHUNK, RESEARCH_BOX, SOFT_BOX,
                      STAMP_CHUNK_ELEMENTS, constant, disc_counts, stamp_geometry)
 from .filters import disc_blur, soften, soften_canvases
 
@@ -281,7 +281,8 @@ class _Layout:
         # softened stamps are smooth over the box: blur samples may lie (b - 1) / 2 of their
         # grid's pixels apart; the others one pixel (both times the grid's factor)
         device = self.radius.device
-        return torch.where(self.soft, (self.box - 1).to(torch.float64) * GAP_SHARE,
+        return torch.where(self.soft, constant("gaps", GAPS, torch.float64, device)
+                           .index_select(0, self.radius),
                            constant("one", 1.0, torch.float64, device)) \
             * constant("factors", FACTORS, torch.float64, device).index_select(0, self.coarse)
 

@@ -182,8 +182,10 @@ SOFT_BOX = [soft_box(r) for r in range(256)]
 RESEARCH_BOX = 1
 
 
-#: Each grid level's factor ``2**L`` (image pixels per grid pixel); a softened stamp's
-#: blur-sample gap is ``(b − 1) · GAP_SHARE`` grid pixels.
+#: A softened stamp's blur-sample gap per radius, ``(b − 1) · GAP_SHARE`` grid pixels (a
+#: research stamp keeps its record's samples, whatever its box), and each grid level's factor
+#: ``2**L`` (image pixels per grid pixel).
+GAPS = [(b - 1) * GAP_SHARE for b in SOFT_BOX]
 
 
 FACTORS = [2.0 ** level for level in range(COARSE_MAX_LEVEL + 1)]
