@@ -18,13 +18,16 @@ table), and prints per preset and side, each as the mean ± sd over the seeds:
 
 The research code's particles are drawn by weathergen's renderer from the files its
 ``save_weatherfile`` writes, in ``--compat reference`` (which gives the research code's own
-float frames to within 0.5/255, docs/render.md), so that only the sampling differs. The
+float frames to within 0.5/255, docs/render.md), so that only the sampling and the stamps
+differ; weathergen's own particles as ``--compat`` says (default ``reference``). The
 research code (https://github.com/cv-stuttgart/DistractingDownpour, GPL-3.0) is run unmodified
 in a separate interpreter (``--research-python``, one with scipy, imageio and OpenCV); nothing
 of it is part of weathergen. Run from the repository root::
 
     python scripts/compare_preset_looks.py [--research PATH --research-python PY] \\
-        [--size 1024x436] [--seeds 10] [--research-seeds 5] [--compat reference]
+        [--size 1024x436] [--seeds 10] [--research-seeds 5] [--compat reference] [--reuse]
+
+(docs/render.md, "The look of the paper's presets", gives the figures and what they showed.)
 
 The figures are recorded in docs/figures/bench.json and bench.md (``BENCH_FIGURES`` as for the
 benchmarks); ``--json PATH`` also writes them as JSON.
