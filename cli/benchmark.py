@@ -127,12 +127,7 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text
         if report.status == "written":
             written.append(report.pair)
 
-    noted: set = set()
-
-    def on_note(text):               # each cell's run lists the same dataset: say a note once
-        if text not in noted:
-            noted.add(text)
-            click.echo(f"Note: {text}", err=True)
+    on_note = _note_once()
 
     def execute(job):
         return run_attack(job, on_pair_done=on_pair_done, on_note=on_note)
@@ -146,10 +141,27 @@ def benchmark(dataset, networks, checkpoint_items, presets, lp_text, ladder_text
         # every run of the grid resumes by itself: the same command finishes it
         exit_interrupted(len(written), stopped_by, again="rerun the same command")
     if not quiet:
-        console.print(paths["markdown"].read_text(), highlight=False, markup=False)
-        console.print(f"Tables: {paths['markdown']}, {paths['latex']} (one file per table in "
-                      f"{Path(out) / 'tables'}); plot: {paths['plot']}; results: {paths['csv']}, "
-                      f"{paths['json']}", highlight=False, soft_wrap=True)
-        if "curves" in paths:
-            console.print(f"Severity ladders: curves {paths['curves']}, scores {paths['scores']}, "
-                          f"plot {paths['ladder_plot']}", highlight=False, soft_wrap=True)
+        _print_tables(console, paths, out)
+
+
+def _note_once():
+    """A note printer that says each note once (each cell's run lists the same dataset)."""
+    noted: set = set()
+
+    def on_note(text):
+        if text not in noted:
+            noted.add(text)
+            click.echo(f"Note: {text}", err=True)
+
+    return on_note
+
+
+def _print_tables(console, paths: dict, out) -> None:
+    """The Markdown tables, then where every file of the benchmark is."""
+    console.print(paths["markdown"].read_text(), highlight=False, markup=False)
+    console.print(f"Tables: {paths['markdown']}, {paths['latex']} (one file per table in "
+                  f"{Path(out) / 'tables'}); plot: {paths['plot']}; results: {paths['csv']}, "
+                  f"{paths['json']}", highlight=False, soft_wrap=True)
+    if "curves" in paths:
+        console.print(f"Severity ladders: curves {paths['curves']}, scores {paths['scores']}, "
+                      f"plot {paths['ladder_plot']}", highlight=False, soft_wrap=True)

@@ -67,21 +67,7 @@ def check(dataset, geometry, geometry_pairs, verbose):
             row += (["-", "-", "-"] if g is None or not g.pixels else
                     [f"{g.median_px:.3f}", f"{g.p90_px:.3f}", f"{100 * g.within_1px:.1f}%"])
         table.add_row(*row)
-        lines += [f"{sc.scene} frame {pc.ref.id.frame}: {note}" for pc in sc.pairs for note in pc.notes]
-        if geometry and sc.pairs:
-            g = sc.geometry
-            lines.append(f"{sc.scene}: geometry: " + (
-                _photometric_line(sc.photometric) if g is None else
-                "no pixel to compare (none static, measured and seen in both frames)" if not g.pixels
-                else f"flow error median {g.median_px:.3f} px, p90 {g.p90_px:.3f} px, "
-                     f"{100 * g.within_1px:.1f}% within 1 px ({counted(g.pairs, 'pair')}, "
-                     f"{g.pixels} pixels)"))
-        for sev, kind, places in groups:
-            places = [relative(p, dataset.root) for p in places]
-            listed = places if shown_max is None else places[:shown_max]
-            more = f" and {len(places) - len(listed)} more (--verbose lists all)" if len(places) > len(listed) else ""
-            at = f": {', '.join(listed)}{more}" if places else ""
-            lines.append(f"{sc.scene}: {'warning: ' if sev == 'warning' else ''}{kind}{at}")
+        lines += _scene_lines(sc, groups, geometry, dataset.root, shown_max)
     console.print(table)
     for line in lines:            # plain lines: long paths must not be folded mid-name
         click.echo(line)
@@ -97,6 +83,27 @@ def check(dataset, geometry, geometry_pairs, verbose):
     console.print(f"[green]{'All ' if total > 1 else ''}{counted(total, 'pair')} in "
                   f"{counted(len(scenes), 'scene')} "
                   f"{'are' if total != 1 else 'is'} readable.[/green]")
+
+
+def _scene_lines(sc, groups, geometry: bool, root, shown_max) -> list[str]:
+    """The lines under the table for one scene: its pairs' notes, its geometry, its problems
+    (``groups``, each listing at most ``shown_max`` places)."""
+    lines = [f"{sc.scene} frame {pc.ref.id.frame}: {note}" for pc in sc.pairs for note in pc.notes]
+    if geometry and sc.pairs:
+        g = sc.geometry
+        lines.append(f"{sc.scene}: geometry: " + (
+            _photometric_line(sc.photometric) if g is None else
+            "no pixel to compare (none static, measured and seen in both frames)" if not g.pixels
+            else f"flow error median {g.median_px:.3f} px, p90 {g.p90_px:.3f} px, "
+                 f"{100 * g.within_1px:.1f}% within 1 px ({counted(g.pairs, 'pair')}, "
+                 f"{g.pixels} pixels)"))
+    for sev, kind, places in groups:
+        places = [relative(p, root) for p in places]
+        listed = places if shown_max is None else places[:shown_max]
+        more = f" and {len(places) - len(listed)} more (--verbose lists all)" if len(places) > len(listed) else ""
+        at = f": {', '.join(listed)}{more}" if places else ""
+        lines.append(f"{sc.scene}: {'warning: ' if sev == 'warning' else ''}{kind}{at}")
+    return lines
 
 
 def _photometric_line(p) -> str:

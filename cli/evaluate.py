@@ -96,7 +96,17 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
     write_evaluation(json_path, info, rows, summary)
     if quiet:
         return
-    table = Table(title=f"weathergen evaluate: {model.label} on {weather_dir} (pixels)")
+    console.print(_table(f"weathergen evaluate: {model.label} on {weather_dir} (pixels)", rows,
+                         summary))
+    for label, value in region_rows(summary):
+        console.print(f"{label}: {value}", highlight=False, soft_wrap=True)
+    console.print(f"Settings: {settings_text(info['settings'])}", highlight=False, soft_wrap=True)
+    console.print(f"Figures: {json_path}", highlight=False, soft_wrap=True)
+
+
+def _table(title: str, rows, summary: dict) -> Table:
+    """One row per pair, then their means."""
+    table = Table(title=title)
     for i, col in enumerate(("pair", "AEE(f, f̌)", "EPE clean", "EPE weather")):
         table.add_column(col, justify="left" if i == 0 else "right")
     for r in rows:
@@ -104,12 +114,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
     table.add_section()
     table.add_row(f"mean of {summary['pairs']}", _fmt(summary["aee_weather"]),
                   _fmt(summary["epe_clean"]), _fmt(summary["epe_weather"]))
-    console.print(table)
-    for label, value in region_rows(summary):
-        console.print(f"{label}: {value}", highlight=False, soft_wrap=True)
-    console.print(f"Settings: {settings_text(info['settings'])}", highlight=False, soft_wrap=True)
-    console.print(f"Figures: {json_path}", highlight=False, soft_wrap=True)
-
+    return table
 
 def open_published(folder, preset, dataset_name, root, pass_) -> PublishedWeatherSet:
     """A published set against the clean dataset at ``root`` (Sintel unless named), opened in

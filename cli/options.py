@@ -73,7 +73,8 @@ def compat_option(func):
              "authors' research code where it departs from them (gradients accumulated over the "
              "steps, occlusion detached, penalty over the squared frame-1 depth, homogeneous "
              "offsets, transparency capped at the preset's, its figures, its blending of "
-             "alpha-blended motion blur one sample after another, and its frame and "
+             "alpha-blended motion blur one sample after another, its particles' stamps, and "
+             "its frame and "
              "scaling of Sintel: --scene-scales research unless given, the camera translation "
              "zeroed in the scaled scenes), to reproduce its published tables. See "
              "docs/attack.md.")(func)
@@ -85,9 +86,10 @@ def render_compat_option(func):
         help="reference: open the dataset in the frame and scaling of the paper's research code "
              "(its per-scene table, --scene-scales research, unless given; the camera translation "
              "zeroed in the scenes it scales), where the paper's published weather was placed, "
-             "and blend alpha-blended motion blur one sample after another as that code does, "
-             "so --particles SET draws the research code's render of it. Default: paper (the "
-             "dataset as the other options open it, weathergen's blending).")(func)
+             "and blend alpha-blended motion blur one sample after another and make sampled "
+             "particles' stamps as that code does (docs/render.md), so --particles SET draws the "
+             "research code's render of it. Default: paper (the dataset as the other options "
+             "open it, weathergen's blending and stamps).")(func)
 
 
 def overwrite_option(help: str):
@@ -209,30 +211,9 @@ def dataset_options(func):
     @reader_options
     @functools.wraps(func)
     def wrapper(*args, dataset_name, root, split, pass_, scenes, from_scene, frames_per_scene,
-                first_frame, depth_scale, scene_scales, camera_translation, unscaled_translation,
-                far_depth, world_up, **kwargs):
+                first_frame, **kwargs):
         name = dataset_name or default_dataset(root)
-        reader = DATASETS[name]
-        if unscaled_translation and not camera_translation:
-            raise click.UsageError("--no-translation-in-scaled-scenes keeps the translation of "
-                                   "the unscaled scenes; --no-camera-translation zeroes every one: "
-                                   "give one of them")
-        translation = "unscaled" if unscaled_translation else camera_translation
-        options = dict(depth_scale=depth_scale, camera_translation=translation,
-                       scene_scales=load_scene_scales(scene_scales) if scene_scales else None,
-                       world_up=world_up)
-        for flag, keyword in READER_OPTIONS.items():
-            value = kwargs.pop(flag)
-            if value is not None:
-                if keyword not in reader.options:
-                    names = [n for n, cls in DATASETS.items() if keyword in cls.options]
-                    raise click.UsageError(f"--{flag.replace('_', '-')} applies to "
-                                           f"{', '.join(names)} only, not to {name}")
-                options[keyword] = value
-        if far_depth is not None:
-            if reader.dense_depth:
-                raise click.UsageError(f"--far-depth does not apply to {name}: its depth is dense")
-            options["far_depth"] = far_depth
+        options = _reader_keywords(name, kwargs)
         kwargs["dataset"] = open_dataset(
             name, root, split=split, pass_=pass_,
             scenes=[s.strip() for s in scenes.split(",") if s.strip()] if scenes else None,
@@ -241,6 +222,37 @@ def dataset_options(func):
         return func(*args, **kwargs)
 
     return wrapper
+
+
+def _reader_keywords(name: str, given: dict) -> dict:
+    """The keywords for reader ``name`` that the depth, camera and reader options ask for, taken
+    out of ``given`` (the command's keyword arguments); an option that does not apply is refused."""
+    reader = DATASETS[name]
+    camera_translation = given.pop("camera_translation")
+    unscaled_translation = given.pop("unscaled_translation")
+    if unscaled_translation and not camera_translation:
+        raise click.UsageError("--no-translation-in-scaled-scenes keeps the translation of "
+                               "the unscaled scenes; --no-camera-translation zeroes every one: "
+                               "give one of them")
+    translation = "unscaled" if unscaled_translation else camera_translation
+    scene_scales = given.pop("scene_scales")
+    options = dict(depth_scale=given.pop("depth_scale"), camera_translation=translation,
+                   scene_scales=load_scene_scales(scene_scales) if scene_scales else None,
+                   world_up=given.pop("world_up"))
+    for flag, keyword in READER_OPTIONS.items():
+        value = given.pop(flag)
+        if value is not None:
+            if keyword not in reader.options:
+                names = [n for n, cls in DATASETS.items() if keyword in cls.options]
+                raise click.UsageError(f"--{flag.replace('_', '-')} applies to "
+                                       f"{', '.join(names)} only, not to {name}")
+            options[keyword] = value
+    far_depth = given.pop("far_depth")
+    if far_depth is not None:
+        if reader.dense_depth:
+            raise click.UsageError(f"--far-depth does not apply to {name}: its depth is dense")
+        options["far_depth"] = far_depth
+    return options
 
 
 #: Options of one reader or two: option name -> the reader's keyword. Which readers take it is

@@ -14,9 +14,9 @@ ROOT = Path(__file__).resolve().parents[1]
 SOURCES = {"weathergen": ROOT / "weathergen", "weathergen.cli": ROOT / "cli"}
 
 
-def _modules() -> dict[str, Path]:
+def _modules(sources: dict[str, Path] = SOURCES) -> dict[str, Path]:
     out = {}
-    for package, folder in SOURCES.items():
+    for package, folder in sources.items():
         for path in sorted(folder.rglob("*.py")):
             parts = list(path.relative_to(folder).with_suffix("").parts)
             if parts[-1] == "__init__":
@@ -31,8 +31,8 @@ def _modules() -> dict[str, Path]:
 MODULES = _modules()
 
 
-def _is_package(name: str) -> bool:
-    return MODULES[name].name == "__init__.py"
+def _is_package(name: str, modules: dict[str, Path] = MODULES) -> bool:
+    return modules[name].name == "__init__.py"
 
 
 def _import_stem(node: ast.ImportFrom, base: str) -> str:
@@ -45,11 +45,11 @@ def _import_stem(node: ast.ImportFrom, base: str) -> str:
     return ".".join(anchor + ([node.module] if node.module else []))
 
 
-def _imports(name: str) -> list[tuple[str, int, bool]]:
+def _imports(name: str, modules: dict[str, Path] = MODULES) -> list[tuple[str, int, bool]]:
     """(imported module, line, at module level) for every import of weathergen in ``name``."""
-    tree = ast.parse(MODULES[name].read_text())
+    tree = ast.parse(modules[name].read_text())
     top = {id(node) for node in tree.body}
-    base = name if _is_package(name) else name.rpartition(".")[0]
+    base = name if _is_package(name, modules) else name.rpartition(".")[0]
     found = []
     for node in ast.walk(tree):
         if isinstance(node, ast.Import):
@@ -58,7 +58,7 @@ def _imports(name: str) -> list[tuple[str, int, bool]]:
             stem = _import_stem(node, base)
             targets = [stem]
             # "from .pkg import module" imports a module, not only a name
-            targets += [f"{stem}.{a.name}" for a in node.names if f"{stem}.{a.name}" in MODULES]
+            targets += [f"{stem}.{a.name}" for a in node.names if f"{stem}.{a.name}" in modules]
         else:
             continue
         for target in targets:
@@ -73,24 +73,24 @@ def test_every_import_is_at_the_top_of_its_module():
     assert not inside, "imports inside functions:\n" + "\n".join(inside)
 
 
-def _graph() -> dict[str, set[str]]:
+def _graph(modules: dict[str, Path] = MODULES) -> dict[str, set[str]]:
     graph = {}
-    for name in MODULES:
+    for name in modules:
         edges = set()
-        for target, _, _ in _imports(name):
+        for target, _, _ in _imports(name, modules):
             # importing a.b.c runs a/__init__ and a/b/__init__ first, unless the importer is
             # inside them already
             parts = target.split(".")
             for i in range(1, len(parts) + 1):
                 module = ".".join(parts[:i])
-                if module in MODULES and module != name and not name.startswith(module + "."):
+                if module in modules and module != name and not name.startswith(module + "."):
                     edges.add(module)
         graph[name] = edges
     return graph
 
 
-def test_there_is_no_import_cycle():
-    graph = _graph()
+def _cycles(graph: dict[str, set[str]]) -> list[str]:
+    """The import cycles a depth-first walk of ``graph`` meets (one per edge that closes one)."""
     state: dict[str, int] = {}
     cycles = []
 
@@ -106,6 +106,46 @@ def test_there_is_no_import_cycle():
     for node in sorted(graph):
         if node not in state:
             visit(node, [node])
+    return cycles
+
+
+def structure(modules: dict[str, Path], package: str = "weathergen.engine") -> dict[str, int]:
+    """Figures of the layout of ``package`` (docs/architecture.md compares them): its modules
+    (its own ``__init__`` left out), the import edges between them and the cycles among them; its
+    parts (a subpackage, or a module at its top) and the import edges and cycles between the
+    parts; its modules over 600 lines. (No line counts: they would go stale with every edit.)"""
+    inside = {n: p for n, p in modules.items() if n.startswith(package + ".")}
+    graph = {n: {m for m in edges if m in inside} for n, edges in _graph(modules).items()
+             if n in inside}
+    depth = package.count(".") + 2
+    parts: dict[str, set[str]] = {}
+    for name, edges in graph.items():
+        part = ".".join(name.split(".")[:depth])
+        parts.setdefault(part, set()).update(
+            {".".join(m.split(".")[:depth]) for m in edges} - {part})
+    lines = [len(p.read_text().splitlines()) for p in inside.values()]
+    return {"modules": len(inside),
+            "import edges": sum(map(len, graph.values())), "cycles": len(_cycles(graph)),
+            "parts": len(parts), "edges between parts": sum(map(len, parts.values())),
+            "cycles between parts": len(_cycles(parts)),
+            "modules over 600 lines": sum(n > 600 for n in lines)}
+
+
+def test_the_engine_figures_in_the_docs_are_the_trees():
+    """docs/architecture.md's "after" column is this tree's engine (scripts/engine_structure.py
+    writes the table)."""
+    text = (ROOT / "docs" / "architecture.md").read_text()
+    rows = {line.split("|")[1].strip(): line.split("|")[-2].strip()
+            for line in map(str.strip, text.splitlines())
+            if line.startswith("| ") and line.count("|") == 5}
+    figures = structure(MODULES)
+    shown = {key: rows.get(key) for key in figures}
+    assert shown == {key: str(value) for key, value in figures.items()}, \
+        "docs/architecture.md's engine figures differ: run scripts/engine_structure.py"
+
+
+def test_there_is_no_import_cycle():
+    cycles = _cycles(_graph())
     assert not cycles, "import cycles:\n" + "\n".join(cycles)
 
 
@@ -139,6 +179,44 @@ def test_each_layer_imports_only_the_layers_below_it():
     upward = [f"{a} imports {b}" for a, targets in _graph().items() for b in targets
               if package(a) != package(b) and rank[package(a)] <= rank[package(b)]]
     assert not upward, "imports that do not go down a layer:\n" + "\n".join(upward)
+
+
+#: The floors of weathergen/engine/ (docs/architecture.md), lowest first: a part (a subpackage or
+#: a module at the engine's top) imports only lower floors, so sampling and rendering do not
+#: import each other.
+ENGINE_FLOORS = [("weathergen.engine.common", "weathergen.engine.weather"),
+                 ("weathergen.engine.records", "weathergen.engine.views"),
+                 ("weathergen.engine.sampling", "weathergen.engine.rendering"),
+                 ("weathergen.engine.pipeline",)]
+
+
+def _engine_part(module: str) -> str:
+    return ".".join(module.split(".")[:3])
+
+
+def _engine_upward() -> list[str]:
+    rank = {part: i for i, floor in enumerate(ENGINE_FLOORS) for part in floor}
+    graph = _graph()
+    engine = [name for name in MODULES if name.startswith("weathergen.engine.")]
+    assert {_engine_part(name) for name in engine} == set(rank), "a subpackage has no floor"
+    return [f"{a} imports {b}" for a in engine for b in graph[a]
+            if b.startswith("weathergen.engine.") and _engine_part(a) != _engine_part(b)
+            and rank[_engine_part(a)] <= rank[_engine_part(b)]]
+
+
+def test_each_engine_floor_imports_only_the_floors_below_it():
+    upward = _engine_upward()
+    assert not upward, "engine imports that do not go down a floor:\n" + "\n".join(upward)
+
+
+def test_engine_floor_check_sees_sampling_import_rendering(tmp_path, monkeypatch):
+    probe = tmp_path / "probe.py"
+    probe.write_text("from ..rendering.tracks import Tracks\nfrom ..views import View\n")
+    monkeypatch.setitem(MODULES, "weathergen.engine.sampling.probe", probe)
+    assert sorted(_engine_upward()) == ["weathergen.engine.sampling.probe imports "
+                                        "weathergen.engine.rendering",
+                                        "weathergen.engine.sampling.probe imports "
+                                        "weathergen.engine.rendering.tracks"]
 
 
 def _private(name: str) -> bool:
@@ -306,50 +384,97 @@ def _complement_names(function: ast.AST) -> set[str]:
 
 
 def _unwrapped(node: ast.AST) -> ast.AST:
-    """``node`` without its subscripts and clamps (``(1 - w)[:, None]`` -> ``1 - w``)."""
+    """``node`` without its subscripts, clamps and conversions (``(1 - w)[:, None]`` ->
+    ``1 - w``, ``(x * y).to(dtype)`` -> ``x * y``)."""
     while isinstance(node, ast.Subscript) or isinstance(node, ast.Call) \
-            and isinstance(node.func, ast.Attribute) and node.func.attr in ("clamp", "clamp_"):
+            and isinstance(node.func, ast.Attribute) and node.func.attr in ("clamp", "clamp_",
+                                                                             "to"):
         node = node.value if isinstance(node, ast.Subscript) else node.func.value
     return node
 
 
-def _over(term: ast.AST, other: ast.AST, names: set[str]) -> bool:
-    """Whether ``term + other`` is ``x (1 − a) + c``: ``term`` a product with a complement,
-    ``other`` not weighted by that complement's ``a`` (``x (1 − w) + y w`` interpolates)."""
+def _weighted_terms(function: ast.AST, names: set[str]) -> dict[str, ast.AST]:
+    """The names a function binds to a product with a complement (``light = ((1 − t) A)``)."""
+    return {node.targets[0].id: _unwrapped(node.value) for node in ast.walk(function)
+            if isinstance(node, ast.Assign) and len(node.targets) == 1
+            and isinstance(node.targets[0], ast.Name)
+            and isinstance(_unwrapped(node.value), ast.BinOp)
+            and isinstance(_unwrapped(node.value).op, ast.Mult)
+            and any(_complement(f, names) for f in (_unwrapped(node.value).left,
+                                                    _unwrapped(node.value).right))}
+
+
+def _over(term: ast.AST, other: ast.AST, names: set[str], weighted: dict) -> str:
+    """What ``term + other`` is: ``"over"`` for ``x (1 − a) + c`` (``term`` a product with a
+    complement, or a name bound to one, ``other`` not weighted by that complement's ``a``),
+    ``"lerp"`` for ``x (1 − w) + y w`` (an interpolation), else ``""``."""
+    term = weighted.get(term.id, term) if isinstance(term, ast.Name) else _unwrapped(term)
     if not (isinstance(term, ast.BinOp) and isinstance(term.op, ast.Mult)):
-        return False
+        return ""
     weights = [_unwrapped(f) for f in (term.left, term.right) if _complement(f, names)]
     if not weights:
-        return False
+        return ""
     inner = {ast.unparse(w.right) for w in weights if isinstance(w, ast.BinOp)}
-    return not (isinstance(other, ast.BinOp) and isinstance(other.op, ast.Mult)
-                and {ast.unparse(_unwrapped(f)) for f in (other.left, other.right)} & inner)
+    weighted = isinstance(other, ast.BinOp) and isinstance(other.op, ast.Mult) \
+        and {ast.unparse(_unwrapped(f)) for f in (other.left, other.right)} & inner
+    return "lerp" if weighted else "over"
+
+
+def _formula(node: ast.AST, names: set[str], weighted: dict) -> str:
+    """``"over"``, ``"lerp"`` (an interpolation: ``torch.lerp``, ``x.lerp`` or written out) or
+    ``""`` for one node of a function whose complement names are ``names`` and whose names bound
+    to weighted terms are ``weighted``."""
+    if isinstance(node, ast.Call):
+        func = node.func
+        attr = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", "")
+        if attr in ("lerp", "lerp_"):
+            return "lerp"
+        torch_call = isinstance(func, ast.Attribute) and ast.unparse(func.value) == "torch"
+        factors = node.args[1:] if torch_call else node.args
+        return "over" if attr in ("addcmul", "addcmul_") \
+            and any(_complement(a, names) for a in factors) else ""
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):
+        kinds = {_over(side, other, names, weighted) for side, other in
+                 ((node.left, node.right), (node.right, node.left))}
+        return "over" if "over" in kinds else "lerp" if "lerp" in kinds else ""
+    if isinstance(node, ast.BinOp) and isinstance(node.op, ast.Sub) \
+            and isinstance(node.left, ast.Constant) and node.left.value == 1 \
+            and isinstance(node.right, ast.BinOp) and isinstance(node.right.op, ast.Mult) \
+            and any(_complement(_unwrapped(f), names) for f in (node.right.left, node.right.right)):
+        return "over"               # an opacity over another: 1 − t (1 − α)
+    return ""
+
+
+#: The functions that interpolate samples (bilinear reads and weights, a template's upsampling):
+#: outside the blend module, any other interpolation is a blend (the scene seen through the
+#: air, ``J t + A (1 − t)``, is one).
+RESAMPLERS = {"weathergen.engine.rendering.splat": {"_Blocks.__init__", "_Splat.backward"},
+              "weathergen.engine.rendering.transmittance": {"Air._lookup"},
+              "weathergen.engine.rendering.combined": {"_read_sums"},
+              "weathergen.engine.weather.templates": {"_smooth_noise"}}
 
 
 def _blend_formulas(name: str) -> list[str]:
     """Where module ``name`` writes a blend: a sum with a term weighted by a complement,
     ``I (1 − A) + C`` written as ``x * (1 - a) + c`` or ``torch.addcmul(c, x, keep)`` (also the
-    layers' opacity ``1 − (1 − a)(1 − b)`` as an ``addcmul`` of two complements); a linear
-    interpolation ``x (1 − w) + y w`` is not one."""
+    layers' opacity ``1 − (1 − a)(1 − b)`` as an ``addcmul`` of two complements, or an opacity
+    over another ``1 − t (1 − α)``), or an interpolation ``x (1 − w) + y w`` (``torch.lerp``; the
+    fog ``J t + A (1 − t)``) outside the functions :data:`RESAMPLERS` names."""
     tree = ast.parse(MODULES[name].read_text())
+    defined = [(f"{c.name}.{f.name}", f) for c in tree.body if isinstance(c, ast.ClassDef)
+               for f in c.body if isinstance(f, ast.FunctionDef)] \
+        + [(f.name, f) for f in tree.body if isinstance(f, ast.FunctionDef)]
+    resampling = {id(node) for qualname, function in defined
+                  if qualname in RESAMPLERS.get(name, ()) for node in ast.walk(function)}
     found = []
     for function in ast.walk(tree):
         if not isinstance(function, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
             continue
         names = _complement_names(function)
+        weighted = _weighted_terms(function, names)
         for node in ast.walk(function):
-            if isinstance(node, ast.Call):
-                func = node.func
-                attr = func.attr if isinstance(func, ast.Attribute) else getattr(func, "id", "")
-                torch_call = isinstance(func, ast.Attribute) and ast.unparse(func.value) == "torch"
-                factors = node.args[1:] if torch_call else node.args
-                hit = attr in ("addcmul", "addcmul_") and any(_complement(a, names) for a in factors)
-            elif isinstance(node, ast.BinOp) and isinstance(node.op, ast.Add):
-                hit = any(_over(side, other, names) for side, other in
-                          ((node.left, node.right), (node.right, node.left)))
-            else:
-                continue
-            if hit:
+            kind = _formula(node, names, weighted)
+            if kind == "over" or kind == "lerp" and id(node) not in resampling:
                 found.append((node.lineno, ast.unparse(node)))
     return [f"line {line}: {text}" for line, text in sorted(set(found))]
 
@@ -368,6 +493,11 @@ def test_blend_modes_and_layer_compositing_have_one_owner():
     # the check sees the owner's own: the single-record blend, the closed forms, the network
     assert {"_Blend", "_TwoLayers", "_LayeredBlend"} <= _autograd_functions(BLEND_OWNER)
     assert len(_blend_formulas(BLEND_OWNER)) >= 5, _blend_formulas(BLEND_OWNER)
+    # ... and the air's: the fog, the opacity over the air's, the particles' tint
+    owned = "\n".join(_blend_formulas(BLEND_OWNER))
+    for formula in ("torch.lerp(airlight, image, transmission)",
+                    "1 - transmission * (1 - opacity)", "colour * passed[:, None] + light"):
+        assert formula in owned, owned
 
 
 def test_blend_check_sees_a_blend_outside_its_module(tmp_path, monkeypatch):
@@ -383,8 +513,14 @@ def test_blend_check_sees_a_blend_outside_its_module(tmp_path, monkeypatch):
         "def opacity(one, a, b):\n    clear_a, clear_b = 1 - a.clamp(0, 1), 1 - b.clamp(0, 1)\n"
         "    return torch.addcmul(one, clear_a, clear_b, value=-1)\n"
         "def not_a_blend(x, y, w):\n    return torch.addcmul(1 - x, y, w) + (1 - x) - y * w\n"
-        "def lerp(x, y, w):\n    return x * (1 - w)[:, None] + y * w[:, None]\n")
+        "def lerp(x, y, w):\n    return x * (1 - w)[:, None] + y * w[:, None]\n"
+        "def fog(image, t, airlight):\n    return image * t + airlight * (1 - t)\n"
+        "def fog2(image, t, airlight):\n    return torch.lerp(airlight, image, t)\n"
+        "def opacity2(alpha, t):\n    return 1 - t * (1 - alpha)\n"
+        "def tint(colour, t, airlight):\n    light = ((1 - t)[:, None] * airlight).to(colour.dtype)\n"
+        "    return colour * t[:, None] + light\n")
     monkeypatch.setitem(MODULES, "weathergen.engine.probe", probe)
+    monkeypatch.setitem(RESAMPLERS, "weathergen.engine.probe", {"lerp"})
     assert _autograd_functions("weathergen.engine.probe") == {"_Over"}
     assert [use.split(":")[0] for use in _blend_formulas("weathergen.engine.probe")] == \
-        ["line 5", "line 8", "line 11", "line 14"]
+        ["line 5", "line 8", "line 11", "line 14", "line 20", "line 22", "line 24", "line 27"]

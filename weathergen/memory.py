@@ -6,7 +6,7 @@ runs in a control group with a memory limit (containers, job schedulers: cgroup 
 ``memory.max``, v1 ``memory.limit_in_bytes``), that limit less the group's usage; the smaller
 wins. The environment variable :data:`BUDGET_VARIABLE` (``WEATHERGEN_MEMORY_BUDGET=2G``) sets the
 budget instead (to keep a run well below what the machine has, and in tests). No torch: CUDA
-memory is the engine's to ask (:func:`weathergen.engine.sampling.budget.room_on`).
+memory is the engine's to ask (:func:`weathergen.engine.rendering.budget.room_on`).
 """
 
 from __future__ import annotations

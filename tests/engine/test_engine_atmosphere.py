@@ -13,16 +13,84 @@ import torch
 from engine_scenes import plane_pair, pose, rotation
 from weathergen.engine import (LayeredParticles, Particles, load_preset, render_pair,
                                sample_weather)
-from weathergen.engine.rendering.transmittance import AirView, reference_optical_depth
-from weathergen.engine.weather.atmosphere import (LATTICE, density_lattice, estimate_airlight,
-                                                  rain_extinction, snow_extinction)
+from weathergen.engine.rendering.transmittance import Air
+from weathergen.engine.weather.atmosphere import (LATTICE, RAY_ANGLE, RAY_STEP, Atmosphere,
+                                                  density_lattice, estimate_airlight,
+                                                  rain_extinction, ray_norms, sample_lattice,
+                                                  snow_extinction)
 from weathergen.engine.sampling.field import sample_field_particles
 from weathergen.engine.rendering.renderer import render, render_view
 from weathergen.engine.sampling.pair import reference_transforms
 from weathergen.engine.rendering.stereo import stereo_view
-from weathergen.engine.rendering.tracks import View
+from weathergen.engine.views import View
 from weathergen.errors import ConfigError
 from weathergen.framepair import FramePair, PairId
+
+# -- the fine reference the integration is tested against ------------------------------------
+
+class AirView:
+    """One atmosphere seen by one camera in frame ``frame`` (0 or 1) of its pair: the optical
+    depth along any ray of the view (:meth:`optical_depth`), as a render integrates it.
+
+    Shape: intrinsics (3, 3), cam_from_ref (4, 4), size (H, W).
+    """
+
+    def __init__(self, atmosphere: Atmosphere, intrinsics: torch.Tensor,
+                 cam_from_ref: torch.Tensor, size: tuple[int, int], frame: int, device=None):
+        self.atmosphere = atmosphere
+        self.frame = int(frame)
+        self.air = Air([[atmosphere]], intrinsics[None], cam_from_ref[None], size, [frame],
+                       device)
+        self.intrinsics = intrinsics.detach().double().to(self.air.device)
+        self.cam_from_ref = self.air.cam_from_ref[0]
+        focal = float(torch.sqrt(self.intrinsics[0, 0] * self.intrinsics[1, 1]))
+        self.step = max(1, min(RAY_STEP, int(math.floor(focal * RAY_ANGLE))))
+
+    def distances(self, depth: torch.Tensor) -> torch.Tensor:
+        """Every pixel's ray length, at most ``sky_distance``. Shape: (1, H, W) -> (1, H, W)."""
+        height, width = depth.shape[-2:]
+        dev = self.air.device
+        v = torch.arange(height, dtype=torch.float64, device=dev)[:, None]
+        u = torch.arange(width, dtype=torch.float64, device=dev)[None, :]
+        return (depth.to(dev).double() * ray_norms(self.air.camera[0], u, v)) \
+            .clamp(max=self.atmosphere.sky_distance)
+
+    def optical_depth(self, u: torch.Tensor, v: torch.Tensor, distance: torch.Tensor
+                      ) -> torch.Tensor:
+        """τ along the rays through ``(u, v)`` up to ``distance``. Shape: any (same) -> same,
+        float64."""
+        zero = torch.zeros((), dtype=torch.long, device=self.air.device)
+        return self.air.optical_depth(zero, u, v, distance)
+
+
+def reference_optical_depth(air: AirView, u: torch.Tensor, v: torch.Tensor,
+                            distance: torch.Tensor, samples: int) -> torch.Tensor:
+    """τ by the midpoint rule with ``samples`` equal intervals along each point's own ray (no
+    coarse rays): the fine reference the integration is tested against.
+    Shape: any (same) shape -> that shape, float64."""
+    atm = air.atmosphere
+    length = distance.double().clamp(0, atm.sky_distance)
+    if atm.uniform:
+        return atm.extinction * length
+    k = air.intrinsics
+    cy = (v.double() - k[1, 2]) / k[1, 1]
+    cx = (u.double() - k[0, 2] - k[0, 1] * cy) / k[0, 0]
+    ray = torch.stack((cx, cy, torch.ones_like(cx)), -1)
+    ray = ray / ray.norm(dim=-1, keepdim=True)
+    rot, trans = air.cam_from_ref[:3, :3], air.cam_from_ref[:3, 3]
+    direction = (ray[..., :, None] * rot).sum(-2)
+    origin = -(trans[:, None] * rot).sum(0) - atm.drift[air.frame].to(length.device)
+    lattice = atm.lattice(torch.float64, length.device)
+    total = torch.zeros_like(length)
+    chunk = max(1, (1 << 22) // max(1, length.numel()))
+    for j0 in range(0, samples, chunk):
+        fractions = (torch.arange(j0, min(samples, j0 + chunk), dtype=torch.float64,
+                                  device=length.device) + 0.5) / samples
+        s = length[..., None] * fractions                                    # (..., J)
+        points = origin + direction[..., None, :] * s[..., None]
+        total = total + sample_lattice(lattice, points / atm.voxel).double().sum(-1)
+    return atm.extinction * length * total / samples
+
 
 RATE = 10.0
 #: The integration's stated bounds on |t − t_ref| (docs/engine.md, "The atmosphere"): rays to

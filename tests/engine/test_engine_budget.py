@@ -1,4 +1,4 @@
-"""The memory estimate of drawing a pair (weathergen.engine.sampling.budget): its counts against hand
+"""The memory estimate of drawing a pair (weathergen.engine.rendering.budget): its counts against hand
 computations on scenes made here, its bytes against the peak memory a real draw takes, and the
 refusal of a pair that would not fit."""
 
@@ -14,7 +14,7 @@ import pytest
 import torch
 
 from weathergen.engine import load_preset
-from weathergen.engine.sampling.budget import MemoryEstimate, check_pair_memory, estimate_pair_memory
+from weathergen.engine.rendering.budget import MemoryEstimate, check_pair_memory, estimate_pair_memory
 from weathergen.errors import ConfigError
 
 K = torch.tensor([[300.0, 0, 192], [0, 300.0, 88], [0, 0, 1]], dtype=torch.float64)
@@ -100,7 +100,7 @@ from pathlib import Path
 torch.set_num_threads(1)
 from weathergen.datasets import open_dataset
 from weathergen.engine import load_preset, render_pair, sample_weather
-from weathergen.engine.sampling.budget import estimate_pair_memory
+from weathergen.engine.rendering.budget import estimate_pair_memory
 demo = open_dataset("demo", scenes=["street"], frames_per_scene=1)
 pair = demo.load(demo.pairs()[0])
 preset = load_preset(sys.argv[1])

@@ -22,7 +22,7 @@ from weathergen.engine.rendering.groundtruth import particle_truth, seen_flow
 from weathergen.engine.weather.optics import FieldOptics
 from weathergen.engine.records.settings import RenderSettings
 from weathergen.engine.rendering.renderer import render_view
-from weathergen.engine.rendering.tracks import View, field_defocus_radius, depth_fade, footprint, view_mask
+from weathergen.engine.views import View, field_defocus_radius, depth_fade, footprint, view_mask
 from weathergen.errors import ConfigError
 from weathergen.framepair import FramePair, PairId
 from weathergen.geometry import project, transform_points
@@ -354,7 +354,7 @@ def test_depth_windows_read_the_farthest_depth_of_the_aligned_blocks_holding_a_w
     """Against a loop over the pixels: the window's side n, the smallest power of two s >= n,
     the maximum over the s x s blocks (aligned to multiples of s) the window touches; never
     less than the window's own maximum."""
-    from weathergen.engine.rendering.tracks import depth_windows
+    from weathergen.engine.views import depth_windows
 
     g = torch.Generator().manual_seed(3)
     depth = torch.rand(2, 1, 13, 21, generator=g, dtype=torch.float64)
@@ -377,7 +377,7 @@ def test_depth_windows_read_the_farthest_depth_of_the_aligned_blocks_holding_a_w
 def test_the_samplers_own_pixel_first_view_mask_keeps_what_the_renders_keeps():
     """With the view's depth windows given (the sampler: own pixel first, the window only for
     points behind the scene there) the mask is the render's (every window at once)."""
-    from weathergen.engine.rendering.tracks import view_windows
+    from weathergen.engine.views import view_windows
 
     g = torch.Generator().manual_seed(5)
     depth = torch.full((1, H, W), 8.0)

@@ -24,7 +24,7 @@ import torch
 
 from ..datasets import Dataset, right_camera
 from ..engine import CombinedPreset, render_pair
-from ..engine.sampling.budget import check_pair_memory
+from ..engine.rendering.budget import check_pair_memory
 from ..errors import ConfigError, OutputError, WeatherGenError
 from ..flow import aee, weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device

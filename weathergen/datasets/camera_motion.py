@@ -210,20 +210,7 @@ def fit_motion_pnp(points1: np.ndarray, pixels2: np.ndarray, intrinsics: np.ndar
         return inl
 
     for pose in candidates:
-        # Levenberg-Marquardt on the inliers, re-selecting them until the set settles; every
-        # step is a candidate, and the best one is kept.
-        inl = consider(pose)
-        for _ in range(5):
-            if inl.sum() < 6:
-                break
-            r, _ = cv2.Rodrigues(pose[:3, :3])
-            t = pose[:3, 3].reshape(3, 1).copy()
-            r, t = cv2.solvePnPRefineLM(p1[inl], q2[inl], k, None, r, t)
-            pose = _pose(r, t)
-            new = consider(pose)
-            if np.array_equal(new, inl):
-                break
-            inl = new
+        _refine(pose, p1, q2, k, consider)
     if best is None:
         # RANSAC found no consensus at all: report the identity with its (large) errors
         pose = np.eye(4)
@@ -231,6 +218,23 @@ def fit_motion_pnp(points1: np.ndarray, pixels2: np.ndarray, intrinsics: np.ndar
         best = (None, pose, err, err < thr)
     _, pose, err, inl = best
     return MotionFit(cam2_from_cam1=pose, inliers=inl, errors_px=err, threshold_px=thr, source=source)
+
+
+def _refine(pose: np.ndarray, p1: np.ndarray, q2: np.ndarray, k: np.ndarray, consider) -> None:
+    """Levenberg-Marquardt on the inliers, re-selecting them until the set settles; every step
+    is handed to ``consider`` (which keeps the best and returns its inliers)."""
+    inl = consider(pose)
+    for _ in range(5):
+        if inl.sum() < 6:
+            break
+        r, _ = cv2.Rodrigues(pose[:3, :3])
+        t = pose[:3, 3].reshape(3, 1).copy()
+        r, t = cv2.solvePnPRefineLM(p1[inl], q2[inl], k, None, r, t)
+        pose = _pose(r, t)
+        new = consider(pose)
+        if np.array_equal(new, inl):
+            break
+        inl = new
 
 
 def check_fit(fit: MotionFit, settings: FitSettings) -> Optional[str]:

@@ -28,12 +28,12 @@ from .weather.presets import (EXAMPLE_COMBINATIONS, REFERENCE_FRAME, CombinedPre
                               parse_override, parse_set_options, preset_keys)
 from .rendering.renderer import (BETA_ATTACK, BETA_RENDER, RenderOutput, StampSet, build_stamps,
                                  render, render_pair, render_view)
-from .sampling.pair import (reference_transforms, resolve_device, sample_particles, visible_counts,
-                            world_down)
+from .common import reference_transforms, resolve_device
+from .sampling.pair import sample_particles, visible_counts, world_down
 from .records.settings import APPEARANCE_KEYS, RenderSettings
 from .weather.templates import (TemplateLibrary, generate_templates, load_templates,
                                 write_builtin_templates)
-from .rendering.tracks import View
+from .views import View
 
 __all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset",
            "EXAMPLE_COMBINATIONS", "Field", "FieldOptics", "FieldPreset", "FrameScaling",

@@ -3,15 +3,16 @@
 - which particles a pair gets (its own seed, or an earlier output's) is
   :mod:`weathergen.jobs`, shared with the attack job;
 - :mod:`.shards`: splitting a run over job arrays;
-- :mod:`.job`: the run itself (workers, batches, resumption, the manifest), writing through
-  :mod:`weathergen.outputs`;
+- :mod:`.job`: the run itself (workers, batches), writing through :mod:`weathergen.outputs`;
+  :mod:`.bookkeeping`: which files a pair has (resumption, clean-up) and the manifest;
 - :mod:`.plan`: the rules that turn a request into a job (which preset, which settings win);
 - :mod:`.preview`: contact sheets of a finished render; :mod:`.video`: videos of one.
 """
 
 from __future__ import annotations
 
-from .job import RENDER_THREADS, PairResult, RenderJob, record_run, render_batch, run_render
+from .bookkeeping import record_run
+from .job import RENDER_THREADS, PairResult, RenderJob, render_batch, run_render
 from ..jobs.particles import pair_particles, pair_seed, published_geometry_note
 from .plan import (APPEARANCE_KEYS, ResolvedPreset, default_batch_size, default_out,
                    default_pass_name, published_preset, resolve_preset)

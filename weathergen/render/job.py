@@ -10,15 +10,13 @@ bytes written do not depend on worker count, order, sharding or resumption.
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import multiprocessing
 import os
 import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import asdict, dataclass, field, replace
-from datetime import datetime, timezone
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Callable, Optional
 
@@ -28,21 +26,21 @@ import torch
 from ..datasets import Dataset, PairRef, right_camera
 from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, load_templates,
                       particle_truth, reference_transforms, render_pair)
-from ..engine.sampling.budget import check_pair_memory
+from ..engine.rendering.budget import check_pair_memory
 from ..engine.rendering.renderer import pair_starts, render_first_frame
 from ..engine.rendering.stereo import render_right, render_right_layers, stereo_view, warp_view_depth
-from ..errors import ConfigError, NothingRendered, OutputError, WeatherGenError
+from ..errors import ConfigError, NothingRendered, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
 from ..jobs import (depth_note, frame2_note, layer_seeds, pair_particles, published_geometry_note,
                     scene_airlight, scene_firsts, visibility_of, weather_scaling, weather_seed)
-from ..outputs import (RENDER_FOLDER, PairOutput, RightView, claim_folder, merge_manifest,
-                       pair_metadata, write_manifest_part, write_pair_outputs)
-from ..io.atomic import remove_temporaries, write_error
+from ..outputs import RENDER_FOLDER, RightView, claim_folder, pair_metadata, write_pair_outputs
+from ..io.atomic import write_error
 from ..memory import available_memory, failure_message
 from ..outputs.manifest import MANIFEST, jsonable
 from ..workers import StopRequests, how_it_ended, init_worker, spawning
 from ..words import counted
+from .bookkeeping import forget_lost, pair_output, record_manifest, temporary_places
 from .plan import auto_workers
 from .shards import shard_refs
 
@@ -230,8 +228,7 @@ def _write_one(job: RenderJob, ref: PairRef, seed: int, pair, particles, rendere
     meta = pair_metadata(particles, ref.id, seed, job.preset.to_dict(), job.preset_name, seeds,
                          scaling=weather_scaling(job.preset, pair, job.particles_from))
     meta["visible1"], meta["visible2"] = (np.array(v, np.int64) for v in visible)
-    out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                        job.sequence, job.dataset.native_flow)
+    out = pair_output(job, ref)
     right = None
     if job.stereo:
         try:
@@ -292,51 +289,6 @@ def sequence_ends(ids: list[PairId]) -> frozenset:
     return frozenset(i for i in ids if (i.dataset, i.split, i.scene, i.frame + 1) not in starts)
 
 
-# -- the output folder ---------------------------------------------------------------------------
-
-def _pair_files(out: PairOutput, job: RenderJob) -> list[Path]:
-    """Every file the job may write for one pair (``out``)."""
-    native = out.native_flow
-    extra = out.right_files() if job.stereo else []
-    if job.truth:
-        extra += list(out.truth_files().values())
-        extra += [p for p in (out.native_truth(kind) for kind in ("particle", "seen"))
-                  if p is not None]
-    return out.files(with_flow=True) + [out.invalid_mask] + ([native] if native else []) + extra
-
-
-def _temporary_places(job: RenderJob, refs) -> list[tuple[Path, str]]:
-    """Where a killed run of this shard may have left temporary files of its pairs (atomic writes
-    that never reached their rename), as ``(folder, name prefix)``: the folders of this shard's
-    pairs (:func:`~weathergen.outputs.claim_folder` adds the shard's bookkeeping). Other shards may
-    be running; their files are left alone."""
-    folders = set()
-    for ref in refs:
-        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                            job.sequence, job.dataset.native_flow)
-        folders.update(path.parent for path in _pair_files(out, job))
-    return [(folder, ".") for folder in sorted(folders)]
-
-
-def record_run(job: RenderJob, results: list[PairResult], started: float, seconds: float) -> Path:
-    """Record this run's pairs in the shard's manifest part (merging with its earlier runs), and
-    under the run the notes about whole scenes that the run printed (``notes``: a gap in a scene's
-    frame numbering)."""
-    i, n = job.shard
-    counts = {s: sum(r.status == s for r in results) for s in ("written", "skipped", "failed")}
-    notes = job.dataset.scene_notes()          # e.g. a gap in a scene's frame numbering
-    run = {
-        "shard": f"{i}/{n}", "command": job.command, "workers": job.workers, "device": job.device,
-        "started": datetime.fromtimestamp(started, timezone.utc).isoformat(timespec="seconds"),
-        "seconds": round(seconds, 3), **counts, **({"notes": notes} if notes else {}),
-    }
-    pairs = {}
-    for r in results:
-        entry = asdict(r)
-        pairs[entry.pop("key")] = entry
-    return write_manifest_part(job.out, job.shard, run, pairs)
-
-
 # -- the run -------------------------------------------------------------------------------------
 def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda r: None,
                on_start: Callable[[int], None] = lambda n: None,
@@ -356,38 +308,14 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     """
     check_executor(job.executor)
     available_memory()          # a memory budget that is not an amount fails here
-    # A root that is not of the chosen layout fails here, before the output folder is touched.
-    every = job.dataset.pairs()
-    for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
-        on_note(note)
-    geometry = published_geometry_note(job.dataset, job.particles_from)
-    if geometry is not None:
-        on_note(geometry)
-    refs = shard_refs(every, job.shard)
-    if not every:
-        raise ConfigError(job.dataset.no_pairs_message())
-    if not refs:
-        raise ConfigError(f"${{shard}} {job.shard[0]}/{job.shard[1]} holds no frame pairs: the "
-                          f"selection holds {len(every)}, one for each of the first {len(every)} "
-                          f"shards")
+    every, refs = _selection(job, on_note)
     if job.sequence:
-        layers = (job.preset.layers if isinstance(job.preset, CombinedPreset)
-                  else [job.preset])
-        paper = [layer for layer in layers if not isinstance(layer, FieldPreset)]
-        if paper and len(layers) > 1:
-            raise ConfigError(f"sequence rendering needs weather-field presets in every layer "
-                              f"(model = field, e.g. snow-moderate+fog-light); layer "
-                              f"'{paper[0].name}' of '{job.preset_name}' is a paper preset, "
-                              "whose particles belong to one pair")
-        if paper:
-            raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "
-                              f"e.g. snow-moderate); '{job.preset_name}' is a paper preset, "
-                              "whose particles belong to one pair")
+        _check_sequence_preset(job)
         job.scene_ends = sequence_ends([r.id for r in every])
     job.scene_firsts = scene_firsts(every)
     with claim_folder(job.out, RENDER_FOLDER, job.config(), resume=job.resume,
                       overwrite=job.overwrite, shard=job.shard,
-                      temporary=_temporary_places(job, refs), on_note=on_note) as claim:
+                      temporary=temporary_places(job, refs), on_note=on_note) as claim:
         results = _render_locked(job, refs, on_result, on_start, on_note)
         done = [r for r in results if r.status == "written"]
         for note in filter(None, (depth_note([(r.pair, r.input) for r in done]), frame2_note(
@@ -403,6 +331,41 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
         return results
 
 
+def _selection(job: RenderJob, on_note) -> tuple[list[PairRef], list[PairRef]]:
+    """Every selected pair, and those of the job's shard; the dataset's notes go to ``on_note``.
+
+    A root that is not of the chosen layout fails here, before the output folder is touched."""
+    every = job.dataset.pairs()
+    for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
+        on_note(note)
+    geometry = published_geometry_note(job.dataset, job.particles_from)
+    if geometry is not None:
+        on_note(geometry)
+    refs = shard_refs(every, job.shard)
+    if not every:
+        raise ConfigError(job.dataset.no_pairs_message())
+    if not refs:
+        raise ConfigError(f"${{shard}} {job.shard[0]}/{job.shard[1]} holds no frame pairs: the "
+                          f"selection holds {len(every)}, one for each of the first {len(every)} "
+                          f"shards")
+    return every, refs
+
+
+def _check_sequence_preset(job: RenderJob) -> None:
+    """A sequence render needs weather-field presets in every layer: refuse a paper preset."""
+    layers = job.preset.layers if isinstance(job.preset, CombinedPreset) else [job.preset]
+    paper = [layer for layer in layers if not isinstance(layer, FieldPreset)]
+    if paper and len(layers) > 1:
+        raise ConfigError(f"sequence rendering needs weather-field presets in every layer "
+                          f"(model = field, e.g. snow-moderate+fog-light); layer "
+                          f"'{paper[0].name}' of '{job.preset_name}' is a paper preset, "
+                          "whose particles belong to one pair")
+    if paper:
+        raise ConfigError(f"sequence rendering needs a weather-field preset (model = field, "
+                          f"e.g. snow-moderate); '{job.preset_name}' is a paper preset, "
+                          "whose particles belong to one pair")
+
+
 def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start,
                    on_note) -> list[PairResult]:
     started = time.time()
@@ -410,9 +373,7 @@ def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start,
     results: list[PairResult] = []
     todo: list[PairRef] = []
     for ref in refs:
-        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                            job.sequence, job.dataset.native_flow)
-        if not job.overwrite and out.is_complete():
+        if not job.overwrite and pair_output(job, ref).is_complete():
             results.append(PairResult(ref.id.key, str(ref.id), "skipped",
                                       weather_seed(job.preset, job.seed, ref.id)))
         else:
@@ -441,24 +402,8 @@ def _render_locked(job: RenderJob, refs: list[PairRef], on_result, on_start,
         stopped_by = exc
         raise
     finally:
-        _record(job, results, started, time.perf_counter() - t0, stopped_by)
+        record_manifest(job, results, started, time.perf_counter() - t0, stopped_by)
     return results
-
-
-def _record(job: RenderJob, results, started: float, seconds: float, stopped_by) -> None:
-    """Write the manifest; when the disk refuses, say so without hiding why the run stopped."""
-    try:
-        record_run(job, results, started, seconds)
-        merge_manifest(job.out)
-    except OSError as exc:
-        done = sum(r.status == "written" for r in results)
-        note = (f"the manifest could not be updated either ({exc.strerror or exc}); ${{resume}} "
-                f"finds the {counted(done, 'pair')} finished in this run on disk")
-        if isinstance(stopped_by, OutputError):
-            raise OutputError(f"{stopped_by.args[0]}; {note}") from None
-        if stopped_by is not None:
-            return                  # an interruption or a bug: let it through as it is
-        raise write_error(exc, job.out / MANIFEST, "then rerun with ${resume}") from None
 
 
 def _chunks(items: list, size: int) -> list[list]:
@@ -561,7 +506,7 @@ def _pool_round(job, queue: list, stop: StopRequests, results, on_result,
         ended = _stop_workers(started) if broken else ""
         pool.shutdown(wait=True, cancel_futures=True)
     if lost:
-        _forget_lost(job, [ref for refs in lost for ref in refs])
+        forget_lost(job, [ref for refs in lost for ref in refs])
     return lost, ended
 
 
@@ -579,23 +524,8 @@ def _stop_workers(workers: set) -> str:
     return how_it_ended(dead[0]) if dead else "ended without a word"
 
 
-def _forget_lost(job: RenderJob, refs) -> None:
-    """Undo what the stopped workers wrote of ``refs``, whose results were lost with the pool:
-    the temporary files (writes that never reached the rename) and a metadata file (written last:
-    a worker killed after writing it, before its result came back, finished the pair unseen), so
-    that the disk holds no pair the manifest does not record; the pair is rendered again or
-    stays undone for --resume."""
-    for ref in refs:
-        out = PairOutput.of(job.out, ref.id, job.pass_name, job.fmt, job.geometry, job.truth,
-                            job.sequence, job.dataset.native_flow)
-        for path in _pair_files(out, job):
-            remove_temporaries(path, only_of_dead=False)
-        with contextlib.suppress(OSError):
-            out.metadata.unlink()
-
-
 #: How often the pool loop looks for a held-back Ctrl-C or SIGTERM (seconds).
 POLL_SECONDS = 0.1
 
 
-__all__ = ["RenderJob", "PairResult", "render_batch", "run_render", "record_run"]
+__all__ = ["RenderJob", "PairResult", "render_batch", "run_render"]

@@ -344,20 +344,7 @@ class WeatherAugment:
         if not todo:
             return replace(batch, weather=draws)
         if unsampled:
-            on_device = self.sample_on == "device" and pairs.image1.device.type != "cpu"
-            geometry = pairs if on_device else _geometry_on_cpu(pairs)
-            where = pairs.image1.device if on_device else None
-
-            def sample(k):
-                return self._particles(pair_of(geometry, k), draws[k], batch.world_up[k], where)
-
-            threads = min(len(unsampled), os.cpu_count() or 1)
-            if threads > 1:
-                with ThreadPoolExecutor(threads) as pool:
-                    sampled = list(pool.map(sample, unsampled))
-            else:
-                sampled = [sample(k) for k in unsampled]
-            for k, particles in zip(unsampled, sampled):
+            for k, particles in zip(unsampled, self._sample_batch(batch, draws, unsampled)):
                 records[k] = particles
 
         groups = defaultdict(list)
@@ -382,6 +369,23 @@ class WeatherAugment:
         kept = [r if self.keep_particles else None for r in records]
         return replace(batch, pairs=replace(pairs, image1=image1, image2=image2), weather=draws,
                        particles=kept)
+
+    def _sample_batch(self, batch: PairSampleBatch, draws: list, unsampled: list) -> list:
+        """Particles for the samples ``unsampled`` of ``batch``, in threads (see
+        :meth:`apply_batch`)."""
+        pairs = batch.pairs
+        on_device = self.sample_on == "device" and pairs.image1.device.type != "cpu"
+        geometry = pairs if on_device else _geometry_on_cpu(pairs)
+        where = pairs.image1.device if on_device else None
+
+        def sample(k):
+            return self._particles(pair_of(geometry, k), draws[k], batch.world_up[k], where)
+
+        threads = min(len(unsampled), os.cpu_count() or 1)
+        if threads > 1:
+            with ThreadPoolExecutor(threads) as pool:
+                return list(pool.map(sample, unsampled))
+        return [sample(k) for k in unsampled]
 
 
 def _geometry_on_cpu(pairs: FramePairBatch) -> FramePairBatch:

@@ -38,16 +38,17 @@ from typing import Optional, Sequence, Union
 import torch
 
 from ...errors import ConfigError
-from .transmittance import Air, combined_opacity, fog_images, pair_air, record_atmospheres, view_air
+from .transmittance import Air, dimming, pair_air, through_air, view_air
 from .composite import RenderOutput, blend_layers
 from ..records.layered import LayeredParticles
 from ..records.particles import Particles
-from .planes import planes
-from .splat import Sums, chunk_elements_for, splat
+from .planes import Sums, planes
+from .splat import chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, build_many
 from ..weather.templates import TemplateLibrary, load_templates
-from .tracks import (Looks, ParticleTable, RecordRows, Tracks, View, Views, blur_samples,
-                     empty_looks, fixed_looks, pair_starts, pair_tracks, view_tracks)
+from .tracks import (Looks, ParticleTable, RecordRows, Tracks, blur_samples, empty_looks,
+                     fixed_looks, pair_starts, pair_tracks, view_tracks)
+from ..views import View, Views
 
 __all__ = ["as_layers", "build_layer_stamps", "layers_view_sums", "render_layers",
            "render_layers_view"]
@@ -189,15 +190,14 @@ def _layer_stamps(prepared: Sequence[tuple], given: Sequence[Optional[StampSet]]
 
 def _layer_sums(views: Views, paper: list, field: list, stamp_set: StampSet, *, beta: float,
                 dtype, chunk_elements: int, detach_occlusion: bool, depth: bool,
-                under: Sequence[Sums] = (), air: Optional[Air] = None,
-                alpha: Optional[torch.Tensor] = None, tint: bool = True) -> Sums:
+                dim, alpha: torch.Tensor, under: Sequence[Sums] = (), tint: bool = True) -> Sums:
     """One layer's sums on the pairs' views, drawn as a single render draws its records (the
     same tracks, stamps, grid levels and splat) from its parts (:func:`_layer_parts`) and
     stamps (:func:`_layer_stamps`); ``depth``: with the depth sum ``Z`` as a fifth (passive)
     plane; ``under``: the sums (with ``Z``) of the alpha-blended layers that dim this additive
-    layer's particles (:func:`_dimmed`); ``air``: the atmosphere between the particles and the
-    cameras (:meth:`~weathergen.engine.rendering.transmittance.Air.dim`; ``alpha`` (V,) which views draw this
-    layer alpha-blended, ``tint`` as there)."""
+    layer's particles (:func:`_dimmed`); ``dim``: the atmosphere between the particles and the
+    cameras (:func:`~weathergen.engine.rendering.transmittance.dimming`; ``alpha`` (V,) which
+    views draw this layer alpha-blended, ``tint`` as there)."""
     parts = paper + field
     if parts:
         offsets = [0]
@@ -208,8 +208,7 @@ def _layer_sums(views: Views, paper: list, field: list, stamp_set: StampSet, *, 
         tracks = pair_tracks([], views, 1, beta=beta, dtype=dtype)[1]
     if under:
         tracks = _dimmed(tracks, under)
-    if air is not None:
-        tracks = air.dim(tracks, alpha, tint=tint)
+    tracks = dim(tracks, alpha, tint=tint)
     inst = blur_samples(tracks, dtype, stamp_set.gap)
     if depth:
         inst = dataclasses.replace(inst, color=torch.cat((inst.color, inst.z.detach()[:, None]),
@@ -306,16 +305,12 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
                 for stack in stacks]
     stamp_sets = _layer_stamps(prepared, cut, dtype=image1.dtype, device=device,
                                coarse_side=coarse_side, chunk_elements=chunk_elements)
-    air = pair_air([record_atmospheres(p) for p in layered], intrinsics, cam1_from_ref,
-                   cam2_from_ref, tuple(image1.shape[-2:]), device)
-    outs, sums = _draw(views, prepared, stamp_sets, modes, alpha_mode, (image1, image2),
-                       beta=float(beta), chunk_elements=chunk_elements,
-                       detach_occlusion=detach_occlusion, air=air)
-    reached = torch.stack([s.reached.view(2, bsz).any(0) for s in sums]).any(0)
-    if air is not None:
-        reached = reached | air.reached().to(reached.device).view(2, bsz).any(0)
-    return RenderOutput(image1=outs[0], image2=outs[1], opacity1=outs[2], opacity2=outs[3],
-                        reached=reached)
+    air = pair_air(layered, intrinsics, cam1_from_ref, cam2_from_ref, image1.shape[-2:], device)
+    (out1, out2), (opacity1, opacity2), reached = _draw(
+        views, prepared, stamp_sets, modes, alpha_mode, (image1, image2), beta=float(beta),
+        chunk_elements=chunk_elements, detach_occlusion=detach_occlusion, air=air)
+    return RenderOutput(image1=out1, image2=out2, opacity1=opacity1, opacity2=opacity2,
+                        reached=reached.view(2, bsz).any(0))
 
 
 def render_layers_view(image: torch.Tensor, view: View, particles: LayeredParticles, *,
@@ -327,16 +322,12 @@ def render_layers_view(image: torch.Tensor, view: View, particles: LayeredPartic
     draws its record, composited as :func:`render_layers` does. For weather fields, frame 1 is
     the bytes of frame 1 of a pair whose first view is ``view`` (a sequence writes each frame
     once). Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W))."""
-    layered, views, prepared, stamp_sets, chunk_elements = _view_parts(
+    views, prepared, stamp_sets, chunk_elements, modes, alpha_mode, air = _view_parts(
         view, particles, None, frame=frame, beta=beta, dtype=image.dtype, device=image.device,
         chunk_elements=chunk_elements)
-    modes = [{r.settings.blend} for r in layered.layers]
-    alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
-                              device=image.device)
-    air = view_air(record_atmospheres(layered), view, frame, image.device)
-    (out, opacity), _ = _draw(views, prepared, stamp_sets, modes, alpha_mode, (image[None],),
-                              beta=float(beta), chunk_elements=chunk_elements,
-                              detach_occlusion=False, air=air)
+    (out,), (opacity,), _ = _draw(views, prepared, stamp_sets, modes, alpha_mode, (image[None],),
+                                  beta=float(beta), chunk_elements=chunk_elements,
+                                  detach_occlusion=False, air=air)
     return out[0], opacity[0]
 
 
@@ -348,16 +339,12 @@ def layers_view_sums(view: View, particles: LayeredParticles,
     (the additive layers' particles dimmed by the alpha layers in front of them), with
     ``values[l]`` (N_l, 3) in place of layer ``l``'s colours where given (e.g. flow vectors).
     Shape: -> per layer (A (1, H, W), C (3, H, W))."""
-    layered, views, prepared, stamp_sets, chunk_elements = _view_parts(
+    views, prepared, stamp_sets, chunk_elements, modes, alpha_mode, air = _view_parts(
         view, particles, values, frame=0, beta=beta, dtype=dtype, device=device,
         chunk_elements=chunk_elements)
-    modes = [{r.settings.blend} for r in layered.layers]
-    alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
-                              device=device)
-    air = view_air(record_atmospheres(layered), view, 0, device)
     sums = _layer_sums_all(views, prepared, stamp_sets, modes, beta=float(beta), dtype=dtype,
-                           chunk_elements=chunk_elements, detach_occlusion=False, air=air,
-                           alpha_mode=alpha_mode, tint=False)
+                           chunk_elements=chunk_elements, detach_occlusion=False,
+                           dim=dimming(air), alpha_mode=alpha_mode, tint=False)
     out = []
     for s in sums:
         grid = planes(s)[:, 0, 0]
@@ -367,8 +354,9 @@ def layers_view_sums(view: View, particles: LayeredParticles,
 
 def _view_parts(view: View, particles: LayeredParticles, values, *, frame: int, beta: float,
                 dtype, device, chunk_elements: Optional[int]):
-    """What one view draws of every layer: (the layers, views, prepared parts, stamps, chunk
-    size), each layer's tracks from :func:`~weathergen.engine.rendering.tracks.view_tracks`."""
+    """What one view draws of every layer: (views, prepared parts, stamps, chunk size, blend
+    modes, which layers blend alpha (1, L), the air), each layer's tracks from
+    :func:`~weathergen.engine.rendering.tracks.view_tracks`."""
     layered = as_layers(particles)[0]
     device = torch.device(device)
     _check_blends(layered.layers)
@@ -391,17 +379,19 @@ def _view_parts(view: View, particles: LayeredParticles, values, *, frame: int, 
         chunk_elements = chunk_elements_for(device)
     stamp_sets = _layer_stamps(prepared, [None] * len(prepared), dtype=dtype, device=device,
                                coarse_side=COARSE_SIDE, chunk_elements=chunk_elements)
-    return layered, views, prepared, stamp_sets, chunk_elements
+    alpha_mode = torch.tensor([[r.settings.blend == "alpha" for r in layered.layers]],
+                              device=device)
+    return (views, prepared, stamp_sets, chunk_elements, [{r.settings.blend} for r in layered.layers],
+            alpha_mode, view_air(layered, view, frame, device))
 
 
 def _layer_sums_all(views: Views, prepared: list, stamp_sets: list, modes: list, *,
                     beta: float, dtype, chunk_elements: int, detach_occlusion: bool,
-                    air: Optional[Air] = None, alpha_mode: Optional[torch.Tensor] = None,
-                    tint: bool = True) -> list:
+                    dim, alpha_mode: torch.Tensor, tint: bool = True) -> list:
     """Every layer's :class:`Sums`: the alpha-blended layers first (with their depth sums),
     then the additive layers, whose particles behind them they dim (:func:`_dimmed`; those
     carry no depth sum: they blend as the nearest). Two additive layers carry none either.
-    With ``air``, every layer's particles are seen through it (``alpha_mode`` (B, L): which
+    With ``dim``, every layer's particles are seen through the air (``alpha_mode`` (B, L): which
     layer blends alpha in which pair)."""
     additive_pair = modes == [{"additive"}, {"additive"}]
     additive = [m == {"additive"} for m in modes]
@@ -411,29 +401,30 @@ def _layer_sums_all(views: Views, prepared: list, stamp_sets: list, modes: list,
         (_, paper, field), stamp_set = prepared[k], stamp_sets[k]
         under = [sums[j] for j in range(len(modes)) if not additive[j]] \
             if dimming and additive[k] else ()
-        alpha = None if air is None else \
-            alpha_mode[:, k].repeat(views.count // alpha_mode.shape[0])
+        alpha = alpha_mode[:, k].repeat(views.count // alpha_mode.shape[0])
         sums[k] = _layer_sums(views, paper, field, stamp_set, beta=beta, dtype=dtype,
                               chunk_elements=chunk_elements, detach_occlusion=detach_occlusion,
-                              depth=not additive_pair and not under, under=under, air=air,
+                              depth=not additive_pair and not under, under=under, dim=dim,
                               alpha=alpha, tint=tint)
     return sums
 
 
 def _draw(views: Views, prepared: list, stamp_sets: list, modes: list, alpha_mode: torch.Tensor,
           images: tuple, *, beta: float, chunk_elements: int, detach_occlusion: bool,
-          air: Optional[Air] = None) -> tuple[tuple, list]:
+          air: Optional[Air] = None) -> tuple[list, list, torch.Tensor]:
     """Every layer's sums on ``views`` and the composite of ``images`` (T frames of B views
-    each, frame ``t``'s views ``t B .. t B + B − 1``), seen through ``air`` where given: the
-    frames, then their opacities, and the layers' :class:`Sums`."""
-    sums = _layer_sums_all(views, prepared, stamp_sets, modes, beta=beta,
-                           dtype=images[0].dtype, chunk_elements=chunk_elements,
-                           detach_occlusion=detach_occlusion, air=air, alpha_mode=alpha_mode)
-    if air is not None:
-        transmission, airlight = air.pixels(views.depth, images[0].dtype)
-        images = tuple(fog_images(images, transmission, airlight, air))
-    outs = blend_layers(sums, modes, alpha_mode, images)
-    if air is not None:
-        frames = len(images)
-        outs = (*outs[:frames], *combined_opacity(outs[frames:], transmission, air))
-    return outs, sums
+    each, frame ``t``'s views ``t B .. t B + B − 1``), seen through ``air``
+    (:func:`~weathergen.engine.rendering.transmittance.through_air`): the frames, their
+    opacities, and which views any layer (or the air) reached (V,)."""
+
+    def draw(dim):
+        sums = _layer_sums_all(views, prepared, stamp_sets, modes, beta=beta,
+                               dtype=images[0].dtype, chunk_elements=chunk_elements,
+                               detach_occlusion=detach_occlusion, dim=dim, alpha_mode=alpha_mode)
+
+        def blend(seen):
+            outs = blend_layers(sums, modes, alpha_mode, seen)
+            return outs[:len(seen)], outs[len(seen):], torch.stack([s.reached for s in sums]).any(0)
+        return blend
+
+    return through_air(air, views.depth, images, draw)

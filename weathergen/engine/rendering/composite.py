@@ -37,13 +37,13 @@ from typing import Optional, Sequence
 
 import torch
 
-from .planes import LayerPlanes, planes
-from .splat import Sums, splat
+from .planes import LayerPlanes, Sums, planes
+from .splat import splat
 from .stamps import StampSet
 from .tracks import Instances, Tracks, blur_samples
 
 __all__ = ["RenderOutput", "blend", "blend_layers", "composite", "composite_in_order",
-           "composite_layers"]
+           "composite_layers", "fog", "fogged_opacity", "tinted"]
 
 
 @dataclass
@@ -57,6 +57,24 @@ class RenderOutput:
     opacity1: torch.Tensor
     opacity2: torch.Tensor
     reached: Optional[torch.Tensor] = None
+
+
+def fog(airlight: torch.Tensor, image: torch.Tensor, transmission: torch.Tensor) -> torch.Tensor:
+    """The scene seen through the air (Koschmieder): ``J t + A (1 − t)``. Shape: broadcast."""
+    return torch.lerp(airlight, image, transmission)
+
+
+def fogged_opacity(opacity: torch.Tensor, transmission: torch.Tensor) -> torch.Tensor:
+    """The weather's opacity with the air's in front of the scene: ``1 − t (1 − α)``."""
+    return 1 - transmission * (1 - opacity)
+
+
+def tinted(colour: torch.Tensor, passed: torch.Tensor, transmission: torch.Tensor,
+           airlight: torch.Tensor) -> torch.Tensor:
+    """Alpha-blended particles' colours through the air in front of them, ``γ t_p + A_p (1 − t_p)``
+    (``passed``: ``t_p`` in the colours' dtype). Shape: (N, 3), (N,), (N,), (N, 3) -> (N, 3)."""
+    light = ((1 - transmission)[:, None] * airlight).to(passed.dtype)
+    return colour * passed[:, None] + light
 
 
 # -- one record per pair ----------------------------------------------------------------------

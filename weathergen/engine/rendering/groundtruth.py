@@ -32,13 +32,13 @@ import torch
 
 from ...framepair import FramePair
 from ...geometry import project, transform_points
+from ..common import check_pair_for_engine, reference_transforms
 from .combined import layers_view_sums
 from ..records.layered import LayeredParticles
 from ..records.particles import Particles
 from .renderer import BETA_RENDER, pair_starts, view_sums
-from ..sampling.pair import check_pair_for_engine, reference_transforms
 from ..weather.templates import TemplateLibrary, load_templates
-from .tracks import View
+from ..views import View
 
 SEEN_THRESHOLD = 0.5
 

@@ -32,19 +32,20 @@ import torch
 
 from ...errors import ConfigError, DatasetError, ShapeError
 from ...framepair import FramePair, FramePairBatch
-from .transmittance import combined_opacity, fog_images, pair_air, record_atmospheres, view_air
+from ..common import check_pair_for_engine, reference_transforms, resolve_device
+from .transmittance import dimming, pair_air, through_air, view_air
 from .composite import RenderOutput, composite, composite_in_order
 from .combined import as_layers, build_layer_stamps, render_layers, render_layers_view
 from ..records.layered import LayeredParticles
 from ..records.particles import Particles
 from .planes import planes
 from ..weather.presets import BLEND_MODES
-from ..sampling.pair import check_pair_for_engine, reference_transforms, resolve_device
 from .splat import SPLAT_CHUNK_ELEMENTS, chunk_elements_for, splat
 from .stamps import COARSE_SIDE, StampSet, build, stored
 from ..weather.templates import TemplateLibrary, load_templates
-from .tracks import (ParticleTable, RecordRows, View, Views, blur_samples, empty_looks,
-                     fixed_looks, pair_starts, pair_tracks, view_tracks)
+from .tracks import (ParticleTable, RecordRows, blur_samples, empty_looks, fixed_looks,
+                     pair_starts, pair_tracks, view_tracks)
+from ..views import View, Views
 
 BETA_RENDER = 250.0
 BETA_ATTACK = 30.0
@@ -191,18 +192,18 @@ def render(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tensor,
                      device=device)
     looks, tracks = pair_tracks(records, views, templates.resolution, beta=float(beta),
                                 dtype=dtype)
-    air = pair_air([record_atmospheres(r) for r in records], intrinsics, cam1_from_ref,
-                   cam2_from_ref, tuple(image1.shape[-2:]), device)
+    air = pair_air(records, intrinsics, cam1_from_ref, cam2_from_ref, image1.shape[-2:], device)
     alpha_mode = torch.tensor([r.settings.blend == "alpha" for r in records], device=device)
-    if air is not None:
-        tracks = air.dim(tracks, torch.cat((alpha_mode, alpha_mode)))
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(device)
-    stamp_set = _entry_stamps(records, looks, templates, stamps, dtype=dtype,
-                              coarse_side=coarse_side, chunk_elements=chunk_elements)
-    blend = _blender(records, tracks, stamp_set, views.depth, alpha_mode, dtype=dtype,
-                     chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
-    return _composited(blend, [image1, image2], alpha_mode, air, depth)
+    def draw(dim):
+        seen = dim(tracks, torch.cat((alpha_mode, alpha_mode)))
+        stamp_set = _entry_stamps(records, looks, templates, stamps, dtype=dtype,
+                                  coarse_side=coarse_side, chunk_elements=chunk_elements)
+        return _blender(records, seen, stamp_set, views.depth, alpha_mode, dtype=dtype,
+                        chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
+    frames, opacities, reached = through_air(air, depth, [image1, image2], draw)
+    return RenderOutput(*frames, *opacities, reached=reached.view(2, -1).any(0))
 
 
 def depth_seen(depth: torch.Tensor, shifts: Sequence[float]) -> torch.Tensor:
@@ -291,25 +292,6 @@ def _blender(records: Sequence[Particles], tracks, stamp_set: StampSet, depth: t
     return lambda images: (*composite(sums, images, alpha_mode), sums.reached)
 
 
-def _composited(blend, images: list, alpha_mode: torch.Tensor, air, depth: torch.Tensor
-                ) -> RenderOutput:
-    """Both weather frames of every pair and their opacities, blended by ``blend``
-    (:func:`_blender`'s), the frames first seen through the records' atmosphere where they have
-    one (``air``: :func:`pair_air`'s, or None). Shape: images two (B, 3, H, W); alpha_mode (B,)
-    bool, the pairs drawn in alpha mode; depth (2 B, 1, H, W) the views' scene depth."""
-    bsz = images[0].shape[0]
-    if air is not None:
-        transmission, airlight = air.pixels(depth, images[0].dtype)
-        images = fog_images(images, transmission, airlight, air)
-    (out1, out2), (opacity1, opacity2), reached = blend(images)
-    reached = reached.view(2, bsz).any(0)
-    if air is not None:
-        opacity1, opacity2 = combined_opacity([opacity1, opacity2], transmission, air)
-        reached = reached | air.reached().to(reached.device).view(2, bsz).any(0)
-    return RenderOutput(image1=out1, image2=out2, opacity1=opacity1, opacity2=opacity2,
-                        reached=reached)
-
-
 def render_pair(pair: Union[FramePair, FramePairBatch],
                 particles: Union[Particles, LayeredParticles,
                                  Sequence[Particles | LayeredParticles]],
@@ -363,19 +345,20 @@ def render_pair(pair: Union[FramePair, FramePairBatch],
 # -- single views: a frame of a sequence, a second camera, ground truth ------------------------
 
 def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement: torch.Tensor,
-               templates: TemplateLibrary, *, beta: float, dtype, device,
+               templates: TemplateLibrary, dim, *, beta: float, dtype, device,
                chunk_elements: Optional[int], values: Optional[torch.Tensor] = None,
-               detach_occlusion: bool = False, frame: int = 0):
+               detach_occlusion: bool = False):
+    """One view's splat sums (or, for a record blended in order, its tracks, stamps and depth),
+    the tracks seen through ``dim`` (:func:`~weathergen.engine.rendering.transmittance.dimming`)."""
     views = Views.of(view.intrinsics[None], view.cam_from_ref[None],
                      depth_seen(view.depth[None].detach().to(device),
                                 [record.settings.depth_shift]), device=device)
     looks, tracks, kept = view_tracks(record.to(device), views, start, displacement,
                                       templates.resolution, beta=float(beta), dtype=dtype,
                                       color=values, kept=True)
-    air = view_air(record_atmospheres(record), view, frame, device)
-    if air is not None:     # (with values in place of colours, only θ is dimmed)
-        alpha = torch.tensor([record.settings.blend == "alpha"], device=device)
-        tracks = air.dim(tracks, alpha, tint=values is None)
+    # (with values in place of colours, only θ is dimmed)
+    alpha = torch.tensor([record.settings.blend == "alpha"], device=device)
+    tracks = dim(tracks, alpha, tint=values is None)
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(torch.device(device))
     if record.stamps is not None:       # the particles in front of the camera, their own stamps
@@ -384,9 +367,9 @@ def _view_sums(view: View, record: Particles, start: torch.Tensor, displacement:
     else:
         stamps = build(looks, templates, dtype=dtype, chunk_elements=chunk_elements)
     if values is None and record.settings.blends_in_order:   # (render_view blends them in order)
-        return (tracks, stamps, views.depth), air
+        return tracks, stamps, views.depth
     return splat(blur_samples(tracks, dtype, stamps.gap), stamps, views.depth,
-                 chunk_elements=chunk_elements, detach_occlusion=detach_occlusion), air
+                 chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
 
 
 def render_view(image: torch.Tensor, view: View, record: Particles, start: torch.Tensor,
@@ -401,22 +384,21 @@ def render_view(image: torch.Tensor, view: View, record: Particles, start: torch
 
     Shape: image (3, H, W) -> (image (3, H, W), opacity (1, H, W)).
     """
-    sums, air = _view_sums(view, record, start, displacement, templates, beta=beta,
-                           dtype=image.dtype, device=image.device, chunk_elements=chunk_elements,
-                           detach_occlusion=detach_occlusion, frame=frame)
     alpha_mode = torch.tensor([record.settings.blend == "alpha"], device=image.device)
-    images = [image[None]]
-    if air is not None:
-        transmission, airlight = air.pixels(view.depth[None].to(image.device), image.dtype)
-        images = fog_images(images, transmission, airlight, air)
-    if isinstance(sums, tuple):
-        (out,), (opacity,), _ = composite_in_order(
-            *sums, images, alpha_mode, torch.ones(1, dtype=torch.bool),
-            chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
-    else:
-        (out,), (opacity,) = composite(sums, images, alpha_mode)
-    if air is not None:
-        (opacity,) = combined_opacity([opacity], transmission, air)
+
+    def draw(dim):
+        sums = _view_sums(view, record, start, displacement, templates, dim, beta=beta,
+                          dtype=image.dtype, device=image.device, chunk_elements=chunk_elements,
+                          detach_occlusion=detach_occlusion)
+        if isinstance(sums, tuple):
+            return lambda images: composite_in_order(
+                *sums, images, alpha_mode, torch.ones(1, dtype=torch.bool),
+                chunk_elements=chunk_elements, detach_occlusion=detach_occlusion)
+        return lambda images: (*composite(sums, images, alpha_mode), None)
+
+    air = view_air(record, view, frame, image.device)
+    (out,), (opacity,), _ = through_air(air, view.depth[None].to(image.device), [image[None]],
+                                        draw)
     return out[0], opacity[0]
 
 
@@ -430,9 +412,9 @@ def view_sums(view: View, record: Particles, start: torch.Tensor, displacement: 
     when given (e.g. flow vectors; an additive particle's θ is still dimmed by the air in front
     of it, an alpha-blended one's values are not tinted). Shape: -> (A (1, H, W), C (3, H, W))."""
     device = torch.device("cpu") if device is None else torch.device(device)
-    sums, _ = _view_sums(view, record, start, displacement, templates, beta=beta, dtype=dtype,
-                         device=device, chunk_elements=chunk_elements, values=values,
-                         frame=frame)
+    air = view_air(record, view, frame, device)
+    sums = _view_sums(view, record, start, displacement, templates, dimming(air), beta=beta,
+                      dtype=dtype, device=device, chunk_elements=chunk_elements, values=values)
     grid = planes(sums)[:, 0, 0]
     return grid[:1], grid[1:]
 

@@ -26,7 +26,7 @@ from .combined import render_layers_view
 from ..records.layered import LayeredParticles
 from ..records.particles import Particles
 from .renderer import BETA_RENDER, render_view
-from .tracks import View
+from ..views import View
 
 
 def warp_depth(depth: torch.Tensor, intrinsics: torch.Tensor, right_from_left: torch.Tensor,

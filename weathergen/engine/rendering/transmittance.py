@@ -6,7 +6,7 @@ extinctions add, ``τ = Σ_l τ_l``, and their airlights mix by optical depth,
 ``A = Σ_l τ_l A_l / τ`` (one atmosphere: its own ``A``). In each view:
 
 - the scene ``J`` becomes ``J t + A (1 − t)``, ``t = exp(−τ)`` along each pixel's ray up to its
-  surface (:meth:`Air.pixels`, :func:`fog_images`);
+  surface (:meth:`Air.pixels`, :func:`~weathergen.engine.rendering.composite.fog`);
 - a particle sees the air between it and the camera (:meth:`Air.dim`): an additive particle's
   light reaches the camera times ``t_p`` (its θ is multiplied by ``t_p``), an alpha-blended
   particle keeps its opacity and its colour becomes ``γ t_p + A_p (1 − t_p)``, with ``t_p`` and
@@ -14,7 +14,11 @@ extinctions add, ``τ = Σ_l τ_l``, and their airlights mix by optical depth,
   the composite, so ``I = (1 − a) I_scene + a (γ t_p + A_p (1 − t_p))`` for an alpha particle of
   opacity ``a``, and ``I_scene + t_p C`` for additive light ``C``: the single-scattering
   solution for a particle at distance ``d_p`` in front of a surface at ``d``;
-- the opacity is ``1 − t (1 − α)``, ``α`` the particles' (:func:`combined_opacity`).
+- the opacity is ``1 − t (1 − α)``, ``α`` the particles'
+  (:func:`~weathergen.engine.rendering.composite.fogged_opacity`).
+
+:func:`through_air` applies all three, in that order, for every entry point of the renderer; the
+formulas live in the blend module, :mod:`~weathergen.engine.rendering.composite`.
 
 Integration: a uniform atmosphere (``h = 0``, no explicit density) gives ``τ = β₀ L`` exactly. A
 heterogeneous one is integrated by the midpoint rule along the rays of a coarse grid of pixels,
@@ -35,13 +39,14 @@ from __future__ import annotations
 
 import dataclasses
 import math
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import torch
 import torch.nn.functional as F
 
 from ..weather.atmosphere import (RAY_ANGLE, RAY_SAMPLES, RAY_STEP, Atmosphere, ray_nodes,
-                                  sample_lattice, wrapped_lattice)
+                                  ray_norms, wrapped_lattice)
+from .composite import fog, fogged_opacity, tinted
 from .tracks import Tracks
 
 
@@ -75,7 +80,7 @@ class Air:
         self.layer_of = torch.tensor(table, dtype=torch.long, device=dev).view(-1, layers)
         self.single = [sum(1 for c in row if c != clear) <= 1 for row in table]
         self.has_air = [bool(a) for a in self.atmospheres]
-        self.has = torch.tensor(self.has_air)
+        self.has = torch.tensor(self.has_air)        #: which views have air (V,) bool, CPU
         self.view = torch.tensor([v for v, _ in comps], dtype=torch.long, device=dev)
         #: per view: fx, fy, cx, cy, skew
         self.camera = intrinsics.detach().to(device=dev, dtype=f64).reshape(-1, 9)[
@@ -95,32 +100,7 @@ class Air:
         self.slot_hetero = [any(row[k] in self.hetero for row in table) for k in range(layers)]
         self._tables = None
 
-    @classmethod
-    def of(cls, atmospheres: Sequence[Sequence[Atmosphere]], intrinsics: torch.Tensor,
-           cam_from_ref: torch.Tensor, size: tuple[int, int], frames: Sequence[int],
-           device=None) -> Optional["Air"]:
-        """The air of V views, or None where no view has any atmosphere."""
-        if not any(atmospheres):
-            return None
-        return cls(atmospheres, intrinsics, cam_from_ref, size, frames, device)
-
-    @property
-    def count(self) -> int:
-        return len(self.atmospheres)
-
-    def reached(self) -> torch.Tensor:
-        """Which views have air. Shape: (V,) bool (CPU)."""
-        return self.has
-
     # -- optical depth -------------------------------------------------------------------------
-
-    def ray_norms(self, view: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
-        """``|K⁻¹ (u, v, 1)|`` of view ``view`` (broadcast with the points). float64."""
-        fx, fy, cx, cy, skew = self.camera.index_select(0, view.reshape(-1)) \
-            .view(*view.shape, 5).unbind(-1)
-        y = (v.double() - cy) / fy
-        x = (u.double() - cx - skew * y) / fx
-        return torch.sqrt(x * x + y * y + 1)
 
     def optical_depth(self, comp: torch.Tensor, u: torch.Tensor, v: torch.Tensor,
                       distance: torch.Tensor, hetero: bool = True) -> torch.Tensor:
@@ -289,7 +269,7 @@ class Air:
         view = torch.arange(count, device=dev)[:, None, None]
         v = torch.arange(height, dtype=torch.float64, device=dev)[None, :, None]
         u = torch.arange(width, dtype=torch.float64, device=dev)[None, None, :]
-        distance = depth[:, 0].to(dev).double() * self.ray_norms(view, u, v)
+        distance = depth[:, 0].to(dev).double() * ray_norms(self.camera.view(-1, 1, 1, 5), u, v)
         # (a view without air reads the clear component: t = exp(0) = 1 and A = 0 exactly)
         t, airlight = self._through(view, u, v, distance)
         return t[:, None].to(dtype), airlight.permute(0, 3, 1, 2).to(dtype)
@@ -311,7 +291,7 @@ class Air:
         safe = torch.where(z.abs() > 1e-12, z, torch.full_like(z, 1e-12))
         u, v = middle[:, 0] / safe, middle[:, 1] / safe
         view = tracks.view.to(self.device)
-        distance = z.clamp(min=0) * self.ray_norms(view, u, v)
+        distance = z.clamp(min=0) * ray_norms(self.camera.index_select(0, view), u, v)
         # (a view without air reads the clear component: t = 1 and A = 0, which keep the bits)
         t, airlight = self._through(view, u, v, distance)
         dtype = tracks.theta.dtype
@@ -320,8 +300,7 @@ class Air:
         theta = torch.where(alpha_track, tracks.theta, tracks.theta * passed)
         if not tint:
             return dataclasses.replace(tracks, theta=theta)
-        light = ((1 - t)[:, None] * airlight).to(dtype)
-        colour = torch.where(alpha_track[:, None], tracks.color * passed[:, None] + light,
+        colour = torch.where(alpha_track[:, None], tinted(tracks.color, passed, t, airlight),
                              tracks.color)
         return dataclasses.replace(tracks, theta=theta, color=colour)
 
@@ -347,90 +326,31 @@ def _sample_rays(lattices: torch.Tensor, origin: torch.Tensor, direction: torch.
     return out.reshape(coords.shape[:-1])
 
 
-# -- one view, one atmosphere ----------------------------------------------------------------
-
-class AirView:
-    """One atmosphere seen by one camera in frame ``frame`` (0 or 1) of its pair: the optical
-    depth along any ray of the view (:meth:`optical_depth`), as a render integrates it.
-
-    Shape: intrinsics (3, 3), cam_from_ref (4, 4), size (H, W).
-    """
-
-    def __init__(self, atmosphere: Atmosphere, intrinsics: torch.Tensor,
-                 cam_from_ref: torch.Tensor, size: tuple[int, int], frame: int, device=None):
-        self.atmosphere = atmosphere
-        self.frame = int(frame)
-        self.air = Air([[atmosphere]], intrinsics[None], cam_from_ref[None], size, [frame],
-                       device)
-        self.intrinsics = intrinsics.detach().double().to(self.air.device)
-        self.cam_from_ref = self.air.cam_from_ref[0]
-        focal = float(torch.sqrt(self.intrinsics[0, 0] * self.intrinsics[1, 1]))
-        self.step = max(1, min(RAY_STEP, int(math.floor(focal * RAY_ANGLE))))
-
-    def distances(self, depth: torch.Tensor) -> torch.Tensor:
-        """Every pixel's ray length, at most ``sky_distance``. Shape: (1, H, W) -> (1, H, W)."""
-        height, width = depth.shape[-2:]
-        dev = self.air.device
-        v = torch.arange(height, dtype=torch.float64, device=dev)[:, None]
-        u = torch.arange(width, dtype=torch.float64, device=dev)[None, :]
-        zero = torch.zeros((), dtype=torch.long, device=dev)
-        return (depth.to(dev).double() * self.air.ray_norms(zero, u, v)) \
-            .clamp(max=self.atmosphere.sky_distance)
-
-    def optical_depth(self, u: torch.Tensor, v: torch.Tensor, distance: torch.Tensor
-                      ) -> torch.Tensor:
-        """τ along the rays through ``(u, v)`` up to ``distance``. Shape: any (same) -> same,
-        float64."""
-        zero = torch.zeros((), dtype=torch.long, device=self.air.device)
-        return self.air.optical_depth(zero, u, v, distance)
-
-
-def reference_optical_depth(air: AirView, u: torch.Tensor, v: torch.Tensor,
-                            distance: torch.Tensor, samples: int) -> torch.Tensor:
-    """τ by the midpoint rule with ``samples`` equal intervals along each point's own ray (no
-    coarse rays): the fine reference the integration is tested against.
-    Shape: any (same) shape -> that shape, float64."""
-    atm = air.atmosphere
-    length = distance.double().clamp(0, atm.sky_distance)
-    if atm.uniform:
-        return atm.extinction * length
-    k = air.intrinsics
-    cy = (v.double() - k[1, 2]) / k[1, 1]
-    cx = (u.double() - k[0, 2] - k[0, 1] * cy) / k[0, 0]
-    ray = torch.stack((cx, cy, torch.ones_like(cx)), -1)
-    ray = ray / ray.norm(dim=-1, keepdim=True)
-    rot, trans = air.cam_from_ref[:3, :3], air.cam_from_ref[:3, 3]
-    direction = (ray[..., :, None] * rot).sum(-2)
-    origin = -(trans[:, None] * rot).sum(0) - atm.drift[air.frame].to(length.device)
-    lattice = atm.lattice(torch.float64, length.device)
-    total = torch.zeros_like(length)
-    chunk = max(1, (1 << 22) // max(1, length.numel()))
-    for j0 in range(0, samples, chunk):
-        fractions = (torch.arange(j0, min(samples, j0 + chunk), dtype=torch.float64,
-                                  device=length.device) + 0.5) / samples
-        s = length[..., None] * fractions                                    # (..., J)
-        points = origin + direction[..., None, :] * s[..., None]
-        total = total + sample_lattice(lattice, points / atm.voxel).double().sum(-1)
-    return atm.extinction * length * total / samples
-
-
 # -- a render call's air ---------------------------------------------------------------------
 
-def fog_images(images: Sequence[torch.Tensor], transmission: torch.Tensor,
-               airlight: torch.Tensor, air: Air) -> list[torch.Tensor]:
-    """The scene through the air: ``J t + A (1 − t)`` where a view has air, ``J`` itself
-    elsewhere. Shape: T images (B, 3, H, W) (view ``t B + b``); transmission (V, 1, H, W),
-    airlight (V, 3, H, W) -> T images (B, 3, H, W)."""
-    return _where_air(images, air,
-                      lambda image, views: torch.lerp(airlight[views], image, transmission[views]))
+def dimming(air: Optional[Air]) -> Callable[..., Tracks]:
+    """How particles are seen through ``air`` (None: no view has any): :meth:`Air.dim`, or the
+    tracks as they are. The entry points that stop at the splat's sums use this step alone."""
+    return air.dim if air is not None else lambda tracks, *_, **__: tracks
 
 
-def combined_opacity(opacities: Sequence[torch.Tensor], transmission: torch.Tensor,
-                     air: Air) -> list[torch.Tensor]:
-    """The weather's opacity with the air's: ``1 − t (1 − α)`` where a view has air.
-    Shape: T opacities (B, 1, H, W), transmission (V, 1, H, W) -> T opacities (B, 1, H, W)."""
-    return _where_air(opacities, air,
-                      lambda opacity, views: 1 - transmission[views] * (1 - opacity))
+def through_air(air: Optional[Air], depth: torch.Tensor, images: Sequence[torch.Tensor], draw
+                ) -> tuple[list, list, Optional[torch.Tensor]]:
+    """Weather drawn into ``images`` seen through the air, as every entry point of the renderer
+    applies it: ``draw(dim)`` draws the particles seen through ``dim`` (:func:`dimming`) and
+    returns ``blend(images) -> (frames, opacities, reached (V,) or None)``; the scene is fogged,
+    blended, its opacities take the air's and views with air count as reached (the formulas:
+    :mod:`~weathergen.engine.rendering.composite`). Shape: T images (B, 3, H, W) (view
+    ``t B + b``), depth (V, 1, H, W) the views' scene depth."""
+    blend = draw(dimming(air))
+    if air is None:
+        return blend(images)
+    transmission, airlight = air.pixels(depth, images[0].dtype)
+    frames, opacities, reached = blend(_where_air(
+        images, air, lambda image, views: fog(airlight[views], image, transmission[views])))
+    opacities = _where_air(opacities, air,
+                           lambda opacity, views: fogged_opacity(opacity, transmission[views]))
+    return frames, opacities, None if reached is None else reached | air.has.to(reached.device)
 
 
 def _where_air(frames: Sequence[torch.Tensor], air: Air, through) -> list[torch.Tensor]:
@@ -453,22 +373,25 @@ def _where_air(frames: Sequence[torch.Tensor], air: Air, through) -> list[torch.
     return out
 
 
-def pair_air(atmospheres: Sequence[Sequence[Atmosphere]], intrinsics: torch.Tensor,
-             cam1_from_ref: torch.Tensor, cam2_from_ref: torch.Tensor, size: tuple[int, int],
-             device=None) -> Optional[Air]:
+def pair_air(records: Sequence, intrinsics: torch.Tensor, cam1_from_ref: torch.Tensor,
+             cam2_from_ref: torch.Tensor, size, device=None) -> Optional[Air]:
     """The air of the 2B views of B pairs (view ``t B + b``: frame ``t`` of pair ``b``), pair
-    ``b`` seeing ``atmospheres[b]`` (every layer's); None where no pair has any.
-    Shape: intrinsics (B, 3, 3), cam*_from_ref (B, 4, 4)."""
+    ``b`` seeing the atmospheres of ``records[b]`` (every layer's); None where no pair has any.
+    Shape: intrinsics (B, 3, 3), cam*_from_ref (B, 4, 4), size (H, W)."""
+    atmospheres = [record_atmospheres(r) for r in records]
     if not any(atmospheres):
         return None
     bsz = len(atmospheres)
-    return Air(list(atmospheres) * 2, torch.cat((intrinsics, intrinsics)),
-               torch.cat((cam1_from_ref, cam2_from_ref)), size, [0] * bsz + [1] * bsz, device)
+    return Air(atmospheres * 2, torch.cat((intrinsics, intrinsics)),
+               torch.cat((cam1_from_ref, cam2_from_ref)), tuple(size), [0] * bsz + [1] * bsz,
+               device)
 
 
-def view_air(atmospheres: Sequence[Atmosphere], view, frame: int, device=None) -> Optional[Air]:
+def view_air(record, view, frame: int, device=None) -> Optional[Air]:
     """The air of one :class:`~weathergen.engine.View` (a frame of a sequence, a stereo camera)
-    seeing ``atmospheres`` in frame ``frame`` (0 or 1) of their pair; None without any."""
+    seeing the atmospheres of ``record`` in frame ``frame`` (0 or 1) of its pair; None without
+    any."""
+    atmospheres = record_atmospheres(record)
     if not atmospheres:
         return None
     return Air([list(atmospheres)], view.intrinsics[None], view.cam_from_ref[None],

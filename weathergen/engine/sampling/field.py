@@ -53,11 +53,12 @@ from ..weather.atmosphere import DEFAULT_AIRLIGHT, Atmosphere, estimate_airlight
 from ..records.layered import LayeredParticles, layer_seed
 from ..weather.presets import CombinedPreset, FieldPreset
 from ..records.particles import Particles, empty_particles
-from .pair import (check_pair_for_engine, cpu_generator, euler_rotations, expect_kind,
-                   hls_to_rgb, reference_transforms, resolve_device, rgb_to_hls, sample_particles, world_down)
+from ..common import check_pair_for_engine, reference_transforms, resolve_device
+from .pair import (cpu_generator, euler_rotations, expect_kind, hls_to_rgb, rgb_to_hls,
+                   sample_particles, world_down)
 from ..records.settings import RenderSettings
 from ..weather.templates import TemplateLibrary, load_templates
-from ..rendering.tracks import MAX_DEFOCUS, View, focal, view_mask, view_windows
+from ..views import MAX_DEFOCUS, View, focal, view_mask, view_windows
 
 #: Bits of the grid below the tile side: quantum = 2^floor(log2(L) - GRID_BITS).
 GRID_BITS = 16

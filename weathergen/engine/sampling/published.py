@@ -30,7 +30,7 @@ from ...framepair import FramePair
 from ...io.published_weather import PublishedWeather
 from ..records.particles import Particles
 from ..weather.presets import Preset
-from .pair import reference_transforms
+from ..common import reference_transforms
 from ..records.settings import RenderSettings
 
 

@@ -17,14 +17,9 @@ wind, and is the same at the same world point in every frame of a sequence and i
 a stereo rig. Rays end at the scene's surface, or at ``sky_distance`` for the sky and anything
 farther.
 
-Integration (:mod:`~weathergen.engine.rendering.transmittance`): with ``h = 0`` and no density lattice,
-``τ = β₀ L`` exactly. A heterogeneous medium is integrated by the midpoint rule along the rays of a coarse grid of
-pixels, every :data:`RAY_STEP` pixels (fewer for short focal lengths: at most
-:data:`RAY_ANGLE` apart), in :data:`RAY_SAMPLES` intervals that grow geometrically
-from ``sky_distance / 2000`` to ``sky_distance``; a pixel (or a particle) reads the cumulative
-integral at its own distance on the four coarse rays around it (linearly within an interval) and
-interpolates them bilinearly. The error against a fine reference is bounded and tested (see
-``docs/engine.md``, "The atmosphere").
+The render integrates it along every ray of a view (:mod:`~weathergen.engine.rendering.transmittance`
+states how, with the constants below; the error against a fine reference is bounded and tested,
+see ``docs/engine.md``, "The atmosphere").
 
 Everything is differentiable in the density lattice and the airlight (and in the particles'
 positions where they are dimmed): the attack can optimise the fog itself.
@@ -180,8 +175,8 @@ _LATTICES: dict = {}
 
 @dataclass
 class Atmosphere:
-    """The atmosphere a field record carries: what :class:`AirView` needs to integrate it in any
-    view of the record's pair.
+    """The atmosphere a field record carries: what a render needs to integrate it in any view of
+    the record's pair (:mod:`~weathergen.engine.rendering.transmittance`).
 
     Lengths in scene units (metres on metric datasets), in the record's reference frame.
     extinction: β₀ (per scene unit); heterogeneity: ``h`` in [0, 1); scale: the
@@ -300,12 +295,19 @@ class Atmosphere:
 
 # -- the airlight ----------------------------------------------------------------------------
 
-def ray_norms(intrinsics: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+def camera_rows(intrinsics: torch.Tensor) -> torch.Tensor:
+    """``fx, fy, cx, cy, skew`` of intrinsics. Shape: (..., 3, 3) -> (..., 5) float64."""
+    k = intrinsics.double()
+    return k.reshape(*k.shape[:-2], 9)[..., [0, 4, 2, 5, 1]]
+
+
+def ray_norms(camera: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
     """``|K⁻¹ (u, v, 1)|``: scene distance per unit of camera depth along the ray through image
-    point ``(u, v)``. Shape: intrinsics (3, 3); u, v any (same) shape -> that shape, float64."""
-    k = intrinsics.double().to(u.device)
-    y = (v.double() - k[1, 2]) / k[1, 1]
-    x = (u.double() - k[0, 2] - k[0, 1] * y) / k[0, 0]
+    point ``(u, v)``. Shape: camera (..., 5) (:func:`camera_rows`, on the points' device)
+    broadcast with u, v (...) -> (...) float64."""
+    fx, fy, cx, cy, skew = camera.unbind(-1)
+    y = (v.double() - cy) / fy
+    x = (u.double() - cx - skew * y) / fx
     return torch.sqrt(x * x + y * y + 1)
 
 
@@ -316,7 +318,7 @@ def pixel_distances(depth: torch.Tensor, intrinsics: torch.Tensor) -> torch.Tens
     v, u = torch.meshgrid(torch.arange(height, dtype=torch.float64, device=depth.device),
                           torch.arange(width, dtype=torch.float64, device=depth.device),
                           indexing="ij")
-    return depth.double() * ray_norms(intrinsics, u, v)
+    return depth.double() * ray_norms(camera_rows(intrinsics).to(depth.device), u, v)
 
 
 def estimate_airlight(images: Sequence[torch.Tensor], depths: Sequence[torch.Tensor],

@@ -34,8 +34,8 @@ import torch.nn.functional as F
 from ...errors import ConfigError
 from ...memory import BUDGET_VARIABLE, Available, available_memory, human_bytes
 from ..weather.presets import CombinedPreset, FieldPreset, Preset, frame_scaling
-from ..rendering.stamps import COARSE_MAX_LEVEL, COARSE_SIDE
-from ..rendering.tracks import MAX_DEFOCUS
+from .stamps import COARSE_MAX_LEVEL, COARSE_SIDE
+from ..views import MAX_DEFOCUS
 
 #: Bytes of every draw: the template atlas, its mip levels, tables.
 BYTES_FIXED = 16 << 20
