@@ -67,6 +67,15 @@ def summary_table(title: str, summary: dict, what: str = "weather", compat: str 
     return table
 
 
+def pair_line(s, versus: str) -> str:
+    """A written pair's figures in one line (a sequence attack's: the pair attacked alone too)."""
+    alone = ("" if s.per_pair_aee_adversarial is None else
+             f" (the pair attacked alone: {s.per_pair_aee_adversarial:.3f})")
+    return (f"AEE(f, f̌) random {s.aee_random:.3f} -> adversarial{versus} "
+            f"{s.aee_adversarial:.3f}{alone}, distance to target {s.target_initial:.3f} "
+            f"-> {s.target_adversarial:.3f}")
+
+
 def scene_table(summary: dict) -> Table:
     """A sequence attack's AEE(f, f̌) per scene: random weather, one adversarial weather for the
     scene, and each pair attacked alone (pixels)."""
@@ -316,14 +325,8 @@ def _run(job, model, label, target, steps, out, quiet):
             progress.update(task, completed=clock.done * (total_steps + 1),
                             status=clock.describe())
         if not quiet and progress is None and report.status != "failed":
-            s = report.summary
-            alone = ("" if s.per_pair_aee_adversarial is None else
-                     f" (the pair attacked alone: {s.per_pair_aee_adversarial:.3f})")
             console.print(f"[{clock.describe()}] {report.pair} {report.status}: "
-                          f"AEE(f, f̌) random {s.aee_random:.3f} -> adversarial{versus} "
-                          f"{s.aee_adversarial:.3f}{alone}, distance to target "
-                          f"{s.target_initial:.3f} "
-                          f"-> {s.target_adversarial:.3f}", highlight=False, soft_wrap=True)
+                          + pair_line(report.summary, versus), highlight=False, soft_wrap=True)
 
     if interactive:
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),

@@ -22,14 +22,13 @@ from typing import Callable, Optional
 import numpy as np
 import torch
 
-from ..datasets import Dataset, right_camera
-from ..engine import CombinedPreset, render_pair
+from ..datasets import Dataset
+from ..engine import CombinedPreset
 from ..engine.rendering.budget import check_pair_memory
 from ..errors import ConfigError, OutputError, WeatherGenError
-from ..flow import aee, weather_mask
+from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.atomic import write_error
-from ..io.images import to_uint8
 from ..memory import failure_message
 from ..words import counted
 from ..models import AUTOCAST, Network, get_model, probe_network, resolve_network, resolve_precision
@@ -42,8 +41,9 @@ from ..jobs import (depth_note, frame2_note, layer_seeds, pair_particles, pair_s
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .record import run_settings
-from .sequence import (attack_sequence, check_sequence_preset, check_sequence_settings,
-                       scene_figures, scene_units, scene_weather, second_view)
+from .figures import written_flow
+from .sequence import (check_sequence_preset, check_sequence_settings, compare_alone,
+                       scene_figures, scene_units, sequence_results)
 from .settings import AttackSettings
 from .targets import TargetSpec, read_target_flow
 
@@ -244,21 +244,9 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
         names = [str(ref.id) for ref, _, _, _ in group]
         pairs = [g[1] for g in group]
         step = lambda i, record: on_step(names[i], record)     # noqa: E731
-        alone = None
         try:
-            if job.lp is not None:
-                results = lp_attack_batch(
-                    model, torch.stack([p.image1 for p in pairs]).to(device),
-                    torch.stack([p.image2 for p in pairs]).to(device), job.lp, job.target,
-                    seeds=[pair_seed(job.seed, p.id) for p in pairs],
-                    target_file_flow=target_file_flow, on_step=step)
-            elif job.sequence:
-                results, alone = sequence_results(job, model, pairs, [g[2] for g in group],
-                                                  device, target_file_flow, step)
-            else:
-                results = attack_batch(model, pairs, [g[2] for g in group], job.settings,
-                                       job.target, device=device,
-                                       target_file_flow=target_file_flow, on_step=step)
+            results, alone = _optimise(job, model, pairs, [g[2] for g in group], device,
+                                       target_file_flow, step)
         except (WeatherGenError, MemoryError, RuntimeError) as exc:
             message = failure_message(exc, "--batch-size")
             for ref, _, _, _ in group:
@@ -285,18 +273,19 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
     return [reports[ref.id.key] for ref in refs]
 
 
-def stored_flow(job: AttackJob, model, pair, particles, device) -> tuple:
-    """A record as written: ``(record at storage precision, its rendering, the 8-bit frames,
-    the network's flow on them (1, 2, H, W) on the CPU)``."""
-    best = particles.quantized()
-    with torch.no_grad():
-        rendered = render_pair(pair, best, beta=job.settings.beta, device=device)
-    frames = tuple(to_uint8(img[0].permute(1, 2, 0).cpu().numpy())
-                   for img in (rendered.image1, rendered.image2))
-    stored = [torch.from_numpy(f).permute(2, 0, 1)[None].float().div(255).to(device)
-              for f in frames]
-    with torch.no_grad():
-        return best, rendered, frames, model(*stored).cpu()
+def _optimise(job: AttackJob, model, pairs: list, particles: list, device, target_file_flow,
+              on_step) -> tuple[list, Optional[list]]:
+    """A group's optimisation: its results, and a sequence attack's pairs attacked alone."""
+    if job.lp is not None:
+        return lp_attack_batch(
+            model, torch.stack([p.image1 for p in pairs]).to(device),
+            torch.stack([p.image2 for p in pairs]).to(device), job.lp, job.target,
+            seeds=[pair_seed(job.seed, p.id) for p in pairs],
+            target_file_flow=target_file_flow, on_step=on_step), None
+    if job.sequence:
+        return sequence_results(job, model, pairs, particles, device, target_file_flow, on_step)
+    return attack_batch(model, pairs, particles, job.settings, job.target, device=device,
+                        target_file_flow=target_file_flow, on_step=on_step), None
 
 
 def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
@@ -304,8 +293,8 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
     # What is written is the best record at storage precision, rendered and rounded to the
     # 8-bit PNG frames; the adversarial flow is the network's flow on exactly those frames, so
     # the figures describe the files on disk (`evaluate --weather OUT` measures the same).
-    best, rendered, frames, adversarial = stored_flow(job, model, pair, result.best_particles,
-                                                      device)
+    best, rendered, frames, adversarial = written_flow(model, pair, result.best_particles,
+                                                       job.settings.beta, device)
     covered = weather_mask(rendered.opacity1, rendered.opacity2)[0, 0].cpu()
     summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
                              compat=job.settings.compat, covered=covered)
@@ -322,45 +311,6 @@ def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSumm
     write_attack_pair(out, pair.to("cpu"), frames, opacity, meta, flows, result.history,
                       asdict(summary))
     return summary
-
-
-def sequence_results(job: AttackJob, model, pairs: list, particles: list, device,
-                     target_file_flow, on_step) -> tuple[list, list]:
-    """A scene's pairs attacked with one weather (:func:`~weathergen.attack.attack_sequence`,
-    ``job.batch_size`` pairs per forward pass), and each pair alone with the same settings
-    and start (:func:`~weathergen.attack.attack_batch`), for comparison."""
-    combined = isinstance(job.preset, CombinedPreset)
-    seeds = [layer_seeds(job.preset, job.seed, p.id) if combined
-             else weather_seed(job.preset, job.seed, p.id) for p in pairs]
-    weather = scene_weather(pairs, particles, job.preset, seeds,
-                            world_up=getattr(job.dataset, "world_up", "auto"),
-                            frame_rate=job.dataset.frame_rate,
-                            airlight=scene_airlight(job.dataset, pairs[0].id, job.scene_firsts,
-                                                    job.preset))
-    options = dict(device=device, target_file_flow=target_file_flow)
-    seconds = ([second_view(p, right_camera(job.dataset, p)) for p in pairs] if job.stereo
-               else None)
-    results = attack_sequence(model, pairs, particles, weather, job.settings, job.target,
-                              chunk=job.batch_size, seconds=seconds, on_step=on_step, **options)
-    n = job.batch_size
-    alone = [r for i in range(0, len(pairs), n)
-             for r in attack_batch(model, pairs[i:i + n], particles[i:i + n], job.settings,
-                                   job.target, **options)]
-    return results, alone
-
-
-def compare_alone(job: AttackJob, model, pair, result, alone, summary: PairSummary,
-                  device) -> None:
-    """Set a sequence attack's pair's figures of the pair attacked alone (``alone``, its
-    :class:`~weathergen.attack.AttackResult`), measured as the written ones, and of the second
-    camera where ``result`` has one (float frames)."""
-    flow = stored_flow(job, model, pair, alone.best_particles, device)[3]
-    summary.per_pair_aee_adversarial = float(aee(flow, alone.benign_flow).mean())
-    summary.per_pair_target_adversarial = float(aee(flow, alone.target).mean())
-    if result.second is not None:
-        flows = result.second
-        summary.second_aee_random = float(aee(flows["initial"], flows["benign"]).mean())
-        summary.second_aee_adversarial = float(aee(flows["best"], flows["benign"]).mean())
 
 
 def lp_pair_output(job: AttackJob, pair_id) -> AttackPairOutput:
@@ -436,6 +386,20 @@ def _last_save(save, run: dict, stopped_by) -> None:
             raise OutputError(f"{stopped_by.args[0]}; the manifest could not be updated either; "
                               f"${{resume}} finds the {counted(run['written'], 'pair')} "
                               f"finished in this run on disk") from None
+
+
+def _complete(job: AttackJob, ref, refs: list) -> bool:
+    """Whether a pair is finished on disk; a sequence attack's, whether its whole scene is (a
+    scene with an unfinished pair is redone whole)."""
+    scene = [r for r in refs if scene_key(r.id) == scene_key(ref.id)] if job.sequence else [ref]
+    return all(pair_output(job, r.id).is_complete() for r in scene)
+
+
+def _units(job: AttackJob, todo: list) -> list[list]:
+    """The work units: ``batch_size`` pairs each, or a sequence attack's scenes."""
+    if job.sequence:
+        return scene_units(todo)
+    return [todo[i:i + job.batch_size] for i in range(0, len(todo), job.batch_size)]
 
 
 def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
@@ -556,21 +520,17 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
     on_start(len(refs))
     t0 = time.perf_counter()
     todo, stopped_by = [], None
-    # a sequence attack redoes every pair of a scene that is not complete
-    redo = {scene_key(u[0].id) for u in scene_units(refs) if job.sequence and not all(
-        pair_output(job, r.id).is_complete() for r in u)}
     try:
         for ref in refs:
             out = pair_output(job, ref.id)
-            if not job.overwrite and scene_key(ref.id) not in redo and out.is_complete():
+            if not job.overwrite and _complete(job, ref, refs):
                 stored = read_pair_summary(out)
                 if stored is not None:
                     record(PairReport(str(ref.id), "skipped", PairSummary.from_dict(stored),
                                       key=ref.id.key))
                     continue
             todo.append(ref)
-        units = (scene_units(todo) if job.sequence else
-                 [todo[i:i + job.batch_size] for i in range(0, len(todo), job.batch_size)])
+        units = _units(job, todo)
         if local:
             results = (attack_refs(job, unit, model, target_file_flow, on_step) for unit in units)
         else:

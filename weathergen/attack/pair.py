@@ -57,10 +57,13 @@ from ..errors import ConfigError
 from ..flow import aee
 from ..framepair import FramePair
 from ..geometry import transform_points
-from .figures import FIGURE_KEYS, RegionFigures, mean_figures, region_figures
+from .figures import (FIGURE_KEYS, SEQUENCE_FIGURES, RegionFigures, mean_figures,
+                      region_figures)
 from .compat import (camera_translation_in_reference, detaches_occlusion, reference_figure_flows,
                      reference_offset_penalty, resets_gradients)
-from .settings import DEFAULT_ALPHA, DENSITY_FACTOR, AttackSettings, lr_group
+from .rates import group_optimizer
+from .settings import DEFAULT_ALPHA, DENSITY_FACTOR, AttackSettings
+from .steps import AttackResult, StepLog, StepRecord
 from .targets import TargetSpec, target_flow
 
 #: Smallest particle depth (scene units) used in the offset penalty.
@@ -126,13 +129,6 @@ class WeatherVariables:
         """The particles' freed variables (the atmosphere's: :meth:`atmosphere_parameters`)."""
         return list(self.delta.values())
 
-    def groups(self) -> dict[str, list[torch.Tensor]]:
-        """Every freed variable by its learning-rate group (:data:`LR_GROUPS`)."""
-        out: dict[str, list[torch.Tensor]] = {}
-        for name, p in (*self.delta.items(), *self.atmosphere.items()):
-            out.setdefault(lr_group(name), []).append(p)
-        return out
-
     def atmosphere_parameters(self) -> list[torch.Tensor]:
         return list(self.atmosphere.values())
 
@@ -190,13 +186,6 @@ class LayeredVariables:
     def atmosphere_parameters(self) -> list[torch.Tensor]:
         return [p for v in self.freed.values() for p in v.atmosphere_parameters()]
 
-    def groups(self) -> dict[str, list[torch.Tensor]]:
-        out: dict[str, list[torch.Tensor]] = {}
-        for v in self.freed.values():
-            for group, params in v.groups().items():
-                out.setdefault(group, []).extend(params)
-        return out
-
     def particles(self) -> LayeredParticles:
         out = self.base
         for k, v in self.freed.items():
@@ -208,21 +197,6 @@ class LayeredVariables:
         """The freed layers' added offsets, joined (as :attr:`WeatherVariables.delta`)."""
         names = {n for v in self.freed.values() for n in v.delta}
         return {n: torch.cat([v.delta[n] for v in self.freed.values()]) for n in names}
-
-
-def group_optimizer(variables: Sequence, settings: AttackSettings) -> torch.optim.Adam:
-    """Adam over the freed variables of ``variables`` (:class:`WeatherVariables` or
-    :class:`LayeredVariables`), one parameter group per learning-rate group, named ``group``,
-    at the rate :attr:`AttackSettings.learning_rates` gives it."""
-    joined: dict[str, list[torch.Tensor]] = {}
-    for v in variables:
-        for group, params in v.groups().items():
-            joined.setdefault(group, []).extend(params)
-    rates = settings.learning_rates
-    groups = [{"params": params, "lr": rates[group], "group": group}
-              for group, params in joined.items()]
-    # (no variable at all, e.g. nothing visible: an empty group keeps Adam's constructor happy)
-    return torch.optim.Adam(groups or [{"params": [], "group": "none"}], lr=1.0)
 
 
 def _joined(depths: list) -> tuple[torch.Tensor, torch.Tensor]:
@@ -279,79 +253,6 @@ def attack_loss(flow: torch.Tensor, target: torch.Tensor, particles, depth1: tor
 
 
 # -- the loop -----------------------------------------------------------------------------------
-
-@dataclass
-class StepRecord:
-    """One evaluated step. Distances in pixels; ``robustness`` is AEE(f, f̌) against the benign
-    flow; ``best_distance`` the lowest distance so far (never increases)."""
-
-    step: int
-    loss: float
-    distance: float
-    penalty: float
-    robustness: float
-    best_distance: float
-    seconds: float
-
-
-@dataclass
-class AttackResult:
-    """Outcome of :func:`attack_pair`.
-
-    Shape: benign_flow, initial_flow, best_flow, target (1, 2, H, W) pixels, on the CPU;
-    best_particles a detached CPU record (float32, not yet quantised to storage precision).
-    """
-
-    best_particles: object
-    best_step: int
-    history: list[StepRecord]
-    benign_flow: torch.Tensor
-    initial_flow: torch.Tensor
-    best_flow: torch.Tensor
-    target: torch.Tensor
-    frozen: bool = False    # True when no variable could influence the loss (nothing visible)
-    #: a stereo sequence attack's second camera: its benign, initial and best flows (float frames)
-    second: Optional[dict] = None
-
-
-class StepLog:
-    """The per-step bookkeeping of an attack loop over B pairs (the weather attack's and the Lp
-    attacks'): each pair's :class:`StepRecord` history and its best step so far, the one with
-    the lowest distance to the target (the first measured step always counts), with its flow."""
-
-    def __init__(self, size: int, on_step: Callable[[int, StepRecord], None]):
-        self.history: list[list[StepRecord]] = [[] for _ in range(size)]
-        self.best = [math.inf] * size
-        self.best_step = [0] * size
-        self.best_flow: list = [None] * size
-        self.on_step = on_step
-
-    def improves(self, i: int, step: int, distance: float, flow: torch.Tensor) -> bool:
-        """Whether ``step`` is pair ``i``'s best so far; if so, keep its step, ``distance`` and
-        flow (row ``i`` of ``flow``, detached, on the CPU)."""
-        if distance < self.best[i] or self.best_flow[i] is None:
-            self.best[i], self.best_step[i] = distance, step
-            self.best_flow[i] = flow[i:i + 1].detach().cpu()
-            return True
-        return False
-
-    def record(self, step: int, pairs: Sequence[int], flow: torch.Tensor, benign: torch.Tensor,
-               losses: torch.Tensor, distances: Sequence[float], penalties: torch.Tensor,
-               t0: float) -> None:
-        """Append step ``step``'s :class:`StepRecord` to the history of each pair in ``pairs``
-        and report it to ``on_step``; ``seconds`` is the time since ``t0``.
-        Shape: flow and benign (B, 2, H, W), losses and penalties (B,), distances B floats."""
-        robustness = aee(flow.detach(), benign).cpu().tolist()
-        loss_values = losses.detach().cpu().tolist()
-        penalty_values = penalties.detach().cpu().tolist()
-        seconds = time.perf_counter() - t0
-        for i in pairs:
-            record = StepRecord(step=step, loss=loss_values[i], distance=distances[i],
-                                penalty=penalty_values[i], robustness=robustness[i],
-                                best_distance=self.best[i], seconds=seconds)
-            self.history[i].append(record)
-            self.on_step(i, record)
-
 
 def snapshot(particles):
     """A detached CPU copy of a record (of every layer of combined weather)."""
@@ -646,12 +547,6 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
     return attack_batch(model, [pair], [particles], settings, target, device=device,
                         target_file_flow=target_file_flow,
                         on_step=lambda i, record: on_step(record))[0]
-
-
-#: A sequence attack's figures: its pairs attacked alone, and its second camera with --stereo
-#: (None, and left out of the means, otherwise).
-SEQUENCE_FIGURES = ("per_pair_aee_adversarial", "per_pair_target_adversarial",
-                    "second_aee_random", "second_aee_adversarial")
 
 
 @dataclass

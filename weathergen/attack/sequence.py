@@ -41,12 +41,16 @@ from ..engine import (CombinedPreset, FieldPreset, LayeredParticles, View, field
                       reference_transforms)
 from ..engine.rendering.stereo import render_right, render_right_layers, stereo_view, warp_view_depth
 from ..engine.rendering.tracks import pair_starts
+from ..datasets import right_camera
 from ..errors import ConfigError
 from ..flow import aee
 from ..framepair import FramePair
-from .pair import (AttackResult, BatchOptimisation, LayeredVariables, StepLog, StepRecord,
-                   WeatherVariables, group_optimizer, snapshot)
+from ..jobs import layer_seeds, scene_airlight, weather_seed
+from .figures import written_flow
+from .pair import BatchOptimisation, LayeredVariables, WeatherVariables, attack_batch, snapshot
+from .rates import group_optimizer
 from .settings import AttackSettings
+from .steps import AttackResult, StepLog, StepRecord
 from .targets import TargetSpec, target_flow
 
 #: The variables of one world weather.
@@ -378,3 +382,43 @@ def scene_figures(rows: Sequence) -> dict:
             figures[key] = sum(values) / len(values) if values else None
         out[scene] = figures
     return out
+
+
+def sequence_results(job, model, pairs: list, particles: list, device,
+                     target_file_flow, on_step) -> tuple[list, list]:
+    """A scene's pairs (of an :class:`~weathergen.attack.AttackJob`, ``job``) attacked with one
+    weather (:func:`attack_sequence`, ``job.batch_size`` pairs per forward pass), and each pair
+    alone with the same settings and start (:func:`~weathergen.attack.attack_batch`), for
+    comparison."""
+    combined = isinstance(job.preset, CombinedPreset)
+    seeds = [layer_seeds(job.preset, job.seed, p.id) if combined
+             else weather_seed(job.preset, job.seed, p.id) for p in pairs]
+    weather = scene_weather(pairs, particles, job.preset, seeds,
+                            world_up=getattr(job.dataset, "world_up", "auto"),
+                            frame_rate=job.dataset.frame_rate,
+                            airlight=scene_airlight(job.dataset, pairs[0].id, job.scene_firsts,
+                                                    job.preset))
+    options = dict(device=device, target_file_flow=target_file_flow)
+    seconds = ([second_view(p, right_camera(job.dataset, p)) for p in pairs] if job.stereo
+               else None)
+    results = attack_sequence(model, pairs, particles, weather, job.settings, job.target,
+                              chunk=job.batch_size, seconds=seconds, on_step=on_step, **options)
+    n = job.batch_size
+    alone = [r for i in range(0, len(pairs), n)
+             for r in attack_batch(model, pairs[i:i + n], particles[i:i + n], job.settings,
+                                   job.target, **options)]
+    return results, alone
+
+
+def compare_alone(job, model, pair, result, alone, summary, device) -> None:
+    """Set a sequence attack's pair's figures (its :class:`~weathergen.attack.PairSummary`) of the
+    pair attacked alone (``alone``, its
+    :class:`~weathergen.attack.AttackResult`), measured as the written ones, and of the second
+    camera where ``result`` has one (float frames)."""
+    flow = written_flow(model, pair, alone.best_particles, job.settings.beta, device)[3]
+    summary.per_pair_aee_adversarial = float(aee(flow, alone.benign_flow).mean())
+    summary.per_pair_target_adversarial = float(aee(flow, alone.target).mean())
+    if result.second is not None:
+        flows = result.second
+        summary.second_aee_random = float(aee(flows["initial"], flows["benign"]).mean())
+        summary.second_aee_adversarial = float(aee(flows["best"], flows["benign"]).mean())
