@@ -134,11 +134,13 @@ def test_sensor_holes_are_filled_and_a_large_region_that_is_not_sky_is_completed
     np.testing.assert_array_equal(got[measured], true[measured])              # measured values kept
     rel = np.abs(got[holes] - true[holes]) / true[holes]
     assert np.median(rel) < 0.02 and rel.max() < 0.05, rel     # holes: their surface (two planes, a crease)
-    # the textured walls above the missing rows are no sky: completed, not sent to the far depth
-    # (the smooth blue ceiling of the street, at the top, is taken for sky)
+    # the textured walls above the missing rows are no sky: completed, not sent to the far depth.
+    # The street has no sky; its smooth blue-grey back wall at the top is partly taken for one
+    # (the sky estimate's known limit, which a sky/ mask settles), the red brick wall never.
     prov = pair.depth_provenance1[0].numpy()
     assert (prov[holes] == COMPLETED).all() and np.isin(prov[:40], (COMPLETED, SKY)).all()
-    assert (prov[:40] == COMPLETED).mean() > 0.8 and (got[prov == SKY] == 700.0).all()
+    assert (prov[:40, :140] == COMPLETED).all() and (prov[:40] == COMPLETED).mean() > 0.75
+    assert (got[prov == SKY] == 700.0).all()
     top = (np.abs(got[:40] - true[:40]) / true[:40])[prov[:40] == COMPLETED]
     assert np.median(top) < 0.05 and np.quantile(top, 0.9) < 0.2, (np.median(top), top.max())
     assert pair.meta["depth_values"][0]["filled"] == pytest.approx((prov == COMPLETED).mean(), abs=1e-4)

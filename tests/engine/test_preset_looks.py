@@ -25,7 +25,7 @@ from weathergen.engine.records.settings import RenderSettings
 from weathergen.engine.rendering.tracks import RESEARCH_DISC, ParticleTable, RecordRows, fixed_looks
 from weathergen.errors import ConfigError, FormatError
 
-from tests.run_helpers import script_module
+from run_helpers import script_module
 
 FIGURES = json.loads((Path(__file__).parent / "research_looks.json").read_text())
 #: weathergen's seeds per preset here (the figures' own are in the file).

@@ -44,6 +44,9 @@ SKY_BRIGHT_QUANTILE = 0.6
 #: Once found, the sky takes the smooth blue to grey pixels at least this share of its median
 #: luminance (a lens darkens the frame's corners).
 SKY_RELATIVE_BRIGHTNESS = 0.6
+#: The darker parts of the sky (a lens's corners) join the bright sky where they touch it and
+#: their hue is this close to its own (a darker grey wall beside it is not taken).
+SKY_DARKER_SPREAD = 0.05
 #: Blue to grey: a sky pixel's blue is at least its red and its green less this.
 SKY_HUE = 0.02
 #: The largest distance (RGB) between the mean colours of two parts of one sky.
@@ -229,9 +232,19 @@ def estimate_sky(image: np.ndarray, measured: np.ndarray, *,
     if sky.any():
         # The bright parts find the sky, which may be darker elsewhere (a lens darkens the corners)
         bright = grey >= SKY_RELATIVE_BRIGHTNESS * np.median(grey[sky])
-        sky = _smooth_sky(possible & bright, texture, gradient, max_gradient, image)
-        sky |= _enclosed_sky(possible & bright, texture, gradient, max_gradient, image, sky)
+        darker = _smooth_sky(possible & bright, texture, gradient, max_gradient, image)
+        sky = _grown(darker & _near_colour(image, sky, SKY_DARKER_SPREAD), sky)
+        sky |= _enclosed_sky(possible & bright & ~_touching_top(possible & bright), texture,
+                             gradient, max_gradient, image, sky)
     return _edge_pixels(sky, above, image)
+
+
+def _near_colour(image: np.ndarray, sky: np.ndarray, spread: float) -> np.ndarray:
+    """The pixels whose hue (colour over its mean) lies within ``spread`` of the sky's mean hue.
+    Shape: image (H, W, 3), sky (H, W) -> (H, W)."""
+    ref = image[sky].mean(axis=0)
+    hue = image / np.maximum(image.mean(axis=2, keepdims=True), 1e-6)
+    return np.linalg.norm(hue - ref / max(ref.mean(), 1e-6), axis=2) <= spread
 
 
 def _smooth_sky(possible, texture, gradient, max_gradient, image):
