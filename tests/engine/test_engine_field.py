@@ -22,7 +22,7 @@ from weathergen.engine.rendering.groundtruth import particle_truth, seen_flow
 from weathergen.engine.weather.optics import FieldOptics
 from weathergen.engine.records.settings import RenderSettings
 from weathergen.engine.rendering.renderer import render_view
-from weathergen.engine.views import View, field_defocus_radius, depth_fade, footprint, view_mask
+from weathergen.engine.views import View, coc_radius, fade, footprint, view_mask
 from weathergen.errors import ConfigError
 from weathergen.framepair import FramePair, PairId
 from weathergen.geometry import project, transform_points
@@ -129,11 +129,11 @@ def test_footprint_ratio_is_the_inverse_depth_ratio():
 def test_appearance_functions():
     optics = FieldOptics(near=0.5, far=10.0, fade=0.2, aperture=0.02, focus=2.0)
     z = torch.tensor([0.5, 0.75, 1.0, 5.0, 8.0, 9.0, 10.0], dtype=torch.float64)
-    fade = depth_fade(optics, z)
-    assert fade[0] == 0 and fade[-1] == 0 and fade[2] == 1 and fade[3] == 1 and fade[4] == 1
-    assert 0 < fade[1] < 1 and 0 < fade[5] < 1
+    faded = fade(optics.near, optics.far, optics.fade, z)
+    assert faded[0] == 0 and faded[-1] == 0 and faded[2] == 1 and faded[3] == 1 and faded[4] == 1
+    assert 0 < faded[1] < 1 and 0 < faded[5] < 1
     # thin-lens circle of confusion: 0.5 f A |1/z - 1/focus|, in whole pixels
-    r = field_defocus_radius(100.0, optics, torch.tensor([2.0, 0.5, 0.25], dtype=torch.float64))
+    r = coc_radius(100.0, optics.aperture, optics.focus, torch.tensor([2.0, 0.5, 0.25], dtype=torch.float64))
     assert r.tolist() == [0, round(0.5 * 100 * 0.02 * 1.5), round(0.5 * 100 * 0.02 * 3.5)]
 
 

@@ -124,11 +124,6 @@ def coc_radius(f, aperture, focus, z: torch.Tensor) -> torch.Tensor:
                        scalar(0.0, z.device)).long()
 
 
-def field_defocus_radius(f: float, optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
-    """Circle-of-confusion radius in whole pixels. Shape: (N,) -> (N,) int64."""
-    return coc_radius(f, optics.aperture, optics.focus, z)
-
-
 def fade(near, far, fraction, z: torch.Tensor) -> torch.Tensor:
     """Fade-in over ``[near, 2 near]``, fade-out over the last ``fraction`` of ``far`` (a cut at
     ``far`` where the fraction is 0). Arguments broadcast. Shape: -> z's."""
@@ -139,11 +134,6 @@ def fade(near, far, fraction, z: torch.Tensor) -> torch.Tensor:
     fade_out = torch.where(cut, _smoothstep((far - z) / (safe * far)),
                            (z <= far).to(z.dtype))
     return fade_in * fade_out
-
-
-def depth_fade(optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
-    """Fade-in after ``near`` and fade-out before ``far``, in [0, 1]. Shape: any -> same."""
-    return fade(optics.near, optics.far, optics.fade, z)
 
 
 def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
