@@ -73,7 +73,8 @@ def compat_option(func):
              "authors' research code where it departs from them (gradients accumulated over the "
              "steps, occlusion detached, penalty over the squared frame-1 depth, homogeneous "
              "offsets, transparency capped at the preset's, its figures, its blending of "
-             "alpha-blended motion blur one sample after another, and its frame and "
+             "alpha-blended motion blur one sample after another, its particles' stamps, and "
+             "its frame and "
              "scaling of Sintel: --scene-scales research unless given, the camera translation "
              "zeroed in the scaled scenes), to reproduce its published tables. See "
              "docs/attack.md.")(func)
@@ -85,9 +86,10 @@ def render_compat_option(func):
         help="reference: open the dataset in the frame and scaling of the paper's research code "
              "(its per-scene table, --scene-scales research, unless given; the camera translation "
              "zeroed in the scenes it scales), where the paper's published weather was placed, "
-             "and blend alpha-blended motion blur one sample after another as that code does, "
-             "so --particles SET draws the research code's render of it. Default: paper (the "
-             "dataset as the other options open it, weathergen's blending).")(func)
+             "and blend alpha-blended motion blur one sample after another and make sampled "
+             "particles' stamps as that code does (docs/render.md), so --particles SET draws the "
+             "research code's render of it. Default: paper (the dataset as the other options "
+             "open it, weathergen's blending and stamps).")(func)
 
 
 def overwrite_option(help: str):

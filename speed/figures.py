@@ -54,9 +54,11 @@ def figures_path() -> Optional[Path]:
 
 
 def command_line(argv: Optional[list[str]] = None) -> str:
-    """The section's name: ``python speed/SCRIPT ARGS`` for the running script."""
+    """The section's name: ``python speed/SCRIPT ARGS`` for the running script
+    (``scripts/SCRIPT`` for one of the comparison scripts there)."""
     argv = list(sys.argv if argv is None else argv)
-    return shlex.join(["python", f"speed/{Path(argv[0]).name}", *argv[1:]])
+    folder = "scripts" if Path(argv[0]).parent.name == "scripts" else "speed"
+    return shlex.join(["python", f"{folder}/{Path(argv[0]).name}", *argv[1:]])
 
 
 def tree() -> dict:

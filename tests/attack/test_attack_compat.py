@@ -16,6 +16,7 @@ from weathergen.attack.compat import (REFERENCE_DEPTH_EPS, detaches_occlusion,
 from weathergen.attack.pair import AttackResult, start_depth
 from weathergen.engine import BETA_ATTACK, BETA_RENDER
 from weathergen.engine.rendering.renderer import depth_seen
+from weathergen.engine.weather.templates import load_templates
 from weathergen.errors import ConfigError
 from weathergen.geometry import transform_points
 
@@ -101,6 +102,12 @@ def test_reference_detaches_occlusion_unless_it_is_softened(small_pair, raft_sma
     assert plan_attack(None, "fog", compat="reference").settings.beta == BETA_ATTACK
 
     particles = on_the_surface(small_pair, grey_particles(small_pair, count=80))
+    # footprints n + 1/4 pixels (n >= 2) and no defocus: stamps the research code's way
+    # (``stamp_style = "research"``, the reference mode's) are then weathergen's own
+    res = load_templates(particles.settings.templates).resolution
+    footprint = (particles.scale.double() * res).round().clamp(min=2) + 0.25
+    particles = particles.replace(scale=(footprint / res).to(particles.scale.dtype),
+                                  defocus=torch.zeros_like(particles.defocus))
     # the reference mode reads the depth half a pixel up and left: the paper mode gets the depth
     # read there, so that both test the particles against the same depth
     shifted = dataclasses.replace(small_pair, **{k: depth_seen(getattr(small_pair, k)[None],

@@ -83,6 +83,10 @@ def geometry(footprint: float, defocus: int, resolution: int, level_count: int, 
     return level, footprint, radius, side, sub, mip, phases
 
 
+#: ``brighten`` of a research stamp: brightened, not softened.
+UNSOFTENED = 2
+
+
 def stamp(levels, template: int, footprint: float, defocus: int, rotation: float,
           brighten: bool, resolution: int, coarse_side):
     """A stamp entry's grid level, its phases P and its values ``{(iy, ix): alpha}`` at
@@ -123,7 +127,7 @@ def stamp(levels, template: int, footprint: float, defocus: int, rotation: float
                   for y in range(-full, full + 1) for x in range(-full, full + 1)}
     if brighten:
         pixels = {k: min((2 * max(v, 0.0)) ** (1 / 3), 1.0) for k, v in pixels.items()}
-        if radius > 0:
+        if radius > 0 and brighten != UNSOFTENED:
             pixels = soften(pixels, radius)
     return level, phases, pixels
 
@@ -217,7 +221,8 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
     """
     s = record.settings
     preset_samples = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
-    fixed = in_order(s)         # blended sample by sample: the preset's K, none added
+    research = s.stamp_style == "research"
+    fixed = in_order(s) or research     # sample by sample, or research stamps: the preset's K
     extent = s.blur_length if preset_samples > 1 else 0.0      # the streak's length
     height, width = len(depth), len(depth[0])
     f = math.sqrt(k[0][0] * k[1][1])
@@ -234,9 +239,12 @@ def draws(record, t: int, k, cams, depth, beta: float, resolution: int, number,
             x1, x2 = _apply(cams[0], p1), _apply(cams[1], p2)
             xt = x1 if t == 0 else x2
             along = [x2[a] - x1[a] for a in range(3)]
-            looks = (template, max(float(record.scale[j]) * resolution, 1.0),
-                     int(record.defocus[j]), rotation,
-                     bool(s.defocus_brighten) and int(record.defocus[j]) > 1)
+            footprint = float(record.scale[j]) * resolution
+            if research:        # the disc of the area of the research code's n x n window (at most f)
+                footprint = min(math.floor(footprint) * 2 / math.sqrt(math.pi), footprint)
+            bright = bool(s.defocus_brighten) and int(record.defocus[j]) > 1
+            looks = (template, max(footprint, 1.0), int(record.defocus[j]), rotation,
+                     UNSOFTENED if bright and research else bright)
             samples = preset_samples if fixed else blur_count(
                 k, xt, along, s.blur_length, preset_samples, sample_gap(looks, coarse_side))
             points = [[xt[a] + q * along[a] for a in range(3)]

@@ -221,8 +221,9 @@ class Particles:
     def for_compat(self, compat: str) -> "Particles":
         """The record as drawn under ``compat`` (``paper`` or ``reference``): under
         ``reference`` an α-blended, motion-blurred record's blur samples are blended one after
-        another, as the research code does (:meth:`RenderSettings.for_compat`), under ``paper``
-        all at once; the record itself where that changes nothing."""
+        another and its stamps made as the research code does (:meth:`RenderSettings.
+        for_compat`), under ``paper`` all at once, weathergen's stamps; the record itself where
+        that changes nothing."""
         settings = self.settings.for_compat(compat)
         return self if settings == self.settings else self.replace(settings=settings)
 

@@ -31,9 +31,11 @@ APPEARANCE_KEYS = ("blend", "motion_blur", "blur_length", "blur_samples", "defoc
 APPEARANCE_FIELDS = ("blend", "blur_length", "blur_samples", "defocus_brighten", "coarse")
 #: Fields a particle file holds only when they differ from their default (files written before
 #: they existed read as the default, and files of the default keep their bytes).
-OPTIONAL_FIELDS = ("coarse", "blur_blend", "depth_shift")
+OPTIONAL_FIELDS = ("coarse", "blur_blend", "depth_shift", "stamp_style")
 #: How an α-blended record's blur samples are blended: all at once, or one after another.
 BLUR_BLENDS = ("sum", "sequential")
+#: How a record's stamps are made from its templates: weathergen's, or as the research code does.
+STAMP_STYLES = ("smooth", "research")
 
 
 @dataclass(frozen=True)
@@ -51,7 +53,12 @@ class RenderSettings:
     in their order along the streak, ``I_k = clamp(I_{k−1} (1 − A_k) + C_k, 0, 1)`` (the
     research code's; what ``compat="reference"`` draws, see :meth:`for_compat`); depth_shift:
     where the scene depth a particle is tested against is read, this many pixels up and left of
-    each pixel, bilinearly (0: at the pixel, weathergen's; 0.5: the research code's).
+    each pixel, bilinearly (0: at the pixel, weathergen's; 0.5: the research code's);
+    stamp_style: ``smooth`` (weathergen's: the footprint as sampled, a defocused stamp softened
+    by the box of :func:`~weathergen.engine.rendering.stamps.soft_box`) or ``research`` (what
+    ``compat="reference"`` draws: the footprint of the research code's whole-pixel flake
+    window, no softening, the record's own blur samples; see docs/render.md, "The look of the
+    paper's presets").
     """
 
     blend: str = "additive"
@@ -63,6 +70,7 @@ class RenderSettings:
     coarse: bool = True
     blur_blend: str = "sum"
     depth_shift: float = 0.0
+    stamp_style: str = "smooth"
 
     def __post_init__(self):
         if self.blur_blend not in BLUR_BLENDS:
@@ -70,6 +78,9 @@ class RenderSettings:
                               f"got {self.blur_blend!r}")
         if not 0 <= self.depth_shift <= 1:
             raise ConfigError(f"depth_shift must be in [0, 1]; got {self.depth_shift!r}")
+        if self.stamp_style not in STAMP_STYLES:
+            raise ConfigError(f"stamp_style must be {' or '.join(STAMP_STYLES)}; "
+                              f"got {self.stamp_style!r}")
 
     @classmethod
     def from_preset(cls, preset: Preset, library: Optional[TemplateLibrary] = None) -> "RenderSettings":
@@ -94,13 +105,15 @@ class RenderSettings:
 
     def for_compat(self, compat: str) -> "RenderSettings":
         """The settings drawn under ``compat``: ``reference`` blends the blur samples of an
-        α-blended, motion-blurred record one after another and reads the scene depth half a
-        pixel up and left, as the research code does (``sequential``, ``depth_shift`` 0.5);
-        ``paper`` all at once at the pixel (``sum``, 0). The other fields are kept."""
+        α-blended, motion-blurred record one after another, reads the scene depth half a
+        pixel up and left and makes its stamps as the research code does (``sequential``,
+        ``depth_shift`` 0.5, ``research``); ``paper`` all at once at the pixel, weathergen's
+        stamps (``sum``, 0, ``smooth``). The other fields are kept."""
         reference = compat == "reference"
         ordered = reference and self.blend == "alpha" and self.motion_blurred
         return self.replace(blur_blend="sequential" if ordered else "sum",
-                            depth_shift=0.5 if reference else 0.0)
+                            depth_shift=0.5 if reference else 0.0,
+                            stamp_style="research" if reference else "smooth")
 
     def appearance(self) -> dict:
         """The fields that may change when stored particles are rendered again."""
@@ -136,4 +149,7 @@ class RenderSettings:
                                     f"{' or '.join(BLUR_BLENDS)})")
         if not 0 <= values.get("depth_shift", 0.0) <= 1:
             raise FormatError(path, f"depth_shift must be in [0, 1], got {values['depth_shift']}")
+        if values.get("stamp_style", "smooth") not in STAMP_STYLES:
+            raise FormatError(path, f"unknown stamp_style {values['stamp_style']!r} (expected "
+                                    f"{' or '.join(STAMP_STYLES)})")
         return cls(**values)

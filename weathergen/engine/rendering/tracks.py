@@ -25,6 +25,7 @@ products), so that a track's numbers do not depend on how many other tracks the 
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -92,13 +93,19 @@ class ParticleTable:
         return ParticleTable(**{k: getattr(self, k)[:n] for k in self.__dataclass_fields__})
 
 
+#: The diameter of the disc of a unit square's area: a ``research`` record's footprint is this
+#: times the whole pixels of the research code's resampled flake (see :func:`fixed_looks`).
+RESEARCH_DISC = 2 / math.sqrt(math.pi)
+
+
 @dataclass
 class Looks:
     """How each stamp entry looks (E entries). Shape: footprint (E,) float64 pixels (>= 1);
     defocus (E,) int64 disc radius in pixels; rotation (E,) float64 radians; template (E,)
     int64; brighten (E,) bool (the disc-blurred alpha b becomes ``min(1, (2 b)^(1/3))``);
     coarse (E,) bool, whether a large stamp may be drawn on a coarser grid (its record's
-    ``coarse`` setting; None: every entry may)."""
+    ``coarse`` setting; None: every entry may); research (E,) bool, whether its stamp is made
+    as the research code makes it (its record's ``stamp_style``; None: none is)."""
 
     footprint: torch.Tensor
     defocus: torch.Tensor
@@ -106,6 +113,7 @@ class Looks:
     template: torch.Tensor
     brighten: torch.Tensor
     coarse: Optional[torch.Tensor] = None
+    research: Optional[torch.Tensor] = None
 
     @property
     def count(self) -> int:
@@ -123,9 +131,12 @@ class Looks:
     @staticmethod
     def cat(parts: Sequence["Looks"]) -> "Looks":
         fields = {k: torch.cat([getattr(p, k) for p in parts])
-                  for k in Looks.__dataclass_fields__ if k != "coarse"}
+                  for k in Looks.__dataclass_fields__ if k not in ("coarse", "research")}
         if any(p.coarse is not None for p in parts):
             fields["coarse"] = torch.cat([p.may_be_coarse() for p in parts])
+        if any(p.research is not None for p in parts):
+            fields["research"] = torch.cat([torch.zeros_like(p.brighten) if p.research is None
+                                            else p.research for p in parts])
         return Looks(**fields)
 
 
@@ -171,7 +182,9 @@ class RecordRows:
     float64; brighten (R,) bool; optics (R, 7) float64 (near, far, fade, aperture, focus,
     depth_softness, zeros for the paper's records; then blur_length again: every number a
     field record's candidates read, gathered at once); coarse (R,) bool (large stamps may be
-    drawn on a coarser grid)."""
+    drawn on a coarser grid); research (R,) bool (stamps made as the research code makes them;
+    None where no record's are).
+    """
 
     samples: torch.Tensor
     spacing: torch.Tensor
@@ -179,10 +192,11 @@ class RecordRows:
     brighten: torch.Tensor
     optics: torch.Tensor
     coarse: torch.Tensor
+    research: Optional[torch.Tensor]
 
     @classmethod
     def of(cls, records: Sequence[Particles], device) -> "RecordRows":
-        samples, spacing, length, bright, optics, coarse = [], [], [], [], [], []
+        samples, spacing, length, bright, optics, coarse, research = [], [], [], [], [], [], []
         for r in records:
             s = r.settings
             k = int(s.blur_samples) if int(s.blur_samples) > 1 and s.blur_length > 0 else 1
@@ -191,6 +205,7 @@ class RecordRows:
             length.append(float(s.blur_length))
             bright.append(bool(s.defocus_brighten))
             coarse.append(bool(s.coarse))
+            research.append(s.stamp_style == "research")
             o = r.optics
             optics.append([0.0] * 6 + [length[-1]] if o is None else
                           [o.near, o.far, o.fade, o.aperture, o.focus, o.depth_softness,
@@ -201,15 +216,26 @@ class RecordRows:
                    blur_length=torch.tensor(length, dtype=f64, device=device),
                    brighten=torch.tensor(bright, device=device),
                    optics=torch.tensor(optics, dtype=f64, device=device).view(-1, 7),
-                   coarse=torch.tensor(coarse, dtype=torch.bool, device=device))
+                   coarse=torch.tensor(coarse, dtype=torch.bool, device=device),
+                   research=torch.tensor(research, dtype=torch.bool, device=device)
+                   if any(research) else None)
 
 
 def fixed_looks(table: ParticleTable, rows: RecordRows, resolution: int) -> Looks:
-    """The paper's model: looks fixed at sampling (footprint ``scale`` x template pixels)."""
-    return Looks(footprint=(table.scale * resolution).clamp(min=1.0), defocus=table.defocus,
+    """The paper's model: looks fixed at sampling (footprint ``scale`` x template pixels; for a
+    ``research`` record the disc of the area of the ``n x n`` window, n = floor(footprint),
+    into which the research code resamples its flakes, :data:`RESEARCH_DISC` n, at most the
+    footprint itself)."""
+    footprint = table.scale * resolution
+    research = None if rows.research is None else rows.research[table.record]
+    if research is not None:
+        window = torch.minimum(footprint.floor() * RESEARCH_DISC, footprint)
+        footprint = torch.where(research, window, footprint)
+    footprint = footprint.clamp(min=1.0)
+    return Looks(footprint=footprint, defocus=table.defocus,
                  rotation=table.rotation, template=table.template,
                  brighten=rows.brighten[table.record] & (table.defocus > 1),
-                 coarse=rows.coarse[table.record])
+                 coarse=rows.coarse[table.record], research=research)
 
 
 def field_looks(table: ParticleTable, which: torch.Tensor, rows: RecordRows, views: Views,

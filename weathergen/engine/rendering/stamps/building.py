@@ -17,8 +17,8 @@ from ...weather.templates import TemplateLibrary
 from ..tracks import Looks
 from .phases import sample_phases, sample_phases_per_side
 from .atlas import atlas, coefficients, sample_per_factor, sample_stamps
-from .tables import (COARSE_SIDE, FACTORS, GAPS, RAGGED_CHUNK, SOFT_BOX, STAMP_CHUNK_ELEMENTS, constant,
-                     disc_counts, stamp_geometry)
+from .tables import (COARSE_SIDE, FACTORS, GAPS, RAGGED_CHUNK, RESEARCH_BOX, SOFT_BOX,
+                     STAMP_CHUNK_ELEMENTS, constant, disc_counts, stamp_geometry)
 from .filters import disc_blur, soften, soften_canvases
 
 
@@ -138,6 +138,8 @@ def build_many(parts: Sequence[tuple[Looks, TemplateLibrary]], *,
             soften(work, canvases, layout.top, layout.inner, layout.box, layout.full,
                    chunk_elements)
         gap = layout.gaps()
+        if looks.research is not None:      # the record's own blur samples, as the research code
+            gap = gap.masked_fill(looks.research, math.inf)
     return StampSet(pixels=work[:layout.size].to(dtype), first=layout.first, side=layout.full,
                     coarse=layout.coarse, phases=layout.phases, gap=gap)
 
@@ -239,6 +241,8 @@ class _Layout:
         blurred = radius > 0
         soft = looks.brighten & blurred
         box = constant("box", SOFT_BOX, torch.int64, device).index_select(0, radius)
+        if looks.research is not None:      # (the research code does not soften its stamps)
+            box = box.masked_fill(looks.research, RESEARCH_BOX)
         grow = (box - 1) * soft
         inner = torch.add(side, radius, alpha=2)
         full = torch.add(inner, grow, alpha=2)

@@ -176,8 +176,15 @@ GAP_SHARE = 0.5
 SOFT_BOX = [soft_box(r) for r in range(256)]
 
 
-#: A softened stamp's blur-sample gap per radius, ``(b − 1) · GAP_SHARE`` grid pixels, and
-#: each grid level's factor ``2**L`` (image pixels per grid pixel).
+#: The box of a stamp made as the research code makes it (``stamp_style = "research"``), for
+#: every radius: none (a box of one pixel); the research code does not soften a brightened
+#: stamp (docs/render.md, "The look of the paper's presets").
+RESEARCH_BOX = 1
+
+
+#: A softened stamp's blur-sample gap per radius, ``(b − 1) · GAP_SHARE`` grid pixels (a
+#: research stamp keeps its record's samples, whatever its box), and each grid level's factor
+#: ``2**L`` (image pixels per grid pixel).
 GAPS = [(b - 1) * GAP_SHARE for b in SOFT_BOX]
 
 
