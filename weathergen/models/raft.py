@@ -468,6 +468,7 @@ class RAFT(nn.Module):
         with mixed_precision(amp):
             hidden, context = self.cnet(image1).split([cfg.hidden_dim, cfg.context_dim], dim=1)
             hidden, context = torch.tanh(hidden), F.relu(context)
+            features = self._step_features(context)
 
         # coords0: every working-resolution pixel; coords1: where it is estimated to be in frame 2.
         h, w = fmaps.shape[-2:]
@@ -481,10 +482,10 @@ class RAFT(nn.Module):
             if detach_flow:
                 coords1 = coords1.detach()
             if use_recompute:
-                hidden, delta = recompute(step, hidden, context, coords0, coords1,
+                hidden, delta = recompute(step, hidden, *features, coords0, coords1,
                                           use_reentrant=False)
             else:
-                hidden, delta = step(hidden, context, coords0, coords1)
+                hidden, delta = step(hidden, *features, coords0, coords1)
             coords1 = coords1 + delta
             if every_step or i == iters - 1:
                 flows.append(self._upsample(coords1 - coords0, hidden, amp))
@@ -498,6 +499,10 @@ class RAFT(nn.Module):
         with mixed_precision(amp):      # the authors' update operator computes the mask
             logits = self.update_block.upsampling_weights(hidden)
         return convex_upsample(flow, logits)
+
+    def _step_features(self, context: torch.Tensor) -> tuple:
+        """What each refinement step reads besides the hidden state and the coordinates."""
+        return (context,)
 
     def _refine(self, corr: CorrelationPyramid, hidden, context, coords0, coords1,
                 amp: bool = False):
@@ -517,7 +522,38 @@ def coords_grid(b: int, h: int, w: int, device, dtype) -> torch.Tensor:
 # The adapter and its registration
 # ---------------------------------------------------------------------------------------------
 
-class RAFTModel(FlowModel):
+class IteratedFlowModel(FlowModel):
+    """What the adapters of RAFT, GMA and FlowFormer share: a network run for ``iters``
+    refinement steps on RAFT's input range, optionally with gradient checkpointing, loaded from
+    its authors' files as they are (with or without the ``module.`` prefix that saving from
+    ``DataParallel`` adds).
+    Subclasses set :attr:`network` and :attr:`iters` (see :meth:`_setup`)."""
+
+    def _setup(self, network: nn.Module, iters: Optional[int], default_iters: int,
+               gradient_checkpointing: bool, detach_flow: bool) -> None:
+        self.network = network
+        self.iters = default_iters if iters is None else int(iters)
+        self.gradient_checkpointing = gradient_checkpointing
+        self.detach_flow = detach_flow
+
+    def normalize(self, image: torch.Tensor) -> torch.Tensor:
+        # The released models were trained on 2 * (pixel / 255) - 1.
+        return 2.0 * image - 1.0
+
+    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
+        kwargs = {"amp": self.precision} if self.supports_amp else {}
+        return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
+                            gradient_checkpointing=self.gradient_checkpointing, **kwargs)
+
+    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
+        """Load a file of the authors' release, with or without the ``module.`` prefix."""
+        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
+
+    def extra_repr(self) -> str:
+        return f"iters={self.iters}, gradient_checkpointing={self.gradient_checkpointing}"
+
+
+class RAFTModel(IteratedFlowModel):
     """RAFT behind the package contract: RGB in ``[0, 1]`` of any size in, flow in pixels out.
 
     Args:
@@ -538,20 +574,9 @@ class RAFTModel(FlowModel):
         super().__init__()
         config = RAFT_SMALL if small else RAFT_FULL
         self.architecture = "raft-small" if small else "raft"
-        self.network = RAFT(config)
-        self.iters = DEFAULT_ITERS if iters is None else int(iters)
-        self.gradient_checkpointing = gradient_checkpointing
-        self.detach_flow = detach_flow
+        self._setup(RAFT(config), iters, DEFAULT_ITERS, gradient_checkpointing, detach_flow)
         # Every pyramid level needs at least one pixel: 8 * 2^(levels - 1) input pixels.
         self.min_size = 8 * 2 ** (config.corr_levels - 1)
-
-    def normalize(self, image: torch.Tensor) -> torch.Tensor:
-        # The released models were trained on 2 * (pixel / 255) - 1.
-        return 2.0 * image - 1.0
-
-    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
-                            gradient_checkpointing=self.gradient_checkpointing, amp=self.precision)
 
     def flow_sequence(self, image1: torch.Tensor, image2: torch.Tensor) -> list[torch.Tensor]:
         """The flow after every refinement step (for RAFT's sequence loss in training).
@@ -566,14 +591,6 @@ class RAFTModel(FlowModel):
                                            gradient_checkpointing=self.gradient_checkpointing,
                                            amp=self.precision)
         return [padder.unpad(f) for f in flows]
-
-    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
-        """Load a file of the original RAFT release, with or without the ``module.`` prefix
-        that saving from ``DataParallel`` adds."""
-        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
-
-    def extra_repr(self) -> str:
-        return f"iters={self.iters}, gradient_checkpointing={self.gradient_checkpointing}"
 
 
 #: The authors' archive of all five released checkpoints (``models/<name>.pth`` inside).
