@@ -28,10 +28,10 @@ from typing import Optional
 import torch
 from torch import nn
 
-from .base import in_float32, mixed_precision
+from .base import IteratedFlowModel, in_float32, mixed_precision
 from .checkpoints import CheckpointSpec
-from .raft import (RAFT, RAFT_FULL, CorrelationPyramid, Encoder, FlowHead, IteratedFlowModel,
-                   MotionEncoder, SepConvGRU)
+from .raft import (RAFT, RAFT_FULL, CorrelationPyramid, Encoder, FlowHead, MotionEncoder,
+                   SepConvGRU)
 from .registry import ModelSpec, register_checkpoint, register_model
 
 #: Refinement iterations when none are given: what the paper's attack code uses for GMA (the

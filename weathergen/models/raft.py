@@ -34,8 +34,8 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel, autocast_mode, mixed_precision
-from .checkpoints import CheckpointSpec, load_strict, strip_prefix
+from .base import IteratedFlowModel, autocast_mode, mixed_precision
+from .checkpoints import CheckpointSpec
 from .registry import ModelSpec, register_checkpoint, register_model
 
 
@@ -521,37 +521,6 @@ def coords_grid(b: int, h: int, w: int, device, dtype) -> torch.Tensor:
 # ---------------------------------------------------------------------------------------------
 # The adapter and its registration
 # ---------------------------------------------------------------------------------------------
-
-class IteratedFlowModel(FlowModel):
-    """What the adapters of RAFT, GMA and FlowFormer share: a network run for ``iters``
-    refinement steps on RAFT's input range, optionally with gradient checkpointing, loaded from
-    its authors' files as they are (with or without the ``module.`` prefix that saving from
-    ``DataParallel`` adds).
-    Subclasses set :attr:`network` and :attr:`iters` (see :meth:`_setup`)."""
-
-    def _setup(self, network: nn.Module, iters: Optional[int], default_iters: int,
-               gradient_checkpointing: bool, detach_flow: bool) -> None:
-        self.network = network
-        self.iters = default_iters if iters is None else int(iters)
-        self.gradient_checkpointing = gradient_checkpointing
-        self.detach_flow = detach_flow
-
-    def normalize(self, image: torch.Tensor) -> torch.Tensor:
-        # The released models were trained on 2 * (pixel / 255) - 1.
-        return 2.0 * image - 1.0
-
-    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        kwargs = {"amp": self.precision} if self.supports_amp else {}
-        return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
-                            gradient_checkpointing=self.gradient_checkpointing, **kwargs)
-
-    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
-        """Load a file of the authors' release, with or without the ``module.`` prefix."""
-        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
-
-    def extra_repr(self) -> str:
-        return f"iters={self.iters}, gradient_checkpointing={self.gradient_checkpointing}"
-
 
 class RAFTModel(IteratedFlowModel):
     """RAFT behind the package contract: RGB in ``[0, 1]`` of any size in, flow in pixels out.
