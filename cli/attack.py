@@ -12,8 +12,9 @@ from rich.console import Console
 from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 from rich.table import Table
 
-from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, LP_METHODS, PCFA_OPTIMIZERS, AttackJob,
-                               EarlyStop, lp_pass_name, parse_target, plan_lp, run_attack)
+from weathergen.attack import (ATTACK_CONFIGS, DEFAULT_STEPS, FIELD_LR, LP_METHODS, PCFA_OPTIMIZERS,
+                               AttackJob, EarlyStop, lp_pass_name, parse_target, plan_lp,
+                               run_attack)
 from weathergen.attack.plan import attack_pass_name, default_attack_out, plan_attack
 from weathergen.attack.record import settings_text
 from weathergen.datasets import in_research_frame
@@ -26,6 +27,10 @@ from .options import (attack_steps, compat_option, dataset_options, device_optio
                       executor_options, job_exit_codes, model_options, out_option, overwrite_option,
                       quiet_option, resolve_model, resume_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
+
+
+def _field_rates() -> str:
+    return ", ".join(f"{g} {r:g}" for g, r in FIELD_LR.items())
 
 
 def _fmt(value, digits: int = 3) -> str:
@@ -47,12 +52,39 @@ def summary_table(title: str, summary: dict, what: str = "weather", compat: str 
         table.add_column(col, justify="right")
     table.add_row("AEE(f, f̌)", "0", _fmt(summary["aee_random"]),
                   _fmt(summary["aee_adversarial"]) + (" *" if reference else ""))
+    if summary.get("per_pair_aee_adversarial") is not None:     # --sequence
+        table.add_row("AEE(f, f̌), each pair attacked alone", "", _fmt(summary["aee_random"]),
+                      _fmt(summary["per_pair_aee_adversarial"]))
+    if summary.get("second_aee_random") is not None:            # --sequence --stereo
+        table.add_row("AEE(f, f̌), second camera", "", _fmt(summary["second_aee_random"]),
+                      _fmt(summary["second_aee_adversarial"]))
     table.add_row("AEE(f̌, target)", "", _fmt(summary["target_initial"]),
                   _fmt(summary["target_adversarial"]))
     table.add_row("EPE vs ground truth", _fmt(summary["epe_benign"]), _fmt(summary["epe_random"]),
                   _fmt(summary["epe_adversarial"]))
     for row in region_rows(summary):
         table.add_row(row[0], "", "", row[1])
+    return table
+
+
+def pair_line(s, versus: str) -> str:
+    """A written pair's figures in one line (a sequence attack's: the pair attacked alone too)."""
+    alone = ("" if s.per_pair_aee_adversarial is None else
+             f" (the pair attacked alone: {s.per_pair_aee_adversarial:.3f})")
+    return (f"AEE(f, f̌) random {s.aee_random:.3f} -> adversarial{versus} "
+            f"{s.aee_adversarial:.3f}{alone}, distance to target {s.target_initial:.3f} "
+            f"-> {s.target_adversarial:.3f}")
+
+
+def scene_table(summary: dict) -> Table:
+    """A sequence attack's AEE(f, f̌) per scene: random weather, one adversarial weather for the
+    scene, and each pair attacked alone (pixels)."""
+    table = Table(title="AEE(f, f̌) per scene (pixels)")
+    for col in ("scene", "pairs", "random", "one weather", "pairs alone"):
+        table.add_column(col, justify="left" if col == "scene" else "right")
+    for scene, f in summary["scenes"].items():
+        table.add_row(scene, str(f["pairs"]), _fmt(f["aee_random"]), _fmt(f["aee_adversarial"]),
+                      _fmt(f["per_pair_aee_adversarial"]))
     return table
 
 
@@ -106,16 +138,33 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
               help="Variables to optimise: offset1, offset2, color, transparency; density and "
                    "airlight of a weather field's atmosphere (fog-*, mist, rain-*, snow-*); or "
                    "'all'. Default: the --config's, else the four particle variables (fog: all "
-                   "but offset2), and density where the preset has an atmosphere.")
+                   "but offset2), and density and airlight where the preset has an atmosphere; "
+                   "--sequence leaves out offset2.")
 @click.option("--optimize-layer", "optimize_layer", default=None, metavar="NAME[,NAME]|all",
               help="Combined presets (layers joined by +): the layers whose particles are "
                    "optimised, by name (e.g. fog-light); the others stay as sampled. "
                    "Default: all.")
 @click.option("--lr", type=float, default=None,
-              help="Adam learning rate. Default: 1e-5 when an offset is optimised, else 1e-3 "
-                   "(density and airlight: 1e-2); "
-                   "pcfa: L-BFGS step size 1, Adam 1e-3; for ifgsm the step size, default "
-                   "epsilon / steps.")
+              help="Adam learning rate of every variable group (see --group-lr for the "
+                   "defaults); pcfa: L-BFGS step size 1, Adam 1e-3; for ifgsm the step size, "
+                   "default epsilon / steps.")
+@click.option("--group-lr", "group_lr", multiple=True, metavar="GROUP=RATE",
+              help="Adam learning rate of one variable group (repeatable; wins over --lr): "
+                   "positions (offset1, offset2), color, transparency, density, airlight. "
+                   "Defaults: the paper's presets' particles 1e-5 when an offset is optimised, "
+                   "else 1e-3 (all three groups); weather fields (snow-*, rain-*, fog-*, mist "
+                   f"and their combinations) {_field_rates()}, whose density and airlight rates "
+                   "hold for every preset's atmosphere. The manifest records the rates used.")
+@click.option("--sequence", is_flag=True,
+              help="One weather for each whole scene (weather-field presets): the field's "
+                   "particles in the world (offset1, colour, transparency) and its atmosphere "
+                   "(density, airlight), optimised "
+                   "against every pair of the scene at once, so every frame shows the same "
+                   "weather; each pair is also attacked alone with the same settings, for "
+                   "comparison (per_pair_* figures).")
+@click.option("--stereo", is_flag=True,
+              help="With --sequence: against the dataset's second (right) camera too, as "
+                   "`render --stereo` draws it (second_aee_* figures, float frames).")
 @click.option("--alpha1", type=float, default=1000.0, show_default=True,
               help="Weight of the frame-1 offset penalty.")
 @click.option("--alpha2", type=float, default=1000.0, show_default=True,
@@ -144,9 +193,9 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 def attack(dataset, model, checkpoint, iters, download, model_input, amp, precision, method, epsilon,
            optimizer, config_name, preset, set_items,
            particles_dir, steps,
-           optimize, optimize_layer, lr, alpha1, alpha2, target_text, occlusion_gradient,
-           compat, early_stop, gradient_checkpointing, out, seed, device, batch_size, executor, ray_address,
-           resume, overwrite, quiet):
+           optimize, optimize_layer, lr, group_lr, sequence, stereo, alpha1, alpha2, target_text,
+           occlusion_gradient, compat, early_stop, gradient_checkpointing, out, seed, device,
+           batch_size, executor, ray_address, resume, overwrite, quiet):
     """Optimise weather particles so that a flow network's output moves towards a target.
 
     With no option it attacks RAFT with snow on the bundled demo scene into out/attack-snow.
@@ -161,6 +210,9 @@ def attack(dataset, model, checkpoint, iters, download, model_input, amp, precis
     execution = dict(batch_size=batch_size, executor=executor, ray_address=ray_address,
                      threads=torch.get_num_threads(), precision=precision)
     if method != "weather":
+        if group_lr or sequence or stereo:
+            which = "group_lr" if group_lr else "sequence" if sequence else "stereo"
+            raise ConfigError(f"${{{which}}} applies to --method weather only")
         if early_stop is not None:
             raise ConfigError("${early_stop} applies to the weather attack only")
         lp = plan_lp(method, epsilon, steps, lr, optimizer, config_name=config_name, preset=preset,
@@ -189,7 +241,8 @@ def attack(dataset, model, checkpoint, iters, download, model_input, amp, precis
                                   preset, set_items, particles_dir, steps, optimize, lr, alpha1,
                                   alpha2, target, occlusion_gradient, compat or "paper",
                                   gradient_checkpointing, out, seed, device, resume, overwrite,
-                                  execution, amp, optimize_layer, early_stop)
+                                  execution, amp, optimize_layer, early_stop, group_lr,
+                                  sequence, stereo)
         out = job.out
     _run(job, model.label, label, target, steps, out, quiet)
 
@@ -197,11 +250,12 @@ def attack(dataset, model, checkpoint, iters, download, model_input, amp, precis
 def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
                  particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
                  compat, gradient_checkpointing, out, seed, device, resume, overwrite, execution,
-                 amp, optimize_layer=None, early_stop=None):
+                 amp, optimize_layer=None, early_stop=None, group_lr=(), sequence=False,
+                 stereo=False):
     plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
                        optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
                        steps=steps, alpha1=alpha1, alpha2=alpha2, compat=compat,
-                       layers=optimize_layer)
+                       layers=optimize_layer, group_lr=group_lr, sequence=sequence)
     label = plan.label
     out = out or default_attack_out(label)
     job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
@@ -212,7 +266,7 @@ def _weather_job(dataset, model, checkpoint, iters, download, config_name, prese
                     pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
                     gradient_checkpointing=gradient_checkpointing, download=download, amp=amp,
                     resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]],
-                    **execution)
+                    sequence=sequence, stereo=stereo, **execution)
     return job, label
 
 
@@ -271,11 +325,8 @@ def _run(job, model, label, target, steps, out, quiet):
             progress.update(task, completed=clock.done * (total_steps + 1),
                             status=clock.describe())
         if not quiet and progress is None and report.status != "failed":
-            s = report.summary
             console.print(f"[{clock.describe()}] {report.pair} {report.status}: "
-                          f"AEE(f, f̌) random {s.aee_random:.3f} -> adversarial{versus} "
-                          f"{s.aee_adversarial:.3f}, distance to target {s.target_initial:.3f} "
-                          f"-> {s.target_adversarial:.3f}", highlight=False, soft_wrap=True)
+                          + pair_line(report.summary, versus), highlight=False, soft_wrap=True)
 
     if interactive:
         progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
@@ -299,6 +350,8 @@ def _run(job, model, label, target, steps, out, quiet):
                                     compat=compat_mode))
         console.print(f"Settings: {settings_text(summary['settings'])}", highlight=False,
                       soft_wrap=True)
+        if summary.get("scenes"):
+            console.print(scene_table(summary))
         console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
                       soft_wrap=True)
     if failed:

@@ -105,7 +105,8 @@ def test_attack_log_and_summary(attack_out):
     assert manifest["preset_name"] == "snow" and manifest["preset"]["count"] == 150
     attack = manifest["config"]["attack"]
     assert attack["optimize"] == ["offset1", "offset2", "color", "transparency"]
-    assert attack["lr"] == 1e-5 and attack["alpha1"] == attack["alpha2"] == 1000.0
+    assert attack["learning_rates"] == {"positions": 1e-5, "color": 1e-5, "transparency": 1e-5}
+    assert attack["alpha1"] == attack["alpha2"] == 1000.0
     assert attack["compat"] == summary["compat"] == "paper"          # the default
     # Figures by region: the two regions split the pixels, so their AEEs, weighted by the
     # weather's coverage, make up AEE(f, f̌) (one pair); the demo scene has ground truth.

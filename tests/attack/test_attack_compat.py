@@ -211,7 +211,9 @@ def test_the_loop_frees_the_homogeneous_component_only_in_reference_mode(small_p
     for compat, has in (("paper", False), ("reference", True)):
         run = PairOptimisation(raft_small, small_pair, particles, settings(compat))
         assert ("offset1_w" in run.variables.delta) == has
-        assert len(run.optimizer.param_groups[0]["params"]) == 4 + has
+        groups = {g["group"]: g["params"] for g in run.optimizer.param_groups}
+        assert sum(len(p) for p in groups.values()) == 4 + has
+        assert len(groups["positions"]) == 2 + has      # (offset1_w moves with the positions)
 
 
 # -- blending of motion blur ---------------------------------------------------------------------

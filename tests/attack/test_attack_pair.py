@@ -68,7 +68,7 @@ def test_default_learning_rates_follow_the_paper():
     assert default_lr(("offset1",)) == LR_POSITIONS == 1e-5
     assert default_lr(("color", "transparency")) == LR_APPEARANCE == 1e-3
     assert default_lr(OPTIMIZABLE) == 1e-5
-    assert AttackSettings(optimize=("color",), lr=0.5).learning_rate == 0.5
+    assert AttackSettings(optimize=("color",), lr=0.5).learning_rates == {"color": 0.5}
 
 
 def test_settings_reject_bad_values():

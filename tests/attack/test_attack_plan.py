@@ -24,7 +24,7 @@ def test_no_option_attacks_snow_with_its_configuration():
     plan = plan_attack()
     assert (plan.preset_name, plan.label, plan.config) == ("snow", "snow", ATTACK_CONFIGS["snow"])
     assert plan.settings.optimize == OPTIMIZABLE
-    assert plan.settings.learning_rate == LR_POSITIONS and plan.settings.beta == BETA_RENDER
+    assert plan.settings.learning_rates["positions"] == LR_POSITIONS and plan.settings.beta == BETA_RENDER
 
 
 def test_a_configuration_sets_preset_variables_and_occlusion():
@@ -41,7 +41,7 @@ def test_explicit_values_win_over_the_configuration():
     assert plan_attack("snow", lr=0.5).settings.lr == 0.5
     # Other variables than the configuration's: its learning rate no longer applies.
     plan = plan_attack("fog", optimize="color")
-    assert plan.settings.lr is None and plan.settings.learning_rate == LR_APPEARANCE
+    assert plan.settings.lr is None and plan.settings.learning_rates == {"color": LR_APPEARANCE}
     assert plan.settings.beta == BETA_ATTACK
     assert plan_attack(optimize=["transparency", "color"]).settings.optimize == ("color", "transparency")
 

@@ -131,7 +131,8 @@ def test_attack_and_evaluate_write_the_robust_figures_and_the_settings(tmp_path,
     assert attacked.exit_code == 0, attacked.output
     summary = json.loads((out / "summary.json").read_text())
     assert summary["settings"]["steps"] == 1 and summary["settings"]["seed"] == 5
-    assert summary["settings"]["learning_rates"] == {"lr": 1e-5}
+    assert summary["settings"]["learning_rates"] == {"positions": 1e-5, "color": 1e-5,
+                                                     "transparency": 1e-5}
     assert summary["settings"]["checkpoint_sha256"] == hashlib.sha256(
         raft_small_weights.read_bytes()).hexdigest()
     assert summary["robust_epe"] == pytest.approx(summary["aee_adversarial"], rel=1e-5)

@@ -30,11 +30,13 @@ from .lp import (LP_DEFAULTS, LP_METHODS, PCFA_OPTIMIZERS, LpOptimisation, LpRes
 from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisation, PairSummary,
                    StepRecord, WeatherVariables, attack_batch, attack_loss, attack_pair,
                    mean_summary, offset_penalty, particle_depths, summarize_pair)
+from .sequence import (SceneWeather, SecondView, attack_sequence, scene_weather, second_frames,
+                       second_view)
 from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack
-from .settings import (ATMOSPHERE_VARIABLES, DEFAULT_ALPHA, DEFAULT_STEPS, LR_APPEARANCE,
-                       LR_ATMOSPHERE, LR_POSITIONS, OPTIMIZABLE, POSITION_VARIABLES, VARIABLES,
-                       AttackSettings, EarlyStop, default_lr, default_optimize, parse_optimize,
-                       transparency_bound)
+from .settings import (ATMOSPHERE_VARIABLES, DEFAULT_ALPHA, DEFAULT_STEPS, DENSITY_FACTOR,
+                       FIELD_LR, LR_APPEARANCE, LR_GROUPS, LR_POSITIONS, OPTIMIZABLE,
+                       POSITION_VARIABLES, VARIABLES, AttackSettings, EarlyStop, default_lr,
+                       default_optimize, parse_group_lr, parse_optimize, transparency_bound)
 from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
 __all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOptimisation", "LpResult",
@@ -44,8 +46,8 @@ __all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOp
            "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
            "ATMOSPHERE_VARIABLES", "ATTACK_CONFIGS", "AttackConfig", "AttackJob", "AttackResult", "AttackSettings",
            "EarlyStop",
-           "DEFAULT_ALPHA", "DEFAULT_STEPS", "EvalRow", "LR_APPEARANCE", "LR_ATMOSPHERE",
-           "LR_POSITIONS", "VARIABLES", "default_optimize",
+           "DEFAULT_ALPHA", "DEFAULT_STEPS", "EvalRow", "LR_APPEARANCE", "LR_GROUPS",
+           "LR_POSITIONS", "DENSITY_FACTOR", "FIELD_LR", "parse_group_lr", "VARIABLES", "default_optimize",
            "MIN_REG_DEPTH", "OPTIMIZABLE", "POSITION_VARIABLES", "PairOptimisation", "PairReport",
            "PairSummary", "StepRecord", "TargetSpec", "WeatherVariables", "attack_config",
            "attack_loss", "attack_batch", "attack_pair", "attack_refs", "BatchOptimisation",
@@ -53,4 +55,5 @@ __all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOp
            "mean_rows", "mean_summary", "offset_penalty", "parse_optimize", "parse_target",
            "particle_depths", "read_target_flow", "run_attack",
            "run_evaluation", "summarize_pair", "target_flow", "transparency_bound",
-           "write_evaluation"]
+           "write_evaluation", "SceneWeather", "attack_sequence", "scene_weather",
+           "SecondView", "second_frames", "second_view"]

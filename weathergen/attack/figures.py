@@ -28,7 +28,9 @@ from typing import Mapping, Optional, Sequence
 
 import torch
 
+from ..engine import render_pair
 from ..flow import aee, fl_all, outlier_rate
+from ..io.images import to_uint8
 
 _PER_PAIR, _POOLED = {"mean": "pairs"}, {"mean": "pooled"}
 
@@ -61,6 +63,10 @@ REGION_KEYS = tuple(f.name for f in fields(RegionFigures) if f.metadata.get("mea
 #: Per-pair outlier rates, pooled over the pairs' valid pixels.
 OUTLIER_KEYS = tuple(f.name for f in fields(RegionFigures) if f.metadata.get("mean") == "pooled")
 FIGURE_KEYS = REGION_KEYS + OUTLIER_KEYS
+#: A sequence attack's figures of a pair (:mod:`~weathergen.attack.sequence`): the pair attacked
+#: alone, and the second camera with stereo (None, and left out of the means, otherwise).
+SEQUENCE_FIGURES = ("per_pair_aee_adversarial", "per_pair_target_adversarial",
+                    "second_aee_random", "second_aee_adversarial")
 
 
 def _masked(flow, target, mask) -> Optional[float]:
@@ -116,3 +122,18 @@ def mean_figures(rows: Sequence[Mapping]) -> dict:
         total = sum(n for _, n in pairs)
         out[key] = sum(v * n for v, n in pairs) / total if total else None
     return out
+
+
+def written_flow(model, pair, particles, beta: float, device) -> tuple:
+    """A record as an attack writes it: ``(the record at storage precision, its rendering, the
+    8-bit frames, the network's flow on them (1, 2, H, W) on the CPU)``, the flow the figures of
+    the files on disk describe (``evaluate --weather OUT`` measures the same)."""
+    best = particles.quantized()
+    with torch.no_grad():
+        rendered = render_pair(pair, best, beta=beta, device=device)
+    frames = tuple(to_uint8(img[0].permute(1, 2, 0).cpu().numpy())
+                   for img in (rendered.image1, rendered.image2))
+    stored = [torch.from_numpy(f).permute(2, 0, 1)[None].float().div(255).to(device)
+              for f in frames]
+    with torch.no_grad():
+        return best, rendered, frames, model(*stored).cpu()

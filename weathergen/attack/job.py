@@ -23,13 +23,12 @@ import numpy as np
 import torch
 
 from ..datasets import Dataset
-from ..engine import CombinedPreset, render_pair
+from ..engine import CombinedPreset
 from ..engine.rendering.budget import check_pair_memory
 from ..errors import ConfigError, OutputError, WeatherGenError
 from ..flow import weather_mask
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..io.atomic import write_error
-from ..io.images import to_uint8
 from ..memory import failure_message
 from ..words import counted
 from ..models import AUTOCAST, Network, get_model, probe_network, resolve_network, resolve_precision
@@ -37,12 +36,15 @@ from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, cl
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
 from ..jobs import (depth_note, frame2_note, layer_seeds, pair_particles, pair_seed,
-                    published_geometry_note, scene_airlight, scene_firsts, torch_threads,
-                    visibility_of, weather_scaling, weather_seed)
+                    published_geometry_note, scene_airlight, scene_firsts, scene_key,
+                    torch_threads, visibility_of, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
 from .record import run_settings
-from .settings import ATMOSPHERE_VARIABLES, AttackSettings
+from .figures import written_flow
+from .sequence import (check_sequence_preset, check_sequence_settings, compare_alone,
+                       scene_figures, scene_units, sequence_results)
+from .settings import AttackSettings
 from .targets import TargetSpec, read_target_flow
 
 
@@ -81,6 +83,8 @@ class AttackJob:
     ray_address: Optional[str] = "auto"
     threads: Optional[int] = None       # torch threads of each unit (None: leave as is)
     scene_firsts: dict = field(default_factory=dict)   # each scene's first selected pair
+    sequence: bool = False              # one weather per scene (weathergen.attack.sequence)
+    stereo: bool = False                # sequence: against the dataset's second camera too
 
     def __post_init__(self):
         self.model = resolve_network(self.model)
@@ -129,7 +133,9 @@ class AttackJob:
             "outputs": {"pass": self.pass_name, "format": "png", "geometry": True},
             "particles_from": str(self.particles_from) if self.particles_from else None,
             "attack": {**self.settings.to_dict(), "target": self.target.describe(),
-                       "configuration": self.config_name},
+                       "configuration": self.config_name,
+                       **({"sequence": True} if self.sequence else {}),
+                       **({"stereo": True} if self.stereo else {})},
             "model": self.model_config(),
         }
 
@@ -239,16 +245,8 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
         pairs = [g[1] for g in group]
         step = lambda i, record: on_step(names[i], record)     # noqa: E731
         try:
-            if job.lp is not None:
-                results = lp_attack_batch(
-                    model, torch.stack([p.image1 for p in pairs]).to(device),
-                    torch.stack([p.image2 for p in pairs]).to(device), job.lp, job.target,
-                    seeds=[pair_seed(job.seed, p.id) for p in pairs],
-                    target_file_flow=target_file_flow, on_step=step)
-            else:
-                results = attack_batch(model, pairs, [g[2] for g in group], job.settings,
-                                       job.target, device=device,
-                                       target_file_flow=target_file_flow, on_step=step)
+            results, alone = _optimise(job, model, pairs, [g[2] for g in group], device,
+                                       target_file_flow, step)
         except (WeatherGenError, MemoryError, RuntimeError) as exc:
             message = failure_message(exc, "--batch-size")
             for ref, _, _, _ in group:
@@ -258,10 +256,12 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
         share = (time.perf_counter() - start) / len(group)
         ran = {**where_ran(device), "batch": len(group)}
         write = write_lp_pair if job.lp is not None else write_attacked_pair
-        for (ref, pair, _, spent), result in zip(group, results):
+        for i, ((ref, pair, _, spent), result) in enumerate(zip(group, results)):
             begin = time.perf_counter()
             try:
                 summary = write(job, model, pair, result, device)
+                if alone is not None:
+                    compare_alone(job, model, pair, result, alone[i], summary, device)
             except OSError as exc:      # a full or unwritable disk stops the run, as render's
                 raise write_error(exc, job.out, "then rerun with ${resume}") from None
             summary.seconds = spent + share + time.perf_counter() - begin
@@ -273,20 +273,28 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
     return [reports[ref.id.key] for ref in refs]
 
 
+def _optimise(job: AttackJob, model, pairs: list, particles: list, device, target_file_flow,
+              on_step) -> tuple[list, Optional[list]]:
+    """A group's optimisation: its results, and a sequence attack's pairs attacked alone."""
+    if job.lp is not None:
+        return lp_attack_batch(
+            model, torch.stack([p.image1 for p in pairs]).to(device),
+            torch.stack([p.image2 for p in pairs]).to(device), job.lp, job.target,
+            seeds=[pair_seed(job.seed, p.id) for p in pairs],
+            target_file_flow=target_file_flow, on_step=on_step), None
+    if job.sequence:
+        return sequence_results(job, model, pairs, particles, device, target_file_flow, on_step)
+    return attack_batch(model, pairs, particles, job.settings, job.target, device=device,
+                        target_file_flow=target_file_flow, on_step=on_step), None
+
+
 def write_attacked_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
     """Write one optimised pair's outputs; return its figures."""
     # What is written is the best record at storage precision, rendered and rounded to the
     # 8-bit PNG frames; the adversarial flow is the network's flow on exactly those frames, so
     # the figures describe the files on disk (`evaluate --weather OUT` measures the same).
-    best = result.best_particles.quantized()
-    with torch.no_grad():
-        rendered = render_pair(pair, best, beta=job.settings.beta, device=device)
-    frames = tuple(to_uint8(img[0].permute(1, 2, 0).cpu().numpy())
-                   for img in (rendered.image1, rendered.image2))
-    stored = [torch.from_numpy(f).permute(2, 0, 1)[None].float().div(255).to(device)
-              for f in frames]
-    with torch.no_grad():
-        adversarial = model(*stored).cpu()
+    best, rendered, frames, adversarial = written_flow(model, pair, result.best_particles,
+                                                       job.settings.beta, device)
     covered = weather_mask(rendered.opacity1, rendered.opacity2)[0, 0].cpu()
     summary = summarize_pair(str(pair.id), result, adversarial, pair.flow, pair.flow_valid,
                              compat=job.settings.compat, covered=covered)
@@ -341,22 +349,25 @@ def write_lp_pair(job: AttackJob, model, pair, result, device) -> PairSummary:
 def run_summary(job: AttackJob, rows: list[PairSummary]) -> dict:
     """The run's summary (``summary.json``): the means over pairs (:func:`mean_summary`), the
     attack's ``compat`` mode (None for an Lp attack) and the precision the network ran in
-    (``amp``: under autocast; ``precision``: float32, tf32, bf16 or fp16)."""
-    return {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None,
-            "amp": job.amp_setting(), "precision": job.precision_setting(),
-            "settings": job_settings(job)}
+    (``amp``: under autocast; ``precision``: float32, tf32, bf16 or fp16); a sequence attack's
+    ``scenes`` (:func:`~weathergen.attack.sequence.scene_figures`)."""
+    summary = {**mean_summary(rows), "compat": job.settings.compat if job.lp is None else None,
+               "amp": job.amp_setting(), "precision": job.precision_setting(),
+               "settings": job_settings(job)}
+    if job.sequence:
+        summary["scenes"] = scene_figures(rows)
+    return summary
 
 
 def job_settings(job: AttackJob) -> dict:
     """The run's settings record (:func:`~weathergen.attack.record.run_settings`): the network as
-    the job runs it, the steps and the learning rates of its optimiser (the particles' ``lr``,
-    the atmosphere's where it is freed; an Lp attack's ``lr``), its seed."""
+    the job runs it, the steps and the learning rates of its optimiser (a weather attack's by
+    group, :attr:`~weathergen.attack.AttackSettings.learning_rates`; an Lp attack's ``lr``), its
+    seed."""
     if job.lp is not None:
         steps, rates = job.lp.steps, {"lr": job.lp.lr}
     else:
-        steps, rates = job.settings.steps, {"lr": job.settings.learning_rate}
-        if any(v in ATMOSPHERE_VARIABLES for v in job.settings.optimize):
-            rates["atmosphere_lr"] = job.settings.atmosphere_learning_rate
+        steps, rates = job.settings.steps, job.settings.learning_rates
     return run_settings(job.model, job.checkpoint, iters=job.iters, precision=job.precision_setting(),
                         padding=getattr(job.dataset, "padding", "even"), steps=steps,
                         learning_rates=rates, seed=job.seed)
@@ -375,6 +386,20 @@ def _last_save(save, run: dict, stopped_by) -> None:
             raise OutputError(f"{stopped_by.args[0]}; the manifest could not be updated either; "
                               f"${{resume}} finds the {counted(run['written'], 'pair')} "
                               f"finished in this run on disk") from None
+
+
+def _complete(job: AttackJob, ref, refs: list) -> bool:
+    """Whether a pair is finished on disk; a sequence attack's, whether its whole scene is (a
+    scene with an unfinished pair is redone whole)."""
+    scene = [r for r in refs if scene_key(r.id) == scene_key(ref.id)] if job.sequence else [ref]
+    return all(pair_output(job, r.id).is_complete() for r in scene)
+
+
+def _units(job: AttackJob, todo: list) -> list[list]:
+    """The work units: ``batch_size`` pairs each, or a sequence attack's scenes."""
+    if job.sequence:
+        return scene_units(todo)
+    return [todo[i:i + job.batch_size] for i in range(0, len(todo), job.batch_size)]
 
 
 def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
@@ -407,6 +432,14 @@ def run_attack(job: AttackJob,
     if job.batch_size < 1:
         raise ConfigError(f"${{batch_size}} must be >= 1 (got {job.batch_size})")
     job.precision_setting()                # a request the device or network cannot meet
+    if job.stereo and not job.sequence:
+        raise ConfigError("${stereo} applies to ${sequence}: one weather seen by both cameras")
+    if job.sequence:
+        check_sequence_preset(job.preset, job.preset_name)
+        check_sequence_settings(job.settings)
+        if job.particles_from is not None:
+            raise ConfigError("${particles_from}: a sequence attack starts from the weather "
+                              "field of ${seed}, not from stored particles")
     # Everything that can fail on bad options fails before the output folder is touched.
     refs = job.dataset.pairs()
     for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
@@ -490,14 +523,14 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
     try:
         for ref in refs:
             out = pair_output(job, ref.id)
-            if not job.overwrite and out.is_complete():
+            if not job.overwrite and _complete(job, ref, refs):
                 stored = read_pair_summary(out)
                 if stored is not None:
                     record(PairReport(str(ref.id), "skipped", PairSummary.from_dict(stored),
                                       key=ref.id.key))
                     continue
             todo.append(ref)
-        units = [todo[i:i + job.batch_size] for i in range(0, len(todo), job.batch_size)]
+        units = _units(job, todo)
         if local:
             results = (attack_refs(job, unit, model, target_file_flow, on_step) for unit in units)
         else:

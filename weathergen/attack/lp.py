@@ -59,7 +59,7 @@ from ..engine import from_atanh, to_atanh
 from ..engine.weather.presets import Plausible
 from ..errors import ConfigError
 from ..flow import aee
-from .pair import AttackResult, StepLog, StepRecord
+from .steps import AttackResult, StepLog, StepRecord
 from .targets import TargetSpec, target_flow
 
 LP_METHODS = ("pcfa", "ifgsm")

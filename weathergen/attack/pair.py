@@ -57,10 +57,13 @@ from ..errors import ConfigError
 from ..flow import aee
 from ..framepair import FramePair
 from ..geometry import transform_points
-from .figures import FIGURE_KEYS, RegionFigures, mean_figures, region_figures
+from .figures import (FIGURE_KEYS, SEQUENCE_FIGURES, RegionFigures, mean_figures,
+                      region_figures)
 from .compat import (camera_translation_in_reference, detaches_occlusion, reference_figure_flows,
                      reference_offset_penalty, resets_gradients)
-from .settings import DEFAULT_ALPHA, DENSITY_BOUND, AttackSettings
+from .rates import group_optimizer
+from .settings import DEFAULT_ALPHA, DENSITY_FACTOR, AttackSettings
+from .steps import AttackResult, StepLog, StepRecord
 from .targets import TargetSpec, target_flow
 
 #: Smallest particle depth (scene units) used in the offset penalty.
@@ -111,9 +114,9 @@ class WeatherVariables:
         atm = particles.atmosphere
         if atm is not None:
             if "density" in self.optimize:
-                start = (atm.lattice(dtype, dev) - 1) / DENSITY_BOUND
-                self.eta_density = torch.atanh(start.clamp(-1 + 1e-6, 1 - 1e-6))
-                self.atmosphere["density"] = torch.zeros_like(start, requires_grad=True)
+                self.rho_density = atm.lattice(dtype, dev).detach()
+                self.atmosphere["density"] = torch.zeros_like(self.rho_density,
+                                                              requires_grad=True)
             if "airlight" in self.optimize:
                 self.eta_airlight = to_atanh(atm.airlight.detach().to(device=dev, dtype=dtype))
                 self.atmosphere["airlight"] = torch.zeros(3, dtype=dtype, device=dev,
@@ -137,10 +140,10 @@ class WeatherVariables:
         if self.atmosphere:
             a = self.atmosphere
             air = {}
-            if "density" in a:
-                # (squeezed as from_atanh: strictly inside the bounds in float32 too)
-                air["density"] = 1 + DENSITY_BOUND * (1 - 2e-6) * torch.tanh(
-                    self.eta_density + a["density"])
+            if "density" in a:     # log space, within DENSITY_FACTOR of the sampled value
+                bound = math.log(DENSITY_FACTOR)
+                air["density"] = self.rho_density * torch.exp(
+                    bound * torch.tanh(a["density"] / bound))
             if "airlight" in a:
                 air["airlight"] = from_atanh(self.eta_airlight + a["airlight"])
             changes["atmosphere"] = b.atmosphere.replace(**air)
@@ -251,81 +254,10 @@ def attack_loss(flow: torch.Tensor, target: torch.Tensor, particles, depth1: tor
 
 # -- the loop -----------------------------------------------------------------------------------
 
-@dataclass
-class StepRecord:
-    """One evaluated step. Distances in pixels; ``robustness`` is AEE(f, f̌) against the benign
-    flow; ``best_distance`` the lowest distance so far (never increases)."""
-
-    step: int
-    loss: float
-    distance: float
-    penalty: float
-    robustness: float
-    best_distance: float
-    seconds: float
-
-
-@dataclass
-class AttackResult:
-    """Outcome of :func:`attack_pair`.
-
-    Shape: benign_flow, initial_flow, best_flow, target (1, 2, H, W) pixels, on the CPU;
-    best_particles a detached CPU record (float32, not yet quantised to storage precision).
-    """
-
-    best_particles: object
-    best_step: int
-    history: list[StepRecord]
-    benign_flow: torch.Tensor
-    initial_flow: torch.Tensor
-    best_flow: torch.Tensor
-    target: torch.Tensor
-    frozen: bool = False    # True when no variable could influence the loss (nothing visible)
-
-
-class StepLog:
-    """The per-step bookkeeping of an attack loop over B pairs (the weather attack's and the Lp
-    attacks'): each pair's :class:`StepRecord` history and its best step so far, the one with
-    the lowest distance to the target (the first measured step always counts), with its flow."""
-
-    def __init__(self, size: int, on_step: Callable[[int, StepRecord], None]):
-        self.history: list[list[StepRecord]] = [[] for _ in range(size)]
-        self.best = [math.inf] * size
-        self.best_step = [0] * size
-        self.best_flow: list = [None] * size
-        self.on_step = on_step
-
-    def improves(self, i: int, step: int, distance: float, flow: torch.Tensor) -> bool:
-        """Whether ``step`` is pair ``i``'s best so far; if so, keep its step, ``distance`` and
-        flow (row ``i`` of ``flow``, detached, on the CPU)."""
-        if distance < self.best[i] or self.best_flow[i] is None:
-            self.best[i], self.best_step[i] = distance, step
-            self.best_flow[i] = flow[i:i + 1].detach().cpu()
-            return True
-        return False
-
-    def record(self, step: int, pairs: Sequence[int], flow: torch.Tensor, benign: torch.Tensor,
-               losses: torch.Tensor, distances: Sequence[float], penalties: torch.Tensor,
-               t0: float) -> None:
-        """Append step ``step``'s :class:`StepRecord` to the history of each pair in ``pairs``
-        and report it to ``on_step``; ``seconds`` is the time since ``t0``.
-        Shape: flow and benign (B, 2, H, W), losses and penalties (B,), distances B floats."""
-        robustness = aee(flow.detach(), benign).cpu().tolist()
-        loss_values = losses.detach().cpu().tolist()
-        penalty_values = penalties.detach().cpu().tolist()
-        seconds = time.perf_counter() - t0
-        for i in pairs:
-            record = StepRecord(step=step, loss=loss_values[i], distance=distances[i],
-                                penalty=penalty_values[i], robustness=robustness[i],
-                                best_distance=self.best[i], seconds=seconds)
-            self.history[i].append(record)
-            self.on_step(i, record)
-
-
-def _snapshot(particles):
+def snapshot(particles):
     """A detached CPU copy of a record (of every layer of combined weather)."""
     if isinstance(particles, LayeredParticles):
-        return LayeredParticles(tuple(_snapshot(r) for r in particles.layers), particles.names)
+        return LayeredParticles(tuple(snapshot(r) for r in particles.layers), particles.names)
     atm = particles.atmosphere
     if atm is not None:
         atm = atm.replace(airlight=atm.airlight.detach().cpu().clone(),
@@ -421,11 +353,7 @@ class BatchOptimisation:
         self.start_depth1 = [torch.cat([start_depth(x, c1) for x in self._freed(i, r)])
                              for i, (r, (c1, _)) in enumerate(zip(moved, transforms))]
         self.detach_occlusion = detaches_occlusion(settings)
-        groups = [{"params": [p for v in self.variables for p in v.parameters()]}]
-        air = [p for v in self.variables for p in v.atmosphere_parameters()]
-        if air:     # the atmosphere's variables at their own rate
-            groups.append({"params": air, "lr": settings.atmosphere_learning_rate})
-        self.optimizer = torch.optim.Adam(groups, lr=settings.learning_rate)
+        self.optimizer = group_optimizer(self.variables, settings)
 
     def render(self, particles: Sequence):
         """The weather frames of B records (a :class:`~weathergen.engine.RenderOutput`)."""
@@ -569,7 +497,7 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
             if step == 0:
                 initial_flow[i] = flow[i:i + 1].detach().cpu()
             if log.improves(i, step, dists[i], flow):
-                best_particles[i] = _snapshot(current[i])
+                best_particles[i] = snapshot(current[i])
         last = step == steps
         finishing = [False] * size
         if not last:
@@ -645,6 +573,12 @@ class PairSummary(RegionFigures):
     seconds: float = 0.0
     nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
     particles: Optional[int] = None   # particles in the record (the count the frame size gave)
+    #: ``attack --sequence``: the figures of each pair attacked alone, same settings and start
+    per_pair_aee_adversarial: Optional[float] = None
+    per_pair_target_adversarial: Optional[float] = None
+    #: ``attack --sequence --stereo``: AEE(f, f̌) of the second camera (float frames)
+    second_aee_random: Optional[float] = None
+    second_aee_adversarial: Optional[float] = None
 
     @classmethod
     def from_dict(cls, data: dict) -> "PairSummary":
@@ -699,9 +633,10 @@ def mean_summary(rows: list[PairSummary]) -> dict:
     figures by region and outlier rates as :func:`~weathergen.attack.figures.mean_figures`)."""
     out: dict = {"pairs": len(rows)}
     for key in ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
-                "epe_benign", "epe_random", "epe_adversarial"):
+                "epe_benign", "epe_random", "epe_adversarial", *SEQUENCE_FIGURES):
         values = [getattr(r, key) for r in rows if getattr(r, key) is not None]
-        out[key] = sum(values) / len(values) if values else None
+        if values or key not in SEQUENCE_FIGURES:       # (those only where measured)
+            out[key] = sum(values) / len(values) if values else None
     out.update(mean_figures([{k: getattr(r, k) for k in (*FIGURE_KEYS, "gt_valid_px")}
                              for r in rows]))
     return out

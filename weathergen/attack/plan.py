@@ -22,13 +22,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Mapping, Optional, Sequence
 
-from ..engine import BETA_ATTACK, BETA_RENDER, CombinedPreset, Preset
+from ..engine import BETA_ATTACK, BETA_RENDER, CombinedPreset, FieldPreset, Preset
 from ..errors import ConfigError
 from ..render.plan import resolve_preset
 from .compat import transparency_bound_for
 from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
 from .settings import (DEFAULT_ALPHA, DEFAULT_STEPS, AttackSettings, default_optimize,
-                       parse_optimize)
+                       parse_group_lr, parse_optimize)
 
 
 @dataclass(frozen=True)
@@ -53,7 +53,9 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
                 occlusion_gradient: Optional[bool] = None, steps: int = DEFAULT_STEPS,
                 alpha1: float = DEFAULT_ALPHA, alpha2: float = DEFAULT_ALPHA,
                 compat: str = "paper",
-                layers: Optional[str | Sequence[str]] = None) -> AttackPlan:
+                layers: Optional[str | Sequence[str]] = None,
+                group_lr: Optional[str | Sequence[str]] = None,
+                sequence: bool = False) -> AttackPlan:
     """Resolve an attack request by the rules of this module; None means "not given".
 
     ``compat``: ``paper`` or ``reference`` (:mod:`weathergen.attack.compat`); it also picks the
@@ -61,7 +63,12 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
 
     ``optimize`` is ``"offset1,color"`` (or ``"all"``) or a sequence of variable names.
     ``layers``: for a combined preset, the layers whose variables are freed (``"fog-light"``,
-    ``"snow,fog"``, a sequence of names, or ``"all"``/None: every layer).
+    ``"snow,fog"``, a sequence of names, or ``"all"``/None: every layer). ``group_lr``: rates of
+    single learning-rate groups (``"density=0.1"``, or a sequence of such), which win over
+    ``lr``; the groups given none take ``lr``, else the configuration's, else the defaults: the
+    paper's for a preset with a paper layer, :data:`~weathergen.attack.settings.FIELD_LR` for
+    weather fields (the atmosphere's always). ``sequence``: one weather for whole scenes
+    (:mod:`~weathergen.attack.sequence`), whose default variables leave out ``offset2``.
     Raises ConfigError for an unknown configuration, preset or variable, and for the refused
     combinations with ``particles_from``.
     """
@@ -79,6 +86,8 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
     config = named if named is not None else ATTACK_CONFIGS.get(name)
     if optimize is None:
         variables = config.optimize if config else default_optimize(resolved.preset)
+        if sequence:        # a world weather: one position per particle and frame
+            variables = tuple(v for v in variables if v != "offset2")
     else:
         variables = parse_optimize(optimize if isinstance(optimize, str) else ",".join(optimize))
     if lr is None and config is not None and variables == config.optimize:
@@ -88,8 +97,16 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
     settings = AttackSettings(optimize=variables, steps=steps, lr=lr, alpha1=alpha1,
                               alpha2=alpha2, beta=BETA_ATTACK if occlusion_gradient else BETA_RENDER,
                               transparency_max=transparency_bound_for(resolved.preset, compat),
-                              compat=compat, layers=parse_layers(layers, resolved.preset))
+                              compat=compat, layers=parse_layers(layers, resolved.preset),
+                              group_lr=parse_group_lr(group_lr or ()),
+                              lr_defaults="field" if all_fields(resolved.preset) else "paper")
     return AttackPlan(resolved.preset, name, config, settings, config_name or name)
+
+
+def all_fields(preset) -> bool:
+    """Whether every layer of ``preset`` (itself, unless combined) is a weather field."""
+    layers = preset.layers if isinstance(preset, CombinedPreset) else (preset,)
+    return all(isinstance(layer, FieldPreset) for layer in layers)
 
 
 def parse_layers(layers: Optional[str | Sequence[str]], preset) -> Optional[tuple[str, ...]]:

@@ -15,7 +15,8 @@ from a preset) and :mod:`.rendering` (records and cameras -> frames). The render
 
 from __future__ import annotations
 
-from .sampling.field import (Field, frame_particles, make_field, field_pair_particles,
+from .sampling.field import (Field, field_for_pair, field_pair_particles, field_record,
+                             frame_particles, make_field, pair_trajectories, pair_views,
                              sample_field_particles, sample_layers, sample_weather, scene_seed)
 from .pipeline import Weather
 from .rendering.groundtruth import ParticleTruth, particle_truth, seen_flow
@@ -40,7 +41,8 @@ __all__ = ["APPEARANCE_KEYS", "BETA_ATTACK", "BETA_RENDER", "CombinedPreset",
            "RenderSettings", "StampSet", "TemplateLibrary", "View", "Weather", "build_stamps",
            "empty_particles", "frame_particles", "frame_scaling", "from_atanh", "generate_templates",
            "layer_seed", "list_presets", "load_particles", "load_preset", "load_templates", "make_field",
-           "field_pair_particles",
+           "field_pair_particles", "field_for_pair", "field_record", "pair_trajectories",
+           "pair_views",
            "parse_override", "parse_set_options", "particle_truth", "preset_keys",
            "reference_transforms", "render", "render_pair", "render_view", "resolve_device",
            "sample_field_particles", "sample_layers", "sample_particles", "sample_weather", "scene_seed",

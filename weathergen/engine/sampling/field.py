@@ -371,14 +371,20 @@ def frame_particles(fld: Field, view: View, frame: int) -> Particles:
     return field_record(fld, j, k, frame)
 
 
+def pair_trajectories(fld: Field, views: Sequence[View], frames: tuple[int, int]
+                      ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The trajectories ``(j (M,), k (M, 3))`` drawn in frame 1 or frame 2 of a pair (the
+    union, in canonical order: the order of the pair's record, :func:`field_pair_particles`)."""
+    j1, k1 = fld.candidates(views[0], frames[0])
+    j2, k2 = fld.candidates(views[1], frames[1])
+    return _canonical(torch.cat((j1, j2)), torch.cat((k1, k2)))
+
+
 def field_pair_particles(fld: Field, views: Sequence[View], frames: tuple[int, int]) -> Particles:
     """The particles drawn in frame 1 or frame 2 of a pair (the union, in canonical order):
     positions in frame 1, motion to frame 2."""
-    n1, n2 = frames
-    j1, k1 = fld.candidates(views[0], n1)
-    j2, k2 = fld.candidates(views[1], n2)
-    j, k = _canonical(torch.cat((j1, j2)), torch.cat((k1, k2)))
-    return field_record(fld, j, k, n1, n2 - n1)
+    j, k = pair_trajectories(fld, views, frames)
+    return field_record(fld, j, k, frames[0], frames[1] - frames[0])
 
 
 def field_for_pair(pair: FramePair, preset: FieldPreset, seed, *, world_up: str = "auto",
