@@ -147,10 +147,14 @@ class GMAUpdateBlock(nn.Module):
 # ---------------------------------------------------------------------------------------------
 
 class GMA(RAFT):
-    """GMA on normalised frames whose size is a multiple of 8.
+    """GMA on normalised frames whose size is a multiple of 8: called as
+    :meth:`RAFT.forward <weathergen.models.raft.RAFT.forward>` (``iters`` None: 6). With ``amp``
+    the context attention runs under autocast too, its softmax in float32.
 
     Use :class:`GMAModel` (``get_model("gma")``) for frames in the package's convention.
     """
+
+    default_iters = DEFAULT_ITERS
 
     def __init__(self):
         nn.Module.__init__(self)       # RAFT's loop and upsampling, GMA's modules
@@ -159,26 +163,6 @@ class GMA(RAFT):
         self.cnet = Encoder(cfg.hidden_dim + cfg.context_dim, "batch", small=False)
         self.update_block = GMAUpdateBlock(cfg.corr_channels, cfg.hidden_dim)
         self.att = ContextAttention(cfg.context_dim, dim_head=cfg.context_dim, max_pos=160)
-
-    def forward(self, image1: torch.Tensor, image2: torch.Tensor, iters: int = DEFAULT_ITERS,
-                detach_flow: bool = True, gradient_checkpointing: bool = False,
-                amp: bool = False) -> torch.Tensor:
-        """Flow from ``image1`` to ``image2``.
-
-        Args:
-            image1, image2: ``(B, 3, H, W)`` RGB in ``[-1, 1]``, ``H`` and ``W`` multiples of 8.
-            iters, detach_flow, gradient_checkpointing: as for
-                :meth:`weathergen.models.raft.RAFT.forward`.
-            amp: ``bf16``/``fp16`` (``True``: fp16): the encoders, the context attention and the
-                update operator under autocast, as the authors' code with ``mixed_precision``
-                (the paper's configuration); correlation, lookup, the attention's softmax and
-                the flow stay in float32.
-
-        Returns:
-            ``(B, 2, H, W)`` flow in pixels.
-        """
-        return self._run(image1, image2, iters, None, detach_flow, gradient_checkpointing,
-                         every_step=False, amp=amp)[-1]
 
     def _step_features(self, context: torch.Tensor) -> tuple:
         return context, self.att(context)

@@ -411,6 +411,9 @@ class RAFT(nn.Module):
     Use :class:`RAFTModel` (``get_model("raft")``) for frames in the package's convention.
     """
 
+    #: Refinement steps where ``iters`` is None.
+    default_iters: int = DEFAULT_ITERS
+
     def __init__(self, config: RAFTConfig = RAFT_FULL):
         super().__init__()
         self.config = config
@@ -419,15 +422,14 @@ class RAFT(nn.Module):
                             "none" if config.small else "batch", config.small)
         self.update_block = UpdateBlock(config)
 
-    def forward(self, image1: torch.Tensor, image2: torch.Tensor, iters: int = DEFAULT_ITERS,
-                flow_init: Optional[torch.Tensor] = None, detach_flow: bool = True,
-                gradient_checkpointing: bool = False, amp: bool = False) -> torch.Tensor:
+    def forward(self, image1: torch.Tensor, image2: torch.Tensor, iters: Optional[int] = None,
+                detach_flow: bool = True, gradient_checkpointing: bool = False,
+                amp: bool = False) -> torch.Tensor:
         """Flow from ``image1`` to ``image2`` after ``iters`` refinement steps.
 
         Args:
             image1, image2: ``(B, 3, H, W)`` RGB in ``[-1, 1]``, ``H`` and ``W`` multiples of 8.
-            iters: refinement steps.
-            flow_init: ``(B, 2, H/8, W/8)`` starting flow in working-resolution pixels, or zero.
+            iters: refinement steps (None: :attr:`default_iters`).
             detach_flow: cut the gradient along the chain of flow estimates between steps, as in
                 the authors' training; gradients still reach the images through the correlation
                 volume and the context features.
@@ -440,25 +442,25 @@ class RAFT(nn.Module):
         Returns:
             ``(B, 2, H, W)`` flow in pixels.
         """
-        return self._run(image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
+        return self._run(image1, image2, iters, detach_flow, gradient_checkpointing,
                          every_step=False, amp=amp)[-1]
 
     def flow_sequence(self, image1: torch.Tensor, image2: torch.Tensor,
-                      iters: int = DEFAULT_ITERS, flow_init: Optional[torch.Tensor] = None,
-                      detach_flow: bool = True, gradient_checkpointing: bool = False,
-                      amp: bool = False) -> list[torch.Tensor]:
+                      iters: Optional[int] = None, detach_flow: bool = True,
+                      gradient_checkpointing: bool = False, amp: bool = False) -> list[torch.Tensor]:
         """The upsampled flow after every refinement step, as RAFT's sequence loss needs.
 
         Arguments as :meth:`forward`. Returns ``iters`` tensors ``(B, 2, H, W)`` in pixels; the
         last one is what :meth:`forward` returns.
         """
-        return self._run(image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
+        return self._run(image1, image2, iters, detach_flow, gradient_checkpointing,
                          every_step=True, amp=amp)
 
-    def _run(self, image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
+    def _run(self, image1, image2, iters, detach_flow, gradient_checkpointing,
              every_step: bool, amp: bool = False) -> list[torch.Tensor]:
         cfg = self.config
         b = image1.shape[0]
+        iters = self.default_iters if iters is None else iters
         amp = autocast_mode(amp, image1)
         with mixed_precision(amp):
             fmaps = self.fnet(torch.cat([image1, image2], dim=0))
@@ -473,7 +475,7 @@ class RAFT(nn.Module):
         # coords0: every working-resolution pixel; coords1: where it is estimated to be in frame 2.
         h, w = fmaps.shape[-2:]
         coords0 = coords_grid(b, h, w, fmaps.device, fmaps.dtype)
-        coords1 = coords0 if flow_init is None else coords0 + flow_init
+        coords1 = coords0
 
         step = partial(self._refine, corr, amp=amp)
         use_recompute = gradient_checkpointing and torch.is_grad_enabled()
