@@ -121,7 +121,7 @@ def worker_device(device: str, executor: str) -> str:
 def where_ran(device) -> dict:
     """The host, process, Ray worker (None outside Ray) and device that computed a pair."""
     worker = None
-    ray = _ray_if_loaded()
+    ray = sys.modules.get("ray")               # only where the run imported it
     if ray is not None and ray.is_initialized():
         try:
             ctx = ray.get_runtime_context()
@@ -131,10 +131,6 @@ def where_ran(device) -> dict:
             worker = None
     return {"host": socket.gethostname(), "pid": os.getpid(), "worker": worker,
             "device": str(device)}
-
-
-def _ray_if_loaded():
-    return sys.modules.get("ray")
 
 
 class RunClock:

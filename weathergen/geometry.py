@@ -77,14 +77,6 @@ def transform_points(a_from_b: torch.Tensor, points: torch.Tensor) -> torch.Tens
     return points @ t[..., :3, :3].transpose(-1, -2) + t[..., None, :3, 3]
 
 
-def relative_transform(cam1_from_world: torch.Tensor, cam2_from_world: torch.Tensor) -> torch.Tensor:
-    """``cam2_from_cam1 = cam2_from_world @ inverse(cam1_from_world)``.
-
-    Shape: (..., 4, 4) each -> (..., 4, 4).
-    """
-    return cam2_from_world @ invert_rigid(cam1_from_world)
-
-
 def invert_rigid(a_from_b: torch.Tensor) -> torch.Tensor:
     """Exact inverse of a rigid transform (rotation transposed, translation rotated back).
 

@@ -252,7 +252,7 @@ def test_stereo_with_format_both_writes_the_right_view_as_the_left(tmp_path, dem
     import torch
 
     from fake_datasets import KITTI_BASELINE, demo_sequence, write_fake_kitti_stereo
-    from weathergen.engine.rendering.stereo import warp_depth
+    from weathergen.engine.rendering.stereo import warp_view_depth
     from weathergen.io.exr import read_exr
     from weathergen.io.images import read_image, read_raw
     from weathergen.io.sintel_formats import read_cam, read_dpt
@@ -284,8 +284,8 @@ def test_stereo_with_format_both_writes_the_right_view_as_the_left(tmp_path, dem
     np.testing.assert_allclose(e_right, (right_from_left @ np.vstack([e_left2, [0, 0, 0, 1]]))[:3],
                                atol=1e-6)
     np.testing.assert_allclose(e_left, np.eye(4)[:3])       # KITTI: camera 1 is the world
-    expected = warp_depth(torch.from_numpy(left_depth)[None], torch.from_numpy(k_left),
-                          torch.from_numpy(right_from_left))[0].numpy()
+    expected = warp_view_depth(torch.from_numpy(left_depth)[None], None, torch.from_numpy(k_left),
+                               torch.from_numpy(right_from_left))[0][0].numpy()
     np.testing.assert_allclose(right_depth, expected, rtol=1e-6)
     # and the metadata places the right camera; the pair lists every file (resume finds them)
     meta = read_metadata(t / "particles" / pair / "frame_0010.npz")

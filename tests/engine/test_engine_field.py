@@ -22,7 +22,7 @@ from weathergen.engine.rendering.groundtruth import particle_truth, seen_flow
 from weathergen.engine.weather.optics import FieldOptics
 from weathergen.engine.records.settings import RenderSettings
 from weathergen.engine.rendering.renderer import render_view
-from weathergen.engine.views import View, field_defocus_radius, depth_fade, footprint, view_mask
+from weathergen.engine.views import View, coc_radius, fade, footprint, view_mask
 from weathergen.errors import ConfigError
 from weathergen.framepair import FramePair, PairId
 from weathergen.geometry import project, transform_points
@@ -129,11 +129,11 @@ def test_footprint_ratio_is_the_inverse_depth_ratio():
 def test_appearance_functions():
     optics = FieldOptics(near=0.5, far=10.0, fade=0.2, aperture=0.02, focus=2.0)
     z = torch.tensor([0.5, 0.75, 1.0, 5.0, 8.0, 9.0, 10.0], dtype=torch.float64)
-    fade = depth_fade(optics, z)
-    assert fade[0] == 0 and fade[-1] == 0 and fade[2] == 1 and fade[3] == 1 and fade[4] == 1
-    assert 0 < fade[1] < 1 and 0 < fade[5] < 1
+    faded = fade(optics.near, optics.far, optics.fade, z)
+    assert faded[0] == 0 and faded[-1] == 0 and faded[2] == 1 and faded[3] == 1 and faded[4] == 1
+    assert 0 < faded[1] < 1 and 0 < faded[5] < 1
     # thin-lens circle of confusion: 0.5 f A |1/z - 1/focus|, in whole pixels
-    r = field_defocus_radius(100.0, optics, torch.tensor([2.0, 0.5, 0.25], dtype=torch.float64))
+    r = coc_radius(100.0, optics.aperture, optics.focus, torch.tensor([2.0, 0.5, 0.25], dtype=torch.float64))
     assert r.tolist() == [0, round(0.5 * 100 * 0.02 * 1.5), round(0.5 * 100 * 0.02 * 3.5)]
 
 
@@ -476,14 +476,14 @@ def test_presets_command_names_the_model():
 # -- stereo ------------------------------------------------------------------------------------
 
 def test_warped_right_depth_of_a_plane_and_an_occluder():
-    from weathergen.engine.rendering.stereo import warp_depth
+    from weathergen.engine.rendering.stereo import warp_view_depth
 
     baseline = 0.2
     right_from_left = torch.eye(4, dtype=torch.float64)
     right_from_left[0, 3] = -baseline          # the right camera sits at +x of the left one
     depth = torch.full((1, H, W), 4.0)
     depth[..., 20:30, 20:30] = 2.0             # a near block
-    right = warp_depth(depth, K, right_from_left, fill=99.0)
+    right = warp_view_depth(depth, None, K, right_from_left, fill=99.0)[0]
     shift_far, shift_near = F * baseline / 4.0, F * baseline / 2.0      # 2.5 and 5 px
     assert float(right[0, 5, 30]) == 4.0                                 # plain plane
     assert float(right[0, 25, 20 - round(shift_near) + 2]) == 2.0       # the block moved left
@@ -520,7 +520,7 @@ def test_right_view_disocclusions_take_the_background_never_the_sky():
     """Beside a near block the right view sees background the left one hid, and at its right
     border what the left never saw: those holes take the farther side's depth along the row (the
     plane behind), not the far depth; the provenance follows each pixel (filled holes completed)."""
-    from weathergen.engine.rendering.stereo import warp_depth, warp_view_depth
+    from weathergen.engine.rendering.stereo import warp_view_depth
     from weathergen.framepair import COMPLETED, MEASURED, SKY
 
     right_from_left = torch.eye(4, dtype=torch.float64)
@@ -531,7 +531,7 @@ def test_right_view_disocclusions_take_the_background_never_the_sky():
     provenance = torch.zeros((1, H, W), dtype=torch.uint8)
     provenance[..., :10, :] = SKY
     right, kind = warp_view_depth(depth, provenance, K, right_from_left)
-    holes = warp_depth(depth, K, right_from_left, fill=-1.0)[0] == -1.0
+    holes = warp_view_depth(depth, None, K, right_from_left, fill=-1.0)[0][0] == -1.0
     ground = holes.clone()
     ground[:11] = False                        # (row 10 also takes row 9's sky: the 2x2 splat)
     assert int(ground[20:30].sum(dim=1).min()) >= 2       # beside the block and at the border
@@ -539,7 +539,7 @@ def test_right_view_disocclusions_take_the_background_never_the_sky():
     assert float(right[0, 11:].max()) == 4.0              # nothing below the sky at the far depth
     assert bool((kind[0, :10] == SKY).all()) and bool((right[0, :10] == 1000.0).all())
     assert bool((kind[0, 11:][~holes[11:]] == MEASURED).all())
-    torch.testing.assert_close(warp_depth(depth, K, right_from_left), right)
+    torch.testing.assert_close(warp_view_depth(depth, None, K, right_from_left)[0], right)
 
 
 @pytest.mark.cuda
@@ -561,7 +561,7 @@ def test_the_right_views_depth_and_provenance_on_cuda_are_the_cpus():
 
 
 def test_right_camera_renders_the_same_field_particles_at_their_disparity():
-    from weathergen.engine.rendering.stereo import render_right, stereo_view, warp_depth
+    from weathergen.engine.rendering.stereo import render_right, stereo_view, warp_view_depth
 
     baseline = 0.25
     cams, depths = sequence(2)
@@ -570,7 +570,7 @@ def test_right_camera_renders_the_same_field_particles_at_their_disparity():
     right_from_left = torch.eye(4, dtype=torch.float64)
     right_from_left[0, 3] = -baseline
     left = View(K, cams[0], pair.depth1)
-    right = stereo_view(left, right_from_left, warp_depth(pair.depth1, K, right_from_left))
+    right = stereo_view(left, right_from_left, warp_view_depth(pair.depth1, None, K, right_from_left)[0])
     assert torch.allclose(right.cam_from_ref, right_from_left @ cams[0])
     _, a_left = render_view(torch.zeros(3, H, W), left, record, record.position, record.motion,
                             disc_library(), beta=250.0, chunk_elements=1 << 20)

@@ -3,6 +3,8 @@ layers on a hand-made scene, the layered composite's gradient, a single layer's 
 
 from __future__ import annotations
 
+from typing import Optional, Sequence
+
 import pytest
 import torch
 
@@ -10,11 +12,43 @@ from engine_scenes import plane_pair, wisps
 from weathergen.engine import (BETA_ATTACK, BETA_RENDER, LayeredParticles, build_stamps,
                                load_preset, load_templates, render, render_pair,
                                sample_particles, sample_weather)
-from weathergen.engine.rendering.composite import composite_layers
+from weathergen.engine.rendering.composite import _LayeredBlend
 from weathergen.framepair import FramePairBatch
 from weathergen.errors import ConfigError
 
 RED, BLUE = (1.0, 0.0, 0.0), (0.0, 0.0, 1.0)
+
+
+class GridLayout:
+    """Planes given whole, ``(5, T, B, L, 1, H, W)`` (:func:`composite_layers`)."""
+
+    def read(self, values: Sequence[torch.Tensor], t: int, k: int,
+             channels: Optional[int] = None) -> torch.Tensor:
+        return values[0][:channels, t, :, k, 0]
+
+    def gradients(self, values: Sequence[torch.Tensor]) -> list:
+        return [torch.zeros_like(values[0])]
+
+    def buffer(self, g_values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
+        return g_values[0][:4, t, :, k, 0]
+
+    def finish(self, g_values, buffer, t: int, k: int) -> None:
+        pass
+
+
+def composite_layers(alpha: torch.Tensor, colour: torch.Tensor, depth: torch.Tensor,
+                     image: torch.Tensor, alpha_mode: torch.Tensor
+                     ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The frames of layered sums: per pixel the layers far to near by their mean depth
+    ``Z / A``, each blended over the result so far with its mode, clamped once at the end.
+
+    Shape: alpha (B, L, 1, H, W) ``A``; colour (B, L, 3, H, W) ``C``; depth (B, L, 1, H, W)
+    ``Z = Σ θ B V z``; image (B, 3, H, W); alpha_mode (B, L) bool -> (image (B, 3, H, W),
+    opacity (B, 1, H, W)). Differentiable in alpha, colour and image (not in the order).
+    """
+    grid = torch.cat((alpha, colour, depth), 2).permute(2, 0, 1, 3, 4)[:, None, :, :, None]
+    out, opacity = _LayeredBlend.apply(alpha_mode, GridLayout(), 1, grid, image)
+    return out, opacity
 
 
 @pytest.fixture(scope="module")

@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 
 from weathergen.errors import ConfigError, FormatError
-from weathergen.io.gif import decode_gif, encode_gif, frame_delay, palette_indices, read_gif
+from gif_reader import decode_gif, read_gif
+from weathergen.io.gif import encode_gif, frame_delay, palette_indices
 from weathergen.io.video import write_video
 
 

@@ -224,11 +224,11 @@ def test_a_pair_lists_its_files_and_is_complete_when_they_exist(tmp_path):
         out.listed_files()
     assert not out.is_complete()
     meta = pair_metadata(empty_particles(), pid, 7, {"count": 0}, "snow")
-    meta["files"] = np.array(json.dumps([str(p.relative_to(tmp_path)) for p in out.frames_png]))
+    meta["files"] = np.array(json.dumps([str(p.relative_to(tmp_path)) for p in out.frame_files("png")]))
     write_metadata(out.metadata, meta)
-    assert out.listed_files() == list(out.frames_png)
+    assert out.listed_files() == list(out.frame_files("png"))
     assert not out.is_complete()
-    for p in out.frames_png:
+    for p in out.frame_files("png"):
         p.parent.mkdir(parents=True, exist_ok=True)
         p.write_bytes(b"")
     assert out.is_complete()

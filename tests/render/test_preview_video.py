@@ -14,7 +14,7 @@ import pytest
 from click.testing import CliRunner
 
 from weathergen.cli.main import _register, cli
-from weathergen.io.gif import read_gif
+from gif_reader import read_gif
 from weathergen.io.images import read_image, read_raw, to_uint8
 from weathergen.outputs import read_manifest
 from weathergen.render import output_frame_rate, video_preview

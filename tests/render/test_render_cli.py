@@ -17,9 +17,19 @@ from click.testing import CliRunner
 
 from weathergen.cli.main import _register, cli
 from weathergen.datasets import open_dataset
-from weathergen.engine.records.particles import stored_values
+from weathergen.engine.records.particles import FORMAT_VERSION, _coded, _decoded
 from weathergen.io.images import read_image
 from weathergen.outputs import read_metadata
+
+
+def stored_values(arrays: dict, name: str) -> np.ndarray:
+    """The values a particle file's array ``name`` stands for (codes decoded), for display.
+    Shape: as the record holds it ((N, 3) for motion whatever the storage)."""
+    if _coded(arrays):
+        return _decoded(arrays, name, int(arrays.get("format_version", FORMAT_VERSION)),
+                        "<arrays>").astype(np.float64)
+    return arrays[name].astype(np.float64)
+
 
 # Small and quick: a few hundred particles on the street scene's first two pairs.
 FAST = ("--scenes", "street", "--frames-per-scene", "2", "--set", "count=300")

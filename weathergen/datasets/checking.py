@@ -13,7 +13,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Optional
 
 from ..errors import WeatherGenError
 from .base import ERROR, WARNING, Dataset, PairRef, Problem
@@ -102,8 +102,8 @@ def check_pair(dataset: Dataset, ref: PairRef, *, geometry: bool = False) -> Pai
     return result
 
 
-def check_dataset(dataset: Dataset, *, geometry: bool = False, geometry_pairs: int = 3,
-                  on_pair: Optional[Callable[[PairCheck], None]] = None) -> list[SceneCheck]:
+def check_dataset(dataset: Dataset, *, geometry: bool = False, geometry_pairs: int = 3
+                  ) -> list[SceneCheck]:
     """Check every selected pair; one :class:`SceneCheck` per scene (scenes without pairs that
     have problems of their own included), sorted by scene.
 
@@ -126,10 +126,7 @@ def check_dataset(dataset: Dataset, *, geometry: bool = False, geometry_pairs: i
         sc = scenes.setdefault(scene, SceneCheck(scene))
         sampled = set(sample_indices(len(scene_refs), geometry_pairs)) if geometry else set()
         for i, ref in enumerate(scene_refs):
-            pc = check_pair(dataset, ref, geometry=i in sampled)
-            sc.pairs.append(pc)
-            if on_pair:
-                on_pair(pc)
+            sc.pairs.append(check_pair(dataset, ref, geometry=i in sampled))
         if geometry:
             sc.geometry = summarize([pc.geometry_errors for pc in sc.pairs
                                      if pc.geometry_errors is not None])

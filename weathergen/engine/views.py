@@ -118,15 +118,12 @@ def scalar(value: float, device) -> torch.Tensor:
 def coc_radius(f, aperture, focus, z: torch.Tensor) -> torch.Tensor:
     """Thin-lens circle of confusion ``round(clip(f A |1/z − 1/focus| / 2, 0, MAX_DEFOCUS))``
     in whole pixels (0 where the aperture is 0). Arguments broadcast. Shape: -> z's, int64."""
-    r = 0.5 * f * aperture * (torch.reciprocal(z) - _inverse(focus)).abs()
+    # one reciprocal for a tensor focus (``1.0 / x`` is a reciprocal and a product)
+    inverse_focus = torch.reciprocal(focus) if torch.is_tensor(focus) else 1.0 / focus
+    r = 0.5 * f * aperture * (torch.reciprocal(z) - inverse_focus).abs()
     r = torch.floor(r.clamp(0, MAX_DEFOCUS) + 0.5)
     return torch.where(torch.as_tensor(aperture, device=z.device) > 0, r,
                        scalar(0.0, z.device)).long()
-
-
-def field_defocus_radius(f: float, optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
-    """Circle-of-confusion radius in whole pixels. Shape: (N,) -> (N,) int64."""
-    return coc_radius(f, optics.aperture, optics.focus, z)
 
 
 def fade(near, far, fraction, z: torch.Tensor) -> torch.Tensor:
@@ -139,11 +136,6 @@ def fade(near, far, fraction, z: torch.Tensor) -> torch.Tensor:
     fade_out = torch.where(cut, _smoothstep((far - z) / (safe * far)),
                            (z <= far).to(z.dtype))
     return fade_in * fade_out
-
-
-def depth_fade(optics: FieldOptics, z: torch.Tensor) -> torch.Tensor:
-    """Fade-in after ``near`` and fade-out before ``far``, in [0, 1]. Shape: any -> same."""
-    return fade(optics.near, optics.far, optics.fade, z)
 
 
 def in_view(ends: torch.Tensor, reach: torch.Tensor, tolerance: torch.Tensor,
@@ -275,12 +267,6 @@ def detached(x: torch.Tensor) -> torch.Tensor:
     """``x.detach()`` where ``x`` carries a gradient, ``x`` itself otherwise (the same numbers
     without an operation)."""
     return x.detach() if x.requires_grad else x
-
-
-def _inverse(x):
-    """``1 / x`` of a tensor (one reciprocal: ``1.0 / x`` is a reciprocal and a product) or of a
-    number."""
-    return torch.reciprocal(x) if torch.is_tensor(x) else 1.0 / x
 
 
 @dataclass

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from ..errors import ShapeError
-from .checkpoints import load_strict, read_state_dict
+from .checkpoints import load_strict, read_state_dict, strip_prefix
 from .padding import InputPadder
 
 
@@ -111,6 +111,37 @@ class FlowModel(nn.Module):
             flow = self.predict(x1, x2)
         _check_flow(flow, (image1.shape[0], 2, *padder.padded_size), self)
         return padder.unpad(flow).to(image1.dtype)
+
+
+class IteratedFlowModel(FlowModel):
+    """What the adapters of RAFT, GMA and FlowFormer share: a network run for ``iters``
+    refinement steps on RAFT's input range, optionally with gradient checkpointing, loaded from
+    its authors' files as they are (with or without the ``module.`` prefix that saving from
+    ``DataParallel`` adds).
+    Subclasses set :attr:`network` and :attr:`iters` (see :meth:`_setup`)."""
+
+    def _setup(self, network: nn.Module, iters: Optional[int], default_iters: int,
+               gradient_checkpointing: bool, detach_flow: bool) -> None:
+        self.network = network
+        self.iters = default_iters if iters is None else int(iters)
+        self.gradient_checkpointing = gradient_checkpointing
+        self.detach_flow = detach_flow
+
+    def normalize(self, image: torch.Tensor) -> torch.Tensor:
+        # The released models were trained on 2 * (pixel / 255) - 1.
+        return 2.0 * image - 1.0
+
+    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
+        kwargs = {"amp": self.precision} if self.supports_amp else {}
+        return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
+                            gradient_checkpointing=self.gradient_checkpointing, **kwargs)
+
+    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
+        """Load a file of the authors' release, with or without the ``module.`` prefix."""
+        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
+
+    def extra_repr(self) -> str:
+        return f"iters={self.iters}, gradient_checkpointing={self.gradient_checkpointing}"
 
 
 #: The precisions a network may run in (``--precision``); the last two are autocast's.

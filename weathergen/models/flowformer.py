@@ -39,9 +39,9 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import in_float32
+from .base import IteratedFlowModel, in_float32
 from .checkpoints import CheckpointSpec
-from .gma import ContextAttention, GMAUpdateBlock, IteratedFlowModel
+from .gma import ContextAttention, GMAUpdateBlock
 from .raft import coords_grid, convex_upsample, sample_bilinear
 from .registry import ModelSpec, register_checkpoint, register_model
 from .twins import (TwinsEncoder, merge_heads, split_heads, window_merge, window_partition)

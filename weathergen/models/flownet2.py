@@ -27,8 +27,6 @@ release (``flownetc.*``, ``flownets_1.*``, ``flownets_2.*``, ``flownets_d.*``,
 
 from __future__ import annotations
 
-from typing import Optional
-
 import torch
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
@@ -37,7 +35,7 @@ from .checkpoints import CheckpointSpec
 from .flownet_parts import (FlowNetFamilyModel, RefinementDecoder, channel_norm, conv_block,
                             deconv_block, flow_upsampler, init_flownet_weights, inner_conv,
                             predict_flow, upsample_bilinear, upsample_nearest, warp)
-from .flownetc import FLOW_DIVISOR, FlowNetC, subtract_joint_mean
+from .flownetc import FLOW_DIVISOR, FlowNetC
 from .registry import ModelSpec, register_checkpoint, register_model
 
 
@@ -176,16 +174,7 @@ class FlowNet2Model(FlowNetFamilyModel):
     """
 
     architecture = "flownet2"
-
-    def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False):
-        super().__init__(FlowNet2(), gradient_checkpointing)
-
-    def normalize(self, image: torch.Tensor) -> torch.Tensor:
-        return image  # the mean of both frames is subtracted in predict
-
-    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        x1, x2 = subtract_joint_mean(image1, image2)
-        return self.network(x1, x2, gradient_checkpointing=self.gradient_checkpointing)
+    network_class = FlowNet2
 
 
 register_model(ModelSpec(

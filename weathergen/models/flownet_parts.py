@@ -24,6 +24,8 @@ None of them works in place, so gradients reach the input images.
 
 from __future__ import annotations
 
+from typing import Optional
+
 import torch
 import torch.nn.functional as F
 from torch import nn
@@ -222,21 +224,41 @@ class CorrelationFlowNet(RefinementDecoder):
 
 
 class FlowNetFamilyModel(FlowModel):
-    """What the FlowNet adapters share: a network of the family as ``network``, padding to a
-    multiple of 64, ``gradient_checkpointing`` handed to the network, and the released files
-    loaded strictly with or without the ``module.`` prefix. ``iters`` is accepted for a uniform
-    interface and ignored (the FlowNets are not recurrent)."""
+    """What the FlowNet adapters share: a network of the family (:attr:`network_class`) as
+    ``network``, padding to a multiple of 64, ``gradient_checkpointing`` handed to the network,
+    and the released files loaded strictly with or without the ``module.`` prefix. ``iters`` is
+    accepted for a uniform interface and ignored (the FlowNets are not recurrent).
+
+    By default (FlowNetC, FlowNet2) the frames are RGB (the released PyTorch weights take RGB)
+    minus the per-channel mean of the two (padded) frames (:func:`subtract_joint_mean`)."""
 
     multiple = 64
+    #: The network, built without arguments.
+    network_class: type = nn.Module
 
-    def __init__(self, network: nn.Module, gradient_checkpointing: bool = False):
+    def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False):
         super().__init__()
-        self.network = network
+        self.network = self.network_class()
         self.gradient_checkpointing = gradient_checkpointing
+
+    def normalize(self, image: torch.Tensor) -> torch.Tensor:
+        return image  # the mean of both frames is subtracted in predict
+
+    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
+        x1, x2 = subtract_joint_mean(image1, image2)
+        return self.network(x1, x2, gradient_checkpointing=self.gradient_checkpointing)
 
     def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
         """Load the released file (its ``state_dict``), with or without ``module.``."""
         load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
+
+
+def subtract_joint_mean(image1: torch.Tensor,
+                        image2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Subtract from both frames the per-channel mean over both frames (FlowNet2's input
+    normalisation: ``(x - mean) / 255`` on 0..255 images is ``x - mean`` on 0..1 images)."""
+    mean = torch.stack([image1, image2], dim=2).mean(dim=(2, 3, 4), keepdim=True).squeeze(2)
+    return image1 - mean, image2 - mean
 
 
 # ---------------------------------------------------------------------------------------------

@@ -21,13 +21,11 @@ it is. FlowNet2 (:mod:`weathergen.models.flownet2`) uses this network as its fir
 
 from __future__ import annotations
 
-from typing import Optional
-
 import torch
 
 from .checkpoints import CheckpointSpec
 from .flownet_parts import (CorrelationFlowNet, FlowNetFamilyModel, conv_block,
-                            init_flownet_weights, upsample_bilinear)
+                            init_flownet_weights, subtract_joint_mean, upsample_bilinear)
 from .registry import ModelSpec, register_checkpoint, register_model
 
 #: The FlowNet2 family predicts flow divided by this factor at its internal resolutions.
@@ -55,14 +53,6 @@ class FlowNetC(CorrelationFlowNet):
         return conv2, self.conv3(conv2)
 
 
-def subtract_joint_mean(image1: torch.Tensor,
-                        image2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Subtract from both frames the per-channel mean over both frames (FlowNet2's input
-    normalisation: ``(x - mean) / 255`` on 0..255 images is ``x - mean`` on 0..1 images)."""
-    mean = torch.stack([image1, image2], dim=2).mean(dim=(2, 3, 4), keepdim=True).squeeze(2)
-    return image1 - mean, image2 - mean
-
-
 class FlowNetCModel(FlowNetFamilyModel):
     """FlowNetC behind the package contract: RGB in ``[0, 1]`` of any size in, flow in pixels out.
 
@@ -76,17 +66,10 @@ class FlowNetCModel(FlowNetFamilyModel):
     """
 
     architecture = "flownetc"
-
-    def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False):
-        super().__init__(FlowNetC(), gradient_checkpointing)
-
-    def normalize(self, image: torch.Tensor) -> torch.Tensor:
-        return image  # the mean of both frames is subtracted in predict
+    network_class = FlowNetC
 
     def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        x1, x2 = subtract_joint_mean(image1, image2)
-        flow = self.network(x1, x2, gradient_checkpointing=self.gradient_checkpointing)
-        return upsample_bilinear(FLOW_DIVISOR * flow, 4)
+        return upsample_bilinear(FLOW_DIVISOR * super().predict(image1, image2), 4)
 
 
 #: Where NVIDIA's flownet2-pytorch publishes the converted FlowNet2 checkpoints (Google Drive

@@ -71,9 +71,10 @@ class FlowNetCRobustModel(FlowNetFamilyModel):
     """
 
     architecture = "flownetcrobust"
+    network_class = FlowNetCRobust
 
     def __init__(self, iters: Optional[int] = None, gradient_checkpointing: bool = False):
-        super().__init__(FlowNetCRobust(), gradient_checkpointing)
+        super().__init__(iters, gradient_checkpointing)
         self.register_buffer("rgb_mean", torch.tensor(RGB_MEAN).view(1, 3, 1, 1),
                              persistent=False)
 

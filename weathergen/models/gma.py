@@ -23,18 +23,15 @@ Shapes below: ``B`` batch, ``H, W`` padded input size, ``h = H/8, w = W/8`` the 
 
 from __future__ import annotations
 
-from functools import partial
 from typing import Optional
 
 import torch
-import torch.nn.functional as F
 from torch import nn
-from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel, autocast_mode, in_float32, mixed_precision
-from .checkpoints import CheckpointSpec, load_strict, strip_prefix
-from .raft import (RAFT_FULL, CorrelationPyramid, Encoder, FlowHead, MotionEncoder, SepConvGRU,
-                   coords_grid, convex_upsample)
+from .base import IteratedFlowModel, in_float32, mixed_precision
+from .checkpoints import CheckpointSpec
+from .raft import (RAFT, RAFT_FULL, CorrelationPyramid, Encoder, FlowHead, MotionEncoder,
+                   SepConvGRU)
 from .registry import ModelSpec, register_checkpoint, register_model
 
 #: Refinement iterations when none are given: what the paper's attack code uses for GMA (the
@@ -149,68 +146,26 @@ class GMAUpdateBlock(nn.Module):
 # The network
 # ---------------------------------------------------------------------------------------------
 
-class GMA(nn.Module):
-    """GMA on normalised frames whose size is a multiple of 8.
+class GMA(RAFT):
+    """GMA on normalised frames whose size is a multiple of 8: called as
+    :meth:`RAFT.forward <weathergen.models.raft.RAFT.forward>` (``iters`` None: 6). With ``amp``
+    the context attention runs under autocast too, its softmax in float32.
 
     Use :class:`GMAModel` (``get_model("gma")``) for frames in the package's convention.
     """
 
+    default_iters = DEFAULT_ITERS
+
     def __init__(self):
-        super().__init__()
+        nn.Module.__init__(self)       # RAFT's loop and upsampling, GMA's modules
         cfg = self.config = RAFT_FULL
         self.fnet = Encoder(cfg.feature_dim, "instance", small=False)
         self.cnet = Encoder(cfg.hidden_dim + cfg.context_dim, "batch", small=False)
         self.update_block = GMAUpdateBlock(cfg.corr_channels, cfg.hidden_dim)
         self.att = ContextAttention(cfg.context_dim, dim_head=cfg.context_dim, max_pos=160)
 
-    def forward(self, image1: torch.Tensor, image2: torch.Tensor, iters: int = DEFAULT_ITERS,
-                detach_flow: bool = True, gradient_checkpointing: bool = False,
-                amp: bool = False) -> torch.Tensor:
-        """Flow from ``image1`` to ``image2``.
-
-        Args:
-            image1, image2: ``(B, 3, H, W)`` RGB in ``[-1, 1]``, ``H`` and ``W`` multiples of 8.
-            iters, detach_flow, gradient_checkpointing: as for
-                :meth:`weathergen.models.raft.RAFT.forward`.
-            amp: ``bf16``/``fp16`` (``True``: fp16): the encoders, the context attention and the
-                update operator under autocast, as the authors' code with ``mixed_precision``
-                (the paper's configuration); correlation, lookup, the attention's softmax and
-                the flow stay in float32.
-
-        Returns:
-            ``(B, 2, H, W)`` flow in pixels.
-        """
-        cfg = self.config
-        b = image1.shape[0]
-        amp = autocast_mode(amp, image1)
-        with mixed_precision(amp):
-            fmaps = self.fnet(torch.cat([image1, image2], dim=0))
-        fmaps = fmaps.float()
-        corr = CorrelationPyramid(fmaps[:b], fmaps[b:], cfg.corr_levels, cfg.corr_radius)
-
-        with mixed_precision(amp):
-            hidden, context = self.cnet(image1).split([cfg.hidden_dim, cfg.context_dim], dim=1)
-            hidden, context = torch.tanh(hidden), F.relu(context)
-            attention = self.att(context)
-
-        h, w = fmaps.shape[-2:]
-        coords0 = coords_grid(b, h, w, fmaps.device, fmaps.dtype)
-        coords1 = coords0
-
-        step = partial(self._refine, corr, amp=amp)
-        use_recompute = gradient_checkpointing and torch.is_grad_enabled()
-        for _ in range(iters):
-            if detach_flow:
-                coords1 = coords1.detach()
-            if use_recompute:
-                hidden, delta = recompute(step, hidden, context, attention, coords0, coords1,
-                                          use_reentrant=False)
-            else:
-                hidden, delta = step(hidden, context, attention, coords0, coords1)
-            coords1 = coords1 + delta
-        with mixed_precision(amp):      # the authors' update operator computes the mask
-            logits = self.update_block.upsampling_weights(hidden)
-        return convex_upsample(coords1 - coords0, logits)
+    def _step_features(self, context: torch.Tensor) -> tuple:
+        return context, self.att(context)
 
     def _refine(self, corr: CorrelationPyramid, hidden, context, attention, coords0, coords1,
                 amp: bool = False):
@@ -222,36 +177,6 @@ class GMA(nn.Module):
 # ---------------------------------------------------------------------------------------------
 # The adapter and its registration
 # ---------------------------------------------------------------------------------------------
-
-class IteratedFlowModel(FlowModel):
-    """What the adapters of GMA and FlowFormer share: a network run for ``iters`` refinement
-    steps on RAFT's input range, optionally with gradient checkpointing, loaded from its authors'
-    files as they are (with or without the ``module.`` prefix of their training wrapper).
-    Subclasses set :attr:`network` and :attr:`iters` (see :meth:`_setup`)."""
-
-    def _setup(self, network: nn.Module, iters: Optional[int], default_iters: int,
-               gradient_checkpointing: bool, detach_flow: bool) -> None:
-        self.network = network
-        self.iters = default_iters if iters is None else int(iters)
-        self.gradient_checkpointing = gradient_checkpointing
-        self.detach_flow = detach_flow
-
-    def normalize(self, image: torch.Tensor) -> torch.Tensor:
-        # As RAFT: the released models were trained on 2 * (pixel / 255) - 1.
-        return 2.0 * image - 1.0
-
-    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        kwargs = {"amp": self.precision} if self.supports_amp else {}
-        return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
-                            gradient_checkpointing=self.gradient_checkpointing, **kwargs)
-
-    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
-        """Load a file of the authors' release, with or without the ``module.`` prefix."""
-        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
-
-    def extra_repr(self) -> str:
-        return f"iters={self.iters}, gradient_checkpointing={self.gradient_checkpointing}"
-
 
 class GMAModel(IteratedFlowModel):
     """GMA behind the package contract: RGB in ``[0, 1]`` of any size in, flow in pixels out.

@@ -34,8 +34,8 @@ import torch.nn.functional as F
 from torch import nn
 from torch.utils.checkpoint import checkpoint as recompute
 
-from .base import FlowModel, autocast_mode, mixed_precision
-from .checkpoints import CheckpointSpec, load_strict, strip_prefix
+from .base import IteratedFlowModel, autocast_mode, mixed_precision
+from .checkpoints import CheckpointSpec
 from .registry import ModelSpec, register_checkpoint, register_model
 
 
@@ -411,6 +411,9 @@ class RAFT(nn.Module):
     Use :class:`RAFTModel` (``get_model("raft")``) for frames in the package's convention.
     """
 
+    #: Refinement steps where ``iters`` is None.
+    default_iters: int = DEFAULT_ITERS
+
     def __init__(self, config: RAFTConfig = RAFT_FULL):
         super().__init__()
         self.config = config
@@ -419,15 +422,14 @@ class RAFT(nn.Module):
                             "none" if config.small else "batch", config.small)
         self.update_block = UpdateBlock(config)
 
-    def forward(self, image1: torch.Tensor, image2: torch.Tensor, iters: int = DEFAULT_ITERS,
-                flow_init: Optional[torch.Tensor] = None, detach_flow: bool = True,
-                gradient_checkpointing: bool = False, amp: bool = False) -> torch.Tensor:
+    def forward(self, image1: torch.Tensor, image2: torch.Tensor, iters: Optional[int] = None,
+                detach_flow: bool = True, gradient_checkpointing: bool = False,
+                amp: bool = False) -> torch.Tensor:
         """Flow from ``image1`` to ``image2`` after ``iters`` refinement steps.
 
         Args:
             image1, image2: ``(B, 3, H, W)`` RGB in ``[-1, 1]``, ``H`` and ``W`` multiples of 8.
-            iters: refinement steps.
-            flow_init: ``(B, 2, H/8, W/8)`` starting flow in working-resolution pixels, or zero.
+            iters: refinement steps (None: :attr:`default_iters`).
             detach_flow: cut the gradient along the chain of flow estimates between steps, as in
                 the authors' training; gradients still reach the images through the correlation
                 volume and the context features.
@@ -440,25 +442,25 @@ class RAFT(nn.Module):
         Returns:
             ``(B, 2, H, W)`` flow in pixels.
         """
-        return self._run(image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
+        return self._run(image1, image2, iters, detach_flow, gradient_checkpointing,
                          every_step=False, amp=amp)[-1]
 
     def flow_sequence(self, image1: torch.Tensor, image2: torch.Tensor,
-                      iters: int = DEFAULT_ITERS, flow_init: Optional[torch.Tensor] = None,
-                      detach_flow: bool = True, gradient_checkpointing: bool = False,
-                      amp: bool = False) -> list[torch.Tensor]:
+                      iters: Optional[int] = None, detach_flow: bool = True,
+                      gradient_checkpointing: bool = False, amp: bool = False) -> list[torch.Tensor]:
         """The upsampled flow after every refinement step, as RAFT's sequence loss needs.
 
         Arguments as :meth:`forward`. Returns ``iters`` tensors ``(B, 2, H, W)`` in pixels; the
         last one is what :meth:`forward` returns.
         """
-        return self._run(image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
+        return self._run(image1, image2, iters, detach_flow, gradient_checkpointing,
                          every_step=True, amp=amp)
 
-    def _run(self, image1, image2, iters, flow_init, detach_flow, gradient_checkpointing,
+    def _run(self, image1, image2, iters, detach_flow, gradient_checkpointing,
              every_step: bool, amp: bool = False) -> list[torch.Tensor]:
         cfg = self.config
         b = image1.shape[0]
+        iters = self.default_iters if iters is None else iters
         amp = autocast_mode(amp, image1)
         with mixed_precision(amp):
             fmaps = self.fnet(torch.cat([image1, image2], dim=0))
@@ -468,11 +470,12 @@ class RAFT(nn.Module):
         with mixed_precision(amp):
             hidden, context = self.cnet(image1).split([cfg.hidden_dim, cfg.context_dim], dim=1)
             hidden, context = torch.tanh(hidden), F.relu(context)
+            features = self._step_features(context)
 
         # coords0: every working-resolution pixel; coords1: where it is estimated to be in frame 2.
         h, w = fmaps.shape[-2:]
         coords0 = coords_grid(b, h, w, fmaps.device, fmaps.dtype)
-        coords1 = coords0 if flow_init is None else coords0 + flow_init
+        coords1 = coords0
 
         step = partial(self._refine, corr, amp=amp)
         use_recompute = gradient_checkpointing and torch.is_grad_enabled()
@@ -481,10 +484,10 @@ class RAFT(nn.Module):
             if detach_flow:
                 coords1 = coords1.detach()
             if use_recompute:
-                hidden, delta = recompute(step, hidden, context, coords0, coords1,
+                hidden, delta = recompute(step, hidden, *features, coords0, coords1,
                                           use_reentrant=False)
             else:
-                hidden, delta = step(hidden, context, coords0, coords1)
+                hidden, delta = step(hidden, *features, coords0, coords1)
             coords1 = coords1 + delta
             if every_step or i == iters - 1:
                 flows.append(self._upsample(coords1 - coords0, hidden, amp))
@@ -498,6 +501,10 @@ class RAFT(nn.Module):
         with mixed_precision(amp):      # the authors' update operator computes the mask
             logits = self.update_block.upsampling_weights(hidden)
         return convex_upsample(flow, logits)
+
+    def _step_features(self, context: torch.Tensor) -> tuple:
+        """What each refinement step reads besides the hidden state and the coordinates."""
+        return (context,)
 
     def _refine(self, corr: CorrelationPyramid, hidden, context, coords0, coords1,
                 amp: bool = False):
@@ -517,7 +524,7 @@ def coords_grid(b: int, h: int, w: int, device, dtype) -> torch.Tensor:
 # The adapter and its registration
 # ---------------------------------------------------------------------------------------------
 
-class RAFTModel(FlowModel):
+class RAFTModel(IteratedFlowModel):
     """RAFT behind the package contract: RGB in ``[0, 1]`` of any size in, flow in pixels out.
 
     Args:
@@ -538,20 +545,9 @@ class RAFTModel(FlowModel):
         super().__init__()
         config = RAFT_SMALL if small else RAFT_FULL
         self.architecture = "raft-small" if small else "raft"
-        self.network = RAFT(config)
-        self.iters = DEFAULT_ITERS if iters is None else int(iters)
-        self.gradient_checkpointing = gradient_checkpointing
-        self.detach_flow = detach_flow
+        self._setup(RAFT(config), iters, DEFAULT_ITERS, gradient_checkpointing, detach_flow)
         # Every pyramid level needs at least one pixel: 8 * 2^(levels - 1) input pixels.
         self.min_size = 8 * 2 ** (config.corr_levels - 1)
-
-    def normalize(self, image: torch.Tensor) -> torch.Tensor:
-        # The released models were trained on 2 * (pixel / 255) - 1.
-        return 2.0 * image - 1.0
-
-    def predict(self, image1: torch.Tensor, image2: torch.Tensor) -> torch.Tensor:
-        return self.network(image1, image2, iters=self.iters, detach_flow=self.detach_flow,
-                            gradient_checkpointing=self.gradient_checkpointing, amp=self.precision)
 
     def flow_sequence(self, image1: torch.Tensor, image2: torch.Tensor) -> list[torch.Tensor]:
         """The flow after every refinement step (for RAFT's sequence loss in training).
@@ -566,14 +562,6 @@ class RAFTModel(FlowModel):
                                            gradient_checkpointing=self.gradient_checkpointing,
                                            amp=self.precision)
         return [padder.unpad(f) for f in flows]
-
-    def load_checkpoint(self, state_dict: dict, source, what: str) -> None:
-        """Load a file of the original RAFT release, with or without the ``module.`` prefix
-        that saving from ``DataParallel`` adds."""
-        load_strict(self.network, strip_prefix(state_dict, "module."), source, what)
-
-    def extra_repr(self) -> str:
-        return f"iters={self.iters}, gradient_checkpointing={self.gradient_checkpointing}"
 
 
 #: The authors' archive of all five released checkpoints (``models/<name>.pth`` inside).

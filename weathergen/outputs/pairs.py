@@ -135,19 +135,6 @@ class PairOutput:
         folder = f"{self.pass_name}{'_right' if right else ''}{f.folder_suffix}"
         return self._file(folder, self.frame, f.extension), self._file(folder, self.frame + 1, f.extension)
 
-    @property
-    def frames_png(self) -> tuple[Path, Path]:
-        return self.frame_files("png")
-
-    @property
-    def frames_right_png(self) -> tuple[Path, Path]:
-        """The right camera's frames (``--stereo``), in the pass folder suffixed ``_right``."""
-        return self.frame_files("png", right=True)
-
-    @property
-    def frames_right_exr(self) -> tuple[Path, Path]:
-        return self.frame_files("exr", right=True)
-
     def frame_file(self, index: int) -> Path:
         """The file a reader takes frame ``index`` (0: frame 1, 1: frame 2) from: in the output's
         first format (PNG for ``both``)."""
@@ -185,10 +172,6 @@ class PairOutput:
         """Every file a stereo render may write of the right camera (for temporary-file cleanup)."""
         frames = [p for f in FRAME_FORMATS.values() for p in self.frame_files(f, right=True)]
         return frames + self.right_geometry_files() + list(self.provenance_files(right=True))
-
-    @property
-    def frames_exr(self) -> tuple[Path, Path]:
-        return self.frame_files("exr")
 
     @property
     def metadata(self) -> Path:

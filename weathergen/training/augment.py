@@ -69,11 +69,6 @@ def _uniform(digest: bytes, slot: int) -> float:
     return int.from_bytes(digest[8 * slot: 8 * slot + 8], "big") / 2.0 ** 64
 
 
-def _integer(digest: bytes, slot: int) -> int:
-    """A 63-bit non-negative integer from 8 bytes of ``digest`` (slots 0..3)."""
-    return int.from_bytes(digest[8 * slot: 8 * slot + 8], "big") >> 1
-
-
 def _check_seed(seed) -> int:
     if isinstance(seed, bool) or not isinstance(seed, int):
         raise ConfigError(f"seed {seed!r}: must be an integer")
@@ -274,7 +269,8 @@ class WeatherAugment:
         if not _uniform(digest, 0) < self.p:
             return WeatherDraw(applied=False)
         source = self.sources[int(_uniform(digest, 1) * len(self.sources))]
-        return WeatherDraw(applied=True, source=source.name, seed=_integer(digest, 2))
+        seed = int.from_bytes(digest[16:24], "big") >> 1      # 63 bits of the digest's slot 2
+        return WeatherDraw(applied=True, source=source.name, seed=seed)
 
     def _source(self, name: str) -> WeatherSource:
         for s in self.sources:

@@ -523,15 +523,6 @@ def read_particle_arrays(path: str | Path) -> dict[str, np.ndarray]:
         raise FormatError(path, f"not a particle .npz file ({exc})") from None
 
 
-def stored_values(arrays: dict, name: str) -> np.ndarray:
-    """The values a particle file's array ``name`` stands for (codes decoded), for display.
-    Shape: as the record holds it ((N, 3) for motion whatever the storage)."""
-    if _coded(arrays):
-        return _decoded(arrays, name, int(arrays.get("format_version", FORMAT_VERSION)),
-                        "<arrays>").astype(np.float64)
-    return arrays[name].astype(np.float64)
-
-
 def empty_particles(frame: str = "world", settings: RenderSettings = RenderSettings(),
                     optics: Optional[FieldOptics] = None,
                     atmosphere: Optional[Atmosphere] = None) -> Particles:

@@ -112,10 +112,6 @@ def _stacks(layered: Sequence[LayeredParticles]) -> list[list[Particles]]:
     return [[p.layers[k] for p in layered] for k in range(len(layered[0].layers))]
 
 
-def _paper_count(records: Sequence[Particles]) -> int:
-    return sum(r.count for r in records if r.optics is None)
-
-
 def build_layer_stamps(particles: Union[LayeredParticles, Sequence[LayeredParticles]], *,
                        dtype: torch.dtype = torch.float32, device=None,
                        coarse_side: Optional[int] = COARSE_SIDE) -> StampSet:
@@ -296,7 +292,7 @@ def render_layers(image1: torch.Tensor, image2: torch.Tensor, depth1: torch.Tens
                      torch.cat((depth1, depth2)), device=device)
     if chunk_elements is None:
         chunk_elements = chunk_elements_for(device)
-    counts = [_paper_count(stack) for stack in stacks]
+    counts = [sum(r.count for r in stack if r.optics is None) for stack in stacks]
     if stamps is not None and stamps.count != sum(counts):
         raise ConfigError(f"stamps hold {stamps.count} entries but the layers hold {sum(counts)} "
                           f"particles of the paper's model (build them from these layers)")

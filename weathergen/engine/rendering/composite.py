@@ -9,7 +9,7 @@ mode, clamped to [0, 1]; the opacity is ``clamp(A, 0, 1)``. :func:`composite_in_
 records whose blur samples are blended one after another (the research code's order,
 ``RenderSettings.blur_blend = "sequential"``): a splat per sample place, blended step by step.
 
-Combined weather (:func:`blend_layers`, :func:`composite_layers`; the layers drawn by
+Combined weather (:func:`blend_layers`; the layers drawn by
 :mod:`~weathergen.engine.rendering.combined`): at every pixel the alpha layers are ordered by their mean
 depth ``Z / A``, far to near, and blended one over the other (``I (1 − A) + C``), then the
 additive layers' light is added (``+ C``), clamped to [0, 1] once at the end; the opacity is
@@ -43,7 +43,7 @@ from .stamps import StampSet
 from .tracks import Instances, Tracks, blur_samples
 
 __all__ = ["RenderOutput", "blend", "blend_layers", "composite", "composite_in_order",
-           "composite_layers", "fog", "fogged_opacity", "tinted"]
+           "fog", "fogged_opacity", "tinted"]
 
 
 @dataclass
@@ -195,38 +195,6 @@ def blend_layers(sums: Sequence[Sums], modes: Sequence[set], alpha_mode: torch.T
         return _TwoLayers.apply(_AdditiveOverAlpha, layout.select(order),
                                 *(values[k] for k in order), *images)
     return _LayeredBlend.apply(alpha_mode, layout, len(values), *values, *images)
-
-
-def composite_layers(alpha: torch.Tensor, colour: torch.Tensor, depth: torch.Tensor,
-                     image: torch.Tensor, alpha_mode: torch.Tensor
-                     ) -> tuple[torch.Tensor, torch.Tensor]:
-    """The frames of layered sums: per pixel the layers far to near by their mean depth
-    ``Z / A``, each blended over the result so far with its mode, clamped once at the end.
-
-    Shape: alpha (B, L, 1, H, W) ``A``; colour (B, L, 3, H, W) ``C``; depth (B, L, 1, H, W)
-    ``Z = Σ θ B V z``; image (B, 3, H, W); alpha_mode (B, L) bool -> (image (B, 3, H, W),
-    opacity (B, 1, H, W)). Differentiable in alpha, colour and image (not in the order).
-    """
-    grid = torch.cat((alpha, colour, depth), 2).permute(2, 0, 1, 3, 4)[:, None, :, :, None]
-    out, opacity = _LayeredBlend.apply(alpha_mode, _GridLayout(), 1, grid, image)
-    return out, opacity
-
-
-class _GridLayout:
-    """Planes given whole, ``(5, T, B, L, 1, H, W)`` (:func:`composite_layers`)."""
-
-    def read(self, values: Sequence[torch.Tensor], t: int, k: int,
-             channels: Optional[int] = None) -> torch.Tensor:
-        return values[0][:channels, t, :, k, 0]
-
-    def gradients(self, values: Sequence[torch.Tensor]) -> list:
-        return [torch.zeros_like(values[0])]
-
-    def buffer(self, g_values: Sequence[torch.Tensor], t: int, k: int) -> torch.Tensor:
-        return g_values[0][:4, t, :, k, 0]
-
-    def finish(self, g_values, buffer, t: int, k: int) -> None:
-        pass
 
 
 def _split(planes: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

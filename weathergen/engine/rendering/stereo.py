@@ -3,12 +3,12 @@
 A field record (or the paper's) is data in a reference frame, so a second camera only needs its
 own transform from that frame, ``cam_right_from_ref = right_from_left @ cam_left_from_ref``, and
 its own scene depth for the occlusion test. Datasets rarely ship the right view's depth; it is
-forward-warped from the left one (:func:`warp_depth`): each left pixel is back-projected, moved into
-the right camera and z-buffered into the four pixels around where it lands. Pixels that no left
-pixel reaches (disoccluded, or beyond the left view) take the depth of the background side along
-their row, the farther of the nearest reached pixels to their left and right (the standard hole
-filling of view synthesis: what a near object uncovers lies behind it), never the far depth of
-the sky unless that side is sky; :func:`warp_view_depth` carries the depth provenance along (a
+forward-warped from the left one (:func:`warp_view_depth`): each left pixel is back-projected,
+moved into the right camera and z-buffered into the four pixels around where it lands. Pixels
+that no left pixel reaches (disoccluded, or beyond the left view) take the depth of the
+background side along their row, the farther of the nearest reached pixels to their left and
+right (the standard hole filling of view synthesis: what a near object uncovers lies behind it),
+never the far depth of the sky unless that side is sky. The depth provenance is carried along (a
 hole filled this way is ``COMPLETED``). For a rectified pair the particles land at disparity
 ``f · B / z`` (tested).
 """
@@ -27,17 +27,6 @@ from ..records.layered import LayeredParticles
 from ..records.particles import Particles
 from .renderer import BETA_RENDER, render_view
 from ..views import View
-
-
-def warp_depth(depth: torch.Tensor, intrinsics: torch.Tensor, right_from_left: torch.Tensor,
-               right_intrinsics: Optional[torch.Tensor] = None,
-               fill: Optional[float] = None) -> torch.Tensor:
-    """The right camera's depth, forward-warped from the left camera's with a z-buffer; holes
-    take their row's background depth, or ``fill`` where it is given.
-
-    Shape: depth (1, H, W), intrinsics (3, 3), right_from_left (4, 4) -> (1, H, W), same dtype.
-    """
-    return warp_view_depth(depth, None, intrinsics, right_from_left, right_intrinsics, fill)[0]
 
 
 def warp_view_depth(depth: torch.Tensor, provenance: Optional[torch.Tensor],

@@ -224,15 +224,6 @@ class Atmosphere:
                 device=device, dtype=dtype)
         return _LATTICES[key]
 
-    def density_at(self, points: torch.Tensor, frame: int = 0) -> torch.Tensor:
-        """ρ at reference points in the pair's frame ``frame`` (0 or 1). Shape: (..., 3) ->
-        (...) float64."""
-        if self.uniform:
-            return torch.ones(points.shape[:-1], dtype=torch.float64, device=points.device)
-        drifted = points.double() - self.drift[frame].to(points.device)
-        lattice = self.lattice(torch.float64, points.device)
-        return sample_lattice(lattice, drifted / self.voxel).double()
-
     def to(self, device=None, dtype=None) -> "Atmosphere":
         """A copy with the airlight (and an explicit density) on ``device`` / in ``dtype``."""
         def move(t):

@@ -25,7 +25,6 @@ module each (:mod:`.preset_schema`, :mod:`.paper_presets`, :mod:`.field_presets`
 
 from __future__ import annotations
 
-import dataclasses
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -250,10 +249,6 @@ def _layer_label(part: str) -> str:
     return path.stem if part.endswith(".toml") or path.is_file() else part
 
 
-def _keys_of(preset) -> Mapping[str, dataclasses.Field]:
-    return FIELD_KEYS if isinstance(preset, FieldPreset) else PAPER_KEYS
-
-
 def load_combined(text: str, overrides: Optional[Mapping[str, Any]] = None) -> CombinedPreset:
     """Load presets joined by ``+`` (``"rain-heavy+fog-light"``) as a :class:`CombinedPreset`.
 
@@ -327,7 +322,8 @@ def _layer_overrides(overrides: Mapping[str, Any], plain: list, labels: list[str
                                   f"(layers: {listed}; name one or give its position)")
             continue
         # every preset file may name its model: each layer checks a bare ``model`` itself
-        lacking = [i for i, p in enumerate(plain) if key not in _keys_of(p) and key != "model"]
+        lacking = [i for i, p in enumerate(plain) if key != "model"
+                   and key not in (FIELD_KEYS if isinstance(p, FieldPreset) else PAPER_KEYS)]
         if len(lacking) == len(labels):
             raise ConfigError(f"${{overrides}} {key}: no layer of {name} has this key "
                               f"(`weathergen presets {name}` lists their keys)")
