@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import sys
+from contextlib import nullcontext
 from dataclasses import replace
 from pathlib import Path
 
@@ -270,90 +271,97 @@ def _weather_job(dataset, model, checkpoint, iters, download, config_name, prese
     return job, label
 
 
-def _run(job, model, label, target, steps, out, quiet):
-    console = Console()
-    err = Console(stderr=True)
-    interactive = console.is_terminal and not quiet
-    state = {"n": 0, "written": 0}
-    compat_mode = "paper" if job.lp is not None else job.settings.compat
-    versus = " (vs the random weather's flow)" if compat_mode == "reference" else ""
-    clock = None
-    rows = []
-    failed = []
-    progress = task = None
-    total_steps = int(steps)
+class _Reporter:
+    """What a run prints as it goes: a progress bar on a terminal, else a line per written pair
+    and every 50th step (nothing with ``quiet``); warnings and failures on stderr."""
 
-    def on_start(n):
-        nonlocal task, clock
-        state["n"] = n
-        clock = RunClock(n)
-        if progress is not None:
-            task = progress.add_task("attack", total=n * (total_steps + 1), status="")
+    def __init__(self, steps: int, versus: str, quiet: bool):
+        self.console, self.err = Console(), Console(stderr=True)
+        self.total_steps, self.versus, self.quiet = int(steps), versus, quiet
+        self.written, self.failed, self.clock, self.task = 0, [], None, None
+        self.progress = (Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
+                                  MofNCompleteColumn(), TimeElapsedColumn(),
+                                  TextColumn("{task.fields[status]}"), console=self.console)
+                         if self.console.is_terminal and not quiet else None)
 
-    def on_step(pair_name, rec):
+    def on_start(self, n):
+        self.clock = RunClock(n)
+        if self.progress is not None:
+            self.task = self.progress.add_task("attack", total=n * (self.total_steps + 1),
+                                               status="")
+
+    def on_step(self, pair_name, rec):
         # scene/frame is enough to tell pairs apart in one run, and keeps the line short
         short = "/".join(pair_name.split("/")[-2:])
-        text = (f"{clock.describe()}; {short} step {rec.step}/{total_steps}"
+        text = (f"{self.clock.describe()}; {short} step {rec.step}/{self.total_steps}"
                 f"  loss {rec.loss:.4f}  best distance {rec.best_distance:.4f}")
-        if progress is not None:
-            progress.update(task, advance=1, status=text)
-        elif not quiet and (rec.step % 50 == 0 or rec.step == total_steps):
-            console.print(text, highlight=False, soft_wrap=True)
+        if self.progress is not None:
+            self.progress.update(self.task, advance=1, status=text)
+        elif not self.quiet and (rec.step % 50 == 0 or rec.step == self.total_steps):
+            self.console.print(text, highlight=False, soft_wrap=True)
 
+    @staticmethod
     def on_note(text):
         click.echo(f"Note: {text}", err=True)
 
-    def on_pair_done(report):
-        clock.add(computed=report.status == "written")
-        state["written"] += report.status == "written"
-        if report.summary is not None:
-            rows.append(report.summary)
-            if report.summary.nothing_visible and report.status == "written":
-                (progress.console if progress else err).print(
-                    f"[yellow]warning[/yellow] {report.pair}: no particle is visible, so nothing "
-                    f"could be optimised; the random weather was kept", highlight=False, soft_wrap=True)
+    def on_pair_done(self, report):
+        self.clock.add(computed=report.status == "written")
+        self.written += report.status == "written"
+        if report.summary is not None and report.summary.nothing_visible \
+                and report.status == "written":
+            self._warn(f"[yellow]warning[/yellow] {report.pair}: no particle is visible, so "
+                       f"nothing could be optimised; the random weather was kept")
         for text in report.warnings:       # attacked, but the input looks wrong
-            (progress.console if progress else err).print(
-                f"[yellow]warning[/yellow] {report.pair}: {text}", highlight=False, soft_wrap=True)
+            self._warn(f"[yellow]warning[/yellow] {report.pair}: {text}")
         if report.status == "failed":
-            failed.append(report)
-            (progress.console if progress else err).print(
-                f"[red]failed[/red] {report.pair}: {report.message}", highlight=False,
-                soft_wrap=True)     # one unwrapped line, so paths stay whole
-        if progress is not None:
+            self.failed.append(report)
+            self._warn(f"[red]failed[/red] {report.pair}: {report.message}")
+        if self.progress is not None:
             # counts the steps a pair did not report (skipped, failed, frozen, run by Ray)
-            progress.update(task, completed=clock.done * (total_steps + 1),
-                            status=clock.describe())
-        if not quiet and progress is None and report.status != "failed":
-            console.print(f"[{clock.describe()}] {report.pair} {report.status}: "
-                          + pair_line(report.summary, versus), highlight=False, soft_wrap=True)
+            self.progress.update(self.task, completed=self.clock.done * (self.total_steps + 1),
+                                 status=self.clock.describe())
+        if not self.quiet and self.progress is None and report.status != "failed":
+            self.console.print(f"[{self.clock.describe()}] {report.pair} {report.status}: "
+                               + pair_line(report.summary, self.versus), highlight=False,
+                               soft_wrap=True)
 
-    if interactive:
-        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
-                            MofNCompleteColumn(), TimeElapsedColumn(),
-                            TextColumn("{task.fields[status]}"), console=console)
+    def _warn(self, text: str) -> None:
+        """One unwrapped line on stderr (above the progress bar), so paths stay whole."""
+        (self.progress.console if self.progress else self.err).print(text, highlight=False,
+                                                                     soft_wrap=True)
+
+
+def _run(job, model, label, target, steps, out, quiet):
+    compat_mode = "paper" if job.lp is not None else job.settings.compat
+    versus = " (vs the random weather's flow)" if compat_mode == "reference" else ""
+    shown = _Reporter(steps, versus, quiet)
     stopped_by = None
     try:
         with terminate_as_interrupt() as stopped_by:
-            if progress is not None:
-                with progress:
-                    summary = run_attack(job, on_start, on_step, on_pair_done, on_note)
-            else:
-                summary = run_attack(job, on_start, on_step, on_pair_done, on_note)
+            with shown.progress if shown.progress is not None else nullcontext():
+                summary = run_attack(job, shown.on_start, shown.on_step, shown.on_pair_done,
+                                     shown.on_note)
     except KeyboardInterrupt:
-        exit_interrupted(state["written"], stopped_by)
+        exit_interrupted(shown.written, stopped_by)
     if not quiet:
-        mode = "" if compat_mode == "paper" else f", compat {compat_mode}"
-        console.print(summary_table(f"weathergen attack: {model}, {label}, target "
-                                    f"{target.describe()}{mode} (pixels)", summary,
-                                    "weather" if job.lp is None else "perturbation",
-                                    compat=compat_mode))
-        console.print(f"Settings: {settings_text(summary['settings'])}", highlight=False,
-                      soft_wrap=True)
-        if summary.get("scenes"):
-            console.print(scene_table(summary))
-        console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
-                      soft_wrap=True)
-    if failed:
-        err.print(f"[red]{counted(len(failed), 'pair')} failed[/red]; see the messages above.")
+        _print_summary(shown.console, job, f"{model}, {label}", target, out, summary,
+                       compat_mode)
+    if shown.failed:
+        shown.err.print(f"[red]{counted(len(shown.failed), 'pair')} failed[/red]; see the "
+                        f"messages above.")
         sys.exit(1)
+
+
+def _print_summary(console, job, what: str, target, out, summary: dict, compat_mode: str):
+    """The run's mean figures, settings, per-scene figures (a sequence attack) and output."""
+    mode = "" if compat_mode == "paper" else f", compat {compat_mode}"
+    console.print(summary_table(f"weathergen attack: {what}, target "
+                                f"{target.describe()}{mode} (pixels)", summary,
+                                "weather" if job.lp is None else "perturbation",
+                                compat=compat_mode))
+    console.print(f"Settings: {settings_text(summary['settings'])}", highlight=False,
+                  soft_wrap=True)
+    if summary.get("scenes"):
+        console.print(scene_table(summary))
+    console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
+                  soft_wrap=True)
