@@ -4,8 +4,9 @@ from __future__ import annotations
 
 import sys
 from contextlib import nullcontext
-from dataclasses import replace
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Optional
 
 import click
 import torch
@@ -24,9 +25,10 @@ from weathergen.errors import ConfigError
 from weathergen.execution import RunClock, check_executor
 from weathergen.words import counted
 
-from .options import (attack_steps, compat_option, dataset_options, device_option, early_stop_option,
-                      executor_options, job_exit_codes, model_options, out_option, overwrite_option,
-                      quiet_option, resolve_model, resume_option, seed_option)
+from .options import (ModelOptions, RunOptions, attack_steps, compat_option, dataset_options,
+                      device_option, early_stop_option, executor_options, gathered, job_exit_codes,
+                      model_options, out_option, overwrite_option, quiet_option, resolve_model,
+                      resume_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 
@@ -104,6 +106,35 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
             ("robust EPE; Fl, 1px (%) vs clean flow (RobustSpring)",
              f"{_fmt(summary.get('robust_epe'))}; {_fmt(summary.get('robust_fl'), 2)}, "
              f"{_fmt(summary.get('robust_1px'), 2)}")]
+
+
+@dataclass(frozen=True)
+class AttackRequest:
+    """What to attack and how: the options of ``attack`` that its plan
+    (:func:`~weathergen.attack.plan_attack`, :func:`~weathergen.attack.plan_lp`) turns into the
+    attack's settings, named as the command's parameters."""
+
+    method: str
+    epsilon: Optional[float]
+    optimizer: Optional[str]
+    config_name: Optional[str]
+    preset: Optional[str]
+    set_items: tuple
+    particles_dir: Optional[Path]
+    steps: Optional[int]
+    optimize: Optional[str]
+    optimize_layer: Optional[str]
+    lr: Optional[float]
+    group_lr: tuple
+    sequence: bool
+    stereo: bool
+    alpha1: float
+    alpha2: float
+    target_text: str
+    occlusion_gradient: Optional[bool]
+    compat: Optional[str]
+    early_stop: Optional[str]
+    gradient_checkpointing: bool
 
 
 @click.command(epilog=job_exit_codes(every_failed=1))
@@ -191,84 +222,73 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 @resume_option("Finish an interrupted run: skip finished pairs.")
 @overwrite_option("Redo every pair, even in a folder that holds one.")
 @quiet_option
-def attack(dataset, model, checkpoint, iters, download, model_input, amp, precision, method, epsilon,
-           optimizer, config_name, preset, set_items,
-           particles_dir, steps,
-           optimize, optimize_layer, lr, group_lr, sequence, stereo, alpha1, alpha2, target_text,
-           occlusion_gradient, compat, early_stop, gradient_checkpointing, out, seed, device,
-           batch_size, executor, ray_address, resume, overwrite, quiet):
+@gathered("net", ModelOptions)
+@gathered("run", RunOptions)
+@gathered("request", AttackRequest)
+def attack(dataset, out, seed, quiet, net: ModelOptions, run: RunOptions, request: AttackRequest):
     """Optimise weather particles so that a flow network's output moves towards a target.
 
     With no option it attacks RAFT with snow on the bundled demo scene into out/attack-snow.
     Writes adversarial frames, best particles (re-render them with `weathergen render
     --particles OUT`), flows, a per-step log, manifest.json and summary.json.
     """
-    check_executor(executor)
-    if executor == "local":       # a Ray driver need not have the workers' devices
-        resolve_device(device)
-    target = parse_target(target_text)
-    model = resolve_model(model, model_input)
-    execution = dict(batch_size=batch_size, executor=executor, ray_address=ray_address,
-                     threads=torch.get_num_threads(), precision=precision)
-    if method != "weather":
-        if group_lr or sequence or stereo:
-            which = "group_lr" if group_lr else "sequence" if sequence else "stereo"
-            raise ConfigError(f"${{{which}}} applies to --method weather only")
-        if early_stop is not None:
-            raise ConfigError("${early_stop} applies to the weather attack only")
-        lp = plan_lp(method, epsilon, steps, lr, optimizer, config_name=config_name, preset=preset,
-                     overrides=tuple(set_items), particles_from=particles_dir, optimize=optimize,
-                     optimize_layer=optimize_layer, occlusion_gradient=occlusion_gradient,
-                     compat=None if compat in (None, "paper") else compat)
-        out = out or default_attack_out(method)
-        job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
-                        preset=None, preset_name=method, settings=None, target=target,
-                        iters=iters, seed=seed, device=device,
-                        pass_name=lp_pass_name(method, dataset.selection.pass_),
-                        gradient_checkpointing=gradient_checkpointing, download=download,
-                        amp=amp, resume=resume, overwrite=overwrite,
-                        command=["weathergen", *sys.argv[1:]], lp=lp, **execution)
-        label, steps = method, lp.steps
+    check_executor(run.executor)
+    if run.executor == "local":       # a Ray driver need not have the workers' devices
+        resolve_device(run.device)
+    target = parse_target(request.target_text)
+    model = resolve_model(net.model, net.model_input)
+    if request.method != "weather":
+        label, steps, fields = _lp_attack(dataset, request)
     else:
-        if epsilon is not None:
-            raise ConfigError("${epsilon} applies to --method pcfa or ifgsm only")
-        if optimizer is not None:
-            raise ConfigError("${optimizer} applies to --method pcfa only")
-        early_stop = None if early_stop is None else EarlyStop.parse(early_stop)
-        steps = DEFAULT_STEPS if steps is None else steps
-        if compat == "reference":       # the research code's frame and scaling too
-            dataset = in_research_frame(dataset)
-        job, label = _weather_job(dataset, model, checkpoint, iters, download, config_name,
-                                  preset, set_items, particles_dir, steps, optimize, lr, alpha1,
-                                  alpha2, target, occlusion_gradient, compat or "paper",
-                                  gradient_checkpointing, out, seed, device, resume, overwrite,
-                                  execution, amp, optimize_layer, early_stop, group_lr,
-                                  sequence, stereo)
-        out = job.out
-    _run(job, model.label, label, target, steps, out, quiet)
+        dataset, label, steps, fields = _weather_attack(dataset, request)
+    job = AttackJob(dataset=dataset, out=out or default_attack_out(label), model=model,
+                    checkpoint=net.checkpoint, iters=net.iters, download=net.download,
+                    amp=net.amp, precision=net.precision, target=target, seed=seed,
+                    gradient_checkpointing=request.gradient_checkpointing,
+                    command=["weathergen", *sys.argv[1:]], threads=torch.get_num_threads(),
+                    **asdict(run), **fields)
+    _run(job, model.label, label, target, steps, job.out, quiet)
 
 
-def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
-                 particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
-                 compat, gradient_checkpointing, out, seed, device, resume, overwrite, execution,
-                 amp, optimize_layer=None, early_stop=None, group_lr=(), sequence=False,
-                 stereo=False):
-    plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
-                       optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
-                       steps=steps, alpha1=alpha1, alpha2=alpha2, compat=compat,
-                       layers=optimize_layer, group_lr=group_lr, sequence=sequence)
-    label = plan.label
-    out = out or default_attack_out(label)
-    job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
-                    preset=plan.preset, preset_name=plan.preset_name,
-                    settings=replace(plan.settings, early_stop=early_stop),
-                    target=target, iters=iters, seed=seed, device=device,
-                    particles_from=particles_dir, config_name=config_name,
-                    pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
-                    gradient_checkpointing=gradient_checkpointing, download=download, amp=amp,
-                    resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]],
-                    sequence=sequence, stereo=stereo, **execution)
-    return job, label
+def _lp_attack(dataset, request: AttackRequest) -> tuple[str, int, dict]:
+    """``(label, steps, the job's fields)`` of an Lp baseline; refuses the weather's options."""
+    r = request
+    if r.group_lr or r.sequence or r.stereo:
+        which = "group_lr" if r.group_lr else "sequence" if r.sequence else "stereo"
+        raise ConfigError(f"${{{which}}} applies to --method weather only")
+    if r.early_stop is not None:
+        raise ConfigError("${early_stop} applies to the weather attack only")
+    lp = plan_lp(r.method, r.epsilon, r.steps, r.lr, r.optimizer, config_name=r.config_name,
+                 preset=r.preset, overrides=tuple(r.set_items), particles_from=r.particles_dir,
+                 optimize=r.optimize, optimize_layer=r.optimize_layer,
+                 occlusion_gradient=r.occlusion_gradient,
+                 compat=None if r.compat in (None, "paper") else r.compat)
+    return r.method, lp.steps, dict(preset=None, preset_name=r.method, settings=None, lp=lp,
+                                    pass_name=lp_pass_name(r.method, dataset.selection.pass_))
+
+
+def _weather_attack(dataset, request: AttackRequest) -> tuple:
+    """``(dataset, label, steps, the job's fields)`` of the weather attack, the dataset in the
+    research code's frame under ``--compat reference``; refuses the Lp baselines' options."""
+    r = request
+    if r.epsilon is not None:
+        raise ConfigError("${epsilon} applies to --method pcfa or ifgsm only")
+    if r.optimizer is not None:
+        raise ConfigError("${optimizer} applies to --method pcfa only")
+    early_stop = None if r.early_stop is None else EarlyStop.parse(r.early_stop)
+    steps = DEFAULT_STEPS if r.steps is None else r.steps
+    if r.compat == "reference":       # the research code's frame and scaling too
+        dataset = in_research_frame(dataset)
+    plan = plan_attack(r.config_name, r.preset, parse_set_options(r.set_items), r.particles_dir,
+                       optimize=r.optimize, lr=r.lr, occlusion_gradient=r.occlusion_gradient,
+                       steps=steps, alpha1=r.alpha1, alpha2=r.alpha2, compat=r.compat or "paper",
+                       layers=r.optimize_layer, group_lr=r.group_lr, sequence=r.sequence)
+    return dataset, plan.label, steps, dict(
+        preset=plan.preset, preset_name=plan.preset_name,
+        settings=replace(plan.settings, early_stop=early_stop), particles_from=r.particles_dir,
+        config_name=r.config_name,
+        pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
+        sequence=r.sequence, stereo=r.stereo)
 
 
 class _Reporter:
