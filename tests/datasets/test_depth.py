@@ -180,6 +180,7 @@ def test_check_shows_the_shares_and_a_render_writes_the_provenance_and_says_what
     assert "--fill-gaps 0: no depth is completed; pixels without a measurement that are not sky " \
            "stay unknown at the far depth (1000)" in said
     assert "in 1 pair more than 50% of a frame's depth is completed or more than 2% unknown" in said
+    assert "the weather there follows the far depth where it is unknown" in said   # not "estimated"
     written = read_raw(out / "training" / "depth_provenance" / "s_0000" / "frame_0000.png")
     assert written.dtype == np.uint8 and set(np.unique(written)) <= {MEASURED, SKY, UNKNOWN}
     assert (written[60:] == MEASURED).all() and (written[:60] != MEASURED).all()

@@ -61,16 +61,21 @@ def fill_sparse(values: np.ndarray, measured: np.ndarray, guide: np.ndarray, *,
     return filled, known | measured
 
 
-def _bilateral_pass(values, known, guide, color_sigma):
-    """One normalised joint-bilateral pass: (values, known) -> (values, known), more pixels known."""
-    d = 2 * _RADIUS + 1
-    num = cv2.ximgproc.jointBilateralFilter(guide, np.where(known, values, 0).astype(np.float32), d,
-                                            color_sigma, _SIGMA_SPACE)
-    den = cv2.ximgproc.jointBilateralFilter(guide, known.astype(np.float32), d, color_sigma,
-                                            _SIGMA_SPACE)
-    new = ~known & (den > 1e-4)
+def _bilateral_pass(values, known, guide, color_sigma, wanted):
+    """One normalised joint-bilateral pass: (values, known) -> (values, known), more pixels known
+    (``wanted`` ones only). The weighted sum and the weight are filtered together (one
+    three-channel filter), on the rows that hold wanted pixels (and the kernel's reach)."""
+    rows = np.flatnonzero((wanted & ~known).any(axis=1))
+    lo, hi = max(rows[0] - _RADIUS, 0), rows[-1] + _RADIUS + 1
+    part = slice(lo, hi)
+    stack = np.dstack([np.where(known[part], values[part], 0), known[part],
+                       np.zeros_like(values[part])]).astype(np.float32)
+    num, den, _ = cv2.split(cv2.ximgproc.jointBilateralFilter(
+        np.ascontiguousarray(guide[part]), stack, 2 * _RADIUS + 1, color_sigma, _SIGMA_SPACE))
+    new = np.zeros_like(known)
+    new[part] = wanted[part] & ~known[part] & (den > 1e-4)
     out = values.copy()
-    out[new] = num[new] / den[new]
+    out[new] = num[new[part]] / den[new[part]]
     return out, known | new
 
 
@@ -78,7 +83,7 @@ def _fill_pyramid(values, known, guide, wanted, color_sigma):
     for _ in range(2):
         if not (wanted & ~known).any():
             return values, known
-        values, known = _bilateral_pass(values, known, guide, color_sigma)
+        values, known = _bilateral_pass(values, known, guide, color_sigma, wanted)
     missing = wanted & ~known
     h, w = known.shape
     if not missing.any() or min(h, w) < 2 * (2 * _RADIUS + 1):
@@ -93,11 +98,44 @@ def _fill_pyramid(values, known, guide, wanted, color_sigma):
     coarse_wanted = cv2.resize(wanted.astype(np.uint8), size, interpolation=cv2.INTER_NEAREST) > 0
     coarse_vals, coarse_known = _fill_pyramid(coarse_vals, coarse_known, coarse_guide, coarse_wanted,
                                               color_sigma)
-    # bring the coarse fill back up (nearest: no blending across the coarse pixels' edges)
-    up_vals = cv2.resize(coarse_vals, (w, h), interpolation=cv2.INTER_NEAREST)
-    up_known = cv2.resize(coarse_known.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+    up_vals, up_known = _joint_upsample(coarse_vals, coarse_known, coarse_guide, guide, missing,
+                                        color_sigma)
     take = missing & up_known
     values = values.copy()
     values[take] = up_vals[take]
     return values, known | take
 
+
+def _joint_upsample(values, known, guide, fine_guide, where, color_sigma):
+    """A coarse fill brought up to the fine level at the pixels ``where`` (joint bilateral
+    upsampling, Kopf et al. 2007): each takes the known coarse pixels of its 3 x 3 coarse
+    neighbourhood, weighted by distance and by how alike their colour is to its own, so a pixel
+    above a car takes the trees' value, not the car's; with no alike neighbour, the nearest one.
+
+    Shape: values, known (h, w); guide (h, w, 3); fine_guide (H, W, 3); where (H, W) ->
+    ``(values (H, W) float32, known (H, W) bool)``, set at ``where`` only.
+    """
+    h, w = known.shape
+    ys, xs = np.nonzero(where)
+    cy, cx = (ys + 0.5) / 2 - 0.5, (xs + 0.5) / 2 - 0.5
+    colour = fine_guide[ys, xs]
+    num = np.zeros(len(ys), np.float64)
+    den = np.zeros(len(ys), np.float64)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            qy = np.clip(np.rint(cy).astype(np.int64) + dy, 0, h - 1)
+            qx = np.clip(np.rint(cx).astype(np.int64) + dx, 0, w - 1)
+            far = ((qy - cy) ** 2 + (qx - cx) ** 2) / (2 * _SIGMA_SPACE ** 2)
+            unlike = ((guide[qy, qx] - colour) ** 2).sum(axis=1) / (2 * color_sigma ** 2)
+            weight = known[qy, qx] * np.exp(-far - unlike)
+            num += weight * values[qy, qx]
+            den += weight
+    qy = np.clip(np.rint(cy).astype(np.int64), 0, h - 1)
+    qx = np.clip(np.rint(cx).astype(np.int64), 0, w - 1)
+    nearest = known[qy, qx]
+    ok = den > 1e-12
+    out = np.zeros(where.shape, np.float32)
+    got = np.zeros(where.shape, bool)
+    out[ys, xs] = np.where(ok, num / np.maximum(den, 1e-300), values[qy, qx])
+    got[ys, xs] = ok | nearest
+    return out, got

@@ -41,12 +41,20 @@ from .densify import fill_sparse
 SKY_MAX_GRADIENT = 0.02
 SKY_WINDOW = 5
 SKY_BRIGHT_QUANTILE = 0.6
+#: Once found, the sky takes the smooth blue to grey pixels at least this share of its median
+#: luminance (a lens darkens the frame's corners).
+SKY_RELATIVE_BRIGHTNESS = 0.6
 #: Blue to grey: a sky pixel's blue is at least its red and its green less this.
 SKY_HUE = 0.02
 #: The largest distance (RGB) between the mean colours of two parts of one sky.
 SKY_COLOR_SPREAD = 0.25
 #: The colour tolerance of the vote that settles the pixels along the sky's edge.
 SKY_EDGE_COLOR_SIGMA = 0.05
+#: A measurement is stray when it is nearer (or farther) than all its measured neighbours within
+#: a STRAY_WINDOW square (at least STRAY_NEIGHBOURS) by more than STRAY_AGREE of the inverse depth.
+STRAY_WINDOW = 9
+STRAY_NEIGHBOURS = 2
+STRAY_AGREE = 0.1
 #: The membrane fill of large holes: Jacobi sweeps at each level, colour tolerance of its links.
 MEMBRANE_SWEEPS = 20
 MEMBRANE_COLOR_SIGMA = 0.1
@@ -74,8 +82,10 @@ def complete_depth(depth: np.ndarray, measured: np.ndarray, image: np.ndarray, *
     out = np.where(measured, depth, far_depth).astype(np.float32)
     if max_gap_px <= 0 or not measured.any() or (prov != UNKNOWN).all():
         return out, prov
-    values, known = fill_sparse(inverse, measured, image, max_gap_px=max_gap_px, exclude=sky)
-    known &= ~sky
+    seeds = measured & ~stray_measurements(inverse, measured)
+    values, known = fill_sparse(inverse, seeds, image, max_gap_px=max_gap_px, exclude=sky)
+    values = np.where(measured, inverse, values)
+    known = (known | measured) & ~sky
     large = ~known & ~sky
     if large.any():
         values, known = _complete_large(values, known, large, sky, image)
@@ -83,6 +93,22 @@ def complete_depth(depth: np.ndarray, measured: np.ndarray, image: np.ndarray, *
     out[done] = 1.0 / values[done]
     prov[done] = COMPLETED
     return out, prov
+
+
+def stray_measurements(inverse: np.ndarray, measured: np.ndarray) -> np.ndarray:
+    """Measurements nearer or farther than every measured neighbour within :data:`STRAY_WINDOW`
+    // 2 pixels (at least :data:`STRAY_NEIGHBOURS` of them) by more than :data:`STRAY_AGREE` of
+    the inverse depth: a laser return projected from elsewhere. They keep their pixel but seed no
+    fill. Shape: (H, W) each -> (H, W) bool."""
+    ring = np.ones((STRAY_WINDOW, STRAY_WINDOW), np.uint8)
+    ring[STRAY_WINDOW // 2, STRAY_WINDOW // 2] = 0
+    inverse = inverse.astype(np.float32)
+    nearest = cv2.dilate(np.where(measured, inverse, 0).astype(np.float32), ring)
+    farthest = cv2.erode(np.where(measured, inverse, np.inf).astype(np.float32), ring)
+    count = cv2.filter2D(measured.astype(np.float32), -1, ring.astype(np.float32),
+                         borderType=cv2.BORDER_CONSTANT)
+    odd = (inverse > (1 + STRAY_AGREE) * nearest) | (inverse < (1 - STRAY_AGREE) * farthest)
+    return measured & odd & (count >= STRAY_NEIGHBOURS - 0.5)
 
 
 def _complete_large(values, known, large, sky, image):
@@ -195,12 +221,41 @@ def estimate_sky(image: np.ndarray, measured: np.ndarray, *,
                         cv2.Sobel(blurred, cv2.CV_32F, 0, 1, ksize=3)) / 8.0
     h = measured.shape[0]
     top = np.where(measured.any(axis=0), np.argmax(measured, axis=0), h)
-    possible = ((np.arange(h)[:, None] < top[None, :]) & (image[..., 2] >= image[..., :2].max(axis=2) - SKY_HUE)
-                & (grey >= np.quantile(grey, bright_quantile)))
+    above = np.arange(h)[:, None] < top[None, :]
+    possible = above & (image[..., 2] >= image[..., :2].max(axis=2) - SKY_HUE)
     texture = cv2.dilate(gradient, np.ones((SKY_WINDOW, SKY_WINDOW), np.uint8))
+    sky = _smooth_sky(possible & (grey >= np.quantile(grey, bright_quantile)), texture, gradient,
+                      max_gradient, image)
+    if sky.any():
+        # The bright parts find the sky, which may be darker elsewhere (a lens darkens the corners)
+        bright = grey >= SKY_RELATIVE_BRIGHTNESS * np.median(grey[sky])
+        sky = _smooth_sky(possible & bright, texture, gradient, max_gradient, image)
+        sky |= _enclosed_sky(possible & bright, texture, gradient, max_gradient, image, sky)
+    return _edge_pixels(sky, above, image)
+
+
+def _smooth_sky(possible, texture, gradient, max_gradient, image):
+    """The smooth parts of ``possible`` that reach the top border: a core of ``texture`` below
+    ``max_gradient`` grown over ``gradient`` below twice that. Shape: (H, W) each -> (H, W)."""
     core = _one_sky(_touching_top(possible & (texture <= max_gradient)), image)
-    sky = _grown(possible & (gradient <= 2 * max_gradient), core)
-    return _edge_pixels(sky, np.arange(h)[:, None] < top[None, :], image)
+    return _grown(possible & (gradient <= 2 * max_gradient), core)
+
+
+def _enclosed_sky(possible, texture, gradient, max_gradient, image, sky):
+    """The sky seen where it does not reach the top border (between a sign and a pole, through a
+    tree): smooth parts of ``possible`` at least :data:`SKY_WINDOW` pixels wide whose hue is
+    within :data:`SKY_COLOR_SPREAD` of the sky's. Shape: (H, W) each, image (H, W, 3) -> (H, W)."""
+    core = (possible & (texture <= max_gradient) & ~sky).astype(np.uint8)
+    wide = cv2.erode(core, np.ones((SKY_WINDOW, SKY_WINDOW), np.uint8)) > 0
+    count, labels = cv2.connectedComponents(_grown(core > 0, wide).astype(np.uint8), connectivity=4)
+    sizes = np.maximum(np.bincount(labels.ravel(), minlength=count), 1)
+    means = np.stack([np.bincount(labels.ravel(), image[..., c].ravel(), count) for c in range(3)],
+                     1) / sizes[:, None]
+    ref = image[sky].mean(axis=0)
+    hue = means / np.maximum(means.mean(axis=1, keepdims=True), 1e-6)
+    keep = np.linalg.norm(hue - ref / max(ref.mean(), 1e-6), axis=1) <= SKY_COLOR_SPREAD
+    keep[0] = False
+    return _grown(possible & (gradient <= 2 * max_gradient), keep[labels])
 
 
 def _edge_pixels(sky: np.ndarray, above: np.ndarray, image: np.ndarray) -> np.ndarray:
@@ -211,11 +266,15 @@ def _edge_pixels(sky: np.ndarray, above: np.ndarray, image: np.ndarray) -> np.nd
     band &= ~sky & above
     if not band.any():
         return sky
-    decided = (~band).astype(np.float32)
-    votes = [cv2.ximgproc.jointBilateralFilter(image, m, SKY_WINDOW + 2, SKY_EDGE_COLOR_SIGMA,
-                                               SKY_WINDOW / 2)
-             for m in (decided * sky, decided)]
-    return sky | (band & (votes[0] > 0.5 * votes[1]))
+    rows = np.flatnonzero(band.any(axis=1))
+    part = slice(max(rows[0] - SKY_WINDOW, 0), rows[-1] + SKY_WINDOW + 1)   # the kernel's reach
+    decided = (~band[part]).astype(np.float32)
+    votes = cv2.ximgproc.jointBilateralFilter(
+        np.ascontiguousarray(image[part]), np.dstack([decided * sky[part], decided, decided * 0]),
+        SKY_WINDOW + 2, SKY_EDGE_COLOR_SIGMA, SKY_WINDOW / 2)
+    out = sky.copy()
+    out[part] |= band[part] & (votes[..., 0] > 0.5 * votes[..., 1])
+    return out
 
 
 def _one_sky(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
@@ -228,6 +287,7 @@ def _one_sky(mask: np.ndarray, image: np.ndarray) -> np.ndarray:
     means = np.stack([np.bincount(labels.ravel(), image[..., c].ravel(), count)
                       for c in range(3)], 1) / np.maximum(sizes, 1)[:, None]
     sizes[0] = 0
+    means /= np.maximum(means.mean(axis=1, keepdims=True), 1e-6)      # hue, not brightness
     keep = np.linalg.norm(means - means[np.argmax(sizes)], axis=1) <= SKY_COLOR_SPREAD
     keep[0] = False
     return keep[labels]

@@ -72,4 +72,5 @@ def depth_note(facts: list[tuple[str, dict]]) -> Optional[str]:
     return (f"in {counted(len(worst), 'pair')} more than {COMPLETED_NOTE:.0%} of a frame's depth "
             f"is completed or more than {UNKNOWN_NOTE:.0%} unknown (e.g. {name}: {completed:.0%} "
             f"completed, {unknown:.0%} unknown at the far depth); the weather there follows "
-            f"estimated depth: see depth_provenance/ beside the depth and docs/datasets.md")
+            f"{'estimated depth' if unknown <= UNKNOWN_NOTE else 'the far depth where it is unknown'}"
+            f": see depth_provenance/ beside the depth and docs/datasets.md")
