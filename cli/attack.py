@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import sys
-from dataclasses import replace
+from contextlib import nullcontext
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
+from typing import Optional
 
 import click
 import torch
@@ -23,9 +25,10 @@ from weathergen.errors import ConfigError
 from weathergen.execution import RunClock, check_executor
 from weathergen.words import counted
 
-from .options import (attack_steps, compat_option, dataset_options, device_option, early_stop_option,
-                      executor_options, job_exit_codes, model_options, out_option, overwrite_option,
-                      quiet_option, resolve_model, resume_option, seed_option)
+from .options import (ModelOptions, RunOptions, attack_steps, compat_option, dataset_options,
+                      device_option, early_stop_option, executor_options, gathered, job_exit_codes,
+                      model_options, out_option, overwrite_option, quiet_option, resolve_model,
+                      resume_option, seed_option)
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 
@@ -103,6 +106,35 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
             ("robust EPE; Fl, 1px (%) vs clean flow (RobustSpring)",
              f"{_fmt(summary.get('robust_epe'))}; {_fmt(summary.get('robust_fl'), 2)}, "
              f"{_fmt(summary.get('robust_1px'), 2)}")]
+
+
+@dataclass(frozen=True)
+class AttackRequest:
+    """What to attack and how: the options of ``attack`` that its plan
+    (:func:`~weathergen.attack.plan_attack`, :func:`~weathergen.attack.plan_lp`) turns into the
+    attack's settings, named as the command's parameters."""
+
+    method: str
+    epsilon: Optional[float]
+    optimizer: Optional[str]
+    config_name: Optional[str]
+    preset: Optional[str]
+    set_items: tuple
+    particles_dir: Optional[Path]
+    steps: Optional[int]
+    optimize: Optional[str]
+    optimize_layer: Optional[str]
+    lr: Optional[float]
+    group_lr: tuple
+    sequence: bool
+    stereo: bool
+    alpha1: float
+    alpha2: float
+    target_text: str
+    occlusion_gradient: Optional[bool]
+    compat: Optional[str]
+    early_stop: Optional[str]
+    gradient_checkpointing: bool
 
 
 @click.command(epilog=job_exit_codes(every_failed=1))
@@ -190,170 +222,166 @@ def region_rows(summary: dict) -> list[tuple[str, str]]:
 @resume_option("Finish an interrupted run: skip finished pairs.")
 @overwrite_option("Redo every pair, even in a folder that holds one.")
 @quiet_option
-def attack(dataset, model, checkpoint, iters, download, model_input, amp, precision, method, epsilon,
-           optimizer, config_name, preset, set_items,
-           particles_dir, steps,
-           optimize, optimize_layer, lr, group_lr, sequence, stereo, alpha1, alpha2, target_text,
-           occlusion_gradient, compat, early_stop, gradient_checkpointing, out, seed, device,
-           batch_size, executor, ray_address, resume, overwrite, quiet):
+@gathered("net", ModelOptions)
+@gathered("run", RunOptions)
+@gathered("request", AttackRequest)
+def attack(dataset, out, seed, quiet, net: ModelOptions, run: RunOptions, request: AttackRequest):
     """Optimise weather particles so that a flow network's output moves towards a target.
 
     With no option it attacks RAFT with snow on the bundled demo scene into out/attack-snow.
     Writes adversarial frames, best particles (re-render them with `weathergen render
     --particles OUT`), flows, a per-step log, manifest.json and summary.json.
     """
-    check_executor(executor)
-    if executor == "local":       # a Ray driver need not have the workers' devices
-        resolve_device(device)
-    target = parse_target(target_text)
-    model = resolve_model(model, model_input)
-    execution = dict(batch_size=batch_size, executor=executor, ray_address=ray_address,
-                     threads=torch.get_num_threads(), precision=precision)
-    if method != "weather":
-        if group_lr or sequence or stereo:
-            which = "group_lr" if group_lr else "sequence" if sequence else "stereo"
-            raise ConfigError(f"${{{which}}} applies to --method weather only")
-        if early_stop is not None:
-            raise ConfigError("${early_stop} applies to the weather attack only")
-        lp = plan_lp(method, epsilon, steps, lr, optimizer, config_name=config_name, preset=preset,
-                     overrides=tuple(set_items), particles_from=particles_dir, optimize=optimize,
-                     optimize_layer=optimize_layer, occlusion_gradient=occlusion_gradient,
-                     compat=None if compat in (None, "paper") else compat)
-        out = out or default_attack_out(method)
-        job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
-                        preset=None, preset_name=method, settings=None, target=target,
-                        iters=iters, seed=seed, device=device,
-                        pass_name=lp_pass_name(method, dataset.selection.pass_),
-                        gradient_checkpointing=gradient_checkpointing, download=download,
-                        amp=amp, resume=resume, overwrite=overwrite,
-                        command=["weathergen", *sys.argv[1:]], lp=lp, **execution)
-        label, steps = method, lp.steps
+    check_executor(run.executor)
+    if run.executor == "local":       # a Ray driver need not have the workers' devices
+        resolve_device(run.device)
+    target = parse_target(request.target_text)
+    model = resolve_model(net.model, net.model_input)
+    if request.method != "weather":
+        label, steps, fields = _lp_attack(dataset, request)
     else:
-        if epsilon is not None:
-            raise ConfigError("${epsilon} applies to --method pcfa or ifgsm only")
-        if optimizer is not None:
-            raise ConfigError("${optimizer} applies to --method pcfa only")
-        early_stop = None if early_stop is None else EarlyStop.parse(early_stop)
-        steps = DEFAULT_STEPS if steps is None else steps
-        if compat == "reference":       # the research code's frame and scaling too
-            dataset = in_research_frame(dataset)
-        job, label = _weather_job(dataset, model, checkpoint, iters, download, config_name,
-                                  preset, set_items, particles_dir, steps, optimize, lr, alpha1,
-                                  alpha2, target, occlusion_gradient, compat or "paper",
-                                  gradient_checkpointing, out, seed, device, resume, overwrite,
-                                  execution, amp, optimize_layer, early_stop, group_lr,
-                                  sequence, stereo)
-        out = job.out
-    _run(job, model.label, label, target, steps, out, quiet)
+        dataset, label, steps, fields = _weather_attack(dataset, request)
+    job = AttackJob(dataset=dataset, out=out or default_attack_out(label), model=model,
+                    checkpoint=net.checkpoint, iters=net.iters, download=net.download,
+                    amp=net.amp, precision=net.precision, target=target, seed=seed,
+                    gradient_checkpointing=request.gradient_checkpointing,
+                    command=["weathergen", *sys.argv[1:]], threads=torch.get_num_threads(),
+                    **asdict(run), **fields)
+    _run(job, model.label, label, target, steps, job.out, quiet)
 
 
-def _weather_job(dataset, model, checkpoint, iters, download, config_name, preset, set_items,
-                 particles_dir, steps, optimize, lr, alpha1, alpha2, target, occlusion_gradient,
-                 compat, gradient_checkpointing, out, seed, device, resume, overwrite, execution,
-                 amp, optimize_layer=None, early_stop=None, group_lr=(), sequence=False,
-                 stereo=False):
-    plan = plan_attack(config_name, preset, parse_set_options(set_items), particles_dir,
-                       optimize=optimize, lr=lr, occlusion_gradient=occlusion_gradient,
-                       steps=steps, alpha1=alpha1, alpha2=alpha2, compat=compat,
-                       layers=optimize_layer, group_lr=group_lr, sequence=sequence)
-    label = plan.label
-    out = out or default_attack_out(label)
-    job = AttackJob(dataset=dataset, out=out, model=model, checkpoint=checkpoint,
-                    preset=plan.preset, preset_name=plan.preset_name,
-                    settings=replace(plan.settings, early_stop=early_stop),
-                    target=target, iters=iters, seed=seed, device=device,
-                    particles_from=particles_dir, config_name=config_name,
-                    pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
-                    gradient_checkpointing=gradient_checkpointing, download=download, amp=amp,
-                    resume=resume, overwrite=overwrite, command=["weathergen", *sys.argv[1:]],
-                    sequence=sequence, stereo=stereo, **execution)
-    return job, label
+def _lp_attack(dataset, request: AttackRequest) -> tuple[str, int, dict]:
+    """``(label, steps, the job's fields)`` of an Lp baseline; refuses the weather's options."""
+    r = request
+    if r.group_lr or r.sequence or r.stereo:
+        which = "group_lr" if r.group_lr else "sequence" if r.sequence else "stereo"
+        raise ConfigError(f"${{{which}}} applies to --method weather only")
+    if r.early_stop is not None:
+        raise ConfigError("${early_stop} applies to the weather attack only")
+    lp = plan_lp(r.method, r.epsilon, r.steps, r.lr, r.optimizer, config_name=r.config_name,
+                 preset=r.preset, overrides=tuple(r.set_items), particles_from=r.particles_dir,
+                 optimize=r.optimize, optimize_layer=r.optimize_layer,
+                 occlusion_gradient=r.occlusion_gradient,
+                 compat=None if r.compat in (None, "paper") else r.compat)
+    return r.method, lp.steps, dict(preset=None, preset_name=r.method, settings=None, lp=lp,
+                                    pass_name=lp_pass_name(r.method, dataset.selection.pass_))
 
 
-def _run(job, model, label, target, steps, out, quiet):
-    console = Console()
-    err = Console(stderr=True)
-    interactive = console.is_terminal and not quiet
-    state = {"n": 0, "written": 0}
-    compat_mode = "paper" if job.lp is not None else job.settings.compat
-    versus = " (vs the random weather's flow)" if compat_mode == "reference" else ""
-    clock = None
-    rows = []
-    failed = []
-    progress = task = None
-    total_steps = int(steps)
+def _weather_attack(dataset, request: AttackRequest) -> tuple:
+    """``(dataset, label, steps, the job's fields)`` of the weather attack, the dataset in the
+    research code's frame under ``--compat reference``; refuses the Lp baselines' options."""
+    r = request
+    if r.epsilon is not None:
+        raise ConfigError("${epsilon} applies to --method pcfa or ifgsm only")
+    if r.optimizer is not None:
+        raise ConfigError("${optimizer} applies to --method pcfa only")
+    early_stop = None if r.early_stop is None else EarlyStop.parse(r.early_stop)
+    steps = DEFAULT_STEPS if r.steps is None else r.steps
+    if r.compat == "reference":       # the research code's frame and scaling too
+        dataset = in_research_frame(dataset)
+    plan = plan_attack(r.config_name, r.preset, parse_set_options(r.set_items), r.particles_dir,
+                       optimize=r.optimize, lr=r.lr, occlusion_gradient=r.occlusion_gradient,
+                       steps=steps, alpha1=r.alpha1, alpha2=r.alpha2, compat=r.compat or "paper",
+                       layers=r.optimize_layer, group_lr=r.group_lr, sequence=r.sequence)
+    return dataset, plan.label, steps, dict(
+        preset=plan.preset, preset_name=plan.preset_name,
+        settings=replace(plan.settings, early_stop=early_stop), particles_from=r.particles_dir,
+        config_name=r.config_name,
+        pass_name=attack_pass_name(plan.preset_name, dataset.selection.pass_),
+        sequence=r.sequence, stereo=r.stereo)
 
-    def on_start(n):
-        nonlocal task, clock
-        state["n"] = n
-        clock = RunClock(n)
-        if progress is not None:
-            task = progress.add_task("attack", total=n * (total_steps + 1), status="")
 
-    def on_step(pair_name, rec):
+class _Reporter:
+    """What a run prints as it goes: a progress bar on a terminal, else a line per written pair
+    and every 50th step (nothing with ``quiet``); warnings and failures on stderr."""
+
+    def __init__(self, steps: int, versus: str, quiet: bool):
+        self.console, self.err = Console(), Console(stderr=True)
+        self.total_steps, self.versus, self.quiet = int(steps), versus, quiet
+        self.written, self.failed, self.clock, self.task = 0, [], None, None
+        self.progress = (Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
+                                  MofNCompleteColumn(), TimeElapsedColumn(),
+                                  TextColumn("{task.fields[status]}"), console=self.console)
+                         if self.console.is_terminal and not quiet else None)
+
+    def on_start(self, n):
+        self.clock = RunClock(n)
+        if self.progress is not None:
+            self.task = self.progress.add_task("attack", total=n * (self.total_steps + 1),
+                                               status="")
+
+    def on_step(self, pair_name, rec):
         # scene/frame is enough to tell pairs apart in one run, and keeps the line short
         short = "/".join(pair_name.split("/")[-2:])
-        text = (f"{clock.describe()}; {short} step {rec.step}/{total_steps}"
+        text = (f"{self.clock.describe()}; {short} step {rec.step}/{self.total_steps}"
                 f"  loss {rec.loss:.4f}  best distance {rec.best_distance:.4f}")
-        if progress is not None:
-            progress.update(task, advance=1, status=text)
-        elif not quiet and (rec.step % 50 == 0 or rec.step == total_steps):
-            console.print(text, highlight=False, soft_wrap=True)
+        if self.progress is not None:
+            self.progress.update(self.task, advance=1, status=text)
+        elif not self.quiet and (rec.step % 50 == 0 or rec.step == self.total_steps):
+            self.console.print(text, highlight=False, soft_wrap=True)
 
+    @staticmethod
     def on_note(text):
         click.echo(f"Note: {text}", err=True)
 
-    def on_pair_done(report):
-        clock.add(computed=report.status == "written")
-        state["written"] += report.status == "written"
-        if report.summary is not None:
-            rows.append(report.summary)
-            if report.summary.nothing_visible and report.status == "written":
-                (progress.console if progress else err).print(
-                    f"[yellow]warning[/yellow] {report.pair}: no particle is visible, so nothing "
-                    f"could be optimised; the random weather was kept", highlight=False, soft_wrap=True)
+    def on_pair_done(self, report):
+        self.clock.add(computed=report.status == "written")
+        self.written += report.status == "written"
+        if report.summary is not None and report.summary.nothing_visible \
+                and report.status == "written":
+            self._warn(f"[yellow]warning[/yellow] {report.pair}: no particle is visible, so "
+                       f"nothing could be optimised; the random weather was kept")
         for text in report.warnings:       # attacked, but the input looks wrong
-            (progress.console if progress else err).print(
-                f"[yellow]warning[/yellow] {report.pair}: {text}", highlight=False, soft_wrap=True)
+            self._warn(f"[yellow]warning[/yellow] {report.pair}: {text}")
         if report.status == "failed":
-            failed.append(report)
-            (progress.console if progress else err).print(
-                f"[red]failed[/red] {report.pair}: {report.message}", highlight=False,
-                soft_wrap=True)     # one unwrapped line, so paths stay whole
-        if progress is not None:
+            self.failed.append(report)
+            self._warn(f"[red]failed[/red] {report.pair}: {report.message}")
+        if self.progress is not None:
             # counts the steps a pair did not report (skipped, failed, frozen, run by Ray)
-            progress.update(task, completed=clock.done * (total_steps + 1),
-                            status=clock.describe())
-        if not quiet and progress is None and report.status != "failed":
-            console.print(f"[{clock.describe()}] {report.pair} {report.status}: "
-                          + pair_line(report.summary, versus), highlight=False, soft_wrap=True)
+            self.progress.update(self.task, completed=self.clock.done * (self.total_steps + 1),
+                                 status=self.clock.describe())
+        if not self.quiet and self.progress is None and report.status != "failed":
+            self.console.print(f"[{self.clock.describe()}] {report.pair} {report.status}: "
+                               + pair_line(report.summary, self.versus), highlight=False,
+                               soft_wrap=True)
 
-    if interactive:
-        progress = Progress(TextColumn("[bold]{task.description}"), BarColumn(bar_width=12),
-                            MofNCompleteColumn(), TimeElapsedColumn(),
-                            TextColumn("{task.fields[status]}"), console=console)
+    def _warn(self, text: str) -> None:
+        """One unwrapped line on stderr (above the progress bar), so paths stay whole."""
+        (self.progress.console if self.progress else self.err).print(text, highlight=False,
+                                                                     soft_wrap=True)
+
+
+def _run(job, model, label, target, steps, out, quiet):
+    compat_mode = "paper" if job.lp is not None else job.settings.compat
+    versus = " (vs the random weather's flow)" if compat_mode == "reference" else ""
+    shown = _Reporter(steps, versus, quiet)
     stopped_by = None
     try:
         with terminate_as_interrupt() as stopped_by:
-            if progress is not None:
-                with progress:
-                    summary = run_attack(job, on_start, on_step, on_pair_done, on_note)
-            else:
-                summary = run_attack(job, on_start, on_step, on_pair_done, on_note)
+            with shown.progress if shown.progress is not None else nullcontext():
+                summary = run_attack(job, shown.on_start, shown.on_step, shown.on_pair_done,
+                                     shown.on_note)
     except KeyboardInterrupt:
-        exit_interrupted(state["written"], stopped_by)
+        exit_interrupted(shown.written, stopped_by)
     if not quiet:
-        mode = "" if compat_mode == "paper" else f", compat {compat_mode}"
-        console.print(summary_table(f"weathergen attack: {model}, {label}, target "
-                                    f"{target.describe()}{mode} (pixels)", summary,
-                                    "weather" if job.lp is None else "perturbation",
-                                    compat=compat_mode))
-        console.print(f"Settings: {settings_text(summary['settings'])}", highlight=False,
-                      soft_wrap=True)
-        if summary.get("scenes"):
-            console.print(scene_table(summary))
-        console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
-                      soft_wrap=True)
-    if failed:
-        err.print(f"[red]{counted(len(failed), 'pair')} failed[/red]; see the messages above.")
+        _print_summary(shown.console, job, f"{model}, {label}", target, out, summary,
+                       compat_mode)
+    if shown.failed:
+        shown.err.print(f"[red]{counted(len(shown.failed), 'pair')} failed[/red]; see the "
+                        f"messages above.")
         sys.exit(1)
+
+
+def _print_summary(console, job, what: str, target, out, summary: dict, compat_mode: str):
+    """The run's mean figures, settings, per-scene figures (a sequence attack) and output."""
+    mode = "" if compat_mode == "paper" else f", compat {compat_mode}"
+    console.print(summary_table(f"weathergen attack: {what}, target "
+                                f"{target.describe()}{mode} (pixels)", summary,
+                                "weather" if job.lp is None else "perturbation",
+                                compat=compat_mode))
+    console.print(f"Settings: {settings_text(summary['settings'])}", highlight=False,
+                  soft_wrap=True)
+    if summary.get("scenes"):
+        console.print(scene_table(summary))
+    console.print(f"Output: {out} (summary: {out / 'summary.json'})", highlight=False,
+                  soft_wrap=True)

@@ -19,7 +19,8 @@ from weathergen.outputs import PublishedWeatherSet, WeatherFolder, read_manifest
 from weathergen.render import published_preset, resolve_preset
 
 from .attack import region_rows
-from .options import BAD_INPUT, STOPPED, device_option, exit_codes, model_options, quiet_option, resolve_model
+from .options import (BAD_INPUT, STOPPED, ModelOptions, device_option, exit_codes, gathered,
+                      model_options, quiet_option, resolve_model)
 
 
 def _fmt(value) -> str:
@@ -48,9 +49,9 @@ def _fmt(value) -> str:
                    "left as it is, evaluate-<set>-<model>.json in the working folder.")
 @device_option
 @quiet_option
-def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, precision, dataset_name,
-             root, pass_,
-             preset, json_path, device, quiet):
+@gathered("net", ModelOptions)
+def evaluate(weather_dir, dataset_name, root, pass_, preset, json_path, device, quiet,
+             net: ModelOptions):
     """Robustness to weather: AEE(f, f̌) between the flow on clean and on weather frames.
 
     Also reports the end-point error against ground truth, for the clean and the weather frames,
@@ -59,8 +60,8 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
     weather flow. All figures are in pixels, rates in percent.
     """
     resolve_device(device)
-    model = resolve_model(model, model_input)
-    precision = resolve_precision(model, precision, amp, device)
+    model = resolve_model(net.model, net.model_input)
+    precision = resolve_precision(model, net.precision, net.amp, device)
     if is_published_set(weather_dir):
         folder = open_published(weather_dir, preset, dataset_name, root, pass_)
     else:
@@ -69,8 +70,8 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
                                    "weathergen folder records its preset")
         folder = WeatherFolder.open(weather_dir)
     dataset = folder.clean_dataset(dataset_name, root, pass_)
-    network = get_model(model, checkpoint, device=device, iters=iters, download=download,
-                        precision=precision)
+    network = get_model(model, net.checkpoint, device=device, iters=net.iters,
+                        download=net.download, precision=precision)
     console = Console()
 
     def on_pair(row):
@@ -79,7 +80,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
                           soft_wrap=True)
 
     rows, summary = run_evaluation(network, folder, dataset, device, on_pair)
-    info = {"model": model.name, "checkpoint": checkpoint, "iters": iters,
+    info = {"model": model.name, "checkpoint": net.checkpoint, "iters": net.iters,
             "amp": precision in AUTOCAST, "precision": precision,
             "weather": str(weather_dir), "pass": folder.pass_name, "clean": dataset.describe()}
     source = model.source()
@@ -89,7 +90,7 @@ def evaluate(weather_dir, model, checkpoint, iters, download, model_input, amp, 
     if published:
         info["published"] = {"preset": folder.preset_name}
     info["settings"] = run_settings(
-        model, checkpoint, iters=getattr(network, "iters", iters), precision=precision,
+        model, net.checkpoint, iters=getattr(network, "iters", net.iters), precision=precision,
         padding=network.padding,
         seed=None if published else read_manifest(weather_dir, "weather").data.get("seed"))
     json_path = json_path or default_evaluation_path(weather_dir, model.label, published)

@@ -114,6 +114,21 @@ class RunOptions:
     overwrite: bool = False
 
 
+@dataclass(frozen=True)
+class ModelOptions:
+    """The flow network and how it runs: the options of :func:`model_options` (``--model``, the
+    name as given, ``--checkpoint``, ``--iters``, ``--download``, ``--model-input``, ``--amp``,
+    ``--precision``), taken by every command that runs one network."""
+
+    model: str = "raft"
+    checkpoint: Optional[str] = None
+    iters: Optional[int] = None
+    download: bool = False
+    model_input: Optional[str] = None
+    amp: Optional[bool] = None
+    precision: Optional[str] = None
+
+
 def gathered(name: str, record: type):
     """Decorator (right above the command's ``def``): the command's options named as the fields
     of the dataclass ``record`` come in as one ``record`` under the parameter ``name``."""
@@ -331,7 +346,7 @@ def early_stop_option(func):
 
 def model_options(func):
     """Add the flow-network options: ``model``, ``checkpoint``, ``iters``, ``download``,
-    ``model_input``, ``amp``, ``precision``."""
+    ``model_input``, ``amp``, ``precision`` (gathered as :class:`ModelOptions`)."""
     for option in reversed((
         click.option("--model", default="raft", show_default=True,
                      help="Flow network or checkpoint name (raft, raft-small, gma, flowformer, "

@@ -74,7 +74,7 @@ def test_the_records_of_a_pair_take_the_figures_from_one_declaration():
 
     from weathergen.attack import EvalRow
     from weathergen.attack.figures import RegionFigures
-    from weathergen.attack.pair import PairSummary
+    from weathergen.attack.figures import PairSummary
 
     clean, weather, covered, gt = hand_made()
     got = region_figures(clean, weather, covered, gt)

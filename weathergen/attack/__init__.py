@@ -27,9 +27,10 @@ from .job import AttackJob, PairReport, attack_refs, job_model, probe_job_networ
 from .lp import (LP_DEFAULTS, LP_METHODS, PCFA_OPTIMIZERS, LpOptimisation, LpResult, LpSettings, l2_normalised,
                  l2_normalised_per_pair, lp_attack_batch, lp_attack_pair, lp_pass_name,
                  lp_settings, plan_lp, random_perturbation)
-from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisation, PairSummary,
-                   StepRecord, WeatherVariables, attack_batch, attack_loss, attack_pair,
-                   mean_summary, offset_penalty, particle_depths, summarize_pair)
+from .figures import PairSummary, mean_summary, summarize_pair
+from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisation, StepRecord,
+                   WeatherVariables, attack_batch, attack_loss, attack_pair, offset_penalty,
+                   particle_depths)
 from .sequence import (SceneWeather, SecondView, attack_sequence, scene_weather, second_frames,
                        second_view)
 from .plan import AttackPlan, attack_pass_name, default_attack_out, plan_attack

@@ -1,4 +1,5 @@
-"""Figures by region and KITTI's outlier rates of one weather flow, and their means over pairs.
+"""Figures by region and KITTI's outlier rates of one weather flow, and their means over pairs;
+an attacked pair's figures (:class:`PairSummary`).
 
 For a pair with clean-frame flow ``f``, weather-frame flow ``f̌``, the weather's opacity in both
 frames and (where the dataset has it) ground truth ``gt``:
@@ -31,6 +32,8 @@ import torch
 from ..engine import render_pair
 from ..flow import aee, fl_all, outlier_rate
 from ..io.images import to_uint8
+from .compat import reference_figure_flows
+from .steps import AttackResult
 
 _PER_PAIR, _POOLED = {"mean": "pairs"}, {"mean": "pooled"}
 
@@ -137,3 +140,96 @@ def written_flow(model, pair, particles, beta: float, device) -> tuple:
               for f in frames]
     with torch.no_grad():
         return best, rendered, frames, model(*stored).cpu()
+
+
+@dataclass
+class PairSummary(RegionFigures):
+    """Per-pair figures of an attack (pixels). ``epe_*`` are None without ground truth.
+
+    aee_random: AEE(f, f̌) for the unoptimised weather (step 0, float frames); aee_adversarial:
+    for the best step as written (particles at storage precision, 8-bit frames);
+    target_initial / target_adversarial: AEE(f̌, target) for the same two flows. The figures by
+    region and the outlier rates (:class:`~weathergen.attack.figures.RegionFigures`) describe the
+    adversarial flow.
+    """
+
+    pair: str
+    best_step: int
+    steps: int
+    aee_random: float
+    aee_adversarial: float
+    target_initial: float
+    target_adversarial: float
+    epe_benign: Optional[float] = None
+    epe_random: Optional[float] = None
+    epe_adversarial: Optional[float] = None
+    seconds: float = 0.0
+    nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
+    particles: Optional[int] = None   # particles in the record (the count the frame size gave)
+    #: ``attack --sequence``: the figures of each pair attacked alone, same settings and start
+    per_pair_aee_adversarial: Optional[float] = None
+    per_pair_target_adversarial: Optional[float] = None
+    #: ``attack --sequence --stereo``: AEE(f, f̌) of the second camera (float frames)
+    second_aee_random: Optional[float] = None
+    second_aee_adversarial: Optional[float] = None
+
+    @classmethod
+    def from_dict(cls, data: dict) -> "PairSummary":
+        """A summary stored by :func:`dataclasses.asdict`; unknown keys are ignored."""
+        names = {f.name for f in fields(cls)}
+        return cls(**{k: v for k, v in data.items() if k in names})
+
+
+def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch.Tensor,
+                   gt_flow: Optional[torch.Tensor] = None,
+                   gt_valid: Optional[torch.Tensor] = None, seconds: float = 0.0,
+                   compat: str = "paper", covered: Optional[torch.Tensor] = None) -> PairSummary:
+    """Figures of one attacked pair. ``adversarial_flow`` is the flow on the frames as written
+    (best particles at storage precision, 8-bit frames); ``covered`` (H, W) bool the pixels its
+    weather covers (:func:`~weathergen.flow.weather_mask`; None: none, as for an Lp attack), for
+    the figures by region, which compare the adversarial flow with the clean one.
+
+    ``compat="reference"`` measures the adversarial figures as the research code does: on the
+    best step's float frames (``result.best_flow``), and ``aee_adversarial`` against the random
+    weather's flow when a step beat step 0
+    (:func:`~weathergen.attack.compat.reference_figure_flows`).
+    Shape: flows (1, 2, H, W); gt (2, H, W), valid (1, H, W).
+    """
+    benign, initial, adv, goal, best = (t.detach().cpu().float() for t in
+                                        (result.benign_flow, result.initial_flow,
+                                         adversarial_flow, result.target, result.best_flow))
+    if compat == "reference":
+        adv = best
+        measured, against = reference_figure_flows(result.best_step, benign, initial, best)
+    else:
+        measured, against = adv, benign
+    summary = PairSummary(
+        pair=pair_name, best_step=result.best_step, steps=len(result.history) - 1,
+        aee_random=float(aee(initial, benign).mean()),
+        aee_adversarial=float(aee(measured, against).mean()),
+        target_initial=float(aee(initial, goal).mean()),
+        target_adversarial=float(aee(adv, goal).mean()), seconds=seconds,
+        nothing_visible=bool(result.frozen))
+    for key, value in region_figures(benign, adv, covered, gt_flow, gt_valid).items():
+        setattr(summary, key, value)
+    if gt_flow is not None:
+        gt = gt_flow.detach().cpu().float()[None]
+        valid = None if gt_valid is None else gt_valid.detach().cpu()[None]
+        summary.epe_benign = float(aee(benign, gt, valid).mean())
+        summary.epe_random = float(aee(initial, gt, valid).mean())
+        summary.epe_adversarial = float(aee(adv, gt, valid).mean())
+    return summary
+
+
+def mean_summary(rows: list[PairSummary]) -> dict:
+    """Means over pairs of every figure (EPE means over the pairs that have ground truth; the
+    figures by region and outlier rates as :func:`~weathergen.attack.figures.mean_figures`)."""
+    out: dict = {"pairs": len(rows)}
+    for key in ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
+                "epe_benign", "epe_random", "epe_adversarial", *SEQUENCE_FIGURES):
+        values = [getattr(r, key) for r in rows if getattr(r, key) is not None]
+        if values or key not in SEQUENCE_FIGURES:       # (those only where measured)
+            out[key] = sum(values) / len(values) if values else None
+    out.update(mean_figures([{k: getattr(r, k) for k in (*FIGURE_KEYS, "gt_valid_px")}
+                             for r in rows]))
+    return out

@@ -39,9 +39,9 @@ from ..jobs import (depth_note, frame2_note, layer_seeds, pair_particles, pair_s
                     published_geometry_note, scene_airlight, scene_firsts, scene_key,
                     torch_threads, visibility_of, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
-from .pair import PairSummary, StepRecord, attack_batch, mean_summary, summarize_pair
+from .figures import PairSummary, mean_summary, summarize_pair, written_flow
+from .pair import StepRecord, attack_batch
 from .record import run_settings
-from .figures import written_flow
 from .sequence import (check_sequence_preset, check_sequence_settings, compare_alone,
                        scene_figures, scene_units, sequence_results)
 from .settings import AttackSettings
@@ -216,21 +216,24 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
     if target_file_flow is None and job.target.kind == "file":
         target_file_flow = read_target_flow(job.target.path)
     reports: dict[str, PairReport] = {}
+    groups, shown = _loaded_groups(job, refs, device, reports)
+    for group in groups.values():
+        _attack_group(job, model, group, device, target_file_flow, on_step, reports, shown)
+    return [reports[ref.id.key] for ref in refs]
+
+
+def _loaded_groups(job: AttackJob, refs: list, device: str, reports: dict
+                   ) -> tuple[dict, dict]:
+    """``(groups, shown)``: the pairs of ``refs`` by size, each as ``(ref, pair, particles,
+    seconds to load)``, and by pair key what its record shows before optimising (the particle
+    centres each frame shows, whether frame 2 shows few); a pair that fails to load gets its
+    report in ``reports``."""
     groups: dict[tuple, list] = {}
-    seen: dict[str, tuple] = {}          # particle centres each frame shows, before optimising
-    few: dict[str, bool] = {}
+    shown: dict[str, tuple] = {}
     for ref in refs:
         start = time.perf_counter()
         try:
-            pair = job.dataset.load(ref)
-            if job.lp is None:      # the weather's part; the network's is not estimated
-                check_pair_memory(pair, job.preset, device, share=len(refs))
-            airlight = None if job.lp is not None or job.particles_from is not None else \
-                scene_airlight(job.dataset, ref.id, job.scene_firsts, job.preset)
-            particles = None if job.lp is not None else pair_particles(
-                pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
-                frame_rate=job.dataset.frame_rate, particles_from=job.particles_from,
-                airlight=airlight)
+            pair, particles = _loaded(job, ref, device, len(refs))
         except (WeatherGenError, MemoryError, RuntimeError) as exc:
             reports[ref.id.key] = PairReport(str(ref.id), "failed", key=ref.id.key,
                                              message=failure_message(exc, "--batch-size"))
@@ -238,39 +241,59 @@ def _attack_refs(job: AttackJob, refs: list, model, target_file_flow, on_step,
         groups.setdefault(pair.size, []).append((ref, pair, particles,
                                                  time.perf_counter() - start))
         if particles is not None:
-            seen[ref.id.key], few[ref.id.key] = visibility_of(pair, particles)
-    for group in groups.values():
-        start = time.perf_counter()
-        names = [str(ref.id) for ref, _, _, _ in group]
-        pairs = [g[1] for g in group]
-        step = lambda i, record: on_step(names[i], record)     # noqa: E731
+            shown[ref.id.key] = visibility_of(pair, particles)
+    return groups, shown
+
+
+def _loaded(job: AttackJob, ref, device: str, share: int) -> tuple:
+    """Pair ``ref`` and its starting record (None for an Lp baseline), the pair's memory checked
+    for ``share`` pairs on ``device``."""
+    pair = job.dataset.load(ref)
+    if job.lp is None:      # the weather's part; the network's is not estimated
+        check_pair_memory(pair, job.preset, device, share=share)
+    airlight = None if job.lp is not None or job.particles_from is not None else \
+        scene_airlight(job.dataset, ref.id, job.scene_firsts, job.preset)
+    particles = None if job.lp is not None else pair_particles(
+        pair, job.preset, job.seed, world_up=getattr(job.dataset, "world_up", "auto"),
+        frame_rate=job.dataset.frame_rate, particles_from=job.particles_from,
+        airlight=airlight)
+    return pair, particles
+
+
+def _attack_group(job: AttackJob, model, group: list, device: str, target_file_flow, on_step,
+                  reports: dict, shown: dict) -> None:
+    """Optimise a group of pairs of one size (items of :func:`_loaded_groups`) and write them,
+    each pair's report in ``reports``; an error in the optimisation fails the whole group."""
+    start = time.perf_counter()
+    names = [str(ref.id) for ref, _, _, _ in group]
+    pairs = [g[1] for g in group]
+    step = lambda i, record: on_step(names[i], record)     # noqa: E731
+    try:
+        results, alone = _optimise(job, model, pairs, [g[2] for g in group], device,
+                                   target_file_flow, step)
+    except (WeatherGenError, MemoryError, RuntimeError) as exc:
+        message = failure_message(exc, "--batch-size")
+        for ref, _, _, _ in group:
+            reports[ref.id.key] = PairReport(str(ref.id), "failed", message=message,
+                                             key=ref.id.key)
+        return
+    share = (time.perf_counter() - start) / len(group)
+    ran = {**where_ran(device), "batch": len(group)}
+    write = write_lp_pair if job.lp is not None else write_attacked_pair
+    for i, ((ref, pair, _, spent), result) in enumerate(zip(group, results)):
+        begin = time.perf_counter()
         try:
-            results, alone = _optimise(job, model, pairs, [g[2] for g in group], device,
-                                       target_file_flow, step)
-        except (WeatherGenError, MemoryError, RuntimeError) as exc:
-            message = failure_message(exc, "--batch-size")
-            for ref, _, _, _ in group:
-                reports[ref.id.key] = PairReport(str(ref.id), "failed", message=message,
-                                                 key=ref.id.key)
-            continue
-        share = (time.perf_counter() - start) / len(group)
-        ran = {**where_ran(device), "batch": len(group)}
-        write = write_lp_pair if job.lp is not None else write_attacked_pair
-        for i, ((ref, pair, _, spent), result) in enumerate(zip(group, results)):
-            begin = time.perf_counter()
-            try:
-                summary = write(job, model, pair, result, device)
-                if alone is not None:
-                    compare_alone(job, model, pair, result, alone[i], summary, device)
-            except OSError as exc:      # a full or unwritable disk stops the run, as render's
-                raise write_error(exc, job.out, "then rerun with ${resume}") from None
-            summary.seconds = spent + share + time.perf_counter() - begin
-            reports[ref.id.key] = PairReport(str(ref.id), "written", summary, key=ref.id.key,
-                                             ran=ran, warnings=list(pair.meta.get("warnings", [])),
-                                             visible=seen.get(ref.id.key),
-                                             few_in_frame2=few.get(ref.id.key, False),
-                                             depth_provenance=pair.meta.get("depth_provenance", []))
-    return [reports[ref.id.key] for ref in refs]
+            summary = write(job, model, pair, result, device)
+            if alone is not None:
+                compare_alone(job, model, pair, result, alone[i], summary, device)
+        except OSError as exc:      # a full or unwritable disk stops the run, as render's
+            raise write_error(exc, job.out, "then rerun with ${resume}") from None
+        summary.seconds = spent + share + time.perf_counter() - begin
+        visible, few = shown.get(ref.id.key, (None, False))
+        reports[ref.id.key] = PairReport(str(ref.id), "written", summary, key=ref.id.key,
+                                         ran=ran, warnings=list(pair.meta.get("warnings", [])),
+                                         visible=visible, few_in_frame2=few,
+                                         depth_provenance=pair.meta.get("depth_provenance", []))
 
 
 def _optimise(job: AttackJob, model, pairs: list, particles: list, device, target_file_flow,
@@ -469,86 +492,102 @@ def run_attack(job: AttackJob,
 
 def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_step,
                    on_pair_done, on_note) -> dict:
-    config = job.config()
-    local = job.executor == "local"
-
-    order = [ref.id.key for ref in refs]
-    pairs_entry: dict = dict(previous.get("pairs", {})) if previous else {}
-    runs = list(previous.get("runs", [])) if previous else []
-    run = {"command": job.command, "device": job.device, "executor": job.executor,
-           "batch_size": job.batch_size,
-           "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-           "written": 0, "skipped": 0, "failed": 0}
-    notes = job.dataset.scene_notes()          # e.g. a gap in a scene's frame numbering
-    if notes:
-        run["notes"] = notes
-    runs.append(run)
-    summaries: dict[str, PairSummary] = {}
-    written: list[PairReport] = []
-
-    def save():
-        ordered = {k: pairs_entry[k] for k in order if k in pairs_entry}
-        ordered.update({k: v for k, v in pairs_entry.items() if k not in ordered})
-        try:
-            write_attack_manifest(job.out, config, ordered, run_summary(
-                job, [summaries[k] for k in order if k in summaries]), runs)
-        except OSError as exc:
-            raise write_error(exc, job.out / MANIFEST, "then rerun with ${resume}") from None
-
-    def record(report: PairReport):
-        if report.status == "failed":
-            pairs_entry[report.key] = {"status": "failed", "pair": report.pair,
-                                       "message": report.message}
-        else:
-            summaries[report.key] = report.summary
-            old = pairs_entry.get(report.key, {})
-            ran = report.ran if report.ran is not None else old.get("ran")
-            warnings = report.warnings if report.status == "written" else old.get("warnings", [])
-            sampled = ({"visible": list(report.visible), "few_in_frame2": report.few_in_frame2}
-                       if report.visible is not None else
-                       {k: old[k] for k in ("visible", "few_in_frame2") if k in old})
-            pairs_entry[report.key] = {"status": "written", **asdict(report.summary),
-                                       **({"ran": ran} if ran else {}),
-                                       **({"warnings": warnings} if warnings else {}), **sampled,
-                                       **({"depth_provenance": report.depth_provenance}
-                                          if report.depth_provenance else {})}
-        run[report.status] += 1
-        if report.status == "written":
-            written.append(report)
-        on_pair_done(report)
-
+    book = _Manifest(job, refs, previous, on_pair_done)
     on_start(len(refs))
     t0 = time.perf_counter()
-    todo, stopped_by = [], None
+    stopped_by = None
     try:
-        for ref in refs:
-            out = pair_output(job, ref.id)
-            if not job.overwrite and _complete(job, ref, refs):
-                stored = read_pair_summary(out)
-                if stored is not None:
-                    record(PairReport(str(ref.id), "skipped", PairSummary.from_dict(stored),
-                                      key=ref.id.key))
-                    continue
-            todo.append(ref)
-        units = _units(job, todo)
-        if local:
-            results = (attack_refs(job, unit, model, target_file_flow, on_step) for unit in units)
-        else:
-            results = ray_map(_ray_attack_unit, [(job, unit) for unit in units],
-                              address=job.ray_address, num_gpus=ray_gpus_for(job.device))
-        for reports in results:
+        todo = [ref for ref in refs if not _skipped(job, ref, refs, book)]
+        for reports in _unit_reports(job, _units(job, todo), model, target_file_flow, on_step):
             for report in reports:
-                record(report)
-            save()
+                book.record(report)
+            book.save()
     except BaseException as exc:
         stopped_by = exc
         raise
     finally:
-        run["seconds"] = round(time.perf_counter() - t0, 3)
-        _last_save(save, run, stopped_by)
+        book.run["seconds"] = round(time.perf_counter() - t0, 3)
+        _last_save(book.save, book.run, stopped_by)
+    written = book.written
     for note in filter(None, (depth_note([(r.pair, {"depth_provenance": r.depth_provenance})
                                           for r in written]),
                               frame2_note([(r.pair, r.visible) for r in written if r.few_in_frame2],
                                           job.preset_name))):
         on_note(note)
-    return run_summary(job, [summaries[k] for k in order if k in summaries])
+    return book.summary()
+
+
+def _skipped(job: AttackJob, ref, refs: list, book: "_Manifest") -> bool:
+    """Whether pair ``ref`` is complete on disk from an earlier run (then recorded as skipped)."""
+    if job.overwrite or not _complete(job, ref, refs):
+        return False
+    stored = read_pair_summary(pair_output(job, ref.id))
+    if stored is None:
+        return False
+    book.record(PairReport(str(ref.id), "skipped", PairSummary.from_dict(stored), key=ref.id.key))
+    return True
+
+
+def _unit_reports(job: AttackJob, units: list, model, target_file_flow, on_step):
+    """The reports of each work unit, as each is done: here (lazily) or on Ray's workers."""
+    if job.executor == "local":
+        return (attack_refs(job, unit, model, target_file_flow, on_step) for unit in units)
+    return ray_map(_ray_attack_unit, [(job, unit) for unit in units],
+                   address=job.ray_address, num_gpus=ray_gpus_for(job.device))
+
+
+class _Manifest:
+    """A run's manifest as it goes: the earlier runs' pair entries and runs, this run's counts,
+    the summaries of the pairs written or skipped and the reports of those written."""
+
+    def __init__(self, job: AttackJob, refs: list, previous: Optional[dict], on_pair_done):
+        self.job, self.on_pair_done, self.config = job, on_pair_done, job.config()
+        self.order = [ref.id.key for ref in refs]
+        self.pairs: dict = dict(previous.get("pairs", {})) if previous else {}
+        self.runs = list(previous.get("runs", [])) if previous else []
+        self.run = {"command": job.command, "device": job.device, "executor": job.executor,
+                    "batch_size": job.batch_size,
+                    "started": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+                    "written": 0, "skipped": 0, "failed": 0}
+        notes = job.dataset.scene_notes()          # e.g. a gap in a scene's frame numbering
+        if notes:
+            self.run["notes"] = notes
+        self.runs.append(self.run)
+        self.summaries: dict[str, PairSummary] = {}
+        self.written: list[PairReport] = []
+
+    def summary(self) -> dict:
+        return run_summary(self.job, [self.summaries[k] for k in self.order
+                                      if k in self.summaries])
+
+    def save(self) -> None:
+        ordered = {k: self.pairs[k] for k in self.order if k in self.pairs}
+        ordered.update({k: v for k, v in self.pairs.items() if k not in ordered})
+        try:
+            write_attack_manifest(self.job.out, self.config, ordered, self.summary(), self.runs)
+        except OSError as exc:
+            raise write_error(exc, self.job.out / MANIFEST, "then rerun with ${resume}") from None
+
+    def record(self, report: PairReport) -> None:
+        if report.status == "failed":
+            self.pairs[report.key] = {"status": "failed", "pair": report.pair,
+                                      "message": report.message}
+        else:
+            self.summaries[report.key] = report.summary
+            self.pairs[report.key] = _written_entry(report, self.pairs.get(report.key, {}))
+        self.run[report.status] += 1
+        if report.status == "written":
+            self.written.append(report)
+        self.on_pair_done(report)
+
+
+def _written_entry(report: PairReport, old: dict) -> dict:
+    """The manifest's entry of a pair written or skipped, what the report lacks from ``old``."""
+    ran = report.ran if report.ran is not None else old.get("ran")
+    warnings = report.warnings if report.status == "written" else old.get("warnings", [])
+    sampled = ({"visible": list(report.visible), "few_in_frame2": report.few_in_frame2}
+               if report.visible is not None else
+               {k: old[k] for k in ("visible", "few_in_frame2") if k in old})
+    return {"status": "written", **asdict(report.summary), **({"ran": ran} if ran else {}),
+            **({"warnings": warnings} if warnings else {}), **sampled,
+            **({"depth_provenance": report.depth_provenance} if report.depth_provenance else {})}

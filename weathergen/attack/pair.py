@@ -44,7 +44,6 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass, fields
 from typing import Callable, Optional, Sequence
 
 import torch
@@ -57,9 +56,7 @@ from ..errors import ConfigError
 from ..flow import aee
 from ..framepair import FramePair
 from ..geometry import transform_points
-from .figures import (FIGURE_KEYS, SEQUENCE_FIGURES, RegionFigures, mean_figures,
-                      region_figures)
-from .compat import (camera_translation_in_reference, detaches_occlusion, reference_figure_flows,
+from .compat import (camera_translation_in_reference, detaches_occlusion,
                      reference_offset_penalty, resets_gradients)
 from .rates import group_optimizer
 from .settings import DEFAULT_ALPHA, DENSITY_FACTOR, AttackSettings
@@ -267,6 +264,70 @@ def snapshot(particles):
                                 for n in TENSOR_FIELDS}, atmosphere=atm)
 
 
+def _matched(pairs: Sequence[FramePair], particles: Sequence) -> tuple[list, list]:
+    """The pairs and their records as lists, refusing records not one per pair and pairs of
+    different sizes."""
+    pairs, records = list(pairs), list(particles)
+    if not pairs or len(pairs) != len(records):
+        raise ConfigError(f"{len(records)} particle records for {len(pairs)} frame pairs")
+    sizes = {tuple(p.image1.shape[-2:]) for p in pairs}
+    if len(sizes) != 1:
+        raise ConfigError(f"pairs optimised together must have one size; got {sorted(sizes)}")
+    return pairs, records
+
+
+def _device(model: torch.nn.Module, device) -> torch.device:
+    """``device``, or by default the model's (the CPU for a model without parameters)."""
+    if device is None:
+        params = list(model.parameters())
+        device = params[0].device if params else torch.device("cpu")
+    return torch.device(device)
+
+
+def _placed(pairs: list, records: list, settings: AttackSettings, device: torch.device
+            ) -> tuple[list, list, dict]:
+    """``(records, transforms, frames)``: the records on ``device`` as ``settings.compat``
+    draws them, each pair's ``(cam1_from_ref, cam2_from_ref)`` and the pairs' frames stacked;
+    refuses a record that lives in another frame than its pair's."""
+    frames: dict[str, list] = {k: [] for k in ("image1", "image2", "depth1", "depth2",
+                                               "intrinsics", "cam1_from_ref", "cam2_from_ref")}
+    moved, transforms = [], []
+    for pair, record in zip(pairs, records):
+        check_pair_for_engine(pair)
+        pair = pair.to(device)
+        frame, c1, c2 = reference_transforms(pair)
+        if record.frame != frame:
+            raise ConfigError(f"particles live in {record.frame} coordinates but the frame "
+                              f"pair offers {frame} coordinates (sample them for this pair)")
+        # (under compat reference, α-blended motion blur is blended sample by sample)
+        moved.append(record.for_compat(settings.compat).to(device=device, dtype=torch.float32))
+        transforms.append((c1, c2))
+        for name in ("image1", "image2", "depth1", "depth2", "intrinsics"):
+            frames[name].append(getattr(pair, name))
+        frames["cam1_from_ref"].append(c1)
+        frames["cam2_from_ref"].append(c2)
+    return moved, transforms, {k: torch.stack(v) for k, v in frames.items()}
+
+
+def _shared_templates(moved: list, settings: AttackSettings):
+    """The templates the pairs' records share (None for combined weather, whose layers are each
+    drawn with their own); refuses pairs whose weather layers or templates differ."""
+    layered = [isinstance(r, LayeredParticles) for r in moved]
+    if any(layered):
+        if not all(layered) or len({r.names for r in moved}) != 1:
+            raise ConfigError("pairs optimised together must have the same weather layers")
+        templates = None
+    else:
+        names = {r.settings.templates for r in moved}
+        if len(names) != 1:
+            raise ConfigError(f"pairs optimised together must share templates; got "
+                              f"{sorted(names)}")
+        templates = load_templates(names.pop())
+    if settings.layers is not None and not all(layered):
+        raise ConfigError("${optimize_layer} applies to combined presets (layers joined by +)")
+    return templates
+
+
 class BatchOptimisation:
     """The attack state of B pairs of one size, optimised together: frames stacked on the device,
     the targets, the rasterised stamps, each pair's own free variables and one Adam optimiser
@@ -287,54 +348,25 @@ class BatchOptimisation:
     def __init__(self, model: torch.nn.Module, pairs: Sequence[FramePair], particles: Sequence,
                  settings: AttackSettings, target: TargetSpec = TargetSpec("zero"), *,
                  device=None, target_file_flow: Optional[torch.Tensor] = None):
-        pairs, records = list(pairs), list(particles)
-        if not pairs or len(pairs) != len(records):
-            raise ConfigError(f"{len(records)} particle records for {len(pairs)} frame pairs")
-        sizes = {tuple(p.image1.shape[-2:]) for p in pairs}
-        if len(sizes) != 1:
-            raise ConfigError(f"pairs optimised together must have one size; got {sorted(sizes)}")
-        if device is None:
-            params = list(model.parameters())
-            device = params[0].device if params else torch.device("cpu")
-        device = torch.device(device)
-        frames: dict[str, list] = {k: [] for k in ("image1", "image2", "depth1", "depth2",
-                                                   "intrinsics", "cam1_from_ref", "cam2_from_ref")}
-        moved, transforms = [], []
-        for pair, record in zip(pairs, records):
-            check_pair_for_engine(pair)
-            pair = pair.to(device)
-            frame, c1, c2 = reference_transforms(pair)
-            if record.frame != frame:
-                raise ConfigError(f"particles live in {record.frame} coordinates but the frame "
-                                  f"pair offers {frame} coordinates (sample them for this pair)")
-            # (under compat reference, α-blended motion blur is blended sample by sample)
-            moved.append(record.for_compat(settings.compat).to(device=device, dtype=torch.float32))
-            transforms.append((c1, c2))
-            for name in ("image1", "image2", "depth1", "depth2", "intrinsics"):
-                frames[name].append(getattr(pair, name))
-            frames["cam1_from_ref"].append(c1)
-            frames["cam2_from_ref"].append(c2)
+        pairs, records = _matched(pairs, particles)
+        device = _device(model, device)
+        moved, transforms, self.frames = _placed(pairs, records, settings, device)
         self.model, self.settings, self.size = model, settings, len(pairs)
-        self.frames = {k: torch.stack(v) for k, v in frames.items()}
         with torch.no_grad():
             self.benign = model(self.frames["image1"], self.frames["image2"])
         self.goal = target_flow(target, self.benign, target_file_flow)
-        layered = [isinstance(r, LayeredParticles) for r in moved]
-        if any(layered):     # combined weather: every layer is drawn with its own templates
-            if not all(layered) or len({r.names for r in moved}) != 1:
-                raise ConfigError("pairs optimised together must have the same weather layers")
-            self.templates = None
-        else:
-            names = {r.settings.templates for r in moved}
-            if len(names) != 1:
-                raise ConfigError(f"pairs optimised together must share templates; got "
-                                  f"{sorted(names)}")
-            self.templates = load_templates(names.pop())
-        if settings.layers is not None and not all(layered):
-            raise ConfigError("${optimize_layer} applies to combined presets (layers joined by +)")
+        self.templates = _shared_templates(moved, settings)
         # Scale, rotation, template and defocus are fixed: rasterise the stamps once for all steps.
         self.stamps = (build_stamps(moved, self.templates, device=device)
                        if any(r.count for r in moved) else None)
+        self._free(moved, transforms)
+        self.detach_occlusion = detaches_occlusion(settings)
+        self.optimizer = group_optimizer(self.variables, settings)
+
+    def _free(self, moved: list, transforms: list) -> None:
+        """Each pair's free variables for its record in ``moved`` and cameras in ``transforms``,
+        and the records and depths its offset penalty weighs."""
+        settings = self.settings
         reference = settings.compat == "reference"
         options = dict(transparency_max=settings.transparency_max, homogeneous=reference)
         self.variables = [LayeredVariables(r, settings.optimize, layers=settings.layers,
@@ -352,8 +384,6 @@ class BatchOptimisation:
         # starting positions.
         self.start_depth1 = [torch.cat([start_depth(x, c1) for x in self._freed(i, r)])
                              for i, (r, (c1, _)) in enumerate(zip(moved, transforms))]
-        self.detach_occlusion = detaches_occlusion(settings)
-        self.optimizer = group_optimizer(self.variables, settings)
 
     def render(self, particles: Sequence):
         """The weather frames of B records (a :class:`~weathergen.engine.RenderOutput`)."""
@@ -484,31 +514,22 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
     log = StepLog(size, on_step)
     best_particles: list = [None] * size
     initial_flow: list = [None] * size
-    frozen = [False] * size
-    active = [True] * size
+    frozen, active = [False] * size, [True] * size
     steps = int(settings.steps)
     for step in range(steps + 1):
         t0 = time.perf_counter()
         current, flow, losses, distances, penalties = run.evaluate()
         dists = distances.detach().cpu().tolist()
-        for i in range(size):
-            if not active[i]:
-                continue
+        for i in (i for i in range(size) if active[i]):
             if step == 0:
                 initial_flow[i] = flow[i:i + 1].detach().cpu()
             if log.improves(i, step, dists[i], flow):
                 best_particles[i] = snapshot(current[i])
         last = step == steps
-        finishing = [False] * size
-        if not last:
-            # A pair none of whose particles reaches its frames, and whose penalty depends on
-            # no freed variable, has nothing to optimise: it stops at this step (frozen); so does
-            # one whose loss has converged (settings.early_stop).
-            finishing = [a and (not d or _stalled(settings, log.history[i], losses[i]))
-                         for i, (a, d) in enumerate(zip(active, run.depends))]
-            going = [a and not f for a, f in zip(active, finishing)]
-            if any(going):
-                run.update(losses.sum(), going)
+        finishing = [False] * size if last else _finishing(run, log, active, losses)
+        going = [a and not f for a, f in zip(active, finishing)]
+        if not last and any(going):
+            run.update(losses.sum(), going)
         log.record(step, [i for i in range(size) if active[i]], flow, run.benign, losses, dists,
                    penalties, t0)
         for i in range(size):
@@ -524,6 +545,15 @@ def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: 
                          history=log.history[i], benign_flow=benign[i:i + 1],
                          initial_flow=initial_flow[i], best_flow=log.best_flow[i],
                          target=goal[i:i + 1], frozen=frozen[i]) for i in range(size)]
+
+
+def _finishing(run: BatchOptimisation, log: StepLog, active: list, losses: torch.Tensor
+               ) -> list[bool]:
+    """Which active pairs stop at this step of ``losses``: one none of whose particles reaches
+    its frames, and whose penalty depends on no freed variable, has nothing to optimise (it is
+    frozen); so does one whose loss has converged (``settings.early_stop``)."""
+    return [a and (not d or _stalled(run.settings, log.history[i], losses[i]))
+            for i, (a, d) in enumerate(zip(active, run.depends))]
 
 
 def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: AttackSettings,
@@ -547,96 +577,3 @@ def attack_pair(model: torch.nn.Module, pair: FramePair, particles, settings: At
     return attack_batch(model, [pair], [particles], settings, target, device=device,
                         target_file_flow=target_file_flow,
                         on_step=lambda i, record: on_step(record))[0]
-
-
-@dataclass
-class PairSummary(RegionFigures):
-    """Per-pair figures of an attack (pixels). ``epe_*`` are None without ground truth.
-
-    aee_random: AEE(f, f̌) for the unoptimised weather (step 0, float frames); aee_adversarial:
-    for the best step as written (particles at storage precision, 8-bit frames);
-    target_initial / target_adversarial: AEE(f̌, target) for the same two flows. The figures by
-    region and the outlier rates (:class:`~weathergen.attack.figures.RegionFigures`) describe the
-    adversarial flow.
-    """
-
-    pair: str
-    best_step: int
-    steps: int
-    aee_random: float
-    aee_adversarial: float
-    target_initial: float
-    target_adversarial: float
-    epe_benign: Optional[float] = None
-    epe_random: Optional[float] = None
-    epe_adversarial: Optional[float] = None
-    seconds: float = 0.0
-    nothing_visible: bool = False     # no particle could change the flow: nothing was optimised
-    particles: Optional[int] = None   # particles in the record (the count the frame size gave)
-    #: ``attack --sequence``: the figures of each pair attacked alone, same settings and start
-    per_pair_aee_adversarial: Optional[float] = None
-    per_pair_target_adversarial: Optional[float] = None
-    #: ``attack --sequence --stereo``: AEE(f, f̌) of the second camera (float frames)
-    second_aee_random: Optional[float] = None
-    second_aee_adversarial: Optional[float] = None
-
-    @classmethod
-    def from_dict(cls, data: dict) -> "PairSummary":
-        """A summary stored by :func:`dataclasses.asdict`; unknown keys are ignored."""
-        names = {f.name for f in fields(cls)}
-        return cls(**{k: v for k, v in data.items() if k in names})
-
-
-def summarize_pair(pair_name: str, result: AttackResult, adversarial_flow: torch.Tensor,
-                   gt_flow: Optional[torch.Tensor] = None,
-                   gt_valid: Optional[torch.Tensor] = None, seconds: float = 0.0,
-                   compat: str = "paper", covered: Optional[torch.Tensor] = None) -> PairSummary:
-    """Figures of one attacked pair. ``adversarial_flow`` is the flow on the frames as written
-    (best particles at storage precision, 8-bit frames); ``covered`` (H, W) bool the pixels its
-    weather covers (:func:`~weathergen.flow.weather_mask`; None: none, as for an Lp attack), for
-    the figures by region, which compare the adversarial flow with the clean one.
-
-    ``compat="reference"`` measures the adversarial figures as the research code does: on the
-    best step's float frames (``result.best_flow``), and ``aee_adversarial`` against the random
-    weather's flow when a step beat step 0
-    (:func:`~weathergen.attack.compat.reference_figure_flows`).
-    Shape: flows (1, 2, H, W); gt (2, H, W), valid (1, H, W).
-    """
-    benign, initial, adv, goal, best = (t.detach().cpu().float() for t in
-                                        (result.benign_flow, result.initial_flow,
-                                         adversarial_flow, result.target, result.best_flow))
-    if compat == "reference":
-        adv = best
-        measured, against = reference_figure_flows(result.best_step, benign, initial, best)
-    else:
-        measured, against = adv, benign
-    summary = PairSummary(
-        pair=pair_name, best_step=result.best_step, steps=len(result.history) - 1,
-        aee_random=float(aee(initial, benign).mean()),
-        aee_adversarial=float(aee(measured, against).mean()),
-        target_initial=float(aee(initial, goal).mean()),
-        target_adversarial=float(aee(adv, goal).mean()), seconds=seconds,
-        nothing_visible=bool(result.frozen))
-    for key, value in region_figures(benign, adv, covered, gt_flow, gt_valid).items():
-        setattr(summary, key, value)
-    if gt_flow is not None:
-        gt = gt_flow.detach().cpu().float()[None]
-        valid = None if gt_valid is None else gt_valid.detach().cpu()[None]
-        summary.epe_benign = float(aee(benign, gt, valid).mean())
-        summary.epe_random = float(aee(initial, gt, valid).mean())
-        summary.epe_adversarial = float(aee(adv, gt, valid).mean())
-    return summary
-
-
-def mean_summary(rows: list[PairSummary]) -> dict:
-    """Means over pairs of every figure (EPE means over the pairs that have ground truth; the
-    figures by region and outlier rates as :func:`~weathergen.attack.figures.mean_figures`)."""
-    out: dict = {"pairs": len(rows)}
-    for key in ("aee_random", "aee_adversarial", "target_initial", "target_adversarial",
-                "epe_benign", "epe_random", "epe_adversarial", *SEQUENCE_FIGURES):
-        values = [getattr(r, key) for r in rows if getattr(r, key) is not None]
-        if values or key not in SEQUENCE_FIGURES:       # (those only where measured)
-            out[key] = sum(values) / len(values) if values else None
-    out.update(mean_figures([{k: getattr(r, k) for k in (*FIGURE_KEYS, "gt_valid_px")}
-                             for r in rows]))
-    return out
