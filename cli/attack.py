@@ -32,10 +32,6 @@ from .options import (ModelOptions, RunOptions, attack_steps, compat_option, dat
 from .stopping import exit_interrupted, terminate_as_interrupt
 
 
-def _field_rates() -> str:
-    return ", ".join(f"{g} {r:g}" for g, r in FIELD_LR.items())
-
-
 def _fmt(value, digits: int = 3) -> str:
     return "–" if value is None else f"{value:.{digits}f}"
 
@@ -185,8 +181,9 @@ class AttackRequest:
                    "positions (offset1, offset2), color, transparency, density, airlight. "
                    "Defaults: the paper's presets' particles 1e-5 when an offset is optimised, "
                    "else 1e-3 (all three groups); weather fields (snow-*, rain-*, fog-*, mist "
-                   f"and their combinations) {_field_rates()}, whose density and airlight rates "
-                   "hold for every preset's atmosphere. The manifest records the rates used.")
+                   f"and their combinations) {', '.join(f'{g} {r:g}' for g, r in FIELD_LR.items())}, "
+                   "whose density and airlight rates hold for every preset's atmosphere. The "
+                   "manifest records the rates used.")
 @click.option("--sequence", is_flag=True,
               help="One weather for each whole scene (weather-field presets): the field's "
                    "particles in the world (offset1, colour, transparency) and its atmosphere "

@@ -31,11 +31,6 @@ from weathergen.words import counted
 from .options import BAD_INPUT, STOPPED, exit_codes
 
 
-def _preset_origin(name: str, source: str) -> str:
-    """A bundled preset by its name; a user's preset file by name and path."""
-    return name if not source or source.startswith("preset ") else f"{name} (from {source})"
-
-
 @click.command(epilog=exit_codes(("0", "shown"), ("2", "the file cannot be read (one line)"),
                                  STOPPED))
 @click.argument("file", type=click.Path(dir_okay=False, path_type=Path))
@@ -51,7 +46,7 @@ def inspect(file: Path):
     if "format_version" not in arrays and "lp_attack" in arrays:
         console.print(_lp_head(arrays, file))     # an Lp attack perturbs the frames: no particles
         return
-    preset = json.loads(str(arrays["preset"])) if "preset" in arrays else {}
+    source = (json.loads(str(arrays["preset"])) if "preset" in arrays else {}).get("source", "")
     layered = int(arrays.get("format_version", 0)) == LAYERED_FORMAT_VERSION
     if layered:
         names = [str(n) for n in np.atleast_1d(arrays["layer_names"])]
@@ -68,7 +63,8 @@ def inspect(file: Path):
         ("pair", f"{arrays['pair_dataset']}/{arrays['pair_split']}/{arrays['pair_scene']} "
                  f"frame {int(arrays['pair_frame'])}"),
         ("seed", str(int(arrays["seed"]))),
-        ("preset", _preset_origin(str(arrays["preset_name"]), preset.get("source", ""))),
+        ("preset", str(arrays["preset_name"]) + ("" if not source or source.startswith("preset ")
+                                                  else f" (from {source})")),   # a user's file
         ("particles", str(sum(counts))),
         ("for the frame", _scaling_text(scalings[0]) if not layered else "per layer, below"),
         ("visible in frame 1 / 2", f"{int(arrays['visible1'])} / {int(arrays['visible2'])}"

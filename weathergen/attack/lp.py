@@ -139,12 +139,6 @@ def lp_settings(method: str, epsilon: Optional[float] = None, steps: Optional[in
     return LpSettings(method, eps, n, rate, optimizer)
 
 
-def pcfa_mu(epsilon: float, target: TargetSpec) -> float:
-    """PCFA's penalty weight μ for bound ``epsilon`` and ``target``."""
-    mu = PCFA_MU_NUMERATOR / epsilon
-    return mu if target.kind == "zero" else PCFA_MU_OTHER_TARGETS * mu
-
-
 def l2_normalised(delta1: torch.Tensor, delta2: torch.Tensor) -> torch.Tensor:
     """PCFA's norm of a perturbation of both frames: ``‖(δ1, δ2)‖_2 / sqrt(numel)``, a 0-d tensor
     (the root mean square over every pixel and channel of both frames)."""
@@ -209,7 +203,9 @@ class LpOptimisation:
             else:
                 self.optimizer = torch.optim.LBFGS(self.w, lr=settings.lr,
                                                    max_iter=PCFA_LBFGS_ITERATIONS)
-            self.mu = pcfa_mu(settings.epsilon, target)
+            # PCFA's penalty weight μ for the bound and the target.
+            self.mu = PCFA_MU_NUMERATOR / settings.epsilon * (
+                1.0 if target.kind == "zero" else PCFA_MU_OTHER_TARGETS)
         else:
             self.x = [x.clone().requires_grad_(True) for x in self.x0]
 

@@ -196,11 +196,6 @@ class LayeredVariables:
         return {n: torch.cat([v.delta[n] for v in self.freed.values()]) for n in names}
 
 
-def _joined(depths: list) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-record (frame-1, frame-2) depths joined into one pair of (N,) tensors."""
-    return torch.cat([d[0] for d in depths]), torch.cat([d[1] for d in depths])
-
-
 def particle_depths(particles, cam1_from_ref: torch.Tensor, cam2_from_ref: torch.Tensor
                     ) -> tuple[torch.Tensor, torch.Tensor]:
     """Camera depth of every particle in frame 1 (at P + δ1) and frame 2 (at P + δ1 + M + δ2).
@@ -378,7 +373,9 @@ class BatchOptimisation:
         # The penalty weighs the freed particles' offsets (combined weather: the freed layers').
         self.penalised = [sorted(v.freed) if isinstance(v, LayeredVariables) else None
                           for v in self.variables]
-        self.reg_depths = [_joined([particle_depths(x, c1, c2) for x in self._freed(i, r)])
+        # Per record (frame-1, frame-2) depths, joined into one pair of (N,) tensors.
+        self.reg_depths = [tuple(map(torch.cat, zip(*[particle_depths(x, c1, c2)
+                                                      for x in self._freed(i, r)])))
                            for i, (r, (c1, c2)) in enumerate(zip(moved, transforms))]
         # The research code's penalty divides by the squared, unclamped frame-1 depth of the
         # starting positions.

@@ -94,19 +94,15 @@ def plan_attack(config_name: Optional[str] = None, preset: Optional[str] = None,
         lr = config.lr
     if occlusion_gradient is None:
         occlusion_gradient = bool(config and config.occlusion_gradient)
+    parts = resolved.preset.layers if isinstance(resolved.preset, CombinedPreset) else (resolved.preset,)
     settings = AttackSettings(optimize=variables, steps=steps, lr=lr, alpha1=alpha1,
                               alpha2=alpha2, beta=BETA_ATTACK if occlusion_gradient else BETA_RENDER,
                               transparency_max=transparency_bound_for(resolved.preset, compat),
                               compat=compat, layers=parse_layers(layers, resolved.preset),
                               group_lr=parse_group_lr(group_lr or ()),
-                              lr_defaults="field" if all_fields(resolved.preset) else "paper")
+                              lr_defaults="field" if all(isinstance(p, FieldPreset) for p in parts)
+                              else "paper")
     return AttackPlan(resolved.preset, name, config, settings, config_name or name)
-
-
-def all_fields(preset) -> bool:
-    """Whether every layer of ``preset`` (itself, unless combined) is a weather field."""
-    layers = preset.layers if isinstance(preset, CombinedPreset) else (preset,)
-    return all(isinstance(layer, FieldPreset) for layer in layers)
 
 
 def parse_layers(layers: Optional[str | Sequence[str]], preset) -> Optional[tuple[str, ...]]:

@@ -132,7 +132,8 @@ class SpringDataset(FarDepthDataset):
         for key, table in (("intrinsics", intr), ("extrinsics", ext)):
             if len(table) < f + 1:
                 raise DatasetError(f"{files[key]}: has {len(table)} frames, but frame {f + 1} is needed")
-        k1, k2 = (_matrix(intr[i]) for i in (f - 1, f))
+        k1, k2 = (np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+                  for fx, fy, cx, cy in (intr[f - 1], intr[f]))
         if not np.allclose(k1, k2, rtol=1e-4, atol=1e-3):
             raise DatasetError(f"{files['intrinsics']}: frames {f} and {f + 1} have different "
                                f"intrinsics (a zoom); a frame pair holds one camera matrix")
@@ -174,11 +175,6 @@ class SpringDataset(FarDepthDataset):
         out = super().describe()
         out.update(extrinsics=self.extrinsics, baseline=self.baseline)
         return out
-
-
-def _matrix(row: np.ndarray) -> np.ndarray:
-    fx, fy, cx, cy = row
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
 
 
 def _at_frame_size(data: np.ndarray, path, what: str, size: tuple[int, int]):

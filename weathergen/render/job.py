@@ -132,7 +132,9 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
         start = time.perf_counter()
         try:
             pair = job.dataset.load(ref)
-            check_pair_memory(pair, job.preset, job.device, share=_drawn_at_once(job))
+            # Pairs drawn at the same time on one machine: a batch in each worker.
+            share = max(1, job.workers if job.executor == "local" else 1) * max(1, job.batch_size)
+            check_pair_memory(pair, job.preset, job.device, share=share)
             airlight = None if job.particles_from is not None else \
                 scene_airlight(job.dataset, ref.id, job.scene_firsts, job.preset)
             particles = pair_particles(pair, job.preset, job.seed,
@@ -179,12 +181,6 @@ def render_batch(job: RenderJob, refs: list[PairRef]) -> list[PairResult]:
 def _failure(exc: Exception) -> str:
     """A failed pair's message (:func:`~weathergen.memory.failure_message`)."""
     return failure_message(exc, "--workers, --batch-size")
-
-
-def _drawn_at_once(job: RenderJob) -> int:
-    """How many pairs may be drawn at the same time on one machine: a batch in each worker."""
-    workers = job.workers if job.executor == "local" else 1
-    return max(1, workers) * max(1, job.batch_size)
 
 
 def _sequence_pair(job: RenderJob, ref: PairRef, seed: int, pair, particles, spent: float) -> PairResult:
@@ -283,12 +279,6 @@ def _render_right(job: RenderJob, pair, particles, second: bool) -> RightView:
                      rc.right_from_left.double().numpy(), tuple(k[0].numpy() for k in kinds if k is not None))
 
 
-def sequence_ends(ids: list[PairId]) -> frozenset:
-    """The pairs whose second frame starts no selected pair: they write both their frames."""
-    starts = {(i.dataset, i.split, i.scene, i.frame) for i in ids}
-    return frozenset(i for i in ids if (i.dataset, i.split, i.scene, i.frame + 1) not in starts)
-
-
 # -- the run -------------------------------------------------------------------------------------
 def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda r: None,
                on_start: Callable[[int], None] = lambda n: None,
@@ -311,7 +301,10 @@ def run_render(job: RenderJob, on_result: Callable[[PairResult], None] = lambda 
     every, refs = _selection(job, on_note)
     if job.sequence:
         _check_sequence_preset(job)
-        job.scene_ends = sequence_ends([r.id for r in every])
+        # The pairs whose second frame starts no selected pair write both their frames.
+        starts = {(r.id.dataset, r.id.split, r.id.scene, r.id.frame) for r in every}
+        job.scene_ends = frozenset(r.id for r in every if (r.id.dataset, r.id.split, r.id.scene,
+                                                           r.id.frame + 1) not in starts)
     job.scene_firsts = scene_firsts(every)
     with claim_folder(job.out, RENDER_FOLDER, job.config(), resume=job.resume,
                       overwrite=job.overwrite, shard=job.shard,
