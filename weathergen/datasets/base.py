@@ -278,7 +278,7 @@ class Dataset(ABC):
         (:func:`weathergen.datasets.checking.check_pair` lists them all).
 
         ``load`` names a missing file itself, with a hint where a split lacks it by design (the
-        Sintel test split has no depth or cameras).
+        Sintel test split has no depth or cameras; KITTI testing, Spring test).
         """
         try:
             self.load(ref)

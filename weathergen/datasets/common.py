@@ -10,7 +10,7 @@ from typing import Optional
 import numpy as np
 import torch
 
-from ..errors import ConfigError, DatasetError, WeatherGenError
+from ..errors import ConfigError, DatasetError
 from ..framepair import FramePair
 from ..geometry import WORLD_UP_AXES, invert_rigid, to_homogeneous, up_direction
 from ..io.images import read_image_kind
@@ -167,18 +167,6 @@ class FarDepthDataset(ScaledDataset):
     @property
     def split_dir(self) -> Path:
         return self.root / self.split_folders[self.selection.split]
-
-    def check(self, ref) -> Optional[str]:
-        """None if the pair reads cleanly, else one line naming the first problem.
-
-        ``load`` itself names missing files, with a hint where a split lacks them by design
-        (KITTI testing, Spring test), so there is no list of required files to test first.
-        """
-        try:
-            self.load(ref)
-        except WeatherGenError as exc:
-            return str(exc)
-        return None
 
     def describe(self) -> dict:
         out = super().describe()
