@@ -25,9 +25,16 @@ def model(raft_small_weights):
     return get_model("raft-small", checkpoint=raft_small_weights, iters=2)
 
 
+def evaluate_frames(model, clean1, clean2, weather1, weather2, gt=None, valid=None):
+    """``(AEE(f, f̌), EPE(f, gt), EPE(f̌, gt))`` for one pair of (3, H, W) frames, as evaluate
+    measures them."""
+    from weathergen.attack.evaluate import _figures, frame_flows
+
+    return _figures(*frame_flows(model, clean1, clean2, weather1, weather2, "cpu"), gt, valid)
+
+
 def test_identical_frames_have_zero_robustness_error(model):
     from weathergen.datasets import demo_pairs
-    from weathergen.attack import evaluate_frames
     from weathergen.flow import aee
 
     pair = demo_pairs(scenes=["street"], frames_per_scene=1)[0]

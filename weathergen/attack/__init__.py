@@ -21,8 +21,7 @@ from __future__ import annotations
 
 from .compat import COMPAT_MODES
 from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
-from .evaluate import (EvalRow, default_evaluation_path, evaluate_frames, mean_rows,
-                       run_evaluation, write_evaluation)
+from .evaluate import EvalRow, default_evaluation_path, mean_rows, run_evaluation, write_evaluation
 from .job import AttackJob, PairReport, attack_refs, job_model, probe_job_network, run_attack
 from .lp import (LP_DEFAULTS, LP_METHODS, PCFA_OPTIMIZERS, LpOptimisation, LpResult, LpSettings, l2_normalised,
                  l2_normalised_per_pair, lp_attack_batch, lp_attack_pair, lp_pass_name,
@@ -52,7 +51,7 @@ __all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOp
            "MIN_REG_DEPTH", "OPTIMIZABLE", "POSITION_VARIABLES", "PairOptimisation", "PairReport",
            "PairSummary", "StepRecord", "TargetSpec", "WeatherVariables", "attack_config",
            "attack_loss", "attack_batch", "attack_pair", "attack_refs", "BatchOptimisation",
-           "default_evaluation_path", "default_lr", "evaluate_frames",
+           "default_evaluation_path", "default_lr",
            "mean_rows", "mean_summary", "offset_penalty", "parse_optimize", "parse_target",
            "particle_depths", "read_target_flow", "run_attack",
            "run_evaluation", "summarize_pair", "target_flow", "transparency_bound",

@@ -55,18 +55,6 @@ def frame_flows(model, clean1: torch.Tensor, clean2: torch.Tensor, weather1: tor
     return flows[:1], flows[1:]
 
 
-def evaluate_frames(model, clean1: torch.Tensor, clean2: torch.Tensor, weather1: torch.Tensor,
-                    weather2: torch.Tensor, gt: Optional[torch.Tensor] = None,
-                    valid: Optional[torch.Tensor] = None, device="cpu"
-                    ) -> tuple[float, Optional[float], Optional[float]]:
-    """``(AEE(f, f̌), EPE(f, gt), EPE(f̌, gt))`` for one pair.
-
-    Shape: frames (3, H, W) in [0, 1]; gt (2, H, W) pixels; valid (1, H, W) bool.
-    """
-    clean, weather = frame_flows(model, clean1, clean2, weather1, weather2, device)
-    return _figures(clean, weather, gt, valid)
-
-
 def run_evaluation(model, folder: WeatherFolder, dataset: Dataset, device="cpu",
                    on_pair: Callable[[EvalRow], None] = lambda r: None) -> tuple[list, dict]:
     """Evaluate every complete pair of ``folder``; return the rows and their means.
