@@ -36,7 +36,7 @@ from ..outputs import (ATTACK_FOLDER, MANIFEST, AttackPairOutput, PairOutput, cl
                        pair_metadata, read_pair_summary, write_attack_manifest, write_attack_pair)
 from ..outputs.metadata import identity_arrays
 from ..jobs import (depth_note, frame2_note, layer_seeds, pair_particles, pair_seed,
-                    published_geometry_note, scene_airlight, scene_firsts, scene_key,
+                    scene_airlight, scene_firsts, scene_key, selected_pairs,
                     torch_threads, visibility_of, weather_scaling, weather_seed)
 from .lp import LpSettings, lp_attack_batch
 from .figures import PairSummary, mean_summary, summarize_pair, written_flow
@@ -464,12 +464,7 @@ def run_attack(job: AttackJob,
             raise ConfigError("${particles_from}: a sequence attack starts from the weather "
                               "field of ${seed}, not from stored particles")
     # Everything that can fail on bad options fails before the output folder is touched.
-    refs = job.dataset.pairs()
-    for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
-        on_note(note)
-    geometry = published_geometry_note(job.dataset, job.particles_from)
-    if geometry is not None:
-        on_note(geometry)
+    refs = selected_pairs(job.dataset, job.particles_from, on_note)
     if not refs:
         raise ConfigError(job.dataset.no_pairs_message())
     job.scene_firsts = scene_firsts(refs)

@@ -9,12 +9,12 @@
 
 from __future__ import annotations
 
-from .particles import (layer_seeds, pair_particles, pair_seed, published_geometry_note,
-                        scene_airlight, scene_firsts, scene_key, weather_scaling, weather_seed)
+from .particles import (layer_seeds, pair_particles, pair_seed, scene_airlight, scene_firsts, scene_key,
+                        selected_pairs, weather_scaling, weather_seed)
 from .threads import torch_threads
 from .visibility import FRAME2_KEPT_MIN, depth_note, few_in_frame2, frame2_note, visibility_of
 
 __all__ = ["FRAME2_KEPT_MIN", "depth_note", "few_in_frame2", "frame2_note", "layer_seeds",
-           "pair_particles", "pair_seed", "published_geometry_note", "scene_airlight",
-           "scene_firsts", "scene_key", "torch_threads",
+           "pair_particles", "pair_seed", "scene_airlight", "scene_firsts", "scene_key",
+           "selected_pairs", "torch_threads",
            "visibility_of", "weather_scaling", "weather_seed"]

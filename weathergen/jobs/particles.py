@@ -91,21 +91,23 @@ def pair_particles(pair: FramePair, preset: Preset, run_seed: int, *, world_up: 
     return particles.replace(settings=particles.settings.replace(**appearance))
 
 
-def published_geometry_note(dataset, particles_from: Optional[Path]) -> Optional[str]:
-    """A note when the paper's published weather is drawn into a dataset opened otherwise than
-    in the research code's frame and scaling (its per-scene depth factors, its camera translation
-    zeroed in the scenes it scales): the particles then sit elsewhere than that code drew them.
-    None when nothing is to be said."""
-    if particles_from is None or not is_published_set(particles_from):
-        return None
+def selected_pairs(dataset, particles_from: Optional[Path], on_note) -> list:
+    """The dataset's selected pairs; its notes (e.g. a gap in a scene's frame numbering) go to
+    ``on_note``, and so does one when the paper's published weather is drawn into a dataset opened
+    otherwise than in the research code's frame and scaling (its per-scene depth factors, its
+    camera translation zeroed in the scenes it scales): the particles then sit elsewhere than that
+    code drew them."""
+    refs = dataset.pairs()
+    for note in dataset.scene_notes():
+        on_note(note)
     research = (getattr(dataset, "scene_scales_bundled", False)
                 and getattr(dataset, "camera_translation", None) == "unscaled")
-    if research:
-        return None
-    return (f"{particles_from} holds the paper's published weather, placed in the research code's "
-            f"frame and scaling; to draw it where that code drew it, open the dataset as it did: "
-            f"--compat reference, or --scene-scales research --no-translation-in-scaled-scenes "
-            f"(docs/render.md)")
+    if particles_from is not None and is_published_set(particles_from) and not research:
+        on_note(f"{particles_from} holds the paper's published weather, placed in the research "
+                f"code's frame and scaling; to draw it where that code drew it, open the dataset "
+                f"as it did: --compat reference, or --scene-scales research "
+                f"--no-translation-in-scaled-scenes (docs/render.md)")
+    return refs
 
 
 def _auto_sky(preset) -> Optional[float]:

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from .bookkeeping import record_run
 from .job import RENDER_THREADS, PairResult, RenderJob, render_batch, run_render
-from ..jobs.particles import pair_particles, pair_seed, published_geometry_note
+from ..jobs.particles import pair_particles, pair_seed
 from .plan import (APPEARANCE_KEYS, ResolvedPreset, default_batch_size, default_out,
                    default_pass_name, published_preset, resolve_preset)
 from .preview import contact_sheet
@@ -22,6 +22,6 @@ from .video import VideoPreview, output_frame_rate, video_preview
 
 __all__ = ["APPEARANCE_KEYS", "RENDER_THREADS", "ResolvedPreset", "default_batch_size",
            "default_out", "default_pass_name", "resolve_preset", "PairResult", "RenderJob",
-           "contact_sheet", "pair_particles", "published_geometry_note", "published_preset",
+           "contact_sheet", "pair_particles", "published_preset",
            "pair_seed", "parse_shard", "record_run", "render_batch",
            "run_render", "shard_refs", "VideoPreview", "output_frame_rate", "video_preview"]

@@ -32,8 +32,8 @@ from ..engine.rendering.stereo import render_right, render_right_layers, stereo_
 from ..errors import ConfigError, NothingRendered, WeatherGenError
 from ..execution import check_executor, ray_gpus_for, ray_map, where_ran, worker_device
 from ..framepair import FramePairBatch, PairId
-from ..jobs import (depth_note, frame2_note, layer_seeds, pair_particles, published_geometry_note,
-                    scene_airlight, scene_firsts, visibility_of, weather_scaling, weather_seed)
+from ..jobs import (depth_note, frame2_note, layer_seeds, pair_particles,
+                    scene_airlight, scene_firsts, selected_pairs, visibility_of, weather_scaling, weather_seed)
 from ..outputs import RENDER_FOLDER, RightView, claim_folder, pair_metadata, write_pair_outputs
 from ..io.atomic import write_error
 from ..memory import available_memory, failure_message
@@ -328,12 +328,7 @@ def _selection(job: RenderJob, on_note) -> tuple[list[PairRef], list[PairRef]]:
     """Every selected pair, and those of the job's shard; the dataset's notes go to ``on_note``.
 
     A root that is not of the chosen layout fails here, before the output folder is touched."""
-    every = job.dataset.pairs()
-    for note in job.dataset.scene_notes():      # e.g. a gap in a scene's frame numbering
-        on_note(note)
-    geometry = published_geometry_note(job.dataset, job.particles_from)
-    if geometry is not None:
-        on_note(geometry)
+    every = selected_pairs(job.dataset, job.particles_from, on_note)
     refs = shard_refs(every, job.shard)
     if not every:
         raise ConfigError(job.dataset.no_pairs_message())
