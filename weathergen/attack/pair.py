@@ -476,12 +476,6 @@ class PairOptimisation(BatchOptimisation):
             self.variables = single
 
 
-def _stalled(settings: AttackSettings, history: list, loss: torch.Tensor) -> bool:
-    """Whether ``settings.early_stop`` ends, at a step of ``loss``, a pair with ``history``."""
-    stop = settings.early_stop
-    return stop is not None and stop.stalled([r.loss for r in history] + [float(loss.detach())])
-
-
 def attack_batch(model: torch.nn.Module, pairs: Sequence[FramePair], particles: Sequence,
                  settings: AttackSettings, target: TargetSpec = TargetSpec("zero"), *,
                  device=None, target_file_flow: Optional[torch.Tensor] = None,
@@ -549,7 +543,9 @@ def _finishing(run: BatchOptimisation, log: StepLog, active: list, losses: torch
     """Which active pairs stop at this step of ``losses``: one none of whose particles reaches
     its frames, and whose penalty depends on no freed variable, has nothing to optimise (it is
     frozen); so does one whose loss has converged (``settings.early_stop``)."""
-    return [a and (not d or _stalled(run.settings, log.history[i], losses[i]))
+    stop = run.settings.early_stop
+    return [a and (not d or stop is not None and stop.stalled([r.loss for r in log.history[i]]
+                                                              + [float(losses[i].detach())]))
             for i, (a, d) in enumerate(zip(active, run.depends))]
 
 

@@ -159,13 +159,6 @@ def _with_settings(table_rows: list[dict], rows: Sequence[dict]) -> list[dict]:
             for t in table_rows]
 
 
-def settings_lines(rows: Sequence[dict]) -> list[str]:
-    """The settings behind the finished cells, one line each that differs
-    (:func:`~weathergen.attack.record.settings_text`): what every table's caption carries."""
-    return list(dict.fromkeys(f"{r['kind']} cells: {settings_text(r['settings'])}"
-                              for r in rows if r.get("settings")))
-
-
 # -- the tables as data --------------------------------------------------------------------------
 
 @dataclass
@@ -565,7 +558,9 @@ def write_tables(spec: BenchmarkSpec) -> dict[str, Path]:
         document["ladders"] = {"curves": _with_settings(curve_rows(curves), rows),
                                "scores": _with_settings(score_rows(curves), rows)}
     tables = build_tables(rows, networks, presets=spec.presets) + ladder_tables(curves, networks)
-    settings = settings_lines(rows)
+    # The settings behind the finished cells, one line each that differs: every caption's.
+    settings = dict.fromkeys(f"{r['kind']} cells: {settings_text(r['settings'])}"
+                             for r in rows if r.get("settings"))
     caption = {name: (md + "".join(f" Settings, {line}." for line in settings),
                       tex + "".join(f" Settings, {latex_text(line)}." for line in settings))
                for name, (md, tex) in captions(spec, tables).items()}

@@ -149,14 +149,6 @@ def default_batch_size(device: str | torch.device) -> int:
 PAIRS_PER_WORKER = 8
 
 
-def usable_cores() -> int:
-    """CPU cores this process may run on (its affinity mask where the system has one)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:
-        return os.cpu_count() or 1
-
-
 def auto_workers(pairs: int, device: str = "cpu", cores: Optional[int] = None) -> int:
     """The worker count of ``workers=auto`` (``RenderJob.workers = 0``).
 
@@ -167,5 +159,7 @@ def auto_workers(pairs: int, device: str = "cpu", cores: Optional[int] = None) -
     """
     if not str(device).startswith("cpu"):
         return 1
-    cores = usable_cores() if cores is None else cores
+    if cores is None:       # the cores this process may run on (its affinity mask where it has one)
+        cores = (len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity")
+                 else os.cpu_count() or 1)
     return max(1, min(cores, pairs // PAIRS_PER_WORKER))
