@@ -37,10 +37,23 @@ def _text(img, text: str, org, scale=0.45, colour=INK, centre=False) -> None:
     cv2.putText(img, text, (int(org[0]), int(org[1])), FONT, scale, colour, 1, cv2.LINE_AA)
 
 
-def _nice_step(top: float, ticks: int = 5) -> float:
-    raw = max(top, 1e-9) / ticks
+def _y_axis(img, known: list, x0: int, x1: int, base: int, height: int, scale: float):
+    """Draw the grid lines from 0 up to a round ceiling above the ``known`` values (about five
+    steps of 1, 2, 2.5 or 5 times a power of ten), labelled with their values, between ``x0`` and
+    ``x1`` over ``height`` pixels above ``base``; return the value -> y mapping."""
+    raw = max(max(known, default=1.0) * 1.05, 1e-9) / 5
     power = 10 ** math.floor(math.log10(raw))
-    return next(m * power for m in (1, 2, 2.5, 5, 10) if m * power >= raw)
+    step = next(m * power for m in (1, 2, 2.5, 5, 10) if m * power >= raw)
+    ceiling = step * max(1, math.ceil(max(known, default=1.0) * 1.05 / step))
+
+    def y_of(v: float) -> int:
+        return int(round(base - height * v / ceiling))
+
+    for i in range(int(round(ceiling / step)) + 1):
+        y = y_of(i * step)
+        cv2.line(img, (x0, y), (x1, y), GRID, 1)
+        _text(img, f"{i * step:g}", (x0 - 8 - 7 * len(f"{i * step:g}"), y + 4), scale)
+    return y_of
 
 
 def _light(colour, amount=0.55):
@@ -58,17 +71,8 @@ def draw_chart(values: dict, presets: Sequence[str], networks: Sequence[str]) ->
     height = TOP + PLOT_H + BOTTOM
     img = np.full((height, width, 3), 255, dtype=np.uint8)
     known = [v for pair in values.values() for v in pair if v is not None]
-    step = _nice_step(max(known, default=1.0) * 1.05)
-    top = step * max(1, math.ceil(max(known, default=1.0) * 1.05 / step))
     base = TOP + PLOT_H
-
-    def y_of(v: float) -> int:
-        return int(round(base - PLOT_H * v / top))
-
-    for i in range(int(round(top / step)) + 1):
-        y = y_of(i * step)
-        cv2.line(img, (LEFT, y), (width - RIGHT, y), GRID, 1)
-        _text(img, f"{i * step:g}", (LEFT - 8 - 7 * len(f"{i * step:g}"), y + 4), 0.4)
+    y_of = _y_axis(img, known, LEFT, width - RIGHT, base, PLOT_H, 0.4)
     _text(img, TITLE, (LEFT, 20), 0.45)
     x = LEFT
     for j, net in enumerate(map(network_name, networks)):   # the legend
@@ -155,18 +159,9 @@ def _panel(img, curves, colour, index: int, origin, title: str) -> None:
     left, top = origin
     base = top + PANEL_H
     known = [p[index] for c in curves for p in c.points if p[index] is not None]
-    step = _nice_step(max(known, default=1.0) * 1.05)
-    ceiling = step * max(1, math.ceil(max(known, default=1.0) * 1.05 / step))
     labels = [p[0].rsplit("-", 1)[-1] for p in curves[0].points] if curves else []
     xs = [left + 20 + i * (PANEL_W - 40) / max(1, len(labels) - 1) for i in range(len(labels))]
-
-    def y_of(v: float) -> int:
-        return int(round(base - PANEL_H * v / ceiling))
-
-    for i in range(int(round(ceiling / step)) + 1):
-        y = y_of(i * step)
-        cv2.line(img, (left, y), (left + PANEL_W, y), GRID, 1)
-        _text(img, f"{i * step:g}", (left - 8 - 7 * len(f"{i * step:g}"), y + 4), 0.38)
+    y_of = _y_axis(img, known, left, left + PANEL_W, base, PANEL_H, 0.38)
     _text(img, title, (left, top - 6), 0.42)
     for x, label in zip(xs, labels):
         _text(img, label, (x, base + 18), 0.4, centre=True)
