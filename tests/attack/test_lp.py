@@ -10,9 +10,14 @@ import torch
 from click.testing import CliRunner
 
 from weathergen.attack import (LpOptimisation, TargetSpec, l2_normalised,
-                               l2_normalised_per_pair, lp_attack_batch, lp_attack_pair,
-                               lp_settings, random_perturbation)
+                               l2_normalised_per_pair, lp_attack_batch, lp_settings,
+                               random_perturbation)
 from weathergen.errors import ConfigError
+
+
+def lp_attack_pair(model, image1, image2, settings, target=TargetSpec("zero"), *, seed=0):
+    """One pair's Lp attack: a batch of that pair alone."""
+    return lp_attack_batch(model, image1, image2, settings, target, seeds=[seed])[0]
 
 
 class ToyFlow(torch.nn.Module):

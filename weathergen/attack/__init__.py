@@ -24,7 +24,7 @@ from .configs import ATTACK_CONFIGS, AttackConfig, attack_config
 from .evaluate import EvalRow, default_evaluation_path, mean_rows, run_evaluation, write_evaluation
 from .job import AttackJob, PairReport, attack_refs, job_model, probe_job_network, run_attack
 from .lp import (LP_DEFAULTS, LP_METHODS, PCFA_OPTIMIZERS, LpOptimisation, LpResult, LpSettings, l2_normalised,
-                 l2_normalised_per_pair, lp_attack_batch, lp_attack_pair, lp_pass_name,
+                 l2_normalised_per_pair, lp_attack_batch, lp_pass_name,
                  lp_settings, plan_lp, random_perturbation)
 from .figures import PairSummary, mean_summary, summarize_pair
 from .pair import (MIN_REG_DEPTH, AttackResult, BatchOptimisation, PairOptimisation, StepRecord,
@@ -41,7 +41,7 @@ from .targets import TargetSpec, parse_target, read_target_flow, target_flow
 
 __all__ = ["COMPAT_MODES", "LP_DEFAULTS", "LP_METHODS", "PCFA_OPTIMIZERS", "LpOptimisation", "LpResult",
            "LpSettings", "job_model", "probe_job_network",
-           "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_attack_pair", "lp_pass_name",
+           "l2_normalised", "l2_normalised_per_pair", "lp_attack_batch", "lp_pass_name",
            "lp_settings", "plan_lp",
            "random_perturbation", "AttackPlan", "attack_pass_name", "default_attack_out", "plan_attack",
            "ATMOSPHERE_VARIABLES", "ATTACK_CONFIGS", "AttackConfig", "AttackJob", "AttackResult", "AttackSettings",

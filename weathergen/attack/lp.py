@@ -299,8 +299,8 @@ def lp_attack_batch(model, images1: torch.Tensor, images2: torch.Tensor, setting
     each pair's random-perturbation frames. Every step (0 = clean frames) is measured like the
     weather attack's (``penalty`` is PCFA's bound penalty, 0 for I-FGSM); ``on_step`` gets the
     pair's index and its record. Only steps within the bound (zero penalty) can be the best.
-    Returns one :class:`LpResult` per pair, as :func:`lp_attack_pair` gives it for that pair
-    alone (up to floating-point rounding; PCFA with L-BFGS runs the pairs one after the other).
+    Returns one :class:`LpResult` per pair, as a batch of that pair alone gives it (up to
+    floating-point rounding; PCFA with L-BFGS runs the pairs one after the other).
     """
     if len(seeds) != images1.shape[0]:
         raise ConfigError(f"{len(seeds)} seeds for {images1.shape[0]} frame pairs")
@@ -339,21 +339,6 @@ def lp_attack_batch(model, images1: torch.Tensor, images2: torch.Tensor, setting
                      best_flow=log.best_flow[i], target=goal[i:i + 1], best_frames=best_frames[i],
                      random_frames=(rand1[i:i + 1].cpu(), rand2[i:i + 1].cpu()))
             for i in range(size)]
-
-
-def lp_attack_pair(model, image1: torch.Tensor, image2: torch.Tensor, settings: LpSettings,
-                   target: TargetSpec = TargetSpec("zero"), *, seed: int = 0,
-                   target_file_flow: Optional[torch.Tensor] = None,
-                   on_step: Callable[[StepRecord], None] = lambda r: None) -> LpResult:
-    """Attack one pair's frames with ``settings.method``; keep the step closest to the target.
-
-    Shape: image1, image2 (1, 3, H, W) in [0, 1] on the model's device. Every step (0 = clean
-    frames) is measured like the weather attack's (``penalty`` is PCFA's bound penalty, 0 for
-    I-FGSM). ``seed`` draws the random-perturbation frames.
-    """
-    return lp_attack_batch(model, image1, image2, settings, target, seeds=[seed],
-                           target_file_flow=target_file_flow,
-                           on_step=lambda i, record: on_step(record))[0]
 
 
 def plan_lp(method: str, epsilon: Optional[float] = None, steps: Optional[int] = None,
