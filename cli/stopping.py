@@ -36,10 +36,8 @@ def terminate_as_interrupt() -> Iterator[list]:
 
     previous = None
     if signal.getsignal(signal.SIGTERM) != signal.SIG_IGN:
-        try:
+        with contextlib.suppress(ValueError):      # not the main thread: leave signals alone
             previous = signal.signal(signal.SIGTERM, handler)
-        except ValueError:      # not the main thread: leave signals alone
-            previous = None
     try:
         yield stopped_by
     except SystemError as exc:

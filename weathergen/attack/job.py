@@ -418,13 +418,6 @@ def _complete(job: AttackJob, ref, refs: list) -> bool:
     return all(pair_output(job, r.id).is_complete() for r in scene)
 
 
-def _units(job: AttackJob, todo: list) -> list[list]:
-    """The work units: ``batch_size`` pairs each, or a sequence attack's scenes."""
-    if job.sequence:
-        return scene_units(todo)
-    return [todo[i:i + job.batch_size] for i in range(0, len(todo), job.batch_size)]
-
-
 def _ray_attack_unit(job: AttackJob, refs: list) -> list[PairReport]:
     """A Ray task: attack some pairs on the device this task was given."""
     return attack_refs(job, refs, device=worker_device(job.device, "ray"))
@@ -493,7 +486,10 @@ def _attack_locked(job, refs, model, target_file_flow, previous, on_start, on_st
     stopped_by = None
     try:
         todo = [ref for ref in refs if not _skipped(job, ref, refs, book)]
-        for reports in _unit_reports(job, _units(job, todo), model, target_file_flow, on_step):
+        # the work units: batch_size pairs each, or a sequence attack's scenes
+        units = (scene_units(todo) if job.sequence
+                 else [todo[i:i + job.batch_size] for i in range(0, len(todo), job.batch_size)])
+        for reports in _unit_reports(job, units, model, target_file_flow, on_step):
             for report in reports:
                 book.record(report)
             book.save()

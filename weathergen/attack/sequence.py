@@ -181,21 +181,17 @@ class PairView:
         return []
 
 
-def _scene_variables(world, settings: AttackSettings, device):
-    world = world.to(device=device, dtype=torch.float32)
-    options = dict(transparency_max=settings.transparency_max)
-    if isinstance(world, LayeredParticles):
-        return LayeredVariables(world, settings.optimize, layers=settings.layers, **options)
-    return WeatherVariables(world, settings.optimize, **options)
-
-
 def _runs(model, pairs, particles, weather: SceneWeather, settings, target, device,
           target_file_flow, chunk: int):
     """The pairs' evaluations, ``chunk`` pairs each, their variables the scene's; and those."""
     runs = [BatchOptimisation(model, pairs[i:i + chunk], particles[i:i + chunk], settings,
                               target, device=device, target_file_flow=target_file_flow)
             for i in range(0, len(pairs), chunk)]
-    scene = _scene_variables(weather.world, settings, runs[0].frames["image1"].device)
+    world = weather.world.to(device=runs[0].frames["image1"].device, dtype=torch.float32)
+    scene = (LayeredVariables(world, settings.optimize, layers=settings.layers,
+                              transparency_max=settings.transparency_max)
+             if isinstance(world, LayeredParticles) else
+             WeatherVariables(world, settings.optimize, transparency_max=settings.transparency_max))
     p = 0
     for run in runs:
         views = []

@@ -116,14 +116,6 @@ class BenchmarkSpec:
         except ConfigError as exc:
             raise renamed(exc, "networks") from None
 
-    def weather_labels(self) -> list[str]:
-        """The weather cells' labels of each network: the presets, then every ladder's rungs not
-        among them."""
-        labels = list(dict.fromkeys(self.presets))
-        for ladder in self.ladders:
-            labels += [p for p in ladder_presets(ladder) if p not in labels]
-        return labels
-
     def cells(self) -> list[Cell]:
         """Every run of the grid, in order. ConfigError names the benchmark's option of a
         method, preset or ladder it cannot run (before the attack's own checks would name the
@@ -139,7 +131,9 @@ class BenchmarkSpec:
         for method in self.lp_methods:
             if method not in LP_METHODS:
                 raise ConfigError(f"${{lp}} {method!r}: expected {', '.join(LP_METHODS)}")
-        labels = self.weather_labels()
+        labels = list(dict.fromkeys(self.presets))    # the presets, then the ladders' other rungs
+        for ladder in self.ladders:
+            labels += [p for p in ladder_presets(ladder) if p not in labels]
         if not labels and not self.lp_methods:
             raise ConfigError("the grid is empty: ${presets}, ${lp} and ${ladder} name nothing "
                               "to run")

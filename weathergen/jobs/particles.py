@@ -110,15 +110,6 @@ def selected_pairs(dataset, particles_from: Optional[Path], on_note) -> list:
     return refs
 
 
-def _auto_sky(preset) -> Optional[float]:
-    """The farthest sky distance of the preset's field layers whose atmosphere takes an ``auto``
-    airlight; None where none does."""
-    layers = preset.layers if isinstance(preset, CombinedPreset) else (preset,)
-    skies = [p.sky_distance for p in layers if isinstance(p, FieldPreset) and p.has_atmosphere
-             and p.airlight == "auto"]
-    return max(skies) if skies else None
-
-
 def scene_key(pair_id: PairId) -> tuple[str, str, str]:
     return pair_id.dataset, pair_id.split, pair_id.scene
 
@@ -144,7 +135,10 @@ def scene_airlight(dataset, pair_id: PairId, firsts: dict, preset
     :func:`scene_firsts`), so that every pair of a scene, and so every frame of a sequence, shares
     it. None where the preset takes none, or the first pair cannot be read (each pair then
     estimates its own)."""
-    sky = _auto_sky(preset)
+    layers = preset.layers if isinstance(preset, CombinedPreset) else (preset,)
+    # the farthest sky distance of the field layers whose atmosphere takes an auto airlight
+    sky = max((p.sky_distance for p in layers if isinstance(p, FieldPreset) and p.has_atmosphere
+               and p.airlight == "auto"), default=None)
     first = firsts.get(scene_key(pair_id))
     if sky is None or first is None:
         return None
