@@ -90,7 +90,8 @@ def _show(console: Console, p, title: str) -> None:
         if _applies(p, f.name):
             table.add_row(f.name, _fmt(getattr(p, f.name)), f.metadata.get("doc", ""))
         if field_model and f.name == _VEIL_AFTER:
-            table.add_row("(veil)", _veil(p),
+            table.add_row("(veil)", f"{extinction_visibility(p.extinction):.0f} m (β₀ "
+                          f"{1000 * p.extinction:.3g} /km)" if p.has_atmosphere else "clear air",
                           "visibility of the air as rendered: -ln(0.05) / β₀, β₀ the extinction "
                           "of visibility, rain_rate and snow_rate together")
     console.print(table)
@@ -113,13 +114,6 @@ _FIELD_CAPTION = ("visibility: of the air as rendered, rain and snow included; �
 def _applies(p, key: str) -> bool:
     """Whether preset ``p`` uses ``key``: every key but the particles' in an atmosphere alone."""
     return not isinstance(p, FieldPreset) or p.density > 0 or key in ATMOSPHERE_KEYS
-
-
-def _veil(p: FieldPreset) -> str:
-    """The visibility of a field preset's air as the renderer draws it, and its β₀."""
-    if not p.has_atmosphere:
-        return "clear air"
-    return f"{extinction_visibility(p.extinction):.0f} m (β₀ {1000 * p.extinction:.3g} /km)"
 
 
 def _main_value(p, key: str) -> str:

@@ -239,13 +239,6 @@ def render_frame(prims, cam_from_world: np.ndarray, k: np.ndarray):
     return rgb.reshape(HEIGHT, WIDTH, 3), t.reshape(HEIGHT, WIDTH), points
 
 
-def _final_pass(rgb: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """A "final" rendering: depth haze and a slight lens blur on top of the clean frame."""
-    haze = 1 - np.exp(-depth / 40.0)
-    out = rgb * (1 - haze[..., None]) + np.array([0.78, 0.80, 0.84]) * haze[..., None]
-    return np.clip(cv2.GaussianBlur(out, (0, 0), 0.7), 0, 1)
-
-
 def write_demo_scene(root: str | Path) -> Path:
     """Generate every demo scene into ``root`` (Sintel layout, training split)."""
     root = Path(root)
@@ -257,7 +250,9 @@ def write_demo_scene(root: str | Path) -> Path:
         for i, ((rgb, depth, points), cam) in enumerate(zip(frames, cams), start=1):
             fname = f"frame_{i:04d}"
             write_png(tr / "clean" / name / f"{fname}.png", rgb)
-            write_png(tr / "final" / name / f"{fname}.png", _final_pass(rgb, depth))
+            haze = (1 - np.exp(-depth / 40.0))[..., None]     # "final": depth haze, slight lens blur
+            final = rgb * (1 - haze) + np.array([0.78, 0.80, 0.84]) * haze
+            write_png(tr / "final" / name / f"{fname}.png", np.clip(cv2.GaussianBlur(final, (0, 0), 0.7), 0, 1))
             write_dpt(tr / "depth" / name / f"{fname}.dpt", depth.astype(np.float32))
             write_cam(tr / "camdata_left" / name / f"{fname}.cam", k, cam[:3])
             if i == len(frames):
@@ -296,7 +291,10 @@ def demo_root() -> Path:
     tmp = Path(tempfile.mkdtemp(prefix=".demo-scene-", dir=root.parent))
     try:
         write_demo_scene(tmp)
-        (tmp / ".complete").write_text(_digest(tmp))
+        digest = hashlib.sha256()
+        for p in (p for p in sorted(tmp.rglob("*")) if p.is_file()):
+            digest.update(str(p.relative_to(tmp)).encode() + p.read_bytes())
+        (tmp / ".complete").write_text(digest.hexdigest() + "\n")
         try:
             os.rename(tmp, root)
         except OSError:
@@ -306,12 +304,3 @@ def demo_root() -> Path:
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return root
-
-
-def _digest(root: Path) -> str:
-    h = hashlib.sha256()
-    for p in sorted(root.rglob("*")):
-        if p.is_file():
-            h.update(str(p.relative_to(root)).encode())
-            h.update(p.read_bytes())
-    return h.hexdigest() + "\n"
