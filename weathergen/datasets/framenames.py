@@ -43,11 +43,6 @@ class FrameOrder:
     problem: Optional[str] = None
 
 
-def kind_of(name: str) -> str:
-    """The name with every run of digits replaced by ``#``."""
-    return _DIGITS.sub("#", name)
-
-
 def _natural_key(name: str):
     return [(0, int(part), "") if part.isdigit() else (1, 0, part)
             for part in re.split(r"(\d+)", name) if part]
@@ -78,7 +73,7 @@ def order_frames(names: list[str], pattern: Optional[str] = None) -> FrameOrder:
 
     kinds: dict[str, list[str]] = {}
     for n in frames:
-        kinds.setdefault(kind_of(n), []).append(n)
+        kinds.setdefault(_DIGITS.sub("#", n), []).append(n)     # the name, its numbers as #
     if len(kinds) > 1 and any(_DIGITS.search(n) for n in frames):
         listed = "; ".join(f"{k!r}: {counted(len(v), 'file')} ({_examples(v)})"
                            for k, v in sorted(kinds.items(), key=lambda kv: -len(kv[1]))[:4])

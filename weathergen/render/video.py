@@ -221,8 +221,9 @@ def video_preview(render_dir: str | Path, *, pairs: Optional[int] = None,
         starts = {(p.scene, p.frame) for p in chosen}
         for p in chosen:
             shots.append(Shot(p))
-            if (p.scene, p.frame + 1) not in starts and _wrote_second_frame(render_dir, manifest, p):
-                shots.append(Shot(p, True))
+            out = PairOutput.of(render_dir, p, manifest.pass_name, manifest.fmt, sequence=True)
+            if (p.scene, p.frame + 1) not in starts and out.frame_file(1) in out.listed_files():
+                shots.append(Shot(p, True))     # the last pair of a scene wrote its second frame
     else:
         repeat = cycles if cycles is not None else max(1, math.ceil(PAIR_SECONDS * rate / 2 - 1e-9))
         for p in chosen:
@@ -249,9 +250,3 @@ def _check_options(pairs: Optional[int], width: Optional[int], fps: Optional[flo
                           "second")
     if cycles is not None and not 1 <= cycles <= MAX_CYCLES:
         raise ConfigError(f"${{cycles}} {cycles}: must be in [1, {MAX_CYCLES}]")
-
-
-def _wrote_second_frame(root: Path, manifest: OutputManifest, pair_id: PairId) -> bool:
-    """Whether a sequence output's pair wrote its second frame (the last pair of a scene does)."""
-    out = PairOutput.of(root, pair_id, manifest.pass_name, manifest.fmt, sequence=True)
-    return out.frame_file(1) in out.listed_files()

@@ -105,12 +105,6 @@ class WeatherSource(Protocol):
 _PRESET_TYPES = (Preset, FieldPreset, CombinedPreset)
 
 
-def preset_digest(preset: Preset) -> str:
-    """Eight hex digits that identify a preset's resolved values."""
-    text = repr(sorted(preset.to_dict().items()))
-    return hashlib.sha256(text.encode()).hexdigest()[:8]
-
-
 class PresetSource:
     """One preset of either weather model, sampled as ``weathergen render`` samples it
     (:func:`~weathergen.engine.sample_weather`): a paper preset places its ``count`` visible
@@ -135,7 +129,9 @@ class PresetSource:
                 raise ConfigError("overrides apply to presets given by name or path, "
                                   "not to a loaded Preset")
             self.preset = preset
-            self.name = name or f"preset-{preset_digest(preset)}"
+            # unnamed: eight hex digits that identify the preset's resolved values
+            digest = hashlib.sha256(repr(sorted(preset.to_dict().items())).encode()).hexdigest()
+            self.name = name or f"preset-{digest[:8]}"
         else:
             try:
                 self.preset = load_preset(preset, overrides=dict(overrides or {}))
@@ -272,15 +268,11 @@ class WeatherAugment:
         seed = int.from_bytes(digest[16:24], "big") >> 1      # 63 bits of the digest's slot 2
         return WeatherDraw(applied=True, source=source.name, seed=seed)
 
-    def _source(self, name: str) -> WeatherSource:
-        for s in self.sources:
-            if s.name == name:
-                return s
-        raise ConfigError(f"sample was prepared with weather {name!r}, which this transform "
-                          f"does not have ({', '.join(s.name for s in self.sources)})")
-
     def _particles(self, pair: FramePair, draw: WeatherDraw, world_up: str, sample_on=None):
-        source = self._source(draw.source)
+        source = next((s for s in self.sources if s.name == draw.source), None)
+        if source is None:
+            raise ConfigError(f"sample was prepared with weather {draw.source!r}, which this "
+                              f"transform does not have ({', '.join(s.name for s in self.sources)})")
         if sample_on is not None and isinstance(source, PresetSource):
             return source.sample(pair, draw.seed, self.world_up or world_up, sample_on=sample_on)
         return source.sample(pair, draw.seed, self.world_up or world_up)
