@@ -66,15 +66,6 @@ def summary_table(title: str, summary: dict, what: str = "weather", compat: str 
     return table
 
 
-def pair_line(s, versus: str) -> str:
-    """A written pair's figures in one line (a sequence attack's: the pair attacked alone too)."""
-    alone = ("" if s.per_pair_aee_adversarial is None else
-             f" (the pair attacked alone: {s.per_pair_aee_adversarial:.3f})")
-    return (f"AEE(f, f̌) random {s.aee_random:.3f} -> adversarial{versus} "
-            f"{s.aee_adversarial:.3f}{alone}, distance to target {s.target_initial:.3f} "
-            f"-> {s.target_adversarial:.3f}")
-
-
 def scene_table(summary: dict) -> Table:
     """A sequence attack's AEE(f, f̌) per scene: random weather, one adversarial weather for the
     scene, and each pair attacked alone (pixels)."""
@@ -338,9 +329,14 @@ class _Reporter:
             self.progress.update(self.task, completed=self.clock.done * (self.total_steps + 1),
                                  status=self.clock.describe())
         if not self.quiet and self.progress is None and report.status != "failed":
-            self.console.print(f"[{self.clock.describe()}] {report.pair} {report.status}: "
-                               + pair_line(report.summary, self.versus), highlight=False,
-                               soft_wrap=True)
+            s = report.summary      # a sequence attack's: the pair attacked alone too
+            alone = ("" if s.per_pair_aee_adversarial is None else
+                     f" (the pair attacked alone: {s.per_pair_aee_adversarial:.3f})")
+            self.console.print(f"[{self.clock.describe()}] {report.pair} {report.status}: AEE(f, f̌) "
+                               f"random {s.aee_random:.3f} -> adversarial{self.versus} "
+                               f"{s.aee_adversarial:.3f}{alone}, distance to target "
+                               f"{s.target_initial:.3f} -> {s.target_adversarial:.3f}",
+                               highlight=False, soft_wrap=True)
 
     def _warn(self, text: str) -> None:
         """One unwrapped line on stderr (above the progress bar), so paths stay whole."""
