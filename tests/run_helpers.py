@@ -1,5 +1,5 @@
-"""Helpers of the tests that run commands: waiting on a running process, the bytes of an output,
-a script imported as a module."""
+"""Helpers of the tests that run commands: a command run in this process and its one-line error,
+waiting on a running process, the bytes of an output, a script imported as a module."""
 
 from __future__ import annotations
 
@@ -9,6 +9,26 @@ import importlib.util
 import sys
 import time
 from pathlib import Path
+
+from click.testing import CliRunner
+
+from weathergen.cli.main import _register, cli
+
+
+def cli_run(*args):
+    """``weathergen ARGS`` run in this process (click's runner), every command registered."""
+    _register()
+    return CliRunner().invoke(cli, [str(a) for a in args])
+
+
+def one_line_error(res, code: int = 2) -> str:
+    """The run ended with ``code`` and a single 'Error: ...' line, no traceback; that line."""
+    assert res.exit_code == code, res.output
+    assert isinstance(res.exception, SystemExit), repr(res.exception)
+    assert "Traceback" not in res.output
+    lines = res.output.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("Error: "), res.output
+    return lines[0]
 
 
 def wait_for(condition, timeout: float = 180.0, every: float = 0.01) -> bool:

@@ -10,28 +10,14 @@ import shutil
 
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from weathergen.cli.main import _register, cli
 from weathergen.outputs import read_metadata, write_metadata
+from run_helpers import cli_run as run, one_line_error
 
 FAST = ("--scenes", "street", "--frames-per-scene", "2", "--set", "count=300")
 NOT_UTF8 = b"count = 3\n\xff\xfe\x00binary\x89PNG\n"
 
 
-def run(*args):
-    _register()
-    return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def one_line_error(res, code=2) -> str:
-    """The run ended with ``code`` and a single 'Error: ...' line, no traceback."""
-    assert res.exit_code == code, res.output
-    assert isinstance(res.exception, SystemExit), repr(res.exception)
-    assert "Traceback" not in res.output
-    lines = res.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), res.output
-    return lines[0]
 
 
 @pytest.fixture(scope="module")

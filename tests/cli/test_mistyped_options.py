@@ -5,27 +5,15 @@ line (exit 2) and in the library (ConfigError naming the parameter)."""
 from __future__ import annotations
 
 import pytest
-from click.testing import CliRunner
 
 from weathergen.benchmark import BenchmarkSpec
-from weathergen.cli.main import _register, cli
 from weathergen.errors import ConfigError
 from weathergen.render import contact_sheet, video_preview
 from weathergen.render.preview import MAX_TILE_WIDTH
 from weathergen.render.video import MAX_CYCLES, MAX_FPS, MIN_FPS
+from run_helpers import cli_run as run, one_line_error
 
 
-def run(*args):
-    _register()
-    return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def one_line_error(res) -> str:
-    assert res.exit_code == 2, res.output
-    assert "Traceback" not in res.output
-    lines = res.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), res.output
-    return lines[0]
 
 
 @pytest.mark.parametrize("option, value, shown", [

@@ -11,14 +11,13 @@ import shutil
 import cv2
 import numpy as np
 import pytest
-from click.testing import CliRunner
 
-from weathergen.cli.main import _register, cli
 from gif_reader import read_gif
 from weathergen.io.images import read_image, read_raw, to_uint8
 from weathergen.outputs import read_manifest
 from weathergen.render import output_frame_rate, video_preview
 from weathergen.render.video import MIN_SECONDS, PAIR_FPS
+from run_helpers import cli_run as run, one_line_error
 
 pytestmark = pytest.mark.slow
 
@@ -27,17 +26,6 @@ SEQUENCE = ("--scenes", "street", "--preset", "snow-light", "--set", "far=5", "-
 PAIRS = ("--scenes", "street", "--frames-per-scene", "2", "--set", "count=300")
 
 
-def run(*args):
-    _register()
-    return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def one_line_error(res) -> str:
-    assert res.exit_code == 2, res.output
-    assert "Traceback" not in res.output
-    lines = res.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), res.output
-    return lines[0]
 
 
 def cv2_frames(path) -> tuple[list[np.ndarray], float]:

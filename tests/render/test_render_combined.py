@@ -8,27 +8,15 @@ import json
 import numpy as np
 import pytest
 import torch
-from click.testing import CliRunner
 
 from engine_scenes import plane_pair, wisps
-from weathergen.cli.main import _register, cli
 from weathergen.engine import (EXAMPLE_COMBINATIONS, LayeredParticles, layer_seed, load_preset,
                                sample_layers, scene_seed)
 from weathergen.framepair import PairId
 from weathergen.jobs import layer_seeds, pair_particles, pair_seed, weather_seed
+from run_helpers import cli_run as run, one_line_error
 
 
-def run(*args):
-    _register()
-    return CliRunner().invoke(cli, [str(a) for a in args])
-
-
-def one_line_error(res) -> str:
-    assert res.exit_code == 2, res.output
-    assert "Traceback" not in res.output
-    lines = res.output.strip().splitlines()
-    assert len(lines) == 1 and lines[0].startswith("Error: "), res.output
-    return lines[0]
 
 
 def test_each_layer_seed_comes_from_its_own_models_seed():
