@@ -42,7 +42,6 @@ import os
 import subprocess
 import sys
 import time
-import types
 from argparse import Namespace
 from pathlib import Path
 
@@ -51,6 +50,10 @@ import numpy as np
 import torch
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from research_code import research_sintel  # noqa: E402
+
 SCENE = "bamboo_1"     # a scene the research code's depth-scale table leaves as it is
 #: The research code's generation arguments for each of our presets (its readme's commands and
 #: the paper's table); ``sparks-research`` is its readme's colour, (255, 100, 70), no S jitter.
@@ -160,22 +163,8 @@ def research_worker(research: Path, tree: Path, out: Path, rows: list, seeds: in
                     counts: dict) -> None:
     """Sample each row's particles with the research code over ``seeds`` seeds and save them
     with its ``save_weatherfile`` as ``out/ROW/seed_S/SCENE/frame_0001.npz``."""
-    sys.path.insert(0, str(research))
-    sys.modules.setdefault("torchvision", types.ModuleType("torchvision"))
-    from helper_functions import datasets, frame_utils
+    ds = research_sintel(research, tree)
     from weather_attack import utils, weather
-
-    def read_flo(path):     # its readFlow fails under numpy 2; the flow is not used here
-        with open(path, "rb") as f:
-            np.fromfile(f, np.float32, 1)
-            w, h = np.fromfile(f, np.int32, 2)
-            return np.fromfile(f, np.float32, 2 * int(w) * int(h)).reshape(int(h), int(w), 2)
-
-    frame_utils.readFlow = read_flo
-    data_args = Namespace(dstype="clean", single_scene="", from_scene="", frame_per_scene=0,
-                          from_frame=0, scene_scale=1.0, weather_data="")
-    ds = datasets.MpiSintel(data_args, split="training", root=str(tree), has_gt=True,
-                            get_weather=True)
     scene_data = [torch.as_tensor(np.asarray(s)).float()[None] for s in ds[0][4]]
     for row in rows:
         args = Namespace(**{**RESEARCH_DEFAULTS, **RESEARCH[row], "num_flakes": counts[row],

@@ -33,7 +33,6 @@ from __future__ import annotations
 import argparse
 import math
 import sys
-import types
 from argparse import Namespace
 from pathlib import Path
 
@@ -42,6 +41,9 @@ import torch
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "scripts"))
+
+from research_code import research_sintel  # noqa: E402
 
 from weathergen.datasets import load_scene_scales, open_dataset  # noqa: E402
 from weathergen.engine import load_preset, render_pair  # noqa: E402
@@ -118,23 +120,9 @@ def write_tree(root: Path) -> None:
 
 def run_research(research: Path, tree: Path, out: Path, count: int, sets) -> None:
     """The research code's reader, generator, ``save_weatherfile`` and renderer on the tree."""
-    sys.path.insert(0, str(research))
-    sys.modules.setdefault("torchvision", types.ModuleType("torchvision"))
-    from helper_functions import datasets, frame_utils
+    ds = research_sintel(research, tree)
     from weather_attack import utils, weather
     from weather_attack.render import render
-
-    def read_flo(path):     # its readFlow fails under numpy 2; the flow is not used here
-        with open(path, "rb") as f:
-            np.fromfile(f, np.float32, 1)
-            w, h = np.fromfile(f, np.int32, 2)
-            return np.fromfile(f, np.float32, 2 * int(w) * int(h)).reshape(int(h), int(w), 2)
-
-    frame_utils.readFlow = read_flo
-    data_args = Namespace(dstype="clean", single_scene="", from_scene="", frame_per_scene=0,
-                          from_frame=0, scene_scale=1.0, weather_data="")
-    ds = datasets.MpiSintel(data_args, split="training", root=str(tree), has_gt=True,
-                            get_weather=True)
     for name in sets:
         config = CONFIGS[name]
         args = Namespace(**{**DEFAULTS, **config,
